@@ -1,0 +1,1 @@
+"""The three services (plant_sim, autotuner, logger) and the `autotune` command."""

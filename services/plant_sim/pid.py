@@ -1,0 +1,123 @@
+"""The loop's PID block, as in a DCS: ideal (ISA) form, derivative filter, manual/auto,
+bumpless transfer and gain changes, output limits with anti-windup.
+
+Discretisation (Åström & Hägglund, *Advanced PID Control*, 2006, §3.6; *Computer-Controlled
+Systems*, 1997, §8.6), executed once per sample period T at t_k, s = +1 reverse, −1 direct:
+
+    P_k = s·Kc·(β·sp_k − y_k)
+    D_k = −s·Kc·Td·ẏ_k,  ẏ_k = Tf/(Tf+T)·ẏ_{k−1} + (y_k − y_{k−1})/(Tf+T),  Tf = Td/N
+    u_k = clamp(P_k + I_k + D_k, lo, hi)
+    I_{k+1} = I_k + s·Kc·T/Ti·(sp_k − y_k)
+
+Derivative acts on the measurement (no kick on setpoint changes), backward difference (stable
+for any Td, T). The integral term I is kept in output units, so bumpless transfer sets it
+to u − P − D on a switch to auto or a gain change. Anti-windup is conditional integration:
+the integrator holds while the output sits at a limit and the error would drive it further,
+and I itself stays within the output limits; so the output leaves a limit as soon as the
+error reverses. With Ti = None the I term is a manual reset (bias), still set bumplessly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from shared.messages import Action, Mode, PidGains
+
+
+@dataclass
+class PidTerms:
+    """The last execution's terms, in % of output."""
+
+    p: float = 0.0
+    i: float = 0.0
+    d: float = 0.0
+
+
+class PidBlock:
+    """One PID block; call ``update(sp, pv)`` once per sample period."""
+
+    def __init__(self, gains: PidGains, sample_time: float, op_limits: tuple[float, float],
+                 action: Action = "reverse", mode: Mode = "manual", op: float = 0.0):
+        lo, hi = op_limits
+        if not 0.0 <= lo < hi <= 100.0:
+            raise ValueError(f"op_limits must satisfy 0 ≤ low < high ≤ 100, got {op_limits}")
+        if sample_time <= 0:
+            raise ValueError(f"sample_time must be > 0, got {sample_time}")
+        self.gains = gains
+        self.sample_time = sample_time
+        self.op_limits = (float(lo), float(hi))
+        self.sign = 1.0 if action == "reverse" else -1.0
+        self.action: Action = action
+        self.mode: Mode = mode
+        self.op = self._clamp(op)
+        self.terms = PidTerms(i=self.op)
+        self._pv_prev: float | None = None
+        self._dpv = 0.0  # filtered d(pv)/dt, PV units per s
+
+    def _clamp(self, u: float) -> float:
+        lo, hi = self.op_limits
+        return min(max(u, lo), hi)
+
+    def _p(self, sp: float, pv: float) -> float:
+        return self.sign * self.gains.kc * (self.gains.beta * sp - pv)
+
+    def _d(self) -> float:
+        return -self.sign * self.gains.kc * self.gains.td * self._dpv
+
+    def _filter_derivative(self, pv: float) -> None:
+        if self._pv_prev is None:
+            self._dpv = 0.0
+        else:
+            tf = self.gains.td / self.gains.n
+            t = self.sample_time
+            self._dpv = tf / (tf + t) * self._dpv + (pv - self._pv_prev) / (tf + t)
+        self._pv_prev = pv
+
+    def track(self, pv: float, op: float) -> None:
+        """Manual mode: follow the process so a later switch to auto is bumpless."""
+        self._filter_derivative(pv)
+        self.op = self._clamp(op)
+
+    def update(self, sp: float, pv: float) -> float:
+        """Auto mode: execute once at t_k; return the output to hold until t_{k+1}."""
+        self._filter_derivative(pv)
+        p, d = self._p(sp, pv), self._d()
+        i = self.terms.i
+        v = p + i + d
+        u = self._clamp(v)
+        self.terms = PidTerms(p, i, d)
+        self.op = u
+        if self.gains.ti is not None:
+            step = self.sign * self.gains.kc * self.sample_time / self.gains.ti * (sp - pv)
+            lo, hi = self.op_limits
+            winding_up = (v >= hi and step > 0) or (v <= lo and step < 0)
+            if not winding_up:
+                # I may not grow past a limit, but a bumpless rebase may have left it outside
+                # one: it is never pulled back in a jump.
+                i_next = i + step
+                if step > 0 and i_next > hi:
+                    i_next = max(i, hi)
+                elif step < 0 and i_next < lo:
+                    i_next = min(i, lo)
+                self.terms.i = i_next
+        return u
+
+    def _rebase(self, sp: float, pv: float) -> None:
+        """Set I so that P + I + D equals the present output (bumpless)."""
+        p, d = self._p(sp, pv), self._d()
+        self.terms = PidTerms(p, self.op - p - d, d)
+
+    def set_mode(self, mode: Mode, sp: float, pv: float) -> None:
+        """Switch mode at the present output; to auto, without a bump."""
+        if mode == "auto" and self.mode != "auto":
+            self._rebase(sp, pv)
+        self.mode = mode
+
+    def set_gains(self, gains: PidGains, sp: float, pv: float) -> None:
+        """Change gains without moving the output."""
+        self.gains = gains
+        self._rebase(sp, pv)
+
+    def set_output(self, op: float) -> None:
+        """Manual output (the caller refuses it in auto)."""
+        self.op = self._clamp(op)

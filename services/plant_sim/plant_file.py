@@ -1,0 +1,201 @@
+"""Plant files (TOML): which loops a plant_sim process serves and how each is modelled.
+
+Minimum form::
+
+    [loops.hx1]
+    model = "transfer_function"   # or a preset name, or "package.module:Class"
+    num = [1.0]
+    den = [600.0, 70.0, 1.0]
+    delay = 5.0
+    sample_time = 0.25
+    noise_std = 0.0               # PV units
+
+Loop keys (all optional but ``model``): sample_time (s), noise_std (PV units), seed, mode
+("manual"/"auto"), setpoint (PV units), action ("reverse"/"direct"), op_limits ([lo, hi] %),
+pv_range ([lo, hi] PV units), pv_units, sp_track (bool), description, and a ``pid`` table
+(kc, ti, td, n, beta). Every other key is a parameter of the model. A top-level ``seed``
+seeds every loop's noise (each loop also mixes in its own id).
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import pydantic
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.errors import ConfigError
+from shared.keys import check_id
+from shared.messages import Action, Mode, PidGains
+from services.plant_sim.loop import LoopSettings, SimLoop
+from services.plant_sim.models import ModelParamError, ProcessModel
+from services.plant_sim.presets import CUSTOM_DEFAULTS, DEFAULTS, MODELS, LoopDefaults
+
+
+class LoopConfig(BaseModel):
+    """One ``[loops.<id>]`` table; keys not listed here go to the model."""
+
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False, strict=True)
+
+    model: str = Field(min_length=1)
+    sample_time: float | None = Field(default=None, gt=0.0)
+    noise_std: float | None = Field(default=None, ge=0.0)
+    seed: int | None = None
+    mode: Mode = "manual"
+    setpoint: float | None = None
+    action: Action | None = None
+    op_limits: tuple[float, float] = (0.0, 100.0)
+    pv_range: tuple[float, float] | None = None
+    pv_units: str | None = None
+    sp_track: bool = False
+    description: str = ""
+    pid: PidGains | None = None
+
+
+class PlantConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    seed: int = 0
+    loops: dict[str, LoopConfig] = Field(min_length=1)
+
+
+def default_plant_path() -> Path:
+    """The plant served when none is given: one loop of every preset."""
+    return Path(str(resources.files("services.plant_sim") / "plants" / "default.toml"))
+
+
+def load_plant_file(path: str | Path, seed: int | None = None) -> dict[str, SimLoop]:
+    """Read a plant file and build its loops; ConfigError names the loop and field at fault."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ConfigError(f"plant file {path}: cannot read it: {err.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"plant file {path}: not valid TOML: {err}") from None
+    return build_plant(data, source=str(path), seed=seed)
+
+
+def build_plant(data: dict[str, Any], source: str = "plant", seed: int | None = None
+                ) -> dict[str, SimLoop]:
+    """Build every loop of a parsed plant file (``seed`` overrides the file's)."""
+    try:
+        plant = PlantConfig.model_validate(data)
+    except pydantic.ValidationError as err:
+        e = err.errors()[0]
+        where = ".".join(str(p) for p in e["loc"])
+        raise ConfigError(f"plant file {source}: {where}: {e['msg']}") from None
+    plant_seed = plant.seed if seed is None else seed
+    loops = {}
+    for loop_id, cfg in plant.loops.items():
+        loops[loop_id] = build_loop(loop_id, cfg, plant_seed, source)
+    return loops
+
+
+def _resolve_model(name: str) -> tuple[type, LoopDefaults]:
+    if name in MODELS:
+        return MODELS[name], DEFAULTS[name]
+    if ":" not in name:
+        raise ValueError(f"unknown model {name!r}: use one of {', '.join(MODELS)} "
+                         "or 'package.module:Class'")
+    module_name, _, class_name = name.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as err:
+        raise ValueError(f"cannot import {module_name!r}: {err}") from None
+    cls = getattr(module, class_name, None)
+    if not isinstance(cls, type):
+        raise ValueError(f"module {module_name!r} has no class {class_name!r}")
+    return cls, CUSTOM_DEFAULTS
+
+
+def _check_params(cls: type, params: dict[str, Any], model: str) -> str | None:
+    """Name the first unknown or missing parameter of ``cls``, or None when all is well."""
+    sig = inspect.signature(cls)
+    accepted = {n for n, p in sig.parameters.items() if n != "sample_time"}
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.parameters.values()):
+        return None
+    for key in params:
+        if key not in accepted:
+            return f"{key}: not a parameter of model {model!r} (it takes: " \
+                   f"{', '.join(sorted(accepted)) or 'nothing'})"
+    for n, p in sig.parameters.items():
+        if n != "sample_time" and p.default is inspect.Parameter.empty and n not in params \
+                and p.kind not in (inspect.Parameter.VAR_POSITIONAL,):
+            return f"{n}: required by model {model!r}"
+    return None
+
+
+def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "plant"
+               ) -> SimLoop:
+    """Construct the process model and the loop around it."""
+
+    def fail(field: str, reason: str) -> ConfigError:
+        return ConfigError(f"plant file {source}: loops.{loop_id}.{field}: {reason}")
+
+    try:
+        check_id(loop_id)
+    except ValueError as err:
+        raise ConfigError(f"plant file {source}: loops.{loop_id}: {err}") from None
+    try:
+        cls, defaults = _resolve_model(cfg.model)
+    except ValueError as err:
+        raise fail("model", str(err)) from None
+    sample_time = cfg.sample_time if cfg.sample_time is not None else defaults.sample_time
+    if sample_time is None:
+        raise fail("sample_time", f"required for model {cfg.model!r} (seconds, > 0)")
+    params = dict(cfg.model_extra or {})
+    problem = _check_params(cls, params, cfg.model)
+    if problem:
+        field, _, reason = problem.partition(": ")
+        raise fail(field, reason)
+    try:
+        process = cls(sample_time=sample_time, **params)
+    except ModelParamError as err:
+        raise fail(err.field, err.reason) from None
+    except (TypeError, ValueError) as err:
+        raise fail("model", f"{cfg.model} rejected its parameters: {err}") from None
+    if not isinstance(process, ProcessModel):
+        missing = [m for m in ("sample_time", "pv_units", "pv_range", "op0", "reset", "step",
+                               "disturbance_names", "set_disturbance") if not hasattr(process, m)]
+        raise fail("model", f"{cfg.model} does not implement the ProcessModel protocol "
+                            f"(missing: {', '.join(missing)})")
+
+    pv_range = cfg.pv_range if cfg.pv_range is not None else tuple(process.pv_range)
+    if not pv_range[0] < pv_range[1]:
+        raise fail("pv_range", f"low must be below high, got {list(pv_range)}")
+    lo, hi = cfg.op_limits
+    if not 0.0 <= lo < hi <= 100.0:
+        raise fail("op_limits", f"must satisfy 0 ≤ low < high ≤ 100 %, got {[lo, hi]}")
+    if not lo <= process.op0 <= hi:
+        raise fail("op_limits", f"the operating point op0 = {process.op0} % lies outside them")
+    if cfg.setpoint is not None and not pv_range[0] <= cfg.setpoint <= pv_range[1]:
+        raise fail("setpoint", f"{cfg.setpoint} is outside pv_range {list(pv_range)}")
+    settings = LoopSettings(
+        loop_id=loop_id,
+        model_name=cfg.model,
+        model_params={"sample_time": sample_time, **params},
+        sample_time=float(sample_time),
+        noise_std=cfg.noise_std if cfg.noise_std is not None else defaults.noise_std,
+        seed=cfg.seed if cfg.seed is not None else plant_seed,
+        mode=cfg.mode,
+        setpoint=cfg.setpoint,
+        action=cfg.action or defaults.action,
+        op_limits=(float(lo), float(hi)),
+        pv_range=(float(pv_range[0]), float(pv_range[1])),
+        pv_units=cfg.pv_units or process.pv_units,
+        gains=cfg.pid or defaults.gains,
+        sp_track=cfg.sp_track,
+        description=cfg.description or (inspect.getdoc(cls) or "").split("\n")[0],
+    )
+    try:
+        return SimLoop(settings, process)
+    except (ValueError, RuntimeError) as err:
+        raise fail("model", str(err)) from None

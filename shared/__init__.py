@@ -1,0 +1,1 @@
+"""Code shared by the services: message models, key expressions, the wire codec, Zenoh sessions."""

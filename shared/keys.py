@@ -1,0 +1,97 @@
+"""Every key expression the product uses, in one place.
+
+Layout (IDs in their own chunks, most-varying part last)::
+
+    <prefix>/plant/<loop>/pv               ProcessSample, one per sample period
+    <prefix>/plant/<loop>/status           LoopStatus, on every change (queryable too)
+    <prefix>/plant/<loop>/info             LoopInfo (queryable)
+    <prefix>/plant/<loop>/cmd/<kind>       commands to the loop (see shared.messages.COMMANDS)
+    <prefix>/plant/<loop>/alive            liveliness token of a served loop
+    <prefix>/plant_sim/<node>/status       ServiceStatus of one plant_sim process (queryable)
+    <prefix>/plant_sim/<node>/alive        liveliness token of one plant_sim process
+"""
+
+from __future__ import annotations
+
+import re
+
+DEFAULT_PREFIX = "autotune"
+
+_ID = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+_PREFIX = re.compile(r"^[A-Za-z0-9_.-]+(/[A-Za-z0-9_.-]+)*$")
+
+
+def check_id(value: str, what: str = "loop") -> str:
+    """Return ``value`` if it is usable as one key-expression chunk, else raise ValueError."""
+    if not isinstance(value, str) or not _ID.match(value):
+        raise ValueError(
+            f"{what} id {value!r} is not valid: use letters, digits, '_', '-' or '.', "
+            "starting with a letter, digit or '_' (it becomes one chunk of a key expression)"
+        )
+    return value
+
+
+def check_prefix(prefix: str) -> str:
+    """Return ``prefix`` if it is a wildcard-free key expression without leading/trailing '/'."""
+    if not isinstance(prefix, str) or not _PREFIX.match(prefix):
+        raise ValueError(
+            f"prefix {prefix!r} is not valid: '/'-separated chunks of letters, digits, '_', '-', "
+            "'.', no leading or trailing '/', no wildcards"
+        )
+    return prefix
+
+
+def loop_root(prefix: str, loop: str) -> str:
+    return f"{prefix}/plant/{loop}"
+
+
+def pv(prefix: str, loop: str) -> str:
+    return f"{loop_root(prefix, loop)}/pv"
+
+
+def status(prefix: str, loop: str) -> str:
+    return f"{loop_root(prefix, loop)}/status"
+
+
+def info(prefix: str, loop: str) -> str:
+    return f"{loop_root(prefix, loop)}/info"
+
+
+def command(prefix: str, loop: str, kind: str) -> str:
+    return f"{loop_root(prefix, loop)}/cmd/{kind}"
+
+
+def loop_alive(prefix: str, loop: str) -> str:
+    return f"{loop_root(prefix, loop)}/alive"
+
+
+def loop_feed(prefix: str, loop: str) -> str:
+    """What a driver of one loop listens to: its samples and its status, in order."""
+    return f"{loop_root(prefix, loop)}/*"
+
+
+ANY = "*"
+
+
+def all_commands(prefix: str) -> str:
+    """Every command to every loop: one subscriber keeps them in order."""
+    return command(prefix, ANY, ANY)
+
+
+def service_status(prefix: str, service: str, node: str) -> str:
+    return f"{prefix}/{service}/{node}/status"
+
+
+def service_alive(prefix: str, service: str, node: str) -> str:
+    return f"{prefix}/{service}/{node}/alive"
+
+
+def split_loop_key(prefix: str, key: str) -> tuple[str, list[str]] | None:
+    """Split ``<prefix>/plant/<loop>/<rest...>`` into (loop, rest); None if it is not one."""
+    head = f"{prefix}/plant/"
+    if not key.startswith(head):
+        return None
+    parts = key[len(head) :].split("/")
+    if len(parts) < 2 or not parts[0]:
+        return None
+    return parts[0], parts[1:]

@@ -1,0 +1,204 @@
+"""Pydantic models for every message on the bus. JSON on the wire; the model name is the schema.
+
+Units: time in seconds of *sim time* (``t``), outputs in % of span (0–100), PV and setpoint in
+the loop's engineering units (``LoopInfo.pv_units``), controller gain Kc in % of output per PV
+unit. Messages are strict: wrong types, NaN/inf and unknown fields are rejected on receipt.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.keys import check_id
+
+Mode = Literal["manual", "auto"]
+Action = Literal["reverse", "direct"]
+ClockMode = Literal["lockstep", "realtime"]
+
+LoopId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")]
+Percent = Annotated[float, Field(ge=0.0, le=100.0)]
+SimTime = Annotated[float, Field(ge=0.0)]
+
+
+class Message(BaseModel):
+    """Base of every bus message: strict, finite numbers, no unknown fields, immutable."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, frozen=True)
+
+
+class PidGains(Message):
+    """Gains of the loop's PID block in ideal (ISA) form.
+
+    u = Kc·(β·sp − pv) + (Kc/Ti)·∫e dt − Kc·Td·d(pv_f)/dt, derivative filtered with Tf = Td/n.
+    ``ti`` None means no integral action (P or PD with a manual reset).
+    """
+
+    kc: float = Field(ge=0.0, description="controller gain, % of output per PV unit")
+    ti: float | None = Field(default=None, gt=0.0, description="integral time, s; None = off")
+    td: float = Field(default=0.0, ge=0.0, description="derivative time, s")
+    n: float = Field(default=10.0, ge=1.0, le=1000.0, description="derivative filter: Tf = Td/n")
+    beta: float = Field(default=1.0, ge=0.0, le=1.0, description="setpoint weight on P action")
+
+
+class ProcessSample(Message):
+    """One sample of a loop at sim time ``t``: PV measured at ``t`` and the output held from ``t``."""
+
+    loop: LoopId
+    seq: int = Field(ge=0, description="sample index; t = seq·sample_time")
+    t: SimTime
+    pv: float
+    sp: float
+    op: Percent
+    mode: Mode
+
+
+class LoopStatus(Message):
+    """Everything an operator sees on the loop's faceplate, plus the command counters."""
+
+    loop: LoopId
+    node: str
+    seq: int = Field(ge=0)
+    t: SimTime
+    pv: float
+    sp: float
+    op: Percent
+    mode: Mode
+    action: Action
+    gains: PidGains
+    op_limits: tuple[float, float]
+    pv_range: tuple[float, float]
+    disturbances: dict[str, float]
+    clock: ClockMode
+    accepted: int = Field(ge=0, description="commands applied to this loop")
+    rejected: int = Field(ge=0, description="commands to this loop refused")
+    last_reject: str | None = None
+    sync_token: int | None = Field(default=None, description="echo of the SyncCommand answered")
+    reason: str = Field(description="what caused this status: start, a command kind, or query")
+
+
+class LoopInfo(Message):
+    """Static description of a loop: its model, units, ranges and clock."""
+
+    loop: LoopId
+    node: str
+    t: SimTime
+    model: str
+    description: str
+    model_params: dict[str, Any]
+    sample_time: float = Field(gt=0.0)
+    pv_units: str
+    pv_range: tuple[float, float]
+    op_limits: tuple[float, float]
+    disturbances: list[str]
+    noise_std: float = Field(ge=0.0)
+    clock: ClockMode
+    speed: float = Field(gt=0.0, description="realtime speed-up of the wall clock")
+
+
+class ServiceStatus(Message):
+    """Health and counters of one plant_sim process."""
+
+    node: str
+    clock: ClockMode
+    speed: float
+    loops: dict[str, SimTime] = Field(description="sim time of each served loop")
+    accepted: int = Field(ge=0)
+    rejected: int = Field(ge=0, description="every command refused, unknown loops included")
+    rejected_by_reason: dict[str, int]
+    overruns: int = Field(ge=0, description="realtime periods started late")
+
+
+class Command(Message):
+    """Base of every command to a loop; its kind is the last chunk of the key."""
+
+    kind: ClassVar[str]
+    loop: LoopId
+    t: SimTime | None = Field(default=None, description="sim time of the sender's last sample")
+    source: str = Field(default="operator", max_length=64)
+
+
+class ModeCommand(Command):
+    kind: ClassVar[str] = "mode"
+    mode: Mode
+
+
+class OutputCommand(Command):
+    """Manual output; refused in auto and outside the loop's output limits."""
+
+    kind: ClassVar[str] = "output"
+    op: Percent
+
+
+class SetpointCommand(Command):
+    """Setpoint in PV units; refused outside the loop's PV range."""
+
+    kind: ClassVar[str] = "setpoint"
+    sp: float
+
+
+class GainsCommand(Command):
+    """New PID gains, applied bumplessly."""
+
+    kind: ClassVar[str] = "gains"
+    gains: PidGains
+
+
+class DisturbanceCommand(Command):
+    """Set one of the model's disturbance inputs (``LoopInfo.disturbances``) to ``value``."""
+
+    kind: ClassVar[str] = "disturbance"
+    name: str = Field(min_length=1, max_length=64)
+    value: float
+
+
+class AdvanceCommand(Command):
+    """Lockstep clock: advance the loop by ``steps`` sample periods, publishing each sample."""
+
+    kind: ClassVar[str] = "advance"
+    steps: int = Field(default=1, ge=1, le=1_000_000)
+
+
+class SyncCommand(Command):
+    """Barrier: the loop answers with a LoopStatus carrying ``token`` once all earlier commands
+    are applied."""
+
+    kind: ClassVar[str] = "sync"
+    token: int
+
+
+COMMANDS: dict[str, type[Command]] = {
+    cls.kind: cls
+    for cls in (
+        ModeCommand,
+        OutputCommand,
+        SetpointCommand,
+        GainsCommand,
+        DisturbanceCommand,
+        AdvanceCommand,
+        SyncCommand,
+    )
+}
+
+__all__ = [
+    "COMMANDS",
+    "Action",
+    "AdvanceCommand",
+    "ClockMode",
+    "Command",
+    "DisturbanceCommand",
+    "GainsCommand",
+    "LoopInfo",
+    "LoopStatus",
+    "Message",
+    "Mode",
+    "ModeCommand",
+    "OutputCommand",
+    "PidGains",
+    "ProcessSample",
+    "ServiceStatus",
+    "SetpointCommand",
+    "SyncCommand",
+    "check_id",
+]
