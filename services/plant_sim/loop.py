@@ -105,9 +105,14 @@ class SimLoop:
         return ProcessSample(loop=self.settings.loop_id, seq=self.seq, t=self.t, pv=self.pv,
                              sp=self.sp, op=self.op, mode=self.mode)
 
-    def advance(self) -> ProcessSample:
-        """Hold the output for one period, measure, execute the PID block; return the sample."""
-        pv_true = self.process.step(self.pid.op)
+    def advance(self, held_op: float | None = None) -> ProcessSample:
+        """Hold the output for one period, measure, execute the PID block; return the sample.
+
+        ``held_op`` is the output latched at the start of the period (realtime clock: a
+        command that arrives mid-period takes effect at the next sample); None holds the
+        present output (lockstep: the clock stands still between samples).
+        """
+        pv_true = self.process.step(self.pid.op if held_op is None else held_op)
         if not math.isfinite(pv_true):
             raise RuntimeError(f"loop {self.settings.loop_id}: the model returned PV {pv_true}")
         self.seq += 1

@@ -1,0 +1,150 @@
+"""Drive one plant_sim loop over Zenoh: read it, command it, step its clock.
+
+Samples and status arrive on one FIFO subscriber (order kept) that a reader thread moves onto
+a queue, so every wait has a timeout: a silent plant becomes ``PlantLost``, never a hang.
+"""
+
+from __future__ import annotations
+
+import itertools
+import queue
+import threading
+
+import zenoh
+
+from shared import keys, wire
+from shared.errors import AutotuneError, DecodeError
+from shared.messages import (
+    AdvanceCommand,
+    Command,
+    LoopInfo,
+    LoopStatus,
+    Message,
+    ProcessSample,
+    SyncCommand,
+)
+
+
+class PlantLost(AutotuneError):
+    """The plant stopped answering."""
+
+
+class CommandRefused(AutotuneError):
+    """The loop refused a command; the message is the plant's reason."""
+
+
+def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float) -> None:
+    """Block until the loop's liveliness token is seen, or raise PlantLost after ``timeout``."""
+    events: queue.Queue[zenoh.Sample] = queue.Queue()
+    sub = session.liveliness().declare_subscriber(keys.loop_alive(prefix, loop),
+                                                  zenoh.handlers.FifoChannel(16), history=True)
+    reader = threading.Thread(target=lambda: [events.put(s) for s in sub], daemon=True)
+    reader.start()
+    try:
+        while True:
+            try:
+                sample = events.get(timeout=timeout)
+            except queue.Empty:
+                raise PlantLost(
+                    f"loop {loop!r} not found: nothing announces {keys.loop_alive(prefix, loop)} "
+                    f"after {timeout:g} s (is `autotune plant` running, reachable and serving "
+                    "that loop?)") from None
+            if sample.kind == zenoh.SampleKind.PUT:
+                return
+    finally:
+        sub.undeclare()
+
+
+class LoopClient:
+    """One driver's view of a loop. Use as a context manager."""
+
+    def __init__(self, session: zenoh.Session, prefix: str, loop: str, *,
+                 source: str = "autotune", timeout: float = 5.0):
+        self.session = session
+        self.prefix = prefix
+        self.loop = loop
+        self.source = source
+        self.timeout = timeout
+        self._tokens = itertools.count(1)
+        self._inbox: queue.Queue[tuple[str, bytes, str]] = queue.Queue()
+        self._sub = session.declare_subscriber(keys.loop_feed(prefix, loop),
+                                               zenoh.handlers.FifoChannel(65536))
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+        self._pv_key = keys.pv(prefix, loop)
+        self._status_key = keys.status(prefix, loop)
+        self.info = self._query_info()
+        self.last_sample: ProcessSample | None = None
+        self.last_status: LoopStatus = self.sync()
+
+    def _read(self) -> None:
+        for s in self._sub:
+            self._inbox.put((str(s.key_expr), s.payload.to_bytes(), str(s.encoding)))
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+    def __enter__(self) -> LoopClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _query_info(self) -> LoopInfo:
+        for reply in self.session.get(keys.info(self.prefix, self.loop), timeout=self.timeout):
+            if reply.ok is not None:
+                try:
+                    return wire.decode_sample(LoopInfo, reply.ok)
+                except DecodeError as err:
+                    raise AutotuneError(f"loop {self.loop}: bad LoopInfo reply: {err}") from None
+        raise PlantLost(f"loop {self.loop!r}: no plant answered {keys.info(self.prefix, self.loop)}"
+                        f" within {self.timeout:g} s")
+
+    def _next(self) -> Message:
+        """The next sample or status on the loop's feed (others' too)."""
+        try:
+            key, payload, enc = self._inbox.get(timeout=self.timeout)
+        except queue.Empty:
+            raise PlantLost(f"loop {self.loop!r}: no message from the plant for "
+                            f"{self.timeout:g} s") from None
+        if key == self._pv_key:
+            sample = wire.decode(ProcessSample, payload, enc)
+            self.last_sample = sample
+            return sample
+        if key == self._status_key:
+            status = wire.decode(LoopStatus, payload, enc)
+            self.last_status = status
+            return status
+        return self._next()
+
+    def send(self, cmd: Command) -> None:
+        wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind), cmd)
+
+    def sync(self) -> LoopStatus:
+        """Barrier: return the loop's status once every command sent so far is applied."""
+        token = next(self._tokens)
+        self.send(SyncCommand(loop=self.loop, token=token, source=self.source))
+        while True:
+            msg = self._next()
+            if isinstance(msg, LoopStatus) and msg.sync_token == token:
+                return msg
+
+    def command(self, cmd: Command) -> LoopStatus:
+        """Send ``cmd`` and confirm it was applied; CommandRefused carries the plant's reason."""
+        before = self.last_status.rejected
+        self.send(cmd)
+        status = self.sync()
+        if status.rejected > before:
+            raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
+        return status
+
+    def next_sample(self) -> ProcessSample:
+        """The next sample: in lockstep, advance the loop one period first."""
+        if self.info.clock == "lockstep":
+            self.send(AdvanceCommand(loop=self.loop, steps=1, source=self.source,
+                                     t=self.last_status.t if self.last_sample is None
+                                     else self.last_sample.t))
+        while True:
+            msg = self._next()
+            if isinstance(msg, ProcessSample):
+                return msg

@@ -1,0 +1,264 @@
+"""Process reaction curve: figures of an open-loop step response (seeds 000, 001, 002).
+
+From a step of size Δu in the output at t_s, with the PV at rest at y₀ before and y_∞ after:
+
+* process gain K = (y_∞ − y₀)/Δu;
+* the tangent at the inflection point (steepest slope S): its intersection with y₀ gives the
+  apparent dead time L (Ziegler–Nichols' lag), its slope per unit step is the reaction rate
+  R = S/Δu, and it reaches y_∞ a time T = K/R after L (the tangent time constant);
+* the 63 % point: T₆₃ = t₆₃ − t_s − L (Smuts' time constant, seed 001);
+* a = R·L and L/T, which the seeds use to judge whether the ZN rules fit (0.15 ≤ L/T ≤ 0.6).
+
+Two ways to the tangent, both reported by ``method``:
+
+* ``data``: a Savitzky–Golay derivative of the samples, its maximum refined by a parabola
+  through its neighbours; exact to rounding on noise-free samples;
+* ``model``: with noise, a least-squares fit of K·e^{−θs}/((τ₁s+1)(τ₂s+1)) to the whole response
+  (the heat exchanger of seed 002 has this form; FOPDT is τ₂ = 0), with the tangent taken on
+  the fitted curve. It is used when the fit explains the data down to the noise
+  (residual RMS ≤ 1.25 σ); otherwise the data method is kept.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.optimize import brentq, least_squares
+from scipy.signal import savgol_filter
+
+
+@dataclass(frozen=True)
+class ReactionCurve:
+    """Figures of one step test. Times in s (from the step), PV in its own units."""
+
+    step_size: float  # Δu, % of output
+    pv_before: float  # y₀
+    pv_after: float  # y_∞
+    gain: float  # K, PV units per %
+    dead_time: float  # L, s (tangent ∩ baseline)
+    slope: float  # S, PV units per s at the inflection
+    reaction_rate: float  # R = S/Δu, PV units per s per %
+    time_constant_tangent: float  # T = K/R, s
+    time_constant_63: float  # T63 = t63 − L, s
+    t_inflection: float  # s after the step
+    t_63: float  # s after the step
+    a: float  # R·L, PV units per %
+    l_over_t: float  # L/T (tangent)
+    noise_std: float  # PV noise seen before the step
+    smoothing_window: int  # samples in the derivative's window
+    method: str  # "data" or "model" (see the module docstring)
+    fit_rms: float | None  # RMS residual of the SOPDT fit, PV units (None: no fit)
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+
+def noise_level(y: np.ndarray) -> float:
+    """Standard deviation of ``y`` about its straight-line trend (0 for fewer than 3 points)."""
+    if y.size < 3:
+        return 0.0
+    x = np.arange(y.size, dtype=float)
+    coef = np.polyfit(x, y, 1)
+    return float(np.std(y - np.polyval(coef, x), ddof=2))
+
+
+def _window(noise: float, change: float, rise_samples: float) -> int:
+    """Derivative window (odd, ≥ 7): 7 samples without noise, wider as noise/change grows."""
+    if change == 0 or noise <= 1e-9 * abs(change):
+        return 7
+    # The slope's noise falls as w^-1.5; aim for ≈ 0.3 % of the change per rise time.
+    ratio = noise / abs(change)
+    w = int(round(rise_samples * (ratio / 0.003) ** (2.0 / 3.0) * 0.25))
+    w = max(7, min(w, int(rise_samples * 0.5)))
+    return w | 1
+
+
+def analyze_step(t: np.ndarray, y: np.ndarray, t_step: float, step_size: float,
+                 pv_before: float, pv_after: float, noise_std: float) -> ReactionCurve:
+    """Reaction-curve figures from samples (t, y) taken after a step at ``t_step``.
+
+    ``pv_before``/``pv_after`` are the rest values before and after, ``noise_std`` the PV
+    noise seen before the step. Raises ValueError when the response is too small or short.
+    """
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    if step_size == 0:
+        raise ValueError("step_size must not be 0")
+    keep = t >= t_step
+    t, y = t[keep], y[keep]
+    if t.size < 10:
+        raise ValueError(f"only {t.size} samples after the step: too few to analyse")
+    change = pv_after - pv_before
+    if abs(change) <= max(5.0 * noise_std, 1e-12):
+        raise ValueError(f"PV changed by {change:.4g}, not clear of its noise "
+                         f"(σ = {noise_std:.3g}): use a larger step")
+    dt = float(np.median(np.diff(t)))
+    sign = math.copysign(1.0, change)
+    z = (y - pv_before) / change  # normalised response, 0 → 1
+    t63_raw = _first_crossing(t, z, 0.632)
+    rise_samples = max((t63_raw - t_step) / dt, 7.0)
+    w = _window(noise_std, change, rise_samples)
+    if w >= t.size:
+        raise ValueError("the response is too short for its noise: record longer")
+    poly = 3
+    ys = savgol_filter(y, w, poly, mode="interp")
+    dys = savgol_filter(y, w, poly, deriv=1, delta=dt, mode="interp")
+    k = int(np.argmax(sign * dys))
+    t_inf, slope = t[k], dys[k]
+    if 0 < k < t.size - 1:
+        d0, d1, d2 = dys[k - 1], dys[k], dys[k + 1]
+        denom = d0 - 2 * d1 + d2
+        if denom != 0:
+            delta = 0.5 * (d0 - d2) / denom
+            if abs(delta) <= 1:
+                t_inf = t[k] + delta * dt
+                slope = d1 - 0.25 * (d0 - d2) * delta
+    y_at = float(np.interp(t_inf, t, ys))
+    if slope == 0:
+        raise ValueError("the PV has no slope after the step")
+    t_inf -= t_step
+    dead_time = t_inf - (y_at - pv_before) / slope
+    t63 = _first_crossing(t, (ys - pv_before) / change, 0.632) - t_step
+    method, fit_rms = "data", None
+    if noise_std > 1e-9 * abs(change):
+        fit = fit_sopdt(t - t_step, y - pv_before, change, dead_time, slope)
+        if fit is not None:
+            fit_rms = fit.rms
+            if fit.rms <= 1.25 * noise_std:
+                method = "model"
+                t_inf, slope, dead_time, t63 = fit.tangent()
+    gain = change / step_size
+    reaction_rate = slope / step_size
+    tau_tangent = gain / reaction_rate
+    return ReactionCurve(
+        step_size=step_size, pv_before=pv_before, pv_after=pv_after, gain=gain,
+        dead_time=dead_time, slope=slope, reaction_rate=reaction_rate,
+        time_constant_tangent=tau_tangent, time_constant_63=t63 - dead_time,
+        t_inflection=t_inf, t_63=t63, a=reaction_rate * dead_time,
+        l_over_t=dead_time / tau_tangent, noise_std=noise_std, smoothing_window=w,
+        method=method, fit_rms=fit_rms)
+
+
+@dataclass(frozen=True)
+class SopdtFit:
+    """K·e^{−θs}/((τ₁s+1)(τ₂s+1)) fitted to a step response (K per whole step, τ₁ ≥ τ₂)."""
+
+    k: float
+    tau1: float
+    tau2: float
+    theta: float
+    rms: float
+
+    def response(self, t: np.ndarray) -> np.ndarray:
+        return self.k * _sopdt_unit(np.asarray(t, dtype=float) - self.theta, self.tau1, self.tau2)
+
+    def tangent(self) -> tuple[float, float, float, float]:
+        """(t_inflection, slope, L, t63) of the fitted curve, times from the step."""
+        k, t1, t2, th = self.k, self.tau1, self.tau2, self.theta
+        if t2 <= 1e-9 * t1:
+            u = 0.0
+        elif abs(t1 - t2) <= 1e-6 * t1:
+            u = t1
+        else:
+            u = t1 * t2 * math.log(t1 / t2) / (t1 - t2)
+        h = 1e-6 * (t1 + t2)
+        slope = float((self.response(np.array([th + u + h])) -
+                       self.response(np.array([th + u])))[0] / h) if u == 0.0 else \
+            float(k * _sopdt_slope(u, t1, t2))
+        y_at = float(self.response(np.array([th + u]))[0])
+        dead_time = th + u - y_at / slope
+        t63 = brentq(lambda x: self.response(np.array([x]))[0] - 0.632 * k, th, th + 20 * (t1 + t2))
+        return th + u, slope, dead_time, float(t63)
+
+
+def _sopdt_unit(u: np.ndarray, t1: float, t2: float) -> np.ndarray:
+    """Unit-step response of 1/((τ₁s+1)(τ₂s+1)) at times u (0 for u < 0)."""
+    u = np.maximum(u, 0.0)
+    if t2 <= 1e-9 * t1:
+        return 1.0 - np.exp(-u / t1)
+    if abs(t1 - t2) <= 1e-6 * t1:
+        return 1.0 - (1.0 + u / t1) * np.exp(-u / t1)
+    return 1.0 - (t1 * np.exp(-u / t1) - t2 * np.exp(-u / t2)) / (t1 - t2)
+
+
+def _sopdt_slope(u: float, t1: float, t2: float) -> float:
+    if abs(t1 - t2) <= 1e-6 * t1:
+        return u / t1**2 * math.exp(-u / t1)
+    return (math.exp(-u / t1) - math.exp(-u / t2)) / (t1 - t2)
+
+
+def fit_sopdt(t: np.ndarray, dy: np.ndarray, change: float, dead_time: float,
+              slope: float) -> SopdtFit | None:
+    """Least-squares SOPDT fit of the PV change ``dy`` at times ``t`` after the step.
+
+    Starts from the data method's tangent (L, slope); None if the fit fails.
+    """
+    tau_t = max(change / slope, 1e-6)
+    x0 = np.array([change, 0.7 * tau_t, 0.2 * tau_t, max(dead_time - 0.1 * tau_t, 0.0)])
+    scale = np.array([abs(change), tau_t, tau_t, tau_t])
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        k, t1, t2, th = p
+        a, b = max(t1, t2), min(t1, t2)
+        return k * _sopdt_unit(t - th, max(a, 1e-9), max(b, 0.0)) - dy
+
+    lo = [-np.inf, 1e-9, 0.0, 0.0]
+    hi = [np.inf, np.inf, np.inf, float(t[-1])]
+    try:
+        sol = least_squares(resid, x0, bounds=(lo, hi), x_scale=scale, method="trf")
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not sol.success:
+        return None
+    k, t1, t2, th = sol.x
+    rms = float(np.sqrt(np.mean(sol.fun**2)))
+    return SopdtFit(float(k), float(max(t1, t2)), float(min(t1, t2)), float(th), rms)
+
+
+def _first_crossing(t: np.ndarray, z: np.ndarray, level: float) -> float:
+    """Time where z first reaches ``level``, interpolated linearly between samples."""
+    above = np.nonzero(z >= level)[0]
+    if above.size == 0:
+        raise ValueError(f"the PV never reached {level:.0%} of its change")
+    i = int(above[0])
+    if i == 0:
+        return float(t[0])
+    return float(t[i - 1] + (level - z[i - 1]) / (z[i] - z[i - 1]) * (t[i] - t[i - 1]))
+
+
+def settled(t: np.ndarray, y: np.ndarray, t_step: float, pv_before: float,
+            noise_std: float, band: float = 0.005) -> tuple[bool, float]:
+    """Has the PV come to rest after the step? Returns (settled, rest value estimate).
+
+    Over the trailing quarter of the time since the step (≥ 20 samples), the PV's trend must
+    either be lost in its noise or imply a drift over the next half of that time below
+    ``band`` of the change; and at least three times the 63 % time must have passed.
+    """
+    keep = t >= t_step
+    t, y = t[keep], y[keep]
+    n = t.size
+    if n < 40:
+        return False, float(y[-1]) if n else pv_before
+    m = max(20, n // 4)
+    tw, yw = t[-m:], y[-m:]
+    rest = float(np.mean(yw))
+    change = rest - pv_before
+    if abs(change) <= 5.0 * noise_std or change == 0:
+        return False, rest
+    elapsed = t[-1] - t_step
+    try:
+        t63 = _first_crossing(t, (y - pv_before) / change, 0.632) - t_step
+    except ValueError:
+        return False, rest
+    if elapsed < 3.0 * t63:
+        return False, rest
+    x = tw - tw.mean()
+    sxx = float(np.sum(x * x))
+    slope = float(np.sum(x * (yw - rest)) / sxx)
+    resid = yw - rest - slope * x
+    se = float(np.sqrt(np.sum(resid * resid) / max(m - 2, 1) / sxx))
+    quiet = abs(slope) <= 2.0 * se
+    small = abs(slope) * elapsed * 0.5 <= band * abs(change)
+    return bool(quiet or small), rest

@@ -1,0 +1,106 @@
+"""``autotune step LOOP``: open-loop step test of a running loop; prints the reaction curve."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from shared import keys
+from shared.errors import ConfigError
+from shared.session import open_session, settings_from_args
+from services.autotuner.loop_client import LoopClient, wait_for_loop
+from services.autotuner.step_test import StepTest, StepTestConfig, StepTestReport, run_step_test
+
+HELP = "open-loop step test of a loop: process gain, dead time, time constants, R, L, L/T"
+
+ZN_STEP_RANGE = (0.15, 0.6)  # L/T where the ZN step-response rules work (seed 000)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("loop", metavar="LOOP", help="loop id, e.g. hx1")
+    add_step_options(parser)
+    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    parser.add_argument("--wait", type=float, default=10.0,
+                        help="seconds to wait for the loop to appear on the bus (default: "
+                             "%(default)s)")
+    from services.plant_sim.service import add_common_arguments
+
+    add_common_arguments(parser)
+
+
+def add_step_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--size", type=float, default=5.0,
+                        help="output step, %% of span; negative steps down (default: %(default)s)")
+    parser.add_argument("--baseline", type=float,
+                        help="seconds of rest measured before the step (default: 40 samples)")
+    parser.add_argument("--timeout", type=float, default=7200.0,
+                        help="sim seconds to wait for the PV to settle (default: %(default)s)")
+    parser.add_argument("--pv-limits", type=float, nargs=2, metavar=("LO", "HI"),
+                        help="abort if the PV leaves [LO, HI] (default: the loop's PV range)")
+
+
+def config_from_args(args: argparse.Namespace) -> StepTestConfig:
+    for name in ("size", "timeout"):
+        value = getattr(args, name)
+        if value != value or value in (float("inf"), float("-inf")):
+            raise ConfigError(f"--{name} {value}: must be a finite number")
+    if args.timeout <= 0:
+        raise ConfigError(f"--timeout {args.timeout}: must be > 0 s")
+    if args.baseline is not None and not 0 <= args.baseline < float("inf"):
+        raise ConfigError(f"--baseline {args.baseline}: must be a finite number ≥ 0 s")
+    if args.pv_limits and not args.pv_limits[0] < args.pv_limits[1]:
+        raise ConfigError(f"--pv-limits {args.pv_limits}: LO must be below HI")
+    return StepTestConfig(size=args.size, baseline=args.baseline, timeout=args.timeout,
+                          pv_limits=tuple(args.pv_limits) if args.pv_limits else None)
+
+
+def format_report(r: StepTestReport) -> str:
+    c, u = r.curve, r.pv_units
+    lo, hi = ZN_STEP_RANGE
+    fit = "ZN step rules suit it" if lo <= c.l_over_t <= hi else \
+        "outside the range where the ZN step rules work well"
+    how = (f"SOPDT fit of the whole response (RMS {c.fit_rms:.3g} {u})" if c.method == "model"
+           else f"the samples (derivative window {c.smoothing_window})")
+    rows = [
+        ("process gain K", f"{c.gain:.4g} {u}/%"),
+        ("dead time L (tangent)", f"{c.dead_time:.4g} s"),
+        ("reaction rate R", f"{c.reaction_rate:.4g} {u}/s per %"),
+        ("time constant T = K/R", f"{c.time_constant_tangent:.4g} s"),
+        ("time constant T63", f"{c.time_constant_63:.4g} s  (63 % at {c.t_63:.4g} s)"),
+        ("a = R·L", f"{c.a:.4g} {u}/%"),
+        ("L/T", f"{c.l_over_t:.3f}  ({fit}: {lo}–{hi})"),
+        ("PV before → after", f"{c.pv_before:.4g} → {c.pv_after:.4g} {u}"),
+        ("PV noise σ", f"{c.noise_std:.3g} {u}"),
+        ("tangent taken from", how),
+    ]
+    head = (f"Step test of {r.loop} ({r.model}): output {r.op_before:g} → "
+            f"{r.op_before + c.step_size:g} % at t = {r.t_step:g} s, at rest by t = {r.t_end:g} s")
+    width = max(len(k) for k, _ in rows)
+    body = "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+    tail = (f"Loop restored: {r.mode_before}, output {r.op_before:g} %." if r.restored
+            else "WARNING: the loop could not be restored; check it.")
+    return f"{head}\n{body}\n{tail}"
+
+
+def progress_line(test: StepTest, s) -> None:
+    if s.seq % 40 == 0 and sys.stderr.isatty():
+        print(f"\r  {test.phase:<8} t = {s.t:8.1f} s  PV = {s.pv:9.4g}  OP = {s.op:5.1f} %",
+              end="", file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = config_from_args(args)
+    try:
+        keys.check_prefix(args.prefix)
+        keys.check_id(args.loop)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    with open_session(settings_from_args(args)) as session:
+        wait_for_loop(session, args.prefix, args.loop, args.wait)
+        with LoopClient(session, args.prefix, args.loop, source="autotune-step") as client:
+            report = run_step_test(client, config, None if args.json else progress_line)
+    if sys.stderr.isatty() and not args.json:
+        print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
+    print(json.dumps(report.to_dict(), indent=2) if args.json else format_report(report))
+    return 0

@@ -1,0 +1,378 @@
+"""plant_sim over Zenoh: serves many loops, each announced by a liveliness token.
+
+Every command to every loop arrives on one subscriber (``<prefix>/plant/*/cmd/*``) whose FIFO
+channel keeps the senders' order, so a lockstep run is deterministic. Commands are decoded
+and validated; a bad one is refused with a logged reason and counted, and changes nothing.
+
+Clocks: *lockstep* advances a loop only on an ``advance`` command; *realtime* advances every
+loop on the wall clock (times ``speed``), holding the last output between samples.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import zenoh
+
+from shared import keys, wire
+from shared.errors import AutotuneError, ConfigError, DecodeError
+from shared.messages import (
+    COMMANDS,
+    AdvanceCommand,
+    ClockMode,
+    LoopInfo,
+    LoopStatus,
+    Message,
+    ServiceStatus,
+    SyncCommand,
+)
+from shared.session import ZenohSettings, add_zenoh_arguments, open_session, settings_from_args
+from services.plant_sim.loop import CommandRejected, SimLoop
+from services.plant_sim.plant_file import default_plant_path, load_plant_file
+
+log = logging.getLogger("plant_sim")
+
+SERVICE = "plant_sim"
+CHANNEL_CAPACITY = 65536
+
+
+@dataclass(frozen=True)
+class ServiceOptions:
+    prefix: str = keys.DEFAULT_PREFIX
+    node: str = "plant"
+    clock: ClockMode = "lockstep"
+    speed: float = 1.0
+
+
+class RejectLog:
+    """Log every refusal, but at most ``burst`` lines per reason in any ``window`` seconds."""
+
+    def __init__(self, burst: int = 10, window: float = 10.0):
+        self.burst, self.window = burst, window
+        self._seen: dict[str, tuple[float, int, int]] = {}
+
+    def __call__(self, category: str, message: str) -> None:
+        now = time.monotonic()
+        start, shown, hidden = self._seen.get(category, (now, 0, 0))
+        if now - start > self.window:
+            if hidden:
+                log.warning("%d more %s rejects were not logged", hidden, category)
+            start, shown, hidden = now, 0, 0
+        if shown < self.burst:
+            log.warning("rejected (%s): %s", category, message)
+            shown += 1
+        else:
+            hidden += 1
+        self._seen[category] = (start, shown, hidden)
+
+
+class PlantService:
+    """The Zenoh shell around a set of SimLoops."""
+
+    def __init__(self, session: zenoh.Session, loops: dict[str, SimLoop],
+                 options: ServiceOptions):
+        self.session = session
+        self.loops = loops
+        self.opt = options
+        self.lock = threading.Lock()
+        self.rejected_by_reason: Counter[str] = Counter()
+        self.accepted = 0
+        self.overruns = 0
+        self._remote_loops: set[str] = set()
+        self._log_reject = RejectLog()
+
+    # --- messages -------------------------------------------------------------------------
+
+    def loop_status(self, loop: SimLoop, reason: str, token: int | None = None) -> LoopStatus:
+        s = loop.settings
+        return LoopStatus(
+            loop=s.loop_id, node=self.opt.node, seq=loop.seq, t=loop.t, pv=loop.pv, sp=loop.sp,
+            op=loop.op, mode=loop.mode, action=s.action, gains=loop.pid.gains,
+            op_limits=s.op_limits, pv_range=s.pv_range, disturbances=loop.disturbances(),
+            clock=self.opt.clock, accepted=loop.accepted, rejected=loop.rejected,
+            last_reject=loop.last_reject, sync_token=token, reason=reason)
+
+    def loop_info(self, loop: SimLoop) -> LoopInfo:
+        s = loop.settings
+        return LoopInfo(
+            loop=s.loop_id, node=self.opt.node, t=loop.t, model=s.model_name,
+            description=s.description, model_params=s.model_params, sample_time=s.sample_time,
+            pv_units=s.pv_units, pv_range=s.pv_range, op_limits=s.op_limits,
+            disturbances=list(loop.process.disturbance_names()), noise_std=s.noise_std,
+            clock=self.opt.clock, speed=self.opt.speed)
+
+    def service_status(self) -> ServiceStatus:
+        return ServiceStatus(
+            node=self.opt.node, clock=self.opt.clock, speed=self.opt.speed,
+            loops={lid: lp.t for lid, lp in self.loops.items()}, accepted=self.accepted,
+            rejected=sum(self.rejected_by_reason.values()),
+            rejected_by_reason=dict(self.rejected_by_reason), overruns=self.overruns)
+
+    def _publish(self, out: list[tuple[str, Message]]) -> None:
+        for key, msg in out:
+            wire.put(self.session, key, msg)
+
+    # --- commands -------------------------------------------------------------------------
+
+    def _reject(self, loop: SimLoop | None, category: str, reason: str,
+                out: list[tuple[str, Message]]) -> None:
+        self.rejected_by_reason[category] += 1
+        where = f"loop {loop.settings.loop_id}: " if loop else ""
+        self._log_reject(category, where + reason)
+        if loop is not None:
+            loop.rejected += 1
+            loop.last_reject = reason
+            out.append((keys.status(self.opt.prefix, loop.settings.loop_id),
+                        self.loop_status(loop, "reject")))
+
+    def handle_command(self, key: str, payload: bytes, encoding: str | None) -> None:
+        """Validate and apply one command, then publish what it caused."""
+        out: list[tuple[str, Message]] = []
+        with self.lock:
+            self._handle(key, payload, encoding, out)
+        self._publish(out)
+
+    def _handle(self, key: str, payload: bytes, encoding: str | None,
+                out: list[tuple[str, Message]]) -> None:
+        prefix = self.opt.prefix
+        parsed = keys.split_loop_key(prefix, key)
+        if parsed is None or len(parsed[1]) != 2 or parsed[1][0] != "cmd":
+            self._reject(None, "key", f"unexpected key {key!r}", out)
+            return
+        loop_id, (_, kind) = parsed
+        loop = self.loops.get(loop_id)
+        if loop is None:
+            if loop_id not in self._remote_loops:
+                self._reject(None, "unknown_loop", f"unknown loop {loop_id!r} (this plant "
+                             f"serves {', '.join(self.loops)})", out)
+            return
+        model = COMMANDS.get(kind)
+        if model is None:
+            self._reject(loop, "kind", f"unknown command {kind!r}; expected one of "
+                         f"{', '.join(COMMANDS)}", out)
+            return
+        try:
+            cmd = wire.decode(model, payload, encoding)
+        except DecodeError as err:
+            self._reject(loop, "malformed", f"{kind}: {err}", out)
+            return
+        if cmd.loop != loop_id:
+            self._reject(loop, "loop_mismatch", f"{kind}: payload names loop {cmd.loop!r} but "
+                         f"was sent to {loop_id!r}", out)
+            return
+        if isinstance(cmd, AdvanceCommand):
+            if self.opt.clock != "lockstep":
+                self._reject(loop, "clock", "advance refused: the plant runs in realtime", out)
+                return
+            pv_key = keys.pv(prefix, loop_id)
+            for _ in range(cmd.steps):
+                out.append((pv_key, loop.advance()))
+        elif isinstance(cmd, SyncCommand):
+            out.append((keys.status(prefix, loop_id), self.loop_status(loop, "sync", cmd.token)))
+            return
+        else:
+            try:
+                loop.apply(cmd)
+            except CommandRejected as err:
+                self._reject(loop, err.category, f"{kind}: {err.reason}", out)
+                return
+            out.append((keys.status(prefix, loop_id), self.loop_status(loop, kind)))
+        loop.accepted += 1
+        self.accepted += 1
+
+    # --- threads --------------------------------------------------------------------------
+
+    def _command_loop(self, sub: zenoh.Subscriber) -> None:
+        for sample in sub:
+            try:
+                self.handle_command(str(sample.key_expr), sample.payload.to_bytes(),
+                                    str(sample.encoding))
+            except Exception:  # a broken user model must not take the service down
+                log.exception("command on %s failed", sample.key_expr)
+                with self.lock:
+                    self.rejected_by_reason["internal"] += 1
+
+    def _query_loop(self, queryable: zenoh.Queryable, what: str) -> None:
+        for query in queryable:
+            with query:
+                try:
+                    with self.lock:
+                        replies = self._answer(query.key_expr, what)
+                    for key, msg in replies:
+                        wire.reply(query, key, msg)
+                except Exception:
+                    log.exception("query %s failed", query.selector)
+
+    def _answer(self, asked: zenoh.KeyExpr, what: str) -> list[tuple[str, Message]]:
+        prefix = self.opt.prefix
+        if what == "service":
+            return [(keys.service_status(prefix, SERVICE, self.opt.node), self.service_status())]
+        replies: list[tuple[str, Message]] = []
+        for loop_id, loop in self.loops.items():
+            key = keys.status(prefix, loop_id) if what == "status" else keys.info(prefix, loop_id)
+            if asked.intersects(zenoh.KeyExpr(key)):
+                msg = self.loop_status(loop, "query") if what == "status" else self.loop_info(loop)
+                replies.append((key, msg))
+        return replies
+
+    def _watch_peers(self, sub: zenoh.Subscriber) -> None:
+        """Track loops served by other plant_sim processes, so their commands are not ours."""
+        for sample in sub:
+            parsed = keys.split_loop_key(self.opt.prefix, str(sample.key_expr))
+            if parsed is None or parsed[0] in self.loops:
+                continue
+            with self.lock:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    self._remote_loops.add(parsed[0])
+                else:
+                    self._remote_loops.discard(parsed[0])
+
+    def _pace(self, stop: threading.Event) -> None:
+        """Realtime clock: advance each loop when its next sample is due on the wall clock."""
+        period = {lid: lp.sample_time / self.opt.speed for lid, lp in self.loops.items()}
+        start = time.monotonic()
+        due = {lid: 1 for lid in self.loops}
+        with self.lock:
+            held = {lid: lp.op for lid, lp in self.loops.items()}
+        while not stop.is_set():
+            lid = min(due, key=lambda k: due[k] * period[k])
+            wait = start + due[lid] * period[lid] - time.monotonic()
+            if wait > 0 and stop.wait(wait):
+                break
+            late = -wait > period[lid]
+            with self.lock:
+                self.overruns += int(late)
+                sample = self.loops[lid].advance(held[lid])
+                held[lid] = sample.op
+            wire.put(self.session, keys.pv(self.opt.prefix, lid), sample)
+            due[lid] += 1
+
+    def run(self, stop: threading.Event) -> None:
+        """Serve until ``stop`` is set; undeclare everything on the way out."""
+        s, prefix = self.session, self.opt.prefix
+        fifo = zenoh.handlers.FifoChannel
+        cmd_sub = s.declare_subscriber(keys.all_commands(prefix), fifo(CHANNEL_CAPACITY))
+        peers = s.liveliness().declare_subscriber(keys.loop_alive(prefix, keys.ANY),
+                                                  fifo(1024), history=True)
+        queryables = {
+            "status": s.declare_queryable(keys.status(prefix, keys.ANY), fifo(1024)),
+            "info": s.declare_queryable(keys.info(prefix, keys.ANY), fifo(1024)),
+            "service": s.declare_queryable(keys.service_status(prefix, SERVICE, self.opt.node),
+                                           fifo(1024)),
+        }
+        threads = [threading.Thread(target=self._command_loop, args=(cmd_sub,), daemon=True),
+                   threading.Thread(target=self._watch_peers, args=(peers,), daemon=True)]
+        threads += [threading.Thread(target=self._query_loop, args=(q, what), daemon=True)
+                    for what, q in queryables.items()]
+        if self.opt.clock == "realtime":
+            threads.append(threading.Thread(target=self._pace, args=(stop,), daemon=True))
+        for th in threads:
+            th.start()
+        out: list[tuple[str, Message]] = [
+            (keys.status(prefix, lid), self.loop_status(lp, "start")) for lid, lp in self.loops.items()]
+        self._publish(out)
+        tokens = [s.liveliness().declare_token(keys.loop_alive(prefix, lid)) for lid in self.loops]
+        tokens.append(s.liveliness().declare_token(keys.service_alive(prefix, SERVICE,
+                                                                      self.opt.node)))
+        log.info("serving %s (%s clock%s) under %s/plant/", ", ".join(self.loops),
+                 self.opt.clock, f", ×{self.opt.speed:g}" if self.opt.clock == "realtime" else "",
+                 prefix)
+        try:
+            while not stop.wait(0.5):
+                pass
+        finally:
+            for tok in tokens:
+                tok.undeclare()
+            for q in queryables.values():
+                q.undeclare()
+            cmd_sub.undeclare()
+            peers.undeclare()
+            for th in threads:
+                th.join(timeout=2.0)
+            log.info("stopped: %d commands applied, %d refused", self.accepted,
+                     sum(self.rejected_by_reason.values()))
+
+
+# --- command line ---------------------------------------------------------------------------
+
+HELP = "run the plant simulator service (plant_sim)"
+
+
+def add_common_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--prefix", default=keys.DEFAULT_PREFIX,
+                        help="root of every key expression (default: %(default)s)")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more logging (-v info, -vv debug)")
+    add_zenoh_arguments(parser)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--plant", metavar="FILE",
+                        help="plant file (TOML) defining the loops (default: one loop of every "
+                             "preset: hx1, hx2, lvl1, lvl2, flow1)")
+    parser.add_argument("--seed", type=int, help="seed for every loop's noise (overrides the "
+                                                 "plant file's)")
+    parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep",
+                        help="lockstep: loops advance only when their driver says so; realtime: "
+                             "paced by the wall clock (default: %(default)s)")
+    parser.add_argument("--speed", type=float, default=1.0,
+                        help="realtime speed-up of the wall clock (default: %(default)s)")
+    parser.add_argument("--node", default="plant", help="this process's id on the bus "
+                                                        "(default: %(default)s)")
+    add_common_arguments(parser)
+
+
+def setup_logging(verbose: int, name: str) -> None:
+    level = logging.WARNING if verbose <= 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format=f"%(asctime)s {name} %(levelname)s %(message)s")
+
+
+def options_from_args(args: argparse.Namespace) -> ServiceOptions:
+    if not args.speed > 0 or args.speed != args.speed or args.speed == float("inf"):
+        raise ConfigError(f"--speed {args.speed}: must be a finite number > 0")
+    try:
+        keys.check_prefix(args.prefix)
+        keys.check_id(args.node, "node")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    return ServiceOptions(prefix=args.prefix, node=args.node, clock=args.clock, speed=args.speed)
+
+
+def serve(settings: ZenohSettings, loops: dict[str, SimLoop], options: ServiceOptions,
+          stop: threading.Event) -> None:
+    with open_session(settings) as session:
+        PlantService(session, loops, options).run(stop)
+
+
+def install_stop_handlers(stop: threading.Event) -> None:
+    """SIGINT and SIGTERM end the service cleanly (tokens withdrawn, session closed)."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+
+
+def run(args: argparse.Namespace) -> int:
+    setup_logging(args.verbose + 1, SERVICE)
+    options = options_from_args(args)
+    loops = load_plant_file(args.plant or default_plant_path(), seed=args.seed)
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    serve(settings_from_args(args), loops, options, stop)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m services.plant_sim", description=__doc__)
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run(args)
+    except AutotuneError as err:
+        print(f"plant_sim: error: {err}", flush=True, file=sys.stderr)
+        return 2
