@@ -20,6 +20,7 @@ seeds every loop's noise (each loop also mixes in its own id).
 from __future__ import annotations
 
 import importlib
+import json
 import inspect
 import tomllib
 from importlib import resources
@@ -87,7 +88,10 @@ def build_plant(data: dict[str, Any], source: str = "plant", seed: int | None = 
                 ) -> dict[str, SimLoop]:
     """Build every loop of a parsed plant file (``seed`` overrides the file's)."""
     try:
-        plant = PlantConfig.model_validate(data)
+        # JSON mode: arrays are accepted for tuples, numbers stay strict ("5" is not 5).
+        plant = PlantConfig.model_validate_json(json.dumps(data))
+    except TypeError as err:
+        raise ConfigError(f"plant file {source}: unsupported value ({err})") from None
     except pydantic.ValidationError as err:
         e = err.errors()[0]
         where = ".".join(str(p) for p in e["loc"])
