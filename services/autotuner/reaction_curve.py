@@ -11,8 +11,9 @@ From a step of size Δu in the output at t_s, with the PV at rest at y₀ before
 
 Two ways to the tangent, both reported by ``method``:
 
-* ``data``: a Savitzky–Golay derivative of the samples, its maximum refined by a parabola
-  through its neighbours; exact to rounding on noise-free samples;
+* ``data``: on noise-free samples, the steepest secant between neighbours; with noise, the
+  slope of a straight line fitted over a window that widens with the noise (Savitzky–Golay),
+  its peak refined by a parabola;
 * ``model``: with noise, a least-squares fit of K·e^{−θs}/((τ₁s+1)(τ₂s+1)) to the whole response
   (the heat exchanger of seed 002 has this form; FOPDT is τ₂ = 0), with the tangent taken on
   the fitted curve. It is used when the fit explains the data down to the noise
@@ -47,7 +48,7 @@ class ReactionCurve:
     a: float  # R·L, PV units per %
     l_over_t: float  # L/T (tangent)
     noise_std: float  # PV noise seen before the step
-    smoothing_window: int  # samples in the derivative's window
+    smoothing_window: int  # samples in the slope's window (2: a secant between samples)
     method: str  # "data" or "model" (see the module docstring)
     fit_rms: float | None  # RMS residual of the SOPDT fit, PV units (None: no fit)
 
@@ -97,24 +98,31 @@ def analyze_step(t: np.ndarray, y: np.ndarray, t_step: float, step_size: float,
     dt = float(np.median(np.diff(t)))
     sign = math.copysign(1.0, change)
     z = (y - pv_before) / change  # normalised response, 0 → 1
-    t63_raw = _first_crossing(t, z, 0.632)
-    rise_samples = max((t63_raw - t_step) / dt, 7.0)
-    w = _window(noise_std, change, rise_samples)
-    if w >= t.size:
-        raise ValueError("the response is too short for its noise: record longer")
-    poly = 3
-    ys = savgol_filter(y, w, poly, mode="interp")
-    dys = savgol_filter(y, w, poly, deriv=1, delta=dt, mode="interp")
-    k = int(np.argmax(sign * dys))
-    t_inf, slope = t[k], dys[k]
-    if 0 < k < t.size - 1:
-        d0, d1, d2 = dys[k - 1], dys[k], dys[k + 1]
-        denom = d0 - 2 * d1 + d2
-        if denom != 0:
-            delta = 0.5 * (d0 - d2) / denom
-            if abs(delta) <= 1:
+    rise_samples = max((_first_crossing(t, z, 0.632) - t_step) / dt, 7.0)
+    if noise_std <= 1e-9 * abs(change):
+        # Noise-free: the steepest secant between samples, at its midpoint. Exact to O(T²)
+        # on a smooth curve, and never overshoots where the slope jumps (a pure dead time).
+        w = 2
+        ys = y
+        secants = np.diff(y) / np.diff(t)
+        k = int(np.argmax(sign * secants))
+        t_inf, slope = 0.5 * (t[k] + t[k + 1]), float(secants[k])
+    else:
+        # Noisy: the slope of a straight line over a window that widens with the noise (a
+        # local average of the slope: it cannot overshoot), peak refined by a parabola.
+        w = _window(noise_std, change, rise_samples)
+        if w >= t.size:
+            raise ValueError("the response is too short for its noise: record longer")
+        ys = savgol_filter(y, w, 2, mode="interp")
+        dys = savgol_filter(y, w, 2, deriv=1, delta=dt, mode="interp")
+        k = int(np.argmax(sign * dys))
+        t_inf, slope = t[k], float(dys[k])
+        if 0 < k < t.size - 1:
+            d0, d1, d2 = dys[k - 1], dys[k], dys[k + 1]
+            denom = d0 - 2 * d1 + d2
+            if denom != 0 and abs(delta := 0.5 * (d0 - d2) / denom) <= 1:
                 t_inf = t[k] + delta * dt
-                slope = d1 - 0.25 * (d0 - d2) * delta
+                slope = float(d1 - 0.25 * (d0 - d2) * delta)
     y_at = float(np.interp(t_inf, t, ys))
     if slope == 0:
         raise ValueError("the PV has no slope after the step")
