@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from shared.errors import AutotuneError
 from services import demo
 from services.autotuner import step_command
 from services.plant_sim import service as plant_service
+from shared.errors import AutotuneError
 
 SUBCOMMANDS = {
     "demo": demo,
@@ -19,12 +19,17 @@ SUBCOMMANDS = {
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="autotune", description="PID auto-tuning against simulated process plants, "
-                                     "over Eclipse Zenoh.")
+        prog="autotune",
+        description="PID auto-tuning against simulated process plants, over Eclipse Zenoh.",
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, module in SUBCOMMANDS.items():
-        p = sub.add_parser(name, help=module.HELP, description=module.__doc__,
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        p = sub.add_parser(
+            name,
+            help=module.HELP,
+            description=module.__doc__,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
         module.add_arguments(p)
         p.set_defaults(run=module.run)
     return parser

@@ -13,8 +13,6 @@ import os
 import sys
 import tempfile
 
-from shared.errors import ConfigError
-from shared.session import ZenohSettings, open_session
 from services.autotuner.loop_client import LoopClient, wait_for_loop
 from services.autotuner.step_command import (
     add_step_options,
@@ -24,6 +22,8 @@ from services.autotuner.step_command import (
 )
 from services.autotuner.step_test import run_step_test
 from services.launcher import free_tcp_port, start_service, stop_service
+from shared.errors import ConfigError
+from shared.session import ZenohSettings, open_session
 
 HELP = "run the demo: a simulated plant as its own process, tested over Zenoh on loopback"
 
@@ -51,21 +51,28 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryFile("w+") as plant_log:
         plant = start_service("services.plant_sim", plant_args, stderr=plant_log)
         try:
-            settings = ZenohSettings(mode="peer", connect=(endpoint,),
-                                     cfg=("connect/timeout_ms:10000",),
-                                     no_multicast_scouting=True)
+            settings = ZenohSettings(
+                mode="peer",
+                connect=(endpoint,),
+                cfg=("connect/timeout_ms:10000",),
+                no_multicast_scouting=True,
+            )
             with open_session(settings) as session:
                 try:
                     wait_for_loop(session, prefix, args.loop, timeout=15.0)
                 except Exception:
                     if plant.poll() is not None:
                         plant_log.seek(0)
-                        raise ConfigError("the plant did not start:\n" + plant_log.read().strip()
-                                          ) from None
+                        raise ConfigError(
+                            "the plant did not start:\n" + plant_log.read().strip()
+                        ) from None
                     raise
                 if not args.json:
-                    print(f"plant_sim started (pid {plant.pid}, {endpoint}); step test of "
-                          f"{args.loop}…", file=sys.stderr)
+                    print(
+                        f"plant_sim started (pid {plant.pid}, {endpoint}); step test of "
+                        f"{args.loop}…",
+                        file=sys.stderr,
+                    )
                 with LoopClient(session, prefix, args.loop, source="autotune-demo") as client:
                     report = run_step_test(client, config, None if args.json else progress_line)
         finally:

@@ -19,9 +19,13 @@ def free_tcp_port() -> int:
 
 def start_service(module: str, args: Sequence[str], *, stderr=None) -> subprocess.Popen:
     """``python -m <module> <args>`` in its own process group (Ctrl-C reaches it through us)."""
-    return subprocess.Popen([sys.executable, "-m", module, *args], stdin=subprocess.DEVNULL,
-                            stderr=stderr, start_new_session=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    return subprocess.Popen(
+        [sys.executable, "-m", module, *args],
+        stdin=subprocess.DEVNULL,
+        stderr=stderr,
+        start_new_session=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
 
 
 def stop_service(proc: subprocess.Popen, timeout: float = 5.0) -> int:

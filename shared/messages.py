@@ -17,7 +17,9 @@ Mode = Literal["manual", "auto"]
 Action = Literal["reverse", "direct"]
 ClockMode = Literal["lockstep", "realtime"]
 
-LoopId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")]
+LoopId = Annotated[
+    str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+]
 Percent = Annotated[float, Field(ge=0.0, le=100.0)]
 SimTime = Annotated[float, Field(ge=0.0)]
 
@@ -43,7 +45,7 @@ class PidGains(Message):
 
 
 class ProcessSample(Message):
-    """One sample of a loop at sim time ``t``: PV measured at ``t`` and the output held from ``t``."""
+    """One sample of a loop at sim time ``t``: PV measured at ``t``, the output held from ``t``."""
 
     loop: LoopId
     seq: int = Field(ge=0, description="sample index; t = seq·sample_time")

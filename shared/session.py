@@ -51,17 +51,41 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``-m/-e/-l/-c/--cfg/--no-multicast-scouting`` as zenohd and the zenoh examples do."""
     g = parser.add_argument_group("zenoh")
     g.add_argument("-m", "--mode", choices=MODES, help="the zenoh session mode (default: peer)")
-    g.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
-    g.add_argument("-c", "--config", metavar="FILE",
-                   help="a zenoh JSON5 configuration file (default: $ZENOH_CONFIG if set)")
-    g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
-                   help="set one configuration key to a JSON5 value, e.g. "
-                        "'connect/timeout_ms:30000' (repeatable)")
-    g.add_argument("--no-multicast-scouting", action="store_true",
-                   help="disable multicast scouting (peers then need -e or -l)")
+    g.add_argument(
+        "-e",
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
+    g.add_argument(
+        "-l",
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    g.add_argument(
+        "-c",
+        "--config",
+        metavar="FILE",
+        help="a zenoh JSON5 configuration file (default: $ZENOH_CONFIG if set)",
+    )
+    g.add_argument(
+        "--cfg",
+        action="append",
+        default=[],
+        metavar="KEY:VALUE",
+        help="set one configuration key to a JSON5 value, e.g. "
+        "'connect/timeout_ms:30000' (repeatable)",
+    )
+    g.add_argument(
+        "--no-multicast-scouting",
+        action="store_true",
+        help="disable multicast scouting (peers then need -e or -l)",
+    )
 
 
 def settings_from_args(ns: argparse.Namespace) -> ZenohSettings:
@@ -78,7 +102,9 @@ def settings_from_args(ns: argparse.Namespace) -> ZenohSettings:
 def _check_endpoint(flag: str, endpoint: str) -> None:
     proto, sep, addr = endpoint.partition("/")
     if not sep or not proto or not addr:
-        raise ConfigError(f"{flag} {endpoint!r}: expected PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447")
+        raise ConfigError(
+            f"{flag} {endpoint!r}: expected PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447"
+        )
 
 
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
@@ -104,8 +130,10 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         if settings.mode not in MODES:
             raise ConfigError(f"--mode {settings.mode!r}: must be one of {', '.join(MODES)}")
         insert("--mode", "mode", json.dumps(settings.mode))
-    for flag, endpoints, key in (("-e", settings.connect, "connect/endpoints"),
-                                 ("-l", settings.listen, "listen/endpoints")):
+    for flag, endpoints, key in (
+        ("-e", settings.connect, "connect/endpoints"),
+        ("-l", settings.listen, "listen/endpoints"),
+    ):
         if endpoints:
             for e in endpoints:
                 _check_endpoint(flag, e)

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from shared.session import ZenohSettings, open_session
 from services.autotuner.loop_client import wait_for_loop
 from services.launcher import free_tcp_port, start_service, stop_service
+from shared.session import ZenohSettings, open_session
 
 _counter = itertools.count()
 
@@ -24,8 +24,12 @@ class RunningPlant:
     log: Path
 
     def client_settings(self) -> ZenohSettings:
-        return ZenohSettings(mode="peer", connect=(self.endpoint,),
-                             cfg=("connect/timeout_ms:10000",), no_multicast_scouting=True)
+        return ZenohSettings(
+            mode="peer",
+            connect=(self.endpoint,),
+            cfg=("connect/timeout_ms:10000",),
+            no_multicast_scouting=True,
+        )
 
     def cli_args(self) -> list[str]:
         return ["--prefix", self.prefix, "-e", self.endpoint, "--no-multicast-scouting"]

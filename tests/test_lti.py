@@ -60,7 +60,7 @@ def test_matches_scipy_cont2discrete_with_whole_sample_delay():
     u = rng.uniform(-5, 5, 200)
     model.reset()
     y = np.array([model.step(model.op0 + ui) for ui in u]) - model.pv0
-    a, b, c, d, _ = signal.cont2discrete(signal.tf2ss(num, den), ts, method="zoh")
+    a, b, c, _, _ = signal.cont2discrete(signal.tf2ss(num, den), ts, method="zoh")
     x = np.zeros(a.shape[0])
     ref = []
     u_delayed = np.concatenate((np.zeros(n_delay), u))
@@ -106,9 +106,12 @@ def test_delay_split_never_rounds_a_real_fraction():
 
 @pytest.mark.parametrize(
     ("kwargs", "field"),
-    [({"num": [1, 2, 3], "den": [1, 1]}, "num"), ({"num": [1], "den": [0, 0]}, "den"),
-     ({"num": [1], "den": [1, 1], "delay": -2}, "delay"),
-     ({"num": [1], "den": [1, float("nan")]}, "den[1]")],
+    [
+        ({"num": [1, 2, 3], "den": [1, 1]}, "num"),
+        ({"num": [1], "den": [0, 0]}, "den"),
+        ({"num": [1], "den": [1, 1], "delay": -2}, "delay"),
+        ({"num": [1], "den": [1, float("nan")]}, "den[1]"),
+    ],
 )
 def test_bad_transfer_functions_name_the_field(kwargs, field):
     with pytest.raises(ModelParamError) as err:

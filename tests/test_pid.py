@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from shared.messages import PidGains
 from services.plant_sim.models import FirstOrderPlusDeadTime
 from services.plant_sim.pid import PidBlock
+from shared.messages import PidGains
 
 TS = 0.1
 
@@ -45,8 +45,9 @@ def test_anti_windup_recovers_after_saturation():
     overshoot = max(np.max(pv) - 95.0, 0.0)
     assert np.max(np.abs(pv[1200:] - 95.0)) < 0.01  # settles at the setpoint
 
-    naive_pv, naive_op = _naive_closed_loop(PidBlock(gains, TS, (0.0, 100.0), op=50.0),
-                                            plant(), sp, 1500)
+    naive_pv, naive_op = _naive_closed_loop(
+        PidBlock(gains, TS, (0.0, 100.0), op=50.0), plant(), sp, 1500
+    )
     naive_reached = int(np.argmax(naive_pv >= 95.0))
     assert naive_reached > 0
     assert naive_op[naive_reached + 5] == 100.0  # wound up: still at the limit after the SP
@@ -72,9 +73,15 @@ def test_manual_auto_switches_and_gain_changes_make_no_jump():
     pv = plant.reset()
     sp = 45.0  # far from the PV: a naive switch would jump by Kc·15
     ops = []
-    script = {50: ("auto",), 150: ("gains", PidGains(kc=4.0, ti=1.0, td=1.0)),
-              250: ("manual",), 300: ("output", 55.0), 350: ("auto",),
-              450: ("gains", PidGains(kc=0.5, ti=None, td=0.0)), 550: ("auto",)}
+    script = {
+        50: ("auto",),
+        150: ("gains", PidGains(kc=4.0, ti=1.0, td=1.0)),
+        250: ("manual",),
+        300: ("output", 55.0),
+        350: ("auto",),
+        450: ("gains", PidGains(kc=0.5, ti=None, td=0.0)),
+        550: ("auto",),
+    }
     checked = []
     for k in range(600):
         pv = plant.step(pid.op)

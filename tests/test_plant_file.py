@@ -6,10 +6,10 @@ import textwrap
 import numpy as np
 import pytest
 
-from shared.errors import ConfigError
-from shared.messages import DisturbanceCommand, ModeCommand, OutputCommand, SetpointCommand
 from services.plant_sim.loop import CommandRejected
 from services.plant_sim.plant_file import build_plant, default_plant_path, load_plant_file
+from shared.errors import ConfigError
+from shared.messages import DisturbanceCommand, ModeCommand, OutputCommand, SetpointCommand
 
 MINIMUM = """
 [loops.hx1]
@@ -54,20 +54,30 @@ def test_noise_is_deterministic_given_the_seed():
     ("toml", "needle"),
     [
         ('[loops.hx1]\nmodel = "nope"', "loops.hx1.model: unknown model 'nope'"),
-        ('[loops.hx1]\nmodel = "transfer_function"\nnum=[1]\nden=[1,1]',
-         "loops.hx1.sample_time: required"),
-        ('[loops.hx1]\nmodel = "transfer_function"\nden=[1,1]\nsample_time=1',
-         "loops.hx1.num: required"),
+        (
+            '[loops.hx1]\nmodel = "transfer_function"\nnum=[1]\nden=[1,1]',
+            "loops.hx1.sample_time: required",
+        ),
+        (
+            '[loops.hx1]\nmodel = "transfer_function"\nden=[1,1]\nsample_time=1',
+            "loops.hx1.num: required",
+        ),
         ('[loops.hx1]\nmodel = "heat_exchanger"\ntau3 = 4', "loops.hx1.tau3: not a parameter"),
-        ('[loops.hx1]\nmodel = "heat_exchanger"\nsample_time = -1',
-         "loops.hx1.sample_time: Input should be greater than 0"),
-        ('[loops.hx1]\nmodel = "heat_exchanger"\ndelay = "5"', "loops.hx1.delay: expected a number"),
-        ('[loops.hx1]\nmodel = "fopdt"\ngain=1\ntime_constant=0\nsample_time=1',
-         "loops.hx1.time_constant: must be > 0"),
+        (
+            '[loops.hx1]\nmodel = "heat_exchanger"\nsample_time = -1',
+            "loops.hx1.sample_time: Input should be greater than 0",
+        ),
+        (
+            '[loops.hx1]\nmodel = "heat_exchanger"\ndelay = "5"',
+            "loops.hx1.delay: expected a number",
+        ),
+        (
+            '[loops.hx1]\nmodel = "fopdt"\ngain=1\ntime_constant=0\nsample_time=1',
+            "loops.hx1.time_constant: must be > 0",
+        ),
         ('[loops.hx1]\nmodel = "heat_exchanger"\nop_limits = [50, 20]', "loops.hx1.op_limits"),
         ('[loops.hx1]\nmodel = "heat_exchanger"\nsetpoint = 500.0', "loops.hx1.setpoint"),
-        ('[loops.hx1]\nmodel = "heat_exchanger"\n[loops.hx1.pid]\nkc = -1.0',
-         "loops.hx1.pid.kc"),
+        ('[loops.hx1]\nmodel = "heat_exchanger"\n[loops.hx1.pid]\nkc = -1.0', "loops.hx1.pid.kc"),
         ('[loops."bad id"]\nmodel = "heat_exchanger"', "loops.bad id"),
         ('[loops.t1]\nmodel = "flow"\ncharacteristic = "butterfly"', "loops.t1.characteristic"),
         ('[loops.t1]\nmodel = "no_such_pkg.mod:Plant"', "loops.t1.model: cannot import"),
@@ -93,7 +103,8 @@ def test_not_toml_and_missing_file(tmp_path):
 
 
 def test_user_model_class_is_swapped_in(tmp_path, monkeypatch):
-    (tmp_path / "my_plants.py").write_text(textwrap.dedent('''
+    (tmp_path / "my_plants.py").write_text(
+        textwrap.dedent('''
         class Doubler:
             """PV = 2·op, one sample late."""
             pv_units = "bar"
@@ -118,27 +129,34 @@ def test_user_model_class_is_swapped_in(tmp_path, monkeypatch):
         class Broken:
             def __init__(self, sample_time):
                 pass
-    '''))
+    ''')
+    )
     monkeypatch.syspath_prepend(str(tmp_path))
-    loops = build_plant({"loops": {"p1": {"model": "my_plants:Doubler", "sample_time": 0.5,
-                                          "offset": 1.0}}})
+    loops = build_plant(
+        {"loops": {"p1": {"model": "my_plants:Doubler", "sample_time": 0.5, "offset": 1.0}}}
+    )
     p1 = loops["p1"]
     assert p1.pv == 21.0 and p1.settings.pv_units == "bar"
     p1.apply(OutputCommand(loop="p1", op=30.0))
     assert p1.advance().pv == 61.0
     p1.apply(DisturbanceCommand(loop="p1", name="bias", value=-1.0))
     assert p1.advance().pv == 60.0
-    with pytest.raises(ConfigError, match="loops.p2.model: my_plants:Broken does not implement"):
+    with pytest.raises(ConfigError, match=r"loops\.p2\.model: my_plants:Broken does not implement"):
         build_plant({"loops": {"p2": {"model": "my_plants:Broken", "sample_time": 1.0}}})
     sys.modules.pop("my_plants", None)
 
 
 def test_loop_refuses_out_of_range_commands_and_changes_nothing():
-    loop = build_plant({"loops": {"hx1": {"model": "heat_exchanger", "op_limits": [10, 90]}}})["hx1"]
+    loop = build_plant({"loops": {"hx1": {"model": "heat_exchanger", "op_limits": [10, 90]}}})[
+        "hx1"
+    ]
     before = (loop.op, loop.sp, loop.mode)
-    for cmd in (OutputCommand(loop="hx1", op=95.0), SetpointCommand(loop="hx1", sp=400.0),
-                DisturbanceCommand(loop="hx1", name="steam", value=1.0),
-                DisturbanceCommand(loop="hx1", name="load", value=500.0)):
+    for cmd in (
+        OutputCommand(loop="hx1", op=95.0),
+        SetpointCommand(loop="hx1", sp=400.0),
+        DisturbanceCommand(loop="hx1", name="steam", value=1.0),
+        DisturbanceCommand(loop="hx1", name="load", value=500.0),
+    ):
         with pytest.raises(CommandRejected):
             loop.apply(cmd)
     loop.apply(ModeCommand(loop="hx1", mode="auto"))

@@ -36,8 +36,9 @@ def record_step(model, size, rng=None, noise=0.0, base_n=80):
         ts_.append(k * ts)
         ys.append(meas(model.step(model.op0 + size)))
         if len(ys) % 8 == 0:
-            done, rest = settled(np.array(ts_), np.array(ys), t_step, base.mean(),
-                                 noise_level(base))
+            done, rest = settled(
+                np.array(ts_), np.array(ys), t_step, base.mean(), noise_level(base)
+            )
             if done:
                 break
         assert k < 100000

@@ -36,8 +36,9 @@ class CommandRefused(AutotuneError):
 def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float) -> None:
     """Block until the loop's liveliness token is seen, or raise PlantLost after ``timeout``."""
     events: queue.Queue[zenoh.Sample] = queue.Queue()
-    sub = session.liveliness().declare_subscriber(keys.loop_alive(prefix, loop),
-                                                  zenoh.handlers.FifoChannel(16), history=True)
+    sub = session.liveliness().declare_subscriber(
+        keys.loop_alive(prefix, loop), zenoh.handlers.FifoChannel(16), history=True
+    )
     reader = threading.Thread(target=lambda: [events.put(s) for s in sub], daemon=True)
     reader.start()
     try:
@@ -48,7 +49,8 @@ def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float
                 raise PlantLost(
                     f"loop {loop!r} not found: nothing announces {keys.loop_alive(prefix, loop)} "
                     f"after {timeout:g} s (is `autotune plant` running, reachable and serving "
-                    "that loop?)") from None
+                    "that loop?)"
+                ) from None
             if sample.kind == zenoh.SampleKind.PUT:
                 return
     finally:
@@ -58,8 +60,15 @@ def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float
 class LoopClient:
     """One driver's view of a loop. Use as a context manager."""
 
-    def __init__(self, session: zenoh.Session, prefix: str, loop: str, *,
-                 source: str = "autotune", timeout: float = 5.0):
+    def __init__(
+        self,
+        session: zenoh.Session,
+        prefix: str,
+        loop: str,
+        *,
+        source: str = "autotune",
+        timeout: float = 5.0,
+    ):
         self.session = session
         self.prefix = prefix
         self.loop = loop
@@ -67,8 +76,9 @@ class LoopClient:
         self.timeout = timeout
         self._tokens = itertools.count(1)
         self._inbox: queue.Queue[tuple[str, bytes, str]] = queue.Queue()
-        self._sub = session.declare_subscriber(keys.loop_feed(prefix, loop),
-                                               zenoh.handlers.FifoChannel(65536))
+        self._sub = session.declare_subscriber(
+            keys.loop_feed(prefix, loop), zenoh.handlers.FifoChannel(65536)
+        )
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
         self._pv_key = keys.pv(prefix, loop)
@@ -97,16 +107,19 @@ class LoopClient:
                     return wire.decode_sample(LoopInfo, reply.ok)
                 except DecodeError as err:
                     raise AutotuneError(f"loop {self.loop}: bad LoopInfo reply: {err}") from None
-        raise PlantLost(f"loop {self.loop!r}: no plant answered {keys.info(self.prefix, self.loop)}"
-                        f" within {self.timeout:g} s")
+        raise PlantLost(
+            f"loop {self.loop!r}: no plant answered {keys.info(self.prefix, self.loop)}"
+            f" within {self.timeout:g} s"
+        )
 
     def _next(self) -> Message:
         """The next sample or status on the loop's feed (others' too)."""
         try:
             key, payload, enc = self._inbox.get(timeout=self.timeout)
         except queue.Empty:
-            raise PlantLost(f"loop {self.loop!r}: no message from the plant for "
-                            f"{self.timeout:g} s") from None
+            raise PlantLost(
+                f"loop {self.loop!r}: no message from the plant for {self.timeout:g} s"
+            ) from None
         if key == self._pv_key:
             sample = wire.decode(ProcessSample, payload, enc)
             self.last_sample = sample
@@ -141,9 +154,14 @@ class LoopClient:
     def next_sample(self) -> ProcessSample:
         """The next sample: in lockstep, advance the loop one period first."""
         if self.info.clock == "lockstep":
-            self.send(AdvanceCommand(loop=self.loop, steps=1, source=self.source,
-                                     t=self.last_status.t if self.last_sample is None
-                                     else self.last_sample.t))
+            self.send(
+                AdvanceCommand(
+                    loop=self.loop,
+                    steps=1,
+                    source=self.source,
+                    t=self.last_status.t if self.last_sample is None else self.last_sample.t,
+                )
+            )
         while True:
             msg = self._next()
             if isinstance(msg, ProcessSample):

@@ -71,13 +71,20 @@ def _window(noise: float, change: float, rise_samples: float) -> int:
         return 7
     # The slope's noise falls as w^-1.5; aim for ≈ 0.3 % of the change per rise time.
     ratio = noise / abs(change)
-    w = int(round(rise_samples * (ratio / 0.003) ** (2.0 / 3.0) * 0.25))
+    w = round(rise_samples * (ratio / 0.003) ** (2.0 / 3.0) * 0.25)
     w = max(7, min(w, int(rise_samples * 0.5)))
     return w | 1
 
 
-def analyze_step(t: np.ndarray, y: np.ndarray, t_step: float, step_size: float,
-                 pv_before: float, pv_after: float, noise_std: float) -> ReactionCurve:
+def analyze_step(
+    t: np.ndarray,
+    y: np.ndarray,
+    t_step: float,
+    step_size: float,
+    pv_before: float,
+    pv_after: float,
+    noise_std: float,
+) -> ReactionCurve:
     """Reaction-curve figures from samples (t, y) taken after a step at ``t_step``.
 
     ``pv_before``/``pv_after`` are the rest values before and after, ``noise_std`` the PV
@@ -93,8 +100,10 @@ def analyze_step(t: np.ndarray, y: np.ndarray, t_step: float, step_size: float,
         raise ValueError(f"only {t.size} samples after the step: too few to analyse")
     change = pv_after - pv_before
     if abs(change) <= max(5.0 * noise_std, 1e-12):
-        raise ValueError(f"PV changed by {change:.4g}, not clear of its noise "
-                         f"(σ = {noise_std:.3g}): use a larger step")
+        raise ValueError(
+            f"PV changed by {change:.4g}, not clear of its noise "
+            f"(σ = {noise_std:.3g}): use a larger step"
+        )
     dt = float(np.median(np.diff(t)))
     sign = math.copysign(1.0, change)
     z = (y - pv_before) / change  # normalised response, 0 → 1
@@ -141,12 +150,24 @@ def analyze_step(t: np.ndarray, y: np.ndarray, t_step: float, step_size: float,
     reaction_rate = slope / step_size
     tau_tangent = gain / reaction_rate
     return ReactionCurve(
-        step_size=step_size, pv_before=pv_before, pv_after=pv_after, gain=gain,
-        dead_time=dead_time, slope=slope, reaction_rate=reaction_rate,
-        time_constant_tangent=tau_tangent, time_constant_63=t63 - dead_time,
-        t_inflection=t_inf, t_63=t63, a=reaction_rate * dead_time,
-        l_over_t=dead_time / tau_tangent, noise_std=noise_std, smoothing_window=w,
-        method=method, fit_rms=fit_rms)
+        step_size=step_size,
+        pv_before=pv_before,
+        pv_after=pv_after,
+        gain=gain,
+        dead_time=dead_time,
+        slope=slope,
+        reaction_rate=reaction_rate,
+        time_constant_tangent=tau_tangent,
+        time_constant_63=t63 - dead_time,
+        t_inflection=t_inf,
+        t_63=t63,
+        a=reaction_rate * dead_time,
+        l_over_t=dead_time / tau_tangent,
+        noise_std=noise_std,
+        smoothing_window=w,
+        method=method,
+        fit_rms=fit_rms,
+    )
 
 
 @dataclass(frozen=True)
@@ -172,9 +193,13 @@ class SopdtFit:
         else:
             u = t1 * t2 * math.log(t1 / t2) / (t1 - t2)
         h = 1e-6 * (t1 + t2)
-        slope = float((self.response(np.array([th + u + h])) -
-                       self.response(np.array([th + u])))[0] / h) if u == 0.0 else \
-            float(k * _sopdt_slope(u, t1, t2))
+        slope = (
+            float(
+                (self.response(np.array([th + u + h])) - self.response(np.array([th + u])))[0] / h
+            )
+            if u == 0.0
+            else float(k * _sopdt_slope(u, t1, t2))
+        )
         y_at = float(self.response(np.array([th + u]))[0])
         dead_time = th + u - y_at / slope
         t63 = brentq(lambda x: self.response(np.array([x]))[0] - 0.632 * k, th, th + 20 * (t1 + t2))
@@ -197,8 +222,9 @@ def _sopdt_slope(u: float, t1: float, t2: float) -> float:
     return (math.exp(-u / t1) - math.exp(-u / t2)) / (t1 - t2)
 
 
-def fit_sopdt(t: np.ndarray, dy: np.ndarray, change: float, dead_time: float,
-              slope: float) -> SopdtFit | None:
+def fit_sopdt(
+    t: np.ndarray, dy: np.ndarray, change: float, dead_time: float, slope: float
+) -> SopdtFit | None:
     """Least-squares SOPDT fit of the PV change ``dy`` at times ``t`` after the step.
 
     Starts from the data method's tangent (L, slope); None if the fit fails.
@@ -236,13 +262,20 @@ def _first_crossing(t: np.ndarray, z: np.ndarray, level: float) -> float:
     return float(t[i - 1] + (level - z[i - 1]) / (z[i] - z[i - 1]) * (t[i] - t[i - 1]))
 
 
-def settled(t: np.ndarray, y: np.ndarray, t_step: float, pv_before: float,
-            noise_std: float, band: float = 0.005) -> tuple[bool, float]:
+def settled(
+    t: np.ndarray,
+    y: np.ndarray,
+    t_step: float,
+    pv_before: float,
+    noise_std: float,
+    band: float = 0.005,
+) -> tuple[bool, float]:
     """Has the PV come to rest after the step? Returns (settled, rest value estimate).
 
     Over the trailing quarter of the time since the step (≥ 20 samples), the PV's trend must
     either be lost in its noise or imply a drift over the next half of that time below
-    ``band`` of the change; and at least three times the 63 % time must have passed.
+    ``band`` of the change; at least three times the 63 % time must have passed; and the
+    window must be long enough for its mean to carry the rest value to within ``band``/2.
     """
     keep = t >= t_step
     t, y = t[keep], y[keep]
@@ -269,4 +302,5 @@ def settled(t: np.ndarray, y: np.ndarray, t_step: float, pv_before: float,
     se = float(np.sqrt(np.sum(resid * resid) / max(m - 2, 1) / sxx))
     quiet = abs(slope) <= 2.0 * se
     small = abs(slope) * elapsed * 0.5 <= band * abs(change)
-    return bool(quiet or small), rest
+    precise = noise_std / math.sqrt(m) <= 0.5 * band * abs(change)  # the rest value is known
+    return bool((quiet or small) and precise), rest

@@ -6,11 +6,11 @@ import argparse
 import json
 import sys
 
+from services.autotuner.loop_client import LoopClient, wait_for_loop
+from services.autotuner.step_test import StepTest, StepTestConfig, StepTestReport, run_step_test
 from shared import keys
 from shared.errors import ConfigError
 from shared.session import open_session, settings_from_args
-from services.autotuner.loop_client import LoopClient, wait_for_loop
-from services.autotuner.step_test import StepTest, StepTestConfig, StepTestReport, run_step_test
 
 HELP = "open-loop step test of a loop: process gain, dead time, time constants, R, L, L/T"
 
@@ -21,23 +21,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("loop", metavar="LOOP", help="loop id, e.g. hx1")
     add_step_options(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    parser.add_argument("--wait", type=float, default=10.0,
-                        help="seconds to wait for the loop to appear on the bus (default: "
-                             "%(default)s)")
+    parser.add_argument(
+        "--wait",
+        type=float,
+        default=10.0,
+        help="seconds to wait for the loop to appear on the bus (default: %(default)s)",
+    )
     from services.plant_sim.service import add_common_arguments
 
     add_common_arguments(parser)
 
 
 def add_step_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--size", type=float, default=5.0,
-                        help="output step, %% of span; negative steps down (default: %(default)s)")
-    parser.add_argument("--baseline", type=float,
-                        help="seconds of rest measured before the step (default: 40 samples)")
-    parser.add_argument("--timeout", type=float, default=7200.0,
-                        help="sim seconds to wait for the PV to settle (default: %(default)s)")
-    parser.add_argument("--pv-limits", type=float, nargs=2, metavar=("LO", "HI"),
-                        help="abort if the PV leaves [LO, HI] (default: the loop's PV range)")
+    parser.add_argument(
+        "--size",
+        type=float,
+        default=5.0,
+        help="output step, %% of span; negative steps down (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--baseline",
+        type=float,
+        help="seconds of rest measured before the step (default: 40 samples)",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=7200.0,
+        help="sim seconds to wait for the PV to settle (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--pv-limits",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="abort if the PV leaves [LO, HI] (default: the loop's PV range)",
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> StepTestConfig:
@@ -51,17 +70,27 @@ def config_from_args(args: argparse.Namespace) -> StepTestConfig:
         raise ConfigError(f"--baseline {args.baseline}: must be a finite number ≥ 0 s")
     if args.pv_limits and not args.pv_limits[0] < args.pv_limits[1]:
         raise ConfigError(f"--pv-limits {args.pv_limits}: LO must be below HI")
-    return StepTestConfig(size=args.size, baseline=args.baseline, timeout=args.timeout,
-                          pv_limits=tuple(args.pv_limits) if args.pv_limits else None)
+    return StepTestConfig(
+        size=args.size,
+        baseline=args.baseline,
+        timeout=args.timeout,
+        pv_limits=tuple(args.pv_limits) if args.pv_limits else None,
+    )
 
 
 def format_report(r: StepTestReport) -> str:
     c, u = r.curve, r.pv_units
     lo, hi = ZN_STEP_RANGE
-    fit = "ZN step rules suit it" if lo <= c.l_over_t <= hi else \
-        "outside the range where the ZN step rules work well"
-    how = (f"SOPDT fit of the whole response (RMS {c.fit_rms:.3g} {u})" if c.method == "model"
-           else f"the samples (derivative window {c.smoothing_window})")
+    fit = (
+        "ZN step rules suit it"
+        if lo <= c.l_over_t <= hi
+        else "outside the range where the ZN step rules work well"
+    )
+    how = (
+        f"SOPDT fit of the whole response (RMS {c.fit_rms:.3g} {u})"
+        if c.method == "model"
+        else f"the samples (derivative window {c.smoothing_window})"
+    )
     rows = [
         ("process gain K", f"{c.gain:.4g} {u}/%"),
         ("dead time L (tangent)", f"{c.dead_time:.4g} s"),
@@ -74,19 +103,28 @@ def format_report(r: StepTestReport) -> str:
         ("PV noise σ", f"{c.noise_std:.3g} {u}"),
         ("tangent taken from", how),
     ]
-    head = (f"Step test of {r.loop} ({r.model}): output {r.op_before:g} → "
-            f"{r.op_before + c.step_size:g} % at t = {r.t_step:g} s, at rest by t = {r.t_end:g} s")
+    head = (
+        f"Step test of {r.loop} ({r.model}): output {r.op_before:g} → "
+        f"{r.op_before + c.step_size:g} % at t = {r.t_step:g} s, at rest by t = {r.t_end:g} s"
+    )
     width = max(len(k) for k, _ in rows)
     body = "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
-    tail = (f"Loop restored: {r.mode_before}, output {r.op_before:g} %." if r.restored
-            else "WARNING: the loop could not be restored; check it.")
+    tail = (
+        f"Loop restored: {r.mode_before}, output {r.op_before:g} %."
+        if r.restored
+        else "WARNING: the loop could not be restored; check it."
+    )
     return f"{head}\n{body}\n{tail}"
 
 
 def progress_line(test: StepTest, s) -> None:
     if s.seq % 40 == 0 and sys.stderr.isatty():
-        print(f"\r  {test.phase:<8} t = {s.t:8.1f} s  PV = {s.pv:9.4g}  OP = {s.op:5.1f} %",
-              end="", file=sys.stderr, flush=True)
+        print(
+            f"\r  {test.phase:<8} t = {s.t:8.1f} s  PV = {s.pv:9.4g}  OP = {s.op:5.1f} %",
+            end="",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def run(args: argparse.Namespace) -> int:

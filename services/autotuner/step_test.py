@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shared.errors import AutotuneError
-from shared.messages import ModeCommand, OutputCommand, ProcessSample
 from services.autotuner.loop_client import LoopClient
 from services.autotuner.reaction_curve import ReactionCurve, analyze_step, noise_level, settled
+from shared.errors import AutotuneError
+from shared.messages import ModeCommand, OutputCommand, ProcessSample
 
 SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over a window)
 
@@ -61,8 +61,10 @@ class StepTest:
         target = self.op_start + cfg.size
         lo, hi = self.op_limits
         if not lo <= target <= hi:
-            raise ValueError(f"size {cfg.size:+g} %: the output would go from {self.op_start:g} "
-                             f"to {target:g} %, outside the loop's limits [{lo:g}, {hi:g}] %")
+            raise ValueError(
+                f"size {cfg.size:+g} %: the output would go from {self.op_start:g} "
+                f"to {target:g} %, outside the loop's limits [{lo:g}, {hi:g}] %"
+            )
         base = cfg.baseline if cfg.baseline is not None else 40 * self.sample_time
         if not base >= 0:
             raise ValueError(f"baseline {base}: must be ≥ 0 s")
@@ -100,15 +102,18 @@ class StepTest:
         if self.t_step is None:
             return self.op_target
         if s.t - self.t_step > self.config.timeout:
-            return self._abort(f"no steady state within {self.config.timeout:g} s of the step "
-                               "(an integrating process never settles: see the README)")
+            return self._abort(
+                f"no steady state within {self.config.timeout:g} s of the step "
+                "(an integrating process never settles: see the README)"
+            )
         t, y = np.asarray(self.t), np.asarray(self.pv)
         if (len(self.pv) % SETTLE_CHECK_EVERY) == 0:
             done, rest = settled(t, y, self.t_step, self._pv_before, self._noise)
             if done:
                 try:
-                    self.result = analyze_step(t, y, self.t_step, self.config.size,
-                                               self._pv_before, rest, self._noise)
+                    self.result = analyze_step(
+                        t, y, self.t_step, self.config.size, self._pv_before, rest, self._noise
+                    )
                 except ValueError as err:
                     return self._abort(str(err))
                 self.phase = "done"
@@ -134,16 +139,26 @@ class StepTestReport:
     restored: bool
 
     def to_dict(self) -> dict:
-        return {"loop": self.loop, "model": self.model, "pv_units": self.pv_units,
-                "mode_before": self.mode_before, "op_before": self.op_before,
-                "op_step": self.op_before + self.curve.step_size, "t_step": self.t_step,
-                "t_end": self.t_end, "samples": self.samples, "restored": self.restored,
-                **self.curve.to_dict()}
+        return {
+            "loop": self.loop,
+            "model": self.model,
+            "pv_units": self.pv_units,
+            "mode_before": self.mode_before,
+            "op_before": self.op_before,
+            "op_step": self.op_before + self.curve.step_size,
+            "t_step": self.t_step,
+            "t_end": self.t_end,
+            "samples": self.samples,
+            "restored": self.restored,
+            **self.curve.to_dict(),
+        }
 
 
-def run_step_test(client: LoopClient, config: StepTestConfig,
-                  progress: Callable[[StepTest, ProcessSample], None] | None = None
-                  ) -> StepTestReport:
+def run_step_test(
+    client: LoopClient,
+    config: StepTestConfig,
+    progress: Callable[[StepTest, ProcessSample], None] | None = None,
+) -> StepTestReport:
     """Run the step test on a live loop; restore its mode and output afterwards, always."""
     before = client.sync()
     info = client.info
@@ -163,20 +178,34 @@ def run_step_test(client: LoopClient, config: StepTestConfig,
             if progress:
                 progress(test, s)
             if want != op and not test.finished:
-                status = client.command(OutputCommand(loop=client.loop, op=want, t=s.t,
-                                                      source=client.source))
+                status = client.command(
+                    OutputCommand(loop=client.loop, op=want, t=s.t, source=client.source)
+                )
                 # Lockstep: applied at the present sample. Realtime: latched at the next one.
-                test.step_started(status.t if info.clock == "lockstep"
-                                  else status.t + info.sample_time)
+                test.step_started(
+                    status.t if info.clock == "lockstep" else status.t + info.sample_time
+                )
                 op = want
     finally:
         restored = _restore(client, before.mode, before.op)
     if test.phase == "aborted" or test.result is None:
-        raise StepTestAborted(f"loop {client.loop}: step test aborted: {test.reason}; "
-                              f"{'loop restored' if restored else 'LOOP NOT RESTORED'} "
-                              f"({before.mode}, {before.op:g} %)")
-    return StepTestReport(client.loop, info.model, info.pv_units, before.mode, before.op,
-                          test.t_step or 0.0, test.t[-1], len(test.t), test.result, restored)
+        raise StepTestAborted(
+            f"loop {client.loop}: step test aborted: {test.reason}; "
+            f"{'loop restored' if restored else 'LOOP NOT RESTORED'} "
+            f"({before.mode}, {before.op:g} %)"
+        )
+    return StepTestReport(
+        client.loop,
+        info.model,
+        info.pv_units,
+        before.mode,
+        before.op,
+        test.t_step or 0.0,
+        test.t[-1],
+        len(test.t),
+        test.result,
+        restored,
+    )
 
 
 def _restore(client: LoopClient, mode: str, op: float) -> bool:

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.plant_sim.models import ProcessModel
+from services.plant_sim.pid import PidBlock
 from shared.messages import (
     Action,
     Command,
@@ -26,8 +28,6 @@ from shared.messages import (
     ProcessSample,
     SetpointCommand,
 )
-from services.plant_sim.models import ProcessModel
-from services.plant_sim.pid import PidBlock
 
 
 class CommandRejected(Exception):
@@ -72,8 +72,14 @@ class SimLoop:
         pv_rest = process.reset()
         self.pv = self._measure(pv_rest)
         self.sp = settings.setpoint if settings.setpoint is not None else pv_rest
-        self.pid = PidBlock(settings.gains, settings.sample_time, settings.op_limits,
-                            settings.action, "manual", op=process.op0)
+        self.pid = PidBlock(
+            settings.gains,
+            settings.sample_time,
+            settings.op_limits,
+            settings.action,
+            "manual",
+            op=process.op0,
+        )
         self.pid.track(self.pv, self.pid.op)
         if settings.mode == "auto":
             self.pid.set_mode("auto", self.sp, self.pv)
@@ -102,8 +108,15 @@ class SimLoop:
         return min(max(pv, lo), hi)
 
     def sample(self) -> ProcessSample:
-        return ProcessSample(loop=self.settings.loop_id, seq=self.seq, t=self.t, pv=self.pv,
-                             sp=self.sp, op=self.op, mode=self.mode)
+        return ProcessSample(
+            loop=self.settings.loop_id,
+            seq=self.seq,
+            t=self.t,
+            pv=self.pv,
+            sp=self.sp,
+            op=self.op,
+            mode=self.mode,
+        )
 
     def advance(self, held_op: float | None = None) -> ProcessSample:
         """Hold the output for one period, measure, execute the PID block; return the sample.
@@ -139,26 +152,33 @@ class SimLoop:
                 self.pid.set_mode(mode, self.sp, self.pv)
             case OutputCommand(op=op):
                 if self.mode != "manual":
-                    raise CommandRejected("mode", "output refused: the loop is in auto "
-                                                  "(switch it to manual first)")
+                    raise CommandRejected(
+                        "mode", "output refused: the loop is in auto (switch it to manual first)"
+                    )
                 lo, hi = self.settings.op_limits
                 if not lo <= op <= hi:
-                    raise CommandRejected("range", f"op {op} is outside the output limits "
-                                                   f"[{lo}, {hi}] %")
+                    raise CommandRejected(
+                        "range", f"op {op} is outside the output limits [{lo}, {hi}] %"
+                    )
                 self.pid.set_output(op)
             case SetpointCommand(sp=sp):
                 lo, hi = self.settings.pv_range
                 if not lo <= sp <= hi:
-                    raise CommandRejected("range", f"sp {sp} is outside the PV range "
-                                                   f"[{lo}, {hi}] {self.settings.pv_units}")
+                    raise CommandRejected(
+                        "range",
+                        f"sp {sp} is outside the PV range [{lo}, {hi}] {self.settings.pv_units}",
+                    )
                 self.sp = sp
             case GainsCommand(gains=gains):
                 self.pid.set_gains(gains, self.sp, self.pv)
             case DisturbanceCommand(name=name, value=value):
                 names = self.process.disturbance_names()
                 if name not in names:
-                    raise CommandRejected("disturbance", f"unknown disturbance {name!r}; this "
-                                          f"loop has: {', '.join(names) or 'none'}")
+                    raise CommandRejected(
+                        "disturbance",
+                        f"unknown disturbance {name!r}; this "
+                        f"loop has: {', '.join(names) or 'none'}",
+                    )
                 try:
                     self.process.set_disturbance(name, value)
                 except (KeyError, ValueError) as err:

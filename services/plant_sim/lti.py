@@ -94,8 +94,9 @@ def discretize(
     nx = b.shape[0]
     if nx == 0:
         empty = np.zeros((0, 0))
-        return DiscreteDelaySystem(empty, np.zeros((0, 1)), np.zeros((0, 1)), c, float(d),
-                                   sample_time, n, f)
+        return DiscreteDelaySystem(
+            empty, np.zeros((0, 1)), np.zeros((0, 1)), c, float(d), sample_time, n, f
+        )
     phi, _ = _zoh_integral(a, b, sample_time)
     e_late, gamma_new = _zoh_integral(a, b, sample_time - f)
     if f > 0.0:
@@ -131,8 +132,9 @@ class DelayedLinearSystem:
     def __init__(self, sys: DiscreteDelaySystem):
         self.sys = sys
         self._x = np.zeros(sys.order)
-        self._inputs: deque[float] = deque([0.0] * (sys.delay_samples + 2),
-                                           maxlen=sys.delay_samples + 2)
+        self._inputs: deque[float] = deque(
+            [0.0] * (sys.delay_samples + 2), maxlen=sys.delay_samples + 2
+        )
 
     def reset(self) -> None:
         """Back to rest: zero state, zero inputs in the delay line."""
@@ -153,6 +155,9 @@ class DelayedLinearSystem:
         u_new = self._inputs[n]
         if self.sys.order:
             u_old = self._inputs[n + 1]
-            self._x = (self.sys.phi @ self._x + self.sys.gamma_new[:, 0] * u_new
-                       + self.sys.gamma_old[:, 0] * u_old)
+            self._x = (
+                self.sys.phi @ self._x
+                + self.sys.gamma_new[:, 0] * u_new
+                + self.sys.gamma_old[:, 0] * u_old
+            )
         return self.output()

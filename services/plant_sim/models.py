@@ -55,8 +55,14 @@ class ProcessModel(Protocol):
         ...
 
 
-def finite(field: str, value: float, *, low: float | None = None, high: float | None = None,
-           low_open: bool = False) -> float:
+def finite(
+    field: str,
+    value: float,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+) -> float:
     """Check a numeric parameter; raise ModelParamError naming ``field``."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ModelParamError(field, f"expected a number, got {value!r}")
@@ -88,9 +94,16 @@ class TransferFunctionModel:
     pv_units = "%"
     pv_range = (0.0, 100.0)
 
-    def __init__(self, sample_time: float, num: list[float], den: list[float],
-                 delay: float = 0.0, op0: float = 50.0, pv0: float = 50.0,
-                 sensor_lag: float = 0.0):
+    def __init__(
+        self,
+        sample_time: float,
+        num: list[float],
+        den: list[float],
+        delay: float = 0.0,
+        op0: float = 50.0,
+        pv0: float = 50.0,
+        sensor_lag: float = 0.0,
+    ):
         self.sample_time = finite("sample_time", sample_time, low=0.0, low_open=True)
         self.num = coefficients("num", num)
         self.den = coefficients("den", den)
@@ -127,9 +140,16 @@ class TransferFunctionModel:
 class FirstOrderPlusDeadTime(TransferFunctionModel):
     """PV = pv0 + gain·e^{−delay·s}/(time_constant·s + 1)·(op − op0 + load)."""
 
-    def __init__(self, sample_time: float, gain: float, time_constant: float,
-                 delay: float = 0.0, op0: float = 50.0, pv0: float = 50.0,
-                 sensor_lag: float = 0.0):
+    def __init__(
+        self,
+        sample_time: float,
+        gain: float,
+        time_constant: float,
+        delay: float = 0.0,
+        op0: float = 50.0,
+        pv0: float = 50.0,
+        sensor_lag: float = 0.0,
+    ):
         gain = finite("gain", gain)
         time_constant = finite("time_constant", time_constant, low=0.0, low_open=True)
         super().__init__(sample_time, [gain], [time_constant, 1.0], delay, op0, pv0, sensor_lag)
@@ -141,7 +161,14 @@ class IntegratingPlusDeadTime(TransferFunctionModel):
     At rest only with the output at ``op0`` (the balance point).
     """
 
-    def __init__(self, sample_time: float, gain: float, delay: float = 0.0,
-                 op0: float = 50.0, pv0: float = 50.0, sensor_lag: float = 0.0):
+    def __init__(
+        self,
+        sample_time: float,
+        gain: float,
+        delay: float = 0.0,
+        op0: float = 50.0,
+        pv0: float = 50.0,
+        sensor_lag: float = 0.0,
+    ):
         gain = finite("gain", gain)
         super().__init__(sample_time, [gain], [1.0, 0.0], delay, op0, pv0, sensor_lag)

@@ -34,8 +34,9 @@ def valve_fraction(position: float, characteristic: str, rangeability: float) ->
 
 def check_characteristic(characteristic: str, rangeability: float) -> tuple[str, float]:
     if characteristic not in CHARACTERISTICS:
-        raise ModelParamError("characteristic", f"must be one of {', '.join(CHARACTERISTICS)}, "
-                                                f"got {characteristic!r}")
+        raise ModelParamError(
+            "characteristic", f"must be one of {', '.join(CHARACTERISTICS)}, got {characteristic!r}"
+        )
     return characteristic, finite("rangeability", rangeability, low=1.0, low_open=True)
 
 
@@ -79,8 +80,9 @@ class SensorLag:
         return self._y
 
 
-def rk4(f: Callable[[np.ndarray, float], np.ndarray], x: np.ndarray, op: float,
-        h: float, n: int) -> np.ndarray:
+def rk4(
+    f: Callable[[np.ndarray, float], np.ndarray], x: np.ndarray, op: float, h: float, n: int
+) -> np.ndarray:
     """Integrate ẋ = f(x, op) over n steps of h with op held."""
     for _ in range(n):
         k1 = f(x, op)
@@ -101,8 +103,14 @@ class OdeProcess:
     pv_units = ""
     pv_range = (0.0, 100.0)
 
-    def __init__(self, sample_time: float, op0: float, delay: float, sensor_lag: float,
-                 fastest_time_constant: float):
+    def __init__(
+        self,
+        sample_time: float,
+        op0: float,
+        delay: float,
+        sensor_lag: float,
+        fastest_time_constant: float,
+    ):
         self.sample_time = finite("sample_time", sample_time, low=0.0, low_open=True)
         self.op0 = finite("op0", op0, low=0.0, high=100.0)
         self.delay = finite("delay", delay, low=0.0)
@@ -168,11 +176,21 @@ class HeatExchangerPhysical(OdeProcess):
     CP = 4186.0  # J/(kg·K), water
     H_FG = 2.1e6  # J/kg, latent heat of steam at about 3 bar
 
-    def __init__(self, sample_time: float, op0: float = 40.0, steam_max: float = 0.4,
-                 flow: float = 2.0, inlet_temp: float = 20.0, ua: float = 12000.0,
-                 water_mass: float = 60.0, wall_capacity: float = 250000.0,
-                 delay: float = 5.0, sensor_lag: float = 1.0,
-                 characteristic: str = "linear", rangeability: float = 30.0):
+    def __init__(
+        self,
+        sample_time: float,
+        op0: float = 40.0,
+        steam_max: float = 0.4,
+        flow: float = 2.0,
+        inlet_temp: float = 20.0,
+        ua: float = 12000.0,
+        water_mass: float = 60.0,
+        wall_capacity: float = 250000.0,
+        delay: float = 5.0,
+        sensor_lag: float = 1.0,
+        characteristic: str = "linear",
+        rangeability: float = 30.0,
+    ):
         self.steam_max = finite("steam_max", steam_max, low=0.0, low_open=True)
         self.ua = finite("ua", ua, low=0.0, low_open=True)
         self.c_f = finite("water_mass", water_mass, low=0.0, low_open=True) * self.CP
@@ -181,20 +199,27 @@ class HeatExchangerPhysical(OdeProcess):
         flow = finite("flow", flow, low=0.0, low_open=True)
         fastest = min(self.c_w / self.ua, self.c_f / (self.ua + 2.0 * flow * self.CP))
         super().__init__(sample_time, op0, delay, sensor_lag, fastest)
-        self.disturbances = {"inlet_temp": finite("inlet_temp", inlet_temp, low=-20, high=100),
-                             "flow": flow}
+        self.disturbances = {
+            "inlet_temp": finite("inlet_temp", inlet_temp, low=-20, high=100),
+            "flow": flow,
+        }
         self._limits = {"inlet_temp": (-20.0, 100.0), "flow": (0.05 * flow, 2.0 * flow)}
 
     def _heat(self, op: float) -> float:
-        return self.steam_max * valve_fraction(op, self.characteristic, self.rangeability) \
-            * self.H_FG
+        return (
+            self.steam_max * valve_fraction(op, self.characteristic, self.rangeability) * self.H_FG
+        )
 
     def _derivatives(self, x: np.ndarray, op: float) -> np.ndarray:
         t_wall, t = x
         q_wall = self.ua * (t_wall - t)
         fcp = self.disturbances["flow"] * self.CP
-        return np.array([(self._heat(op) - q_wall) / self.c_w,
-                         (fcp * (self.disturbances["inlet_temp"] - t) + q_wall) / self.c_f])
+        return np.array(
+            [
+                (self._heat(op) - q_wall) / self.c_w,
+                (fcp * (self.disturbances["inlet_temp"] - t) + q_wall) / self.c_f,
+            ]
+        )
 
     def _rest_state(self, op: float) -> np.ndarray:
         q = self._heat(op)
@@ -216,9 +241,17 @@ class TankLevel(OdeProcess):
 
     pv_units = "m"
 
-    def __init__(self, sample_time: float, op0: float = 50.0, area: float = 2.0,
-                 height: float = 3.0, inflow_max: float = 0.02, level0: float = 1.5,
-                 delay: float = 1.0, sensor_lag: float = 0.0):
+    def __init__(
+        self,
+        sample_time: float,
+        op0: float = 50.0,
+        area: float = 2.0,
+        height: float = 3.0,
+        inflow_max: float = 0.02,
+        level0: float = 1.5,
+        delay: float = 1.0,
+        sensor_lag: float = 0.0,
+    ):
         self.area = finite("area", area, low=0.0, low_open=True)
         self.height = finite("height", height, low=0.0, low_open=True)
         self.inflow_max = finite("inflow_max", inflow_max, low=0.0, low_open=True)
@@ -262,9 +295,17 @@ class TankLevelPumped(OdeProcess):
 
     pv_units = "m"
 
-    def __init__(self, sample_time: float, op0: float = 50.0, area: float = 2.0,
-                 height: float = 3.0, inflow_max: float = 0.02, level0: float = 1.5,
-                 delay: float = 2.0, sensor_lag: float = 0.0):
+    def __init__(
+        self,
+        sample_time: float,
+        op0: float = 50.0,
+        area: float = 2.0,
+        height: float = 3.0,
+        inflow_max: float = 0.02,
+        level0: float = 1.5,
+        delay: float = 2.0,
+        sensor_lag: float = 0.0,
+    ):
         self.area = finite("area", area, low=0.0, low_open=True)
         self.height = finite("height", height, low=0.0, low_open=True)
         self.inflow_max = finite("inflow_max", inflow_max, low=0.0, low_open=True)
@@ -272,13 +313,18 @@ class TankLevelPumped(OdeProcess):
         self.pv_range = (0.0, self.height)
         super().__init__(sample_time, op0, delay, sensor_lag, math.inf)
         self.disturbances = {"outflow": self.inflow_max * self.op0 / 100.0, "inflow": 0.0}
-        self._limits = {"outflow": (0.0, self.inflow_max), "inflow": (-self.inflow_max,
-                                                                      self.inflow_max)}
+        self._limits = {
+            "outflow": (0.0, self.inflow_max),
+            "inflow": (-self.inflow_max, self.inflow_max),
+        }
 
     def _derivatives(self, x: np.ndarray, op: float) -> np.ndarray:
         q_in = self.inflow_max * op / 100.0 + self.disturbances["inflow"]
-        q_out = self.disturbances["outflow"] if x[0] > 0 else min(self.disturbances["outflow"],
-                                                                  max(q_in, 0.0))
+        q_out = (
+            self.disturbances["outflow"]
+            if x[0] > 0
+            else min(self.disturbances["outflow"], max(q_in, 0.0))
+        )
         return np.array([(q_in - q_out) / self.area])
 
     def _rest_state(self, op: float) -> np.ndarray:
@@ -305,10 +351,18 @@ class FlowLoop(OdeProcess):
 
     pv_units = "m3/h"
 
-    def __init__(self, sample_time: float, op0: float = 50.0, flow_max: float = 100.0,
-                 valve_time_constant: float = 1.5, flow_time_constant: float = 0.5,
-                 delay: float = 1.0, sensor_lag: float = 0.3,
-                 characteristic: str = "linear", rangeability: float = 30.0):
+    def __init__(
+        self,
+        sample_time: float,
+        op0: float = 50.0,
+        flow_max: float = 100.0,
+        valve_time_constant: float = 1.5,
+        flow_time_constant: float = 0.5,
+        delay: float = 1.0,
+        sensor_lag: float = 0.3,
+        characteristic: str = "linear",
+        rangeability: float = 30.0,
+    ):
         self.flow_max = finite("flow_max", flow_max, low=0.0, low_open=True)
         self.tau_v = finite("valve_time_constant", valve_time_constant, low=0.0, low_open=True)
         self.tau_f = finite("flow_time_constant", flow_time_constant, low=0.0, low_open=True)
@@ -319,8 +373,11 @@ class FlowLoop(OdeProcess):
         self._limits = {"supply_pressure": (0.0, 200.0)}
 
     def _target(self, x: float) -> float:
-        return (self.flow_max * valve_fraction(x, self.characteristic, self.rangeability)
-                * math.sqrt(self.disturbances["supply_pressure"] / 100.0))
+        return (
+            self.flow_max
+            * valve_fraction(x, self.characteristic, self.rangeability)
+            * math.sqrt(self.disturbances["supply_pressure"] / 100.0)
+        )
 
     def _derivatives(self, x: np.ndarray, op: float) -> np.ndarray:
         pos, q = x

@@ -36,8 +36,15 @@ class PidTerms:
 class PidBlock:
     """One PID block; call ``update(sp, pv)`` once per sample period."""
 
-    def __init__(self, gains: PidGains, sample_time: float, op_limits: tuple[float, float],
-                 action: Action = "reverse", mode: Mode = "manual", op: float = 0.0):
+    def __init__(
+        self,
+        gains: PidGains,
+        sample_time: float,
+        op_limits: tuple[float, float],
+        action: Action = "reverse",
+        mode: Mode = "manual",
+        op: float = 0.0,
+    ):
         lo, hi = op_limits
         if not 0.0 <= lo < hi <= 100.0:
             raise ValueError(f"op_limits must satisfy 0 ≤ low < high ≤ 100, got {op_limits}")

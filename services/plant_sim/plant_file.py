@@ -20,8 +20,8 @@ seeds every loop's noise (each loop also mixes in its own id).
 from __future__ import annotations
 
 import importlib
-import json
 import inspect
+import json
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -30,12 +30,12 @@ from typing import Any
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.errors import ConfigError
-from shared.keys import check_id
-from shared.messages import Action, Mode, PidGains
 from services.plant_sim.loop import LoopSettings, SimLoop
 from services.plant_sim.models import ModelParamError, ProcessModel
 from services.plant_sim.presets import CUSTOM_DEFAULTS, DEFAULTS, MODELS, LoopDefaults
+from shared.errors import ConfigError
+from shared.keys import check_id
+from shared.messages import Action, Mode, PidGains
 
 
 class LoopConfig(BaseModel):
@@ -84,8 +84,9 @@ def load_plant_file(path: str | Path, seed: int | None = None) -> dict[str, SimL
     return build_plant(data, source=str(path), seed=seed)
 
 
-def build_plant(data: dict[str, Any], source: str = "plant", seed: int | None = None
-                ) -> dict[str, SimLoop]:
+def build_plant(
+    data: dict[str, Any], source: str = "plant", seed: int | None = None
+) -> dict[str, SimLoop]:
     """Build every loop of a parsed plant file (``seed`` overrides the file's)."""
     try:
         # JSON mode: arrays are accepted for tuples, numbers stay strict ("5" is not 5).
@@ -107,8 +108,9 @@ def _resolve_model(name: str) -> tuple[type, LoopDefaults]:
     if name in MODELS:
         return MODELS[name], DEFAULTS[name]
     if ":" not in name:
-        raise ValueError(f"unknown model {name!r}: use one of {', '.join(MODELS)} "
-                         "or 'package.module:Class'")
+        raise ValueError(
+            f"unknown model {name!r}: use one of {', '.join(MODELS)} or 'package.module:Class'"
+        )
     module_name, _, class_name = name.partition(":")
     try:
         module = importlib.import_module(module_name)
@@ -128,17 +130,22 @@ def _check_params(cls: type, params: dict[str, Any], model: str) -> str | None:
         return None
     for key in params:
         if key not in accepted:
-            return f"{key}: not a parameter of model {model!r} (it takes: " \
-                   f"{', '.join(sorted(accepted)) or 'nothing'})"
+            return (
+                f"{key}: not a parameter of model {model!r} (it takes: "
+                f"{', '.join(sorted(accepted)) or 'nothing'})"
+            )
     for n, p in sig.parameters.items():
-        if n != "sample_time" and p.default is inspect.Parameter.empty and n not in params \
-                and p.kind not in (inspect.Parameter.VAR_POSITIONAL,):
+        if (
+            n != "sample_time"
+            and p.default is inspect.Parameter.empty
+            and n not in params
+            and p.kind not in (inspect.Parameter.VAR_POSITIONAL,)
+        ):
             return f"{n}: required by model {model!r}"
     return None
 
 
-def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "plant"
-               ) -> SimLoop:
+def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "plant") -> SimLoop:
     """Construct the process model and the loop around it."""
 
     def fail(field: str, reason: str) -> ConfigError:
@@ -167,10 +174,25 @@ def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "pl
     except (TypeError, ValueError) as err:
         raise fail("model", f"{cfg.model} rejected its parameters: {err}") from None
     if not isinstance(process, ProcessModel):
-        missing = [m for m in ("sample_time", "pv_units", "pv_range", "op0", "reset", "step",
-                               "disturbance_names", "set_disturbance") if not hasattr(process, m)]
-        raise fail("model", f"{cfg.model} does not implement the ProcessModel protocol "
-                            f"(missing: {', '.join(missing)})")
+        missing = [
+            m
+            for m in (
+                "sample_time",
+                "pv_units",
+                "pv_range",
+                "op0",
+                "reset",
+                "step",
+                "disturbance_names",
+                "set_disturbance",
+            )
+            if not hasattr(process, m)
+        ]
+        raise fail(
+            "model",
+            f"{cfg.model} does not implement the ProcessModel protocol "
+            f"(missing: {', '.join(missing)})",
+        )
 
     pv_range = cfg.pv_range if cfg.pv_range is not None else tuple(process.pv_range)
     if not pv_range[0] < pv_range[1]:

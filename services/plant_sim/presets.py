@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shared.messages import Action, PidGains
 from services.plant_sim.models import (
     FirstOrderPlusDeadTime,
     IntegratingPlusDeadTime,
@@ -19,6 +18,7 @@ from services.plant_sim.models import (
     finite,
 )
 from services.plant_sim.physical import FlowLoop, HeatExchangerPhysical, TankLevel, TankLevelPumped
+from shared.messages import Action, PidGains
 
 
 class HeatExchanger(TransferFunctionModel):
@@ -31,9 +31,17 @@ class HeatExchanger(TransferFunctionModel):
     pv_units = "degC"
     pv_range = (0.0, 150.0)
 
-    def __init__(self, sample_time: float, gain: float = 1.0, tau1: float = 10.0,
-                 tau2: float = 60.0, delay: float = 5.0, op0: float = 40.0, pv0: float = 60.0,
-                 sensor_lag: float = 0.0):
+    def __init__(
+        self,
+        sample_time: float,
+        gain: float = 1.0,
+        tau1: float = 10.0,
+        tau2: float = 60.0,
+        delay: float = 5.0,
+        op0: float = 40.0,
+        pv0: float = 60.0,
+        sensor_lag: float = 0.0,
+    ):
         gain = finite("gain", gain)
         tau1 = finite("tau1", tau1, low=0.0)
         tau2 = finite("tau2", tau2, low=0.0)

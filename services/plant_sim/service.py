@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import zenoh
 
+from services.plant_sim.loop import CommandRejected, SimLoop
+from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from shared import keys, wire
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.messages import (
@@ -34,8 +36,6 @@ from shared.messages import (
     SyncCommand,
 )
 from shared.session import ZenohSettings, add_zenoh_arguments, open_session, settings_from_args
-from services.plant_sim.loop import CommandRejected, SimLoop
-from services.plant_sim.plant_file import default_plant_path, load_plant_file
 
 log = logging.getLogger("plant_sim")
 
@@ -76,8 +76,7 @@ class RejectLog:
 class PlantService:
     """The Zenoh shell around a set of SimLoops."""
 
-    def __init__(self, session: zenoh.Session, loops: dict[str, SimLoop],
-                 options: ServiceOptions):
+    def __init__(self, session: zenoh.Session, loops: dict[str, SimLoop], options: ServiceOptions):
         self.session = session
         self.loops = loops
         self.opt = options
@@ -93,27 +92,57 @@ class PlantService:
     def loop_status(self, loop: SimLoop, reason: str, token: int | None = None) -> LoopStatus:
         s = loop.settings
         return LoopStatus(
-            loop=s.loop_id, node=self.opt.node, seq=loop.seq, t=loop.t, pv=loop.pv, sp=loop.sp,
-            op=loop.op, mode=loop.mode, action=s.action, gains=loop.pid.gains,
-            op_limits=s.op_limits, pv_range=s.pv_range, disturbances=loop.disturbances(),
-            clock=self.opt.clock, accepted=loop.accepted, rejected=loop.rejected,
-            last_reject=loop.last_reject, sync_token=token, reason=reason)
+            loop=s.loop_id,
+            node=self.opt.node,
+            seq=loop.seq,
+            t=loop.t,
+            pv=loop.pv,
+            sp=loop.sp,
+            op=loop.op,
+            mode=loop.mode,
+            action=s.action,
+            gains=loop.pid.gains,
+            op_limits=s.op_limits,
+            pv_range=s.pv_range,
+            disturbances=loop.disturbances(),
+            clock=self.opt.clock,
+            accepted=loop.accepted,
+            rejected=loop.rejected,
+            last_reject=loop.last_reject,
+            sync_token=token,
+            reason=reason,
+        )
 
     def loop_info(self, loop: SimLoop) -> LoopInfo:
         s = loop.settings
         return LoopInfo(
-            loop=s.loop_id, node=self.opt.node, t=loop.t, model=s.model_name,
-            description=s.description, model_params=s.model_params, sample_time=s.sample_time,
-            pv_units=s.pv_units, pv_range=s.pv_range, op_limits=s.op_limits,
-            disturbances=list(loop.process.disturbance_names()), noise_std=s.noise_std,
-            clock=self.opt.clock, speed=self.opt.speed)
+            loop=s.loop_id,
+            node=self.opt.node,
+            t=loop.t,
+            model=s.model_name,
+            description=s.description,
+            model_params=s.model_params,
+            sample_time=s.sample_time,
+            pv_units=s.pv_units,
+            pv_range=s.pv_range,
+            op_limits=s.op_limits,
+            disturbances=list(loop.process.disturbance_names()),
+            noise_std=s.noise_std,
+            clock=self.opt.clock,
+            speed=self.opt.speed,
+        )
 
     def service_status(self) -> ServiceStatus:
         return ServiceStatus(
-            node=self.opt.node, clock=self.opt.clock, speed=self.opt.speed,
-            loops={lid: lp.t for lid, lp in self.loops.items()}, accepted=self.accepted,
+            node=self.opt.node,
+            clock=self.opt.clock,
+            speed=self.opt.speed,
+            loops={lid: lp.t for lid, lp in self.loops.items()},
+            accepted=self.accepted,
             rejected=sum(self.rejected_by_reason.values()),
-            rejected_by_reason=dict(self.rejected_by_reason), overruns=self.overruns)
+            rejected_by_reason=dict(self.rejected_by_reason),
+            overruns=self.overruns,
+        )
 
     def _publish(self, out: list[tuple[str, Message]]) -> None:
         for key, msg in out:
@@ -121,16 +150,21 @@ class PlantService:
 
     # --- commands -------------------------------------------------------------------------
 
-    def _reject(self, loop: SimLoop | None, category: str, reason: str,
-                out: list[tuple[str, Message]]) -> None:
+    def _reject(
+        self, loop: SimLoop | None, category: str, reason: str, out: list[tuple[str, Message]]
+    ) -> None:
         self.rejected_by_reason[category] += 1
         where = f"loop {loop.settings.loop_id}: " if loop else ""
         self._log_reject(category, where + reason)
         if loop is not None:
             loop.rejected += 1
             loop.last_reject = reason
-            out.append((keys.status(self.opt.prefix, loop.settings.loop_id),
-                        self.loop_status(loop, "reject")))
+            out.append(
+                (
+                    keys.status(self.opt.prefix, loop.settings.loop_id),
+                    self.loop_status(loop, "reject"),
+                )
+            )
 
     def handle_command(self, key: str, payload: bytes, encoding: str | None) -> None:
         """Validate and apply one command, then publish what it caused."""
@@ -139,8 +173,9 @@ class PlantService:
             self._handle(key, payload, encoding, out)
         self._publish(out)
 
-    def _handle(self, key: str, payload: bytes, encoding: str | None,
-                out: list[tuple[str, Message]]) -> None:
+    def _handle(
+        self, key: str, payload: bytes, encoding: str | None, out: list[tuple[str, Message]]
+    ) -> None:
         prefix = self.opt.prefix
         parsed = keys.split_loop_key(prefix, key)
         if parsed is None or len(parsed[1]) != 2 or parsed[1][0] != "cmd":
@@ -150,13 +185,21 @@ class PlantService:
         loop = self.loops.get(loop_id)
         if loop is None:
             if loop_id not in self._remote_loops:
-                self._reject(None, "unknown_loop", f"unknown loop {loop_id!r} (this plant "
-                             f"serves {', '.join(self.loops)})", out)
+                self._reject(
+                    None,
+                    "unknown_loop",
+                    f"unknown loop {loop_id!r} (this plant serves {', '.join(self.loops)})",
+                    out,
+                )
             return
         model = COMMANDS.get(kind)
         if model is None:
-            self._reject(loop, "kind", f"unknown command {kind!r}; expected one of "
-                         f"{', '.join(COMMANDS)}", out)
+            self._reject(
+                loop,
+                "kind",
+                f"unknown command {kind!r}; expected one of {', '.join(COMMANDS)}",
+                out,
+            )
             return
         try:
             cmd = wire.decode(model, payload, encoding)
@@ -164,8 +207,12 @@ class PlantService:
             self._reject(loop, "malformed", f"{kind}: {err}", out)
             return
         if cmd.loop != loop_id:
-            self._reject(loop, "loop_mismatch", f"{kind}: payload names loop {cmd.loop!r} but "
-                         f"was sent to {loop_id!r}", out)
+            self._reject(
+                loop,
+                "loop_mismatch",
+                f"{kind}: payload names loop {cmd.loop!r} but was sent to {loop_id!r}",
+                out,
+            )
             return
         if isinstance(cmd, AdvanceCommand):
             if self.opt.clock != "lockstep":
@@ -192,8 +239,9 @@ class PlantService:
     def _command_loop(self, sub: zenoh.Subscriber) -> None:
         for sample in sub:
             try:
-                self.handle_command(str(sample.key_expr), sample.payload.to_bytes(),
-                                    str(sample.encoding))
+                self.handle_command(
+                    str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding)
+                )
             except Exception:  # a broken user model must not take the service down
                 log.exception("command on %s failed", sample.key_expr)
                 with self.lock:
@@ -259,31 +307,44 @@ class PlantService:
         s, prefix = self.session, self.opt.prefix
         fifo = zenoh.handlers.FifoChannel
         cmd_sub = s.declare_subscriber(keys.all_commands(prefix), fifo(CHANNEL_CAPACITY))
-        peers = s.liveliness().declare_subscriber(keys.loop_alive(prefix, keys.ANY),
-                                                  fifo(1024), history=True)
+        peers = s.liveliness().declare_subscriber(
+            keys.loop_alive(prefix, keys.ANY), fifo(1024), history=True
+        )
         queryables = {
             "status": s.declare_queryable(keys.status(prefix, keys.ANY), fifo(1024)),
             "info": s.declare_queryable(keys.info(prefix, keys.ANY), fifo(1024)),
-            "service": s.declare_queryable(keys.service_status(prefix, SERVICE, self.opt.node),
-                                           fifo(1024)),
+            "service": s.declare_queryable(
+                keys.service_status(prefix, SERVICE, self.opt.node), fifo(1024)
+            ),
         }
-        threads = [threading.Thread(target=self._command_loop, args=(cmd_sub,), daemon=True),
-                   threading.Thread(target=self._watch_peers, args=(peers,), daemon=True)]
-        threads += [threading.Thread(target=self._query_loop, args=(q, what), daemon=True)
-                    for what, q in queryables.items()]
+        threads = [
+            threading.Thread(target=self._command_loop, args=(cmd_sub,), daemon=True),
+            threading.Thread(target=self._watch_peers, args=(peers,), daemon=True),
+        ]
+        threads += [
+            threading.Thread(target=self._query_loop, args=(q, what), daemon=True)
+            for what, q in queryables.items()
+        ]
         if self.opt.clock == "realtime":
             threads.append(threading.Thread(target=self._pace, args=(stop,), daemon=True))
         for th in threads:
             th.start()
         out: list[tuple[str, Message]] = [
-            (keys.status(prefix, lid), self.loop_status(lp, "start")) for lid, lp in self.loops.items()]
+            (keys.status(prefix, lid), self.loop_status(lp, "start"))
+            for lid, lp in self.loops.items()
+        ]
         self._publish(out)
         tokens = [s.liveliness().declare_token(keys.loop_alive(prefix, lid)) for lid in self.loops]
-        tokens.append(s.liveliness().declare_token(keys.service_alive(prefix, SERVICE,
-                                                                      self.opt.node)))
-        log.info("serving %s (%s clock%s) under %s/plant/", ", ".join(self.loops),
-                 self.opt.clock, f", ×{self.opt.speed:g}" if self.opt.clock == "realtime" else "",
-                 prefix)
+        tokens.append(
+            s.liveliness().declare_token(keys.service_alive(prefix, SERVICE, self.opt.node))
+        )
+        log.info(
+            "serving %s (%s clock%s) under %s/plant/",
+            ", ".join(self.loops),
+            self.opt.clock,
+            f", ×{self.opt.speed:g}" if self.opt.clock == "realtime" else "",
+            prefix,
+        )
         try:
             while not stop.wait(0.5):
                 pass
@@ -296,8 +357,11 @@ class PlantService:
             peers.undeclare()
             for th in threads:
                 th.join(timeout=2.0)
-            log.info("stopped: %d commands applied, %d refused", self.accepted,
-                     sum(self.rejected_by_reason.values()))
+            log.info(
+                "stopped: %d commands applied, %d refused",
+                self.accepted,
+                sum(self.rejected_by_reason.values()),
+            )
 
 
 # --- command line ---------------------------------------------------------------------------
@@ -306,26 +370,43 @@ HELP = "run the plant simulator service (plant_sim)"
 
 
 def add_common_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--prefix", default=keys.DEFAULT_PREFIX,
-                        help="root of every key expression (default: %(default)s)")
-    parser.add_argument("-v", "--verbose", action="count", default=0,
-                        help="more logging (-v info, -vv debug)")
+    parser.add_argument(
+        "--prefix",
+        default=keys.DEFAULT_PREFIX,
+        help="root of every key expression (default: %(default)s)",
+    )
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)"
+    )
     add_zenoh_arguments(parser)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--plant", metavar="FILE",
-                        help="plant file (TOML) defining the loops (default: one loop of every "
-                             "preset: hx1, hx2, lvl1, lvl2, flow1)")
-    parser.add_argument("--seed", type=int, help="seed for every loop's noise (overrides the "
-                                                 "plant file's)")
-    parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep",
-                        help="lockstep: loops advance only when their driver says so; realtime: "
-                             "paced by the wall clock (default: %(default)s)")
-    parser.add_argument("--speed", type=float, default=1.0,
-                        help="realtime speed-up of the wall clock (default: %(default)s)")
-    parser.add_argument("--node", default="plant", help="this process's id on the bus "
-                                                        "(default: %(default)s)")
+    parser.add_argument(
+        "--plant",
+        metavar="FILE",
+        help="plant file (TOML) defining the loops (default: one loop of every "
+        "preset: hx1, hx2, lvl1, lvl2, flow1)",
+    )
+    parser.add_argument(
+        "--seed", type=int, help="seed for every loop's noise (overrides the plant file's)"
+    )
+    parser.add_argument(
+        "--clock",
+        choices=("lockstep", "realtime"),
+        default="lockstep",
+        help="lockstep: loops advance only when their driver says so; realtime: "
+        "paced by the wall clock (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="realtime speed-up of the wall clock (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--node", default="plant", help="this process's id on the bus (default: %(default)s)"
+    )
     add_common_arguments(parser)
 
 
@@ -345,8 +426,12 @@ def options_from_args(args: argparse.Namespace) -> ServiceOptions:
     return ServiceOptions(prefix=args.prefix, node=args.node, clock=args.clock, speed=args.speed)
 
 
-def serve(settings: ZenohSettings, loops: dict[str, SimLoop], options: ServiceOptions,
-          stop: threading.Event) -> None:
+def serve(
+    settings: ZenohSettings,
+    loops: dict[str, SimLoop],
+    options: ServiceOptions,
+    stop: threading.Event,
+) -> None:
     with open_session(settings) as session:
         PlantService(session, loops, options).run(stop)
 

@@ -11,6 +11,9 @@ import sys
 import numpy as np
 import pytest
 
+from services.autotuner.loop_client import CommandRefused, LoopClient
+from services.plant_sim.models import TransferFunctionModel
+from services.plant_sim.plant_file import build_plant
 from shared import keys, wire
 from shared.messages import (
     AdvanceCommand,
@@ -22,9 +25,6 @@ from shared.messages import (
     SetpointCommand,
 )
 from shared.session import open_session
-from services.autotuner.loop_client import CommandRefused, LoopClient
-from services.plant_sim.models import TransferFunctionModel
-from services.plant_sim.plant_file import build_plant
 
 pytestmark = pytest.mark.integration
 
@@ -55,11 +55,26 @@ def test_lockstep_pv_equals_the_pure_model_exactly(start_plant):
     ops = np.repeat(rng.uniform(15, 85, 40), 10)  # a new output every 10 samples
     pure = TransferFunctionModel(0.1, num=[6.0], den=[1.0, 6.0, 11.0, 6.0], delay=0.37)
     pure.reset()
-    twin = build_plant({"seed": 11, "loops": {"tf2": {
-        "model": "transfer_function", "num": [6.0], "den": [1.0, 6.0, 11.0, 6.0],
-        "delay": 0.37, "sample_time": 0.1, "noise_std": 0.3}}})["tf2"]
-    with open_session(plant.client_settings()) as s, \
-            LoopClient(s, plant.prefix, "tf1") as tf1, LoopClient(s, plant.prefix, "tf2") as tf2:
+    twin = build_plant(
+        {
+            "seed": 11,
+            "loops": {
+                "tf2": {
+                    "model": "transfer_function",
+                    "num": [6.0],
+                    "den": [1.0, 6.0, 11.0, 6.0],
+                    "delay": 0.37,
+                    "sample_time": 0.1,
+                    "noise_std": 0.3,
+                }
+            },
+        }
+    )["tf2"]
+    with (
+        open_session(plant.client_settings()) as s,
+        LoopClient(s, plant.prefix, "tf1") as tf1,
+        LoopClient(s, plant.prefix, "tf2") as tf2,
+    ):
         assert tf1.info.clock == "lockstep" and tf1.last_status.seq == 0
         for k, op in enumerate(ops):
             for client in (tf1, tf2):
@@ -82,21 +97,37 @@ def malformed_payloads(n: int, seed: int):
         lambda: ("output", "tf1", json.dumps({**valid, "op": "50"}).encode()),
         lambda: ("output", "tf1", b'{"loop": "tf1", "op": NaN}'),
         lambda: ("output", "tf1", b'{"loop": "tf1", "op": Infinity}'),
-        lambda: ("output", "tf1", json.dumps({**valid, "op": rnd.choice([-5, 100.5, 1e9])}).encode()),
+        lambda: (
+            "output",
+            "tf1",
+            json.dumps({**valid, "op": rnd.choice([-5, 100.5, 1e9])}).encode(),
+        ),
         lambda: ("output", "tf1", json.dumps({**valid, "op": rnd.uniform(0, 9.9)}).encode()),
         lambda: ("output", "tf1", json.dumps({**valid, "op": rnd.uniform(90.1, 100)}).encode()),
         lambda: ("output", "tf1", json.dumps({**valid, "op": 50, "extra": 1}).encode()),
         lambda: ("output", "nope", json.dumps({"loop": "nope", "op": 50}).encode()),
         lambda: ("output", "tf1", json.dumps({"loop": "tf2", "op": 50}).encode()),
         lambda: ("explode", "tf1", json.dumps(valid).encode()),
-        lambda: ("setpoint", "tf1", json.dumps({**valid, "sp": rnd.choice([-1, 101, 1e300])}).encode()),
+        lambda: (
+            "setpoint",
+            "tf1",
+            json.dumps({**valid, "sp": rnd.choice([-1, 101, 1e300])}).encode(),
+        ),
         lambda: ("setpoint", "tf1", json.dumps({**valid, "sp": None}).encode()),
         lambda: ("mode", "tf1", json.dumps({**valid, "mode": "cascade"}).encode()),
         lambda: ("gains", "tf1", json.dumps({**valid, "gains": {"kc": -1}}).encode()),
         lambda: ("gains", "tf1", json.dumps({**valid, "gains": {"kc": 1, "ti": 0}}).encode()),
         lambda: ("disturbance", "tf1", json.dumps({**valid, "name": "quake", "value": 1}).encode()),
-        lambda: ("disturbance", "tf1", json.dumps({**valid, "name": "load", "value": 1e6}).encode()),
-        lambda: ("advance", "tf1", json.dumps({**valid, "steps": rnd.choice([0, -3, 10**9])}).encode()),
+        lambda: (
+            "disturbance",
+            "tf1",
+            json.dumps({**valid, "name": "load", "value": 1e6}).encode(),
+        ),
+        lambda: (
+            "advance",
+            "tf1",
+            json.dumps({**valid, "steps": rnd.choice([0, -3, 10**9])}).encode(),
+        ),
         lambda: ("advance", "tf1", json.dumps({**valid, "steps": 1.5}).encode()),
         lambda: ("sync", "tf1", json.dumps({**valid, "token": "x"}).encode()),
         lambda: ("output", "tf1", json.dumps([1, 2, 3]).encode()),
@@ -118,7 +149,12 @@ def test_a_thousand_malformed_payloads_are_refused_and_move_nothing(start_plant)
         status = wire.decode_sample(ServiceStatus, replies[0].ok)
         assert status.rejected == 1000
         assert after.rejected - before.rejected == sum(1 for _, loop, _ in bad if loop == "tf1")
-        assert (after.op, after.sp, after.mode, after.seq) == (42.0, before.sp, "manual", before.seq)
+        assert (after.op, after.sp, after.mode, after.seq) == (
+            42.0,
+            before.sp,
+            "manual",
+            before.seq,
+        )
         assert after.gains == before.gains and after.disturbances == before.disturbances
         assert tf1.next_sample().seq == before.seq + 1  # still answering
         with pytest.raises(CommandRefused, match="outside the output limits"):
@@ -135,8 +171,10 @@ def test_pid_block_over_the_bus_mode_gains_setpoint(start_plant):
         tf1.command(SetpointCommand(loop="tf1", sp=60.0))
         with pytest.raises(CommandRefused, match="in auto"):
             tf1.command(OutputCommand(loop="tf1", op=30.0))
-        s.put(keys.command(plant.prefix, "tf1", "advance"),
-              wire.encode(AdvanceCommand(loop="tf1", steps=400)))
+        s.put(
+            keys.command(plant.prefix, "tf1", "advance"),
+            wire.encode(AdvanceCommand(loop="tf1", steps=400)),
+        )
         last = None
         for _ in range(400):
             last = tf1._next()
@@ -146,10 +184,13 @@ def test_pid_block_over_the_bus_mode_gains_setpoint(start_plant):
 def test_loops_announce_themselves_and_answer_queries(start_plant):
     plant = start_plant(None, loops=("hx1", "hx2", "lvl1", "lvl2", "flow1"))
     with open_session(plant.client_settings()) as s:
-        alive = {str(r.ok.key_expr) for r in s.liveliness().get(f"{plant.prefix}/plant/*/alive",
-                                                                timeout=5)}
-        assert alive == {keys.loop_alive(plant.prefix, lp)
-                         for lp in ("hx1", "hx2", "lvl1", "lvl2", "flow1")}
+        alive = {
+            str(r.ok.key_expr)
+            for r in s.liveliness().get(f"{plant.prefix}/plant/*/alive", timeout=5)
+        }
+        assert alive == {
+            keys.loop_alive(plant.prefix, lp) for lp in ("hx1", "hx2", "lvl1", "lvl2", "flow1")
+        }
         infos = [r.ok for r in s.get(keys.info(plant.prefix, "*"), timeout=5)]
         assert len(infos) == 5
 
@@ -168,8 +209,12 @@ def test_realtime_clock_paces_samples_and_refuses_advance(start_plant):
 def test_bad_plant_file_fails_at_start_naming_loop_and_field(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text('[loops.hx9]\nmodel = "heat_exchanger"\ntau1 = -3\n')
-    run = subprocess.run([sys.executable, "-m", "services.plant_sim", "--plant", str(path)],
-                         capture_output=True, text=True, timeout=30)
+    run = subprocess.run(
+        [sys.executable, "-m", "services.plant_sim", "--plant", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert run.returncode == 2
     assert "loops.hx9.tau1: must be ≥ 0.0" in run.stderr
     assert "Traceback" not in run.stderr
@@ -186,9 +231,22 @@ def analytic_tangent_hx() -> tuple[float, float]:
 
 def test_autotune_step_on_the_heat_exchanger_preset(start_plant):
     plant = start_plant(None, loops=("hx1",))
-    run = subprocess.run([sys.executable, "-m", "services.cli", "step", "hx1", "--size", "5",
-                          "--json", *plant.cli_args()], capture_output=True, text=True,
-                         timeout=120)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "step",
+            "hx1",
+            "--size",
+            "5",
+            "--json",
+            *plant.cli_args(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0, run.stderr
     r = json.loads(run.stdout)
     L, R = analytic_tangent_hx()
@@ -204,9 +262,22 @@ def test_autotune_step_on_the_heat_exchanger_preset(start_plant):
 def test_step_test_restores_auto_mode(start_plant):
     toml = '[loops.hx1]\nmodel = "heat_exchanger"\nmode = "auto"\nnoise_std = 0.0\n'
     plant = start_plant(toml, loops=("hx1",))
-    run = subprocess.run([sys.executable, "-m", "services.cli", "step", "hx1", "--size", "-4",
-                          "--json", *plant.cli_args()], capture_output=True, text=True,
-                         timeout=120)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "step",
+            "hx1",
+            "--size",
+            "-4",
+            "--json",
+            *plant.cli_args(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout)["gain"] == pytest.approx(1.0, rel=0.002)
     with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, "hx1") as hx1:
@@ -215,9 +286,24 @@ def test_step_test_restores_auto_mode(start_plant):
 
 def test_step_test_aborts_at_the_pv_limit_and_restores_the_loop(start_plant):
     plant = start_plant(None, loops=("hx1",))
-    run = subprocess.run([sys.executable, "-m", "services.cli", "step", "hx1", "--size", "5",
-                          "--pv-limits", "50", "62", *plant.cli_args()], capture_output=True,
-                         text=True, timeout=120)
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "step",
+            "hx1",
+            "--size",
+            "5",
+            "--pv-limits",
+            "50",
+            "62",
+            *plant.cli_args(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 2
     assert "left its limits [50, 62]" in run.stderr and "loop restored" in run.stderr
     assert "Traceback" not in run.stderr
@@ -227,11 +313,26 @@ def test_step_test_aborts_at_the_pv_limit_and_restores_the_loop(start_plant):
 
 def test_demo_runs_end_to_end_as_separate_processes(tmp_path):
     plant_file = tmp_path / "mine.toml"
-    plant_file.write_text('[loops.f1]\nmodel = "fopdt"\ngain = 0.8\ntime_constant = 20.0\n'
-                          'delay = 4.0\nsample_time = 0.5\n')
-    run = subprocess.run([sys.executable, "-m", "services.cli", "demo", "--plant",
-                          str(plant_file), "--loop", "f1", "--json"], capture_output=True,
-                         text=True, timeout=120)
+    plant_file.write_text(
+        '[loops.f1]\nmodel = "fopdt"\ngain = 0.8\ntime_constant = 20.0\n'
+        "delay = 4.0\nsample_time = 0.5\n"
+    )
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "demo",
+            "--plant",
+            str(plant_file),
+            "--loop",
+            "f1",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0, run.stderr
     r = json.loads(run.stdout)
     assert r["loop"] == "f1" and r["gain"] == pytest.approx(0.8, rel=0.005)
