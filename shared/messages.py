@@ -11,8 +11,6 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.keys import check_id
-
 Mode = Literal["manual", "auto"]
 Action = Literal["reverse", "direct"]
 ClockMode = Literal["lockstep", "realtime"]
@@ -159,7 +157,7 @@ class AdvanceCommand(Command):
     """Lockstep clock: advance the loop by ``steps`` sample periods, publishing each sample."""
 
     kind: ClassVar[str] = "advance"
-    steps: int = Field(default=1, ge=1, le=1_000_000)
+    steps: int = Field(default=1, ge=1, le=100_000)
 
 
 class SyncCommand(Command):
@@ -202,5 +200,4 @@ __all__ = [
     "ServiceStatus",
     "SetpointCommand",
     "SyncCommand",
-    "check_id",
 ]

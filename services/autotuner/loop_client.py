@@ -114,21 +114,19 @@ class LoopClient:
 
     def _next(self) -> Message:
         """The next sample or status on the loop's feed (others' too)."""
-        try:
-            key, payload, enc = self._inbox.get(timeout=self.timeout)
-        except queue.Empty:
-            raise PlantLost(
-                f"loop {self.loop!r}: no message from the plant for {self.timeout:g} s"
-            ) from None
-        if key == self._pv_key:
-            sample = wire.decode(ProcessSample, payload, enc)
-            self.last_sample = sample
-            return sample
-        if key == self._status_key:
-            status = wire.decode(LoopStatus, payload, enc)
-            self.last_status = status
-            return status
-        return self._next()
+        while True:
+            try:
+                key, payload, enc = self._inbox.get(timeout=self.timeout)
+            except queue.Empty:
+                raise PlantLost(
+                    f"loop {self.loop!r}: no message from the plant for {self.timeout:g} s"
+                ) from None
+            if key == self._pv_key:
+                self.last_sample = wire.decode(ProcessSample, payload, enc)
+                return self.last_sample
+            if key == self._status_key:
+                self.last_status = wire.decode(LoopStatus, payload, enc)
+                return self.last_status
 
     def send(self, cmd: Command) -> None:
         wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind), cmd)

@@ -220,6 +220,18 @@ def test_bad_plant_file_fails_at_start_naming_loop_and_field(tmp_path):
     assert "Traceback" not in run.stderr
 
 
+def autotune(*args: str) -> subprocess.CompletedProcess:
+    """Run the ``autotune`` command as its own process, as a user would."""
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def loop_status(plant, loop: str):
+    with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, loop) as c:
+        return c.last_status
+
+
 def analytic_tangent_hx() -> tuple[float, float]:
     """L and R of e^{−5s}/((10s+1)(60s+1)) per unit step, from its inflection in closed form."""
     t1, t2, theta = 60.0, 10.0, 5.0
@@ -231,22 +243,7 @@ def analytic_tangent_hx() -> tuple[float, float]:
 
 def test_autotune_step_on_the_heat_exchanger_preset(start_plant):
     plant = start_plant(None, loops=("hx1",))
-    run = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "step",
-            "hx1",
-            "--size",
-            "5",
-            "--json",
-            *plant.cli_args(),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    run = autotune("step", "hx1", "--size", "5", "--json", *plant.cli_args())
     assert run.returncode == 0, run.stderr
     r = json.loads(run.stdout)
     L, R = analytic_tangent_hx()
@@ -255,60 +252,27 @@ def test_autotune_step_on_the_heat_exchanger_preset(start_plant):
     assert r["reaction_rate"] == pytest.approx(R, rel=0.02)
     assert r["l_over_t"] == pytest.approx(L * R, rel=0.04)
     assert r["restored"] is True
-    with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, "hx1") as hx1:
-        assert hx1.last_status.op == 40.0 and hx1.last_status.mode == "manual"
+    status = loop_status(plant, "hx1")
+    assert status.op == 40.0 and status.mode == "manual"
 
 
 def test_step_test_restores_auto_mode(start_plant):
     toml = '[loops.hx1]\nmodel = "heat_exchanger"\nmode = "auto"\nnoise_std = 0.0\n'
     plant = start_plant(toml, loops=("hx1",))
-    run = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "step",
-            "hx1",
-            "--size",
-            "-4",
-            "--json",
-            *plant.cli_args(),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    run = autotune("step", "hx1", "--size", "-4", "--json", *plant.cli_args())
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout)["gain"] == pytest.approx(1.0, rel=0.002)
-    with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, "hx1") as hx1:
-        assert hx1.last_status.mode == "auto"
+    assert loop_status(plant, "hx1").mode == "auto"
 
 
 def test_step_test_aborts_at_the_pv_limit_and_restores_the_loop(start_plant):
     plant = start_plant(None, loops=("hx1",))
-    run = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "step",
-            "hx1",
-            "--size",
-            "5",
-            "--pv-limits",
-            "50",
-            "62",
-            *plant.cli_args(),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    run = autotune("step", "hx1", "--size", "5", "--pv-limits", "50", "62", *plant.cli_args())
     assert run.returncode == 2
     assert "left its limits [50, 62]" in run.stderr and "loop restored" in run.stderr
     assert "Traceback" not in run.stderr
-    with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, "hx1") as hx1:
-        assert hx1.last_status.op == 40.0 and hx1.last_status.mode == "manual"
+    status = loop_status(plant, "hx1")
+    assert status.op == 40.0 and status.mode == "manual"
 
 
 def test_demo_runs_end_to_end_as_separate_processes(tmp_path):
@@ -317,22 +281,7 @@ def test_demo_runs_end_to_end_as_separate_processes(tmp_path):
         '[loops.f1]\nmodel = "fopdt"\ngain = 0.8\ntime_constant = 20.0\n'
         "delay = 4.0\nsample_time = 0.5\n"
     )
-    run = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "demo",
-            "--plant",
-            str(plant_file),
-            "--loop",
-            "f1",
-            "--json",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    run = autotune("demo", "--plant", str(plant_file), "--loop", "f1", "--json")
     assert run.returncode == 0, run.stderr
     r = json.loads(run.stdout)
     assert r["loop"] == "f1" and r["gain"] == pytest.approx(0.8, rel=0.005)
