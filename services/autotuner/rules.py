@@ -1,0 +1,175 @@
+"""Tuning rules, each with its sources. Gains in ISA form (Kc % per PV unit, Ti, Td in s).
+
+Where the seeds disagree with each other we use the standard and say so:
+
+* Ziegler–Nichols closed loop PID is Kc = 0.6·K_u, Ti = P_u/2, Td = P_u/8: seed 003
+  (Table 6-1) and seed 000 (Table 2) agree on 0.6·K_u; seed 002 (Figure 4) prints 1.6·K_u, a
+  typo; seed 000 prints Ti = T_u, against Ti = 0.5·P_u in seeds 002 and 003.
+* Ziegler–Nichols open loop PI is Ti = 3.33·L (= L/0.3): seeds 001, 002 and 003 (3.3θ); seed
+  000 prints 3L.
+
+The "-half" variants halve the controller gain, as seeds 001 and 002 recommend to trade the
+quarter-decay response for robustness.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from services.autotuner.forms import IsaGains
+
+
+@dataclass(frozen=True)
+class UltimatePoint:
+    """K_u (% per PV unit) and P_u (s) of the loop."""
+
+    ku: float
+    pu: float
+
+
+@dataclass(frozen=True)
+class StepModel:
+    """Reaction-curve figures: process gain K, dead time L, time constant T (tangent), R = K/T."""
+
+    gain: float
+    dead_time: float
+    time_constant: float
+
+    @property
+    def reaction_rate(self) -> float:
+        return self.gain / self.time_constant
+
+
+@dataclass(frozen=True)
+class Rule:
+    name: str
+    kind: str  # "closed" (needs K_u, P_u) or "open" (needs a step model)
+    controller: str  # "P", "PI", "PID"
+    source: str
+    compute: Callable[..., IsaGains]
+
+
+def _zn_closed_p(u: UltimatePoint) -> IsaGains:
+    """Ziegler & Nichols 1942; seeds 000 (Table 2), 002 (Figure 4), 003 (Table 6-1)."""
+    return IsaGains(0.5 * u.ku)
+
+
+def _zn_closed_pi(u: UltimatePoint) -> IsaGains:
+    return IsaGains(0.45 * u.ku, u.pu / 1.2)
+
+
+def _zn_closed_pid(u: UltimatePoint) -> IsaGains:
+    return IsaGains(0.6 * u.ku, u.pu / 2.0, u.pu / 8.0)
+
+
+def _tl_pi(u: UltimatePoint) -> IsaGains:
+    """Tyreus & Luyben 1992; seed 003 (Table 6-2)."""
+    return IsaGains(u.ku / 3.2, 2.2 * u.pu)
+
+
+def _tl_pid(u: UltimatePoint) -> IsaGains:
+    return IsaGains(u.ku / 2.2, 2.2 * u.pu, u.pu / 6.3)
+
+
+def _a(m: StepModel) -> float:
+    """a = R·L = K·L/T (seed 000); the open-loop rules are all in terms of it."""
+    if m.dead_time <= 0:
+        raise ValueError("the open-loop rules need a dead time L > 0")
+    return m.reaction_rate * m.dead_time
+
+
+def _zn_open_p(m: StepModel) -> IsaGains:
+    """Ziegler & Nichols 1942, reaction curve; seeds 000 (Table 1), 001, 002, 003 (Table 6-3)."""
+    return IsaGains(1.0 / _a(m))
+
+
+def _zn_open_pi(m: StepModel) -> IsaGains:
+    return IsaGains(0.9 / _a(m), m.dead_time / 0.3)
+
+
+def _zn_open_pid(m: StepModel) -> IsaGains:
+    return IsaGains(1.2 / _a(m), 2.0 * m.dead_time, 0.5 * m.dead_time)
+
+
+def _cc(m: StepModel) -> tuple[float, float, float]:
+    if m.dead_time <= 0:
+        raise ValueError("Cohen–Coon needs a dead time θ > 0")
+    return m.gain, m.time_constant, m.dead_time
+
+
+def _cc_p(m: StepModel) -> IsaGains:
+    """Cohen & Coon 1953; seed 003 (Table 6-4); Seborg, Edgar & Mellichamp, Table 12.3."""
+    k, tau, th = _cc(m)
+    return IsaGains(tau / (k * th) * (1.0 + th / (3.0 * tau)))
+
+
+def _cc_pi(m: StepModel) -> IsaGains:
+    k, tau, th = _cc(m)
+    r = th / tau
+    return IsaGains(tau / (k * th) * (0.9 + r / 12.0), th * (30.0 + 3.0 * r) / (9.0 + 20.0 * r))
+
+
+def _cc_pid(m: StepModel) -> IsaGains:
+    k, tau, th = _cc(m)
+    r = th / tau
+    return IsaGains(
+        tau / (k * th) * (4.0 / 3.0 + r / 4.0),
+        th * (32.0 + 6.0 * r) / (13.0 + 8.0 * r),
+        4.0 * th / (11.0 + 2.0 * r),
+    )
+
+
+def _half(rule: Callable[..., IsaGains]) -> Callable[..., IsaGains]:
+    def halved(x: UltimatePoint | StepModel) -> IsaGains:
+        g = rule(x)
+        return IsaGains(g.kc / 2.0, g.ti, g.td)
+
+    return halved
+
+
+_ZN_SRC = "Ziegler & Nichols 1942 (seeds 000, 002, 003)"
+_OL_SRC = "Ziegler & Nichols 1942, reaction curve (seeds 000, 001, 002, 003)"
+_HALF = "; gain halved as seeds 001 and 002 recommend"
+
+RULES: dict[str, Rule] = {
+    r.name: r
+    for r in (
+        Rule("zn-p", "closed", "P", _ZN_SRC, _zn_closed_p),
+        Rule("zn-pi", "closed", "PI", _ZN_SRC, _zn_closed_pi),
+        Rule("zn-pid", "closed", "PID", _ZN_SRC, _zn_closed_pid),
+        Rule("zn-p-half", "closed", "P", _ZN_SRC + _HALF, _half(_zn_closed_p)),
+        Rule("zn-pi-half", "closed", "PI", _ZN_SRC + _HALF, _half(_zn_closed_pi)),
+        Rule("zn-pid-half", "closed", "PID", _ZN_SRC + _HALF, _half(_zn_closed_pid)),
+        Rule("tl-pi", "closed", "PI", "Tyreus & Luyben 1992 (seed 003)", _tl_pi),
+        Rule("tl-pid", "closed", "PID", "Tyreus & Luyben 1992 (seed 003)", _tl_pid),
+        Rule("zn-ol-p", "open", "P", _OL_SRC, _zn_open_p),
+        Rule("zn-ol-pi", "open", "PI", _OL_SRC, _zn_open_pi),
+        Rule("zn-ol-pid", "open", "PID", _OL_SRC, _zn_open_pid),
+        Rule("zn-ol-pi-half", "open", "PI", _OL_SRC + _HALF, _half(_zn_open_pi)),
+        Rule("zn-ol-pid-half", "open", "PID", _OL_SRC + _HALF, _half(_zn_open_pid)),
+        Rule("cc-p", "open", "P", "Cohen & Coon 1953 (seed 003)", _cc_p),
+        Rule("cc-pi", "open", "PI", "Cohen & Coon 1953 (seed 003)", _cc_pi),
+        Rule("cc-pid", "open", "PID", "Cohen & Coon 1953 (seed 003)", _cc_pid),
+    )
+}
+
+
+def apply_rules(ultimate: UltimatePoint | None, step: StepModel | None) -> dict[str, IsaGains]:
+    """Every rule the available identification supports, by name."""
+    out: dict[str, IsaGains] = {}
+    for name, rule in RULES.items():
+        source = ultimate if rule.kind == "closed" else step
+        if source is None:
+            continue
+        try:
+            out[name] = rule.compute(source)
+        except ValueError:
+            continue
+    return out
+
+
+def check_rule(name: str) -> Rule:
+    if name not in RULES:
+        raise ValueError(f"unknown rule {name!r}; expected one of {', '.join(RULES)}")
+    return RULES[name]

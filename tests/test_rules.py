@@ -1,0 +1,135 @@
+"""Tuning rules against the formulas of two sources each; form conversions both ways."""
+
+import math
+
+import pytest
+
+from services.autotuner.forms import (
+    IsaGains,
+    SeriesGains,
+    all_forms,
+    from_parallel,
+    from_series,
+    integral_time_from_reset_rate,
+    reset_rate,
+    to_parallel,
+    to_series,
+)
+from services.autotuner.rules import RULES, StepModel, UltimatePoint, apply_rules
+
+KU, PU = 10.0, 2 * math.pi / math.sqrt(11)  # 6/((s+1)(s+2)(s+3)), seed 000
+
+# (rule, Kc, Ti, Td) from seed 003 Tables 6-1/6-2 and control-references.md (Åström–Hägglund)
+CLOSED = [
+    ("zn-p", 0.5 * KU, None, 0.0),
+    ("zn-pi", 0.45 * KU, PU / 1.2, 0.0),
+    ("zn-pid", 0.6 * KU, PU / 2, PU / 8),
+    ("tl-pi", KU / 3.2, 2.2 * PU, 0.0),
+    ("tl-pid", KU / 2.2, 2.2 * PU, PU / 6.3),
+    ("zn-pid-half", 0.3 * KU, PU / 2, PU / 8),
+]
+
+
+@pytest.mark.parametrize(("name", "kc", "ti", "td"), CLOSED)
+def test_closed_loop_rules(name, kc, ti, td):
+    g = RULES[name].compute(UltimatePoint(KU, PU))
+    assert g.kc == pytest.approx(kc, rel=1e-12)
+    assert (g.ti is None and ti is None) or g.ti == pytest.approx(ti, rel=1e-12)
+    assert g.td == pytest.approx(td, rel=1e-12, abs=0)
+
+
+def test_seed_000_worked_example_of_the_step_response_method():
+    """Seed 000: R = 0.4437, L = 0.42 → PID Kc = 1.2/a, Ti = 2L, Td = 0.5L, i.e. the
+    compensator (1.136 s² + 5.41 s + 6.44)/(0.84 s) it prints."""
+    r, lag = 0.4437, 0.42
+    g = RULES["zn-ol-pid"].compute(StepModel(gain=1.0, dead_time=lag, time_constant=1.0 / r))
+    # Kc(1 + 1/(Ti s) + Td s) = (Kc·Ti·Td s² + Kc·Ti s + Kc)/(Ti s)
+    assert g.ti == pytest.approx(0.84, rel=1e-12)
+    assert g.kc == pytest.approx(6.44, rel=1e-3)
+    assert g.kc * g.ti == pytest.approx(5.41, rel=1e-3)
+    assert g.kc * g.ti * g.td == pytest.approx(1.136, rel=1e-3)
+
+
+def test_seed_000_worked_example_of_the_ultimate_sensitivity_method():
+    """Seed 000: Ku = 10, Tu = 2π/√11 → PID2 = (1.346 s² + 5.683 s + 6)/(0.9472 s)."""
+    g = RULES["zn-pid"].compute(UltimatePoint(KU, PU))
+    assert g.kc == pytest.approx(6.0)
+    assert g.ti == pytest.approx(0.9472, rel=1e-4)
+    assert g.kc * g.ti == pytest.approx(5.683, rel=1e-3)
+    assert g.kc * g.ti * g.td == pytest.approx(1.346, rel=1e-3)
+
+
+def test_open_loop_rules_match_both_their_forms():
+    """Seed 003 Table 6-3: Kc = {1, 0.9, 1.2}/(kθ) with k the slope, or τ/(k_p θ)·{…}."""
+    k, tau, theta = 2.0, 30.0, 6.0
+    m = StepModel(k, theta, tau)
+    slope = k / tau
+    for name, factor, ti, td in (
+        ("zn-ol-p", 1.0, None, 0.0),
+        ("zn-ol-pi", 0.9, theta / 0.3, 0.0),
+        ("zn-ol-pid", 1.2, 2 * theta, 0.5 * theta),
+    ):
+        g = RULES[name].compute(m)
+        assert g.kc == pytest.approx(factor / (slope * theta), rel=1e-12)
+        assert g.kc == pytest.approx(factor * tau / (k * theta), rel=1e-12)
+        assert (g.ti is None and ti is None) or g.ti == pytest.approx(ti, rel=1e-12)
+        assert g.td == pytest.approx(td)
+
+
+def test_cohen_coon_table():
+    """Seed 003 Table 6-4, checked against the same formulas written with r = θ/τ."""
+    k, tau, th = 1.5, 20.0, 4.0
+    r = th / tau
+    m = StepModel(k, th, tau)
+    p, pi, pid = (RULES[n].compute(m) for n in ("cc-p", "cc-pi", "cc-pid"))
+    assert p.kc == pytest.approx((1 / k) * (1 / r) * (1 + r / 3))
+    assert pi.kc == pytest.approx((1 / k) * (1 / r) * (0.9 + r / 12))
+    assert pi.ti == pytest.approx(th * (30 + 3 * r) / (9 + 20 * r))
+    assert pid.kc == pytest.approx((1 / k) * (1 / r) * (4 / 3 + r / 4))
+    assert pid.ti == pytest.approx(th * (32 + 6 * r) / (13 + 8 * r))
+    assert pid.td == pytest.approx(4 * th / (11 + 2 * r))
+
+
+def test_apply_rules_uses_what_is_available():
+    closed = apply_rules(UltimatePoint(KU, PU), None)
+    assert set(closed) == {n for n, r in RULES.items() if r.kind == "closed"}
+    both = apply_rules(UltimatePoint(KU, PU), StepModel(1.0, 2.0, 10.0))
+    assert set(both) == set(RULES)
+
+
+@pytest.mark.parametrize(
+    "g", [IsaGains(2.0, 30.0, 5.0), IsaGains(1.0, 8.0, 2.0), IsaGains(3.0), IsaGains(0.5, 4.0)]
+)
+def test_forms_round_trip(g):
+    back = from_parallel(to_parallel(g))
+    assert back.kc == pytest.approx(g.kc) and back.td == pytest.approx(g.td)
+    assert (back.ti is None and g.ti is None) or back.ti == pytest.approx(g.ti)
+    s = to_series(g)
+    assert s is not None
+    back = from_series(s)
+    assert back.kc == pytest.approx(g.kc) and back.td == pytest.approx(g.td)
+    assert (back.ti is None and g.ti is None) or back.ti == pytest.approx(g.ti)
+
+
+def test_series_of_zn_pid_is_the_interactive_form():
+    """ZN PID has Ti = 4·Td exactly: its series form is 0.3·Ku, Pu/4, Pu/4."""
+    s = to_series(RULES["zn-pid"].compute(UltimatePoint(KU, PU)))
+    assert s.kc == pytest.approx(0.3 * KU) and s.ti == pytest.approx(PU / 4)
+    assert s.td == pytest.approx(PU / 4)
+    assert to_series(IsaGains(1.0, 4.0, 1.5)) is None  # Ti < 4 Td: no series form
+
+
+def test_series_to_isa_by_multiplying_out():
+    s = SeriesGains(2.0, 10.0, 2.5)  # 2(1 + 1/(10s))(1 + 2.5s) = 2(1.25 + 1/(10s) + 2.5s)
+    g = from_series(s)
+    assert g.kc == pytest.approx(2.5)
+    assert g.kc / g.ti == pytest.approx(2.0 / 10.0)
+    assert g.kc * g.td == pytest.approx(2.0 * 2.5)
+
+
+def test_reset_rate_and_minutes():
+    assert reset_rate(30.0) == 2.0 and integral_time_from_reset_rate(2.0) == 30.0
+    assert reset_rate(None) == 0.0 and integral_time_from_reset_rate(0.0) is None
+    f = all_forms(IsaGains(2.0, 120.0, 30.0))
+    assert f["ti_min"] == 2.0 and f["td_min"] == 0.5 and f["reset_rate_rpm"] == 0.5
+    assert f["parallel"] == {"kp": 2.0, "ki": 2.0 / 120.0, "kd": 60.0}
