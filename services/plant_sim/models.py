@@ -8,6 +8,7 @@ with the loop's remaining keys as ``params``.
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -64,7 +65,7 @@ def finite(
     low_open: bool = False,
 ) -> float:
     """Check a numeric parameter; raise ModelParamError naming ``field``."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ModelParamError(field, f"expected a number, got {value!r}")
     v = float(value)
     if not math.isfinite(v):

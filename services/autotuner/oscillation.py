@@ -1,0 +1,110 @@
+"""Growth rate and period of an oscillation in a record of samples.
+
+``fit_oscillation`` fits y(t) = c + A·e^{g·t}·sin(ω·t + φ) by least squares, started from the
+extrema of the (lightly smoothed) record. The growth rate g (1/s) is negative for a decaying
+oscillation, positive for a growing one; the period is 2π/ω. Fitting the whole record rather
+than reading peaks keeps both estimates robust to measurement noise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+
+@dataclass(frozen=True)
+class Oscillation:
+    growth: float  # g, 1/s
+    period: float  # s
+    amplitude: float  # A at the start of the window
+    offset: float  # c
+    rms: float  # residual of the fit
+    swings: int  # half-cycles in the window
+
+    @property
+    def ratio_per_period(self) -> float:
+        """Amplitude ratio from one period to the next (1 at the stability limit)."""
+        return math.exp(self.growth * self.period)
+
+
+def smooth(y: np.ndarray, width: int) -> np.ndarray:
+    if width < 3:
+        return y
+    width |= 1
+    pad = width // 2
+    padded = np.concatenate((np.full(pad, y[0]), y, np.full(pad, y[-1])))
+    return np.convolve(padded, np.ones(width) / width, mode="valid")
+
+
+def extrema(t: np.ndarray, y: np.ndarray, min_swing: float) -> list[tuple[float, float]]:
+    """Turning points (zigzag): a running maximum (minimum) counts once the record has fallen
+    (risen) ``min_swing`` from it. The starting point is never one."""
+    out: list[tuple[float, float]] = []
+    direction, k = 0, 0
+    for i in range(1, y.size):
+        if direction == 0:
+            if abs(y[i] - y[0]) >= min_swing:
+                direction, k = (1 if y[i] > y[0] else -1), i
+        elif direction > 0:
+            if y[i] > y[k]:
+                k = i
+            elif y[k] - y[i] >= min_swing:
+                out.append((float(t[k]), float(y[k])))
+                direction, k = -1, i
+        else:
+            if y[i] < y[k]:
+                k = i
+            elif y[i] - y[k] >= min_swing:
+                out.append((float(t[k]), float(y[k])))
+                direction, k = 1, i
+    return out
+
+
+def fit_oscillation(
+    t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None = None
+) -> Oscillation | None:
+    """Fit a growing/decaying sinusoid to (t, y); None if there is no clear oscillation."""
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    if t.size < 16:
+        return None
+    dt = float(np.median(np.diff(t)))
+    width = 1 if noise_std <= 0 else max(1, int((period_hint or 0.0) / dt / 12))
+    ys = smooth(y, width)
+    span = float(ys.max() - ys.min())
+    ext = extrema(t, ys, max(4.0 * noise_std / math.sqrt(width), 0.02 * span, 1e-12))
+    if len(ext) < 3:
+        return None
+    te = np.array([e[0] for e in ext])
+    ye = np.array([e[1] for e in ext])
+    swings = np.abs(np.diff(ye))
+    half = float(np.mean(np.diff(te)))
+    w0 = math.pi / half
+    mid = 0.5 * (te[:-1] + te[1:])
+    g0 = float(np.polyfit(mid - t[0], np.log(swings), 1)[0]) if swings.size >= 2 else 0.0
+    c0 = float(np.mean(ye[-2:]))
+    a0 = float(swings[0]) / 2.0 / math.exp(g0 * (mid[0] - t[0]))
+    # phase: the first extremum is a maximum or a minimum at te[0]
+    sign = 1.0 if ye[0] > ye[1] else -1.0
+    phi0 = (math.pi / 2 if sign > 0 else -math.pi / 2) - w0 * (te[0] - t[0])
+    tt = t - t[0]
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        c, a, g, w, phi = p
+        return c + a * np.exp(g * tt) * np.sin(w * tt + phi) - y
+
+    sol = least_squares(resid, [c0, a0, g0, w0, phi0], method="lm", max_nfev=2000)
+    c, a, g, w, _ = sol.x
+    if not sol.success or w <= 0 or not np.all(np.isfinite(sol.x)):
+        return None
+    return Oscillation(
+        growth=float(g),
+        period=float(2 * math.pi / w),
+        amplitude=float(abs(a)),
+        offset=float(c),
+        rms=float(np.sqrt(np.mean(sol.fun**2))),
+        swings=len(ext) - 1,
+    )

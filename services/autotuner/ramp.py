@@ -1,0 +1,277 @@
+"""Ziegler–Nichols' ultimate-sensitivity method (seeds 000, 002, 003) as a state machine.
+
+The loop runs P-only in auto. After a quiet period (rest PV r, noise σ), each trial sets a
+gain Kc and bumps the setpoint to r ± bump (alternating); the response is watched for a few
+periods and a growing/decaying sinusoid is fitted to it (``oscillation.fit_oscillation``),
+giving its growth rate g and period. Gains rise geometrically until the oscillation stops
+decaying (g ≥ 0), then the bracket [last decaying, first growing] is narrowed by regula falsi
+on g (Illinois), and K_u is where g crosses zero, interpolated linearly in Kc between the
+final bracket; P_u likewise from the two trials' periods. A trial whose swing passes
+``swing_limit``·bump is cut short as growing, and the loop is calmed at a lower gain before
+the next. The PV leaving its limits aborts the test.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.autotuner.oscillation import Oscillation, fit_oscillation
+from services.autotuner.reaction_curve import noise_level
+
+
+@dataclass(frozen=True)
+class RampConfig:
+    kc_start: float  # first trial gain, % per PV unit
+    bump: float  # setpoint bump, PV units
+    factor: float = 1.5  # geometric gain increase while searching
+    tolerance: float = 0.01  # stop when (Kc_hi − Kc_lo)/Kc_lo is below this
+    trial_periods: float = 4.0  # periods watched per trial
+    quiet: float | None = None  # s; None: 40 samples
+    first_trial_time: float = 3600.0  # s to watch a trial before any period is known
+    swing_limit: float = 8.0  # × bump: a trial swinging wider is stopped (and judged by its fit)
+    max_trials: int = 40
+    max_time: float = 86400.0  # s
+
+    def __post_init__(self) -> None:
+        if not (self.kc_start > 0 and math.isfinite(self.kc_start)):
+            raise ValueError(f"kc_start {self.kc_start}: must be > 0")
+        if not (self.bump > 0 and math.isfinite(self.bump)):
+            raise ValueError(f"bump {self.bump}: must be > 0 PV units")
+        if not self.factor > 1:
+            raise ValueError(f"factor {self.factor}: must be > 1")
+        if not 0 < self.tolerance < 0.5:
+            raise ValueError(f"tolerance {self.tolerance}: must be between 0 and 0.5")
+
+
+@dataclass(frozen=True)
+class Demand:
+    """What the experiment wants of the loop: P-only gain and setpoint, in auto."""
+
+    kc: float
+    sp: float
+
+
+@dataclass(frozen=True)
+class Trial:
+    kc: float
+    growth: float  # 1/s; −inf when the response did not oscillate
+    period: float | None
+    swings: int
+    cut_short: bool
+
+
+@dataclass(frozen=True)
+class RampResult:
+    ku: float
+    pu: float
+    kc_low: float  # last decaying gain
+    kc_high: float  # first growing gain
+    trials: int
+    noise_std: float
+    rest_pv: float
+
+
+@dataclass
+class RampTest:
+    config: RampConfig
+    pv_limits: tuple[float, float]
+    sample_time: float
+
+    phase: str = "quiet"  # quiet → trial ⇄ settle → done | aborted
+    reason: str = ""
+    result: RampResult | None = None
+    trials: list[Trial] = field(default_factory=list)
+    events: list[tuple[float, str, dict]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        q = self.config.quiet if self.config.quiet is not None else 40 * self.sample_time
+        self._quiet_n = max(10, math.ceil(q / self.sample_time))
+        self._t: list[float] = []
+        self._y: list[float] = []
+        self._start = math.nan
+        self._r = math.nan
+        self._noise = 0.0
+        self.kc = self.config.kc_start
+        self.sp = math.nan
+        self._trial_start = 0  # index into the record
+        self._trial_t0 = 0.0
+        self._lo: Trial | None = None
+        self._hi: Trial | None = None
+        self._side = 0  # Illinois: which end was kept last
+        self._period: float | None = None
+        self._calm_kc = self.config.kc_start
+        self._settle_start = 0
+
+    @property
+    def finished(self) -> bool:
+        return self.phase in ("done", "aborted")
+
+    def _abort(self, reason: str) -> Demand:
+        self.phase, self.reason = "aborted", reason
+        self.events.append((self._t[-1], "aborted", {"reason": reason}))
+        return Demand(self.kc, self.sp)
+
+    def feed(self, t: float, pv: float) -> Demand:
+        """Take the PV sampled at ``t``; return the gain and setpoint to hold from ``t`` on."""
+        if self.finished:
+            return Demand(self.kc, self.sp)
+        self._t.append(t)
+        self._y.append(pv)
+        if math.isnan(self._start):
+            self._start, self.sp = t, pv
+        lo, hi = self.pv_limits
+        if not lo <= pv <= hi:
+            return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")
+        if t - self._start > self.config.max_time:
+            return self._abort(f"no result within {self.config.max_time:g} s")
+        if self.phase == "quiet":
+            if len(self._y) >= self._quiet_n:
+                base = np.asarray(self._y)
+                self._r, self._noise = float(base.mean()), noise_level(base)
+                self._begin_trial(t)
+        elif self.phase == "trial":
+            self._watch_trial(t)
+        elif self.phase == "settle":
+            self._watch_settle(t)
+        return Demand(self.demand_kc, self.sp)
+
+    def _begin_trial(self, t: float) -> None:
+        n = len(self.trials)
+        self.sp = self._r + self.config.bump * (1 if n % 2 == 0 else -1)
+        self._trial_start, self._trial_t0 = len(self._y) - 1, t
+        self._next_check = 16
+        self.phase = "trial"
+        self.events.append((t, "trial", {"n": n + 1, "kc": self.kc, "sp": self.sp}))
+
+    def _watch_trial(self, t: float) -> None:
+        n = len(self._y) - self._trial_start
+        if self._swing_limit_hit():
+            self._close_trial(t, cut=True)
+        elif self._period is not None:
+            if t - self._trial_t0 >= (self.config.trial_periods + 0.5) * self._period:
+                self._close_trial(t, cut=False)
+        elif t - self._trial_t0 >= self.config.first_trial_time:
+            self._close_trial(t, cut=False)
+        elif n >= self._next_check:  # geometric spacing keeps the checks' cost near linear
+            self._next_check = int(n * 1.25) + 16
+            if self._died_out(n):
+                self._close_trial(t, cut=False)
+                return
+            osc = self._fit()
+            if osc is not None and osc.swings >= 2 * self.config.trial_periods + 1:
+                self._close_trial(t, cut=False)
+
+    def _died_out(self, n: int) -> bool:
+        """The trial's response has come and gone: the PV moved (past any dead time) and
+        its last fifth barely moves."""
+        if n < 40:
+            return False
+        y = np.asarray(self._y[self._trial_start :])
+        moved = float(np.max(np.abs(y - self._r))) >= 0.3 * self.config.bump
+        tail = y[-max(20, n // 5) :]
+        return moved and float(np.ptp(tail)) < max(0.05 * self.config.bump, 6.0 * self._noise)
+
+    def _swing_limit_hit(self) -> bool:
+        """The PV has swung further from where it rested before the trial than allowed."""
+        return abs(self._y[-1] - self._r) > self.config.swing_limit * self.config.bump
+
+    def _fit(self) -> Oscillation | None:
+        t = np.asarray(self._t[self._trial_start :])
+        y = np.asarray(self._y[self._trial_start :])
+        return fit_oscillation(t, y, self._noise, self._period)
+
+    def _close_trial(self, t: float, cut: bool) -> None:
+        osc = self._fit()
+        if osc is None or osc.swings < (2 if cut else 3):
+            # no oscillation to fit: an overdamped response, or one that ran away at once
+            trial = Trial(self.kc, math.inf if cut else -math.inf, None, 0, cut)
+        else:
+            trial = Trial(self.kc, osc.growth, osc.period, osc.swings, cut)
+            self._period = osc.period
+        self.trials.append(trial)
+        self.events.append(
+            (t, "trial_result", {"kc": trial.kc, "growth": trial.growth, "period": trial.period})
+        )
+        if trial.growth < 0:
+            self._lo = trial
+            if self._side == -1 and self._hi is not None:
+                self._hi = Trial(
+                    self._hi.kc,
+                    self._hi.growth / 2,
+                    self._hi.period,
+                    self._hi.swings,
+                    self._hi.cut_short,
+                )
+            self._side = -1
+        else:
+            self._hi = trial
+            if self._side == 1 and self._lo is not None and math.isfinite(self._lo.growth):
+                self._lo = Trial(
+                    self._lo.kc,
+                    self._lo.growth / 2,
+                    self._lo.period,
+                    self._lo.swings,
+                    self._lo.cut_short,
+                )
+            self._side = 1
+        if self._converged():
+            return
+        if len(self.trials) >= self.config.max_trials:
+            self.phase, self.reason = "aborted", f"no bracket within {len(self.trials)} trials"
+            return
+        self.kc = self._next_gain()
+        self._calm_kc = 0.7 * (self._lo.kc if self._lo else self.kc / self.config.factor)
+        self.phase = "settle"
+        self._settle_start = len(self._y) - 1
+
+    def _next_gain(self) -> float:
+        lo, hi, f = self._lo, self._hi, self.config.factor
+        if hi is None:
+            return lo.kc * f
+        if lo is None:
+            return hi.kc / f
+        width = hi.kc - lo.kc
+        if math.isfinite(lo.growth) and math.isfinite(hi.growth) and hi.growth > lo.growth:
+            k = lo.kc + width * (-lo.growth) / (hi.growth - lo.growth)
+        else:
+            k = math.sqrt(lo.kc * hi.kc)
+        return min(max(k, lo.kc + 0.05 * width), hi.kc - 0.05 * width)
+
+    def _converged(self) -> bool:
+        lo, hi = self._lo, self._hi
+        if lo is None or hi is None or (hi.kc - lo.kc) / lo.kc > self.config.tolerance:
+            return False
+        finite = math.isfinite(lo.growth) and math.isfinite(hi.growth) and hi.growth > lo.growth
+        w = -lo.growth / (hi.growth - lo.growth) if finite else 0.5
+        ku = lo.kc + w * (hi.kc - lo.kc)
+        periods = [p for p in (lo.period, hi.period) if p]
+        if len(periods) == 2:
+            pu = lo.period + w * (hi.period - lo.period)
+        elif periods:
+            pu = periods[0]
+        else:
+            self.phase, self.reason = "aborted", "the loop never oscillated"
+            return True
+        self.result = RampResult(ku, pu, lo.kc, hi.kc, len(self.trials), self._noise, self._r)
+        self.phase = "done"
+        self.events.append((self._t[-1], "done", {"ku": ku, "pu": pu}))
+        return True
+
+    def _watch_settle(self, t: float) -> None:
+        """Let the loop calm at a gain known to decay, then start the next trial from where
+        the PV has come to rest."""
+        window = max(20, round((self._period or 40 * self.sample_time) / self.sample_time))
+        if len(self._y) - self._settle_start < window or len(self._y) % 8:
+            return
+        y = np.asarray(self._y[-window:])
+        if np.ptp(y) < max(0.1 * self.config.bump, 6 * self._noise):
+            self._r = float(np.mean(y))
+            self._begin_trial(t)
+
+    @property
+    def demand_kc(self) -> float:
+        """The gain to hold now: the trial's, or a calming one between trials."""
+        return self._calm_kc if self.phase == "settle" else self.kc

@@ -1,0 +1,147 @@
+"""Relay and P-gain-ramp experiments in-process (no bus), against the exact ultimate point.
+
+The sampled loop's own ultimate point differs from the continuous plant's by the zero-order
+hold's lag (about ω·T/2 of phase); these plants are sampled finely enough (≥ 400 samples per
+period) for that to stay well inside the tolerances.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from services.autotuner.oscillation import fit_oscillation
+from services.autotuner.ramp import RampConfig, RampTest
+from services.autotuner.relay import RelayConfig, RelayTest
+from services.plant_sim.models import TransferFunctionModel
+from services.plant_sim.plant_file import build_plant
+from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand
+from tests.exact import ultimate_point
+
+THIRD = ([6.0], [1.0, 6.0, 11.0, 6.0], 0.0, 0.002)
+HX = ([1.0], [600.0, 70.0, 1.0], 5.0, 0.05)
+
+
+def run_relay(num, den, delay, ts, noise=0.0, seed=0, **kw):
+    model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
+    model.reset()
+    rng = np.random.default_rng(seed)
+    test = RelayTest(RelayConfig(**kw), 50.0, (0.0, 100.0), (-1e6, 1e6), ts)
+    op, k = 50.0, 0
+    while not test.finished:
+        k += 1
+        op = test.feed(k * ts, model.step(op) + noise * rng.standard_normal())
+    return test
+
+
+@pytest.mark.parametrize("plant", [THIRD, HX], ids=["third-order", "heat-exchanger"])
+def test_relay_within_the_describing_function_accuracy(plant):
+    ku, pu = ultimate_point(*plant[:3])
+    test = run_relay(*plant)
+    r = test.result
+    assert r is not None, test.reason
+    assert r.ku == pytest.approx(ku, rel=0.08)
+    assert r.pu == pytest.approx(pu, rel=0.05)
+    assert r.ku_spread <= 0.02 and r.pu_spread <= 0.02
+    assert r.hysteresis < 1e-9  # noise-free: no hysteresis needed
+
+
+def test_relay_with_noise_sets_hysteresis_from_it():
+    ku, pu = ultimate_point(*HX[:3])
+    sigma = 0.01 * 4 * 5.0 / (math.pi * ku)  # 1 % of the expected PV swing
+    test = run_relay(*HX, noise=sigma, seed=4)
+    r = test.result
+    assert r is not None, test.reason
+    assert r.noise_std == pytest.approx(sigma, rel=0.3)
+    assert r.hysteresis == pytest.approx(3 * r.noise_std)
+    assert r.ku == pytest.approx(ku, rel=0.15) and r.pu == pytest.approx(pu, rel=0.1)
+
+
+def test_relay_bias_adaptation_keeps_the_cycle_symmetric_under_a_load():
+    num, den, delay, ts = HX
+    model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
+    model.reset()
+    test = RelayTest(RelayConfig(cycles=4, tolerance=0.01), 50.0, (0, 100), (-1e6, 1e6), ts)
+    op, k = 50.0, 0
+    while not test.finished:
+        k += 1
+        if k * ts > 200:
+            model.set_disturbance("load", 2.0)  # an unmeasured load of 2 % appears
+        op = test.feed(k * ts, model.step(op))
+    assert test.result is not None, test.reason
+    assert test.result.bias == pytest.approx(48.0, abs=0.3)  # the relay moved to cancel it
+    assert abs(test.cycles[-1].high_fraction - 0.5) < 0.02
+
+
+def test_relay_aborts_at_the_pv_limit_and_refuses_a_too_wide_swing():
+    num, den, delay, ts = HX
+    model = TransferFunctionModel(ts, num=num, den=den, delay=delay, pv0=50.0)
+    model.reset()
+    test = RelayTest(RelayConfig(amplitude=20.0), 50.0, (0, 100), (49.0, 51.0), ts)
+    op, k = 50.0, 0
+    while not test.finished:
+        k += 1
+        op = test.feed(k * ts, model.step(op))
+    assert test.phase == "aborted" and "left its limits" in test.reason and op == 50.0
+    with pytest.raises(ValueError, match="beyond the loop's limits"):
+        RelayTest(RelayConfig(amplitude=60.0), 50.0, (0, 100), (0, 100), ts)
+
+
+def run_ramp(num, den, delay, ts, noise=0.0, seed=0, kc_start=1.0, bump=1.0):
+    loop = build_plant(
+        {
+            "seed": seed,
+            "loops": {
+                "x": {
+                    "model": "transfer_function",
+                    "num": num,
+                    "den": den,
+                    "delay": delay,
+                    "sample_time": ts,
+                    "noise_std": noise,
+                    "pv_range": [-1e3, 1e3],
+                }
+            },
+        }
+    )["x"]
+    test = RampTest(RampConfig(kc_start=kc_start, bump=bump), (-1e3, 1e3), ts)
+    loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc_start)))
+    loop.apply(ModeCommand(loop="x", mode="auto"))
+    kc, sp = kc_start, loop.sp
+    demand = test.feed(loop.t, loop.pv)
+    while not test.finished:
+        if demand.kc != kc:
+            kc = demand.kc
+            loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc)))
+        if demand.sp != sp:
+            sp = demand.sp
+            loop.apply(SetpointCommand(loop="x", sp=sp))
+        s = loop.advance()
+        demand = test.feed(s.t, s.pv)
+    return test
+
+
+@pytest.mark.parametrize(
+    ("plant", "kc_start", "noise"),
+    [(THIRD, 1.0, 0.0), (HX, 2.0, 0.0), (THIRD, 1.0, 0.01), (HX, 2.0, 0.01)],
+    ids=["third-order", "heat-exchanger", "third-order-noisy", "heat-exchanger-noisy"],
+)
+def test_ramp_finds_the_ultimate_point(plant, kc_start, noise):
+    ku, pu = ultimate_point(*plant[:3])
+    test = run_ramp(*plant, noise=noise, kc_start=kc_start)
+    r = test.result
+    assert r is not None, test.reason
+    tol = 0.02 if noise == 0 else 0.04
+    assert r.ku == pytest.approx(ku, rel=tol)
+    assert r.pu == pytest.approx(pu, rel=tol)
+    assert r.kc_low < r.ku < r.kc_high
+
+
+def test_oscillation_fit_recovers_growth_and_period_under_noise():
+    t = np.arange(0, 60, 0.05)
+    rng = np.random.default_rng(2)
+    for g in (-0.05, 0.0, 0.03):
+        y = 3.0 + 2.0 * np.exp(g * t) * np.sin(2 * math.pi / 7.0 * t + 0.4)
+        osc = fit_oscillation(t, y + 0.02 * rng.standard_normal(t.size), 0.02, 7.0)
+        assert osc.growth == pytest.approx(g, abs=2e-3)
+        assert osc.period == pytest.approx(7.0, rel=2e-3)
