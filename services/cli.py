@@ -6,7 +6,8 @@ import argparse
 import sys
 
 from services import demo
-from services.autotuner import step_command
+from services.autotuner import service as tuner_service
+from services.autotuner import step_command, tune_command
 from services.plant_sim import service as plant_service
 from shared.errors import AutotuneError
 
@@ -14,6 +15,8 @@ SUBCOMMANDS = {
     "demo": demo,
     "plant": plant_service,
     "step": step_command,
+    "tuner": tuner_service,
+    "tune": tune_command,
 }
 
 

@@ -9,6 +9,13 @@ Layout (IDs in their own chunks, most-varying part last)::
     <prefix>/plant/<loop>/alive            liveliness token of a served loop
     <prefix>/plant_sim/<node>/status       ServiceStatus of one plant_sim process (queryable)
     <prefix>/plant_sim/<node>/alive        liveliness token of one plant_sim process
+    <prefix>/tuner/<node>/tune             TuneRequest → TuneAccepted (queryable)
+    <prefix>/tuner/<node>/alive            liveliness token of one autotuner process
+    <prefix>/tune/<loop>/progress          TuneProgress while a run goes on
+    <prefix>/tune/<loop>/event             TunerEvent: the experiment's events
+    <prefix>/tune/<loop>/result            TuneResult at the end of a run
+    <prefix>/tune/<loop>/cancel            a put here cancels the loop's run (loop restored)
+    <prefix>/tune/<loop>/running           liveliness token held while a run owns the loop
 """
 
 from __future__ import annotations
@@ -95,3 +102,35 @@ def split_loop_key(prefix: str, key: str) -> tuple[str, list[str]] | None:
     if len(parts) < 2 or not parts[0]:
         return None
     return parts[0], parts[1:]
+
+
+def tuner_request(prefix: str, node: str) -> str:
+    return f"{prefix}/tuner/{node}/tune"
+
+
+def tuner_alive(prefix: str, node: str) -> str:
+    return f"{prefix}/tuner/{node}/alive"
+
+
+def tune_root(prefix: str, loop: str) -> str:
+    return f"{prefix}/tune/{loop}"
+
+
+def tune_progress(prefix: str, loop: str) -> str:
+    return f"{tune_root(prefix, loop)}/progress"
+
+
+def tune_event(prefix: str, loop: str) -> str:
+    return f"{tune_root(prefix, loop)}/event"
+
+
+def tune_result(prefix: str, loop: str) -> str:
+    return f"{tune_root(prefix, loop)}/result"
+
+
+def tune_cancel(prefix: str, loop: str) -> str:
+    return f"{tune_root(prefix, loop)}/cancel"
+
+
+def tune_running(prefix: str, loop: str) -> str:
+    return f"{tune_root(prefix, loop)}/running"

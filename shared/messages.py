@@ -168,6 +168,22 @@ class SyncCommand(Command):
     token: int
 
 
+class LeaseCommand(Command):
+    """A supervisor takes the loop for an experiment. The plant snapshots the loop (mode,
+    output, setpoint, gains, disturbances) and restores it by itself if the supervisor's
+    run token (``<prefix>/tune/<loop>/running``) disappears or no command from ``source``
+    arrives for ``timeout`` seconds of wall time."""
+
+    kind: ClassVar[str] = "lease"
+    timeout: float = Field(default=10.0, gt=0.0, le=3600.0)
+
+
+class ReleaseCommand(Command):
+    """The supervisor hands the loop back (it has restored or re-tuned it itself)."""
+
+    kind: ClassVar[str] = "release"
+
+
 COMMANDS: dict[str, type[Command]] = {
     cls.kind: cls
     for cls in (
@@ -178,8 +194,115 @@ COMMANDS: dict[str, type[Command]] = {
         DisturbanceCommand,
         AdvanceCommand,
         SyncCommand,
+        LeaseCommand,
+        ReleaseCommand,
     )
 }
+
+Method = Literal["relay", "ramp", "step"]
+RunStatus = Literal["ok", "rejected", "aborted", "failed"]
+
+
+class TuneRequest(Message):
+    """Ask the autotuner to tune a loop (the queryable ``<prefix>/tuner/<node>/tune``).
+
+    Optional settings left out take the defaults the README lists."""
+
+    loop: LoopId
+    method: Method = "relay"
+    rule: str = Field(default="zn-pid", min_length=1, max_length=32)
+    amplitude: float | None = Field(default=None, gt=0.0, le=50.0, description="relay d, %")
+    hysteresis: float | None = Field(default=None, ge=0.0, description="relay ε, PV units")
+    cycles: int = Field(default=3, ge=2, le=20, description="relay cycles that must agree")
+    tolerance: float = Field(default=0.02, gt=0.0, lt=0.5)
+    bump: float | None = Field(default=None, gt=0.0, description="ramp setpoint bump, PV units")
+    kc_start: float | None = Field(default=None, gt=0.0, description="ramp first gain")
+    step_size: float | None = Field(default=None, description="step test output step, %")
+    pv_limits: tuple[float, float] | None = None
+    max_time: float | None = Field(default=None, gt=0.0, description="experiment budget, sim s")
+    verify: bool = True
+    apply: bool = True
+    source: str = Field(default="operator", max_length=64)
+
+
+class TuneAccepted(Message):
+    run_id: str
+    loop: LoopId
+    t: SimTime
+    method: Method
+    rule: str
+
+
+class TuneProgress(Message):
+    """Published on ``<prefix>/tune/<loop>/progress`` while a run goes on."""
+
+    run_id: str
+    loop: LoopId
+    t: SimTime
+    phase: str
+    cycles: int = 0
+    ku: float | None = None
+    pu: float | None = None
+    message: str = ""
+
+
+class TunerEvent(Message):
+    """An experiment's event (relay switch, cycle, trial, phase change) with its sim time."""
+
+    run_id: str
+    loop: LoopId
+    t: SimTime
+    kind: str
+    data: dict[str, float | int | str | None]
+
+
+class Verification(Message):
+    """A setpoint step and a load step on the loop with a set of gains."""
+
+    gains: PidGains
+    sp_step: float
+    overshoot: float | None = Field(description="% of the setpoint step")
+    decay_ratio: float | None = Field(description="second peak over first (ZN aim: 0.25)")
+    rise_time: float | None
+    settling_time: float | None = Field(description="s to stay within 2 % of the step")
+    iae_sp: float
+    load_step: float | None = Field(description="% of output, None when the model has no load")
+    iae_load: float | None
+    max_deviation_load: float | None
+    recovery_time: float | None
+    stable: bool
+    saturated: bool = Field(description="the output sat at a limit for a third of the time")
+    score: float = Field(description="IAE per unit step, setpoint and load together")
+
+
+class TuneResult(Message):
+    """Published on ``<prefix>/tune/<loop>/result`` when a run ends, whatever the outcome."""
+
+    run_id: str
+    loop: LoopId
+    t: SimTime
+    method: Method
+    rule: str
+    pv_units: str = ""
+    status: RunStatus
+    reason: str | None = None
+    ku: float | None = Field(default=None, description="% of output per PV unit")
+    pu: float | None = Field(default=None, description="s")
+    ku_spread: float | None = None
+    pu_spread: float | None = None
+    l_over_t: float | None = None
+    step: dict[str, float] | None = Field(default=None, description="reaction-curve figures")
+    experiment: dict[str, float | int | str | None] = Field(default_factory=dict)
+    gains: dict[str, dict[str, Any]] = Field(default_factory=dict, description="every rule")
+    chosen: dict[str, Any] | None = None
+    previous_gains: PidGains | None = None
+    applied: bool = False
+    before: Verification | None = None
+    after: Verification | None = None
+    restored: bool = False
+    sim_duration: float = 0.0
+    wall_time: float = 0.0
+
 
 __all__ = [
     "COMMANDS",

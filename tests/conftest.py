@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from services.autotuner.loop_client import wait_for_loop
+from services.autotuner.loop_client import wait_for_token
 from services.launcher import free_tcp_port, start_service, stop_service
+from shared import keys
 from shared.session import ZenohSettings, open_session
 
 _counter = itertools.count()
@@ -38,15 +39,24 @@ class RunningPlant:
         return self.log.read_text()
 
 
+def wait_for_tokens(
+    settings: ZenohSettings, key_exprs: list[str], timeout: float, log: Path
+) -> None:
+    """Block until a liveliness token is seen on every key (event-driven, no polling)."""
+    with open_session(settings) as s:
+        for key in key_exprs:
+            if not wait_for_token(s, key, timeout):
+                raise AssertionError(f"{key} did not come up:\n{log.read_text()}")
+
+
 @pytest.fixture
 def start_plant(tmp_path):
-    """start_plant(toml_text or None, *extra_args) → RunningPlant, stopped after the test."""
+    """start_plant(toml_text or None, *extra_args, loops=(...)) → RunningPlant."""
     started: list[RunningPlant] = []
 
     def start(toml: str | None = None, *extra: str, loops: tuple[str, ...] = ()) -> RunningPlant:
         n = next(_counter)
-        port = free_tcp_port()
-        endpoint = f"tcp/127.0.0.1:{port}"
+        endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
         prefix = f"test{os.getpid()}/p{n}"
         args = ["--prefix", prefix, "-l", endpoint, "--no-multicast-scouting", *extra]
         if toml is not None:
@@ -58,14 +68,43 @@ def start_plant(tmp_path):
             proc = start_service("services.plant_sim", args, stderr=f)
         plant = RunningPlant(endpoint, prefix, proc, log)
         started.append(plant)
-        with open_session(plant.client_settings()) as s:
-            for loop in loops:
-                try:
-                    wait_for_loop(s, prefix, loop, timeout=20.0)
-                except Exception:
-                    raise AssertionError(f"plant did not come up:\n{plant.stderr()}") from None
+        wait_for_tokens(
+            plant.client_settings(), [keys.loop_alive(prefix, lp) for lp in loops], 20.0, log
+        )
         return plant
 
     yield start
     for plant in started:
         stop_service(plant.proc)
+
+
+@pytest.fixture
+def start_tuner(tmp_path):
+    """start_tuner(plant) → the autotuner as its own process, a peer of the plant's."""
+    started = []
+
+    def start(plant: RunningPlant):
+        log = tmp_path / f"tuner{len(started)}.log"
+        with log.open("w") as f:
+            proc = start_service(
+                "services.autotuner",
+                [
+                    "--prefix",
+                    plant.prefix,
+                    "-e",
+                    plant.endpoint,
+                    "--no-multicast-scouting",
+                    "--cfg",
+                    "connect/timeout_ms:10000",
+                ],
+                stderr=f,
+            )
+        started.append(proc)
+        wait_for_tokens(
+            plant.client_settings(), [keys.tuner_alive(plant.prefix, "tuner")], 20.0, log
+        )
+        return proc
+
+    yield start
+    for proc in started:
+        stop_service(proc)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import itertools
 import queue
 import threading
+import time
 
 import zenoh
 
@@ -33,28 +34,35 @@ class CommandRefused(AutotuneError):
     """The loop refused a command; the message is the plant's reason."""
 
 
-def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float) -> None:
-    """Block until the loop's liveliness token is seen, or raise PlantLost after ``timeout``."""
+def wait_for_token(session: zenoh.Session, key_expr: str, timeout: float) -> bool:
+    """Block until a liveliness token matching ``key_expr`` is seen; False after ``timeout``."""
     events: queue.Queue[zenoh.Sample] = queue.Queue()
     sub = session.liveliness().declare_subscriber(
-        keys.loop_alive(prefix, loop), zenoh.handlers.FifoChannel(16), history=True
+        key_expr, zenoh.handlers.FifoChannel(16), history=True
     )
     reader = threading.Thread(target=lambda: [events.put(s) for s in sub], daemon=True)
     reader.start()
+    deadline = time.monotonic() + timeout
     try:
         while True:
             try:
-                sample = events.get(timeout=timeout)
+                sample = events.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
-                raise PlantLost(
-                    f"loop {loop!r} not found: nothing announces {keys.loop_alive(prefix, loop)} "
-                    f"after {timeout:g} s (is `autotune plant` running, reachable and serving "
-                    "that loop?)"
-                ) from None
+                return False
             if sample.kind == zenoh.SampleKind.PUT:
-                return
+                return True
     finally:
         sub.undeclare()
+
+
+def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float) -> None:
+    """Block until the loop's liveliness token is seen, or raise PlantLost after ``timeout``."""
+    if not wait_for_token(session, keys.loop_alive(prefix, loop), timeout):
+        raise PlantLost(
+            f"loop {loop!r} not found: nothing announces {keys.loop_alive(prefix, loop)} "
+            f"after {timeout:g} s (is `autotune plant` running, reachable and serving "
+            "that loop?)"
+        )
 
 
 class LoopClient:
@@ -148,6 +156,23 @@ class LoopClient:
         if status.rejected > before:
             raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
         return status
+
+    def advance(self, steps: int) -> list[ProcessSample]:
+        """Lockstep: advance ``steps`` periods in one round trip; return their samples."""
+        last = self.last_sample.t if self.last_sample is not None else self.last_status.t
+        self.send(AdvanceCommand(loop=self.loop, steps=steps, source=self.source, t=last))
+        out: list[ProcessSample] = []
+        while len(out) < steps:
+            msg = self._next()
+            if isinstance(msg, ProcessSample):
+                out.append(msg)
+        return out
+
+    def samples(self, steps: int) -> list[ProcessSample]:
+        """The next ``steps`` samples, advancing the clock in lockstep, waiting in realtime."""
+        if self.info.clock == "lockstep":
+            return self.advance(steps)
+        return [self.next_sample() for _ in range(steps)]
 
     def next_sample(self) -> ProcessSample:
         """The next sample: in lockstep, advance the loop one period first."""

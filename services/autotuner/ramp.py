@@ -271,6 +271,15 @@ class RampTest:
             self._r = float(np.mean(y))
             self._begin_trial(t)
 
+    def horizon(self, cap: int) -> int:
+        """How many samples may pass before the next decision matters (≤ ``cap``): about 2 %
+        of the oscillation's period once known, fewer early in a trial."""
+        if self._period is not None:
+            n = int(0.02 * self._period / self.sample_time)
+        else:
+            n = (len(self._y) - self._trial_start) // 50 if self.phase == "trial" else 1
+        return max(1, min(cap, n))
+
     @property
     def demand_kc(self) -> float:
         """The gain to hold now: the trial's, or a calming one between trials."""

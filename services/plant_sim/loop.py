@@ -60,6 +60,17 @@ class LoopSettings:
     description: str
 
 
+@dataclass(frozen=True)
+class LoopSnapshot:
+    """What a supervisor must put back: mode, output, setpoint, gains, disturbances."""
+
+    mode: Mode
+    op: float
+    sp: float
+    gains: PidGains
+    disturbances: dict[str, float]
+
+
 class SimLoop:
     """A loop as a DCS holds it: PV, SP, OP, mode, gains, limits and its process."""
 
@@ -144,6 +155,21 @@ class SimLoop:
         if isinstance(values, dict):
             return {n: float(values[n]) for n in names}
         return {n: float(getattr(self.process, n, math.nan)) for n in names}
+
+    def snapshot(self) -> LoopSnapshot:
+        return LoopSnapshot(self.mode, self.op, self.sp, self.pid.gains, self.disturbances())
+
+    def restore(self, snap: LoopSnapshot) -> None:
+        """Put the loop back as it was (into auto bumplessly, at the old setpoint)."""
+        for name, value in snap.disturbances.items():
+            self.process.set_disturbance(name, value)
+        self.pid.set_gains(snap.gains, self.sp, self.pv)
+        self.pid.set_mode("manual", self.sp, self.pv)
+        self.sp = snap.sp
+        if snap.mode == "manual":
+            self.pid.set_output(snap.op)
+        else:
+            self.pid.set_mode("auto", self.sp, self.pv)
 
     def apply(self, cmd: Command) -> None:
         """Apply a validated command; raise CommandRejected (nothing changed) if refused."""

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from services.plant_sim.loop import CommandRejected, SimLoop
+from services.plant_sim.loop import CommandRejected, LoopSnapshot, SimLoop
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from shared import keys, wire
 from shared.errors import AutotuneError, ConfigError, DecodeError
@@ -29,9 +29,11 @@ from shared.messages import (
     COMMANDS,
     AdvanceCommand,
     ClockMode,
+    LeaseCommand,
     LoopInfo,
     LoopStatus,
     Message,
+    ReleaseCommand,
     ServiceStatus,
     SyncCommand,
 )
@@ -73,6 +75,16 @@ class RejectLog:
         self._seen[category] = (start, shown, hidden)
 
 
+@dataclass
+class Lease:
+    """A supervisor's hold on a loop during an experiment (the plant-side watchdog)."""
+
+    source: str
+    timeout: float  # s of wall time without a command from ``source``
+    deadline: float  # time.monotonic() by which the next command must come
+    snapshot: LoopSnapshot
+
+
 class PlantService:
     """The Zenoh shell around a set of SimLoops."""
 
@@ -86,6 +98,7 @@ class PlantService:
         self.overruns = 0
         self._remote_loops: set[str] = set()
         self._log_reject = RejectLog()
+        self.leases: dict[str, Lease] = {}
 
     # --- messages -------------------------------------------------------------------------
 
@@ -214,7 +227,18 @@ class PlantService:
                 out,
             )
             return
-        if isinstance(cmd, AdvanceCommand):
+        lease = self.leases.get(loop_id)
+        if lease is not None and cmd.source == lease.source:
+            lease.deadline = time.monotonic() + lease.timeout
+        if isinstance(cmd, LeaseCommand):
+            self.leases[loop_id] = Lease(
+                cmd.source, cmd.timeout, time.monotonic() + cmd.timeout, loop.snapshot()
+            )
+            out.append((keys.status(prefix, loop_id), self.loop_status(loop, "lease")))
+        elif isinstance(cmd, ReleaseCommand):
+            self.leases.pop(loop_id, None)
+            out.append((keys.status(prefix, loop_id), self.loop_status(loop, "release")))
+        elif isinstance(cmd, AdvanceCommand):
             if self.opt.clock != "lockstep":
                 self._reject(loop, "clock", "advance refused: the plant runs in realtime", out)
                 return
@@ -282,6 +306,42 @@ class PlantService:
                 else:
                     self._remote_loops.discard(parsed[0])
 
+    def expire_lease(self, loop_id: str, why: str) -> None:
+        """Restore a leased loop to its pre-experiment state (the supervisor is gone)."""
+        out: list[tuple[str, Message]] = []
+        with self.lock:
+            lease = self.leases.pop(loop_id, None)
+            if lease is None:
+                return
+            loop = self.loops[loop_id]
+            loop.restore(lease.snapshot)
+            out.append((keys.status(self.opt.prefix, loop_id), self.loop_status(loop, "watchdog")))
+        log.warning(
+            "loop %s: %s; restored to its state before the experiment (%s, op %.4g %%)",
+            loop_id,
+            why,
+            lease.snapshot.mode,
+            lease.snapshot.op,
+        )
+        self._publish(out)
+
+    def _watchdog(self, stop: threading.Event) -> None:
+        while not stop.wait(0.05):
+            now = time.monotonic()
+            with self.lock:
+                late = [lid for lid, ls in self.leases.items() if now > ls.deadline]
+            for lid in late:
+                self.expire_lease(lid, "no command from its supervisor within the lease timeout")
+
+    def _watch_runs(self, sub: zenoh.Subscriber) -> None:
+        """A supervisor's run token vanishing (killed, disconnected) expires its lease."""
+        for sample in sub:
+            if sample.kind != zenoh.SampleKind.DELETE:
+                continue
+            parts = str(sample.key_expr).split("/")
+            if len(parts) >= 3 and parts[-3] == "tune" and parts[-2] in self.loops:
+                self.expire_lease(parts[-2], "its supervisor's run token disappeared")
+
     def _pace(self, stop: threading.Event) -> None:
         """Realtime clock: advance each loop when its next sample is due on the wall clock."""
         period = {lid: lp.sample_time / self.opt.speed for lid, lp in self.loops.items()}
@@ -317,9 +377,12 @@ class PlantService:
                 keys.service_status(prefix, SERVICE, self.opt.node), fifo(1024)
             ),
         }
+        runs = s.liveliness().declare_subscriber(keys.tune_running(prefix, keys.ANY), fifo(1024))
         threads = [
             threading.Thread(target=self._command_loop, args=(cmd_sub,), daemon=True),
             threading.Thread(target=self._watch_peers, args=(peers,), daemon=True),
+            threading.Thread(target=self._watch_runs, args=(runs,), daemon=True),
+            threading.Thread(target=self._watchdog, args=(stop,), daemon=True),
         ]
         threads += [
             threading.Thread(target=self._query_loop, args=(q, what), daemon=True)
@@ -355,6 +418,7 @@ class PlantService:
                 q.undeclare()
             cmd_sub.undeclare()
             peers.undeclare()
+            runs.undeclare()
             for th in threads:
                 th.join(timeout=2.0)
             log.info(

@@ -1,0 +1,208 @@
+"""autotuner over Zenoh: tunes loops it does not own, several at once.
+
+Requests arrive on the queryable ``<prefix>/tuner/<node>/tune`` (a TuneRequest); the reply is
+a TuneAccepted, or an error naming the field at fault. Each run holds the liveliness token
+``<prefix>/tune/<loop>/running`` (the plant's watchdog restores the loop if it vanishes),
+publishes progress, events and a result under ``<prefix>/tune/<loop>/``, and is cancelled by
+a put on ``<prefix>/tune/<loop>/cancel``. Stopping the service cancels every run, which
+restores its loop before the process ends.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+
+import zenoh
+
+from services.autotuner.loop_client import LoopClient, wait_for_loop
+from services.autotuner.tuning import RunHooks, TuningRun, validate_request
+from services.plant_sim.service import (
+    add_common_arguments,
+    install_stop_handlers,
+    setup_logging,
+)
+from shared import keys, wire
+from shared.errors import AutotuneError, ConfigError, DecodeError
+from shared.messages import TuneAccepted, TuneRequest, TuneResult
+from shared.session import open_session, settings_from_args
+
+log = logging.getLogger("autotuner")
+
+HELP = "run the autotuner service"
+
+
+@dataclass
+class ActiveRun:
+    run_id: str
+    request: TuneRequest
+    cancel: threading.Event
+    thread: threading.Thread
+
+
+class TunerService:
+    def __init__(self, session: zenoh.Session, prefix: str, node: str, loop_timeout: float = 10.0):
+        self.session = session
+        self.prefix = prefix
+        self.node = node
+        self.loop_timeout = loop_timeout
+        self.lock = threading.Lock()
+        self.active: dict[str, ActiveRun] = {}
+        self.rejected = 0
+
+    def _start(self, req: TuneRequest) -> TuneAccepted:
+        validate_request(req)
+        key = keys.loop_alive(self.prefix, req.loop)
+        if not any(r.ok for r in self.session.liveliness().get(key, timeout=2.0)):
+            raise ValueError(f"loop: no plant serves {req.loop!r} (nothing announces {key})")
+        with self.lock:
+            if req.loop in self.active:
+                raise ValueError(
+                    f"loop: {req.loop} is already being tuned (run {self.active[req.loop].run_id})"
+                )
+            run_id = uuid.uuid4().hex[:12]
+            cancel = threading.Event()
+            th = threading.Thread(
+                target=self._run, args=(req, run_id, cancel), daemon=True, name=f"tune-{req.loop}"
+            )
+            self.active[req.loop] = ActiveRun(run_id, req, cancel, th)
+        th.start()
+        return TuneAccepted(run_id=run_id, loop=req.loop, t=0.0, method=req.method, rule=req.rule)
+
+    def _run(self, req: TuneRequest, run_id: str, cancel: threading.Event) -> None:
+        p, s = self.prefix, self.session
+        token = s.liveliness().declare_token(keys.tune_running(p, req.loop))
+        started = time.monotonic()
+        hooks = RunHooks(
+            progress=lambda m: wire.put(s, keys.tune_progress(p, req.loop), m),
+            event=lambda m: wire.put(s, keys.tune_event(p, req.loop), m),
+            cancelled=cancel,
+        )
+        try:
+            wait_for_loop(s, p, req.loop, self.loop_timeout)
+            with LoopClient(s, p, req.loop, source=f"tuner:{run_id}") as client:
+                result = TuningRun(client, req, run_id, hooks).run()
+        except (AutotuneError, ValueError) as err:
+            result = TuneResult(
+                run_id=run_id,
+                loop=req.loop,
+                t=0.0,
+                method=req.method,
+                rule=req.rule,
+                status="failed",
+                reason=str(err),
+                wall_time=time.monotonic() - started,
+            )
+        except Exception as err:  # never let one run take the service down
+            log.exception("run %s on %s failed", run_id, req.loop)
+            result = TuneResult(
+                run_id=run_id,
+                loop=req.loop,
+                t=0.0,
+                method=req.method,
+                rule=req.rule,
+                status="failed",
+                reason=repr(err),
+                wall_time=time.monotonic() - started,
+            )
+        finally:
+            with self.lock:
+                self.active.pop(req.loop, None)
+        wire.put(s, keys.tune_result(p, req.loop), result)
+        token.undeclare()
+        log.info(
+            "run %s on %s: %s%s (K_u %s, P_u %s) in %.2f s",
+            run_id,
+            req.loop,
+            result.status,
+            f", {result.reason}" if result.reason else "",
+            result.ku,
+            result.pu,
+            result.wall_time,
+        )
+
+    def _serve_requests(self, queryable: zenoh.Queryable) -> None:
+        for query in queryable:
+            with query:
+                try:
+                    payload = query.payload.to_bytes() if query.payload is not None else b""
+                    req = wire.decode(
+                        TuneRequest, payload, str(query.encoding) if query.encoding else None
+                    )
+                    accepted = self._start(req)
+                    wire.reply(query, str(query.key_expr), accepted)
+                    log.info(
+                        "run %s: tuning %s by %s, rule %s",
+                        accepted.run_id,
+                        req.loop,
+                        req.method,
+                        req.rule,
+                    )
+                except (DecodeError, ValueError) as err:
+                    self.rejected += 1
+                    log.warning("request refused: %s", err)
+                    query.reply_err(str(err).encode())
+
+    def _serve_cancels(self, sub: zenoh.Subscriber) -> None:
+        for sample in sub:
+            loop = str(sample.key_expr).split("/")[-2]
+            with self.lock:
+                run = self.active.get(loop)
+            if run is not None:
+                log.info("run %s on %s: cancel requested", run.run_id, loop)
+                run.cancel.set()
+
+    def run(self, stop: threading.Event) -> None:
+        s, p = self.session, self.prefix
+        fifo = zenoh.handlers.FifoChannel
+        queryable = s.declare_queryable(keys.tuner_request(p, self.node), fifo(256))
+        cancels = s.declare_subscriber(keys.tune_cancel(p, keys.ANY), fifo(256))
+        threads = [
+            threading.Thread(target=self._serve_requests, args=(queryable,), daemon=True),
+            threading.Thread(target=self._serve_cancels, args=(cancels,), daemon=True),
+        ]
+        for th in threads:
+            th.start()
+        token = s.liveliness().declare_token(keys.tuner_alive(p, self.node))
+        log.info("autotuner %s ready at %s", self.node, keys.tuner_request(p, self.node))
+        try:
+            while not stop.wait(0.5):
+                pass
+        finally:
+            queryable.undeclare()
+            with self.lock:
+                runs = list(self.active.values())
+            for run in runs:
+                run.cancel.set()
+            for run in runs:
+                run.thread.join(timeout=30.0)
+            cancels.undeclare()
+            token.undeclare()
+            for th in threads:
+                th.join(timeout=2.0)
+            log.info("stopped")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--node", default="tuner", help="this process's id on the bus (default: %(default)s)"
+    )
+    add_common_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    setup_logging(args.verbose + 1, "autotuner")
+    try:
+        keys.check_prefix(args.prefix)
+        keys.check_id(args.node, "node")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    stop = threading.Event()
+    install_stop_handlers(stop)
+    with open_session(settings_from_args(args)) as session:
+        TunerService(session, args.prefix, args.node).run(stop)
+    return 0

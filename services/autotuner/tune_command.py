@@ -1,0 +1,282 @@
+"""``autotune tune LOOP``: ask the running autotuner to tune a loop; show progress and the result.
+
+With ``--json`` the result is printed as one JSON object (the TuneResult message): ``ku``
+(% per PV unit), ``pu`` (s), ``gains`` (every rule, every form), ``chosen``, ``before`` and
+``after`` (verification figures), ``status``, ``reason``, ``applied``, ``restored``.
+Ctrl-C cancels the run; the tuner restores the loop before it answers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import sys
+import threading
+import time
+
+import pydantic
+import zenoh
+
+from services.autotuner.loop_client import wait_for_token
+from services.autotuner.rules import RULES
+from services.plant_sim.service import add_common_arguments
+from shared import keys, wire
+from shared.errors import AutotuneError, ConfigError
+from shared.messages import TuneAccepted, TuneProgress, TuneRequest, TuneResult
+from shared.session import open_session, settings_from_args
+
+HELP = "tune a loop through the running autotuner (relay, ramp or step test)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("loop", metavar="LOOP", help="loop id, e.g. hx1")
+    add_tune_options(parser)
+    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    parser.add_argument("--node", default="*", help="which autotuner (default: any)")
+    parser.add_argument(
+        "--wait",
+        type=float,
+        default=3600.0,
+        help="wall seconds to wait for the result (default: %(default)s)",
+    )
+    add_common_arguments(parser)
+
+
+def add_tune_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--method",
+        choices=("relay", "ramp", "step"),
+        default="relay",
+        help="experiment (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--rule",
+        default="zn-pid",
+        choices=list(RULES),
+        metavar="RULE",
+        help=f"tuning rule to apply: {', '.join(RULES)} (default: %(default)s)",
+    )
+    parser.add_argument("--amplitude", type=float, help="relay amplitude d, %% (default 5)")
+    parser.add_argument(
+        "--hysteresis", type=float, help="relay hysteresis, PV units (default: 3σ of the PV noise)"
+    )
+    parser.add_argument(
+        "--bump", type=float, help="ramp setpoint bump, PV units (default: 1 %% of the PV range)"
+    )
+    parser.add_argument(
+        "--kc-start", type=float, help="ramp first gain (default: half the loop's present Kc)"
+    )
+    parser.add_argument("--step-size", type=float, help="step test output step, %% (default 5)")
+    parser.add_argument(
+        "--pv-limits",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="abort if the PV leaves [LO, HI] (default: the loop's PV range)",
+    )
+    parser.add_argument("--max-time", type=float, help="experiment budget, sim seconds")
+    parser.add_argument("--no-verify", action="store_true", help="apply without verifying")
+    parser.add_argument(
+        "--no-apply",
+        action="store_true",
+        help="identify and compute only; leave the loop as it was",
+    )
+
+
+def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
+    try:
+        return TuneRequest(
+            loop=args.loop,
+            method=args.method,
+            rule=args.rule,
+            amplitude=args.amplitude,
+            hysteresis=args.hysteresis,
+            bump=args.bump,
+            kc_start=args.kc_start,
+            step_size=args.step_size,
+            pv_limits=tuple(args.pv_limits) if args.pv_limits else None,
+            max_time=args.max_time,
+            verify=not args.no_verify,
+            apply=not args.no_apply,
+            source=source,
+        )
+    except pydantic.ValidationError as err:
+        e = err.errors()[0]
+        flag = "--" + str(e["loc"][0]).replace("_", "-") if e["loc"] else "request"
+        raise ConfigError(f"{flag}: {e['msg']}") from None
+
+
+def submit(
+    session: zenoh.Session, prefix: str, node: str, req: TuneRequest, timeout: float = 10.0
+) -> TuneAccepted:
+    """Send the request to an autotuner; return its acceptance or raise with its reason."""
+    key = keys.tuner_request(prefix, node)
+    missing = AutotuneError(
+        f"no autotuner answered at {key} within {timeout:g} s (is "
+        "`autotune tuner` running and reachable?)"
+    )
+    deadline = time.monotonic() + timeout
+    if not wait_for_token(session, keys.tuner_alive(prefix, node), timeout):
+        raise missing
+    while time.monotonic() < deadline:  # a new peer's queryable may take a moment to route
+        replies = session.get(
+            key,
+            payload=wire.encode(req),
+            encoding=wire.encoding_for(TuneRequest),
+            target=zenoh.QueryTarget.BEST_MATCHING,
+            timeout=max(0.1, deadline - time.monotonic()),
+        )
+        for reply in replies:
+            if reply.ok is not None:
+                return wire.decode_sample(TuneAccepted, reply.ok)
+            raise AutotuneError(
+                f"the autotuner refused the request: "
+                f"{reply.err.payload.to_bytes().decode(errors='replace')}"
+            )
+        time.sleep(0.05)
+    raise missing
+
+
+def follow(
+    session: zenoh.Session, prefix: str, loop: str, start, wait: float, on_progress=None
+) -> TuneResult:
+    """Subscribe to the loop's progress and result, call ``start()`` and wait for the run's
+    result. Ctrl-C cancels the run and still waits for its (restored) result."""
+    inbox: queue.Queue = queue.Queue()
+    sub = session.declare_subscriber(
+        f"{keys.tune_root(prefix, loop)}/*", zenoh.handlers.FifoChannel(4096)
+    )
+    reader = threading.Thread(target=lambda: [inbox.put(s) for s in sub], daemon=True)
+    reader.start()
+    try:
+        accepted = start()
+        cancelled = False
+        while True:
+            try:
+                sample = inbox.get(timeout=wait)
+            except queue.Empty:
+                raise AutotuneError(
+                    f"no result for run {accepted.run_id} within {wait:g} s"
+                ) from None
+            except KeyboardInterrupt:
+                if cancelled:
+                    raise
+                cancelled = True
+                session.put(keys.tune_cancel(prefix, loop), accepted.run_id.encode())
+                print("\ncancelling: the tuner restores the loop…", file=sys.stderr)
+                continue
+            key = str(sample.key_expr)
+            if key.endswith("/progress") and on_progress:
+                p = wire.decode_sample(TuneProgress, sample)
+                if p.run_id == accepted.run_id:
+                    on_progress(p)
+            elif key.endswith("/result"):
+                r = wire.decode_sample(TuneResult, sample)
+                if r.run_id == accepted.run_id:
+                    if cancelled:
+                        raise KeyboardInterrupt
+                    return r
+    finally:
+        sub.undeclare()
+
+
+def progress_line(p: TuneProgress) -> None:
+    if not sys.stderr.isatty():
+        return
+    ku = f"K_u {p.ku:.4g}" if p.ku else ""
+    pu = f"P_u {p.pu:.4g} s" if p.pu else ""
+    print(
+        f"\r  {p.phase:<10} t = {p.t:8.1f} s  n = {p.cycles:<3} {ku:<12} {pu:<14} "
+        f"{p.message[:40]:<40}",
+        end="",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def _fmt(v, unit: str = "", digits: int = 4) -> str:
+    if v is None:
+        return "—"
+    return f"{v:.{digits}g}{unit}"
+
+
+def format_result(r: TuneResult) -> str:
+    pv_units = r.pv_units or "PV unit"
+    lines = [
+        f"Tuning of {r.loop} by {r.method} test, rule {r.rule}: {r.status}"
+        + (f" ({r.reason})" if r.reason else "")
+    ]
+    if r.ku is not None:
+        lines.append(
+            f"  K_u = {r.ku:.4g} %/{pv_units}"
+            + (f" (spread {100 * r.ku_spread:.2g} %)" if r.ku_spread is not None else "")
+            + f"    P_u = {r.pu:.4g} s"
+            + (f" (spread {100 * r.pu_spread:.2g} %)" if r.pu_spread is not None else "")
+        )
+    if r.step:
+        s = r.step
+        lines.append(
+            f"  K = {s['gain']:.4g}  L = {s['dead_time']:.4g} s  T = "
+            f"{s['time_constant_tangent']:.4g} s  R = {s['reaction_rate']:.4g}  "
+            f"L/T = {s['l_over_t']:.3f}"
+        )
+    if r.gains:
+        lines.append(f"  {'rule':<15}{'Kc':>10}{'Ti (s)':>10}{'Td (s)':>10}{'Ki':>10}{'Kd':>10}")
+        for name, g in r.gains.items():
+            isa, par = g["isa"], g["parallel"]
+            mark = "←" if name == r.rule else ""
+            lines.append(
+                f"  {name:<15}{isa['kc']:>10.4g}{_fmt(isa['ti']):>10}"
+                f"{isa['td']:>10.4g}{par['ki']:>10.4g}{par['kd']:>10.4g} {mark}"
+            )
+    if r.after is not None:
+        rows = [
+            ("overshoot %", "overshoot"),
+            ("decay ratio", "decay_ratio"),
+            ("settling time s", "settling_time"),
+            ("IAE setpoint", "iae_sp"),
+            ("IAE load", "iae_load"),
+            ("stable", "stable"),
+        ]
+        lines.append(f"  {'verification':<18}{'before':>12}{'after':>12}")
+        for label, field in rows:
+            b = getattr(r.before, field) if r.before else None
+            a = getattr(r.after, field)
+            lines.append(
+                f"  {label:<18}{_fmt(b) if not isinstance(b, bool) else str(b):>12}"
+                f"{_fmt(a) if not isinstance(a, bool) else str(a):>12}"
+            )
+    state = (
+        "new gains applied, loop in auto"
+        if r.applied
+        else "loop restored to its state before the test"
+        if r.restored
+        else "WARNING: the loop may not have been restored"
+    )
+    lines.append(f"  {state}; {r.sim_duration:.0f} s of sim time in {r.wall_time:.2f} s")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        keys.check_prefix(args.prefix)
+        keys.check_id(args.loop)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    req = request_from_args(args, source="autotune-tune")
+    with open_session(settings_from_args(args)) as session:
+        result = follow(
+            session,
+            args.prefix,
+            args.loop,
+            lambda: submit(session, args.prefix, args.node, req),
+            args.wait,
+            None if args.json else progress_line,
+        )
+    if sys.stderr.isatty() and not args.json:
+        print("\r" + " " * 100 + "\r", end="", file=sys.stderr)
+    print(
+        json.dumps(result.model_dump(mode="json"), indent=2) if args.json else format_result(result)
+    )
+    return 0 if result.status == "ok" else 1

@@ -1,0 +1,190 @@
+"""The autotuner and plant_sim as separate processes, in lockstep over Zenoh on loopback.
+
+Exact answers come from the phase crossover of G(jω) (tests/exact.py). Plants are sampled
+finely (≥ 400 samples per period) so that the sampled loop's ultimate point, which is what
+the experiments measure, is within 0.6 % of the continuous plant's.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+import zenoh
+
+from services.autotuner.loop_client import LoopClient
+from shared import keys, wire
+from shared.messages import LoopStatus
+from shared.session import open_session
+from tests.exact import ultimate_point
+
+pytestmark = pytest.mark.integration
+
+THIRD = {"num": [6.0], "den": [1.0, 6.0, 11.0, 6.0], "delay": 0.0, "sample_time": 0.002}
+HX = {"num": [1.0], "den": [600.0, 70.0, 1.0], "delay": 5.0, "sample_time": 0.05}
+
+
+def plant_toml(loop: str, p: dict, noise: float = 0.0, extra: str = "") -> str:
+    return (
+        f'seed = 3\n[loops.{loop}]\nmodel = "transfer_function"\nnum = {p["num"]}\n'
+        f"den = {p['den']}\ndelay = {p['delay']}\nsample_time = {p['sample_time']}\n"
+        f"noise_std = {noise}\n{extra}"
+    )
+
+
+def autotune(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def tune(plant, loop: str, *args: str) -> dict:
+    run = autotune("tune", loop, "--json", *args, *plant.cli_args())
+    assert run.stdout, run.stderr
+    return json.loads(run.stdout)
+
+
+def swing(plant: dict, d: float = 5.0) -> float:
+    """The relay's expected PV amplitude, 4d/(π·K_u), to scale noise to 1 % of it."""
+    ku, _ = ultimate_point(plant["num"], plant["den"], plant["delay"])
+    return 4 * d / (math.pi * ku)
+
+
+@pytest.mark.parametrize(("name", "plant"), [("third", THIRD), ("hx", HX)])
+def test_relay_tune_within_the_describing_function_accuracy(start_plant, start_tuner, name, plant):
+    ku, pu = ultimate_point(plant["num"], plant["den"], plant["delay"])
+    p = start_plant(plant_toml("x1", plant), loops=("x1",))
+    start_tuner(p)
+    r = tune(p, "x1", "--method", "relay", "--no-apply")
+    assert r["status"] == "ok", r["reason"]
+    assert r["ku"] == pytest.approx(ku, rel=0.08)
+    assert r["pu"] == pytest.approx(pu, rel=0.05)
+    assert r["restored"] is True
+    g = r["gains"]["zn-pid"]["isa"]  # the rule applied to the measured point
+    assert g["kc"] == pytest.approx(0.6 * r["ku"]) and g["ti"] == pytest.approx(r["pu"] / 2)
+
+
+@pytest.mark.parametrize(
+    ("name", "plant", "noise", "tol"),
+    [
+        ("third", THIRD, 0.0, 0.02),
+        ("hx", HX, 0.0, 0.02),
+        ("third-noisy", THIRD, 0.01, 0.04),
+        ("hx-noisy", HX, 0.01, 0.04),
+    ],
+)
+def test_ramp_tune_finds_the_ultimate_point(start_plant, start_tuner, name, plant, noise, tol):
+    """Noise is 1 % of the PV swing: the setpoint bump is 1 % of the 0–100 PV range."""
+    ku, pu = ultimate_point(plant["num"], plant["den"], plant["delay"])
+    p = start_plant(plant_toml("x1", plant, noise=noise), loops=("x1",))
+    start_tuner(p)
+    r = tune(p, "x1", "--method", "ramp", "--kc-start", str(0.2 * ku), "--no-apply")
+    assert r["status"] == "ok", r["reason"]
+    assert r["ku"] == pytest.approx(ku, rel=tol)
+    assert r["pu"] == pytest.approx(pu, rel=tol)
+
+
+def loop_state(plant, loop: str) -> LoopStatus:
+    with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, loop) as c:
+        return c.last_status
+
+
+def test_pv_limit_aborts_and_restores_the_loop_exactly(start_plant, start_tuner):
+    extra = 'mode = "auto"\nsetpoint = 50.0\n[loops.x1.pid]\nkc = 0.8\nti = 20.0\n'
+    p = start_plant(plant_toml("x1", HX, extra=extra), loops=("x1",))
+    start_tuner(p)
+    before = loop_state(p, "x1")
+    r = tune(p, "x1", "--method", "relay", "--amplitude", "20", "--pv-limits", "49.5", "50.5")
+    assert r["status"] == "aborted" and "left its limits" in r["reason"]
+    assert r["restored"] is True
+    after = loop_state(p, "x1")
+    assert (after.mode, after.sp, after.gains, after.disturbances) == (
+        before.mode,
+        before.sp,
+        before.gains,
+        before.disturbances,
+    )
+
+
+def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner):
+    p = start_plant(plant_toml("x1", HX), loops=("x1",))
+    tuner = start_tuner(p)
+    before = loop_state(p, "x1")
+    with open_session(p.client_settings()) as s:
+        inbox: queue.Queue = queue.Queue()
+        progress = s.declare_subscriber(keys.tune_progress(p.prefix, "x1"))
+        status = s.declare_subscriber(keys.status(p.prefix, "x1"))
+        for sub in (progress, status):
+            threading.Thread(
+                target=lambda sub=sub: [inbox.put(x) for x in sub], daemon=True
+            ).start()
+        cli = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "tune", "x1", "--json", *p.cli_args()],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        try:
+            while True:  # wait until the relay is running, then kill the tuner outright
+                msg = inbox.get(timeout=30)
+                if str(msg.key_expr).endswith("/progress") and b'"relay"' in msg.payload.to_bytes():
+                    break
+            tuner.send_signal(signal.SIGKILL)
+            t_kill = time.monotonic()
+            while True:
+                msg = inbox.get(timeout=30)
+                if str(msg.key_expr).endswith("/status"):
+                    st = wire.decode_sample(LoopStatus, msg)
+                    if st.reason == "watchdog":
+                        break
+            restored_after = time.monotonic() - t_kill
+        finally:
+            cli.kill()
+            progress.undeclare()
+            status.undeclare()
+    after = loop_state(p, "x1")
+    assert (after.mode, after.op, after.sp, after.gains) == (
+        before.mode,
+        before.op,
+        before.sp,
+        before.gains,
+    )
+    assert restored_after < 5.0  # the run token vanished with the process
+
+
+def test_whole_relay_tune_of_the_heat_exchanger_preset_under_10_s(start_plant, start_tuner):
+    p = start_plant(None, loops=("hx1",))
+    start_tuner(p)
+    t0 = time.monotonic()
+    r = tune(p, "hx1")
+    wall = time.monotonic() - t0
+    assert r["status"] == "ok", r["reason"]
+    assert r["applied"] is True and r["after"]["stable"] is True
+    assert wall < 10.0, f"{wall:.1f} s"
+    st = loop_state(p, "hx1")
+    assert st.mode == "auto" and st.gains.kc == pytest.approx(r["chosen"]["isa"]["kc"])
+
+
+def test_bad_requests_are_refused_with_the_field(start_plant, start_tuner):
+    p = start_plant(plant_toml("x1", HX), loops=("x1",))
+    start_tuner(p)
+    run = autotune("tune", "x1", "--method", "step", "--rule", "zn-pid", *p.cli_args())
+    assert run.returncode == 2 and "rule: zn-pid needs K_u and P_u" in run.stderr
+    run = autotune("tune", "nope", "--json", *p.cli_args())
+    assert run.returncode == 2 and "loop: no plant serves 'nope'" in run.stderr
+    with open_session(p.client_settings()) as s:
+        replies = list(
+            s.get(keys.tuner_request(p.prefix, "tuner"), payload=b'{"loop": 5}', timeout=5)
+        )
+        assert replies[0].err is not None and b"loop" in replies[0].err.payload.to_bytes()
+        assert zenoh  # the service still answers:
+        assert loop_state(p, "x1").mode == "manual"
