@@ -188,3 +188,52 @@ def test_bad_requests_are_refused_with_the_field(start_plant, start_tuner):
         assert replies[0].err is not None and b"loop" in replies[0].err.payload.to_bytes()
         assert zenoh  # the service still answers:
         assert loop_state(p, "x1").mode == "manual"
+
+
+def test_ctrl_c_on_the_client_cancels_and_restores(start_plant, start_tuner):
+    p = start_plant(plant_toml("x1", HX, extra='mode = "auto"\nsetpoint = 50.0\n'), loops=("x1",))
+    start_tuner(p)
+    before = loop_state(p, "x1")
+    with open_session(p.client_settings()) as s:
+        inbox: queue.Queue = queue.Queue()
+        progress = s.declare_subscriber(keys.tune_progress(p.prefix, "x1"))
+        threading.Thread(target=lambda: [inbox.put(x) for x in progress], daemon=True).start()
+        cli = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "tune", "x1", *p.cli_args()],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        while b'"relay"' not in inbox.get(timeout=30).payload.to_bytes():
+            pass
+        cli.send_signal(signal.SIGINT)
+        _, err = cli.communicate(timeout=30)
+        progress.undeclare()
+    assert cli.returncode == 130 and "interrupted" in err
+    after = loop_state(p, "x1")
+    assert (after.mode, after.sp, after.gains) == (before.mode, before.sp, before.gains)
+
+
+def test_two_loops_tuned_at_once(start_plant, start_tuner):
+    p = start_plant(None, loops=("hx1", "flow1"))
+    start_tuner(p)
+    runs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "tune",
+                loop,
+                "--json",
+                "--no-verify",
+                *p.cli_args(),
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for loop in ("hx1", "flow1")
+    ]
+    results = [json.loads(r.communicate(timeout=120)[0]) for r in runs]
+    assert [r["status"] for r in results] == ["ok", "ok"]
+    assert {r["loop"] for r in results} == {"hx1", "flow1"}
