@@ -142,41 +142,43 @@ def follow(
     session: zenoh.Session, prefix: str, loop: str, start, wait: float, on_progress=None
 ) -> TuneResult:
     """Subscribe to the loop's progress and result, call ``start()`` and wait for the run's
-    result. Ctrl-C cancels the run and still waits for its (restored) result."""
+    result. Ctrl-C at any point cancels the loop's run and still waits for its result (the
+    tuner restores the loop first); a second Ctrl-C leaves at once."""
     inbox: queue.Queue = queue.Queue()
     sub = session.declare_subscriber(
         f"{keys.tune_root(prefix, loop)}/*", zenoh.handlers.FifoChannel(4096)
     )
     reader = threading.Thread(target=lambda: [inbox.put(s) for s in sub], daemon=True)
     reader.start()
+    run_id: str | None = None
+    cancelled = False
     try:
-        accepted = start()
-        cancelled = False
         while True:
             try:
+                if run_id is None:
+                    run_id = start().run_id
                 sample = inbox.get(timeout=wait)
+                key = str(sample.key_expr)
+                if key.endswith("/progress") and on_progress:
+                    p = wire.decode_sample(TuneProgress, sample)
+                    if p.run_id == run_id:
+                        on_progress(p)
+                elif key.endswith("/result"):
+                    r = wire.decode_sample(TuneResult, sample)
+                    if r.run_id == run_id:
+                        if cancelled:
+                            raise KeyboardInterrupt
+                        return r
             except queue.Empty:
-                raise AutotuneError(
-                    f"no result for run {accepted.run_id} within {wait:g} s"
-                ) from None
+                raise AutotuneError(f"no result for run {run_id} within {wait:g} s") from None
             except KeyboardInterrupt:
-                if cancelled:
+                if cancelled or run_id is None:
+                    if run_id is None:  # interrupted while submitting: cancel whatever runs
+                        session.put(keys.tune_cancel(prefix, loop), b"")
                     raise
                 cancelled = True
-                session.put(keys.tune_cancel(prefix, loop), accepted.run_id.encode())
+                session.put(keys.tune_cancel(prefix, loop), run_id.encode())
                 print("\ncancelling: the tuner restores the loop…", file=sys.stderr)
-                continue
-            key = str(sample.key_expr)
-            if key.endswith("/progress") and on_progress:
-                p = wire.decode_sample(TuneProgress, sample)
-                if p.run_id == accepted.run_id:
-                    on_progress(p)
-            elif key.endswith("/result"):
-                r = wire.decode_sample(TuneResult, sample)
-                if r.run_id == accepted.run_id:
-                    if cancelled:
-                        raise KeyboardInterrupt
-                    return r
     finally:
         sub.undeclare()
 
