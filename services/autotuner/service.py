@@ -21,13 +21,9 @@ import zenoh
 
 from services.autotuner.loop_client import LoopClient, wait_for_loop
 from services.autotuner.tuning import RunHooks, TuningRun, validate_request
-from services.plant_sim.service import (
-    add_common_arguments,
-    install_stop_handlers,
-    setup_logging,
-)
 from shared import keys, wire
-from shared.errors import AutotuneError, ConfigError, DecodeError
+from shared.cli import add_common_arguments, check_ids, install_stop_handlers, setup_logging
+from shared.errors import AutotuneError, DecodeError
 from shared.messages import TuneAccepted, TuneRequest, TuneResult
 from shared.session import open_session, settings_from_args
 
@@ -86,7 +82,10 @@ class TunerService:
             wait_for_loop(s, p, req.loop, self.loop_timeout)
             with LoopClient(s, p, req.loop, source=f"tuner:{run_id}") as client:
                 result = TuningRun(client, req, run_id, hooks).run()
-        except (AutotuneError, ValueError) as err:
+        except Exception as err:  # whatever happens, the run ends with a result
+            expected = isinstance(err, AutotuneError | ValueError)
+            if not expected:  # a bug: never let one run take the service down
+                log.exception("run %s on %s failed", run_id, req.loop)
             result = TuneResult(
                 run_id=run_id,
                 loop=req.loop,
@@ -94,19 +93,7 @@ class TunerService:
                 method=req.method,
                 rule=req.rule,
                 status="failed",
-                reason=str(err),
-                wall_time=time.monotonic() - started,
-            )
-        except Exception as err:  # never let one run take the service down
-            log.exception("run %s on %s failed", run_id, req.loop)
-            result = TuneResult(
-                run_id=run_id,
-                loop=req.loop,
-                t=0.0,
-                method=req.method,
-                rule=req.rule,
-                status="failed",
-                reason=repr(err),
+                reason=str(err) if expected else repr(err),
                 wall_time=time.monotonic() - started,
             )
         finally:
@@ -196,11 +183,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose + 1, "autotuner")
-    try:
-        keys.check_prefix(args.prefix)
-        keys.check_id(args.node, "node")
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
+    check_ids(args.prefix, node=args.node)
     stop = threading.Event()
     install_stop_handlers(stop)
     with open_session(settings_from_args(args)) as session:

@@ -8,7 +8,7 @@ import sys
 
 from services.autotuner.loop_client import LoopClient, wait_for_loop
 from services.autotuner.step_test import StepTest, StepTestConfig, StepTestReport, run_step_test
-from shared import keys
+from shared.cli import add_common_arguments, check_ids
 from shared.errors import ConfigError
 from shared.session import open_session, settings_from_args
 
@@ -27,8 +27,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=10.0,
         help="seconds to wait for the loop to appear on the bus (default: %(default)s)",
     )
-    from services.plant_sim.service import add_common_arguments
-
     add_common_arguments(parser)
 
 
@@ -129,11 +127,7 @@ def progress_line(test: StepTest, s) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
-    try:
-        keys.check_prefix(args.prefix)
-        keys.check_id(args.loop)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
+    check_ids(args.prefix, loop=args.loop)
     with open_session(settings_from_args(args)) as session:
         wait_for_loop(session, args.prefix, args.loop, args.wait)
         with LoopClient(session, args.prefix, args.loop, source="autotune-step") as client:

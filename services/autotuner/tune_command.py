@@ -20,8 +20,8 @@ import zenoh
 
 from services.autotuner.loop_client import wait_for_token
 from services.autotuner.rules import RULES
-from services.plant_sim.service import add_common_arguments
 from shared import keys, wire
+from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
 from shared.messages import TuneAccepted, TuneProgress, TuneRequest, TuneResult
 from shared.session import open_session, settings_from_args
@@ -261,11 +261,7 @@ def format_result(r: TuneResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        keys.check_prefix(args.prefix)
-        keys.check_id(args.loop)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
+    check_ids(args.prefix, loop=args.loop)
     req = request_from_args(args, source="autotune-tune")
     with open_session(settings_from_args(args)) as session:
         result = follow(

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 import threading
 import time
@@ -24,6 +23,7 @@ import zenoh
 from services.plant_sim.loop import CommandRejected, LoopSnapshot, SimLoop
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from shared import keys, wire
+from shared.cli import add_common_arguments, check_ids, install_stop_handlers, setup_logging
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.messages import (
     COMMANDS,
@@ -37,7 +37,7 @@ from shared.messages import (
     ServiceStatus,
     SyncCommand,
 )
-from shared.session import ZenohSettings, add_zenoh_arguments, open_session, settings_from_args
+from shared.session import ZenohSettings, open_session, settings_from_args
 
 log = logging.getLogger("plant_sim")
 
@@ -433,18 +433,6 @@ class PlantService:
 HELP = "run the plant simulator service (plant_sim)"
 
 
-def add_common_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--prefix",
-        default=keys.DEFAULT_PREFIX,
-        help="root of every key expression (default: %(default)s)",
-    )
-    parser.add_argument(
-        "-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)"
-    )
-    add_zenoh_arguments(parser)
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--plant",
@@ -474,19 +462,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_common_arguments(parser)
 
 
-def setup_logging(verbose: int, name: str) -> None:
-    level = logging.WARNING if verbose <= 0 else logging.INFO if verbose == 1 else logging.DEBUG
-    logging.basicConfig(level=level, format=f"%(asctime)s {name} %(levelname)s %(message)s")
-
-
 def options_from_args(args: argparse.Namespace) -> ServiceOptions:
     if not args.speed > 0 or args.speed != args.speed or args.speed == float("inf"):
         raise ConfigError(f"--speed {args.speed}: must be a finite number > 0")
-    try:
-        keys.check_prefix(args.prefix)
-        keys.check_id(args.node, "node")
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
+    check_ids(args.prefix, node=args.node)
     return ServiceOptions(prefix=args.prefix, node=args.node, clock=args.clock, speed=args.speed)
 
 
@@ -498,12 +477,6 @@ def serve(
 ) -> None:
     with open_session(settings) as session:
         PlantService(session, loops, options).run(stop)
-
-
-def install_stop_handlers(stop: threading.Event) -> None:
-    """SIGINT and SIGTERM end the service cleanly (tokens withdrawn, session closed)."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
 
 
 def run(args: argparse.Namespace) -> int:
