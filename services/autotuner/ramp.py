@@ -79,6 +79,7 @@ class RampTest:
     config: RampConfig
     pv_limits: tuple[float, float]
     sample_time: float
+    sp_start: float = math.nan  # the setpoint held during the quiet period (NaN: first PV)
 
     phase: str = "quiet"  # quiet → trial ⇄ settle → done | aborted
     reason: str = ""
@@ -95,7 +96,7 @@ class RampTest:
         self._r = math.nan
         self._noise = 0.0
         self.kc = self.config.kc_start
-        self.sp = math.nan
+        self.sp = self.sp_start
         self._trial_start = 0  # index into the record
         self._trial_t0 = 0.0
         self._lo: Trial | None = None
@@ -121,7 +122,9 @@ class RampTest:
         self._t.append(t)
         self._y.append(pv)
         if math.isnan(self._start):
-            self._start, self.sp = t, pv
+            self._start = t
+            if math.isnan(self.sp):
+                self.sp = pv
         lo, hi = self.pv_limits
         if not lo <= pv <= hi:
             return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")

@@ -22,13 +22,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.autotuner import metrics
+from services.autotuner import experiments, metrics
 from services.autotuner.forms import IsaGains, all_forms
 from services.autotuner.loop_client import LoopClient
-from services.autotuner.ramp import RampConfig, RampTest
-from services.autotuner.relay import RelayConfig, RelayTest
-from services.autotuner.rules import StepModel, UltimatePoint, apply_rules, check_rule
-from services.autotuner.step_test import StepTest, StepTestConfig
+from services.autotuner.ramp import RampTest
+from services.autotuner.relay import RelayTest
+from services.autotuner.rules import UltimatePoint, apply_rules, check_rule
+from services.autotuner.step_test import StepTest
 from shared.errors import AutotuneError
 from shared.messages import (
     DisturbanceCommand,
@@ -49,9 +49,6 @@ from shared.messages import (
 )
 
 LEASE_TIMEOUT = 10.0  # s of wall time the plant waits for us before restoring the loop
-DEFAULT_RELAY_AMPLITUDE = 5.0  # %
-DEFAULT_STEP_SIZE = 5.0  # %
-DEFAULT_BUMP_FRACTION = 0.01  # of the PV range, ramp setpoint bump
 VERIFY_SP_FRACTION = 0.02  # of the PV range, verification setpoint step
 MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
 
@@ -67,20 +64,6 @@ class RunHooks:
     progress: Callable[[TuneProgress], None] = lambda p: None
     event: Callable[[TunerEvent], None] = lambda e: None
     cancelled: threading.Event | None = None
-
-
-@dataclass
-class Identification:
-    ku: float | None = None
-    pu: float | None = None
-    ku_spread: float | None = None
-    pu_spread: float | None = None
-    step: dict | None = None
-    step_model: StepModel | None = None
-    experiment: dict | None = None
-    timescale: float = 0.0  # s: the loop's natural period, for verification windows
-    noise: float = 0.0
-    rest_pv: float = math.nan
 
 
 def _json_number(v: object) -> object:
@@ -119,6 +102,7 @@ class TuningRun:
         self.before: LoopStatus | None = None
         self.pv_limits = tuple(req.pv_limits or client.info.pv_range)
         self._events_sent = 0
+        self._reported = 0
         self._t = 0.0
 
     # --- reporting ------------------------------------------------------------------------
@@ -184,7 +168,12 @@ class TuningRun:
         restored = False
         try:
             self._progress("start", message=f"{req.method} test, rule {req.rule}")
-            ident = {"relay": self._relay, "ramp": self._ramp, "step": self._step}[req.method]()
+            self._event(
+                "request",
+                t0,
+                {"request": req.model_dump_json(), "info": self.info.model_dump_json()},
+            )
+            ident = self._experiment()
             result.update(
                 ku=ident.ku,
                 pu=ident.pu,
@@ -259,211 +248,125 @@ class TuningRun:
         except AutotuneError:
             return False
 
-    # --- experiments ----------------------------------------------------------------------
+    # --- the experiment -------------------------------------------------------------------
 
-    def _manual_at_present_output(self) -> float:
-        c = self.client
-        st = c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
-        return st.op
-
-    def _drive_manual(
-        self,
-        feed: Callable[[ProcessSample], float],
-        finished: Callable[[], bool],
-        op: float,
-        events: list,
-        on_sample: Callable[[], None],
-    ) -> None:
-        """Per sample: the experiment decides the output to hold (relay, step test)."""
-        c = self.client
-        while not finished():
-            self._check_cancel()
-            s = c.next_sample()
-            self._take([s])
-            want = feed(s)
-            if want != op and not finished():
-                c.command(OutputCommand(loop=c.loop, op=want, t=s.t, source=c.source))
-                op = want
-            self._forward_events(events)
-            on_sample()
-        self._forward_events(events)
-
-    def _relay(self) -> Identification:
-        req, b = self.req, self.before
-        op = self._manual_at_present_output()
-        cfg = RelayConfig(
-            amplitude=req.amplitude or DEFAULT_RELAY_AMPLITUDE,
-            hysteresis=req.hysteresis,
-            cycles=req.cycles,
-            tolerance=req.tolerance,
-            **({"max_time": req.max_time} if req.max_time else {}),
-        )
-        try:
-            test = RelayTest(
-                cfg,
-                op,
-                tuple(self.info.op_limits),
-                self.pv_limits,
-                self.ts,
-                1.0 if b.action == "reverse" else -1.0,
+    def _setup(self) -> dict:
+        """What the live loop contributes to the experiment (logged, so a replay can rebuild
+        the same state machine)."""
+        req, c, b = self.req, self.client, self.before
+        setup = {
+            "sample_time": self.ts,
+            "op_lo": self.info.op_limits[0],
+            "op_hi": self.info.op_limits[1],
+            "pv_lo": self.pv_limits[0],
+            "pv_hi": self.pv_limits[1],
+        }
+        if req.method == "ramp":
+            lo, hi = self.info.pv_range
+            setup.update(
+                kc_start=req.kc_start or (0.5 * b.gains.kc if b.gains.kc > 0 else 1.0),
+                bump=req.bump or experiments.DEFAULT_BUMP_FRACTION * (hi - lo),
+                sp_start=c.sync().pv,
             )
-        except ValueError as err:
-            raise TuneAborted(str(err)) from None
-        seen = [0]
+        else:
+            st = c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
+            setup.update(op_start=st.op, direction=1.0 if b.action == "reverse" else -1.0)
+        return setup
 
-        def report() -> None:
-            if len(test.cycles) != seen[0]:
-                seen[0] = len(test.cycles)
-                cyc = test.cycles[-1]
-                self._progress(
-                    "relay", cycles=len(test.cycles), ku=test._ku(cyc.amplitude), pu=cyc.period
-                )
-
-        self._progress("quiet", message="measuring the PV's rest value and noise")
-        self._drive_manual(
-            lambda s: test.feed(s.t, s.pv), lambda: test.finished, op, test.events, report
-        )
-        if test.result is None:
-            raise TuneAborted(f"relay test: {test.reason}")
-        r = test.result
-        self._restore_output(op)
-        return Identification(
-            ku=r.ku,
-            pu=r.pu,
-            ku_spread=r.ku_spread,
-            pu_spread=r.pu_spread,
-            experiment={
-                "relay_amplitude": r.relay_amplitude,
-                "amplitude": r.amplitude,
-                "hysteresis": r.hysteresis,
-                "bias": r.bias,
-                "cycles": r.cycles,
-                "noise_std": r.noise_std,
-                "rest_pv": r.rest_pv,
-            },
-            timescale=r.pu,
-            noise=r.noise_std,
-            rest_pv=r.rest_pv,
-        )
-
-    def _restore_output(self, op: float) -> None:
-        c = self.client
-        if c.last_status.op != op:
-            c.command(OutputCommand(loop=c.loop, op=op, t=self._t, source=c.source))
-
-    def _step(self) -> Identification:
-        req = self.req
-        op = self._manual_at_present_output()
-        cfg = StepTestConfig(
-            size=req.step_size or DEFAULT_STEP_SIZE,
-            pv_limits=self.pv_limits,
-            **({"timeout": req.max_time} if req.max_time else {}),
-        )
-        try:
-            test = StepTest(cfg, op, tuple(self.info.op_limits), self.pv_limits, self.ts)
-        except ValueError as err:
-            raise TuneAborted(str(err)) from None
-        c = self.client
-        self._progress("quiet", message="measuring the PV's rest value and noise")
-        while not test.finished:
-            self._check_cancel()
-            s = c.next_sample()
-            self._take([s])
-            want = test.feed(s)
-            if want != op and not test.finished:
-                st = c.command(OutputCommand(loop=c.loop, op=want, t=s.t, source=c.source))
-                test.step_started(st.t if self.info.clock == "lockstep" else st.t + self.ts)
-                op = want
-                self._progress("step", message=f"output stepped to {want:g} %")
-        if test.result is None:
-            raise TuneAborted(f"step test: {test.reason}")
-        self._restore_output(test.op_start)
-        rc = test.result
-        model = StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)
-        return Identification(
-            step=rc.to_dict(),
-            step_model=model,
-            experiment={"step_size": rc.step_size, "method": rc.method},
-            timescale=4 * rc.dead_time + rc.time_constant_63,
-            noise=rc.noise_std,
-            rest_pv=rc.pv_before,
-        )
-
-    def _ramp(self) -> Identification:
-        req, b, c = self.req, self.before, self.client
-        lo, hi = self.info.pv_range
-        kc0 = req.kc_start or (0.5 * b.gains.kc if b.gains.kc > 0 else 1.0)
-        bump = req.bump or DEFAULT_BUMP_FRACTION * (hi - lo)
-        try:
-            cfg = RampConfig(
-                kc_start=kc0,
-                bump=bump,
-                tolerance=min(req.tolerance, 0.02) / 2,
-                **({"max_time": req.max_time} if req.max_time else {}),
+    def _event(self, kind: str, t: float, data: dict) -> None:
+        self.hooks.event(
+            TunerEvent(
+                run_id=self.run_id,
+                loop=self.client.loop,
+                t=t,
+                kind=kind,
+                data={k: _json_number(v) for k, v in data.items()},
             )
+        )
+
+    def _experiment(self) -> experiments.Identification:
+        """Run the requested experiment on the live loop through its state machine."""
+        req, c = self.req, self.client
+        setup = self._setup()
+        try:
+            machine = experiments.build(req.method, req, setup)
         except ValueError as err:
             raise TuneAborted(str(err)) from None
-        test = RampTest(cfg, self.pv_limits, self.ts)
-        st = c.sync()
-        demand = test.feed(st.t, st.pv)
-        kc, sp = demand.kc, demand.sp
-        c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=kc), source=c.source))
-        c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source))
-        c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))
-        self._progress("quiet", message="P-only in auto: measuring rest value and noise")
-        trials = 0
-        while not test.finished:
+        auto = req.method == "ramp"
+        if auto:
+            c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=machine.kc), source=c.source))
+            c.command(SetpointCommand(loop=c.loop, sp=machine.sp, source=c.source))
+            c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))
+            kc, sp = machine.kc, machine.sp
+        op = setup.get("op_start")
+        first = True
+        self._progress("quiet", message="measuring the PV's rest value and noise")
+        while not machine.finished:
             self._check_cancel()
-            for s in c.samples(test.horizon(MAX_CHUNK)):
-                demand = test.feed(s.t, s.pv)
+            want = None
+            for s in c.samples(machine.horizon(MAX_CHUNK) if auto else 1):
+                if first:
+                    self._event("experiment", s.t, {**setup, "first_seq": s.seq})
+                    first = False
+                want = experiments.feed(machine, s)
                 self._take([s])
-                if test.finished:
+                if machine.finished:
                     break
-            if test.finished:
+            self._forward_events(machine.events)
+            if machine.finished:
                 break
-            if demand.kc != kc:
-                kc = demand.kc
-                c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=kc), source=c.source))
-            if demand.sp != sp:
-                sp = demand.sp
-                c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source))
-            self._forward_events(test.events)
-            if len(test.trials) != trials:
-                trials = len(test.trials)
-                tr = test.trials[-1]
+            if auto:
+                if want.kc != kc:
+                    kc = want.kc
+                    c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=kc), source=c.source))
+                if want.sp != sp:
+                    sp = want.sp
+                    c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source))
+            elif want != op:
+                st = c.command(OutputCommand(loop=c.loop, op=want, t=self._t, source=c.source))
+                op = want
+                if isinstance(machine, StepTest):
+                    # lockstep: held from the present sample; realtime: from the next one
+                    t_step = st.t if self.info.clock == "lockstep" else st.t + self.ts
+                    machine.step_started(t_step)
+                    self._event("step_started", self._t, {"t": t_step})
+            self._report(machine)
+        self._forward_events(machine.events)
+        ident = experiments.identification(machine)
+        if ident is None:
+            raise TuneAborted(f"{req.method} test: {machine.reason}")
+        if auto:
+            c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
+        elif c.last_status.op != setup["op_start"]:
+            c.command(OutputCommand(loop=c.loop, op=setup["op_start"], t=self._t, source=c.source))
+        return ident
+
+    def _report(self, machine: experiments.Experiment) -> None:
+        """Progress once per relay cycle or ramp trial."""
+        if isinstance(machine, RelayTest):
+            n = len(machine.cycles)
+            if n != self._reported and n:
+                cyc = machine.cycles[-1]
+                self._progress("relay", cycles=n, ku=machine._ku(cyc.amplitude), pu=cyc.period)
+        elif isinstance(machine, RampTest):
+            n = len(machine.trials)
+            if n != self._reported and n:
+                tr = machine.trials[-1]
                 self._progress(
                     "ramp",
-                    cycles=trials,
+                    cycles=n,
                     pu=tr.period,
                     message=f"Kc {tr.kc:.4g}: growth {tr.growth:.3g}/s",
                 )
-        self._forward_events(test.events)
-        if test.result is None:
-            raise TuneAborted(f"P-gain ramp: {test.reason}")
-        r = test.result
-        # back to manual at the present output; the rules' gains are applied next
-        self._manual_at_present_output()
-        return Identification(
-            ku=r.ku,
-            pu=r.pu,
-            ku_spread=(r.kc_high - r.kc_low) / r.ku,
-            pu_spread=None,
-            experiment={
-                "trials": r.trials,
-                "kc_low": r.kc_low,
-                "kc_high": r.kc_high,
-                "bump": bump,
-                "noise_std": r.noise_std,
-                "rest_pv": r.rest_pv,
-            },
-            timescale=r.pu,
-            noise=r.noise_std,
-            rest_pv=r.rest_pv,
-        )
+        else:
+            n = 1 if machine.t_step is not None else 0
+            if n != self._reported and n:
+                self._progress("step", message=f"output stepped to {machine.op_target:g} %")
+        self._reported = n
 
     # --- apply and verify -----------------------------------------------------------------
 
-    def _apply_and_verify(self, ident: Identification, chosen: IsaGains) -> dict:
+    def _apply_and_verify(self, ident: experiments.Identification, chosen: IsaGains) -> dict:
         b = self.before
         new = PidGains(kc=chosen.kc, ti=chosen.ti, td=chosen.td)
         if not self.req.verify:
@@ -522,7 +425,9 @@ class TuningRun:
                 break
         return np.array(t), np.array(y), np.array(u), True
 
-    def _verify(self, gains: PidGains, sp0: float, ident: Identification) -> Verification:
+    def _verify(
+        self, gains: PidGains, sp0: float, ident: experiments.Identification
+    ) -> Verification:
         """A setpoint step, then a load step, with ``gains``; the loop ends at ``sp0``."""
         c = self.client
         scale = max(ident.timescale, 20 * self.ts)
@@ -553,7 +458,7 @@ class TuningRun:
         load_size, load_m = None, None
         before = c.sync()
         if stable and "load" in before.disturbances:
-            load_size = self.req.amplitude or DEFAULT_RELAY_AMPLITUDE
+            load_size = self.req.amplitude or experiments.DEFAULT_RELAY_AMPLITUDE
             base = before.disturbances["load"]
             t1 = self._t
             c.command(

@@ -1,0 +1,141 @@
+"""Build an experiment's state machine from a request and its set-up, and read its result.
+
+The live tuner and the offline analysis of a recorded run both go through here: given the same
+set-up (published as the run's ``experiment`` event) and the same samples, they reach the
+same K_u, P_u or reaction curve, to the bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from services.autotuner.ramp import RampConfig, RampTest
+from services.autotuner.relay import RelayConfig, RelayTest
+from services.autotuner.rules import StepModel
+from services.autotuner.step_test import StepTest, StepTestConfig
+from shared.messages import ProcessSample, TuneRequest
+
+DEFAULT_RELAY_AMPLITUDE = 5.0  # %
+DEFAULT_STEP_SIZE = 5.0  # %
+DEFAULT_BUMP_FRACTION = 0.01  # of the PV range, ramp setpoint bump
+
+Experiment = RelayTest | RampTest | StepTest
+
+
+@dataclass
+class Identification:
+    """What an experiment found, in the terms the rules and the verification need."""
+
+    ku: float | None = None
+    pu: float | None = None
+    ku_spread: float | None = None
+    pu_spread: float | None = None
+    step: dict | None = None
+    step_model: StepModel | None = None
+    experiment: dict | None = None
+    timescale: float = 0.0  # s: the loop's natural period, for verification windows
+    noise: float = 0.0
+    rest_pv: float = math.nan
+
+
+def build(method: str, req: TuneRequest, setup: dict[str, Any]) -> Experiment:
+    """The state machine for ``method``; ValueError naming the setting that cannot work.
+
+    ``setup`` holds what the live loop contributed: sample_time, op_start, op_lo/op_hi,
+    pv_lo/pv_hi, and direction (relay), kc_start, bump and sp_start (ramp).
+    """
+    ts = setup["sample_time"]
+    op_limits = (setup["op_lo"], setup["op_hi"])
+    pv_limits = (setup["pv_lo"], setup["pv_hi"])
+    budget = {"max_time": req.max_time} if req.max_time else {}
+    if method == "relay":
+        cfg = RelayConfig(
+            amplitude=req.amplitude or DEFAULT_RELAY_AMPLITUDE,
+            hysteresis=req.hysteresis,
+            cycles=req.cycles,
+            tolerance=req.tolerance,
+            **budget,
+        )
+        return RelayTest(cfg, setup["op_start"], op_limits, pv_limits, ts, setup["direction"])
+    if method == "ramp":
+        cfg = RampConfig(
+            kc_start=setup["kc_start"],
+            bump=setup["bump"],
+            tolerance=min(req.tolerance, 0.02) / 2,
+            **budget,
+        )
+        return RampTest(cfg, pv_limits, ts, sp_start=setup["sp_start"])
+    if method == "step":
+        cfg = StepTestConfig(
+            size=req.step_size or DEFAULT_STEP_SIZE,
+            pv_limits=pv_limits,
+            **({"timeout": req.max_time} if req.max_time else {}),
+        )
+        return StepTest(cfg, setup["op_start"], op_limits, pv_limits, ts)
+    raise ValueError(f"method: unknown method {method!r}")
+
+
+def feed(machine: Experiment, s: ProcessSample) -> Any:
+    """Give the machine one sample; return what it wants held (an output or a Demand)."""
+    if isinstance(machine, StepTest):
+        return machine.feed(s)
+    return machine.feed(s.t, s.pv)
+
+
+def identification(machine: Experiment) -> Identification | None:
+    """The machine's findings once it is done (None if it has none)."""
+    if isinstance(machine, RelayTest):
+        r = machine.result
+        if r is None:
+            return None
+        return Identification(
+            ku=r.ku,
+            pu=r.pu,
+            ku_spread=r.ku_spread,
+            pu_spread=r.pu_spread,
+            experiment={
+                "relay_amplitude": r.relay_amplitude,
+                "amplitude": r.amplitude,
+                "hysteresis": r.hysteresis,
+                "bias": r.bias,
+                "cycles": r.cycles,
+                "noise_std": r.noise_std,
+                "rest_pv": r.rest_pv,
+            },
+            timescale=r.pu,
+            noise=r.noise_std,
+            rest_pv=r.rest_pv,
+        )
+    if isinstance(machine, RampTest):
+        r = machine.result
+        if r is None:
+            return None
+        return Identification(
+            ku=r.ku,
+            pu=r.pu,
+            ku_spread=(r.kc_high - r.kc_low) / r.ku,
+            experiment={
+                "trials": r.trials,
+                "kc_low": r.kc_low,
+                "kc_high": r.kc_high,
+                "bump": machine.config.bump,
+                "noise_std": r.noise_std,
+                "rest_pv": r.rest_pv,
+            },
+            timescale=r.pu,
+            noise=r.noise_std,
+            rest_pv=r.rest_pv,
+        )
+    rc = machine.result
+    if rc is None:
+        return None
+    return Identification(
+        step=rc.to_dict(),
+        step_model=StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent),
+        experiment={"step_size": rc.step_size, "method": rc.method},
+        timescale=4 * rc.dead_time + rc.time_constant_63,
+        noise=rc.noise_std,
+        rest_pv=rc.pv_before,
+    )
