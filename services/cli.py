@@ -8,6 +8,14 @@ import sys
 from services import demo
 from services.autotuner import service as tuner_service
 from services.autotuner import step_command, tune_command
+from services.logger import (
+    analyze_command,
+    recover_command,
+    replay_command,
+    report,
+    runs_command,
+)
+from services.logger import service as logger_service
 from services.plant_sim import service as plant_service
 from shared.errors import AutotuneError
 
@@ -17,6 +25,12 @@ SUBCOMMANDS = {
     "step": step_command,
     "tuner": tuner_service,
     "tune": tune_command,
+    "logger": logger_service,
+    "runs": runs_command,
+    "replay": replay_command,
+    "analyze": analyze_command,
+    "report": report,
+    "recover": recover_command,
 }
 
 

@@ -16,6 +16,8 @@ Layout (IDs in their own chunks, most-varying part last)::
     <prefix>/tune/<loop>/result            TuneResult at the end of a run
     <prefix>/tune/<loop>/cancel            a put here cancels the loop's run (loop restored)
     <prefix>/tune/<loop>/running           liveliness token held while a run owns the loop
+    <prefix>/logger/<node>/status          LoggerStatus (queryable)
+    <prefix>/logger/<node>/alive           liveliness token of one logger process
 """
 
 from __future__ import annotations
@@ -134,3 +136,11 @@ def tune_cancel(prefix: str, loop: str) -> str:
 
 def tune_running(prefix: str, loop: str) -> str:
     return f"{tune_root(prefix, loop)}/running"
+
+
+def logger_status(prefix: str, node: str) -> str:
+    return f"{prefix}/logger/{node}/status"
+
+
+def logger_alive(prefix: str, node: str) -> str:
+    return f"{prefix}/logger/{node}/alive"

@@ -291,7 +291,9 @@ class TuneResult(Message):
     ku_spread: float | None = None
     pu_spread: float | None = None
     l_over_t: float | None = None
-    step: dict[str, float] | None = Field(default=None, description="reaction-curve figures")
+    step: dict[str, float | int | str | None] | None = Field(
+        default=None, description="reaction-curve figures"
+    )
     experiment: dict[str, float | int | str | None] = Field(default_factory=dict)
     gains: dict[str, dict[str, Any]] = Field(default_factory=dict, description="every rule")
     chosen: dict[str, Any] | None = None
@@ -324,3 +326,16 @@ __all__ = [
     "SetpointCommand",
     "SyncCommand",
 ]
+
+
+class LoggerStatus(Message):
+    """Health and counters of one logger process (queryable ``<prefix>/logger/<node>/status``)."""
+
+    node: str
+    runs_dir: str
+    open_runs: list[str]
+    finished_runs: int = Field(ge=0)
+    received: int = Field(ge=0)
+    written: int = Field(ge=0)
+    invalid: int = Field(ge=0, description="payloads that failed validation, left out")
+    dropped: int = Field(ge=0, description="process samples missing (gaps in seq)")

@@ -108,3 +108,36 @@ def start_tuner(tmp_path):
     yield start
     for proc in started:
         stop_service(proc)
+
+
+@pytest.fixture
+def start_logger(tmp_path):
+    """start_logger(plant, runs_dir) → the logger as its own process, a peer of the plant's."""
+    started = []
+
+    def start(plant: RunningPlant, runs: Path):
+        log = tmp_path / f"logger{len(started)}.log"
+        with log.open("w") as f:
+            proc = start_service(
+                "services.logger",
+                [
+                    "--prefix",
+                    plant.prefix,
+                    "-e",
+                    plant.endpoint,
+                    "--no-multicast-scouting",
+                    "--runs",
+                    str(runs),
+                    "-v",
+                ],
+                stderr=f,
+            )
+        started.append(proc)
+        wait_for_tokens(
+            plant.client_settings(), [keys.logger_alive(plant.prefix, "logger")], 20.0, log
+        )
+        return proc
+
+    yield start
+    for proc in started:
+        stop_service(proc)

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.autotuner.oscillation import Oscillation, fit_oscillation
-from services.autotuner.reaction_curve import noise_level
+from services.autotuner.reaction_curve import at_rest, noise_level
 
 
 @dataclass(frozen=True)
@@ -130,11 +130,15 @@ class RampTest:
             return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")
         if t - self._start > self.config.max_time:
             return self._abort(f"no result within {self.config.max_time:g} s")
-        if self.phase == "quiet":
-            if len(self._y) >= self._quiet_n:
-                base = np.asarray(self._y)
-                self._r, self._noise = float(base.mean()), noise_level(base)
-                self._begin_trial(t)
+        if self.phase == "quiet":  # wait for the PV to be at rest (20 quiet periods at most)
+            n = self._quiet_n
+            if len(self._y) >= n:
+                base = np.asarray(self._y[-n:])
+                if at_rest(base):
+                    self._r, self._noise = float(base.mean()), noise_level(base)
+                    self._begin_trial(t)
+                elif len(self._y) >= 20 * n:
+                    return self._abort("the PV is not at rest before the test (it keeps drifting)")
         elif self.phase == "trial":
             self._watch_trial(t)
         elif self.phase == "settle":

@@ -65,6 +65,17 @@ def noise_level(y: np.ndarray) -> float:
     return float(np.std(y - np.polyval(coef, x), ddof=2))
 
 
+def at_rest(y: np.ndarray) -> bool:
+    """No trend beyond the noise: the straight-line fit moves less than 3σ (and less than
+    1e-9 of the level) over the record."""
+    if y.size < 3:
+        return False
+    x = np.arange(y.size, dtype=float)
+    slope = float(np.polyfit(x, y, 1)[0])
+    drift = abs(slope) * (y.size - 1)
+    return drift <= max(3.0 * noise_level(y), 1e-9 * max(1.0, float(np.max(np.abs(y)))))
+
+
 def _window(noise: float, change: float, rise_samples: float) -> int:
     """Derivative window (odd, ≥ 7): 7 samples without noise, wider as noise/change grows."""
     if change == 0 or noise <= 1e-9 * abs(change):

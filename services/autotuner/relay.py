@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.autotuner.reaction_curve import noise_level
+from services.autotuner.reaction_curve import at_rest, noise_level
 
 
 @dataclass(frozen=True)
@@ -137,9 +137,16 @@ class RelayTest:
         return out
 
     def _quiet(self, t: float) -> float:
-        if len(self.pv) < self._quiet_samples:
+        """Wait until the last quiet period shows the PV at rest (no trend beyond its noise);
+        give up after 20 quiet periods."""
+        n = self._quiet_samples
+        if len(self.pv) < n:
             return self.op_start
-        base = np.asarray(self.pv)
+        base = np.asarray(self.pv[-n:])
+        if not at_rest(base):
+            if len(self.pv) >= 20 * n:
+                return self._abort("the PV is not at rest before the test (it keeps drifting)")
+            return self.op_start
         self._r = float(base.mean())
         self._noise = noise_level(base)
         h = self.config.hysteresis

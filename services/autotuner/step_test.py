@@ -16,7 +16,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.autotuner.loop_client import LoopClient
-from services.autotuner.reaction_curve import ReactionCurve, analyze_step, noise_level, settled
+from services.autotuner.reaction_curve import (
+    ReactionCurve,
+    analyze_step,
+    at_rest,
+    noise_level,
+    settled,
+)
 from shared.errors import AutotuneError
 from shared.messages import ModeCommand, OutputCommand, ProcessSample
 
@@ -50,6 +56,7 @@ class StepTest:
     result: ReactionCurve | None = None
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
+    events: list[tuple[float, str, dict]] = field(default_factory=list)
     _baseline_samples: int = 0
     _pv_before: float = math.nan
     _noise: float = 0.0
@@ -80,6 +87,7 @@ class StepTest:
 
     def _abort(self, reason: str) -> float:
         self.phase, self.reason = "aborted", reason
+        self.events.append((self.t[-1] if self.t else 0.0, "aborted", {"reason": reason}))
         return self.op_start
 
     def feed(self, s: ProcessSample) -> float:
@@ -91,13 +99,25 @@ class StepTest:
         lo, hi = self.pv_limits
         if not lo <= s.pv <= hi:
             return self._abort(f"PV {s.pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s")
-        if self.phase == "baseline":
-            if len(self.pv) < self._baseline_samples:
+        if self.phase == "baseline":  # at rest first: no trend beyond the noise
+            n = self._baseline_samples
+            if len(self.pv) < n:
                 return self.op_start
-            base = np.asarray(self.pv)
+            base = np.asarray(self.pv[-n:])
+            if not at_rest(base):
+                if len(self.pv) >= 20 * n:
+                    return self._abort("the PV is not at rest before the step (it keeps drifting)")
+                return self.op_start
             self._pv_before = float(base.mean())
             self._noise = noise_level(base)
             self.phase = "step"
+            self.events.append(
+                (
+                    s.t,
+                    "step",
+                    {"op": self.op_target, "pv_before": self._pv_before, "noise_std": self._noise},
+                )
+            )
             return self.op_target
         if self.t_step is None:
             return self.op_target
@@ -117,6 +137,9 @@ class StepTest:
                 except ValueError as err:
                     return self._abort(str(err))
                 self.phase = "done"
+                self.events.append(
+                    (s.t, "done", {"gain": self.result.gain, "dead_time": self.result.dead_time})
+                )
                 return self.op_start
         return self.op_target
 

@@ -62,6 +62,19 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
         "--hysteresis", type=float, help="relay hysteresis, PV units (default: 3σ of the PV noise)"
     )
     parser.add_argument(
+        "--cycles",
+        type=int,
+        default=3,
+        help="relay: how many of the last cycles must agree (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--tolerance",
+        type=float,
+        default=0.02,
+        help="relay: their allowed spread; ramp: twice the final gain bracket "
+        "(default: %(default)s)",
+    )
+    parser.add_argument(
         "--bump", type=float, help="ramp setpoint bump, PV units (default: 1 %% of the PV range)"
     )
     parser.add_argument(
@@ -92,6 +105,8 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
             rule=args.rule,
             amplitude=args.amplitude,
             hysteresis=args.hysteresis,
+            cycles=args.cycles,
+            tolerance=args.tolerance,
             bump=args.bump,
             kc_start=args.kc_start,
             step_size=args.step_size,

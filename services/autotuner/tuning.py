@@ -158,6 +158,7 @@ class TuningRun:
             "method": req.method,
             "rule": req.rule,
             "previous_gains": before.gains,
+            "pv_units": self.info.pv_units,
         }
         lo, hi = self.pv_limits
         if not lo <= before.pv <= hi:

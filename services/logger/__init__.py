@@ -1,1 +1,1 @@
-"""logger: writes every tuning run to MCAP, replays and re-analyses it (issue 4; not yet built)."""
+"""logger: every tuning run to MCAP; list, replay, re-analyse, plot and recover runs."""

@@ -1,0 +1,28 @@
+"""``autotune analyze RUN.mcap [--rule RULE] [--json]``: re-identify a recorded run offline
+through the live tuner's code; the gains of any rule without a new experiment."""
+
+from __future__ import annotations
+
+import argparse
+
+from services.autotuner.rules import RULES
+from services.logger.analysis import analyze_file, dumps, format_analysis
+
+HELP = "re-run identification and tuning rules on a recorded run"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="RUN.mcap")
+    parser.add_argument(
+        "--rule",
+        choices=list(RULES),
+        metavar="RULE",
+        help=f"show this rule only: {', '.join(RULES)}",
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def run(args: argparse.Namespace) -> int:
+    a = analyze_file(args.file)
+    print(dumps(a, args.rule) if args.json else format_analysis(a, args.rule))
+    return 0

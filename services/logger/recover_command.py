@@ -1,0 +1,89 @@
+"""``autotune recover BROKEN.mcap -o FIXED.mcap``: salvage a file whose writer was killed.
+
+Reads the file record by record (``mcap``'s StreamReader, which decompresses chunks as it
+goes) and copies every schema, channel, message and metadata record it can read into a new
+file, then finishes that file properly. The truncated tail (at most the chunk in progress,
+about a second with the logger's flushing) is what is lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import struct
+from pathlib import Path
+
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from services.logger.mcap_io import LIBRARY, MAGIC, PROFILE
+from shared.errors import AutotuneError
+
+HELP = "salvage a truncated MCAP file (from a killed logger)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="BROKEN.mcap")
+    parser.add_argument("-o", "--output", required=True, metavar="FIXED.mcap")
+
+
+def recover(src: Path, dst: Path) -> dict[str, int | str]:
+    """Copy what is readable of ``src`` into ``dst``; return counts and where reading stopped."""
+    if not src.is_file():
+        raise AutotuneError(f"{src}: no such file")
+    if src.resolve() == dst.resolve():
+        raise AutotuneError("-o must name a new file, not the broken one")
+    with src.open("rb") as f:
+        if f.read(len(MAGIC)) != MAGIC:
+            raise AutotuneError(
+                f"{src}: not an MCAP file (it does not start with the MCAP "
+                "magic bytes): nothing to recover"
+            )
+    counts = {"schemas": 0, "channels": 0, "messages": 0, "metadata": 0}
+    stopped = "end of file"
+    schemas: dict[int, int] = {}
+    channels: dict[int, int] = {}
+    with src.open("rb") as f, dst.open("wb") as out:
+        writer = Writer(out, compression=CompressionType.ZSTD)
+        writer.start(profile=PROFILE, library=LIBRARY)
+        try:
+            for rec in StreamReader(f, skip_magic=False).records:
+                if isinstance(rec, Schema | Channel) and rec.id in (
+                    schemas if isinstance(rec, Schema) else channels
+                ):
+                    continue  # the summary section repeats them
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
+                    counts["schemas"] += 1
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = writer.register_channel(
+                        rec.topic, rec.message_encoding, schemas.get(rec.schema_id, 0), rec.metadata
+                    )
+                    counts["channels"] += 1
+                elif isinstance(rec, Message) and rec.channel_id in channels:
+                    writer.add_message(
+                        channels[rec.channel_id],
+                        rec.log_time,
+                        rec.data,
+                        rec.publish_time,
+                        rec.sequence,
+                    )
+                    counts["messages"] += 1
+                elif isinstance(rec, Metadata):
+                    writer.add_metadata(rec.name, rec.metadata)
+                    counts["metadata"] += 1
+        except (McapError, struct.error, ValueError, EOFError) as err:
+            stopped = f"truncated: {str(err) or type(err).__name__}"
+        writer.finish()
+    return {**counts, "stopped": stopped}
+
+
+def run(args: argparse.Namespace) -> int:
+    counts = recover(Path(args.file), Path(args.output))
+    print(
+        f"recovered {counts['messages']} messages on {counts['channels']} channels "
+        f"({counts['schemas']} schemas, {counts['metadata']} metadata records) into "
+        f"{args.output}; reading stopped at: {counts['stopped']}"
+    )
+    return 0

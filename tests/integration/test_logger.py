@@ -1,0 +1,290 @@
+"""The logger with plant_sim and the autotuner, all separate processes on loopback."""
+
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from services.autotuner.loop_client import LoopClient
+from services.logger.mcap_io import read_run
+from services.logger.report import build_figure, load_series
+from shared import keys, wire
+from shared.messages import LoggerStatus, ProcessSample
+from shared.session import open_session
+from tests.integration.test_tuner import HX, THIRD, autotune, plant_toml, tune
+
+pytestmark = pytest.mark.integration
+
+FAST = {**THIRD, "sample_time": 0.01}
+
+
+def stack(start_plant, start_tuner, start_logger, runs: Path, plant: dict, noise: float = 0.0):
+    p = start_plant(plant_toml("x1", plant, noise=noise), loops=("x1",))
+    start_tuner(p)
+    logger = start_logger(p, runs)
+    return p, logger
+
+
+def logger_status(p) -> LoggerStatus:
+    with open_session(p.client_settings()) as s:
+        reply = next(iter(s.get(keys.logger_status(p.prefix, "logger"), timeout=5)))
+        return wire.decode_sample(LoggerStatus, reply.ok)
+
+
+def wait_finished(p, n: int = 1, timeout: float = 30.0) -> LoggerStatus:
+    """The logger's own status says the run file is finished (it may trail the result)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        st = logger_status(p)
+        if st.finished_runs >= n or time.monotonic() > deadline:
+            return st
+        time.sleep(0.05)
+
+
+def final_seq(p) -> int:
+    with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1") as c:
+        return c.last_status.seq
+
+
+def seqs(records) -> list[int]:
+    return [
+        ProcessSample.model_validate_json(r.data).seq for r in records if r.topic.endswith("/pv")
+    ]
+
+
+def test_relay_tune_is_recorded_whole_and_reanalysed_exactly(
+    start_plant, start_tuner, start_logger, tmp_path
+):
+    runs = tmp_path / "runs"
+    p, _ = stack(start_plant, start_tuner, start_logger, runs, FAST, noise=0.002)
+    live = tune(p, "x1")
+    assert live["status"] == "ok", live["reason"]
+    assert wait_finished(p).finished_runs == 1
+    files = list(runs.glob("*_x1_relay_*.mcap"))
+    assert len(files) == 1
+    meta, records = read_run(files[0])
+    got = seqs(records)
+    # every sample the plant published during the run, once, in order
+    assert got == list(range(got[0], final_seq(p) + 1))
+    assert meta["dropped"] == "0" and int(meta["samples"]) == len(got)
+    assert json.loads(meta["info"])["model"] == "transfer_function"
+    assert json.loads(meta["request"])["loop"] == "x1" and meta["status"] == "ok"
+    with files[0].open("rb") as f:  # the mcap reader opens it; every channel has a schema
+        summary = make_reader(f).get_summary()
+    assert summary.channels and all(
+        summary.schemas[ch.schema_id].encoding == "jsonschema" and ch.message_encoding == "json"
+        for ch in summary.channels.values()
+    )
+    assert summary.statistics.message_count == len(records)
+    # analyze: the same K_u, P_u and gains as the live run, to the bit
+    run = autotune("analyze", str(files[0]), "--json")
+    assert run.returncode == 0, run.stderr
+    a = json.loads(run.stdout)
+    assert a["ku"] == live["ku"] and a["pu"] == live["pu"] and a["matches_live"] is True
+    assert a["gains"] == live["gains"]
+    listing = autotune("runs", str(runs), "--json")
+    row = json.loads(listing.stdout)[0]
+    assert (row["loop"], row["method"], row["ku"], row["status"]) == (
+        "x1",
+        "relay",
+        live["ku"],
+        "ok",
+    )
+
+
+def test_step_and_ramp_runs_reanalyse_exactly(start_plant, start_tuner, start_logger, tmp_path):
+    runs = tmp_path / "runs"
+    p, _ = stack(start_plant, start_tuner, start_logger, runs, FAST)
+    for args in (["--method", "step", "--rule", "cc-pi"], ["--method", "ramp", "--kc-start", "2"]):
+        live = tune(p, "x1", *args, "--no-apply")
+        assert live["status"] == "ok", live["reason"]
+    assert wait_finished(p, 2).finished_runs == 2
+    for f in sorted(runs.glob("*.mcap")):
+        a = json.loads(autotune("analyze", str(f), "--json").stdout)
+        assert a["matches_live"] is True, f.name
+        assert a["gains"] == a["gains"] and a["gains"]
+
+
+def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
+    start_plant, start_tuner, start_logger, tmp_path
+):
+    runs = tmp_path / "runs"
+    p, logger = stack(start_plant, start_tuner, start_logger, runs, HX)
+    seen: list[tuple[int, float]] = []  # (seq, wall time) of every sample, seen by the test
+    inbox: queue.Queue = queue.Queue()
+    with open_session(p.client_settings()) as s:
+        sub = s.declare_subscriber(f"{p.prefix}/**")
+        threading.Thread(
+            target=lambda: [inbox.put((x, time.monotonic())) for x in sub], daemon=True
+        ).start()
+        cli = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "tune",
+                "x1",
+                "--cycles",
+                "12",
+                "--tolerance",
+                "0.001",
+                *p.cli_args(),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        t_kill = t_start = None
+        try:
+            while t_kill is None:
+                sample, at = inbox.get(timeout=60)
+                key = str(sample.key_expr)
+                assert not key.endswith("/result"), "the run ended before the kill"
+                if key.endswith("/progress") and t_start is None:
+                    t_start = at
+                elif key.endswith("/pv"):
+                    seen.append((wire.decode_sample(ProcessSample, sample).seq, at))
+                    if t_start is not None and at > t_start + 1.5:
+                        logger.send_signal(signal.SIGKILL)  # mid-run, 1.5 s into it
+                        t_kill = time.monotonic()
+        finally:
+            cli.wait(timeout=120)
+            sub.undeclare()
+    broken = next(runs.glob("*.mcap"))
+    run = autotune("analyze", str(broken))
+    assert run.returncode == 2 and "autotune recover" in run.stderr
+    assert "Traceback" not in run.stderr
+    fixed = tmp_path / "fixed.mcap"
+    run = autotune("recover", str(broken), "-o", str(fixed))
+    assert run.returncode == 0, run.stderr
+    _, records = read_run(fixed)
+    got = seqs(records)
+    assert got == list(range(got[0], got[-1] + 1))  # whole up to where it stops
+    missing = [(q, at) for q, at in seen if q > got[-1]]
+    assert all(at > t_kill - 1.5 for _, at in missing), "lost more than the last ~1 s"
+    assert len(got) > 1000
+
+
+def test_sigterm_finishes_the_file(start_plant, start_tuner, start_logger, tmp_path):
+    runs = tmp_path / "runs"
+    p, logger = stack(start_plant, start_tuner, start_logger, runs, HX)
+    with open_session(p.client_settings()) as s:
+        inbox: queue.Queue = queue.Queue()
+        sub = s.declare_subscriber(keys.tune_progress(p.prefix, "x1"))
+        threading.Thread(target=lambda: [inbox.put(x) for x in sub], daemon=True).start()
+        cli = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "tune",
+                "x1",
+                "--cycles",
+                "12",
+                "--tolerance",
+                "0.001",
+                *p.cli_args(),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        inbox.get(timeout=60)  # the run has started (its first progress message)
+        t_start = time.monotonic()
+        while time.monotonic() < t_start + 1.5:  # let it record for 1.5 s, then stop it
+            assert b'"done"' not in inbox.get(timeout=60).payload.to_bytes()
+        received = logger_status(p).received
+        logger.send_signal(signal.SIGTERM)
+        assert logger.wait(timeout=30) == 0
+        cli.wait(timeout=120)
+        sub.undeclare()
+    meta, records = read_run(next(runs.glob("*.mcap")))  # finished: the seeking reader opens it
+    assert meta["status"] == "incomplete"
+    got = seqs(records)
+    assert got == list(range(got[0], got[-1] + 1)) and len(records) <= received + 10**6
+    assert int(meta["messages"]) == len(records)
+
+
+def test_replay_delivers_every_message_in_order(start_plant, start_tuner, start_logger, tmp_path):
+    runs = tmp_path / "runs"
+    p, _ = stack(start_plant, start_tuner, start_logger, runs, FAST)
+    tune(p, "x1", "--no-verify")
+    wait_finished(p)
+    f = next(runs.glob("*.mcap"))
+    _, records = read_run(f)
+    expected = [(r.key, r.data) for r in records if "/cmd/" not in r.key]
+    # replay under another prefix's watch: a fresh plant-less bus, a subscriber, rate 10
+    target = start_plant(plant_toml("other", FAST), loops=("other",))
+    got: list[tuple[str, bytes]] = []
+    with open_session(target.client_settings()) as s:
+        sub = s.declare_subscriber(f"{p.prefix}/**")
+        reader = threading.Thread(
+            target=lambda: [got.append((str(x.key_expr), x.payload.to_bytes())) for x in sub],
+            daemon=True,
+        )
+        reader.start()
+        run = autotune(
+            "replay",
+            str(f),
+            "--rate",
+            "10",
+            "--prefix",
+            p.prefix,
+            "-e",
+            target.endpoint,
+            "--no-multicast-scouting",
+        )
+        assert run.returncode == 0, run.stderr
+        deadline = time.monotonic() + 10
+        while len(got) < len(expected) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        sub.undeclare()
+    assert got == expected
+
+
+def test_report_plots_the_recorded_series(start_plant, start_tuner, start_logger, tmp_path):
+    runs = tmp_path / "runs"
+    p, _ = stack(start_plant, start_tuner, start_logger, runs, FAST)
+    tune(p, "x1")
+    wait_finished(p)
+    f = next(runs.glob("*.mcap"))
+    png = tmp_path / "report.png"
+    run = autotune("report", str(f), "-o", str(png))
+    assert run.returncode == 0, run.stderr
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20000
+    _, records = read_run(f)
+    samples = sorted(
+        (ProcessSample.model_validate_json(r.data) for r in records if r.topic.endswith("/pv")),
+        key=lambda s: s.seq,
+    )
+    fig = build_figure(load_series(f))
+    ax_pv, ax_op = fig.axes
+    pv_line, sp_line = ax_pv.lines[0], ax_pv.lines[1]
+    assert list(pv_line.get_xdata()) == [s.t for s in samples]
+    assert list(pv_line.get_ydata()) == [s.pv for s in samples]
+    assert list(sp_line.get_ydata()) == [s.sp for s in samples]
+    assert list(ax_op.lines[0].get_ydata()) == [s.op for s in samples]
+    cycles = sum(1 for r in records if r.topic.endswith("/event") and b'"cycle"' in r.data)
+    assert sum(1 for ln in ax_pv.lines[2:] if ln.get_linestyle() == ":") == cycles
+
+
+@pytest.mark.parametrize("content", [b"", b"not an mcap file at all", b"\x89MCAP0\r\n\x00\x01"])
+def test_bad_files_get_one_line_errors(tmp_path, content):
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(content)
+    for cmd in (
+        ["analyze", str(bad)],
+        ["report", str(bad), "-o", str(tmp_path / "r.png")],
+        ["replay", str(bad)],
+    ):
+        run = autotune(*cmd)
+        assert run.returncode == 2, cmd
+        assert "Traceback" not in run.stderr and len(run.stderr.strip().splitlines()) == 1
+        assert str(bad) in run.stderr
