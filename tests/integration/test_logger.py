@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+import zenoh
 from mcap.reader import make_reader
 
 from services.autotuner.loop_client import LoopClient
@@ -169,6 +170,11 @@ def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
     got = seqs(records)
     assert got == list(range(got[0], got[-1] + 1))  # whole up to where it stops
     missing = [(q, at) for q, at in seen if q > got[-1]]
+    lost_for = t_kill - min((at for _, at in missing), default=t_kill)
+    print(
+        f"SIGKILL: {len(got)} samples recovered, {len(missing)} lost, the earliest "
+        f"received {lost_for:.2f} s before the kill"
+    )
     assert all(at > t_kill - 1.5 for _, at in missing), "lost more than the last ~1 s"
     assert len(got) > 1000
 
@@ -219,34 +225,41 @@ def test_replay_delivers_every_message_in_order(start_plant, start_tuner, start_
     wait_finished(p)
     f = next(runs.glob("*.mcap"))
     _, records = read_run(f)
-    expected = [(r.key, r.data) for r in records if "/cmd/" not in r.key]
-    # replay under another prefix's watch: a fresh plant-less bus, a subscriber, rate 10
+    # Replay onto another bus, where the only plant has another prefix: the replayed keys
+    # (commands included) reach the test's subscriber and nothing else.
     target = start_plant(plant_toml("other", FAST), loops=("other",))
-    got: list[tuple[str, bytes]] = []
-    with open_session(target.client_settings()) as s:
-        sub = s.declare_subscriber(f"{p.prefix}/**")
-        reader = threading.Thread(
-            target=lambda: [got.append((str(x.key_expr), x.payload.to_bytes())) for x in sub],
-            daemon=True,
-        )
-        reader.start()
-        run = autotune(
-            "replay",
-            str(f),
-            "--rate",
-            "10",
-            "--prefix",
-            p.prefix,
-            "-e",
-            target.endpoint,
-            "--no-multicast-scouting",
-        )
-        assert run.returncode == 0, run.stderr
-        deadline = time.monotonic() + 10
-        while len(got) < len(expected) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        sub.undeclare()
-    assert got == expected
+    for extra, expected in (
+        ([], [(r.key, r.data) for r in records if "/cmd/" not in r.key]),
+        (["--with-commands"], [(r.key, r.data) for r in records]),
+    ):
+        got: list[tuple[str, bytes]] = []
+        with open_session(target.client_settings()) as s:
+            sub = s.declare_subscriber(f"{p.prefix}/**", zenoh.handlers.FifoChannel(1 << 16))
+            reader = threading.Thread(
+                target=lambda sub=sub, got=got: [
+                    got.append((str(x.key_expr), x.payload.to_bytes())) for x in sub
+                ],
+                daemon=True,
+            )
+            reader.start()
+            run = autotune(
+                "replay",
+                str(f),
+                "--rate",
+                "10",
+                *extra,
+                "--prefix",
+                p.prefix,
+                "-e",
+                target.endpoint,
+                "--no-multicast-scouting",
+            )
+            assert run.returncode == 0, run.stderr
+            deadline = time.monotonic() + 10
+            while len(got) < len(expected) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            sub.undeclare()
+        assert got == expected
 
 
 def test_report_plots_the_recorded_series(start_plant, start_tuner, start_logger, tmp_path):
