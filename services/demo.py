@@ -1,8 +1,11 @@
-"""``autotune demo``: the main job, end to end on loopback.
+"""``autotune demo``: the main job, end to end, on loopback.
 
-Starts plant_sim as its own process, connects to it over Zenoh and, until the autotuner
-lands, runs the open-loop step test on the heat-exchanger preset and prints the reaction
-curve's figures; then stops the plant cleanly.
+Starts plant_sim, the autotuner and the logger as three processes connected over Zenoh;
+tunes a loop (the heat-exchanger preset unless told otherwise) with live progress; applies
+and verifies the gains; prints K_u and P_u beside the exact values where the plant's model
+is linear, every Ziegler–Nichols and Tyreus–Luyben gain, the verification, and the paths of
+the run's MCAP file and report figure; then stops every process. Ctrl-C cancels the run
+(the loop is restored) and still stops everything cleanly.
 """
 
 from __future__ import annotations
@@ -12,74 +15,197 @@ import json
 import os
 import sys
 import tempfile
+import time
+from pathlib import Path
 
-from services.autotuner.loop_client import LoopClient, wait_for_loop
-from services.autotuner.step_command import (
-    add_step_options,
-    config_from_args,
-    format_report,
+from services.autotuner.frequency import model_ultimate_point
+from services.autotuner.tune_command import (
+    add_tune_options,
+    follow,
+    format_result,
     progress_line,
+    request_from_args,
+    submit,
 )
-from services.autotuner.step_test import run_step_test
-from services.launcher import free_tcp_port, start_service, stop_service
-from shared.errors import ConfigError
+from services.launcher import free_tcp_port
+from services.logger.report import build_figure, load_series
+from services.plant_sim.models import TransferFunctionModel
+from services.plant_sim.presets import MODELS
+from services.stack import Stack, runs_dir, service_tokens
+from shared import keys, wire
+from shared.errors import AutotuneError, ConfigError
+from shared.messages import LoggerStatus, LoopInfo, TuneProgress, TuneResult
 from shared.session import ZenohSettings, open_session
 
-HELP = "run the demo: a simulated plant as its own process, tested over Zenoh on loopback"
+HELP = "the main job: tune a simulated heat exchanger through the three services"
+DEMO_RULES = ("zn-p", "zn-pi", "zn-pid", "tl-pi", "tl-pid")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plant", metavar="FILE", help="your own plant file (default: presets)")
-    parser.add_argument("--loop", default="hx1", help="loop to test (default: %(default)s)")
+    parser.add_argument("--loop", default="hx1", help="loop to tune (default: %(default)s)")
+    parser.add_argument(
+        "--noise",
+        type=float,
+        metavar="SIGMA",
+        help="measurement noise of the loops, PV units (default: the plant's)",
+    )
     parser.add_argument("--seed", type=int, help="noise seed for the plant")
-    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    add_step_options(parser)
+    parser.add_argument(
+        "--realtime",
+        action="store_true",
+        help="run the plant on the wall clock instead of lockstep",
+    )
+    parser.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="with --realtime: speed-up of the wall clock (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--runs",
+        default="runs",
+        metavar="DIR",
+        help="where the logger writes the run (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--json",
+        action="store_true",
+        help="print the result as one JSON object (with mcap and report paths)",
+    )
+    add_tune_options(parser)
+
+
+def exact_point(info: LoopInfo) -> tuple[float, float] | None:
+    """The exact ultimate point when the loop's model is linear (None otherwise)."""
+    cls = MODELS.get(info.model)
+    if cls is None or not issubclass(cls, TransferFunctionModel):
+        return None
+    try:
+        return model_ultimate_point(cls(**info.model_params))
+    except (TypeError, ValueError):
+        return None
+
+
+def wait_for_file(session, prefix: str, runs: Path, run_id: str, timeout: float = 30.0) -> Path:
+    """The run's MCAP file, once the logger has finished it."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        replies = list(session.get(keys.logger_status(prefix, "logger"), timeout=5.0))
+        st = wire.decode_sample(LoggerStatus, replies[0].ok) if replies and replies[0].ok else None
+        files = list(runs.glob(f"*_{run_id}.mcap"))
+        if st is not None and files and run_id not in st.open_runs:
+            return files[0]
+        time.sleep(0.05)
+    raise AutotuneError(f"the logger did not finish the run file for {run_id} in {timeout:g} s")
+
+
+def announce(p: TuneProgress, last: list[str]) -> None:
+    """A live line on a terminal; otherwise one line per phase."""
+    if sys.stderr.isatty():
+        progress_line(p)
+    elif p.phase != (last[0] if last else None):
+        last[:] = [p.phase]
+        print(f"  {p.phase:<10} t = {p.t:8.1f} s  {p.message}", file=sys.stderr, flush=True)
+
+
+def format_demo(
+    r: TuneResult,
+    exact: tuple[float, float] | None,
+    model: str,
+    mcap: Path | None,
+    report: Path | None,
+) -> str:
+    lines = [format_result(r)]
+    if exact and r.ku is not None:
+        ku, pu = exact
+        lines.append(
+            f"  exact ultimate point of the {model} model: K_u = {ku:.4g}, "
+            f"P_u = {pu:.4g} s (measured: {100 * (r.ku / ku - 1):+.1f} %, "
+            f"{100 * (r.pu / pu - 1):+.1f} %)"
+        )
+    if mcap:
+        lines.append(f"  run recorded in {mcap}")
+    if report:
+        lines.append(f"  report figure   {report}")
+    return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
-    config = config_from_args(args)
     if args.plant and not os.path.isfile(args.plant):
         raise ConfigError(f"--plant {args.plant}: no such file")
-    port = free_tcp_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    if not (args.speed > 0 and args.speed < float("inf")):
+        raise ConfigError(f"--speed {args.speed}: must be a finite number > 0")
+    req = request_from_args(args, source="autotune-demo")
+    runs = runs_dir(args.runs)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     prefix = f"autotune/demo{os.getpid()}"
-    plant_args = ["--prefix", prefix, "-l", endpoint, "--no-multicast-scouting"]
-    if args.plant:
-        plant_args += ["--plant", args.plant]
-    if args.seed is not None:
-        plant_args += ["--seed", str(args.seed)]
-    with tempfile.TemporaryFile("w+") as plant_log:
-        plant = start_service("services.plant_sim", plant_args, stderr=plant_log)
+    client = ZenohSettings(
+        mode="peer",
+        connect=(endpoint,),
+        cfg=("connect/timeout_ms:10000",),
+        no_multicast_scouting=True,
+    )
+    plant_args = ["--prefix", prefix]
+    plant_args += ["--plant", args.plant] if args.plant else []
+    plant_args += ["--seed", str(args.seed)] if args.seed is not None else []
+    plant_args += ["--noise-std", str(args.noise)] if args.noise is not None else []
+    plant_args += ["--clock", "realtime", "--speed", str(args.speed)] if args.realtime else []
+    zenoh_client = ["-e", endpoint, "--no-multicast-scouting", "--cfg", "connect/timeout_ms:10000"]
+    mcap = report = info = None
+    with tempfile.TemporaryFile("w+") as logs:
+        stack = Stack(prefix, client, logs)
         try:
-            settings = ZenohSettings(
-                mode="peer",
-                connect=(endpoint,),
-                cfg=("connect/timeout_ms:10000",),
-                no_multicast_scouting=True,
+            stack.start(
+                "plant",
+                "services.plant_sim",
+                plant_args,
+                ["-l", endpoint, "--no-multicast-scouting"],
             )
-            with open_session(settings) as session:
-                try:
-                    wait_for_loop(session, prefix, args.loop, timeout=15.0)
-                except Exception:
-                    if plant.poll() is not None:
-                        plant_log.seek(0)
-                        raise ConfigError(
-                            "the plant did not start:\n" + plant_log.read().strip()
-                        ) from None
-                    raise
-                if not args.json:
-                    print(
-                        f"plant_sim started (pid {plant.pid}, {endpoint}); step test of "
-                        f"{args.loop}…",
-                        file=sys.stderr,
-                    )
-                with LoopClient(session, prefix, args.loop, source="autotune-demo") as client:
-                    report = run_step_test(client, config, None if args.json else progress_line)
+            stack.start("tuner", "services.autotuner", ["--prefix", prefix], zenoh_client)
+            stack.start(
+                "logger", "services.logger", ["--prefix", prefix, "--runs", str(runs)], zenoh_client
+            )
+            print(
+                f"services started on {endpoint}: plant_sim pid {stack.procs['plant'].pid}, "
+                f"autotuner pid {stack.procs['tuner'].pid}, logger pid "
+                f"{stack.procs['logger'].pid}",
+                file=sys.stderr,
+                flush=True,
+            )
+            try:
+                stack.wait_ready(service_tokens(prefix, args.loop))
+            except AutotuneError as err:
+                logs.seek(0)
+                raise AutotuneError(f"{err}\n{logs.read().strip()}") from None
+            with open_session(client) as session:
+                reply = next(iter(session.get(keys.info(prefix, args.loop), timeout=5.0)))
+                info = wire.decode_sample(LoopInfo, reply.ok)
+                last: list[str] = []
+                result = follow(
+                    session,
+                    prefix,
+                    args.loop,
+                    lambda: submit(session, prefix, "*", req),
+                    3600.0,
+                    None if args.json else (lambda p: announce(p, last)),
+                )
+                mcap = wait_for_file(session, prefix, runs, result.run_id)
+            report = mcap.with_suffix(".png")
+            build_figure(load_series(mcap)).savefig(report, dpi=110)
         finally:
-            code = stop_service(plant)
+            stack.stop()
     if sys.stderr.isatty() and not args.json:
-        print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
-    print(json.dumps(report.to_dict(), indent=2) if args.json else format_report(report))
-    if not args.json:
-        print(f"plant_sim stopped (exit {code}).", file=sys.stderr)
-    return 0
+        print("\r" + " " * 100 + "\r", end="", file=sys.stderr)
+    exact = exact_point(info) if info else None
+    if args.json:
+        out = result.model_dump(mode="json")
+        out.update(
+            mcap=str(mcap),
+            report=str(report),
+            exact={"ku": exact[0], "pu": exact[1]} if exact else None,
+        )
+        print(json.dumps(out, indent=2))
+    else:
+        print(format_demo(result, exact, info.model, mcap, report))
+    return 0 if result.status == "ok" else 1

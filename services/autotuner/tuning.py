@@ -66,6 +66,10 @@ class RunHooks:
     cancelled: threading.Event | None = None
 
 
+def _seconds(ti: float | None) -> str:
+    return "off" if ti is None else f"{ti:.4g} s"
+
+
 def _json_number(v: object) -> object:
     """Numbers as JSON takes them: infinities (an overdamped trial's growth) become None."""
     if isinstance(v, float | np.floating):
@@ -435,7 +439,9 @@ class TuningRun:
         lo, hi = self.info.pv_range
         step = VERIFY_SP_FRACTION * (hi - lo) * (1 if sp0 < 0.5 * (lo + hi) else -1)
         band = max(0.02 * abs(step), 4 * ident.noise)
-        self._progress("verify", message=f"Kc {gains.kc:.4g}, Ti {gains.ti}, Td {gains.td:.4g}")
+        self._progress(
+            "verify", message=f"Kc {gains.kc:.4g}, Ti {_seconds(gains.ti)}, Td {gains.td:.4g}"
+        )
         self._set_auto(gains, sp0)
 
         def quiet(t: np.ndarray, y: np.ndarray) -> bool:

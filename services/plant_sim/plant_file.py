@@ -70,7 +70,9 @@ def default_plant_path() -> Path:
     return Path(str(resources.files("services.plant_sim") / "plants" / "default.toml"))
 
 
-def load_plant_file(path: str | Path, seed: int | None = None) -> dict[str, SimLoop]:
+def load_plant_file(
+    path: str | Path, seed: int | None = None, noise_std: float | None = None
+) -> dict[str, SimLoop]:
     """Read a plant file and build its loops; ConfigError names the loop and field at fault."""
     path = Path(path)
     try:
@@ -81,6 +83,10 @@ def load_plant_file(path: str | Path, seed: int | None = None) -> dict[str, SimL
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"plant file {path}: not valid TOML: {err}") from None
+    if noise_std is not None:
+        for table in data.get("loops", {}).values():
+            if isinstance(table, dict):
+                table["noise_std"] = noise_std
     return build_plant(data, source=str(path), seed=seed)
 
 

@@ -444,6 +444,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--seed", type=int, help="seed for every loop's noise (overrides the plant file's)"
     )
     parser.add_argument(
+        "--noise-std",
+        type=float,
+        metavar="SIGMA",
+        help="measurement noise of every loop, PV units (overrides the plant file)",
+    )
+    parser.add_argument(
         "--clock",
         choices=("lockstep", "realtime"),
         default="lockstep",
@@ -482,7 +488,11 @@ def serve(
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose + 1, SERVICE)
     options = options_from_args(args)
-    loops = load_plant_file(args.plant or default_plant_path(), seed=args.seed)
+    if args.noise_std is not None and not 0 <= args.noise_std < float("inf"):
+        raise ConfigError(f"--noise-std {args.noise_std}: must be a finite number ≥ 0")
+    loops = load_plant_file(
+        args.plant or default_plant_path(), seed=args.seed, noise_std=args.noise_std
+    )
     stop = threading.Event()
     install_stop_handlers(stop)
     serve(settings_from_args(args), loops, options, stop)
