@@ -197,7 +197,8 @@ class TuningRun:
                 "identified",
                 ku=ident.ku,
                 pu=ident.pu,
-                message=f"{req.rule}: Kc {chosen.kc:.4g}, Ti {chosen.ti}, Td {chosen.td:.4g}",
+                message=f"{req.rule}: Kc {chosen.kc:.4g}, Ti {_seconds(chosen.ti)}, "
+                f"Td {chosen.td:.4g} s",
             )
             if req.apply:
                 result.update(self._apply_and_verify(ident, chosen))
