@@ -31,9 +31,18 @@ def setup_logging(verbose: int, name: str) -> None:
 
 
 def install_stop_handlers(stop: threading.Event) -> None:
-    """SIGINT and SIGTERM end a service cleanly (tokens withdrawn, session closed)."""
+    """SIGINT and SIGTERM end a service cleanly (tokens withdrawn, session closed).
+
+    The handler hands ``stop.set()`` to a thread: run in the handler itself it could
+    deadlock, because the main thread may be inside ``stop.wait()`` holding the event's
+    (non-reentrant) lock when the signal is handled.
+    """
+
+    def handler(*_: object) -> None:
+        threading.Thread(target=stop.set, daemon=True).start()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, handler)
 
 
 def check_ids(prefix: str, **ids: str) -> None:
