@@ -1,5 +1,6 @@
 # One image for every service; compose.yaml picks the subcommand.
 FROM python:3.11-slim
+ENV PYTHONUNBUFFERED=1 MPLBACKEND=Agg
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY shared ./shared

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from services import demo, router, up
+from services import demo, health, router, up
 from services.autotuner import service as tuner_service
 from services.autotuner import step_command, tune_command
 from services.logger import (
@@ -23,6 +23,7 @@ SUBCOMMANDS = {
     "demo": demo,
     "up": up,
     "router": router,
+    "health": health,
     "plant": plant_service,
     "step": step_command,
     "tuner": tuner_service,
