@@ -275,14 +275,33 @@ def test_step_test_aborts_at_the_pv_limit_and_restores_the_loop(start_plant):
     assert status.op == 40.0 and status.mode == "manual"
 
 
-def test_demo_runs_end_to_end_as_separate_processes(tmp_path):
+def test_demo_step_method_on_a_user_plant(tmp_path):
+    """The demo's step method on a first-order-plus-dead-time plant of the user's: the
+    reaction curve gives K = gain and T63 = the time constant."""
     plant_file = tmp_path / "mine.toml"
     plant_file.write_text(
         '[loops.f1]\nmodel = "fopdt"\ngain = 0.8\ntime_constant = 20.0\n'
         "delay = 4.0\nsample_time = 0.5\n"
     )
-    run = autotune("demo", "--plant", str(plant_file), "--loop", "f1", "--json")
-    assert run.returncode == 0, run.stderr
+    run = autotune(
+        "demo",
+        "--plant",
+        str(plant_file),
+        "--loop",
+        "f1",
+        "--json",
+        "--method",
+        "step",
+        "--rule",
+        "zn-ol-pid",
+        "--runs",
+        str(tmp_path / "runs"),
+    )
+    assert run.returncode in (0, 1), run.stderr
     r = json.loads(run.stdout)
-    assert r["loop"] == "f1" and r["gain"] == pytest.approx(0.8, rel=0.005)
-    assert r["time_constant_63"] == pytest.approx(20.0, abs=0.5)  # T63 = τ for an FOPDT
+    assert r["loop"] == "f1" and r["step"]["gain"] == pytest.approx(0.8, rel=0.005)
+    assert r["step"]["time_constant_63"] == pytest.approx(20.0, abs=0.5)  # T63 = τ
+    g = r["gains"]["zn-ol-pid"]["isa"]  # 1.2/a with a = R·L, Ti = 2L (seed 000, Table 1)
+    assert g["kc"] == pytest.approx(1.2 / r["step"]["a"]) and g["ti"] == pytest.approx(
+        2 * r["step"]["dead_time"]
+    )
