@@ -91,8 +91,7 @@ def wait_for_file(session, prefix: str, runs: Path, run_id: str, timeout: float 
     """The run's MCAP file, once the logger has finished it."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        replies = list(session.get(keys.logger_status(prefix, "logger"), timeout=5.0))
-        st = wire.decode_sample(LoggerStatus, replies[0].ok) if replies and replies[0].ok else None
+        st = wire.query_one(session, keys.logger_status(prefix, "logger"), LoggerStatus, 5.0)
         files = list(runs.glob(f"*_{run_id}.mcap"))
         if st is not None and files and run_id not in st.open_runs:
             return files[0]
@@ -179,8 +178,9 @@ def run(args: argparse.Namespace) -> int:
                 logs.seek(0)
                 raise AutotuneError(f"{err}\n{logs.read().strip()}") from None
             with open_session(client) as session:
-                reply = next(iter(session.get(keys.info(prefix, args.loop), timeout=5.0)))
-                info = wire.decode_sample(LoopInfo, reply.ok)
+                info = wire.query_one(session, keys.info(prefix, args.loop), LoopInfo, 10.0)
+                if info is None:
+                    raise AutotuneError(f"loop {args.loop}: the plant does not answer")
                 last: list[str] = []
                 result = follow(
                     session,

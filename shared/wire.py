@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from functools import cache
 from typing import TypeVar
 
@@ -71,3 +72,23 @@ def decode(model: type[M], payload: bytes, encoding: str | None = None) -> M:
 
 def decode_sample(model: type[M], sample: zenoh.Sample) -> M:
     return decode(model, sample.payload.to_bytes(), str(sample.encoding))
+
+
+def query_one(session: zenoh.Session, key: str, model: type[M], timeout: float) -> M | None:
+    """The first valid reply to a query on ``key``, asking again until ``timeout``.
+
+    A session that has just joined may not know the queryable yet (peers discover each
+    other by gossip): a query that nobody answers is repeated rather than taken as final.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        for reply in session.get(key, timeout=max(0.05, min(left, 2.0))):
+            if reply.ok is not None:
+                try:
+                    return decode_sample(model, reply.ok)
+                except DecodeError:
+                    continue
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(0.02)

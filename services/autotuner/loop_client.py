@@ -14,7 +14,7 @@ import time
 import zenoh
 
 from shared import keys, wire
-from shared.errors import AutotuneError, DecodeError
+from shared.errors import AutotuneError
 from shared.messages import (
     AdvanceCommand,
     Command,
@@ -109,16 +109,15 @@ class LoopClient:
         self.close()
 
     def _query_info(self) -> LoopInfo:
-        for reply in self.session.get(keys.info(self.prefix, self.loop), timeout=self.timeout):
-            if reply.ok is not None:
-                try:
-                    return wire.decode_sample(LoopInfo, reply.ok)
-                except DecodeError as err:
-                    raise AutotuneError(f"loop {self.loop}: bad LoopInfo reply: {err}") from None
-        raise PlantLost(
-            f"loop {self.loop!r}: no plant answered {keys.info(self.prefix, self.loop)}"
-            f" within {self.timeout:g} s"
+        info = wire.query_one(
+            self.session, keys.info(self.prefix, self.loop), LoopInfo, self.timeout
         )
+        if info is None:
+            raise PlantLost(
+                f"loop {self.loop!r}: no plant answered "
+                f"{keys.info(self.prefix, self.loop)} within {self.timeout:g} s"
+            )
+        return info
 
     def _next(self) -> Message:
         """The next sample or status on the loop's feed (others' too)."""

@@ -37,8 +37,9 @@ def stack(start_plant, start_tuner, start_logger, runs: Path, plant: dict, noise
 
 def logger_status(p) -> LoggerStatus:
     with open_session(p.client_settings()) as s:
-        reply = next(iter(s.get(keys.logger_status(p.prefix, "logger"), timeout=5)))
-        return wire.decode_sample(LoggerStatus, reply.ok)
+        st = wire.query_one(s, keys.logger_status(p.prefix, "logger"), LoggerStatus, 10.0)
+    assert st is not None, "the logger did not answer"
+    return st
 
 
 def wait_finished(p, n: int = 1, timeout: float = 30.0) -> LoggerStatus:
