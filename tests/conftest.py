@@ -78,33 +78,43 @@ def start_plant(tmp_path):
         stop_service(plant.proc)
 
 
-@pytest.fixture
-def start_tuner(tmp_path):
-    """start_tuner(plant) → the autotuner as its own process, a peer of the plant's."""
+def _client_service(tmp_path: Path, name: str, module: str, token, extra=()):
+    """A start(plant) fixture body: the service as a peer of the plant, up when its token is."""
     started = []
 
-    def start(plant: RunningPlant):
-        log = tmp_path / f"tuner{len(started)}.log"
+    def start(plant: RunningPlant, *args):
+        log = tmp_path / f"{name}{len(started)}.log"
         with log.open("w") as f:
             proc = start_service(
-                "services.autotuner",
+                module,
                 [
                     "--prefix",
                     plant.prefix,
                     "-e",
                     plant.endpoint,
                     "--no-multicast-scouting",
-                    "--cfg",
-                    "connect/timeout_ms:10000",
+                    *extra,
+                    *[str(a) for a in args],
                 ],
                 stderr=f,
             )
         started.append(proc)
-        wait_for_tokens(
-            plant.client_settings(), [keys.tuner_alive(plant.prefix, "tuner")], 20.0, log
-        )
+        wait_for_tokens(plant.client_settings(), [token(plant.prefix)], 20.0, log)
         return proc
 
+    return start, started
+
+
+@pytest.fixture
+def start_tuner(tmp_path):
+    """start_tuner(plant) → the autotuner as its own process, a peer of the plant's."""
+    start, started = _client_service(
+        tmp_path,
+        "tuner",
+        "services.autotuner",
+        lambda p: keys.tuner_alive(p, "tuner"),
+        ("--cfg", "connect/timeout_ms:10000"),
+    )
     yield start
     for proc in started:
         stop_service(proc)
@@ -113,31 +123,13 @@ def start_tuner(tmp_path):
 @pytest.fixture
 def start_logger(tmp_path):
     """start_logger(plant, runs_dir) → the logger as its own process, a peer of the plant's."""
-    started = []
+    start, started = _client_service(
+        tmp_path, "logger", "services.logger", lambda p: keys.logger_alive(p, "logger"), ("-v",)
+    )
 
-    def start(plant: RunningPlant, runs: Path):
-        log = tmp_path / f"logger{len(started)}.log"
-        with log.open("w") as f:
-            proc = start_service(
-                "services.logger",
-                [
-                    "--prefix",
-                    plant.prefix,
-                    "-e",
-                    plant.endpoint,
-                    "--no-multicast-scouting",
-                    "--runs",
-                    str(runs),
-                    "-v",
-                ],
-                stderr=f,
-            )
-        started.append(proc)
-        wait_for_tokens(
-            plant.client_settings(), [keys.logger_alive(plant.prefix, "logger")], 20.0, log
-        )
-        return proc
+    def with_runs(plant: RunningPlant, runs: Path):
+        return start(plant, "--runs", runs)
 
-    yield start
+    yield with_runs
     for proc in started:
         stop_service(proc)

@@ -83,6 +83,6 @@ def load_step(
     }
 
 
-def at_rest(y: np.ndarray, band: float) -> bool:
+def within_band(y: np.ndarray, band: float) -> bool:
     """The record barely moves: its spread is within ``band``."""
     return y.size > 0 and float(np.ptp(y)) <= band and math.isfinite(float(y[-1]))

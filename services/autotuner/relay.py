@@ -211,7 +211,7 @@ class RelayTest:
                     "n": len(self.cycles),
                     "period": cycle.period,
                     "amplitude": amplitude,
-                    "ku": self._ku(amplitude),
+                    "ku": self.ku_of(amplitude),
                 },
             )
         )
@@ -239,12 +239,13 @@ class RelayTest:
                 ),
             )
 
-    def _ku(self, amplitude: float) -> float:
+    def ku_of(self, amplitude: float) -> float:
+        """The describing-function K_u for a PV amplitude ``amplitude``."""
         a2 = amplitude**2 - self._eps**2
         return 4.0 * self.config.amplitude / (math.pi * math.sqrt(a2)) if a2 > 0 else math.inf
 
     def _finish(self, recent: list[Cycle], pu_spread: float) -> None:
-        kus = [self._ku(c.amplitude) for c in recent]
+        kus = [self.ku_of(c.amplitude) for c in recent]
         self.result = RelayResult(
             ku=float(np.mean(kus)),
             pu=float(np.mean([c.period for c in recent])),

@@ -353,7 +353,7 @@ class TuningRun:
             n = len(machine.cycles)
             if n != self._reported and n:
                 cyc = machine.cycles[-1]
-                self._progress("relay", cycles=n, ku=machine._ku(cyc.amplitude), pu=cyc.period)
+                self._progress("relay", cycles=n, ku=machine.ku_of(cyc.amplitude), pu=cyc.period)
         elif isinstance(machine, RampTest):
             n = len(machine.trials)
             if n != self._reported and n:
@@ -447,7 +447,7 @@ class TuningRun:
 
         def quiet(t: np.ndarray, y: np.ndarray) -> bool:
             k = max(4, round(scale / self.ts))
-            return y.size >= k and metrics.at_rest(y[-k:], 2 * band)
+            return y.size >= k and metrics.within_band(y[-k:], 2 * band)
 
         _, _, _, ok = self._record(5 * scale, quiet)
         stable = ok

@@ -57,6 +57,26 @@ def final_seq(p) -> int:
         return c.last_status.seq
 
 
+def long_tune(p) -> subprocess.Popen:
+    """A relay tune of a few seconds (12 cycles must agree within 0.1 %), in the background."""
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "tune",
+            "x1",
+            "--cycles",
+            "12",
+            "--tolerance",
+            "0.001",
+            *p.cli_args(),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+
+
 def seqs(records) -> list[int]:
     return [
         ProcessSample.model_validate_json(r.data).seq for r in records if r.topic.endswith("/pv")
@@ -128,22 +148,7 @@ def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
         threading.Thread(
             target=lambda: [inbox.put((x, time.monotonic())) for x in sub], daemon=True
         ).start()
-        cli = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "services.cli",
-                "tune",
-                "x1",
-                "--cycles",
-                "12",
-                "--tolerance",
-                "0.001",
-                *p.cli_args(),
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
+        cli = long_tune(p)
         t_kill = t_start = None
         try:
             while t_kill is None:
@@ -187,22 +192,7 @@ def test_sigterm_finishes_the_file(start_plant, start_tuner, start_logger, tmp_p
         inbox: queue.Queue = queue.Queue()
         sub = s.declare_subscriber(keys.tune_progress(p.prefix, "x1"))
         threading.Thread(target=lambda: [inbox.put(x) for x in sub], daemon=True).start()
-        cli = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "services.cli",
-                "tune",
-                "x1",
-                "--cycles",
-                "12",
-                "--tolerance",
-                "0.001",
-                *p.cli_args(),
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
+        cli = long_tune(p)
         inbox.get(timeout=60)  # the run has started (its first progress message)
         t_start = time.monotonic()
         while time.monotonic() < t_start + 1.5:  # let it record for 1.5 s, then stop it
