@@ -40,6 +40,23 @@ class Identification:
     rest_pv: float = math.nan
 
 
+def _frequency_fields(points) -> dict[str, float]:
+    """The exact frequency points of a relay test, flat for JSON: omega_k (rad/s),
+    g_k_magnitude (PV units per %) and g_k_phase_deg, k = 1, 3, 5."""
+    out: dict[str, float] = {}
+    previous = 0.0
+    for p in points:
+        k = round(p.omega / points[0].omega)
+        phase = p.phase_deg
+        while phase > previous:  # unwrapped: the lag grows with frequency
+            phase -= 360.0
+        previous = phase
+        out[f"omega_{k}"] = p.omega
+        out[f"g_{k}_magnitude"] = p.magnitude
+        out[f"g_{k}_phase_deg"] = phase
+    return out
+
+
 def build(method: str, req: TuneRequest, setup: dict[str, Any]) -> Experiment:
     """The state machine for ``method``; ValueError naming the setting that cannot work.
 
@@ -103,6 +120,7 @@ def identification(machine: Experiment) -> Identification | None:
                 "cycles": r.cycles,
                 "noise_std": r.noise_std,
                 "rest_pv": r.rest_pv,
+                **_frequency_fields(r.frequency),
             },
             timescale=r.pu,
             noise=r.noise_std,

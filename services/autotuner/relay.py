@@ -13,7 +13,9 @@ keeping the oscillation symmetric under a load change.
 
 The test ends when the last N cycles agree within a tolerance (period and amplitude), giving
 the describing-function estimate K_u = 4d/(π·√(a² − ε²)) and P_u, the mean period, with
-their spread; it fails with a reason after a cycle or time budget, or when the PV leaves
+their spread, and the exact G(jω) at the oscillation frequency and its 3rd and 5th
+harmonics from the Fourier components of those whole cycles (``fourier``);
+it fails with a reason after a cycle or time budget, or when the PV leaves
 its limits.
 """
 
@@ -24,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.autotuner.fourier import FrequencyPoint, frequency_points
 from services.autotuner.reaction_curve import at_rest, noise_level
 
 
@@ -73,6 +76,7 @@ class RelayResult:
     ku_spread: float  # (max − min)/mean over the agreeing cycles
     pu_spread: float
     rest_pv: float  # r
+    frequency: tuple[FrequencyPoint, ...] = ()  # exact G(jkω), k = 1, 3, 5 (fourier module)
 
 
 @dataclass
@@ -246,9 +250,18 @@ class RelayTest:
 
     def _finish(self, recent: list[Cycle], pu_spread: float) -> None:
         kus = [self.ku_of(c.amplitude) for c in recent]
+        period = float(np.mean([c.period for c in recent]))
+        try:
+            points = tuple(
+                frequency_points(
+                    self.t, self.pv, [*self.op, self._out()], recent[0].t_start, period, len(recent)
+                )
+            )
+        except ValueError:
+            points = ()
         self.result = RelayResult(
             ku=float(np.mean(kus)),
-            pu=float(np.mean([c.period for c in recent])),
+            pu=period,
             amplitude=float(np.mean([c.amplitude for c in recent])),
             relay_amplitude=self.config.amplitude,
             hysteresis=self._eps,
@@ -258,6 +271,7 @@ class RelayTest:
             ku_spread=_spread(kus),
             pu_spread=pu_spread,
             rest_pv=self._r,
+            frequency=points,
         )
         self.phase = "done"
         self.events.append(

@@ -1,0 +1,59 @@
+"""Frequency points from a relay cycle's Fourier components, against G(jω) of the model."""
+
+import math
+
+import numpy as np
+import pytest
+
+from services.autotuner.fourier import frequency_points
+from tests.test_experiments import HX, THIRD, run_relay
+
+
+def model_response(num, den, delay, w):
+    s = 1j * w
+    return np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * delay)
+
+
+@pytest.mark.parametrize("plant", [THIRD, HX], ids=["third-order", "heat-exchanger"])
+def test_fundamental_and_odd_harmonics_match_the_model(plant):
+    num, den, delay, ts = plant
+    test = run_relay(num, den, delay, ts, cycles=4, tolerance=0.002)
+    assert test.result is not None, test.reason
+    last = test.cycles[-3:]
+    period = float(np.mean([c.period for c in last]))
+    t, pv, op = np.array(test.t), np.array(test.pv), np.array(test.op)
+    # op[i] is held from t[i]: the record as the relay drove it
+    points = frequency_points(t, pv, op, last[0].t_start, period, 3)
+    assert [round(p.omega * period / (2 * math.pi)) for p in points] == [1, 3, 5]
+    for p in points:
+        g = model_response(num, den, delay, p.omega)
+        # exact but for the trapezoid rule on the PV; tight enough that an output record
+        # shifted by one sample (≈ ωT of phase, 0.7 % here) fails
+        assert abs(p.g - g) / abs(g) < (1e-3 if p is points[0] else 5e-3), p
+    # the describing function's estimate vs the exact magnitude at the same frequency
+    dfk = test.result.ku
+    assert 1 / abs(points[0].g) != pytest.approx(dfk, rel=1e-3)
+
+
+def test_a_too_short_record_is_refused():
+    t = np.arange(0, 10, 0.1)
+    with pytest.raises(ValueError, match="whole periods"):
+        frequency_points(t, np.sin(t), np.sign(np.sin(t)), 0.0, 2 * math.pi, 3)
+
+
+def test_the_relay_reports_the_exact_point_beside_its_estimate():
+    """Unwrapped phases; |G| and phase at ω_osc equal the model's (the cycle is not at −180°,
+    which is why the describing function's K_u is off)."""
+    from services.autotuner import experiments
+
+    num, den, delay, ts = HX
+    fields = experiments.identification(run_relay(num, den, delay, ts)).experiment
+    for k in (1, 3, 5):
+        g = model_response(num, den, delay, fields[f"omega_{k}"])
+        assert fields[f"g_{k}_magnitude"] == pytest.approx(abs(g), rel=5e-3)
+        exact_phase = math.degrees(np.angle(g)) - 360 * round(
+            (math.degrees(np.angle(g)) - fields[f"g_{k}_phase_deg"]) / 360
+        )
+        assert fields[f"g_{k}_phase_deg"] == pytest.approx(exact_phase, abs=0.5)
+    assert fields["g_1_phase_deg"] > fields["g_3_phase_deg"] > fields["g_5_phase_deg"]
+    assert -185 < fields["g_1_phase_deg"] < -170
