@@ -126,14 +126,18 @@ def test_relay_tune_is_recorded_whole_and_reanalysed_exactly(
 def test_step_and_ramp_runs_reanalyse_exactly(start_plant, start_tuner, start_logger, tmp_path):
     runs = tmp_path / "runs"
     p, _ = stack(start_plant, start_tuner, start_logger, runs, FAST)
+    lives = {}
     for args in (["--method", "step", "--rule", "cc-pi"], ["--method", "ramp", "--kc-start", "2"]):
         live = tune(p, "x1", *args, "--no-apply")
         assert live["status"] == "ok", live["reason"]
+        lives[live["run_id"]] = live
     assert wait_finished(p, 2).finished_runs == 2
-    for f in sorted(runs.glob("*.mcap")):
+    for run_id, live in lives.items():
+        f = next(runs.glob(f"*_{run_id}.mcap"))
         a = json.loads(autotune("analyze", str(f), "--json").stdout)
         assert a["matches_live"] is True, f.name
-        assert a["gains"] == a["gains"] and a["gains"]
+        assert (a["ku"], a["pu"], a["step"]) == (live["ku"], live["pu"], live["step"])
+        assert a["gains"] == live["gains"] and a["gains"]
 
 
 def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
