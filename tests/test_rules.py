@@ -133,3 +133,25 @@ def test_reset_rate_and_minutes():
     f = all_forms(IsaGains(2.0, 120.0, 30.0))
     assert f["ti_min"] == 2.0 and f["td_min"] == 0.5 and f["reset_rate_rpm"] == 0.5
     assert f["parallel"] == {"kp": 2.0, "ki": 2.0 / 120.0, "kd": 60.0}
+
+
+@pytest.mark.parametrize(("k", "t", "lag"), [(1.0, 60.0, 10.6), (2.0, 5.0, 5.0), (0.5, 1.0, 4.0)])
+def test_amigo_and_simc(k, t, lag):
+    """The formulas as control-references.md gives them (Åström & Hägglund 2006; Skogestad
+    2003), written out here independently of the rules module."""
+    m = StepModel(k, lag, t)
+    pi, pid, simc = (RULES[n].compute(m) for n in ("amigo-pi", "amigo-pid", "simc-pi"))
+    assert pi.kc == pytest.approx(0.15 / k + (0.35 - lag * t / (lag + t) ** 2) * t / (k * lag))
+    assert pi.ti == pytest.approx(
+        0.35 * lag + 13 * lag * t * t / (t * t + 12 * lag * t + 7 * lag * lag)
+    )
+    assert pid.kc == pytest.approx((0.2 + 0.45 * t / lag) / k)
+    assert pid.ti == pytest.approx((0.4 * lag + 0.8 * t) * lag / (lag + 0.1 * t))
+    assert pid.td == pytest.approx(0.5 * lag * t / (0.3 * lag + t))
+    assert simc.kc == pytest.approx(t / (2 * k * lag)) and simc.ti == pytest.approx(min(t, 8 * lag))
+
+
+def test_amigo_pi_on_a_pure_delay_is_the_textbook_limit():
+    """For T → 0 (pure delay) AMIGO PI tends to K = 0.15/K_p and Ti = 0.35 L."""
+    g = RULES["amigo-pi"].compute(StepModel(2.0, 1.0, 1e-9))
+    assert g.kc == pytest.approx(0.075, rel=1e-6) and g.ti == pytest.approx(0.35, rel=1e-6)

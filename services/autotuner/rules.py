@@ -120,6 +120,39 @@ def _cc_pid(m: StepModel) -> IsaGains:
     )
 
 
+def _amigo_pi(m: StepModel) -> IsaGains:
+    """AMIGO PI for K·e^{−Ls}/(Ts+1) (Åström & Hägglund, *Advanced PID Control*, 2006,
+    §7.6): K = 0.15/K_p + (0.35 − LT/(L+T)²)·T/(K_p L), Ti = 0.35L + 13LT²/(T² + 12LT + 7L²).
+    Designed for robustness (Ms ≈ 1.4) rather than quarter decay."""
+    k, t, lag = m.gain, m.time_constant, m.dead_time
+    if lag <= 0:
+        raise ValueError("AMIGO needs a dead time L > 0")
+    kc = 0.15 / k + (0.35 - lag * t / (lag + t) ** 2) * t / (k * lag)
+    return IsaGains(kc, 0.35 * lag + 13 * lag * t**2 / (t**2 + 12 * lag * t + 7 * lag**2))
+
+
+def _amigo_pid(m: StepModel) -> IsaGains:
+    """AMIGO PID (ibid., §7.7): K = (0.2 + 0.45T/L)/K_p, Ti = (0.4L + 0.8T)·L/(L + 0.1T),
+    Td = 0.5LT/(0.3L + T)."""
+    k, t, lag = m.gain, m.time_constant, m.dead_time
+    if lag <= 0:
+        raise ValueError("AMIGO needs a dead time L > 0")
+    return IsaGains(
+        (0.2 + 0.45 * t / lag) / k,
+        (0.4 * lag + 0.8 * t) * lag / (lag + 0.1 * t),
+        0.5 * lag * t / (0.3 * lag + t),
+    )
+
+
+def _simc_pi(m: StepModel) -> IsaGains:
+    """SIMC PI with τc = θ (Skogestad, J. Process Control 13, 2003): Kc = τ₁/(k·2θ),
+    Ti = min(τ₁, 8θ)."""
+    k, tau, th = m.gain, m.time_constant, m.dead_time
+    if th <= 0:
+        raise ValueError("SIMC with τc = θ needs a dead time θ > 0")
+    return IsaGains(tau / (k * 2.0 * th), min(tau, 8.0 * th))
+
+
 def _half(rule: Callable[..., IsaGains]) -> Callable[..., IsaGains]:
     def halved(x: UltimatePoint | StepModel) -> IsaGains:
         g = rule(x)
@@ -151,6 +184,9 @@ RULES: dict[str, Rule] = {
         Rule("cc-p", "open", "P", "Cohen & Coon 1953 (seed 003)", _cc_p),
         Rule("cc-pi", "open", "PI", "Cohen & Coon 1953 (seed 003)", _cc_pi),
         Rule("cc-pid", "open", "PID", "Cohen & Coon 1953 (seed 003)", _cc_pid),
+        Rule("amigo-pi", "open", "PI", "Åström & Hägglund 2006, AMIGO", _amigo_pi),
+        Rule("amigo-pid", "open", "PID", "Åström & Hägglund 2006, AMIGO", _amigo_pid),
+        Rule("simc-pi", "open", "PI", "Skogestad 2003, SIMC with τc = θ", _simc_pi),
     )
 }
 
