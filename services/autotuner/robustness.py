@@ -1,0 +1,84 @@
+"""Robustness of a PID on a linear plant model: maximum sensitivity, gain and phase margins.
+
+Loop transfer L(jω) = C(jω)·G(jω) with the plant G = num/den·e^{−Ls} and the ISA PID
+C = Kc·(1 + 1/(Ti·s) + Td·s/(1 + Td·s/N)) as the loop's PID block runs it. On a dense
+logarithmic grid refined around each extremum:
+
+* Ms = max |1/(1 + L(jω))| (Åström & Hägglund 2006, §4.6: 1.2–2.0 is the usual range);
+* gain margin 1/|L(jω₁₈₀)| at the first frequency where the unwrapped phase of L reaches
+  −180° (inf if it never does; for P control it equals K_u/Kc);
+* phase margin 180° + arg L(jω_c) at the first frequency where |L| falls to 1.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import brentq, minimize_scalar
+
+from services.autotuner.forms import IsaGains
+
+
+@dataclass(frozen=True)
+class Robustness:
+    ms: float
+    gain_margin: float
+    phase_margin_deg: float
+    omega_180: float | None
+    omega_c: float | None
+
+
+def loop_response(gains: IsaGains, num, den, delay: float, n: float, w: np.ndarray) -> np.ndarray:
+    s = 1j * np.asarray(w, dtype=float)
+    c = gains.kc * (1.0 + (0.0 if gains.ti is None else 1.0 / (gains.ti * s)))
+    if gains.td > 0:
+        c = c + gains.kc * gains.td * s / (1.0 + gains.td * s / n)
+    g = np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * delay)
+    return c * g
+
+
+def robustness(
+    gains: IsaGains,
+    num: list[float],
+    den: list[float],
+    delay: float = 0.0,
+    n: float = 10.0,
+    w_min: float = 1e-5,
+    w_max: float = 1e4,
+) -> Robustness:
+    w = np.logspace(math.log10(w_min), math.log10(w_max), 20000)
+    lw = loop_response(gains, num, den, delay, n, w)
+    phase = np.unwrap(np.angle(lw))
+    # the unwrapped phase may start a multiple of 2π off: anchor it at the low-frequency end
+    phase -= 2 * math.pi * round((phase[0] - np.angle(lw[0])) / (2 * math.pi))
+    sens = 1.0 / np.abs(1.0 + lw)
+    k = int(np.argmax(sens))
+    lo, hi = w[max(k - 1, 0)], w[min(k + 1, w.size - 1)]
+    best = minimize_scalar(
+        lambda x: -1.0 / abs(1.0 + loop_response(gains, num, den, delay, n, np.array([x]))[0]),
+        bounds=(lo, hi),
+        method="bounded",
+        options={"xatol": 1e-12},
+    )
+    ms = max(float(sens[k]), -float(best.fun))
+
+    def interp_root(values: np.ndarray, target: float) -> float | None:
+        idx = np.nonzero(np.diff(np.sign(values - target)))[0]
+        if idx.size == 0:
+            return None
+        i = int(idx[0])
+        return brentq(lambda x: np.interp(math.log(x), np.log(w), values) - target, w[i], w[i + 1])
+
+    w180 = interp_root(phase, -math.pi)
+    gm = (
+        math.inf
+        if w180 is None
+        else 1.0 / abs(loop_response(gains, num, den, delay, n, np.array([w180]))[0])
+    )
+    wc = interp_root(np.log(np.abs(lw)), 0.0)
+    pm = math.inf
+    if wc is not None:
+        pm = 180.0 + math.degrees(float(np.interp(math.log(wc), np.log(w), phase)))
+    return Robustness(ms, gm, pm, w180, wc)
