@@ -29,23 +29,6 @@ class ZenohSettings:
     cfg: tuple[str, ...] = field(default_factory=tuple)
     no_multicast_scouting: bool = False
 
-    def to_args(self) -> list[str]:
-        """The same settings as command-line flags, to start a child service with."""
-        args: list[str] = []
-        if self.mode:
-            args += ["-m", self.mode]
-        for e in self.connect:
-            args += ["-e", e]
-        for e in self.listen:
-            args += ["-l", e]
-        if self.config_file:
-            args += ["-c", self.config_file]
-        for c in self.cfg:
-            args += ["--cfg", c]
-        if self.no_multicast_scouting:
-            args.append("--no-multicast-scouting")
-        return args
-
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``-m/-e/-l/-c/--cfg/--no-multicast-scouting`` as zenohd and the zenoh examples do."""

@@ -24,11 +24,6 @@ class Oscillation:
     rms: float  # residual of the fit
     swings: int  # half-cycles in the window
 
-    @property
-    def ratio_per_period(self) -> float:
-        """Amplitude ratio from one period to the next (1 at the stability limit)."""
-        return math.exp(self.growth * self.period)
-
 
 def smooth(y: np.ndarray, width: int) -> np.ndarray:
     if width < 3:

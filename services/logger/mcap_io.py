@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import struct
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
@@ -147,7 +146,3 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
     except (McapError, struct.error, ValueError, EOFError, OSError) as err:
         raise not_readable(path, str(err) or type(err).__name__) from None
     return meta, records
-
-
-def iter_topics(records: list[Record], suffix: str) -> Iterator[Record]:
-    return (r for r in records if r.topic.endswith(suffix))
