@@ -25,8 +25,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import brentq
 
 from services.autotuner.fourier import FrequencyPoint, frequency_points
+from services.autotuner.model_fit import ProcessFit, choose, fit_models
 from services.autotuner.reaction_curve import at_rest, noise_level
 
 
@@ -40,6 +42,8 @@ class RelayConfig:
     max_cycles: int = 30
     max_time: float = 14400.0  # s of relay before the first full cycle (then a cycle budget)
     bias_adaptation: bool = True
+    refine: bool = True  # run the second, phase-shifted and biased stage
+    low_ratio: float = 1.0  # second stage: the low output is b − low_ratio·d (the bias)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.amplitude) and self.amplitude > 0):
@@ -52,6 +56,8 @@ class RelayConfig:
             raise ValueError(f"cycles {self.cycles}: need 2 ≤ cycles < max_cycles")
         if not 0 < self.tolerance < 1:
             raise ValueError(f"tolerance {self.tolerance}: must be between 0 and 1")
+        if not 0.2 <= self.low_ratio <= 1.0:
+            raise ValueError(f"low_ratio {self.low_ratio}: must be between 0.2 and 1")
 
 
 @dataclass(frozen=True)
@@ -77,6 +83,12 @@ class RelayResult:
     pu_spread: float
     rest_pv: float  # r
     frequency: tuple[FrequencyPoint, ...] = ()  # exact G(jkω), k = 1, 3, 5 (fourier module)
+    ku_df: float = math.nan  # the describing-function estimate of stage 1
+    pu_df: float = math.nan
+    stage_one_cycles: int = 0
+    second: tuple[FrequencyPoint, ...] = ()  # stage 2's exact G(jkω₂), k = 1, 2, 3
+    static_gain: float | None = None  # from the bias of stage 2 (None: no bias shift)
+    model: ProcessFit | None = None  # fitted to both stages' points (model_fit)
 
 
 @dataclass
@@ -113,14 +125,19 @@ class RelayTest:
         self._noise = 0.0
         self._relay_start = math.nan
         self._crossings: list[float] = []  # upward crossings of r (interpolated)
-        self._armed = False  # an upward crossing counts only after the relay went up
+        self._armed = False  # an upward crossing counts only after the relay went up, below r
+        self._level = 0.0  # h: switch down above r + h, up below r − h (stage 1: h = ε)
+        self._switch_armed = True  # the next switch may happen (stage 2's lead needs a lockout)
+        self._low = 1.0  # the low output is b − low·d (stage 2: the bias)
+        self._stage1: _StageOne | None = None
 
     @property
     def finished(self) -> bool:
         return self.phase in ("done", "aborted")
 
     def _out(self) -> float:
-        return self.bias + self.direction * self._state * self.config.amplitude
+        swing = 1.0 if self._state > 0 else -self._low
+        return self.bias + self.direction * swing * self.config.amplitude
 
     def _abort(self, reason: str) -> float:
         self.phase, self.reason = "aborted", reason
@@ -155,6 +172,7 @@ class RelayTest:
         self._noise = noise_level(base)
         h = self.config.hysteresis
         self._eps = 3.0 * self._noise if h is None else h
+        self._level = self._eps
         self._relay_start = t
         self.phase = "relay"
         self.events.append(
@@ -168,14 +186,19 @@ class RelayTest:
         return self._out()
 
     def _relay(self, t: float, pv: float) -> float:
-        r, eps = self._r, self._eps
-        if self._state > 0 and pv > r + eps:
-            self._state = -1.0
+        r, h = self._r, self._level
+        self._arm(pv)
+        if self._switch_armed and self._state > 0 and pv > r + h:
+            self._state, self._switch_armed = -1.0, False
             self.events.append((t, "switch", {"op": self._out()}))
-        elif self._state < 0 and pv < r - eps:
-            self._state = 1.0
+        elif self._switch_armed and self._state < 0 and pv < r - h:
+            self._state, self._switch_armed = 1.0, False
+            self.events.append((t, "switch", {"op": self._out()}))
+        self._arm(pv)
+        if self._state > 0 and pv < r - self._eps:
+            # the next upward crossing of r closes a cycle: the relay is high and the PV has
+            # been below r by the noise margin (stage 2 may switch high while still above r)
             self._armed = True
-            self.events.append((t, "switch", {"op": self._out()}))
         # upward crossing of r, interpolated between the last two samples
         if self._armed and len(self.pv) >= 2 and self.pv[-2] < r <= pv:
             t0, y0 = self.t[-2], self.pv[-2]
@@ -195,6 +218,17 @@ class RelayTest:
                 f"{len(self.cycles)} cycles and {t - self._relay_start:g} s"
             )
         return self._out()
+
+    def _arm(self, pv: float) -> None:
+        """Allow the next switch once the PV has passed the opposite level by the noise margin
+        since the last one. With stage 1's hysteresis that is at once; stage 2's negative
+        hysteresis (a phase lead) would otherwise switch straight back."""
+        if not self._switch_armed:
+            r, h, margin = self._r, self._level, self._eps
+            if self._state > 0:
+                self._switch_armed = pv < r + h - margin
+            else:
+                self._switch_armed = pv > r - h + margin
 
     def _close_cycle(self, t0: float, t1: float) -> None:
         t, y, u = np.asarray(self.t), np.asarray(self.pv), np.asarray([*self.op, self._out()])
@@ -220,19 +254,27 @@ class RelayTest:
             )
         )
         steady = len(self.cycles) >= 3 and 0.8 <= amplitude / self.cycles[-2].amplitude <= 1.25
-        if self.config.bias_adaptation and steady:
+        if self.config.bias_adaptation and steady and self._stage1 is None:
             skew = 2.0 * cycle.high_fraction - 1.0
             if abs(skew) > 2.5 * self.sample_time / cycle.period:
                 d, (lo, hi) = self.config.amplitude, self.op_limits
                 self.bias = min(max(self.bias + d * skew, lo + d), hi - d)
                 self.events.append((t1, "bias", {"bias": self.bias}))
+        if self._stage1 is not None:
+            if len(self.cycles) - self._stage1.cycles >= STAGE_TWO_CYCLES:
+                self._finish()
+            return
         n = self.config.cycles
         recent = self.cycles[1:][-n:]  # the first cycle is the start-up transient
         if len(recent) == n:
             pu_spread = _spread([c.period for c in recent])
             a_spread = _spread([c.amplitude for c in recent])
             if pu_spread <= self.config.tolerance and a_spread <= self.config.tolerance:
-                self._finish(recent, pu_spread)
+                self._stage1 = self._summarise(recent, pu_spread)
+                if self.config.refine and self._stage1.points:
+                    self._start_stage_two(t1)
+                else:
+                    self._finish()
                 return
         if len(self.cycles) >= self.config.max_cycles:
             self.phase, self.reason = (
@@ -248,39 +290,219 @@ class RelayTest:
         a2 = amplitude**2 - self._eps**2
         return 4.0 * self.config.amplitude / (math.pi * math.sqrt(a2)) if a2 > 0 else math.inf
 
-    def _finish(self, recent: list[Cycle], pu_spread: float) -> None:
+    def _window(self, t0: float, t1: float) -> tuple[float, float]:
+        """Mean PV and mean output over [t0, t1] (the output held, the PV trapezoidal)."""
+        t, y = np.asarray(self.t), np.asarray(self.pv)
+        u = np.asarray([*self.op, self._out()][: t.size])
+        edges = np.clip(np.append(t, t[-1]), t0, t1)
+        u_mean = float(np.sum(u * np.diff(edges)) / (t1 - t0))
+        inside = (t > t0) & (t < t1)
+        tt = np.concatenate(([t0], t[inside], [t1]))
+        yy = np.concatenate(([np.interp(t0, t, y)], y[inside], [np.interp(t1, t, y)]))
+        y_mean = float(np.sum(0.5 * (yy[1:] + yy[:-1]) * np.diff(tt)) / (t1 - t0))
+        return y_mean, u_mean
+
+    def _summarise(self, recent: list[Cycle], pu_spread: float) -> _StageOne:
+        """Stage 1's describing-function estimate and its exact frequency points."""
         kus = [self.ku_of(c.amplitude) for c in recent]
         period = float(np.mean([c.period for c in recent]))
+        op = [*self.op, self._out()]
         try:
             points = tuple(
-                frequency_points(
-                    self.t, self.pv, [*self.op, self._out()], recent[0].t_start, period, len(recent)
-                )
+                frequency_points(self.t, self.pv, op, recent[0].t_start, period, len(recent))
             )
+            per_cycle = [
+                frequency_points(self.t, self.pv, op, c.t_start, c.period, 1, (1,))[0].g
+                for c in recent
+            ]
         except ValueError:
-            points = ()
-        self.result = RelayResult(
+            points, per_cycle = (), []
+        t0, t1 = recent[0].t_start, recent[-1].t_start + recent[-1].period
+        return _StageOne(
             ku=float(np.mean(kus)),
             pu=period,
+            ku_spread=_spread(kus),
+            pu_spread=pu_spread,
             amplitude=float(np.mean([c.amplitude for c in recent])),
+            points=points,
+            g_scatter=_g_scatter(per_cycle),
+            means=self._window(t0, t1),
+            cycles=len(self.cycles),
+            t_end=t1,
+        )
+
+    def _start_stage_two(self, t: float) -> None:
+        """Re-aim the relay at −180°: stage 1's exact phase φ₁ at ω₁ shows how far off its
+        cycle ran; the hysteresis level h moves the cycle's phase by about asin(h/a), so
+        stage 2 asks for φ₁ + 180° more lag (or lead, with negative h), overshooting by
+        half (at least 2°) so that the two stages bracket −180°. The low output drops to
+        b − low_ratio·d: the bias shifts the cycle's means, which gives the static gain."""
+        s1 = self._stage1
+        assert s1 is not None
+        a = s1.amplitude
+        miss = math.radians(s1.points[0].phase_deg + 180.0)  # > 0: stage 1 ran short of −180°
+        sign = 1.0 if miss >= 0 else -1.0
+        shift = miss + sign * max(OVERSHOOT * abs(miss), math.radians(MIN_SHIFT_DEG))
+        now = math.asin(min(self._eps / a, 1.0)) if a > 0 else 0.0
+        target = min(max(now - shift, -math.radians(60.0)), math.radians(60.0))
+        self._level = a * math.sin(target)
+        self._low = self.config.low_ratio
+        # at an upward crossing of r: if the relay is still high, the PV came up from its
+        # trough, past either level; if it has just switched low, it must first rise past the
+        # new level for going high again
+        self._switch_armed = self._state > 0
+        self._arm(self.pv[-1])
+        self.events.append((t, "stage", {"stage": 2, "level": self._level, "low_ratio": self._low}))
+
+    def _finish(self) -> None:
+        s1 = self._stage1
+        assert s1 is not None
+        refined = None
+        if len(self.cycles) > s1.cycles:
+            c = self.cycles[-1]
+            op = [*self.op, self._out()]
+            try:
+                second = tuple(
+                    frequency_points(self.t, self.pv, op, c.t_start, c.period, 1, (1, 2, 3))
+                )
+            except ValueError:
+                second = ()
+            if second:
+                refined = _refine(s1, second, self._window(c.t_start, c.t_start + c.period))
+        ku, pu = (refined.ku, refined.pu) if refined else (s1.ku, s1.pu)
+        self.result = RelayResult(
+            ku=ku,
+            pu=pu,
+            amplitude=s1.amplitude,
             relay_amplitude=self.config.amplitude,
             hysteresis=self._eps,
             bias=self.bias,
             noise_std=self._noise,
             cycles=len(self.cycles),
-            ku_spread=_spread(kus),
-            pu_spread=pu_spread,
+            ku_spread=refined.ku_uncertainty if refined else s1.ku_spread,
+            pu_spread=refined.pu_uncertainty if refined else s1.pu_spread,
             rest_pv=self._r,
-            frequency=points,
+            frequency=s1.points,
+            ku_df=s1.ku,
+            pu_df=s1.pu,
+            stage_one_cycles=s1.cycles,
+            second=refined.points if refined else (),
+            static_gain=refined.static_gain if refined else None,
+            model=refined.model if refined else None,
         )
         self.phase = "done"
-        self.events.append(
-            (
-                recent[-1].t_start + recent[-1].period,
-                "done",
-                {"ku": self.result.ku, "pu": self.result.pu},
-            )
-        )
+        t_done = self.cycles[-1].t_start + self.cycles[-1].period
+        self.events.append((t_done, "done", {"ku": ku, "pu": pu}))
+
+
+STAGE_TWO_CYCLES = 2  # one to settle into the new cycle, one to measure
+OVERSHOOT = 0.5
+MIN_SHIFT_DEG = 2.0
+
+
+@dataclass(frozen=True)
+class _StageOne:
+    ku: float  # describing function
+    pu: float
+    ku_spread: float
+    pu_spread: float
+    amplitude: float
+    points: tuple[FrequencyPoint, ...]
+    g_scatter: float  # relative cycle-to-cycle scatter of G(jω₁)
+    means: tuple[float, float]  # mean PV, mean output over the agreeing cycles
+    cycles: int
+    t_end: float
+
+
+@dataclass(frozen=True)
+class _Refined:
+    ku: float
+    pu: float
+    ku_uncertainty: float
+    pu_uncertainty: float
+    points: tuple[FrequencyPoint, ...]
+    static_gain: float | None
+    model: ProcessFit | None = None
+
+
+def _g_scatter(values: list[complex]) -> float:
+    if len(values) < 2:
+        return 0.0
+    g = np.asarray(values)
+    return float(np.max(np.abs(g / np.mean(g) - 1.0)))
+
+
+def _refine(
+    s1: _StageOne, second: tuple[FrequencyPoint, ...], means2: tuple[float, float]
+) -> _Refined:
+    """K_u and P_u where the phase crosses −180°, from the two stages' exact points.
+
+    A low-order model is fitted to all the points (``model_fit``); its small misfit at the two
+    fundamentals is interpolated linearly in log ω between them, so the model only supplies the
+    curvature between two exact points a few degrees apart. Without a model, phase and
+    log-magnitude are interpolated linearly. The uncertainty is the cycle-to-cycle scatter of
+    the measured point plus the difference between the two interpolations.
+    """
+    p1, p2 = s1.points[0], second[0]
+    linear = _linear_crossing(p1, p2)
+    points = [*s1.points, *second]
+    weights = [10.0 if p in (p1, p2) else 1.0 / max(1.0, p.omega / p1.omega - 2.0) for p in points]
+    try:
+        model = choose(fit_models([p.omega for p in points], [p.g for p in points], weights))
+    except ValueError:  # fewer than two points
+        model = None
+    crossing = _model_crossing(model, p1, p2) if model is not None else None
+    ku, pu = crossing or linear
+    (y1, u1), (y2, u2) = s1.means, means2
+    gain = (y2 - y1) / (u2 - u1) if abs(u2 - u1) > 1e-6 * abs(u1) + 1e-9 else None
+    return _Refined(
+        ku=ku,
+        pu=pu,
+        ku_uncertainty=s1.g_scatter + abs(ku / linear[0] - 1.0),
+        pu_uncertainty=0.5 * s1.g_scatter * abs(math.log(p2.omega / p1.omega)) / math.pi
+        + abs(pu / linear[1] - 1.0),
+        points=second,
+        static_gain=gain,
+        model=model,
+    )
+
+
+def _linear_crossing(p1: FrequencyPoint, p2: FrequencyPoint) -> tuple[float, float]:
+    """Phase and log-magnitude linear in log ω through the two points, at −180°."""
+    x1, x2 = math.log(p1.omega), math.log(p2.omega)
+    f1, f2 = p1.phase_deg, p2.phase_deg
+    m1, m2 = math.log(p1.magnitude), math.log(p2.magnitude)
+    frac = (-180.0 - f1) / (f2 - f1) if abs(f2 - f1) > 1e-9 else 0.0
+    xu, mu = x1 + frac * (x2 - x1), m1 + frac * (m2 - m1)
+    return math.exp(-mu), 2.0 * math.pi / math.exp(xu)
+
+
+def _model_crossing(
+    model: ProcessFit, p1: FrequencyPoint, p2: FrequencyPoint
+) -> tuple[float, float] | None:
+    """The model's crossover, corrected by its misfit at the two points (linear in log ω)."""
+    x1, x2 = math.log(p1.omega), math.log(p2.omega)
+    if abs(x2 - x1) < 1e-9:
+        return None
+
+    def misfit(p: FrequencyPoint) -> complex:
+        r = complex(np.log(p.g / model.response(p.omega)))
+        return complex(r.real, math.remainder(r.imag, 2.0 * math.pi))
+
+    r1, r2 = misfit(p1), misfit(p2)
+
+    def r_at(x: float) -> complex:
+        return r1 + (x - x1) / (x2 - x1) * (r2 - r1)
+
+    def excess(x: float) -> float:
+        return model.phase(math.exp(x)) + r_at(x).imag + math.pi
+
+    lo, hi = min(x1, x2) - 0.5, max(x1, x2) + 0.5
+    if not excess(lo) > 0 > excess(hi):
+        return None
+    xu = brentq(excess, lo, hi, xtol=1e-12)
+    gain = float(abs(model.response(math.exp(xu)))) * math.exp(r_at(xu).real)
+    return 1.0 / gain, 2.0 * math.pi / math.exp(xu)
 
 
 def _spread(values: list[float]) -> float:
