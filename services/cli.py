@@ -6,8 +6,8 @@ import argparse
 import sys
 
 from services import demo, health, router, up
+from services.autotuner import benchmark_command, step_command, tune_command
 from services.autotuner import service as tuner_service
-from services.autotuner import step_command, tune_command
 from services.logger import (
     analyze_command,
     recover_command,
@@ -34,6 +34,7 @@ SUBCOMMANDS = {
     "analyze": analyze_command,
     "report": report,
     "recover": recover_command,
+    "benchmark": benchmark_command,
 }
 
 

@@ -71,6 +71,9 @@ def frequency_points(
     """
     t, pv, op = (np.asarray(a, dtype=float) for a in (t, pv, op))
     t_end = t_start + periods * period
+    slack = 1e-9 * period  # the window's end is a sum of interpolated crossings: rounding
+    if t_end > t[-1] and t_end - t[-1] <= slack:
+        t_end = t[-1]
     if t_start < t[0] or t_end > t[-1]:
         raise ValueError("the record does not cover the requested whole periods")
     out = []

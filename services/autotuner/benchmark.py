@@ -1,0 +1,316 @@
+"""The identification benchmark: relay and ramp tunes of a suite of plants, in-process.
+
+Every tune goes through ``experiments.build``/``feed`` — the very state machines the live
+tuner drives over Zenoh — but against a plant model stepped in the same process, so hundreds
+of tunes take seconds. Each result is compared with the plant's exact ultimate point (the
+phase crossover of G(jω), ``frequency.ultimate_point``).
+
+Plants follow Åström & Hägglund's test batch (*Advanced PID Control*, 2006, §7.2): first order
+plus dead time over L/T, 1/(s+1)ⁿ, (1−αs)/(s+1)³, the four-pole α family, e^{−s}/(1+sT)²
+and an integrator with dead time. Noise is white, its σ given as a fraction of the relay's
+peak-to-peak PV swing 2a ≈ 8d/(πK_u).
+
+A second table reproduces Iinoya & Hotta (1958) for K·e^{−Ls}/(Ts+1): the measured K₀·R·L
+and τ₀/L against their closed form (tan ω₀L = −Tω₀, K₀·K = √(1 + (Tω₀)²), R = K/T), and the
+decay ratio that the Ziegler–Nichols P rule (Kc = 0.5K_u) actually gives against its 25 % aim.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.optimize import brentq
+
+from services.autotuner import experiments
+from services.autotuner.forms import IsaGains
+from services.autotuner.frequency import ultimate_point
+from services.autotuner.recommend import recommend
+from services.autotuner.relay import RelayTest
+from services.autotuner.robustness import robustness
+from services.autotuner.rules import UltimatePoint
+from services.plant_sim.models import TransferFunctionModel
+from services.plant_sim.plant_file import build_plant
+from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand, TuneRequest
+
+RELAY_AMPLITUDE = 5.0  # %
+SAMPLES_PER_PERIOD = 400  # the sampled loop's ZOH lag stays ≈ 0.5° at the crossover
+NOISE_LEVELS = (0.0, 0.01, 0.03)
+
+
+@dataclass(frozen=True)
+class Plant:
+    name: str
+    family: str
+    num: tuple[float, ...]
+    den: tuple[float, ...]
+    delay: float
+
+    def exact(self) -> tuple[float, float]:
+        up = ultimate_point(list(self.num), list(self.den), self.delay)
+        if up is None:
+            raise ValueError(f"plant {self.name}: its phase never reaches −180°")
+        return up
+
+
+def _poly(*factors: list[float]) -> tuple[float, ...]:
+    out = np.array([1.0])
+    for f in factors:
+        out = np.polymul(out, f)
+    return tuple(float(c) for c in out)
+
+
+def suite() -> list[Plant]:
+    """The benchmark's plants (time in seconds, gains in PV units per %)."""
+    plants = [
+        Plant(f"fopdt L/T={r:g}", "fopdt", (1.0,), (1.0 / r, 1.0), 1.0)
+        for r in (0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
+    ]
+    plants += [Plant(f"1/(s+1)^{n}", "lag", (1.0,), _poly(*[[1, 1]] * n), 0.0) for n in (3, 4, 8)]
+    plants += [
+        Plant(f"(1-{a:g}s)/(s+1)^3", "nmp", (-a, 1.0), _poly([1, 1], [1, 1], [1, 1]), 0.0)
+        for a in (0.1, 0.2, 0.5, 1.0, 2.0)
+    ]
+    plants += [
+        Plant(
+            f"four-pole a={a:g}",
+            "four-pole",
+            (1.0,),
+            _poly([1, 1], [a, 1], [a**2, 1], [a**3, 1]),
+            0.0,
+        )
+        for a in (0.1, 0.2, 0.5, 1.0)
+    ]
+    plants += [
+        Plant(f"e^-s/(1+{t:g}s)^2", "sopdt", (1.0,), _poly([t, 1], [t, 1]), 1.0)
+        for t in (0.1, 1.0, 10.0)
+    ]
+    plants.append(Plant("e^-s/s", "integrating", (1.0,), (1.0, 0.0), 1.0))
+    return plants
+
+
+@dataclass(frozen=True)
+class TuneOutcome:
+    plant: str
+    family: str
+    method: str
+    noise: float
+    ku_exact: float
+    pu_exact: float
+    ok: bool
+    reason: str = ""
+    ku_error: float = math.nan  # ours, relative
+    pu_error: float = math.nan
+    ku_df_error: float = math.nan  # the describing function (relay stage 1)
+    pu_df_error: float = math.nan
+    periods_classic: float = math.nan  # the relay's stage 1, in P_u
+    periods: float = math.nan  # the whole experiment, in P_u
+    model: str = ""
+    recommended: str = ""
+    recommended_ms: float = math.nan  # on the true plant
+    recommended_stable: bool = False
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _swing(ku: float) -> float:
+    return 8.0 * RELAY_AMPLITUDE / (math.pi * ku)
+
+
+def run_relay(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
+    ku, pu = plant.exact()
+    ts = pu / SAMPLES_PER_PERIOD
+    model = TransferFunctionModel(ts, num=list(plant.num), den=list(plant.den), delay=plant.delay)
+    model.reset()
+    setup = {
+        "sample_time": ts,
+        "op_start": 50.0,
+        "op_lo": 0.0,
+        "op_hi": 100.0,
+        "pv_lo": -1e9,
+        "pv_hi": 1e9,
+        "direction": 1.0,
+    }
+    req = TuneRequest(loop="bench", method="relay")
+    test = experiments.build("relay", req, setup)
+    assert isinstance(test, RelayTest)
+    rng = np.random.default_rng(seed)
+    sigma = noise * _swing(ku)
+    op, k = 50.0, 0
+    while not test.finished:
+        k += 1
+        op = test.feed(k * ts, model.step(op) + sigma * rng.standard_normal())
+    base = dict(plant=plant.name, family=plant.family, method="relay", noise=noise)
+    r = test.result
+    if r is None:
+        return TuneOutcome(**base, ku_exact=ku, pu_exact=pu, ok=False, reason=test.reason)
+    start = next(e[0] for e in test.events if e[1] == "relay_start")
+    stage = next((e[0] for e in test.events if e[1] == "stage"), math.nan)
+    done = next(e[0] for e in test.events if e[1] == "done")
+    rec = _recommendation(plant, r.ku, r.pu, r.model)
+    return TuneOutcome(
+        **base,
+        ku_exact=ku,
+        pu_exact=pu,
+        ok=True,
+        ku_error=r.ku / ku - 1.0,
+        pu_error=r.pu / pu - 1.0,
+        ku_df_error=r.ku_df / ku - 1.0,
+        pu_df_error=r.pu_df / pu - 1.0,
+        periods_classic=(stage - start) / pu,
+        periods=(done - start) / pu,
+        model=r.model.kind if r.model else "",
+        **rec,
+    )
+
+
+def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
+    """The P-gain ramp on the plant's own PID block, from a cautious Kc = 0.3·K_u loop."""
+    ku, pu = plant.exact()
+    ts = pu / SAMPLES_PER_PERIOD
+    a = 0.5 * _swing(ku)
+    loop = build_plant(
+        {
+            "seed": seed,
+            "loops": {
+                "x": {
+                    "model": "transfer_function",
+                    "num": list(plant.num),
+                    "den": list(plant.den),
+                    "delay": plant.delay,
+                    "sample_time": ts,
+                    "noise_std": noise * 2 * a,
+                    "pv_range": [-1e9, 1e9],
+                }
+            },
+        }
+    )["x"]
+    kc0 = 0.3 * ku
+    loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc0)))
+    loop.apply(ModeCommand(loop="x", mode="auto"))
+    setup = {
+        "sample_time": ts,
+        "op_lo": 0.0,
+        "op_hi": 100.0,
+        "pv_lo": -1e9,
+        "pv_hi": 1e9,
+        "kc_start": 0.5 * kc0,
+        "bump": a,
+        "sp_start": loop.sp,
+    }
+    req = TuneRequest(loop="x", method="ramp")
+    test = experiments.build("ramp", req, setup)
+    kc, sp = kc0, loop.sp
+    t0 = loop.t
+    demand = test.feed(loop.t, loop.pv)
+    while not test.finished:
+        if demand.kc != kc:
+            kc = demand.kc
+            loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc)))
+        if demand.sp != sp:
+            sp = demand.sp
+            loop.apply(SetpointCommand(loop="x", sp=sp))
+        s = loop.advance()
+        demand = test.feed(s.t, s.pv)
+    base = dict(plant=plant.name, family=plant.family, method="ramp", noise=noise)
+    r = test.result
+    if r is None:
+        return TuneOutcome(**base, ku_exact=ku, pu_exact=pu, ok=False, reason=test.reason)
+    rec = _recommendation(plant, r.ku, r.pu, None)
+    return TuneOutcome(
+        **base,
+        ku_exact=ku,
+        pu_exact=pu,
+        ok=True,
+        ku_error=r.ku / ku - 1.0,
+        pu_error=r.pu / pu - 1.0,
+        periods=(loop.t - t0) / pu,
+        **rec,
+    )
+
+
+def _recommendation(plant: Plant, ku: float, pu: float, model) -> dict:
+    """The recommended rule's gains (chosen on the identified model, as live), judged on the
+    true plant: Ms and stability."""
+    rec = recommend(UltimatePoint(ku, pu), model)
+    if rec is None:
+        return {}
+    rb = robustness(rec.gains, list(plant.num), list(plant.den), plant.delay)
+    return {
+        "recommended": rec.rule,
+        "recommended_ms": rb.ms,
+        "recommended_stable": rb.gain_margin > 1.0 and rb.phase_margin_deg > 0.0,
+    }
+
+
+# --- Iinoya & Hotta ------------------------------------------------------------------------
+
+
+def iinoya_hotta(t_over_l: float) -> tuple[float, float]:
+    """Closed form for K·e^{−Ls}/(Ts+1): (K₀·R·L, τ₀/L) (Iinoya & Hotta 1958, eq. 5)."""
+    r = t_over_l  # with L = 1: ω₀ in (π/2, π) solves tan ω₀ = −Tω₀
+    w0 = brentq(lambda w: math.sin(w) + r * w * math.cos(w), math.pi / 2, math.pi, xtol=1e-15)
+    k0 = math.hypot(1.0, r * w0)  # K₀·K
+    return k0 / r, 2.0 * math.pi / w0  # K₀·(K/T)·L, τ₀/L
+
+
+def decay_ratio(gains: IsaGains, plant: Plant, pu: float, periods: float = 12.0) -> float:
+    """Decay ratio of the closed loop's setpoint response (P or PI/PID on the exact sampled
+    plant): the second overshoot over the first, measured about the final value."""
+    ts = pu / 2000
+    model = TransferFunctionModel(ts, num=list(plant.num), den=list(plant.den), delay=plant.delay)
+    model.reset()
+    n = int(periods * pu / ts)
+    y = np.empty(n)
+    pv, integral, sp = 50.0, 0.0, 51.0
+    for k in range(n):
+        e = sp - pv
+        if gains.ti is not None:
+            integral += e * ts / gains.ti
+        op = 50.0 + gains.kc * (e + integral)
+        pv = model.step(op)
+        y[k] = pv
+    final = y[-int(pu / ts) :].mean() if gains.ti is None else sp
+    dev = y - final
+    peaks = [
+        i for i in range(1, n - 1) if dev[i] > 0 and dev[i] >= dev[i - 1] and dev[i] > dev[i + 1]
+    ]
+    if len(peaks) < 2 or dev[peaks[0]] <= 0:
+        return 0.0
+    return float(dev[peaks[1]] / dev[peaks[0]])
+
+
+@dataclass(frozen=True)
+class IinoyaHottaRow:
+    t_over_l: float
+    krl_exact: float
+    krl_measured: float
+    tau_exact: float
+    tau_measured: float
+    decay_ratio_zn_p: float
+
+    @property
+    def krl_error(self) -> float:
+        return self.krl_measured / self.krl_exact - 1.0
+
+    @property
+    def tau_error(self) -> float:
+        return self.tau_measured / self.tau_exact - 1.0
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "krl_error": self.krl_error, "tau_error": self.tau_error}
+
+
+IH_RATIOS = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
+
+
+def iinoya_hotta_row(t_over_l: float) -> IinoyaHottaRow:
+    plant = Plant(f"fopdt T/L={t_over_l:g}", "fopdt", (1.0,), (t_over_l, 1.0), 1.0)
+    outcome = run_relay(plant, 0.0)
+    ku = outcome.ku_exact * (1.0 + outcome.ku_error)
+    pu = outcome.pu_exact * (1.0 + outcome.pu_error)
+    krl, tau = iinoya_hotta(t_over_l)
+    dr = decay_ratio(IsaGains(0.5 * ku), plant, pu)
+    return IinoyaHottaRow(t_over_l, krl, ku / t_over_l, tau, pu, dr)

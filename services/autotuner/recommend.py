@@ -1,0 +1,98 @@
+"""Which rule's gains to recommend, judged on the identified model.
+
+Every ultimate-point rule is a candidate. With a model (the relay's fitted FOPDT/SOPDT/IPDT),
+each candidate's maximum sensitivity Ms is computed on it; among the stable candidates with
+Ms within the bound (default 2.0, with a margin for the model's own error), the one with
+the largest integral gain Kc/Ti wins — the AMIGO design criterion: the best rejection of load
+disturbances that the robustness allows (Åström & Hägglund, *Advanced PID Control*, 2006,
+§7.3). Without a model, Tyreus–Luyben PI (Ms about 1.5–1.6 on FOPDT plants, see
+control-references.md) is the safe default.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from services.autotuner.forms import IsaGains
+from services.autotuner.model_fit import ProcessFit
+from services.autotuner.robustness import Robustness, robustness
+from services.autotuner.rules import RULES, UltimatePoint, apply_rules
+
+MS_BOUND = 2.0
+MODEL_MARGIN = 0.9  # recommend only below 0.9 × the bound: the model is an approximation
+FALLBACK = "tl-pi"
+
+
+@dataclass(frozen=True)
+class Assessment:
+    rule: str
+    gains: IsaGains
+    robustness: Robustness | None  # on the identified model (None without one)
+
+    @property
+    def stable(self) -> bool | None:
+        rb = self.robustness
+        return None if rb is None else rb.gain_margin > 1.0 and rb.phase_margin_deg > 0.0
+
+    def within(self, bound: float) -> bool | None:
+        rb = self.robustness
+        return None if rb is None else bool(self.stable) and rb.ms <= bound
+
+
+def assess(
+    ultimate: UltimatePoint, model: ProcessFit | None, gains: dict[str, IsaGains] | None = None
+) -> dict[str, Assessment]:
+    """Every candidate's robustness on the model (rules needing K_u and P_u unless given)."""
+    gains = apply_rules(ultimate, None) if gains is None else gains
+    out = {}
+    for name, g in gains.items():
+        rb = None
+        if model is not None:
+            try:
+                rb = robustness(g, model.num, model.den, model.delay)
+            except (ValueError, ArithmeticError):
+                rb = None
+        out[name] = Assessment(name, g, rb)
+    return out
+
+
+@dataclass(frozen=True)
+class Recommendation:
+    rule: str
+    gains: IsaGains
+    predicted_ms: float | None
+    reason: str
+
+
+def recommend(
+    ultimate: UltimatePoint, model: ProcessFit | None, ms_bound: float = MS_BOUND
+) -> Recommendation | None:
+    candidates = assess(ultimate, model)
+    if model is not None:
+        ok = [
+            a
+            for a in candidates.values()
+            if a.within(MODEL_MARGIN * ms_bound) and RULES[a.rule].controller != "P"
+        ]
+        if ok:
+            best = max(ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
+            return Recommendation(
+                best.rule,
+                best.gains,
+                best.robustness.ms if best.robustness else None,
+                f"largest integral gain with Ms ≤ {MODEL_MARGIN * ms_bound:.2g} on the "
+                f"identified {model.kind.upper()} model",
+            )
+    fallback = candidates.get(FALLBACK)
+    if fallback is None:
+        return None
+    rb = fallback.robustness
+    return Recommendation(
+        FALLBACK,
+        fallback.gains,
+        rb.ms if rb else None,
+        "no model to judge the candidates on: the robust default"
+        if model is None
+        else f"no candidate within Ms ≤ {MODEL_MARGIN * ms_bound:.2g} on the model",
+    )

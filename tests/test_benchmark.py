@@ -1,0 +1,62 @@
+"""The benchmark's core: its closed forms, and relay tunes of suite plants in-process."""
+
+import json
+import math
+
+import pytest
+
+from services.autotuner import benchmark
+from services.cli import main
+from tests.exact import ultimate_point
+
+
+@pytest.mark.parametrize("t_over_l", [0.1, 1.0, 100.0])
+def test_iinoya_hotta_closed_form_matches_the_exact_crossover(t_over_l):
+    ku, pu = ultimate_point([1.0], [t_over_l, 1.0], 1.0)  # L = 1, K = 1
+    krl, tau = benchmark.iinoya_hotta(t_over_l)
+    assert krl == pytest.approx(ku / t_over_l, rel=1e-9)
+    assert tau == pytest.approx(pu, rel=1e-9)
+
+
+def test_iinoya_hotta_limits():
+    krl, tau = benchmark.iinoya_hotta(1e6)
+    assert krl == pytest.approx(math.pi / 2, rel=1e-4) and tau == pytest.approx(4.0, rel=1e-4)
+
+
+@pytest.mark.parametrize("name", ["fopdt L/T=0.2", "fopdt L/T=10", "e^-s/s"])
+def test_relay_tune_of_suite_plants_within_one_percent(name):
+    plant = next(p for p in benchmark.suite() if p.name == name)
+    out = benchmark.run_relay(plant, 0.0)
+    assert out.ok, out.reason
+    assert abs(out.ku_error) < 0.01 and abs(out.pu_error) < 0.01
+    assert abs(out.ku_df_error) > 0.05  # the describing function's own error on these
+    assert out.periods - out.periods_classic <= 2.1  # stage 2: two periods near P_u
+    assert out.recommended_stable and out.recommended_ms <= 2.0
+
+
+def test_zn_p_decay_ratio_is_near_a_quarter_only_for_small_t_over_l():
+    plant = benchmark.Plant("fo", "fopdt", (1.0,), (0.1, 1.0), 1.0)
+    ku, pu = plant.exact()
+    dr = benchmark.decay_ratio(benchmark.IsaGains(0.5 * ku), plant, pu)
+    assert 0.2 < dr < 0.35
+    lag = benchmark.Plant("fo", "fopdt", (1.0,), (50.0, 1.0), 1.0)
+    ku, pu = lag.exact()
+    assert benchmark.decay_ratio(benchmark.IsaGains(0.5 * ku), lag, pu) < 0.15
+
+
+def test_benchmark_command_json(capsys):
+    assert (
+        main(["benchmark", "--json", "--methods", "relay", "--noise", "0", "--plants", "L/T=1"])
+        == 0
+    )
+    doc = json.loads(capsys.readouterr().out)
+    names = {t["plant"] for t in doc["tunes"]}
+    assert names == {"fopdt L/T=1", "fopdt L/T=10"}
+    assert all(abs(t["ku_error"]) < 0.01 for t in doc["tunes"])
+    assert len(doc["iinoya_hotta"]) == len(benchmark.IH_RATIOS)
+    assert all(abs(r["krl_error"]) < 0.01 for r in doc["iinoya_hotta"])
+
+
+def test_benchmark_refuses_bad_noise():
+    with pytest.raises(SystemExit, match="--noise"):
+        main(["benchmark", "--noise", "abc"])
