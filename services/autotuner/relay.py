@@ -22,6 +22,7 @@ its limits.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +31,7 @@ from scipy.optimize import brentq
 from services.autotuner.fourier import FrequencyPoint, frequency_points
 from services.autotuner.model_fit import ProcessFit, choose, fit_models
 from services.autotuner.reaction_curve import at_rest, noise_level
+from services.plant_sim.models import TransferFunctionModel
 
 
 @dataclass(frozen=True)
@@ -128,6 +130,8 @@ class RelayTest:
         self._armed = False  # an upward crossing counts only after the relay went up, below r
         self._level = 0.0  # h: switch down above r + h, up below r − h (stage 1: h = ε)
         self._switch_armed = True  # the next switch may happen (stage 2's lead needs a lockout)
+        self._margin = 0.0  # how far past the opposite level the PV must go to arm a switch
+        self._cross_margin = 0.0  # how far below r the PV must go to arm a cycle's crossing
         self._low = 1.0  # the low output is b − low·d (stage 2: the bias)
         self._stage1: _StageOne | None = None
 
@@ -173,6 +177,8 @@ class RelayTest:
         h = self.config.hysteresis
         self._eps = 3.0 * self._noise if h is None else h
         self._level = self._eps
+        self._margin = self._eps
+        self._cross_margin = self._eps
         self._relay_start = t
         self.phase = "relay"
         self.events.append(
@@ -195,9 +201,10 @@ class RelayTest:
             self._state, self._switch_armed = 1.0, False
             self.events.append((t, "switch", {"op": self._out()}))
         self._arm(pv)
-        if self._state > 0 and pv < r - self._eps:
+        if self._state > 0 and pv < r - self._cross_margin:
             # the next upward crossing of r closes a cycle: the relay is high and the PV has
-            # been below r by the noise margin (stage 2 may switch high while still above r)
+            # been below r by the margin (stage 2 may switch high while still above r, so
+            # there the PV must first be half-way down to its trough)
             self._armed = True
         # upward crossing of r, interpolated between the last two samples
         if self._armed and len(self.pv) >= 2 and self.pv[-2] < r <= pv:
@@ -205,7 +212,11 @@ class RelayTest:
             tc = t0 + (r - y0) / (pv - y0) * (t - t0)
             self._armed = False
             self._crossings.append(tc)
-            if len(self._crossings) >= 2:
+            s1 = self._stage1
+            if s1 is not None and tc - self._crossings[-2] < 0.6 * s1.pu:
+                self._crossings.pop()  # noise, not a cycle: stage 2 runs near stage 1's period
+                self.events.append((t, "spurious_crossing", {"t": tc}))
+            elif len(self._crossings) >= 2:
                 self._close_cycle(self._crossings[-2], tc)
                 if self.finished:
                     return self.op_start
@@ -216,7 +227,8 @@ class RelayTest:
             self._finish(stage_two=False)
             return self.op_start if self.finished else self._out()
         budget = self.config.max_time
-        if self.cycles:  # the cycle grows from nothing at start-up: budget on the longest
+        if len(self.cycles) >= 3:  # the cycle grows from nothing at start-up (and noise can
+            # close a short first cycle): budget on the longest once there are a few
             budget = (self.config.max_cycles + 2) * max(c.period for c in self.cycles)
         if t - self._relay_start > budget:
             return self._abort(
@@ -230,7 +242,7 @@ class RelayTest:
         since the last one. With stage 1's hysteresis that is at once; stage 2's negative
         hysteresis (a phase lead) would otherwise switch straight back."""
         if not self._switch_armed:
-            r, h, margin = self._r, self._level, self._eps
+            r, h, margin = self._r, self._level, self._margin
             if self._state > 0:
                 self._switch_armed = pv < r + h - margin
             else:
@@ -348,6 +360,7 @@ class RelayTest:
             means=self._window(t0, t1),
             cycles=len(self.cycles),
             t_end=t1,
+            window=(recent[0].t_start, period, len(recent)),
         )
 
     def _start_stage_two(self, t: float) -> None:
@@ -365,6 +378,11 @@ class RelayTest:
         now = math.asin(min(self._eps / a, 1.0)) if a > 0 else 0.0
         target = min(max(now - shift, -math.radians(60.0)), math.radians(60.0))
         self._level = a * math.sin(target)
+        self._cross_margin = max(self._eps, 0.5 * a)
+        if self._level < self._eps:
+            # a lead (or less hysteresis than the noise needs): arm the next switch only half-way
+            # from the switching level to the expected peak, so noise cannot make it chatter
+            self._margin = max(self._eps, 0.5 * (a - abs(self._level)))
         self._low = self.config.low_ratio
         # at an upward crossing of r: if the relay is still high, the PV came up from its
         # trough, past either level; if it has just switched low, it must first rise past the
@@ -373,21 +391,70 @@ class RelayTest:
         self._arm(self.pv[-1])
         self.events.append((t, "stage", {"stage": 2, "level": self._level, "low_ratio": self._low}))
 
+    def _stage_two_harmonics(self) -> tuple[int, ...]:
+        """The 2nd harmonic is excited only by a biased stage 2 (otherwise it is noise)."""
+        return (1, 2, 3) if self._low < 1.0 else (1, 3)
+
+    def _corrector(self, s1: _StageOne, window2: tuple[float, float, int] | None) -> Corrector:
+        """Remove what the window's non-periodicity leaks into the Fourier points.
+
+        Over a window that is not a steady cycle (stage 2's second period still carries the
+        change of stage), Y/U ≠ G(jω). The model, simulated over the same output record from
+        the same rest, leaks in nearly the same way; so G ≈ M(jω) + (Y − Ŷ)/U, which is exact
+        for a perfect model and leaves only the model's error times the (small) leakage."""
+        t = np.asarray(self.t)
+        op = np.asarray([*self.op, self._out()][: t.size])
+
+        def correct(model: ProcessFit) -> tuple[Points, Points]:
+            sim = TransferFunctionModel(
+                self.sample_time, model.num, model.den, model.delay, op0=self.op_start, pv0=0.0
+            )
+            sim.reset()
+            y_hat = np.empty(t.size)
+            y_hat[0] = 0.0
+            for i in range(t.size - 1):
+                y_hat[i + 1] = sim.step(op[i])
+            residual = np.asarray(self.pv) - y_hat
+
+            def points(window: tuple[float, float, int], harmonics: tuple[int, ...]) -> Points:
+                start, period, n = window
+                try:
+                    found = frequency_points(t, residual, op, start, period, n, harmonics)
+                except ValueError:
+                    return ()
+                return tuple(
+                    FrequencyPoint(p.omega, p.g + complex(model.response(p.omega))) for p in found
+                )
+
+            first = points(s1.window, (1, 3, 5))
+            return first, (points(window2, self._stage_two_harmonics()) if window2 else ())
+
+        return correct
+
     def _finish(self, stage_two: bool = True) -> None:
         s1 = self._stage1
         assert s1 is not None
-        refined = _refine(s1, (), (math.nan, math.nan)) if s1.points else None
+        refined = None
         if stage_two and len(self.cycles) > s1.cycles:
             c = self.cycles[-1]
             op = [*self.op, self._out()]
             try:
                 second = tuple(
-                    frequency_points(self.t, self.pv, op, c.t_start, c.period, 1, (1, 2, 3))
+                    frequency_points(
+                        self.t, self.pv, op, c.t_start, c.period, 1, self._stage_two_harmonics()
+                    )
                 )
             except ValueError:
                 second = ()
             if second:
-                refined = _refine(s1, second, self._window(c.t_start, c.t_start + c.period))
+                refined = _refine(
+                    s1,
+                    second,
+                    self._window(c.t_start, c.t_start + c.period),
+                    self._corrector(s1, (c.t_start, c.period, 1)),
+                )
+        if refined is None and s1.points:  # stage 2 missing: the model from stage 1 alone
+            refined = _refine(s1, (), (math.nan, math.nan), self._corrector(s1, None))
         ku, pu = (refined.ku, refined.pu) if refined else (s1.ku, s1.pu)
         self.result = RelayResult(
             ku=ku,
@@ -431,6 +498,7 @@ class _StageOne:
     means: tuple[float, float]  # mean PV, mean output over the agreeing cycles
     cycles: int
     t_end: float
+    window: tuple[float, float, int] = (0.0, 0.0, 0)  # start, period, periods of the points
 
 
 @dataclass(frozen=True)
@@ -451,8 +519,23 @@ def _g_scatter(values: list[complex]) -> float:
     return float(np.max(np.abs(g / np.mean(g) - 1.0)))
 
 
+Points = tuple[FrequencyPoint, ...]
+Corrector = Callable[[ProcessFit], tuple[Points, Points]]
+
+
+def _fit(points: list[FrequencyPoint], p1: FrequencyPoint, p2: FrequencyPoint) -> ProcessFit | None:
+    weights = [10.0 if p in (p1, p2) else 1.0 / max(1.0, p.omega / p1.omega - 2.0) for p in points]
+    try:
+        return choose(fit_models([p.omega for p in points], [p.g for p in points], weights))
+    except ValueError:  # fewer than two points
+        return None
+
+
 def _refine(
-    s1: _StageOne, second: tuple[FrequencyPoint, ...], means2: tuple[float, float]
+    s1: _StageOne,
+    second: Points,
+    means2: tuple[float, float],
+    correct: Corrector | None = None,
 ) -> _Refined:
     """K_u and P_u where the phase crosses −180°, from the two stages' exact points.
 
@@ -464,12 +547,15 @@ def _refine(
     """
     p1, p2 = s1.points[0], (second[0] if second else s1.points[0])
     linear = _linear_crossing(p1, p2) if second else (1.0 / p1.magnitude, 2.0 * math.pi / p1.omega)
-    points = [*s1.points, *second]
-    weights = [10.0 if p in (p1, p2) else 1.0 / max(1.0, p.omega / p1.omega - 2.0) for p in points]
-    try:
-        model = choose(fit_models([p.omega for p in points], [p.g for p in points], weights))
-    except ValueError:  # fewer than two points
-        model = None
+    model = _fit([*s1.points, *second], p1, p2)
+    for _ in range(2 if correct is not None else 0):
+        if model is None:
+            break
+        first, later = correct(model)  # the transients' leakage taken out, using the model
+        if not first or (second and not later):
+            break
+        p1, p2 = first[0], (later[0] if second else first[0])
+        model = _fit([*first, *later], p1, p2) or model
     crossing = _model_crossing(model, p1, p2) if model is not None else None
     if crossing is not None and not _plausible(crossing, p1, p2):
         crossing = None
