@@ -5,7 +5,13 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy import signal
 
-from services.plant_sim.lti import split_delay
+from services.plant_sim.lti import (
+    DelayedLinearSystem,
+    discretize,
+    simulate,
+    split_delay,
+    tf_to_ss,
+)
 from services.plant_sim.models import (
     FirstOrderPlusDeadTime,
     IntegratingPlusDeadTime,
@@ -117,3 +123,23 @@ def test_bad_transfer_functions_name_the_field(kwargs, field):
     with pytest.raises(ModelParamError) as err:
         TransferFunctionModel(0.1, **kwargs)
     assert err.value.field == field
+
+
+@pytest.mark.parametrize(
+    ("num", "den", "delay", "ts"),
+    [
+        ([6.0], [1.0, 6.0, 11.0, 6.0], 0.0, 0.01),
+        ([1.0], [600.0, 70.0, 1.0], 5.3, 0.25),  # fractional dead time
+        ([1.0], [1.0, 0.0], 1.05, 0.1),  # integrator
+        ([-1.0, 1.0], [1.0, 3.0, 3.0, 1.0], 0.37, 0.05),  # right-half-plane zero
+        ([2.0, 1.0], [1.0, 1.0], 0.0, 0.1),  # feed-through
+    ],
+)
+def test_vectorised_simulation_matches_the_step_by_step_system(num, den, delay, ts):
+    sys = discretize(*tf_to_ss(num, den), ts, delay)
+    u = np.random.default_rng(0).standard_normal(2000)
+    stepper = DelayedLinearSystem(sys)
+    expected = np.array([0.0] + [stepper.step(x) for x in u])
+    got = simulate(sys, u)
+    assert got.shape == expected.shape
+    assert np.max(np.abs(got - expected)) <= 1e-9 * np.max(np.abs(expected))

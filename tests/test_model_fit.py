@@ -52,3 +52,36 @@ def test_a_third_order_plant_gets_a_second_order_model_that_fits_near_the_crosso
 def test_too_few_points_are_refused():
     with pytest.raises(ValueError, match="two frequency points"):
         fit_models([1.0], [0.5 + 0j])
+
+
+def test_the_process_model_never_passes_a_candidate_the_true_plant_would_fail():
+    """Every candidate that the relay's process model (refined on the whole record) puts
+    within the recommender's margin is within the Ms bound on the true plant."""
+    from services.autotuner.recommend import MODEL_MARGIN, MS_BOUND, assess
+    from services.autotuner.robustness import robustness
+    from services.autotuner.rules import UltimatePoint
+    from tests.test_experiments import HX, THIRD, run_relay
+
+    passed = 0
+    for num, den, delay, ts in (THIRD, HX):
+        r = run_relay(num, den, delay, ts).result
+        assert r.model is not None
+        for name, a in assess(UltimatePoint(r.ku, r.pu), r.model).items():
+            if a.within(MODEL_MARGIN * MS_BOUND):
+                passed += 1
+                assert robustness(a.gains, num, den, delay).ms <= MS_BOUND, name
+    assert passed >= 3
+
+
+def test_recommendation_is_stable_with_ms_within_the_bound_on_the_true_plant():
+    from services.autotuner.recommend import recommend
+    from services.autotuner.robustness import robustness
+    from services.autotuner.rules import UltimatePoint
+    from tests.test_experiments import HX, THIRD, run_relay
+
+    for num, den, delay, ts in (THIRD, HX):
+        r = run_relay(num, den, delay, ts).result
+        rec = recommend(UltimatePoint(r.ku, r.pu), r.model)
+        true = robustness(rec.gains, num, den, delay)
+        assert true.gain_margin > 1 and true.phase_margin_deg > 0
+        assert true.ms <= 2.0, (rec.rule, true.ms)

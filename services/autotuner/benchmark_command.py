@@ -67,6 +67,9 @@ def summary(outcomes: list[benchmark.TuneOutcome], max_noise: float = 0.01) -> d
             if vals.size:
                 row[f"{key}_median"] = float(np.median(vals))
                 row[f"{key}_worst"] = float(np.max(vals))
+        extra = [o.periods - o.periods_classic for o in ok if math.isfinite(o.periods_classic)]
+        if extra:
+            row["extra_periods_worst"] = max(extra)  # stage 2, in P_u
         recs = [o for o in ok if o.recommended]
         row["recommended_unstable"] = sum(not o.recommended_stable for o in recs)
         row["recommended_ms_worst"] = max((o.recommended_ms for o in recs), default=math.nan)
@@ -134,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
                 line += (
                     f"; {label} {100 * s[f'{key}_median']:.2f} % / {100 * s[f'{key}_worst']:.2f} %"
                 )
+        if "extra_periods_worst" in s:
+            line += f"; stage 2 adds at most {s['extra_periods_worst']:.2f} P_u"
         line += (
             f"; recommended gains unstable on {s['recommended_unstable']}, "
             f"worst Ms {s['recommended_ms_worst']:.2f}"

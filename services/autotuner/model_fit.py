@@ -24,6 +24,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from services.autotuner.frequency import ultimate_point
+from services.plant_sim.lti import discretize, simulate, tf_to_ss
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,14 @@ class ProcessFit:
     gain: float  # K: PV units per % (IPDT: PV units per % per second)
     lags: tuple[float, ...]  # time constants, s (none for IPDT)
     delay: float  # L, s
-    rms: float  # weighted rms of the log residual (nepers ≈ radians)
+    rms: float  # weighted rms of the log residual (nepers ≈ radians); on a record: see there
+    noise_rms: float = 0.0  # the rms the measurement noise alone would leave (record fits)
+
+    @property
+    def approximate(self) -> bool:
+        """The fit leaves clearly more than the noise: the plant is outside the model's
+        class, so what the model predicts away from the measured points is less certain."""
+        return self.rms > max(2.0 * self.noise_rms, 0.02)
 
     @property
     def num(self) -> list[float]:
@@ -160,3 +168,64 @@ def choose(fits: Sequence[ProcessFit]) -> ProcessFit | None:
     if sopdt is None or best_simple.rms <= max(2.0 * sopdt.rms, 1e-3):
         return best_simple
     return sopdt
+
+
+def _params(fit: ProcessFit) -> np.ndarray:
+    return np.array([math.log(fit.gain), *(math.log(t) for t in fit.lags), fit.delay])
+
+
+def _from_params(kind: str, x: np.ndarray, rms: float) -> ProcessFit:
+    lags = tuple(sorted((math.exp(v) for v in x[1:-1]), reverse=True))
+    return ProcessFit(kind, math.exp(x[0]), lags, float(x[-1]), rms)
+
+
+def response_to(fit: ProcessFit, sample_time: float, u: np.ndarray) -> np.ndarray:
+    """The model's sampled response from rest to the held output deviations ``u``: element
+    k is the PV deviation at sample k (so element 0 is 0)."""
+    sys = discretize(*tf_to_ss(fit.num, fit.den), sample_time, fit.delay)
+    return simulate(sys, u)[: len(u)]
+
+
+def refine_on_record(
+    start: ProcessFit, sample_time: float, u: np.ndarray, y: np.ndarray
+) -> ProcessFit | None:
+    """The model of ``start``'s kind that best reproduces a whole record (output error, least
+    squares), starting from ``start``. ``u``: output deviations held from each sample; ``y``:
+    PV deviations at the samples, both from a rest at the record's start. The record carries
+    what the frequency points cannot: the slow response, and so the static gain.
+
+    The returned ``rms`` is the residual's rms over the PV's standard deviation."""
+    u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    scale = float(np.std(y)) or 1.0
+    w0 = 1.0 / max(start.delay + start.lag if start.lags else start.delay, sample_time)
+    n_lags = len(start.lags)
+    lo = np.array([-60.0] + [math.log(sample_time / 100)] * n_lags + [0.0])
+    hi = np.array([60.0] + [math.log(1e6 / w0)] * n_lags + [len(u) * sample_time / 2])
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        try:
+            return (response_to(_from_params(start.kind, x, 0.0), sample_time, u) - y) / scale
+        except (ValueError, np.linalg.LinAlgError, OverflowError):
+            return np.full(y.size, 1e3)
+
+    x0 = np.clip(_params(start), lo + 1e-9, hi - 1e-9)
+    try:
+        sol = least_squares(residual, x0, bounds=(lo, hi), x_scale="jac", max_nfev=100)
+    except (ValueError, FloatingPointError, OverflowError):
+        return None
+    if not np.all(np.isfinite(sol.x)):
+        return None
+    return _from_params(start.kind, sol.x, math.sqrt(2.0 * sol.cost / y.size))
+
+
+def choose_on_record(fits: Sequence[ProcessFit], samples: int) -> ProcessFit | None:
+    """The fit with the least Bayesian information criterion N·ln(rms²) + p·ln N: more
+    parameters must earn their place."""
+    if not fits:
+        return None
+
+    def bic(f: ProcessFit) -> float:
+        p = 2 + len(f.lags)
+        return samples * math.log(max(f.rms, 1e-12) ** 2) + p * math.log(samples)
+
+    return min(fits, key=bic)

@@ -21,6 +21,9 @@ from services.autotuner.rules import RULES, UltimatePoint, apply_rules
 
 MS_BOUND = 2.0
 MODEL_MARGIN = 0.9  # recommend only below 0.9 × the bound: the model is an approximation
+# … and below 0.75 × the bound for PID on a model that fits clearly worse than the noise allows:
+# the derivative acts where such a model is least certain (a zero approximated by a delay)
+APPROXIMATE_PID_MARGIN = 0.75
 FALLBACK = "tl-pi"
 
 
@@ -70,10 +73,15 @@ def recommend(
 ) -> Recommendation | None:
     candidates = assess(ultimate, model)
     if model is not None:
+
+        def margin(rule: str) -> float:
+            pid = RULES[rule].controller == "PID"
+            return APPROXIMATE_PID_MARGIN if pid and model.approximate else MODEL_MARGIN
+
         ok = [
             a
             for a in candidates.values()
-            if a.within(MODEL_MARGIN * ms_bound) and RULES[a.rule].controller != "P"
+            if RULES[a.rule].controller != "P" and a.within(margin(a.rule) * ms_bound)
         ]
         if ok:
             best = max(ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
@@ -81,8 +89,22 @@ def recommend(
                 best.rule,
                 best.gains,
                 best.robustness.ms if best.robustness else None,
-                f"largest integral gain with Ms ≤ {MODEL_MARGIN * ms_bound:.2g} on the "
+                f"largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g} on the "
                 f"identified {model.kind.upper()} model",
+            )
+        judged = [
+            a
+            for a in candidates.values()
+            if RULES[a.rule].controller != "P" and a.stable and a.robustness is not None
+        ]
+        safest = min(judged, key=lambda a: a.robustness.ms, default=None)
+        if safest is not None and safest.robustness.ms <= ms_bound:
+            return Recommendation(
+                safest.rule,
+                safest.gains,
+                safest.robustness.ms,
+                f"the most robust candidate on the identified {model.kind.upper()} model "
+                f"(none within the margin Ms ≤ {MODEL_MARGIN * ms_bound:.2g})",
             )
     fallback = candidates.get(FALLBACK)
     if fallback is None:

@@ -21,6 +21,7 @@ its limits.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,7 +30,13 @@ import numpy as np
 from scipy.optimize import brentq
 
 from services.autotuner.fourier import FrequencyPoint, frequency_points
-from services.autotuner.model_fit import ProcessFit, choose, fit_models
+from services.autotuner.model_fit import (
+    ProcessFit,
+    choose,
+    choose_on_record,
+    fit_models,
+    refine_on_record,
+)
 from services.autotuner.reaction_curve import at_rest, noise_level
 from services.plant_sim.models import TransferFunctionModel
 
@@ -132,6 +139,7 @@ class RelayTest:
         self._switch_armed = True  # the next switch may happen (stage 2's lead needs a lockout)
         self._margin = 0.0  # how far past the opposite level the PV must go to arm a switch
         self._cross_margin = 0.0  # how far below r the PV must go to arm a cycle's crossing
+        self._agreement = self.config.tolerance  # asked of the cycles (wider with noise)
         self._low = 1.0  # the low output is b − low·d (stage 2: the bias)
         self._stage1: _StageOne | None = None
 
@@ -296,7 +304,7 @@ class RelayTest:
             a_spread = _spread([c.amplitude for c in recent])
             # noise scatters each cycle's period and amplitude by about σ/a: the Fourier
             # points average it out, so the agreement asked for is no tighter than that
-            tol = max(
+            tol = self._agreement = max(
                 self.config.tolerance, 2.0 * self._noise / np.mean([c.amplitude for c in recent])
             )
             if pu_spread <= tol and a_spread <= tol:
@@ -311,7 +319,7 @@ class RelayTest:
                 "aborted",
                 (
                     f"the last {n} of {len(self.cycles)} cycles still differ by more than "
-                    f"{self.config.tolerance:.0%}"
+                    f"{self._agreement:.0%}"
                 ),
             )
 
@@ -431,6 +439,22 @@ class RelayTest:
 
         return correct
 
+    def _process_model(self, candidates: tuple[ProcessFit, ...]) -> ProcessFit | None:
+        """The process model for rules and robustness: each model fitted to the frequency
+        points, refined on the whole record from rest (which adds the slow response and the
+        static gain), the best by its information criterion."""
+        y = np.asarray(self.pv) - self._r
+        u = np.asarray([*self.op, self._out()][: y.size]) - self.op_start
+        refined = [
+            f
+            for start in candidates
+            if (f := refine_on_record(start, self.sample_time, u, y)) is not None
+        ]
+        best = choose_on_record(refined, y.size)
+        if best is None:
+            return choose(candidates)
+        return dataclasses.replace(best, noise_rms=self._noise / (float(np.std(y)) or 1.0))
+
     def _finish(self, stage_two: bool = True) -> None:
         s1 = self._stage1
         assert s1 is not None
@@ -455,6 +479,7 @@ class RelayTest:
                 )
         if refined is None and s1.points:  # stage 2 missing: the model from stage 1 alone
             refined = _refine(s1, (), (math.nan, math.nan), self._corrector(s1, None))
+        model = self._process_model(refined.candidates) if refined else None
         ku, pu = (refined.ku, refined.pu) if refined else (s1.ku, s1.pu)
         self.result = RelayResult(
             ku=ku,
@@ -474,7 +499,7 @@ class RelayTest:
             stage_one_cycles=s1.cycles,
             second=refined.points if refined else (),
             static_gain=refined.static_gain if refined else None,
-            model=refined.model if refined else None,
+            model=model,
         )
         self.phase = "done"
         t_done = self.cycles[-1].t_start + self.cycles[-1].period
@@ -510,6 +535,7 @@ class _Refined:
     points: tuple[FrequencyPoint, ...]
     static_gain: float | None
     model: ProcessFit | None = None
+    candidates: tuple[ProcessFit, ...] = ()  # every model fitted to the points
 
 
 def _g_scatter(values: list[complex]) -> float:
@@ -523,12 +549,12 @@ Points = tuple[FrequencyPoint, ...]
 Corrector = Callable[[ProcessFit], tuple[Points, Points]]
 
 
-def _fit(points: list[FrequencyPoint], p1: FrequencyPoint, p2: FrequencyPoint) -> ProcessFit | None:
+def _fits(points: list[FrequencyPoint], p1: FrequencyPoint, p2: FrequencyPoint) -> list[ProcessFit]:
     weights = [10.0 if p in (p1, p2) else 1.0 / max(1.0, p.omega / p1.omega - 2.0) for p in points]
     try:
-        return choose(fit_models([p.omega for p in points], [p.g for p in points], weights))
+        return fit_models([p.omega for p in points], [p.g for p in points], weights)
     except ValueError:  # fewer than two points
-        return None
+        return []
 
 
 def _refine(
@@ -547,7 +573,8 @@ def _refine(
     """
     p1, p2 = s1.points[0], (second[0] if second else s1.points[0])
     linear = _linear_crossing(p1, p2) if second else (1.0 / p1.magnitude, 2.0 * math.pi / p1.omega)
-    model = _fit([*s1.points, *second], p1, p2)
+    fits = _fits([*s1.points, *second], p1, p2)
+    model = choose(fits)
     for _ in range(2 if correct is not None else 0):
         if model is None:
             break
@@ -555,7 +582,8 @@ def _refine(
         if not first or (second and not later):
             break
         p1, p2 = first[0], (later[0] if second else first[0])
-        model = _fit([*first, *later], p1, p2) or model
+        fits = _fits([*first, *later], p1, p2) or fits
+        model = choose(fits) or model
     crossing = _model_crossing(model, p1, p2) if model is not None else None
     if crossing is not None and not _plausible(crossing, p1, p2):
         crossing = None
@@ -573,6 +601,7 @@ def _refine(
         points=second,
         static_gain=gain,
         model=model,
+        candidates=tuple(fits),
     )
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import expm
-from scipy.signal import tf2ss
+from scipy.signal import lfilter, tf2ss
 
 # A delay within this many sample periods of a whole number is taken as that whole number:
 # it only absorbs floating-point error in θ/T (e.g. 0.3/0.1), it never rounds a real fraction.
@@ -161,3 +161,30 @@ class DelayedLinearSystem:
                 + self.sys.gamma_old[:, 0] * u_old
             )
         return self.output()
+
+
+def simulate(sys: DiscreteDelaySystem, u: np.ndarray) -> np.ndarray:
+    """The whole response at once, from rest: y[0] = 0 and y[k+1] the output after holding
+    u[k] for a period — the same samples as ``DelayedLinearSystem.step``, via ``lfilter``
+    (for fitting models to a record, where thousands of steps run per evaluation)."""
+    u = np.asarray(u, dtype=float)
+    n = sys.delay_samples
+    late = np.concatenate((np.zeros(n), u))[: u.size + 1]  # u[k−n] at index k
+    early = np.concatenate((np.zeros(n + 1), u))[: u.size + 1]  # u[k−n−1]
+    if late.size < u.size + 1:
+        late = np.append(late, 0.0)
+    y = sys.d * early  # y[k] = C x[k] + D u[k−1−n]; x[k+1] = Φ x[k] + Γ_new u[k−n] + …
+    if sys.order:
+        den = np.poly(sys.phi)
+        for gamma, v in ((sys.gamma_new, late), (sys.gamma_old, early)):
+            if not np.any(gamma):
+                continue
+            num = _numerator(sys.phi, gamma[:, 0], sys.c[0], den)
+            y = y + lfilter(num, den, v)
+    return y
+
+
+def _numerator(phi: np.ndarray, gamma: np.ndarray, c: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """Numerator of C (zI − Φ)⁻¹ Γ over det(zI − Φ), in powers of z⁻¹ (a leading zero)."""
+    # C adj(zI − Φ) Γ = det(zI − Φ + Γ C) − det(zI − Φ) (matrix determinant lemma)
+    return np.poly(phi - np.outer(gamma, c)) - den
