@@ -210,7 +210,9 @@ class TuneRequest(Message):
 
     loop: LoopId
     method: Method = "relay"
-    rule: str = Field(default="zn-pid", min_length=1, max_length=32)
+    rule: str = Field(
+        default="auto", min_length=1, max_length=32, description="auto: the recommended rule"
+    )
     amplitude: float | None = Field(default=None, gt=0.0, le=50.0, description="relay d, %")
     hysteresis: float | None = Field(default=None, ge=0.0, description="relay ε, PV units")
     cycles: int = Field(default=3, ge=2, le=20, description="relay cycles that must agree")
@@ -222,6 +224,12 @@ class TuneRequest(Message):
     max_time: float | None = Field(default=None, gt=0.0, description="experiment budget, sim s")
     verify: bool = True
     apply: bool = True
+    force: bool = Field(
+        default=False, description="apply gains even if predicted unstable or above ms_bound"
+    )
+    ms_bound: float = Field(
+        default=2.0, gt=1.0, le=10.0, description="refuse gains whose predicted Ms exceeds it"
+    )
     source: str = Field(default="operator", max_length=64)
 
 
@@ -291,6 +299,14 @@ class TuneResult(Message):
     ku_spread: float | None = None
     pu_spread: float | None = None
     l_over_t: float | None = None
+    requested_rule: str | None = None  # "auto" or the rule asked for
+    recommended: dict[str, Any] | None = Field(
+        default=None, description="rule, reason, predicted ms"
+    )
+    robustness: dict[str, dict[str, Any]] = Field(
+        default_factory=dict, description="per rule on the identified model"
+    )
+    warnings: list[str] = Field(default_factory=list)
     step: dict[str, float | int | str | None] | None = Field(
         default=None, description="reaction-curve figures"
     )

@@ -15,7 +15,8 @@ from services.autotuner.forms import (
     to_parallel,
     to_series,
 )
-from services.autotuner.rules import RULES, StepModel, UltimatePoint, apply_rules
+from services.autotuner.model_fit import ProcessFit
+from services.autotuner.rules import RULES, StepModel, UltimatePoint, apply_rules, model_of
 
 KU, PU = 10.0, 2 * math.pi / math.sqrt(11)  # 6/((s+1)(s+2)(s+3)), seed 000
 
@@ -94,7 +95,8 @@ def test_apply_rules_uses_what_is_available():
     closed = apply_rules(UltimatePoint(KU, PU), None)
     assert set(closed) == {n for n, r in RULES.items() if r.kind == "closed"}
     both = apply_rules(UltimatePoint(KU, PU), StepModel(1.0, 2.0, 10.0))
-    assert set(both) == set(RULES)
+    # every rule but the integrating one (T = 10 s is not above 8θ = 16 s)
+    assert set(both) == set(RULES) - {"simc-pi-int"}
 
 
 @pytest.mark.parametrize(
@@ -139,7 +141,7 @@ def test_reset_rate_and_minutes():
 def test_amigo_and_simc(k, t, lag):
     """The formulas as control-references.md gives them (Åström & Hägglund 2006; Skogestad
     2003), written out here independently of the rules module."""
-    m = StepModel(k, lag, t)
+    m = model_of(StepModel(k, lag, t))
     pi, pid, simc = (RULES[n].compute(m) for n in ("amigo-pi", "amigo-pid", "simc-pi"))
     assert pi.kc == pytest.approx(0.15 / k + (0.35 - lag * t / (lag + t) ** 2) * t / (k * lag))
     assert pi.ti == pytest.approx(
@@ -153,5 +155,29 @@ def test_amigo_and_simc(k, t, lag):
 
 def test_amigo_pi_on_a_pure_delay_is_the_textbook_limit():
     """For T → 0 (pure delay) AMIGO PI tends to K = 0.15/K_p and Ti = 0.35 L."""
-    g = RULES["amigo-pi"].compute(StepModel(2.0, 1.0, 1e-9))
+    g = RULES["amigo-pi"].compute(model_of(StepModel(2.0, 1.0, 1e-9)))
     assert g.kc == pytest.approx(0.075, rel=1e-6) and g.ti == pytest.approx(0.35, rel=1e-6)
+
+
+@pytest.mark.parametrize(("k", "t1", "t2", "th"), [(1.0, 60.0, 10.0, 5.0), (2.0, 3.0, 1.0, 1.0)])
+def test_simc_pid_is_the_series_form_of_skogestad_2003(k, t1, t2, th):
+    """Series PID Kc' = τ₁/(k·2θ), τI' = min(τ₁, 8θ), τD' = τ₂ (Skogestad 2003, Table 3;
+    Grimholt & Skogestad 2018): the ISA gains give the same controller at every frequency."""
+    g = RULES["simc-pid"].compute(ProcessFit("sopdt", k, (t1, t2), th, 0.0))
+    kc_s, ti_s, td_s = t1 / (k * 2 * th), min(t1, 8 * th), t2
+    for w in (0.01, 0.1, 1.0, 10.0):
+        s = 1j * w
+        series = kc_s * (1 + 1 / (ti_s * s)) * (1 + td_s * s)
+        isa = g.kc * (1 + 1 / (g.ti * s) + g.td * s)
+        assert isa == pytest.approx(series, rel=1e-12)
+
+
+def test_simc_for_integrating_processes():
+    """Kc = 1/(k'·2θ), Ti = 8θ for k'·e^{−θs}/s (Skogestad 2003, Table 3), also for a
+    first-order model lag-dominated enough (τ₁ > 8θ) to count as integrating, k' = k/τ₁."""
+    g = RULES["simc-pi-int"].compute(ProcessFit("ipdt", 0.5, (), 2.0, 0.0))
+    assert g.kc == pytest.approx(1 / (0.5 * 4.0)) and g.ti == pytest.approx(16.0)
+    g = RULES["simc-pi-int"].compute(ProcessFit("fopdt", 10.0, (100.0,), 2.0, 0.0))
+    assert g.kc == pytest.approx(1 / (0.1 * 4.0)) and g.ti == pytest.approx(16.0)
+    with pytest.raises(ValueError, match="not an integrating"):
+        RULES["simc-pi-int"].compute(ProcessFit("fopdt", 1.0, (10.0,), 2.0, 0.0))

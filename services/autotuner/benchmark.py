@@ -26,10 +26,10 @@ from scipy.optimize import brentq
 from services.autotuner import experiments
 from services.autotuner.forms import IsaGains
 from services.autotuner.frequency import ultimate_point
-from services.autotuner.recommend import recommend
+from services.autotuner.recommend import assess, recommend
 from services.autotuner.relay import RelayTest
 from services.autotuner.robustness import robustness
-from services.autotuner.rules import UltimatePoint
+from services.autotuner.rules import UltimatePoint, apply_rules
 from services.plant_sim.models import TransferFunctionModel
 from services.plant_sim.plant_file import build_plant
 from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand, TuneRequest
@@ -234,7 +234,9 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
 def _recommendation(plant: Plant, ku: float, pu: float, model) -> dict:
     """The recommended rule's gains (chosen on the identified model, as live), judged on the
     true plant: Ms and stability."""
-    rec = recommend(UltimatePoint(ku, pu), model)
+    ultimate = UltimatePoint(ku, pu)
+    candidates = assess(ultimate, model, apply_rules(ultimate, None, model))
+    rec = recommend(ultimate, model, candidates=candidates)
     if rec is None:
         return {}
     rb = robustness(rec.gains, list(plant.num), list(plant.den), plant.delay)

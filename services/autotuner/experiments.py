@@ -11,9 +11,10 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from services.autotuner.model_fit import ProcessFit
 from services.autotuner.ramp import RampConfig, RampTest
 from services.autotuner.relay import RelayConfig, RelayTest
-from services.autotuner.rules import StepModel
+from services.autotuner.rules import StepModel, model_of
 from services.autotuner.step_test import StepTest, StepTestConfig
 from shared.messages import ProcessSample, TuneRequest
 
@@ -34,6 +35,7 @@ class Identification:
     pu_spread: float | None = None
     step: dict | None = None
     step_model: StepModel | None = None
+    model: ProcessFit | None = None  # the process model fitted to the test (relay, step)
     experiment: dict | None = None
     timescale: float = 0.0  # s: the loop's natural period, for verification windows
     noise: float = 0.0
@@ -131,6 +133,7 @@ def identification(machine: Experiment) -> Identification | None:
             timescale=r.pu,
             noise=r.noise_std,
             rest_pv=r.rest_pv,
+            model=r.model,
         )
     if isinstance(machine, RampTest):
         r = machine.result
@@ -158,6 +161,7 @@ def identification(machine: Experiment) -> Identification | None:
     return Identification(
         step=rc.to_dict(),
         step_model=StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent),
+        model=model_of(StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)),
         experiment={"step_size": rc.step_size, "method": rc.method},
         timescale=4 * rc.dead_time + rc.time_constant_63,
         noise=rc.noise_std,

@@ -6,7 +6,7 @@ Ms within the bound (default 2.0, with a margin for the model's own error), the 
 the largest integral gain Kc/Ti wins — the AMIGO design criterion: the best rejection of load
 disturbances that the robustness allows (Åström & Hägglund, *Advanced PID Control*, 2006,
 §7.3). Without a model, Tyreus–Luyben PI (Ms about 1.5–1.6 on FOPDT plants, see
-control-references.md) is the safe default.
+control-references.md) is the safe default (AMIGO PI after a step test, designed for Ms ≈ 1.4).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from services.autotuner.closed_loop import StepFigures, setpoint_step
 from services.autotuner.forms import IsaGains
 from services.autotuner.model_fit import ProcessFit
 from services.autotuner.robustness import Robustness, robustness
@@ -24,7 +25,7 @@ MODEL_MARGIN = 0.9  # recommend only below 0.9 × the bound: the model is an app
 # … and below 0.75 × the bound for PID on a model that fits clearly worse than the noise allows:
 # the derivative acts where such a model is least certain (a zero approximated by a delay)
 APPROXIMATE_PID_MARGIN = 0.75
-FALLBACK = "tl-pi"
+FALLBACKS = ("tl-pi", "amigo-pi", "simc-pi-int")  # robust by design, in this order
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,22 @@ class Assessment:
     rule: str
     gains: IsaGains
     robustness: Robustness | None  # on the identified model (None without one)
+    step: StepFigures | None = None  # the closed loop's setpoint step on the model
+
+    def to_dict(self) -> dict[str, float | bool | None]:
+        rb, st = self.robustness, self.step
+        if rb is None:
+            return {}
+        out: dict[str, float | bool | None] = {
+            "ms": rb.ms,
+            "gain_margin": rb.gain_margin if math.isfinite(rb.gain_margin) else None,
+            "phase_margin_deg": rb.phase_margin_deg if math.isfinite(rb.phase_margin_deg) else None,
+            "stable": self.stable,
+        }
+        if st is not None:
+            out["overshoot_pct"] = st.overshoot if math.isfinite(st.overshoot) else None
+            out["decay_ratio"] = st.decay_ratio if math.isfinite(st.decay_ratio) else None
+        return out
 
     @property
     def stable(self) -> bool | None:
@@ -44,19 +61,29 @@ class Assessment:
 
 
 def assess(
-    ultimate: UltimatePoint, model: ProcessFit | None, gains: dict[str, IsaGains] | None = None
+    ultimate: UltimatePoint | None,
+    model: ProcessFit | None,
+    gains: dict[str, IsaGains] | None = None,
+    simulate: bool = False,
+    sample_time: float | None = None,
 ) -> dict[str, Assessment]:
-    """Every candidate's robustness on the model (rules needing K_u and P_u unless given)."""
+    """Every candidate's robustness on the model (rules needing K_u and P_u unless given),
+    and with ``simulate`` its closed-loop setpoint step at the loop's sample time."""
     gains = apply_rules(ultimate, None) if gains is None else gains
+    timescale = ultimate.pu if ultimate else (model.delay + model.lag if model else 0.0)
+    if not math.isfinite(timescale) or timescale <= 0:
+        timescale = 10.0 * model.delay if model else 0.0
     out = {}
     for name, g in gains.items():
-        rb = None
+        rb, st = None, None
         if model is not None:
             try:
                 rb = robustness(g, model.num, model.den, model.delay)
             except (ValueError, ArithmeticError):
                 rb = None
-        out[name] = Assessment(name, g, rb)
+            if simulate and rb is not None and timescale > 0:
+                st = setpoint_step(g, model, timescale, sample_time)
+        out[name] = Assessment(name, g, rb, st)
     return out
 
 
@@ -69,9 +96,14 @@ class Recommendation:
 
 
 def recommend(
-    ultimate: UltimatePoint, model: ProcessFit | None, ms_bound: float = MS_BOUND
+    ultimate: UltimatePoint | None,
+    model: ProcessFit | None,
+    ms_bound: float = MS_BOUND,
+    candidates: dict[str, Assessment] | None = None,
 ) -> Recommendation | None:
-    candidates = assess(ultimate, model)
+    """The rule to apply by default (see the module's docstring); ``candidates`` as
+    ``assess`` gives them (every ultimate-point rule if not given)."""
+    candidates = assess(ultimate, model) if candidates is None else candidates
     if model is not None:
 
         def margin(rule: str) -> float:
@@ -106,12 +138,12 @@ def recommend(
                 f"the most robust candidate on the identified {model.kind.upper()} model "
                 f"(none within the margin Ms ≤ {MODEL_MARGIN * ms_bound:.2g})",
             )
-    fallback = candidates.get(FALLBACK)
+    fallback = next((candidates[r] for r in FALLBACKS if r in candidates), None)
     if fallback is None:
         return None
     rb = fallback.robustness
     return Recommendation(
-        FALLBACK,
+        fallback.rule,
         fallback.gains,
         rb.ms if rb else None,
         "no model to judge the candidates on: the robust default"

@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from services.autotuner.forms import IsaGains
+from services.autotuner.model_fit import ProcessFit
 
 
 @dataclass(frozen=True)
@@ -44,7 +45,7 @@ class StepModel:
 @dataclass(frozen=True)
 class Rule:
     name: str
-    kind: str  # "closed" (needs K_u, P_u) or "open" (needs a step model)
+    kind: str  # "closed" (K_u, P_u), "open" (a step test) or "model" (a fitted model)
     controller: str  # "P", "PI", "PID"
     source: str
     compute: Callable[..., IsaGains]
@@ -153,6 +154,60 @@ def _simc_pi(m: StepModel) -> IsaGains:
     return IsaGains(tau / (k * 2.0 * th), min(tau, 8.0 * th))
 
 
+def fopdt_of(m: ProcessFit) -> StepModel:
+    """The first-order-plus-dead-time equivalent of a fitted model: a SOPDT by Skogestad's
+    half rule (half of τ₂ to the lag, half to the delay; J. Process Control 13, 2003, §3)."""
+    if m.kind == "ipdt":
+        raise ValueError("an integrating model has no first-order equivalent")
+    t2 = m.lags[1] if len(m.lags) > 1 else 0.0
+    return StepModel(m.gain, m.delay + t2 / 2.0, m.lags[0] + t2 / 2.0)
+
+
+def model_of(step: StepModel) -> ProcessFit:
+    """The step test's reaction curve as a first-order-plus-dead-time model."""
+    return ProcessFit("fopdt", step.gain, (step.time_constant,), step.dead_time, 0.0)
+
+
+def _on_fopdt(rule: Callable[[StepModel], IsaGains]) -> Callable[[ProcessFit], IsaGains]:
+    def on_model(m: ProcessFit) -> IsaGains:
+        return rule(fopdt_of(m))
+
+    on_model.__doc__ = rule.__doc__
+    return on_model
+
+
+def _simc_pid(m: ProcessFit) -> IsaGains:
+    """SIMC PID with τc = θ for k·e^{−θs}/((τ₁s+1)(τ₂s+1)) (Skogestad 2003, Table 3; Grimholt
+    & Skogestad 2018): series form Kc' = τ₁/(k·2θ), τI' = min(τ₁, 8θ), τD' = τ₂, given here
+    in ISA form (Kc = Kc'(1 + τD'/τI'), Ti = τI' + τD', Td = τI'τD'/(τI' + τD')). A first-order
+    model gives τD' = 0: SIMC PI."""
+    if m.kind == "ipdt":
+        raise ValueError("SIMC PID needs a self-regulating model; use simc-pi-int")
+    k, th = m.gain, m.delay
+    t1, t2 = m.lags[0], (m.lags[1] if len(m.lags) > 1 else 0.0)
+    if th <= 0:
+        raise ValueError("SIMC with τc = θ needs a dead time θ > 0")
+    kc_s, ti_s = t1 / (k * 2.0 * th), min(t1, 8.0 * th)
+    f = 1.0 + t2 / ti_s
+    return IsaGains(kc_s * f, ti_s + t2, ti_s * t2 / (ti_s + t2))
+
+
+def _simc_pi_int(m: ProcessFit) -> IsaGains:
+    """SIMC PI with τc = θ for an integrating process k'·e^{−θs}/s (a level; Skogestad 2003,
+    Table 3): Kc = 1/(k'·2θ), Ti = 8θ. A first-order model with τ₁ > 8θ is integrating over
+    the closed loop's time scale, k' = k/τ₁ (ibid., §4.3)."""
+    th = m.delay
+    if m.kind == "ipdt":
+        k_int = m.gain
+    elif m.lags and m.lags[0] > 8.0 * th:
+        k_int = m.gain / m.lags[0]
+    else:
+        raise ValueError("not an integrating process (τ₁ ≤ 8θ): use simc-pi")
+    if th <= 0:
+        raise ValueError("SIMC with τc = θ needs a dead time θ > 0")
+    return IsaGains(1.0 / (k_int * 2.0 * th), 8.0 * th)
+
+
 def _half(rule: Callable[..., IsaGains]) -> Callable[..., IsaGains]:
     def halved(x: UltimatePoint | StepModel) -> IsaGains:
         g = rule(x)
@@ -160,6 +215,8 @@ def _half(rule: Callable[..., IsaGains]) -> Callable[..., IsaGains]:
 
     return halved
 
+
+ZN_STEP_RANGE = (0.15, 0.6)  # L/T where the ZN step-response rules work (seed 000)
 
 _ZN_SRC = "Ziegler & Nichols 1942 (seeds 000, 002, 003)"
 _OL_SRC = "Ziegler & Nichols 1942, reaction curve (seeds 000, 001, 002, 003)"
@@ -184,18 +241,34 @@ RULES: dict[str, Rule] = {
         Rule("cc-p", "open", "P", "Cohen & Coon 1953 (seed 003)", _cc_p),
         Rule("cc-pi", "open", "PI", "Cohen & Coon 1953 (seed 003)", _cc_pi),
         Rule("cc-pid", "open", "PID", "Cohen & Coon 1953 (seed 003)", _cc_pid),
-        Rule("amigo-pi", "open", "PI", "Åström & Hägglund 2006, AMIGO", _amigo_pi),
-        Rule("amigo-pid", "open", "PID", "Åström & Hägglund 2006, AMIGO", _amigo_pid),
-        Rule("simc-pi", "open", "PI", "Skogestad 2003, SIMC with τc = θ", _simc_pi),
+        Rule("amigo-pi", "model", "PI", "Åström & Hägglund 2006, AMIGO", _on_fopdt(_amigo_pi)),
+        Rule("amigo-pid", "model", "PID", "Åström & Hägglund 2006, AMIGO", _on_fopdt(_amigo_pid)),
+        Rule("simc-pi", "model", "PI", "Skogestad 2003, SIMC with τc = θ", _on_fopdt(_simc_pi)),
+        Rule("simc-pid", "model", "PID", "Skogestad 2003, SIMC with τc = θ", _simc_pid),
+        Rule(
+            "simc-pi-int",
+            "model",
+            "PI",
+            "Skogestad 2003, SIMC for integrating processes, τc = θ",
+            _simc_pi_int,
+        ),
     )
 }
 
 
-def apply_rules(ultimate: UltimatePoint | None, step: StepModel | None) -> dict[str, IsaGains]:
-    """Every rule the available identification supports, by name."""
+def apply_rules(
+    ultimate: UltimatePoint | None,
+    step: StepModel | None,
+    model: ProcessFit | None = None,
+) -> dict[str, IsaGains]:
+    """Every rule the available identification supports, by name. Model rules (AMIGO, SIMC)
+    take the fitted model, or else the step test's reaction curve as a first-order model."""
+    if model is None and step is not None:
+        model = model_of(step)
+    sources = {"closed": ultimate, "open": step, "model": model}
     out: dict[str, IsaGains] = {}
     for name, rule in RULES.items():
-        source = ultimate if rule.kind == "closed" else step
+        source = sources[rule.kind]
         if source is None:
             continue
         try:

@@ -7,14 +7,13 @@ import json
 import sys
 
 from services.autotuner.loop_client import LoopClient, wait_for_loop
+from services.autotuner.rules import ZN_STEP_RANGE
 from services.autotuner.step_test import StepTest, StepTestConfig, StepTestReport, run_step_test
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import ConfigError
 from shared.session import open_session, settings_from_args
 
 HELP = "open-loop step test of a loop: process gain, dead time, time constants, R, L, L/T"
-
-ZN_STEP_RANGE = (0.15, 0.6)  # L/T where the ZN step-response rules work (seed 000)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -52,10 +52,23 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--rule",
-        default="zn-pid",
-        choices=list(RULES),
+        default="auto",
+        choices=["auto", *RULES],
         metavar="RULE",
-        help=f"tuning rule to apply: {', '.join(RULES)} (default: %(default)s)",
+        help=f"tuning rule to apply: auto (the recommended rule), {', '.join(RULES)} "
+        "(default: %(default)s)",
+    )
+    parser.add_argument(
+        "--ms-bound",
+        type=float,
+        default=2.0,
+        help="refuse gains whose maximum sensitivity Ms on the identified model exceeds this "
+        "(default: %(default)s)",
+    )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="apply the rule's gains even if predicted unstable or above --ms-bound",
     )
     parser.add_argument("--amplitude", type=float, help="relay amplitude d, %% (default 5)")
     parser.add_argument(
@@ -114,6 +127,8 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
             max_time=args.max_time,
             verify=not args.no_verify,
             apply=not args.no_apply,
+            force=args.force,
+            ms_bound=args.ms_bound,
             source=source,
         )
     except pydantic.ValidationError as err:
@@ -238,15 +253,40 @@ def format_result(r: TuneResult) -> str:
             f"{s['time_constant_tangent']:.4g} s  R = {s['reaction_rate']:.4g}  "
             f"L/T = {s['l_over_t']:.3f}"
         )
+    model = {k: v for k, v in r.experiment.items() if k.startswith("model")}
+    if model:
+        lags = [f"{model[k]:.4g}" for k in sorted(model) if k.startswith("model_lag")]
+        lines.append(
+            f"  model {str(model['model']).upper()}: K = {model['model_gain']:.4g}"
+            + (f"  T = {' , '.join(lags)} s" if lags else "")
+            + f"  L = {model['model_delay']:.4g} s"
+            + (f"  L/T = {r.l_over_t:.3f}" if r.l_over_t is not None else "")
+        )
     if r.gains:
-        lines.append(f"  {'rule':<15}{'Kc':>10}{'Ti (s)':>10}{'Td (s)':>10}{'Ki':>10}{'Kd':>10}")
+        rob = r.robustness
+        lines.append(
+            f"  {'rule':<15}{'Kc':>10}{'Ti (s)':>10}{'Td (s)':>10}{'Ki':>10}{'Kd':>10}"
+            + (f"{'Ms':>7}{'GM':>7}{'PM °':>7}{'OS %':>7}{'DR':>6}" if rob else "")
+        )
         for name, g in r.gains.items():
             isa, par = g["isa"], g["parallel"]
             mark = "←" if name == r.rule else ""
+            a = rob.get(name, {})
+            fig = (
+                f"{_fmt(a.get('ms'), digits=3):>7}{_fmt(a.get('gain_margin'), digits=3):>7}"
+                f"{_fmt(a.get('phase_margin_deg'), digits=3):>7}"
+                f"{_fmt(a.get('overshoot_pct'), digits=3):>7}"
+                f"{_fmt(a.get('decay_ratio'), digits=2):>6}"
+                if a
+                else ""
+            )
             lines.append(
                 f"  {name:<15}{isa['kc']:>10.4g}{_fmt(isa['ti']):>10}"
-                f"{isa['td']:>10.4g}{par['ki']:>10.4g}{par['kd']:>10.4g} {mark}"
+                f"{isa['td']:>10.4g}{par['ki']:>10.4g}{par['kd']:>10.4g}{fig} {mark}"
             )
+    if r.recommended:
+        lines.append(f"  recommended: {r.recommended['rule']} ({r.recommended['reason']})")
+    lines.extend(f"  warning: {w}" for w in r.warnings)
     if r.after is not None:
         rows = [
             ("overshoot %", "overshoot"),

@@ -27,7 +27,8 @@ from services.autotuner.forms import IsaGains, all_forms
 from services.autotuner.loop_client import LoopClient
 from services.autotuner.ramp import RampTest
 from services.autotuner.relay import RelayTest
-from services.autotuner.rules import UltimatePoint, apply_rules, check_rule
+from services.autotuner.rules import check_rule
+from services.autotuner.selection import assessments_dict, select
 from services.autotuner.step_test import StepTest
 from shared.errors import AutotuneError
 from shared.messages import (
@@ -57,6 +58,11 @@ class TuneAborted(AutotuneError):
     """The run stopped before a result; the loop has been restored."""
 
 
+class TuneRefused(AutotuneError):
+    """The identification is done but its gains must not be applied (predicted unstable, Ms
+    above the bound, or the rule not available); the loop is restored."""
+
+
 @dataclass
 class RunHooks:
     """Where a run reports to, and how it is cancelled."""
@@ -79,14 +85,19 @@ def _json_number(v: object) -> object:
 
 def validate_request(req: TuneRequest) -> None:
     """ValueError naming the field when the request cannot be run."""
-    try:
-        rule = check_rule(req.rule)
-    except ValueError as err:
-        raise ValueError(f"rule: {err}") from None
-    wanted = "open" if req.method == "step" else "closed"
-    if rule.kind != wanted:
-        need = "a step test (method step)" if rule.kind == "open" else "K_u and P_u (relay/ramp)"
-        raise ValueError(f"rule: {req.rule} needs {need}, not method {req.method}")
+    if req.rule != "auto":
+        try:
+            rule = check_rule(req.rule)
+        except ValueError as err:
+            raise ValueError(f"rule: {err}; or auto") from None
+        allowed = {"open": ("step",), "closed": ("relay", "ramp"), "model": ("relay", "step")}
+        if req.method not in allowed[rule.kind]:
+            need = {
+                "open": "a step test (method step)",
+                "closed": "K_u and P_u (relay/ramp)",
+                "model": "a process model (relay or step)",
+            }[rule.kind]
+            raise ValueError(f"rule: {req.rule} needs {need}, not method {req.method}")
     if req.pv_limits and not req.pv_limits[0] < req.pv_limits[1]:
         raise ValueError(f"pv_limits: low must be below high, got {list(req.pv_limits)}")
     if req.step_size is not None and not (math.isfinite(req.step_size) and req.step_size != 0):
@@ -161,6 +172,7 @@ class TuningRun:
             "loop": c.loop,
             "method": req.method,
             "rule": req.rule,
+            "requested_rule": req.rule,
             "previous_gains": before.gains,
             "pv_units": self.info.pv_units,
         }
@@ -186,18 +198,30 @@ class TuningRun:
                 pu_spread=ident.pu_spread,
                 step=ident.step,
                 experiment=ident.experiment or {},
-                l_over_t=(ident.step or {}).get("l_over_t"),
             )
-            ultimate = UltimatePoint(ident.ku, ident.pu) if ident.ku else None
-            table = apply_rules(ultimate, ident.step_model)
-            result["gains"] = {name: all_forms(g) for name, g in table.items()}
-            chosen = table[req.rule]
+            sel = select(ident, req.rule, req.ms_bound, req.force, self.ts)
+            rec = sel.recommended
+            result.update(
+                rule=sel.rule or req.rule,
+                l_over_t=sel.l_over_t,
+                gains={name: all_forms(g) for name, g in sel.table.items()},
+                robustness=assessments_dict(sel),
+                recommended=(
+                    {"rule": rec.rule, "reason": rec.reason, "ms": rec.predicted_ms}
+                    if rec
+                    else None
+                ),
+                warnings=sel.warnings,
+            )
+            chosen = sel.chosen
+            if chosen is None or (sel.refusal and req.apply):
+                raise TuneRefused(sel.refusal or "no gains")
             result["chosen"] = all_forms(chosen)
             self._progress(
                 "identified",
                 ku=ident.ku,
                 pu=ident.pu,
-                message=f"{req.rule}: Kc {chosen.kc:.4g}, Ti {_seconds(chosen.ti)}, "
+                message=f"{sel.rule}: Kc {chosen.kc:.4g}, Ti {_seconds(chosen.ti)}, "
                 f"Td {chosen.td:.4g} s",
             )
             if req.apply:
@@ -208,6 +232,9 @@ class TuningRun:
                 restored = True
             status = "ok" if result.get("applied") or not req.apply else "rejected"
             result.update(status=status, restored=restored)
+        except TuneRefused as err:
+            restored = self._restore()
+            result.update(status="rejected", reason=str(err), restored=restored)
         except (TuneAborted, AutotuneError) as err:
             restored = self._restore()
             result.update(status="aborted", reason=str(err), restored=restored)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from services.autotuner import experiments
 from services.autotuner.forms import all_forms
-from services.autotuner.rules import UltimatePoint, apply_rules
+from services.autotuner.selection import Selection, assessments_dict, select
 from services.autotuner.step_test import StepTest
 from services.logger.mcap_io import read_run
 from shared.errors import AutotuneError
@@ -29,6 +29,7 @@ class Analysis:
     ident: experiments.Identification
     gains: dict[str, dict]
     live: TuneResult | None
+    selection: Selection | None = None
 
     def to_dict(self, rule: str | None) -> dict:
         out = {
@@ -40,10 +41,17 @@ class Analysis:
             "ku_spread": self.ident.ku_spread,
             "pu_spread": self.ident.pu_spread,
             "step": self.ident.step,
-            "l_over_t": (self.ident.step or {}).get("l_over_t"),
+            "l_over_t": self.selection.l_over_t if self.selection else None,
             "experiment": self.ident.experiment,
             "gains": self.gains,
         }
+        if self.selection is not None:
+            rec = self.selection.recommended
+            out["robustness"] = assessments_dict(self.selection)
+            out["recommended"] = (
+                {"rule": rec.rule, "reason": rec.reason, "ms": rec.predicted_ms} if rec else None
+            )
+            out["warnings"] = self.selection.warnings
         if rule:
             out["rule"] = rule
             out["chosen"] = self.gains.get(rule)
@@ -104,8 +112,7 @@ def analyze_file(path: str | Path) -> Analysis:
             f"{path}: the recorded samples do not complete the {req.method} "
             f"test ({machine.reason or 'the recording ends first'})"
         )
-    ultimate = UltimatePoint(ident.ku, ident.pu) if ident.ku else None
-    table = apply_rules(ultimate, ident.step_model)
+    sel = select(ident, req.rule, req.ms_bound, req.force, data.get("sample_time"))
     result = next((r for r in records if r.topic.endswith("/result")), None)
     live = TuneResult.model_validate_json(result.data) if result else None
     return Analysis(
@@ -113,8 +120,9 @@ def analyze_file(path: str | Path) -> Analysis:
         meta.get("loop", req.loop),
         req.method,
         ident,
-        {name: all_forms(g) for name, g in table.items()},
+        {name: all_forms(g) for name, g in sel.table.items()},
         live,
+        sel,
     )
 
 

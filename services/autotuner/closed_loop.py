@@ -1,0 +1,78 @@
+"""A candidate's closed loop simulated on the identified model: overshoot and decay ratio.
+
+The loop is the plant's own PID block (``plant_sim.pid``: ISA form, derivative on the
+measurement with its filter, anti-windup) at the loop's sample time, on the model discretised
+exactly (``plant_sim.lti``), with wide output limits so that the figures are the linear
+loop's. A setpoint step of one PV unit from rest; the response is watched for 30 of the loop's
+time scale (P_u, or the model's delay plus lag).
+
+overshoot: the highest peak above the final value, % of the final value (P control leaves
+an offset). decay ratio: the second peak's
+excess over the first's (the quarter-decay aim of Ziegler–Nichols is 0.25); 0 when the
+response does not oscillate; ``stable`` False when the response grows.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.autotuner.forms import IsaGains
+from services.autotuner.model_fit import ProcessFit
+from services.plant_sim.lti import DelayedLinearSystem, discretize, tf_to_ss
+from services.plant_sim.pid import PidBlock
+from shared.messages import PidGains
+
+MAX_SAMPLES = 2000  # the simulation is resampled coarser (≥ 60 samples per time scale)
+
+
+@dataclass(frozen=True)
+class StepFigures:
+    overshoot: float  # %
+    decay_ratio: float
+    stable: bool
+
+
+def setpoint_step(
+    gains: IsaGains, model: ProcessFit, timescale: float, sample_time: float | None = None
+) -> StepFigures:
+    horizon = 30.0 * timescale
+    ts = sample_time or timescale / 100.0
+    ts = max(ts, horizon / MAX_SAMPLES)
+    sys = DelayedLinearSystem(discretize(*tf_to_ss(model.num, model.den), ts, model.delay))
+    pid = PidBlock(
+        PidGains(kc=gains.kc, ti=gains.ti, td=gains.td),
+        ts,
+        (0.0, 100.0),
+        mode="auto",
+        op=50.0,
+    )
+    n = int(horizon / ts)
+    y = np.empty(n)
+    pv = 0.0
+    for k in range(n):
+        op = pid.update(1.0, pv) - 50.0  # deviations: rest at PV 0, output 50 %
+        pv = sys.step(op * 1e-3) * 1e3  # scaled so that the 0–100 % limits never bind
+        y[k] = pv
+        if not math.isfinite(pv) or abs(pv) > 1e6:
+            return StepFigures(math.inf, math.inf, False)
+    return _figures(y)
+
+
+def _figures(y: np.ndarray) -> StepFigures:
+    final = float(np.mean(y[-len(y) // 10 :]))
+    dev = y - final
+    peaks = [
+        i
+        for i in range(1, len(y) - 1)
+        if dev[i] > 0 and dev[i] >= dev[i - 1] and dev[i] > dev[i + 1]
+    ]
+    tail = np.ptp(y[-len(y) // 5 :])
+    head = np.ptp(y[: len(y) // 5]) or 1.0
+    stable = tail <= 0.5 * head
+    overshoot = max(0.0, 100.0 * (float(np.max(y)) - final) / abs(final)) if final else 0.0
+    if len(peaks) < 2 or dev[peaks[0]] <= 1e-9:
+        return StepFigures(overshoot, 0.0, stable)
+    return StepFigures(overshoot, float(dev[peaks[1]] / dev[peaks[0]]), stable)
