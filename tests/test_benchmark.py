@@ -45,18 +45,17 @@ def test_zn_p_decay_ratio_is_near_a_quarter_only_for_small_t_over_l():
 
 
 def test_benchmark_command_json(capsys):
-    assert (
-        main(["benchmark", "--json", "--methods", "relay", "--noise", "0", "--plants", "L/T=1"])
-        == 0
-    )
+    argv = ["benchmark", "--json", "--methods", "relay", "--noise", "0", "--plants", "L/T=10"]
+    assert main([*argv, "--ratios", "0.1,100"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    names = {t["plant"] for t in doc["tunes"]}
-    assert names == {"fopdt L/T=1", "fopdt L/T=10"}
+    assert [t["plant"] for t in doc["tunes"]] == ["fopdt L/T=10"]
     assert all(abs(t["ku_error"]) < 0.01 for t in doc["tunes"])
-    assert len(doc["iinoya_hotta"]) == len(benchmark.IH_RATIOS)
+    assert [r["t_over_l"] for r in doc["iinoya_hotta"]] == [0.1, 100.0]
     assert all(abs(r["krl_error"]) < 0.01 for r in doc["iinoya_hotta"])
+    assert doc["summary_up_to_1pct_noise"]["relay"]["runs"] == 1
 
 
-def test_benchmark_refuses_bad_noise():
-    with pytest.raises(SystemExit, match="--noise"):
-        main(["benchmark", "--noise", "abc"])
+def test_benchmark_refuses_bad_arguments():
+    for argv, flag in ((["--noise", "abc"], "--noise"), (["--ratios", "0"], "--ratios")):
+        with pytest.raises(SystemExit, match=flag):
+            main(["benchmark", *argv])

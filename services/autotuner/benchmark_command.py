@@ -35,10 +35,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--plants", default="", help="only plants whose name contains this")
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    parser.add_argument(
+        "--ratios",
+        default=",".join(f"{r:g}" for r in benchmark.IH_RATIOS),
+        help="T/L values of the Iinoya–Hotta table (default 0.1,…,100; empty: no table)",
+    )
     parser.add_argument("--json", action="store_true", help="one JSON document on stdout")
 
 
-def _parse(args: argparse.Namespace) -> tuple[list[float], list[str]]:
+def _parse(args: argparse.Namespace) -> tuple[list[float], list[str], list[float]]:
     try:
         noise = [float(x) for x in args.noise.split(",") if x.strip()]
     except ValueError:
@@ -47,11 +52,19 @@ def _parse(args: argparse.Namespace) -> tuple[list[float], list[str]]:
         ) from None
     if not noise or any(not (0.0 <= n < 0.5) for n in noise):
         raise SystemExit(f"autotune benchmark: --noise {args.noise!r}: each must be in [0, 0.5)")
+    try:
+        ratios = [float(x) for x in args.ratios.split(",") if x.strip()]
+    except ValueError:
+        raise SystemExit(
+            f"autotune benchmark: --ratios {args.ratios!r}: not a list of numbers"
+        ) from None
+    if any(not (0.0 < r <= 1e4) for r in ratios):
+        raise SystemExit(f"autotune benchmark: --ratios {args.ratios!r}: each in (0, 1e4]")
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     bad = [m for m in methods if m not in ("relay", "ramp")]
     if not methods or bad:
         raise SystemExit(f"autotune benchmark: --methods {args.methods!r}: use relay and/or ramp")
-    return noise, methods
+    return noise, methods, ratios
 
 
 def summary(outcomes: list[benchmark.TuneOutcome], max_noise: float = 0.01) -> dict:
@@ -82,7 +95,7 @@ def _pct(x: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    noise, methods = _parse(args)
+    noise, methods, ratios = _parse(args)
     plants = [p for p in benchmark.suite() if args.plants in p.name]
     if not plants:
         raise SystemExit(f"autotune benchmark: --plants {args.plants!r}: no plant matches")
@@ -94,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
                 outcomes.append(benchmark.run_relay(plant, level, args.seed))
             if "ramp" in methods:
                 outcomes.append(benchmark.run_ramp(plant, level, args.seed))
-    rows = [benchmark.iinoya_hotta_row(r) for r in benchmark.IH_RATIOS]
+    rows = [benchmark.iinoya_hotta_row(r) for r in ratios]
     elapsed = time.perf_counter() - started
     stats = summary(outcomes)
     if args.json:

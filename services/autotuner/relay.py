@@ -36,9 +36,9 @@ from services.autotuner.model_fit import (
     choose_on_record,
     fit_models,
     refine_on_record,
+    response_to,
 )
 from services.autotuner.reaction_curve import at_rest, noise_level
-from services.plant_sim.models import TransferFunctionModel
 
 
 @dataclass(frozen=True)
@@ -414,14 +414,10 @@ class RelayTest:
         op = np.asarray([*self.op, self._out()][: t.size])
 
         def correct(model: ProcessFit) -> tuple[Points, Points]:
-            sim = TransferFunctionModel(
-                self.sample_time, model.num, model.den, model.delay, op0=self.op_start, pv0=0.0
-            )
-            sim.reset()
-            y_hat = np.empty(t.size)
-            y_hat[0] = 0.0
-            for i in range(t.size - 1):
-                y_hat[i + 1] = sim.step(op[i])
+            try:
+                y_hat = response_to(model, self.sample_time, op - self.op_start)
+            except (ValueError, np.linalg.LinAlgError):
+                return (), ()
             residual = np.asarray(self.pv) - y_hat
 
             def points(window: tuple[float, float, int], harmonics: tuple[int, ...]) -> Points:
@@ -568,11 +564,11 @@ def _refine(
     A low-order model is fitted to all the points (``model_fit``); its small misfit at the two
     fundamentals is interpolated linearly in log ω between them, so the model only supplies the
     curvature between two exact points a few degrees apart. Without a model, phase and
-    log-magnitude are interpolated linearly. The uncertainty is the cycle-to-cycle scatter of
-    the measured point plus the difference between the two interpolations.
+    log-magnitude are interpolated linearly. The uncertainty is the scatter of the measured
+    point (cycle to cycle, over √cycles) plus the difference between the two interpolations
+    of the same leakage-corrected points.
     """
     p1, p2 = s1.points[0], (second[0] if second else s1.points[0])
-    linear = _linear_crossing(p1, p2) if second else (1.0 / p1.magnitude, 2.0 * math.pi / p1.omega)
     fits = _fits([*s1.points, *second], p1, p2)
     model = choose(fits)
     for _ in range(2 if correct is not None else 0):
@@ -584,19 +580,21 @@ def _refine(
         p1, p2 = first[0], (later[0] if second else first[0])
         fits = _fits([*first, *later], p1, p2) or fits
         model = choose(fits) or model
+    linear = _linear_crossing(p1, p2) if second else (1.0 / p1.magnitude, 2.0 * math.pi / p1.omega)
     crossing = _model_crossing(model, p1, p2) if model is not None else None
     if crossing is not None and not _plausible(crossing, p1, p2):
         crossing = None
     if not _plausible(linear, p1, p2):
         linear = (1.0 / p1.magnitude, 2.0 * math.pi / p1.omega)
     ku, pu = crossing or linear
+    scatter = s1.g_scatter / math.sqrt(max(1, s1.window[2]))  # of the mean over the cycles
     (y1, u1), (y2, u2) = s1.means, means2
     gain = (y2 - y1) / (u2 - u1) if abs(u2 - u1) > 1e-6 * abs(u1) + 1e-9 else None
     return _Refined(
         ku=ku,
         pu=pu,
-        ku_uncertainty=s1.g_scatter + abs(ku / linear[0] - 1.0),
-        pu_uncertainty=0.5 * s1.g_scatter * abs(math.log(p2.omega / p1.omega)) / math.pi
+        ku_uncertainty=scatter + abs(ku / linear[0] - 1.0),
+        pu_uncertainty=0.5 * scatter * abs(math.log(p2.omega / p1.omega)) / math.pi
         + abs(pu / linear[1] - 1.0),
         points=second,
         static_gain=gain,

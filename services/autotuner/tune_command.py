@@ -233,6 +233,10 @@ def _fmt(v, unit: str = "", digits: int = 4) -> str:
     return f"{v:.{digits}g}{unit}"
 
 
+def _fixed(v, decimals: int) -> str:
+    return "—" if v is None else f"{v:.{decimals}f}"
+
+
 def format_result(r: TuneResult) -> str:
     pv_units = r.pv_units or "PV unit"
     lines = [
@@ -258,7 +262,7 @@ def format_result(r: TuneResult) -> str:
         lags = [f"{model[k]:.4g}" for k in sorted(model) if k.startswith("model_lag")]
         lines.append(
             f"  model {str(model['model']).upper()}: K = {model['model_gain']:.4g}"
-            + (f"  T = {' , '.join(lags)} s" if lags else "")
+            + (f"  T = {', '.join(lags)} s" if lags else "")
             + f"  L = {model['model_delay']:.4g} s"
             + (f"  L/T = {r.l_over_t:.3f}" if r.l_over_t is not None else "")
         )
@@ -275,8 +279,7 @@ def format_result(r: TuneResult) -> str:
             fig = (
                 f"{_fmt(a.get('ms'), digits=3):>7}{_fmt(a.get('gain_margin'), digits=3):>7}"
                 f"{_fmt(a.get('phase_margin_deg'), digits=3):>7}"
-                f"{_fmt(a.get('overshoot_pct'), digits=3):>7}"
-                f"{_fmt(a.get('decay_ratio'), digits=2):>6}"
+                f"{_fixed(a.get('overshoot_pct'), 1):>7}{_fixed(a.get('decay_ratio'), 2):>6}"
                 if a
                 else ""
             )
