@@ -23,7 +23,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import expm
-from scipy.signal import lfilter, tf2ss
 
 # A delay within this many sample periods of a whole number is taken as that whole number:
 # it only absorbs floating-point error in θ/T (e.g. 0.3/0.1), it never rounds a real fraction.
@@ -122,6 +121,8 @@ def tf_to_ss(num: list[float], den: list[float]) -> tuple[np.ndarray, ...]:
         )
     if den_a.size == 1:
         return np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), float(num_a[-1] / den_a[0])
+    from scipy.signal import tf2ss  # here: scipy.signal costs 0.25 s of every CLI's start-up
+
     a, b, c, d = tf2ss(num_a, den_a)
     return a, b, c, float(np.asarray(d).item())
 
@@ -167,6 +168,8 @@ def simulate(sys: DiscreteDelaySystem, u: np.ndarray) -> np.ndarray:
     """The whole response at once, from rest: y[0] = 0 and y[k+1] the output after holding
     u[k] for a period — the same samples as ``DelayedLinearSystem.step``, via ``lfilter``
     (for fitting models to a record, where thousands of steps run per evaluation)."""
+    from scipy.signal import lfilter
+
     u = np.asarray(u, dtype=float)
     n = sys.delay_samples
     late = np.concatenate((np.zeros(n), u))[: u.size + 1]  # u[k−n] at index k
