@@ -204,7 +204,7 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
     test = experiments.build("ramp", req, setup)
     kc, sp = kc0, loop.sp
     t0 = loop.t
-    demand = test.feed(loop.t, loop.pv)
+    demand = test.feed(loop.t, loop.pv, loop.op)
     while not test.finished:
         if demand.kc != kc:
             kc = demand.kc
@@ -213,12 +213,12 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
             sp = demand.sp
             loop.apply(SetpointCommand(loop="x", sp=sp))
         s = loop.advance()
-        demand = test.feed(s.t, s.pv)
+        demand = experiments.feed(test, s)
     base = dict(plant=plant.name, family=plant.family, method="ramp", noise=noise)
     r = test.result
     if r is None:
         return TuneOutcome(**base, ku_exact=ku, pu_exact=pu, ok=False, reason=test.reason)
-    rec = _recommendation(plant, r.ku, r.pu, None)
+    rec = _recommendation(plant, r.ku, r.pu, r.model)
     return TuneOutcome(
         **base,
         ku_exact=ku,
@@ -227,6 +227,7 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
         ku_error=r.ku / ku - 1.0,
         pu_error=r.pu / pu - 1.0,
         periods=(loop.t - t0) / pu,
+        model=r.model.kind if r.model else "",
         **rec,
     )
 

@@ -100,6 +100,8 @@ def feed(machine: Experiment, s: ProcessSample) -> Any:
     """Give the machine one sample; return what it wants held (an output or a Demand)."""
     if isinstance(machine, StepTest):
         return machine.feed(s)
+    if isinstance(machine, RampTest):
+        return machine.feed(s.t, s.pv, s.op)
     return machine.feed(s.t, s.pv)
 
 
@@ -145,6 +147,9 @@ def identification(machine: Experiment) -> Identification | None:
             ku_spread=(r.kc_high - r.kc_low) / r.ku,
             experiment={
                 "trials": r.trials,
+                "ku_sampled_loop": r.ku_loop,
+                "pu_sampled_loop": r.pu_loop,
+                **(r.model.to_dict() if r.model else {}),
                 "kc_low": r.kc_low,
                 "kc_high": r.kc_high,
                 "bump": machine.config.bump,
@@ -154,6 +159,7 @@ def identification(machine: Experiment) -> Identification | None:
             timescale=r.pu,
             noise=r.noise_std,
             rest_pv=r.rest_pv,
+            model=r.model,
         )
     rc = machine.result
     if rc is None:

@@ -186,16 +186,25 @@ def response_to(fit: ProcessFit, sample_time: float, u: np.ndarray) -> np.ndarra
     return simulate(sys, u)[: len(u)]
 
 
+MAX_RECORD = 4000  # samples a record fit works on (longer records are block-averaged)
+
+
 def refine_on_record(
     start: ProcessFit, sample_time: float, u: np.ndarray, y: np.ndarray
 ) -> ProcessFit | None:
     """The model of ``start``'s kind that best reproduces a whole record (output error, least
     squares), starting from ``start``. ``u``: output deviations held from each sample; ``y``:
     PV deviations at the samples, both from a rest at the record's start. The record carries
-    what the frequency points cannot: the slow response, and so the static gain.
+    what the frequency points cannot: the slow response, and so the static gain. A record
+    longer than MAX_RECORD samples is fitted in blocks (the output averaged over each, the PV
+    at its start): a model, unlike the ultimate point, does not need every sample.
 
     The returned ``rms`` is the residual's rms over the PV's standard deviation."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    k = math.ceil(y.size / MAX_RECORD)
+    if k > 1:  # a long record: blocks of k samples, the output averaged over each
+        n = (y.size // k) * k
+        u, y, sample_time = u[:n].reshape(-1, k).mean(axis=1), y[:n:k], sample_time * k
     scale = float(np.std(y)) or 1.0
     w0 = 1.0 / max(start.delay + start.lag if start.lags else start.delay, sample_time)
     n_lags = len(start.lags)
@@ -224,8 +233,29 @@ def choose_on_record(fits: Sequence[ProcessFit], samples: int) -> ProcessFit | N
     if not fits:
         return None
 
+    samples = min(samples, MAX_RECORD)  # what the fits worked on
+
     def bic(f: ProcessFit) -> float:
         p = 2 + len(f.lags)
         return samples * math.log(max(f.rms, 1e-12) ** 2) + p * math.log(samples)
 
     return min(fits, key=bic)
+
+
+def through_ultimate_point(ku: float, pu: float) -> list[ProcessFit]:
+    """Starting models that share a measured ultimate point: first order with L/T of 0.1, 0.5
+    and 2, second order with equal lags and L = T/5, and an integrator with dead time — for
+    ``refine_on_record`` when no frequency points are known (the P-gain ramp)."""
+    from scipy.optimize import brentq
+
+    w = 2.0 * math.pi / pu
+    out = []
+    for ratio in (0.1, 0.5, 2.0):  # atan(x) + r·x = π, x = ωT
+        x = brentq(lambda x, r=ratio: math.atan(x) + r * x - math.pi, 1e-9, math.pi / ratio)
+        t = x / w
+        out.append(ProcessFit("fopdt", math.hypot(1.0, x) / ku, (t,), ratio * t, math.inf))
+    x = brentq(lambda x: 2.0 * math.atan(x) + 0.2 * x - math.pi, 1e-9, 5.0 * math.pi)
+    t = x / w
+    out.append(ProcessFit("sopdt", (1.0 + x * x) / ku, (t, t), 0.2 * t, math.inf))
+    out.append(ProcessFit("ipdt", w / ku, (), math.pi / (2.0 * w), math.inf))
+    return out

@@ -95,6 +95,10 @@ def fit_oscillation(
     c, a, g, w, _ = sol.x
     if not sol.success or w <= 0 or not np.all(np.isfinite(sol.x)):
         return None
+    slow = _with_slow_mode(tt, y, sol.x, float(np.sqrt(np.mean(sol.fun**2))))
+    if slow is not None:
+        sol = slow
+        c, a, g, w = sol.x[:4]
     return Oscillation(
         growth=float(g),
         period=float(2 * math.pi / w),
@@ -103,3 +107,32 @@ def fit_oscillation(
         rms=float(np.sqrt(np.mean(sol.fun**2))),
         swings=len(ext) - 1,
     )
+
+
+def _with_slow_mode(tt: np.ndarray, y: np.ndarray, p0: np.ndarray, rms0: float):
+    """Refit with a decaying exponential beside the oscillation, c + b·e^{−λt} + A·e^{gt}·
+    sin(ωt + φ): a loop with lags far apart (or a large dead time) has a slow real mode whose
+    drift the sinusoid alone would read as damping. Kept only if it clearly fits better."""
+    c, a, g, w, phi = p0
+    span = float(tt[-1] - tt[0]) or 1.0
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        c, a, g, w, phi, b, lam = p
+        return c + b * np.exp(-lam * tt) + a * np.exp(g * tt) * np.sin(w * tt + phi) - y
+
+    best = None
+    for lam0 in (1.0 / span, 4.0 / span):
+        b0 = float(y[0] - c - a * math.sin(phi))
+        x0 = [c, a, g, w, phi, b0, lam0]
+        lo = [-np.inf, -np.inf, -np.inf, 0.5 * w, -np.inf, -np.inf, 0.1 / span]
+        hi = [np.inf, np.inf, np.inf, 2.0 * w, np.inf, np.inf, 0.5 * w]
+        try:
+            sol = least_squares(resid, x0, bounds=(lo, hi), max_nfev=400)
+        except (ValueError, FloatingPointError):
+            continue
+        if np.all(np.isfinite(sol.x)) and (best is None or sol.cost < best.cost):
+            best = sol
+    if best is None:
+        return None
+    rms = float(np.sqrt(np.mean(best.fun**2)))
+    return best if rms < 0.8 * rms0 else None

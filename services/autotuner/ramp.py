@@ -13,11 +13,18 @@ the next. The PV leaving its limits aborts the test.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.autotuner.model_fit import (
+    ProcessFit,
+    choose_on_record,
+    refine_on_record,
+    through_ultimate_point,
+)
 from services.autotuner.oscillation import Oscillation, fit_oscillation
 from services.autotuner.reaction_curve import at_rest, noise_level
 
@@ -72,6 +79,9 @@ class RampResult:
     trials: int
     noise_std: float
     rest_pv: float
+    ku_loop: float = math.nan  # the sampled loop's own ultimate point (before the ZOH correction)
+    pu_loop: float = math.nan
+    model: ProcessFit | None = None  # fitted to the whole record (None without the outputs)
 
 
 @dataclass
@@ -92,6 +102,8 @@ class RampTest:
         self._quiet_n = max(10, math.ceil(q / self.sample_time))
         self._t: list[float] = []
         self._y: list[float] = []
+        self._u: list[float] = []  # the loop's output, held from each sample
+        self._quiet_end = 0  # samples of the quiet period: the record's rest
         self._start = math.nan
         self._r = math.nan
         self._noise = 0.0
@@ -115,12 +127,14 @@ class RampTest:
         self.events.append((self._t[-1], "aborted", {"reason": reason}))
         return Demand(self.kc, self.sp)
 
-    def feed(self, t: float, pv: float) -> Demand:
-        """Take the PV sampled at ``t``; return the gain and setpoint to hold from ``t`` on."""
+    def feed(self, t: float, pv: float, op: float = math.nan) -> Demand:
+        """Take the PV sampled at ``t`` (and the output the loop holds from ``t``, for the
+        process model); return the gain and setpoint to hold from ``t`` on."""
         if self.finished:
             return Demand(self.kc, self.sp)
         self._t.append(t)
         self._y.append(pv)
+        self._u.append(op)
         if math.isnan(self._start):
             self._start = t
             if math.isnan(self.sp):
@@ -136,6 +150,7 @@ class RampTest:
                 base = np.asarray(self._y[-n:])
                 if at_rest(base):
                     self._r, self._noise = float(base.mean()), noise_level(base)
+                    self._quiet_end = len(self._y)
                     self._begin_trial(t)
                 elif len(self._y) >= 20 * n:
                     return self._abort("the PV is not at rest before the test (it keeps drifting)")
@@ -147,7 +162,9 @@ class RampTest:
 
     def _begin_trial(self, t: float) -> None:
         n = len(self.trials)
-        self.sp = self._r + self.config.bump * (1 if n % 2 == 0 else -1)
+        # from the present setpoint, not from where the PV rests: under P-only control the PV
+        # settles off the setpoint, and a bump from the PV's rest would kick by that offset too
+        self.sp += self.config.bump * (1 if n % 2 == 0 else -1)
         self._trial_start, self._trial_t0 = len(self._y) - 1, t
         self._next_check = 16
         self.phase = "trial"
@@ -172,14 +189,28 @@ class RampTest:
                 self._close_trial(t, cut=False)
 
     def _died_out(self, n: int) -> bool:
-        """The trial's response has come and gone: the PV moved (past any dead time) and
-        its last fifth barely moves."""
+        """The trial's response has come and gone: the PV moved, and it has been flat over
+        the last half of the response and over twice the dead time it took to start moving (a
+        delay-dominated loop's response is a staircase whose treads last one dead time: they
+        are not its end)."""
         if n < 40:
             return False
         y = np.asarray(self._y[self._trial_start :])
-        moved = float(np.max(np.abs(y - self._r))) >= 0.3 * self.config.bump
-        tail = y[-max(20, n // 5) :]
-        return moved and float(np.ptp(tail)) < max(0.05 * self.config.bump, 6.0 * self._noise)
+        # "moved" only has to tell the response from the dead time before it: at a low gain
+        # the PV moves by Kc·K/(1 + Kc·K) of the bump, which can be a small fraction of it
+        level = max(0.02 * self.config.bump, 6 * self._noise)
+        moving = np.nonzero(np.abs(y - self._r) >= level)[0]
+        if moving.size == 0:
+            return False
+        dead = int(moving[0])
+        # flat over the last half of the response so far, and over two dead times
+        window = max(20, (n - dead) // 2, 2 * dead + 2)
+        if n - dead < window:
+            return False
+        # flat: the means of ten stretches of the tail agree (the noise averaged in each)
+        tail = y[-(window // 10) * 10 :].reshape(10, -1)
+        spread = float(np.ptp(tail.mean(axis=1)))
+        return spread < max(0.05 * self.config.bump, 6.0 * self._noise / math.sqrt(tail.shape[1]))
 
     def _swing_limit_hit(self) -> bool:
         """The PV has swung further from where it rested before the trial than allowed."""
@@ -192,6 +223,9 @@ class RampTest:
 
     def _close_trial(self, t: float, cut: bool) -> None:
         osc = self._fit()
+        watched = t - self._trial_t0
+        if osc is not None and osc.period > watched / 1.5:
+            osc = None  # "swings" of the noise, not an oscillation seen for 1.5 periods
         if osc is None or osc.swings < (2 if cut else 3):
             # no oscillation to fit: an overdamped response, or one that ran away at once
             trial = Trial(self.kc, math.inf if cut else -math.inf, None, 0, cut)
@@ -262,10 +296,77 @@ class RampTest:
         else:
             self.phase, self.reason = "aborted", "the loop never oscillated"
             return True
-        self.result = RampResult(ku, pu, lo.kc, hi.kc, len(self.trials), self._noise, self._r)
+        ku_plant, pu_plant = self._plant_crossover(ku, pu)
+        self.result = RampResult(
+            ku_plant,
+            pu_plant,
+            lo.kc,
+            hi.kc,
+            len(self.trials),
+            self._noise,
+            self._r,
+            ku,
+            pu,
+            self._process_model(ku_plant, pu_plant),
+        )
         self.phase = "done"
         self.events.append((self._t[-1], "done", {"ku": ku, "pu": pu}))
         return True
+
+    def _process_model(self, ku: float, pu: float) -> ProcessFit | None:
+        """A process model for the rules and the robustness figures: models through the
+        measured ultimate point, each refined on the whole record (output error: the loop's
+        outputs in, the PV out, from the rest of the quiet period), the best by BIC."""
+        u = np.asarray(self._u, dtype=float)
+        y = np.asarray(self._y, dtype=float)
+        if u.size < 20 or not np.all(np.isfinite(u)) or self._quiet_end < 3:
+            return None
+        u0 = float(np.mean(u[: self._quiet_end]))
+        y0 = float(np.mean(y[: self._quiet_end]))
+        fits = [
+            f
+            for start in through_ultimate_point(ku, pu)
+            if (f := refine_on_record(start, self.sample_time, u - u0, y - y0)) is not None
+        ]
+        best = choose_on_record(fits, y.size)
+        if best is None:
+            return None
+        return dataclasses.replace(best, noise_rms=self._noise / (float(np.std(y)) or 1.0))
+
+    def _plant_crossover(self, ku: float, pu: float) -> tuple[float, float]:
+        """The plant's own ultimate point from the sampled loop's.
+
+        The P-only loop runs through the zero-order hold, about e^{−sT/2}: it reaches −180°
+        where the plant alone is at −180° + ωT/2, so its K_u sits below the plant's (by 2 %
+        on a lag-dominated plant at 400 samples per period). Each oscillating trial's
+        closed-loop pole s = g + jω satisfies L(s) = −1/Kc for the loop L = G·ZOH; together
+        they give dL/ds, hence the phase and log-magnitude slopes of L at the crossover, and
+        the frequency where arg L + ωT/2 = −π. Unchanged if the trials lack what it needs."""
+        near = [
+            tr
+            for tr in self.trials
+            if tr.period and math.isfinite(tr.growth) and 0.7 * ku <= tr.kc <= 1.3 * ku
+        ]
+        if len(near) < 2:
+            return ku, pu
+        # L(s) = −1/Kc at each trial's pole s = g + jω; a straight line in s through them
+        # (least squares over every oscillating trial near K_u: the noise in each growth
+        # rate averages out) gives dL/ds at the crossover
+        s_pts = np.array([complex(tr.growth, 2 * math.pi / tr.period) for tr in near])
+        l_pts = np.array([-1.0 / tr.kc for tr in near])
+        design = np.column_stack((np.ones_like(s_pts), s_pts - s_pts.mean()))
+        (_, slope), *_ = np.linalg.lstsq(design, l_pts, rcond=None)
+        if not np.isfinite(slope) or np.ptp(s_pts.imag) + np.ptp(s_pts.real) == 0:
+            return ku, pu
+        q = slope * (-ku)  # (dL/ds)/L at the crossover, L = −1/K_u
+        w_loop = 2 * math.pi / pu
+        half = 0.5 * self.sample_time
+        if q.real + half >= 0:  # the phase does not fall with frequency: no correction
+            return ku, pu
+        dw = -w_loop * half / (q.real + half)
+        if abs(dw) > 0.2 * w_loop:
+            return ku, pu
+        return ku * math.exp(q.imag * dw), 2 * math.pi / (w_loop + dw)
 
     def _watch_settle(self, t: float) -> None:
         """Let the loop calm at a gain known to decay, then start the next trial from where
@@ -274,7 +375,10 @@ class RampTest:
         if len(self._y) - self._settle_start < window or len(self._y) % 8:
             return
         y = np.asarray(self._y[-window:])
-        if np.ptp(y) < max(0.1 * self.config.bump, 6 * self._noise):
+        # calm: the means of ten stretches of the last period agree (the noise averaged)
+        stretches = y[-(y.size // 10) * 10 :].reshape(10, -1)
+        spread = float(np.ptp(stretches.mean(axis=1)))
+        if spread < max(0.1 * self.config.bump, 6 * self._noise / math.sqrt(stretches.shape[1])):
             self._r = float(np.mean(y))
             self._begin_trial(t)
 
