@@ -71,7 +71,7 @@ def _figures(y: np.ndarray) -> StepFigures:
     ]
     tail = np.ptp(y[-len(y) // 5 :])
     head = np.ptp(y[: len(y) // 5]) or 1.0
-    stable = tail <= 0.5 * head
+    stable = bool(tail <= 0.5 * head)
     overshoot = max(0.0, 100.0 * (float(np.max(y)) - final) / abs(final)) if final else 0.0
     if len(peaks) < 2 or dev[peaks[0]] <= 1e-9:
         return StepFigures(overshoot, 0.0, stable)

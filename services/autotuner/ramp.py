@@ -296,7 +296,8 @@ class RampTest:
         else:
             self.phase, self.reason = "aborted", "the loop never oscillated"
             return True
-        ku_plant, pu_plant = self._plant_crossover(ku, pu)
+        ku, pu = float(ku), float(pu)  # plain floats for JSON (the fits give numpy scalars)
+        ku_plant, pu_plant = (float(x) for x in self._plant_crossover(ku, pu))
         self.result = RampResult(
             ku_plant,
             pu_plant,

@@ -40,24 +40,30 @@ class Assessment:
         if rb is None:
             return {}
         out: dict[str, float | bool | None] = {
-            "ms": rb.ms,
-            "gain_margin": rb.gain_margin if math.isfinite(rb.gain_margin) else None,
-            "phase_margin_deg": rb.phase_margin_deg if math.isfinite(rb.phase_margin_deg) else None,
-            "stable": self.stable,
+            "ms": _number(rb.ms),
+            "gain_margin": _number(rb.gain_margin),
+            "phase_margin_deg": _number(rb.phase_margin_deg),
+            "stable": bool(self.stable),
         }
         if st is not None:
-            out["overshoot_pct"] = st.overshoot if math.isfinite(st.overshoot) else None
-            out["decay_ratio"] = st.decay_ratio if math.isfinite(st.decay_ratio) else None
+            out["overshoot_pct"] = _number(st.overshoot)
+            out["decay_ratio"] = _number(st.decay_ratio)
         return out
 
     @property
     def stable(self) -> bool | None:
         rb = self.robustness
-        return None if rb is None else rb.gain_margin > 1.0 and rb.phase_margin_deg > 0.0
+        return None if rb is None else bool(rb.gain_margin > 1.0 and rb.phase_margin_deg > 0.0)
 
     def within(self, bound: float) -> bool | None:
         rb = self.robustness
         return None if rb is None else bool(self.stable) and rb.ms <= bound
+
+
+def _number(x: float) -> float | None:
+    """A plain float for JSON (numpy scalars are not), None for an infinite margin."""
+    x = float(x)
+    return x if math.isfinite(x) else None
 
 
 def assess(

@@ -71,7 +71,7 @@ class Analysis:
             return False
         if live.step is not None:
             return live.step == self.ident.step
-        return live.ku == self.ident.ku and live.pu == self.ident.pu
+        return bool(live.ku == self.ident.ku and live.pu == self.ident.pu)
 
 
 def analyze_file(path: str | Path) -> Analysis:
