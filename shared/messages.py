@@ -216,6 +216,12 @@ class TuneRequest(Message):
     amplitude: float | None = Field(default=None, gt=0.0, le=50.0, description="relay d, %")
     hysteresis: float | None = Field(default=None, ge=0.0, description="relay ε, PV units")
     cycles: int = Field(default=3, ge=2, le=20, description="relay cycles that must agree")
+    relay_bias: float | None = Field(
+        default=None,
+        ge=0.0,
+        le=0.8,
+        description="relay stage 2's asymmetry: low output b − (1 − relay_bias)·d (static gain)",
+    )
     tolerance: float = Field(default=0.02, gt=0.0, lt=0.5)
     bump: float | None = Field(default=None, gt=0.0, description="ramp setpoint bump, PV units")
     kc_start: float | None = Field(default=None, gt=0.0, description="ramp first gain")

@@ -169,3 +169,13 @@ def test_oscillation_fit_recovers_growth_and_period_under_noise():
         osc = fit_oscillation(t, y + 0.02 * rng.standard_normal(t.size), 0.02, 7.0)
         assert osc.growth == pytest.approx(g, abs=2e-3)
         assert osc.period == pytest.approx(7.0, rel=2e-3)
+
+
+def test_biased_second_stage_gives_the_static_gain():
+    """``--relay-bias 0.3``: stage 2's low output is b − 0.7·d; the model fitted on that record
+    has the heat exchanger's static gain (1), and K_u stays within 1 %."""
+    ku, _ = ultimate_point(*HX[:3])
+    r = run_relay(*HX, low_ratio=0.7).result
+    assert r.static_gain == pytest.approx(1.0, rel=0.02)
+    assert r.ku == pytest.approx(ku, rel=0.01)
+    assert run_relay(*HX).result.static_gain is None  # symmetric: no static gain claimed

@@ -75,6 +75,7 @@ def build(method: str, req: TuneRequest, setup: dict[str, Any]) -> Experiment:
             hysteresis=req.hysteresis,
             cycles=req.cycles,
             tolerance=req.tolerance,
+            low_ratio=1.0 - (req.relay_bias or 0.0),
             **budget,
         )
         return RelayTest(cfg, setup["op_start"], op_limits, pv_limits, ts, setup["direction"])

@@ -96,7 +96,10 @@ class RelayResult:
     pu_df: float = math.nan
     stage_one_cycles: int = 0
     second: tuple[FrequencyPoint, ...] = ()  # stage 2's exact G(jkω₂), k = 1, 2, 3
-    static_gain: float | None = None  # from the bias of stage 2 (None: no bias shift)
+    # the process gain of the model fitted on a record with stage 2's bias (None: no bias);
+    # the bias's step in the mean output is what pins it (the DC ratio of two short stages is
+    # not yet settled)
+    static_gain: float | None = None
     model: ProcessFit | None = None  # fitted to both stages' points (model_fit)
 
 
@@ -494,7 +497,9 @@ class RelayTest:
             pu_df=s1.pu,
             stage_one_cycles=s1.cycles,
             second=refined.points if refined else (),
-            static_gain=refined.static_gain if refined else None,
+            static_gain=(
+                model.gain if model is not None and model.kind != "ipdt" and self._low < 1 else None
+            ),
             model=model,
         )
         self.phase = "done"

@@ -75,6 +75,12 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
         "--hysteresis", type=float, help="relay hysteresis, PV units (default: 3σ of the PV noise)"
     )
     parser.add_argument(
+        "--relay-bias",
+        type=float,
+        help="relay: make stage 2 asymmetric, its low output b − (1 − FRACTION)·d, for a "
+        "static-gain estimate (costs K_u accuracy on non-minimum-phase plants; default off)",
+    )
+    parser.add_argument(
         "--cycles",
         type=int,
         default=3,
@@ -119,6 +125,7 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
             amplitude=args.amplitude,
             hysteresis=args.hysteresis,
             cycles=args.cycles,
+            relay_bias=args.relay_bias,
             tolerance=args.tolerance,
             bump=args.bump,
             kc_start=args.kc_start,
