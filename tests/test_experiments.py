@@ -10,12 +10,13 @@ import math
 import numpy as np
 import pytest
 
+from services.autotuner.benchmark import drive_ramp
 from services.autotuner.oscillation import fit_oscillation
 from services.autotuner.ramp import RampConfig, RampTest
 from services.autotuner.relay import RelayConfig, RelayTest
 from services.plant_sim.models import TransferFunctionModel
 from services.plant_sim.plant_file import build_plant
-from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand
+from shared.messages import GainsCommand, ModeCommand, PidGains
 from tests.exact import ultimate_point
 
 THIRD = ([6.0], [1.0, 6.0, 11.0, 6.0], 0.0, 0.002)
@@ -131,17 +132,7 @@ def run_ramp(num, den, delay, ts, noise=0.0, seed=0, kc_start=1.0, bump=1.0):
     test = RampTest(RampConfig(kc_start=kc_start, bump=bump), (-1e3, 1e3), ts)
     loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc_start)))
     loop.apply(ModeCommand(loop="x", mode="auto"))
-    kc, sp = kc_start, loop.sp
-    demand = test.feed(loop.t, loop.pv)
-    while not test.finished:
-        if demand.kc != kc:
-            kc = demand.kc
-            loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc)))
-        if demand.sp != sp:
-            sp = demand.sp
-            loop.apply(SetpointCommand(loop="x", sp=sp))
-        s = loop.advance()
-        demand = test.feed(s.t, s.pv)
+    drive_ramp(test, loop)
     return test
 
 

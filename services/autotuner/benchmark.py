@@ -24,12 +24,15 @@ import numpy as np
 from scipy.optimize import brentq
 
 from services.autotuner import experiments
+from services.autotuner.closed_loop import setpoint_step
 from services.autotuner.forms import IsaGains
 from services.autotuner.frequency import ultimate_point
+from services.autotuner.ramp import RampTest
 from services.autotuner.recommend import assess, recommend
 from services.autotuner.relay import RelayTest
 from services.autotuner.robustness import robustness
 from services.autotuner.rules import UltimatePoint, apply_rules
+from services.plant_sim.loop import SimLoop
 from services.plant_sim.models import TransferFunctionModel
 from services.plant_sim.plant_file import build_plant
 from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand, TuneRequest
@@ -142,27 +145,13 @@ def run_relay(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
     while not test.finished:
         k += 1
         op = test.feed(k * ts, model.step(op) + sigma * rng.standard_normal())
-    base = dict(plant=plant.name, family=plant.family, method="relay", noise=noise)
-    r = test.result
-    if r is None:
-        return TuneOutcome(**base, ku_exact=ku, pu_exact=pu, ok=False, reason=test.reason)
+    if test.result is None:
+        return _outcome(plant, "relay", noise, test)
     start = next(e[0] for e in test.events if e[1] == "relay_start")
     stage = next((e[0] for e in test.events if e[1] == "stage"), math.nan)
     done = next(e[0] for e in test.events if e[1] == "done")
-    rec = _recommendation(plant, r.ku, r.pu, r.model)
-    return TuneOutcome(
-        **base,
-        ku_exact=ku,
-        pu_exact=pu,
-        ok=True,
-        ku_error=r.ku / ku - 1.0,
-        pu_error=r.pu / pu - 1.0,
-        ku_df_error=r.ku_df / ku - 1.0,
-        pu_df_error=r.pu_df / pu - 1.0,
-        periods_classic=(stage - start) / pu,
-        periods=(done - start) / pu,
-        model=r.model.kind if r.model else "",
-        **rec,
+    return _outcome(
+        plant, "relay", noise, test, periods_classic=stage - start, periods=done - start
     )
 
 
@@ -202,23 +191,35 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
     }
     req = TuneRequest(loop="x", method="ramp")
     test = experiments.build("ramp", req, setup)
-    kc, sp = kc0, loop.sp
     t0 = loop.t
+    drive_ramp(test, loop)
+    return _outcome(plant, "ramp", noise, test, periods=(loop.t - t0) / pu)
+
+
+def drive_ramp(test: RampTest, loop: SimLoop) -> None:
+    """Run a ramp test on a loop in-process: its demands applied as the tuner would."""
+    kc, sp = loop.pid.gains.kc, loop.sp
     demand = test.feed(loop.t, loop.pv, loop.op)
     while not test.finished:
         if demand.kc != kc:
             kc = demand.kc
-            loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc)))
+            loop.apply(GainsCommand(loop=loop.settings.loop_id, gains=PidGains(kc=kc)))
         if demand.sp != sp:
             sp = demand.sp
-            loop.apply(SetpointCommand(loop="x", sp=sp))
-        s = loop.advance()
-        demand = experiments.feed(test, s)
-    base = dict(plant=plant.name, family=plant.family, method="ramp", noise=noise)
+            loop.apply(SetpointCommand(loop=loop.settings.loop_id, sp=sp))
+        demand = experiments.feed(test, loop.advance())
+
+
+def _outcome(plant: Plant, method: str, noise: float, test, **lengths: float) -> TuneOutcome:
+    """A finished test's figures against the plant's exact ultimate point."""
+    ku, pu = plant.exact()
+    base = dict(plant=plant.name, family=plant.family, method=method, noise=noise)
     r = test.result
     if r is None:
         return TuneOutcome(**base, ku_exact=ku, pu_exact=pu, ok=False, reason=test.reason)
-    rec = _recommendation(plant, r.ku, r.pu, r.model)
+    extra = {}
+    if method == "relay":
+        extra = dict(ku_df_error=r.ku_df / ku - 1.0, pu_df_error=r.pu_df / pu - 1.0)
     return TuneOutcome(
         **base,
         ku_exact=ku,
@@ -226,9 +227,10 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
         ok=True,
         ku_error=r.ku / ku - 1.0,
         pu_error=r.pu / pu - 1.0,
-        periods=(loop.t - t0) / pu,
         model=r.model.kind if r.model else "",
-        **rec,
+        **extra,
+        **{k: v / pu for k, v in lengths.items()},
+        **_recommendation(plant, r.ku, r.pu, r.model),
     )
 
 
@@ -260,29 +262,10 @@ def iinoya_hotta(t_over_l: float) -> tuple[float, float]:
 
 
 def decay_ratio(gains: IsaGains, plant: Plant, pu: float, periods: float = 12.0) -> float:
-    """Decay ratio of the closed loop's setpoint response (P or PI/PID on the exact sampled
-    plant): the second overshoot over the first, measured about the final value."""
-    ts = pu / 2000
-    model = TransferFunctionModel(ts, num=list(plant.num), den=list(plant.den), delay=plant.delay)
-    model.reset()
-    n = int(periods * pu / ts)
-    y = np.empty(n)
-    pv, integral, sp = 50.0, 0.0, 51.0
-    for k in range(n):
-        e = sp - pv
-        if gains.ti is not None:
-            integral += e * ts / gains.ti
-        op = 50.0 + gains.kc * (e + integral)
-        pv = model.step(op)
-        y[k] = pv
-    final = y[-int(pu / ts) :].mean() if gains.ti is None else sp
-    dev = y - final
-    peaks = [
-        i for i in range(1, n - 1) if dev[i] > 0 and dev[i] >= dev[i - 1] and dev[i] > dev[i + 1]
-    ]
-    if len(peaks) < 2 or dev[peaks[0]] <= 0:
-        return 0.0
-    return float(dev[peaks[1]] / dev[peaks[0]])
+    """Decay ratio of the closed loop's setpoint response on the exact plant, with the loop's
+    own PID block at P_u/2000 (``closed_loop.setpoint_step``): the second overshoot over the
+    first, measured about the final value."""
+    return setpoint_step(gains, plant, pu, pu / 2000, periods, int(periods * 2000)).decay_ratio
 
 
 @dataclass(frozen=True)

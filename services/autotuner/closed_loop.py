@@ -2,9 +2,9 @@
 
 The loop is the plant's own PID block (``plant_sim.pid``: ISA form, derivative on the
 measurement with its filter, anti-windup) at the loop's sample time, on the model discretised
-exactly (``plant_sim.lti``), with wide output limits so that the figures are the linear
-loop's. A setpoint step of one PV unit from rest; the response is watched for 30 of the loop's
-time scale (P_u, or the model's delay plus lag).
+exactly (``plant_sim.lti``). A setpoint step from rest, small enough for the output limits
+not to bind, so that the figures are the linear loop's; the response is watched for 30 of
+the loop's time scale (P_u, or the model's delay plus lag).
 
 overshoot: the highest peak above the final value, % of the final value (P control leaves
 an offset). decay ratio: the second peak's
@@ -36,11 +36,18 @@ class StepFigures:
 
 
 def setpoint_step(
-    gains: IsaGains, model: ProcessFit, timescale: float, sample_time: float | None = None
+    gains: IsaGains,
+    model: ProcessFit,
+    timescale: float,
+    sample_time: float | None = None,
+    horizon: float = 30.0,
+    max_samples: int = MAX_SAMPLES,
 ) -> StepFigures:
-    horizon = 30.0 * timescale
+    """``model`` is anything with ``num``, ``den`` and ``delay`` (a fit, a benchmark plant);
+    ``horizon`` in time scales."""
+    horizon *= timescale
     ts = sample_time or timescale / 100.0
-    ts = max(ts, horizon / MAX_SAMPLES)
+    ts = max(ts, horizon / max_samples)
     sys = DelayedLinearSystem(discretize(*tf_to_ss(model.num, model.den), ts, model.delay))
     pid = PidBlock(
         PidGains(kc=gains.kc, ti=gains.ti, td=gains.td),
@@ -52,11 +59,15 @@ def setpoint_step(
     n = int(horizon / ts)
     y = np.empty(n)
     pv = 0.0
+    # a step small enough that the proportional kick is 10 % at most: the 0–100 % limits
+    # around the 50 % rest do not bind, and the figures (relative to the step) are the
+    # linear loop's
+    step = min(1.0, 10.0 / gains.kc) if gains.kc > 0 else 1.0
     for k in range(n):
-        op = pid.update(1.0, pv) - 50.0  # deviations: rest at PV 0, output 50 %
-        pv = sys.step(op * 1e-3) * 1e3  # scaled so that the 0–100 % limits never bind
-        y[k] = pv
-        if not math.isfinite(pv) or abs(pv) > 1e6:
+        op = pid.update(step, pv) - 50.0  # deviations: rest at PV 0, output 50 %
+        pv = sys.step(op)
+        y[k] = pv / step
+        if not math.isfinite(y[k]) or abs(y[k]) > 1e6:
             return StepFigures(math.inf, math.inf, False)
     return _figures(y)
 

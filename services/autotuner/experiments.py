@@ -165,10 +165,11 @@ def identification(machine: Experiment) -> Identification | None:
     rc = machine.result
     if rc is None:
         return None
+    step_model = StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)
     return Identification(
         step=rc.to_dict(),
-        step_model=StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent),
-        model=model_of(StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)),
+        step_model=step_model,
+        model=model_of(step_model),
         experiment={"step_size": rc.step_size, "method": rc.method},
         timescale=4 * rc.dead_time + rc.time_constant_63,
         noise=rc.noise_std,

@@ -40,6 +40,10 @@ from services.autotuner.model_fit import (
 )
 from services.autotuner.reaction_curve import at_rest, noise_level
 
+STAGE_TWO_CYCLES = 2  # one to settle into the new cycle, one to measure
+OVERSHOOT = 0.5  # stage 2 aims past −180° by half stage 1's miss…
+MIN_SHIFT_DEG = 2.0  # … and moves the cycle's phase by at least this
+
 
 @dataclass(frozen=True)
 class RelayConfig:
@@ -331,18 +335,6 @@ class RelayTest:
         a2 = amplitude**2 - self._eps**2
         return 4.0 * self.config.amplitude / (math.pi * math.sqrt(a2)) if a2 > 0 else math.inf
 
-    def _window(self, t0: float, t1: float) -> tuple[float, float]:
-        """Mean PV and mean output over [t0, t1] (the output held, the PV trapezoidal)."""
-        t, y = np.asarray(self.t), np.asarray(self.pv)
-        u = np.asarray([*self.op, self._out()][: t.size])
-        edges = np.clip(np.append(t, t[-1]), t0, t1)
-        u_mean = float(np.sum(u * np.diff(edges)) / (t1 - t0))
-        inside = (t > t0) & (t < t1)
-        tt = np.concatenate(([t0], t[inside], [t1]))
-        yy = np.concatenate(([np.interp(t0, t, y)], y[inside], [np.interp(t1, t, y)]))
-        y_mean = float(np.sum(0.5 * (yy[1:] + yy[:-1]) * np.diff(tt)) / (t1 - t0))
-        return y_mean, u_mean
-
     def _summarise(self, recent: list[Cycle], pu_spread: float) -> _StageOne:
         """Stage 1's describing-function estimate and its exact frequency points."""
         kus = [self.ku_of(c.amplitude) for c in recent]
@@ -359,7 +351,7 @@ class RelayTest:
             ]
         except ValueError:
             points, per_cycle = (), []
-        t0, t1 = recent[0].t_start, recent[-1].t_start + recent[-1].period
+        t1 = recent[-1].t_start + recent[-1].period
         return _StageOne(
             ku=float(np.mean(kus)),
             pu=period,
@@ -368,7 +360,6 @@ class RelayTest:
             amplitude=float(np.mean([c.amplitude for c in recent])),
             points=points,
             g_scatter=_g_scatter(per_cycle),
-            means=self._window(t0, t1),
             cycles=len(self.cycles),
             t_end=t1,
             window=(recent[0].t_start, period, len(recent)),
@@ -379,7 +370,8 @@ class RelayTest:
         cycle ran; the hysteresis level h moves the cycle's phase by about asin(h/a), so
         stage 2 asks for φ₁ + 180° more lag (or lead, with negative h), overshooting by
         half (at least 2°) so that the two stages bracket −180°. The low output drops to
-        b − low_ratio·d: the bias shifts the cycle's means, which gives the static gain."""
+        b − low_ratio·d when asked: the step in the mean output lets the model fitted on the
+        record pin the static gain."""
         s1 = self._stage1
         assert s1 is not None
         a = s1.amplitude
@@ -470,14 +462,9 @@ class RelayTest:
             except ValueError:
                 second = ()
             if second:
-                refined = _refine(
-                    s1,
-                    second,
-                    self._window(c.t_start, c.t_start + c.period),
-                    self._corrector(s1, (c.t_start, c.period, 1)),
-                )
+                refined = _refine(s1, second, self._corrector(s1, (c.t_start, c.period, 1)))
         if refined is None and s1.points:  # stage 2 missing: the model from stage 1 alone
-            refined = _refine(s1, (), (math.nan, math.nan), self._corrector(s1, None))
+            refined = _refine(s1, (), self._corrector(s1, None))
         model = self._process_model(refined.candidates) if refined else None
         ku, pu = (refined.ku, refined.pu) if refined else (s1.ku, s1.pu)
         self.result = RelayResult(
@@ -507,11 +494,6 @@ class RelayTest:
         self.events.append((t_done, "done", {"ku": ku, "pu": pu}))
 
 
-STAGE_TWO_CYCLES = 2  # one to settle into the new cycle, one to measure
-OVERSHOOT = 0.5
-MIN_SHIFT_DEG = 2.0
-
-
 @dataclass(frozen=True)
 class _StageOne:
     ku: float  # describing function
@@ -521,10 +503,9 @@ class _StageOne:
     amplitude: float
     points: tuple[FrequencyPoint, ...]
     g_scatter: float  # relative cycle-to-cycle scatter of G(jω₁)
-    means: tuple[float, float]  # mean PV, mean output over the agreeing cycles
     cycles: int
     t_end: float
-    window: tuple[float, float, int] = (0.0, 0.0, 0)  # start, period, periods of the points
+    window: tuple[float, float, int]  # start, period, periods of the points
 
 
 @dataclass(frozen=True)
@@ -534,7 +515,6 @@ class _Refined:
     ku_uncertainty: float
     pu_uncertainty: float
     points: tuple[FrequencyPoint, ...]
-    static_gain: float | None
     model: ProcessFit | None = None
     candidates: tuple[ProcessFit, ...] = ()  # every model fitted to the points
 
@@ -561,7 +541,6 @@ def _fits(points: list[FrequencyPoint], p1: FrequencyPoint, p2: FrequencyPoint) 
 def _refine(
     s1: _StageOne,
     second: Points,
-    means2: tuple[float, float],
     correct: Corrector | None = None,
 ) -> _Refined:
     """K_u and P_u where the phase crosses −180°, from the two stages' exact points.
@@ -593,8 +572,6 @@ def _refine(
         linear = (1.0 / p1.magnitude, 2.0 * math.pi / p1.omega)
     ku, pu = crossing or linear
     scatter = s1.g_scatter / math.sqrt(max(1, s1.window[2]))  # of the mean over the cycles
-    (y1, u1), (y2, u2) = s1.means, means2
-    gain = (y2 - y1) / (u2 - u1) if abs(u2 - u1) > 1e-6 * abs(u1) + 1e-9 else None
     return _Refined(
         ku=ku,
         pu=pu,
@@ -602,7 +579,6 @@ def _refine(
         pu_uncertainty=0.5 * scatter * abs(math.log(p2.omega / p1.omega)) / math.pi
         + abs(pu / linear[1] - 1.0),
         points=second,
-        static_gain=gain,
         model=model,
         candidates=tuple(fits),
     )

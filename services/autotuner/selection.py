@@ -10,7 +10,6 @@ forced: the reason says which and by how much. L/T is reported with the seeds' g
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 from services.autotuner.experiments import Identification
@@ -124,8 +123,5 @@ def _why_missing(name: str, ident: Identification) -> str:
 
 
 def assessments_dict(sel: Selection) -> dict[str, dict]:
-    return {
-        k: {n: (v if not isinstance(v, float) or math.isfinite(v) else None) for n, v in d.items()}
-        for k, a in sel.assessments.items()
-        if (d := a.to_dict())
-    }
+    """Per rule, the figures for JSON (rules without a model to judge them on are left out)."""
+    return {k: d for k, a in sel.assessments.items() if (d := a.to_dict())}
