@@ -236,6 +236,26 @@ class TuneRequest(Message):
     ms_bound: float = Field(
         default=2.0, gt=1.0, le=10.0, description="refuse gains whose predicted Ms exceeds it"
     )
+    rest_window: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=86400.0,
+        description="drift check before the test, sim s (None: the loop's Ti, 40 samples "
+        "at least, 900 s at most)",
+    )
+    max_overshoot: float = Field(
+        default=35.0, ge=0.0, le=1000.0, description="verification: overshoot limit, %"
+    )
+    max_decay_ratio: float = Field(
+        default=0.35, gt=0.0, le=1.0, description="verification: decay ratio limit"
+    )
+    overshoot_miss: float = Field(
+        default=20.0,
+        gt=0.0,
+        le=1000.0,
+        description="verification: how far (percentage points) the measured overshoot may "
+        "exceed the predicted one before the model is judged wrong",
+    )
     source: str = Field(default="operator", max_length=64)
 
 
@@ -287,6 +307,9 @@ class Verification(Message):
     stable: bool
     saturated: bool = Field(description="the output sat at a limit for a third of the time")
     score: float = Field(description="IAE per unit step, setpoint and load together")
+    stopped: str | None = Field(
+        default=None, description="why the verification was cut short (runaway), if it was"
+    )
 
 
 class TuneResult(Message):
@@ -324,6 +347,16 @@ class TuneResult(Message):
     before: Verification | None = None
     after: Verification | None = None
     restored: bool = False
+    rest: dict[str, float | int | str | bool | None] | None = Field(
+        default=None, description="the drift check before the test: window, waited, drift"
+    )
+    acceptance: dict[str, float | bool | str | None] | None = Field(
+        default=None, description="the verification's limits and whether they were met"
+    )
+    left: dict[str, Any] | None = Field(
+        default=None,
+        description="the loop as the run left it: mode, sp, op, pv, gains, pv_rest, returned",
+    )
     sim_duration: float = 0.0
     wall_time: float = 0.0
 

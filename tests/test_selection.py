@@ -1,11 +1,15 @@
 """Choosing the gains: every rule judged on the identified model, refusals, L/T guidance."""
 
+import json
+
 import pytest
 
 from services.autotuner import experiments
 from services.autotuner.model_fit import ProcessFit
-from services.autotuner.selection import guidance, select
+from services.autotuner.rules import StepModel, model_of
+from services.autotuner.selection import assessments_dict, guidance, select
 from tests.test_experiments import HX, run_relay
+from tests.test_model_check import lag_ultimate
 
 
 @pytest.fixture(scope="module")
@@ -50,3 +54,107 @@ def test_guidance_names_the_ranges():
     assert any("delay-dominated" in g for g in guidance(2.0, None))
     assert guidance(0.3, None) == []
     assert any("simc-pi-int" in g for g in guidance(None, ProcessFit("ipdt", 1.0, (), 1.0, 0.0)))
+
+
+# --- issue 10: the sampled loop, model checks, the safety envelope --------------------------
+
+
+def _json_safe(sel) -> None:
+    """Every figure select returns must be JSON: finite floats or None."""
+    doc = {
+        "table": {k: [g.kc, g.ti, g.td] for k, g in sel.table.items()},
+        "robustness": assessments_dict(sel),
+        "recommended": sel.recommended.predicted_ms if sel.recommended else None,
+        "l_over_t": sel.l_over_t,
+    }
+    json.dumps(doc, allow_nan=False)
+
+
+def test_demo_heat_exchanger_judged_on_its_sampled_loop(hx_relay):
+    """T = 0.25 s, 174 samples per period: AMIGO PID still recommended, Ms ≈ 1.44; every
+    figure the sampled loop's, the continuous one beside it."""
+    sel = select(hx_relay, "auto", sample_time=0.25)
+    assert sel.rule == "amigo-pid" and sel.refusal is None and sel.sample_time == 0.25
+    assert sel.model_check is not None and sel.model_check.ok and not sel.unavailable
+    assert sel.recommended.predicted_ms == pytest.approx(1.44, abs=0.02)
+    assert "sampled loop" in sel.recommended.reason
+    d = assessments_dict(sel)["zn-p"]
+    assert d["sampled"] and d["sample_time"] == 0.25 and not d["within_envelope"]
+    assert 0.95 < d["gain_margin"] / d["gain_margin_continuous"] < 0.995
+    assert d["ms"] > d["ms_continuous"]
+    _json_safe(sel)
+
+
+USER_REPORTS = [
+    # K_u, P_u, the model fitted: a PV still moving (heat exchanger), an integrator whose
+    # SIMC gain was 71 × K_u, a flow loop's absurd integrator
+    (15.29, 43.56, ProcessFit("sopdt", 0.135, (5.0, 2.0), 15.0, 0.66, noise_rms=0.04)),
+    (9.4, 40.0, ProcessFit("ipdt", 1.2e-5, (), 62.5, 0.05, noise_rms=0.03)),
+    (0.8, 5.0, ProcessFit("ipdt", 6e-10, (), 191.0, 0.2, noise_rms=0.05)),
+]
+
+
+@pytest.mark.parametrize("ku, pu, model", USER_REPORTS, ids=["moving-pv", "simc-71ku", "flow"])
+def test_bad_models_are_refused_and_the_fallback_is_tyreus_luyben_pi(ku, pu, model):
+    ident = experiments.Identification(ku=ku, pu=pu, ku_spread=0.01, pu_spread=0.01, model=model)
+    sel = select(ident, "auto", sample_time=0.25)
+    assert sel.refusal is None and sel.rule == "tl-pi"
+    assert sel.chosen.kc == pytest.approx(ku / 3.2) and sel.chosen.ti == pytest.approx(2.2 * pu)
+    assert "refused" in sel.recommended.reason and sel.recommended.predicted_ms is None
+    assert set(sel.unavailable) == {"amigo-pi", "amigo-pid", "simc-pi", "simc-pid", "simc-pi-int"}
+    assert not set(sel.unavailable) & set(sel.table)
+    assert any("was refused" in w for w in sel.warnings)
+    assert all(a.robustness is None for a in sel.assessments.values())  # none predicted
+    assert sel.sample_time is None and sel.l_over_t is None
+    for rule in ("amigo-pid", "simc-pi-int"):
+        for force in (False, True):
+            refused = select(ident, rule, force=force, sample_time=0.25)
+            assert refused.chosen is None and "unavailable" in refused.refusal
+    _json_safe(sel)
+
+
+def test_a_refused_reaction_curve_leaves_no_step_rule():
+    step = StepModel(-0.5, 2.0, 10.0)  # the PV fell: not the process the tuner drives
+    ident = experiments.Identification(
+        step={"l_over_t": 0.2}, step_model=step, model=model_of(step)
+    )
+    sel = select(ident, "auto")
+    assert sel.chosen is None and sel.refusal.startswith("no rule could be recommended")
+    assert "gain -0.5" in sel.refusal and "zn-ol-pi" in sel.unavailable
+
+
+SOPDT = ProcessFit("sopdt", 1.0, (10.0, 5.0), 0.2, 0.01, noise_rms=0.01)
+
+
+@pytest.fixture(scope="module")
+def lag_dominated():
+    ku, pu = lag_ultimate(SOPDT.gain, SOPDT.lags, SOPDT.delay)
+    return experiments.Identification(ku=ku, pu=pu, ku_spread=0.01, pu_spread=0.01, model=SOPDT)
+
+
+def test_kc_at_or_above_ku_is_refused_unless_forced(lag_dominated):
+    """SIMC PID on a lag-dominated SOPDT gives Kc ≈ 1.36 K_u (τ₁/(2Kθ)·(1 + τ₂/τ_I))."""
+    ku = lag_dominated.ku
+    sel = select(lag_dominated, "simc-pid", sample_time=lag_dominated.pu / 100)
+    kc = 10.0 / (2 * 0.2) * (1 + 5.0 / 1.6)
+    assert sel.chosen.kc == pytest.approx(kc)
+    assert sel.refusal and "at or above the measured K_u" in sel.refusal
+    assert f"{kc / ku:.3g} × K_u" in sel.refusal
+    forced = select(lag_dominated, "simc-pid", force=True, sample_time=lag_dominated.pu / 100)
+    assert forced.refusal is None and any("forced" in w for w in forced.warnings)
+    auto = select(lag_dominated, "auto", sample_time=lag_dominated.pu / 100)
+    assert auto.refusal is None and auto.chosen.kc < ku and auto.rule not in auto.unsafe
+    assert "simc-pid" in auto.unsafe
+
+
+def test_unstable_on_the_sampled_loop_is_refused_though_stable_in_continuous_time(lag_dominated):
+    """Halved ZN PI on the lag-dominated SOPDT keeps 0.1° of continuous phase margin; the
+    hold's lag at 100 samples per period turns it unstable."""
+    ts = lag_dominated.pu / 100
+    sel = select(lag_dominated, "zn-pi-half", ms_bound=1e6, sample_time=ts)
+    a = sel.assessments["zn-pi-half"]
+    assert a.continuous.gain_margin > 1 and a.continuous.phase_margin_deg > 0
+    assert a.stable is False and a.robustness.unstable_poles == 2
+    assert "unstable on the sampled loop" in sel.refusal
+    assert select(lag_dominated, "zn-pi-half", ms_bound=1e6).refusal is None  # continuous
+    _json_safe(sel)

@@ -28,10 +28,9 @@ from services.autotuner.closed_loop import setpoint_step
 from services.autotuner.forms import IsaGains
 from services.autotuner.frequency import ultimate_point
 from services.autotuner.ramp import RampTest
-from services.autotuner.recommend import assess, recommend
 from services.autotuner.relay import RelayTest
-from services.autotuner.robustness import robustness
-from services.autotuner.rules import UltimatePoint, apply_rules
+from services.autotuner.sampled_loop import sampled_loop_robustness
+from services.autotuner.selection import select
 from services.plant_sim.loop import SimLoop
 from services.plant_sim.models import TransferFunctionModel
 from services.plant_sim.plant_file import build_plant
@@ -111,7 +110,7 @@ class TuneOutcome:
     periods: float = math.nan  # the whole experiment, in P_u
     model: str = ""
     recommended: str = ""
-    recommended_ms: float = math.nan  # on the true plant
+    recommended_ms: float = math.nan  # on the true plant's sampled loop
     recommended_stable: bool = False
 
     def to_dict(self) -> dict:
@@ -230,23 +229,27 @@ def _outcome(plant: Plant, method: str, noise: float, test, **lengths: float) ->
         model=r.model.kind if r.model else "",
         **extra,
         **{k: v / pu for k, v in lengths.items()},
-        **_recommendation(plant, r.ku, r.pu, r.model),
+        **_recommendation(plant, test),
     )
 
 
-def _recommendation(plant: Plant, ku: float, pu: float, model) -> dict:
-    """The recommended rule's gains (chosen on the identified model, as live), judged on the
-    true plant: Ms and stability."""
-    ultimate = UltimatePoint(ku, pu)
-    candidates = assess(ultimate, model, apply_rules(ultimate, None, model))
-    rec = recommend(ultimate, model, candidates=candidates)
-    if rec is None:
+def _recommendation(plant: Plant, test) -> dict:
+    """The recommended rule's gains, chosen as live (``selection.select`` with rule auto at the
+    loop's sample time: the model checked, the candidates judged on the sampled loop), judged
+    on the true plant's sampled loop: Ms and stability. None recommended: empty."""
+    ident = experiments.identification(test)
+    if ident is None:
         return {}
-    rb = robustness(rec.gains, list(plant.num), list(plant.den), plant.delay)
+    ts = plant.exact()[1] / SAMPLES_PER_PERIOD
+    sel = select(ident, "auto", sample_time=ts)
+    rec = sel.recommended
+    if rec is None or sel.refusal:
+        return {}
+    rb = sampled_loop_robustness(rec.gains, list(plant.num), list(plant.den), plant.delay, ts)
     return {
         "recommended": rec.rule,
         "recommended_ms": rb.ms,
-        "recommended_stable": rb.gain_margin > 1.0 and rb.phase_margin_deg > 0.0,
+        "recommended_stable": bool(rb.stable),
     }
 
 

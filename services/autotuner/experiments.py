@@ -8,7 +8,7 @@ same K_u, P_u or reaction curve, to the bit.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from services.autotuner.model_fit import ProcessFit
@@ -40,6 +40,11 @@ class Identification:
     timescale: float = 0.0  # s: the loop's natural period, for verification windows
     noise: float = 0.0
     rest_pv: float = math.nan
+    # evidence of integration in the record: True when the PV ramps under a constant output,
+    # False when it settles, None when the experiment did not tell (``model_check`` then
+    # accepts an integrating model only if it reproduces the measured ultimate point)
+    integrating: bool | None = None
+    notes: list[str] = field(default_factory=list)  # what the engineer must know (warnings)
 
 
 def _frequency_fields(points) -> dict[str, float]:
@@ -86,14 +91,17 @@ def build(method: str, req: TuneRequest, setup: dict[str, Any]) -> Experiment:
             tolerance=min(req.tolerance, 0.02) / 2,
             **budget,
         )
-        return RampTest(cfg, pv_limits, ts, sp_start=setup["sp_start"])
+        return RampTest(cfg, pv_limits, ts, sp_start=setup["sp_start"], op_limits=op_limits)
     if method == "step":
         cfg = StepTestConfig(
             size=req.step_size or DEFAULT_STEP_SIZE,
             pv_limits=pv_limits,
             **({"timeout": req.max_time} if req.max_time else {}),
         )
-        return StepTest(cfg, setup["op_start"], op_limits, pv_limits, ts)
+        pv_range = (
+            (setup["pv_range_lo"], setup["pv_range_hi"]) if "pv_range_lo" in setup else None
+        )
+        return StepTest(cfg, setup["op_start"], op_limits, pv_limits, ts, pv_range=pv_range)
     raise ValueError(f"method: unknown method {method!r}")
 
 
@@ -112,12 +120,29 @@ def identification(machine: Experiment) -> Identification | None:
         r = machine.result
         if r is None:
             return None
+        measured = r.crossing != "not reached"
+        notes = []
+        if not measured:
+            notes.append(
+                f"the relay's cycle ran at {r.phase_reached_deg:.0f}°, far from −180° (the "
+                f"hysteresis the noise needs, {r.hysteresis:.3g}, is as large as the cycle): "
+                "K_u and P_u were not measured, so the rules that need them are not offered"
+                + (
+                    f"; the model's own ultimate point is K_u ≈ {r.ku:.4g}, P_u ≈ {r.pu:.4g} s"
+                    if math.isfinite(r.ku)
+                    else ""
+                )
+            )
         return Identification(
-            ku=r.ku,
-            pu=r.pu,
-            ku_spread=r.ku_spread,
-            pu_spread=r.pu_spread,
+            ku=r.ku if measured else None,
+            pu=r.pu if measured else None,
+            ku_spread=r.ku_spread if measured else None,
+            pu_spread=r.pu_spread if measured else None,
+            notes=notes,
             experiment={
+                "crossing": r.crossing,
+                "phase_reached_deg": r.phase_reached_deg,
+                **({} if measured else {"ku_model": r.ku, "pu_model": r.pu}),
                 "relay_amplitude": r.relay_amplitude,
                 "amplitude": r.amplitude,
                 "hysteresis": r.hysteresis,
@@ -133,7 +158,7 @@ def identification(machine: Experiment) -> Identification | None:
                 **(r.model.to_dict() if r.model else {}),
                 **({"static_gain": r.static_gain} if r.static_gain is not None else {}),
             },
-            timescale=r.pu,
+            timescale=r.pu if math.isfinite(r.pu) else r.cycle_period,
             noise=r.noise_std,
             rest_pv=r.rest_pv,
             model=r.model,

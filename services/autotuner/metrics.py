@@ -1,6 +1,7 @@
 """Closed-loop response figures: a setpoint step and a load step.
 
-Setpoint step from y₀ to r, z = (y − y₀)/(r − y₀): overshoot = max(z) − 1 (in %), decay ratio
+Setpoint step from y₀ to r, z = (y − y₀)/(r − y₀), read with the noise averaged over 5
+samples: overshoot = max(z) − 1 (in %), decay ratio
 = second overshoot over the first (the quarter-decay aim of Ziegler–Nichols is 0.25), rise
 time 10 → 90 %, settling time to stay within ±``band`` of the step, IAE = ∫|r − y| dt. Load
 step: IAE, the largest deviation from the setpoint and the time to return within a tenth of
@@ -13,7 +14,7 @@ import math
 
 import numpy as np
 
-from services.autotuner.oscillation import extrema
+from services.autotuner.oscillation import extrema, smooth
 
 
 def _trapz(y: np.ndarray, t: np.ndarray) -> float:
@@ -42,8 +43,12 @@ def setpoint_step(
     t, y = np.asarray(t, float), np.asarray(y, float)
     delta = target - y0
     z = (y - y0) / delta
-    over = float(np.max(z) - 1.0)
-    ext = extrema(t, z - 1.0, max(0.02, 4 * noise / abs(delta)))
+    # the peaks are read on the response with the noise averaged (5 samples: σ/√5), and a
+    # turning point must clear 8σ of it, so a noisy crest is one peak, not two
+    rel_noise = noise / abs(delta)
+    zs = smooth(z, 5) if rel_noise > 0 and z.size >= 10 else z
+    over = float(np.max(zs) - 1.0)
+    ext = extrema(t, zs - 1.0, max(0.02, 8 * rel_noise))
     peaks = [v for _, v in ext if v > 0]
     decay = peaks[1] / peaks[0] if len(peaks) >= 2 and peaks[0] > 0 else None
     t10, t90 = _crossing(t, z, 0.1), _crossing(t, z, 0.9)

@@ -90,6 +90,7 @@ class RampTest:
     pv_limits: tuple[float, float]
     sample_time: float
     sp_start: float = math.nan  # the setpoint held during the quiet period (NaN: first PV)
+    op_limits: tuple[float, float] = (0.0, 100.0)  # the loop's output limits, %
 
     phase: str = "quiet"  # quiet → trial ⇄ settle → done | aborted
     reason: str = ""

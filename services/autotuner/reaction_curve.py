@@ -18,6 +18,19 @@ Two ways to the tangent, both reported by ``method``:
   (the heat exchanger of seed 002 has this form; FOPDT is τ₂ = 0), with the tangent taken on
   the fitted curve. It is used when the fit explains the data down to the noise
   (residual RMS ≤ 1.25 σ); otherwise the data method is kept.
+
+The dead time is floored at half a sample time (``dead_time_floor``): a digital controller's
+zero-order hold adds T/2 of effective delay to any loop it closes, and a tangent figure below
+it is not resolved by the data. Seen on the gravity-drain tank (τ ≈ 640 s, 1 s delay, 1 s
+samples, σ = 0.002 m): a near-first-order response has its steepest point at its start, so the
+tangent meets the baseline at the fitted θ itself; the square-root law makes the early
+response faster than one τ fitted to the whole record, which a first-order curve can only match
+by starting ≈ 2.5 s early, and θ (bounded at 0) landed on 0: L = 1e-11 s, Kc ≈ 1e15. The
+figure as measured stays in ``dead_time_tangent``.
+
+A PV at (or within noise of) an end of the transmitter's range is never taken for rest: the
+clipped measurement is flat and noise-free whatever the process does (``range_end``). An
+integrating process never comes to rest; ``steady_ramp`` recognises its steady ramp.
 """
 
 from __future__ import annotations
@@ -26,7 +39,7 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy.optimize import brentq, least_squares
+from scipy.optimize import brentq, least_squares, minimize_scalar
 from scipy.signal import savgol_filter
 
 
@@ -51,6 +64,8 @@ class ReactionCurve:
     smoothing_window: int  # samples in the slope's window (2: a secant between samples)
     method: str  # "data" or "model" (see the module docstring)
     fit_rms: float | None  # RMS residual of the SOPDT fit, PV units (None: no fit)
+    dead_time_tangent: float | None = None  # s, the tangent's L before the floor
+    dead_time_floor: float = 0.0  # s, half a sample time (see the module docstring)
 
     def to_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -65,10 +80,36 @@ def noise_level(y: np.ndarray) -> float:
     return float(np.std(y - np.polyval(coef, x), ddof=2))
 
 
-def at_rest(y: np.ndarray) -> bool:
+def range_end(
+    y: np.ndarray, pv_range: tuple[float, float], noise_std: float | None = None
+) -> str | None:
+    """'top' or 'bottom' when the PV sits at, or within 3σ of, an end of ``pv_range``.
+
+    The transmitter clips the measurement to its range, so a PV there is flat and noise-free
+    whatever the process does: any sample at the end, or a mean within 3σ of it, counts.
+    σ is ``noise_std`` if given, else the record's own (which clipping lowers).
+    """
+    y = np.asarray(y, dtype=float)
+    if y.size == 0:
+        return None
+    lo, hi = pv_range
+    tol = 1e-9 * max(1.0, abs(lo), abs(hi), hi - lo)
+    sigma = noise_level(y) if noise_std is None else noise_std
+    mean = float(np.mean(y))
+    if np.any(y >= hi - tol) or mean >= hi - 3.0 * sigma - tol:
+        return "top"
+    if np.any(y <= lo + tol) or mean <= lo + 3.0 * sigma + tol:
+        return "bottom"
+    return None
+
+
+def at_rest(y: np.ndarray, pv_range: tuple[float, float] | None = None) -> bool:
     """No trend beyond the noise: the straight-line fit moves less than 3σ (and less than
-    1e-9 of the level) over the record."""
+    1e-9 of the level) over the record; and, given the transmitter's ``pv_range``, the PV is
+    not at or within noise of one of its ends (``range_end``)."""
     if y.size < 3:
+        return False
+    if pv_range is not None and range_end(y, pv_range) is not None:
         return False
     x = np.arange(y.size, dtype=float)
     slope = float(np.polyfit(x, y, 1)[0])
@@ -95,11 +136,14 @@ def analyze_step(
     pv_before: float,
     pv_after: float,
     noise_std: float,
+    sample_time: float | None = None,
 ) -> ReactionCurve:
     """Reaction-curve figures from samples (t, y) taken after a step at ``t_step``.
 
     ``pv_before``/``pv_after`` are the rest values before and after, ``noise_std`` the PV
-    noise seen before the step. Raises ValueError when the response is too small or short.
+    noise seen before the step. The dead time is at least half of ``sample_time`` (s; default
+    the samples' median spacing): see the module docstring. Raises ValueError when the
+    response is too small or short.
     """
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
@@ -157,6 +201,9 @@ def analyze_step(
             if fit.rms <= 1.25 * noise_std:
                 method = "model"
                 t_inf, slope, dead_time, t63 = fit.tangent()
+    tangent_dead_time = float(dead_time)
+    floor = 0.5 * (sample_time if sample_time is not None else dt)
+    dead_time = max(tangent_dead_time, floor)
     gain = change / step_size
     reaction_rate = slope / step_size
     tau_tangent = gain / reaction_rate
@@ -178,6 +225,8 @@ def analyze_step(
         smoothing_window=w,
         method=method,
         fit_rms=fit_rms,
+        dead_time_tangent=tangent_dead_time,
+        dead_time_floor=floor,
     )
 
 
@@ -280,6 +329,7 @@ def settled(
     pv_before: float,
     noise_std: float,
     band: float = 0.005,
+    pv_range: tuple[float, float] | None = None,
 ) -> tuple[bool, float]:
     """Has the PV come to rest after the step? Returns (settled, rest value estimate).
 
@@ -287,6 +337,8 @@ def settled(
     either be lost in its noise or imply a drift over the next half of that time below
     ``band`` of the change; at least three times the 63 % time must have passed; and the
     window must be long enough for its mean to carry the rest value to within ``band``/2.
+    Given the transmitter's ``pv_range``, a window at or within noise of one of its ends is
+    never at rest (the clipped PV is flat whatever the process does).
     """
     keep = t >= t_step
     t, y = t[keep], y[keep]
@@ -298,6 +350,8 @@ def settled(
     rest = float(np.mean(yw))
     change = rest - pv_before
     if abs(change) <= 5.0 * noise_std or change == 0:
+        return False, rest
+    if pv_range is not None and range_end(yw, pv_range, noise_std) is not None:
         return False, rest
     elapsed = t[-1] - t_step
     try:
@@ -315,3 +369,118 @@ def settled(
     small = abs(slope) * elapsed * 0.5 <= band * abs(change)
     precise = noise_std / math.sqrt(m) <= 0.5 * band * abs(change)  # the rest value is known
     return bool((quiet or small) and precise), rest
+
+
+RAMP_PRECISION = 0.1  # the slope's change over the window must be resolved to 10 % of it
+RAMP_WINDOWS_PER_DEAD_TIME = 10  # the steady window spans at least 10 apparent dead times
+RAMP_MIN_SAMPLES = 40
+
+
+@dataclass(frozen=True)
+class SteadyRamp:
+    """A PV ramping at a constant slope after a step: the mark of an integrating process."""
+
+    slope: float  # PV units per s, at the middle of the window
+    dead_time: float  # s from the step to where the ramp's line meets the baseline
+    dead_time_se: float  # s, its standard error
+    slope_change: float  # relative change of the slope across the window (0: steady)
+    slope_change_se: float  # its standard error (relative)
+    window: float  # s, the trailing window the ramp was steady over
+    elapsed: float  # s since the step
+
+
+def steady_ramp(
+    t: np.ndarray, y: np.ndarray, t_step: float, pv_before: float, noise_std: float
+) -> SteadyRamp | None:
+    """The steady ramp of an integrating process after a step at ``t_step``, or None.
+
+    Over the trailing half of the time since the step (≥ 40 samples) a parabola is fitted;
+    its curvature gives the slope's change across the window. An integrating response (after
+    its dead time and lags) keeps a constant slope, so: the change must be lost in the noise
+    (≤ 3 standard errors) while the fit resolves it to 10 % of the slope (3 se ≤ 10 %); the
+    window must span ≥ 10 apparent dead times, so that an S-shaped response is past its
+    inflection; the PV must have moved ≥ 10σ over the window; and the ramp's line must meet
+    the baseline after the step (within its error), as a delay does. A self-regulating
+    response fails: its slope decays (FOPDT: by e^{−W/T} over W), which the window, half the
+    time elapsed, resolves long before its 10 % precision is reached, and the chord of its
+    decaying curve meets the baseline before the step. A time constant beyond ≈ 5 times the
+    time elapsed is indistinguishable from integration, and is called so.
+    """
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    keep = t >= t_step
+    t, y = t[keep], y[keep]
+    if t.size < 2 * RAMP_MIN_SAMPLES:
+        return None
+    elapsed = float(t[-1] - t_step)
+    w = t >= t_step + 0.5 * elapsed
+    tw, yw = t[w], y[w]
+    n = tw.size
+    if n < RAMP_MIN_SAMPLES:
+        return None
+    span = float(tw[-1] - tw[0])
+    x = (tw - tw.mean()) / span  # −½ … ½
+    a = np.vander(x, 3)  # x², x, 1
+    coef, *_ = np.linalg.lstsq(a, yw, rcond=None)
+    resid = yw - a @ coef
+    s2 = float(resid @ resid) / max(n - 3, 1)
+    cov = s2 * np.linalg.inv(a.T @ a)
+    c2, c1, c0 = coef
+    slope = float(c1) / span
+    if slope == 0 or abs(c1) < 10.0 * noise_std:
+        return None
+    change = 2.0 * float(c2) / float(c1)  # slope(½) − slope(−½), relative to slope(0)
+    change_se = 2.0 * math.sqrt(cov[0, 0]) / abs(float(c1))
+    steady = abs(change) <= 3.0 * change_se + 1e-6
+    if not (steady and 3.0 * change_se <= RAMP_PRECISION):
+        return None
+    # the ramp's line at the window's middle, back to the baseline
+    t_mid = float(tw.mean())
+    rise = float(c0) - pv_before
+    chord_dead_time = t_mid - rise / slope - t_step
+    var_slope = float(cov[1, 1]) / span**2
+    chord_se = math.sqrt(float(cov[2, 2]) / slope**2 + (rise / slope**2) ** 2 * var_slope)
+    dt = float(np.median(np.diff(t)))
+    if chord_dead_time < -(3.0 * chord_se + dt):
+        return None  # a decaying curve's chord: it meets the baseline before the step
+    if span < RAMP_WINDOWS_PER_DEAD_TIME * max(chord_dead_time, 0.0):
+        return None
+    dead_time, dead_time_se = _kink_dead_time(t - t_step, y - pv_before, 0.5 * elapsed)
+    return SteadyRamp(
+        slope=slope,
+        dead_time=float(dead_time),
+        dead_time_se=float(dead_time_se),
+        slope_change=change,
+        slope_change_se=change_se,
+        window=span,
+        elapsed=elapsed,
+    )
+
+
+def _kink_dead_time(t: np.ndarray, dy: np.ndarray, longest: float) -> tuple[float, float]:
+    """Dead time (s) and its standard error of dy = S·max(t − L, 0) fitted to the whole record.
+
+    The integrating response's line met back at the baseline: the whole record pins it far
+    better than extrapolating the trailing window back (lags fold into L, as in a tangent).
+    """
+
+    def sse(lag: float) -> float:
+        x = np.maximum(t - lag, 0.0)
+        xx = float(x @ x)
+        return float(dy @ dy) - (float(x @ dy) ** 2 / xx if xx > 0 else 0.0)
+
+    opt = {"xatol": 1e-9 * max(longest, 1.0)}
+    lag = float(minimize_scalar(sse, bounds=(0.0, longest), method="bounded", options=opt).x)
+    after = t > lag
+    x, yy = t[after], dy[after]
+    n = x.size
+    if n < 3:
+        return lag, math.inf
+    slope, icpt = np.polyfit(x, yy, 1)
+    resid = yy - (slope * x + icpt)
+    s2 = float(resid @ resid) / (n - 2)
+    sxx = float(np.sum((x - x.mean()) ** 2))
+    # L = −intercept/slope where the line meets dy = 0: its variance from the line's
+    cross = (float(np.mean(yy)) / slope**2) ** 2 * s2 / sxx
+    se = math.sqrt(s2 / n / slope**2 + cross)
+    return lag, se

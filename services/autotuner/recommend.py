@@ -1,12 +1,28 @@
 """Which rule's gains to recommend, judged on the identified model.
 
-Every ultimate-point rule is a candidate. With a model (the relay's fitted FOPDT/SOPDT/IPDT),
-each candidate's maximum sensitivity Ms is computed on it; among the stable candidates with
-Ms within the bound (default 2.0, with a margin for the model's own error), the one with
-the largest integral gain Kc/Ti wins — the AMIGO design criterion: the best rejection of load
-disturbances that the robustness allows (Åström & Hägglund, *Advanced PID Control*, 2006,
-§7.3). Without a model, Tyreus–Luyben PI (Ms about 1.5–1.6 on FOPDT plants, see
-control-references.md) is the safe default (AMIGO PI after a step test, designed for Ms ≈ 1.4).
+Every ultimate-point rule is a candidate. With a model (the relay's fitted FOPDT/SOPDT/IPDT,
+checked by ``model_check``), each candidate's maximum sensitivity Ms is computed on it — on the
+sampled loop (``sampled_loop``: the plant held and sampled at the loop's T, the PID block's own
+discrete transfer function) when the sample time is known, else in continuous time; among the
+candidates inside the safety envelope (below), with Ms within the bound (default 2.0, with a
+margin for the model's own error), the one with the largest integral gain Kc/Ti wins — the
+AMIGO design criterion: the best rejection of load disturbances that the robustness allows
+(Åström & Hägglund, *Advanced PID Control*, 2006, §7.3).
+
+Without a model, or when the model was refused, the fallback is Tyreus–Luyben PI: Kc = K_u/3.2,
+Ti = 2.2·P_u. It needs only K_u and P_u, which the relay measures well even when the record
+its model was fitted to is not (issue 10: K_u right, the model's gain seven times too small).
+At the measured crossover its integral adds only atan(1/(2.2·2π)) ≈ 4° of lag, so its gain
+margin stays close to 3.2 whatever the plant's shape (2.9 on the heat exchanger): room for
+the hold's lag at coarse sample times (2.4 at 17 samples per period there) and for error in
+K_u; its Ms is 1.5–1.6 on FOPDT plants (control-references.md), 2.0 on the lag-dominated heat
+exchanger. Halved ZN PI has a lower gain but Ti = P_u/1.2 costs 11° there, and on
+lag-dominated plants that alone can destabilise the loop; the PID rules' derivative acts at
+high frequency, where without a model nothing says what the plant does. After a step test
+(no K_u) the fallback is AMIGO PI (designed for Ms ≈ 1.4), if its model passed its checks.
+
+The safety envelope: a candidate with Kc at or above the measured K_u, or predicted unstable,
+or with Ms above the bound, is never recommended (``envelope_problem``).
 """
 
 from __future__ import annotations
@@ -14,11 +30,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from services.autotuner.closed_loop import StepFigures, setpoint_step
 from services.autotuner.forms import IsaGains
 from services.autotuner.model_fit import ProcessFit
 from services.autotuner.robustness import Robustness, robustness
 from services.autotuner.rules import RULES, UltimatePoint, apply_rules
+from services.autotuner.sampled_loop import SampledPlant, sampled_plant, sampled_robustness
 
 MS_BOUND = 2.0
 MODEL_MARGIN = 0.9  # recommend only below 0.9 × the bound: the model is an approximation
@@ -32,8 +51,11 @@ FALLBACKS = ("tl-pi", "amigo-pi", "simc-pi-int")  # robust by design, in this or
 class Assessment:
     rule: str
     gains: IsaGains
-    robustness: Robustness | None  # on the identified model (None without one)
+    # on the identified model (None without one): the sampled loop's when the sample time is
+    # known (``robustness.sample_time`` set), else the continuous loop's
+    robustness: Robustness | None
     step: StepFigures | None = None  # the closed loop's setpoint step on the model
+    continuous: Robustness | None = None  # the continuous loop's, beside a sampled judgement
 
     def to_dict(self) -> dict[str, float | bool | None]:
         rb, st = self.robustness, self.step
@@ -44,7 +66,14 @@ class Assessment:
             "gain_margin": _number(rb.gain_margin),
             "phase_margin_deg": _number(rb.phase_margin_deg),
             "stable": bool(self.stable),
+            "sampled": rb.sample_time is not None,
         }
+        if rb.sample_time is not None:
+            out["sample_time"] = _number(rb.sample_time)
+        if self.continuous is not None:
+            out["ms_continuous"] = _number(self.continuous.ms)
+            out["gain_margin_continuous"] = _number(self.continuous.gain_margin)
+            out["phase_margin_deg_continuous"] = _number(self.continuous.phase_margin_deg)
         if st is not None:
             out["overshoot_pct"] = _number(st.overshoot)
             out["decay_ratio"] = _number(st.decay_ratio)
@@ -53,17 +82,47 @@ class Assessment:
     @property
     def stable(self) -> bool | None:
         rb = self.robustness
-        return None if rb is None else bool(rb.gain_margin > 1.0 and rb.phase_margin_deg > 0.0)
+        if rb is None:
+            return None
+        if rb.stable is not None:  # the sampled loop's Nyquist count
+            return rb.stable
+        return bool(rb.gain_margin > 1.0 and rb.phase_margin_deg > 0.0)
 
     def within(self, bound: float) -> bool | None:
         rb = self.robustness
         return None if rb is None else bool(self.stable) and rb.ms <= bound
 
 
-def _number(x: float) -> float | None:
-    """A plain float for JSON (numpy scalars are not), None for an infinite margin."""
+def _number(x: float | None) -> float | None:
+    """A plain float for JSON (numpy scalars are not), None for an infinite or undefined one."""
+    if x is None:
+        return None
     x = float(x)
     return x if math.isfinite(x) else None
+
+
+def envelope_problem(a: Assessment, ultimate: UltimatePoint | None, ms_bound: float) -> str | None:
+    """Why a candidate is outside the safety envelope (None if inside): Kc at or above the
+    measured K_u (the loop's own proportional gain would sustain or grow an oscillation),
+    predicted unstable, or predicted Ms above the bound."""
+    g = a.gains
+    if ultimate is not None and g.kc >= ultimate.ku:
+        return (
+            f"Kc {g.kc:.4g} at or above the measured K_u {ultimate.ku:.4g} "
+            f"({g.kc / ultimate.ku:.3g} × K_u)"
+        )
+    rb = a.robustness
+    if rb is None:
+        return None
+    on = "the sampled loop" if rb.sample_time is not None else "the continuous loop"
+    if not a.stable:
+        return (
+            f"predicted unstable on {on} (gain margin {rb.gain_margin:.3g}, phase margin "
+            f"{rb.phase_margin_deg:.3g}°)"
+        )
+    if rb.ms > ms_bound:
+        return f"predicted Ms {rb.ms:.3g} above the bound {ms_bound:g} on {on}"
+    return None
 
 
 def assess(
@@ -73,23 +132,36 @@ def assess(
     simulate: bool = False,
     sample_time: float | None = None,
 ) -> dict[str, Assessment]:
-    """Every candidate's robustness on the model (rules needing K_u and P_u unless given),
-    and with ``simulate`` its closed-loop setpoint step at the loop's sample time."""
+    """Every candidate's robustness on the model (rules needing K_u and P_u unless given):
+    on the sampled loop when ``sample_time`` (s) is given, beside the continuous figures;
+    with ``simulate`` also its closed-loop setpoint step at the loop's sample time."""
     gains = apply_rules(ultimate, None) if gains is None else gains
     timescale = ultimate.pu if ultimate else (model.delay + model.lag if model else 0.0)
     if not math.isfinite(timescale) or timescale <= 0:
         timescale = 10.0 * model.delay if model else 0.0
+    plant: SampledPlant | None = None
+    if model is not None and sample_time is not None and sample_time > 0:
+        try:
+            plant = sampled_plant(model.num, model.den, model.delay, sample_time)
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+            plant = None
     out = {}
     for name, g in gains.items():
-        rb, st = None, None
+        rb, st, cont = None, None, None
         if model is not None:
             try:
-                rb = robustness(g, model.num, model.den, model.delay)
+                cont = robustness(g, model.num, model.den, model.delay)
             except (ValueError, ArithmeticError):
-                rb = None
+                cont = None
+            rb = cont
+            if plant is not None:
+                try:
+                    rb = sampled_robustness(g, plant)
+                except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+                    rb = None
             if simulate and rb is not None and timescale > 0:
                 st = setpoint_step(g, model, timescale, sample_time)
-        out[name] = Assessment(name, g, rb, st)
+        out[name] = Assessment(name, g, rb, st, cont if plant is not None else None)
     return out
 
 
@@ -106,53 +178,59 @@ def recommend(
     model: ProcessFit | None,
     ms_bound: float = MS_BOUND,
     candidates: dict[str, Assessment] | None = None,
+    without_model: str | None = None,
 ) -> Recommendation | None:
     """The rule to apply by default (see the module's docstring); ``candidates`` as
-    ``assess`` gives them (every ultimate-point rule if not given)."""
+    ``assess`` gives them (every ultimate-point rule if not given); ``without_model`` says
+    why there is no model to judge on (a refusal by ``model_check``). None when no candidate
+    is inside the safety envelope."""
     candidates = assess(ultimate, model) if candidates is None else candidates
+    safe = {
+        k: a
+        for k, a in candidates.items()
+        if RULES[a.rule].controller != "P" and envelope_problem(a, ultimate, ms_bound) is None
+    }
     if model is not None:
+        sampled = any(
+            a.robustness is not None and a.robustness.sample_time is not None for a in safe.values()
+        )
+        on = (
+            f"the sampled loop of the identified {model.kind.upper()} model"
+            if sampled
+            else (f"the identified {model.kind.upper()} model")
+        )
 
         def margin(rule: str) -> float:
             pid = RULES[rule].controller == "PID"
             return APPROXIMATE_PID_MARGIN if pid and model.approximate else MODEL_MARGIN
 
-        ok = [
-            a
-            for a in candidates.values()
-            if RULES[a.rule].controller != "P" and a.within(margin(a.rule) * ms_bound)
-        ]
+        ok = [a for a in safe.values() if a.within(margin(a.rule) * ms_bound)]
         if ok:
             best = max(ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
             return Recommendation(
                 best.rule,
                 best.gains,
-                best.robustness.ms if best.robustness else None,
-                f"largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g} on the "
-                f"identified {model.kind.upper()} model",
+                _number(best.robustness.ms) if best.robustness else None,
+                f"largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g} on {on}",
             )
-        judged = [
-            a
-            for a in candidates.values()
-            if RULES[a.rule].controller != "P" and a.stable and a.robustness is not None
-        ]
+        judged = [a for a in safe.values() if a.robustness is not None]
         safest = min(judged, key=lambda a: a.robustness.ms, default=None)
-        if safest is not None and safest.robustness.ms <= ms_bound:
+        if safest is not None:
             return Recommendation(
                 safest.rule,
                 safest.gains,
-                safest.robustness.ms,
-                f"the most robust candidate on the identified {model.kind.upper()} model "
-                f"(none within the margin Ms ≤ {MODEL_MARGIN * ms_bound:.2g})",
+                _number(safest.robustness.ms),
+                f"the most robust candidate on {on} (none within the margin "
+                f"Ms ≤ {MODEL_MARGIN * ms_bound:.2g})",
             )
-    fallback = next((candidates[r] for r in FALLBACKS if r in candidates), None)
+    fallback = next((safe[r] for r in FALLBACKS if r in safe), None)
     if fallback is None:
         return None
     rb = fallback.robustness
-    return Recommendation(
-        fallback.rule,
-        fallback.gains,
-        rb.ms if rb else None,
-        "no model to judge the candidates on: the robust default"
-        if model is None
-        else f"no candidate within Ms ≤ {MODEL_MARGIN * ms_bound:.2g} on the model",
-    )
+    if model is not None:
+        reason = f"no candidate within Ms ≤ {MODEL_MARGIN * ms_bound:.2g} on the model"
+    elif without_model:
+        reason = f"{without_model}: the robust default, from K_u and P_u alone"
+    else:
+        reason = "no model to judge the candidates on: the robust default"
+    return Recommendation(fallback.rule, fallback.gains, _number(rb.ms) if rb else None, reason)

@@ -41,6 +41,7 @@ from services.autotuner.model_fit import (
 from services.autotuner.reaction_curve import at_rest, noise_level
 
 STAGE_TWO_CYCLES = 2  # one to settle into the new cycle, one to measure
+NEAR_DEG = 25.0  # a measured point this close to −180° makes the crossover "measured"
 OVERSHOOT = 0.5  # stage 2 aims past −180° by half stage 1's miss…
 MIN_SHIFT_DEG = 2.0  # … and moves the cycle's phase by at least this
 
@@ -105,6 +106,12 @@ class RelayResult:
     # not yet settled)
     static_gain: float | None = None
     model: ProcessFit | None = None  # fitted to both stages' points (model_fit)
+    # how K_u and P_u were found: "bracketed" (the stages' points lie on both sides of
+    # −180°), "near" (a point within NEAR_DEG of it: a short interpolation), or "not reached"
+    # (both far from it: ku/pu are then the model's own ultimate point, NaN without a model)
+    crossing: str = "bracketed"
+    phase_reached_deg: float = -180.0  # the measured phase closest to −180°
+    cycle_period: float = math.nan  # s, stage 1's mean period
 
 
 @dataclass
@@ -467,6 +474,16 @@ class RelayTest:
             refined = _refine(s1, (), self._corrector(s1, None))
         model = self._process_model(refined.candidates) if refined else None
         ku, pu = (refined.ku, refined.pu) if refined else (s1.ku, s1.pu)
+        phases = [p.phase_deg for p in (*s1.points[:1], *(refined.points[:1] if refined else ()))]
+        closest = min(phases, key=lambda ph: abs(ph + 180.0), default=math.nan)
+        if len(phases) == 2 and (phases[0] + 180.0) * (phases[1] + 180.0) <= 0:
+            crossing = "bracketed"
+        elif abs(closest + 180.0) <= NEAR_DEG and math.isfinite(ku):
+            crossing = "near"
+        else:
+            crossing = "not reached"
+            up = model.ultimate_point() if model is not None else None
+            ku, pu = (float(up[0]), float(up[1])) if up else (math.nan, math.nan)
         self.result = RelayResult(
             ku=ku,
             pu=pu,
@@ -488,6 +505,9 @@ class RelayTest:
                 model.gain if model is not None and model.kind != "ipdt" and self._low < 1 else None
             ),
             model=model,
+            crossing=crossing,
+            phase_reached_deg=float(closest),
+            cycle_period=s1.pu,
         )
         self.phase = "done"
         t_done = self.cycles[-1].t_start + self.cycles[-1].period

@@ -8,6 +8,10 @@ logarithmic grid refined around each extremum:
 * gain margin 1/|L(jω₁₈₀)| at the first frequency where the unwrapped phase of L reaches
   −180° (inf if it never does; for P control it equals K_u/Kc);
 * phase margin 180° + arg L(jω_c) at the first frequency where |L| falls to 1.
+
+This is the continuous loop: it ignores the zero-order hold and the PID block's discrete
+integral and derivative. ``sampled_loop`` gives the same figures for the loop as it runs at
+its sample time T (and its stability by the Nyquist count), to which these tend as T → 0.
 """
 
 from __future__ import annotations
@@ -26,8 +30,13 @@ class Robustness:
     ms: float
     gain_margin: float
     phase_margin_deg: float
-    omega_180: float | None
-    omega_c: float | None
+    omega_180: float | None  # rad/s
+    omega_c: float | None  # rad/s
+    # the sampled loop's (``sampled_loop``): its stability by the Nyquist count, the sample
+    # time, and how many closed-loop poles lie outside the unit circle; None in continuous time
+    stable: bool | None = None
+    sample_time: float | None = None
+    unstable_poles: int | None = None
 
 
 def loop_response(gains: IsaGains, num, den, delay: float, n: float, w: np.ndarray) -> np.ndarray:

@@ -1,21 +1,36 @@
 """From an identification to the gains to apply: every rule, judged on the model, one chosen.
 
-Pure: the live run and the offline analysis of a recording both call ``select``. Every rule
-the identification supports is computed; on the identified model (relay: fitted to the test;
-step: the reaction curve's first order) each gets its maximum sensitivity Ms, margins and the
-overshoot and decay ratio of a simulated setpoint step. The rule ``auto`` is the recommended
-one (``recommend``). Gains predicted unstable, or with Ms above the bound, are refused unless
+Pure: the live run and the offline analysis of a recording both call ``select``. First the
+model is checked against what was measured (``model_check``: its own ultimate point against
+K_u and P_u, physics, its fit to the record); a refused model is not used — the model-based
+rules (and after a step test, whose reaction curve is the model, the step rules too) are
+unavailable, with the reason, and no robustness is predicted from it. Every rule the
+identification supports is then computed; on the model (relay: fitted to the test; step: the
+reaction curve's first order) each gets its maximum sensitivity Ms, margins and stability on
+the sampled loop (the plant held and sampled at the loop's T, closed by the PID block's own
+discrete transfer function: ``sampled_loop``) when the sample time is known, else in
+continuous time, and the overshoot and decay ratio of a simulated setpoint step. The rule
+``auto`` is the recommended one (``recommend``). The safety envelope: gains with Kc at or
+above the measured K_u, predicted unstable, or with Ms above the bound, are refused unless
 forced: the reason says which and by how much. L/T is reported with the seeds' guidance.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from services.autotuner.experiments import Identification
 from services.autotuner.forms import IsaGains
+from services.autotuner.model_check import ModelCheck, check_model
 from services.autotuner.model_fit import ProcessFit
-from services.autotuner.recommend import Assessment, Recommendation, assess, recommend
+from services.autotuner.recommend import (
+    Assessment,
+    Recommendation,
+    assess,
+    envelope_problem,
+    recommend,
+)
 from services.autotuner.rules import RULES, ZN_STEP_RANGE, UltimatePoint, apply_rules, fopdt_of
 
 
@@ -29,17 +44,48 @@ class Selection:
     l_over_t: float | None
     refusal: str | None = None  # why the chosen gains must not be applied (None: they may)
     warnings: list[str] = field(default_factory=list)
+    # rules this identification would give but that may not be used, and why (a refused model)
+    unavailable: dict[str, str] = field(default_factory=dict)
+    # candidates outside the safety envelope (Kc ≥ K_u, predicted unstable, Ms above the
+    # bound), and why: never recommended, refused unless forced
+    unsafe: dict[str, str] = field(default_factory=dict)
+    model_check: ModelCheck | None = None  # the verdict on the identified model (None: none)
+    sample_time: float | None = None  # s: the loop the figures are for (None: continuous)
 
 
-def l_over_t(ident: Identification) -> float | None:
-    """L/T of the step test, else of the fitted model's first-order equivalent."""
+def l_over_t(ident: Identification, model: ProcessFit | None = None) -> float | None:
+    """L/T of the step test, else of the (usable) model's first-order equivalent; None when
+    unknown or not finite."""
     if ident.step:
-        return ident.step.get("l_over_t")
-    model: ProcessFit | None = ident.model
+        return _finite(ident.step.get("l_over_t"))
     if model is None or model.kind == "ipdt":
         return None
     m = fopdt_of(model)
-    return m.dead_time / m.time_constant if m.time_constant > 0 else None
+    return _finite(m.dead_time / m.time_constant) if m.time_constant > 0 else None
+
+
+def _finite(x: float | None) -> float | None:
+    """A plain finite float, or None: JSON takes no inf or nan."""
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def check_identification(ident: Identification) -> ModelCheck | None:
+    """``model_check`` on the identification's model with what was measured beside it (None
+    without a model). A step test has no K_u: its reaction curve is checked on physics."""
+    if ident.model is None:
+        return None
+    return check_model(
+        ident.model,
+        ident.ku,
+        ident.pu,
+        ident.ku_spread,
+        ident.pu_spread,
+        integrating=ident.integrating,
+    )
 
 
 def guidance(ratio: float | None, model: ProcessFit | None) -> list[str]:
@@ -70,47 +116,99 @@ def select(
     force: bool = False,
     sample_time: float | None = None,
 ) -> Selection:
-    ultimate = UltimatePoint(ident.ku, ident.pu) if ident.ku else None
-    model = ident.model
-    table = apply_rules(ultimate, ident.step_model, model)
-    assessments = assess(ultimate, model, table, simulate=True, sample_time=sample_time)
-    rec = recommend(ultimate, model, ms_bound, assessments)
-    ratio = l_over_t(ident)
+    """The gains for ``rule`` ("auto": the recommended rule), judged at the loop's
+    ``sample_time`` (s; None: in continuous time), refused (``refusal``) outside the safety
+    envelope unless ``force``."""
+    ku, pu = _finite(ident.ku), _finite(ident.pu)
+    ultimate = UltimatePoint(ku, pu) if ku and pu and ku > 0 and pu > 0 else None
+    ts = _finite(sample_time)
+    ts = ts if ts and ts > 0 else None
+    check = check_identification(ident)
+    model = ident.model if check is None or check.ok else None
+    unavailable: dict[str, str] = {}
+    warnings: list[str] = []
+    without_model = None
+    if check is not None and not check.ok:
+        step_test = ident.step_model is not None
+        kinds = ("model", "open") if step_test else ("model",)
+        what = "reaction curve" if step_test else f"{ident.model.kind.upper()} model"
+        without_model = f"the {what} was refused ({check.summary()})"
+        for name, r in RULES.items():
+            if r.kind in kinds:
+                unavailable[name] = f"the {what} was refused: {check.summary()}"
+        warnings.append(
+            f"the identified {what} was refused, so no rule uses it and no robustness is "
+            f"predicted from it: {check.summary()}"
+        )
+    table = {
+        name: g
+        for name, g in apply_rules(
+            ultimate, None if "open" in _kinds(unavailable) else ident.step_model, model
+        ).items()
+        if name not in unavailable
+    }
+    for name, g in list(table.items()):  # JSON takes no inf or nan: such gains are no gains
+        if g.ti is not None and not math.isfinite(g.ti):
+            unavailable[name] = f"non-finite integral time {g.ti}"
+            del table[name]
+    assessments = assess(ultimate, model, table, simulate=True, sample_time=ts)
+    rec = recommend(ultimate, model, ms_bound, assessments, without_model)
+    unsafe = {
+        name: p
+        for name, a in assessments.items()
+        if (p := envelope_problem(a, ultimate, ms_bound)) is not None
+    }
+    ratio = l_over_t(ident, model)
     name = (rec.rule if rec else "") if rule == "auto" else rule
     sel = Selection(
-        name, table.get(name), table, assessments, rec, ratio, warnings=guidance(ratio, model)
+        name,
+        table.get(name),
+        table,
+        assessments,
+        rec,
+        ratio,
+        warnings=warnings + guidance(ratio, model),
+        unavailable=unavailable,
+        unsafe=unsafe,
+        model_check=check,
+        sample_time=ts if model is not None else None,
     )
     if sel.chosen is None:
-        sel.refusal = (
-            "no rule could be recommended"
-            if rule == "auto"
-            else f"rule {name}: this identification does not give it "
-            f"({RULES[name].kind} rule; {_why_missing(name, ident)})"
-        )
-        return sel
-    a = assessments.get(name)
-    if a is None or a.robustness is None:
-        if model is None:
-            sel.warnings.append(
-                "no process model from this method: the gains' robustness is not predicted"
+        if rule == "auto":
+            why = [f"{k}: {v}" for k, v in unsafe.items()]
+            if without_model:
+                why.insert(0, without_model)
+            sel.refusal = "no rule could be recommended" + (
+                f" (outside the safety envelope or unavailable: {'; '.join(why)})" if why else ""
+            )
+        elif name in unavailable:
+            sel.refusal = f"rule {name}: unavailable: {unavailable[name]}"
+        else:
+            sel.refusal = (
+                f"rule {name}: this identification does not give it "
+                f"({RULES[name].kind} rule; {_why_missing(name, ident)})"
             )
         return sel
-    rb = a.robustness
-    problem = None
-    if not a.stable:
-        problem = (
-            f"{name}: predicted unstable on the identified {model.kind.upper()} model "
-            f"(gain margin {rb.gain_margin:.3g}, phase margin {rb.phase_margin_deg:.3g}°)"
+    a = assessments[name]
+    if a.robustness is None:
+        sel.warnings.append(
+            "no usable process model: the gains' robustness is not predicted"
+            if without_model
+            else "no process model from this method: the gains' robustness is not predicted"
         )
-    elif rb.ms > ms_bound:
-        problem = f"{name}: predicted Ms {rb.ms:.3g} above the bound {ms_bound:g}"
+    problem = unsafe.get(name)
     if problem:
+        problem = f"{name}: {problem}"
         if force:
             sel.warnings.append(problem + " — applied because forced")
         else:
             better = f"; the recommended rule is {rec.rule}" if rec and rec.rule != name else ""
             sel.refusal = f"refused: {problem} (force to apply anyway{better})"
     return sel
+
+
+def _kinds(unavailable: dict[str, str]) -> set[str]:
+    return {RULES[name].kind for name in unavailable if name in RULES}
 
 
 def _why_missing(name: str, ident: Identification) -> str:
@@ -123,5 +221,11 @@ def _why_missing(name: str, ident: Identification) -> str:
 
 
 def assessments_dict(sel: Selection) -> dict[str, dict]:
-    """Per rule, the figures for JSON (rules without a model to judge them on are left out)."""
-    return {k: d for k, a in sel.assessments.items() if (d := a.to_dict())}
+    """Per rule, the figures for JSON (rules without a model to judge them on are left out);
+    ``within_envelope`` False for a candidate that would be refused unless forced."""
+    out = {}
+    for k, a in sel.assessments.items():
+        if d := a.to_dict():
+            d["within_envelope"] = k not in sel.unsafe
+            out[k] = d
+    return out

@@ -21,6 +21,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_step_options(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     parser.add_argument(
+        "--no-wait",
+        action="store_true",
+        help="exit once the loop is restored, without waiting for the PV to return to rest "
+        "(by default it waits up to 3 times the step's settling time, capped by --timeout)",
+    )
+    parser.add_argument(
         "--wait",
         type=float,
         default=10.0,
@@ -45,7 +51,8 @@ def add_step_options(parser: argparse.ArgumentParser) -> None:
         "--timeout",
         type=float,
         default=7200.0,
-        help="sim seconds to wait for the PV to settle (default: %(default)s)",
+        help="sim seconds to wait for the PV to settle after the step, and at most for its "
+        "return to rest (default: %(default)s)",
     )
     parser.add_argument(
         "--pv-limits",
@@ -106,18 +113,43 @@ def format_report(r: StepTestReport) -> str:
     )
     width = max(len(k) for k, _ in rows)
     body = "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+    floor = (
+        f"Dead time: the tangent gave {c.dead_time_tangent:.3g} s, below what the data resolve; "
+        f"floored at half a sample time, {c.dead_time_floor:.3g} s (the hold's effective delay)."
+        if c.dead_time_tangent is not None and c.dead_time_tangent < c.dead_time_floor
+        else None
+    )
     tail = (
         f"Loop restored: {r.mode_before}, output {r.op_before:g} %."
         if r.restored
         else "WARNING: the loop could not be restored; check it."
     )
-    return f"{head}\n{body}\n{tail}"
+    lines = [head, body, *([floor] if floor else []), tail, return_line(r)]
+    return "\n".join(line for line in lines if line)
+
+
+def return_line(r: StepTestReport) -> str:
+    """What the PV did after the restore (empty if the loop was not restored)."""
+    if not r.restored:
+        return ""
+    if r.returned_to_rest is None:
+        return (
+            "Not waiting for the PV to return to rest (--no-wait): it is still moving back; "
+            "let it settle before another test."
+        )
+    if r.returned_to_rest:
+        return f"PV back at rest at {r.pv_end:.4g} {r.pv_units} by t = {r.t_return:g} s."
+    return (
+        f"WARNING: the PV was not back at rest by t = {r.t_return:g} s (last {r.pv_end:.4g} "
+        f"{r.pv_units}); let it settle before another test."
+    )
 
 
 def progress_line(test: StepTest, s) -> None:
     if s.seq % 40 == 0 and sys.stderr.isatty():
+        phase = "return" if test.finished else test.phase
         print(
-            f"\r  {test.phase:<8} t = {s.t:8.1f} s  PV = {s.pv:9.4g}  OP = {s.op:5.1f} %",
+            f"\r  {phase:<8} t = {s.t:8.1f} s  PV = {s.pv:9.4g}  OP = {s.op:5.1f} %",
             end="",
             file=sys.stderr,
             flush=True,
@@ -130,7 +162,12 @@ def run(args: argparse.Namespace) -> int:
     with open_session(settings_from_args(args)) as session:
         wait_for_loop(session, args.prefix, args.loop, args.wait)
         with LoopClient(session, args.prefix, args.loop, source="autotune-step") as client:
-            report = run_step_test(client, config, None if args.json else progress_line)
+            report = run_step_test(
+                client,
+                config,
+                None if args.json else progress_line,
+                wait_return=not args.no_wait,
+            )
     if sys.stderr.isatty() and not args.json:
         print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
     print(json.dumps(report.to_dict(), indent=2) if args.json else format_report(report))

@@ -2,9 +2,19 @@
 
 In manual at the present output: a quiet baseline (noise and rest value), a step of ``size``
 % in the output, samples until the PV is at rest again (``reaction_curve.settled``), then the
-reaction-curve figures. It aborts when the PV leaves its limits or no rest comes in
-``timeout`` seconds. ``run_step_test`` drives a live loop with it and always restores the
-loop's mode and output, whatever happens.
+reaction-curve figures. It stops, and the driver restores the output, when:
+
+* the PV sits at (or within noise of) an end of the transmitter's range ``pv_range`` before
+  the step: a clipped measurement is flat and noise-free, so it cannot show rest;
+* after the step, the PV reaches an end of that range, or would within twice the time it took
+  to start moving plus four samples (about what it keeps moving for once the output is
+  restored);
+* the PV ramps steadily (``reaction_curve.steady_ramp``): an integrating process, which never
+  comes to rest; the reason names its slope R and dead time L;
+* the PV leaves ``pv_limits``, or no rest comes within ``timeout`` seconds of the step.
+
+``run_step_test`` drives a live loop with it, always restores the loop's mode and output, and
+then waits (bounded) for the PV to return to rest, so that what runs next starts from rest.
 """
 
 from __future__ import annotations
@@ -18,15 +28,19 @@ import numpy as np
 from services.autotuner.loop_client import LoopClient
 from services.autotuner.reaction_curve import (
     ReactionCurve,
+    SteadyRamp,
     analyze_step,
     at_rest,
     noise_level,
+    range_end,
     settled,
+    steady_ramp,
 )
 from shared.errors import AutotuneError
 from shared.messages import ModeCommand, OutputCommand, ProcessSample
 
 SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over a window)
+RETURN_WAIT_FACTOR = 3.0  # the return to rest may take this many times the step's own settling
 
 
 class StepTestAborted(AutotuneError):
@@ -37,29 +51,37 @@ class StepTestAborted(AutotuneError):
 class StepTestConfig:
     size: float = 5.0  # % of output; negative steps down
     baseline: float | None = None  # s of quiet before the step; None: 40 samples
-    timeout: float = 7200.0  # s after the step to wait for rest
+    timeout: float = 7200.0  # s after the step to wait for rest (and, at most, to return)
     pv_limits: tuple[float, float] | None = None  # abort outside; None: the loop's PV range
 
 
 @dataclass
 class StepTest:
-    """The experiment; ``feed`` each sample, hold the output it returns."""
+    """The experiment; ``feed`` each sample, hold the output it returns.
+
+    ``pv_range`` is the transmitter's range, which clips the measured PV (None: ``pv_limits``
+    stand for it); ``pv_units`` only words the reasons.
+    """
 
     config: StepTestConfig
     op_start: float
     op_limits: tuple[float, float]
     pv_limits: tuple[float, float]
     sample_time: float
+    pv_range: tuple[float, float] | None = None
+    pv_units: str = ""
     phase: str = "baseline"  # baseline → step → done | aborted
     reason: str = ""
     t_step: float | None = None
     result: ReactionCurve | None = None
+    ramp: SteadyRamp | None = None  # set when the test stopped on an integrating response
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
     events: list[tuple[float, str, dict]] = field(default_factory=list)
     _baseline_samples: int = 0
     _pv_before: float = math.nan
     _noise: float = 0.0
+    _t_moved: float | None = None  # s from the step until the PV first cleared its noise
 
     def __post_init__(self) -> None:
         cfg = self.config
@@ -85,6 +107,21 @@ class StepTest:
     def op_target(self) -> float:
         return self.op_start + self.config.size
 
+    @property
+    def ends(self) -> tuple[float, float]:
+        """The PV values where the measurement clips: the transmitter's range."""
+        return tuple(self.pv_range) if self.pv_range is not None else tuple(self.pv_limits)
+
+    def _end_words(self, end: str) -> str:
+        lo, hi = self.ends
+        value = f"{hi if end == 'top' else lo:g}{' ' + self.pv_units if self.pv_units else ''}"
+        if self.pv_range is None:
+            return f"its {'upper' if end == 'top' else 'lower'} limit ({value})"
+        return f"the {end} of its range ({value})"
+
+    def _rate_units(self) -> str:
+        return f"{self.pv_units or 'PV units'}/s per %"
+
     def _abort(self, reason: str) -> float:
         self.phase, self.reason = "aborted", reason
         self.events.append((self.t[-1] if self.t else 0.0, "aborted", {"reason": reason}))
@@ -100,52 +137,199 @@ class StepTest:
         if not lo <= s.pv <= hi:
             return self._abort(f"PV {s.pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s")
         if self.phase == "baseline":  # at rest first: no trend beyond the noise
-            n = self._baseline_samples
-            if len(self.pv) < n:
-                return self.op_start
-            base = np.asarray(self.pv[-n:])
-            if not at_rest(base):
-                if len(self.pv) >= 20 * n:
-                    return self._abort("the PV is not at rest before the step (it keeps drifting)")
-                return self.op_start
-            self._pv_before = float(base.mean())
-            self._noise = noise_level(base)
-            self.phase = "step"
-            self.events.append(
-                (
-                    s.t,
-                    "step",
-                    {"op": self.op_target, "pv_before": self._pv_before, "noise_std": self._noise},
-                )
-            )
-            return self.op_target
+            return self._baseline(s)
         if self.t_step is None:
             return self.op_target
-        if s.t - self.t_step > self.config.timeout:
+        return self._after_step(s)
+
+    def _baseline(self, s: ProcessSample) -> float:
+        n = self._baseline_samples
+        if len(self.pv) < n:
+            return self.op_start
+        base = np.asarray(self.pv[-n:])
+        end = range_end(base, self.ends)
+        if end is not None:
             return self._abort(
-                f"no steady state within {self.config.timeout:g} s of the step "
-                "(an integrating process never settles: see the README)"
+                f"the PV sits at {self._end_words(end)}: a measurement clipped by the "
+                "transmitter is flat and noise-free whatever the process does, so it cannot "
+                "show rest; bring the PV inside its range first"
             )
-        t, y = np.asarray(self.t), np.asarray(self.pv)
-        if (len(self.pv) % SETTLE_CHECK_EVERY) == 0:
-            done, rest = settled(t, y, self.t_step, self._pv_before, self._noise)
-            if done:
-                try:
-                    self.result = analyze_step(
-                        t, y, self.t_step, self.config.size, self._pv_before, rest, self._noise
-                    )
-                except ValueError as err:
-                    return self._abort(str(err))
-                self.phase = "done"
-                self.events.append(
-                    (s.t, "done", {"gain": self.result.gain, "dead_time": self.result.dead_time})
-                )
-                return self.op_start
+        if not at_rest(base):
+            if len(self.pv) >= 20 * n:
+                return self._abort("the PV is not at rest before the step (it keeps drifting)")
+            return self.op_start
+        self._pv_before = float(base.mean())
+        self._noise = noise_level(base)
+        self.phase = "step"
+        self.events.append(
+            (
+                s.t,
+                "step",
+                {"op": self.op_target, "pv_before": self._pv_before, "noise_std": self._noise},
+            )
+        )
         return self.op_target
+
+    def _after_step(self, s: ProcessSample) -> float:
+        elapsed = s.t - self.t_step
+        if elapsed > self.config.timeout:
+            return self._abort(f"no steady state within {self.config.timeout:g} s of the step")
+        lo, hi = self.ends
+        tol = 1e-9 * max(1.0, abs(lo), abs(hi), hi - lo)
+        if s.pv >= hi - tol or s.pv <= lo + tol:
+            end = "top" if s.pv >= hi - tol else "bottom"
+            return self._abort(
+                f"the PV reached {self._end_words(end)} at t = {s.t:g} s: the measurement is "
+                "clipped there and shows nothing of the response; use a smaller step"
+            )
+        if self._t_moved is None and abs(s.pv - self._pv_before) > 5.0 * self._noise + tol:
+            self._t_moved = elapsed
+        if (len(self.pv) % SETTLE_CHECK_EVERY) != 0:
+            return self.op_target
+        t, y = np.asarray(self.t), np.asarray(self.pv)
+        if reason := self._heading_out(t, y, elapsed):
+            return self._abort(reason)
+        if (ramp := steady_ramp(t, y, self.t_step, self._pv_before, self._noise)) is not None:
+            return self._integrating(s.t, ramp)
+        done, rest = settled(t, y, self.t_step, self._pv_before, self._noise, pv_range=self.ends)
+        if done:
+            try:
+                self.result = analyze_step(
+                    t,
+                    y,
+                    self.t_step,
+                    self.config.size,
+                    self._pv_before,
+                    rest,
+                    self._noise,
+                    self.sample_time,
+                )
+            except ValueError as err:
+                return self._abort(str(err))
+            self.phase = "done"
+            self.events.append(
+                (s.t, "done", {"gain": self.result.gain, "dead_time": self.result.dead_time})
+            )
+            return self.op_start
+        return self.op_target
+
+    def _heading_out(self, t: np.ndarray, y: np.ndarray, elapsed: float) -> str | None:
+        """Why to stop now if the PV, on its present trend, nears an end of its range.
+
+        After the output is restored the PV keeps moving for about its dead time (and lags):
+        the horizon is twice the time it took to start moving (an upper bound on the dead
+        time) plus four samples; stop if the trend's line, extended by it, comes within 4σ.
+        """
+        keep = t >= self.t_step
+        tw, yw = t[keep], y[keep]
+        m = max(20, tw.size // 4)
+        if tw.size < m:
+            return None
+        tw, yw = tw[-m:], yw[-m:]
+        slope, level = np.polyfit(tw - tw[-1], yw, 1)
+        moved = self._t_moved if self._t_moved is not None else elapsed
+        horizon = 2.0 * moved + 4.0 * self.sample_time
+        reach = float(level + slope * horizon)
+        lo, hi = self.ends
+        margin = 4.0 * self._noise
+        u = f" {self.pv_units}" if self.pv_units else ""
+        for end, near in (
+            ("top", max(level, reach) >= hi - margin),
+            ("bottom", min(level, reach) <= lo + margin),
+        ):
+            if near:
+                return (
+                    f"the PV would reach {self._end_words(end)} within {horizon:.3g} s (now "
+                    f"{level:.4g}{u}, moving {slope:.3g}{u}/s): stopped before the measurement "
+                    "clips; use a smaller step"
+                )
+        return None
+
+    def _integrating(self, t: float, ramp: SteadyRamp) -> float:
+        """Stop on a steady ramp: name its slope and dead time (the floor as in analyze_step)."""
+        self.ramp = ramp
+        rate = ramp.slope / self.config.size
+        dead_time = max(ramp.dead_time, 0.5 * self.sample_time)
+        self.events.append(
+            (
+                t,
+                "integrating",
+                {"slope": ramp.slope, "reaction_rate": rate, "dead_time": dead_time},
+            )
+        )
+        u = f" {self.pv_units}" if self.pv_units else ""
+        # the baseline's mean is known to σ/√n, which shifts where the ramp meets it
+        base_se = self._noise / math.sqrt(self._baseline_samples) / abs(ramp.slope)
+        se = math.hypot(ramp.dead_time_se, base_se)
+        steady = 100 * max(abs(ramp.slope_change), 3 * ramp.slope_change_se)
+        return self._abort(
+            f"integrating process: the PV ramps at R = {rate:.3g} {self._rate_units()} "
+            f"({ramp.slope:.3g}{u}/s for the {self.config.size:+g} % step, steady within "
+            f"{steady:.2g} % over the last {ramp.window:.4g} s) after a dead time "
+            f"L ≈ {dead_time:.3g} s (± {se:.2g} s); it never comes to rest, so the test "
+            "stopped; the reaction curve of integrating loops comes in a "
+            "later issue — use the relay method"
+        )
 
     def step_started(self, t: float) -> None:
         """The driver reports the sim time from which the stepped output is held."""
         self.t_step = t
+
+
+@dataclass
+class ReturnWatch:
+    """After the output is restored: is the PV back at rest? ``feed`` each sample.
+
+    The restore is a step back from ``pv_from`` (the rest after the step), so the same test
+    as after the step applies (``settled``, which also refuses a PV clipped at an end of
+    ``pv_range``). It gives up ``timeout`` seconds after ``t_restore``.
+    """
+
+    t_restore: float  # s, sim time from which the restored output is held
+    pv_from: float  # PV units, the rest value before the restore
+    noise_std: float  # PV units
+    timeout: float  # s
+    pv_range: tuple[float, float] | None = None
+    t: list[float] = field(default_factory=list)
+    pv: list[float] = field(default_factory=list)
+    done: bool = False
+    at_rest: bool = False
+    rest: float = math.nan  # PV units, where it came to rest (NaN: it did not)
+
+    @property
+    def pv_end(self) -> float:
+        """The rest value if at rest, else the last PV seen (NaN before any)."""
+        if self.at_rest:
+            return self.rest
+        return self.pv[-1] if self.pv else math.nan
+
+    def feed(self, t: float, pv: float) -> bool:
+        """Take one sample; True once done (at rest, or out of time)."""
+        if self.done:
+            return True
+        self.t.append(t)
+        self.pv.append(pv)
+        if len(self.pv) % SETTLE_CHECK_EVERY == 0:
+            ok, rest = settled(
+                np.asarray(self.t),
+                np.asarray(self.pv),
+                self.t_restore,
+                self.pv_from,
+                self.noise_std,
+                pv_range=self.pv_range,
+            )
+            if ok:
+                self.done, self.at_rest, self.rest = True, True, rest
+                return True
+        if t - self.t_restore >= self.timeout:
+            self.done = True
+        return self.done
+
+
+def return_timeout(config: StepTestConfig, t_step: float, t_end: float) -> float:
+    """Seconds to wait for the return to rest: a few times the step's own settling time (the
+    way back has the same dynamics), capped by the test's timeout."""
+    return min(config.timeout, RETURN_WAIT_FACTOR * max(t_end - t_step, 0.0))
 
 
 @dataclass(frozen=True)
@@ -160,6 +344,9 @@ class StepTestReport:
     samples: int
     curve: ReactionCurve
     restored: bool
+    returned_to_rest: bool | None = None  # None: not waited for (--no-wait, or not restored)
+    pv_end: float | None = None  # PV units: the rest after the return, else the last PV seen
+    t_return: float | None = None  # s, sim time the wait for the return ended
 
     def to_dict(self) -> dict:
         return {
@@ -173,6 +360,9 @@ class StepTestReport:
             "t_end": self.t_end,
             "samples": self.samples,
             "restored": self.restored,
+            "returned_to_rest": self.returned_to_rest,
+            "pv_end": self.pv_end,
+            "t_return": self.t_return,
             **self.curve.to_dict(),
         }
 
@@ -181,13 +371,27 @@ def run_step_test(
     client: LoopClient,
     config: StepTestConfig,
     progress: Callable[[StepTest, ProcessSample], None] | None = None,
+    wait_return: bool = True,
 ) -> StepTestReport:
-    """Run the step test on a live loop; restore its mode and output afterwards, always."""
+    """Run the step test on a live loop; restore its mode and output afterwards, always.
+
+    With ``wait_return``, after a completed test it then follows the PV until it is back at
+    rest (``ReturnWatch``, at most ``return_timeout``), so that whatever runs next does not
+    identify on a recovering PV; ``progress`` keeps being called meanwhile.
+    """
     before = client.sync()
     info = client.info
     pv_limits = config.pv_limits or tuple(info.pv_range)
     try:
-        test = StepTest(config, before.op, tuple(info.op_limits), pv_limits, info.sample_time)
+        test = StepTest(
+            config,
+            before.op,
+            tuple(info.op_limits),
+            pv_limits,
+            info.sample_time,
+            pv_range=tuple(info.pv_range),
+            pv_units=info.pv_units,
+        )
     except ValueError as err:
         raise StepTestAborted(f"loop {client.loop}: {err}") from None
     restored = False
@@ -217,17 +421,42 @@ def run_step_test(
             f"{'loop restored' if restored else 'LOOP NOT RESTORED'} "
             f"({before.mode}, {before.op:g} %)"
         )
+    t_step, t_end = test.t_step or 0.0, test.t[-1]
+    returned, pv_end, t_return = None, None, None
+    if wait_return and restored:
+        lag = 0.0 if info.clock == "lockstep" else info.sample_time
+        watch = ReturnWatch(
+            t_end + lag,
+            test.result.pv_after,
+            test.result.noise_std,
+            return_timeout(config, t_step, t_end),
+            tuple(info.pv_range),
+        )
+        try:
+            while not watch.done:
+                s = client.next_sample()
+                watch.feed(s.t, s.pv)
+                if progress:
+                    progress(test, s)
+        except (KeyboardInterrupt, AutotuneError):
+            pass  # the loop is restored and the figures stand: report it as not back at rest
+        returned = watch.at_rest
+        pv_end = watch.pv_end if watch.pv else test.pv[-1]
+        t_return = watch.t[-1] if watch.t else t_end
     return StepTestReport(
         client.loop,
         info.model,
         info.pv_units,
         before.mode,
         before.op,
-        test.t_step or 0.0,
-        test.t[-1],
+        t_step,
+        t_end,
         len(test.t),
         test.result,
         restored,
+        returned,
+        pv_end,
+        t_return,
     )
 
 

@@ -21,12 +21,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import pydantic
 
 from services.autotuner import experiments, metrics
 from services.autotuner.forms import IsaGains, all_forms
 from services.autotuner.loop_client import LoopClient
 from services.autotuner.ramp import RampTest
 from services.autotuner.relay import RelayTest
+from services.autotuner.rest import RestCheck, rest_window
 from services.autotuner.rules import check_rule
 from services.autotuner.selection import assessments_dict, select
 from services.autotuner.step_test import StepTest
@@ -51,7 +53,11 @@ from shared.messages import (
 
 LEASE_TIMEOUT = 10.0  # s of wall time the plant waits for us before restoring the loop
 VERIFY_SP_FRACTION = 0.02  # of the PV range, verification setpoint step
+VERIFY_KICK = 20.0  # % of output: the setpoint step's proportional kick at most…
+VERIFY_NOISE = 8.0  # … unless that leaves the step below this many σ of the PV noise
 MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
+GUARD_WINDOW = 2.0  # time scales per window of the verification's growth and saturation guard
+RETURN_SCALES = 5.0  # time scales to wait for the PV of a restored loop to come back to rest
 
 
 class TuneAborted(AutotuneError):
@@ -77,10 +83,35 @@ def _seconds(ti: float | None) -> str:
 
 
 def _json_number(v: object) -> object:
-    """Numbers as JSON takes them: infinities (an overdamped trial's growth) become None."""
+    """An event's value as its message takes it: plain floats (infinities, e.g. an overdamped
+    trial's growth, become None), flags as 0/1."""
+    if isinstance(v, bool | np.bool_):
+        return int(v)
+    if isinstance(v, np.integer):
+        return int(v)
     if isinstance(v, float | np.floating):
         return float(v) if math.isfinite(v) else None
     return v
+
+
+def finite(v: object) -> object:
+    """Recursively: numpy scalars to Python, non-finite floats to None (a bus message never
+    carries inf or NaN: a numeric failure is said in a reason, not smuggled in a number)."""
+    if isinstance(v, dict):
+        return {k: finite(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [finite(x) for x in v]
+    if isinstance(v, bool | np.bool_):
+        return bool(v)
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, float | np.floating):
+        return float(v) if math.isfinite(v) else None
+    return v
+
+
+def _number(v: float | None) -> float | None:
+    return None if v is None or not math.isfinite(v) else float(v)
 
 
 def validate_request(req: TuneRequest) -> None:
@@ -137,8 +168,8 @@ class TuningRun:
                 t=self._t,
                 phase=phase,
                 cycles=cycles,
-                ku=ku,
-                pu=pu,
+                ku=_number(ku),
+                pu=_number(pu),
                 message=message,
             )
         )
@@ -164,30 +195,41 @@ class TuningRun:
     def run(self) -> TuneResult:
         wall0 = time.monotonic()
         req, c = self.req, self.client
-        self.before = before = c.sync()
-        self._t = before.t
-        t0 = before.t
+        first = c.sync()
+        self._t = t0 = first.t
         result: dict = {
             "run_id": self.run_id,
             "loop": c.loop,
             "method": req.method,
             "rule": req.rule,
             "requested_rule": req.rule,
-            "previous_gains": before.gains,
+            "previous_gains": first.gains,
             "pv_units": self.info.pv_units,
         }
         lo, hi = self.pv_limits
-        if not lo <= before.pv <= hi:
+        if not lo <= first.pv <= hi:
             raise ValueError(
-                f"pv_limits: the PV {before.pv:.4g} is already outside [{lo:g}, {hi:g}]"
+                f"pv_limits: the PV {first.pv:.4g} is already outside [{lo:g}, {hi:g}]"
             )
-        c.command(LeaseCommand(loop=c.loop, source=c.source, timeout=LEASE_TIMEOUT, t=t0))
         restored = False
         try:
             self._progress("start", message=f"{req.method} test, rule {req.rule}")
+            rest = self._wait_for_rest(first)
+            result["rest"] = rest
+            if not rest["at_rest"]:
+                raise TuneAborted(f"not started: {rest['reason']}")
+        except (TuneAborted, AutotuneError) as err:  # nothing was changed: nothing to restore
+            result.update(status="aborted", reason=str(err), restored=True)
+            return self._result(result, t0, wall0, self._leave(first, first.pv, wait=False))
+        self.before = before = c.sync()
+        self._pv_rest = rest["pv"] if before.mode == "manual" else before.sp
+        c.command(LeaseCommand(loop=c.loop, source=c.source, timeout=LEASE_TIMEOUT, t=before.t))
+        ident: experiments.Identification | None = None
+        wait_back = True
+        try:
             self._event(
                 "request",
-                t0,
+                before.t,
                 {"request": req.model_dump_json(), "info": self.info.model_dump_json()},
             )
             ident = self._experiment()
@@ -211,7 +253,7 @@ class TuningRun:
                     if rec
                     else None
                 ),
-                warnings=sel.warnings,
+                warnings=[*ident.notes, *sel.warnings],
             )
             chosen = sel.chosen
             if chosen is None or (sel.refusal and req.apply):
@@ -225,8 +267,11 @@ class TuningRun:
                 f"Td {chosen.td:.4g} s",
             )
             if req.apply:
-                result.update(self._apply_and_verify(ident, chosen))
+                step = sel.assessments.get(sel.rule)
+                predicted = step.step.overshoot if step is not None and step.step else None
+                result.update(self._apply_and_verify(ident, chosen, predicted))
                 restored = not result["applied"]
+                wait_back = restored
             else:
                 self._restore()
                 restored = True
@@ -250,11 +295,114 @@ class TuningRun:
         finally:
             with contextlib.suppress(AutotuneError):  # if the plant is gone, so is the lease
                 c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
-        result.update(t=self._t, sim_duration=self._t - t0, wall_time=time.monotonic() - wall0)
+        scale = ident.timescale if ident is not None and ident.timescale > 0 else None
+        cancelled = self.hooks.cancelled is not None and self.hooks.cancelled.is_set()
+        left = self._leave(before, self._pv_rest, wait=wait_back and not cancelled, scale=scale)
+        return self._result(result, t0, wall0, left)
+
+    def _result(self, result: dict, t0: float, wall0: float, left: dict | None) -> TuneResult:
+        """The TuneResult: every number finite (or None), whatever the run produced."""
+        result.update(
+            t=self._t, sim_duration=self._t - t0, wall_time=time.monotonic() - wall0, left=left
+        )
         self._progress(
             "done", ku=result.get("ku"), pu=result.get("pu"), message=result.get("reason") or ""
         )
-        return TuneResult(**result)
+        clean = {
+            k: finite(v) if k not in ("before", "after", "previous_gains") else v
+            for k, v in result.items()
+        }
+        try:
+            return TuneResult(**clean)
+        except pydantic.ValidationError as err:  # a bug: still a result, and a reason
+            e = err.errors()[0]
+            where = ".".join(str(p) for p in e["loc"])
+            keep = {k: clean[k] for k in ("run_id", "loop", "t", "method", "rule", "restored")}
+            return TuneResult(
+                **keep,
+                status="failed",
+                reason=f"result field {where}: {e['msg']} (status was {clean.get('status')}: "
+                f"{clean.get('reason') or 'no reason'})",
+                sim_duration=clean["sim_duration"],
+                wall_time=clean["wall_time"],
+            )
+
+    def _wait_for_rest(self, first: LoopStatus) -> dict:
+        """Watch the PV, changing nothing, until it is at rest over a window as long as the
+        loop's slowest known dynamics (``rest``); bounded. Returns what was seen."""
+        c = self.client
+        window = rest_window(self.ts, first.gains.ti, self.req.rest_window)
+        check = RestCheck(self.ts, window, tuple(self.info.pv_range))
+        chunk = max(1, min(MAX_CHUNK, check.samples // 4))
+        reported = 0.0
+        while not check.done:
+            self._check_cancel()
+            for s in c.samples(chunk):
+                check.feed(s.t, s.pv)
+                self._take([s])
+                if check.done:
+                    break
+            if not check.done and check.waited >= window and check.waited - reported >= window:
+                reported = check.waited
+                self._progress("rest", message=check.describe())
+        if check.at_rest and check.waited > window * 1.01:
+            self._progress("rest", message=f"the PV is at rest after {check.waited:.4g} s")
+        return {
+            "at_rest": check.at_rest,
+            "window": check.samples * self.ts,
+            "waited": check.waited,
+            "drift": check.drift,
+            "noise_std": check.noise,
+            "pv": check.rest_pv if check.at_rest else first.pv,
+            "reason": check.reason or None,
+        }
+
+    def _leave(
+        self, before: LoopStatus, pv_rest: float, wait: bool, scale: float | None = None
+    ) -> dict | None:
+        """What the run left: the loop's mode, setpoint, output and gains, and whether the PV
+        is back at rest where it was (waited for, bounded, when the loop was restored)."""
+        c = self.client
+        try:
+            st = c.sync()
+        except AutotuneError:
+            return None
+        target = pv_rest if st.mode == "manual" else st.sp
+        pv = c.last_sample.pv if c.last_sample is not None else st.pv
+        noise = max(self.info.noise_std, 0.0)
+        lo, hi = self.info.pv_range
+        band = max(4.0 * noise, 0.005 * (hi - lo))
+        returned = abs(pv - target) <= band
+        waited = 0.0
+        if wait and not returned:
+            horizon = RETURN_SCALES * (scale or rest_window(self.ts, before.gains.ti))
+            check = RestCheck(self.ts, max(10 * self.ts, 0.25 * horizon), (lo, hi), windows=4)
+            t_start = self._t
+            try:
+                while not check.done and self._t - t_start < horizon:
+                    if self.hooks.cancelled is not None and self.hooks.cancelled.is_set():
+                        break
+                    for s in c.samples(max(1, min(MAX_CHUNK, check.samples // 4))):
+                        check.feed(s.t, s.pv)
+                        self._take([s])
+                        pv = s.pv
+                    if abs(pv - target) <= band and check.at_rest:
+                        break
+            except AutotuneError:
+                pass
+            waited = self._t - t_start
+            rest_pv = check.rest_pv if check.at_rest else pv
+            returned = abs(rest_pv - target) <= band
+        return {
+            "mode": st.mode,
+            "sp": st.sp,
+            "op": st.op,
+            "gains": st.gains.model_dump(),
+            "pv": pv,
+            "pv_target": target,
+            "returned": bool(returned),
+            "waited": waited,
+        }
 
     def _restore(self) -> bool:
         """Put the loop back exactly as it was before the test; False if that failed."""
@@ -293,6 +441,8 @@ class TuningRun:
             "op_hi": self.info.op_limits[1],
             "pv_lo": self.pv_limits[0],
             "pv_hi": self.pv_limits[1],
+            "pv_range_lo": self.info.pv_range[0],
+            "pv_range_hi": self.info.pv_range[1],
         }
         if req.method == "ramp":
             lo, hi = self.info.pv_range
@@ -399,34 +549,39 @@ class TuningRun:
 
     # --- apply and verify -----------------------------------------------------------------
 
-    def _apply_and_verify(self, ident: experiments.Identification, chosen: IsaGains) -> dict:
-        b = self.before
+    def _apply_and_verify(
+        self, ident: experiments.Identification, chosen: IsaGains, predicted: float | None
+    ) -> dict:
+        """Apply ``chosen`` and verify it against the acceptance limits; ``predicted``: the
+        setpoint overshoot (%) the model predicts for them (None without a model)."""
+        b, req = self.before, self.req
         new = PidGains(kc=chosen.kc, ti=chosen.ti, td=chosen.td)
-        if not self.req.verify:
-            self._set_auto(new, b.sp if b.mode == "auto" else self.client.sync().pv)
+        # a loop in auto keeps its setpoint; one that was in manual is held where it rested
+        sp0 = b.sp if b.mode == "auto" else self._pv_rest
+        if not req.verify:
+            self._set_auto(new, sp0)
             return {"applied": True}
-        sp0 = b.sp if b.mode == "auto" else self.client.sync().pv
         before_v = self._verify(b.gains, sp0, ident) if b.mode == "auto" else None
         after_v = self._verify(new, sp0, ident)
-        worse = before_v is not None and before_v.stable and after_v.score > before_v.score
-        if not after_v.stable or worse:
-            why = (
-                "unstable"
-                if not after_v.stable
-                else (
-                    f"worse than before (IAE per unit step {after_v.score:.4g} against "
-                    f"{before_v.score:.4g})"
-                )
-            )
+        limits = {
+            "max_overshoot": req.max_overshoot,
+            "max_decay_ratio": req.max_decay_ratio,
+            "overshoot_miss": req.overshoot_miss,
+            "predicted_overshoot": predicted,
+        }
+        problems = acceptance_problems(after_v, before_v, limits)
+        limits.update(passed=not problems, problems="; ".join(problems) or None)
+        if problems:
             self._restore()
             return {
                 "applied": False,
                 "before": before_v,
                 "after": after_v,
-                "reason": f"new gains {why}: previous gains restored",
+                "acceptance": limits,
+                "reason": f"new gains {'; '.join(problems)}: previous gains restored",
             }
         self._set_auto(new, sp0)
-        return {"applied": True, "before": before_v, "after": after_v}
+        return {"applied": True, "before": before_v, "after": after_v, "acceptance": limits}
 
     def _set_auto(self, gains: PidGains, sp: float) -> None:
         c = self.client
@@ -436,15 +591,24 @@ class TuningRun:
             c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source, t=self._t))
 
     def _record(
-        self, seconds: float, done: Callable[[np.ndarray, np.ndarray], bool]
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
-        """Run the loop (in auto) up to ``seconds``; stop early when ``done(t, y)``.
-        Returns (t, pv, op, within_limits)."""
+        self,
+        seconds: float,
+        done: Callable[[np.ndarray, np.ndarray], bool],
+        target: float | None = None,
+        window: float | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str | None]:
+        """Run the loop (in auto) up to ``seconds``; stop early when ``done(t, y)``. With a
+        ``target`` setpoint and a guard ``window`` (s), stop within a few windows once the
+        output stays saturated or the oscillation about the target grows. Returns
+        (t, pv, op, why it stopped early or None)."""
         c = self.client
         n_max = max(1, round(seconds / self.ts))
         chunk = max(1, min(MAX_CHUNK, n_max // 100))
         t, y, u = [], [], []
         lo, hi = self.pv_limits
+        guard = (
+            _Guard(self.info.op_limits, window / self.ts) if window and target is not None else None
+        )
         while len(t) < n_max:
             self._check_cancel()
             for s in c.samples(chunk):
@@ -453,20 +617,32 @@ class TuningRun:
                 u.append(s.op)
             self._take([c.last_sample] if c.last_sample else [])
             if not all(lo <= v <= hi for v in y[-chunk:]):
-                return np.array(t), np.array(y), np.array(u), False
+                why = f"the PV left its limits [{lo:g}, {hi:g}] at t = {t[-1]:g} s"
+                return np.array(t), np.array(y), np.array(u), why
+            if guard is not None:
+                why = guard.check(np.asarray(y) - target, np.asarray(u))
+                if why:
+                    return np.array(t), np.array(y), np.array(u), why
             if len(t) % (chunk * 8) < chunk and done(np.array(t), np.array(y)):
                 break
-        return np.array(t), np.array(y), np.array(u), True
+        return np.array(t), np.array(y), np.array(u), None
 
     def _verify(
         self, gains: PidGains, sp0: float, ident: experiments.Identification
     ) -> Verification:
-        """A setpoint step, then a load step, with ``gains``; the loop ends at ``sp0``."""
+        """A setpoint step, then a load step, with ``gains``; the loop ends at ``sp0``. The
+        step's proportional kick stays within VERIFY_KICK % of output where the noise allows,
+        so that the response is the linear loop's, as predicted."""
         c = self.client
         scale = max(ident.timescale, 20 * self.ts)
         lo, hi = self.info.pv_range
-        step = VERIFY_SP_FRACTION * (hi - lo) * (1 if sp0 < 0.5 * (lo + hi) else -1)
+        size = VERIFY_SP_FRACTION * (hi - lo)
+        if gains.kc > 0:
+            size = min(size, VERIFY_KICK / gains.kc)
+        size = max(size, VERIFY_NOISE * ident.noise)
+        step = size * (1 if sp0 < 0.5 * (lo + hi) else -1)
         band = max(0.02 * abs(step), 4 * ident.noise)
+        guard = GUARD_WINDOW * scale
         self._progress(
             "verify", message=f"Kc {gains.kc:.4g}, Ti {_seconds(gains.ti)}, Td {gains.td:.4g}"
         )
@@ -476,21 +652,27 @@ class TuningRun:
             k = max(4, round(scale / self.ts))
             return y.size >= k and metrics.within_band(y[-k:], 2 * band)
 
-        _, _, _, ok = self._record(5 * scale, quiet)
-        stable = ok
+        _, _, _, why = self._record(5 * scale, quiet, sp0, guard)
+        stopped = why
         t0, y0 = self._t, c.last_sample.pv if c.last_sample else sp0
-        c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
-        t, y, u, ok = self._record(
-            15 * scale,
-            lambda t, y: (
-                t[-1] - t[0] > 2 * scale and quiet(t, y) and abs(y[-1] - sp0 - step) < band
-            ),
-        )
-        sp_m = metrics.setpoint_step(t, y, t0, y0, sp0 + step, noise=ident.noise)
-        stable = stable and ok and bool(sp_m["settled"]) and (sp_m["decay_ratio"] or 0) < 1
+        sp_m, saturated, load_size, load_m = None, False, None, None
+        u = np.array([])
+        if stopped is None:
+            c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
+            t, y, u, why = self._record(
+                15 * scale,
+                lambda t, y: (
+                    t[-1] - t[0] > 2 * scale and quiet(t, y) and abs(y[-1] - sp0 - step) < band
+                ),
+                sp0 + step,
+                guard,
+            )
+            stopped = why
+            sp_m = metrics.setpoint_step(t, y, t0, y0, sp0 + step, noise=ident.noise)
         op_lo, op_hi = self.info.op_limits
         saturated = bool(np.mean((u <= op_lo) | (u >= op_hi)) > 1 / 3) if u.size else False
-        load_size, load_m = None, None
+        stable = stopped is None and sp_m is not None and bool(sp_m["settled"])
+        stable = stable and (sp_m["decay_ratio"] or 0) < 1
         before = c.sync()
         if stable and "load" in before.disturbances:
             load_size = self.req.amplitude or experiments.DEFAULT_RELAY_AMPLITUDE
@@ -501,34 +683,104 @@ class TuningRun:
                     loop=c.loop, name="load", value=base + load_size, source=c.source, t=t1
                 )
             )
-            t, y, u, ok = self._record(
+            t, y, u2, why = self._record(
                 15 * scale,
                 lambda t, y: (
                     t[-1] - t[0] > 2 * scale and quiet(t, y) and abs(y[-1] - sp0 - step) < band
                 ),
+                sp0 + step,
+                guard,
             )
+            stopped = why
             load_m = metrics.load_step(t, y, t1, sp0 + step, noise=ident.noise)
-            stable = stable and ok and bool(load_m["recovered"])
+            stable = stable and why is None and bool(load_m["recovered"])
+            saturated = saturated or (
+                bool(np.mean((u2 <= op_lo) | (u2 >= op_hi)) > 1 / 3) if u2.size else False
+            )
             c.command(
                 DisturbanceCommand(loop=c.loop, name="load", value=base, source=c.source, t=self._t)
             )
-        c.command(SetpointCommand(loop=c.loop, sp=sp0, source=c.source, t=self._t))
-        if stable:
-            self._record(5 * scale, quiet)
-        score = sp_m["iae"] / abs(step) + (load_m["iae"] / load_size if load_m else 0.0)
+        if stopped is not None:
+            # the new gains drive the loop away: back to the state before the test at once
+            # (the caller restores); what was measured so far is reported
+            saturated = saturated or "saturat" in stopped
+        else:
+            c.command(SetpointCommand(loop=c.loop, sp=sp0, source=c.source, t=self._t))
+            if stable:
+                self._record(5 * scale, quiet)
+        iae_sp = sp_m["iae"] if sp_m else 0.0
+        score = iae_sp / abs(step) + (load_m["iae"] / load_size if load_m else 0.0)
         return Verification(
             gains=gains,
             sp_step=step,
-            overshoot=sp_m["overshoot"],
-            decay_ratio=sp_m["decay_ratio"],
-            rise_time=sp_m["rise_time"],
-            settling_time=sp_m["settling_time"],
-            iae_sp=sp_m["iae"],
+            overshoot=sp_m["overshoot"] if sp_m else None,
+            decay_ratio=sp_m["decay_ratio"] if sp_m else None,
+            rise_time=sp_m["rise_time"] if sp_m else None,
+            settling_time=sp_m["settling_time"] if sp_m else None,
+            iae_sp=finite(iae_sp) or 0.0,
             load_step=load_size,
             iae_load=load_m["iae"] if load_m else None,
             max_deviation_load=load_m["max_deviation"] if load_m else None,
             recovery_time=load_m["recovery_time"] if load_m else None,
             stable=stable,
             saturated=saturated,
-            score=score,
+            score=finite(score) if math.isfinite(score) else 1e300,
+            stopped=stopped,
         )
+
+
+class _Guard:
+    """Stops a verification that runs away: the output saturated over two whole windows, or
+    the largest deviation from the setpoint growing over two successive windows (by ≥ 10 %
+    each and beyond the first window's): either shows within about three windows."""
+
+    def __init__(self, op_limits: tuple[float, float], window_samples: float):
+        self.lo, self.hi = op_limits
+        self.n = max(8, round(window_samples))
+
+    def check(self, dev: np.ndarray, u: np.ndarray) -> str | None:
+        n = self.n
+        k = dev.size // n
+        if k < 2:
+            return None
+        at_limit = (u[: k * n] <= self.lo) | (u[: k * n] >= self.hi)
+        sat = at_limit.reshape(k, n).mean(axis=1)
+        if sat[-1] > 0.5 and sat[-2] > 0.5:
+            return f"the output saturated ({100 * sat[-1]:.0f} % of the last window at a limit)"
+        peaks = np.abs(dev[: k * n]).reshape(k, n).max(axis=1)
+        if k >= 3 and peaks[-1] > 1.1 * peaks[-2] > 1.21 * peaks[-3] and peaks[-1] > peaks[0]:
+            return (
+                f"the oscillation grows (largest deviation {peaks[-3]:.3g} → {peaks[-2]:.3g} → "
+                f"{peaks[-1]:.3g} over successive windows)"
+            )
+        return None
+
+
+def acceptance_problems(
+    after: Verification, before: Verification | None, limits: dict
+) -> list[str]:
+    """Why verified gains must not stay in the loop (empty: they pass)."""
+    out = []
+    if after.stopped:
+        out.append(f"stopped: {after.stopped}")
+    elif not after.stable:
+        out.append("unstable (the response did not settle)")
+    if after.saturated:
+        out.append("the output saturated for a third of the verification or more")
+    os_ = after.overshoot
+    if os_ is not None and os_ > limits["max_overshoot"]:
+        out.append(f"overshoot {os_:.3g} % above the limit {limits['max_overshoot']:g} %")
+    dr = after.decay_ratio
+    if dr is not None and dr > limits["max_decay_ratio"]:
+        out.append(f"decay ratio {dr:.3g} above the limit {limits['max_decay_ratio']:g}")
+    pred = limits.get("predicted_overshoot")
+    if os_ is not None and pred is not None and os_ - pred > limits["overshoot_miss"]:
+        out.append(
+            f"overshoot {os_:.3g} % against {pred:.3g} % predicted: the model is wrong for "
+            "these gains"
+        )
+    if not out and before is not None and before.stable and after.score > before.score:
+        out.append(
+            f"worse than before (IAE per unit step {after.score:.4g} against {before.score:.4g})"
+        )
+    return out

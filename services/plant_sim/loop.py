@@ -18,9 +18,12 @@ from services.plant_sim.models import ProcessModel
 from services.plant_sim.pid import PidBlock
 from shared.messages import (
     Action,
+    ClockMode,
     Command,
     DisturbanceCommand,
     GainsCommand,
+    LoopInfo,
+    LoopStatus,
     Mode,
     ModeCommand,
     OutputCommand,
@@ -148,6 +151,53 @@ class SimLoop:
                 self.sp = self.pv
             self.pid.track(self.pv, self.pid.op)
         return self.sample()
+
+    def status(
+        self, node: str, clock: ClockMode, reason: str, token: int | None = None
+    ) -> LoopStatus:
+        """The loop's ``LoopStatus`` as the plant publishes it (``reason``: what changed)."""
+        s = self.settings
+        return LoopStatus(
+            loop=s.loop_id,
+            node=node,
+            seq=self.seq,
+            t=self.t,
+            pv=self.pv,
+            sp=self.sp,
+            op=self.op,
+            mode=self.mode,
+            action=s.action,
+            gains=self.pid.gains,
+            op_limits=s.op_limits,
+            pv_range=s.pv_range,
+            disturbances=self.disturbances(),
+            clock=clock,
+            accepted=self.accepted,
+            rejected=self.rejected,
+            last_reject=self.last_reject,
+            sync_token=token,
+            reason=reason,
+        )
+
+    def info(self, node: str, clock: ClockMode, speed: float) -> LoopInfo:
+        """The loop's ``LoopInfo``: model, parameters, units, ranges, sample time, clock."""
+        s = self.settings
+        return LoopInfo(
+            loop=s.loop_id,
+            node=node,
+            t=self.t,
+            model=s.model_name,
+            description=s.description,
+            model_params=s.model_params,
+            sample_time=s.sample_time,
+            pv_units=s.pv_units,
+            pv_range=s.pv_range,
+            op_limits=s.op_limits,
+            disturbances=list(self.process.disturbance_names()),
+            noise_std=s.noise_std,
+            clock=clock,
+            speed=speed,
+        )
 
     def disturbances(self) -> dict[str, float]:
         names = self.process.disturbance_names()

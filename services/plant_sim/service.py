@@ -103,47 +103,10 @@ class PlantService:
     # --- messages -------------------------------------------------------------------------
 
     def loop_status(self, loop: SimLoop, reason: str, token: int | None = None) -> LoopStatus:
-        s = loop.settings
-        return LoopStatus(
-            loop=s.loop_id,
-            node=self.opt.node,
-            seq=loop.seq,
-            t=loop.t,
-            pv=loop.pv,
-            sp=loop.sp,
-            op=loop.op,
-            mode=loop.mode,
-            action=s.action,
-            gains=loop.pid.gains,
-            op_limits=s.op_limits,
-            pv_range=s.pv_range,
-            disturbances=loop.disturbances(),
-            clock=self.opt.clock,
-            accepted=loop.accepted,
-            rejected=loop.rejected,
-            last_reject=loop.last_reject,
-            sync_token=token,
-            reason=reason,
-        )
+        return loop.status(self.opt.node, self.opt.clock, reason, token)
 
     def loop_info(self, loop: SimLoop) -> LoopInfo:
-        s = loop.settings
-        return LoopInfo(
-            loop=s.loop_id,
-            node=self.opt.node,
-            t=loop.t,
-            model=s.model_name,
-            description=s.description,
-            model_params=s.model_params,
-            sample_time=s.sample_time,
-            pv_units=s.pv_units,
-            pv_range=s.pv_range,
-            op_limits=s.op_limits,
-            disturbances=list(loop.process.disturbance_names()),
-            noise_std=s.noise_std,
-            clock=self.opt.clock,
-            speed=self.opt.speed,
-        )
+        return loop.info(self.opt.node, self.opt.clock, self.opt.speed)
 
     def service_status(self) -> ServiceStatus:
         return ServiceStatus(

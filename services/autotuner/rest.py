@@ -1,0 +1,103 @@
+"""Is the loop at rest? The drift check every experiment starts with, and the return to rest
+every run ends with.
+
+An identification assumes the PV starts from rest: a relay or step test begun while the PV
+still recovers from an earlier step reads that recovery as the process's response (seen: a
+relay after a step test measured K_u right but fitted K = 0.135 for a true 1.0). A quiet
+period of a few dozen samples cannot see a drift whose time constant is minutes, so the check
+watches a window as long as the loop's slowest known dynamics: at least 40 samples, and at
+least the loop's integral time (a tuned loop's Ti is of the order of its process lag or its
+ultimate period), capped so that a level loop's hour-long Ti does not stall the tuner.
+
+At rest means: no straight-line trend beyond 3σ of the noise over the window
+(``reaction_curve.at_rest``), and the measurement not pinned at an end of the transmitter's
+range (a clipped PV is flat and noise-free, and says nothing about where the process is).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from services.autotuner.reaction_curve import at_rest, noise_level, range_end
+
+MIN_SAMPLES = 40
+MAX_WINDOW = 900.0  # s: the longest window watched (a slow level loop's Ti can be hours)
+WINDOWS = 10  # windows to wait for rest before giving up
+
+
+def rest_window(sample_time: float, ti: float | None, requested: float | None = None) -> float:
+    """Seconds of PV to watch for a drift (see the module docstring)."""
+    if requested is not None:
+        return max(requested, MIN_SAMPLES * sample_time)
+    slow = ti if ti is not None and math.isfinite(ti) else 0.0
+    return max(MIN_SAMPLES * sample_time, min(slow, MAX_WINDOW))
+
+
+@dataclass
+class RestCheck:
+    """Fed one PV sample at a time until it is ``done``: ``at_rest`` or not (``reason``)."""
+
+    sample_time: float
+    window: float  # s
+    pv_range: tuple[float, float]
+    windows: int = WINDOWS
+    t: list[float] = field(default_factory=list)
+    y: list[float] = field(default_factory=list)
+    done: bool = False
+    at_rest: bool = False
+    reason: str = ""
+    drift: float = 0.0  # PV units per s over the last window
+    noise: float = 0.0
+    rest_pv: float = math.nan
+
+    def __post_init__(self) -> None:
+        self._n = max(MIN_SAMPLES, math.ceil(self.window / self.sample_time))
+        self._checks = 0
+
+    @property
+    def samples(self) -> int:
+        """Samples in one window."""
+        return self._n
+
+    @property
+    def waited(self) -> float:
+        return self.t[-1] - self.t[0] if len(self.t) > 1 else 0.0
+
+    def feed(self, t: float, pv: float) -> None:
+        if self.done:
+            return
+        self.t.append(t)
+        self.y.append(pv)
+        if len(self.y) < self._n or (len(self.y) - self._n) % max(1, self._n // 4):
+            return
+        self._checks += 1
+        y = np.asarray(self.y[-self._n :])
+        end = range_end(y, self.pv_range)
+        self.noise = noise_level(y)
+        x = np.arange(y.size, dtype=float) * self.sample_time
+        self.drift = float(np.polyfit(x, y, 1)[0])
+        if end is None and at_rest(y):
+            self.done, self.at_rest = True, True
+            self.rest_pv = float(np.mean(y))
+            return
+        if self._checks >= 1 + 4 * (self.windows - 1):
+            self.done = True
+            lo, hi = self.pv_range
+            self.reason = (
+                f"the PV sits at the {end} of its range [{lo:g}, {hi:g}]: a clipped "
+                "measurement is not a rest"
+                if end
+                else f"the PV did not come to rest within {self.waited:.4g} s (it still moves "
+                f"by {self.drift:.3g} per s over the last {self._n * self.sample_time:.4g} s)"
+            )
+
+    def describe(self) -> str:
+        """One progress line while waiting."""
+        return (
+            f"the PV still moves ({self.drift:.3g} per s over the last "
+            f"{self._n * self.sample_time:.4g} s): waiting for rest, {self.waited:.4g} of at most "
+            f"{self.windows * self._n * self.sample_time:.4g} s"
+        )

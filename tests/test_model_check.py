@@ -1,0 +1,152 @@
+"""Model checks: healthy fits pass, the absurd models of issue 10 are refused with reasons.
+
+Measured ultimate points of healthy plants are their exact ones (tests.exact); the bad models
+are those users reported, and one a relay on a PV still moving fitted in reproduction.
+"""
+
+import math
+
+import pytest
+from scipy.optimize import brentq
+
+from services.autotuner.model_check import ModelCheck, check_model
+from services.autotuner.model_fit import ProcessFit
+
+FOPDT = ProcessFit("fopdt", 1.0, (10.0,), 1.0, 0.03, noise_rms=0.025)
+HX = ProcessFit("sopdt", 1.0, (60.0, 10.0), 5.0, 0.02, noise_rms=0.02)
+IPDT = ProcessFit("ipdt", 0.5, (), 2.0, 0.03, noise_rms=0.03)
+
+
+def lag_ultimate(gain: float, lags: tuple[float, ...], delay: float) -> tuple[float, float]:
+    """K·e^{−Ls}/Π(τs+1): Σ atan(τω) + Lω = π at ω_u, K_u = Π√(1+(τω_u)²)/K; an integrator
+    (no lags) adds 90°: ω_u = π/(2L), K_u = ω_u/K."""
+    if not lags:
+        wu = math.pi / (2 * delay)
+        return wu / gain, 2 * math.pi / wu
+    wu = brentq(lambda w: sum(math.atan(t * w) for t in lags) + delay * w - math.pi, 1e-9, 1e6)
+    return math.prod(math.hypot(1.0, t * wu) for t in lags) / gain, 2 * math.pi / wu
+
+
+def ultimate_point(model: ProcessFit) -> tuple[float, float]:
+    return lag_ultimate(model.gain, model.lags, model.delay)
+
+
+def _measured(model: ProcessFit, spread: float = 0.01) -> dict:
+    ku, pu = ultimate_point(model)
+    return dict(ku=ku, pu=pu, ku_spread=spread, pu_spread=spread)
+
+
+def _one_line(check: ModelCheck) -> None:
+    assert check.reasons and all("\n" not in r for r in check.reasons)
+
+
+@pytest.mark.parametrize("model", [FOPDT, HX, IPDT], ids=["fopdt", "sopdt", "ipdt"])
+def test_a_healthy_fit_passes_every_check(model):
+    check = check_model(model, **_measured(model))
+    assert check.ok, check.reasons
+    ku, pu = ultimate_point(model)
+    assert check.ku_model == pytest.approx(ku, rel=1e-6)
+    assert check.pu_model == pytest.approx(pu, rel=1e-6)
+
+
+def test_ipdt_ultimate_point_closed_form_passes_with_evidence_of_integration():
+    """K·e^{−Ls}/s: ω_u·L = π/2, K_u = ω_u/K, so K·L·K_u = π/2."""
+    ku, pu = math.pi / (2 * IPDT.gain * IPDT.delay), 4 * IPDT.delay
+    assert check_model(IPDT, ku, pu, 0.0, 0.0, integrating=True).ok
+    refused = check_model(IPDT, ku, pu, 0.0, 0.0, integrating=False)
+    assert not refused.ok and "settling" in refused.summary()
+
+
+def test_step_test_model_is_checked_on_physics_only():
+    assert check_model(FOPDT).ok
+    bad = check_model(ProcessFit("fopdt", -0.4, (10.0,), 1.0, 0.0))
+    _one_line(bad)
+    assert "gain -0.4" in bad.reasons[0]
+    assert not check_model(ProcessFit("fopdt", 1.0, (math.inf,), 1.0, 0.0)).ok
+    assert not check_model(ProcessFit("fopdt", 1.0, (10.0,), math.nan, 0.0)).ok
+
+
+def test_user_report_moving_pv_static_gain_too_small():
+    """Issue 10: on the heat exchanger (K_u 15.29, P_u 43.56 s) the fit on a PV still moving
+    gave K = 0.135 (true 1): a SOPDT that misses its own record and, made to pass near the
+    measured phase, predicts K_u a fifth too high."""
+    model = ProcessFit("sopdt", 0.135, (5.0, 2.0), 15.0, 0.66, noise_rms=0.04)
+    check = check_model(model, 15.29, 43.56, 0.016, 0.0014)
+    _one_line(check)
+    assert any("misses the record" in r for r in check.reasons)
+    assert any(r.startswith("SOPDT predicts K_u") for r in check.reasons)
+
+
+def test_reproduced_moving_pv_fit_is_refused():
+    """What a relay fitted here when started on the heat exchanger 30 s after a 5 % step."""
+    model = ProcessFit("sopdt", 0.06266, (2.6239, 2.6238), 17.476, 0.6654, noise_rms=0.0369)
+    check = check_model(model, 15.16, 43.565, 0.0164, 0.00139)
+    assert not check.ok and any("misses the record" in r for r in check.reasons)
+
+
+def test_user_report_integrator_with_huge_controller_gain():
+    """Issue 10: IPDT K = 1.2e-5, L = 62.5 s beside a measured K_u of 9.4 (simc-pi-int then
+    gave Kc = 1/(2KL) = 667, 71 × K_u): K·L·K_u is 0.007, not π/2, and the delay alone
+    would lag past −180° long before P_u."""
+    model = ProcessFit("ipdt", 1.2e-5, (), 62.5, 0.05, noise_rms=0.03)
+    check = check_model(model, 9.4, 40.0, 0.01, 0.01)
+    _one_line(check)
+    text = check.summary()
+    assert "gain × delay × K_u = 0.00705" in text
+    assert "delay 62.5 s beyond what P_u 40 s allows" in text
+    assert "predicts K_u" in text and "predicts P_u" in text
+
+
+def test_user_report_flow_loop_absurd_integrator():
+    """Issue 10: a flow loop's IPDT with gain 6e-10 and delay 191 s (gain margin reported
+    27,330,012)."""
+    model = ProcessFit("ipdt", 6e-10, (), 191.0, 0.2, noise_rms=0.05)
+    check = check_model(model, 0.8, 5.0, 0.02, 0.01)
+    _one_line(check)
+    assert len(check.reasons) >= 3
+
+
+def test_dead_time_bounds_from_the_measured_phase():
+    """A FOPDT's lag gives at most 90°: at ω_u the delay must supply the rest, L > P_u/4; no
+    model's delay may exceed P_u/2 (it alone would lag 180°)."""
+    ku, pu = ultimate_point(FOPDT)
+    short = ProcessFit("fopdt", 1.0, (10.0,), 0.2 * pu, 0.03, 0.03)
+    assert any("below" in r for r in check_model(short, ku, pu, 0.0, 0.0).reasons)
+    long = ProcessFit("sopdt", 1.0, (1.0, 0.5), 0.6 * pu, 0.03, 0.03)
+    assert any("beyond what P_u" in r for r in check_model(long, ku, pu, 0.0, 0.0).reasons)
+
+
+def test_lag_model_gain_below_one_over_ku_is_impossible():
+    """|K/(τjω+1)| ≤ K: a lag model reaching 1/K_u at ω_u needs K ≥ 1/K_u."""
+    ku, pu = ultimate_point(FOPDT)
+    small = ProcessFit("fopdt", 0.5 / ku, (10.0,), 1.0, 0.03, 0.03)
+    assert any("below 1/K_u" in r for r in check_model(small, ku, pu, 0.0, 0.0).reasons)
+
+
+def test_ultimate_point_tolerance_is_the_spread_plus_the_stated_margin():
+    """A FOPDT whose gain is 10 % off predicts K_u 10 % off: within 15 % + spread it passes,
+    at 20 % it does not."""
+    ku, pu = ultimate_point(FOPDT)
+    for factor, ok in ((1.1, True), (1.0 / 1.1, True), (1.25, False), (0.8, False)):
+        m = ProcessFit("fopdt", factor, (10.0,), 1.0, 0.03, 0.03)
+        assert check_model(m, ku, pu, 0.0, 0.0).ok is ok, factor
+    assert check_model(ProcessFit("fopdt", 1.25, (10.0,), 1.0, 0.03, 0.03), ku, pu, 0.1).ok
+
+
+def test_record_fit_residual_beyond_the_noise():
+    """√(rms² − noise²) above 0.4 of the PV's spread: the model misses the record."""
+    ku, pu = ultimate_point(FOPDT)
+    noisy = ProcessFit("fopdt", 1.0, (10.0,), 1.0, 0.5, noise_rms=0.4)  # excess 0.3
+    assert check_model(noisy, ku, pu, 0.0, 0.0).ok
+    poor = ProcessFit("fopdt", 1.0, (10.0,), 1.0, 0.5, noise_rms=0.1)  # excess 0.49
+    assert "excess 0.49" in check_model(poor, ku, pu, 0.0, 0.0).summary()
+    unfitted = ProcessFit("fopdt", 1.0, (10.0,), 1.0, math.inf)
+    assert not check_model(unfitted, ku, pu, 0.0, 0.0).ok
+
+
+def test_noise_free_exact_models_of_the_benchmark_pass():
+    """Second order plus dead time over a range of lag ratios, at their exact points."""
+    for t1, t2, delay in ((1.0, 1.0, 1.0), (10.0, 0.1, 0.5), (100.0, 3.0, 0.2)):
+        m = ProcessFit("sopdt", 2.0, (t1, t2), delay, 1e-6)
+        ku, pu = ultimate_point(m)
+        assert check_model(m, ku, pu, 0.0, 0.0).ok

@@ -1,0 +1,321 @@
+"""Step-test safety (issue 10): clipped PVs are never rest, integrating loops stop on their
+ramp, dead times are floored at what the data resolve, the CLI waits for the return to rest.
+
+In-process against the real preset models (``build_plant``), lockstep, seeded noise.
+"""
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from services.autotuner.reaction_curve import (
+    analyze_step,
+    at_rest,
+    noise_level,
+    range_end,
+    settled,
+    steady_ramp,
+)
+from services.autotuner.rules import StepModel, apply_rules
+from services.autotuner.step_test import (
+    ReturnWatch,
+    StepTest,
+    StepTestAborted,
+    StepTestConfig,
+    run_step_test,
+)
+from services.plant_sim.models import FirstOrderPlusDeadTime, IntegratingPlusDeadTime
+from services.plant_sim.plant_file import build_plant
+from shared.messages import OutputCommand
+from tests.test_reaction_curve import sopdt_tangent
+
+FOPDT_600 = {  # lvl1 linearised at 1.5 m: 0.06 m/%, τ = 600 s, 1 s delay, 1 s samples
+    "model": "fopdt",
+    "gain": 0.06,
+    "time_constant": 600.0,
+    "delay": 1.0,
+    "sample_time": 1.0,
+    "noise_std": 0.002,
+    "pv0": 1.5,
+    "pv_range": [0.0, 3.0],
+}
+
+
+def sim_loop(spec: dict, seed: int = 1):
+    return build_plant({"seed": seed, "loops": {"x": spec}})["x"]
+
+
+def drive(loop, size: float = 5.0, pv_range: bool = True, **cfg) -> StepTest:
+    """Run a StepTest on a SimLoop in lockstep: an output command holds from the present
+    sample on, as ``run_step_test`` reports it."""
+    st = loop.settings
+    test = StepTest(
+        StepTestConfig(size=size, **cfg),
+        loop.op,
+        st.op_limits,
+        st.pv_range,
+        st.sample_time,
+        pv_range=st.pv_range if pv_range else None,
+        pv_units=st.pv_units,
+    )
+    op = loop.op
+    for _ in range(200_000):
+        if test.finished:
+            break
+        s = loop.advance()
+        want = test.feed(s)
+        if want != op and not test.finished:
+            loop.apply(OutputCommand(loop=st.loop_id, op=want))
+            test.step_started(s.t)
+            op = want
+    assert test.finished
+    return test
+
+
+def elapsed(test: StepTest) -> float:
+    return test.t[-1] - test.t_step
+
+
+# --- a PV at an end of its range is never rest ---------------------------------------------
+
+
+def test_a_clipped_record_is_not_at_rest():
+    rng = np.random.default_rng(0)
+    clipped = np.minimum(3.0 + 0.002 * rng.standard_normal(40), 3.0)
+    assert range_end(clipped, (0.0, 3.0)) == "top"
+    assert not at_rest(clipped, (0.0, 3.0))
+    assert at_rest(np.full(40, 3.0))  # without the range, a flat record looks at rest
+    near = 2.995 + 0.002 * rng.standard_normal(40)  # 2.5σ below the top: within noise
+    assert range_end(near, (0.0, 3.0), noise_std=0.002) == "top"
+    inside = 1.5 + 0.002 * rng.standard_normal(40)
+    assert range_end(inside, (0.0, 3.0)) is None and at_rest(inside, (0.0, 3.0))
+    assert range_end(np.zeros(40), (0.0, 3.0)) == "bottom"
+
+
+def test_settled_refuses_a_rest_at_the_range_top():
+    t = np.arange(400.0)
+    y = np.where(t < 100, 1.5 + t * 0.015, 3.0)  # ramps into the top and sits there, clipped
+    assert settled(t, y, 0.0, 1.5, 0.002)[0]  # what the old check said
+    assert not settled(t, y, 0.0, 1.5, 0.002, pv_range=(0.0, 3.0))[0]
+
+
+@pytest.mark.parametrize(
+    ("spec", "end"),
+    [
+        ({"model": "tank_level_integrating", "level0": 3.0}, "the top of its range (3 m)"),
+        ({"model": "heat_exchanger", "pv_range": [0.0, 55.0]}, "the top of its range (55 degC)"),
+        ({"model": "tank_level_integrating", "level0": 0.0}, "the bottom of its range (0 m)"),
+    ],
+    ids=["full-tank", "narrow-transmitter", "empty-tank"],
+)
+def test_a_pv_clipped_from_the_start_aborts_before_the_step(spec, end):
+    test = drive(sim_loop(spec))
+    assert test.phase == "aborted" and test.t_step is None  # the output never moved
+    assert f"the PV sits at {end}" in test.reason
+
+
+def test_without_pv_range_the_limits_stand_for_it():
+    """experiments.build does not pass pv_range yet: pv_limits (the loop's range by default)
+    are then taken as the ends."""
+    test = drive(sim_loop({"model": "tank_level_integrating", "level0": 3.0}), pv_range=False)
+    assert test.phase == "aborted" and "sits at its upper limit (3 m)" in test.reason
+
+
+# --- integrating loops ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_lvl2_stops_on_its_ramp_and_names_r_and_l(seed):
+    """lvl2: A·dh/dt = q_in − q_pump, R = inflow_max/(100·A) = 1e-4 m/s per %, 2 s delay."""
+    test = drive(sim_loop({"model": "tank_level_integrating"}, seed))
+    assert test.phase == "aborted" and test.result is None
+    assert test.reason.startswith("integrating process: the PV ramps at R = ")
+    assert "m/s per %" in test.reason and "use the relay method" in test.reason
+    assert elapsed(test) < 600.0  # bounded: ≈ 440 s at σ = 0.002 m, not the 7200 s timeout
+    assert max(test.pv) < 2.0  # nowhere near the 3 m top, let alone clipped there
+    ramp = test.ramp
+    assert ramp.slope / 5.0 == pytest.approx(1e-4, rel=0.03)
+    assert ramp.dead_time == pytest.approx(2.0, abs=4 * ramp.dead_time_se + 1.0)
+    assert any(e[1] == "integrating" for e in test.events)
+
+
+def test_noise_free_integrating_dead_time_is_exact():
+    test = drive(sim_loop({"model": "tank_level_integrating", "noise_std": 0.0}))
+    assert test.ramp is not None
+    assert test.ramp.dead_time == pytest.approx(2.0, abs=1e-6)
+    assert test.ramp.slope == pytest.approx(5e-4, rel=1e-9)
+
+
+def test_integrating_near_the_top_stops_before_the_measurement_clips():
+    """From 2.85 m the ramp reaches the top before it is told from a slow lag: the range
+    guard stops it first, never taking the clipped PV for rest."""
+    test = drive(sim_loop({"model": "tank_level_integrating", "level0": 2.85}))
+    assert test.phase == "aborted" and test.result is None
+    assert "would reach the top of its range (3 m)" in test.reason
+    assert max(test.pv) < 3.0 - 0.004
+
+
+def test_a_large_step_on_a_self_regulating_loop_stops_before_its_top():
+    """lvl1 from 1.5 m, +40 %: its rest (≈ 4.9 m) lies above the 3 m transmitter."""
+    test = drive(sim_loop({"model": "tank_level"}), size=40.0)
+    assert test.phase == "aborted" and "would reach the top of its range" in test.reason
+    assert max(test.pv) < 3.0
+
+
+def test_ipdt_with_a_lag_is_integrating_with_the_lag_in_its_dead_time():
+    spec = {
+        "model": "ipdt",
+        "gain": 0.01,
+        "delay": 3.0,
+        "sensor_lag": 5.0,
+        "sample_time": 0.5,
+        "noise_std": 0.05,
+    }
+    test = drive(sim_loop(spec), size=-5.0)
+    assert test.ramp is not None, test.reason
+    assert test.ramp.slope == pytest.approx(-0.05, rel=0.03)
+    assert test.ramp.dead_time == pytest.approx(8.0, abs=1.0)  # delay + lag: the asymptote
+
+
+def test_steady_ramp_never_calls_a_600_s_lag_integrating():
+    """Noise-free, every check up to 5 time constants: the decay of the slope is always seen."""
+    model = FirstOrderPlusDeadTime(1.0, gain=0.06, time_constant=600.0, delay=1.0)
+    model.reset()
+    t = np.arange(1.0, 3001.0)
+    y = np.array([model.step(model.op0 + 5.0) for _ in t])
+    for n in range(80, t.size, 40):
+        assert steady_ramp(t[:n], y[:n], 0.0, model.pv0, 0.0) is None, n
+    ipdt = IntegratingPlusDeadTime(1.0, gain=1e-4, delay=2.0)
+    ipdt.reset()
+    yi = np.array([ipdt.step(ipdt.op0 + 5.0) for _ in t[:80]])
+    assert steady_ramp(t[:80], yi, 0.0, ipdt.pv0, 0.0) is not None
+
+
+# --- self-regulating loops: figures as before, never integrating ---------------------------
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_hx1_is_not_integrating_and_keeps_its_figures(seed):
+    """K = 1 °C/%; the tangent of e^{−5s}/((10s+1)(60s+1)): L ≈ 10.6 s, R ≈ 0.0116 per %."""
+    L, R = sopdt_tangent(1.0, 60.0, 10.0, 5.0)
+    test = drive(sim_loop({"model": "heat_exchanger"}, seed))
+    r = test.result
+    assert test.phase == "done" and test.ramp is None, test.reason
+    assert r.gain == pytest.approx(1.0, rel=0.01)
+    assert r.dead_time == pytest.approx(L, rel=0.03) and r.dead_time == r.dead_time_tangent
+    assert r.reaction_rate == pytest.approx(R, rel=0.02)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_600_s_fopdt_is_not_integrating(seed):
+    test = drive(sim_loop(FOPDT_600, seed))
+    r = test.result
+    assert test.phase == "done" and test.ramp is None, test.reason
+    assert r.gain == pytest.approx(0.06, rel=0.01)
+    assert r.time_constant_63 == pytest.approx(600.0, rel=0.03)
+    assert r.reaction_rate == pytest.approx(0.06 / 600.0, rel=0.03)
+    assert r.dead_time >= r.dead_time_floor == 0.5
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_lvl1_dead_time_is_floored_and_its_gains_are_finite(seed):
+    """The gravity-drain tank: K = 2h/op·(1 + Δ/2op) = 1.5·(1.1² − 1)/5 = 0.063 m/%, initial
+    slope inflow_max/(100·A) = 1e-4 m/s per %; its 1 s delay is below what σ = 0.002 m lets a
+    fit resolve (the tangent gave 1e-11 s): floored at half a sample, 0.5 s."""
+    test = drive(sim_loop({"model": "tank_level"}, seed))
+    r = test.result
+    assert test.phase == "done" and test.ramp is None, test.reason
+    assert r.gain == pytest.approx(1.5 * (1.1**2 - 1) / 5.0, rel=0.01)
+    assert r.reaction_rate == pytest.approx(1e-4, rel=0.03)
+    assert r.dead_time_floor == 0.5 and r.dead_time >= 0.5
+    assert r.dead_time_tangent < r.dead_time  # the raw figure is kept, and was ~0
+    gains = apply_rules(None, StepModel(r.gain, r.dead_time, r.time_constant_tangent))
+    for name in ("zn-ol-p", "zn-ol-pi", "zn-ol-pid"):
+        g = gains[name]
+        assert math.isfinite(g.kc) and 0 < g.kc < 1e5, (name, g)
+
+
+def test_noise_free_lvl1_reads_its_one_second_delay():
+    test = drive(sim_loop({"model": "tank_level", "noise_std": 0.0}))
+    assert test.result.dead_time == pytest.approx(1.0, abs=0.05)
+
+
+def test_analyze_step_floors_an_unresolved_dead_time():
+    """No delay at all, 1 s samples: L = 0 is floored at 0.5 s, the raw figure kept."""
+    rng = np.random.default_rng(7)
+    model = FirstOrderPlusDeadTime(1.0, gain=1.0, time_constant=50.0, delay=0.0)
+    model.reset()
+    base = model.pv0 + 0.01 * rng.standard_normal(40)
+    t = np.arange(1.0, 501.0)
+    y = np.array([model.step(model.op0 + 5.0) for _ in t]) + 0.01 * rng.standard_normal(t.size)
+    r = analyze_step(t, y, 0.0, 5.0, base.mean(), model.pv0 + 5.0, noise_level(base), 1.0)
+    assert r.dead_time == 0.5 == r.dead_time_floor
+    assert r.dead_time_tangent < 0.5
+    assert r.a == pytest.approx(r.reaction_rate * 0.5)
+    assert r.to_dict()["dead_time_tangent"] == r.dead_time_tangent
+
+
+# --- run_step_test: the return to rest ------------------------------------------------------
+
+
+class SimClient:
+    """The part of LoopClient run_step_test uses, over a SimLoop in lockstep."""
+
+    def __init__(self, loop):
+        st = loop.settings
+        self.sim, self.loop, self.source = loop, st.loop_id, "test"
+        self.info = SimpleNamespace(
+            model=st.model_name,
+            pv_units=st.pv_units,
+            pv_range=st.pv_range,
+            op_limits=st.op_limits,
+            sample_time=st.sample_time,
+            clock="lockstep",
+        )
+
+    def sync(self):
+        return SimpleNamespace(op=self.sim.op, mode=self.sim.mode, t=self.sim.t)
+
+    def command(self, cmd):
+        self.sim.apply(cmd)
+        return self.sync()
+
+    def next_sample(self):
+        return self.sim.advance()
+
+
+def test_run_step_test_waits_for_the_return_to_rest():
+    loop = sim_loop({"model": "heat_exchanger"})
+    report = run_step_test(SimClient(loop), StepTestConfig(size=5.0))
+    d = report.to_dict()
+    assert d["restored"] is True and d["returned_to_rest"] is True
+    assert d["pv_end"] == pytest.approx(d["pv_before"], abs=0.05)  # back at 60 °C
+    assert d["t_end"] < d["t_return"] <= d["t_end"] + 3 * (d["t_end"] - d["t_step"])
+    assert d["gain"] == pytest.approx(1.0, rel=0.01)
+    assert loop.op == 40.0 and loop.mode == "manual"
+    assert abs(loop.pv - 60.0) < 0.1  # what runs next starts from rest
+
+
+def test_run_step_test_no_wait_returns_at_once():
+    loop = sim_loop({"model": "heat_exchanger"})
+    report = run_step_test(SimClient(loop), StepTestConfig(size=5.0), wait_return=False)
+    assert report.returned_to_rest is None and report.pv_end is None
+    assert loop.t == report.t_end and loop.op == 40.0
+    assert loop.pv > 64.0  # still at the stepped rest: the CLI says so
+
+
+def test_run_step_test_on_lvl2_aborts_restored_with_the_integrating_reason():
+    loop = sim_loop({"model": "tank_level_integrating"})
+    with pytest.raises(StepTestAborted, match=r"integrating process.*loop restored"):
+        run_step_test(SimClient(loop), StepTestConfig(size=5.0))
+    assert loop.op == 50.0 and loop.t < 600.0
+
+
+def test_return_watch_gives_up_at_its_timeout():
+    watch = ReturnWatch(t_restore=0.0, pv_from=65.0, noise_std=0.02, timeout=50.0)
+    t = 0.0
+    while not watch.feed(t, 65.0 - 0.05 * t):  # still ramping: never at rest
+        t += 0.25
+    assert not watch.at_rest and t == 50.0 and watch.pv_end == pytest.approx(62.5)
