@@ -71,14 +71,12 @@ def random_case(index: int, seed: int = 10) -> Case:
     gain = float(np.exp(rng.uniform(math.log(0.3), math.log(3.0))))
     num = tuple(gain * c for c in num)
     ku, pu = ultimate_point(list(num), list(den), delay)
-    samples = float(np.exp(rng.uniform(math.log(15.0), math.log(200.0))))  # per period
+    samples = float(np.exp(rng.uniform(math.log(15.0), math.log(100.0))))  # per period
     swing = 8.0 * RELAY_D / (math.pi * ku)
     noise = float(rng.uniform(0.0, 0.03)) * swing
     start = str(rng.choice(["rest", "drifting", "after step"]))
     method = str(rng.choice(["relay", "relay", "ramp", "step"]))
-    return Case(
-        index, family, num, den, delay, pu / samples, noise, start, method, index, ku, pu
-    )
+    return Case(index, family, num, den, delay, pu / samples, noise, start, method, index, ku, pu)
 
 
 def discrete_plant(case: Case) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
@@ -86,7 +84,7 @@ def discrete_plant(case: Case) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     a, b, c, d = tf2ss(list(case.num), list(case.den))
     assert abs(float(np.asarray(d).item())) < 1e-12, "the families are strictly proper"
     ts = case.sample_time
-    n = int(math.floor(case.delay / ts + 1e-9))
+    n = math.floor(case.delay / ts + 1e-9)
     f = case.delay - n * ts
     if f < 1e-9 * ts:
         f = 0.0
@@ -146,16 +144,15 @@ def true_loop(case: Case, kc: float, ti: float | None, td: float) -> tuple[bool,
     phi, g_now, g_late, c, n = discrete_plant(case)
     ts = case.sample_time
     w = np.concatenate(
-        (np.logspace(math.log10(1e-4 / case.pu), math.log10(math.pi / ts), 4000)[:-1],
-         [math.pi / ts])
+        (
+            np.logspace(math.log10(1e-4 / case.pu), math.log10(math.pi / ts), 4000)[:-1],
+            [math.pi / ts],
+        )
     )
     z = np.exp(1j * w * ts)
     eye = np.eye(phi.shape[0])
     g = np.array(
-        [
-            (c @ np.linalg.solve(zk * eye - phi, g_now + g_late / zk)).item() * zk ** (-n)
-            for zk in z
-        ]
+        [(c @ np.linalg.solve(zk * eye - phi, g_now + g_late / zk)).item() * zk ** (-n) for zk in z]
     )
     tf = td / 10.0
     cz = kc * (1.0 + (ts / (ti * (z - 1.0)) if ti else 0.0))

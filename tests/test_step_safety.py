@@ -133,8 +133,14 @@ def test_lvl2_stops_on_its_ramp_and_names_r_and_l(seed):
     assert test.phase == "aborted" and test.result is None
     assert test.reason.startswith("integrating process: the PV ramps at R = ")
     assert "m/s per %" in test.reason and "use the relay method" in test.reason
-    assert elapsed(test) < 600.0  # bounded: ≈ 440 s at σ = 0.002 m, not the 7200 s timeout
+    seen = next(e[0] for e in test.events if e[1] == "integrating") - test.t_step
+    assert seen < 600.0  # bounded: ≈ 440 s at σ = 0.002 m, not the 7200 s timeout
+    assert elapsed(test) == pytest.approx(2 * seen, abs=2.0)  # then a pulse as long back
     assert max(test.pv) < 2.0  # nowhere near the 3 m top, let alone clipped there
+    # the equal and opposite pulse gave the volume back: the level ends within its noise
+    # (and the dead time's worth of ramp) of where it rested
+    assert "opposite pulse" in test.reason
+    assert test.pv[-1] == pytest.approx(test.pv[0], abs=0.02)
     ramp = test.ramp
     assert ramp.slope / 5.0 == pytest.approx(1e-4, rel=0.03)
     assert ramp.dead_time == pytest.approx(2.0, abs=4 * ramp.dead_time_se + 1.0)
@@ -310,7 +316,7 @@ def test_run_step_test_on_lvl2_aborts_restored_with_the_integrating_reason():
     loop = sim_loop({"model": "tank_level_integrating"})
     with pytest.raises(StepTestAborted, match=r"integrating process.*loop restored"):
         run_step_test(SimClient(loop), StepTestConfig(size=5.0))
-    assert loop.op == 50.0 and loop.t < 600.0
+    assert loop.op == 50.0 and loop.t < 1200.0
 
 
 def test_return_watch_gives_up_at_its_timeout():

@@ -35,12 +35,14 @@ class ProcessFit:
     delay: float  # L, s
     rms: float  # weighted rms of the log residual (nepers ≈ radians); on a record: see there
     noise_rms: float = 0.0  # the rms the measurement noise alone would leave (record fits)
+    source: str = "fit"  # "fit", or "reaction curve" (a tangent construction, never exact)
 
     @property
     def approximate(self) -> bool:
-        """The fit leaves clearly more than the noise: the plant is outside the model's
-        class, so what the model predicts away from the measured points is less certain."""
-        return self.rms > max(2.0 * self.noise_rms, 0.02)
+        """The fit leaves clearly more than the noise (the plant is outside the model's
+        class), or the model is a reaction curve's tangent construction (which ignores the
+        response's shape): what it predicts away from its data is less certain."""
+        return self.source != "fit" or self.rms > max(2.0 * self.noise_rms, 0.02)
 
     @property
     def num(self) -> list[float]:

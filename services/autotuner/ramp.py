@@ -9,6 +9,23 @@ on g (Illinois), and K_u is where g crosses zero, interpolated linearly in Kc be
 final bracket; P_u likewise from the two trials' periods. A trial whose swing passes
 ``swing_limit``·bump is cut short as growing, and the loop is calmed at a lower gain before
 the next. The PV leaving its limits aborts the test.
+
+Only a linear loop tells its ultimate point, so the output (``op_limits``) is watched too. A
+trial's bump is sized so that its kick Kc·bump takes at most ``headroom`` of the output's room
+to its nearer limit. A trial whose output then sits at a limit (a few samples in a row) is cut
+there: judged growing if the record before shows a growing oscillation, otherwise repeated at
+the same gain with half the bump (event ``bump``), until the bump would drown in the noise
+(< 6σ) — then the gain backs off (while no decaying gain is known) or the test aborts. A start
+gain that saturates the output at rest backs off tenfold (event ``back_off``); a loop that
+will not calm between trials, or saturates while calming, gets half the calming gain (event
+``calm``), a few times at most.
+
+Every phase has a budget in sim time, from what the test has seen: the quiet period 20 quiet
+windows; before any period is known, the first trial ``first_trial_time`` and the later ones
+4 × the longest complete response so far, the whole search 40 first-trial lengths; once a
+period P is known, each trial (``trial_periods`` + ½)·P, each calming ``settle_periods``·P and
+the rest of the test ``total_periods``·P. ``max_time`` caps it all. Running out aborts the test
+with the budget named in ``reason``.
 """
 
 from __future__ import annotations
@@ -40,7 +57,10 @@ class RampConfig:
     first_trial_time: float = 3600.0  # s to watch a trial before any period is known
     swing_limit: float = 8.0  # × bump: a trial swinging wider is stopped (and judged by its fit)
     max_trials: int = 40
-    max_time: float = 86400.0  # s
+    max_time: float = 86400.0  # s: a cap; the budgets below are usually far shorter
+    total_periods: float = 200.0  # periods of the oscillation the test may run once it has one
+    settle_periods: float = 20.0  # periods a calming may take before its gain is halved
+    headroom: float = 0.5  # of the output's room to its nearer limit, a trial's kick may take
 
     def __post_init__(self) -> None:
         if not (self.kc_start > 0 and math.isfinite(self.kc_start)):
@@ -51,6 +71,10 @@ class RampConfig:
             raise ValueError(f"factor {self.factor}: must be > 1")
         if not 0 < self.tolerance < 0.5:
             raise ValueError(f"tolerance {self.tolerance}: must be between 0 and 0.5")
+        if not (self.max_time > 0 and self.total_periods > 0 and self.settle_periods > 0):
+            raise ValueError("max_time, total_periods and settle_periods: must be > 0")
+        if not 0 < self.headroom <= 1:
+            raise ValueError(f"headroom {self.headroom}: must be in (0, 1]")
 
 
 @dataclass(frozen=True)
@@ -84,6 +108,11 @@ class RampResult:
     model: ProcessFit | None = None  # fitted to the whole record (None without the outputs)
 
 
+MAX_BACKOFFS = 6  # tenfold (at rest) or factor³ (after a trial) cuts of a start gain too high
+MAX_CALM_CUTS = 4  # halvings of the calming gain in one calming before giving up
+SEARCH_LENGTHS = 40.0  # first-trial lengths the search may take before any period is known
+
+
 @dataclass
 class RampTest:
     config: RampConfig
@@ -104,20 +133,35 @@ class RampTest:
         self._t: list[float] = []
         self._y: list[float] = []
         self._u: list[float] = []  # the loop's output, held from each sample
+        self._quiet_from = 0  # where the present quiet period began (it restarts on a back-off)
         self._quiet_end = 0  # samples of the quiet period: the record's rest
         self._start = math.nan
         self._r = math.nan
         self._noise = 0.0
         self.kc = self.config.kc_start
         self.sp = self.sp_start
+        self.bump = self.config.bump  # PV units; halved each time a trial saturates the output
+        self._trial_bump = self.config.bump  # the present trial's (≤ bump: the kick must fit)
+        self._bumps = 0  # setpoint bumps so far (their sign alternates)
         self._trial_start = 0  # index into the record
         self._trial_t0 = 0.0
         self._lo: Trial | None = None
         self._hi: Trial | None = None
         self._side = 0  # Illinois: which end was kept last
         self._period: float | None = None
+        self._t_period = math.nan  # s: when the first period was measured
         self._calm_kc = self.config.kc_start
         self._settle_start = 0
+        self._settle_t0 = 0.0
+        self._calm_cuts = 0
+        self._sat_run = 0  # consecutive samples with the output at a limit
+        self._backoffs = 0
+        self._first_len = math.nan  # s: the first trial's length (bump to verdict)
+        self._first_end = math.nan  # s: when it ended
+        self._longest = 0.0  # s: the longest complete response seen without a period
+        self._last_len = 0.0  # s: the last trial's length
+        self._deadline = math.inf  # s: sim time by which the test must be over
+        self._budget = ""  # which budget that is, for the abort's reason
 
     @property
     def finished(self) -> bool:
@@ -129,8 +173,9 @@ class RampTest:
         return Demand(self.kc, self.sp)
 
     def feed(self, t: float, pv: float, op: float = math.nan) -> Demand:
-        """Take the PV sampled at ``t`` (and the output the loop holds from ``t``, for the
-        process model); return the gain and setpoint to hold from ``t`` on."""
+        """Take the PV sampled at ``t`` (and the output the loop holds from ``t``, %: for the
+        process model and to see the output saturate); return the gain and setpoint to hold
+        from ``t`` on."""
         if self.finished:
             return Demand(self.kc, self.sp)
         self._t.append(t)
@@ -140,45 +185,162 @@ class RampTest:
             self._start = t
             if math.isnan(self.sp):
                 self.sp = pv
+            self._update_budget()
         lo, hi = self.pv_limits
         if not lo <= pv <= hi:
             return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")
-        if t - self._start > self.config.max_time:
-            return self._abort(f"no result within {self.config.max_time:g} s")
-        if self.phase == "quiet":  # wait for the PV to be at rest (20 quiet periods at most)
-            n = self._quiet_n
-            if len(self._y) >= n:
-                base = np.asarray(self._y[-n:])
-                if at_rest(base):
-                    self._r, self._noise = float(base.mean()), noise_level(base)
-                    self._quiet_end = len(self._y)
-                    self._begin_trial(t)
-                elif len(self._y) >= 20 * n:
-                    return self._abort("the PV is not at rest before the test (it keeps drifting)")
+        if t > self._deadline:
+            return self._abort(f"{self._budget} (at t = {t:g} s, in phase {self.phase})")
+        self._watch_output(op)
+        if self.phase == "quiet":
+            self._watch_quiet(t)
         elif self.phase == "trial":
             self._watch_trial(t)
         elif self.phase == "settle":
             self._watch_settle(t)
         return Demand(self.demand_kc, self.sp)
 
+    # --- budgets and the output's limits ---------------------------------------------------
+
+    def _update_budget(self) -> None:
+        """The sim time by which the test must be over: ``max_time`` from the start, and from
+        what the test has seen: ``total_periods`` periods after the first one was measured;
+        before that, ``SEARCH_LENGTHS`` first-trial lengths after the first trial."""
+        cfg = self.config
+        self._deadline = self._start + cfg.max_time
+        self._budget = f"no result within max_time = {cfg.max_time:g} s"
+        if self._period is not None:
+            end = self._t_period + cfg.total_periods * self._period
+            why = (
+                f"no result within {cfg.total_periods:g} periods (P ≈ {self._period:.4g} s) "
+                "after the first oscillation"
+            )
+        elif math.isfinite(self._first_end):
+            length = max(self._first_len, self._quiet_n * self.sample_time)
+            end = self._first_end + SEARCH_LENGTHS * length
+            why = (
+                f"no oscillation within {SEARCH_LENGTHS:g} first-trial lengths "
+                f"({length:.4g} s) after the first trial"
+            )
+        else:
+            return
+        if end < self._deadline:
+            self._deadline, self._budget = end, why
+
+    def _watch_output(self, op: float) -> None:
+        """Count the samples in a row with the output at one of its limits."""
+        lo, hi = self.op_limits
+        eps = 1e-6 * (hi - lo)
+        if math.isfinite(op) and (op <= lo + eps or op >= hi - eps):
+            self._sat_run += 1
+        else:
+            self._sat_run = 0
+
+    def _saturated(self) -> bool:
+        """The output has sat at a limit for a few samples in a row (2 % of a period, once
+        one is known): the loop is no longer linear."""
+        n = 3 if self._period is None else max(3, math.ceil(0.02 * self._period / self.sample_time))
+        return self._sat_run >= n
+
+    def _room(self) -> float:
+        """% from the present output to its nearer limit (NaN if the output is not known)."""
+        lo, hi = self.op_limits
+        u = self._u[-1]
+        return min(u - lo, hi - u) if math.isfinite(u) else math.nan
+
+    def _min_bump(self) -> float:
+        """The smallest bump worth a trial, PV units: 6σ of the noise (a thousandth of the
+        configured bump without noise), never more than the configured bump."""
+        return min(self.config.bump, max(6.0 * self._noise, 1e-3 * self.config.bump))
+
+    # --- quiet period ----------------------------------------------------------------------
+
+    def _watch_quiet(self, t: float) -> None:
+        """Wait for the PV to be at rest (20 quiet periods at most). An output at its limit
+        means the start gain drives it there on the noise alone: back off tenfold."""
+        if self._saturated():
+            if self._backoffs >= MAX_BACKOFFS:
+                self._abort(
+                    f"the output stays at its limit at rest, even at Kc = {self.kc:.4g} "
+                    f"(start gain {self.config.kc_start:g} backed off {self._backoffs} times)"
+                )
+                return
+            self._back_off(t, self.kc / 10, "the output sits at its limit at rest")
+            self._quiet_from, self._sat_run = len(self._y), 0
+            return
+        n = self._quiet_n
+        seen = len(self._y) - self._quiet_from
+        if seen >= n:
+            base = np.asarray(self._y[-n:])
+            if at_rest(base):
+                self._r, self._noise = float(base.mean()), noise_level(base)
+                self._quiet_end = len(self._y)
+                self._begin_trial(t)
+            elif seen >= 20 * n:
+                self._abort("the PV is not at rest before the test (it keeps drifting)")
+
+    def _back_off(self, t: float, kc: float, why: str) -> None:
+        self._backoffs += 1
+        self.events.append((t, "back_off", {"kc": kc, "from": self.kc, "reason": why}))
+        self.kc = self._calm_kc = kc
+
+    # --- trials ----------------------------------------------------------------------------
+
     def _begin_trial(self, t: float) -> None:
-        n = len(self.trials)
+        """Bump the setpoint at gain ``kc``; first shrink the bump (or back the gain off) so
+        the kick Kc·bump and the output's noise stay within ``headroom`` of the output's room."""
+        bump, room = self.bump, self._room()
+        if math.isfinite(room):
+            if room <= 0:
+                self._abort(f"the output rests at its limit ({self._u[-1]:.4g} %): no room")
+                return
+            fits = self.config.headroom * room / self.kc - 3.0 * self._noise
+            if bump > fits:
+                if fits >= self._min_bump():
+                    bump = fits
+                    self.events.append(
+                        (t, "bump", {"bump": bump, "kc": self.kc, "reason": "kick fitted"})
+                    )
+                elif self._lo is None and self._backoffs < MAX_BACKOFFS:
+                    kc = self.config.headroom * room / (bump + 3.0 * self._noise)
+                    self._back_off(t, kc, "the kick Kc·bump would saturate the output")
+                else:
+                    self._abort(
+                        f"no bump the noise allows (≥ {self._min_bump():.4g}) fits the output's "
+                        f"room ({room:.4g} %) at Kc = {self.kc:.4g}"
+                    )
+                    return
+        n = self._bumps
+        self._bumps += 1
+        self._trial_bump = bump
         # from the present setpoint, not from where the PV rests: under P-only control the PV
         # settles off the setpoint, and a bump from the PV's rest would kick by that offset too
-        self.sp += self.config.bump * (1 if n % 2 == 0 else -1)
+        self.sp += bump * (1 if n % 2 == 0 else -1)
         self._trial_start, self._trial_t0 = len(self._y) - 1, t
         self._next_check = 16
+        self._sat_run = 0
         self.phase = "trial"
-        self.events.append((t, "trial", {"n": n + 1, "kc": self.kc, "sp": self.sp}))
+        self.events.append(
+            (t, "trial", {"n": len(self.trials) + 1, "kc": self.kc, "sp": self.sp, "bump": bump})
+        )
+
+    def _trial_cap(self) -> float:
+        """s to watch a trial before any period is known: ``first_trial_time``, and after the
+        first complete response 4 × the longest one so far."""
+        if self._longest > 0:
+            return min(self.config.first_trial_time, 4.0 * self._longest)
+        return self.config.first_trial_time
 
     def _watch_trial(self, t: float) -> None:
         n = len(self._y) - self._trial_start
-        if self._swing_limit_hit():
+        if self._saturated():
+            self._trial_saturated(t)
+        elif self._swing_limit_hit():
             self._close_trial(t, cut=True)
         elif self._period is not None:
             if t - self._trial_t0 >= (self.config.trial_periods + 0.5) * self._period:
                 self._close_trial(t, cut=False)
-        elif t - self._trial_t0 >= self.config.first_trial_time:
+        elif t - self._trial_t0 >= self._trial_cap():
             self._close_trial(t, cut=False)
         elif n >= self._next_check:  # geometric spacing keeps the checks' cost near linear
             self._next_check = int(n * 1.25) + 16
@@ -188,6 +350,36 @@ class RampTest:
             osc = self._fit()
             if osc is not None and osc.swings >= 2 * self.config.trial_periods + 1:
                 self._close_trial(t, cut=False)
+
+    def _trial_saturated(self, t: float) -> None:
+        """The output has sat at a limit: the loop is not linear any more. Judged growing if
+        the record before the saturation shows a growing oscillation; otherwise repeated at
+        the same gain with half the bump, or (no smaller bump the noise allows) with the gain
+        backed off while no decaying gain is known, else aborted."""
+        end = len(self._y) - self._sat_run + 1  # the PV at the first saturated sample is clean
+        osc = self._fit(end)
+        if osc is not None and osc.swings >= 2 and osc.growth > 0:
+            self._close_trial(t, cut=True, end=end)
+            return
+        self._last_len = t - self._trial_t0
+        self.events.append(
+            (t, "saturated", {"kc": self.kc, "bump": self._trial_bump, "op": self._u[-1]})
+        )
+        half = 0.5 * self._trial_bump
+        if half >= self._min_bump():
+            self.bump = min(self.bump, half)
+            self.events.append(
+                (t, "bump", {"bump": self.bump, "kc": self.kc, "reason": "output saturated"})
+            )
+        elif self._lo is None and self._backoffs < MAX_BACKOFFS:
+            self._back_off(t, self.kc / self.config.factor**3, "the output saturates")
+        else:
+            self._abort(
+                f"the output saturates at Kc = {self.kc:.4g} even with a bump of "
+                f"{self._trial_bump:.4g} (the noise allows none below {self._min_bump():.4g})"
+            )
+            return
+        self._begin_settle(t)
 
     def _died_out(self, n: int) -> bool:
         """The trial's response has come and gone: the PV moved, and it has been flat over
@@ -199,7 +391,7 @@ class RampTest:
         y = np.asarray(self._y[self._trial_start :])
         # "moved" only has to tell the response from the dead time before it: at a low gain
         # the PV moves by Kc·K/(1 + Kc·K) of the bump, which can be a small fraction of it
-        level = max(0.02 * self.config.bump, 6 * self._noise)
+        level = max(0.02 * self._trial_bump, 6 * self._noise)
         moving = np.nonzero(np.abs(y - self._r) >= level)[0]
         if moving.size == 0:
             return False
@@ -211,32 +403,48 @@ class RampTest:
         # flat: the means of ten stretches of the tail agree (the noise averaged in each)
         tail = y[-(window // 10) * 10 :].reshape(10, -1)
         spread = float(np.ptp(tail.mean(axis=1)))
-        return spread < max(0.05 * self.config.bump, 6.0 * self._noise / math.sqrt(tail.shape[1]))
+        return spread < max(0.05 * self._trial_bump, 6.0 * self._noise / math.sqrt(tail.shape[1]))
 
     def _swing_limit_hit(self) -> bool:
         """The PV has swung further from where it rested before the trial than allowed."""
-        return abs(self._y[-1] - self._r) > self.config.swing_limit * self.config.bump
+        return abs(self._y[-1] - self._r) > self.config.swing_limit * self._trial_bump
 
-    def _fit(self) -> Oscillation | None:
-        t = np.asarray(self._t[self._trial_start :])
-        y = np.asarray(self._y[self._trial_start :])
-        return fit_oscillation(t, y, self._noise, self._period)
+    def _fit(self, end: int | None = None) -> Oscillation | None:
+        """The oscillation in the trial's record (up to sample ``end``), if it is one: seen
+        for 1.5 periods, and standing out of the noise (a fit to noise alone finds a sinusoid
+        of a small fraction of σ, and a period that means nothing)."""
+        t = np.asarray(self._t[self._trial_start : end])
+        y = np.asarray(self._y[self._trial_start : end])
+        osc = fit_oscillation(t, y, self._noise, self._period)
+        if osc is None or t.size < 2:
+            return None
+        watched = float(t[-1] - t[0])
+        if osc.period > watched / 1.5:
+            return None  # "swings" of the noise, not an oscillation seen for 1.5 periods
+        peak = osc.amplitude * math.exp(min(max(osc.growth * watched, 0.0), 50.0))
+        return osc if peak >= 0.5 * self._noise else None
 
-    def _close_trial(self, t: float, cut: bool) -> None:
-        osc = self._fit()
+    def _close_trial(self, t: float, cut: bool, end: int | None = None) -> None:
+        osc = self._fit(end)
         watched = t - self._trial_t0
-        if osc is not None and osc.period > watched / 1.5:
-            osc = None  # "swings" of the noise, not an oscillation seen for 1.5 periods
         if osc is None or osc.swings < (2 if cut else 3):
             # no oscillation to fit: an overdamped response, or one that ran away at once
             trial = Trial(self.kc, math.inf if cut else -math.inf, None, 0, cut)
+            if not cut:
+                self._longest = max(self._longest, watched)
         else:
             trial = Trial(self.kc, osc.growth, osc.period, osc.swings, cut)
+            if self._period is None:
+                self._t_period = t
             self._period = osc.period
+        self._last_len = watched
         self.trials.append(trial)
         self.events.append(
             (t, "trial_result", {"kc": trial.kc, "growth": trial.growth, "period": trial.period})
         )
+        if len(self.trials) == 1:
+            self._first_len, self._first_end = watched, t
+        self._update_budget()
         if trial.growth < 0:
             self._lo = trial
             if self._side == -1 and self._hi is not None:
@@ -262,19 +470,26 @@ class RampTest:
         if self._converged():
             return
         if len(self.trials) >= self.config.max_trials:
-            self.phase, self.reason = "aborted", f"no bracket within {len(self.trials)} trials"
+            self._abort(f"no bracket within {len(self.trials)} trials")
             return
         self.kc = self._next_gain()
+        self._begin_settle(t)
+
+    def _begin_settle(self, t: float) -> None:
+        """Calm the loop at a gain known to decay (or below the present one) before the next
+        trial."""
         self._calm_kc = 0.7 * (self._lo.kc if self._lo else self.kc / self.config.factor)
         self.phase = "settle"
-        self._settle_start = len(self._y) - 1
+        self._settle_start, self._settle_t0 = len(self._y) - 1, t
+        self._calm_cuts = 0
+        self._sat_run = 0
 
     def _next_gain(self) -> float:
         lo, hi, f = self._lo, self._hi, self.config.factor
         if hi is None:
             return lo.kc * f
-        if lo is None:
-            return hi.kc / f
+        if lo is None:  # a trial that ran away at once is far above: back off further
+            return hi.kc / (f if math.isfinite(hi.growth) else f**3)
         width = hi.kc - lo.kc
         if math.isfinite(lo.growth) and math.isfinite(hi.growth) and hi.growth > lo.growth:
             k = lo.kc + width * (-lo.growth) / (hi.growth - lo.growth)
@@ -295,7 +510,7 @@ class RampTest:
         elif periods:
             pu = periods[0]
         else:
-            self.phase, self.reason = "aborted", "the loop never oscillated"
+            self._abort("the loop never oscillated")
             return True
         ku, pu = float(ku), float(pu)  # plain floats for JSON (the fits give numpy scalars)
         ku_plant, pu_plant = (float(x) for x in self._plant_crossover(ku, pu))
@@ -321,10 +536,14 @@ class RampTest:
         outputs in, the PV out, from the rest of the quiet period), the best by BIC."""
         u = np.asarray(self._u, dtype=float)
         y = np.asarray(self._y, dtype=float)
-        if u.size < 20 or not np.all(np.isfinite(u)) or self._quiet_end < 3:
+        # the record from the rest before the first trial (after any back-off at rest)
+        first = max(0, self._quiet_end - self._quiet_n) if self._backoffs else 0
+        u, y = u[first:], y[first:]
+        rest = self._quiet_end - first
+        if u.size < 20 or not np.all(np.isfinite(u)) or rest < 3:
             return None
-        u0 = float(np.mean(u[: self._quiet_end]))
-        y0 = float(np.mean(y[: self._quiet_end]))
+        u0 = float(np.mean(u[:rest]))
+        y0 = float(np.mean(y[:rest]))
         fits = [
             f
             for start in through_ultimate_point(ku, pu)
@@ -372,7 +591,24 @@ class RampTest:
 
     def _watch_settle(self, t: float) -> None:
         """Let the loop calm at a gain known to decay, then start the next trial from where
-        the PV has come to rest."""
+        the PV has come to rest. A calming whose output sits at a limit for a whole period,
+        or that outlasts ``settle_periods`` periods (before any period is known: trial
+        lengths), is at a gain that does not calm: the gain is halved, ``MAX_CALM_CUTS`` times
+        at most."""
+        scale = self._period or max(self._longest, self._last_len, self._quiet_n * self.sample_time)
+        stuck = self._saturated() and self._sat_run * self.sample_time >= scale
+        if stuck or t - self._settle_t0 > self.config.settle_periods * scale:
+            if self._calm_cuts >= MAX_CALM_CUTS:
+                self._abort(
+                    f"the loop does not calm between trials, even at Kc = {self._calm_kc:.4g}"
+                )
+                return
+            self._calm_cuts += 1
+            self._calm_kc *= 0.5
+            why = "output saturated" if stuck else "not calm in time"
+            self.events.append((t, "calm", {"kc": self._calm_kc, "reason": why}))
+            self._settle_start, self._settle_t0, self._sat_run = len(self._y) - 1, t, 0
+            return
         window = max(20, round((self._period or 40 * self.sample_time) / self.sample_time))
         if len(self._y) - self._settle_start < window or len(self._y) % 8:
             return
@@ -380,7 +616,8 @@ class RampTest:
         # calm: the means of ten stretches of the last period agree (the noise averaged)
         stretches = y[-(y.size // 10) * 10 :].reshape(10, -1)
         spread = float(np.ptp(stretches.mean(axis=1)))
-        if spread < max(0.1 * self.config.bump, 6 * self._noise / math.sqrt(stretches.shape[1])):
+        limit = max(0.1 * self._trial_bump, 6 * self._noise / math.sqrt(stretches.shape[1]))
+        if spread < limit:
             self._r = float(np.mean(y))
             self._begin_trial(t)
 

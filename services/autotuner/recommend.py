@@ -173,6 +173,21 @@ class Recommendation:
     reason: str
 
 
+CALM_OVERSHOOT = 25.0  # %: predicted setpoint overshoot preferred (verification limit 35 %)
+CALM_DECAY = 0.25  # predicted decay ratio preferred (verification limit 0.35)
+
+
+def _calm(a: Assessment) -> bool:
+    """The candidate's predicted setpoint step keeps inside the preferred overshoot and decay."""
+    st = a.step
+    return (
+        st is not None
+        and st.stable
+        and st.overshoot <= CALM_OVERSHOOT
+        and (st.decay_ratio or 0.0) <= CALM_DECAY
+    )
+
+
 def recommend(
     ultimate: UltimatePoint | None,
     model: ProcessFit | None,
@@ -205,6 +220,18 @@ def recommend(
             return APPROXIMATE_PID_MARGIN if pid and model.approximate else MODEL_MARGIN
 
         ok = [a for a in safe.values() if a.within(margin(a.rule) * ms_bound)]
+        # the verification will hold the loop to its overshoot and decay limits: prefer the
+        # candidates whose predicted step already keeps well inside them
+        calm = [a for a in ok if _calm(a)]
+        if calm:
+            best = max(calm, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
+            return Recommendation(
+                best.rule,
+                best.gains,
+                _number(best.robustness.ms) if best.robustness else None,
+                f"largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g} and a "
+                f"predicted overshoot ≤ {CALM_OVERSHOOT:g} % on {on}",
+            )
         if ok:
             best = max(ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
             return Recommendation(

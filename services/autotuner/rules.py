@@ -165,7 +165,9 @@ def fopdt_of(m: ProcessFit) -> StepModel:
 
 def model_of(step: StepModel) -> ProcessFit:
     """The step test's reaction curve as a first-order-plus-dead-time model."""
-    return ProcessFit("fopdt", step.gain, (step.time_constant,), step.dead_time, 0.0)
+    return ProcessFit(
+        "fopdt", step.gain, (step.time_constant,), step.dead_time, 0.0, source="reaction curve"
+    )
 
 
 def _on_fopdt(rule: Callable[[StepModel], IsaGains]) -> Callable[[ProcessFit], IsaGains]:

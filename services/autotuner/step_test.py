@@ -70,11 +70,12 @@ class StepTest:
     sample_time: float
     pv_range: tuple[float, float] | None = None
     pv_units: str = ""
-    phase: str = "baseline"  # baseline → step → done | aborted
+    phase: str = "baseline"  # baseline → step → done | aborted (integrating: → return →)
     reason: str = ""
     t_step: float | None = None
     result: ReactionCurve | None = None
     ramp: SteadyRamp | None = None  # set when the test stopped on an integrating response
+    _pulse: tuple[float, str] = (math.inf, "")  # integrating: the return pulse's end, reason
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
     events: list[tuple[float, str, dict]] = field(default_factory=list)
@@ -138,6 +139,8 @@ class StepTest:
             return self._abort(f"PV {s.pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s")
         if self.phase == "baseline":  # at rest first: no trend beyond the noise
             return self._baseline(s)
+        if self.phase == "return":
+            return self._return_pulse(s)
         if self.t_step is None:
             return self.op_target
         return self._after_step(s)
@@ -262,7 +265,7 @@ class StepTest:
         base_se = self._noise / math.sqrt(self._baseline_samples) / abs(ramp.slope)
         se = math.hypot(ramp.dead_time_se, base_se)
         steady = 100 * max(abs(ramp.slope_change), 3 * ramp.slope_change_se)
-        return self._abort(
+        reason = (
             f"integrating process: the PV ramps at R = {rate:.3g} {self._rate_units()} "
             f"({ramp.slope:.3g}{u}/s for the {self.config.size:+g} % step, steady within "
             f"{steady:.2g} % over the last {ramp.window:.4g} s) after a dead time "
@@ -270,10 +273,31 @@ class StepTest:
             "stopped; the reaction curve of integrating loops comes in a "
             "later issue — use the relay method"
         )
+        # an integrator keeps the level the step gave it: an equal and opposite pulse, held
+        # as long as the step was, gives back the volume and so the PV's rest (exactly, for a
+        # linear integrator, whatever its dead time)
+        back = self.op_start - self.config.size
+        lo, hi = self.op_limits
+        if self.t_step is None or not lo <= back <= hi:
+            return self._abort(reason + "; the PV stays where the step took it")
+        self._pulse = (t + (t - self.t_step), reason)
+        self.phase = "return"
+        self.events.append((t, "return_pulse", {"op": back, "until": self._pulse[0]}))
+        return back
+
+    def _return_pulse(self, s: ProcessSample) -> float:
+        until, reason = self._pulse
+        if s.t < until:
+            return self.op_start - self.config.size
+        return self._abort(
+            reason + "; an equal and opposite pulse brought the PV back toward its rest"
+        )
 
     def step_started(self, t: float) -> None:
-        """The driver reports the sim time from which the stepped output is held."""
-        self.t_step = t
+        """The driver reports the sim time from which the stepped output is held (the first
+        change of output only: the return pulse of an integrating loop is not a step)."""
+        if self.t_step is None:
+            self.t_step = t
 
 
 @dataclass

@@ -641,6 +641,9 @@ class TuningRun:
             size = min(size, VERIFY_KICK / gains.kc)
         size = max(size, VERIFY_NOISE * ident.noise)
         step = size * (1 if sp0 < 0.5 * (lo + hi) else -1)
+        # a step is watched for 15 time scales, and at least 8 integral times: a robust PI's
+        # slow integral removes the last per cent late, which is not instability
+        span = max(15 * scale, 8 * gains.ti if gains.ti else 0.0)
         band = max(0.02 * abs(step), 4 * ident.noise)
         guard = GUARD_WINDOW * scale
         self._progress(
@@ -660,7 +663,7 @@ class TuningRun:
         if stopped is None:
             c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
             t, y, u, why = self._record(
-                15 * scale,
+                span,
                 lambda t, y: (
                     t[-1] - t[0] > 2 * scale and quiet(t, y) and abs(y[-1] - sp0 - step) < band
                 ),
@@ -684,7 +687,7 @@ class TuningRun:
                 )
             )
             t, y, u2, why = self._record(
-                15 * scale,
+                span,
                 lambda t, y: (
                     t[-1] - t[0] > 2 * scale and quiet(t, y) and abs(y[-1] - sp0 - step) < band
                 ),
@@ -764,7 +767,10 @@ def acceptance_problems(
     if after.stopped:
         out.append(f"stopped: {after.stopped}")
     elif not after.stable:
-        out.append("unstable (the response did not settle)")
+        out.append(
+            "not settled (the response did not stay within its band by the end of the "
+            "verification)"
+        )
     if after.saturated:
         out.append("the output saturated for a third of the verification or more")
     os_ = after.overshoot
