@@ -310,6 +310,9 @@ class Verification(Message):
     stopped: str | None = Field(
         default=None, description="why the verification was cut short (runaway), if it was"
     )
+    op_noise: float | None = Field(
+        default=None, description="σ of the output at rest with these gains, % of output"
+    )
 
 
 class TuneResult(Message):

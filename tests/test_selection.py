@@ -133,10 +133,13 @@ def lag_dominated():
 
 
 def test_kc_at_or_above_ku_is_refused_unless_forced(lag_dominated):
-    """SIMC PID on a lag-dominated SOPDT gives Kc ≈ 1.36 K_u (τ₁/(2Kθ)·(1 + τ₂/τ_I))."""
+    """SIMC PID on a lag-dominated SOPDT gives Kc ≈ 1.3 K_u (τ₁/(2Kθ)·(1 + τ₂/τ_I)), with
+    the digital controller's θ = L + T/2."""
     ku = lag_dominated.ku
-    sel = select(lag_dominated, "simc-pid", sample_time=lag_dominated.pu / 100)
-    kc = 10.0 / (2 * 0.2) * (1 + 5.0 / 1.6)
+    ts = lag_dominated.pu / 100
+    sel = select(lag_dominated, "simc-pid", sample_time=ts)
+    theta = 0.2 + ts / 2
+    kc = 10.0 / (2 * theta) * (1 + 5.0 / (8 * theta))
     assert sel.chosen.kc == pytest.approx(kc)
     assert sel.refusal and "at or above the measured K_u" in sel.refusal
     assert f"{kc / ku:.3g} × K_u" in sel.refusal

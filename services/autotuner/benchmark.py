@@ -192,7 +192,7 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
     test = experiments.build("ramp", req, setup)
     t0 = loop.t
     drive_ramp(test, loop)
-    return _outcome(plant, "ramp", noise, test, periods=(loop.t - t0) / pu)
+    return _outcome(plant, "ramp", noise, test, periods=loop.t - t0)  # s: _outcome divides
 
 
 def drive_ramp(test: RampTest, loop: SimLoop) -> None:

@@ -98,10 +98,16 @@ def build(method: str, req: TuneRequest, setup: dict[str, Any]) -> Experiment:
             pv_limits=pv_limits,
             **({"timeout": req.max_time} if req.max_time else {}),
         )
-        pv_range = (
-            (setup["pv_range_lo"], setup["pv_range_hi"]) if "pv_range_lo" in setup else None
+        pv_range = (setup["pv_range_lo"], setup["pv_range_hi"]) if "pv_range_lo" in setup else None
+        return StepTest(
+            cfg,
+            setup["op_start"],
+            op_limits,
+            pv_limits,
+            ts,
+            pv_range=pv_range,
+            pv_units=str(setup.get("pv_units", "")),
         )
-        return StepTest(cfg, setup["op_start"], op_limits, pv_limits, ts, pv_range=pv_range)
     raise ValueError(f"method: unknown method {method!r}")
 
 
@@ -179,6 +185,7 @@ def identification(machine: Experiment) -> Identification | None:
                 "kc_low": r.kc_low,
                 "kc_high": r.kc_high,
                 "bump": machine.config.bump,
+                "bump_final": machine.bump,
                 "noise_std": r.noise_std,
                 "rest_pv": r.rest_pv,
             },
@@ -191,11 +198,17 @@ def identification(machine: Experiment) -> Identification | None:
     if rc is None:
         return None
     step_model = StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)
+    fitted = machine.process_model()
     return Identification(
         step=rc.to_dict(),
         step_model=step_model,
-        model=model_of(step_model),
-        experiment={"step_size": rc.step_size, "method": rc.method},
+        model=fitted or model_of(step_model),
+        integrating=False,  # it settled
+        experiment={
+            "step_size": rc.step_size,
+            "method": rc.method,
+            **(fitted.to_dict() if fitted else {}),
+        },
         timescale=4 * rc.dead_time + rc.time_constant_63,
         noise=rc.noise_std,
         rest_pv=rc.pv_before,

@@ -1,6 +1,6 @@
 """Closed-loop response figures: a setpoint step and a load step.
 
-Setpoint step from y₀ to r, z = (y − y₀)/(r − y₀), read with the noise averaged over 5
+Setpoint step from y₀ to r, z = (y − y₀)/(r − y₀), read with the noise averaged over a few
 samples: overshoot = max(z) − 1 (in %), decay ratio
 = second overshoot over the first (the quarter-decay aim of Ziegler–Nichols is 0.25), rise
 time 10 → 90 %, settling time to stay within ±``band`` of the step, IAE = ∫|r − y| dt. Load
@@ -39,14 +39,17 @@ def setpoint_step(
     target: float,
     band: float = 0.02,
     noise: float = 0.0,
+    width: int = 5,
 ) -> dict[str, float | bool | None]:
+    """``width``: samples the noise is averaged over (odd; a small part of the period, so
+    that the averaging leaves a peak's height alone while it takes the noise off it)."""
     t, y = np.asarray(t, float), np.asarray(y, float)
     delta = target - y0
     z = (y - y0) / delta
-    # the peaks are read on the response with the noise averaged (5 samples: σ/√5), and a
-    # turning point must clear 8σ of it, so a noisy crest is one peak, not two
+    # the peaks are read on the response with the noise averaged (σ/√width), and a turning
+    # point must clear 8σ of it, so a noisy crest is one peak, not two
     rel_noise = noise / abs(delta)
-    zs = smooth(z, 5) if rel_noise > 0 and z.size >= 10 else z
+    zs = smooth(z, width) if rel_noise > 0 and z.size >= 2 * width else z
     over = float(np.max(zs) - 1.0)
     ext = extrema(t, zs - 1.0, max(0.02, 8 * rel_noise))
     peaks = [v for _, v in ext if v > 0]

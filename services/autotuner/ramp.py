@@ -18,14 +18,16 @@ the same gain with half the bump (event ``bump``), until the bump would drown in
 (< 6σ) — then the gain backs off (while no decaying gain is known) or the test aborts. A start
 gain that saturates the output at rest backs off tenfold (event ``back_off``); a loop that
 will not calm between trials, or saturates while calming, gets half the calming gain (event
-``calm``), a few times at most.
+``calm``), a few times at most. A fitted oscillation counts only if it stands out of the
+noise (amplitude ≥ 2σ): a sinusoid fitted to noise alone gives a period that means nothing.
 
 Every phase has a budget in sim time, from what the test has seen: the quiet period 20 quiet
-windows; before any period is known, the first trial ``first_trial_time`` and the later ones
-4 × the longest complete response so far, the whole search 40 first-trial lengths; once a
-period P is known, each trial (``trial_periods`` + ½)·P, each calming ``settle_periods``·P and
-the rest of the test ``total_periods``·P. ``max_time`` caps it all. Running out aborts the test
-with the budget named in ``reason``.
+windows (per back-off); before any period is known, each trial ``first_trial_time`` and 1000
+quiet windows at most, and the search 40 trial lengths (the longest so far) after the first
+trial; once a period P is known (the first one measured), each trial (``trial_periods`` + ½)·P,
+each calming ``settle_periods``·P before its gain is halved, and the whole test
+``total_periods``·P after that first oscillation. ``max_time`` caps it all. Running out aborts
+the test with the budget named in ``reason``.
 """
 
 from __future__ import annotations
@@ -108,9 +110,18 @@ class RampResult:
     model: ProcessFit | None = None  # fitted to the whole record (None without the outputs)
 
 
-MAX_BACKOFFS = 6  # tenfold (at rest) or factor³ (after a trial) cuts of a start gain too high
+MAX_BACKOFFS = 8  # tenfold (at rest) or factor³ (after a trial) cuts of a start gain too high
 MAX_CALM_CUTS = 4  # halvings of the calming gain in one calming before giving up
-SEARCH_LENGTHS = 40.0  # first-trial lengths the search may take before any period is known
+SEARCH_LENGTHS = 40.0  # trial lengths the search may take after the first, with no period
+
+
+def _white(y: np.ndarray) -> bool:
+    """The scatter about the trend is white noise, not a slow swing (after a back-off the loop
+    may still ring, which ``at_rest`` reads as noise): its σ matches that of the sample-to-
+    sample differences (within 1.5×)."""
+    scatter = noise_level(y)
+    step = float(np.std(np.diff(y))) / math.sqrt(2.0)
+    return scatter <= 1.5 * step or scatter <= 1e-12 * max(1.0, float(np.max(np.abs(y))))
 
 
 @dataclass
@@ -150,16 +161,18 @@ class RampTest:
         self._side = 0  # Illinois: which end was kept last
         self._period: float | None = None
         self._t_period = math.nan  # s: when the first period was measured
+        self._p_first = math.nan  # s: that period
         self._calm_kc = self.config.kc_start
         self._settle_start = 0
         self._settle_t0 = 0.0
         self._calm_cuts = 0
         self._sat_run = 0  # consecutive samples with the output at a limit
+        self._sat_count: list[int] = []  # samples with the output at a limit, cumulative
         self._backoffs = 0
-        self._first_len = math.nan  # s: the first trial's length (bump to verdict)
-        self._first_end = math.nan  # s: when it ended
-        self._longest = 0.0  # s: the longest complete response seen without a period
+        self._first_end = math.nan  # s: when the first trial ended
+        self._trial_max = 0.0  # s: the longest trial so far (bump to verdict)
         self._last_len = 0.0  # s: the last trial's length
+        self._silent = False  # the last trial's PV never moved clear of the noise
         self._deadline = math.inf  # s: sim time by which the test must be over
         self._budget = ""  # which budget that is, for the abort's reason
 
@@ -204,23 +217,23 @@ class RampTest:
 
     def _update_budget(self) -> None:
         """The sim time by which the test must be over: ``max_time`` from the start, and from
-        what the test has seen: ``total_periods`` periods after the first one was measured;
-        before that, ``SEARCH_LENGTHS`` first-trial lengths after the first trial."""
+        what the test has seen: ``total_periods`` of the first period measured, after it;
+        before that, ``SEARCH_LENGTHS`` trial lengths (the longest so far) after the first."""
         cfg = self.config
         self._deadline = self._start + cfg.max_time
         self._budget = f"no result within max_time = {cfg.max_time:g} s"
-        if self._period is not None:
-            end = self._t_period + cfg.total_periods * self._period
+        if self._period is not None:  # fixed by the first period: it never moves
+            end = self._t_period + cfg.total_periods * self._p_first
             why = (
-                f"no result within {cfg.total_periods:g} periods (P ≈ {self._period:.4g} s) "
-                "after the first oscillation"
+                f"no result within {cfg.total_periods:g} periods (P ≈ {self._p_first:.4g} s, "
+                "the first measured) after the first oscillation"
             )
         elif math.isfinite(self._first_end):
-            length = max(self._first_len, self._quiet_n * self.sample_time)
+            length = max(self._trial_max, self._quiet_n * self.sample_time)
             end = self._first_end + SEARCH_LENGTHS * length
             why = (
-                f"no oscillation within {SEARCH_LENGTHS:g} first-trial lengths "
-                f"({length:.4g} s) after the first trial"
+                f"no oscillation within {SEARCH_LENGTHS:g} trial lengths ({length:.4g} s, the "
+                "longest so far) after the first trial"
             )
         else:
             return
@@ -231,10 +244,15 @@ class RampTest:
         """Count the samples in a row with the output at one of its limits."""
         lo, hi = self.op_limits
         eps = 1e-6 * (hi - lo)
-        if math.isfinite(op) and (op <= lo + eps or op >= hi - eps):
-            self._sat_run += 1
-        else:
-            self._sat_run = 0
+        at = math.isfinite(op) and (op <= lo + eps or op >= hi - eps)
+        self._sat_run = self._sat_run + 1 if at else 0
+        self._sat_count.append((self._sat_count[-1] if self._sat_count else 0) + at)
+
+    def _sat_fraction(self, n: int) -> float:
+        """The fraction of the last ``n`` samples with the output at a limit."""
+        c = self._sat_count
+        n = max(1, min(n, len(c)))
+        return (c[-1] - (c[-n - 1] if n < len(c) else 0)) / n
 
     def _saturated(self) -> bool:
         """The output has sat at a limit for a few samples in a row (2 % of a period, once
@@ -257,8 +275,12 @@ class RampTest:
 
     def _watch_quiet(self, t: float) -> None:
         """Wait for the PV to be at rest (20 quiet periods at most). An output at its limit
-        means the start gain drives it there on the noise alone: back off tenfold."""
-        if self._saturated():
+        half the time means the start gain drives it there on the noise alone (or into a limit
+        cycle): back off tenfold, once per quiet window; at a limit at all, it is not at rest."""
+        n = self._quiet_n
+        seen = len(self._y) - self._quiet_from
+        saturated = self._sat_fraction(n) if seen >= n else 0.0
+        if saturated >= 0.5:
             if self._backoffs >= MAX_BACKOFFS:
                 self._abort(
                     f"the output stays at its limit at rest, even at Kc = {self.kc:.4g} "
@@ -268,16 +290,15 @@ class RampTest:
             self._back_off(t, self.kc / 10, "the output sits at its limit at rest")
             self._quiet_from, self._sat_run = len(self._y), 0
             return
-        n = self._quiet_n
-        seen = len(self._y) - self._quiet_from
         if seen >= n:
             base = np.asarray(self._y[-n:])
-            if at_rest(base):
+            if saturated == 0 and at_rest(base) and (not self._backoffs or _white(base)):
                 self._r, self._noise = float(base.mean()), noise_level(base)
                 self._quiet_end = len(self._y)
                 self._begin_trial(t)
             elif seen >= 20 * n:
-                self._abort("the PV is not at rest before the test (it keeps drifting)")
+                why = "the output keeps reaching its limits" if saturated else "it keeps drifting"
+                self._abort(f"the PV is not at rest before the test ({why})")
 
     def _back_off(self, t: float, kc: float, why: str) -> None:
         self._backoffs += 1
@@ -325,11 +346,10 @@ class RampTest:
         )
 
     def _trial_cap(self) -> float:
-        """s to watch a trial before any period is known: ``first_trial_time``, and after the
-        first complete response 4 × the longest one so far."""
-        if self._longest > 0:
-            return min(self.config.first_trial_time, 4.0 * self._longest)
-        return self.config.first_trial_time
+        """s to watch a trial before any period is known: ``first_trial_time``, and 1000
+        quiet windows. (A gain nearer K_u rings longer than a lower one did: an earlier
+        response's length is no bound on the next.)"""
+        return min(self.config.first_trial_time, 1000 * self._quiet_n * self.sample_time)
 
     def _watch_trial(self, t: float) -> None:
         n = len(self._y) - self._trial_start
@@ -341,13 +361,13 @@ class RampTest:
             if t - self._trial_t0 >= (self.config.trial_periods + 0.5) * self._period:
                 self._close_trial(t, cut=False)
         elif t - self._trial_t0 >= self._trial_cap():
-            self._close_trial(t, cut=False)
+            self._close_trial(t, cut=False, capped=True)
         elif n >= self._next_check:  # geometric spacing keeps the checks' cost near linear
             self._next_check = int(n * 1.25) + 16
             if self._died_out(n):
                 self._close_trial(t, cut=False)
                 return
-            osc = self._fit()
+            osc = self._fit(raw=True)  # enough swings seen (its verdict is judged at the close)
             if osc is not None and osc.swings >= 2 * self.config.trial_periods + 1:
                 self._close_trial(t, cut=False)
 
@@ -389,10 +409,7 @@ class RampTest:
         if n < 40:
             return False
         y = np.asarray(self._y[self._trial_start :])
-        # "moved" only has to tell the response from the dead time before it: at a low gain
-        # the PV moves by Kc·K/(1 + Kc·K) of the bump, which can be a small fraction of it
-        level = max(0.02 * self._trial_bump, 6 * self._noise)
-        moving = np.nonzero(np.abs(y - self._r) >= level)[0]
+        moving = np.nonzero(np.abs(y - self._r) >= self._moving_level())[0]
         if moving.size == 0:
             return False
         dead = int(moving[0])
@@ -405,45 +422,59 @@ class RampTest:
         spread = float(np.ptp(tail.mean(axis=1)))
         return spread < max(0.05 * self._trial_bump, 6.0 * self._noise / math.sqrt(tail.shape[1]))
 
+    def _moving_level(self) -> float:
+        """PV units from the rest that tell a response from the dead time before it: at a low
+        gain the PV moves by Kc·K/(1 + Kc·K) of the bump, which can be a small fraction of it."""
+        return max(0.02 * self._trial_bump, 6 * self._noise)
+
     def _swing_limit_hit(self) -> bool:
         """The PV has swung further from where it rested before the trial than allowed."""
         return abs(self._y[-1] - self._r) > self.config.swing_limit * self._trial_bump
 
-    def _fit(self, end: int | None = None) -> Oscillation | None:
-        """The oscillation in the trial's record (up to sample ``end``), if it is one: seen
-        for 1.5 periods, and standing out of the noise (a fit to noise alone finds a sinusoid
-        of a small fraction of σ, and a period that means nothing)."""
+    def _fit(self, end: int | None = None, raw: bool = False) -> Oscillation | None:
+        """The oscillation in the trial's record (up to sample ``end``), if it is one (or
+        ``raw``, whatever the fit found): seen for 1.5 periods, and standing out of the noise
+        (a fit to noise alone finds a sinusoid of a small fraction of σ, and a period that
+        means nothing: adopted, it would cut the next trials short)."""
         t = np.asarray(self._t[self._trial_start : end])
         y = np.asarray(self._y[self._trial_start : end])
         osc = fit_oscillation(t, y, self._noise, self._period)
-        if osc is None or t.size < 2:
-            return None
+        if raw or osc is None or t.size < 2:
+            return osc
         watched = float(t[-1] - t[0])
         if osc.period > watched / 1.5:
             return None  # "swings" of the noise, not an oscillation seen for 1.5 periods
-        peak = osc.amplitude * math.exp(min(max(osc.growth * watched, 0.0), 50.0))
-        return osc if peak >= 0.5 * self._noise else None
+        # its amplitude where largest: at the start (decaying) or at the end (growing)
+        seen = osc.amplitude * math.exp(min(max(osc.growth * watched, 0.0), 50.0))
+        return osc if seen >= 2.0 * self._noise else None
 
-    def _close_trial(self, t: float, cut: bool, end: int | None = None) -> None:
+    def _close_trial(
+        self, t: float, cut: bool, end: int | None = None, capped: bool = False
+    ) -> None:
+        """Judge the trial on its record (up to sample ``end``): ``cut`` short as growing,
+        or watched to its end (``capped``: to the time limit before any period is known)."""
         osc = self._fit(end)
         watched = t - self._trial_t0
+        self._silent = False
         if osc is None or osc.swings < (2 if cut else 3):
             # no oscillation to fit: an overdamped response, or one that ran away at once
             trial = Trial(self.kc, math.inf if cut else -math.inf, None, 0, cut)
-            if not cut:
-                self._longest = max(self._longest, watched)
+            if capped:  # watched to the limit, and the PV never moved clear of the noise
+                y = np.asarray(self._y[self._trial_start :])
+                self._silent = not np.any(np.abs(y - self._r) >= self._moving_level())
         else:
             trial = Trial(self.kc, osc.growth, osc.period, osc.swings, cut)
             if self._period is None:
-                self._t_period = t
+                self._t_period, self._p_first = t, osc.period
             self._period = osc.period
         self._last_len = watched
         self.trials.append(trial)
         self.events.append(
             (t, "trial_result", {"kc": trial.kc, "growth": trial.growth, "period": trial.period})
         )
+        self._trial_max = max(self._trial_max, watched)
         if len(self.trials) == 1:
-            self._first_len, self._first_end = watched, t
+            self._first_end = t
         self._update_budget()
         if trial.growth < 0:
             self._lo = trial
@@ -486,8 +517,8 @@ class RampTest:
 
     def _next_gain(self) -> float:
         lo, hi, f = self._lo, self._hi, self.config.factor
-        if hi is None:
-            return lo.kc * f
+        if hi is None:  # a trial with no response seen is far below: step up further
+            return lo.kc * (f**3 if self._silent else f)
         if lo is None:  # a trial that ran away at once is far above: back off further
             return hi.kc / (f if math.isfinite(hi.growth) else f**3)
         width = hi.kc - lo.kc
@@ -591,12 +622,15 @@ class RampTest:
 
     def _watch_settle(self, t: float) -> None:
         """Let the loop calm at a gain known to decay, then start the next trial from where
-        the PV has come to rest. A calming whose output sits at a limit for a whole period,
-        or that outlasts ``settle_periods`` periods (before any period is known: trial
+        the PV has come to rest. A calming whose output sat at a limit for half of the last
+        period, or that outlasts ``settle_periods`` periods (before any period is known: trial
         lengths), is at a gain that does not calm: the gain is halved, ``MAX_CALM_CUTS`` times
         at most."""
-        scale = self._period or max(self._longest, self._last_len, self._quiet_n * self.sample_time)
-        stuck = self._saturated() and self._sat_run * self.sample_time >= scale
+        scale = self._period or max(
+            self._trial_max, self._last_len, self._quiet_n * self.sample_time
+        )
+        window = max(1, round(scale / self.sample_time))
+        stuck = len(self._y) - self._settle_start >= window and self._sat_fraction(window) >= 0.5
         if stuck or t - self._settle_t0 > self.config.settle_periods * scale:
             if self._calm_cuts >= MAX_CALM_CUTS:
                 self._abort(

@@ -173,7 +173,7 @@ class Recommendation:
     reason: str
 
 
-CALM_OVERSHOOT = 25.0  # %: predicted setpoint overshoot preferred (verification limit 35 %)
+CALM_OVERSHOOT = 30.0  # %: predicted setpoint overshoot preferred (verification limit 35 %)
 CALM_DECAY = 0.25  # predicted decay ratio preferred (verification limit 0.35)
 
 

@@ -17,6 +17,7 @@ forced: the reason says which and by how much. L/T is reported with the seeds' g
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -140,10 +141,14 @@ def select(
             f"the identified {what} was refused, so no rule uses it and no robustness is "
             f"predicted from it: {check.summary()}"
         )
+    # the model rules are designs for a continuous controller: a digital one at sample time
+    # T adds the hold's T/2 of dead time, which they are given (the usual allowance, e.g.
+    # Åström & Hägglund 2006, §3.6); the judgement below is on the exact sampled loop
+    design = dataclasses.replace(model, delay=model.delay + 0.5 * ts) if model and ts else model
     table = {
         name: g
         for name, g in apply_rules(
-            ultimate, None if "open" in _kinds(unavailable) else ident.step_model, model
+            ultimate, None if "open" in _kinds(unavailable) else ident.step_model, design
         ).items()
         if name not in unavailable
     }

@@ -62,8 +62,34 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
         "--ms-bound",
         type=float,
         default=2.0,
-        help="refuse gains whose maximum sensitivity Ms on the identified model exceeds this "
+        help="refuse gains whose maximum sensitivity Ms on the sampled loop of the identified "
+        "model exceeds this (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--max-overshoot",
+        type=float,
+        default=35.0,
+        help="verification: refuse gains whose setpoint overshoot exceeds this, %% "
         "(default: %(default)s)",
+    )
+    parser.add_argument(
+        "--max-decay-ratio",
+        type=float,
+        default=0.35,
+        help="verification: refuse gains whose decay ratio exceeds this (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--overshoot-miss",
+        type=float,
+        default=20.0,
+        help="verification: refuse gains whose measured overshoot exceeds the predicted one by "
+        "more than this many percentage points: the model is wrong (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--rest-window",
+        type=float,
+        help="seconds of PV the drift check before the test watches (default: the loop's "
+        "integral time, 40 samples at least, 900 s at most)",
     )
     parser.add_argument(
         "--force",
@@ -136,6 +162,10 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
             apply=not args.no_apply,
             force=args.force,
             ms_bound=args.ms_bound,
+            max_overshoot=args.max_overshoot,
+            max_decay_ratio=args.max_decay_ratio,
+            overshoot_miss=args.overshoot_miss,
+            rest_window=args.rest_window,
             source=source,
         )
     except pydantic.ValidationError as err:
@@ -314,6 +344,25 @@ def format_result(r: TuneResult) -> str:
                 f"  {label:<18}{_fmt(b) if not isinstance(b, bool) else str(b):>12}"
                 f"{_fmt(a) if not isinstance(a, bool) else str(a):>12}"
             )
+    if r.acceptance and r.acceptance.get("passed") is not None:
+        a = r.acceptance
+        pred = a.get("predicted_overshoot")
+        lines.append(
+            f"  acceptance: overshoot ≤ {a['max_overshoot']:g} %, decay ratio ≤ "
+            f"{a['max_decay_ratio']:g}"
+            + (
+                f", within {a['overshoot_miss']:g} points of the {pred:.3g} % predicted"
+                if pred is not None
+                else ""
+            )
+            + (": passed" if a["passed"] else f": failed ({a['problems']})")
+        )
+    if r.rest and r.rest.get("waited") is not None:
+        window = r.rest.get("window") or 0.0
+        if r.rest.get("at_rest") and (r.rest.get("waited") or 0.0) > 1.01 * window:
+            lines.append(
+                f"  waited {r.rest['waited']:.4g} s for the PV to come to rest before the test"
+            )
     state = (
         "new gains applied, loop in auto"
         if r.applied
@@ -322,6 +371,17 @@ def format_result(r: TuneResult) -> str:
         else "WARNING: the loop may not have been restored"
     )
     lines.append(f"  {state}; {r.sim_duration:.0f} s of sim time in {r.wall_time:.2f} s")
+    if r.left:
+        lf = r.left
+        back = (
+            "the PV is back where it was"
+            if lf.get("returned")
+            else "the PV is still on its way back"
+        )
+        lines.append(
+            f"  left: {lf['mode']}, SP {lf['sp']:.4g} {pv_units}, OP {lf['op']:.4g} %, PV "
+            f"{lf['pv']:.4g} {pv_units} ({back}: target {lf['pv_target']:.4g})"
+        )
     return "\n".join(lines)
 
 

@@ -26,6 +26,7 @@ import pydantic
 from services.autotuner import experiments, metrics
 from services.autotuner.forms import IsaGains, all_forms
 from services.autotuner.loop_client import LoopClient
+from services.autotuner.model_fit import ProcessFit
 from services.autotuner.ramp import RampTest
 from services.autotuner.relay import RelayTest
 from services.autotuner.rest import RestCheck, rest_window
@@ -54,9 +55,12 @@ from shared.messages import (
 LEASE_TIMEOUT = 10.0  # s of wall time the plant waits for us before restoring the loop
 VERIFY_SP_FRACTION = 0.02  # of the PV range, verification setpoint step
 VERIFY_KICK = 20.0  # % of output: the setpoint step's proportional kick at most…
-VERIFY_NOISE = 8.0  # … unless that leaves the step below this many σ of the PV noise
+VERIFY_NOISE = 20.0  # … unless that leaves the step below this many σ of the PV noise…
+VERIFY_MAX_KICK = 50.0  # … which a kick up to this % of output may buy…
+VERIFY_MIN_NOISE = 8.0  # … and this many σ in any case
 MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
 GUARD_WINDOW = 2.0  # time scales per window of the verification's growth and saturation guard
+OP_NOISE_WARN = 5.0  # % of output (σ): more output noise than this is worth a warning
 RETURN_SCALES = 5.0  # time scales to wait for the PV of a restored loop to come back to rest
 
 
@@ -269,7 +273,9 @@ class TuningRun:
             if req.apply:
                 step = sel.assessments.get(sel.rule)
                 predicted = step.step.overshoot if step is not None and step.step else None
-                result.update(self._apply_and_verify(ident, chosen, predicted))
+                outcome = self._apply_and_verify(ident, chosen, predicted)
+                result["warnings"] = [*result["warnings"], *outcome.pop("notes", [])]
+                result.update(outcome)
                 restored = not result["applied"]
                 wait_back = restored
             else:
@@ -297,7 +303,13 @@ class TuningRun:
                 c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
         scale = ident.timescale if ident is not None and ident.timescale > 0 else None
         cancelled = self.hooks.cancelled is not None and self.hooks.cancelled.is_set()
-        left = self._leave(before, self._pv_rest, wait=wait_back and not cancelled, scale=scale)
+        left = self._leave(
+            before,
+            self._pv_rest,
+            wait=wait_back and not cancelled,
+            scale=scale,
+            model=ident.model if ident is not None else None,
+        )
         return self._result(result, t0, wall0, left)
 
     def _result(self, result: dict, t0: float, wall0: float, left: dict | None) -> TuneResult:
@@ -358,7 +370,12 @@ class TuningRun:
         }
 
     def _leave(
-        self, before: LoopStatus, pv_rest: float, wait: bool, scale: float | None = None
+        self,
+        before: LoopStatus,
+        pv_rest: float,
+        wait: bool,
+        scale: float | None = None,
+        model: ProcessFit | None = None,
     ) -> dict | None:
         """What the run left: the loop's mode, setpoint, output and gains, and whether the PV
         is back at rest where it was (waited for, bounded, when the loop was restored)."""
@@ -375,7 +392,8 @@ class TuningRun:
         returned = abs(pv - target) <= band
         waited = 0.0
         if wait and not returned:
-            horizon = RETURN_SCALES * (scale or rest_window(self.ts, before.gains.ti))
+            slow = rest_window(self.ts, before.gains.ti, self.req.rest_window)
+            horizon = max(RETURN_SCALES * (scale or 0.0), slow)
             check = RestCheck(self.ts, max(10 * self.ts, 0.25 * horizon), (lo, hi), windows=4)
             t_start = self._t
             try:
@@ -390,9 +408,12 @@ class TuningRun:
                         break
             except AutotuneError:
                 pass
-            waited = self._t - t_start
             rest_pv = check.rest_pv if check.at_rest else pv
             returned = abs(rest_pv - target) <= band
+            if not returned and check.at_rest and st.mode == "manual" and model is not None:
+                pv = self._give_back(st, target, rest_pv, model, horizon)
+                returned = abs(pv - target) <= band
+            waited = self._t - t_start
         return {
             "mode": st.mode,
             "sp": st.sp,
@@ -403,6 +424,37 @@ class TuningRun:
             "returned": bool(returned),
             "waited": waited,
         }
+
+    def _give_back(
+        self, st: LoopStatus, target: float, pv: float, model: ProcessFit, horizon: float
+    ) -> float:
+        """An integrating loop in manual keeps the level the test left it at: a pulse of the
+        output, sized on the identified integrating gain K' (PV units/s per %), moves it back
+        — under a lease again, since it writes to the loop. Returns the PV after it."""
+        if model.kind != "ipdt" or not model.gain > 0:
+            return pv
+        c, d = self.client, experiments.DEFAULT_RELAY_AMPLITUDE
+        sign = 1.0 if self.before is not None and self.before.action == "reverse" else -1.0
+        lo, hi = self.info.op_limits
+        push = st.op + sign * d * math.copysign(1.0, target - pv)
+        seconds = abs(target - pv) / (model.gain * d)
+        if not lo <= push <= hi or seconds > horizon:
+            return pv
+        self._progress("return", message=f"output {push:.4g} % for {seconds:.4g} s: the level back")
+        try:
+            c.command(LeaseCommand(loop=c.loop, source=c.source, timeout=LEASE_TIMEOUT, t=self._t))
+            try:
+                c.command(OutputCommand(loop=c.loop, op=push, source=c.source, t=self._t))
+                c.samples(max(1, round(seconds / self.ts)))
+            finally:
+                c.command(OutputCommand(loop=c.loop, op=st.op, source=c.source, t=self._t))
+                c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
+            k = max(4, round((2 * model.delay + 20 * self.ts) / self.ts))
+            tail = c.samples(k)
+            self._take(tail)
+            return float(np.mean([s.pv for s in tail[-max(4, k // 2) :]]))
+        except AutotuneError:
+            return pv
 
     def _restore(self) -> bool:
         """Put the loop back exactly as it was before the test; False if that failed."""
@@ -443,6 +495,7 @@ class TuningRun:
             "pv_hi": self.pv_limits[1],
             "pv_range_lo": self.info.pv_range[0],
             "pv_range_hi": self.info.pv_range[1],
+            "pv_units": self.info.pv_units,
         }
         if req.method == "ramp":
             lo, hi = self.info.pv_range
@@ -571,6 +624,18 @@ class TuningRun:
         }
         problems = acceptance_problems(after_v, before_v, limits)
         limits.update(passed=not problems, problems="; ".join(problems) or None)
+        limits["settled"] = after_v.settling_time is not None
+        notes = []
+        if not problems and after_v.settling_time is None:
+            notes.append(
+                "slow: the setpoint step was not yet within its band at the end of the "
+                "verification (no sustained swing)"
+            )
+        if after_v.op_noise is not None and after_v.op_noise > OP_NOISE_WARN:
+            notes.append(
+                f"the gains turn the PV's noise into {after_v.op_noise:.3g} % of output noise "
+                "(σ): the valve works hard; a lower gain or a filtered measurement spares it"
+            )
         if problems:
             self._restore()
             return {
@@ -579,9 +644,16 @@ class TuningRun:
                 "after": after_v,
                 "acceptance": limits,
                 "reason": f"new gains {'; '.join(problems)}: previous gains restored",
+                "notes": notes,
             }
         self._set_auto(new, sp0)
-        return {"applied": True, "before": before_v, "after": after_v, "acceptance": limits}
+        return {
+            "applied": True,
+            "before": before_v,
+            "after": after_v,
+            "acceptance": limits,
+            "notes": notes,
+        }
 
     def _set_auto(self, gains: PidGains, sp: float) -> None:
         c = self.client
@@ -639,7 +711,10 @@ class TuningRun:
         size = VERIFY_SP_FRACTION * (hi - lo)
         if gains.kc > 0:
             size = min(size, VERIFY_KICK / gains.kc)
-        size = max(size, VERIFY_NOISE * ident.noise)
+        # a step clear of the noise (its overshoot is read to a few per cent), as long as the
+        # kick stays moderate; never less than VERIFY_MIN_NOISE σ
+        size = max(size, min(VERIFY_NOISE * ident.noise, VERIFY_MAX_KICK / max(gains.kc, 1e-12)))
+        size = max(size, VERIFY_MIN_NOISE * ident.noise)
         step = size * (1 if sp0 < 0.5 * (lo + hi) else -1)
         # a step is watched for 15 time scales, and at least 8 integral times: a robust PI's
         # slow integral removes the last per cent late, which is not instability
@@ -651,30 +726,52 @@ class TuningRun:
         )
         self._set_auto(gains, sp0)
 
-        def quiet(t: np.ndarray, y: np.ndarray) -> bool:
-            k = max(4, round(scale / self.ts))
-            return y.size >= k and metrics.within_band(y[-k:], 2 * band)
+        k = max(4, round(scale / self.ts))
+        width = max(5, round(scale / self.ts / 20)) | 1
 
-        _, _, _, why = self._record(5 * scale, quiet, sp0, guard)
+        def at(target: float) -> Callable[[np.ndarray, np.ndarray], bool]:
+            """Settled at ``target``: the last time scale flat within the band, its mean on
+            the target (the mean, not one noisy sample)."""
+
+            def done(t: np.ndarray, y: np.ndarray) -> bool:
+                tail = y[-k:]
+                return (
+                    y.size >= k
+                    and metrics.within_band(tail, 2 * band)
+                    and abs(float(np.mean(tail)) - target) < band
+                )
+
+            return done
+
+        _, y_pre, u_pre, why = self._record(span, at(sp0), sp0, guard)
+        # the output's noise at rest: what the gains make of the PV's noise (σ of the sample
+        # to sample change over √2, so that a slow drift does not count)
+        tail = u_pre[-k:]
+        op_noise = float(np.std(np.diff(tail)) / math.sqrt(2.0)) if tail.size > 2 else None
         stopped = why
-        t0, y0 = self._t, c.last_sample.pv if c.last_sample else sp0
+        if why is None and not at(sp0)(np.array([]), y_pre):
+            stopped = f"the loop did not settle at its setpoint within {span:.4g} s"
+        # the step starts from the setpoint where the loop has settled on it, else from where
+        # the PV is (on average over the last time scale)
+        t0 = self._t
+        y0 = sp0 if y_pre.size and at(sp0)(np.array([]), y_pre) else float(np.mean(y_pre[-k:]))
         sp_m, saturated, load_size, load_m = None, False, None, None
         u = np.array([])
         if stopped is None:
             c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
             t, y, u, why = self._record(
                 span,
-                lambda t, y: (
-                    t[-1] - t[0] > 2 * scale and quiet(t, y) and abs(y[-1] - sp0 - step) < band
-                ),
+                lambda t, y: t[-1] - t[0] > 2 * scale and at(sp0 + step)(t, y),
                 sp0 + step,
                 guard,
             )
             stopped = why
-            sp_m = metrics.setpoint_step(t, y, t0, y0, sp0 + step, noise=ident.noise)
+            sp_m = metrics.setpoint_step(t, y, t0, y0, sp0 + step, noise=ident.noise, width=width)
         op_lo, op_hi = self.info.op_limits
         saturated = bool(np.mean((u <= op_lo) | (u >= op_hi)) > 1 / 3) if u.size else False
-        stable = stopped is None and sp_m is not None and bool(sp_m["settled"])
+        # not yet within the band at the end is slow, not unstable, unless it still swings
+        stable = stopped is None and sp_m is not None
+        stable = stable and (bool(sp_m["settled"]) or not swinging(y, sp0 + step, k, band))
         stable = stable and (sp_m["decay_ratio"] or 0) < 1
         before = c.sync()
         if stable and "load" in before.disturbances:
@@ -688,15 +785,14 @@ class TuningRun:
             )
             t, y, u2, why = self._record(
                 span,
-                lambda t, y: (
-                    t[-1] - t[0] > 2 * scale and quiet(t, y) and abs(y[-1] - sp0 - step) < band
-                ),
+                lambda t, y: t[-1] - t[0] > 2 * scale and at(sp0 + step)(t, y),
                 sp0 + step,
                 guard,
             )
             stopped = why
             load_m = metrics.load_step(t, y, t1, sp0 + step, noise=ident.noise)
-            stable = stable and why is None and bool(load_m["recovered"])
+            stable = stable and why is None
+            stable = stable and (bool(load_m["recovered"]) or not swinging(y, sp0 + step, k, band))
             saturated = saturated or (
                 bool(np.mean((u2 <= op_lo) | (u2 >= op_hi)) > 1 / 3) if u2.size else False
             )
@@ -710,7 +806,7 @@ class TuningRun:
         else:
             c.command(SetpointCommand(loop=c.loop, sp=sp0, source=c.source, t=self._t))
             if stable:
-                self._record(5 * scale, quiet)
+                self._record(5 * scale, at(sp0))
         iae_sp = sp_m["iae"] if sp_m else 0.0
         score = iae_sp / abs(step) + (load_m["iae"] / load_size if load_m else 0.0)
         return Verification(
@@ -729,6 +825,7 @@ class TuningRun:
             saturated=saturated,
             score=finite(score) if math.isfinite(score) else 1e300,
             stopped=stopped,
+            op_noise=op_noise,
         )
 
 
@@ -759,6 +856,23 @@ class _Guard:
         return None
 
 
+def swinging(y: np.ndarray, target: float, k: int, band: float) -> bool:
+    """The last two time scales (``k`` samples each) still oscillate about ``target``: the
+    deviation (averaged over a tenth of a scale, to take off the noise) changes sign at least
+    twice in each, beyond the band, and its swing has not halved from one to the next. A
+    response that only creeps toward the target is slow, not unstable."""
+    if y.size < 2 * k:
+        return False
+    dev = np.convolve(y[-2 * k :] - target, np.ones(max(1, k // 10)) / max(1, k // 10), "valid")
+    halves = np.array_split(dev, 2)
+    swings = []
+    for h in halves:
+        big = h[np.abs(h) > band]
+        crossings = int(np.sum(np.diff(np.sign(big)) != 0)) if big.size > 1 else 0
+        swings.append((crossings, float(np.ptp(h)) if h.size else 0.0))
+    return all(c >= 2 for c, _ in swings) and swings[1][1] > 0.5 * swings[0][1]
+
+
 def acceptance_problems(
     after: Verification, before: Verification | None, limits: dict
 ) -> list[str]:
@@ -768,8 +882,7 @@ def acceptance_problems(
         out.append(f"stopped: {after.stopped}")
     elif not after.stable:
         out.append(
-            "not settled (the response did not stay within its band by the end of the "
-            "verification)"
+            "not settled (the response did not stay within its band by the end of the verification)"
         )
     if after.saturated:
         out.append("the output saturated for a third of the verification or more")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -24,6 +25,7 @@ from shared import keys, wire
 from shared.messages import LoopStatus
 from shared.session import open_session
 from tests.exact import ultimate_point
+from tests.field_cases import Case, true_loop
 
 pytestmark = pytest.mark.integration
 
@@ -250,14 +252,34 @@ def test_two_loops_tuned_at_once(start_plant, start_tuner):
 
 
 def test_gains_above_the_ms_bound_are_refused_unless_forced(start_plant, start_tuner):
-    """ZN PI on the heat exchanger: Ms 4.27 on the identified model. Refused, the loop is
+    """ZN PI on the heat exchanger: Ms above 4 on the sampled loop. Refused, the loop is
     left as it was; with --force (on a twin loop, at rest) it is applied, with a warning."""
     twin = plant_toml("x1", HX) + plant_toml("x2", HX).split("\n", 1)[1]
     p = start_plant(twin, loops=("x1", "x2"))
     start_tuner(p)
     r = tune(p, "x1", "--method", "relay", "--rule", "zn-pi")
     assert r["status"] == "rejected" and r["applied"] is False and r["restored"] is True
-    assert "refused" in r["reason"] and "Ms 4.2" in r["reason"]
+    assert "refused" in r["reason"] and "above the bound 2 on the sampled loop" in r["reason"]
+    # the refusal's Ms is the sampled loop's: ZN PI from the exact ultimate point on the true
+    # plant, judged by the independent oracle, within what the identification's error allows
+    ku, pu = ultimate_point(HX["num"], HX["den"], HX["delay"])
+    case = Case(
+        0,
+        "hx",
+        tuple(HX["num"]),
+        tuple(HX["den"]),
+        HX["delay"],
+        HX["sample_time"],
+        0.0,
+        "rest",
+        "relay",
+        0,
+        ku,
+        pu,
+    )
+    _, ms_true = true_loop(case, 0.45 * ku, pu / 1.2, 0.0)
+    ms_said = float(re.search(r"Ms ([0-9.]+) above", r["reason"]).group(1))
+    assert ms_said == pytest.approx(ms_true, rel=0.1)
     assert loop_state(p, "x1").mode == "manual"  # as the plant file left it
     r = tune(p, "x2", "--method", "relay", "--rule", "zn-pi", "--force", "--no-verify")
     assert r["status"] == "ok" and r["applied"] is True

@@ -1,0 +1,262 @@
+"""The P-gain ramp's limits: budgets that hold, an output that saturates, a start gain far
+too high, and K_u on a lag-dominated plant whose trials would saturate the output.
+
+Each test drives ``RampTest`` in-process against a plant stepped in the same process (the
+loop's own P-only PID block), with fixed seeds. Expected ultimate points come from closed
+forms computed here, never from the code under test.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+from services.autotuner import experiments
+from services.autotuner.ramp import RampConfig, RampTest
+from services.plant_sim.loop import SimLoop
+from services.plant_sim.plant_file import build_plant
+from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand, TuneRequest
+
+RELAY_SWING = 8.0 * 5.0 / math.pi  # × 1/K_u: a 5 % relay's peak-to-peak PV swing (benchmark)
+
+
+def fopdt_ultimate(k: float, t: float, lag: float) -> tuple[float, float]:
+    """K·e^{−Ls}/(Ts+1): atan(ωT) + ωL = π, K_u = √(1 + (ωT)²)/K; (K_u, P_u)."""
+    w = brentq(lambda w: math.atan(w * t) + w * lag - math.pi, 1e-9, math.pi / lag)
+    return math.hypot(1.0, w * t) / k, 2.0 * math.pi / w
+
+
+def lags_ultimate(n: int) -> tuple[float, float]:
+    """1/(s+1)ⁿ: each lag gives π/n of phase, ω = tan(π/n), K_u = (1 + ω²)^{n/2}."""
+    w = math.tan(math.pi / n)
+    return (1.0 + w * w) ** (n / 2), 2.0 * math.pi / w
+
+
+def make_loop(num, den, delay, ts, noise=0.0, seed=0, kc=1.0) -> SimLoop:
+    """A transfer-function loop (PV 0–100, output 0–100 %) in auto, P-only at ``kc``."""
+    loop = build_plant(
+        {
+            "seed": seed,
+            "loops": {
+                "x": {
+                    "model": "transfer_function",
+                    "num": num,
+                    "den": den,
+                    "delay": delay,
+                    "sample_time": ts,
+                    "noise_std": noise,
+                }
+            },
+        }
+    )["x"]
+    loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc)))
+    loop.apply(ModeCommand(loop="x", mode="auto"))
+    return loop
+
+
+def ramp_for(loop: SimLoop, kc_start: float | None = None, bump: float | None = None) -> RampTest:
+    """The ramp as the live tuner builds it, with its defaults: kc_start half the loop's
+    gain, bump 1 % of the PV range, the loop's output limits."""
+    lo, hi = loop.settings.pv_range
+    setup = {
+        "sample_time": loop.sample_time,
+        "op_lo": loop.settings.op_limits[0],
+        "op_hi": loop.settings.op_limits[1],
+        "pv_lo": lo,
+        "pv_hi": hi,
+        "kc_start": kc_start or 0.5 * loop.pid.gains.kc,
+        "bump": bump or experiments.DEFAULT_BUMP_FRACTION * (hi - lo),
+        "sp_start": loop.pv,
+    }
+    test = experiments.build("ramp", TuneRequest(loop="x", method="ramp"), setup)
+    assert isinstance(test, RampTest)
+    loop.apply(GainsCommand(loop="x", gains=PidGains(kc=test.kc)))
+    return test
+
+
+def drive(test: RampTest, loop: SimLoop, limit: float) -> np.ndarray:
+    """Apply the test's demands until it finishes or ``limit`` s of sim time pass; the
+    outputs fed to it."""
+    kc, sp = loop.pid.gains.kc, loop.sp
+    demand = test.feed(loop.t, loop.pv, loop.op)
+    t0 = loop.t
+    while not test.finished and loop.t - t0 <= limit:
+        if demand.kc != kc:
+            kc = demand.kc
+            loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc)))
+        if demand.sp != sp:
+            sp = demand.sp
+            loop.apply(SetpointCommand(loop="x", sp=sp))
+        s = loop.advance()
+        demand = experiments.feed(test, s)
+    return np.asarray(test._u)
+
+
+def length(test: RampTest) -> float:
+    """s of sim time the test ran."""
+    return test._t[-1] - test._t[0]
+
+
+def kinds(test: RampTest) -> list[str]:
+    return [e[1] for e in test.events]
+
+
+def assert_ended(test: RampTest) -> None:
+    assert test.finished
+    if test.phase == "aborted":
+        assert test.reason and test.events[-1][1] == "aborted"
+    else:
+        assert test.result is not None
+
+
+def assert_json_finite(test: RampTest) -> None:
+    """Every number the result and the events carry is finite (a trial's growth may be ±inf:
+    the tuner maps it to None), as the messages' JSON needs."""
+    if test.result is not None:
+        for k, v in dataclasses.asdict(test.result).items():
+            if isinstance(v, float):
+                assert math.isfinite(v), k
+    for _, kind, data in test.events:
+        for k, v in data.items():
+            if isinstance(v, float) and not (kind == "trial_result" and k == "growth"):
+                assert math.isfinite(v), (kind, k)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.01])
+def test_lag_dominated_ku_within_two_percent(noise):
+    """e^{−s}/(50s+1) (L/T = 0.02, K_u ≈ 79): a bump of 1 % of the PV range kicks the output
+    by Kc·bump ≈ 79 % near K_u. Trials sized to the output's room keep the loop linear."""
+    ku, pu = fopdt_ultimate(1.0, 50.0, 1.0)
+    ts = pu / 400
+    loop = make_loop([1.0], [50.0, 1.0], 1.0, ts, noise=noise * RELAY_SWING / ku, seed=3)
+    test = ramp_for(loop)
+    assert test.config.bump == 1.0 and test.config.kc_start == 0.5  # the defaults
+    ops = drive(test, loop, limit=400 * pu)
+    r = test.result
+    assert r is not None, test.reason
+    assert r.ku == pytest.approx(ku, rel=0.02)
+    assert r.pu == pytest.approx(pu, rel=0.02)
+    trials = [e for e in test.events if e[1] == "trial"]
+    assert min(e[2]["bump"] for e in trials) < 0.5  # fitted to the output's room
+    assert np.mean((ops <= 0.0) | (ops >= 100.0)) < 0.01
+    assert_json_finite(test)
+
+
+def test_huge_start_gain_backs_off_within_a_few_periods():
+    """``kc_start`` 10⁶ on e^{−s}/(s+1) with noise: the output bangs between its limits at
+    rest. The test backs the gain off within 5 P_u, and then finishes within 150 P_u."""
+    ku, pu = fopdt_ultimate(1.0, 1.0, 1.0)
+    ts = pu / 400
+    loop = make_loop([1.0], [1.0, 1.0], 1.0, ts, noise=0.01 * RELAY_SWING / ku, seed=1)
+    test = ramp_for(loop, kc_start=1e6)
+    drive(test, loop, limit=200 * pu)
+    assert_ended(test)
+    backs = [e for e in test.events if e[1] == "back_off"]
+    assert backs and backs[0][0] - test._t[0] <= 5 * pu
+    assert length(test) <= 150 * pu
+    if test.result is not None:
+        assert test.result.ku == pytest.approx(ku, rel=0.03)
+    assert_json_finite(test)
+
+
+def test_huge_start_gain_without_noise_backs_off_at_the_first_trial():
+    """At rest without noise nothing excites the loop; the first trial's kick would saturate
+    the output, so the gain backs off to one whose kick fits before any bump."""
+    _, pu = fopdt_ultimate(1.0, 1.0, 1.0)
+    ts = pu / 400
+    loop = make_loop([1.0], [1.0, 1.0], 1.0, ts)
+    test = ramp_for(loop, kc_start=1e6)
+    ops = drive(test, loop, limit=200 * pu)
+    assert_ended(test)
+    assert kinds(test)[:2] == ["back_off", "trial"]
+    assert test.events[1][2]["kc"] * test.events[1][2]["bump"] <= 25.0 + 1e-9  # ½ of 50 %
+    assert length(test) <= 150 * pu
+    assert np.mean((ops <= 0.0) | (ops >= 100.0)) < 0.05
+    assert_json_finite(test)
+
+
+def test_saturating_trial_halves_the_bump_and_still_finishes():
+    """The heat exchanger e^{−5s}/((10s+1)(60s+1)) from Kc = 2 with a bump of 1: a growing
+    trial's output reaches its limit before its record shows the growth. It is repeated at
+    the same gain with half the bump, and the test still finds K_u."""
+    ku, pu = hx_ultimate()
+    loop = make_loop([1.0], [600.0, 70.0, 1.0], 5.0, 0.05, kc=4.0)
+    test = ramp_for(loop)
+    drive(test, loop, limit=200 * pu)
+    assert_ended(test)
+    sat = [e for e in test.events if e[1] == "saturated"]
+    assert sat
+    t_sat, _, data = sat[0]
+    bump = next(e for e in test.events if e[1] == "bump" and e[0] == t_sat)
+    assert bump[2]["bump"] == pytest.approx(0.5 * data["bump"])
+    assert bump[2]["reason"] == "output saturated"
+    repeat = next(e for e in test.events if e[1] == "trial" and e[0] > t_sat)
+    assert repeat[2]["kc"] == data["kc"]  # the same gain again
+    if test.result is not None:
+        assert test.result.ku == pytest.approx(ku, rel=0.02)
+    assert_json_finite(test)
+
+
+def hx_ultimate() -> tuple[float, float]:
+    """e^{−5s}/((10s+1)(60s+1)): atan(10ω) + atan(60ω) + 5ω = π; K_u = |(10jω+1)(60jω+1)|."""
+    w = brentq(lambda w: math.atan(10 * w) + math.atan(60 * w) + 5 * w - math.pi, 1e-6, 0.6)
+    return math.hypot(1, 10 * w) * math.hypot(1, 60 * w), 2 * math.pi / w
+
+
+def test_eight_lags_at_one_percent_noise_end_within_budget():
+    """1/(s+1)⁸ at 1 % noise, the generic loop's defaults: done (K_u within 2 %) or aborted
+    with a reason within 150 P_u of the exact P_u."""
+    ku, pu = lags_ultimate(8)
+    ts = pu / 400
+    den = [float(c) for c in np.poly([-1.0] * 8)]
+    loop = make_loop([1.0], den, 0.0, ts, noise=0.01 * RELAY_SWING / ku, seed=2)
+    test = ramp_for(loop)
+    ops = drive(test, loop, limit=200 * pu)
+    assert_ended(test)
+    assert length(test) <= 150 * pu
+    if test.result is not None:
+        assert test.result.ku == pytest.approx(ku, rel=0.02)
+    assert np.mean((ops <= 0.0) | (ops >= 100.0)) < 0.01
+    assert_json_finite(test)
+
+
+def test_period_budget_aborts_on_time_with_its_reason():
+    """Once a period is known the test may run ``total_periods`` of it; a budget too short
+    for a bracket aborts at its end, naming it."""
+    ku, pu = lags_ultimate(4)
+    ts = pu / 400
+    loop = make_loop([1.0], [float(c) for c in np.poly([-1.0] * 4)], 0.0, ts)
+    cfg = RampConfig(kc_start=0.3 * ku, bump=1.0, total_periods=6.0)
+    test = RampTest(cfg, (0.0, 100.0), ts, sp_start=loop.pv, op_limits=(0.0, 100.0))
+    loop.apply(GainsCommand(loop="x", gains=PidGains(kc=cfg.kc_start)))
+    drive(test, loop, limit=200 * pu)
+    assert test.phase == "aborted" and "periods" in test.reason
+    first = next(e for e in test.events if e[1] == "trial_result" and e[2]["period"])
+    assert test._t[-1] - first[0] <= 6.0 * first[2]["period"] + ts  # the first one sets it
+
+
+def test_max_time_caps_every_budget():
+    ku, pu = lags_ultimate(4)
+    ts = pu / 400
+    loop = make_loop([1.0], [float(c) for c in np.poly([-1.0] * 4)], 0.0, ts)
+    cfg = RampConfig(kc_start=0.3 * ku, bump=1.0, max_time=5 * pu)
+    test = RampTest(cfg, (0.0, 100.0), ts, sp_start=loop.pv, op_limits=(0.0, 100.0))
+    loop.apply(GainsCommand(loop="x", gains=PidGains(kc=cfg.kc_start)))
+    drive(test, loop, limit=200 * pu)
+    assert test.phase == "aborted" and "max_time" in test.reason
+    assert length(test) <= 5 * pu + ts
+
+
+def test_output_that_cannot_move_aborts_with_a_reason():
+    """A loop whose output rests at its limit leaves a trial no room: abort, not a wait."""
+    ts = 0.01
+    test = RampTest(RampConfig(kc_start=1.0, bump=1.0), (0.0, 100.0), ts, op_limits=(0, 100))
+    for k in range(2000):
+        test.feed(k * ts, 50.0, 100.0)
+        if test.finished:
+            break
+    assert test.phase == "aborted" and test.reason
