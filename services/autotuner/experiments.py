@@ -68,13 +68,20 @@ def build(method: str, req: TuneRequest, setup: dict[str, Any]) -> Experiment:
     """The state machine for ``method``; ValueError naming the setting that cannot work.
 
     ``setup`` holds what the live loop contributed: sample_time, op_start, op_lo/op_hi,
-    pv_lo/pv_hi, and direction (relay), kc_start, bump and sp_start (ramp).
+    pv_lo/pv_hi, and direction (relay), kc_start, bump and sp_start (ramp); with time_scale
+    (s, the drift check's window) the budgets before a first period are bounded by it:
+    relay 100, ramp trial 30, step 200 time scales (and 400 samples at least).
     """
     ts = setup["sample_time"]
     op_limits = (setup["op_lo"], setup["op_hi"])
     pv_limits = (setup["pv_lo"], setup["pv_hi"])
     budget = {"max_time": req.max_time} if req.max_time else {}
+    # the loop's slowest known dynamics (the drift check's window, s) bound the phases that
+    # run before the test has seen a period of its own; a request's max_time overrides
+    scale = setup.get("time_scale")
     if method == "relay":
+        if scale and not req.max_time:
+            budget = {"max_time": min(RelayConfig.max_time, max(100 * scale, 400 * ts))}
         cfg = RelayConfig(
             amplitude=req.amplitude or DEFAULT_RELAY_AMPLITUDE,
             hysteresis=req.hysteresis,
@@ -85,10 +92,16 @@ def build(method: str, req: TuneRequest, setup: dict[str, Any]) -> Experiment:
         )
         return RelayTest(cfg, setup["op_start"], op_limits, pv_limits, ts, setup["direction"])
     if method == "ramp":
+        first = (
+            {"first_trial_time": min(RampConfig.first_trial_time, max(30 * scale, 200 * ts))}
+            if scale
+            else {}
+        )
         cfg = RampConfig(
             kc_start=setup["kc_start"],
             bump=setup["bump"],
             tolerance=min(req.tolerance, 0.02) / 2,
+            **first,
             **budget,
         )
         return RampTest(cfg, pv_limits, ts, sp_start=setup["sp_start"], op_limits=op_limits)
@@ -96,7 +109,13 @@ def build(method: str, req: TuneRequest, setup: dict[str, Any]) -> Experiment:
         cfg = StepTestConfig(
             size=req.step_size or DEFAULT_STEP_SIZE,
             pv_limits=pv_limits,
-            **({"timeout": req.max_time} if req.max_time else {}),
+            **(
+                {"timeout": req.max_time}
+                if req.max_time
+                else {"timeout": min(StepTestConfig.timeout, max(200 * scale, 400 * ts))}
+                if scale
+                else {}
+            ),
         )
         pv_range = (setup["pv_range_lo"], setup["pv_range_hi"]) if "pv_range_lo" in setup else None
         return StepTest(

@@ -225,6 +225,7 @@ class TuningRun:
         except (TuneAborted, AutotuneError) as err:  # nothing was changed: nothing to restore
             result.update(status="aborted", reason=str(err), restored=True)
             return self._result(result, t0, wall0, self._leave(first, first.pv, wait=False))
+        self._rest = rest
         self.before = before = c.sync()
         self._pv_rest = rest["pv"] if before.mode == "manual" else before.sp
         c.command(LeaseCommand(loop=c.loop, source=c.source, timeout=LEASE_TIMEOUT, t=before.t))
@@ -345,12 +346,14 @@ class TuningRun:
         c = self.client
         window = rest_window(self.ts, first.gains.ti, self.req.rest_window)
         check = RestCheck(self.ts, window, tuple(self.info.pv_range))
+        ops: list[float] = []
         chunk = max(1, min(MAX_CHUNK, check.samples // 4))
         reported = 0.0
         while not check.done:
             self._check_cancel()
             for s in c.samples(chunk):
                 check.feed(s.t, s.pv)
+                ops.append(s.op)
                 self._take([s])
                 if check.done:
                     break
@@ -366,6 +369,9 @@ class TuningRun:
             "drift": check.drift,
             "noise_std": check.noise,
             "pv": check.rest_pv if check.at_rest else first.pv,
+            # the output's mean over the rest window: where a loop in auto is held for an
+            # open-loop test (its last output carries the PV's noise times Kc)
+            "op": float(np.mean(ops[-check.samples :])) if ops else first.op,
             "reason": check.reason or None,
         }
 
@@ -496,6 +502,7 @@ class TuningRun:
             "pv_range_lo": self.info.pv_range[0],
             "pv_range_hi": self.info.pv_range[1],
             "pv_units": self.info.pv_units,
+            "time_scale": self._rest["window"],
         }
         if req.method == "ramp":
             lo, hi = self.info.pv_range
@@ -506,6 +513,10 @@ class TuningRun:
             )
         else:
             st = c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
+            if b.mode == "auto":  # held at the controller's mean output, not its last (noisy)
+                lo, hi = self.info.op_limits
+                op = min(max(self._rest["op"], lo), hi)
+                st = c.command(OutputCommand(loop=c.loop, op=op, source=c.source, t=self._t))
             setup.update(op_start=st.op, direction=1.0 if b.action == "reverse" else -1.0)
         return setup
 
