@@ -172,6 +172,8 @@ class RampTest:
         self._first_end = math.nan  # s: when the first trial ended
         self._trial_max = 0.0  # s: the longest trial so far (bump to verdict)
         self._last_len = 0.0  # s: the last trial's length
+        self._first_dead: int | None = None  # samples: the first trial's dead time
+        self._trials_from_rest = True  # the trial began from the quiet period's verified rest
         self._silent = False  # the last trial's PV never moved clear of the noise
         self._deadline = math.inf  # s: sim time by which the test must be over
         self._budget = ""  # which budget that is, for the abort's reason
@@ -413,6 +415,12 @@ class RampTest:
         if moving.size == 0:
             return False
         dead = int(moving[0])
+        if self._first_dead is None and self._trials_from_rest:
+            self._first_dead = dead  # seen from a verified rest: the loop's own dead time
+        # a later trial may start on what is left of the one before (a slow loop looks calm
+        # over a few dozen samples): it has not died out before the dead time the first
+        # trial showed has passed twice over
+        dead = max(dead, self._first_dead or 0)
         # flat over the last half of the response so far, and over two dead times
         window = max(20, (n - dead) // 2, 2 * dead + 2)
         if n - dead < window:
@@ -653,6 +661,7 @@ class RampTest:
         limit = max(0.1 * self._trial_bump, 6 * self._noise / math.sqrt(stretches.shape[1]))
         if spread < limit:
             self._r = float(np.mean(y))
+            self._trials_from_rest = False
             self._begin_trial(t)
 
     def horizon(self, cap: int) -> int:

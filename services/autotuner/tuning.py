@@ -502,8 +502,9 @@ class TuningRun:
             "pv_range_lo": self.info.pv_range[0],
             "pv_range_hi": self.info.pv_range[1],
             "pv_units": self.info.pv_units,
-            "time_scale": self._rest["window"],
         }
+        if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
+            setup["time_scale"] = self._rest["window"]
         if req.method == "ramp":
             lo, hi = self.info.pv_range
             setup.update(
