@@ -7,8 +7,8 @@ not to bind, so that the figures are the linear loop's; the response is watched 
 the loop's time scale (P_u, or the model's delay plus lag).
 
 overshoot: the highest peak above the final value, % of the final value (P control leaves
-an offset). decay ratio: the second peak's
-excess over the first's (the quarter-decay aim of Ziegler–Nichols is 0.25); 0 when the
+an offset). decay ratio: the second peak's excess over the first's (turning points that clear
+1 % of the final value) (the quarter-decay aim of Ziegler–Nichols is 0.25); 0 when the
 response does not oscillate; ``stable`` False when the response grows.
 """
 
@@ -21,6 +21,7 @@ import numpy as np
 
 from services.autotuner.forms import IsaGains
 from services.autotuner.model_fit import ProcessFit
+from services.autotuner.oscillation import extrema
 from services.plant_sim.lti import DelayedLinearSystem, discretize, tf_to_ss
 from services.plant_sim.pid import PidBlock
 from shared.messages import PidGains
@@ -75,15 +76,14 @@ def setpoint_step(
 def _figures(y: np.ndarray) -> StepFigures:
     final = float(np.mean(y[-len(y) // 10 :]))
     dev = y - final
-    peaks = [
-        i
-        for i in range(1, len(y) - 1)
-        if dev[i] > 0 and dev[i] >= dev[i - 1] and dev[i] > dev[i + 1]
-    ]
     tail = np.ptp(y[-len(y) // 5 :])
     head = np.ptp(y[: len(y) // 5]) or 1.0
     stable = bool(tail <= 0.5 * head)
     overshoot = max(0.0, 100.0 * (float(np.max(y)) - final) / abs(final)) if final else 0.0
-    if len(peaks) < 2 or dev[peaks[0]] <= 1e-9:
+    # the oscillation's peaks above the final value, each a turning point that clears 1 % of
+    # the step (the derivative's small ripple on a crest is not a second peak)
+    turns = extrema(np.arange(y.size, dtype=float), dev, 0.01 * max(abs(final), 1e-12))
+    peaks = [v for _, v in turns if v > 0]
+    if len(peaks) < 2 or peaks[0] <= 1e-9:
         return StepFigures(overshoot, 0.0, stable)
-    return StepFigures(overshoot, float(dev[peaks[1]] / dev[peaks[0]]), stable)
+    return StepFigures(overshoot, float(peaks[1] / peaks[0]), stable)
