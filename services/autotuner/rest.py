@@ -9,9 +9,13 @@ watches a window as long as the loop's slowest known dynamics: at least 40 sampl
 least the loop's integral time (a tuned loop's Ti is of the order of its process lag or its
 ultimate period), capped so that a level loop's hour-long Ti does not stall the tuner.
 
-At rest means: no straight-line trend beyond 3σ of the noise over the window
-(``reaction_curve.at_rest``), and the measurement not pinned at an end of the transmitter's
-range (a clipped PV is flat and noise-free, and says nothing about where the process is).
+At rest means: no straight-line trend beyond 3σ of the noise over the window (σ about a
+parabola fitted to the window, so that the curvature of a slow recovery is not taken for
+noise); no swing either (the PV averaged over a tenth of the window keeps within 4σ of
+white noise, as σ of the sample-to-sample change shows it, or 3σ about the parabola, whichever
+is larger: a test's dying oscillation has no trend); and the measurement not pinned at an end
+of the transmitter's range (a clipped PV is flat and noise-free, and says nothing about where
+the process is).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.autotuner.reaction_curve import at_rest, noise_level, range_end
+from services.autotuner.reaction_curve import range_end
 
 MIN_SAMPLES = 40
 MAX_WINDOW = 900.0  # s: the longest window watched (a slow level loop's Ti can be hours)
@@ -76,10 +80,23 @@ class RestCheck:
         self._checks += 1
         y = np.asarray(self.y[-self._n :])
         end = range_end(y, self.pv_range)
-        self.noise = noise_level(y)
         x = np.arange(y.size, dtype=float) * self.sample_time
+        # the noise about a parabola (a recovery's curvature is not noise: about a straight
+        # line, the tail of an exponential inflates σ and hides its own drift), and from
+        # sample-to-sample changes (white noise: σ·√2; a slow swing barely counts)
+        wide = float(np.std(y - np.polyval(np.polyfit(x, y, 2), x), ddof=3))
+        white = float(np.std(np.diff(y)) / math.sqrt(2.0))
+        self.noise = min(wide, white) if white > 0 else wide
         self.drift = float(np.polyfit(x, y, 1)[0])
-        if end is None and at_rest(y):
+        tiny = 1e-9 * max(1.0, float(np.max(np.abs(y))))
+        moved = abs(self.drift) * (x[-1] - x[0])
+        # a swing left by the test (the relay's cycle dying out) has no trend over the window:
+        # the range of the PV averaged over a tenth of it must stay within the noise too
+        k = max(1, y.size // 10)
+        smooth = np.convolve(y, np.ones(k) / k, mode="valid")
+        swing = float(np.ptp(smooth))
+        still = moved <= max(3.0 * wide, tiny) and swing <= max(4.0 * white, 3.0 * wide, tiny)
+        if end is None and still:
             self.done, self.at_rest = True, True
             self.rest_pv = float(np.mean(y))
             return

@@ -394,10 +394,10 @@ class TuningRun:
         pv = c.last_sample.pv if c.last_sample is not None else st.pv
         noise = max(self.info.noise_std, 0.0)
         lo, hi = self.info.pv_range
-        band = max(4.0 * noise, 0.005 * (hi - lo))
+        band = max(4.0 * noise, 0.001 * (hi - lo))
         returned = abs(pv - target) <= band
         waited = 0.0
-        if wait and not returned:
+        if wait:  # back near the target is not enough: the PV must be at rest there
             slow = rest_window(self.ts, before.gains.ti, self.req.rest_window)
             horizon = max(RETURN_SCALES * (scale or 0.0), slow)
             check = RestCheck(self.ts, max(10 * self.ts, 0.25 * horizon), (lo, hi), windows=4)
@@ -410,7 +410,9 @@ class TuningRun:
                         check.feed(s.t, s.pv)
                         self._take([s])
                         pv = s.pv
-                    if abs(pv - target) <= band and check.at_rest:
+                    if check.at_rest and abs(check.rest_pv - target) <= band:
+                        break
+                    if check.done and not check.at_rest:
                         break
             except AutotuneError:
                 pass
@@ -420,6 +422,8 @@ class TuningRun:
                 pv = self._give_back(st, target, rest_pv, model, horizon)
                 returned = abs(pv - target) <= band
             waited = self._t - t_start
+            with contextlib.suppress(AutotuneError):
+                st = c.sync()  # as the loop is now, after the wait
         return {
             "mode": st.mode,
             "sp": st.sp,
