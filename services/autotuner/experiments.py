@@ -45,6 +45,10 @@ class Identification:
     # accepts an integrating model only if it reproduces the measured ultimate point)
     integrating: bool | None = None
     notes: list[str] = field(default_factory=list)  # what the engineer must know (warnings)
+    # False when the experiment did not pin the model's static gain (a relay without bias: its
+    # mean output never moves, so K is extrapolated from points near ω_u): the rules that
+    # scale with 1/K (AMIGO, SIMC) are then offered but not recommended
+    static_gain_known: bool = True
 
 
 def _frequency_fields(points) -> dict[str, float]:
@@ -159,6 +163,7 @@ def identification(machine: Experiment) -> Identification | None:
                 )
             )
         return Identification(
+            static_gain_known=r.static_gain is not None,
             ku=r.ku if measured else None,
             pu=r.pu if measured else None,
             ku_spread=r.ku_spread if measured else None,

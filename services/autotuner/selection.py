@@ -157,7 +157,19 @@ def select(
             unavailable[name] = f"non-finite integral time {g.ti}"
             del table[name]
     assessments = assess(ultimate, model, table, simulate=True, sample_time=ts)
-    rec = recommend(ultimate, model, ms_bound, assessments, without_model)
+    pool = assessments
+    if model is not None and ultimate is not None and not ident.static_gain_known:
+        # the relay's points pin G near ω_u, not its static gain: rules that scale with 1/K
+        # are computed and judged, but the recommendation comes from K_u and P_u
+        closed = {k: a for k, a in assessments.items() if RULES[k].kind == "closed"}
+        if closed:
+            pool = closed
+            warnings.append(
+                "the relay does not measure the static gain (its mean output does not move): "
+                "the model rules (amigo-*, simc-*) scale with it and are not recommended; "
+                "--relay-bias pins it"
+            )
+    rec = recommend(ultimate, model, ms_bound, pool, without_model)
     unsafe = {
         name: p
         for name, a in assessments.items()
