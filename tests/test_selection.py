@@ -83,7 +83,10 @@ def test_demo_heat_exchanger_judged_on_its_sampled_loop(hx_relay):
     assert "sampled loop" in sel.recommended.reason
     assert any("does not measure the static gain" in w for w in sel.warnings)
     known = select(dataclasses.replace(hx_relay, static_gain_known=True), "auto", sample_time=0.25)
-    assert known.rule not in ("tl-pid", "tl-pi")  # with the gain pinned, the model rules win
+    # with the gain pinned every rule competes: the one chosen keeps the predicted step calm
+    assert not any("static gain" in w for w in known.warnings)
+    step = known.assessments[known.rule].step
+    assert step.overshoot <= 25.0 and known.recommended.predicted_ms <= 0.9 * 2.0
     d = assessments_dict(sel)["zn-p"]
     assert d["sampled"] and d["sample_time"] == 0.25 and not d["within_envelope"]
     assert 0.95 < d["gain_margin"] / d["gain_margin_continuous"] < 0.995

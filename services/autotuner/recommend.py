@@ -136,7 +136,17 @@ def assess(
     on the sampled loop when ``sample_time`` (s) is given, beside the continuous figures;
     with ``simulate`` also its closed-loop setpoint step at the loop's sample time."""
     gains = apply_rules(ultimate, None) if gains is None else gains
-    timescale = ultimate.pu if ultimate else (model.delay + model.lag if model else 0.0)
+    # the closed loop's time scale: P_u, measured or else the model's own (its slowest lag is
+    # the open loop's, hundreds of times longer for a level, and would coarsen the simulation
+    # of a fast loop past its own sample time)
+    own = model.ultimate_point() if ultimate is None and model is not None else None
+    timescale = (
+        ultimate.pu
+        if ultimate
+        else float(own[1])
+        if own
+        else (model.delay + model.lag if model else 0.0)
+    )
     if not math.isfinite(timescale) or timescale <= 0:
         timescale = 10.0 * model.delay if model else 0.0
     plant: SampledPlant | None = None
@@ -173,7 +183,8 @@ class Recommendation:
     reason: str
 
 
-CALM_OVERSHOOT = 30.0  # %: predicted setpoint overshoot preferred (verification limit 35 %)
+CALM_OVERSHOOT = 25.0  # %: predicted setpoint overshoot preferred (verification limit 35 %;
+# a model's prediction misses the plant's by some 5–10 points)
 CALM_DECAY = 0.25  # predicted decay ratio preferred (verification limit 0.35)
 
 

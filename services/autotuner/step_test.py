@@ -321,7 +321,12 @@ class StepTest:
         best = choose_on_record(fits, y.size)
         if best is None:
             return None
-        return dataclasses.replace(best, noise_rms=self._noise / (float(np.std(y)) or 1.0))
+        # a dead time below half a sample is not resolved by the record (as for the tangent)
+        return dataclasses.replace(
+            best,
+            delay=max(best.delay, 0.5 * self.sample_time),
+            noise_rms=self._noise / (float(np.std(y)) or 1.0),
+        )
 
     def step_started(self, t: float) -> None:
         """The driver reports the sim time from which the stepped output is held (the first
