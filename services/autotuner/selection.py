@@ -35,6 +35,7 @@ from services.autotuner.recommend import (
 from services.autotuner.rules import RULES, ZN_STEP_RANGE, UltimatePoint, apply_rules, fopdt_of
 
 UNBIASED_RELAY_RULES = ("tl-pid", "tl-pi")  # recommended when the static gain is unknown
+MIN_TD_SAMPLES = 5.0  # a derivative time shorter than this many samples is not recommended
 
 
 @dataclass
@@ -173,7 +174,24 @@ def select(
                 "the model is sure only near the ultimate point, so the recommendation is "
                 "Tyreus–Luyben's, from K_u and P_u; --relay-bias pins the gain for the others"
             )
-    rec = recommend(ultimate, model, ms_bound, pool, without_model)
+    if ts:
+        # a derivative of a few samples is not the derivative the rule designed: the discrete
+        # D term is then mostly gain at high frequency (TL PID at 23 samples per period, Td of
+        # 3.7 samples, had Ms 2.6 on the plant): such PIDs are offered, not recommended
+        coarse = {k for k, a in pool.items() if 0 < a.gains.td < MIN_TD_SAMPLES * ts}
+        if coarse and len(coarse) < len(pool):
+            pool = {k: a for k, a in pool.items() if k not in coarse}
+            warnings.append(
+                f"derivative times below {MIN_TD_SAMPLES:g} samples ({', '.join(sorted(coarse))}) "
+                "are not recommended: the sampled derivative is then mostly high-frequency gain"
+            )
+    judge = model
+    if model is not None and not ident.static_gain_known:
+        # unsure away from ω_u, the model judges a derivative (which acts above it) with the
+        # tighter margin of an approximate model (TL PID on a sampled integrator: Ms 1.7
+        # predicted on a two-lag fit, 2.6 true)
+        judge = dataclasses.replace(model, source="relay points")
+    rec = recommend(ultimate, judge, ms_bound, pool, without_model)
     unsafe = {
         name: p
         for name, a in assessments.items()
