@@ -25,6 +25,8 @@ from shared.messages import (
     SyncCommand,
 )
 
+RENEW_EVERY = 2.0  # s of wall time between lease-keeping syncs in realtime (lease: 10 s)
+
 
 class PlantLost(AutotuneError):
     """The plant stopped answering."""
@@ -82,7 +84,8 @@ class LoopClient:
         self.loop = loop
         self.source = source
         self.timeout = timeout
-        self._tokens = itertools.count(1)
+        self._tokens = itertools.count(1)  # 0 is the lease keeper's, answered by no one
+        self._last_sent = time.monotonic()
         self._inbox: queue.Queue[tuple[str, bytes, str]] = queue.Queue()
         self._sub = session.declare_subscriber(
             keys.loop_feed(prefix, loop), zenoh.handlers.FifoChannel(65536)
@@ -137,6 +140,14 @@ class LoopClient:
 
     def send(self, cmd: Command) -> None:
         wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind), cmd)
+        self._last_sent = time.monotonic()
+
+    def _keep_lease(self) -> None:
+        """In realtime a run may send nothing for minutes (a relay half-cycle, a verification
+        step): a sync every RENEW_EVERY s of wall time keeps the plant's lease on the loop
+        alive (any command from the holder renews it), and asks for no answer."""
+        if time.monotonic() - self._last_sent > RENEW_EVERY:
+            self.send(SyncCommand(loop=self.loop, token=0, source=self.source))
 
     def sync(self) -> LoopStatus:
         """Barrier: return the loop's status once every command sent so far is applied."""
@@ -185,6 +196,8 @@ class LoopClient:
                 )
             )
         while True:
+            if self.info.clock != "lockstep":
+                self._keep_lease()
             msg = self._next()
             if isinstance(msg, ProcessSample):
                 return msg
