@@ -252,9 +252,7 @@ def recommend(
                 f"largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g} on {on}",
             )
         judged = [a for a in safe.values() if a.robustness is not None]
-        # the most robust relative to its own margin (a PID on an approximate model must keep
-        # further from the bound than a PI)
-        safest = min(judged, key=lambda a: a.robustness.ms / margin(a.rule), default=None)
+        safest = min(judged, key=lambda a: a.robustness.ms, default=None)
         if safest is not None:
             return Recommendation(
                 safest.rule,
