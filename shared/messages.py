@@ -75,6 +75,12 @@ class LoopStatus(Message):
     rejected: int = Field(ge=0, description="commands to this loop refused")
     last_reject: str | None = None
     sync_token: int | None = Field(default=None, description="echo of the SyncCommand answered")
+    sync_rejected: int | None = Field(
+        default=None, description="in a sync's answer: commands of its sender refused so far"
+    )
+    sync_last_reject: str | None = Field(
+        default=None, description="in a sync's answer: why its sender was last refused"
+    )
     reason: str = Field(description="what caused this status: start, a command kind, or query")
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import queue
+import secrets
 import threading
 import time
 
@@ -84,8 +85,12 @@ class LoopClient:
         self.loop = loop
         self.source = source
         self.timeout = timeout
-        self._tokens = itertools.count(1)  # 0 is the lease keeper's, answered by no one
+        # every client on the bus sees every loop status: tokens start at random so that no
+        # client takes another's barrier for its own (0 is the lease keeper's, never awaited)
+        self._tokens = itertools.count(secrets.randbits(40) + 1)
         self._last_sent = time.monotonic()
+        self._refused = 0  # our commands the plant refused so far (from its sync answers)
+        self._loop_refused = 0
         self._inbox: queue.Queue[tuple[str, bytes, str]] = queue.Queue()
         self._sub = session.declare_subscriber(
             keys.loop_feed(prefix, loop), zenoh.handlers.FifoChannel(65536)
@@ -139,6 +144,10 @@ class LoopClient:
                 return self.last_status
 
     def send(self, cmd: Command) -> None:
+        """Put ``cmd`` on the loop's command key, in this client's name (its ``source``: the
+        plant renews a lease and counts refusals by it)."""
+        if cmd.source != self.source:
+            cmd = cmd.model_copy(update={"source": self.source})
         wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind), cmd)
         self._last_sent = time.monotonic()
 
@@ -156,15 +165,23 @@ class LoopClient:
         while True:
             msg = self._next()
             if isinstance(msg, LoopStatus) and msg.sync_token == token:
+                self._refused = msg.sync_rejected or 0
+                self._loop_refused = msg.rejected
                 return msg
 
     def command(self, cmd: Command) -> LoopStatus:
-        """Send ``cmd`` and confirm it was applied; CommandRefused carries the plant's reason."""
-        before = self.last_status.rejected
+        """Send ``cmd`` and confirm it was applied; CommandRefused carries the plant's reason.
+        The plant counts refusals per sender (a sync's answer carries ours), so another
+        client's refused commands are never taken for ours."""
+        before = self._refused
         self.send(cmd)
         status = self.sync()
-        if status.rejected > before:
-            raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
+        mine = status.sync_rejected
+        if mine is None:  # a plant that does not count by sender: the loop's counter
+            if status.rejected > self._loop_refused:
+                raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
+        elif mine > before:
+            raise CommandRefused(f"loop {self.loop}: {status.sync_last_reject}")
         return status
 
     def advance(self, steps: int) -> list[ProcessSample]:

@@ -228,7 +228,11 @@ class TuningRun:
         self._rest = rest
         self.before = before = c.sync()
         self._pv_rest = rest["pv"] if before.mode == "manual" else before.sp
-        c.command(LeaseCommand(loop=c.loop, source=c.source, timeout=LEASE_TIMEOUT, t=before.t))
+        try:
+            c.command(LeaseCommand(loop=c.loop, source=c.source, timeout=LEASE_TIMEOUT, t=before.t))
+        except AutotuneError as err:  # another supervisor holds it: nothing was changed
+            result.update(status="aborted", reason=f"not started: {err}", restored=True)
+            return self._result(result, t0, wall0, self._leave(before, before.pv, wait=False))
         ident: experiments.Identification | None = None
         wait_back = True
         try:

@@ -32,6 +32,8 @@ from shared.messages import (
     SetpointCommand,
 )
 
+MAX_SOURCES = 256  # senders whose refusals a loop keeps count of
+
 
 class CommandRejected(Exception):
     """A command the loop refuses; ``category`` is the counter it goes to."""
@@ -100,6 +102,7 @@ class SimLoop:
         self.accepted = 0
         self.rejected = 0
         self.last_reject: str | None = None
+        self._refusals: dict[str, tuple[int, str]] = {}  # by sender: count, last reason
 
     @property
     def t(self) -> float:
@@ -152,11 +155,26 @@ class SimLoop:
             self.pid.track(self.pv, self.pid.op)
         return self.sample()
 
+    def refused(self, source: str, reason: str) -> None:
+        """Count a refusal against the command's sender (the last MAX_SOURCES senders)."""
+        count, _ = self._refusals.pop(source, (0, ""))
+        self._refusals[source] = (count + 1, reason)
+        while len(self._refusals) > MAX_SOURCES:
+            del self._refusals[next(iter(self._refusals))]
+
     def status(
-        self, node: str, clock: ClockMode, reason: str, token: int | None = None
+        self,
+        node: str,
+        clock: ClockMode,
+        reason: str,
+        token: int | None = None,
+        source: str | None = None,
     ) -> LoopStatus:
-        """The loop's ``LoopStatus`` as the plant publishes it (``reason``: what changed)."""
+        """The loop's ``LoopStatus`` as the plant publishes it (``reason``: what changed); a
+        sync's answer also carries its sender's own refusals, so that a client never takes
+        another's refused command for its own."""
         s = self.settings
+        mine = self._refusals.get(source, (0, None)) if source is not None else (None, None)
         return LoopStatus(
             loop=s.loop_id,
             node=node,
@@ -176,6 +194,8 @@ class SimLoop:
             rejected=self.rejected,
             last_reject=self.last_reject,
             sync_token=token,
+            sync_rejected=mine[0],
+            sync_last_reject=mine[1],
             reason=reason,
         )
 

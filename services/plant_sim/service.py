@@ -102,8 +102,10 @@ class PlantService:
 
     # --- messages -------------------------------------------------------------------------
 
-    def loop_status(self, loop: SimLoop, reason: str, token: int | None = None) -> LoopStatus:
-        return loop.status(self.opt.node, self.opt.clock, reason, token)
+    def loop_status(
+        self, loop: SimLoop, reason: str, token: int | None = None, source: str | None = None
+    ) -> LoopStatus:
+        return loop.status(self.opt.node, self.opt.clock, reason, token, source)
 
     def loop_info(self, loop: SimLoop) -> LoopInfo:
         return loop.info(self.opt.node, self.opt.clock, self.opt.speed)
@@ -127,7 +129,12 @@ class PlantService:
     # --- commands -------------------------------------------------------------------------
 
     def _reject(
-        self, loop: SimLoop | None, category: str, reason: str, out: list[tuple[str, Message]]
+        self,
+        loop: SimLoop | None,
+        category: str,
+        reason: str,
+        out: list[tuple[str, Message]],
+        source: str | None = None,
     ) -> None:
         self.rejected_by_reason[category] += 1
         where = f"loop {loop.settings.loop_id}: " if loop else ""
@@ -135,6 +142,8 @@ class PlantService:
         if loop is not None:
             loop.rejected += 1
             loop.last_reject = reason
+            if source is not None:
+                loop.refused(source, reason)
             out.append(
                 (
                     keys.status(self.opt.prefix, loop.settings.loop_id),
@@ -188,34 +197,54 @@ class PlantService:
                 "loop_mismatch",
                 f"{kind}: payload names loop {cmd.loop!r} but was sent to {loop_id!r}",
                 out,
+                cmd.source,
             )
             return
         lease = self.leases.get(loop_id)
         if lease is not None and cmd.source == lease.source:
             lease.deadline = time.monotonic() + lease.timeout
-        if isinstance(cmd, LeaseCommand):
-            self.leases[loop_id] = Lease(
-                cmd.source, cmd.timeout, time.monotonic() + cmd.timeout, loop.snapshot()
+        if isinstance(cmd, LeaseCommand | ReleaseCommand) and lease and lease.source != cmd.source:
+            # exclusive: one supervisor at a time, and only the holder lets go (two tuners
+            # on one loop snapshotted each other's test as the state to restore)
+            self._reject(
+                loop,
+                "leased",
+                f"{kind} refused: the loop is leased by {lease.source!r}",
+                out,
+                cmd.source,
             )
+            return
+        if isinstance(cmd, LeaseCommand):
+            if lease is None:  # a holder renewing keeps the snapshot of before its test
+                self.leases[loop_id] = Lease(
+                    cmd.source, cmd.timeout, time.monotonic() + cmd.timeout, loop.snapshot()
+                )
             out.append((keys.status(prefix, loop_id), self.loop_status(loop, "lease")))
         elif isinstance(cmd, ReleaseCommand):
             self.leases.pop(loop_id, None)
             out.append((keys.status(prefix, loop_id), self.loop_status(loop, "release")))
         elif isinstance(cmd, AdvanceCommand):
             if self.opt.clock != "lockstep":
-                self._reject(loop, "clock", "advance refused: the plant runs in realtime", out)
+                self._reject(
+                    loop, "clock", "advance refused: the plant runs in realtime", out, cmd.source
+                )
                 return
             pv_key = keys.pv(prefix, loop_id)
             for _ in range(cmd.steps):
                 out.append((pv_key, loop.advance()))
         elif isinstance(cmd, SyncCommand):
-            out.append((keys.status(prefix, loop_id), self.loop_status(loop, "sync", cmd.token)))
+            out.append(
+                (
+                    keys.status(prefix, loop_id),
+                    self.loop_status(loop, "sync", cmd.token, cmd.source),
+                )
+            )
             return
         else:
             try:
                 loop.apply(cmd)
             except CommandRejected as err:
-                self._reject(loop, err.category, f"{kind}: {err.reason}", out)
+                self._reject(loop, err.category, f"{kind}: {err.reason}", out, cmd.source)
                 return
             out.append((keys.status(prefix, loop_id), self.loop_status(loop, kind)))
         loop.accepted += 1

@@ -18,9 +18,11 @@ from shared import keys, wire
 from shared.messages import (
     AdvanceCommand,
     GainsCommand,
+    LeaseCommand,
     ModeCommand,
     OutputCommand,
     PidGains,
+    ReleaseCommand,
     ServiceStatus,
     SetpointCommand,
 )
@@ -179,6 +181,31 @@ def test_pid_block_over_the_bus_mode_gains_setpoint(start_plant):
         for _ in range(400):
             last = tf1._next()
         assert last.seq == 400 and last.pv == pytest.approx(60.0, abs=0.01)
+
+
+def test_leases_are_exclusive_and_only_the_holder_releases(start_plant):
+    """A second supervisor's lease, and a release by anyone but the holder, are refused with
+    the holder named (two tuners on one loop snapshotted each other's test as the state to
+    restore); the holder may renew, and once it lets go another may take the loop."""
+    plant = start_plant(TF_PLANT, loops=("tf1",))
+    with (
+        open_session(plant.client_settings()) as s,
+        LoopClient(s, plant.prefix, "tf1", source="tuner:a") as a,
+        LoopClient(s, plant.prefix, "tf1", source="tuner:b") as b,
+    ):
+        a.command(LeaseCommand(loop="tf1", source="tuner:a", timeout=60.0))
+        with pytest.raises(CommandRefused, match="leased by 'tuner:a'"):
+            b.command(LeaseCommand(loop="tf1", source="tuner:b", timeout=60.0))
+        with pytest.raises(CommandRefused, match="leased by 'tuner:a'"):
+            b.command(ReleaseCommand(loop="tf1", source="tuner:b"))
+        # b's refusals are b's: a's next command is not taken for refused (the plant counts
+        # refusals by sender, and a sync's answer carries its own)
+        st = a.command(OutputCommand(loop="tf1", op=70.0, source="tuner:a"))
+        assert st.op == 70.0 and st.rejected == 2 and st.sync_rejected == 0
+        a.command(LeaseCommand(loop="tf1", source="tuner:a", timeout=60.0))  # renewal
+        a.command(ReleaseCommand(loop="tf1", source="tuner:a"))
+        b.command(LeaseCommand(loop="tf1", source="tuner:b", timeout=60.0))  # free now
+        b.command(ReleaseCommand(loop="tf1", source="tuner:b"))
 
 
 def test_loops_announce_themselves_and_answer_queries(start_plant):
