@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import queue
+import signal
 import sys
 import threading
 import time
@@ -39,6 +40,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=3600.0,
         help="wall seconds to wait for the result (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--detach",
+        action="store_true",
+        help="submit the run and exit, leaving it going (print its acceptance); otherwise "
+        "Ctrl-C, SIGTERM and SIGHUP cancel it and wait for the loop's restore",
     )
     add_common_arguments(parser)
 
@@ -385,9 +392,29 @@ def format_result(r: TuneResult) -> str:
     return "\n".join(lines)
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix, loop=args.loop)
+    if not (args.wait > 0 and args.wait < float("inf")):
+        raise ConfigError(f"--wait {args.wait}: must be a finite number of seconds > 0")
     req = request_from_args(args, source="autotune-tune")
+    if args.detach:
+        with open_session(settings_from_args(args)) as session:
+            accepted = submit(session, args.prefix, args.node, req)
+        print(
+            accepted.model_dump_json(indent=2)
+            if args.json
+            else f"run {accepted.run_id} on {accepted.loop} submitted ({accepted.method}, rule "
+            f"{accepted.rule}); left going: `autotune tune` was detached"
+        )
+        return 0
+    # a terminal closed or a service manager's stop cancels the run like Ctrl-C: the tuner
+    # restores the loop, and the result is still waited for
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, _interrupt)
     with open_session(settings_from_args(args)) as session:
         result = follow(
             session,

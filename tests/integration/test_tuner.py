@@ -22,7 +22,7 @@ import zenoh
 
 from services.autotuner.loop_client import LoopClient
 from shared import keys, wire
-from shared.messages import LoopStatus
+from shared.messages import LoopStatus, TuneResult
 from shared.session import open_session
 from tests.exact import ultimate_point
 from tests.field_cases import Case, true_loop
@@ -202,7 +202,10 @@ def test_bad_requests_are_refused_with_the_field(start_plant, start_tuner):
         assert loop_state(p, "x1").mode == "manual"
 
 
-def test_ctrl_c_on_the_client_cancels_and_restores(start_plant, start_tuner):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+def test_ctrl_c_on_the_client_cancels_and_restores(start_plant, start_tuner, sig):
+    """Ctrl-C, and a SIGTERM or SIGHUP alike (a closed terminal, a service manager's stop),
+    cancels the run: the tuner restores the loop before the client exits."""
     p = start_plant(plant_toml("x1", HX, extra='mode = "auto"\nsetpoint = 50.0\n'), loops=("x1",))
     start_tuner(p)
     before = loop_state(p, "x1")
@@ -218,12 +221,28 @@ def test_ctrl_c_on_the_client_cancels_and_restores(start_plant, start_tuner):
         )
         while b'"relay"' not in inbox.get(timeout=30).payload.to_bytes():
             pass
-        cli.send_signal(signal.SIGINT)
+        cli.send_signal(sig)
         _, err = cli.communicate(timeout=30)
         progress.undeclare()
     assert cli.returncode == 130 and "interrupted" in err
     after = loop_state(p, "x1")
     assert (after.mode, after.sp, after.gains) == (before.mode, before.sp, before.gains)
+
+
+def test_detach_leaves_the_run_going(start_plant, start_tuner):
+    """`--detach` submits, prints the acceptance and exits 0; the run goes on to its result."""
+    p = start_plant(plant_toml("x1", THIRD), loops=("x1",))
+    start_tuner(p)
+    with open_session(p.client_settings()) as s:
+        results: queue.Queue = queue.Queue()
+        sub = s.declare_subscriber(keys.tune_result(p.prefix, "x1"))
+        threading.Thread(target=lambda: [results.put(x) for x in sub], daemon=True).start()
+        run = autotune("tune", "x1", "--detach", "--json", "--no-apply", *p.cli_args())
+        assert run.returncode == 0, run.stderr
+        accepted = json.loads(run.stdout)
+        result = wire.decode_sample(TuneResult, results.get(timeout=120))
+        sub.undeclare()
+    assert result.run_id == accepted["run_id"] and result.status == "ok", result.reason
 
 
 def test_two_loops_tuned_at_once(start_plant, start_tuner):
