@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import queue
 import signal
 import sys
@@ -212,28 +213,60 @@ def submit(
     raise missing
 
 
+RESULT_GRACE = 2.0  # s to wait for a result after the run's token vanished
+
+
+class TunerGone(AutotuneError):
+    """The run's tuner vanished before its result (killed, or cut off from the bus)."""
+
+
 def follow(
     session: zenoh.Session, prefix: str, loop: str, start, wait: float, on_progress=None
 ) -> TuneResult:
     """Subscribe to the loop's progress and result, call ``start()`` and wait for the run's
     result. Ctrl-C at any point cancels the loop's run and still waits for its result (the
-    tuner restores the loop first); a second Ctrl-C leaves at once."""
+    tuner restores the loop first); a second Ctrl-C leaves at once. The run's liveliness
+    token (``<prefix>/tune/<loop>/running``) is watched too: when it vanishes and no result
+    follows within RESULT_GRACE s, the tuner is gone — TunerGone, at once, not after
+    ``wait``."""
     inbox: queue.Queue = queue.Queue()
     sub = session.declare_subscriber(
         f"{keys.tune_root(prefix, loop)}/*", zenoh.handlers.FifoChannel(4096)
     )
-    reader = threading.Thread(target=lambda: [inbox.put(s) for s in sub], daemon=True)
-    reader.start()
+    token = session.liveliness().declare_subscriber(
+        keys.tune_running(prefix, loop), zenoh.handlers.FifoChannel(64)
+    )
+    for src in (sub, token):
+        threading.Thread(target=lambda src=src: [inbox.put(s) for s in src], daemon=True).start()
     run_id: str | None = None
     cancelled = False
+    deadline = math.inf
+    gone: float | None = None
+    appeared = False
     try:
         while True:
             try:
                 if run_id is None:
                     run_id = start().run_id
-                sample = inbox.get(timeout=wait)
+                    deadline = time.monotonic() + wait
+                now = time.monotonic()
+                if gone is not None and now > gone + RESULT_GRACE:
+                    raise TunerGone(
+                        f"run {run_id} on {loop}: its tuner is gone (the run's liveliness token "
+                        "vanished with no result): the plant's watchdog returns the loop to its "
+                        "state before the test"
+                    )
+                limit = min(deadline, gone + RESULT_GRACE if gone is not None else math.inf)
+                sample = inbox.get(timeout=max(0.0, limit - now))
                 key = str(sample.key_expr)
-                if key.endswith("/progress") and on_progress:
+                if key == keys.tune_running(prefix, loop):
+                    # a token that vanishes counts once ours has appeared (a run that ended
+                    # just before ours may still be saying goodbye)
+                    if sample.kind == zenoh.SampleKind.PUT:
+                        appeared = True
+                    elif appeared and gone is None:
+                        gone = time.monotonic()
+                elif key.endswith("/progress") and on_progress:
                     p = wire.decode_sample(TuneProgress, sample)
                     if p.run_id == run_id:
                         on_progress(p)
@@ -244,6 +277,8 @@ def follow(
                             raise KeyboardInterrupt
                         return r
             except queue.Empty:
+                if gone is not None:
+                    continue  # the grace is over: said at the top of the loop
                 raise AutotuneError(f"no result for run {run_id} within {wait:g} s") from None
             except KeyboardInterrupt:
                 if cancelled or run_id is None:
@@ -255,6 +290,7 @@ def follow(
                 print("\ncancelling: the tuner restores the loop…", file=sys.stderr)
     finally:
         sub.undeclare()
+        token.undeclare()
 
 
 def progress_line(p: TuneProgress) -> None:

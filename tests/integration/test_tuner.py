@@ -138,7 +138,8 @@ def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner):
         cli = subprocess.Popen(
             [sys.executable, "-m", "services.cli", "tune", "x1", "--json", *p.cli_args()],
             stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
         )
         try:
             while True:  # wait until the relay is running, then kill the tuner outright
@@ -154,10 +155,15 @@ def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner):
                     if st.reason == "watchdog":
                         break
             restored_after = time.monotonic() - t_kill
+            # the client sees the run's token vanish: it says so and exits, not after --wait
+            _, err = cli.communicate(timeout=30)
+            client_after = time.monotonic() - t_kill
         finally:
             cli.kill()
             progress.undeclare()
             status.undeclare()
+    assert cli.returncode == 2 and "its tuner is gone" in err, err
+    assert client_after < 10.0
     after = loop_state(p, "x1")
     assert (after.mode, after.op, after.sp, after.gains) == (
         before.mode,
