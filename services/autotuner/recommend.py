@@ -234,22 +234,14 @@ def recommend(
         # the verification will hold the loop to its overshoot and decay limits: prefer the
         # candidates whose predicted step already keeps well inside them
         calm = [a for a in ok if _calm(a)]
-        if calm:
-            best = max(calm, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
-            return Recommendation(
-                best.rule,
-                best.gains,
-                _number(best.robustness.ms) if best.robustness else None,
-                f"largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g} and a "
-                f"predicted overshoot ≤ {CALM_OVERSHOOT:g} % on {on}",
-            )
         if ok:
-            best = max(ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
+            best = max(calm or ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
+            also = f" and a predicted overshoot ≤ {CALM_OVERSHOOT:g} %" if calm else ""
             return Recommendation(
                 best.rule,
                 best.gains,
                 _number(best.robustness.ms) if best.robustness else None,
-                f"largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g} on {on}",
+                f"largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g}{also} on {on}",
             )
         judged = [a for a in safe.values() if a.robustness is not None]
         safest = min(judged, key=lambda a: a.robustness.ms, default=None)

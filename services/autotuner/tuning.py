@@ -87,15 +87,9 @@ def _seconds(ti: float | None) -> str:
 
 
 def _json_number(v: object) -> object:
-    """An event's value as its message takes it: plain floats (infinities, e.g. an overdamped
-    trial's growth, become None), flags as 0/1."""
-    if isinstance(v, bool | np.bool_):
-        return int(v)
-    if isinstance(v, np.integer):
-        return int(v)
-    if isinstance(v, float | np.floating):
-        return float(v) if math.isfinite(v) else None
-    return v
+    """An event's value as its message takes it (numbers, strings, None): ``finite``, with
+    flags as 0/1."""
+    return int(v) if isinstance(v, bool | np.bool_) else finite(v)
 
 
 def finite(v: object) -> object:
