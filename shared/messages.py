@@ -82,6 +82,13 @@ class LoopStatus(Message):
         default=None, description="in a sync's answer: why its sender was last refused"
     )
     reason: str = Field(description="what caused this status: start, a command kind, or query")
+    leased_by: str | None = Field(
+        default=None, description="the supervisor holding the loop's lease (an experiment), if any"
+    )
+    fault: str | None = Field(
+        default=None,
+        description="why the loop's model failed (the loop is then held in manual), if it did",
+    )
 
 
 class LoopInfo(Message):

@@ -102,6 +102,7 @@ class SimLoop:
         self.accepted = 0
         self.rejected = 0
         self.last_reject: str | None = None
+        self.fault: str | None = None  # why the model failed mid-run (loop held in manual)
         self._refusals: dict[str, tuple[int, str]] = {}  # by sender: count, last reason
 
     @property
@@ -169,6 +170,7 @@ class SimLoop:
         reason: str,
         token: int | None = None,
         source: str | None = None,
+        leased_by: str | None = None,
     ) -> LoopStatus:
         """The loop's ``LoopStatus`` as the plant publishes it (``reason``: what changed); a
         sync's answer also carries its sender's own refusals, so that a client never takes
@@ -197,6 +199,8 @@ class SimLoop:
             sync_rejected=mine[0],
             sync_last_reject=mine[1],
             reason=reason,
+            leased_by=leased_by,
+            fault=self.fault,
         )
 
     def info(self, node: str, clock: ClockMode, speed: float) -> LoopInfo:
