@@ -106,6 +106,15 @@ def split_loop_key(prefix: str, key: str) -> tuple[str, list[str]] | None:
     return parts[0], parts[1:]
 
 
+def service_node(prefix: str, service: str, key: str) -> str | None:
+    """The node of ``<prefix>/<service>/<node>/...``; None if ``key`` is not one."""
+    head = f"{prefix}/{service}/"
+    if not key.startswith(head):
+        return None
+    node = key[len(head) :].split("/", 1)[0]
+    return node or None
+
+
 def tuner_request(prefix: str, node: str) -> str:
     return f"{prefix}/tuner/{node}/tune"
 

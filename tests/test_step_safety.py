@@ -5,11 +5,11 @@ In-process against the real preset models (``build_plant``), lockstep, seeded no
 """
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from services.autotuner.local_loop import LocalLoopClient
 from services.autotuner.reaction_curve import (
     analyze_step,
     at_rest,
@@ -264,37 +264,12 @@ def test_analyze_step_floors_an_unresolved_dead_time():
 
 
 # --- run_step_test: the return to rest ------------------------------------------------------
-
-
-class SimClient:
-    """The part of LoopClient run_step_test uses, over a SimLoop in lockstep."""
-
-    def __init__(self, loop):
-        st = loop.settings
-        self.sim, self.loop, self.source = loop, st.loop_id, "test"
-        self.info = SimpleNamespace(
-            model=st.model_name,
-            pv_units=st.pv_units,
-            pv_range=st.pv_range,
-            op_limits=st.op_limits,
-            sample_time=st.sample_time,
-            clock="lockstep",
-        )
-
-    def sync(self):
-        return SimpleNamespace(op=self.sim.op, mode=self.sim.mode, t=self.sim.t)
-
-    def command(self, cmd):
-        self.sim.apply(cmd)
-        return self.sync()
-
-    def next_sample(self):
-        return self.sim.advance()
+# (over LocalLoopClient: the LoopClient interface on a SimLoop in lockstep, lease included)
 
 
 def test_run_step_test_waits_for_the_return_to_rest():
     loop = sim_loop({"model": "heat_exchanger"})
-    report = run_step_test(SimClient(loop), StepTestConfig(size=5.0))
+    report = run_step_test(LocalLoopClient(loop), StepTestConfig(size=5.0))
     d = report.to_dict()
     assert d["restored"] is True and d["returned_to_rest"] is True
     assert d["pv_end"] == pytest.approx(d["pv_before"], abs=0.05)  # back at 60 °C
@@ -306,7 +281,7 @@ def test_run_step_test_waits_for_the_return_to_rest():
 
 def test_run_step_test_no_wait_returns_at_once():
     loop = sim_loop({"model": "heat_exchanger"})
-    report = run_step_test(SimClient(loop), StepTestConfig(size=5.0), wait_return=False)
+    report = run_step_test(LocalLoopClient(loop), StepTestConfig(size=5.0), wait_return=False)
     assert report.returned_to_rest is None and report.pv_end is None
     assert loop.t == report.t_end and loop.op == 40.0
     assert loop.pv > 64.0  # still at the stepped rest: the CLI says so
@@ -315,7 +290,7 @@ def test_run_step_test_no_wait_returns_at_once():
 def test_run_step_test_on_lvl2_aborts_restored_with_the_integrating_reason():
     loop = sim_loop({"model": "tank_level_integrating"})
     with pytest.raises(StepTestAborted, match=r"integrating process.*loop restored"):
-        run_step_test(SimClient(loop), StepTestConfig(size=5.0))
+        run_step_test(LocalLoopClient(loop), StepTestConfig(size=5.0))
     assert loop.op == 50.0 and loop.t < 1200.0
 
 

@@ -36,7 +36,14 @@ class LocalLoopClient:
         self.last_sample: ProcessSample | None = None
         self.last_status: LoopStatus = self.sync()
         self.lease: LeaseCommand | None = None
+        self.gone = False  # an in-process loop never goes away
+        self.lease_timeout = 10.0  # s; asked for, never expires in process
         self.commands: list[Command] = []  # every accepted command, in order
+
+    @property
+    def holding(self) -> bool:
+        """This client holds the loop's lease (in process, nobody can take it back)."""
+        return self.lease is not None
 
     def __enter__(self) -> LocalLoopClient:
         return self

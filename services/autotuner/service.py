@@ -19,12 +19,12 @@ from dataclasses import dataclass
 
 import zenoh
 
-from services.autotuner.loop_client import LoopClient, wait_for_loop
+from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
 from services.autotuner.tuning import RunHooks, TuningRun, validate_request
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, install_stop_handlers, setup_logging
-from shared.errors import AutotuneError, DecodeError
-from shared.messages import TuneAccepted, TuneRequest, TuneResult
+from shared.errors import AutotuneError, ConfigError, DecodeError
+from shared.messages import LoopStatus, TuneAccepted, TuneRequest, TuneResult
 from shared.session import open_session, settings_from_args
 
 log = logging.getLogger("autotuner")
@@ -41,8 +41,16 @@ class ActiveRun:
 
 
 class TunerService:
-    def __init__(self, session: zenoh.Session, prefix: str, node: str, loop_timeout: float = 10.0):
+    def __init__(
+        self,
+        session: zenoh.Session,
+        prefix: str,
+        node: str,
+        loop_timeout: float = 10.0,
+        lease_timeout: float = LEASE_TIMEOUT,
+    ):
         self.session = session
+        self.lease_timeout = lease_timeout
         self.prefix = prefix
         self.node = node
         self.loop_timeout = loop_timeout
@@ -55,6 +63,12 @@ class TunerService:
         key = keys.loop_alive(self.prefix, req.loop)
         if not any(r.ok for r in self.session.liveliness().get(key, timeout=2.0)):
             raise ValueError(f"loop: no plant serves {req.loop!r} (nothing announces {key})")
+        status = wire.query_one(self.session, keys.status(self.prefix, req.loop), LoopStatus, 2.0)
+        if status is not None and status.leased_by is not None:
+            raise ValueError(
+                f"loop: {req.loop} is held by {status.leased_by!r} for another test; "
+                "try again when it is released"
+            )
         with self.lock:
             if req.loop in self.active:
                 raise ValueError(
@@ -80,7 +94,9 @@ class TunerService:
         )
         try:
             wait_for_loop(s, p, req.loop, self.loop_timeout)
-            with LoopClient(s, p, req.loop, source=f"tuner:{run_id}") as client:
+            with LoopClient(
+                s, p, req.loop, source=f"tuner:{run_id}", lease_timeout=self.lease_timeout
+            ) as client:
                 result = TuningRun(client, req, run_id, hooks).run()
         except Exception as err:  # whatever happens, the run ends with a result
             expected = isinstance(err, AutotuneError | ValueError)
@@ -178,14 +194,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--node", default="tuner", help="this process's id on the bus (default: %(default)s)"
     )
+    parser.add_argument(
+        "--lease-timeout",
+        type=float,
+        default=LEASE_TIMEOUT,
+        metavar="S",
+        help="s of wall time without a word from this tuner after which the plant takes a "
+        "leased loop back and restores it (default: %(default)g; 1–3600)",
+    )
     add_common_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose + 1, "autotuner")
     check_ids(args.prefix, node=args.node)
+    if not 1.0 <= args.lease_timeout <= 3600.0:  # also refuses NaN
+        raise ConfigError(f"--lease-timeout {args.lease_timeout:g}: must be 1–3600 s")
     stop = threading.Event()
     install_stop_handlers(stop)
     with open_session(settings_from_args(args)) as session:
-        TunerService(session, args.prefix, args.node).run(stop)
+        TunerService(session, args.prefix, args.node, lease_timeout=args.lease_timeout).run(stop)
     return 0

@@ -19,6 +19,7 @@ then waits (bounded) for the PV to return to rest, so that what runs next starts
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from collections.abc import Callable
@@ -26,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.autotuner.loop_client import LoopClient
+from services.autotuner.loop_client import CommandRefused, LeaseLost, LoopClient
 from services.autotuner.model_fit import ProcessFit, choose_on_record, refine_on_record
 from services.autotuner.reaction_curve import (
     ReactionCurve,
@@ -39,7 +40,13 @@ from services.autotuner.reaction_curve import (
     steady_ramp,
 )
 from shared.errors import AutotuneError
-from shared.messages import ModeCommand, OutputCommand, ProcessSample
+from shared.messages import (
+    LeaseCommand,
+    ModeCommand,
+    OutputCommand,
+    ProcessSample,
+    ReleaseCommand,
+)
 
 SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over a window)
 RETURN_WAIT_FACTOR = 3.0  # the return to rest may take this many times the step's own settling
@@ -454,6 +461,13 @@ def run_step_test(
     except ValueError as err:
         raise StepTestAborted(f"loop {client.loop}: {err}") from None
     restored = False
+    try:  # under a lease: if this client dies, the plant's watchdog puts the loop back
+        client.command(
+            LeaseCommand(loop=client.loop, source=client.source, timeout=client.lease_timeout)
+        )
+    except CommandRefused as err:
+        raise StepTestAborted(f"not started: {err}") from None
+    lost: LeaseLost | None = None
     try:
         if before.mode != "manual":
             client.command(ModeCommand(loop=client.loop, mode="manual", source=client.source))
@@ -472,8 +486,19 @@ def run_step_test(
                     status.t if info.clock == "lockstep" else status.t + info.sample_time
                 )
                 op = want
+    except LeaseLost as err:
+        lost = err
     finally:
-        restored = _restore(client, before.mode, before.op)
+        if client.holding:
+            restored = _restore(client, before.mode, before.op)
+            with contextlib.suppress(AutotuneError):
+                client.command(ReleaseCommand(loop=client.loop, source=client.source))
+        else:  # the plant took the loop back (and restored it) or is gone
+            restored = lost is not None
+    if lost is not None:
+        raise StepTestAborted(
+            f"{lost}; the plant restored the loop ({before.mode}, {before.op:g} %)"
+        )
     if test.phase == "aborted" or test.result is None:
         raise StepTestAborted(
             f"loop {client.loop}: step test aborted: {test.reason}; "

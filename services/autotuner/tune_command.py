@@ -25,7 +25,7 @@ from services.autotuner.rules import RULES
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
-from shared.messages import TuneAccepted, TuneProgress, TuneRequest, TuneResult
+from shared.messages import LoopStatus, TuneAccepted, TuneProgress, TuneRequest, TuneResult
 from shared.session import open_session, settings_from_args
 
 HELP = "tune a loop through the running autotuner (relay, ramp or step test)"
@@ -194,6 +194,9 @@ def submit(
     deadline = time.monotonic() + timeout
     if not wait_for_token(session, keys.tuner_alive(prefix, node), timeout):
         raise missing
+    if "*" in node:  # "any tuner" is one tuner: asking them all started a run on each
+        node = pick_tuner(session, prefix, node, max(0.1, deadline - time.monotonic()))
+        key = keys.tuner_request(prefix, node)
     while time.monotonic() < deadline:  # a new peer's queryable may take a moment to route
         replies = session.get(
             key,
@@ -211,6 +214,32 @@ def submit(
             )
         time.sleep(0.05)
     raise missing
+
+
+def loop_state(session: zenoh.Session, prefix: str, loop: str, timeout: float = 2.0) -> str:
+    """The loop as its plant has it now, in one phrase (an operator's first question)."""
+    st = wire.query_one(session, keys.status(prefix, loop), LoopStatus, timeout)
+    if st is None:
+        return f"the loop's plant did not answer within {timeout:g} s"
+    g = st.gains
+    held = f", still held by {st.leased_by}" if st.leased_by else ""
+    return (
+        f"loop {loop} now: {st.mode}, SP {st.sp:.4g}, OP {st.op:.4g} %, PV {st.pv:.4g}, "
+        f"Kc {g.kc:.4g}, Ti {g.ti if g.ti is not None else 'off'}, Td {g.td:.4g}{held}"
+    )
+
+
+def pick_tuner(session: zenoh.Session, prefix: str, pattern: str, timeout: float) -> str:
+    """One live autotuner matching ``pattern`` (the first by name, so a choice is repeatable)."""
+    nodes = sorted(
+        n
+        for r in session.liveliness().get(keys.tuner_alive(prefix, pattern), timeout=timeout)
+        if r.ok is not None
+        and (n := keys.service_node(prefix, "tuner", str(r.ok.key_expr))) is not None
+    )
+    if not nodes:
+        raise AutotuneError(f"no autotuner announces {keys.tuner_alive(prefix, pattern)}")
+    return nodes[0]
 
 
 RESULT_GRACE = 2.0  # s to wait for a result after the run's token vanished
@@ -254,7 +283,7 @@ def follow(
                     raise TunerGone(
                         f"run {run_id} on {loop}: its tuner is gone (the run's liveliness token "
                         "vanished with no result): the plant's watchdog returns the loop to its "
-                        "state before the test"
+                        f"state before the test; {loop_state(session, prefix, loop)}"
                     )
                 limit = min(deadline, gone + RESULT_GRACE if gone is not None else math.inf)
                 sample = inbox.get(timeout=max(0.0, limit - now))

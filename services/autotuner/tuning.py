@@ -25,7 +25,7 @@ import pydantic
 
 from services.autotuner import experiments, metrics
 from services.autotuner.forms import IsaGains, all_forms
-from services.autotuner.loop_client import LoopClient
+from services.autotuner.loop_client import LeaseLost, LoopClient
 from services.autotuner.model_fit import ProcessFit
 from services.autotuner.ramp import RampTest
 from services.autotuner.relay import RelayTest
@@ -52,7 +52,6 @@ from shared.messages import (
     Verification,
 )
 
-LEASE_TIMEOUT = 10.0  # s of wall time the plant waits for us before restoring the loop
 VERIFY_SP_FRACTION = 0.02  # of the PV range, verification setpoint step
 VERIFY_KICK = 20.0  # % of output: the setpoint step's proportional kick at most…
 VERIFY_NOISE = 20.0  # … unless that leaves the step below this many σ of the PV noise…
@@ -223,7 +222,9 @@ class TuningRun:
         self.before = before = c.sync()
         self._pv_rest = rest["pv"] if before.mode == "manual" else before.sp
         try:
-            c.command(LeaseCommand(loop=c.loop, source=c.source, timeout=LEASE_TIMEOUT, t=before.t))
+            c.command(
+                LeaseCommand(loop=c.loop, source=c.source, timeout=c.lease_timeout, t=before.t)
+            )
         except AutotuneError as err:  # another supervisor holds it: nothing was changed
             result.update(status="aborted", reason=f"not started: {err}", restored=True)
             return self._result(result, t0, wall0, self._leave(before, before.pv, wait=False))
@@ -282,6 +283,9 @@ class TuningRun:
                 restored = True
             status = "ok" if result.get("applied") or not req.apply else "rejected"
             result.update(status=status, restored=restored)
+        except LeaseLost as err:  # the plant took the loop back and restored it: hands off
+            wait_back = False
+            result.update(status="aborted", reason=str(err), restored=True)
         except TuneRefused as err:
             restored = self._restore()
             result.update(status="rejected", reason=str(err), restored=restored)
@@ -298,8 +302,9 @@ class TuningRun:
             if not isinstance(err, Exception):
                 raise
         finally:
-            with contextlib.suppress(AutotuneError):  # if the plant is gone, so is the lease
-                c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
+            if c.holding:
+                with contextlib.suppress(AutotuneError):  # if the plant is gone, so is the lease
+                    c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
         scale = ident.timescale if ident is not None and ident.timescale > 0 else None
         cancelled = self.hooks.cancelled is not None and self.hooks.cancelled.is_set()
         left = self._leave(
@@ -450,7 +455,9 @@ class TuningRun:
             return pv
         self._progress("return", message=f"output {push:.4g} % for {seconds:.4g} s: the level back")
         try:
-            c.command(LeaseCommand(loop=c.loop, source=c.source, timeout=LEASE_TIMEOUT, t=self._t))
+            c.command(
+                LeaseCommand(loop=c.loop, source=c.source, timeout=c.lease_timeout, t=self._t)
+            )
             try:
                 c.command(OutputCommand(loop=c.loop, op=push, source=c.source, t=self._t))
                 c.samples(max(1, round(seconds / self.ts)))
@@ -467,7 +474,7 @@ class TuningRun:
     def _restore(self) -> bool:
         """Put the loop back exactly as it was before the test; False if that failed."""
         b, c = self.before, self.client
-        if b is None:
+        if b is None or not c.holding:  # never write to a loop it no longer holds
             return False
         try:
             now = c.sync()

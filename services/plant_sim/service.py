@@ -75,6 +75,9 @@ class RejectLog:
         self._seen[category] = (start, shown, hidden)
 
 
+MAX_LAPSED = 64  # lapsed supervisors remembered per loop
+
+
 @dataclass
 class Lease:
     """A supervisor's hold on a loop during an experiment (the plant-side watchdog)."""
@@ -99,13 +102,20 @@ class PlantService:
         self._remote_loops: set[str] = set()
         self._log_reject = RejectLog()
         self.leases: dict[str, Lease] = {}
+        # loop → {source: why}: supervisors whose lease the plant ended (it restored the loop);
+        # their commands are refused until they lease again, so a tuner that missed the news
+        # (paused, cut off) cannot drive a loop it no longer holds
+        self.lapsed: dict[str, dict[str, str]] = {}
 
     # --- messages -------------------------------------------------------------------------
 
     def loop_status(
         self, loop: SimLoop, reason: str, token: int | None = None, source: str | None = None
     ) -> LoopStatus:
-        return loop.status(self.opt.node, self.opt.clock, reason, token, source)
+        lease = self.leases.get(loop.settings.loop_id)
+        return loop.status(
+            self.opt.node, self.opt.clock, reason, token, source, lease.source if lease else None
+        )
 
     def loop_info(self, loop: SimLoop) -> LoopInfo:
         return loop.info(self.opt.node, self.opt.clock, self.opt.speed)
@@ -203,9 +213,9 @@ class PlantService:
         lease = self.leases.get(loop_id)
         if lease is not None and cmd.source == lease.source:
             lease.deadline = time.monotonic() + lease.timeout
-        if isinstance(cmd, LeaseCommand | ReleaseCommand) and lease and lease.source != cmd.source:
-            # exclusive: one supervisor at a time, and only the holder lets go (two tuners
-            # on one loop snapshotted each other's test as the state to restore)
+        if lease is not None and lease.source != cmd.source and not isinstance(cmd, SyncCommand):
+            # exclusive: one supervisor at a time drives a leased loop, and only it lets go
+            # (two tuners on one loop snapshotted each other's test as the state to restore)
             self._reject(
                 loop,
                 "leased",
@@ -214,13 +224,27 @@ class PlantService:
                 cmd.source,
             )
             return
+        lapsed = self.lapsed.get(loop_id, {})
+        lease_kinds = LeaseCommand | ReleaseCommand | SyncCommand
+        if cmd.source in lapsed and not isinstance(cmd, lease_kinds):
+            self._reject(
+                loop,
+                "lapsed",
+                f"{kind} refused: {cmd.source!r} no longer holds the loop ({lapsed[cmd.source]}; "
+                "the plant restored it to its state before the test)",
+                out,
+                cmd.source,
+            )
+            return
         if isinstance(cmd, LeaseCommand):
+            lapsed.pop(cmd.source, None)
             if lease is None:  # a holder renewing keeps the snapshot of before its test
                 self.leases[loop_id] = Lease(
                     cmd.source, cmd.timeout, time.monotonic() + cmd.timeout, loop.snapshot()
                 )
             out.append((keys.status(prefix, loop_id), self.loop_status(loop, "lease")))
         elif isinstance(cmd, ReleaseCommand):
+            lapsed.pop(cmd.source, None)
             self.leases.pop(loop_id, None)
             out.append((keys.status(prefix, loop_id), self.loop_status(loop, "release")))
         elif isinstance(cmd, AdvanceCommand):
@@ -307,6 +331,10 @@ class PlantService:
                 return
             loop = self.loops[loop_id]
             loop.restore(lease.snapshot)
+            lapsed = self.lapsed.setdefault(loop_id, {})
+            lapsed[lease.source] = f"its lease ended at t = {loop.t:.6g} s: {why}"
+            while len(lapsed) > MAX_LAPSED:  # bounded: the oldest are forgotten first
+                lapsed.pop(next(iter(lapsed)))
             out.append((keys.status(self.opt.prefix, loop_id), self.loop_status(loop, "watchdog")))
         log.warning(
             "loop %s: %s; restored to its state before the experiment (%s, op %.4g %%)",
