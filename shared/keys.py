@@ -13,7 +13,7 @@ Layout (IDs in their own chunks, most-varying part last)::
     <prefix>/tuner/<node>/alive            liveliness token of one autotuner process
     <prefix>/tune/<loop>/progress          TuneProgress while a run goes on
     <prefix>/tune/<loop>/event             TunerEvent: the experiment's events
-    <prefix>/tune/<loop>/result            TuneResult at the end of a run
+    <prefix>/tune/<loop>/result            TuneResult at the end of a run (queryable: the last)
     <prefix>/tune/<loop>/cancel            a put here cancels the loop's run (loop restored)
     <prefix>/tune/<loop>/running           liveliness token held while a run owns the loop
     <prefix>/logger/<node>/status          LoggerStatus (queryable)

@@ -56,6 +56,7 @@ class TunerService:
         self.loop_timeout = loop_timeout
         self.lock = threading.Lock()
         self.active: dict[str, ActiveRun] = {}
+        self.results: dict[str, TuneResult] = {}  # the last result per loop (queryable)
         self.rejected = 0
 
     def _start(self, req: TuneRequest) -> TuneAccepted:
@@ -115,6 +116,8 @@ class TunerService:
         finally:
             with self.lock:
                 self.active.pop(req.loop, None)
+        with self.lock:
+            self.results[req.loop] = result
         wire.put(s, keys.tune_result(p, req.loop), result)
         token.undeclare()
         log.info(
@@ -150,6 +153,21 @@ class TunerService:
                     log.warning("request refused: %s", err)
                     query.reply_err(str(err).encode())
 
+    def _serve_results(self, queryable: zenoh.Queryable) -> None:
+        """The last result per loop, for a client that was cut off when it was published."""
+        for query in queryable:
+            with query:
+                with self.lock:
+                    found = [
+                        (keys.tune_result(self.prefix, loop), r)
+                        for loop, r in self.results.items()
+                        if query.key_expr.intersects(
+                            zenoh.KeyExpr(keys.tune_result(self.prefix, loop))
+                        )
+                    ]
+                for key, r in found:
+                    wire.reply(query, key, r)
+
     def _serve_cancels(self, sub: zenoh.Subscriber) -> None:
         for sample in sub:
             loop = str(sample.key_expr).split("/")[-2]
@@ -164,8 +182,10 @@ class TunerService:
         fifo = zenoh.handlers.FifoChannel
         queryable = s.declare_queryable(keys.tuner_request(p, self.node), fifo(256))
         cancels = s.declare_subscriber(keys.tune_cancel(p, keys.ANY), fifo(256))
+        results = s.declare_queryable(keys.tune_result(p, keys.ANY), fifo(256))
         threads = [
             threading.Thread(target=self._serve_requests, args=(queryable,), daemon=True),
+            threading.Thread(target=self._serve_results, args=(results,), daemon=True),
             threading.Thread(target=self._serve_cancels, args=(cancels,), daemon=True),
         ]
         for th in threads:
@@ -177,6 +197,7 @@ class TunerService:
                 pass
         finally:
             queryable.undeclare()
+            results.undeclare()
             with self.lock:
                 runs = list(self.active.values())
             for run in runs:

@@ -230,16 +230,24 @@ def loop_state(session: zenoh.Session, prefix: str, loop: str, timeout: float = 
 
 
 def pick_tuner(session: zenoh.Session, prefix: str, pattern: str, timeout: float) -> str:
-    """One live autotuner matching ``pattern`` (the first by name, so a choice is repeatable)."""
-    nodes = sorted(
-        n
-        for r in session.liveliness().get(keys.tuner_alive(prefix, pattern), timeout=timeout)
-        if r.ok is not None
-        and (n := keys.service_node(prefix, "tuner", str(r.ok.key_expr))) is not None
-    )
-    if not nodes:
-        raise AutotuneError(f"no autotuner announces {keys.tuner_alive(prefix, pattern)}")
-    return nodes[0]
+    """One live autotuner matching ``pattern`` (the first by name, so a choice is repeatable).
+
+    Asked again until ``timeout``: a session just opened in client mode gets an empty answer
+    before its router has told it the tokens it knows."""
+    deadline = time.monotonic() + timeout
+    key = keys.tuner_alive(prefix, pattern)
+    while True:
+        nodes = sorted(
+            n
+            for r in session.liveliness().get(key, timeout=max(0.1, deadline - time.monotonic()))
+            if r.ok is not None
+            and (n := keys.service_node(prefix, "tuner", str(r.ok.key_expr))) is not None
+        )
+        if nodes:
+            return nodes[0]
+        if time.monotonic() > deadline:
+            raise AutotuneError(f"no autotuner announces {key}")
+        time.sleep(0.05)
 
 
 RESULT_GRACE = 2.0  # s to wait for a result after the run's token vanished
@@ -280,10 +288,16 @@ def follow(
                     deadline = time.monotonic() + wait
                 now = time.monotonic()
                 if gone is not None and now > gone + RESULT_GRACE:
+                    late = wire.query_one(  # published while this client was cut off?
+                        session, keys.tune_result(prefix, loop), TuneResult, RESULT_GRACE
+                    )
+                    if late is not None and late.run_id == run_id:
+                        return late
                     raise TunerGone(
-                        f"run {run_id} on {loop}: its tuner is gone (the run's liveliness token "
-                        "vanished with no result): the plant's watchdog returns the loop to its "
-                        f"state before the test; {loop_state(session, prefix, loop)}"
+                        f"run {run_id} on {loop}: its tuner is gone or cut off (the run's "
+                        "liveliness token vanished and no result can be had): the plant's "
+                        "watchdog returns the loop to its state before the test; "
+                        f"{loop_state(session, prefix, loop)}"
                     )
                 limit = min(deadline, gone + RESULT_GRACE if gone is not None else math.inf)
                 sample = inbox.get(timeout=max(0.0, limit - now))

@@ -76,6 +76,7 @@ class RejectLog:
 
 
 MAX_LAPSED = 64  # lapsed supervisors remembered per loop
+PAUSE_GAP = 1.0  # s between watchdog ticks (0.05 s apart) that means the plant itself paused
 
 
 @dataclass
@@ -346,9 +347,17 @@ class PlantService:
         self._publish(out)
 
     def _watchdog(self, stop: threading.Event) -> None:
+        """Expire leases whose holder fell silent. A plant that was itself paused (SIGSTOP, a
+        suspended VM) heard nobody meanwhile: the pause is added to every deadline rather
+        than blamed on the supervisors."""
+        last = time.monotonic()
         while not stop.wait(0.05):
             now = time.monotonic()
+            paused, last = now - last, now
             with self.lock:
+                if paused > PAUSE_GAP:
+                    for ls in self.leases.values():
+                        ls.deadline += paused
                 late = [lid for lid, ls in self.leases.items() if now > ls.deadline]
             for lid in late:
                 self.expire_lease(lid, "no command from its supervisor within the lease timeout")
