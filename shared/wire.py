@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from functools import cache
 from typing import TypeVar
@@ -92,3 +93,23 @@ def query_one(session: zenoh.Session, key: str, model: type[M], timeout: float) 
         if time.monotonic() >= deadline:
             return None
         time.sleep(0.02)
+
+
+REPLAY_ATTACHMENT_KEY = "replay"
+
+
+def replay_attachment(source: str) -> bytes:
+    """The attachment ``autotune replay`` puts on every message: ``{"replay": source}``."""
+    return json.dumps({REPLAY_ATTACHMENT_KEY: source}).encode()
+
+
+def replay_source(attachment: bytes | None) -> str | None:
+    """The replayed file's name if ``attachment`` marks a replay, else None (live traffic)."""
+    if not attachment:
+        return None
+    try:
+        mark = json.loads(attachment)
+    except (ValueError, UnicodeDecodeError):
+        return None
+    source = mark.get(REPLAY_ATTACHMENT_KEY) if isinstance(mark, dict) else None
+    return str(source) if source is not None else None

@@ -130,6 +130,9 @@ class LoopClient:
 
     def _read(self) -> None:
         for s in self._sub:
+            mark = s.attachment
+            if mark is not None and wire.replay_source(mark.to_bytes()) is not None:
+                continue  # `autotune replay` of a recorded run: not this loop's present
             self._inbox.put((str(s.key_expr), s.payload.to_bytes(), str(s.encoding)))
 
     def _watch_alive(self) -> None:

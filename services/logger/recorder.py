@@ -1,18 +1,49 @@
 """Turn the tuning traffic into one MCAP file per run (no Zenoh in here).
 
-A run starts with its first TuneProgress (phase ``start``) and ends with its TuneResult, or
-when the plant's watchdog reports it restored the loop (the tuner was lost). Everything on
-the loop's keys in between goes into the file: process samples, status, every command, the
-tuner's progress, events and result. Messages are validated against their model first; one
-that is not valid is counted and left out. Recent messages are kept per loop, so a sample
-that overtakes the run's first progress message on another link is not lost.
+A run starts with its first TuneProgress (phase ``start``) and ends with its TuneResult. A
+run whose tuner is gone ends "tuner lost": when the run's liveliness token
+(``<prefix>/tune/<loop>/running``) vanished and no result followed within ``RESULT_GRACE``
+s, or when the plant's watchdog restored the loop (status reason ``watchdog``) while no
+token of the run was there. A watchdog status that still names a lease holder of the run,
+or that comes while the run's token is alive (the tuner lives and will end its run with a
+result), closes nothing.
+
+Everything on the loop's keys in between goes into the file: process samples, status, every
+command, the tuner's progress, events and result. Messages are validated against their model
+first; one that is not valid is counted and left out.
+
+**One run, one file.** A file holds only its run's messages, from the plant instance the run
+tuned:
+
+* The tuner's messages (progress, events, result) of other runs are left out.
+* Plant instances are told apart by evidence, never by one sign alone: a status with reason
+  ``start`` (a plant publishes it as it comes up), a status from another plant ``node``, a
+  sample number or sim time that goes back (for a status, on the lockstep clock only: in
+  realtime statuses and samples come from two threads and may cross). The loop's liveliness
+  token vanishing (``<prefix>/plant/<loop>/alive``) drops the context kept so far; when the
+  plant comes back, the first message either continues the numbering (the same plant,
+  reached again) or shows a new instance. Once the plant instance changes, no more plant
+  messages or commands go into a run that tuned the old one.
+* A few recent messages are kept per loop because a sample can overtake the run's first
+  progress message on another link; at the start they go into the file if they are of the
+  present plant instance, came after the loop's previous run ended, and are not older (in
+  sim time) than the run's start. A sample already written (its number not past the last
+  one) is never written again.
+* Replayed traffic (``autotune replay`` marks every message with the attachment
+  ``{"replay": "<file name>"}``) is not recorded unless ``record_replays``; then each replay
+  is its own stream, never mixed with live traffic, and its file says so in its metadata
+  (``replay``) and its name (``…_<run id>_replay.mcap``, ``…_replay-2.mcap`` for another
+  within the same second). A run id the logger already recorded live opens no second file.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from collections import Counter, deque
+import tempfile
+import time
+from collections import Counter, OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -20,8 +51,10 @@ from pathlib import Path
 import pydantic
 
 from services.logger.mcap_io import RunWriter
+from shared.errors import ConfigError
 from shared.messages import (
     COMMANDS,
+    LeaseCommand,
     LoopStatus,
     Message,
     ProcessSample,
@@ -32,7 +65,35 @@ from shared.messages import (
 
 log = logging.getLogger("logger")
 
-BUFFER = 4096  # recent messages kept per loop
+BUFFER = 4096  # recent messages kept per loop (pre-run context)
+RESULT_GRACE = 2.0  # s of wall time a run's result may trail the withdrawal of its token
+REMEMBERED_RUNS = 4096  # finished run ids kept, so that a repeated start opens no new file
+
+TUNER_MESSAGES = (TuneProgress, TunerEvent, TuneResult)
+PLANT_MESSAGES = (ProcessSample, LoopStatus)
+
+
+def prepare_runs_dir(path: Path | str) -> Path:
+    """The ``--runs`` directory, created (with its parents) if missing, and writable.
+
+    ConfigError in one line naming ``--runs`` and the reason otherwise: a file there, a
+    parent that is a file, no permission.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"--runs {path}: not a directory (a file of that name exists)")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise ConfigError(f"--runs {path}: cannot create it (a parent is a file)") from None
+    except OSError as err:
+        raise ConfigError(f"--runs {path}: cannot create it ({err.strerror or err})") from None
+    try:
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as err:
+        raise ConfigError(f"--runs {path}: cannot write there ({err.strerror or err})") from None
+    return path
 
 
 @dataclass
@@ -41,7 +102,8 @@ class Item:
     model: type[Message]
     payload: bytes
     msg: Message
-    t: float
+    t: float  # sim time, s: the message's own, else that of the loop's last timed message
+    instance: int  # the plant instance it came from or went to (see Stream.instance)
 
 
 @dataclass
@@ -53,19 +115,39 @@ class OpenRun:
     writer: RunWriter
     t_start: float
     started: str
+    instance: int  # the plant instance this run tunes
+    replay: str = ""  # the replayed file's name, "" for a live run
     request: str = ""
     info: str = ""
     samples: int = 0
     first_seq: int | None = None
     last_seq: int | None = None
     gaps: int = 0
+    left_out: int = 0  # messages on the loop's keys that were not this run's (or repeated)
+    plant_node: str = ""
+    plant_changed: str = ""  # why the plant instance changed under the run, if it did
+    lease_holders: set[str] = field(default_factory=set)
+    lost: str = ""  # "token" (the run's token vanished) or "watchdog" (the plant restored)
+    lost_at: float = 0.0  # wall clock (monotonic) of ``lost``
 
 
 @dataclass
-class Loop:
+class Stream:
+    """One loop's traffic: live, or one replayed file's (kept apart)."""
+
+    loop: str
+    replay: str = ""
     recent: deque[Item] = field(default_factory=lambda: deque(maxlen=BUFFER))
     run: OpenRun | None = None
     t: float = 0.0
+    instance: int = 0  # plant instance counter: +1 on each piece of evidence of a new one
+    node: str | None = None
+    last_seq: int | None = None  # highest number of a sample or status (they share it)
+    last_sample_seq: int | None = None
+    last_sample: bytes = b""  # payload of the last sample (a repeat of it is a duplicate)
+    last_t: float | None = None  # of the last sample
+    plant_alive: bool | None = None  # the loop's liveliness token (None: not seen yet)
+    run_token: bool | None = None  # the run's liveliness token (None: not seen yet)
 
 
 def model_for(prefix: str, key: str) -> tuple[str, type[Message]] | None:
@@ -82,18 +164,42 @@ def model_for(prefix: str, key: str) -> tuple[str, type[Message]] | None:
 
 
 class Recorder:
-    def __init__(self, runs_dir: Path, prefix: str, flush_interval: float = 1.0):
-        self.runs_dir = Path(runs_dir)
-        self.runs_dir.mkdir(parents=True, exist_ok=True)
+    """The logger's state: one Stream per loop (and per replayed file), one open file per run.
+
+    ``clock`` (monotonic seconds) times the grace a run's result gets after its token
+    vanished; tests pass their own.
+    """
+
+    def __init__(
+        self,
+        runs_dir: Path,
+        prefix: str,
+        flush_interval: float = 1.0,
+        record_replays: bool = False,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        self.runs_dir = prepare_runs_dir(runs_dir)
         self.prefix = prefix
         self.flush_interval = flush_interval
-        self.loops: dict[str, Loop] = {}
+        self.record_replays = record_replays
+        self.clock = clock
+        self.streams: dict[tuple[str, str], Stream] = {}
         self.counts: Counter[str] = Counter()
         self.finished: list[Path] = []
+        self._recorded: OrderedDict[str, None] = OrderedDict()  # live run ids with a file
+        self._replays_seen: set[str] = set()
 
-    def handle(self, key: str, payload: bytes) -> None:
-        """Take one message from the bus."""
+    # --- input ------------------------------------------------------------------------------
+
+    def handle(self, key: str, payload: bytes, replay: str | None = None) -> None:
+        """Take one message from the bus; ``replay``: the replayed file it came from, if any."""
         self.counts["received"] += 1
+        if replay is not None and not self.record_replays:
+            self.counts["replayed_ignored"] += 1
+            if replay not in self._replays_seen:
+                self._replays_seen.add(replay)
+                log.info("not recording the replay of %s (--record-replays does)", replay)
+            return
         found = model_for(self.prefix, key)
         if found is None:
             self.counts["ignored"] += 1
@@ -104,44 +210,212 @@ class Recorder:
         except pydantic.ValidationError:
             self.counts["invalid"] += 1
             return
-        loop = self.loops.setdefault(loop_id, Loop())
+        stream = self._stream(loop_id, replay or "")
+        if isinstance(msg, ProcessSample):
+            if msg.seq == stream.last_sample_seq and payload == stream.last_sample:
+                self.counts["duplicates"] += 1  # the same sample delivered again
+                return
+            stream.last_sample = payload
+        if isinstance(msg, PLANT_MESSAGES):
+            self._plant_evidence(stream, msg)
         t = getattr(msg, "t", None)
-        loop.t = t if t is not None else loop.t
-        item = Item(key, model, payload, msg, loop.t)
-        loop.recent.append(item)
-        if loop.run is None and isinstance(msg, TuneProgress) and msg.phase == "start":
-            self._open(loop_id, loop, msg)
+        stream.t = t if t is not None else stream.t
+        item = Item(key, model, payload, msg, stream.t, stream.instance)
+        stream.recent.append(item)
+        run = stream.run
+        if isinstance(msg, TuneProgress) and msg.phase == "start":
+            if run is not None and run.run_id == msg.run_id:
+                self._write(run, item)
+                return
+            if run is not None:  # a new run on the loop: the old one's tuner let it go
+                self._close(stream, status="superseded", result=None)
+                stream.recent.append(item)  # the close cleared what came before
+            if not stream.replay and msg.run_id in self._recorded:
+                self.counts["repeated_runs"] += 1
+                log.warning("run %s on %s: already recorded, not again", msg.run_id, loop_id)
+                return
+            self._open(stream, msg)
             return
-        run = loop.run
         if run is None:
             return
-        self._write(run, item)
-        if isinstance(msg, TuneResult) and msg.run_id == run.run_id:
-            self._close(loop, status=msg.status, result=msg)
-        elif isinstance(msg, LoopStatus) and msg.reason == "watchdog":
-            self._close(loop, status="tuner lost", result=None)
+        if self._belongs(run, stream, item):
+            self._write(run, item)
+        else:
+            run.left_out += 1
+            return
+        if isinstance(msg, TuneResult):
+            self._close(stream, status=msg.status, result=msg)
+        elif isinstance(msg, LoopStatus):
+            self._status(stream, run, msg)
 
-    def _open(self, loop_id: str, loop: Loop, start: TuneProgress) -> None:
+    def plant_token(self, loop_id: str, alive: bool) -> None:
+        """The loop's liveliness token appeared or vanished (live traffic only)."""
+        stream = self._stream(loop_id, "")
+        if not alive and stream.plant_alive is not False:
+            # whatever comes next is checked against what came before (seq, node); the
+            # context kept from before the interruption is never a later run's
+            stream.recent.clear()
+            log.info("loop %s: its plant's token vanished", loop_id)
+        stream.plant_alive = alive
+
+    def run_token(self, loop_id: str, alive: bool) -> None:
+        """The loop's run token (``<prefix>/tune/<loop>/running``) appeared or vanished."""
+        stream = self._stream(loop_id, "")
+        stream.run_token = alive
+        run = stream.run
+        if run is None:
+            return
+        if alive:
+            if run.lost == "token":  # back (a reconnection): the tuner still runs it
+                run.lost = ""
+        elif run.lost == "watchdog":  # restored by the plant and now gone: it is over
+            self._close(stream, status="tuner lost", result=None)
+        else:  # the result may still be on its way on another path: wait RESULT_GRACE
+            run.lost, run.lost_at = "token", self.clock()
+
+    def tick(self) -> None:
+        """Close the runs whose token vanished ``RESULT_GRACE`` s ago without a result, and
+        flush the open files that are due (called about every 0.25 s)."""
+        now = self.clock()
+        for stream in list(self.streams.values()):
+            run = stream.run
+            if run is not None and run.lost == "token" and now - run.lost_at >= RESULT_GRACE:
+                self._close(stream, status="tuner lost", result=None)
+        self.flush_due()
+
+    # --- evidence ---------------------------------------------------------------------------
+
+    def _stream(self, loop_id: str, replay: str) -> Stream:
+        stream = self.streams.get((loop_id, replay))
+        if stream is None:
+            stream = self.streams[(loop_id, replay)] = Stream(loop_id, replay)
+        return stream
+
+    def _plant_evidence(self, stream: Stream, msg: ProcessSample | LoopStatus) -> None:
+        """Start a new plant instance on evidence of one; then track its numbering.
+
+        Samples and statuses share one numbering, but only samples are published in that
+        order always (in realtime one thread paces the samples while another answers
+        commands: a status can trail the samples by a few numbers, or run ahead of them).
+        So the samples' own numbering is checked always, a status's against everything only
+        on the lockstep clock (one thread publishes both), and never a watchdog's (its own
+        thread)."""
+        why = ""
+        if isinstance(msg, LoopStatus):
+            if msg.reason == "start":
+                why = "the plant started (status 'start')"
+            elif stream.node is not None and msg.node != stream.node:
+                why = f"another plant node ({stream.node!r} → {msg.node!r})"
+            elif (
+                msg.clock == "lockstep"
+                and msg.reason != "watchdog"
+                and stream.last_seq is not None
+                and msg.seq < stream.last_seq
+            ):
+                why = f"the loop's sample number went back ({stream.last_seq} → {msg.seq})"
+        elif stream.last_sample_seq is not None and msg.seq < stream.last_sample_seq:
+            why = f"the sample number went back ({stream.last_sample_seq} → {msg.seq})"
+        elif stream.last_sample_seq is not None and msg.seq == stream.last_sample_seq:
+            why = f"sample {msg.seq} came again, with other values"
+        elif stream.last_t is not None and msg.t < stream.last_t:
+            why = f"the sim time went back ({stream.last_t:g} → {msg.t:g} s)"
+        if why:
+            self._new_instance(stream, why)
+        if isinstance(msg, LoopStatus):
+            stream.node = msg.node
+        else:
+            stream.last_sample_seq, stream.last_t = msg.seq, msg.t
+        stream.last_seq = msg.seq if stream.last_seq is None else max(stream.last_seq, msg.seq)
+
+    def _new_instance(self, stream: Stream, why: str) -> None:
+        had_history = stream.last_seq is not None or stream.node is not None
+        stream.instance += 1
+        stream.recent.clear()
+        stream.node = None
+        stream.last_seq = stream.last_sample_seq = stream.last_t = None
+        if not had_history:
+            return
+        self.counts["plant_instances"] += 1
+        run = stream.run
+        log.info("loop %s%s: a new plant instance: %s", stream.loop, _replay_note(stream), why)
+        if run is not None and not run.plant_changed:
+            run.plant_changed = why
+            log.warning(
+                "run %s on %s: %s; the new instance's messages are left out of its file",
+                run.run_id,
+                run.loop,
+                why,
+            )
+
+    def _belongs(self, run: OpenRun, stream: Stream, item: Item) -> bool:
+        """Is ``item`` this run's message: its tuner's, or its plant instance's?"""
+        msg = item.msg
+        if isinstance(msg, TUNER_MESSAGES):
+            return msg.run_id == run.run_id
+        if item.instance != run.instance:  # another plant instance's samples and commands
+            return False
+        # a sample already written (a duplicate) is not written again
+        return not (
+            isinstance(msg, ProcessSample) and run.last_seq is not None and msg.seq <= run.last_seq
+        )
+
+    def _status(self, stream: Stream, run: OpenRun, msg: LoopStatus) -> None:
+        """A status of the run's loop: the watchdog's restore ends a run whose tuner is gone."""
+        if msg.reason != "watchdog" or self._lease_held(run, msg):
+            return
+        if stream.run_token and run.lost != "token":
+            # the tuner lives (its token is there): it learns the lease is gone and ends
+            # its run with a result; if it does not, its token's vanishing closes the file
+            run.lost, run.lost_at = "watchdog", self.clock()
+            return
+        self._close(stream, status="tuner lost", result=None)
+
+    @staticmethod
+    def _lease_held(run: OpenRun, msg: LoopStatus) -> bool:
+        """Does ``msg`` show the run's lease still held? Before the run's lease command is
+        seen, any holder counts (a lease on a run's loop is the run's: leases are exclusive)."""
+        if msg.leased_by is None:
+            return False
+        holders = run.lease_holders | {f"tuner:{run.run_id}"}
+        return msg.leased_by in holders or len(run.lease_holders) == 0
+
+    # --- files ------------------------------------------------------------------------------
+
+    def _open(self, stream: Stream, start: TuneProgress) -> None:
         now = datetime.now(UTC)
         method = start.message.split(" ")[0] if start.message else "run"
-        path = self.runs_dir / f"{now:%Y%m%dT%H%M%SZ}_{loop_id}_{method}_{start.run_id}.mcap"
+        tail = "_replay" if stream.replay else ""
+        name = f"{now:%Y%m%dT%H%M%SZ}_{stream.loop}_{method}_{start.run_id}{tail}.mcap"
+        path = self.runs_dir / name
+        n = 1
+        while path.exists():  # the same run replayed twice within a second
+            n += 1
+            path = path.with_name(f"{name[: -len('.mcap')]}-{n}.mcap")
         run = OpenRun(
             start.run_id,
-            loop_id,
+            stream.loop,
             method,
             "",
             RunWriter(path, self.flush_interval),
             start.t,
             now.isoformat(),
+            instance=stream.instance,
+            replay=stream.replay,
+            plant_node=stream.node or "",
         )
-        loop.run = run
+        stream.run = run
+        if stream.run_token is False and not stream.replay:
+            run.lost, run.lost_at = "token", self.clock()  # its token is not there (yet)
         self.counts["runs"] += 1
-        log.info("run %s on %s: recording to %s", start.run_id, loop_id, path)
-        for item in loop.recent:  # what came just before, the start message included
-            if item.t >= start.t and not (
-                isinstance(item.msg, TuneProgress | TunerEvent | TuneResult)
-                and item.msg.run_id != start.run_id
-            ):
+        log.info(
+            "run %s on %s%s: recording to %s",
+            start.run_id,
+            stream.loop,
+            _replay_note(stream),
+            path,
+        )
+        for item in stream.recent:  # what came just before, the start message included
+            if item.t >= start.t and self._belongs(run, stream, item):
                 self._write(run, item)
 
     def _write(self, run: OpenRun, item: Item) -> None:
@@ -152,20 +426,30 @@ class Recorder:
             run.first_seq = msg.seq if run.first_seq is None else run.first_seq
             run.last_seq = msg.seq
             run.samples += 1
+        elif isinstance(msg, LoopStatus):
+            run.plant_node = run.plant_node or msg.node
+        elif isinstance(msg, LeaseCommand):
+            run.lease_holders.add(msg.source)
         elif isinstance(msg, TunerEvent) and msg.kind == "request":
             run.request = str(msg.data.get("request", ""))
             run.info = str(msg.data.get("info", ""))
             try:
-                run.rule = json.loads(run.request).get("rule", "")
-                run.method = json.loads(run.request).get("method", run.method)
-            except json.JSONDecodeError:
+                request = json.loads(run.request)
+                run.rule = request.get("rule", "")
+                run.method = request.get("method", run.method)
+            except (json.JSONDecodeError, AttributeError):
                 pass
         run.writer.write(item.key, item.model, item.payload, item.t)
         self.counts["written"] += 1
 
-    def _close(self, loop: Loop, status: str, result: TuneResult | None) -> None:
-        run = loop.run
-        loop.run = None
+    def _close(self, stream: Stream, status: str, result: TuneResult | None) -> None:
+        run = stream.run
+        if run is None:
+            return
+        stream.run = None
+        stream.recent.clear()  # what came before this close is never a later run's context
+        if stream.replay:  # a replay's stream ends with its run (memory stays bounded)
+            self.streams.pop((stream.loop, stream.replay), None)
         meta = {
             "run_id": run.run_id,
             "loop": run.loop,
@@ -185,31 +469,44 @@ class Recorder:
             "result": result.model_dump_json() if result else "",
             "ku": "" if result is None or result.ku is None else repr(result.ku),
             "pu": "" if result is None or result.pu is None else repr(result.pu),
+            "replay": run.replay,
+            "plant_node": run.plant_node,
+            "plant_changed": run.plant_changed,
+            "left_out": str(run.left_out),
         }
         run.writer.finish(meta)
         self.finished.append(run.writer.path)
+        if not run.replay:
+            self._recorded[run.run_id] = None
+            while len(self._recorded) > REMEMBERED_RUNS:
+                self._recorded.popitem(last=False)
         self.counts["dropped"] += run.gaps
         log.info(
-            "run %s on %s: %s, %d messages, %d samples, %d dropped → %s",
+            "run %s on %s%s: %s, %d messages, %d samples, %d dropped, %d left out → %s",
             run.run_id,
             run.loop,
+            _replay_note(stream),
             status,
             run.writer.messages,
             run.samples,
             run.gaps,
+            run.left_out,
             run.writer.path,
         )
 
     def flush_due(self) -> None:
-        for loop in self.loops.values():
-            if loop.run is not None:
-                loop.run.writer.flush_if_due()
+        for stream in self.streams.values():
+            if stream.run is not None:
+                stream.run.writer.flush_if_due()
 
     def close_all(self, status: str = "incomplete") -> None:
         """Finish every open file (on SIGTERM or Ctrl-C): nothing received is lost."""
-        for loop in self.loops.values():
-            if loop.run is not None:
-                self._close(loop, status=status, result=None)
+        for stream in list(self.streams.values()):
+            self._close(stream, status=status, result=None)
 
     def open_runs(self) -> list[str]:
-        return [lp.run.run_id for lp in self.loops.values() if lp.run is not None]
+        return [s.run.run_id for s in self.streams.values() if s.run is not None]
+
+
+def _replay_note(stream: Stream) -> str:
+    return f" (replay of {stream.replay})" if stream.replay else ""

@@ -1,23 +1,34 @@
-"""``autotune replay RUN.mcap``: republish a recorded run over Zenoh on its original keys.
+"""``autotune replay RUN.mcap``: republish a recorded run over Zenoh.
 
 As ``ros2 bag play``: ``--rate`` scales the pace (sim time of the recording → wall time),
 ``--loop`` keeps one loop, ``--topics`` only the given topics, ``--start-offset`` skips the
-first seconds. Messages go out in the order they were recorded. Commands to the loop are left
-out unless ``--with-commands``: replayed next to a live plant they would move its valve.
+first seconds. Messages go out in the order they were recorded, on their recorded keys, or
+with ``--prefix X`` under X instead of the recorded prefix. Every message carries the
+attachment ``{"replay": "<file name>"}``, so a logger does not take a replay for a new run
+(``autotune logger --record-replays`` records it, marked as a replay). Commands to the loop
+are left out unless ``--with-commands``: replayed next to a live plant they would move its
+valve. The whole file is checked before anything is sent: a missing, truncated or altered
+file (a payload that is not JSON, a missing or extra field, a topic autotune does not
+record) gets one line naming the record and the reason, exit 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
+import pydantic
 import zenoh
 
 from services.logger.mcap_io import Record, read_run
-from shared import wire
-from shared.cli import add_common_arguments
-from shared.errors import ConfigError
-from shared.session import open_session, settings_from_args
+from services.logger.recorder import model_for
+from shared import keys, wire
+from shared.errors import AutotuneError, ConfigError
+from shared.messages import Command
+from shared.session import add_zenoh_arguments, open_session, settings_from_args
+from shared.wire import replay_attachment
 
 HELP = "republish a recorded run over Zenoh (like ros2 bag play)"
 
@@ -52,31 +63,101 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="also republish commands to the loop (they act on a live plant)",
     )
-    add_common_arguments(parser)
+    parser.add_argument(
+        "--prefix",
+        help="publish under this prefix instead of the recorded one (default: the recorded "
+        "prefix, from the file's metadata)",
+    )
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)"
+    )
+    add_zenoh_arguments(parser)
+
+
+@dataclass(frozen=True)
+class Outgoing:
+    """One record to republish: where it was recorded, and the key it goes out on."""
+
+    record: Record
+    loop: str
+    command: bool
+    key: str
+
+
+def recorded_prefix(path: Path | str, meta: dict[str, str], records: list[Record]) -> str:
+    """The prefix the run was recorded under: the metadata's, else the one every key fits."""
+    if meta.get("prefix"):
+        return meta["prefix"]
+    candidates: set[str] | None = None
+    for r in records:
+        parts = r.key.split("/")
+        mine = {
+            "/".join(parts[:i])
+            for i in range(1, len(parts))
+            if parts[i] in ("plant", "tune") and model_for("/".join(parts[:i]), r.key)
+        }
+        candidates = mine if candidates is None else candidates & mine
+        if not candidates:
+            break
+    if not candidates:
+        raise AutotuneError(
+            f"{path}: no 'prefix' in the run's metadata, and the topics share none that "
+            "autotune records under"
+        )
+    return min(candidates, key=len)
+
+
+def check_records(path: Path | str, prefix: str, records: list[Record]) -> list[tuple[str, bool]]:
+    """(loop, is a command) of every record, each validated as the logger validates it live;
+    AutotuneError naming the first bad record (number, topic, sim time) and why."""
+    out = []
+    for i, r in enumerate(records):
+        where = f"{path}: {r.topic} message {i} (log time {r.log_time / 1e9:.9g} s)"
+        found = model_for(prefix, r.key)
+        if found is None:
+            raise AutotuneError(f"{where}: not a topic autotune records under {prefix!r}")
+        loop, model = found
+        try:
+            keys.check_id(loop)
+        except ValueError as err:
+            raise AutotuneError(f"{where}: {err}") from None
+        if r.schema and r.schema != model.__name__:
+            raise AutotuneError(f"{where}: schema {r.schema!r}, expected {model.__name__!r}")
+        try:
+            model.model_validate_json(r.data)
+        except pydantic.ValidationError as err:
+            raise AutotuneError(f"{where}: {wire.describe_validation_error(err)}") from None
+        out.append((loop, issubclass(model, Command)))
+    return out
 
 
 def select(
     records: list[Record],
+    checked: list[tuple[str, bool]],
+    recorded: str,
+    prefix: str,
     loop: str | None,
     topics: list[str] | None,
     start_offset: float,
     with_commands: bool,
-) -> list[Record]:
+) -> list[Outgoing]:
+    """The records to republish, on their new keys (``recorded`` prefix → ``prefix``).
+    ``--topics`` names recorded or republished topics (or keys)."""
     if not records:
         return []
     t0 = min(r.log_time for r in records)
     keep = []
-    for r in records:
-        parts = r.key.split("/")
-        if not with_commands and "cmd" in parts:
+    for r, (lp, command) in zip(records, checked, strict=True):
+        key = prefix + r.key[len(recorded) :]
+        if command and not with_commands:
             continue
-        if loop is not None and loop not in parts:
+        if loop is not None and lp != loop:
             continue
-        if topics and r.topic not in topics and r.key not in topics:
+        if topics and not {r.topic, r.key, "/" + key, key} & set(topics):
             continue
         if (r.log_time - t0) / 1e9 < start_offset:
             continue
-        keep.append(r)
+        keep.append(Outgoing(r, lp, command, key))
     return keep
 
 
@@ -95,29 +176,68 @@ def wait_for_subscriber(session: zenoh.Session, key: str, seconds: float) -> boo
         publisher.undeclare()
 
 
+def read_checked(path: str) -> tuple[str, list[Record], list[tuple[str, bool]]]:
+    """(recorded prefix, records, their checks): the whole file, before anything is sent."""
+    try:
+        meta, records = read_run(path)
+    except AutotuneError:
+        raise
+    except Exception as err:  # the reader's own failure on a damaged file: one line
+        raise AutotuneError(
+            f"{path}: not a readable MCAP file ({type(err).__name__}: {err})"
+        ) from None
+    recorded = recorded_prefix(path, meta, records)
+    try:
+        keys.check_prefix(recorded)
+    except ValueError as err:
+        raise AutotuneError(f"{path}: metadata 'prefix': {err}") from None
+    return recorded, records, check_records(path, recorded, records)
+
+
 def run(args: argparse.Namespace) -> int:
     if not (args.rate > 0 and args.rate < float("inf")):
         raise ConfigError(f"--rate {args.rate}: must be a finite number > 0")
     if not args.start_offset >= 0:
         raise ConfigError(f"--start-offset {args.start_offset}: must be ≥ 0 s")
-    _, records = read_run(args.file)
-    chosen = select(records, args.loop, args.topics, args.start_offset, args.with_commands)
+    if not args.wait >= 0:
+        raise ConfigError(f"--wait {args.wait}: must be ≥ 0 s")
+    if args.prefix is not None:
+        try:
+            keys.check_prefix(args.prefix)
+        except ValueError as err:
+            raise ConfigError(f"--prefix: {err}") from None
+    recorded, records, checked = read_checked(args.file)
+    prefix = recorded if args.prefix is None else args.prefix
+    chosen = select(
+        records,
+        checked,
+        recorded,
+        prefix,
+        args.loop,
+        args.topics,
+        args.start_offset,
+        args.with_commands,
+    )
     if not chosen:
         print("nothing to replay")
         return 0
+    attachment = replay_attachment(Path(args.file).name)
     with open_session(settings_from_args(args)) as session:
         wait_for_subscriber(session, chosen[0].key, args.wait)
-        wall0, t0 = time.monotonic(), chosen[0].log_time
-        for r in chosen:
+        wall0, t0 = time.monotonic(), chosen[0].record.log_time
+        for out in chosen:
+            r = out.record
             due = wall0 + max(0, r.log_time - t0) / 1e9 / args.rate
             delay = due - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
             session.put(
-                r.key,
+                out.key,
                 r.data,
                 encoding=wire.JSON + (f";{r.schema}" if r.schema else ""),
                 congestion_control=zenoh.CongestionControl.BLOCK,
+                attachment=attachment,
             )
-    print(f"replayed {len(chosen)} messages from {args.file}")
+    under = "" if prefix == recorded else f" under {prefix} (recorded under {recorded})"
+    print(f"replayed {len(chosen)} messages from {args.file}{under}")
     return 0

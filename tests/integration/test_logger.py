@@ -21,6 +21,7 @@ from services.logger.report import build_figure, load_series
 from shared import keys, wire
 from shared.messages import LoggerStatus, ProcessSample
 from shared.session import open_session
+from shared.wire import replay_source
 from tests.integration.test_tuner import HX, THIRD, autotune, plant_toml, tune
 
 pytestmark = pytest.mark.integration
@@ -229,14 +230,16 @@ def test_replay_delivers_every_message_in_order(start_plant, start_tuner, start_
         (["--with-commands"], [(r.key, r.data) for r in records]),
     ):
         got: list[tuple[str, bytes]] = []
+        marks: set[str | None] = set()  # every message is marked as a replay of the file
         with open_session(target.client_settings()) as s:
             sub = s.declare_subscriber(f"{p.prefix}/**", zenoh.handlers.FifoChannel(1 << 16))
-            reader = threading.Thread(
-                target=lambda sub=sub, got=got: [
-                    got.append((str(x.key_expr), x.payload.to_bytes())) for x in sub
-                ],
-                daemon=True,
-            )
+
+            def read(sub=sub, got=got, marks=marks) -> None:
+                for x in sub:
+                    got.append((str(x.key_expr), x.payload.to_bytes()))
+                    marks.add(replay_source(x.attachment and x.attachment.to_bytes()))
+
+            reader = threading.Thread(target=read, daemon=True)
             reader.start()
             run = autotune(
                 "replay",
@@ -255,7 +258,7 @@ def test_replay_delivers_every_message_in_order(start_plant, start_tuner, start_
             while len(got) < len(expected) and time.monotonic() < deadline:
                 time.sleep(0.05)
             sub.undeclare()
-        assert got == expected
+        assert got == expected and marks == {f.name}
 
 
 def test_report_plots_the_recorded_series(start_plant, start_tuner, start_logger, tmp_path):
