@@ -1,9 +1,18 @@
-"""The ``autotune`` command: one entry point, a subcommand per job."""
+"""The ``autotune`` command: one entry point, a subcommand per job.
+
+Bad input never traces back: a wrong flag (argparse's own complaint, or a number out of its
+bounds, checked here before any command opens a session or sends anything) and every error a
+command raises as AutotuneError or OSError end in one line on stderr and exit code 2.
+Anything else is a bug: one line too, exit 70, and the traceback only with AUTOTUNE_DEBUG=1.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import traceback
+import warnings
 
 from services import demo, health, router, up
 from services.autotuner import benchmark_command, step_command, tune_command
@@ -17,7 +26,8 @@ from services.logger import (
 )
 from services.logger import service as logger_service
 from services.plant_sim import service as plant_service
-from shared.errors import AutotuneError
+from shared.cli import OneLineParser, check_flags, check_runs_dir
+from shared.errors import AutotuneError, one_line
 
 SUBCOMMANDS = {
     "demo": demo,
@@ -38,8 +48,24 @@ SUBCOMMANDS = {
 }
 
 
+class Refused(SystemExit):
+    """A command's refusal by ``SystemExit(message)``, already printed: exit code 2 (not
+    Python's 1 for a message), the message still its ``str`` for those who catch it."""
+
+    def __init__(self, message: str):
+        super().__init__(2)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+
+RUNS_WRITERS = ("logger", "demo", "up")  # commands whose --runs is a directory they write
+EX_SOFTWARE = 70  # sysexits.h: an internal error
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="autotune",
         description="PID auto-tuning against simulated process plants, over Eclipse Zenoh.",
     )
@@ -56,16 +82,45 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """Every flag that can be judged without the bus; ConfigError naming the first bad one."""
+    check_flags(args.command, args)
+    if args.command in RUNS_WRITERS and getattr(args, "runs", None) is not None:
+        check_runs_dir("--runs", args.runs)
+
+
 def main(argv: list[str] | None = None) -> int:
+    if not sys.warnoptions:  # a library's warning is not the user's business (-W shows them)
+        warnings.simplefilter("ignore")
     args = build_parser().parse_args(argv)
+    name = f"autotune {args.command}"
     try:
+        check_args(args)
         return args.run(args)
     except AutotuneError as err:
-        print(f"autotune {args.command}: error: {err}", file=sys.stderr)
+        print(f"{name}: error: {one_line(err, 2000)}", file=sys.stderr)
+        return 2
+    except OSError as err:  # a file or directory named on the command line, at the edge
+        where = f": {err.filename}" if err.filename else ""
+        print(f"{name}: error: {one_line(err.strerror or err)}{where}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"autotune {args.command}: interrupted", file=sys.stderr)
+        print(f"{name}: interrupted", file=sys.stderr)
         return 130
+    except SystemExit as stop:  # a command's own one-line refusal (benchmark's flags)
+        if isinstance(stop.code, str):
+            print(one_line(stop.code, 2000), file=sys.stderr)
+            raise Refused(stop.code) from None
+        raise
+    except Exception as err:  # a bug: still one line, the traceback on request
+        if os.environ.get("AUTOTUNE_DEBUG"):
+            traceback.print_exc()
+        print(
+            f"{name}: internal error (a bug, please report it; AUTOTUNE_DEBUG=1 shows the "
+            f"traceback): {type(err).__name__}: {one_line(err)}",
+            file=sys.stderr,
+        )
+        return EX_SOFTWARE
 
 
 if __name__ == "__main__":

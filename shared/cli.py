@@ -4,12 +4,25 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
+import os
 import signal
 import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NoReturn
 
 from shared import keys
-from shared.errors import ConfigError
+from shared.errors import ConfigError, one_line
 from shared.session import add_zenoh_arguments
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose errors are one line (the usage is what --help is for); its subparsers
+    are of this class too."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {one_line(message, 500)} (see {self.prog} --help)\n")
 
 
 def add_common_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,3 +66,111 @@ def check_ids(prefix: str, **ids: str) -> None:
             keys.check_id(value, what)
     except ValueError as err:
         raise ConfigError(str(err)) from None
+
+
+MAX_SPEED = 1000.0  # realtime speed-up: beyond, the wall clock cannot pace the samples
+MAX_SECONDS = 1e7  # any duration given on the command line (115 days)
+
+
+@dataclass(frozen=True)
+class Bound:
+    """What a numeric flag accepts: ``low`` (refused itself when ``low_open``) to ``high``;
+    ``nonzero`` refuses 0; ``why`` says why ``high`` is the limit."""
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    nonzero: bool = False
+    unit: str = ""
+    why: str = ""
+
+
+_SECONDS = Bound(0.0, MAX_SECONDS, low_open=True, unit="s")
+_SEED = Bound(0)
+_SPEED = Bound(
+    0.0,
+    MAX_SPEED,
+    low_open=True,
+    why="beyond it the wall clock cannot pace the samples: use the lockstep clock, which "
+    "runs as fast as the loop allows",
+)
+_TUNE = {
+    "step_size": Bound(-100.0, 100.0, nonzero=True, unit="%"),
+    "max_time": _SECONDS,
+    "rest_window": _SECONDS,
+    "hysteresis": Bound(0.0),
+    "bump": Bound(0.0, low_open=True),
+    "kc_start": Bound(0.0, low_open=True),
+}
+
+# Per command: every numeric flag's bounds (NaN and ±inf are refused for every flag anyway).
+FLAG_BOUNDS: dict[str, dict[str, Bound]] = {
+    "plant": {"seed": _SEED, "noise_std": Bound(0.0), "speed": _SPEED},
+    "demo": {**_TUNE, "seed": _SEED, "noise": Bound(0.0), "speed": _SPEED},
+    "up": {"seed": _SEED, "speed": _SPEED},
+    "step": {
+        "size": Bound(-100.0, 100.0, nonzero=True, unit="%"),
+        "baseline": Bound(0.0, MAX_SECONDS, unit="s"),
+        "timeout": _SECONDS,
+        "wait": _SECONDS,
+    },
+    "tune": {**_TUNE, "wait": _SECONDS},
+    "health": {"timeout": _SECONDS},
+    "replay": {
+        "rate": Bound(0.0, low_open=True),
+        "start_offset": Bound(0.0, unit="s"),
+        "wait": Bound(0.0, MAX_SECONDS, unit="s"),
+    },
+    "report": {"dpi": Bound(10, 1200, why="the figure is 12 × 7 inches")},
+    "benchmark": {"seed": _SEED},
+}
+ORDERED_PAIRS = ("pv_limits",)  # LO HI flags: LO must be below HI
+
+
+def flag_name(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def _check_number(flag: str, value: float, bound: Bound | None) -> None:
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"{flag} {value}: must be a finite number")
+    if bound is None:
+        return
+    unit = f" {bound.unit}" if bound.unit else ""
+    if bound.low is not None and (value <= bound.low if bound.low_open else value < bound.low):
+        op = ">" if bound.low_open else "≥"
+        raise ConfigError(f"{flag} {value:g}: must be {op} {bound.low:g}{unit}")
+    if bound.high is not None and value > bound.high:
+        why = f" ({bound.why})" if bound.why else ""
+        raise ConfigError(f"{flag} {value:g}: must be at most {bound.high:g}{unit}{why}")
+    if bound.nonzero and value == 0:
+        raise ConfigError(f"{flag} 0: must not be zero")
+
+
+def check_flags(command: str, args: argparse.Namespace) -> None:
+    """ConfigError naming the first numeric flag of ``command`` that is NaN, infinite, or out
+    of its bounds (FLAG_BOUNDS): called before anything is opened or sent."""
+    bounds = FLAG_BOUNDS.get(command, {})
+    for dest, value in vars(args).items():
+        values = value if isinstance(value, list | tuple) else [value]
+        numbers = [v for v in values if isinstance(v, int | float) and not isinstance(v, bool)]
+        for v in numbers:
+            _check_number(flag_name(dest), v, bounds.get(dest))
+        if dest in ORDERED_PAIRS and len(numbers) == 2 and not numbers[0] < numbers[1]:
+            lo, hi = numbers
+            raise ConfigError(f"{flag_name(dest)} {lo:g} {hi:g}: LO must be below HI")
+
+
+def check_runs_dir(flag: str, path: str) -> None:
+    """ConfigError unless ``path`` is a directory we may write into, or one that can be made
+    (its nearest existing ancestor is a writable directory)."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ConfigError(f"{flag} {path}: exists and is not a directory")
+    probe = p
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ConfigError(f"{flag} {path}: {probe} is not a directory")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise ConfigError(f"{flag} {path}: {probe} is not writable")

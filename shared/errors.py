@@ -11,3 +11,10 @@ class ConfigError(AutotuneError):
 
 class DecodeError(AutotuneError):
     """A payload that cannot be accepted: not JSON, wrong schema, wrong types, out of range."""
+
+
+def one_line(text: object, limit: int = 300) -> str:
+    """``text`` on one line (whitespace runs, line breaks included, become one space), cut to
+    ``limit`` characters: what a user's own error message becomes inside one of ours."""
+    line = " ".join(str(text).split())
+    return line if len(line) <= limit else line[: limit - 1] + "…"

@@ -4,21 +4,37 @@ The run's ``experiment`` event holds the set-up the live tuner built its state m
 and the first sample it fed; feeding the same recorded samples to a machine built the same
 way (``autotuner.experiments``) reaches the same K_u, P_u or reaction curve, bit for bit,
 and every rule's gains follow without a new experiment.
+
+Nothing in the file is trusted: every record used is validated against its message model, the
+request and the experiment's set-up against what the live tuner writes, and whatever is wrong
+is one AutotuneError naming the record (topic, index, log time), the field and the reason.
+Another run's messages in the file are left out; a message recorded twice is read once.
 """
 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
+
+import pydantic
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.autotuner import experiments
 from services.autotuner.forms import all_forms
 from services.autotuner.selection import Selection, assessments_dict, select
 from services.autotuner.step_test import StepTest
-from services.logger.mcap_io import read_run
-from shared.errors import AutotuneError
-from shared.messages import ProcessSample, TuneRequest, TuneResult
+from services.autotuner.tuning import validate_request
+from services.logger.mcap_io import (
+    decode,
+    one_result,
+    read_run,
+    unique_samples,
+    validation_reason,
+)
+from shared.errors import AutotuneError, one_line
+from shared.messages import ProcessSample, TuneRequest, TuneResult, TunerEvent
 
 
 @dataclass
@@ -74,54 +90,160 @@ class Analysis:
         return bool(live.ku == self.ident.ku and live.pu == self.ident.pu)
 
 
-def analyze_file(path: str | Path) -> Analysis:
-    """Rebuild the run's experiment from the file and re-identify; AutotuneError if the file
-    does not hold a complete experiment."""
+class Setup(BaseModel):
+    """The ``experiment`` event's data: what the live loop gave the experiment (checked here,
+    passed on as recorded so that the machine is rebuilt to the bit)."""
+
+    model_config = ConfigDict(extra="allow", strict=True, allow_inf_nan=False)
+
+    first_seq: int = Field(ge=0)
+    sample_time: float = Field(gt=0.0, le=86400.0)
+    op_lo: float = Field(ge=0.0, le=100.0)
+    op_hi: float = Field(ge=0.0, le=100.0)
+    pv_lo: float
+    pv_hi: float
+    pv_range_lo: float | None = None
+    pv_range_hi: float | None = None
+    pv_units: str | None = None
+    time_scale: float | None = Field(default=None, gt=0.0)
+    op_start: float | None = Field(default=None, ge=0.0, le=100.0)
+    direction: float | None = None
+    kc_start: float | None = Field(default=None, gt=0.0)
+    bump: float | None = Field(default=None, gt=0.0)
+    sp_start: float | None = None
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Setup:
+        for lo, hi in (("op_lo", "op_hi"), ("pv_lo", "pv_hi"), ("pv_range_lo", "pv_range_hi")):
+            a, b = getattr(self, lo), getattr(self, hi)
+            if a is not None and b is not None and not a < b:
+                raise ValueError(f"{lo} {a:g} must be below {hi} {b:g}")
+        return self
+
+    def missing_for(self, method: str) -> str | None:
+        """The first setting ``method`` needs that the event lacks (or has wrong)."""
+        needs = {"relay": ("op_start", "direction"), "step": ("op_start",)}.get(
+            method, ("kc_start", "bump", "sp_start")
+        )
+        for name in needs:
+            if getattr(self, name) is None:
+                return f"{name}: required for a {method} test"
+        if method == "relay" and self.direction not in (1.0, -1.0):
+            return f"direction: must be 1 or -1, got {self.direction:g}"
+        return None
+
+
+@dataclass
+class _Run:
+    """The records of one run that the analysis reads, decoded and checked."""
+
+    request: TuneRequest
+    setup: dict
+    first_seq: int
+    step_times: list[float]
+    samples: list[ProcessSample]
+    result: TuneResult | None
+
+
+def _read(path: str | Path) -> tuple[dict[str, str], _Run]:
     meta, records = read_run(path)
-    events = [r.json() for r in records if r.topic.endswith("/event")]
-    request = next((e for e in events if e["kind"] == "request"), None)
-    setup = next((e for e in events if e["kind"] == "experiment"), None)
+    events = [(r, decode(path, r, TunerEvent)) for r in records if r.topic.endswith("/event")]
+    run_id = meta.get("run_id") or next((e.run_id for _, e in events if e.kind == "request"), None)
+    runs = sorted({e.run_id for _, e in events if e.kind == "request"})
+    if runs and run_id not in runs:
+        raise AutotuneError(
+            f"{path}: metadata 'run', field run_id: {run_id!r} is none of the runs recorded "
+            f"in the file ({', '.join(runs)})"
+        )
+    events = [(r, e) for r, e in events if e.run_id == run_id]  # another run's: not this one
+    request = next(((r, e) for r, e in events if e.kind == "request"), None)
+    setup = next(((r, e) for r, e in events if e.kind == "experiment"), None)
     if request is None or setup is None:
         raise AutotuneError(
             f"{path}: no experiment recorded in this run (it ended before the experiment started)"
         )
-    req = TuneRequest.model_validate_json(request["data"]["request"])
-    data = dict(setup["data"])
-    first_seq = int(data.pop("first_seq"))
-    step_times = [e["data"]["t"] for e in events if e["kind"] == "step_started"]
-    samples = sorted(
-        (ProcessSample.model_validate_json(r.data) for r in records if r.topic.endswith("/pv")),
-        key=lambda s: s.seq,
-    )
-    machine = experiments.build(req.method, req, data)
-    op = data.get("op_start")
-    for s in samples:
-        if s.seq < first_seq:
-            continue
-        want = experiments.feed(machine, s)
-        if machine.finished:
-            break
-        if isinstance(machine, StepTest) and want != op:
-            op = want
-            if not step_times:
-                raise AutotuneError(f"{path}: the step's start time was not recorded")
-            machine.step_started(step_times.pop(0))
-    ident = experiments.identification(machine)
-    if ident is None:
+    r, e = request
+    text = e.data.get("request")
+    if not isinstance(text, str):
+        raise AutotuneError(f"{path}: {r.where()}: data.request: missing, or not a string")
+    try:
+        req = TuneRequest.model_validate_json(text)
+    except pydantic.ValidationError as err:
         raise AutotuneError(
-            f"{path}: the recorded samples do not complete the {req.method} "
-            f"test ({machine.reason or 'the recording ends first'})"
-        )
-    sel = select(ident, req.rule, req.ms_bound, req.force, data.get("sample_time"))
-    result = next((r for r in records if r.topic.endswith("/result")), None)
-    live = TuneResult.model_validate_json(result.data) if result else None
+            f"{path}: {r.where()}: {validation_reason(err, 'data.request')}"
+        ) from None
+    try:
+        validate_request(req)
+    except ValueError as err:
+        raise AutotuneError(f"{path}: {r.where()}: data.request.{one_line(err)}") from None
+    r, e = setup
+    try:
+        checked = Setup.model_validate(e.data)
+    except pydantic.ValidationError as err:
+        raise AutotuneError(f"{path}: {r.where()}: {validation_reason(err, 'data')}") from None
+    problem = checked.missing_for(req.method)
+    if problem:
+        raise AutotuneError(f"{path}: {r.where()}: data.{problem}")
+    step_times = []
+    for r, e in events:
+        if e.kind == "step_started":
+            t = e.data.get("t")
+            if isinstance(t, bool) or not isinstance(t, int | float) or not 0 <= t < math.inf:
+                raise AutotuneError(f"{path}: {r.where()}: data.t: must be a time ≥ 0 s, got {t!r}")
+            step_times.append(float(t))
+    samples = unique_samples(path, records)
+    results = [(r, decode(path, r, TuneResult)) for r in records if r.topic.endswith("/result")]
+    result = one_result(path, [(r, x) for r, x in results if x.run_id == run_id])
+    data = dict(setup[1].data)
+    first_seq = int(data.pop("first_seq"))
+    return meta, _Run(req, data, first_seq, step_times, samples, result)
+
+
+def analyze_file(path: str | Path) -> Analysis:
+    """Rebuild the run's experiment from the file and re-identify; AutotuneError (one line,
+    naming the record and field) if the file does not hold a complete, valid experiment."""
+    meta, run = _read(path)
+    req, data = run.request, run.setup
+    try:
+        machine = experiments.build(req.method, req, data)
+    except (ValueError, TypeError, KeyError, ArithmeticError) as err:
+        raise AutotuneError(
+            f"{path}: the experiment event's set-up does not build a {req.method} test: "
+            f"{one_line(err)}"
+        ) from None
+    op = data.get("op_start")
+    step_times = list(run.step_times)
+    try:
+        for s in run.samples:
+            if s.seq < run.first_seq:
+                continue
+            want = experiments.feed(machine, s)
+            if machine.finished:
+                break
+            if isinstance(machine, StepTest) and want != op:
+                op = want
+                if not step_times:
+                    raise AutotuneError(f"{path}: the step's start time was not recorded")
+                machine.step_started(step_times.pop(0))
+        ident = experiments.identification(machine)
+        if ident is None:
+            raise AutotuneError(
+                f"{path}: the recorded samples do not complete the {req.method} "
+                f"test ({machine.reason or 'the recording ends first'})"
+            )
+        sel = select(ident, req.rule, req.ms_bound, req.force, data.get("sample_time"))
+    except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as err:
+        raise AutotuneError(
+            f"{path}: the recorded samples cannot be re-identified as a {req.method} test "
+            f"({type(err).__name__}: {one_line(err)})"
+        ) from None
     return Analysis(
         str(path),
         meta.get("loop", req.loop),
         req.method,
         ident,
         {name: all_forms(g) for name, g in sel.table.items()},
-        live,
+        run.result,
         sel,
     )
 

@@ -9,16 +9,14 @@ about a second with the logger's flushing) is what is lost.
 from __future__ import annotations
 
 import argparse
-import struct
 from pathlib import Path
 
-from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from services.logger.mcap_io import LIBRARY, MAGIC, PROFILE
-from shared.errors import AutotuneError
+from shared.errors import AutotuneError, one_line
 
 HELP = "salvage a truncated MCAP file (from a killed logger)"
 
@@ -34,6 +32,8 @@ def recover(src: Path, dst: Path) -> dict[str, int | str]:
         raise AutotuneError(f"{src}: no such file")
     if src.resolve() == dst.resolve():
         raise AutotuneError("-o must name a new file, not the broken one")
+    if dst.is_dir():
+        raise AutotuneError(f"-o {dst}: is a directory (name the new file)")
     with src.open("rb") as f:
         if f.read(len(MAGIC)) != MAGIC:
             raise AutotuneError(
@@ -73,8 +73,8 @@ def recover(src: Path, dst: Path) -> dict[str, int | str]:
                 elif isinstance(rec, Metadata):
                     writer.add_metadata(rec.name, rec.metadata)
                     counts["metadata"] += 1
-        except (McapError, struct.error, ValueError, EOFError) as err:
-            stopped = f"truncated: {str(err) or type(err).__name__}"
+        except Exception as err:  # the mcap library on damaged bytes: any of a dozen kinds
+            stopped = f"truncated: {one_line(err) or type(err).__name__}"
         writer.finish()
     return {**counts, "stopped": stopped}
 

@@ -16,9 +16,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from services.logger.mcap_io import read_run
-from shared.errors import AutotuneError
-from shared.messages import ProcessSample, TuneProgress, TuneResult, TunerEvent
+from services.logger.mcap_io import decode, one_result, read_run, unique_samples
+from shared.errors import AutotuneError, one_line
+from shared.messages import TuneProgress, TuneResult, TunerEvent
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -39,21 +39,21 @@ class RunSeries:
 
 
 def load_series(path: str | Path) -> RunSeries:
+    """The run's series and marks; AutotuneError (one line naming the record and field) for
+    a file or a message that cannot be read."""
     meta, records = read_run(path)
-    samples = sorted(
-        (ProcessSample.model_validate_json(r.data) for r in records if r.topic.endswith("/pv")),
-        key=lambda s: s.seq,
-    )
+    samples = unique_samples(path, records)
     if not samples:
         raise AutotuneError(f"{path}: no process samples recorded")
-    events = [TunerEvent.model_validate_json(r.data) for r in records if r.topic.endswith("/event")]
-    progress = [
-        TuneProgress.model_validate_json(r.data) for r in records if r.topic.endswith("/progress")
-    ]
-    result = next(
-        (TuneResult.model_validate_json(r.data) for r in records if r.topic.endswith("/result")),
-        None,
-    )
+    run_id = meta.get("run_id")
+    events = [decode(path, r, TunerEvent) for r in records if r.topic.endswith("/event")]
+    progress = [decode(path, r, TuneProgress) for r in records if r.topic.endswith("/progress")]
+    results = [(r, decode(path, r, TuneResult)) for r in records if r.topic.endswith("/result")]
+    if run_id:  # another run's messages (a stale tail) are not this run's
+        events = [e for e in events if e.run_id == run_id]
+        progress = [p for p in progress if p.run_id == run_id]
+        results = [(r, x) for r, x in results if x.run_id == run_id]
+    result = one_result(path, results)
     marks = [(e.t, f"cycle {e.data.get('n')}") for e in events if e.kind == "cycle"]
     marks += [(e.t, f"trial {e.data.get('n')}") for e in events if e.kind == "trial"]
     spans: list[tuple[float, float]] = []
@@ -78,27 +78,38 @@ def load_series(path: str | Path) -> RunSeries:
     )
 
 
+def _g(value: object, spec: str, unit: str = "") -> str:
+    """A recorded number formatted, or "—" where the file has none (or not a number)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return "—"
+    return f"{value:{spec}}{unit}"
+
+
 def _summary(s: RunSeries) -> str:
     r = s.result
     if r is None:
         return f"status: {s.meta.get('status', 'incomplete')}"
     lines = [f"{r.method} test · rule {r.rule} · {r.status}"]
     if r.ku is not None:
-        lines.append(f"K_u = {r.ku:.4g} %/{r.pv_units}   P_u = {r.pu:.4g} s")
-    if r.step:
+        lines.append(f"K_u = {_g(r.ku, '.4g')} %/{r.pv_units}   P_u = {_g(r.pu, '.4g', ' s')}")
+    step = r.step if isinstance(r.step, dict) else {}
+    if step:
         lines.append(
-            f"K = {r.step['gain']:.3g}  L = {r.step['dead_time']:.3g} s  "
-            f"T = {r.step['time_constant_tangent']:.3g} s"
+            f"K = {_g(step.get('gain'), '.3g')}  L = {_g(step.get('dead_time'), '.3g', ' s')}  "
+            f"T = {_g(step.get('time_constant_tangent'), '.3g', ' s')}"
         )
-    if r.chosen:
-        isa = r.chosen["isa"]
-        ti = "—" if isa["ti"] is None else f"{isa['ti']:.4g} s"
-        lines.append(f"Kc = {isa['kc']:.4g}  Ti = {ti}  Td = {isa['td']:.4g} s")
+    isa = (r.chosen or {}).get("isa") if isinstance(r.chosen, dict) else None
+    if isinstance(isa, dict):
+        lines.append(
+            f"Kc = {_g(isa.get('kc'), '.4g')}  Ti = {_g(isa.get('ti'), '.4g', ' s')}  "
+            f"Td = {_g(isa.get('td'), '.4g', ' s')}"
+        )
     if r.after is not None:
         a = r.after
-        over = "—" if a.overshoot is None else f"{a.overshoot:.0f} %"
-        decay = "—" if a.decay_ratio is None else f"{a.decay_ratio:.2f}"
-        lines.append(f"after: overshoot {over}, decay ratio {decay}, IAE {a.iae_sp:.3g}")
+        lines.append(
+            f"after: overshoot {_g(a.overshoot, '.0f', ' %')}, decay ratio "
+            f"{_g(a.decay_ratio, '.2f')}, IAE {_g(a.iae_sp, '.3g')}"
+        )
     if r.reason:
         lines.append(r.reason[:70])
     return "\n".join(lines)
@@ -174,6 +185,13 @@ def run(args: argparse.Namespace) -> int:
     if out.suffix.lower() != ".png":
         raise AutotuneError(f"-o {out}: the report is a PNG file (name it .png)")
     series = load_series(args.file)
-    build_figure(series).savefig(out, dpi=args.dpi)
+    try:
+        build_figure(series).savefig(out, dpi=args.dpi)
+    except (ValueError, OverflowError) as err:  # e.g. values beyond what an axis can scale
+        raise AutotuneError(
+            f"{args.file}: cannot plot the recorded series: {one_line(err)}"
+        ) from None
+    except OSError as err:
+        raise AutotuneError(f"-o {out}: cannot write it: {err.strerror}") from None
     print(json.dumps({"report": str(out), "samples": int(series.t.size)}))
     return 0

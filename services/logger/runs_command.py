@@ -1,5 +1,10 @@
 """``autotune runs [DIR]``: list the recorded runs (time, loop, method, K_u, P_u, rule, gains,
-status), newest last."""
+status), newest last.
+
+A file that cannot be read — not MCAP, truncated, corrupt, a newer format, metadata that is
+not what the logger writes — is listed too, its status ``unreadable: <reason>`` (with
+``--json``: ``"status": "unreadable"`` and ``"reason"``); the others are listed as usual and
+the exit code stays 0."""
 
 from __future__ import annotations
 
@@ -8,7 +13,7 @@ import json
 from pathlib import Path
 
 from services.logger.mcap_io import read_run
-from shared.errors import AutotuneError
+from shared.errors import AutotuneError, one_line
 
 HELP = "list the recorded tuning runs"
 
@@ -25,12 +30,52 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def summarize(path: Path) -> dict:
+    """The run's row; for a file that cannot be read, a row that says why."""
     try:
         meta, _ = read_run(path)
+        return _row(path, meta)
     except AutotuneError as err:
-        return {"file": path.name, "status": "unreadable", "reason": str(err).split(" (")[0]}
-    result = json.loads(meta["result"]) if meta.get("result") else {}
-    chosen = (result.get("chosen") or {}).get("isa")
+        return {"file": path.name, "status": "unreadable", "reason": _reason(path, err)}
+
+
+def _reason(path: Path, err: AutotuneError) -> str:
+    """The error without the file's name (the row has it) nor the recover hint."""
+    text = one_line(err).removeprefix(f"{path}: ")
+    return text.split("; if a logger was killed")[0]
+
+
+def _count(meta: dict[str, str], key: str) -> int:
+    raw = meta.get(key) or "0"
+    try:
+        n = int(raw)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise AutotuneError(f"metadata 'run', field {key}: not a count: {one_line(repr(raw))}")
+    return n
+
+
+def _row(path: Path, meta: dict[str, str]) -> dict:
+    if not meta:
+        raise AutotuneError("no 'run' metadata record (not a run file the logger finished)")
+    result: dict = {}
+    if meta.get("result"):  # read leniently: a result from an older autotune still lists
+        try:
+            result = json.loads(meta["result"])
+        except ValueError as err:
+            raise AutotuneError(
+                f"metadata 'run', field result: not JSON ({one_line(err)})"
+            ) from None
+        if not isinstance(result, dict):
+            raise AutotuneError("metadata 'run', field result: not a JSON object")
+    for key in ("ku", "pu"):
+        v = result.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int | float)):
+            raise AutotuneError(
+                f"metadata 'run', field result.{key}: not a number: {one_line(repr(v))}"
+            )
+    chosen = result.get("chosen") if isinstance(result.get("chosen"), dict) else {}
+    isa = chosen.get("isa") if isinstance(chosen.get("isa"), dict) else None
     return {
         "file": path.name,
         "started": meta.get("started"),
@@ -39,15 +84,19 @@ def summarize(path: Path) -> dict:
         "rule": meta.get("rule"),
         "ku": result.get("ku"),
         "pu": result.get("pu"),
-        "gains": chosen,
+        "gains": isa,
         "status": meta.get("status"),
-        "samples": int(meta.get("samples") or 0),
-        "dropped": int(meta.get("dropped") or 0),
+        "samples": _count(meta, "samples"),
+        "dropped": _count(meta, "dropped"),
     }
 
 
 def _num(v, fmt: str = ".4g") -> str:
-    return "—" if v is None else format(v, fmt)
+    if v is None:
+        return "—"
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return "?"
+    return format(v, fmt)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -71,6 +120,12 @@ def run(args: argparse.Namespace) -> int:
             f"{(r.get('started') or '')[:19]:<20} {r.get('loop') or '':<8} "
             f"{r.get('method') or '':<6} {_num(r.get('ku')):>9} {_num(r.get('pu')):>9} "
             f"{r.get('rule') or '':<12} {_num(g.get('kc')):>8} {_num(g.get('ti')):>8} "
-            f"{_num(g.get('td')):>8} {r['status']}  {r['file']}"
+            f"{_num(g.get('td')):>8} {_status(r)}  {r['file']}"
         )
     return 0
+
+
+def _status(row: dict) -> str:
+    if row.get("status") == "unreadable":
+        return f"unreadable: {row.get('reason')}"
+    return str(row.get("status") or "—")

@@ -4,18 +4,31 @@ Timing at each period [t_k, t_{k+1}): the output u_k is held (ZOH); at t_{k+1} t
 measured (true PV + seeded Gaussian noise, limited to the transmitter's range), then the PID
 block executes (in auto) or tracks (in manual), giving u_{k+1}. A sample therefore reports
 the PV measured at t and the output held from t on.
+
+A model that fails mid-run (its ``step`` raises, or returns something that is not a finite
+number) faults the loop: it is put in manual at the output it last held, its PV is held at the
+last measurement, ``fault`` says why (in every LoopStatus), the failure is logged once, and
+the model is never called again. Samples keep coming (time goes on) so that whoever drives the
+loop is never left waiting; commands that would move the dead process — auto, an output, a
+disturbance — are refused with the fault as the reason. No method of a SimLoop raises for a
+failure of the model: one broken loop never takes its service, or the other loops, down.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import numbers
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from services.plant_sim.models import ProcessModel
 from services.plant_sim.pid import PidBlock
+from shared.errors import one_line as brief
 from shared.messages import (
     Action,
     ClockMode,
@@ -34,6 +47,39 @@ from shared.messages import (
 
 MAX_SOURCES = 256  # senders whose refusals a loop keeps count of
 
+log = logging.getLogger("plant_sim")
+
+
+class ModelFailure(Exception):
+    """The process model failed: raised, or gave a value that is not a finite number."""
+
+    def __init__(self, reason: str):
+        self.reason = reason
+        super().__init__(reason)
+
+
+def call_model(what: str, fn: Callable[..., Any], *args: Any) -> Any:
+    """Call the model's ``fn``; ModelFailure naming ``what`` and the model's own message."""
+    try:
+        with np.errstate(all="ignore"):  # overflow is judged from the value, not printed
+            return fn(*args)
+    except Exception as err:
+        msg = brief(err)
+        raise ModelFailure(
+            f"the model's {what} raised {type(err).__name__}{': ' + msg if msg else ''}"
+        ) from None
+
+
+def model_pv(what: str, fn: Callable[..., Any], *args: Any) -> float:
+    """A PV from the model: a finite real number, else ModelFailure."""
+    value = call_model(what, fn, *args)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ModelFailure(f"the model's {what} returned {brief(repr(value))}, not a number")
+    pv = float(value)
+    if not math.isfinite(pv):
+        raise ModelFailure(f"the model's {what} returned PV {pv}")
+    return pv
+
 
 class CommandRejected(Exception):
     """A command the loop refuses; ``category`` is the counter it goes to."""
@@ -42,6 +88,19 @@ class CommandRejected(Exception):
         self.category = category
         self.reason = reason
         super().__init__(reason)
+
+
+def gains_problem(gains: PidGains, sample_time: float, pv_range: tuple[float, float]) -> str | None:
+    """Why ``gains`` would overflow the PID block's arithmetic on this loop (its terms reach
+    Kc·span·(1 + Td/T + T/Ti) % of output), else None."""
+    span = pv_range[1] - pv_range[0]
+    reach = 1.0 + gains.td / sample_time + (sample_time / gains.ti if gains.ti else 0.0)
+    if gains.kc * span * reach < 1e300:
+        return None
+    return (
+        f"Kc {gains.kc:g}, Ti {gains.ti}, Td {gains.td:g} s are beyond floating-point range "
+        f"for a PV span of {span:g} at {sample_time:g} s samples"
+    )
 
 
 @dataclass(frozen=True)
@@ -85,7 +144,7 @@ class SimLoop:
         self.sample_time = settings.sample_time
         self.seq = 0
         self._rng = np.random.default_rng([settings.seed, _stable_hash(settings.loop_id)])
-        pv_rest = process.reset()
+        pv_rest = model_pv("reset()", process.reset)  # ModelFailure: the loop cannot start
         self.pv = self._measure(pv_rest)
         self.sp = settings.setpoint if settings.setpoint is not None else pv_rest
         self.pid = PidBlock(
@@ -103,7 +162,10 @@ class SimLoop:
         self.rejected = 0
         self.last_reject: str | None = None
         self.fault: str | None = None  # why the model failed mid-run (loop held in manual)
+        self.fault_t: float | None = None  # sim time of the failure
         self._refusals: dict[str, tuple[int, str]] = {}  # by sender: count, last reason
+        self._disturbances: dict[str, float] = {}
+        self._disturbances = self.disturbances()
 
     @property
     def t(self) -> float:
@@ -141,20 +203,51 @@ class SimLoop:
 
         ``held_op`` is the output latched at the start of the period (realtime clock: a
         command that arrives mid-period takes effect at the next sample); None holds the
-        present output (lockstep: the clock stands still between samples).
+        present output (lockstep: the clock stands still between samples). Never raises: a
+        model that fails faults the loop (see the module's doc) and the sample holds.
         """
-        pv_true = self.process.step(self.pid.op if held_op is None else held_op)
-        if not math.isfinite(pv_true):
-            raise RuntimeError(f"loop {self.settings.loop_id}: the model returned PV {pv_true}")
+        op = self.pid.op if held_op is None else held_op
+        if self.fault is None:
+            try:
+                pv_true = model_pv("step()", self.process.step, op)
+            except ModelFailure as err:
+                self._set_fault(err.reason, op, self.t + self.sample_time)
         self.seq += 1
+        if self.fault is not None:
+            return self.sample()
         self.pv = self._measure(pv_true)
         if self.pid.mode == "auto":
             self.pid.update(self.sp, self.pv)
+            if not math.isfinite(self.pid.op):
+                g = self.pid.gains
+                self._set_fault(
+                    f"the PID block's output became {self.pid.op} (Kc {g.kc:g}, Ti {g.ti}, "
+                    f"Td {g.td:g}: gains out of all proportion to the PV range)",
+                    op,
+                    self.t,
+                )
         else:
             if self.settings.sp_track:
                 self.sp = self.pv
             self.pid.track(self.pv, self.pid.op)
         return self.sample()
+
+    def _set_fault(self, reason: str, op: float, t: float) -> None:
+        """Fault the loop at sim time ``t``: manual at ``op`` (the output it last held), PV
+        held, logged once."""
+        self.fault = f"{reason} (at t = {t:g} s)"
+        self.fault_t = t
+        self.pid.set_mode("manual", self.sp, self.pv)
+        self.pid.set_output(op)
+        log.error(
+            "loop %s: model %s failed: %s; the loop is held in manual at OP %.4g %%, "
+            "PV %.6g (the other loops go on)",
+            self.settings.loop_id,
+            self.settings.model_name,
+            self.fault,
+            self.pid.op,
+            self.pv,
+        )
 
     def refused(self, source: str, reason: str) -> None:
         """Count a refusal against the command's sender (the last MAX_SOURCES senders)."""
@@ -217,29 +310,53 @@ class SimLoop:
             pv_units=s.pv_units,
             pv_range=s.pv_range,
             op_limits=s.op_limits,
-            disturbances=list(self.process.disturbance_names()),
+            disturbances=list(self.disturbances()),
             noise_std=s.noise_std,
             clock=clock,
             speed=speed,
         )
 
     def disturbances(self) -> dict[str, float]:
-        names = self.process.disturbance_names()
-        values = getattr(self.process, "disturbances", None)
-        if isinstance(values, dict):
-            return {n: float(values[n]) for n in names}
-        return {n: float(getattr(self.process, n, math.nan)) for n in names}
+        """The disturbance inputs' present values (those the model lets us read as finite
+        numbers); the last ones read once the loop is faulted or the model fails to say."""
+        if self.fault is not None:
+            return dict(self._disturbances)
+        try:
+            with np.errstate(all="ignore"):
+                names = [n for n in self.process.disturbance_names() if isinstance(n, str)]
+                values = getattr(self.process, "disturbances", None)
+                if isinstance(values, dict):
+                    read = {n: values.get(n, math.nan) for n in names}
+                else:
+                    read = {n: getattr(self.process, n, math.nan) for n in names}
+                out = {
+                    n: float(v)
+                    for n, v in read.items()
+                    if isinstance(v, numbers.Real) and math.isfinite(float(v))
+                }
+        except Exception:  # a user's model: its status is read, never trusted
+            return dict(self._disturbances)
+        self._disturbances = out
+        return dict(out)
 
     def snapshot(self) -> LoopSnapshot:
         return LoopSnapshot(self.mode, self.op, self.sp, self.pid.gains, self.disturbances())
 
     def restore(self, snap: LoopSnapshot) -> None:
-        """Put the loop back as it was (into auto bumplessly, at the old setpoint)."""
-        for name, value in snap.disturbances.items():
-            self.process.set_disturbance(name, value)
+        """Put the loop back as it was (into auto bumplessly, at the old setpoint); a faulted
+        loop gets its setpoint and gains back but stays in manual at its held output."""
+        if self.fault is None:
+            for name, value in snap.disturbances.items():
+                try:
+                    what = f"set_disturbance({name!r})"
+                    call_model(what, self.process.set_disturbance, name, value)
+                except ModelFailure as err:
+                    log.warning("loop %s: restore: %s", self.settings.loop_id, err.reason)
         self.pid.set_gains(snap.gains, self.sp, self.pv)
         self.pid.set_mode("manual", self.sp, self.pv)
         self.sp = snap.sp
+        if self.fault is not None:
+            return
         if snap.mode == "manual":
             self.pid.set_output(snap.op)
         else:
@@ -247,6 +364,14 @@ class SimLoop:
 
     def apply(self, cmd: Command) -> None:
         """Apply a validated command; raise CommandRejected (nothing changed) if refused."""
+        if self.fault is not None and (
+            isinstance(cmd, OutputCommand | DisturbanceCommand)
+            or (isinstance(cmd, ModeCommand) and cmd.mode == "auto")
+        ):
+            raise CommandRejected(
+                "fault",
+                f"{cmd.kind} refused: the loop is faulted and held in manual ({self.fault})",
+            )
         match cmd:
             case ModeCommand(mode=mode):
                 self.pid.set_mode(mode, self.sp, self.pv)
@@ -270,9 +395,15 @@ class SimLoop:
                     )
                 self.sp = sp
             case GainsCommand(gains=gains):
+                problem = gains_problem(gains, self.sample_time, self.settings.pv_range)
+                if problem:
+                    raise CommandRejected("range", f"gains refused: {problem}")
                 self.pid.set_gains(gains, self.sp, self.pv)
             case DisturbanceCommand(name=name, value=value):
-                names = self.process.disturbance_names()
+                try:
+                    names = tuple(call_model("disturbance_names()", self.process.disturbance_names))
+                except (ModelFailure, TypeError) as err:
+                    raise CommandRejected("model", f"disturbance {name}: {brief(err)}") from None
                 if name not in names:
                     raise CommandRejected(
                         "disturbance",
@@ -280,9 +411,15 @@ class SimLoop:
                         f"loop has: {', '.join(names) or 'none'}",
                     )
                 try:
-                    self.process.set_disturbance(name, value)
+                    with np.errstate(all="ignore"):
+                        self.process.set_disturbance(name, value)
                 except (KeyError, ValueError) as err:
-                    raise CommandRejected("range", f"disturbance {name}: {err}") from None
+                    raise CommandRejected("range", f"disturbance {name}: {brief(err)}") from None
+                except Exception as err:  # a user's model: refused, with its own words
+                    raise CommandRejected(
+                        "model",
+                        f"disturbance {name}: the model raised {type(err).__name__}: {brief(err)}",
+                    ) from None
             case _:
                 raise CommandRejected("kind", f"{type(cmd).__name__} is not a loop setting")
 

@@ -9,11 +9,22 @@ from __future__ import annotations
 
 import math
 import numbers
+import warnings
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from services.plant_sim.lti import DelayedLinearSystem, discretize, tf_to_ss
+from services.plant_sim.lti import (
+    DelayedLinearSystem,
+    DiscreteDelaySystem,
+    discretize,
+    split_delay,
+    tf_to_ss,
+)
+
+# The longest dead time a plant model keeps, in sample periods: its delay line holds one
+# float per sample (1e12 s at 0.25 s took all the memory there was).
+MAX_DELAY_SAMPLES = 1_000_000
 
 
 class ModelParamError(ValueError):
@@ -83,6 +94,51 @@ def coefficients(field: str, values: list[float]) -> list[float]:
     return [finite(f"{field}[{i}]", v) for i, v in enumerate(values)]
 
 
+def check_delay(delay: float, sample_time: float) -> float:
+    """The dead time (s), finite, ≥ 0 and at most MAX_DELAY_SAMPLES sample periods."""
+    delay = finite("delay", delay, low=0.0)
+    if delay / sample_time > MAX_DELAY_SAMPLES:
+        raise ModelParamError(
+            "delay",
+            f"{delay:g} s is {delay / sample_time:.3g} sample periods of {sample_time:g} s; "
+            f"at most {MAX_DELAY_SAMPLES} (the delay line keeps one value per sample)",
+        )
+    split_delay(delay, sample_time)
+    return delay
+
+
+def check_stable(den: np.ndarray) -> None:
+    """ModelParamError("den") when a pole lies in the open right half-plane."""
+    poles = np.roots(den)
+    bad = [p for p in poles if p.real > 1e-9 * max(1.0, abs(p))]
+    if bad:
+        p = max(bad, key=lambda z: z.real)
+        where = f"{p.real:.4g}" if abs(p.imag) <= 1e-12 * abs(p) else f"{p:.4g}"
+        raise ModelParamError(
+            "den",
+            f"the process is open-loop unstable (a pole at s = {where}): plant_sim simulates "
+            "stable and integrating processes",
+        )
+
+
+def check_discrete(sys: DiscreteDelaySystem, pv0: float) -> None:
+    """ModelParamError when the sampled model overflows: its matrices, or the PV that a full
+    swing of the output (and of the load) would give at steady state."""
+    parts = [sys.phi, sys.gamma_new, sys.gamma_old, sys.c, np.array([sys.d])]
+    if not all(np.all(np.isfinite(m)) for m in parts):
+        raise ModelParamError(
+            "den",
+            "the model cannot be simulated in floating point at this sample time (its sampled "
+            "matrices overflow: coefficients too large or too small, or sample_time too long)",
+        )
+    with np.errstate(all="ignore"):
+        gain = sys.dc_gain()
+    if math.isfinite(gain) and not abs(pv0) + abs(gain) * 200.0 < 1e300:
+        raise ModelParamError(
+            "num", f"the static gain {gain:.4g} PV units per % overflows the PV's arithmetic"
+        )
+
+
 class TransferFunctionModel:
     """PV = pv0 + G(s)·(op − op0 + load), G(s) = num(s)/den(s)·e^{−delay·s}.
 
@@ -108,17 +164,25 @@ class TransferFunctionModel:
         self.sample_time = finite("sample_time", sample_time, low=0.0, low_open=True)
         self.num = coefficients("num", num)
         self.den = coefficients("den", den)
-        self.delay = finite("delay", delay, low=0.0)
+        self.delay = check_delay(delay, self.sample_time)
         self.op0 = finite("op0", op0, low=0.0, high=100.0)
         self.pv0 = finite("pv0", pv0)
         self.sensor_lag = finite("sensor_lag", sensor_lag, low=0.0)
         den_full = np.polymul(self.den, [self.sensor_lag, 1.0]) if self.sensor_lag else self.den
-        try:
-            a, b, c, d = tf_to_ss(self.num, list(den_full))
-        except ValueError as err:
-            field, _, reason = str(err).partition(": ")
-            raise ModelParamError(field, reason) from None
-        self.discrete = discretize(a, b, c, d, self.sample_time, self.delay)
+        with np.errstate(all="ignore"), warnings.catch_warnings():  # judged below, not printed
+            warnings.simplefilter("ignore")
+            try:
+                a, b, c, d = tf_to_ss(self.num, list(den_full))
+            except ValueError as err:
+                field, _, reason = str(err).partition(": ")
+                raise ModelParamError(field, reason) from None
+            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.isfinite(d)):
+                raise ModelParamError(
+                    "num", "the transfer function overflows (coefficients too large or too small)"
+                )
+            check_stable(np.trim_zeros(np.asarray(den_full, dtype=float), "f"))
+            self.discrete = discretize(a, b, c, d, self.sample_time, self.delay)
+        check_discrete(self.discrete, self.pv0)
         self._sys = DelayedLinearSystem(self.discrete)
         self.load = 0.0
 

@@ -17,7 +17,11 @@ from collections.abc import Callable
 import numpy as np
 
 from services.plant_sim.lti import split_delay
-from services.plant_sim.models import ModelParamError, finite
+from services.plant_sim.models import ModelParamError, check_delay, finite
+
+# RK4 sub-steps per sample at most: a sample time far beyond the fastest time constant (or a
+# time constant driven towards zero by its parameters) would otherwise stall the loop.
+MAX_SUBSTEPS = 1000
 
 CHARACTERISTICS = ("linear", "equal_percentage", "quick_opening")
 
@@ -113,9 +117,19 @@ class OdeProcess:
     ):
         self.sample_time = finite("sample_time", sample_time, low=0.0, low_open=True)
         self.op0 = finite("op0", op0, low=0.0, high=100.0)
-        self.delay = finite("delay", delay, low=0.0)
+        self.delay = check_delay(delay, self.sample_time)
         self.sensor_lag = finite("sensor_lag", sensor_lag, low=0.0)
-        self._substeps = max(1, math.ceil(20.0 * self.sample_time / fastest_time_constant))
+        ratio = self.sample_time / fastest_time_constant if fastest_time_constant > 0 else math.inf
+        substeps = 20.0 * ratio
+        if not substeps <= MAX_SUBSTEPS:
+            raise ModelParamError(
+                "sample_time",
+                f"{self.sample_time:g} s is {ratio:.3g} times this model's fastest time constant "
+                f"({fastest_time_constant:.3g} s, from its parameters); at most "
+                f"{MAX_SUBSTEPS // 20} (the integration would take {substeps:.3g} sub-steps "
+                "per sample)",
+            )
+        self._substeps = max(1, math.ceil(substeps))
         self._h = self.sample_time / self._substeps
         self._delay_line = TransportDelay(self.delay, self.sample_time)
         self._lag = SensorLag(self.sensor_lag, self.sample_time)
@@ -134,6 +148,26 @@ class OdeProcess:
 
     def _clip(self, x: np.ndarray) -> np.ndarray:
         return x
+
+    def _check_scale(self) -> None:
+        """ModelParamError when the parameters put the model beyond floating-point range: its
+        state at rest, or one sample from rest at 0 % or 100 % output, is not finite (a
+        subclass calls this last in its constructor)."""
+        try:
+            with np.errstate(all="ignore"):
+                x = self._rest_state(self.op0)
+                ok = bool(np.all(np.isfinite(x))) and math.isfinite(self._pv(x))
+                for op in (0.0, 100.0):
+                    y = self._clip(rk4(self._derivatives, x, op, self._h, self._substeps))
+                    ok = ok and bool(np.all(np.isfinite(y)))
+        except (ArithmeticError, ValueError):
+            ok = False
+        if not ok:
+            raise ModelParamError(
+                "model",
+                "its parameters are out of floating-point range (the state at rest, or one "
+                "sample from it at 0 % or 100 % output, is not a finite number)",
+            )
 
     def reset(self) -> float:
         self._x = self._rest_state(self.op0)
@@ -204,6 +238,7 @@ class HeatExchangerPhysical(OdeProcess):
             "flow": flow,
         }
         self._limits = {"inlet_temp": (-20.0, 100.0), "flow": (0.05 * flow, 2.0 * flow)}
+        self._check_scale()
 
     def _heat(self, op: float) -> float:
         return (
@@ -265,6 +300,7 @@ class TankLevel(OdeProcess):
         super().__init__(sample_time, op0, delay, sensor_lag, tau)
         self.disturbances = {"outlet_valve": 100.0, "inflow": 0.0}
         self._limits = {"outlet_valve": (0.0, 100.0), "inflow": (-self.inflow_max, self.inflow_max)}
+        self._check_scale()
 
     def _derivatives(self, x: np.ndarray, op: float) -> np.ndarray:
         h = max(x[0], 0.0)
@@ -317,6 +353,7 @@ class TankLevelPumped(OdeProcess):
             "outflow": (0.0, self.inflow_max),
             "inflow": (-self.inflow_max, self.inflow_max),
         }
+        self._check_scale()
 
     def _derivatives(self, x: np.ndarray, op: float) -> np.ndarray:
         q_in = self.inflow_max * op / 100.0 + self.disturbances["inflow"]
@@ -371,6 +408,7 @@ class FlowLoop(OdeProcess):
         super().__init__(sample_time, op0, delay, sensor_lag, min(self.tau_v, self.tau_f))
         self.disturbances = {"supply_pressure": 100.0}
         self._limits = {"supply_pressure": (0.0, 200.0)}
+        self._check_scale()
 
     def _target(self, x: float) -> float:
         return (

@@ -15,6 +15,11 @@ Loop keys (all optional but ``model``): sample_time (s), noise_std (PV units), s
 pv_range ([lo, hi] PV units), pv_units, sp_track (bool), description, and a ``pid`` table
 (kc, ti, td, n, beta). Every other key is a parameter of the model. A top-level ``seed``
 seeds every loop's noise (each loop also mixes in its own id).
+
+Whatever the file holds, loading it either gives loops that run or raises one ConfigError:
+one line naming the loop and field (or the file) and the reason — for a user's model class,
+its own error message. Every loop is built and probed (reset, its status and info messages)
+before the service starts, so nothing the file says can fail later at publish time.
 """
 
 from __future__ import annotations
@@ -22,20 +27,36 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
+import math
+import numbers
 import tomllib
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.plant_sim.loop import LoopSettings, SimLoop
-from services.plant_sim.models import ModelParamError, ProcessModel
+from services.plant_sim.loop import LoopSettings, ModelFailure, SimLoop, gains_problem
+from services.plant_sim.models import ModelParamError
 from services.plant_sim.presets import CUSTOM_DEFAULTS, DEFAULTS, MODELS, LoopDefaults
 from shared.errors import ConfigError
+from shared.errors import one_line as brief
 from shared.keys import check_id
 from shared.messages import Action, Mode, PidGains
+
+MAX_SAMPLE_TIME = 86400.0  # s: a day between samples is a loop no PID block runs
+PROTOCOL = (
+    "sample_time",
+    "pv_units",
+    "pv_range",
+    "op0",
+    "reset",
+    "step",
+    "disturbance_names",
+    "set_disturbance",
+)
 
 
 class LoopConfig(BaseModel):
@@ -44,9 +65,9 @@ class LoopConfig(BaseModel):
     model_config = ConfigDict(extra="allow", allow_inf_nan=False, strict=True)
 
     model: str = Field(min_length=1)
-    sample_time: float | None = Field(default=None, gt=0.0)
+    sample_time: float | None = Field(default=None, gt=0.0, le=MAX_SAMPLE_TIME)
     noise_std: float | None = Field(default=None, ge=0.0)
-    seed: int | None = None
+    seed: int | None = Field(default=None, ge=0)
     mode: Mode = "manual"
     setpoint: float | None = None
     action: Action | None = None
@@ -61,8 +82,13 @@ class LoopConfig(BaseModel):
 class PlantConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    seed: int = 0
+    seed: int = Field(default=0, ge=0)
     loops: dict[str, LoopConfig] = Field(min_length=1)
+
+
+def _error(text: str) -> ConfigError:
+    """A ConfigError on one line (a file's key, a path or a user's message may hold breaks)."""
+    return ConfigError(brief(text, 2000))
 
 
 def default_plant_path() -> Path:
@@ -76,15 +102,24 @@ def load_plant_file(
     """Read a plant file and build its loops; ConfigError names the loop and field at fault."""
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except OSError as err:
-        raise ConfigError(f"plant file {path}: cannot read it: {err.strerror}") from None
+        raise _error(f"plant file {path}: cannot read it: {err.strerror}") from None
+    try:
+        text = raw.decode("utf-8").removeprefix("\ufeff")
+    except UnicodeDecodeError as err:
+        raise _error(
+            f"plant file {path}: not UTF-8 text, as TOML must be (byte 0x{raw[err.start]:02x} "
+            f"at offset {err.start})"
+        ) from None
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"plant file {path}: not valid TOML: {err}") from None
-    if noise_std is not None:
-        for table in data.get("loops", {}).values():
+        raise _error(f"plant file {path}: not valid TOML: {brief(err)}") from None
+    except RecursionError:
+        raise _error(f"plant file {path}: not valid TOML: nested too deeply") from None
+    if noise_std is not None and isinstance(data.get("loops"), dict):
+        for table in data["loops"].values():
             if isinstance(table, dict):
                 table["noise_std"] = noise_std
     return build_plant(data, source=str(path), seed=seed)
@@ -97,17 +132,28 @@ def build_plant(
     try:
         # JSON mode: arrays are accepted for tuples, numbers stay strict ("5" is not 5).
         plant = PlantConfig.model_validate_json(json.dumps(data))
-    except TypeError as err:
-        raise ConfigError(f"plant file {source}: unsupported value ({err})") from None
     except pydantic.ValidationError as err:
-        e = err.errors()[0]
-        where = ".".join(str(p) for p in e["loc"])
-        raise ConfigError(f"plant file {source}: {where}: {e['msg']}") from None
+        raise _error(f"plant file {source}: {_first_error(err)}") from None
+    except (TypeError, ValueError) as err:  # a TOML date, a value nested beyond recursion
+        raise _error(f"plant file {source}: unsupported value ({brief(err)})") from None
+    if seed is not None and seed < 0:
+        raise _error(f"plant file {source}: seed: must be ≥ 0, got {seed}")
     plant_seed = plant.seed if seed is None else seed
     loops = {}
     for loop_id, cfg in plant.loops.items():
         loops[loop_id] = build_loop(loop_id, cfg, plant_seed, source)
     return loops
+
+
+def _first_error(err: pydantic.ValidationError) -> str:
+    """``where: what`` of a validation error's first complaint, with the value if short."""
+    e = err.errors()[0]
+    where = ".".join(str(p) for p in e["loc"])
+    value = e.get("input")
+    shown = ""
+    if isinstance(value, bool | int | float | str) and len(repr(value)) <= 40:
+        shown = f", got {value!r}"
+    return f"{where or 'top level'}: {e['msg']}{shown}"
 
 
 def _resolve_model(name: str) -> tuple[type, LoopDefaults]:
@@ -120,8 +166,10 @@ def _resolve_model(name: str) -> tuple[type, LoopDefaults]:
     module_name, _, class_name = name.partition(":")
     try:
         module = importlib.import_module(module_name)
-    except Exception as err:
-        raise ValueError(f"cannot import {module_name!r}: {err}") from None
+    except (Exception, SystemExit) as err:  # the user's module runs here: anything can happen
+        raise ValueError(
+            f"cannot import {module_name!r}: {type(err).__name__}: {brief(err)}"
+        ) from None
     cls = getattr(module, class_name, None)
     if not isinstance(cls, type):
         raise ValueError(f"module {module_name!r} has no class {class_name!r}")
@@ -129,8 +177,12 @@ def _resolve_model(name: str) -> tuple[type, LoopDefaults]:
 
 
 def _check_params(cls: type, params: dict[str, Any], model: str) -> str | None:
-    """Name the first unknown or missing parameter of ``cls``, or None when all is well."""
-    sig = inspect.signature(cls)
+    """Name the first unknown or missing parameter of ``cls``, or None when all is well (or
+    when its signature cannot be read: its constructor then judges)."""
+    try:
+        sig = inspect.signature(cls)
+    except (TypeError, ValueError):
+        return None
     accepted = {n for n, p in sig.parameters.items() if n != "sample_time"}
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.parameters.values()):
         return None
@@ -155,12 +207,12 @@ def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "pl
     """Construct the process model and the loop around it."""
 
     def fail(field: str, reason: str) -> ConfigError:
-        return ConfigError(f"plant file {source}: loops.{loop_id}.{field}: {reason}")
+        return _error(f"plant file {source}: loops.{loop_id}.{field}: {reason}")
 
     try:
         check_id(loop_id)
     except ValueError as err:
-        raise ConfigError(f"plant file {source}: loops.{loop_id}: {err}") from None
+        raise _error(f"plant file {source}: loops.{loop_id}: {err}") from None
     try:
         cls, defaults = _resolve_model(cfg.model)
     except ValueError as err:
@@ -174,40 +226,32 @@ def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "pl
         field, _, reason = problem.partition(": ")
         raise fail(field, reason)
     try:
-        process = cls(sample_time=sample_time, **params)
+        with np.errstate(all="ignore"):  # overflow is judged by the model, not printed
+            process = cls(sample_time=sample_time, **params)
+    except ModelParamError as err:
+        raise fail(err.field, brief(err.reason)) from None
+    except (TypeError, ValueError) as err:
+        raise fail("model", f"{cfg.model} rejected its parameters: {brief(err)}") from None
+    except (Exception, SystemExit) as err:  # a user's class: its own words, on one line
+        raise fail("model", f"{cfg.model}() raised {type(err).__name__}: {brief(err)}") from None
+    try:
+        got = _read_protocol(process, cfg)
     except ModelParamError as err:
         raise fail(err.field, err.reason) from None
-    except (TypeError, ValueError) as err:
-        raise fail("model", f"{cfg.model} rejected its parameters: {err}") from None
-    if not isinstance(process, ProcessModel):
-        missing = [
-            m
-            for m in (
-                "sample_time",
-                "pv_units",
-                "pv_range",
-                "op0",
-                "reset",
-                "step",
-                "disturbance_names",
-                "set_disturbance",
-            )
-            if not hasattr(process, m)
-        ]
-        raise fail(
-            "model",
-            f"{cfg.model} does not implement the ProcessModel protocol "
-            f"(missing: {', '.join(missing)})",
-        )
-
-    pv_range = cfg.pv_range if cfg.pv_range is not None else tuple(process.pv_range)
+    pv_range = cfg.pv_range if cfg.pv_range is not None else tuple(got["pv_range"])
     if not pv_range[0] < pv_range[1]:
         raise fail("pv_range", f"low must be below high, got {list(pv_range)}")
     lo, hi = cfg.op_limits
     if not 0.0 <= lo < hi <= 100.0:
         raise fail("op_limits", f"must satisfy 0 ≤ low < high ≤ 100 %, got {[lo, hi]}")
-    if not lo <= process.op0 <= hi:
-        raise fail("op_limits", f"the operating point op0 = {process.op0} % lies outside them")
+    if not lo <= got["op0"] <= hi:
+        raise fail("op_limits", f"the operating point op0 = {got['op0']} % lies outside them")
+    if not math.isfinite(pv_range[1] - pv_range[0]):
+        raise fail("pv_range", f"its width overflows floating point, got {list(pv_range)}")
+    gains = cfg.pid or defaults.gains
+    problem = gains_problem(gains, float(sample_time), (pv_range[0], pv_range[1]))
+    if problem:
+        raise fail("pid", problem)
     if cfg.setpoint is not None and not pv_range[0] <= cfg.setpoint <= pv_range[1]:
         raise fail("setpoint", f"{cfg.setpoint} is outside pv_range {list(pv_range)}")
     settings = LoopSettings(
@@ -222,12 +266,85 @@ def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "pl
         action=cfg.action or defaults.action,
         op_limits=(float(lo), float(hi)),
         pv_range=(float(pv_range[0]), float(pv_range[1])),
-        pv_units=cfg.pv_units or process.pv_units,
-        gains=cfg.pid or defaults.gains,
+        pv_units=cfg.pv_units or got["pv_units"],
+        gains=gains,
         sp_track=cfg.sp_track,
         description=cfg.description or (inspect.getdoc(cls) or "").split("\n")[0],
     )
     try:
-        return SimLoop(settings, process)
-    except (ValueError, RuntimeError) as err:
-        raise fail("model", str(err)) from None
+        loop = SimLoop(settings, process)
+    except ModelFailure as err:
+        raise fail("model", f"{cfg.model}: {err.reason}") from None
+    except Exception as err:  # the user's attributes, read again by the loop
+        raise fail("model", f"{cfg.model}: {type(err).__name__}: {brief(err)}") from None
+    try:  # what the service will publish: any field that could not be is named now
+        loop.status("check", "lockstep", "start")
+        loop.info("check", "lockstep", 1.0)
+    except pydantic.ValidationError as err:
+        raise fail("model", f"{cfg.model}: {_first_error(err)}") from None
+    return loop
+
+
+def _read_protocol(process: object, cfg: LoopConfig) -> dict[str, Any]:
+    """The ProcessModel protocol's members of ``process``; ModelParamError (field, reason)
+    when one is missing or unusable (attributes the plant file overrides are not judged)."""
+    values: dict[str, Any] = {}
+    missing = []
+    for name in PROTOCOL:
+        try:
+            values[name] = getattr(process, name)
+        except AttributeError:
+            missing.append(name)
+        except Exception as err:  # a property of the user's that raises
+            raise ModelParamError(
+                "model", f"{cfg.model}: .{name} raised {type(err).__name__}: {brief(err)}"
+            ) from None
+    if missing:
+        raise ModelParamError(
+            "model",
+            f"{cfg.model} does not implement the ProcessModel protocol "
+            f"(missing: {', '.join(missing)})",
+        )
+    methods = ("reset", "step", "disturbance_names", "set_disturbance")
+    not_callable = [m for m in methods if not callable(values[m])]
+    if not_callable:
+        raise ModelParamError(
+            "model",
+            f"{cfg.model} does not implement the ProcessModel protocol "
+            f"({', '.join(not_callable)} must be "
+            f"{'a method' if len(not_callable) == 1 else 'methods'})",
+        )
+    op0 = values["op0"]
+    if isinstance(op0, bool) or not isinstance(op0, numbers.Real) or not math.isfinite(op0):
+        raise ModelParamError(
+            "op0", f"{cfg.model}.op0 must be a finite number of %, got {brief(repr(op0))}"
+        )
+    values["op0"] = float(op0)
+    if cfg.pv_range is None:
+        pv_range = _as_range(values["pv_range"])
+        if pv_range is None:
+            raise ModelParamError(
+                "pv_range",
+                f"{cfg.model}.pv_range must be two finite numbers, "
+                f"got {brief(repr(values['pv_range']))}",
+            )
+        values["pv_range"] = pv_range
+    if cfg.pv_units is None and not isinstance(values["pv_units"], str):
+        raise ModelParamError(
+            "pv_units",
+            f"{cfg.model}.pv_units must be a string, got {brief(repr(values['pv_units']))}",
+        )
+    return values
+
+
+def _as_range(value: object) -> tuple[float, float] | None:
+    """``(lo, hi)`` of two finite real numbers, or None."""
+    try:
+        lo, hi = value  # type: ignore[misc]
+    except (TypeError, ValueError):
+        return None
+    ok = all(
+        isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+        for v in (lo, hi)
+    )
+    return (float(lo), float(hi)) if ok else None

@@ -1,0 +1,155 @@
+"""User model classes that misbehave, for the plant-file fuzz tests (``model =
+"fuzz_user_models:Class"``, importable once this folder is on the path)."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+
+class Good:
+    """A first-order lag; the base of the misbehaving ones."""
+
+    pv_units = "bar"
+    pv_range = (0.0, 100.0)
+
+    def __init__(self, sample_time: float, op0: float = 50.0, fail_after: int = 10**9):
+        self.sample_time, self.op0, self.fail_after = sample_time, op0, fail_after
+        self.pv = op0
+        self.steps = 0
+        self.bias = 0.0
+
+    def reset(self) -> float:
+        self.pv = self.op0
+        return self.pv
+
+    def step(self, op: float) -> float:
+        self.steps += 1
+        self.pv += 0.1 * (op + self.bias - self.pv)
+        return self.pv
+
+    def disturbance_names(self) -> tuple[str, ...]:
+        return ("bias",)
+
+    def set_disturbance(self, name: str, value: float) -> None:
+        self.bias = value
+
+
+class RaisesInInit(Good):
+    def __init__(self, sample_time: float, **kw):
+        raise RuntimeError("the valve map file vmap.csv is missing")
+
+
+class MultilineError(Good):
+    def __init__(self, sample_time: float, **kw):
+        raise ValueError("first line\nsecond line\n\tthird line")
+
+
+class ExitsInInit(Good):
+    def __init__(self, sample_time: float, **kw):
+        sys.exit(3)
+
+
+class ResetRaises(Good):
+    def reset(self) -> float:
+        raise ZeroDivisionError("no rest state at op0")
+
+
+class ResetNaN(Good):
+    def reset(self) -> float:
+        return math.nan
+
+
+class ResetString(Good):
+    def reset(self) -> str:
+        return "fifty"
+
+
+class ResetNone(Good):
+    def reset(self) -> None:
+        return None
+
+
+class StepRaisesAfter(Good):
+    def step(self, op: float) -> float:
+        if self.steps >= self.fail_after:
+            raise RuntimeError(f"sensor fault after {self.steps} steps")
+        return super().step(op)
+
+
+class StepNaNAfter(Good):
+    def step(self, op: float) -> float:
+        pv = super().step(op)
+        return math.nan if self.steps > self.fail_after else pv
+
+
+class StepInfAfter(Good):
+    def step(self, op: float) -> float:
+        pv = super().step(op)
+        return math.inf if self.steps > self.fail_after else pv
+
+
+class StepOverflows(Good):
+    """Its state grows tenfold a step: a float overflow (OverflowError from **)."""
+
+    def step(self, op: float) -> float:
+        self.steps += 1
+        return 10.0 ** (self.steps * 40)
+
+
+class StepReturnsList(Good):
+    def step(self, op: float) -> list:
+        return [op]
+
+
+class PropertyRaises(Good):
+    @property
+    def pv_units(self) -> str:
+        raise KeyError("units")
+
+
+class NoStep:
+    pv_units = "bar"
+    pv_range = (0.0, 1.0)
+    op0 = 50.0
+
+    def __init__(self, sample_time: float):
+        self.sample_time = sample_time
+
+    def reset(self) -> float:
+        return 0.5
+
+    def disturbance_names(self) -> tuple[str, ...]:
+        return ()
+
+    def set_disturbance(self, name: str, value: float) -> None:
+        raise KeyError(name)
+
+
+class StepNotCallable(Good):
+    step = 5.0
+
+
+class Knobs(Good):
+    """Its protocol attributes come from the plant file, whatever they are (``set_NAME``:
+    NAME is a key the plant file keeps for itself)."""
+
+    def __init__(self, sample_time: float, **attrs):
+        super().__init__(sample_time)
+        for k, v in attrs.items():
+            setattr(self, k.removeprefix("set_"), v)
+
+
+class DisturbanceRaises(Good):
+    def set_disturbance(self, name: str, value: float) -> None:
+        raise ZeroDivisionError("bias divides by zero")
+
+
+class NamesRaise(Good):
+    def disturbance_names(self) -> tuple[str, ...]:
+        raise RuntimeError("no names today")
+
+
+class NamesJunk(Good):
+    def disturbance_names(self) -> tuple:
+        return (1, None, "bias", "ghost")

@@ -1,0 +1,256 @@
+"""Every command's flags are judged before anything is opened or sent: NaN, ±inf, negative,
+zero and huge numbers, wrong types, bad paths and ids each end in one line on stderr and exit
+code 2, with no bus (a Zenoh session or a child process here fails the test). Most cases run
+in-process through the CLI's entry point; a handful through real interpreters, at once."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.cli import build_parser, main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Opened(BaseException):
+    """Raised by anything that would reach the bus or start a process: not an Exception, so
+    no handler in the product can take it for an error of its own."""
+
+
+@pytest.fixture
+def no_bus(monkeypatch):
+    import zenoh
+
+    def refuse(*_a, **_k):
+        raise Opened("a session or a process was started before the flags were judged")
+
+    monkeypatch.setattr(zenoh, "open", refuse)
+    monkeypatch.setattr(subprocess, "Popen", refuse)
+
+
+def run_cli(capsys, argv: list[str]) -> tuple[int, str]:
+    try:
+        code = main(argv)
+    except SystemExit as stop:  # argparse's own refusals
+        code = stop.code
+    out = capsys.readouterr()
+    return code, out.err
+
+
+def one_line_refusal(code: int, err: str, argv: list[str], *needles: str) -> None:
+    assert code == 2, (argv, code, err)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, (argv, err)
+    for n in needles:
+        assert n in err, (argv, n, err)
+
+
+# The positional arguments each command needs to get as far as its flags.
+POSITIONALS = {
+    "health": ["plant"],
+    "step": ["hx1"],
+    "tune": ["hx1"],
+    "replay": ["run.mcap"],
+    "analyze": ["run.mcap"],
+    "report": ["run.mcap"],
+    "recover": ["run.mcap", "-o", "fixed.mcap"],
+    "runs": ["runs"],
+}
+
+
+def numeric_flags() -> list[tuple[str, str, type, int]]:
+    """(command, flag, type, nargs) of every numeric flag of every command, from the parser
+    itself: a flag added tomorrow is swept too."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    out = []
+    for name, sp in sub.choices.items():
+        for a in sp._actions:
+            if a.type in (int, float):
+                flag = next(o for o in a.option_strings if o.startswith("--"))
+                out.append((name, flag, a.type, a.nargs if isinstance(a.nargs, int) else 1))
+    return out
+
+
+def test_every_numeric_flag_refuses_nan_and_infinities(no_bus, capsys):
+    cases = 0
+    for command, flag, _kind, nargs in numeric_flags():
+        for bad in ("nan", "inf", "-inf", "1e999"):
+            for where in range(nargs):  # each value of a LO HI pair in turn
+                values = ["1"] * nargs
+                values[where] = bad
+                argv = [command, *POSITIONALS.get(command, []), flag, *values]
+                code, err = run_cli(capsys, argv)
+                # a float flag says which flag and that it must be finite; an int flag's
+                # parser already refuses the text
+                one_line_refusal(code, err, argv, flag)
+                cases += 1
+    print(f"nan/inf sweep: {cases} cases")
+    assert cases > 150
+
+
+# (argv, needles): each must be refused before anything starts. Bounds are the product's
+# promises (README), not read from the code under test.
+REFUSED = [
+    (["plant", "--speed", "1e12"], ["--speed", "at most"]),
+    (["plant", "--speed", "0"], ["--speed", "> 0"]),
+    (["plant", "--speed", "-5"], ["--speed"]),
+    (["plant", "--speed", "1e308"], ["--speed"]),
+    (["plant", "--noise-std", "-0.1"], ["--noise-std", "≥ 0"]),
+    (["plant", "--seed", "-1"], ["--seed"]),
+    (["plant", "--seed", "1.5"], ["--seed", "invalid int"]),
+    (["plant", "--clock", "sundial"], ["--clock", "invalid choice"]),
+    (["plant", "--plant", "/no/such/plant.toml"], ["plant file", "cannot read"]),
+    (["plant", "--prefix", "a//b"], ["prefix"]),
+    (["plant", "--node", "x/y"], ["node"]),
+    (["demo", "--speed", "0"], ["--speed"]),
+    (["demo", "--speed", "1e12", "--realtime"], ["--speed", "at most"]),
+    (["demo", "--noise", "-1"], ["--noise"]),
+    (["demo", "--seed", "-3"], ["--seed"]),
+    (["demo", "--amplitude", "0"], ["--amplitude"]),
+    (["demo", "--plant", "/no/such/plant.toml"], ["--plant"]),
+    (["up", "--speed", "-1"], ["--speed"]),
+    (["up", "--speed", "5000"], ["--speed", "at most"]),
+    (["up", "--seed", "-1"], ["--seed"]),
+    (["up", "--config", "/no/such/up.toml"], ["--config", "cannot read"]),
+    (["up", "--runs", "run.mcap"], ["--runs", "not a directory"]),
+    (["step", "hx1", "--size", "0"], ["--size", "zero"]),
+    (["step", "hx1", "--size", "1e9"], ["--size", "at most"]),
+    (["step", "hx1", "--size", "-101"], ["--size"]),
+    (["step", "hx1", "--baseline", "-1"], ["--baseline"]),
+    (["step", "hx1", "--timeout", "0"], ["--timeout"]),
+    (["step", "hx1", "--timeout", "-5"], ["--timeout"]),
+    (["step", "hx1", "--timeout", "1e300"], ["--timeout", "at most"]),
+    (["step", "hx1", "--wait", "-1"], ["--wait"]),
+    (["step", "hx1", "--pv-limits", "5", "1"], ["--pv-limits", "LO must be below HI"]),
+    (["step", "hx1", "--pv-limits", "1", "1"], ["--pv-limits"]),
+    (["step", "bad/loop"], ["loop"]),
+    (["tune", "hx1", "--wait", "-1"], ["--wait"]),
+    (["tune", "hx1", "--wait", "0"], ["--wait"]),
+    (["tune", "hx1", "--wait", "1e300"], ["--wait"]),
+    (["tune", "hx1", "--amplitude", "-5"], ["--amplitude"]),
+    (["tune", "hx1", "--amplitude", "1e9"], ["--amplitude"]),
+    (["tune", "hx1", "--hysteresis", "-1"], ["--hysteresis"]),
+    (["tune", "hx1", "--relay-bias", "2"], ["--relay-bias"]),
+    (["tune", "hx1", "--cycles", "0"], ["--cycles"]),
+    (["tune", "hx1", "--cycles", "100000"], ["--cycles"]),
+    (["tune", "hx1", "--tolerance", "0"], ["--tolerance"]),
+    (["tune", "hx1", "--tolerance", "-1"], ["--tolerance"]),
+    (["tune", "hx1", "--bump", "0"], ["--bump"]),
+    (["tune", "hx1", "--kc-start", "-1"], ["--kc-start"]),
+    (["tune", "hx1", "--step-size", "0"], ["--step-size"]),
+    (["tune", "hx1", "--step-size", "500"], ["--step-size"]),
+    (["tune", "hx1", "--max-time", "0"], ["--max-time"]),
+    (["tune", "hx1", "--max-time", "1e300"], ["--max-time"]),
+    (["tune", "hx1", "--rest-window", "-3"], ["--rest-window"]),
+    (["tune", "hx1", "--ms-bound", "0.5"], ["--ms-bound"]),
+    (["tune", "hx1", "--max-overshoot", "-1"], ["--max-overshoot"]),
+    (["tune", "hx1", "--max-decay-ratio", "0"], ["--max-decay-ratio"]),
+    (["tune", "hx1", "--overshoot-miss", "0"], ["--overshoot-miss"]),
+    (["tune", "hx1", "--pv-limits", "100", "0"], ["--pv-limits", "LO must be below HI"]),
+    (["tune", "hx1", "--rule", "zn-banana"], ["--rule", "invalid choice"]),
+    (["tune", "hx1", "--method", "guess"], ["--method", "invalid choice"]),
+    (["tune", "not a loop"], ["loop"]),
+    (["health", "plant", "--timeout", "-1"], ["--timeout"]),
+    (["health", "plant", "--timeout", "0"], ["--timeout"]),
+    (["health", "plant", "--node", "a/b"], ["node"]),
+    (["health", "nothing"], ["invalid choice"]),
+    (["logger", "--runs", "run.mcap"], ["--runs", "not a directory"]),
+    (["logger", "--runs", "run.mcap/sub"], ["--runs", "not a directory"]),
+    (["logger", "--prefix", ""], ["prefix"]),
+    (["replay", "run.mcap", "--rate", "0"], ["--rate"]),
+    (["replay", "run.mcap", "--rate", "-2"], ["--rate"]),
+    (["replay", "run.mcap", "--start-offset", "-1"], ["--start-offset"]),
+    (["replay", "run.mcap", "--wait", "-1"], ["--wait"]),
+    (["report", "run.mcap", "--dpi", "0"], ["--dpi"]),
+    (["report", "run.mcap", "--dpi", "-100"], ["--dpi"]),
+    (["report", "run.mcap", "--dpi", "1000000"], ["--dpi", "at most"]),
+    (["report", "run.mcap", "--dpi", "1.5"], ["--dpi", "invalid int"]),
+    (["report", "run.mcap", "-o", "figure.txt"], ["-o", ".png"]),
+    (["report", "/no/such/run.mcap", "-o", "r.png"], ["no such file"]),
+    (["analyze", "/no/such/run.mcap"], ["no such file"]),
+    (["analyze", "run.mcap", "--rule", "zn-banana"], ["--rule", "invalid choice"]),
+    (["recover", "/no/such/run.mcap", "-o", "fixed.mcap"], ["no such file"]),
+    (["recover", "run.mcap"], ["-o", "required"]),
+    (["runs", "/no/such/dir"], ["no such directory"]),
+    (["runs", "run.mcap"], ["no such directory"]),
+    (["benchmark", "--seed", "-1"], ["--seed"]),
+    (["benchmark", "--noise", "2"], ["--noise"]),
+    (["benchmark", "--noise", "abc"], ["--noise"]),
+    (["benchmark", "--ratios", "-1"], ["--ratios"]),
+    (["benchmark", "--methods", "guess"], ["--methods"]),
+    (["benchmark", "--plants", "no plant has this name"], ["--plants"]),
+    (["tuner", "--lease-timeout", "0"], ["--lease-timeout"]),
+    (["router", "-l", "not-an-endpoint"], ["-l"]),
+    (["plant", "-e", "nowhere"], ["-e"]),
+    (["plant", "--cfg", "novalue"], ["--cfg"]),
+    (["plant", "-c", "/no/such/zenoh.json5"], ["zenoh config"]),
+    (["plant", "-m", "satellite"], ["--mode", "invalid choice"]),
+    (["plant", "--no-such-flag"], ["unrecognized arguments"]),
+    (["no-such-command"], ["invalid choice"]),
+    ([], ["required"]),
+]
+
+
+@pytest.mark.parametrize(("argv", "needles"), REFUSED, ids=[" ".join(a) for a, _ in REFUSED])
+def test_bad_flags_are_refused_in_one_line_before_anything_starts(
+    no_bus, capsys, tmp_path, monkeypatch, argv, needles
+):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run.mcap").write_bytes(b"")  # the commands' files exist; flags are judged
+    code, err = run_cli(capsys, argv)
+    one_line_refusal(code, err, argv, *needles)
+
+
+def test_a_bad_zenoh_flag_names_itself_and_the_file_flags_their_path(no_bus, capsys, tmp_path):
+    """What only opening a session would tell still comes as one line (the config is built,
+    and refused, before any connection)."""
+    bad = tmp_path / "z.json5"
+    bad.write_text("{ this is not json5")
+    code, err = run_cli(capsys, ["health", "plant", "-c", str(bad)])
+    one_line_refusal(code, err, ["-c"], str(bad))
+    code, err = run_cli(capsys, ["health", "plant", "--cfg", "mode:42"])
+    one_line_refusal(code, err, ["--cfg"], "--cfg")
+
+
+SUBPROCESS = [
+    ["plant", "--speed", "1e12"],
+    ["tune", "hx1", "--amplitude", "nan"],
+    ["step", "hx1", "--size", "0"],
+    ["report", "run.mcap", "--dpi", "0"],
+    ["logger", "--runs", "run.mcap"],
+    ["demo", "--speed", "inf"],
+]
+
+
+def test_through_real_interpreters_exit_2_one_line_no_traceback(tmp_path):
+    (tmp_path / "run.mcap").write_bytes(b"")
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    runs = [(argv, [sys.executable, "-m", "services.cli", *argv]) for argv in SUBPROCESS]
+    runs.append((["plant_sim"], [sys.executable, "-m", "services.plant_sim", "--speed", "1e12"]))
+    procs = [
+        (
+            argv,
+            subprocess.Popen(
+                cmd,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                cwd=tmp_path,
+                env=env,
+            ),
+        )
+        for argv, cmd in runs
+    ]
+    for argv, proc in procs:  # started together: each is an interpreter's start-up
+        out, err = proc.communicate(timeout=60)
+        one_line_refusal(proc.returncode, err, argv, "error:")
+        assert out == "", (argv, out)

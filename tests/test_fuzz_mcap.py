@@ -1,0 +1,1024 @@
+"""Damaged run files for every command that reads them (analyze, report, runs, recover): a
+real recorded run (made once, in-process: the live tuner's code over a plant_sim loop, its
+traffic through the logger's recorder) and altered copies written with the ``mcap`` library —
+missing, extra, renamed, mistyped fields, non-JSON payloads, a negative sample time, duplicate
+and foreign records, channels with unknown schemas or encodings, future format versions,
+truncated, empty and random files — plus seeded random damage. Every case: exit 2 and one
+line naming the record (topic, index, log time), the field and the reason, or, where the
+damage is harmless, the correct answer. ``autotune runs`` lists the good files and marks the
+bad ones."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+from services.autotuner.local_loop import LocalLoopClient
+from services.autotuner.tuning import RunHooks, TuningRun
+from services.cli import main
+from services.logger.recorder import Recorder
+from services.plant_sim.plant_file import build_plant
+from shared import keys, wire
+from shared.messages import Command, ProcessSample, TuneRequest, TuneResult
+
+PREFIX = "fuzz"
+LOOP = "x1"
+PLANT = {
+    "seed": 3,
+    "loops": {
+        LOOP: {
+            "model": "transfer_function",
+            "num": [6.0],
+            "den": [1.0, 6.0, 11.0, 6.0],
+            "sample_time": 0.05,
+            "noise_std": 0.002,
+        }
+    },
+}
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# --- a real run, recorded in-process ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Recorded:
+    path: Path
+    live: TuneResult  # what the live run returned, not read from the file
+
+
+def record_run(runs: Path, method: str, **request) -> Recorded:
+    """One tuning run through the live tuner's code (TuningRun over an in-process loop), every
+    message it and the loop publish handed to the logger's Recorder as the bus would."""
+    loop = build_plant(PLANT)[LOOP]
+    recorder = Recorder(runs, PREFIX, flush_interval=3600.0)
+
+    def put(key: str, msg) -> None:
+        recorder.handle(key, wire.encode(msg))
+
+    class Recording(LocalLoopClient):
+        def _apply(self, cmd: Command) -> None:
+            super()._apply(cmd)
+            if cmd.kind not in ("advance", "sync", "lease", "release"):
+                put(keys.command(PREFIX, LOOP, cmd.kind), cmd)
+
+        def advance(self, steps: int) -> list[ProcessSample]:
+            out = super().advance(steps)
+            for s in out:
+                put(keys.pv(PREFIX, LOOP), s)
+            return out
+
+    hooks = RunHooks(
+        progress=lambda m: put(keys.tune_progress(PREFIX, LOOP), m),
+        event=lambda m: put(keys.tune_event(PREFIX, LOOP), m),
+    )
+    req = TuneRequest(loop=LOOP, method=method, **request)
+    live = TuningRun(Recording(loop), req, f"run{method}", hooks).run()
+    put(keys.tune_result(PREFIX, LOOP), live)
+    assert live.status == "ok", live.reason
+    (path,) = recorder.finished
+    return Recorded(path, live)
+
+
+@pytest.fixture(scope="session")
+def recorded(tmp_path_factory) -> dict[str, Recorded]:
+    runs = tmp_path_factory.mktemp("recorded")
+    return {
+        "relay": record_run(runs / "relay", "relay"),
+        "step": record_run(runs / "step", "step", rule="cc-pi", apply=False),
+    }
+
+
+# --- reading and rewriting MCAP files with the mcap library itself ------------------------
+
+
+@dataclass(frozen=True)
+class Msg:
+    topic: str
+    schema: str
+    encoding: str
+    log_time: int
+    data: bytes
+    schema_data: bytes = b"{}"
+
+    def obj(self) -> dict:
+        return json.loads(self.data)
+
+
+def load(path: Path) -> tuple[list[Msg], list[tuple[str, dict[str, str]]]]:
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        msgs = [
+            Msg(
+                ch.topic,
+                sc.name if sc else "",
+                ch.message_encoding,
+                m.log_time,
+                m.data,
+                sc.data if sc else b"",
+            )
+            for sc, ch, m in reader.iter_messages(log_time_order=False)
+        ]
+        meta = [(m.name, dict(m.metadata)) for m in reader.iter_metadata()]
+    return msgs, meta
+
+
+def save(
+    path: Path, msgs: list[Msg], meta: list[tuple[str, dict[str, str]]], compress: bool = True
+) -> Path:
+    with path.open("wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD if compress else CompressionType.NONE)
+        w.start(profile="", library="fuzz")
+        schemas: dict[str, int] = {"": 0}
+        channels: dict[tuple[str, str, str], int] = {}
+        for m in msgs:
+            if m.schema not in schemas:
+                schemas[m.schema] = w.register_schema(m.schema, "jsonschema", m.schema_data)
+            key = (m.topic, m.schema, m.encoding)
+            if key not in channels:
+                channels[key] = w.register_channel(m.topic, m.encoding, schemas[m.schema])
+            w.add_message(channels[key], log_time=m.log_time, data=m.data, publish_time=m.log_time)
+        for name, data in meta:
+            w.add_metadata(name, data)
+        w.finish()
+    return path
+
+
+def nth(msgs: list[Msg], suffix: str, n: int = 0, where=None) -> int:
+    """The file index of the n-th message on a topic ending with ``suffix`` (and ``where``)."""
+    hits = [
+        i
+        for i, m in enumerate(msgs)
+        if m.topic.endswith(suffix) and (where is None or where(m.obj()))
+    ]
+    return hits[n]
+
+
+def with_data(m: Msg, obj_or_bytes) -> Msg:
+    data = obj_or_bytes if isinstance(obj_or_bytes, bytes) else json.dumps(obj_or_bytes).encode()
+    return replace(m, data=data)
+
+
+def event(kind: str):
+    return lambda o: o.get("kind") == kind
+
+
+# --- the corpus --------------------------------------------------------------------------
+# Each case: (id, source run, edit) where edit(msgs, meta) returns (msgs, meta, hit) and hit
+# is the file index of the record the damage is in (None: not one record); and what each
+# command must do: OK (the correct answer) or a list of needles of its one-line refusal
+# (for ``runs``: of the row's reason).
+
+OK = None
+REC = "{hit}"  # stands for "the damaged record": its topic and index must be named
+
+
+def edit_json(suffix: str, n: int, fn, where=None):
+    def edit(msgs, meta):
+        i = nth(msgs, suffix, n, where)
+        msgs = list(msgs)
+        o = msgs[i].obj()
+        msgs[i] = with_data(msgs[i], fn(o))
+        return msgs, meta, i
+
+    return edit
+
+
+def edit_event_data(kind: str, fn):
+    def change(o):
+        o["data"] = fn(dict(o["data"]))
+        return o
+
+    return edit_json("/event", 0, change, event(kind))
+
+
+def drop(suffix: str, where=None):
+    def edit(msgs, meta):
+        keep = [
+            m for m in msgs if not (m.topic.endswith(suffix) and (where is None or where(m.obj())))
+        ]
+        assert len(keep) < len(msgs)
+        return keep, meta, None
+
+    return edit
+
+
+def duplicate(suffix: str, n: int, fn=None, where=None):
+    def edit(msgs, meta):
+        i = nth(msgs, suffix, n, where)
+        copy = msgs[i] if fn is None else with_data(msgs[i], fn(msgs[i].obj()))
+        return [*msgs, copy], meta, len(msgs)
+
+    return edit
+
+
+def append(topic: str, schema: str, data: bytes, encoding: str = "json"):
+    def edit(msgs, meta):
+        return [*msgs, Msg(topic, schema, encoding, msgs[-1].log_time, data)], meta, len(msgs)
+
+    return edit
+
+
+def rechannel(suffix: str, schema: str | None = None, encoding: str | None = None):
+    def edit(msgs, meta):
+        out = [
+            replace(
+                m,
+                schema=schema if schema is not None else m.schema,
+                encoding=encoding or m.encoding,
+            )
+            if m.topic.endswith(suffix)
+            else m
+            for m in msgs
+        ]
+        return out, meta, nth(msgs, suffix)
+
+    return edit
+
+
+def edit_meta(fn):
+    def edit(msgs, meta):
+        return msgs, [(n, fn(dict(d)) if n == "run" else d) for n, d in meta], None
+
+    return edit
+
+
+def each_event_of_another_run(msgs, meta):
+    stale = [
+        with_data(m, {**m.obj(), "run_id": "stale"})
+        for m in msgs
+        if m.topic.endswith(("/event", "/progress"))
+    ]
+    return msgs + stale, meta, None
+
+
+def keep_first_pv(n: int):
+    def edit(msgs, meta):
+        seen = 0
+        out = []
+        for m in msgs:
+            if m.topic.endswith("/pv"):
+                seen += 1
+                if seen > n:
+                    continue
+            out.append(m)
+        return out, meta, None
+
+    return edit
+
+
+def set_(key, value):
+    def fn(o):
+        o[key] = value
+        return o
+
+    return fn
+
+
+def delete(key):
+    def fn(o):
+        del o[key]
+        return o
+
+    return fn
+
+
+def rename(key, new):
+    def fn(o):
+        o[new] = o.pop(key)
+        return o
+
+    return fn
+
+
+PV_N = 500  # a sample in the middle of the experiment
+CASES = [
+    # (id, run, edit, {"analyze": …, "report": …, "runs": …}; missing commands: OK)
+    (
+        "pv-missing-field",
+        "relay",
+        edit_json("/pv", PV_N, delete("pv")),
+        {"analyze": [REC, "pv: Field required"], "report": [REC, "pv: Field required"]},
+    ),
+    (
+        "pv-extra-field",
+        "relay",
+        edit_json("/pv", PV_N, set_("quality", "good")),
+        {"analyze": [REC, "quality: Extra inputs"], "report": [REC, "quality"]},
+    ),
+    (
+        "pv-renamed-field",
+        "relay",
+        edit_json("/pv", PV_N, rename("pv", "PV")),
+        {"analyze": [REC, "pv: Field required"], "report": [REC, "pv"]},
+    ),
+    (
+        "pv-string-for-number",
+        "relay",
+        edit_json("/pv", PV_N, lambda o: {**o, "pv": str(o["pv"])}),
+        {"analyze": [REC, "pv: Input should be a valid number"], "report": [REC, "pv"]},
+    ),
+    (
+        "pv-not-json",
+        "relay",
+        edit_json("/pv", PV_N, lambda o: b"pv=50.1;sp=50"),
+        {"analyze": [REC, "not JSON"], "report": [REC, "not JSON"]},
+    ),
+    (
+        "pv-not-utf8",
+        "relay",
+        edit_json("/pv", PV_N, lambda o: b"\xff\xfe\x00{"),
+        {"analyze": [REC, "not JSON"], "report": [REC, "not JSON"]},
+    ),
+    (
+        "pv-empty-payload",
+        "relay",
+        edit_json("/pv", PV_N, lambda o: b""),
+        {"analyze": [REC, "not JSON"], "report": [REC, "not JSON"]},
+    ),
+    (
+        "pv-json-array",
+        "relay",
+        edit_json("/pv", PV_N, lambda o: [1, 2]),
+        {"analyze": [REC], "report": [REC]},
+    ),
+    (
+        "pv-negative-time",
+        "relay",
+        edit_json("/pv", PV_N, set_("t", -0.02)),
+        {"analyze": [REC, "t: Input should be greater than or equal to 0"], "report": [REC, "t:"]},
+    ),
+    (
+        "pv-nan",
+        "relay",
+        edit_json(
+            "/pv",
+            PV_N,
+            lambda o: json.dumps(o).replace(f'"pv": {json.dumps(o["pv"])}', '"pv": NaN').encode(),
+        ),
+        {"analyze": [REC, "pv:"], "report": [REC, "pv:"]},
+    ),
+    (
+        "pv-op-out-of-range",
+        "relay",
+        edit_json("/pv", PV_N, set_("op", 150.0)),
+        {"analyze": [REC, "op:"], "report": [REC, "op:"]},
+    ),
+    (
+        "pv-seq-string",
+        "relay",
+        edit_json("/pv", PV_N, lambda o: {**o, "seq": str(o["seq"])}),
+        {"analyze": [REC, "seq:"], "report": [REC, "seq:"]},
+    ),
+    ("pv-duplicate-identical", "step", duplicate("/pv", PV_N), {}),
+    (
+        "pv-duplicate-different",
+        "relay",
+        duplicate("/pv", PV_N, lambda o: {**o, "pv": o["pv"] + 1.0}),
+        {
+            "analyze": [REC, "recorded before with other values"],
+            "report": [REC, "recorded before with other values"],
+        },
+    ),
+    (
+        "pv-all-dropped",
+        "relay",
+        drop("/pv"),
+        {"analyze": ["do not complete the relay test"], "report": ["no process samples"]},
+    ),
+    ("pv-tail-lost", "relay", keep_first_pv(300), {"analyze": ["do not complete the relay test"]}),
+    (
+        "request-not-json",
+        "relay",
+        edit_event_data("request", set_("request", "{")),
+        {"analyze": [REC, "data.request", "not JSON"]},
+    ),
+    (
+        "request-bad-method",
+        "relay",
+        edit_event_data(
+            "request", lambda d: {**d, "request": d["request"].replace('"relay"', '"guess"')}
+        ),
+        {"analyze": [REC, "data.request.method"]},
+    ),
+    (
+        "request-bad-rule",
+        "relay",
+        edit_event_data(
+            "request", lambda d: {**d, "request": d["request"].replace('"auto"', '"zn-banana"')}
+        ),
+        {"analyze": [REC, "data.request.rule"]},
+    ),
+    (
+        "request-missing",
+        "relay",
+        edit_event_data("request", delete("request")),
+        {"analyze": [REC, "data.request: missing"]},
+    ),
+    (
+        "request-number",
+        "relay",
+        edit_event_data("request", set_("request", 5)),
+        {"analyze": [REC, "data.request"]},
+    ),
+    (
+        "setup-negative-sample-time",
+        "relay",
+        edit_event_data("experiment", set_("sample_time", -0.02)),
+        {"analyze": [REC, "data.sample_time", "greater than 0"]},
+    ),
+    (
+        "setup-zero-sample-time",
+        "relay",
+        edit_event_data("experiment", set_("sample_time", 0)),
+        {"analyze": [REC, "data.sample_time"]},
+    ),
+    (
+        "setup-sample-time-string",
+        "relay",
+        edit_event_data("experiment", set_("sample_time", "0.02")),
+        {"analyze": [REC, "data.sample_time"]},
+    ),
+    (
+        "setup-no-first-seq",
+        "relay",
+        edit_event_data("experiment", delete("first_seq")),
+        {"analyze": [REC, "data.first_seq: Field required"]},
+    ),
+    (
+        "setup-first-seq-negative",
+        "relay",
+        edit_event_data("experiment", set_("first_seq", -4)),
+        {"analyze": [REC, "data.first_seq"]},
+    ),
+    (
+        "setup-op-limits-reversed",
+        "relay",
+        edit_event_data("experiment", lambda d: {**d, "op_lo": d["op_hi"], "op_hi": d["op_lo"]}),
+        {"analyze": [REC, "op_lo"]},
+    ),
+    (
+        "setup-direction-zero",
+        "relay",
+        edit_event_data("experiment", set_("direction", 0.0)),
+        {"analyze": [REC, "data.direction"]},
+    ),
+    (
+        "setup-no-op-start",
+        "relay",
+        edit_event_data("experiment", delete("op_start")),
+        {"analyze": [REC, "data.op_start: required"]},
+    ),
+    (
+        "setup-op-start-null",
+        "relay",
+        edit_event_data("experiment", set_("op_start", None)),
+        {"analyze": [REC, "data.op_start"]},
+    ),
+    (
+        "setup-pv-limits-equal",
+        "relay",
+        edit_event_data("experiment", lambda d: {**d, "pv_hi": d["pv_lo"]}),
+        {"analyze": [REC, "pv_lo"]},
+    ),
+    ("setup-unknown-key", "step", edit_event_data("experiment", set_("flux_capacitor", 1.21)), {}),
+    (
+        "experiment-dropped",
+        "relay",
+        drop("/event", event("experiment")),
+        {"analyze": ["no experiment recorded"]},
+    ),
+    (
+        "event-kind-missing",
+        "relay",
+        edit_json("/event", 0, delete("kind"), event("cycle")),
+        {"analyze": [REC, "kind: Field required"], "report": [REC, "kind"]},
+    ),
+    (
+        "event-data-list",
+        "relay",
+        edit_json("/event", 0, set_("data", [1, 2]), event("cycle")),
+        {"analyze": [REC, "data"], "report": [REC, "data"]},
+    ),
+    (
+        "event-negative-time",
+        "relay",
+        edit_json("/event", 0, set_("t", -1.0), event("cycle")),
+        {"analyze": [REC, "t:"], "report": [REC, "t:"]},
+    ),
+    (
+        "progress-phase-number",
+        "step",
+        edit_json("/progress", 3, set_("phase", 5)),
+        {"report": [REC, "phase"]},
+    ),
+    (
+        "progress-not-json",
+        "step",
+        edit_json("/progress", 3, lambda o: b"<xml/>"),
+        {"report": [REC, "not JSON"]},
+    ),
+    (
+        "status-garbage",
+        "step",
+        append(f"/{PREFIX}/plant/{LOOP}/status", "LoopStatus", b"garbage"),
+        {},
+    ),
+    ("result-duplicate-identical", "step", duplicate("/result", 0), {}),
+    (
+        "result-duplicate-different",
+        "relay",
+        duplicate("/result", 0, set_("status", "failed")),
+        {
+            "analyze": [REC, "a second, different result"],
+            "report": [REC, "a second, different result"],
+        },
+    ),
+    (
+        "result-of-another-run",
+        "step",
+        duplicate("/result", 0, lambda o: {**o, "run_id": "other", "ku": 1.0}),
+        {},
+    ),
+    (
+        "result-missing-field",
+        "relay",
+        edit_json("/result", 0, delete("status")),
+        {"analyze": [REC, "status: Field required"], "report": [REC, "status"]},
+    ),
+    (
+        "result-not-json",
+        "relay",
+        edit_json("/result", 0, lambda o: b"\x00\x01"),
+        {"analyze": [REC, "not JSON"], "report": [REC, "not JSON"]},
+    ),
+    (
+        "result-ku-string",
+        "relay",
+        edit_json("/result", 0, lambda o: {**o, "ku": "big"}),
+        {"analyze": [REC, "ku"], "report": [REC, "ku"]},
+    ),
+    ("stale-messages-of-another-run", "step", each_event_of_another_run, {}),
+    (
+        "unknown-channel-unknown-schema",
+        "step",
+        append(f"/{PREFIX}/somewhere/else", "Mystery", b'{"a": 1}'),
+        {},
+    ),
+    (
+        "unknown-channel-binary",
+        "step",
+        append("/elsewhere", "", b"\x00\xff" * 10, encoding="cdr"),
+        {},
+    ),
+    (
+        "pv-channel-unknown-schema",
+        "relay",
+        rechannel("/pv", schema="Mystery"),
+        {
+            "analyze": [REC, "schema 'Mystery', expected ProcessSample"],
+            "report": [REC, "schema 'Mystery'"],
+        },
+    ),
+    (
+        "pv-channel-protobuf",
+        "relay",
+        rechannel("/pv", encoding="protobuf"),
+        {"analyze": [REC, "message encoding 'protobuf'"], "report": [REC, "protobuf"]},
+    ),
+    ("pv-channel-no-schema", "step", rechannel("/pv", schema=""), {}),
+    (
+        "meta-future-format",
+        "relay",
+        edit_meta(set_("format", "2")),
+        {
+            "analyze": ["format", "version 2", "upgrade"],
+            "report": ["format", "version 2"],
+            "runs": ["format", "version 2"],
+        },
+    ),
+    (
+        "meta-format-garbage",
+        "relay",
+        edit_meta(set_("format", "one")),
+        {"analyze": ["format", "not a version number"], "report": ["format"], "runs": ["format"]},
+    ),
+    (
+        "meta-format-zero",
+        "relay",
+        edit_meta(set_("format", "0")),
+        {"analyze": ["format", "version 0"], "report": ["format"], "runs": ["format"]},
+    ),
+    ("meta-missing", "step", lambda msgs, meta: (msgs, [], None), {"runs": ["no 'run' metadata"]}),
+    (
+        "meta-run-id-wrong",
+        "relay",
+        edit_meta(set_("run_id", "zzz")),
+        {"analyze": ["run_id", "'zzz'", "runrelay"]},
+    ),
+    (
+        "meta-result-not-json",
+        "relay",
+        edit_meta(set_("result", "{oops")),
+        {"runs": ["field result: not JSON"]},
+    ),
+    (
+        "meta-result-ku-string",
+        "relay",
+        edit_meta(lambda d: {**d, "result": json.dumps({**json.loads(d["result"]), "ku": "big"})}),
+        {"runs": ["result.ku"]},
+    ),
+    (
+        "meta-samples-not-a-count",
+        "relay",
+        edit_meta(set_("samples", "many")),
+        {"runs": ["field samples"]},
+    ),
+    (
+        "meta-dropped-negative",
+        "relay",
+        edit_meta(set_("dropped", "-3")),
+        {"runs": ["field dropped"]},
+    ),
+    ("meta-extra-keys", "relay", edit_meta(set_("operator", "jo")), {}),
+    (
+        "step-start-time-dropped",
+        "step",
+        drop("/event", event("step_started")),
+        {"analyze": ["step's start time was not recorded"]},
+    ),
+    (
+        "step-start-time-string",
+        "step",
+        edit_event_data("step_started", set_("t", "soon")),
+        {"analyze": [REC, "data.t"]},
+    ),
+    (
+        "step-start-time-negative",
+        "step",
+        edit_event_data("step_started", set_("t", -1)),
+        {"analyze": [REC, "data.t"]},
+    ),
+    (
+        "step-setup-no-op-start",
+        "step",
+        edit_event_data("experiment", delete("op_start")),
+        {"analyze": [REC, "data.op_start: required for a step test"]},
+    ),
+    (
+        "step-pv-string",
+        "step",
+        edit_json("/pv", 100, lambda o: {**o, "pv": "hot"}),
+        {"analyze": [REC, "pv:"], "report": [REC, "pv:"]},
+    ),
+    ("relay-uncompressed", "relay", lambda msgs, meta: (msgs, meta, "uncompressed"), {}),
+    ("step-untouched", "step", lambda msgs, meta: (msgs, meta, None), {}),
+]
+
+
+# Metadata fields that only ``runs`` reads: the other commands are not run on these.
+RUNS_ONLY = {
+    "meta-result-not-json",
+    "meta-result-ku-string",
+    "meta-samples-not-a-count",
+    "meta-dropped-negative",
+    "meta-extra-keys",
+}
+
+
+def build_case(
+    tmp: Path, recorded: dict[str, Recorded], case
+) -> tuple[Path, str | None, list[Msg]]:
+    """Write the case's file; return it, the damaged record's 'topic message index' (or
+    None) and the messages written."""
+    cid, run, edit, _ = case
+    msgs, meta = load(recorded[run].path)
+    msgs, meta, hit = edit(msgs, meta)
+    path = tmp / f"{cid}.mcap"
+    save(path, msgs, meta, compress=hit != "uncompressed")
+    where = f"{msgs[hit].topic} message {hit}" if isinstance(hit, int) else None
+    return path, where, msgs
+
+
+def cli(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def refused(code: int, err: str, what: str, needles: list[str]) -> None:
+    assert code == 2, (what, code, err)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, (what, err)
+    for n in needles:
+        assert n in err, (what, n, err)
+
+
+def answers_correctly(code: int, out: str, err: str, what: str, live: TuneResult) -> None:
+    assert code == 0 and err == "", (what, err)
+    a = json.loads(out)
+    assert (a["ku"], a["pu"], a["step"]) == (live.ku, live.pu, live.step), what
+    assert a["gains"] == live.gains and a["matches_live"] is True, what
+
+
+def samples_in(msgs: list[Msg]) -> int:
+    return len({m.obj()["seq"] for m in msgs if m.topic.endswith("/pv")})
+
+
+# Harmless cases the report also draws (a figure costs 0.1 s; the others' series are read
+# through the report's own loader and summary, which is all the figure is drawn from).
+DRAWN = {"pv-duplicate-identical", "relay-uncompressed", "step-untouched", "meta-missing"}
+
+
+@pytest.fixture(scope="module")
+def case_files(recorded, tmp_path_factory) -> dict[str, tuple[Path, str | None, list[Msg]]]:
+    folder = tmp_path_factory.mktemp("cases")
+    return {case[0]: build_case(folder, recorded, case) for case in CASES}
+
+
+def test_each_damaged_file_is_refused_in_one_line_or_read_correctly(
+    recorded, case_files, tmp_path, capsys
+):
+    """analyze and report, in-process through the CLI's entry point, on every case."""
+    from services.logger.report import _summary, load_series
+
+    counts = {"refused": 0, "correct": 0}
+    for cid, run, _, expect in CASES:
+        if cid in RUNS_ONLY:
+            continue
+        path, where, msgs = case_files[cid]
+        for command in ("analyze", "report"):
+            what = f"{command} {cid}"
+            needles = expect.get(command, OK)
+            if command == "report" and needles is OK and cid not in DRAWN:
+                series = load_series(path)
+                assert series.t.size == samples_in(msgs) and _summary(series), what
+                counts["correct"] += 1
+                continue
+            argv = (
+                [command, str(path), "--json"]
+                if command == "analyze"
+                else [command, str(path), "-o", str(tmp_path / "r.png"), "--dpi", "10"]
+            )
+            code, out, err = cli(capsys, *argv)
+            if needles is OK:
+                if command == "analyze":
+                    answers_correctly(code, out, err, what, recorded[run].live)
+                else:
+                    assert code == 0 and err == "", (what, err)
+                    assert json.loads(out)["samples"] == samples_in(msgs), what
+                counts["correct"] += 1
+            else:
+                refused(code, err, what, [str(path), *[where if n == REC else n for n in needles]])
+                counts["refused"] += 1
+    print(f"hand-made MCAP cases: {len(CASES)} files, {counts}")
+    assert counts["refused"] > 60 and counts["correct"] > 20
+
+
+CONTAINER = [
+    # (id, make bytes from the good file's bytes, analyze/report needles, recover: rc)
+    (
+        "truncated-half",
+        lambda b: b[: len(b) // 2],
+        ["not a readable MCAP file", "autotune recover"],
+        0,
+    ),
+    ("truncated-to-magic", lambda b: b[:8], ["not a readable MCAP file"], 0),
+    ("footer-zeroed", lambda b: b[:-40] + bytes(40), ["not a readable MCAP file"], 0),
+    ("zero-length", lambda b: b"", ["not an MCAP file"], 2),
+    ("random-bytes", lambda b: np.random.default_rng(1).bytes(5000), ["not an MCAP file"], 2),
+    (
+        "magic-then-random",
+        lambda b: b[:8] + np.random.default_rng(2).bytes(5000),
+        ["not a readable MCAP file"],
+        0,
+    ),
+    ("text-file", lambda b: b"started,loop\n2026,x1\n", ["not an MCAP file"], 2),
+    (
+        "chunk-bytes-flipped",
+        lambda b: b[:2000] + bytes(x ^ 0xFF for x in b[2000:2050]) + b[2050:],
+        ["not a readable MCAP file"],
+        0,
+    ),
+]
+
+
+def test_damaged_containers_and_what_recover_makes_of_them(recorded, tmp_path, capsys):
+    good = recorded["relay"].path.read_bytes()
+    for cid, make, needles, recover_rc in CONTAINER:
+        path = tmp_path / f"{cid}.mcap"
+        path.write_bytes(make(good))
+        for argv in (["analyze", str(path)], ["report", str(path), "-o", str(tmp_path / "r.png")]):
+            code, _, err = cli(capsys, *argv)
+            refused(code, err, f"{argv[0]} {cid}", [str(path), *needles])
+        fixed = tmp_path / f"{cid}.fixed.mcap"
+        code, out, err = cli(capsys, "recover", str(path), "-o", str(fixed))
+        if recover_rc == 0:
+            assert code == 0 and err == "" and "recovered" in out, (cid, err)
+            code, _, err = cli(capsys, "analyze", str(fixed))  # what it made opens
+            assert code in (0, 2) and "not a readable MCAP" not in err, (cid, err)
+            assert len(err.strip().splitlines()) <= 1, (cid, err)
+        else:
+            refused(code, err, f"recover {cid}", [str(path), "nothing to recover"])
+    folder = tmp_path / "a.mcap"
+    folder.mkdir()
+    for argv in (
+        ["analyze", str(folder)],
+        ["report", str(folder)],
+        ["recover", str(folder), "-o", str(tmp_path / "x.mcap")],
+    ):
+        code, _, err = cli(capsys, *argv)
+        refused(code, err, argv[0], ["no such file"])
+    code, _, err = cli(capsys, "recover", str(recorded["relay"].path), "-o", str(tmp_path))
+    refused(code, err, "recover -o DIR", ["is a directory"])
+
+
+def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, tmp_path, capsys):
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    for path, _, _ in case_files.values():
+        (folder / path.name).symlink_to(path)
+    expected: dict[str, list[str] | None] = {}
+    run_of: dict[str, str] = {}
+    for cid, run, _, expect in CASES:
+        expected[f"{cid}.mcap"] = expect.get("runs", OK)
+        run_of[f"{cid}.mcap"] = run
+    good = recorded["relay"].path.read_bytes()
+    for cid, make, _, _ in CONTAINER:
+        (folder / f"{cid}.mcap").write_bytes(make(good))
+        expected[f"{cid}.mcap"] = ["MCAP"]
+    (folder / "zz-a-folder.mcap").mkdir()
+    expected["zz-a-folder.mcap"] = ["no such file"]
+    code, out, err = cli(capsys, "runs", str(folder), "--json")
+    assert code == 0 and err == "", err
+    rows = {r["file"]: r for r in json.loads(out)}
+    assert set(rows) == set(expected)
+    for name, needles in expected.items():
+        row = rows[name]
+        if needles is OK:
+            live = recorded[run_of[name]].live
+            assert row["status"] == "ok" and row["ku"] == live.ku and row["loop"] == LOOP, row
+        else:
+            assert row["status"] == "unreadable", row
+            assert "\n" not in row["reason"] and all(n in row["reason"] for n in needles), row
+    bad = sum(v is not OK for v in expected.values())
+    few = tmp_path / "few"  # the table, on one good file and three bad ones
+    few.mkdir()
+    for name in ("step-untouched", "meta-future-format", "truncated-half", "zero-length"):
+        (few / f"{name}.mcap").symlink_to(folder / f"{name}.mcap")
+    code, out, err = cli(capsys, "runs", str(few))
+    assert code == 0 and err == ""
+    lines = out.splitlines()
+    assert len(lines) == 5 and lines[0].startswith("started")  # a header, a row per file
+    assert sum("unreadable: " in ln for ln in lines) == 3
+    assert " ok  step-untouched.mcap" in out and "unreadable: metadata 'run', field format" in out
+    print(f"runs: {len(expected)} files, {bad} marked unreadable")
+
+
+# --- seeded random damage -----------------------------------------------------------------
+
+VALUES = [None, "", "x", -1, 0, -1e308, 1e308, 1e-320, True, [], {}, [1, "a"], {"k": None}, 2**70]
+
+
+def random_record_damage(rng, msgs: list[Msg]) -> tuple[list[Msg], int]:
+    """One record of a topic the commands read: a key deleted, added, renamed, or its value
+    replaced (from VALUES, or a NaN token); or the payload cut short."""
+    picks = [
+        i for i, m in enumerate(msgs) if m.topic.endswith(("/pv", "/event", "/result", "/progress"))
+    ]
+    i = int(rng.choice(picks))
+    o = msgs[i].obj()
+    op = int(rng.integers(6))
+    key = str(rng.choice(sorted(o)))
+    if op == 0:
+        del o[key]
+        data = json.dumps(o).encode()
+    elif op == 1:
+        o[f"k{int(rng.integers(100))}"] = VALUES[int(rng.integers(len(VALUES)))]
+        data = json.dumps(o).encode()
+    elif op == 2:
+        o[key.upper() + "_"] = o.pop(key)
+        data = json.dumps(o).encode()
+    elif op == 3:
+        o[key] = VALUES[int(rng.integers(len(VALUES)))]
+        data = json.dumps(o).encode()
+    elif op == 4:
+        data = (
+            json.dumps(o).replace(json.dumps(o[key]), "NaN", 1).encode()
+            if not isinstance(o[key], dict | list)
+            else b"{"
+        )
+    else:
+        data = msgs[i].data[: int(rng.integers(len(msgs[i].data)))]
+    out = list(msgs)
+    out[i] = replace(msgs[i], data=data)
+    return out, i
+
+
+def _valid(m: Msg) -> bool:
+    """Whether the record is still valid as its topic's message (the models themselves)."""
+    from pydantic import ValidationError
+
+    from shared.messages import TuneProgress, TunerEvent
+
+    model = {
+        "pv": ProcessSample,
+        "event": TunerEvent,
+        "result": TuneResult,
+        "progress": TuneProgress,
+    }
+    try:
+        model[m.topic.rsplit("/", 1)[1]].model_validate_json(m.data)
+    except ValidationError:
+        return False
+    return True
+
+
+def test_seeded_random_damage_is_refused_in_one_line_or_answered(recorded, tmp_path, capsys):
+    rng = np.random.default_rng(20261201)
+    source, meta = load(recorded["relay"].path)
+    outcome = {"refused": 0, "answered": 0}
+    for k in range(25):
+        msgs, hit = random_record_damage(rng, source)
+        path = save(tmp_path / f"random{k}.mcap", msgs, meta)
+        invalid = not _valid(msgs[hit])
+        for argv in (
+            ["analyze", str(path)],
+            ["report", str(path), "-o", str(tmp_path / "r.png"), "--dpi", "10"],
+        ):
+            code, _, err = cli(capsys, *argv)
+            assert code in (0, 2) and "Traceback" not in err, (k, argv[0], err)
+            if code == 2:
+                assert len(err.strip().splitlines()) == 1 and str(path) in err, (k, err)
+                outcome["refused"] += 1
+            if invalid and (argv[0] == "report" or not msgs[hit].topic.endswith("/progress")):
+                # a record its own model refuses: named, whatever else is wrong
+                assert code == 2 and f"{msgs[hit].topic} message {hit} " in err, (k, err)
+            else:
+                assert err == "", (k, err)
+                outcome["answered"] += 1
+    for k in range(20):  # bytes flipped, dropped or inserted anywhere in the container
+        b = bytearray(recorded["relay"].path.read_bytes())
+        pos = int(rng.integers(len(b)))
+        if k % 3 == 0:
+            b[pos : pos + 8] = rng.bytes(8)
+        elif k % 3 == 1:
+            del b[pos : pos + int(rng.integers(1, 64))]
+        else:
+            b[pos:pos] = rng.bytes(int(rng.integers(1, 64)))
+        path = tmp_path / f"bytes{k}.mcap"
+        path.write_bytes(bytes(b))
+        for argv in (
+            ["analyze", str(path)],
+            ["recover", str(path), "-o", str(tmp_path / f"fix{k}.mcap")],
+        ):
+            code, _, err = cli(capsys, *argv)
+            assert code in (0, 2) and "Traceback" not in err, (k, argv[0], err)
+            assert len(err.strip().splitlines()) == (1 if code == 2 else 0), (k, err)
+            outcome["refused" if code == 2 else "answered"] += 1
+    print(f"random MCAP damage: 45 files, {outcome}")
+    assert outcome["refused"] > 30
+
+
+def test_through_real_interpreters_exit_2_one_line_no_traceback(recorded, tmp_path):
+    msgs, meta = load(recorded["relay"].path)
+    bad = save(tmp_path / "bad.mcap", *edit_json("/pv", PV_N, delete("pv"))(msgs, meta)[:2])
+    truncated = tmp_path / "truncated.mcap"
+    truncated.write_bytes(recorded["relay"].path.read_bytes()[:5000])
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+    runs = [
+        (["analyze", str(bad)], 2, "pv: Field required"),
+        (["report", str(truncated), "-o", str(tmp_path / "r.png")], 2, "autotune recover"),
+        (["runs", str(tmp_path)], 0, "unreadable: "),
+    ]
+    procs = [
+        (
+            argv,
+            rc,
+            needle,
+            subprocess.Popen(
+                [sys.executable, "-m", "services.cli", *argv],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=env,
+            ),
+        )
+        for argv, rc, needle in runs
+    ]
+    for argv, rc, needle, proc in procs:  # started together: each is an interpreter's start-up
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == rc and "Traceback" not in err, (argv, err)
+        assert len(err.strip().splitlines()) == (1 if rc == 2 else 0), (argv, err)
+        assert needle in (err if rc == 2 else out), (argv, out, err)
