@@ -23,7 +23,14 @@ import zenoh
 from services.plant_sim.loop import CommandRejected, LoopSnapshot, SimLoop
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from shared import keys, wire
-from shared.cli import add_common_arguments, check_ids, install_stop_handlers, setup_logging
+from shared.cli import (
+    OneLineParser,
+    add_common_arguments,
+    check_flags,
+    check_ids,
+    install_stop_handlers,
+    setup_logging,
+)
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.messages import (
     COMMANDS,
@@ -255,8 +262,11 @@ class PlantService:
                 )
                 return
             pv_key = keys.pv(prefix, loop_id)
+            had = loop.fault
             for _ in range(cmd.steps):
                 out.append((pv_key, loop.advance()))
+            if loop.fault and not had:  # the model failed: say so once, on the status
+                out.append((keys.status(prefix, loop_id), self.loop_status(loop, "fault")))
         elif isinstance(cmd, SyncCommand):
             out.append(
                 (
@@ -386,9 +396,14 @@ class PlantService:
             late = -wait > period[lid]
             with self.lock:
                 self.overruns += int(late)
-                sample = self.loops[lid].advance(held[lid])
+                loop = self.loops[lid]
+                had = loop.fault
+                sample = loop.advance(held[lid])
                 held[lid] = sample.op
+                faulted = self.loop_status(loop, "fault") if loop.fault and not had else None
             wire.put(self.session, keys.pv(self.opt.prefix, lid), sample)
+            if faulted is not None:  # the model failed: say so once, on the status
+                wire.put(self.session, keys.status(self.opt.prefix, lid), faulted)
             due[lid] += 1
 
     def run(self, stop: threading.Event) -> None:
@@ -515,6 +530,7 @@ def serve(
 
 
 def run(args: argparse.Namespace) -> int:
+    check_flags("plant", args)
     setup_logging(args.verbose + 1, SERVICE)
     options = options_from_args(args)
     if args.noise_std is not None and not 0 <= args.noise_std < float("inf"):
@@ -529,7 +545,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m services.plant_sim", description=__doc__)
+    parser = OneLineParser(prog="python -m services.plant_sim", description=__doc__)
     add_arguments(parser)
     args = parser.parse_args(argv)
     try:
