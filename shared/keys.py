@@ -6,6 +6,10 @@ Layout (IDs in their own chunks, most-varying part last)::
     <prefix>/plant/<loop>/status           LoopStatus, on every change (queryable too)
     <prefix>/plant/<loop>/info             LoopInfo (queryable)
     <prefix>/plant/<loop>/cmd/<kind>       commands to the loop (see shared.messages.COMMANDS)
+    <prefix>/plant/<loop>/cmd/<kind>/<user>  the same, sent by a session authenticated as
+                                           <user>: a secure deployment's access control lets
+                                           each user put only on its own name, so the plant
+                                           knows who commanded what (``source`` is a label)
     <prefix>/plant/<loop>/alive            liveliness token of a served loop
     <prefix>/plant_sim/<node>/status       ServiceStatus of one plant_sim process (queryable)
     <prefix>/plant_sim/<node>/alive        liveliness token of one plant_sim process
@@ -66,8 +70,21 @@ def info(prefix: str, loop: str) -> str:
     return f"{loop_root(prefix, loop)}/info"
 
 
-def command(prefix: str, loop: str, kind: str) -> str:
-    return f"{loop_root(prefix, loop)}/cmd/{kind}"
+def command(prefix: str, loop: str, kind: str, user: str | None = None) -> str:
+    """A command's key; with ``user``, the sender's authenticated Zenoh user as its last chunk."""
+    key = f"{loop_root(prefix, loop)}/cmd/{kind}"
+    return key if user is None else f"{key}/{user}"
+
+
+def parse_command(prefix: str, key: str) -> tuple[str, str, str | None] | None:
+    """(loop, kind, user or None) of a command key; None if ``key`` is not one."""
+    parsed = split_loop_key(prefix, key)
+    if parsed is None or parsed[1][0] != "cmd" or len(parsed[1]) not in (2, 3):
+        return None
+    rest = parsed[1]
+    if not rest[1] or (len(rest) == 3 and not rest[2]):
+        return None
+    return parsed[0], rest[1], rest[2] if len(rest) == 3 else None
 
 
 def loop_alive(prefix: str, loop: str) -> str:
@@ -83,8 +100,8 @@ ANY = "*"
 
 
 def all_commands(prefix: str) -> str:
-    """Every command to every loop: one subscriber keeps them in order."""
-    return command(prefix, ANY, ANY)
+    """Every command to every loop, with or without a user: one subscriber keeps them in order."""
+    return f"{loop_root(prefix, ANY)}/cmd/**"
 
 
 def service_status(prefix: str, service: str, node: str) -> str:

@@ -85,6 +85,11 @@ class LoopStatus(Message):
     leased_by: str | None = Field(
         default=None, description="the supervisor holding the loop's lease (an experiment), if any"
     )
+    lease_user: str | None = Field(
+        default=None,
+        description="the holder's Zenoh user, named by its command keys (verified by the "
+        "router's access control in a secure deployment)",
+    )
     fault: str | None = Field(
         default=None,
         description="why the loop's model failed (the loop is then held in manual), if it did",

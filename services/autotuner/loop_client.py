@@ -93,6 +93,7 @@ class LoopClient:
         source: str = "autotune",
         timeout: float = 5.0,
         lease_timeout: float = LEASE_TIMEOUT,
+        user: str | None = None,
     ):
         self.session = session
         self.prefix = prefix
@@ -100,6 +101,7 @@ class LoopClient:
         self.source = source
         self.timeout = timeout
         self.lease_timeout = lease_timeout  # what this client asks for when it leases
+        self.user = user  # its authenticated Zenoh user, named in its command keys
         self._renew_every = min(RENEW_EVERY, lease_timeout / 4)
         # a silence this long (this process paused, its link re-forming) may have cost the
         # lease: it is confirmed before anything is written
@@ -221,7 +223,7 @@ class LoopClient:
             self.sync()
         if cmd.source != self.source:
             cmd = cmd.model_copy(update={"source": self.source})
-        wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind), cmd)
+        wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind, self.user), cmd)
         self._last_sent = time.monotonic()
 
     def _keep_lease(self) -> None:

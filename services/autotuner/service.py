@@ -24,6 +24,7 @@ from services.autotuner.tuning import RunHooks, TuningRun, validate_request
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, install_stop_handlers, setup_logging
 from shared.errors import AutotuneError, ConfigError, DecodeError
+from shared.identity import auth_user
 from shared.messages import LoopStatus, TuneAccepted, TuneRequest, TuneResult
 from shared.session import open_session, settings_from_args
 
@@ -48,8 +49,10 @@ class TunerService:
         node: str,
         loop_timeout: float = 10.0,
         lease_timeout: float = LEASE_TIMEOUT,
+        user: str | None = None,
     ):
         self.session = session
+        self.user = user
         self.lease_timeout = lease_timeout
         self.prefix = prefix
         self.node = node
@@ -96,7 +99,12 @@ class TunerService:
         try:
             wait_for_loop(s, p, req.loop, self.loop_timeout)
             with LoopClient(
-                s, p, req.loop, source=f"tuner:{run_id}", lease_timeout=self.lease_timeout
+                s,
+                p,
+                req.loop,
+                source=f"tuner:{run_id}",
+                lease_timeout=self.lease_timeout,
+                user=self.user,
             ) as client:
                 result = TuningRun(client, req, run_id, hooks).run()
         except Exception as err:  # whatever happens, the run ends with a result
@@ -233,6 +241,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--lease-timeout {args.lease_timeout:g}: must be 1–3600 s")
     stop = threading.Event()
     install_stop_handlers(stop)
-    with open_session(settings_from_args(args)) as session:
-        TunerService(session, args.prefix, args.node, lease_timeout=args.lease_timeout).run(stop)
+    settings = settings_from_args(args)
+    with open_session(settings) as session:
+        TunerService(
+            session,
+            args.prefix,
+            args.node,
+            lease_timeout=args.lease_timeout,
+            user=auth_user(settings),
+        ).run(stop)
     return 0

@@ -51,6 +51,7 @@ from pathlib import Path
 import pydantic
 
 from services.logger.mcap_io import RunWriter
+from shared import keys
 from shared.errors import ConfigError
 from shared.messages import (
     COMMANDS,
@@ -155,8 +156,9 @@ def model_for(prefix: str, key: str) -> tuple[str, type[Message]] | None:
     head = key[len(prefix) + 1 :].split("/") if key.startswith(prefix + "/") else []
     if len(head) == 3 and head[0] == "plant":
         return {"pv": (head[1], ProcessSample), "status": (head[1], LoopStatus)}.get(head[2])
-    if len(head) == 4 and head[0] == "plant" and head[2] == "cmd" and head[3] in COMMANDS:
-        return head[1], COMMANDS[head[3]]
+    command = keys.parse_command(prefix, key)  # with or without the sender's user
+    if command is not None and command[1] in COMMANDS:
+        return command[0], COMMANDS[command[1]]
     if len(head) == 3 and head[0] == "tune":
         models = {"progress": TuneProgress, "event": TunerEvent, "result": TuneResult}
         return (head[1], models[head[2]]) if head[2] in models else None

@@ -94,6 +94,17 @@ class Lease:
     timeout: float  # s of wall time without a command from ``source``
     deadline: float  # time.monotonic() by which the next command must come
     snapshot: LoopSnapshot
+    user: str | None = None  # the Zenoh user its commands' keys name (verified under ACL)
+
+
+def _sender(source: str, user: str | None) -> str:
+    """Who sent a command, as refusals are counted: its source, and its user when named."""
+    return source if user is None else f"{source}@{user}"
+
+
+def _holder(source: str, user: str | None) -> str:
+    """How refusals and logs name a supervisor: its source, and its user when known."""
+    return repr(source) if user is None else f"{source!r} (user {user!r})"
 
 
 class PlantService:
@@ -121,9 +132,12 @@ class PlantService:
         self, loop: SimLoop, reason: str, token: int | None = None, source: str | None = None
     ) -> LoopStatus:
         lease = self.leases.get(loop.settings.loop_id)
-        return loop.status(
+        status = loop.status(
             self.opt.node, self.opt.clock, reason, token, source, lease.source if lease else None
         )
+        if lease is not None and lease.user is not None:
+            status = status.model_copy(update={"lease_user": lease.user})
+        return status
 
     def loop_info(self, loop: SimLoop) -> LoopInfo:
         return loop.info(self.opt.node, self.opt.clock, self.opt.speed)
@@ -180,11 +194,11 @@ class PlantService:
         self, key: str, payload: bytes, encoding: str | None, out: list[tuple[str, Message]]
     ) -> None:
         prefix = self.opt.prefix
-        parsed = keys.split_loop_key(prefix, key)
-        if parsed is None or len(parsed[1]) != 2 or parsed[1][0] != "cmd":
+        parsed = keys.parse_command(prefix, key)
+        if parsed is None:
             self._reject(None, "key", f"unexpected key {key!r}", out)
             return
-        loop_id, (_, kind) = parsed
+        loop_id, kind, user = parsed  # user: verified by the router's ACL when deployed secure
         loop = self.loops.get(loop_id)
         if loop is None:
             if loop_id not in self._remote_loops:
@@ -209,56 +223,66 @@ class PlantService:
         except DecodeError as err:
             self._reject(loop, "malformed", f"{kind}: {err}", out)
             return
+        sender = _sender(cmd.source, user)  # refusals and lapses are counted by it
         if cmd.loop != loop_id:
             self._reject(
                 loop,
                 "loop_mismatch",
                 f"{kind}: payload names loop {cmd.loop!r} but was sent to {loop_id!r}",
                 out,
-                cmd.source,
+                sender,
             )
             return
         lease = self.leases.get(loop_id)
-        if lease is not None and cmd.source == lease.source:
+        holder = lease is not None and (cmd.source, user) == (lease.source, lease.user)
+        if lease is not None and holder:
             lease.deadline = time.monotonic() + lease.timeout
-        if lease is not None and lease.source != cmd.source and not isinstance(cmd, SyncCommand):
+        if lease is not None and not holder and not isinstance(cmd, SyncCommand):
             # exclusive: one supervisor at a time drives a leased loop, and only it lets go
-            # (two tuners on one loop snapshotted each other's test as the state to restore)
+            # (two tuners on one loop snapshotted each other's test as the state to restore);
+            # the holder is its source *and* the user its key names, so that under access
+            # control a session cannot pass for another by writing its source
             self._reject(
                 loop,
                 "leased",
-                f"{kind} refused: the loop is leased by {lease.source!r}",
+                f"{kind} refused: the loop is leased by {_holder(lease.source, lease.user)}",
                 out,
-                cmd.source,
+                sender,
             )
             return
         lapsed = self.lapsed.get(loop_id, {})
         lease_kinds = LeaseCommand | ReleaseCommand | SyncCommand
-        if cmd.source in lapsed and not isinstance(cmd, lease_kinds):
+        if sender in lapsed and not isinstance(cmd, lease_kinds):
             self._reject(
                 loop,
                 "lapsed",
-                f"{kind} refused: {cmd.source!r} no longer holds the loop ({lapsed[cmd.source]}; "
+                f"{kind} refused: {cmd.source!r} no longer holds the loop ({lapsed[sender]}; "
                 "the plant restored it to its state before the test)",
                 out,
-                cmd.source,
+                sender,
             )
             return
         if isinstance(cmd, LeaseCommand):
-            lapsed.pop(cmd.source, None)
+            lapsed.pop(sender, None)
             if lease is None:  # a holder renewing keeps the snapshot of before its test
                 self.leases[loop_id] = Lease(
-                    cmd.source, cmd.timeout, time.monotonic() + cmd.timeout, loop.snapshot()
+                    cmd.source,
+                    cmd.timeout,
+                    time.monotonic() + cmd.timeout,
+                    loop.snapshot(),
+                    user,
                 )
+                log.info("loop %s leased by %s", loop_id, _holder(cmd.source, user))
             out.append((keys.status(prefix, loop_id), self.loop_status(loop, "lease")))
         elif isinstance(cmd, ReleaseCommand):
-            lapsed.pop(cmd.source, None)
-            self.leases.pop(loop_id, None)
+            lapsed.pop(sender, None)
+            if self.leases.pop(loop_id, None) is not None:
+                log.info("loop %s released by %s", loop_id, _holder(cmd.source, user))
             out.append((keys.status(prefix, loop_id), self.loop_status(loop, "release")))
         elif isinstance(cmd, AdvanceCommand):
             if self.opt.clock != "lockstep":
                 self._reject(
-                    loop, "clock", "advance refused: the plant runs in realtime", out, cmd.source
+                    loop, "clock", "advance refused: the plant runs in realtime", out, sender
                 )
                 return
             pv_key = keys.pv(prefix, loop_id)
@@ -271,7 +295,7 @@ class PlantService:
             out.append(
                 (
                     keys.status(prefix, loop_id),
-                    self.loop_status(loop, "sync", cmd.token, cmd.source),
+                    self.loop_status(loop, "sync", cmd.token, sender),
                 )
             )
             return
@@ -279,7 +303,7 @@ class PlantService:
             try:
                 loop.apply(cmd)
             except CommandRejected as err:
-                self._reject(loop, err.category, f"{kind}: {err.reason}", out, cmd.source)
+                self._reject(loop, err.category, f"{kind}: {err.reason}", out, sender)
                 return
             out.append((keys.status(prefix, loop_id), self.loop_status(loop, kind)))
         loop.accepted += 1
@@ -343,7 +367,8 @@ class PlantService:
             loop = self.loops[loop_id]
             loop.restore(lease.snapshot)
             lapsed = self.lapsed.setdefault(loop_id, {})
-            lapsed[lease.source] = f"its lease ended at t = {loop.t:.6g} s: {why}"
+            ended = f"its lease ended at t = {loop.t:.6g} s: {why}"
+            lapsed[_sender(lease.source, lease.user)] = ended
             while len(lapsed) > MAX_LAPSED:  # bounded: the oldest are forgotten first
                 lapsed.pop(next(iter(lapsed)))
             out.append((keys.status(self.opt.prefix, loop_id), self.loop_status(loop, "watchdog")))

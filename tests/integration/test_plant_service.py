@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 import math
 import random
+import re
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from services.autotuner.loop_client import CommandRefused, LoopClient
+from services.autotuner.loop_client import CommandRefused, LeaseLost, LoopClient
 from services.plant_sim.models import TransferFunctionModel
 from services.plant_sim.plant_file import build_plant
 from shared import keys, wire
@@ -206,6 +207,51 @@ def test_leases_are_exclusive_and_only_the_holder_releases(start_plant):
         a.command(ReleaseCommand(loop="tf1", source="tuner:a"))
         b.command(LeaseCommand(loop="tf1", source="tuner:b", timeout=60.0))  # free now
         b.command(ReleaseCommand(loop="tf1", source="tuner:b"))
+
+
+def test_the_holder_is_its_source_and_its_user(start_plant):
+    """A command key naming the sender's Zenoh user (verified by the router's ACL when
+    deployed secure) is part of who holds a lease: writing the holder's source from another
+    user, or from no user, is refused; statuses name both."""
+    plant = start_plant(TF_PLANT, loops=("tf1",))
+    with (
+        open_session(plant.client_settings()) as s,
+        LoopClient(s, plant.prefix, "tf1", source="tuner:a", user="tuner") as a,
+        LoopClient(s, plant.prefix, "tf1", source="tuner:a", user="mallory") as forger,
+        LoopClient(s, plant.prefix, "tf1", source="tuner:a") as anonymous,
+    ):
+        st = a.command(LeaseCommand(loop="tf1", source="tuner:a", timeout=60.0))
+        assert (st.leased_by, st.lease_user) == ("tuner:a", "tuner")
+        held = re.escape("leased by 'tuner:a' (user 'tuner')")
+        for other in (forger, anonymous):
+            with pytest.raises(CommandRefused, match=held):
+                other.command(OutputCommand(loop="tf1", op=99.0, source="tuner:a"))
+        st = a.command(OutputCommand(loop="tf1", op=60.0, source="tuner:a"))
+        assert st.op == 60.0
+        a.command(ReleaseCommand(loop="tf1", source="tuner:a"))
+
+
+def test_a_lapsed_holder_is_told_and_refused(start_plant):
+    """The watchdog restores a loop whose holder fell silent, says so on the status (which the
+    holder's client takes as LeaseLost at once) and refuses the holder's commands until it
+    leases again."""
+    plant = start_plant(TF_PLANT, loops=("tf1",))
+    with (
+        open_session(plant.client_settings()) as s,
+        LoopClient(s, plant.prefix, "tf1", source="tuner:a") as a,
+    ):
+        a.command(OutputCommand(loop="tf1", op=42.0, source="tuner:a"))
+        a.command(LeaseCommand(loop="tf1", source="tuner:a", timeout=0.3))
+        a.send(OutputCommand(loop="tf1", op=70.0, source="tuner:a"))
+        with pytest.raises(LeaseLost, match="watchdog restored"):
+            while True:  # the next statuses: the output's, then the watchdog's (0.3 s on)
+                a._next()
+        assert not a.holding and a.last_status.op == 42.0 and a.last_status.reason == "watchdog"
+        with pytest.raises(CommandRefused, match="no longer holds the loop"):
+            a.command(OutputCommand(loop="tf1", op=70.0, source="tuner:a"))
+        a.command(LeaseCommand(loop="tf1", source="tuner:a", timeout=60.0))  # leases again
+        assert a.command(OutputCommand(loop="tf1", op=70.0, source="tuner:a")).op == 70.0
+        a.command(ReleaseCommand(loop="tf1", source="tuner:a"))
 
 
 def test_loops_announce_themselves_and_answer_queries(start_plant):
