@@ -131,6 +131,7 @@ class Stack:
             keys.logger_alive(prefix, "logger"),
         ):
             if not wait_for_token(self.session, key, 20.0):
+                self.close()  # no process outlives a failed start
                 raise AssertionError(f"{key} did not come up:\n{self.logs()}")
 
     def bus_args(self, service: str) -> list[str]:
