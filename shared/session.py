@@ -1,7 +1,24 @@
 """Open a Zenoh session from settings, with the flags of the zenoh examples and zenohd.
 
 Precedence: a config file (``-c``) or else ``ZENOH_CONFIG``, or else Zenoh's defaults; then
-``-m``, ``-e``, ``-l``, ``--no-multicast-scouting`` and ``--cfg KEY:VALUE`` override it.
+``-m``, ``-e``, ``-l``, ``--(no-)multicast-scouting`` and ``--cfg KEY:VALUE`` override it.
+
+Secure by default: whatever the user does not configure stays on this machine.
+
+* Multicast scouting is off unless ``--multicast-scouting`` or the config turns it on.
+* With no endpoints configured (no ``-l``/``-e``, none in the config file or ``--cfg``), a
+  peer listens on loopback only: on the *rendezvous* ``tcp/127.0.0.1:7447`` if it is free
+  (tried once: no error if another process holds it) and on an ephemeral loopback port; and
+  it connects to the rendezvous, retrying every second until it gets there and again
+  whenever that link drops. The first process takes the rendezvous, the next ones connect
+  to it and learn each other's loopback ports by gossip, so they mesh and stay meshed when
+  the holder exits; the next process to start takes the rendezvous over and the others
+  reconnect to it within a second. A client connects to the rendezvous; a router listens
+  on it. ``AUTOTUNE_RENDEZVOUS`` moves it (e.g. ``tcp/127.0.0.1:17447``).
+* With ``-e`` only, a peer listens on an ephemeral loopback port; with ``-l`` only, it
+  connects nowhere; a router listens on the rendezvous unless told otherwise.
+* ``--multicast-scouting`` restores Zenoh's own discovery: multicast on, and a peer's own
+  port on every interface (``tcp/[::]:0``) unless ``-l`` says where.
 """
 
 from __future__ import annotations
@@ -9,13 +26,21 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import zenoh
 
 from shared.errors import ConfigError
 
 MODES = ("peer", "client", "router")
+RENDEZVOUS = "tcp/127.0.0.1:7447"
+RENDEZVOUS_ENV = "AUTOTUNE_RENDEZVOUS"
+LOOPBACK_ANY = "tcp/127.0.0.1:0"  # an ephemeral port on loopback
+# the rendezvous listener: tried once, no failure if another process holds the port
+RENDEZVOUS_LISTEN = "#exit_on_failure=false"
+CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
 
 
 @dataclass(frozen=True)
@@ -28,11 +53,12 @@ class ZenohSettings:
     config_file: str | None = None
     cfg: tuple[str, ...] = field(default_factory=tuple)
     no_multicast_scouting: bool = False
+    multicast_scouting: bool = False
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``-m/-e/-l/-c/--cfg/--no-multicast-scouting`` as zenohd and the zenoh examples do."""
-    g = parser.add_argument_group("zenoh")
+    """Add ``-m/-e/-l/-c/--cfg/--(no-)multicast-scouting`` as zenohd and the zenoh examples do."""
+    g = parser.add_argument_group("zenoh (default: this machine only, see `autotune --help`)")
     g.add_argument("-m", "--mode", choices=MODES, help="the zenoh session mode (default: peer)")
     g.add_argument(
         "-e",
@@ -48,7 +74,8 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+        help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 to be reachable from other hosts "
+        "(repeatable; default: loopback only)",
     )
     g.add_argument(
         "-c",
@@ -64,10 +91,17 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
         help="set one configuration key to a JSON5 value, e.g. "
         "'connect/timeout_ms:30000' (repeatable)",
     )
-    g.add_argument(
+    m = g.add_mutually_exclusive_group()
+    m.add_argument(
         "--no-multicast-scouting",
         action="store_true",
-        help="disable multicast scouting (peers then need -e or -l)",
+        help="disable multicast scouting (the default unless the config file enables it)",
+    )
+    m.add_argument(
+        "--multicast-scouting",
+        action="store_true",
+        help="discover peers on the local network by UDP multicast, and listen on every "
+        "interface unless -l says where (zenoh's own defaults)",
     )
 
 
@@ -79,6 +113,7 @@ def settings_from_args(ns: argparse.Namespace) -> ZenohSettings:
         config_file=ns.config,
         cfg=tuple(ns.cfg),
         no_multicast_scouting=ns.no_multicast_scouting,
+        multicast_scouting=getattr(ns, "multicast_scouting", False),
     )
 
 
@@ -90,24 +125,93 @@ def _check_endpoint(flag: str, endpoint: str) -> None:
         )
 
 
-def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
-    """Build the zenoh.Config that ``settings`` describe; ConfigError names the bad setting."""
+def rendezvous() -> str:
+    """The well-known loopback endpoint default sessions meet on (``AUTOTUNE_RENDEZVOUS``)."""
+    endpoint = os.environ.get(RENDEZVOUS_ENV) or RENDEZVOUS
+    _check_endpoint(RENDEZVOUS_ENV, endpoint)
+    return endpoint
+
+
+def zenoh_error(err: BaseException) -> str:
+    """Zenoh's error text on one line, without the Rust source location it appends."""
+    text = str(err)
+    invalid = re.match(r"Invalid configuration: (\{.*\})", text, re.S)
+    if invalid:
+        return _invalid_config_reason(invalid.group(1))
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", text).strip()
+    serde = re.search(r'msg: "(.*)", location: Some\(Location \{ line: (\d+), column: (\d+)', text)
+    if serde:  # a value of the wrong kind
+        return f"line {serde.group(2)}, column {serde.group(3)}: {serde.group(1)}"
+    parse = re.search(r"-->\s*(\d+):(\d+).*?=\s*(.+)$", text, re.S)
+    if parse:  # a JSON5 syntax error, drawn over several lines
+        return f"line {parse.group(1)}, column {parse.group(2)}: {parse.group(3).strip()}"
+    return " ".join(text.split())
+
+
+def _invalid_config_reason(dump: str) -> str:
     try:
-        if settings.config_file:
-            conf = zenoh.Config.from_file(settings.config_file)
-        elif os.environ.get("ZENOH_CONFIG"):
-            conf = zenoh.Config.from_env()
-        else:
-            conf = zenoh.Config()
+        usrpwd = json.loads(dump)["transport"]["auth"]["usrpwd"]
+    except (ValueError, KeyError, TypeError):
+        usrpwd = {}
+    if (usrpwd.get("user") is None) != (usrpwd.get("password") is None):
+        missing = "password" if usrpwd.get("password") is None else "user"
+        return f"transport/auth/usrpwd/{missing}: missing (user and password go together)"
+    return "invalid configuration (zenoh's validation refused it)"
+
+
+def _load(settings: ZenohSettings) -> tuple[zenoh.Config, str | None]:
+    """The config of ``-c`` or ``ZENOH_CONFIG`` (or Zenoh's defaults) and its file name."""
+    path = settings.config_file or os.environ.get("ZENOH_CONFIG") or None
+    source = settings.config_file or (f"ZENOH_CONFIG={path}" if path else None)
+    if path is None:
+        return zenoh.Config(), None
+    if not Path(path).is_file():
+        raise ConfigError(f"zenoh config {source}: no such file")
+    try:
+        return zenoh.Config.from_file(path), path
     except Exception as err:
-        source = settings.config_file or f"ZENOH_CONFIG={os.environ.get('ZENOH_CONFIG')}"
-        raise ConfigError(f"zenoh config {source}: {err}") from None
+        raise ConfigError(f"zenoh config {source}: {zenoh_error(err)}") from None
+
+
+FILE_KEYS = (
+    "transport/auth/usrpwd/dictionary_file",
+    "transport/link/tls/root_ca_certificate",
+    "transport/link/tls/listen_certificate",
+    "transport/link/tls/listen_private_key",
+    "transport/link/tls/connect_certificate",
+    "transport/link/tls/connect_private_key",
+)
+
+
+def _resolve_files(conf: zenoh.Config, path: str | None, source: str | None) -> None:
+    """Credentials files named by the config: a relative path is taken from the config
+    file's own directory (zenohd takes it from its working directory); a missing one is
+    named with its key."""
+    for key in FILE_KEYS:
+        value = json.loads(conf.get_json(key))
+        if not isinstance(value, str):
+            continue
+        file = Path(value)
+        if path is not None and not file.is_absolute():
+            file = Path(path).resolve().parent / file
+            conf.insert_json5(key, json.dumps(str(file)))
+        if not file.is_file():
+            raise ConfigError(f"zenoh config {source or '--cfg'}: {key}: {value}: no such file")
+
+
+def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
+    """Build the zenoh.Config that ``settings`` describe; ConfigError names the bad setting.
+
+    The file, then the flags, then ``--cfg``; what none of them set gets the secure defaults
+    of the module's docstring."""
+    conf, path = _load(settings)
+    source = settings.config_file or (f"ZENOH_CONFIG={path}" if path else None)
 
     def insert(what: str, key: str, value: str) -> None:
         try:
             conf.insert_json5(key, value)
         except Exception as err:
-            raise ConfigError(f"{what}: {err}") from None
+            raise ConfigError(f"{what}: {zenoh_error(err)}") from None
 
     if settings.mode:
         if settings.mode not in MODES:
@@ -121,20 +225,61 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
             for e in endpoints:
                 _check_endpoint(flag, e)
             insert(flag, key, json.dumps(list(endpoints)))
-    if settings.no_multicast_scouting:
-        insert("--no-multicast-scouting", "scouting/multicast/enabled", "false")
+    if settings.multicast_scouting or settings.no_multicast_scouting:
+        flag = "--multicast-scouting" if settings.multicast_scouting else "--no-multicast-scouting"
+        insert(flag, "scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     for item in settings.cfg:
         key, sep, value = item.partition(":")
         if not sep or not key or not value:
             raise ConfigError(f"--cfg {item!r}: expected KEY:VALUE, e.g. connect/timeout_ms:30000")
         insert(f"--cfg {item!r}", key, value)
+    _secure_defaults(conf, insert)
+    _resolve_files(conf, path, source)
     return conf
 
 
-def open_session(settings: ZenohSettings) -> zenoh.Session:
+def _get(conf: zenoh.Config, key: str) -> object:
+    return json.loads(conf.get_json(key))
+
+
+def _secure_defaults(conf: zenoh.Config, insert) -> None:
+    """Fill what the user left unset (Zenoh reports unset keys as null): no multicast, and
+    loopback endpoints around the rendezvous."""
+    mode = _get(conf, "mode") or "peer"
+    multicast = _get(conf, "scouting/multicast/enabled")
+    if multicast is None:
+        insert("secure default", "scouting/multicast/enabled", "false")
+    own_listen = _get(conf, "listen/endpoints") != _get(zenoh.Config(), "listen/endpoints")
+    own_connect = _get(conf, "connect/endpoints") not in (None, [], {})
+    anywhere = "tcp/[::]:0" if multicast is True else LOOPBACK_ANY
+    if not own_listen:
+        if mode == "router":
+            point = rendezvous()
+            if multicast is True:  # zenoh's own default: every interface
+                point = "tcp/[::]:" + point.rsplit(":", 1)[-1]
+            insert("default listen", "listen/endpoints", json.dumps([point]))
+        elif mode == "peer" and own_connect:
+            insert("default listen", "listen/endpoints", json.dumps([anywhere]))
+        elif mode == "peer":
+            points = [rendezvous() + RENDEZVOUS_LISTEN, anywhere]
+            insert("default listen", "listen/endpoints", json.dumps(points))
+    if not own_connect and not own_listen and mode in ("peer", "client"):
+        insert("default connect", "connect/endpoints", json.dumps([rendezvous()]))
+        if mode == "peer" and _get(conf, "connect/retry") is None:
+            insert("default connect", "connect/retry", json.dumps(CONNECT_RETRY))
+
+
+def open_config(conf: zenoh.Config) -> zenoh.Session:
     """Open a session; a failure (bad endpoint, no router reachable) becomes a ConfigError."""
-    conf = zenoh_config(settings)
     try:
         return zenoh.open(conf)
     except Exception as err:
-        raise ConfigError(f"cannot open zenoh session: {err}") from None
+        reason = zenoh_error(err)
+        if reason.startswith("Unable to connect"):
+            reason += " (nothing listens there, or it refused this session's credentials)"
+        raise ConfigError(f"cannot open zenoh session: {reason}") from None
+
+
+def open_session(settings: ZenohSettings) -> zenoh.Session:
+    """Open a session as ``settings`` describe (see ``zenoh_config``)."""
+    return open_config(zenoh_config(settings))

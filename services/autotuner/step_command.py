@@ -11,6 +11,7 @@ from services.autotuner.rules import ZN_STEP_RANGE
 from services.autotuner.step_test import StepTest, StepTestConfig, StepTestReport, run_step_test
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import ConfigError
+from shared.identity import auth_user
 from shared.session import open_session, settings_from_args
 
 HELP = "open-loop step test of a loop: process gain, dead time, time constants, R, L, L/T"
@@ -159,9 +160,12 @@ def progress_line(test: StepTest, s) -> None:
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     check_ids(args.prefix, loop=args.loop)
-    with open_session(settings_from_args(args)) as session:
+    settings = settings_from_args(args)
+    with open_session(settings) as session:
         wait_for_loop(session, args.prefix, args.loop, args.wait)
-        with LoopClient(session, args.prefix, args.loop, source="autotune-step") as client:
+        with LoopClient(
+            session, args.prefix, args.loop, source="autotune-step", user=auth_user(settings)
+        ) as client:
             report = run_step_test(
                 client,
                 config,
