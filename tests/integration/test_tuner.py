@@ -20,9 +20,9 @@ import time
 import pytest
 import zenoh
 
-from services.autotuner.loop_client import LoopClient
+from services.autotuner.loop_client import LoopClient, wait_for_token
 from shared import keys, wire
-from shared.messages import LoopStatus, TuneResult
+from shared.messages import LeaseCommand, LoopStatus, ReleaseCommand, TuneResult
 from shared.session import open_session
 from tests.exact import ultimate_point
 from tests.field_cases import Case, true_loop
@@ -310,3 +310,36 @@ def test_gains_above_the_ms_bound_are_refused_unless_forced(start_plant, start_t
     assert r["status"] == "ok" and r["applied"] is True
     assert any("forced" in w for w in r["warnings"]), r["warnings"]
     assert loop_state(p, "x2").mode == "auto"
+
+
+def test_two_tuners_on_one_bus_make_one_run(start_plant, start_tuner):
+    """'Any tuner' is one tuner: with two on the bus, `autotune tune` starts exactly one run
+    (on the first by name); asked by name while the loop is held, the other refuses it,
+    naming the holder; a lease the second takes behind the first's back is refused."""
+    p = start_plant(plant_toml("x1", THIRD), loops=("x1",))
+    start_tuner(p)  # node "tuner"
+    start_tuner(p, "--node", "a-tuner")  # first by name
+    wait_for_tokens_of(p, [keys.tuner_alive(p.prefix, "a-tuner")])
+    with open_session(p.client_settings()) as s:
+        started: list[str] = []
+        sub = s.declare_subscriber(
+            keys.tune_progress(p.prefix, "x1"),
+            lambda m: started.append(m.payload.to_bytes().decode()),
+        )
+        run = autotune("tune", "x1", "--json", "--method", "relay", "--no-apply", *p.cli_args())
+        sub.undeclare()
+    result = json.loads(run.stdout)
+    assert result["status"] == "ok", run.stderr
+    runs = {json.loads(m)["run_id"] for m in started}
+    assert runs == {result["run_id"]}  # one run, nothing from the other tuner
+    with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1", source="x") as c:
+        c.command(LeaseCommand(loop="x1", source="x", timeout=60.0))
+        refused = autotune("tune", "x1", "--json", "--node", "tuner", *p.cli_args())
+        assert refused.returncode == 2 and "held by 'x'" in refused.stderr, refused.stderr
+        c.command(ReleaseCommand(loop="x1", source="x"))
+
+
+def wait_for_tokens_of(plant, key_exprs: list[str]) -> None:
+    with open_session(plant.client_settings()) as s:
+        for key in key_exprs:
+            assert wait_for_token(s, key, 20.0), f"{key} did not come up"
