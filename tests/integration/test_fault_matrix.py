@@ -276,8 +276,9 @@ def _run_case(stack: Stack) -> None:
     if case.fault == "kill":
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-        t_fault = time.monotonic()
+        t_fault = t_begin = time.monotonic()
     elif case.fault == "pause":
+        t_begin = time.monotonic()
         proc.send_signal(signal.SIGSTOP)
         time.sleep(case.pause)  # the fault itself: a pause of this length
         proc.send_signal(signal.SIGCONT)
@@ -285,7 +286,7 @@ def _run_case(stack: Stack) -> None:
     else:  # the router goes away and comes back on the same endpoint
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-        t_fault = time.monotonic()
+        t_fault = t_begin = time.monotonic()
         stack.start("router")
     out, err = client.communicate(timeout=120.0)
     ended = time.monotonic() - t_fault
@@ -293,7 +294,7 @@ def _run_case(stack: Stack) -> None:
         stack.start("plant")  # a fresh instance: the tuner must have written nothing to it
         wait_for_token(stack.session, keys.loop_alive(stack.prefix, LOOP), 20.0)
     after = _settled_status(stack, before, case)
-    back = [t - t_fault for t in handbacks if t >= t_fault - 0.5]
+    back = [t - t_begin for t in handbacks if t >= t_begin]  # from the fault's start
     report = {
         "case": case.id,
         "restored_s": round(back[0], 3) if back else None,
