@@ -155,6 +155,13 @@ class LoopClient:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def query_status(self, timeout: float) -> LoopStatus | None:
+        """The loop's status by a query: reads, sends no command (what a client that lost
+        the plant may still do, to say how the loop was left once it is back in reach)."""
+        return wire.query_one(
+            self.session, keys.status(self.prefix, self.loop), LoopStatus, timeout
+        )
+
     def _query_info(self) -> LoopInfo:
         info = wire.query_one(
             self.session, keys.info(self.prefix, self.loop), LoopInfo, self.timeout
@@ -179,8 +186,9 @@ class LoopClient:
                 self.holding = False
                 self.gone = True
                 raise PlantLost(
-                    f"loop {self.loop!r}: the plant is gone (its liveliness token "
-                    f"{keys.loop_alive(self.prefix, self.loop)} vanished)"
+                    f"loop {self.loop!r}: lost the plant (its liveliness token "
+                    f"{keys.loop_alive(self.prefix, self.loop)} vanished: the plant stopped, "
+                    "or this tuner was cut off from it)"
                 )
             if key == self._pv_key:
                 self.last_sample = wire.decode(ProcessSample, payload, enc)
@@ -212,7 +220,7 @@ class LoopClient:
         instance that never granted this client anything."""
         if self.gone:
             raise PlantLost(
-                f"loop {self.loop!r}: the plant is gone (its liveliness token vanished); "
+                f"loop {self.loop!r}: the plant was lost (its liveliness token vanished); "
                 f"{cmd.kind} not sent"
             )
         if (

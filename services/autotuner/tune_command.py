@@ -459,14 +459,15 @@ def format_result(r: TuneResult) -> str:
     lines.append(f"  {state}; {r.sim_duration:.0f} s of sim time in {r.wall_time:.2f} s")
     if r.left:
         lf = r.left
-        back = (
-            "the PV is back where it was"
-            if lf.get("returned")
-            else "the PV is still on its way back"
-        )
+        if lf.get("pv_target") is None:  # seen by a query after the plant was lost
+            back = "as its plant shows it once back in reach"
+        elif lf.get("returned"):
+            back = f"the PV is back where it was: target {lf['pv_target']:.4g}"
+        else:
+            back = f"the PV is still on its way back: target {lf['pv_target']:.4g}"
         lines.append(
             f"  left: {lf['mode']}, SP {lf['sp']:.4g} {pv_units}, OP {lf['op']:.4g} %, PV "
-            f"{lf['pv']:.4g} {pv_units} ({back}: target {lf['pv_target']:.4g})"
+            f"{lf['pv']:.4g} {pv_units} ({back})"
         )
     return "\n".join(lines)
 

@@ -60,6 +60,7 @@ VERIFY_MIN_NOISE = 8.0  # … and this many σ in any case
 MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
 GUARD_WINDOW = 2.0  # time scales per window of the verification's growth and saturation guard
 OP_NOISE_WARN = 5.0  # % of output (σ): more output noise than this is worth a warning
+LOSS_QUERY_TIMEOUT = 2.0  # s of wall time to find a lost plant back in reach (a reconnect)
 RETURN_SCALES = 5.0  # time scales to wait for the PV of a restored loop to come back to rest
 
 
@@ -307,6 +308,14 @@ class TuningRun:
                     c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
         scale = ident.timescale if ident is not None and ident.timescale > 0 else None
         cancelled = self.hooks.cancelled is not None and self.hooks.cancelled.is_set()
+        if c.gone and result.get("status") != "ok":
+            # cut off from the plant: its watchdog restores the loop when our run token
+            # vanishes; say what it shows once back in reach
+            left = self._seen_after_loss(before)
+            if left is not None and left.pop("as_before"):
+                result["restored"] = True
+                result["reason"] = f"{result.get('reason')}; the plant restored the loop"
+            return self._result(result, t0, wall0, left)
         left = self._leave(
             before,
             self._pv_rest,
@@ -315,6 +324,27 @@ class TuningRun:
             model=ident.model if ident is not None else None,
         )
         return self._result(result, t0, wall0, left)
+
+    def _seen_after_loss(self, before: LoopStatus) -> dict | None:
+        """The loop as its plant shows it once back in reach (a query, no command): whether it
+        is as before the test, not held by anyone. None if the plant stays out of reach."""
+        st = self.client.query_status(LOSS_QUERY_TIMEOUT)
+        if st is None:
+            return None
+        same = (st.mode, st.sp, st.gains) == (before.mode, before.sp, before.gains) and (
+            st.mode == "auto" or st.op == before.op
+        )
+        return {
+            "mode": st.mode,
+            "sp": st.sp,
+            "op": st.op,
+            "gains": st.gains.model_dump(),
+            "pv": st.pv,
+            "pv_target": None,
+            "returned": None,
+            "waited": 0.0,
+            "as_before": same and st.leased_by is None,
+        }
 
     def _result(self, result: dict, t0: float, wall0: float, left: dict | None) -> TuneResult:
         """The TuneResult: every number finite (or None), whatever the run produced."""

@@ -77,8 +77,9 @@ CASES = [
     Case("pause", "tuner", "relay2", "lockstep", "aborted", 3.0, pause=2 * LEASE),
     Case("pause", "tuner", "trial", "x10", "aborted", 3.0, method="ramp", pause=2 * LEASE),
     Case("pause", "tuner", "relay1", "x1", "aborted", 3.0, pause=2 * LEASE),
-    Case("kill", "plant", "relay2", "lockstep", "aborted", 2.0),
-    Case("kill", "plant", "trial", "x10", "aborted", 2.0, method="ramp"),
+    # noticed at once; the run then asks the plant's status for 2 s (is it back in reach?)
+    Case("kill", "plant", "relay2", "lockstep", "aborted", 4.0),
+    Case("kill", "plant", "trial", "x10", "aborted", 4.0, method="ramp"),
     Case("pause", "plant", "relay1", "lockstep", "ok", 60.0, pause=2.0),
     Case("pause", "plant", "verify", "x10", "aborted", 15.0, pause=7.0),
     Case("kill", "logger", "relay1", "x10", "ok", 60.0),
