@@ -308,9 +308,9 @@ class TuningRun:
                     c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
         scale = ident.timescale if ident is not None and ident.timescale > 0 else None
         cancelled = self.hooks.cancelled is not None and self.hooks.cancelled.is_set()
-        if c.gone and result.get("status") != "ok":
-            # cut off from the plant: its watchdog restores the loop when our run token
-            # vanishes; say what it shows once back in reach
+        if result.get("status") != "ok" and (c.gone or not result.get("restored")):
+            # cut off from the plant, or the restore failed: its watchdog restores the loop
+            # when our run token vanishes or our lease lapses; say what it shows
             left = self._seen_after_loss(before)
             if left is not None and left.pop("as_before"):
                 result["restored"] = True
