@@ -55,6 +55,10 @@ class LocalLoopClient:
         self.last_status = self.sim.status(NODE, "lockstep", "sync", 0)
         return self.last_status
 
+    def query_status(self, timeout: float) -> LoopStatus:
+        """The loop's status, read without a command (as a query over the bus would)."""
+        return self.sim.status(NODE, "lockstep", "query")
+
     def send(self, cmd: Command) -> None:
         self._apply(cmd)
 
