@@ -173,12 +173,15 @@ class LoopClient:
             )
         return info
 
-    def _next(self) -> Message:
-        """The next sample or status on the loop's feed (others' too)."""
+    def _next(self, wait: float | None = None) -> Message | None:
+        """The next sample or status on the loop's feed (others' too). With ``wait``, None
+        when nothing comes within it; else PlantLost after ``timeout`` s of silence."""
         while True:
             try:
-                key, payload, enc = self._inbox.get(timeout=self.timeout)
+                key, payload, enc = self._inbox.get(timeout=self.timeout if wait is None else wait)
             except queue.Empty:
+                if wait is not None:
+                    return None
                 raise PlantLost(
                     f"loop {self.loop!r}: no message from the plant for {self.timeout:g} s"
                 ) from None
@@ -261,7 +264,7 @@ class LoopClient:
                 tokens.add(token)
                 self.send(SyncCommand(loop=self.loop, token=token, source=self.source))
                 resend = now + RESEND_EVERY
-            msg = self._next()
+            msg = self._next(wait=max(0.0, min(resend, deadline) - time.monotonic()))
             if isinstance(msg, LoopStatus) and msg.sync_token in tokens:
                 self._refused = msg.sync_rejected or 0
                 self._loop_refused = msg.rejected
