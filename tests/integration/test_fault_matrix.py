@@ -168,18 +168,11 @@ class Stack:
             "tuner": "services.autotuner",
             "logger": "services.logger",
         }[service]
-        head = ["router"] if service == "router" else []
-        n = sum(1 for p in self.tmp.glob(f"{service}*.log"))
+        # the router takes no --prefix: it routes every key
+        args = ["router"] if service == "router" else ["--prefix", self.prefix, *own]
+        n = sum(1 for _ in self.tmp.glob(f"{service}*.log"))
         with (self.tmp / f"{service}{n}.log").open("w") as f:
-            self.procs[service] = (
-                start_service(
-                    module,
-                    [*head, "--prefix", self.prefix, *own, *self.bus_args(service)],
-                    stderr=f,
-                )
-                if service != "router"
-                else start_service(module, [*head, *self.bus_args(service)], stderr=f)
-            )
+            self.procs[service] = start_service(module, [*args, *self.bus_args(service)], stderr=f)
 
     def logs(self) -> str:
         return "\n".join(f"--- {p.name}\n{p.read_text()[-3000:]}" for p in self.tmp.glob("*.log"))
