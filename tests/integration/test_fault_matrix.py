@@ -1,8 +1,8 @@
 """The fault matrix: a peer killed, paused or cut off at a chosen phase of a run.
 
 Each case starts the real services as separate processes on loopback (a fast FOPDT loop, P_u
-≈ 1.1 s; at ×10 stretched to 5.5 s, so a whole relay run is seconds), asks `autotune tune` for a run, and at the
-phase named (the tuner's own progress and event messages say when it is there) SIGKILLs or
+≈ 1.1 s; at ×10 stretched to 5.5 s, so a whole relay run is seconds), asks `autotune tune`
+for a run, and at the phase named (the tuner's own progress and event messages say when it is there) SIGKILLs or
 SIGSTOPs (then SIGCONTs) the tuner, the plant or the logger, or restarts the router the
 services are clients of. It then asserts the loop's exact state (mode, output, setpoint and
 gains equal to before the run, or the applied gains after an ``ok``), that the run ended with
