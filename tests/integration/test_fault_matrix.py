@@ -1,19 +1,19 @@
 """The fault matrix: a peer killed, paused or cut off at a chosen phase of a run.
 
-Each case starts the real services as separate processes on loopback (a fast FOPDT loop, P_u
-≈ 1.1 s; at ×10 stretched to 5.5 s, so a whole relay run is seconds), asks `autotune tune`
-for a run, and at the phase named (the tuner's own progress and event messages say when it is there) SIGKILLs or
-SIGSTOPs (then SIGCONTs) the tuner, the plant or the logger, or restarts the router the
-services are clients of. It then asserts the loop's exact state (mode, output, setpoint and
-gains equal to before the run, or the applied gains after an ``ok``), that the run ended with
-a reason within a bound, what the client printed and its exit code, and that the recording
-opens (after ``autotune recover`` where the logger was killed).
+Each case starts the real services as separate processes on loopback (a fast FOPDT loop, P_u ≈
+1.1 s; at ×10 stretched to 5.5 s, so a whole relay run is seconds), asks `autotune tune` for a
+run, and at the phase named (the tuner's own progress and event messages say when it is there)
+SIGKILLs or SIGSTOPs (then SIGCONTs) the tuner, the plant or the logger, or restarts the router
+the services are clients of. It then asserts the loop's exact state (mode, output, setpoint and
+gains equal to before the run, or the applied gains after an ``ok``), that the run ended with a
+reason within a bound, what the client printed and its exit code, and that the recording opens
+(after ``autotune recover`` where the logger was killed).
 
-Bounds are wall time from the fault (or from SIGCONT of a pause) to the run's end as the
-client saw it; they are generous against a loaded 2-core machine and say what each
-mechanism promises: a killed tuner's loop is restored by the plant as soon as its run token
-vanishes; a paused tuner's lease lapses after --lease-timeout; a vanished plant is noticed
-from its liveliness token at once.
+Bounds are wall time from the fault (or from SIGCONT of a pause) to the run's end as the client
+saw it; they are generous against a loaded 2-core machine and say what each mechanism promises:
+a killed tuner's loop is restored by the plant as soon as its run token vanishes; a paused
+tuner's lease lapses after --lease-timeout; a vanished plant is noticed from its liveliness
+token at once.
 """
 
 from __future__ import annotations
