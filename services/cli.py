@@ -15,16 +15,16 @@ import traceback
 import warnings
 
 from services import demo, health, router, up
-from services.autotuner import benchmark_command, step_command, tune_command
 from services.autotuner import service as tuner_service
-from services.logger import (
-    analyze_command,
-    recover_command,
-    replay_command,
-    report,
-    runs_command,
-)
+from services.autotuner.commands import step as step_command
+from services.autotuner.commands import tune as tune_command
+from services.logger import report
 from services.logger import service as logger_service
+from services.logger.commands import analyze as analyze_command
+from services.logger.commands import recover as recover_command
+from services.logger.commands import replay as replay_command
+from services.logger.commands import runs as runs_command
+from services.offline import benchmark_command
 from services.plant_sim import service as plant_service
 from shared.cli import OneLineParser, check_flags, check_runs_dir
 from shared.errors import AutotuneError, one_line

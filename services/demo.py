@@ -18,8 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from services.autotuner.frequency import model_ultimate_point
-from services.autotuner.tune_command import (
+from services.autotuner.commands.tune import (
     add_tune_options,
     follow,
     format_result,
@@ -29,10 +28,11 @@ from services.autotuner.tune_command import (
 )
 from services.launcher import free_tcp_port
 from services.logger.report import build_figure, load_series
-from services.plant_sim.models import TransferFunctionModel
-from services.plant_sim.presets import MODELS
+from services.plant_sim.simulation.models import TransferFunctionModel
+from services.plant_sim.simulation.presets import MODELS
 from services.stack import Stack, runs_dir, service_tokens
 from shared import keys, wire
+from shared.control.transfer import model_ultimate_point
 from shared.errors import AutotuneError, ConfigError
 from shared.messages import LoggerStatus, LoopInfo, TuneProgress, TuneResult
 from shared.session import ZenohSettings, open_session

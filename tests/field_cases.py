@@ -196,8 +196,8 @@ def build_loop(case: Case):
 
 def run_case(case: Case) -> dict:
     """One whole run on the case; what it applied, judged on the true plant."""
-    from services.autotuner.local_loop import LocalLoopClient
     from services.autotuner.tuning import TuningRun
+    from services.offline.local_loop import LocalLoopClient
     from shared.messages import TuneRequest
 
     loop = build_loop(case)

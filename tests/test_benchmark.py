@@ -5,8 +5,8 @@ import math
 
 import pytest
 
-from services.autotuner import benchmark
 from services.cli import main
+from services.offline import benchmark
 from tests.exact import ultimate_point
 
 

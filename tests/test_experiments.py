@@ -10,12 +10,12 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.benchmark import drive_ramp
-from services.autotuner.oscillation import fit_oscillation
-from services.autotuner.ramp import RampConfig, RampTest
-from services.autotuner.relay import RelayConfig, RelayTest
-from services.plant_sim.models import TransferFunctionModel
+from services.autotuner.identify.oscillation import fit_oscillation
+from services.autotuner.identify.ramp import RampConfig, RampTest
+from services.autotuner.identify.relay import RelayConfig, RelayTest
+from services.offline.benchmark import drive_ramp
 from services.plant_sim.plant_file import build_plant
+from services.plant_sim.simulation.models import TransferFunctionModel
 from shared.messages import GainsCommand, ModeCommand, PidGains
 from tests.exact import ultimate_point
 

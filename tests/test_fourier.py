@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.fourier import frequency_points
+from services.autotuner.identify.fourier import frequency_points
 from tests.test_experiments import HX, THIRD, run_relay
 
 
@@ -55,7 +55,7 @@ def test_a_too_short_record_is_refused():
 def test_the_relay_reports_the_exact_point_beside_its_estimate():
     """Unwrapped phases; |G| and phase at ω_osc equal the model's (the cycle is not at −180°,
     which is why the describing function's K_u is off)."""
-    from services.autotuner import experiments
+    from services.autotuner.identify import experiments
 
     num, den, delay, ts = HX
     fields = experiments.identification(run_relay(num, den, delay, ts)).experiment

@@ -22,10 +22,10 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from services.autotuner.local_loop import LocalLoopClient
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.cli import main
 from services.logger.recorder import Recorder
+from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared import keys, wire
 from shared.messages import Command, ProcessSample, TuneRequest, TuneResult

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.plant_sim.loop import CommandRejected, SimLoop
 from services.plant_sim.plant_file import build_plant, default_plant_path, load_plant_file
-from services.plant_sim.presets import MODELS
+from services.plant_sim.simulation.loop import CommandRejected, SimLoop
+from services.plant_sim.simulation.presets import MODELS
 from shared.errors import ConfigError
 from shared.messages import (
     DisturbanceCommand,

@@ -5,18 +5,18 @@ import pytest
 from numpy.testing import assert_allclose
 from scipy import signal
 
-from services.plant_sim.lti import (
+from services.plant_sim.simulation.models import (
+    FirstOrderPlusDeadTime,
+    IntegratingPlusDeadTime,
+    ModelParamError,
+    TransferFunctionModel,
+)
+from shared.control.lti import (
     DelayedLinearSystem,
     discretize,
     simulate,
     split_delay,
     tf_to_ss,
-)
-from services.plant_sim.models import (
-    FirstOrderPlusDeadTime,
-    IntegratingPlusDeadTime,
-    ModelParamError,
-    TransferFunctionModel,
 )
 
 RTOL = 1e-6

@@ -9,8 +9,8 @@ import math
 import pytest
 from scipy.optimize import brentq
 
-from services.autotuner.model_check import ModelCheck, check_model
-from services.autotuner.model_fit import ProcessFit
+from services.autotuner.identify.model_check import ModelCheck, check_model
+from services.autotuner.identify.model_fit import ProcessFit
 
 FOPDT = ProcessFit("fopdt", 1.0, (10.0,), 1.0, 0.03, noise_rms=0.025)
 HX = ProcessFit("sopdt", 1.0, (60.0, 10.0), 5.0, 0.02, noise_rms=0.02)

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.model_fit import choose, fit_models
+from services.autotuner.identify.model_fit import choose, fit_models
 from tests.exact import ultimate_point
 
 
@@ -57,9 +57,9 @@ def test_too_few_points_are_refused():
 def test_the_process_model_never_passes_a_candidate_the_true_plant_would_fail():
     """Every candidate that the relay's process model (refined on the whole record) puts
     within the recommender's margin is within the Ms bound on the true plant."""
-    from services.autotuner.recommend import MODEL_MARGIN, MS_BOUND, assess
-    from services.autotuner.robustness import robustness
-    from services.autotuner.rules import UltimatePoint
+    from services.autotuner.design.recommend import MODEL_MARGIN, MS_BOUND, assess
+    from services.autotuner.design.robustness import robustness
+    from services.autotuner.design.rules import UltimatePoint
     from tests.test_experiments import HX, THIRD, run_relay
 
     passed = 0
@@ -74,9 +74,9 @@ def test_the_process_model_never_passes_a_candidate_the_true_plant_would_fail():
 
 
 def test_recommendation_is_stable_with_ms_within_the_bound_on_the_true_plant():
-    from services.autotuner.recommend import recommend
-    from services.autotuner.robustness import robustness
-    from services.autotuner.rules import UltimatePoint
+    from services.autotuner.design.recommend import recommend
+    from services.autotuner.design.robustness import robustness
+    from services.autotuner.design.rules import UltimatePoint
     from tests.test_experiments import HX, THIRD, run_relay
 
     for num, den, delay, ts in (THIRD, HX):

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from services.plant_sim.physical import (
+from services.plant_sim.simulation.physical import (
     FlowLoop,
     HeatExchangerPhysical,
     SensorLag,

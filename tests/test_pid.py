@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from services.plant_sim.models import FirstOrderPlusDeadTime
-from services.plant_sim.pid import PidBlock
+from services.plant_sim.simulation.models import FirstOrderPlusDeadTime
+from shared.control.pid import PidBlock
 from shared.messages import PidGains
 
 TS = 0.1

@@ -6,8 +6,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from services.plant_sim.loop import CommandRejected
 from services.plant_sim.plant_file import build_plant, default_plant_path, load_plant_file
+from services.plant_sim.simulation.loop import CommandRejected
 from shared.errors import ConfigError
 from shared.messages import DisturbanceCommand, ModeCommand, OutputCommand, SetpointCommand
 

@@ -14,8 +14,8 @@ from importlib.resources import files
 
 import pytest
 
-from services.autotuner.local_loop import LocalLoopClient
 from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.messages import TuneRequest
 from tests.exact import ultimate_point

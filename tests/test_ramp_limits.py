@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from services.autotuner import experiments
-from services.autotuner.ramp import RampConfig, RampTest
-from services.plant_sim.loop import SimLoop
+from services.autotuner.identify import experiments
+from services.autotuner.identify.ramp import RampConfig, RampTest
 from services.plant_sim.plant_file import build_plant
+from services.plant_sim.simulation.loop import SimLoop
 from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand, TuneRequest
 
 RELAY_SWING = 8.0 * 5.0 / math.pi  # × 1/K_u: a 5 % relay's peak-to-peak PV swing (benchmark)

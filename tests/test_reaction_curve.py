@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.reaction_curve import analyze_step, noise_level, settled
-from services.plant_sim.models import FirstOrderPlusDeadTime, TransferFunctionModel
-from services.plant_sim.presets import HeatExchanger
+from services.autotuner.identify.reaction_curve import analyze_step, noise_level, settled
+from services.plant_sim.simulation.models import FirstOrderPlusDeadTime, TransferFunctionModel
+from services.plant_sim.simulation.presets import HeatExchanger
 
 
 def sopdt_tangent(k, t1, t2, theta):

@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from services.autotuner.forms import IsaGains
-from services.autotuner.robustness import robustness
+from services.autotuner.design.robustness import robustness
+from shared.control.forms import IsaGains
 from tests.exact import ultimate_point
 
 THIRD = ([6.0], [1.0, 6.0, 11.0, 6.0], 0.0)
@@ -52,7 +52,7 @@ def test_zn_pid_is_less_robust_than_tyreus_luyben():
 def test_the_sampled_loop_tends_to_the_continuous_one_with_a_pid():
     """The PID block's backward-difference derivative, forward-Euler integral and the hold
     all converge as T → 0: at 10,000 samples per period the figures agree within 0.1 %."""
-    from services.autotuner.sampled_loop import sampled_loop_robustness
+    from services.autotuner.design.sampled_loop import sampled_loop_robustness
 
     ku, pu = ultimate_point(*HX)
     gains = IsaGains(ku / 2.2, 2.2 * pu, pu / 6.3)

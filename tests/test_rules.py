@@ -4,7 +4,9 @@ import math
 
 import pytest
 
-from services.autotuner.forms import (
+from services.autotuner.design.rules import RULES, StepModel, UltimatePoint, apply_rules, model_of
+from services.autotuner.identify.model_fit import ProcessFit
+from shared.control.forms import (
     IsaGains,
     SeriesGains,
     all_forms,
@@ -15,8 +17,6 @@ from services.autotuner.forms import (
     to_parallel,
     to_series,
 )
-from services.autotuner.model_fit import ProcessFit
-from services.autotuner.rules import RULES, StepModel, UltimatePoint, apply_rules, model_of
 
 KU, PU = 10.0, 2 * math.pi / math.sqrt(11)  # 6/((s+1)(s+2)(s+3)), seed 000
 

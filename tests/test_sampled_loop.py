@@ -10,14 +10,14 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.forms import IsaGains
-from services.autotuner.robustness import robustness
-from services.autotuner.sampled_loop import (
+from services.autotuner.design.robustness import robustness
+from services.autotuner.design.sampled_loop import (
     pid_response,
     sampled_loop_robustness,
     sampled_plant,
 )
-from services.plant_sim.pid import PidBlock
+from shared.control.forms import IsaGains
+from shared.control.pid import PidBlock
 from shared.messages import PidGains
 from tests.exact import ultimate_point
 

@@ -5,10 +5,10 @@ import json
 
 import pytest
 
-from services.autotuner import experiments
-from services.autotuner.model_fit import ProcessFit
-from services.autotuner.rules import StepModel, model_of
-from services.autotuner.selection import assessments_dict, guidance, select
+from services.autotuner.design.rules import StepModel, model_of
+from services.autotuner.design.selection import assessments_dict, guidance, select
+from services.autotuner.identify import experiments
+from services.autotuner.identify.model_fit import ProcessFit
 from tests.test_experiments import HX, run_relay
 from tests.test_model_check import lag_ultimate
 

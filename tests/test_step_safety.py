@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.local_loop import LocalLoopClient
-from services.autotuner.reaction_curve import (
+from services.autotuner.design.rules import StepModel, apply_rules
+from services.autotuner.identify.reaction_curve import (
     analyze_step,
     at_rest,
     noise_level,
@@ -18,16 +18,16 @@ from services.autotuner.reaction_curve import (
     settled,
     steady_ramp,
 )
-from services.autotuner.rules import StepModel, apply_rules
-from services.autotuner.step_test import (
+from services.autotuner.identify.step_test import (
     ReturnWatch,
     StepTest,
     StepTestAborted,
     StepTestConfig,
-    run_step_test,
 )
-from services.plant_sim.models import FirstOrderPlusDeadTime, IntegratingPlusDeadTime
+from services.autotuner.step_run import run_step_test
+from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
+from services.plant_sim.simulation.models import FirstOrderPlusDeadTime, IntegratingPlusDeadTime
 from shared.messages import OutputCommand
 from tests.test_reaction_curve import sopdt_tangent
 

@@ -23,16 +23,17 @@ from dataclasses import dataclass
 import numpy as np
 import pydantic
 
-from services.autotuner import experiments, metrics
-from services.autotuner.forms import IsaGains, all_forms
+from services.autotuner.design import measured_response as metrics
+from services.autotuner.design.rules import check_rule
+from services.autotuner.design.selection import assessments_dict, select
+from services.autotuner.identify import experiments
+from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.ramp import RampTest
+from services.autotuner.identify.relay import RelayTest
+from services.autotuner.identify.rest import RestCheck, rest_window
+from services.autotuner.identify.step_test import StepTest
 from services.autotuner.loop_client import LeaseLost, LoopClient
-from services.autotuner.model_fit import ProcessFit
-from services.autotuner.ramp import RampTest
-from services.autotuner.relay import RelayTest
-from services.autotuner.rest import RestCheck, rest_window
-from services.autotuner.rules import check_rule
-from services.autotuner.selection import assessments_dict, select
-from services.autotuner.step_test import StepTest
+from shared.control.forms import IsaGains, all_forms
 from shared.errors import AutotuneError
 from shared.messages import (
     DisturbanceCommand,

@@ -21,10 +21,9 @@ from pathlib import Path
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from services.autotuner import experiments
-from services.autotuner.forms import all_forms
-from services.autotuner.selection import Selection, assessments_dict, select
-from services.autotuner.step_test import StepTest
+from services.autotuner.design.selection import Selection, assessments_dict, select
+from services.autotuner.identify import experiments
+from services.autotuner.identify.step_test import StepTest
 from services.autotuner.tuning import validate_request
 from services.logger.mcap_io import (
     decode,
@@ -33,6 +32,7 @@ from services.logger.mcap_io import (
     unique_samples,
     validation_reason,
 )
+from shared.control.forms import all_forms
 from shared.errors import AutotuneError, one_line
 from shared.messages import ProcessSample, TuneRequest, TuneResult, TunerEvent
 

@@ -38,9 +38,9 @@ import numpy as np
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.plant_sim.loop import LoopSettings, ModelFailure, SimLoop, gains_problem
-from services.plant_sim.models import ModelParamError
-from services.plant_sim.presets import CUSTOM_DEFAULTS, DEFAULTS, MODELS, LoopDefaults
+from services.plant_sim.simulation.loop import LoopSettings, ModelFailure, SimLoop, gains_problem
+from services.plant_sim.simulation.models import ModelParamError
+from services.plant_sim.simulation.presets import CUSTOM_DEFAULTS, DEFAULTS, MODELS, LoopDefaults
 from shared.errors import ConfigError
 from shared.errors import one_line as brief
 from shared.keys import check_id

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import zenoh
 
-from services.plant_sim.loop import CommandRejected, LoopSnapshot, SimLoop
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
+from services.plant_sim.simulation.loop import CommandRejected, LoopSnapshot, SimLoop
 from shared import keys, wire
 from shared.cli import (
     OneLineParser,

@@ -24,7 +24,7 @@ import pytest
 import zenoh
 from mcap.writer import Writer
 
-from services.autotuner.tune_command import submit
+from services.autotuner.commands.tune import submit
 from services.cli import main
 from services.launcher import free_tcp_port, start_service, stop_service
 from services.logger import recorder as rec_mod

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from services.autotuner.loop_client import CommandRefused, LeaseLost, LoopClient
-from services.plant_sim.models import TransferFunctionModel
 from services.plant_sim.plant_file import build_plant
+from services.plant_sim.simulation.models import TransferFunctionModel
 from shared import keys, wire
 from shared.messages import (
     AdvanceCommand,

@@ -14,7 +14,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from services.plant_sim.lti import (
+from shared.control.lti import (
     DelayedLinearSystem,
     DiscreteDelaySystem,
     discretize,

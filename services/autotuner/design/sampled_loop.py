@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
-from services.autotuner.forms import IsaGains
-from services.autotuner.robustness import Robustness
-from services.plant_sim.lti import DiscreteDelaySystem, discretize, tf_to_ss
+from services.autotuner.design.robustness import Robustness
+from shared.control.forms import IsaGains
+from shared.control.lti import DiscreteDelaySystem, discretize, tf_to_ss
 
 LOG_POINTS = 3000  # logarithmic grid from far below the plant's slowest time scale to π/T
 PHASE_STEP = 0.2  # rad: the linear grid keeps the delay's phase step near π/T below this

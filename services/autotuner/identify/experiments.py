@@ -11,11 +11,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from services.autotuner.model_fit import ProcessFit
-from services.autotuner.ramp import RampConfig, RampTest
-from services.autotuner.relay import RelayConfig, RelayTest
-from services.autotuner.rules import StepModel, model_of
-from services.autotuner.step_test import StepTest, StepTestConfig
+from services.autotuner.design.rules import StepModel, model_of
+from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.ramp import RampConfig, RampTest
+from services.autotuner.identify.relay import RelayConfig, RelayTest
+from services.autotuner.identify.step_test import StepTest, StepTestConfig
 from shared.messages import ProcessSample, TuneRequest
 
 DEFAULT_RELAY_AMPLITUDE = 5.0  # %

@@ -38,14 +38,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.autotuner.model_fit import (
+from services.autotuner.identify.model_fit import (
     ProcessFit,
     choose_on_record,
     refine_on_record,
     through_ultimate_point,
 )
-from services.autotuner.oscillation import Oscillation, fit_oscillation
-from services.autotuner.reaction_curve import at_rest, noise_level
+from services.autotuner.identify.oscillation import Oscillation, fit_oscillation
+from services.autotuner.identify.reaction_curve import at_rest, noise_level
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from services.autotuner import benchmark
+from services.offline import benchmark
 
 HELP = "benchmark identification on a suite of plants (in-process, no bus)"
 

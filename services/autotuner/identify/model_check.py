@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from services.autotuner.model_fit import ProcessFit
+from services.autotuner.identify.model_fit import ProcessFit
 
 KU_TOLERANCE = 0.15  # relative, beyond the measured spread
 PU_TOLERANCE = 0.05

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from services.autotuner.frequency import ultimate_point
-from services.plant_sim.lti import discretize, simulate, tf_to_ss
+from shared.control.lti import discretize, simulate, tf_to_ss
+from shared.control.transfer import ultimate_point
 
 
 @dataclass(frozen=True)

@@ -19,11 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.autotuner.forms import IsaGains
-from services.autotuner.model_fit import ProcessFit
-from services.autotuner.oscillation import extrema
-from services.plant_sim.lti import DelayedLinearSystem, discretize, tf_to_ss
-from services.plant_sim.pid import PidBlock
+from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.oscillation import extrema
+from shared.control.forms import IsaGains
+from shared.control.lti import DelayedLinearSystem, discretize, tf_to_ss
+from shared.control.pid import PidBlock
 from shared.messages import PidGains
 
 MAX_SAMPLES = 2000  # the simulation is resampled coarser (≥ 60 samples per time scale)

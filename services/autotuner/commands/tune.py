@@ -20,8 +20,8 @@ import time
 import pydantic
 import zenoh
 
+from services.autotuner.design.rules import RULES
 from services.autotuner.loop_client import wait_for_token
-from services.autotuner.rules import RULES
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError

@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from services.plant_sim.models import ProcessModel
-from services.plant_sim.pid import PidBlock
+from services.plant_sim.simulation.models import ProcessModel
+from shared.control.pid import PidBlock
 from shared.errors import one_line as brief
 from shared.messages import (
     Action,

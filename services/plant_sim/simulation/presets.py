@@ -11,13 +11,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.plant_sim.models import (
+from services.plant_sim.simulation.models import (
     FirstOrderPlusDeadTime,
     IntegratingPlusDeadTime,
     TransferFunctionModel,
     finite,
 )
-from services.plant_sim.physical import FlowLoop, HeatExchangerPhysical, TankLevel, TankLevelPumped
+from services.plant_sim.simulation.physical import (
+    FlowLoop,
+    HeatExchangerPhysical,
+    TankLevel,
+    TankLevelPumped,
+)
 from shared.messages import Action, PidGains
 
 

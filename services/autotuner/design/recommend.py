@@ -32,12 +32,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.autotuner.closed_loop import StepFigures, setpoint_step
-from services.autotuner.forms import IsaGains
-from services.autotuner.model_fit import ProcessFit
-from services.autotuner.robustness import Robustness, robustness
-from services.autotuner.rules import RULES, UltimatePoint, apply_rules
-from services.autotuner.sampled_loop import SampledPlant, sampled_plant, sampled_robustness
+from services.autotuner.design.predicted_response import StepFigures, setpoint_step
+from services.autotuner.design.robustness import Robustness, robustness
+from services.autotuner.design.rules import RULES, UltimatePoint, apply_rules
+from services.autotuner.design.sampled_loop import SampledPlant, sampled_plant, sampled_robustness
+from services.autotuner.identify.model_fit import ProcessFit
+from shared.control.forms import IsaGains
 
 MS_BOUND = 2.0
 MODEL_MARGIN = 0.9  # recommend only below 0.9 × the bound: the model is an approximation

@@ -17,8 +17,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from services.autotuner.forms import IsaGains
-from services.autotuner.model_fit import ProcessFit
+from services.autotuner.identify.model_fit import ProcessFit
+from shared.control.forms import IsaGains
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from services.autotuner.rules import RULES
+from services.autotuner.design.rules import RULES
 from services.logger.analysis import analyze_file, dumps, format_analysis
 
 HELP = "re-run identification and tuning rules on a recorded run"

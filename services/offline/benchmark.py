@@ -23,17 +23,17 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.optimize import brentq
 
-from services.autotuner import experiments
-from services.autotuner.closed_loop import setpoint_step
-from services.autotuner.forms import IsaGains
-from services.autotuner.frequency import ultimate_point
-from services.autotuner.ramp import RampTest
-from services.autotuner.relay import RelayTest
-from services.autotuner.sampled_loop import sampled_loop_robustness
-from services.autotuner.selection import select
-from services.plant_sim.loop import SimLoop
-from services.plant_sim.models import TransferFunctionModel
+from services.autotuner.design.predicted_response import setpoint_step
+from services.autotuner.design.sampled_loop import sampled_loop_robustness
+from services.autotuner.design.selection import select
+from services.autotuner.identify import experiments
+from services.autotuner.identify.ramp import RampTest
+from services.autotuner.identify.relay import RelayTest
 from services.plant_sim.plant_file import build_plant
+from services.plant_sim.simulation.loop import SimLoop
+from services.plant_sim.simulation.models import TransferFunctionModel
+from shared.control.forms import IsaGains
+from shared.control.transfer import ultimate_point
 from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand, TuneRequest
 
 RELAY_AMPLITUDE = 5.0  # %

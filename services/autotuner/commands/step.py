@@ -6,9 +6,10 @@ import argparse
 import json
 import sys
 
+from services.autotuner.design.rules import ZN_STEP_RANGE
+from services.autotuner.identify.step_test import StepTest, StepTestConfig
 from services.autotuner.loop_client import LoopClient, wait_for_loop
-from services.autotuner.rules import ZN_STEP_RANGE
-from services.autotuner.step_test import StepTest, StepTestConfig, StepTestReport, run_step_test
+from services.autotuner.step_run import StepTestReport, run_step_test
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import ConfigError
 from shared.identity import auth_user

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.autotuner.reaction_curve import range_end
+from services.autotuner.identify.reaction_curve import range_end
 
 MIN_SAMPLES = 40
 MAX_WINDOW = 900.0  # s: the longest window watched (a slow level loop's Ti can be hours)

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from services.autotuner.oscillation import extrema, smooth
+from services.autotuner.identify.oscillation import extrema, smooth
 
 
 def _trapz(y: np.ndarray, t: np.ndarray) -> float:

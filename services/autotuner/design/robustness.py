@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
-from services.autotuner.forms import IsaGains
+from shared.control.forms import IsaGains
 
 
 @dataclass(frozen=True)

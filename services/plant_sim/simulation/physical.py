@@ -16,8 +16,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from services.plant_sim.lti import split_delay
-from services.plant_sim.models import ModelParamError, check_delay, finite
+from services.plant_sim.simulation.models import ModelParamError, check_delay, finite
+from shared.control.lti import split_delay
 
 # RK4 sub-steps per sample at most: a sample time far beyond the fastest time constant (or a
 # time constant driven towards zero by its parameters) would otherwise stall the loop.

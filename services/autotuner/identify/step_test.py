@@ -13,23 +13,22 @@ reaction-curve figures. It stops, and the driver restores the output, when:
   comes to rest; the reason names its slope R and dead time L;
 * the PV leaves ``pv_limits``, or no rest comes within ``timeout`` seconds of the step.
 
-``run_step_test`` drives a live loop with it, always restores the loop's mode and output, and
-then waits (bounded) for the PV to return to rest, so that what runs next starts from rest.
+``services.autotuner.step_run.run_step_test`` drives a live loop with it, always restores the
+loop's mode and output, and then waits (bounded) for the PV to return to rest, so that what
+runs next starts from rest. Samples are any object with ``t``, ``pv`` and ``op`` (the bus's
+``ProcessSample`` among them): no I/O here.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.autotuner.loop_client import CommandRefused, LeaseLost, LoopClient
-from services.autotuner.model_fit import ProcessFit, choose_on_record, refine_on_record
-from services.autotuner.reaction_curve import (
+from services.autotuner.identify.model_fit import ProcessFit, choose_on_record, refine_on_record
+from services.autotuner.identify.reaction_curve import (
     ReactionCurve,
     SteadyRamp,
     analyze_step,
@@ -39,14 +38,8 @@ from services.autotuner.reaction_curve import (
     settled,
     steady_ramp,
 )
+from shared.control.signals import Sample
 from shared.errors import AutotuneError
-from shared.messages import (
-    LeaseCommand,
-    ModeCommand,
-    OutputCommand,
-    ProcessSample,
-    ReleaseCommand,
-)
 
 SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over a window)
 RETURN_WAIT_FACTOR = 3.0  # the return to rest may take this many times the step's own settling
@@ -137,7 +130,7 @@ class StepTest:
         self.events.append((self.t[-1] if self.t else 0.0, "aborted", {"reason": reason}))
         return self.op_start
 
-    def feed(self, s: ProcessSample) -> float:
+    def feed(self, s: Sample) -> float:
         """Take the sample at ``s.t``; return the output to hold from ``s.t`` on."""
         if self.finished:
             return self.op_start
@@ -154,7 +147,7 @@ class StepTest:
             return self.op_target
         return self._after_step(s)
 
-    def _baseline(self, s: ProcessSample) -> float:
+    def _baseline(self, s: Sample) -> float:
         n = self._baseline_samples
         if len(self.pv) < n:
             return self.op_start
@@ -182,7 +175,7 @@ class StepTest:
         )
         return self.op_target
 
-    def _after_step(self, s: ProcessSample) -> float:
+    def _after_step(self, s: Sample) -> float:
         elapsed = s.t - self.t_step
         if elapsed > self.config.timeout:
             return self._abort(f"no steady state within {self.config.timeout:g} s of the step")
@@ -294,7 +287,7 @@ class StepTest:
         self.events.append((t, "return_pulse", {"op": back, "until": self._pulse[0]}))
         return back
 
-    def _return_pulse(self, s: ProcessSample) -> float:
+    def _return_pulse(self, s: Sample) -> float:
         until, reason = self._pulse
         if s.t < until:
             return self.op_start - self.config.size
@@ -396,162 +389,3 @@ def return_timeout(config: StepTestConfig, t_step: float, t_end: float) -> float
     """Seconds to wait for the return to rest: a few times the step's own settling time (the
     way back has the same dynamics), capped by the test's timeout."""
     return min(config.timeout, RETURN_WAIT_FACTOR * max(t_end - t_step, 0.0))
-
-
-@dataclass(frozen=True)
-class StepTestReport:
-    loop: str
-    model: str
-    pv_units: str
-    mode_before: str
-    op_before: float
-    t_step: float
-    t_end: float
-    samples: int
-    curve: ReactionCurve
-    restored: bool
-    returned_to_rest: bool | None = None  # None: not waited for (--no-wait, or not restored)
-    pv_end: float | None = None  # PV units: the rest after the return, else the last PV seen
-    t_return: float | None = None  # s, sim time the wait for the return ended
-
-    def to_dict(self) -> dict:
-        return {
-            "loop": self.loop,
-            "model": self.model,
-            "pv_units": self.pv_units,
-            "mode_before": self.mode_before,
-            "op_before": self.op_before,
-            "op_step": self.op_before + self.curve.step_size,
-            "t_step": self.t_step,
-            "t_end": self.t_end,
-            "samples": self.samples,
-            "restored": self.restored,
-            "returned_to_rest": self.returned_to_rest,
-            "pv_end": self.pv_end,
-            "t_return": self.t_return,
-            **self.curve.to_dict(),
-        }
-
-
-def run_step_test(
-    client: LoopClient,
-    config: StepTestConfig,
-    progress: Callable[[StepTest, ProcessSample], None] | None = None,
-    wait_return: bool = True,
-) -> StepTestReport:
-    """Run the step test on a live loop; restore its mode and output afterwards, always.
-
-    With ``wait_return``, after a completed test it then follows the PV until it is back at
-    rest (``ReturnWatch``, at most ``return_timeout``), so that whatever runs next does not
-    identify on a recovering PV; ``progress`` keeps being called meanwhile.
-    """
-    before = client.sync()
-    info = client.info
-    pv_limits = config.pv_limits or tuple(info.pv_range)
-    try:
-        test = StepTest(
-            config,
-            before.op,
-            tuple(info.op_limits),
-            pv_limits,
-            info.sample_time,
-            pv_range=tuple(info.pv_range),
-            pv_units=info.pv_units,
-        )
-    except ValueError as err:
-        raise StepTestAborted(f"loop {client.loop}: {err}") from None
-    restored = False
-    try:  # under a lease: if this client dies, the plant's watchdog puts the loop back
-        client.command(
-            LeaseCommand(loop=client.loop, source=client.source, timeout=client.lease_timeout)
-        )
-    except CommandRefused as err:
-        raise StepTestAborted(f"not started: {err}") from None
-    lost: LeaseLost | None = None
-    try:
-        if before.mode != "manual":
-            client.command(ModeCommand(loop=client.loop, mode="manual", source=client.source))
-        op = before.op
-        while not test.finished:
-            s = client.next_sample()
-            want = test.feed(s)
-            if progress:
-                progress(test, s)
-            if want != op and not test.finished:
-                status = client.command(
-                    OutputCommand(loop=client.loop, op=want, t=s.t, source=client.source)
-                )
-                # Lockstep: applied at the present sample. Realtime: latched at the next one.
-                test.step_started(
-                    status.t if info.clock == "lockstep" else status.t + info.sample_time
-                )
-                op = want
-    except LeaseLost as err:
-        lost = err
-    finally:
-        if client.holding:
-            restored = _restore(client, before.mode, before.op)
-            with contextlib.suppress(AutotuneError):
-                client.command(ReleaseCommand(loop=client.loop, source=client.source))
-        else:  # the plant took the loop back (and restored it) or is gone
-            restored = lost is not None
-    if lost is not None:
-        raise StepTestAborted(
-            f"{lost}; the plant restored the loop ({before.mode}, {before.op:g} %)"
-        )
-    if test.phase == "aborted" or test.result is None:
-        raise StepTestAborted(
-            f"loop {client.loop}: step test aborted: {test.reason}; "
-            f"{'loop restored' if restored else 'LOOP NOT RESTORED'} "
-            f"({before.mode}, {before.op:g} %)"
-        )
-    t_step, t_end = test.t_step or 0.0, test.t[-1]
-    returned, pv_end, t_return = None, None, None
-    if wait_return and restored:
-        lag = 0.0 if info.clock == "lockstep" else info.sample_time
-        watch = ReturnWatch(
-            t_end + lag,
-            test.result.pv_after,
-            test.result.noise_std,
-            return_timeout(config, t_step, t_end),
-            tuple(info.pv_range),
-        )
-        try:
-            while not watch.done:
-                s = client.next_sample()
-                watch.feed(s.t, s.pv)
-                if progress:
-                    progress(test, s)
-        except (KeyboardInterrupt, AutotuneError):
-            pass  # the loop is restored and the figures stand: report it as not back at rest
-        returned = watch.at_rest
-        pv_end = watch.pv_end if watch.pv else test.pv[-1]
-        t_return = watch.t[-1] if watch.t else t_end
-    return StepTestReport(
-        client.loop,
-        info.model,
-        info.pv_units,
-        before.mode,
-        before.op,
-        t_step,
-        t_end,
-        len(test.t),
-        test.result,
-        restored,
-        returned,
-        pv_end,
-        t_return,
-    )
-
-
-def _restore(client: LoopClient, mode: str, op: float) -> bool:
-    """Put the loop back to ``mode`` at output ``op`` (bumpless into auto)."""
-    try:
-        status = client.sync()
-        if status.mode == "manual" and status.op != op:
-            client.command(OutputCommand(loop=client.loop, op=op, source=client.source))
-        if mode != status.mode:
-            client.command(ModeCommand(loop=client.loop, mode=mode, source=client.source))
-        return True
-    except AutotuneError:
-        return False

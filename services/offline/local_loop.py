@@ -10,7 +10,7 @@ times faster than over a bus: what property tests and batch studies need.
 from __future__ import annotations
 
 from services.autotuner.loop_client import CommandRefused
-from services.plant_sim.loop import CommandRejected, SimLoop
+from services.plant_sim.simulation.loop import CommandRejected, SimLoop
 from shared.messages import (
     AdvanceCommand,
     Command,

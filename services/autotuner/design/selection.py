@@ -21,18 +21,24 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-from services.autotuner.experiments import Identification
-from services.autotuner.forms import IsaGains
-from services.autotuner.model_check import ModelCheck, check_model
-from services.autotuner.model_fit import ProcessFit
-from services.autotuner.recommend import (
+from services.autotuner.design.recommend import (
     Assessment,
     Recommendation,
     assess,
     envelope_problem,
     recommend,
 )
-from services.autotuner.rules import RULES, ZN_STEP_RANGE, UltimatePoint, apply_rules, fopdt_of
+from services.autotuner.design.rules import (
+    RULES,
+    ZN_STEP_RANGE,
+    UltimatePoint,
+    apply_rules,
+    fopdt_of,
+)
+from services.autotuner.identify.experiments import Identification
+from services.autotuner.identify.model_check import ModelCheck, check_model
+from services.autotuner.identify.model_fit import ProcessFit
+from shared.control.forms import IsaGains
 
 UNBIASED_RELAY_RULES = ("tl-pid", "tl-pi")  # recommended when the static gain is unknown
 MIN_TD_SAMPLES = 5.0  # a derivative time shorter than this many samples is not recommended

@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import brentq
 
-from services.autotuner.fourier import FrequencyPoint, frequency_points
-from services.autotuner.model_fit import (
+from services.autotuner.identify.fourier import FrequencyPoint, frequency_points
+from services.autotuner.identify.model_fit import (
     ProcessFit,
     choose,
     choose_on_record,
@@ -38,7 +38,7 @@ from services.autotuner.model_fit import (
     refine_on_record,
     response_to,
 )
-from services.autotuner.reaction_curve import at_rest, noise_level
+from services.autotuner.identify.reaction_curve import at_rest, noise_level
 
 STAGE_TWO_CYCLES = 2  # one to settle into the new cycle, one to measure
 NEAR_DEG = 25.0  # a measured point this close to −180° makes the crossover "measured"

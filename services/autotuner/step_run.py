@@ -1,0 +1,186 @@
+"""The step test on a live loop: lease, manual, the step, always the restore, then the
+bounded wait for the PV's return to rest (``StepTest`` and ``ReturnWatch`` decide; this
+module only drives the loop client)."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from services.autotuner.identify.reaction_curve import ReactionCurve
+from services.autotuner.identify.step_test import (
+    ReturnWatch,
+    StepTest,
+    StepTestAborted,
+    StepTestConfig,
+    return_timeout,
+)
+from services.autotuner.loop_client import CommandRefused, LeaseLost, LoopClient
+from shared.errors import AutotuneError
+from shared.messages import (
+    LeaseCommand,
+    ModeCommand,
+    OutputCommand,
+    ProcessSample,
+    ReleaseCommand,
+)
+
+
+@dataclass(frozen=True)
+class StepTestReport:
+    loop: str
+    model: str
+    pv_units: str
+    mode_before: str
+    op_before: float
+    t_step: float
+    t_end: float
+    samples: int
+    curve: ReactionCurve
+    restored: bool
+    returned_to_rest: bool | None = None  # None: not waited for (--no-wait, or not restored)
+    pv_end: float | None = None  # PV units: the rest after the return, else the last PV seen
+    t_return: float | None = None  # s, sim time the wait for the return ended
+
+    def to_dict(self) -> dict:
+        return {
+            "loop": self.loop,
+            "model": self.model,
+            "pv_units": self.pv_units,
+            "mode_before": self.mode_before,
+            "op_before": self.op_before,
+            "op_step": self.op_before + self.curve.step_size,
+            "t_step": self.t_step,
+            "t_end": self.t_end,
+            "samples": self.samples,
+            "restored": self.restored,
+            "returned_to_rest": self.returned_to_rest,
+            "pv_end": self.pv_end,
+            "t_return": self.t_return,
+            **self.curve.to_dict(),
+        }
+
+
+def run_step_test(
+    client: LoopClient,
+    config: StepTestConfig,
+    progress: Callable[[StepTest, ProcessSample], None] | None = None,
+    wait_return: bool = True,
+) -> StepTestReport:
+    """Run the step test on a live loop; restore its mode and output afterwards, always.
+
+    With ``wait_return``, after a completed test it then follows the PV until it is back at
+    rest (``ReturnWatch``, at most ``return_timeout``), so that whatever runs next does not
+    identify on a recovering PV; ``progress`` keeps being called meanwhile.
+    """
+    before = client.sync()
+    info = client.info
+    pv_limits = config.pv_limits or tuple(info.pv_range)
+    try:
+        test = StepTest(
+            config,
+            before.op,
+            tuple(info.op_limits),
+            pv_limits,
+            info.sample_time,
+            pv_range=tuple(info.pv_range),
+            pv_units=info.pv_units,
+        )
+    except ValueError as err:
+        raise StepTestAborted(f"loop {client.loop}: {err}") from None
+    restored = False
+    try:  # under a lease: if this client dies, the plant's watchdog puts the loop back
+        client.command(
+            LeaseCommand(loop=client.loop, source=client.source, timeout=client.lease_timeout)
+        )
+    except CommandRefused as err:
+        raise StepTestAborted(f"not started: {err}") from None
+    lost: LeaseLost | None = None
+    try:
+        if before.mode != "manual":
+            client.command(ModeCommand(loop=client.loop, mode="manual", source=client.source))
+        op = before.op
+        while not test.finished:
+            s = client.next_sample()
+            want = test.feed(s)
+            if progress:
+                progress(test, s)
+            if want != op and not test.finished:
+                status = client.command(
+                    OutputCommand(loop=client.loop, op=want, t=s.t, source=client.source)
+                )
+                # Lockstep: applied at the present sample. Realtime: latched at the next one.
+                test.step_started(
+                    status.t if info.clock == "lockstep" else status.t + info.sample_time
+                )
+                op = want
+    except LeaseLost as err:
+        lost = err
+    finally:
+        if client.holding:
+            restored = _restore(client, before.mode, before.op)
+            with contextlib.suppress(AutotuneError):
+                client.command(ReleaseCommand(loop=client.loop, source=client.source))
+        else:  # the plant took the loop back (and restored it) or is gone
+            restored = lost is not None
+    if lost is not None:
+        raise StepTestAborted(
+            f"{lost}; the plant restored the loop ({before.mode}, {before.op:g} %)"
+        )
+    if test.phase == "aborted" or test.result is None:
+        raise StepTestAborted(
+            f"loop {client.loop}: step test aborted: {test.reason}; "
+            f"{'loop restored' if restored else 'LOOP NOT RESTORED'} "
+            f"({before.mode}, {before.op:g} %)"
+        )
+    t_step, t_end = test.t_step or 0.0, test.t[-1]
+    returned, pv_end, t_return = None, None, None
+    if wait_return and restored:
+        lag = 0.0 if info.clock == "lockstep" else info.sample_time
+        watch = ReturnWatch(
+            t_end + lag,
+            test.result.pv_after,
+            test.result.noise_std,
+            return_timeout(config, t_step, t_end),
+            tuple(info.pv_range),
+        )
+        try:
+            while not watch.done:
+                s = client.next_sample()
+                watch.feed(s.t, s.pv)
+                if progress:
+                    progress(test, s)
+        except (KeyboardInterrupt, AutotuneError):
+            pass  # the loop is restored and the figures stand: report it as not back at rest
+        returned = watch.at_rest
+        pv_end = watch.pv_end if watch.pv else test.pv[-1]
+        t_return = watch.t[-1] if watch.t else t_end
+    return StepTestReport(
+        client.loop,
+        info.model,
+        info.pv_units,
+        before.mode,
+        before.op,
+        t_step,
+        t_end,
+        len(test.t),
+        test.result,
+        restored,
+        returned,
+        pv_end,
+        t_return,
+    )
+
+
+def _restore(client: LoopClient, mode: str, op: float) -> bool:
+    """Put the loop back to ``mode`` at output ``op`` (bumpless into auto)."""
+    try:
+        status = client.sync()
+        if status.mode == "manual" and status.op != op:
+            client.command(OutputCommand(loop=client.loop, op=op, source=client.source))
+        if mode != status.mode:
+            client.command(ModeCommand(loop=client.loop, mode=mode, source=client.source))
+        return True
+    except AutotuneError:
+        return False

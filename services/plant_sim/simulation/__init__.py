@@ -1,0 +1,1 @@
+"""services.plant_sim.simulation"""
