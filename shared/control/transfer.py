@@ -1,16 +1,49 @@
-"""The exact ultimate point of a linear plant model, from its frequency response.
+"""A transfer function with dead time, G(s) = num(s)/den(s)·e^{−Ls}, and its exact ultimate
+point.
 
-K_u = 1/|G(jω_u)| and P_u = 2π/ω_u where the phase of G(jω) = num/den·e^{−Ls} first reaches
-−180°, the phase unwrapped exactly from the poles and zeros. Used to show the exact values
-beside the measured ones when the plant's model is known (the demo, benchmarks).
+K_u = 1/|G(jω_u)| and P_u = 2π/ω_u where the phase of G(jω) first reaches −180°, the phase
+unwrapped exactly from the poles and zeros. ``DelayedTF`` is the one type every module uses
+for a plant's frequency response: the fitted process models, the benchmark's plants, the
+robustness and closed-loop predictions, the exact answers shown beside measured ones.
+Coefficients in descending powers of s; time in seconds; gain in PV units per % of output.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import brentq
+
+
+@dataclass(frozen=True)
+class DelayedTF:
+    """num(s)/den(s)·e^{−delay·s}; ``delay`` in s."""
+
+    num: tuple[float, ...]
+    den: tuple[float, ...]
+    delay: float = 0.0
+
+    @classmethod
+    def of(cls, num, den, delay: float = 0.0) -> DelayedTF:
+        """From any sequences of coefficients (lists, arrays, tuples)."""
+        return cls(tuple(float(c) for c in num), tuple(float(c) for c in den), float(delay))
+
+    def response(self, omega: np.ndarray | float) -> np.ndarray:
+        """G(jω) at ω in rad/s."""
+        s = 1j * np.asarray(omega, dtype=float)
+        return np.polyval(self.num, s) / np.polyval(self.den, s) * np.exp(-s * self.delay)
+
+    def ultimate_point(self) -> tuple[float, float] | None:
+        """(K_u, P_u in s), or None if the phase never reaches −180°."""
+        return ultimate_point(list(self.num), list(self.den), self.delay)
+
+    def with_lag(self, lag: float) -> DelayedTF:
+        """This times 1/(lag·s + 1): a first-order sensor lag in series (lag in s)."""
+        if not lag:
+            return self
+        return DelayedTF.of(self.num, np.polymul(self.den, [lag, 1.0]), self.delay)
 
 
 def _phase(zeros: np.ndarray, poles: np.ndarray, sign: float, delay: float, w: float) -> float:
@@ -50,11 +83,17 @@ def ultimate_point(
     return 1.0 / gain, 2.0 * math.pi / wu
 
 
-def model_ultimate_point(model: object) -> tuple[float, float] | None:
-    """The exact ultimate point of a plant_sim linear model (None for others)."""
+def model_transfer(model: object) -> DelayedTF | None:
+    """The transfer function of a plant_sim linear model, its sensor lag included (None for a
+    model without ``num`` and ``den``: physical and user models)."""
     num, den = getattr(model, "num", None), getattr(model, "den", None)
     if num is None or den is None:
         return None
-    lag = getattr(model, "sensor_lag", 0.0)
-    full = list(np.polymul(den, [lag, 1.0])) if lag else den
-    return ultimate_point(num, full, getattr(model, "delay", 0.0))
+    tf = DelayedTF.of(num, den, getattr(model, "delay", 0.0))
+    return tf.with_lag(getattr(model, "sensor_lag", 0.0))
+
+
+def model_ultimate_point(model: object) -> tuple[float, float] | None:
+    """The exact ultimate point of a plant_sim linear model (None for others)."""
+    tf = model_transfer(model)
+    return None if tf is None else tf.ultimate_point()
