@@ -24,7 +24,7 @@ from services.logger.commands import analyze as analyze_command
 from services.logger.commands import recover as recover_command
 from services.logger.commands import replay as replay_command
 from services.logger.commands import runs as runs_command
-from services.offline import benchmark_command
+from services.offline import benchmark_command, wall_times
 from services.plant_sim import service as plant_service
 from shared.cli import OneLineParser, check_flags, check_runs_dir
 from shared.errors import AutotuneError, one_line
@@ -45,6 +45,7 @@ SUBCOMMANDS = {
     "report": report,
     "recover": recover_command,
     "benchmark": benchmark_command,
+    "wall-times": wall_times,
 }
 
 

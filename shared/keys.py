@@ -1,4 +1,8 @@
-"""Every key expression the product uses, in one place.
+"""Every key expression the product uses, in one place: built here, and read back here.
+
+Builders return a key; parsers (``parse_command``, ``parse_loop_key``, ``parse_tune_key``,
+``service_node``...) return its parts, or None for a key that is not one. Nothing outside
+this module splits a key on '/'.
 
 Layout (IDs in their own chunks, most-varying part last)::
 
@@ -104,6 +108,11 @@ def all_commands(prefix: str) -> str:
     return f"{loop_root(prefix, ANY)}/cmd/**"
 
 
+def everything(prefix: str) -> str:
+    """Every key under the prefix: what the logger records from."""
+    return f"{prefix}/**"
+
+
 def service_status(prefix: str, service: str, node: str) -> str:
     return f"{prefix}/{service}/{node}/status"
 
@@ -121,6 +130,42 @@ def split_loop_key(prefix: str, key: str) -> tuple[str, list[str]] | None:
     if len(parts) < 2 or not parts[0]:
         return None
     return parts[0], parts[1:]
+
+
+def parse_loop_key(prefix: str, key: str) -> tuple[str, str] | None:
+    """(loop, leaf) of ``<prefix>/plant/<loop>/<leaf>`` (pv, status, info, alive); None if
+    ``key`` is not one (a command's key has more chunks: see ``parse_command``)."""
+    parsed = split_loop_key(prefix, key)
+    if parsed is None or len(parsed[1]) != 1 or not parsed[1][0]:
+        return None
+    return parsed[0], parsed[1][0]
+
+
+def parse_tune_key(prefix: str, key: str) -> tuple[str, str] | None:
+    """(loop, leaf) of ``<prefix>/tune/<loop>/<leaf>`` (progress, event, result, cancel,
+    running); None if ``key`` is not one."""
+    head = f"{prefix}/tune/"
+    if not key.startswith(head):
+        return None
+    parts = key[len(head) :].split("/")
+    if len(parts) != 2 or not all(parts):
+        return None
+    return parts[0], parts[1]
+
+
+def candidate_prefixes(key: str) -> list[str]:
+    """The prefixes ``key`` may be under, shortest first: the chunks before each ``plant``
+    or ``tune`` chunk (for a recording that does not say its prefix)."""
+    parts = key.split("/")
+    return ["/".join(parts[:i]) for i in range(1, len(parts)) if parts[i] in ("plant", "tune")]
+
+
+def reprefix(key: str, old: str, new: str) -> str:
+    """``key`` under the prefix ``new`` instead of ``old`` (a replay under another prefix);
+    ValueError if ``key`` is not under ``old``."""
+    if not key.startswith(old + "/"):
+        raise ValueError(f"key {key!r} is not under the prefix {old!r}")
+    return new + key[len(old) :]
 
 
 def service_node(prefix: str, service: str, key: str) -> str | None:

@@ -11,8 +11,8 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-Mode = Literal["manual", "auto"]
-Action = Literal["reverse", "direct"]
+from shared.control.pid import Action, Mode, PidSettings
+
 ClockMode = Literal["lockstep", "realtime"]
 
 LoopId = Annotated[
@@ -40,6 +40,15 @@ class PidGains(Message):
     td: float = Field(default=0.0, ge=0.0, description="derivative time, s")
     n: float = Field(default=10.0, ge=1.0, le=1000.0, description="derivative filter: Tf = Td/n")
     beta: float = Field(default=1.0, ge=0.0, le=1.0, description="setpoint weight on P action")
+
+    def to_core(self) -> PidSettings:
+        """The PID block's own settings (``shared.control.pid``), the same numbers."""
+        return PidSettings(self.kc, self.ti, self.td, self.n, self.beta)
+
+    @classmethod
+    def from_core(cls, settings: PidSettings) -> PidGains:
+        """The message for a PID block's settings, the same numbers."""
+        return cls(kc=settings.kc, ti=settings.ti, td=settings.td, n=settings.n, beta=settings.beta)
 
 
 class ProcessSample(Message):

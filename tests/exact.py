@@ -13,13 +13,28 @@ import numpy as np
 from scipy.optimize import brentq
 
 
+def _phase_of(num, den, delay):
+    """ω ↦ the unwrapped phase of G(jω) (scalar or array): each root's angle is taken on its
+    own, so the sum never wraps, and a negative leading gain adds −π."""
+    num, den = np.asarray(num, float), np.asarray(den, float)
+    zeros = np.roots(num) if len(num) > 1 else np.array([])
+    poles = np.roots(den)
+    offset = 0.0 if np.sign(num[np.nonzero(num)[0][0]] / den[0]) > 0 else -math.pi
+
+    def ph(w):
+        s = 1j * np.asarray(w, float)[..., None]
+        return (
+            -np.asarray(w, float) * delay
+            + np.angle(s - zeros).sum(axis=-1)
+            - np.angle(s - poles).sum(axis=-1)
+            + offset
+        )
+
+    return ph
+
+
 def phase(num, den, delay, w: float) -> float:
-    s = 1j * w
-    ph = -w * delay
-    ph += sum(np.angle(s - z) for z in np.roots(num)) if len(num) > 1 else 0.0
-    ph -= sum(np.angle(s - p) for p in np.roots(den))
-    lead_sign = np.sign(num[np.nonzero(num)[0][0]] / den[0])
-    return float(ph + (0.0 if lead_sign > 0 else -math.pi))
+    return float(_phase_of(num, den, delay)(w))
 
 
 def magnitude(num, den, delay, w: float) -> float:
@@ -30,17 +45,27 @@ def magnitude(num, den, delay, w: float) -> float:
 def ultimate_point(num, den, delay=0.0) -> tuple[float, float]:
     """(K_u, P_u) at the first phase crossover of −180°."""
     num, den = np.asarray(num, float), np.asarray(den, float)
+    ph = _phase_of(num, den, delay)
     grid = np.logspace(-6, 4, 20000)
-    f = np.array([phase(num, den, delay, w) + math.pi for w in grid])
-    i = int(np.nonzero(f < 0)[0][0])
-    wu = brentq(lambda w: phase(num, den, delay, w) + math.pi, grid[i - 1], grid[i], xtol=1e-14)
+    i = int(np.nonzero(ph(grid) + math.pi < 0)[0][0])
+    wu = brentq(lambda w: float(ph(w)) + math.pi, grid[i - 1], grid[i], xtol=1e-14)
     return 1.0 / magnitude(num, den, delay, wu), 2 * math.pi / wu
 
 
-def test_known_answers():
-    ku, pu = ultimate_point([6.0], [1, 6, 11, 6])  # Routh: K_u = 10, ω_u = √11 (seed 000)
-    assert abs(ku - 10.0) < 1e-9 and abs(pu - 2 * math.pi / math.sqrt(11)) < 1e-9
-    # e^{−Ls}/(Ts+1) (Iinoya–Hotta eq. 5): tan(ω L) = −Tω, K_u = √(1+(Tω)²)
-    ku, pu = ultimate_point([1.0], [3.0, 1.0], 1.0)
-    w = 2 * math.pi / pu
-    assert abs(math.tan(w * 1.0) + 3.0 * w) < 1e-9 and abs(ku - math.hypot(1, 3 * w)) < 1e-9
+def lag_ultimate(gain: float, lags: tuple[float, ...], delay: float) -> tuple[float, float]:
+    """K·e^{−Ls}/Π(τs+1): Σ atan(τω) + Lω = π at ω_u, K_u = Π√(1+(τω_u)²)/K; an integrator
+    (no lags) adds 90°: ω_u = π/(2L), K_u = ω_u/K."""
+    if not lags:
+        wu = math.pi / (2 * delay)
+        return wu / gain, 2 * math.pi / wu
+    wu = brentq(lambda w: sum(math.atan(t * w) for t in lags) + delay * w - math.pi, 1e-9, 1e6)
+    return math.prod(math.hypot(1.0, t * wu) for t in lags) / gain, 2 * math.pi / wu
+
+
+def sopdt_tangent(k: float, t1: float, t2: float, theta: float) -> tuple[float, float]:
+    """(L, R per unit step) of the inflection tangent of k·e^{−θs}/((t1 s+1)(t2 s+1)), in
+    closed form: the inflection is where y'' = 0, the tangent meets the baseline at L."""
+    u = t1 * t2 * math.log(t1 / t2) / (t1 - t2)  # inflection: y'' = 0
+    slope = k * (math.exp(-u / t1) - math.exp(-u / t2)) / (t1 - t2)
+    y = k * (1 - (t1 * math.exp(-u / t1) - t2 * math.exp(-u / t2)) / (t1 - t2))
+    return theta + u - y / slope, slope

@@ -35,11 +35,11 @@ def test_relay_tune_of_suite_plants_within_one_percent(name):
 
 
 def test_zn_p_decay_ratio_is_near_a_quarter_only_for_small_t_over_l():
-    plant = benchmark.Plant("fo", "fopdt", (1.0,), (0.1, 1.0), 1.0)
+    plant = benchmark.Plant.of("fo", "fopdt", (1.0,), (0.1, 1.0), 1.0)
     ku, pu = plant.exact()
     dr = benchmark.decay_ratio(benchmark.IsaGains(0.5 * ku), plant, pu)
     assert 0.2 < dr < 0.35
-    lag = benchmark.Plant("fo", "fopdt", (1.0,), (50.0, 1.0), 1.0)
+    lag = benchmark.Plant.of("fo", "fopdt", (1.0,), (50.0, 1.0), 1.0)
     ku, pu = lag.exact()
     assert benchmark.decay_ratio(benchmark.IsaGains(0.5 * ku), lag, pu) < 0.15
 

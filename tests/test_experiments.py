@@ -10,29 +10,17 @@ import math
 import numpy as np
 import pytest
 
+from services.autotuner.identify.driver import drive
 from services.autotuner.identify.oscillation import fit_oscillation
 from services.autotuner.identify.ramp import RampConfig, RampTest
 from services.autotuner.identify.relay import RelayConfig, RelayTest
-from services.offline.benchmark import drive_ramp
+from services.autotuner.identify.relay_estimate import KU_METHODS, MODEL_CROSSING
+from services.offline.local_loop import ModelPort, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.models import TransferFunctionModel
 from shared.messages import GainsCommand, ModeCommand, PidGains
 from tests.exact import ultimate_point
-
-THIRD = ([6.0], [1.0, 6.0, 11.0, 6.0], 0.0, 0.002)
-HX = ([1.0], [600.0, 70.0, 1.0], 5.0, 0.05)
-
-
-def run_relay(num, den, delay, ts, noise=0.0, seed=0, **kw):
-    model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
-    model.reset()
-    rng = np.random.default_rng(seed)
-    test = RelayTest(RelayConfig(**kw), 50.0, (0.0, 100.0), (-1e6, 1e6), ts)
-    op, k = 50.0, 0
-    while not test.finished:
-        k += 1
-        op = test.feed(k * ts, model.step(op) + noise * rng.standard_normal())
-    return test
+from tests.plants import HX, THIRD, run_relay
 
 
 @pytest.mark.parametrize("plant", [THIRD, HX], ids=["third-order", "heat-exchanger"])
@@ -82,17 +70,21 @@ def test_relay_with_noise_sets_hysteresis_from_it():
     assert r.ku == pytest.approx(ku, rel=0.02) and r.pu == pytest.approx(pu, rel=0.02)
 
 
+class LoadAfter(ModelPort):
+    """The plant, with an unmeasured load of 2 % appearing after 200 s."""
+
+    def samples(self, n: int):
+        if (self.k + 1) * self.ts > 200:
+            self.model.set_disturbance("load", 2.0)
+        return super().samples(n)
+
+
 def test_relay_bias_adaptation_keeps_the_cycle_symmetric_under_a_load():
     num, den, delay, ts = HX
     model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
     model.reset()
     test = RelayTest(RelayConfig(cycles=4, tolerance=0.01), 50.0, (0, 100), (-1e6, 1e6), ts)
-    op, k = 50.0, 0
-    while not test.finished:
-        k += 1
-        if k * ts > 200:
-            model.set_disturbance("load", 2.0)  # an unmeasured load of 2 % appears
-        op = test.feed(k * ts, model.step(op))
+    drive(test, LoadAfter(model, ts, 50.0))
     assert test.result is not None, test.reason
     assert test.result.bias == pytest.approx(48.0, abs=0.3)  # the relay moved to cancel it
     assert abs(test.cycles[-1].high_fraction - 0.5) < 0.02
@@ -103,11 +95,10 @@ def test_relay_aborts_at_the_pv_limit_and_refuses_a_too_wide_swing():
     model = TransferFunctionModel(ts, num=num, den=den, delay=delay, pv0=50.0)
     model.reset()
     test = RelayTest(RelayConfig(amplitude=20.0), 50.0, (0, 100), (49.0, 51.0), ts)
-    op, k = 50.0, 0
-    while not test.finished:
-        k += 1
-        op = test.feed(k * ts, model.step(op))
-    assert test.phase == "aborted" and "left its limits" in test.reason and op == 50.0
+    assert drive(test, ModelPort(model, ts, 50.0)) is None
+    assert test.phase == "aborted" and "left its limits" in test.reason
+    assert test.demand.op == 50.0  # the output back at rest
+    assert test.events[-1].kind == "aborted" and test.events[-1].data["reason"] == test.reason
     with pytest.raises(ValueError, match="beyond the loop's limits"):
         RelayTest(RelayConfig(amplitude=60.0), 50.0, (0, 100), (0, 100), ts)
 
@@ -132,7 +123,8 @@ def run_ramp(num, den, delay, ts, noise=0.0, seed=0, kc_start=1.0, bump=1.0):
     test = RampTest(RampConfig(kc_start=kc_start, bump=bump), (-1e3, 1e3), ts)
     loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc_start)))
     loop.apply(ModeCommand(loop="x", mode="auto"))
-    drive_ramp(test, loop)
+    port = SimLoopPort(loop, present_first=True)
+    drive(test, port, held=port.held_now())
     return test
 
 
@@ -170,3 +162,44 @@ def test_biased_second_stage_gives_the_static_gain():
     assert r.static_gain == pytest.approx(1.0, rel=0.02)
     assert r.ku == pytest.approx(ku, rel=0.01)
     assert run_relay(*HX).result.static_gain is None  # symmetric: no static gain claimed
+
+
+def test_every_abort_goes_through_one_path_with_an_event():
+    """Cycles that cannot agree within a tolerance of 1e-9 exhaust ``max_cycles``: the test
+    aborts with its reason and an ``aborted`` event, as at the PV limit."""
+    num, den, delay, ts = THIRD
+    model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
+    model.reset()
+    test = RelayTest(
+        RelayConfig(cycles=3, max_cycles=4, tolerance=1e-9), 50.0, (0, 100), (-1e6, 1e6), ts
+    )
+    assert drive(test, ModelPort(model, ts, 50.0)) is None
+    assert test.phase == "aborted" and len(test.cycles) == 4
+    assert "still differ" in test.reason
+    assert [e.kind for e in test.events].count("aborted") == 1
+    assert test.events[-1].kind == "aborted" and test.events[-1].data == {"reason": test.reason}
+
+
+def test_relay_says_which_path_gave_k_u():
+    """Noise-free on the third-order plant both stages' points bracket −180°: K_u is the
+    model's crossing between them, and the run's experiment object says so (a new key)."""
+    test = run_relay(*THIRD)
+    r = test.result
+    assert r.crossing == "bracketed" and r.ku_method == MODEL_CROSSING
+    fields = test.identification().experiment.to_dict()
+    assert fields["ku_method"] == MODEL_CROSSING and fields["crossing"] == "bracketed"
+    single = run_relay(*THIRD, refine=False).result  # no stage 2: stage 1's point alone
+    assert single.ku_method in KU_METHODS and single.ku_method != "linear crossing"
+    assert single.second == ()
+
+
+def test_stage_two_is_an_explicit_phase():
+    num, den, delay, ts = THIRD
+    model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
+    model.reset()
+    test = RelayTest(RelayConfig(), 50.0, (0.0, 100.0), (-1e6, 1e6), ts)
+    phases = []
+    port = ModelPort(model, ts, 50.0)
+    drive(test, port, watch=lambda s: phases.append(test.phase))
+    seen = [p for i, p in enumerate(phases) if i == 0 or phases[i - 1] != p]
+    assert seen == ["quiet", "relay", "stage2", "done"]

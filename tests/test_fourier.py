@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from services.autotuner.identify.fourier import frequency_points
-from tests.test_experiments import HX, THIRD, run_relay
+from tests.plants import HX, THIRD, run_relay
 
 
 def model_response(num, den, delay, w):
@@ -55,10 +55,8 @@ def test_a_too_short_record_is_refused():
 def test_the_relay_reports_the_exact_point_beside_its_estimate():
     """Unwrapped phases; |G| and phase at ω_osc equal the model's (the cycle is not at −180°,
     which is why the describing function's K_u is off)."""
-    from services.autotuner.identify import experiments
-
     num, den, delay, ts = HX
-    fields = experiments.identification(run_relay(num, den, delay, ts)).experiment
+    fields = run_relay(num, den, delay, ts).identification().experiment.to_dict()
     for k in (1, 3, 5):
         g = model_response(num, den, delay, fields[f"omega_{k}"])
         assert fields[f"g_{k}_magnitude"] == pytest.approx(abs(g), rel=5e-3)

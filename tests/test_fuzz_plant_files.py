@@ -668,7 +668,7 @@ def test_gains_beyond_floating_point_are_refused_and_the_pid_guard_holds():
     with pytest.raises(CommandRejected, match="beyond floating-point range"):
         loop.apply(GainsCommand(loop="hx1", gains=PidGains(kc=1e300, ti=1.0, td=1e10)))
     # past the checks (as a bug might get): the loop faults rather than publish NaN
-    loop.pid.set_gains(PidGains(kc=1e308, ti=1.0, td=5.0), loop.sp, loop.pv)
+    loop.pid.set_gains(PidGains(kc=1e308, ti=1.0, td=5.0).to_core(), loop.sp, loop.pv)
     loop.apply(ModeCommand(loop="hx1", mode="auto"))
     loop.apply(SetpointCommand(loop="hx1", sp=120.0))
     for _ in range(50):

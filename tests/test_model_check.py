@@ -7,24 +7,14 @@ are those users reported, and one a relay on a PV still moving fitted in reprodu
 import math
 
 import pytest
-from scipy.optimize import brentq
 
 from services.autotuner.identify.model_check import ModelCheck, check_model
 from services.autotuner.identify.model_fit import ProcessFit
+from tests.exact import lag_ultimate
 
 FOPDT = ProcessFit("fopdt", 1.0, (10.0,), 1.0, 0.03, noise_rms=0.025)
 HX = ProcessFit("sopdt", 1.0, (60.0, 10.0), 5.0, 0.02, noise_rms=0.02)
 IPDT = ProcessFit("ipdt", 0.5, (), 2.0, 0.03, noise_rms=0.03)
-
-
-def lag_ultimate(gain: float, lags: tuple[float, ...], delay: float) -> tuple[float, float]:
-    """K·e^{−Ls}/Π(τs+1): Σ atan(τω) + Lω = π at ω_u, K_u = Π√(1+(τω_u)²)/K; an integrator
-    (no lags) adds 90°: ω_u = π/(2L), K_u = ω_u/K."""
-    if not lags:
-        wu = math.pi / (2 * delay)
-        return wu / gain, 2 * math.pi / wu
-    wu = brentq(lambda w: sum(math.atan(t * w) for t in lags) + delay * w - math.pi, 1e-9, 1e6)
-    return math.prod(math.hypot(1.0, t * wu) for t in lags) / gain, 2 * math.pi / wu
 
 
 def ultimate_point(model: ProcessFit) -> tuple[float, float]:
@@ -92,7 +82,7 @@ def test_user_report_integrator_with_huge_controller_gain():
     check = check_model(model, 9.4, 40.0, 0.01, 0.01)
     _one_line(check)
     text = check.summary()
-    assert "gain × delay × K_u = 0.00705" in text
+    assert f"gain × delay × K_u = {1.2e-5 * 62.5 * 9.4:.3g}" in text  # 0.00705
     assert "delay 62.5 s beyond what P_u 40 s allows" in text
     assert "predicts K_u" in text and "predicts P_u" in text
 
@@ -139,7 +129,8 @@ def test_record_fit_residual_beyond_the_noise():
     noisy = ProcessFit("fopdt", 1.0, (10.0,), 1.0, 0.5, noise_rms=0.4)  # excess 0.3
     assert check_model(noisy, ku, pu, 0.0, 0.0).ok
     poor = ProcessFit("fopdt", 1.0, (10.0,), 1.0, 0.5, noise_rms=0.1)  # excess 0.49
-    assert "excess 0.49" in check_model(poor, ku, pu, 0.0, 0.0).summary()
+    excess = math.sqrt(0.5**2 - 0.1**2)  # √(rms² − noise²) = 0.49
+    assert f"excess {excess:.2g}" in check_model(poor, ku, pu, 0.0, 0.0).summary()
     unfitted = ProcessFit("fopdt", 1.0, (10.0,), 1.0, math.inf)
     assert not check_model(unfitted, ku, pu, 0.0, 0.0).ok
 

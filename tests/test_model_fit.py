@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from services.autotuner.identify.model_fit import choose, fit_models
+from shared.control.transfer import DelayedTF
 from tests.exact import ultimate_point
 
 
@@ -60,7 +61,7 @@ def test_the_process_model_never_passes_a_candidate_the_true_plant_would_fail():
     from services.autotuner.design.recommend import MODEL_MARGIN, MS_BOUND, assess
     from services.autotuner.design.robustness import robustness
     from services.autotuner.design.rules import UltimatePoint
-    from tests.test_experiments import HX, THIRD, run_relay
+    from tests.plants import HX, THIRD, run_relay
 
     passed = 0
     for num, den, delay, ts in (THIRD, HX):
@@ -69,7 +70,7 @@ def test_the_process_model_never_passes_a_candidate_the_true_plant_would_fail():
         for name, a in assess(UltimatePoint(r.ku, r.pu), r.model).items():
             if a.within(MODEL_MARGIN * MS_BOUND):
                 passed += 1
-                assert robustness(a.gains, num, den, delay).ms <= MS_BOUND, name
+                assert robustness(a.gains, DelayedTF.of(num, den, delay)).ms <= MS_BOUND, name
     assert passed >= 3
 
 
@@ -77,11 +78,11 @@ def test_recommendation_is_stable_with_ms_within_the_bound_on_the_true_plant():
     from services.autotuner.design.recommend import recommend
     from services.autotuner.design.robustness import robustness
     from services.autotuner.design.rules import UltimatePoint
-    from tests.test_experiments import HX, THIRD, run_relay
+    from tests.plants import HX, THIRD, run_relay
 
     for num, den, delay, ts in (THIRD, HX):
         r = run_relay(num, den, delay, ts).result
         rec = recommend(UltimatePoint(r.ku, r.pu), r.model)
-        true = robustness(rec.gains, num, den, delay)
+        true = robustness(rec.gains, DelayedTF.of(num, den, delay))
         assert true.gain_margin > 1 and true.phase_margin_deg > 0
         assert true.ms <= 2.0, (rec.rule, true.ms)

@@ -1,10 +1,12 @@
 """The loop's PID block: anti-windup, bumpless mode switches and gain changes."""
 
+import math
+
 import numpy as np
 import pytest
 
 from services.plant_sim.simulation.models import FirstOrderPlusDeadTime
-from shared.control.pid import PidBlock
+from shared.control.pid import PidBlock, PidSettings
 from shared.messages import PidGains
 
 TS = 0.1
@@ -28,7 +30,7 @@ def test_anti_windup_recovers_after_saturation():
     integrator does not wind up meanwhile, so the output leaves the limit before the PV
     reaches the setpoint and the overshoot stays small. A plain integrator, run the same way,
     stays at the limit past the setpoint and overshoots far more."""
-    gains = PidGains(kc=2.0, ti=5.0)
+    gains = PidSettings(kc=2.0, ti=5.0)
 
     def plant():
         return FirstOrderPlusDeadTime(TS, gain=1.0, time_constant=5.0, delay=0.5, op0=50, pv0=50)
@@ -69,17 +71,17 @@ def _naive_closed_loop(pid: PidBlock, plant, sp, n):
 
 def test_manual_auto_switches_and_gain_changes_make_no_jump():
     plant = FirstOrderPlusDeadTime(TS, gain=1.5, time_constant=4.0, delay=0.3, op0=40, pv0=30)
-    pid = PidBlock(PidGains(kc=1.2, ti=3.0, td=0.5), TS, (0.0, 100.0), op=40.0)
+    pid = PidBlock(PidSettings(kc=1.2, ti=3.0, td=0.5), TS, (0.0, 100.0), op=40.0)
     pv = plant.reset()
     sp = 45.0  # far from the PV: a naive switch would jump by Kc·15
     ops = []
     script = {
         50: ("auto",),
-        150: ("gains", PidGains(kc=4.0, ti=1.0, td=1.0)),
+        150: ("gains", PidSettings(kc=4.0, ti=1.0, td=1.0)),
         250: ("manual",),
         300: ("output", 55.0),
         350: ("auto",),
-        450: ("gains", PidGains(kc=0.5, ti=None, td=0.0)),
+        450: ("gains", PidSettings(kc=0.5, ti=None, td=0.0)),
         550: ("auto",),
     }
     checked = []
@@ -114,21 +116,49 @@ def test_manual_auto_switches_and_gain_changes_make_no_jump():
 
 
 def test_p_only_keeps_its_manual_reset_and_direct_action_reverses_sign():
-    pid = PidBlock(PidGains(kc=2.0), TS, (0.0, 100.0), action="reverse", op=30.0)
+    pid = PidBlock(PidSettings(kc=2.0), TS, (0.0, 100.0), action="reverse", op=30.0)
     pid.track(50.0, 30.0)
     pid.set_mode("auto", 50.0, 50.0)
     assert pid.update(50.0, 50.0) == 30.0  # no error: the bias holds the output
     assert pid.update(50.0, 49.0) == pytest.approx(32.0)  # reverse: PV low → output up
-    direct = PidBlock(PidGains(kc=2.0), TS, (0.0, 100.0), action="direct", op=30.0)
+    direct = PidBlock(PidSettings(kc=2.0), TS, (0.0, 100.0), action="direct", op=30.0)
     direct.track(50.0, 30.0)
     direct.set_mode("auto", 50.0, 50.0)
     assert direct.update(50.0, 49.0) == pytest.approx(28.0)
 
 
 def test_derivative_acts_on_measurement_with_filter():
-    pid = PidBlock(PidGains(kc=1.0, td=2.0, n=10.0), TS, (0.0, 100.0), op=50.0)
+    pid = PidBlock(PidSettings(kc=1.0, td=2.0, n=10.0), TS, (0.0, 100.0), op=50.0)
     pid.track(10.0, 50.0)
     pid.set_mode("auto", 10.0, 10.0)
     assert pid.update(20.0, 10.0) == pytest.approx(60.0)  # SP step: P only, no derivative kick
     u = pid.update(20.0, 11.0)  # PV moves 1 unit: D = −Kc·Td/(Tf+T) with Tf = Td/N
     assert u == pytest.approx(50.0 + 9.0 - 1.0 * 2.0 / (0.2 + TS), rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"kc": -1.0},
+        {"kc": math.inf},
+        {"kc": 1.0, "ti": 0.0},
+        {"kc": 1.0, "ti": math.nan},
+        {"kc": 1.0, "td": -0.5},
+        {"kc": 1.0, "n": 0.5},
+        {"kc": 1.0, "n": 2000.0},
+        {"kc": 1.0, "beta": 1.5},
+    ],
+)
+def test_the_block_refuses_what_the_bus_refuses(bad):
+    """The core's settings keep the bus message's bounds, so every conversion succeeds."""
+    with pytest.raises(ValueError):
+        PidSettings(**bad)
+    with pytest.raises(ValueError):  # pydantic's ValidationError is a ValueError
+        PidGains(**bad)
+
+
+def test_bus_gains_convert_to_the_block_and_back_unchanged():
+    msg = PidGains(kc=1.5, ti=12.0, td=0.75, n=8.0, beta=0.5)
+    assert msg.to_core() == PidSettings(kc=1.5, ti=12.0, td=0.75, n=8.0, beta=0.5)
+    assert PidGains.from_core(msg.to_core()) == msg
+    assert PidGains.from_core(PidSettings(kc=2.0)) == PidGains(kc=2.0)  # the same defaults

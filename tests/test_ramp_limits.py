@@ -15,11 +15,15 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from services.autotuner.identify import experiments
+from services.autotuner.identify import methods
+from services.autotuner.identify.driver import drive as drive_experiment
+from services.autotuner.identify.experiments import Setup
 from services.autotuner.identify.ramp import RampConfig, RampTest
+from services.autotuner.requests import DEFAULT_BUMP_FRACTION, settings_of
+from services.offline.local_loop import Reading, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.loop import SimLoop
-from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand, TuneRequest
+from shared.messages import GainsCommand, ModeCommand, PidGains, TuneRequest
 
 RELAY_SWING = 8.0 * 5.0 / math.pi  # × 1/K_u: a 5 % relay's peak-to-peak PV swing (benchmark)
 
@@ -62,37 +66,27 @@ def ramp_for(loop: SimLoop, kc_start: float | None = None, bump: float | None = 
     """The ramp as the live tuner builds it, with its defaults: kc_start half the loop's
     gain, bump 1 % of the PV range, the loop's output limits."""
     lo, hi = loop.settings.pv_range
-    setup = {
-        "sample_time": loop.sample_time,
-        "op_lo": loop.settings.op_limits[0],
-        "op_hi": loop.settings.op_limits[1],
-        "pv_lo": lo,
-        "pv_hi": hi,
-        "kc_start": kc_start or 0.5 * loop.pid.gains.kc,
-        "bump": bump or experiments.DEFAULT_BUMP_FRACTION * (hi - lo),
-        "sp_start": loop.pv,
-    }
-    test = experiments.build("ramp", TuneRequest(loop="x", method="ramp"), setup)
+    setup = Setup(
+        sample_time=loop.sample_time,
+        op_lo=loop.settings.op_limits[0],
+        op_hi=loop.settings.op_limits[1],
+        pv_lo=lo,
+        pv_hi=hi,
+        kc_start=kc_start or 0.5 * loop.pid.gains.kc,
+        bump=bump or DEFAULT_BUMP_FRACTION * (hi - lo),
+        sp_start=loop.pv,
+    )
+    test = methods.build("ramp", settings_of(TuneRequest(loop="x", method="ramp")), setup)
     assert isinstance(test, RampTest)
     loop.apply(GainsCommand(loop="x", gains=PidGains(kc=test.kc)))
     return test
 
 
 def drive(test: RampTest, loop: SimLoop, limit: float) -> np.ndarray:
-    """Apply the test's demands until it finishes or ``limit`` s of sim time pass; the
-    outputs fed to it."""
-    kc, sp = loop.pid.gains.kc, loop.sp
-    demand = test.feed(loop.t, loop.pv, loop.op)
-    t0 = loop.t
-    while not test.finished and loop.t - t0 <= limit:
-        if demand.kc != kc:
-            kc = demand.kc
-            loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc)))
-        if demand.sp != sp:
-            sp = demand.sp
-            loop.apply(SetpointCommand(loop="x", sp=sp))
-        s = loop.advance()
-        demand = experiments.feed(test, s)
+    """Apply the test's demands (through the driver, from the loop's present state) until it
+    finishes or ``limit`` s of sim time pass; the outputs fed to it."""
+    port = SimLoopPort(loop, present_first=True, limit=limit)
+    drive_experiment(test, port, held=port.held_now())
     return np.asarray(test._u)
 
 
@@ -256,7 +250,7 @@ def test_output_that_cannot_move_aborts_with_a_reason():
     ts = 0.01
     test = RampTest(RampConfig(kc_start=1.0, bump=1.0), (0.0, 100.0), ts, op_limits=(0, 100))
     for k in range(2000):
-        test.feed(k * ts, 50.0, 100.0)
+        test.feed(Reading(k * ts, 50.0, 100.0))
         if test.finished:
             break
     assert test.phase == "aborted" and test.reason

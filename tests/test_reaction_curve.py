@@ -5,17 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.identify.reaction_curve import analyze_step, noise_level, settled
+from services.autotuner.identify.reaction_curve import analyze_step, settled
 from services.plant_sim.simulation.models import FirstOrderPlusDeadTime, TransferFunctionModel
 from services.plant_sim.simulation.presets import HeatExchanger
-
-
-def sopdt_tangent(k, t1, t2, theta):
-    """(L, R per unit step, T63 from the step) of k·e^{−θs}/((t1 s+1)(t2 s+1)) in closed form."""
-    u = t1 * t2 * math.log(t1 / t2) / (t1 - t2)  # inflection: y'' = 0
-    slope = k * (math.exp(-u / t1) - math.exp(-u / t2)) / (t1 - t2)
-    y = k * (1 - (t1 * math.exp(-u / t1) - t2 * math.exp(-u / t2)) / (t1 - t2))
-    return theta + u - y / slope, slope
+from shared.control.signals import noise_level
+from tests.exact import sopdt_tangent
 
 
 def record_step(model, size, rng=None, noise=0.0, base_n=80):

@@ -8,6 +8,7 @@ from services.autotuner.design.rules import RULES, StepModel, UltimatePoint, app
 from services.autotuner.identify.model_fit import ProcessFit
 from shared.control.forms import (
     IsaGains,
+    ParallelGains,
     SeriesGains,
     all_forms,
     from_parallel,
@@ -133,8 +134,26 @@ def test_reset_rate_and_minutes():
     assert reset_rate(30.0) == 2.0 and integral_time_from_reset_rate(2.0) == 30.0
     assert reset_rate(None) == 0.0 and integral_time_from_reset_rate(0.0) is None
     f = all_forms(IsaGains(2.0, 120.0, 30.0))
-    assert f["ti_min"] == 2.0 and f["td_min"] == 0.5 and f["reset_rate_rpm"] == 0.5
-    assert f["parallel"] == {"kp": 2.0, "ki": 2.0 / 120.0, "kd": 60.0}
+    assert f.ti_min == 2.0 and f.td_min == 0.5 and f.reset_rate_rpm == 0.5
+    assert f.parallel == ParallelGains(2.0, 2.0 / 120.0, 60.0)
+    assert f.series == SeriesGains(1.0, 60.0, 60.0)  # Ti = 4·Td: the double root
+
+
+def test_gain_forms_as_json():
+    """The result's ``gains`` object: these keys, ISA as given, None where a form lacks."""
+    f = all_forms(IsaGains(2.0, 120.0, 30.0)).to_dict()
+    assert f == {
+        "isa": {"kc": 2.0, "ti": 120.0, "td": 30.0},
+        "parallel": {"kp": 2.0, "ki": 2.0 / 120.0, "kd": 60.0},
+        "series": {"kc": 1.0, "ti": 60.0, "td": 60.0},
+        "ti_min": 2.0,
+        "td_min": 0.5,
+        "reset_rate_rpm": 0.5,
+    }
+    assert all_forms(IsaGains(2.0, 100.0, 30.0)).to_dict()["series"] is None  # Ti < 4·Td
+    p = all_forms(IsaGains(3.0)).to_dict()
+    assert p["isa"] == {"kc": 3.0, "ti": None, "td": 0.0} and p["ti_min"] is None
+    assert p["parallel"] == {"kp": 3.0, "ki": 0.0, "kd": 0.0} and p["reset_rate_rpm"] == 0.0
 
 
 @pytest.mark.parametrize(("k", "t", "lag"), [(1.0, 60.0, 10.6), (2.0, 5.0, 5.0), (0.5, 1.0, 4.0)])

@@ -17,8 +17,8 @@ from services.autotuner.design.sampled_loop import (
     sampled_plant,
 )
 from shared.control.forms import IsaGains
-from shared.control.pid import PidBlock
-from shared.messages import PidGains
+from shared.control.pid import PidBlock, PidSettings
+from shared.control.transfer import DelayedTF
 from tests.exact import ultimate_point
 
 K, TAU, T = 2.0, 5.0, 0.5
@@ -31,7 +31,7 @@ def test_first_order_p_control_gain_margin_and_ms_closed_form(fraction):
     """G(z) = K(1−a)/(z−a), P control g = Kc·K(1−a): the phase reaches −180° only at ω = π/T,
     GM = Kc_u/Kc; |S| = |z−a|/|z−a+g| is largest at z = −1: Ms = (1+a)/(1+a−g)."""
     kc = fraction * KC_U
-    r = sampled_loop_robustness(IsaGains(kc), [K], [TAU, 1.0], 0.0, T)
+    r = sampled_loop_robustness(IsaGains(kc), DelayedTF.of([K], [TAU, 1.0], 0.0), T)
     assert r.gain_margin == pytest.approx(1 / fraction, rel=1e-9)
     assert r.omega_180 == pytest.approx(math.pi / T, rel=1e-12)
     g = kc * K * (1 - A)
@@ -41,7 +41,7 @@ def test_first_order_p_control_gain_margin_and_ms_closed_form(fraction):
 
 def test_first_order_p_control_above_the_discrete_ultimate_gain_is_unstable():
     """One real closed-loop pole a − g leaves the unit circle through −1."""
-    r = sampled_loop_robustness(IsaGains(1.05 * KC_U), [K], [TAU, 1.0], 0.0, T)
+    r = sampled_loop_robustness(IsaGains(1.05 * KC_U), DelayedTF.of([K], [TAU, 1.0], 0.0), T)
     assert not r.stable and r.unstable_poles == 1
     assert r.gain_margin == pytest.approx(1 / 1.05, rel=1e-9)
 
@@ -51,11 +51,13 @@ def test_integrator_with_whole_sample_delay(n):
     """K/s held: G(z) = KT/(z^n(z−1)). On the unit circle z^n(z−1) + g = 0 at z = e^{jθ}
     needs θ = π/(2n+1): Kc_u = 2·sin(π/(2(2n+1)))/(K·T), ω_u = π/((2n+1)T)."""
     kc_u = 2 * math.sin(math.pi / (2 * (2 * n + 1))) / (K * T)
-    r = sampled_loop_robustness(IsaGains(0.4 * kc_u), [K], [1.0, 0.0], n * T, T)
+    r = sampled_loop_robustness(IsaGains(0.4 * kc_u), DelayedTF.of([K], [1.0, 0.0], n * T), T)
     assert r.gain_margin == pytest.approx(2.5, rel=1e-9)
     assert r.omega_180 == pytest.approx(math.pi / ((2 * n + 1) * T), rel=1e-9)
     assert r.stable
-    assert not sampled_loop_robustness(IsaGains(1.1 * kc_u), [K], [1.0, 0.0], n * T, T).stable
+    assert not sampled_loop_robustness(
+        IsaGains(1.1 * kc_u), DelayedTF.of([K], [1.0, 0.0], n * T), T
+    ).stable
 
 
 @pytest.mark.parametrize("phi", [0.1, 0.4, 0.7])
@@ -65,10 +67,12 @@ def test_integrator_with_fractional_delay_jury(phi):
     g(1−2φ) < 2, so Kc_u = min(1/φ, 2/(1−2φ) for φ < ½)/(K·T)."""
     bounds = [1 / phi] + ([2 / (1 - 2 * phi)] if phi < 0.5 else [])
     kc_u = min(bounds) / (K * T)
-    r = sampled_loop_robustness(IsaGains(0.5 * kc_u), [K], [1.0, 0.0], phi * T, T)
+    r = sampled_loop_robustness(IsaGains(0.5 * kc_u), DelayedTF.of([K], [1.0, 0.0], phi * T), T)
     assert r.gain_margin == pytest.approx(2.0, rel=1e-7)
     assert r.stable
-    assert not sampled_loop_robustness(IsaGains(1.02 * kc_u), [K], [1.0, 0.0], phi * T, T).stable
+    assert not sampled_loop_robustness(
+        IsaGains(1.02 * kc_u), DelayedTF.of([K], [1.0, 0.0], phi * T), T
+    ).stable
 
 
 def _roots_stable(kc: float, ti: float, n: int) -> bool:
@@ -85,7 +89,7 @@ def _roots_stable(kc: float, ti: float, n: int) -> bool:
 def test_pi_stability_matches_the_closed_loop_roots(n):
     ti = 2.0
     for kc in np.linspace(0.1, 12.0, 40):
-        r = sampled_loop_robustness(IsaGains(kc, ti), [K], [TAU, 1.0], n * T, T)
+        r = sampled_loop_robustness(IsaGains(kc, ti), DelayedTF.of([K], [TAU, 1.0], n * T), T)
         assert r.stable == _roots_stable(kc, ti, n), kc
 
 
@@ -93,7 +97,7 @@ def test_first_order_fractional_delay_response_closed_form():
     """K/(τs+1)·e^{−(nT+f)s} held (modified z-transform): G(z) = K·z^{−n−1}·((1 − b) +
     (b − a)z^{−1})/(1 − a·z^{−1}) with b = e^{−(T−f)/τ}."""
     n, f = 3, 0.3 * T
-    plant = sampled_plant([K], [TAU, 1.0], n * T + f, T)
+    plant = sampled_plant(DelayedTF.of([K], [TAU, 1.0], n * T + f), T)
     w = np.array([0.01, 0.3, 1.7, math.pi / T])
     z = np.exp(1j * w * T)
     b = math.exp(-(T - f) / TAU)
@@ -109,7 +113,7 @@ def test_pid_transfer_function_is_the_blocks_own(gains):
     despite the integrator) is −C(z)."""
     ts, n = 0.25, 10.0
     block = PidBlock(
-        PidGains(kc=gains.kc, ti=gains.ti, td=gains.td, n=n),
+        PidSettings(kc=gains.kc, ti=gains.ti, td=gains.td, n=n),
         ts,
         (0.0, 100.0),
         mode="auto",
@@ -130,7 +134,7 @@ def test_tends_to_the_continuous_margin_as_t_goes_to_zero(fraction):
     ku, pu = ultimate_point(*plant)
     errors = []
     for spp in (100, 1000):
-        r = sampled_loop_robustness(IsaGains(fraction * ku), *plant, pu / spp)
+        r = sampled_loop_robustness(IsaGains(fraction * ku), DelayedTF.of(*plant), pu / spp)
         errors.append(r.gain_margin * fraction - 1.0)
         assert 2 * math.pi / r.omega_180 == pytest.approx(pu, rel=2.0 / spp)
     assert -0.03 < errors[0] < 0 and -0.003 < errors[1] < 0
@@ -143,9 +147,10 @@ def test_heat_exchanger_sampled_gain_margin_below_the_continuous_one():
     plant = ([1.0], [600.0, 70.0, 1.0], 5.0)
     ku, pu = ultimate_point(*plant)
     gains = IsaGains(ku / 2.2, 2.2 * pu, pu / 6.3)  # Tyreus–Luyben PID
-    cont = robustness(gains, *plant)
-    fine = sampled_loop_robustness(gains, *plant, 0.25)
-    coarse = sampled_loop_robustness(gains, *plant, 2.5)
+    g = DelayedTF.of(*plant)
+    cont = robustness(gains, g)
+    fine = sampled_loop_robustness(gains, g, 0.25)
+    coarse = sampled_loop_robustness(gains, g, 2.5)
     assert 0.93 < fine.gain_margin / cont.gain_margin < 0.995
     assert coarse.gain_margin / cont.gain_margin < 0.85
     assert cont.ms < fine.ms < coarse.ms
@@ -156,6 +161,6 @@ def test_no_gain_crossover_means_no_phase_margin_to_lose():
     """Kc·K = 0.5: |L| = g/|z − a| ≤ g/(1 − a) = 0.5 < 1 everywhere, the phase margin is
     infinite while the gain margin stays Kc_u/Kc."""
     kc = 0.5 / K
-    r = sampled_loop_robustness(IsaGains(kc), [K], [TAU, 1.0], 0.0, T)
+    r = sampled_loop_robustness(IsaGains(kc), DelayedTF.of([K], [TAU, 1.0], 0.0), T)
     assert r.phase_margin_deg == math.inf and r.omega_c is None
     assert r.gain_margin == pytest.approx(KC_U / kc, rel=1e-9) and r.stable

@@ -9,13 +9,14 @@ from services.autotuner.design.rules import StepModel, model_of
 from services.autotuner.design.selection import assessments_dict, guidance, select
 from services.autotuner.identify import experiments
 from services.autotuner.identify.model_fit import ProcessFit
-from tests.test_experiments import HX, run_relay
-from tests.test_model_check import lag_ultimate
+from services.autotuner.identify.reaction_curve import ReactionCurve
+from tests.exact import lag_ultimate
+from tests.plants import HX, run_relay
 
 
 @pytest.fixture(scope="module")
 def hx_relay():
-    return experiments.identification(run_relay(*HX))
+    return run_relay(*HX).identification()
 
 
 def test_auto_applies_the_recommended_rule_within_the_bound(hx_relay):
@@ -124,12 +125,31 @@ def test_bad_models_are_refused_and_the_fallback_is_tyreus_luyben_pi(ku, pu, mod
 
 def test_a_refused_reaction_curve_leaves_no_step_rule():
     step = StepModel(-0.5, 2.0, 10.0)  # the PV fell: not the process the tuner drives
-    ident = experiments.Identification(
-        step={"l_over_t": 0.2}, step_model=step, model=model_of(step)
+    # its reaction curve: a 5 % step, FOPDT figures (tangent at the kink L, slope K·Δu/T)
+    curve = ReactionCurve(
+        step_size=5.0,
+        pv_before=50.0,
+        pv_after=47.5,
+        gain=-0.5,
+        dead_time=2.0,
+        slope=-0.25,
+        reaction_rate=-0.05,
+        time_constant_tangent=10.0,
+        time_constant_63=10.0,
+        t_inflection=2.0,
+        t_63=12.0,
+        a=-0.1,
+        l_over_t=0.2,
+        noise_std=0.0,
+        smoothing_window=2,
+        method="data",
+        fit_rms=None,
     )
+    ident = experiments.Identification(step=curve, step_model=step, model=model_of(step))
     sel = select(ident, "auto")
     assert sel.chosen is None and sel.refusal.startswith("no rule could be recommended")
     assert "gain -0.5" in sel.refusal and "zn-ol-pi" in sel.unavailable
+    assert sel.l_over_t == 0.2  # read from the reaction curve, refused or not
 
 
 SOPDT = ProcessFit("sopdt", 1.0, (10.0, 5.0), 0.2, 0.01, noise_rms=0.01)

@@ -10,14 +10,8 @@ import numpy as np
 import pytest
 
 from services.autotuner.design.rules import StepModel, apply_rules
-from services.autotuner.identify.reaction_curve import (
-    analyze_step,
-    at_rest,
-    noise_level,
-    range_end,
-    settled,
-    steady_ramp,
-)
+from services.autotuner.identify.driver import drive as drive_experiment
+from services.autotuner.identify.reaction_curve import analyze_step, settled, steady_ramp
 from services.autotuner.identify.step_test import (
     ReturnWatch,
     StepTest,
@@ -25,11 +19,11 @@ from services.autotuner.identify.step_test import (
     StepTestConfig,
 )
 from services.autotuner.step_run import run_step_test
-from services.offline.local_loop import LocalLoopClient
+from services.offline.local_loop import LocalLoopClient, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.models import FirstOrderPlusDeadTime, IntegratingPlusDeadTime
-from shared.messages import OutputCommand
-from tests.test_reaction_curve import sopdt_tangent
+from shared.control.signals import at_rest, noise_level, range_end
+from tests.exact import sopdt_tangent
 
 FOPDT_600 = {  # lvl1 linearised at 1.5 m: 0.06 m/%, τ = 600 s, 1 s delay, 1 s samples
     "model": "fopdt",
@@ -48,8 +42,8 @@ def sim_loop(spec: dict, seed: int = 1):
 
 
 def drive(loop, size: float = 5.0, pv_range: bool = True, **cfg) -> StepTest:
-    """Run a StepTest on a SimLoop in lockstep: an output command holds from the present
-    sample on, as ``run_step_test`` reports it."""
+    """Run a StepTest on a SimLoop in lockstep through the driver: an output command holds
+    from the present sample on, as ``run_step_test`` reports it."""
     st = loop.settings
     test = StepTest(
         StepTestConfig(size=size, **cfg),
@@ -60,16 +54,7 @@ def drive(loop, size: float = 5.0, pv_range: bool = True, **cfg) -> StepTest:
         pv_range=st.pv_range if pv_range else None,
         pv_units=st.pv_units,
     )
-    op = loop.op
-    for _ in range(200_000):
-        if test.finished:
-            break
-        s = loop.advance()
-        want = test.feed(s)
-        if want != op and not test.finished:
-            loop.apply(OutputCommand(loop=st.loop_id, op=want))
-            test.step_started(s.t)
-            op = want
+    drive_experiment(test, SimLoopPort(loop, limit=200_000 * st.sample_time))
     assert test.finished
     return test
 
@@ -196,7 +181,10 @@ def test_steady_ramp_never_calls_a_600_s_lag_integrating():
     ipdt = IntegratingPlusDeadTime(1.0, gain=1e-4, delay=2.0)
     ipdt.reset()
     yi = np.array([ipdt.step(ipdt.op0 + 5.0) for _ in t[:80]])
-    assert steady_ramp(t[:80], yi, 0.0, ipdt.pv0, 0.0) is not None
+    ramp = steady_ramp(t[:80], yi, 0.0, ipdt.pv0, 0.0)  # PV = pv0 + 1e-4·5·(t − 2) from t = 2
+    assert ramp is not None
+    assert ramp.slope == pytest.approx(5e-4, rel=1e-9)
+    assert ramp.dead_time == pytest.approx(2.0, abs=1e-5)
 
 
 # --- self-regulating loops: figures as before, never integrating ---------------------------

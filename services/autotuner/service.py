@@ -20,13 +20,15 @@ from dataclasses import dataclass
 import zenoh
 
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
-from services.autotuner.tuning import RunHooks, TuningRun, validate_request
+from services.autotuner.requests import validate_request
+from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
-from shared.cli import add_common_arguments, check_ids, install_stop_handlers, setup_logging
+from shared.cli import add_common_arguments, check_ids, setup_logging
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.identity import auth_user
 from shared.messages import LoopStatus, TuneAccepted, TuneRequest, TuneResult
-from shared.session import open_session, settings_from_args
+from shared.service_shell import ServiceShell, run_until_stopped
+from shared.session import settings_from_args
 
 log = logging.getLogger("autotuner")
 
@@ -109,7 +111,9 @@ class TunerService:
                 result = TuningRun(client, req, run_id, hooks).run()
         except Exception as err:  # whatever happens, the run ends with a result
             expected = isinstance(err, AutotuneError | ValueError)
-            if not expected:  # a bug: never let one run take the service down
+            if expected:  # the run could not go on: its reason, and where it came from
+                log.warning("run %s on %s failed: %s", run_id, req.loop, err, exc_info=err)
+            else:  # a bug: never let one run take the service down
                 log.exception("run %s on %s failed", run_id, req.loop)
             result = TuneResult(
                 run_id=run_id,
@@ -139,83 +143,66 @@ class TunerService:
             result.wall_time,
         )
 
-    def _serve_requests(self, queryable: zenoh.Queryable) -> None:
-        for query in queryable:
-            with query:
-                try:
-                    payload = query.payload.to_bytes() if query.payload is not None else b""
-                    req = wire.decode(
-                        TuneRequest, payload, str(query.encoding) if query.encoding else None
-                    )
-                    accepted = self._start(req)
-                    wire.reply(query, str(query.key_expr), accepted)
-                    log.info(
-                        "run %s: tuning %s by %s, rule %s",
-                        accepted.run_id,
-                        req.loop,
-                        req.method,
-                        req.rule,
-                    )
-                except (DecodeError, ValueError) as err:
-                    self.rejected += 1
-                    log.warning("request refused: %s", err)
-                    query.reply_err(str(err).encode())
+    def _on_request(self, query: zenoh.Query) -> None:
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            req = wire.decode(TuneRequest, payload, str(query.encoding) if query.encoding else None)
+            accepted = self._start(req)
+            wire.reply(query, str(query.key_expr), accepted)
+            log.info(
+                "run %s: tuning %s by %s, rule %s",
+                accepted.run_id,
+                req.loop,
+                req.method,
+                req.rule,
+            )
+        except (DecodeError, ValueError) as err:
+            self.rejected += 1
+            log.warning("request refused: %s", err)
+            query.reply_err(str(err).encode())
 
-    def _serve_results(self, queryable: zenoh.Queryable) -> None:
+    def _on_results_query(self, query: zenoh.Query) -> None:
         """The last result per loop, for a client that was cut off when it was published."""
-        for query in queryable:
-            with query:
-                with self.lock:
-                    found = [
-                        (keys.tune_result(self.prefix, loop), r)
-                        for loop, r in self.results.items()
-                        if query.key_expr.intersects(
-                            zenoh.KeyExpr(keys.tune_result(self.prefix, loop))
-                        )
-                    ]
-                for key, r in found:
-                    wire.reply(query, key, r)
+        with self.lock:
+            found = [
+                (keys.tune_result(self.prefix, loop), r)
+                for loop, r in self.results.items()
+                if query.key_expr.intersects(zenoh.KeyExpr(keys.tune_result(self.prefix, loop)))
+            ]
+        for key, r in found:
+            wire.reply(query, key, r)
 
-    def _serve_cancels(self, sub: zenoh.Subscriber) -> None:
-        for sample in sub:
-            loop = str(sample.key_expr).split("/")[-2]
-            with self.lock:
-                run = self.active.get(loop)
-            if run is not None:
-                log.info("run %s on %s: cancel requested", run.run_id, loop)
-                run.cancel.set()
+    def _on_cancel(self, sample: zenoh.Sample) -> None:
+        parsed = keys.parse_tune_key(self.prefix, str(sample.key_expr))
+        if parsed is None:
+            return
+        loop = parsed[0]
+        with self.lock:
+            run = self.active.get(loop)
+        if run is not None:
+            log.info("run %s on %s: cancel requested", run.run_id, loop)
+            run.cancel.set()
 
     def run(self, stop: threading.Event) -> None:
-        s, p = self.session, self.prefix
-        fifo = zenoh.handlers.FifoChannel
-        queryable = s.declare_queryable(keys.tuner_request(p, self.node), fifo(256))
-        cancels = s.declare_subscriber(keys.tune_cancel(p, keys.ANY), fifo(256))
-        results = s.declare_queryable(keys.tune_result(p, keys.ANY), fifo(256))
-        threads = [
-            threading.Thread(target=self._serve_requests, args=(queryable,), daemon=True),
-            threading.Thread(target=self._serve_results, args=(results,), daemon=True),
-            threading.Thread(target=self._serve_cancels, args=(cancels,), daemon=True),
-        ]
-        for th in threads:
-            th.start()
-        token = s.liveliness().declare_token(keys.tuner_alive(p, self.node))
+        p, shell = self.prefix, ServiceShell(self.session, log)
+        requests = shell.queryable(keys.tuner_request(p, self.node), self._on_request, 256)
+        shell.subscribe(keys.tune_cancel(p, keys.ANY), self._on_cancel, 256)
+        results = shell.queryable(keys.tune_result(p, keys.ANY), self._on_results_query, 256)
+        shell.announce(keys.tuner_alive(p, self.node))
         log.info("autotuner %s ready at %s", self.node, keys.tuner_request(p, self.node))
         try:
-            while not stop.wait(0.5):
-                pass
+            shell.wait(stop, 0.5)
         finally:
-            queryable.undeclare()
-            results.undeclare()
+            shell.undeclare(requests, results)  # no new run; cancels still heard
             with self.lock:
                 runs = list(self.active.values())
             for run in runs:
                 run.cancel.set()
-            for run in runs:
+            for run in runs:  # each restores its loop, the plant still up
                 run.thread.join(timeout=30.0)
-            cancels.undeclare()
-            token.undeclare()
-            for th in threads:
-                th.join(timeout=2.0)
+            shell.undeclare()
+            shell.withdraw()
+            shell.join(2.0)
             log.info("stopped")
 
 
@@ -239,15 +226,15 @@ def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix, node=args.node)
     if not 1.0 <= args.lease_timeout <= 3600.0:  # also refuses NaN
         raise ConfigError(f"--lease-timeout {args.lease_timeout:g}: must be 1–3600 s")
-    stop = threading.Event()
-    install_stop_handlers(stop)
     settings = settings_from_args(args)
-    with open_session(settings) as session:
-        TunerService(
+    run_until_stopped(
+        settings,
+        lambda session: TunerService(
             session,
             args.prefix,
             args.node,
             lease_timeout=args.lease_timeout,
             user=auth_user(settings),
-        ).run(stop)
+        ),
+    )
     return 0

@@ -103,7 +103,7 @@ def run_step_test(
         op = before.op
         while not test.finished:
             s = client.next_sample()
-            want = test.feed(s)
+            want = test.feed(s).op
             if progress:
                 progress(test, s)
             if want != op and not test.finished:

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import threading
 import time
@@ -24,15 +25,18 @@ import numpy as np
 import pydantic
 
 from services.autotuner.design import measured_response as metrics
-from services.autotuner.design.rules import check_rule
 from services.autotuner.design.selection import assessments_dict, select
-from services.autotuner.identify import experiments
+from services.autotuner.identify import experiments, methods
+from services.autotuner.identify.driver import drive
+from services.autotuner.identify.experiments import Demand, Experiment, Setup
 from services.autotuner.identify.model_fit import ProcessFit
-from services.autotuner.identify.ramp import RampTest
-from services.autotuner.identify.relay import RelayTest
 from services.autotuner.identify.rest import RestCheck, rest_window
-from services.autotuner.identify.step_test import StepTest
 from services.autotuner.loop_client import LeaseLost, LoopClient
+from services.autotuner.requests import (
+    DEFAULT_BUMP_FRACTION,
+    DEFAULT_RELAY_AMPLITUDE,
+    settings_of,
+)
 from shared.control.forms import IsaGains, all_forms
 from shared.errors import AutotuneError
 from shared.messages import (
@@ -63,6 +67,8 @@ GUARD_WINDOW = 2.0  # time scales per window of the verification's growth and sa
 OP_NOISE_WARN = 5.0  # % of output (σ): more output noise than this is worth a warning
 LOSS_QUERY_TIMEOUT = 2.0  # s of wall time to find a lost plant back in reach (a reconnect)
 RETURN_SCALES = 5.0  # time scales to wait for the PV of a restored loop to come back to rest
+
+log = logging.getLogger("autotuner")
 
 
 class TuneAborted(AutotuneError):
@@ -113,27 +119,6 @@ def _number(v: float | None) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
 
 
-def validate_request(req: TuneRequest) -> None:
-    """ValueError naming the field when the request cannot be run."""
-    if req.rule != "auto":
-        try:
-            rule = check_rule(req.rule)
-        except ValueError as err:
-            raise ValueError(f"rule: {err}; or auto") from None
-        allowed = {"open": ("step",), "closed": ("relay", "ramp"), "model": ("relay", "step")}
-        if req.method not in allowed[rule.kind]:
-            need = {
-                "open": "a step test (method step)",
-                "closed": "K_u and P_u (relay/ramp)",
-                "model": "a process model (relay or step)",
-            }[rule.kind]
-            raise ValueError(f"rule: {req.rule} needs {need}, not method {req.method}")
-    if req.pv_limits and not req.pv_limits[0] < req.pv_limits[1]:
-        raise ValueError(f"pv_limits: low must be below high, got {list(req.pv_limits)}")
-    if req.step_size is not None and not (math.isfinite(req.step_size) and req.step_size != 0):
-        raise ValueError("step_size: must be a non-zero number of %")
-
-
 class TuningRun:
     def __init__(
         self, client: LoopClient, req: TuneRequest, run_id: str, hooks: RunHooks | None = None
@@ -173,7 +158,7 @@ class TuningRun:
             )
         )
 
-    def _forward_events(self, events: list[tuple[float, str, dict]]) -> None:
+    def _forward_events(self, events: list[experiments.Event]) -> None:
         for t, kind, data in events[self._events_sent :]:
             clean = {k: _json_number(v) for k, v in data.items()}
             self.hooks.event(
@@ -244,15 +229,15 @@ class TuningRun:
                 pu=ident.pu,
                 ku_spread=ident.ku_spread,
                 pu_spread=ident.pu_spread,
-                step=ident.step,
-                experiment=ident.experiment or {},
+                step=ident.step.to_dict() if ident.step is not None else None,
+                experiment=ident.experiment.to_dict() if ident.experiment else {},
             )
             sel = select(ident, req.rule, req.ms_bound, req.force, self.ts)
             rec = sel.recommended
             result.update(
                 rule=sel.rule or req.rule,
                 l_over_t=sel.l_over_t,
-                gains={name: all_forms(g) for name, g in sel.table.items()},
+                gains={name: all_forms(g).to_dict() for name, g in sel.table.items()},
                 robustness=assessments_dict(sel),
                 recommended=(
                     {"rule": rec.rule, "reason": rec.reason, "ms": rec.predicted_ms}
@@ -264,7 +249,7 @@ class TuningRun:
             chosen = sel.chosen
             if chosen is None or (sel.refusal and req.apply):
                 raise TuneRefused(sel.refusal or "no gains")
-            result["chosen"] = all_forms(chosen)
+            result["chosen"] = all_forms(chosen).to_dict()
             self._progress(
                 "identified",
                 ku=ident.ku,
@@ -295,6 +280,7 @@ class TuningRun:
             restored = self._restore()
             result.update(status="aborted", reason=str(err), restored=restored)
         except BaseException as err:  # Ctrl-C, a bug: the loop must still be restored
+            log.error("run %s on %s failed", self.run_id, c.loop, exc_info=err)
             restored = self._restore()
             result.update(
                 status="failed",
@@ -362,6 +348,9 @@ class TuningRun:
         try:
             return TuneResult(**clean)
         except pydantic.ValidationError as err:  # a bug: still a result, and a reason
+            log.error(
+                "run %s on %s failed: its result", self.run_id, self.client.loop, exc_info=err
+            )
             e = err.errors()[0]
             where = ".".join(str(p) for p in e["loc"])
             keep = {k: clean[k] for k in ("run_id", "loop", "t", "method", "rule", "restored")}
@@ -477,7 +466,7 @@ class TuningRun:
         — under a lease again, since it writes to the loop. Returns the PV after it."""
         if model.kind != "ipdt" or not model.gain > 0:
             return pv
-        c, d = self.client, experiments.DEFAULT_RELAY_AMPLITUDE
+        c, d = self.client, DEFAULT_RELAY_AMPLITUDE
         sign = 1.0 if self.before is not None and self.before.action == "reverse" else -1.0
         lo, hi = self.info.op_limits
         push = st.op + sign * d * math.copysign(1.0, target - pv)
@@ -529,11 +518,12 @@ class TuningRun:
 
     # --- the experiment -------------------------------------------------------------------
 
-    def _setup(self) -> dict:
+    def _setup(self) -> Setup:
         """What the live loop contributes to the experiment (logged, so a replay can rebuild
-        the same state machine)."""
+        the same state machine). A closed-loop method starts from the loop in auto at a
+        cautious gain; the others hold the loop in manual at its output."""
         req, c, b = self.req, self.client, self.before
-        setup = {
+        common = {
             "sample_time": self.ts,
             "op_lo": self.info.op_limits[0],
             "op_hi": self.info.op_limits[1],
@@ -544,22 +534,21 @@ class TuningRun:
             "pv_units": self.info.pv_units,
         }
         if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
-            setup["time_scale"] = self._rest["window"]
-        if req.method == "ramp":
+            common["time_scale"] = self._rest["window"]
+        if methods.method(req.method).closed_loop:
             lo, hi = self.info.pv_range
-            setup.update(
+            return Setup(
+                **common,
                 kc_start=req.kc_start or (0.5 * b.gains.kc if b.gains.kc > 0 else 1.0),
-                bump=req.bump or experiments.DEFAULT_BUMP_FRACTION * (hi - lo),
+                bump=req.bump or DEFAULT_BUMP_FRACTION * (hi - lo),
                 sp_start=c.sync().pv,
             )
-        else:
-            st = c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
-            if b.mode == "auto":  # held at the controller's mean output, not its last (noisy)
-                lo, hi = self.info.op_limits
-                op = min(max(self._rest["op"], lo), hi)
-                st = c.command(OutputCommand(loop=c.loop, op=op, source=c.source, t=self._t))
-            setup.update(op_start=st.op, direction=1.0 if b.action == "reverse" else -1.0)
-        return setup
+        st = c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
+        if b.mode == "auto":  # held at the controller's mean output, not its last (noisy)
+            lo, hi = self.info.op_limits
+            op = min(max(self._rest["op"], lo), hi)
+            st = c.command(OutputCommand(loop=c.loop, op=op, source=c.source, t=self._t))
+        return Setup(**common, op_start=st.op, direction=1.0 if b.action == "reverse" else -1.0)
 
     def _event(self, kind: str, t: float, data: dict) -> None:
         self.hooks.event(
@@ -573,84 +562,42 @@ class TuningRun:
         )
 
     def _experiment(self) -> experiments.Identification:
-        """Run the requested experiment on the live loop through its state machine."""
+        """Run the requested experiment on the live loop through the driver."""
         req, c = self.req, self.client
         setup = self._setup()
         try:
-            machine = experiments.build(req.method, req, setup)
+            machine = methods.build(req.method, settings_of(req), setup)
         except ValueError as err:
             raise TuneAborted(str(err)) from None
-        auto = req.method == "ramp"
-        if auto:
-            c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=machine.kc), source=c.source))
-            c.command(SetpointCommand(loop=c.loop, sp=machine.sp, source=c.source))
+        start = machine.demand
+        if start.auto:
+            c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=start.kc), source=c.source))
+            c.command(SetpointCommand(loop=c.loop, sp=start.sp, source=c.source))
             c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))
-            kc, sp = machine.kc, machine.sp
-        op = setup.get("op_start")
-        first = True
         self._progress("quiet", message="measuring the PV's rest value and noise")
-        while not machine.finished:
-            self._check_cancel()
-            want = None
-            for s in c.samples(machine.horizon(MAX_CHUNK) if auto else 1):
-                if first:
-                    self._event("experiment", s.t, {**setup, "first_seq": s.seq})
-                    first = False
-                want = experiments.feed(machine, s)
-                self._take([s])
-                if machine.finished:
-                    break
+
+        def watch(last: ProcessSample) -> None:
+            self._take([last])
             self._forward_events(machine.events)
-            if machine.finished:
-                break
-            if auto:
-                if want.kc != kc:
-                    kc = want.kc
-                    c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=kc), source=c.source))
-                if want.sp != sp:
-                    sp = want.sp
-                    c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source))
-            elif want != op:
-                st = c.command(OutputCommand(loop=c.loop, op=want, t=self._t, source=c.source))
-                op = want
-                if isinstance(machine, StepTest):
-                    # lockstep: held from the present sample; realtime: from the next one
-                    t_step = st.t if self.info.clock == "lockstep" else st.t + self.ts
-                    machine.step_started(t_step)
-                    self._event("step_started", self._t, {"t": t_step})
-            self._report(machine)
+            if not machine.finished:
+                self._report(machine)
+
+        ident = drive(machine, _LivePort(self, setup), max_chunk=MAX_CHUNK, watch=watch)
         self._forward_events(machine.events)
-        ident = experiments.identification(machine)
         if ident is None:
             raise TuneAborted(f"{req.method} test: {machine.reason}")
-        if auto:
+        if start.auto:
             c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
-        elif c.last_status.op != setup["op_start"]:
-            c.command(OutputCommand(loop=c.loop, op=setup["op_start"], t=self._t, source=c.source))
+        elif c.last_status.op != setup.op_start:
+            c.command(OutputCommand(loop=c.loop, op=setup.op_start, t=self._t, source=c.source))
         return ident
 
-    def _report(self, machine: experiments.Experiment) -> None:
-        """Progress once per relay cycle or ramp trial."""
-        if isinstance(machine, RelayTest):
-            n = len(machine.cycles)
-            if n != self._reported and n:
-                cyc = machine.cycles[-1]
-                self._progress("relay", cycles=n, ku=machine.ku_of(cyc.amplitude), pu=cyc.period)
-        elif isinstance(machine, RampTest):
-            n = len(machine.trials)
-            if n != self._reported and n:
-                tr = machine.trials[-1]
-                self._progress(
-                    "ramp",
-                    cycles=n,
-                    pu=tr.period,
-                    message=f"Kc {tr.kc:.4g}: growth {tr.growth:.3g}/s",
-                )
-        else:
-            n = 1 if machine.t_step is not None else 0
-            if n != self._reported and n:
-                self._progress("step", message=f"output stepped to {machine.op_target:g} %")
-        self._reported = n
+    def _report(self, machine: Experiment) -> None:
+        """Progress once per relay cycle, ramp trial or step (the experiment's count)."""
+        p = machine.progress()
+        if p.count != self._reported and p.count:
+            self._progress(p.phase, cycles=p.cycles, ku=p.ku, pu=p.pu, message=p.message)
+        self._reported = p.count
 
     # --- apply and verify -----------------------------------------------------------------
 
@@ -818,7 +765,9 @@ class TuningRun:
                 guard,
             )
             stopped = why
-            sp_m = metrics.setpoint_step(t, y, t0, y0, sp0 + step, noise=ident.noise, width=width)
+            sp_m = metrics.measured_setpoint_step(
+                t, y, t0, y0, sp0 + step, noise=ident.noise, width=width
+            )
         op_lo, op_hi = self.info.op_limits
         saturated = bool(np.mean((u <= op_lo) | (u >= op_hi)) > 1 / 3) if u.size else False
         # not yet within the band at the end is slow, not unstable, unless it still swings
@@ -827,7 +776,7 @@ class TuningRun:
         stable = stable and (sp_m["decay_ratio"] or 0) < 1
         before = c.sync()
         if stable and "load" in before.disturbances:
-            load_size = self.req.amplitude or experiments.DEFAULT_RELAY_AMPLITUDE
+            load_size = self.req.amplitude or DEFAULT_RELAY_AMPLITUDE
             base = before.disturbances["load"]
             t1 = self._t
             c.command(
@@ -879,6 +828,43 @@ class TuningRun:
             stopped=stopped,
             op_noise=op_noise,
         )
+
+
+class _LivePort:
+    """The live loop as the experiment driver sees it: samples fetched in lockstep round
+    trips (cancel checked before each), the first one announced with the set-up (the
+    ``experiment`` event a replay rebuilds from), demands sent as commands."""
+
+    def __init__(self, run: TuningRun, setup: Setup):
+        self.run, self.setup = run, setup
+        self.first = True
+        self._hold = math.nan
+
+    def samples(self, n: int) -> list[ProcessSample]:
+        r = self.run
+        r._check_cancel()
+        batch = r.client.samples(n)
+        if self.first and batch:
+            s = batch[0]
+            r._event("experiment", s.t, {**self.setup.to_dict(), "first_seq": s.seq})
+            self.first = False
+        r._take(batch)  # the time of the last sample fed is set by the driver's watch
+        return batch
+
+    def apply(self, demand: Demand, before: Demand) -> None:
+        r, c = self.run, self.run.client
+        if demand.auto:
+            if demand.kc != before.kc:
+                c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=demand.kc), source=c.source))
+            if demand.sp != before.sp:
+                c.command(SetpointCommand(loop=c.loop, sp=demand.sp, source=c.source))
+            return
+        st = c.command(OutputCommand(loop=c.loop, op=demand.op, t=r._t, source=c.source))
+        # lockstep: held from the present sample; realtime: from the next one
+        self._hold = st.t if r.info.clock == "lockstep" else st.t + r.ts
+
+    def hold_time(self) -> float:
+        return self._hold
 
 
 class _Guard:

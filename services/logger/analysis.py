@@ -1,9 +1,10 @@
 """Re-run a recorded tuning run's identification and rules offline, through the live code.
 
 The run's ``experiment`` event holds the set-up the live tuner built its state machine from
-and the first sample it fed; feeding the same recorded samples to a machine built the same
-way (``autotuner.experiments``) reaches the same K_u, P_u or reaction curve, bit for bit,
-and every rule's gains follow without a new experiment.
+and the first sample it fed; the same recorded samples, fed through the same driver
+(``identify.driver``) to a machine built the same way (``identify.methods``), reach the same
+K_u, P_u or reaction curve, bit for bit, and every rule's gains follow without a new
+experiment.
 
 Nothing in the file is trusted: every record used is validated against its message model, the
 request and the experiment's set-up against what the live tuner writes, and whatever is wrong
@@ -22,9 +23,10 @@ import pydantic
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.autotuner.design.selection import Selection, assessments_dict, select
-from services.autotuner.identify import experiments
-from services.autotuner.identify.step_test import StepTest
-from services.autotuner.tuning import validate_request
+from services.autotuner.identify import experiments, methods
+from services.autotuner.identify.driver import drive
+from services.autotuner.identify.experiments import Demand
+from services.autotuner.requests import settings_of, validate_request
 from services.logger.mcap_io import (
     decode,
     one_result,
@@ -32,7 +34,7 @@ from services.logger.mcap_io import (
     unique_samples,
     validation_reason,
 )
-from shared.control.forms import all_forms
+from shared.control.forms import GainForms, all_forms
 from shared.errors import AutotuneError, one_line
 from shared.messages import ProcessSample, TuneRequest, TuneResult, TunerEvent
 
@@ -43,7 +45,7 @@ class Analysis:
     loop: str
     method: str
     ident: experiments.Identification
-    gains: dict[str, dict]
+    gains: dict[str, GainForms]  # every rule's
     live: TuneResult | None
     selection: Selection | None = None
 
@@ -56,10 +58,10 @@ class Analysis:
             "pu": self.ident.pu,
             "ku_spread": self.ident.ku_spread,
             "pu_spread": self.ident.pu_spread,
-            "step": self.ident.step,
+            "step": self._step(),
             "l_over_t": self.selection.l_over_t if self.selection else None,
-            "experiment": self.ident.experiment,
-            "gains": self.gains,
+            "experiment": self.ident.experiment.to_dict() if self.ident.experiment else None,
+            "gains": {name: g.to_dict() for name, g in self.gains.items()},
         }
         if self.selection is not None:
             rec = self.selection.recommended
@@ -70,7 +72,7 @@ class Analysis:
             out["warnings"] = self.selection.warnings
         if rule:
             out["rule"] = rule
-            out["chosen"] = self.gains.get(rule)
+            out["chosen"] = self.gains[rule].to_dict() if rule in self.gains else None
         if self.live is not None:
             out["live"] = {
                 "ku": self.live.ku,
@@ -81,12 +83,16 @@ class Analysis:
             out["matches_live"] = self.matches_live()
         return out
 
+    def _step(self) -> dict | None:
+        """The reaction curve as the result's ``step`` object (None: not a step test)."""
+        return None if self.ident.step is None else self.ident.step.to_dict()
+
     def matches_live(self) -> bool:
         live = self.live
         if live is None:
             return False
         if live.step is not None:
-            return live.step == self.ident.step
+            return live.step == self._step()
         return bool(live.ku == self.ident.ku and live.pu == self.ident.pu)
 
 
@@ -122,13 +128,11 @@ class Setup(BaseModel):
 
     def missing_for(self, method: str) -> str | None:
         """The first setting ``method`` needs that the event lacks (or has wrong)."""
-        needs = {"relay": ("op_start", "direction"), "step": ("op_start",)}.get(
-            method, ("kc_start", "bump", "sp_start")
-        )
+        needs = methods.method(method).needs
         for name in needs:
             if getattr(self, name) is None:
                 return f"{name}: required for a {method} test"
-        if method == "relay" and self.direction not in (1.0, -1.0):
+        if "direction" in needs and self.direction not in (1.0, -1.0):
             return f"direction: must be 1 or -1, got {self.direction:g}"
         return None
 
@@ -205,27 +209,15 @@ def analyze_file(path: str | Path) -> Analysis:
     meta, run = _read(path)
     req, data = run.request, run.setup
     try:
-        machine = experiments.build(req.method, req, data)
+        machine = methods.build(req.method, settings_of(req), experiments.Setup.from_dict(data))
     except (ValueError, TypeError, KeyError, ArithmeticError) as err:
         raise AutotuneError(
             f"{path}: the experiment event's set-up does not build a {req.method} test: "
             f"{one_line(err)}"
         ) from None
-    op = data.get("op_start")
-    step_times = list(run.step_times)
+    record = _Record(str(path), [s for s in run.samples if s.seq >= run.first_seq], run.step_times)
     try:
-        for s in run.samples:
-            if s.seq < run.first_seq:
-                continue
-            want = experiments.feed(machine, s)
-            if machine.finished:
-                break
-            if isinstance(machine, StepTest) and want != op:
-                op = want
-                if not step_times:
-                    raise AutotuneError(f"{path}: the step's start time was not recorded")
-                machine.step_started(step_times.pop(0))
-        ident = experiments.identification(machine)
+        ident = drive(machine, record)
         if ident is None:
             raise AutotuneError(
                 f"{path}: the recorded samples do not complete the {req.method} "
@@ -248,15 +240,38 @@ def analyze_file(path: str | Path) -> Analysis:
     )
 
 
+class _Record:
+    """A recorded run as the experiment driver's loop: its samples from the first fed, and
+    the times the live run's changed outputs held from (``step_started`` events). It holds
+    nothing: the samples already show what the live loop held."""
+
+    def __init__(self, path: str, samples: list[ProcessSample], hold_times: list[float]):
+        self.path, self._samples, self._times = path, samples, list(hold_times)
+        self._next = 0
+
+    def samples(self, n: int) -> list[ProcessSample]:
+        out = self._samples[self._next : self._next + n]
+        self._next += len(out)
+        return out
+
+    def apply(self, demand: Demand, before: Demand) -> None:
+        return None
+
+    def hold_time(self) -> float:
+        if not self._times:
+            raise AutotuneError(f"{self.path}: the step's start time was not recorded")
+        return self._times.pop(0)
+
+
 def format_analysis(a: Analysis, rule: str | None) -> str:
     lines = [f"{a.path}: {a.method} test of {a.loop}, re-identified offline"]
     if a.ident.ku is not None:
         lines.append(f"  K_u = {a.ident.ku:.6g}   P_u = {a.ident.pu:.6g} s")
-    if a.ident.step:
+    if a.ident.step is not None:
         s = a.ident.step
         lines.append(
-            f"  K = {s['gain']:.4g}  L = {s['dead_time']:.4g} s  "
-            f"T = {s['time_constant_tangent']:.4g} s  L/T = {s['l_over_t']:.3f}"
+            f"  K = {s.gain:.4g}  L = {s.dead_time:.4g} s  "
+            f"T = {s.time_constant_tangent:.4g} s  L/T = {s.l_over_t:.3f}"
         )
     if a.live is not None:
         lines.append(
@@ -267,9 +282,9 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
     for name, g in a.gains.items():
         if rule and name != rule:
             continue
-        isa = g["isa"]
-        ti = "—" if isa["ti"] is None else f"{isa['ti']:.4g}"
-        lines.append(f"  {name:<15}{isa['kc']:>10.4g}{ti:>10}{isa['td']:>10.4g}")
+        isa = g.isa
+        ti = "—" if isa.ti is None else f"{isa.ti:.4g}"
+        lines.append(f"  {name:<15}{isa.kc:>10.4g}{ti:>10}{isa.td:>10.4g}")
     return "\n".join(lines)
 
 

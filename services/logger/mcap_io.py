@@ -197,16 +197,17 @@ def check_format(path: Path | str, meta: dict[str, str]) -> None:
     raw = meta.get("format")
     if raw is None:
         return  # files from before the field: version 1
+    shown = one_line(repr(raw if len(raw) <= 40 else raw[:40] + "…"))  # one short line
     try:
         version = int(raw)
     except ValueError:
         raise AutotuneError(
-            f"{path}: metadata 'run', field format: not a version number: {one_line(repr(raw))}"
+            f"{path}: metadata 'run', field format: not a version number: {shown}"
         ) from None
     if version > FORMAT_VERSION or version < 1:
         raise AutotuneError(
-            f"{path}: metadata 'run', field format: version {version}, this autotune reads "
-            f"version {FORMAT_VERSION}"
+            f"{path}: metadata 'run', field format: version "
+            f"{version if len(raw) <= 40 else shown}, this autotune reads version {FORMAT_VERSION}"
             + (" (a newer autotune wrote it: upgrade to read it)" if version > 1 else "")
         )
 

@@ -72,6 +72,13 @@ REMEMBERED_RUNS = 4096  # finished run ids kept, so that a repeated start opens 
 
 TUNER_MESSAGES = (TuneProgress, TunerEvent, TuneResult)
 PLANT_MESSAGES = (ProcessSample, LoopStatus)
+# what is recorded of a loop's keys, by their last chunk (besides its commands)
+PLANT_LEAVES: dict[str, type[Message]] = {"pv": ProcessSample, "status": LoopStatus}
+TUNE_LEAVES: dict[str, type[Message]] = {
+    "progress": TuneProgress,
+    "event": TunerEvent,
+    "result": TuneResult,
+}
 
 
 def prepare_runs_dir(path: Path | str) -> Path:
@@ -153,15 +160,17 @@ class Stream:
 
 def model_for(prefix: str, key: str) -> tuple[str, type[Message]] | None:
     """(loop, model) of a key the logger records, or None."""
-    head = key[len(prefix) + 1 :].split("/") if key.startswith(prefix + "/") else []
-    if len(head) == 3 and head[0] == "plant":
-        return {"pv": (head[1], ProcessSample), "status": (head[1], LoopStatus)}.get(head[2])
+    plant = keys.parse_loop_key(prefix, key)
+    if plant is not None:
+        model = PLANT_LEAVES.get(plant[1])
+        return (plant[0], model) if model is not None else None
     command = keys.parse_command(prefix, key)  # with or without the sender's user
     if command is not None and command[1] in COMMANDS:
         return command[0], COMMANDS[command[1]]
-    if len(head) == 3 and head[0] == "tune":
-        models = {"progress": TuneProgress, "event": TunerEvent, "result": TuneResult}
-        return (head[1], models[head[2]]) if head[2] in models else None
+    tune = keys.parse_tune_key(prefix, key)
+    if tune is not None:
+        model = TUNE_LEAVES.get(tune[1])
+        return (tune[0], model) if model is not None else None
     return None
 
 

@@ -22,9 +22,10 @@ import zenoh
 
 from services.logger.recorder import Recorder, prepare_runs_dir
 from shared import keys, wire
-from shared.cli import add_common_arguments, check_ids, install_stop_handlers, setup_logging
+from shared.cli import add_common_arguments, check_ids, setup_logging
 from shared.messages import LoggerStatus
-from shared.session import open_session, settings_from_args
+from shared.service_shell import ServiceShell, run_until_stopped
+from shared.session import settings_from_args
 from shared.wire import replay_source
 
 log = logging.getLogger("logger")
@@ -53,78 +54,55 @@ class LoggerService:
             dropped=c["dropped"],
         )
 
-    def _receive(self, sub: zenoh.Subscriber) -> None:
-        for sample in sub:
-            attachment = sample.attachment
-            replay = replay_source(attachment.to_bytes() if attachment is not None else None)
-            with self.lock:
-                try:
-                    self.recorder.handle(str(sample.key_expr), sample.payload.to_bytes(), replay)
-                except Exception:  # a write error must not stop the recording of others
-                    log.exception("recording %s failed", sample.key_expr)
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        attachment = sample.attachment
+        replay = replay_source(attachment.to_bytes() if attachment is not None else None)
+        with self.lock:
+            try:
+                self.recorder.handle(str(sample.key_expr), sample.payload.to_bytes(), replay)
+            except Exception:  # a write error must not stop the recording of others
+                log.exception("recording %s failed", sample.key_expr)
 
-    def _watch_tokens(self, sub: zenoh.Subscriber, kind: str) -> None:
-        """Liveliness of loops (``kind`` "plant") or of runs ("tune"), to the recorder."""
-        prefix = self.recorder.prefix
-        for sample in sub:
-            key = str(sample.key_expr)
-            chunks = key[len(prefix) + 1 :].split("/") if key.startswith(prefix + "/") else []
-            if len(chunks) != 3 or chunks[0] != kind:
-                continue
-            alive = sample.kind == zenoh.SampleKind.PUT
-            with self.lock:
-                try:
-                    if kind == "plant":
-                        self.recorder.plant_token(chunks[1], alive)
-                    else:
-                        self.recorder.run_token(chunks[1], alive)
-                except Exception:
-                    log.exception("liveliness %s failed", key)
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        """A loop's token (``<prefix>/plant/<loop>/alive``) or a run's
+        (``<prefix>/tune/<loop>/running``) appeared or vanished: to the recorder."""
+        prefix, key = self.recorder.prefix, str(sample.key_expr)
+        plant, tune = keys.parse_loop_key(prefix, key), keys.parse_tune_key(prefix, key)
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self.lock:
+            try:
+                if plant is not None and plant[1] == "alive":
+                    self.recorder.plant_token(plant[0], alive)
+                elif tune is not None and tune[1] == "running":
+                    self.recorder.run_token(tune[0], alive)
+            except Exception:
+                log.exception("liveliness %s failed", key)
 
-    def _answer(self, queryable: zenoh.Queryable) -> None:
-        key = keys.logger_status(self.recorder.prefix, self.node)
-        for query in queryable:
-            with query, self.lock:
-                wire.reply(query, key, self.status())
+    def _on_query(self, query: zenoh.Query) -> None:
+        with self.lock:
+            wire.reply(query, keys.logger_status(self.recorder.prefix, self.node), self.status())
 
     def run(self, stop: threading.Event) -> None:
-        s, prefix = self.session, self.recorder.prefix
-        fifo = zenoh.handlers.FifoChannel
-        sub = s.declare_subscriber(f"{prefix}/**", fifo(CHANNEL_CAPACITY))
-        queryable = s.declare_queryable(keys.logger_status(prefix, self.node), fifo(64))
-        watchers = {
-            kind: s.liveliness().declare_subscriber(pattern, fifo(1024), history=True)
-            for kind, pattern in (
-                ("plant", keys.loop_alive(prefix, keys.ANY)),
-                ("tune", keys.tune_running(prefix, keys.ANY)),
-            )
-        }
-        threads = [
-            threading.Thread(target=self._receive, args=(sub,), daemon=True),
-            threading.Thread(target=self._answer, args=(queryable,), daemon=True),
-            *(
-                threading.Thread(target=self._watch_tokens, args=(w, kind), daemon=True)
-                for kind, w in watchers.items()
-            ),
-        ]
-        for th in threads:
-            th.start()
-        token = s.liveliness().declare_token(keys.logger_alive(prefix, self.node))
+        prefix, shell = self.recorder.prefix, ServiceShell(self.session, log)
+        shell.subscribe(keys.everything(prefix), self._on_sample, CHANNEL_CAPACITY)
+        shell.queryable(keys.logger_status(prefix, self.node), self._on_query, 64)
+        for pattern in (keys.loop_alive(prefix, keys.ANY), keys.tune_running(prefix, keys.ANY)):
+            shell.subscribe(pattern, self._on_token, 1024, liveliness=True, history=True)
+        shell.announce(keys.logger_alive(prefix, self.node))
         log.info("logger %s recording %s/** into %s", self.node, prefix, self.recorder.runs_dir)
+
+        def tick() -> None:
+            with self.lock:
+                self.recorder.tick()
+
         try:
-            while not stop.wait(0.25):
-                with self.lock:
-                    self.recorder.tick()
+            shell.wait(stop, 0.25, tick)
         finally:
-            sub.undeclare()
-            queryable.undeclare()
-            for w in watchers.values():
-                w.undeclare()
-            for th in threads:
-                th.join(timeout=5.0)
+            shell.undeclare()
+            shell.join(5.0)
             with self.lock:
                 self.recorder.close_all()
-            token.undeclare()
+            shell.withdraw()  # after the files are finished: up until then
             st = self.status()
             log.info(
                 "stopped: %d runs, %d messages written, %d invalid, %d dropped",
@@ -159,8 +137,7 @@ def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix, node=args.node)
     runs = prepare_runs_dir(Path(args.runs))  # before anything starts: one line if it is bad
     recorder = Recorder(runs, args.prefix, record_replays=args.record_replays)
-    stop = threading.Event()
-    install_stop_handlers(stop)
-    with open_session(settings_from_args(args)) as session:
-        LoggerService(session, recorder, args.node).run(stop)
+    run_until_stopped(
+        settings_from_args(args), lambda session: LoggerService(session, recorder, args.node)
+    )
     return 0

@@ -1,9 +1,10 @@
 """The identification benchmark: relay and ramp tunes of a suite of plants, in-process.
 
-Every tune goes through ``experiments.build``/``feed`` — the very state machines the live
-tuner drives over Zenoh — but against a plant model stepped in the same process, so hundreds
-of tunes take seconds. Each result is compared with the plant's exact ultimate point (the
-phase crossover of G(jω), ``frequency.ultimate_point``).
+Every tune builds its experiment from the registry (``methods.build``) and runs it through
+the one driver (``driver.drive``) — the very state machines the live tuner drives over Zenoh
+— but against a plant model stepped in the same process, so hundreds of tunes take seconds.
+Each result is compared with the plant's exact ultimate point (the phase crossover of G(jω),
+``DelayedTF.ultimate_point``).
 
 Plants follow Åström & Hägglund's test batch (*Advanced PID Control*, 2006, §7.2): first order
 plus dead time over L/T, 1/(s+1)ⁿ, (1−αs)/(s+1)³, the four-pole α family, e^{−s}/(1+sT)²
@@ -23,18 +24,18 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.optimize import brentq
 
-from services.autotuner.design.predicted_response import setpoint_step
+from services.autotuner.design.predicted_response import predicted_setpoint_step
 from services.autotuner.design.sampled_loop import sampled_loop_robustness
 from services.autotuner.design.selection import select
-from services.autotuner.identify import experiments
-from services.autotuner.identify.ramp import RampTest
-from services.autotuner.identify.relay import RelayTest
+from services.autotuner.identify import methods
+from services.autotuner.identify.driver import drive
+from services.autotuner.identify.experiments import Settings, Setup
+from services.offline.local_loop import ModelPort, SimLoopPort
 from services.plant_sim.plant_file import build_plant
-from services.plant_sim.simulation.loop import SimLoop
 from services.plant_sim.simulation.models import TransferFunctionModel
 from shared.control.forms import IsaGains
-from shared.control.transfer import ultimate_point
-from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand, TuneRequest
+from shared.control.transfer import DelayedTF
+from shared.messages import GainsCommand, ModeCommand, PidGains
 
 RELAY_AMPLITUDE = 5.0  # %
 SAMPLES_PER_PERIOD = 400  # the sampled loop's ZOH lag stays ≈ 0.5° at the crossover
@@ -45,12 +46,14 @@ NOISE_LEVELS = (0.0, 0.01, 0.03)
 class Plant:
     name: str
     family: str
-    num: tuple[float, ...]
-    den: tuple[float, ...]
-    delay: float
+    tf: DelayedTF  # G(s), gain in PV units per %, time in s
+
+    @classmethod
+    def of(cls, name: str, family: str, num, den, delay: float) -> Plant:
+        return cls(name, family, DelayedTF.of(num, den, delay))
 
     def exact(self) -> tuple[float, float]:
-        up = ultimate_point(list(self.num), list(self.den), self.delay)
+        up = self.tf.ultimate_point()
         if up is None:
             raise ValueError(f"plant {self.name}: its phase never reaches −180°")
         return up
@@ -66,16 +69,18 @@ def _poly(*factors: list[float]) -> tuple[float, ...]:
 def suite() -> list[Plant]:
     """The benchmark's plants (time in seconds, gains in PV units per %)."""
     plants = [
-        Plant(f"fopdt L/T={r:g}", "fopdt", (1.0,), (1.0 / r, 1.0), 1.0)
+        Plant.of(f"fopdt L/T={r:g}", "fopdt", (1.0,), (1.0 / r, 1.0), 1.0)
         for r in (0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
     ]
-    plants += [Plant(f"1/(s+1)^{n}", "lag", (1.0,), _poly(*[[1, 1]] * n), 0.0) for n in (3, 4, 8)]
     plants += [
-        Plant(f"(1-{a:g}s)/(s+1)^3", "nmp", (-a, 1.0), _poly([1, 1], [1, 1], [1, 1]), 0.0)
+        Plant.of(f"1/(s+1)^{n}", "lag", (1.0,), _poly(*[[1, 1]] * n), 0.0) for n in (3, 4, 8)
+    ]
+    plants += [
+        Plant.of(f"(1-{a:g}s)/(s+1)^3", "nmp", (-a, 1.0), _poly([1, 1], [1, 1], [1, 1]), 0.0)
         for a in (0.1, 0.2, 0.5, 1.0, 2.0)
     ]
     plants += [
-        Plant(
+        Plant.of(
             f"four-pole a={a:g}",
             "four-pole",
             (1.0,),
@@ -85,10 +90,10 @@ def suite() -> list[Plant]:
         for a in (0.1, 0.2, 0.5, 1.0)
     ]
     plants += [
-        Plant(f"e^-s/(1+{t:g}s)^2", "sopdt", (1.0,), _poly([t, 1], [t, 1]), 1.0)
+        Plant.of(f"e^-s/(1+{t:g}s)^2", "sopdt", (1.0,), _poly([t, 1], [t, 1]), 1.0)
         for t in (0.1, 1.0, 10.0)
     ]
-    plants.append(Plant("e^-s/s", "integrating", (1.0,), (1.0, 0.0), 1.0))
+    plants.append(Plant.of("e^-s/s", "integrating", (1.0,), (1.0, 0.0), 1.0))
     return plants
 
 
@@ -124,31 +129,20 @@ def _swing(ku: float) -> float:
 def run_relay(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
     ku, pu = plant.exact()
     ts = pu / SAMPLES_PER_PERIOD
-    model = TransferFunctionModel(ts, num=list(plant.num), den=list(plant.den), delay=plant.delay)
+    tf = plant.tf
+    model = TransferFunctionModel(ts, num=list(tf.num), den=list(tf.den), delay=tf.delay)
     model.reset()
-    setup = {
-        "sample_time": ts,
-        "op_start": 50.0,
-        "op_lo": 0.0,
-        "op_hi": 100.0,
-        "pv_lo": -1e9,
-        "pv_hi": 1e9,
-        "direction": 1.0,
-    }
-    req = TuneRequest(loop="bench", method="relay")
-    test = experiments.build("relay", req, setup)
-    assert isinstance(test, RelayTest)
-    rng = np.random.default_rng(seed)
+    setup = Setup(
+        sample_time=ts, op_lo=0.0, op_hi=100.0, pv_lo=-1e9, pv_hi=1e9, op_start=50.0, direction=1.0
+    )
+    test = methods.build("relay", Settings(), setup)
     sigma = noise * _swing(ku)
-    op, k = 50.0, 0
-    while not test.finished:
-        k += 1
-        op = test.feed(k * ts, model.step(op) + sigma * rng.standard_normal())
+    drive(test, ModelPort(model, ts, 50.0, sigma, np.random.default_rng(seed)))
     if test.result is None:
         return _outcome(plant, "relay", noise, test)
-    start = next(e[0] for e in test.events if e[1] == "relay_start")
-    stage = next((e[0] for e in test.events if e[1] == "stage"), math.nan)
-    done = next(e[0] for e in test.events if e[1] == "done")
+    start = next(e.t for e in test.events if e.kind == "relay_start")
+    stage = next((e.t for e in test.events if e.kind == "stage"), math.nan)
+    done = next(e.t for e in test.events if e.kind == "done")
     return _outcome(
         plant, "relay", noise, test, periods_classic=stage - start, periods=done - start
     )
@@ -165,9 +159,9 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
             "loops": {
                 "x": {
                     "model": "transfer_function",
-                    "num": list(plant.num),
-                    "den": list(plant.den),
-                    "delay": plant.delay,
+                    "num": list(plant.tf.num),
+                    "den": list(plant.tf.den),
+                    "delay": plant.tf.delay,
                     "sample_time": ts,
                     "noise_std": noise * 2 * a,
                     "pv_range": [-1e9, 1e9],
@@ -178,35 +172,21 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
     kc0 = 0.3 * ku
     loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc0)))
     loop.apply(ModeCommand(loop="x", mode="auto"))
-    setup = {
-        "sample_time": ts,
-        "op_lo": 0.0,
-        "op_hi": 100.0,
-        "pv_lo": -1e9,
-        "pv_hi": 1e9,
-        "kc_start": 0.5 * kc0,
-        "bump": a,
-        "sp_start": loop.sp,
-    }
-    req = TuneRequest(loop="x", method="ramp")
-    test = experiments.build("ramp", req, setup)
+    setup = Setup(
+        sample_time=ts,
+        op_lo=0.0,
+        op_hi=100.0,
+        pv_lo=-1e9,
+        pv_hi=1e9,
+        kc_start=0.5 * kc0,
+        bump=a,
+        sp_start=loop.sp,
+    )
+    test = methods.build("ramp", Settings(), setup)
     t0 = loop.t
-    drive_ramp(test, loop)
+    port = SimLoopPort(loop, present_first=True)  # its present state is the first sample
+    drive(test, port, held=port.held_now())
     return _outcome(plant, "ramp", noise, test, periods=loop.t - t0)  # s: _outcome divides
-
-
-def drive_ramp(test: RampTest, loop: SimLoop) -> None:
-    """Run a ramp test on a loop in-process: its demands applied as the tuner would."""
-    kc, sp = loop.pid.gains.kc, loop.sp
-    demand = test.feed(loop.t, loop.pv, loop.op)
-    while not test.finished:
-        if demand.kc != kc:
-            kc = demand.kc
-            loop.apply(GainsCommand(loop=loop.settings.loop_id, gains=PidGains(kc=kc)))
-        if demand.sp != sp:
-            sp = demand.sp
-            loop.apply(SetpointCommand(loop=loop.settings.loop_id, sp=sp))
-        demand = experiments.feed(test, loop.advance())
 
 
 def _outcome(plant: Plant, method: str, noise: float, test, **lengths: float) -> TuneOutcome:
@@ -237,7 +217,7 @@ def _recommendation(plant: Plant, test) -> dict:
     """The recommended rule's gains, chosen as live (``selection.select`` with rule auto at the
     loop's sample time: the model checked, the candidates judged on the sampled loop), judged
     on the true plant's sampled loop: Ms and stability. None recommended: empty."""
-    ident = experiments.identification(test)
+    ident = test.identification()
     if ident is None:
         return {}
     ts = plant.exact()[1] / SAMPLES_PER_PERIOD
@@ -245,7 +225,7 @@ def _recommendation(plant: Plant, test) -> dict:
     rec = sel.recommended
     if rec is None or sel.refusal:
         return {}
-    rb = sampled_loop_robustness(rec.gains, list(plant.num), list(plant.den), plant.delay, ts)
+    rb = sampled_loop_robustness(rec.gains, plant.tf, ts)
     return {
         "recommended": rec.rule,
         "recommended_ms": rb.ms,
@@ -266,9 +246,11 @@ def iinoya_hotta(t_over_l: float) -> tuple[float, float]:
 
 def decay_ratio(gains: IsaGains, plant: Plant, pu: float, periods: float = 12.0) -> float:
     """Decay ratio of the closed loop's setpoint response on the exact plant, with the loop's
-    own PID block at P_u/2000 (``closed_loop.setpoint_step``): the second overshoot over the
+    own PID block at P_u/2000 (``predicted_setpoint_step``): the second overshoot over the
     first, measured about the final value."""
-    return setpoint_step(gains, plant, pu, pu / 2000, periods, int(periods * 2000)).decay_ratio
+    return predicted_setpoint_step(
+        gains, plant.tf, pu, pu / 2000, periods, int(periods * 2000)
+    ).decay_ratio
 
 
 @dataclass(frozen=True)
@@ -296,7 +278,7 @@ IH_RATIOS = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
 
 
 def iinoya_hotta_row(t_over_l: float) -> IinoyaHottaRow:
-    plant = Plant(f"fopdt T/L={t_over_l:g}", "fopdt", (1.0,), (t_over_l, 1.0), 1.0)
+    plant = Plant.of(f"fopdt T/L={t_over_l:g}", "fopdt", (1.0,), (t_over_l, 1.0), 1.0)
     outcome = run_relay(plant, 0.0)
     ku = outcome.ku_exact * (1.0 + outcome.ku_error)
     pu = outcome.pu_exact * (1.0 + outcome.pu_error)

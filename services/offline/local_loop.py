@@ -5,20 +5,35 @@ object directly, with the plant service's own rules for commands (validated by t
 refused with its reason, counted), in lockstep. A ``TuningRun`` over it is the whole live run
 — experiment, selection, apply and verify, restore — on the real plant models, thousands of
 times faster than over a bus: what property tests and batch studies need.
+
+``SimLoopPort`` and ``ModelPort`` are the experiment driver's view (``identify.driver``) of a
+loop in the same process: a plant_sim loop whose PID block holds what it is told, and a bare
+plant model driven open loop, noise added.
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.autotuner.identify.experiments import Demand
 from services.autotuner.loop_client import CommandRefused
 from services.plant_sim.simulation.loop import CommandRejected, SimLoop
+from services.plant_sim.simulation.models import ProcessModel
 from shared.messages import (
     AdvanceCommand,
     Command,
+    GainsCommand,
     LeaseCommand,
     LoopInfo,
     LoopStatus,
+    OutputCommand,
+    PidGains,
     ProcessSample,
     ReleaseCommand,
+    SetpointCommand,
     SyncCommand,
 )
 
@@ -102,3 +117,84 @@ class LocalLoopClient:
 
     def next_sample(self) -> ProcessSample:
         return self.advance(1)[0]
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One sample: sim time t (s), PV (PV units), the output held over it (%)."""
+
+    t: float
+    pv: float
+    op: float
+
+
+class SimLoopPort:
+    """A plant_sim loop as the experiment driver sees it, lockstep: a demand holds from the
+    present sample on. With ``present_first`` the loop's present state is the first sample
+    (it has been measured, not yet fed); ``limit``: no samples after this many s of sim time."""
+
+    def __init__(self, loop: SimLoop, present_first: bool = False, limit: float = math.inf):
+        self.loop = loop
+        self._present = present_first
+        self._t0, self._limit = loop.t, limit
+
+    def samples(self, n: int) -> list[Reading | ProcessSample]:
+        loop = self.loop
+        if self._present:
+            self._present = False
+            return [Reading(loop.t, loop.pv, loop.op)]
+        if not loop.t - self._t0 <= self._limit:
+            return []
+        return [loop.advance() for _ in range(n)]
+
+    def apply(self, demand: Demand, before: Demand) -> None:
+        loop, name = self.loop, self.loop.settings.loop_id
+        if not demand.auto:
+            loop.apply(OutputCommand(loop=name, op=demand.op))
+            return
+        if demand.kc != before.kc:
+            loop.apply(GainsCommand(loop=name, gains=PidGains(kc=demand.kc)))
+        if demand.sp != before.sp:
+            loop.apply(SetpointCommand(loop=name, sp=demand.sp))
+
+    def hold_time(self) -> float:
+        return self.loop.t
+
+    def held_now(self) -> Demand:
+        """What the loop holds now: its gain and setpoint in auto, its output in manual."""
+        loop = self.loop
+        if loop.mode == "auto":
+            return Demand(kc=loop.pid.gains.kc, sp=loop.sp)
+        return Demand(op=loop.op)
+
+
+class ModelPort:
+    """A bare plant model driven open loop, one sample per step: the PV is the model's after
+    holding the output one sample time, plus seeded Gaussian noise of σ ``noise`` (drawn for
+    every sample, so that a seed gives the same record at any σ)."""
+
+    def __init__(
+        self,
+        model: ProcessModel,
+        sample_time: float,
+        op: float,
+        noise: float = 0.0,
+        rng: np.random.Generator | None = None,
+    ):
+        self.model, self.ts, self.op, self.noise = model, sample_time, op, noise
+        self.rng = rng if rng is not None else np.random.default_rng(0)
+        self.k = 0
+
+    def samples(self, n: int) -> list[Reading]:
+        out = []
+        for _ in range(n):
+            self.k += 1
+            pv = self.model.step(self.op) + self.noise * self.rng.standard_normal()
+            out.append(Reading(self.k * self.ts, pv, self.op))
+        return out
+
+    def apply(self, demand: Demand, before: Demand) -> None:
+        self.op = demand.op
+
+    def hold_time(self) -> float:
+        return self.k * self.ts

@@ -17,6 +17,7 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
+from functools import partial
 
 import zenoh
 
@@ -28,7 +29,6 @@ from shared.cli import (
     add_common_arguments,
     check_flags,
     check_ids,
-    install_stop_handlers,
     setup_logging,
 )
 from shared.errors import AutotuneError, ConfigError, DecodeError
@@ -44,7 +44,8 @@ from shared.messages import (
     ServiceStatus,
     SyncCommand,
 )
-from shared.session import ZenohSettings, open_session, settings_from_args
+from shared.service_shell import ServiceShell, run_until_stopped
+from shared.session import settings_from_args
 
 log = logging.getLogger("plant_sim")
 
@@ -311,27 +312,24 @@ class PlantService:
 
     # --- threads --------------------------------------------------------------------------
 
-    def _command_loop(self, sub: zenoh.Subscriber) -> None:
-        for sample in sub:
-            try:
-                self.handle_command(
-                    str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding)
-                )
-            except Exception:  # a broken user model must not take the service down
-                log.exception("command on %s failed", sample.key_expr)
-                with self.lock:
-                    self.rejected_by_reason["internal"] += 1
+    def _on_command(self, sample: zenoh.Sample) -> None:
+        try:
+            self.handle_command(
+                str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding)
+            )
+        except Exception:  # a broken user model must not take the service down
+            log.exception("command on %s failed", sample.key_expr)
+            with self.lock:
+                self.rejected_by_reason["internal"] += 1
 
-    def _query_loop(self, queryable: zenoh.Queryable, what: str) -> None:
-        for query in queryable:
-            with query:
-                try:
-                    with self.lock:
-                        replies = self._answer(query.key_expr, what)
-                    for key, msg in replies:
-                        wire.reply(query, key, msg)
-                except Exception:
-                    log.exception("query %s failed", query.selector)
+    def _on_query(self, query: zenoh.Query, what: str) -> None:
+        try:
+            with self.lock:
+                replies = self._answer(query.key_expr, what)
+            for key, msg in replies:
+                wire.reply(query, key, msg)
+        except Exception:
+            log.exception("query %s failed", query.selector)
 
     def _answer(self, asked: zenoh.KeyExpr, what: str) -> list[tuple[str, Message]]:
         prefix = self.opt.prefix
@@ -345,17 +343,16 @@ class PlantService:
                 replies.append((key, msg))
         return replies
 
-    def _watch_peers(self, sub: zenoh.Subscriber) -> None:
+    def _on_peer(self, sample: zenoh.Sample) -> None:
         """Track loops served by other plant_sim processes, so their commands are not ours."""
-        for sample in sub:
-            parsed = keys.split_loop_key(self.opt.prefix, str(sample.key_expr))
-            if parsed is None or parsed[0] in self.loops:
-                continue
-            with self.lock:
-                if sample.kind == zenoh.SampleKind.PUT:
-                    self._remote_loops.add(parsed[0])
-                else:
-                    self._remote_loops.discard(parsed[0])
+        parsed = keys.parse_loop_key(self.opt.prefix, str(sample.key_expr))
+        if parsed is None or parsed[0] in self.loops:
+            return
+        with self.lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._remote_loops.add(parsed[0])
+            else:
+                self._remote_loops.discard(parsed[0])
 
     def expire_lease(self, loop_id: str, why: str) -> None:
         """Restore a leased loop to its pre-experiment state (the supervisor is gone)."""
@@ -397,14 +394,13 @@ class PlantService:
             for lid in late:
                 self.expire_lease(lid, "no command from its supervisor within the lease timeout")
 
-    def _watch_runs(self, sub: zenoh.Subscriber) -> None:
+    def _on_run_token(self, sample: zenoh.Sample) -> None:
         """A supervisor's run token vanishing (killed, disconnected) expires its lease."""
-        for sample in sub:
-            if sample.kind != zenoh.SampleKind.DELETE:
-                continue
-            parts = str(sample.key_expr).split("/")
-            if len(parts) >= 3 and parts[-3] == "tune" and parts[-2] in self.loops:
-                self.expire_lease(parts[-2], "its supervisor's run token disappeared")
+        if sample.kind != zenoh.SampleKind.DELETE:
+            return
+        parsed = keys.parse_tune_key(self.opt.prefix, str(sample.key_expr))
+        if parsed is not None and parsed[1] == "running" and parsed[0] in self.loops:
+            self.expire_lease(parsed[0], "its supervisor's run token disappeared")
 
     def _pace(self, stop: threading.Event) -> None:
         """Realtime clock: advance each loop when its next sample is due on the wall clock."""
@@ -433,43 +429,31 @@ class PlantService:
 
     def run(self, stop: threading.Event) -> None:
         """Serve until ``stop`` is set; undeclare everything on the way out."""
-        s, prefix = self.session, self.opt.prefix
-        fifo = zenoh.handlers.FifoChannel
-        cmd_sub = s.declare_subscriber(keys.all_commands(prefix), fifo(CHANNEL_CAPACITY))
-        peers = s.liveliness().declare_subscriber(
-            keys.loop_alive(prefix, keys.ANY), fifo(1024), history=True
+        prefix, shell = self.opt.prefix, ServiceShell(self.session, log)
+        shell.subscribe(keys.all_commands(prefix), self._on_command, CHANNEL_CAPACITY)
+        shell.subscribe(
+            keys.loop_alive(prefix, keys.ANY), self._on_peer, 1024, liveliness=True, history=True
         )
-        queryables = {
-            "status": s.declare_queryable(keys.status(prefix, keys.ANY), fifo(1024)),
-            "info": s.declare_queryable(keys.info(prefix, keys.ANY), fifo(1024)),
-            "service": s.declare_queryable(
-                keys.service_status(prefix, SERVICE, self.opt.node), fifo(1024)
-            ),
-        }
-        runs = s.liveliness().declare_subscriber(keys.tune_running(prefix, keys.ANY), fifo(1024))
-        threads = [
-            threading.Thread(target=self._command_loop, args=(cmd_sub,), daemon=True),
-            threading.Thread(target=self._watch_peers, args=(peers,), daemon=True),
-            threading.Thread(target=self._watch_runs, args=(runs,), daemon=True),
-            threading.Thread(target=self._watchdog, args=(stop,), daemon=True),
-        ]
-        threads += [
-            threading.Thread(target=self._query_loop, args=(q, what), daemon=True)
-            for what, q in queryables.items()
-        ]
+        for what, key in (
+            ("status", keys.status(prefix, keys.ANY)),
+            ("info", keys.info(prefix, keys.ANY)),
+            ("service", keys.service_status(prefix, SERVICE, self.opt.node)),
+        ):
+            shell.queryable(key, partial(self._on_query, what=what), 1024)
+        shell.subscribe(
+            keys.tune_running(prefix, keys.ANY), self._on_run_token, 1024, liveliness=True
+        )
+        shell.thread(lambda: self._watchdog(stop), name="watchdog")
         if self.opt.clock == "realtime":
-            threads.append(threading.Thread(target=self._pace, args=(stop,), daemon=True))
-        for th in threads:
-            th.start()
+            shell.thread(lambda: self._pace(stop), name="clock")
         out: list[tuple[str, Message]] = [
             (keys.status(prefix, lid), self.loop_status(lp, "start"))
             for lid, lp in self.loops.items()
         ]
         self._publish(out)
-        tokens = [s.liveliness().declare_token(keys.loop_alive(prefix, lid)) for lid in self.loops]
-        tokens.append(
-            s.liveliness().declare_token(keys.service_alive(prefix, SERVICE, self.opt.node))
-        )
+        for lid in self.loops:
+            shell.announce(keys.loop_alive(prefix, lid))
+        shell.announce(keys.service_alive(prefix, SERVICE, self.opt.node))
         log.info(
             "serving %s (%s clock%s) under %s/plant/",
             ", ".join(self.loops),
@@ -478,18 +462,11 @@ class PlantService:
             prefix,
         )
         try:
-            while not stop.wait(0.5):
-                pass
+            shell.wait(stop, 0.5)
         finally:
-            for tok in tokens:
-                tok.undeclare()
-            for q in queryables.values():
-                q.undeclare()
-            cmd_sub.undeclare()
-            peers.undeclare()
-            runs.undeclare()
-            for th in threads:
-                th.join(timeout=2.0)
+            shell.withdraw()
+            shell.undeclare()
+            shell.join(2.0)
             log.info(
                 "stopped: %d commands applied, %d refused",
                 self.accepted,
@@ -544,16 +521,6 @@ def options_from_args(args: argparse.Namespace) -> ServiceOptions:
     return ServiceOptions(prefix=args.prefix, node=args.node, clock=args.clock, speed=args.speed)
 
 
-def serve(
-    settings: ZenohSettings,
-    loops: dict[str, SimLoop],
-    options: ServiceOptions,
-    stop: threading.Event,
-) -> None:
-    with open_session(settings) as session:
-        PlantService(session, loops, options).run(stop)
-
-
 def run(args: argparse.Namespace) -> int:
     check_flags("plant", args)
     setup_logging(args.verbose + 1, SERVICE)
@@ -563,9 +530,9 @@ def run(args: argparse.Namespace) -> int:
     loops = load_plant_file(
         args.plant or default_plant_path(), seed=args.seed, noise_std=args.noise_std
     )
-    stop = threading.Event()
-    install_stop_handlers(stop)
-    serve(settings_from_args(args), loops, options, stop)
+    run_until_stopped(
+        settings_from_args(args), lambda session: PlantService(session, loops, options)
+    )
     return 0
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -84,15 +85,39 @@ def integral_time_from_reset_rate(repeats_per_minute: float) -> float | None:
     return None if repeats_per_minute == 0 else 60.0 / repeats_per_minute
 
 
-def all_forms(g: IsaGains) -> dict:
-    """The gains in every form, JSON-ready (None where a form does not exist)."""
-    par = to_parallel(g)
-    ser = to_series(g)
-    return {
-        "isa": {"kc": g.kc, "ti": g.ti, "td": g.td},
-        "parallel": {"kp": par.kp, "ki": par.ki, "kd": par.kd},
-        "series": None if ser is None else {"kc": ser.kc, "ti": ser.ti, "td": ser.td},
-        "ti_min": None if g.ti is None else g.ti / 60.0,
-        "td_min": g.td / 60.0,
-        "reset_rate_rpm": reset_rate(g.ti),
-    }
+@dataclass(frozen=True)
+class GainForms:
+    """One set of gains in every form a controller may take (``all_forms``): ISA, parallel,
+    series (None where Ti < 4·Td: it has none), and the ISA times in minutes and the reset
+    rate, as controllers' faceplates show them."""
+
+    isa: IsaGains
+    parallel: ParallelGains
+    series: SeriesGains | None
+    ti_min: float | None  # Ti in min (None: no integral action)
+    td_min: float  # Td in min
+    reset_rate_rpm: float  # repeats per minute (0: no integral action)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready, the result's ``gains``/``chosen`` object (None where a form lacks)."""
+        isa, par, ser = self.isa, self.parallel, self.series
+        return {
+            "isa": {"kc": isa.kc, "ti": isa.ti, "td": isa.td},
+            "parallel": {"kp": par.kp, "ki": par.ki, "kd": par.kd},
+            "series": None if ser is None else {"kc": ser.kc, "ti": ser.ti, "td": ser.td},
+            "ti_min": self.ti_min,
+            "td_min": self.td_min,
+            "reset_rate_rpm": self.reset_rate_rpm,
+        }
+
+
+def all_forms(g: IsaGains) -> GainForms:
+    """The gains ``g`` in every form."""
+    return GainForms(
+        isa=g,
+        parallel=to_parallel(g),
+        series=to_series(g),
+        ti_min=None if g.ti is None else g.ti / 60.0,
+        td_min=g.td / 60.0,
+        reset_rate_rpm=reset_rate(g.ti),
+    )

@@ -19,9 +19,44 @@ error reverses. With Ti = None the I term is a manual reset (bias), still set bu
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Literal
 
-from shared.messages import Action, Mode, PidGains
+Mode = Literal["manual", "auto"]
+Action = Literal["reverse", "direct"]  # reverse: the output falls as the PV rises
+
+
+@dataclass(frozen=True)
+class PidSettings:
+    """The block's tuning: gains in ideal (ISA) form, derivative filter and setpoint weight.
+
+    ``kc`` % of output per PV unit; ``ti`` integral time in s (None: no integral action, P or
+    PD with a manual reset); ``td`` derivative time in s; ``n`` the derivative filter, Tf =
+    Td/n (1–1000); ``beta`` the setpoint weight on P action (0–1). The same bounds as the bus
+    message ``shared.messages.PidGains``, which converts to and from this at the edge.
+    """
+
+    kc: float
+    ti: float | None = None
+    td: float = 0.0
+    n: float = 10.0
+    beta: float = 1.0
+
+    def __post_init__(self) -> None:
+        values = (self.kc, self.td, self.n, self.beta) + (() if self.ti is None else (self.ti,))
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError(f"PID settings must be finite numbers, got {self}")
+        if self.kc < 0:
+            raise ValueError(f"kc must be ≥ 0 % per PV unit, got {self.kc}")
+        if self.ti is not None and not self.ti > 0:
+            raise ValueError(f"ti must be > 0 s or None, got {self.ti}")
+        if self.td < 0:
+            raise ValueError(f"td must be ≥ 0 s, got {self.td}")
+        if not 1.0 <= self.n <= 1000.0:
+            raise ValueError(f"n must lie in [1, 1000], got {self.n}")
+        if not 0.0 <= self.beta <= 1.0:
+            raise ValueError(f"beta must lie in [0, 1], got {self.beta}")
 
 
 @dataclass
@@ -38,7 +73,7 @@ class PidBlock:
 
     def __init__(
         self,
-        gains: PidGains,
+        gains: PidSettings,
         sample_time: float,
         op_limits: tuple[float, float],
         action: Action = "reverse",
@@ -120,7 +155,7 @@ class PidBlock:
             self._rebase(sp, pv)
         self.mode = mode
 
-    def set_gains(self, gains: PidGains, sp: float, pv: float) -> None:
+    def set_gains(self, gains: PidSettings, sp: float, pv: float) -> None:
         """Change gains without moving the output."""
         self.gains = gains
         self._rebase(sp, pv)

@@ -1,12 +1,20 @@
-"""Signal helpers on sampled records (numpy arrays of PV or output against time in s).
+"""Signal helpers on sampled records: numpy arrays of a PV (its engineering units) or an output
+(% of span), and their sample times t in s.
 
-The sample type the experiments are fed: anything with ``t`` (s, sim time), ``pv`` (PV
-units) and ``op`` (% of output), as the bus's ``ProcessSample`` and a replayed record are.
+Rest and noise (``noise_level``, ``difference_noise``, ``at_rest``, ``range_end``), the first
+crossing of a level (``first_crossing``), turning points (``extrema``, after ``smooth``) and
+the trapezoid integral (``trapezoid``): what identification and the response figures read off
+a record. The sample type the experiments are fed (``Sample``): anything with ``t`` (s, sim
+time), ``pv`` (PV units) and ``op`` (% of output), as the bus's ``ProcessSample`` and a
+replayed record are.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Protocol
+
+import numpy as np
 
 
 class Sample(Protocol):
@@ -20,3 +28,120 @@ class Sample(Protocol):
 
     @property
     def op(self) -> float: ...
+
+
+# --- noise and rest --------------------------------------------------------------------------
+
+
+def noise_level(y: np.ndarray) -> float:
+    """Standard deviation of ``y`` about its straight-line trend, in ``y``'s units (0 for fewer
+    than 3 points). A slow swing in the record counts as noise here; ``difference_noise`` does
+    not count it."""
+    if y.size < 3:
+        return 0.0
+    x = np.arange(y.size, dtype=float)
+    coef = np.polyfit(x, y, 1)
+    return float(np.std(y - np.polyval(coef, x), ddof=2))
+
+
+def difference_noise(y: np.ndarray) -> float:
+    """Standard deviation of white noise on ``y`` read from its sample-to-sample changes
+    (σ(Δy)/√2), in ``y``'s units: a trend or a slow swing barely counts."""
+    return float(np.std(np.diff(y)) / math.sqrt(2.0))
+
+
+def range_end(
+    y: np.ndarray, pv_range: tuple[float, float], noise_std: float | None = None
+) -> str | None:
+    """'top' or 'bottom' when the PV sits at, or within 3σ of, an end of ``pv_range``.
+
+    The transmitter clips the measurement to its range, so a PV there is flat and noise-free
+    whatever the process does: any sample at the end, or a mean within 3σ of it, counts.
+    σ (PV units) is ``noise_std`` if given, else the record's own ``noise_level`` (which
+    clipping lowers).
+    """
+    y = np.asarray(y, dtype=float)
+    if y.size == 0:
+        return None
+    lo, hi = pv_range
+    tol = 1e-9 * max(1.0, abs(lo), abs(hi), hi - lo)
+    sigma = noise_level(y) if noise_std is None else noise_std
+    mean = float(np.mean(y))
+    if np.any(y >= hi - tol) or mean >= hi - 3.0 * sigma - tol:
+        return "top"
+    if np.any(y <= lo + tol) or mean <= lo + 3.0 * sigma + tol:
+        return "bottom"
+    return None
+
+
+def at_rest(y: np.ndarray, pv_range: tuple[float, float] | None = None) -> bool:
+    """No trend beyond the noise: the straight-line fit moves less than 3σ (``noise_level``,
+    and less than 1e-9 of the level) over the record; and, given the transmitter's
+    ``pv_range``, the PV is not at or within noise of one of its ends (``range_end``). False
+    for fewer than 3 samples."""
+    if y.size < 3:
+        return False
+    if pv_range is not None and range_end(y, pv_range) is not None:
+        return False
+    x = np.arange(y.size, dtype=float)
+    slope = float(np.polyfit(x, y, 1)[0])
+    drift = abs(slope) * (y.size - 1)
+    return drift <= max(3.0 * noise_level(y), 1e-9 * max(1.0, float(np.max(np.abs(y)))))
+
+
+# --- crossings, turning points, integrals ------------------------------------------------------
+
+
+def first_crossing(t: np.ndarray, z: np.ndarray, level: float) -> float | None:
+    """The time (``t``'s units, s) where ``z`` first reaches ``level`` (z ≥ level), linearly
+    interpolated between the samples either side; ``t[0]`` if the first sample already has;
+    None if it never does."""
+    above = np.nonzero(z >= level)[0]
+    if above.size == 0:
+        return None
+    i = int(above[0])
+    if i == 0:
+        return float(t[0])
+    return float(t[i - 1] + (level - z[i - 1]) / (z[i] - z[i - 1]) * (t[i] - t[i - 1]))
+
+
+def smooth(y: np.ndarray, width: int) -> np.ndarray:
+    """Centred moving average over ``width`` samples (an even width is made odd by one more),
+    the record's end values repeated beyond its ends so the output has ``y``'s length; ``y``
+    itself for a width below 3."""
+    if width < 3:
+        return y
+    width |= 1
+    pad = width // 2
+    padded = np.concatenate((np.full(pad, y[0]), y, np.full(pad, y[-1])))
+    return np.convolve(padded, np.ones(width) / width, mode="valid")
+
+
+def extrema(t: np.ndarray, y: np.ndarray, min_swing: float) -> list[tuple[float, float]]:
+    """Turning points (t, y) (zigzag): a running maximum (minimum) counts once the record has
+    fallen (risen) ``min_swing`` (``y``'s units) from it. The starting point is never one."""
+    out: list[tuple[float, float]] = []
+    direction, k = 0, 0
+    for i in range(1, y.size):
+        if direction == 0:
+            if abs(y[i] - y[0]) >= min_swing:
+                direction, k = (1 if y[i] > y[0] else -1), i
+        elif direction > 0:
+            if y[i] > y[k]:
+                k = i
+            elif y[k] - y[i] >= min_swing:
+                out.append((float(t[k]), float(y[k])))
+                direction, k = -1, i
+        else:
+            if y[i] < y[k]:
+                k = i
+            elif y[i] - y[k] >= min_swing:
+                out.append((float(t[k]), float(y[k])))
+                direction, k = 1, i
+    return out
+
+
+def trapezoid(y: np.ndarray, t: np.ndarray) -> float:
+    """∫ y dt over the record by the trapezoid rule (``y``'s units × s); 0 for fewer than two
+    samples."""
+    return float(np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(t))) if t.size > 1 else 0.0

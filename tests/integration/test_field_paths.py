@@ -24,9 +24,9 @@ from services.launcher import free_tcp_port, start_service, stop_service
 from shared import keys
 from shared.messages import LoopStatus
 from shared.session import open_session
-from tests.conftest import RunningPlant, wait_for_tokens
 from tests.exact import ultimate_point
 from tests.field_cases import Case, true_loop
+from tests.running_services import RunningPlant, wait_for_tokens
 
 pytestmark = pytest.mark.integration
 

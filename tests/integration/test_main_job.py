@@ -86,13 +86,14 @@ def test_demo_on_a_plant_file_of_the_users(tmp_path):
     assert read_run(r["mcap"])[0]["loop"] == "tank7"
 
 
-def test_the_default_demo_finishes_in_under_15_s(tmp_path):
-    t0 = time.monotonic()
+def test_the_default_demo_tunes_applies_and_records(tmp_path):
+    """The default demo (fixed seed) ends ok with the gains applied: exit 0. Its wall time is
+    measured by services.offline.wall_times, not asserted here."""
     run = cli("demo", "--runs", str(tmp_path / "runs"), cwd=tmp_path)
-    wall = time.monotonic() - t0
-    assert run.returncode in (0, 1), run.stderr  # 1: the verification kept the old gains
+    assert run.returncode == 0, run.stderr
     assert "exact ultimate point of the heat_exchanger model" in run.stdout
-    assert "run recorded in" in run.stdout and wall < 15.0, f"{wall:.1f} s"
+    recorded = list((tmp_path / "runs").glob("*.mcap"))
+    assert len(recorded) == 1 and f"run recorded in {recorded[0]}" in run.stdout
 
 
 def _interrupt_mid_tune(proc: subprocess.Popen, pid_line: str) -> list[int]:

@@ -49,8 +49,8 @@ from shared.messages import (
 )
 from shared.session import ZenohSettings, open_session
 from shared.wire import replay_attachment, replay_source
-from tests.conftest import wait_for_tokens
-from tests.integration.test_tuner import THIRD, autotune, plant_toml
+from tests.integration.tuning_cli import THIRD, autotune, plant_toml
+from tests.running_services import wait_for_tokens
 
 PREFIX = "rec"
 LOOP = "x1"

@@ -18,7 +18,6 @@ import threading
 import time
 
 import pytest
-import zenoh
 
 from services.autotuner.loop_client import LoopClient, wait_for_token
 from shared import keys, wire
@@ -26,34 +25,9 @@ from shared.messages import LeaseCommand, LoopStatus, ReleaseCommand, TuneResult
 from shared.session import open_session
 from tests.exact import ultimate_point
 from tests.field_cases import Case, true_loop
+from tests.integration.tuning_cli import HX, THIRD, autotune, plant_toml, tune
 
 pytestmark = pytest.mark.integration
-
-THIRD = {"num": [6.0], "den": [1.0, 6.0, 11.0, 6.0], "delay": 0.0, "sample_time": 0.002}
-HX = {"num": [1.0], "den": [600.0, 70.0, 1.0], "delay": 5.0, "sample_time": 0.05}
-
-
-def plant_toml(loop: str, p: dict, noise: float = 0.0, extra: str = "") -> str:
-    return (
-        f'seed = 3\n[loops.{loop}]\nmodel = "transfer_function"\nnum = {p["num"]}\n'
-        f"den = {p['den']}\ndelay = {p['delay']}\nsample_time = {p['sample_time']}\n"
-        f"noise_std = {noise}\n{extra}"
-    )
-
-
-def autotune(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
-
-
-def tune(plant, loop: str, *args: str) -> dict:
-    run = autotune("tune", loop, "--json", *args, *plant.cli_args())
-    assert run.stdout, run.stderr
-    return json.loads(run.stdout)
 
 
 def swing(plant: dict, d: float = 5.0) -> float:
@@ -174,15 +148,13 @@ def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner):
     assert restored_after < 5.0  # the run token vanished with the process
 
 
-def test_whole_relay_tune_of_the_heat_exchanger_preset_under_10_s(start_plant, start_tuner):
+def test_whole_relay_tune_of_the_heat_exchanger_preset(start_plant, start_tuner):
+    """Its wall time is measured by services.offline.wall_times, not asserted here."""
     p = start_plant(None, loops=("hx1",))
     start_tuner(p)
-    t0 = time.monotonic()
     r = tune(p, "hx1")
-    wall = time.monotonic() - t0
     assert r["status"] == "ok", r["reason"]
     assert r["applied"] is True and r["after"]["stable"] is True
-    assert wall < 10.0, f"{wall:.1f} s"
     st = loop_state(p, "hx1")
     assert st.mode == "auto" and st.gains.kc == pytest.approx(r["chosen"]["isa"]["kc"])
 
@@ -204,7 +176,13 @@ def test_bad_requests_are_refused_with_the_field(start_plant, start_tuner):
                 break
             time.sleep(0.2)
         assert replies[0].err is not None and b"loop" in replies[0].err.payload.to_bytes()
-        assert zenoh  # the service still answers:
+        # the service still answers, and validates the next request on its own merits
+        bad_rule = b'{"loop": "x1", "method": "step", "rule": "zn-pid"}'
+        replies = list(s.get(keys.tuner_request(p.prefix, "tuner"), payload=bad_rule, timeout=5))
+        assert len(replies) == 1 and replies[0].err is not None
+        assert replies[0].err.payload.to_bytes().decode() == (
+            "rule: zn-pid needs K_u and P_u (relay/ramp), not method step"
+        )
         assert loop_state(p, "x1").mode == "manual"
 
 

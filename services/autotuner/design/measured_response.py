@@ -1,11 +1,13 @@
-"""Closed-loop response figures: a setpoint step and a load step.
+"""Closed-loop response figures read off a measured record: a setpoint step and a load step.
 
 Setpoint step from y₀ to r, z = (y − y₀)/(r − y₀), read with the noise averaged over a few
-samples: overshoot = max(z) − 1 (in %), decay ratio
-= second overshoot over the first (the quarter-decay aim of Ziegler–Nichols is 0.25), rise
-time 10 → 90 %, settling time to stay within ±``band`` of the step, IAE = ∫|r − y| dt. Load
-step: IAE, the largest deviation from the setpoint and the time to return within a tenth of
-it (or the noise band).
+samples. Overshoot is measured about the setpoint r, in % of the setpoint change: 100·(max(z)
+− 1), 0 if the PV never passes r (an offset left by P control counts against it, unlike the
+overshoot ``predicted_response`` reads about the simulated loop's final value). Decay ratio
+= second overshoot above r over the first (the quarter-decay aim of Ziegler–Nichols is 0.25),
+rise time 10 → 90 % of the change, settling time to stay within ±``band`` of the step, IAE =
+∫|r − y| dt. Load step: IAE, the largest deviation from the setpoint and the time to return
+within a tenth of it (or the noise band).
 """
 
 from __future__ import annotations
@@ -14,24 +16,10 @@ import math
 
 import numpy as np
 
-from services.autotuner.identify.oscillation import extrema, smooth
+from shared.control.signals import extrema, first_crossing, smooth, trapezoid
 
 
-def _trapz(y: np.ndarray, t: np.ndarray) -> float:
-    return float(np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(t))) if t.size > 1 else 0.0
-
-
-def _crossing(t: np.ndarray, z: np.ndarray, level: float) -> float | None:
-    i = np.nonzero(z >= level)[0]
-    if i.size == 0:
-        return None
-    k = int(i[0])
-    if k == 0:
-        return float(t[0])
-    return float(t[k - 1] + (level - z[k - 1]) / (z[k] - z[k - 1]) * (t[k] - t[k - 1]))
-
-
-def setpoint_step(
+def measured_setpoint_step(
     t: np.ndarray,
     y: np.ndarray,
     t0: float,
@@ -41,8 +29,14 @@ def setpoint_step(
     noise: float = 0.0,
     width: int = 5,
 ) -> dict[str, float | bool | None]:
-    """``width``: samples the noise is averaged over (odd; a small part of the period, so
-    that the averaging leaves a peak's height alone while it takes the noise off it)."""
+    """Figures of a measured setpoint step (t in s from the record, y the PV, stepped at
+    ``t0`` from ``y0`` towards ``target``; ``noise`` the PV's σ, PV units).
+
+    ``overshoot`` (%): how far the smoothed PV passes the setpoint, 100·(max(z) − 1) with z =
+    (y − y₀)/(r − y₀), at least 0; ``decay_ratio``: the second peak above the setpoint over
+    the first (None without two); times in s; ``iae`` in PV units·s. ``width``: samples the
+    noise is averaged over (odd; a small part of the period, so that the averaging leaves a
+    peak's height alone while it takes the noise off it)."""
     t, y = np.asarray(t, float), np.asarray(y, float)
     delta = target - y0
     z = (y - y0) / delta
@@ -54,7 +48,7 @@ def setpoint_step(
     ext = extrema(t, zs - 1.0, max(0.02, 8 * rel_noise))
     peaks = [v for _, v in ext if v > 0]
     decay = peaks[1] / peaks[0] if len(peaks) >= 2 and peaks[0] > 0 else None
-    t10, t90 = _crossing(t, z, 0.1), _crossing(t, z, 0.9)
+    t10, t90 = first_crossing(t, z, 0.1), first_crossing(t, z, 0.9)
     tol = max(band, 3 * noise / abs(delta))
     outside = np.nonzero(np.abs(z - 1.0) > tol)[0]
     settled = outside.size == 0 or int(outside[-1]) < t.size - 1
@@ -66,7 +60,7 @@ def setpoint_step(
         "decay_ratio": decay,
         "rise_time": None if t10 is None or t90 is None else t90 - t10,
         "settling_time": t_settle,
-        "iae": _trapz(np.abs(target - y), t),
+        "iae": trapezoid(np.abs(target - y), t),
         "settled": settled,
     }
 
@@ -84,7 +78,7 @@ def load_step(
     if recovered:
         rec = 0.0 if outside.size == 0 else float(t[int(outside[-1]) + 1] - t0)
     return {
-        "iae": _trapz(dev, t),
+        "iae": trapezoid(dev, t),
         "max_deviation": peak,
         "recovery_time": rec,
         "recovered": recovered,

@@ -1,15 +1,17 @@
 """A candidate's closed loop simulated on the identified model: overshoot and decay ratio.
 
-The loop is the plant's own PID block (``plant_sim.pid``: ISA form, derivative on the
+The loop is the plant's own PID block (``shared.control.pid``: ISA form, derivative on the
 measurement with its filter, anti-windup) at the loop's sample time, on the model discretised
-exactly (``plant_sim.lti``). A setpoint step from rest, small enough for the output limits
-not to bind, so that the figures are the linear loop's; the response is watched for 30 of
-the loop's time scale (P_u, or the model's delay plus lag).
+exactly (``shared.control.lti``). A setpoint step from rest, small enough for the output
+limits not to bind, so that the figures are the linear loop's; the response is watched for 30
+of the loop's time scale (P_u, or the model's delay plus lag).
 
-overshoot: the highest peak above the final value, % of the final value (P control leaves
-an offset). decay ratio: the second peak's excess over the first's (turning points that clear
-1 % of the final value) (the quarter-decay aim of Ziegler–Nichols is 0.25); 0 when the
-response does not oscillate; ``stable`` False when the response grows.
+Overshoot is read about the simulated loop's final value (the mean of the last tenth), in %
+of that final value: 100·(max(y) − y_∞)/|y_∞| — so P control's offset does not count as
+overshoot, unlike the overshoot ``measured_response`` reads about the setpoint. Decay ratio:
+the second peak's excess over the final value over the first's (turning points that clear
+1 % of the final value; the quarter-decay aim of Ziegler–Nichols is 0.25); 0 when the response
+does not oscillate; ``stable`` False when the response grows.
 """
 
 from __future__ import annotations
@@ -19,39 +21,41 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.autotuner.identify.model_fit import ProcessFit
-from services.autotuner.identify.oscillation import extrema
 from shared.control.forms import IsaGains
 from shared.control.lti import DelayedLinearSystem, discretize, tf_to_ss
-from shared.control.pid import PidBlock
-from shared.messages import PidGains
+from shared.control.pid import PidBlock, PidSettings
+from shared.control.signals import extrema
+from shared.control.transfer import DelayedTF
 
 MAX_SAMPLES = 2000  # the simulation is resampled coarser (≥ 60 samples per time scale)
 
 
 @dataclass(frozen=True)
 class StepFigures:
-    overshoot: float  # %
+    overshoot: float  # % of the final value, about the final value
     decay_ratio: float
     stable: bool
 
 
-def setpoint_step(
+def predicted_setpoint_step(
     gains: IsaGains,
-    model: ProcessFit,
+    plant: DelayedTF,
     timescale: float,
     sample_time: float | None = None,
     horizon: float = 30.0,
     max_samples: int = MAX_SAMPLES,
 ) -> StepFigures:
-    """``model`` is anything with ``num``, ``den`` and ``delay`` (a fit, a benchmark plant);
-    ``horizon`` in time scales."""
+    """The setpoint step of ``gains`` (derivative filter N = 10, no setpoint weight) closing
+    the loop on ``plant`` (a fit's ``transfer``, a benchmark plant's), simulated at
+    ``sample_time`` (s; default a hundredth of ``timescale``, coarser if the ``horizon`` — in
+    time scales — would take more than ``max_samples``). Overshoot about the final value (see
+    the module)."""
     horizon *= timescale
     ts = sample_time or timescale / 100.0
     ts = max(ts, horizon / max_samples)
-    sys = DelayedLinearSystem(discretize(*tf_to_ss(model.num, model.den), ts, model.delay))
+    sys = DelayedLinearSystem(discretize(*tf_to_ss(plant.num, plant.den), ts, plant.delay))
     pid = PidBlock(
-        PidGains(kc=gains.kc, ti=gains.ti, td=gains.td),
+        PidSettings(kc=gains.kc, ti=gains.ti, td=gains.td),
         ts,
         (0.0, 100.0),
         mode="auto",

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.autotuner.design.predicted_response import StepFigures, setpoint_step
+from services.autotuner.design.predicted_response import StepFigures, predicted_setpoint_step
 from services.autotuner.design.robustness import Robustness, robustness
 from services.autotuner.design.rules import RULES, UltimatePoint, apply_rules
 from services.autotuner.design.sampled_loop import SampledPlant, sampled_plant, sampled_robustness
@@ -149,18 +149,19 @@ def assess(
     )
     if not math.isfinite(timescale) or timescale <= 0:
         timescale = 10.0 * model.delay if model else 0.0
+    tf = model.transfer if model is not None else None
     plant: SampledPlant | None = None
-    if model is not None and sample_time is not None and sample_time > 0:
+    if tf is not None and sample_time is not None and sample_time > 0:
         try:
-            plant = sampled_plant(model.num, model.den, model.delay, sample_time)
+            plant = sampled_plant(tf, sample_time)
         except (ValueError, ArithmeticError, np.linalg.LinAlgError):
             plant = None
     out = {}
     for name, g in gains.items():
         rb, st, cont = None, None, None
-        if model is not None:
+        if tf is not None:
             try:
-                cont = robustness(g, model.num, model.den, model.delay)
+                cont = robustness(g, tf)
             except (ValueError, ArithmeticError):
                 cont = None
             rb = cont
@@ -170,7 +171,7 @@ def assess(
                 except (ValueError, ArithmeticError, np.linalg.LinAlgError):
                     rb = None
             if simulate and rb is not None and timescale > 0:
-                st = setpoint_step(g, model, timescale, sample_time)
+                st = predicted_setpoint_step(g, tf, timescale, sample_time)
         out[name] = Assessment(name, g, rb, st, cont if plant is not None else None)
     return out
 

@@ -1,8 +1,8 @@
 """Robustness of a PID on a linear plant model: maximum sensitivity, gain and phase margins.
 
-Loop transfer L(jω) = C(jω)·G(jω) with the plant G = num/den·e^{−Ls} and the ISA PID
-C = Kc·(1 + 1/(Ti·s) + Td·s/(1 + Td·s/N)) as the loop's PID block runs it. On a dense
-logarithmic grid refined around each extremum:
+Loop transfer L(jω) = C(jω)·G(jω) with the plant G = num/den·e^{−Ls} (a ``DelayedTF``) and
+the ISA PID C = Kc·(1 + 1/(Ti·s) + Td·s/(1 + Td·s/N)) as the loop's PID block runs it. On a
+dense logarithmic grid refined around each extremum:
 
 * Ms = max |1/(1 + L(jω))| (Åström & Hägglund 2006, §4.6: 1.2–2.0 is the usual range);
 * gain margin 1/|L(jω₁₈₀)| at the first frequency where the unwrapped phase of L reaches
@@ -23,6 +23,7 @@ import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
 from shared.control.forms import IsaGains
+from shared.control.transfer import DelayedTF
 
 
 @dataclass(frozen=True)
@@ -39,26 +40,29 @@ class Robustness:
     unstable_poles: int | None = None
 
 
-def loop_response(gains: IsaGains, num, den, delay: float, n: float, w: np.ndarray) -> np.ndarray:
+def loop_response(gains: IsaGains, plant: DelayedTF, n: float, w: np.ndarray) -> np.ndarray:
+    """L(jω) = C(jω)·G(jω) at ω in rad/s; ``n`` the derivative filter (Tf = Td/n)."""
     s = 1j * np.asarray(w, dtype=float)
     c = gains.kc * (1.0 + (0.0 if gains.ti is None else 1.0 / (gains.ti * s)))
     if gains.td > 0:
         c = c + gains.kc * gains.td * s / (1.0 + gains.td * s / n)
-    g = np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * delay)
+    # G in a named array, not a temporary: numpy multiplies into a temporary in place, by
+    # another loop whose last bit can differ (the figures must not move)
+    g = plant.response(w)
     return c * g
 
 
 def robustness(
     gains: IsaGains,
-    num: list[float],
-    den: list[float],
-    delay: float = 0.0,
+    plant: DelayedTF,
     n: float = 10.0,
     w_min: float = 1e-5,
     w_max: float = 1e4,
 ) -> Robustness:
+    """Ms, margins and crossover frequencies of ``gains`` on ``plant`` over ω in [w_min,
+    w_max] rad/s (see the module)."""
     w = np.logspace(math.log10(w_min), math.log10(w_max), 20000)
-    lw = loop_response(gains, num, den, delay, n, w)
+    lw = loop_response(gains, plant, n, w)
     phase = np.unwrap(np.angle(lw))
     # the unwrapped phase may start a multiple of 2π off: anchor it at the low-frequency end
     phase -= 2 * math.pi * round((phase[0] - np.angle(lw[0])) / (2 * math.pi))
@@ -66,7 +70,7 @@ def robustness(
     k = int(np.argmax(sens))
     lo, hi = w[max(k - 1, 0)], w[min(k + 1, w.size - 1)]
     best = minimize_scalar(
-        lambda x: -1.0 / abs(1.0 + loop_response(gains, num, den, delay, n, np.array([x]))[0]),
+        lambda x: -1.0 / abs(1.0 + loop_response(gains, plant, n, np.array([x]))[0]),
         bounds=(lo, hi),
         method="bounded",
         options={"xatol": 1e-12},
@@ -82,9 +86,7 @@ def robustness(
 
     w180 = interp_root(phase, -math.pi)
     gm = (
-        math.inf
-        if w180 is None
-        else 1.0 / abs(loop_response(gains, num, den, delay, n, np.array([w180]))[0])
+        math.inf if w180 is None else 1.0 / abs(loop_response(gains, plant, n, np.array([w180]))[0])
     )
     wc = interp_root(np.log(np.abs(lw)), 0.0)
     pm = math.inf

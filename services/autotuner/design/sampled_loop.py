@@ -5,10 +5,10 @@ the gain margin of applied gains is a few % lower at 170 samples per period and 
 the 10–20 samples per period of DCS loops. Here the loop transfer function is the one the
 plant's PID block closes:
 
-* G(z): the plant num/den·e^{−Ls} discretised exactly with a zero-order hold at T, the delay
-  split into n whole samples and a fraction f (``plant_sim.lti.discretize``):
+* G(z): the plant num/den·e^{−Ls} (a ``DelayedTF``) discretised exactly with a zero-order
+  hold at T, the delay split into n whole samples and a fraction f (``lti.discretize``):
   G(z) = z^{−n}·[C(zI − Φ)^{−1}(Γ_new + z^{−1}Γ_old) + D·z^{−1}];
-* C(z): ``plant_sim.pid`` as it executes (ISA form, integral by forward Euler, derivative by
+* C(z): ``shared.control.pid`` as it executes (ISA form, integral by forward Euler, derivative by
   backward difference through its filter Tf = Td/N):
   C(z) = Kc·[1 + T/(Ti·(z − 1)) + Td·(z − 1)/((Tf + T)·z − Tf)].
   Derivative on the measurement and the setpoint weight change the response to setpoint
@@ -33,6 +33,7 @@ from scipy.optimize import brentq, minimize_scalar
 from services.autotuner.design.robustness import Robustness
 from shared.control.forms import IsaGains
 from shared.control.lti import DiscreteDelaySystem, discretize, tf_to_ss
+from shared.control.transfer import DelayedTF
 
 LOG_POINTS = 3000  # logarithmic grid from far below the plant's slowest time scale to π/T
 PHASE_STEP = 0.2  # rad: the linear grid keeps the delay's phase step near π/T below this
@@ -73,7 +74,7 @@ def discrete_response(sys: DiscreteDelaySystem, omega: np.ndarray) -> np.ndarray
 
 
 def pid_response(gains: IsaGains, sample_time: float, z: np.ndarray, n: float = 10.0) -> np.ndarray:
-    """C(z) of ``plant_sim.pid`` (u = −C(z)·y with the setpoint at rest), at complex ``z``."""
+    """C(z) of ``shared.control.pid`` (u = −C(z)·y with the setpoint at rest), at complex ``z``."""
     z = np.asarray(z, dtype=complex)
     t = sample_time
     c = np.ones_like(z)
@@ -85,13 +86,13 @@ def pid_response(gains: IsaGains, sample_time: float, z: np.ndarray, n: float = 
     return gains.kc * c
 
 
-def sampled_plant(
-    num: list[float], den: list[float], delay: float, sample_time: float
-) -> SampledPlant:
-    """The plant's sampled frequency response, computed once for every candidate's gains."""
-    sys = discretize(*tf_to_ss(num, den), sample_time, delay)
+def sampled_plant(plant: DelayedTF, sample_time: float) -> SampledPlant:
+    """The plant's sampled frequency response at ``sample_time`` (s), computed once for every
+    candidate's gains."""
+    delay = plant.delay
+    sys = discretize(*tf_to_ss(plant.num, plant.den), sample_time, delay)
     nyquist = math.pi / sample_time
-    poles = np.roots(np.trim_zeros(np.asarray(den, dtype=float), "f"))
+    poles = np.roots(np.trim_zeros(np.asarray(plant.den, dtype=float), "f"))
     slow = max([delay, sample_time, *(1.0 / abs(p.real) for p in poles if abs(p.real) > 1e-300)])
     w_lo = min(1e-4 / slow, 1e-4 * nyquist)
     n_lin = min(
@@ -191,12 +192,7 @@ def sampled_robustness(gains: IsaGains, plant: SampledPlant, n: float = 10.0) ->
 
 
 def sampled_loop_robustness(
-    gains: IsaGains,
-    num: list[float],
-    den: list[float],
-    delay: float,
-    sample_time: float,
-    n: float = 10.0,
+    gains: IsaGains, plant: DelayedTF, sample_time: float, n: float = 10.0
 ) -> Robustness:
-    """``sampled_robustness`` for one set of gains on num/den·e^{−delay·s} held at T."""
-    return sampled_robustness(gains, sampled_plant(num, den, delay, sample_time), n)
+    """``sampled_robustness`` for one set of gains on ``plant`` held at T = ``sample_time``."""
+    return sampled_robustness(gains, sampled_plant(plant, sample_time), n)

@@ -66,8 +66,8 @@ class Selection:
 def l_over_t(ident: Identification, model: ProcessFit | None = None) -> float | None:
     """L/T of the step test, else of the (usable) model's first-order equivalent; None when
     unknown or not finite."""
-    if ident.step:
-        return _finite(ident.step.get("l_over_t"))
+    if ident.step is not None:
+        return _finite(ident.step.l_over_t)
     if model is None or model.kind == "ipdt":
         return None
     m = fopdt_of(model)

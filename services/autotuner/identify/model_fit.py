@@ -24,7 +24,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from shared.control.lti import discretize, simulate, tf_to_ss
-from shared.control.transfer import ultimate_point
+from shared.control.transfer import DelayedTF
 
 
 @dataclass(frozen=True)
@@ -67,9 +67,14 @@ class ProcessFit:
         """L/T (0 for an integrator)."""
         return self.delay / self.lag if self.lags else 0.0
 
+    @property
+    def transfer(self) -> DelayedTF:
+        """The model as a transfer function with dead time, K·e^{−Ls}/den(s)."""
+        return DelayedTF.of(self.num, self.den, self.delay)
+
     def response(self, omega: np.ndarray | float) -> np.ndarray:
-        s = 1j * np.asarray(omega, dtype=float)
-        return np.polyval(self.num, s) / np.polyval(self.den, s) * np.exp(-s * self.delay)
+        """G(jω) at ω in rad/s."""
+        return self.transfer.response(omega)
 
     def phase(self, omega: float) -> float:
         """The continuous (unwrapped) phase of G(jω), rad."""
@@ -77,7 +82,8 @@ class ProcessFit:
         return ph - (0.5 * math.pi if self.kind == "ipdt" else 0.0)
 
     def ultimate_point(self) -> tuple[float, float] | None:
-        return ultimate_point(self.num, self.den, self.delay)
+        """(K_u in % per PV unit, P_u in s), or None if the phase never reaches −180°."""
+        return self.transfer.ultimate_point()
 
     def to_dict(self) -> dict[str, float | str]:
         out: dict[str, float | str] = {

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from shared.control.signals import extrema, smooth
+
 
 @dataclass(frozen=True)
 class Oscillation:
@@ -23,39 +25,6 @@ class Oscillation:
     offset: float  # c
     rms: float  # residual of the fit
     swings: int  # half-cycles in the window
-
-
-def smooth(y: np.ndarray, width: int) -> np.ndarray:
-    if width < 3:
-        return y
-    width |= 1
-    pad = width // 2
-    padded = np.concatenate((np.full(pad, y[0]), y, np.full(pad, y[-1])))
-    return np.convolve(padded, np.ones(width) / width, mode="valid")
-
-
-def extrema(t: np.ndarray, y: np.ndarray, min_swing: float) -> list[tuple[float, float]]:
-    """Turning points (zigzag): a running maximum (minimum) counts once the record has fallen
-    (risen) ``min_swing`` from it. The starting point is never one."""
-    out: list[tuple[float, float]] = []
-    direction, k = 0, 0
-    for i in range(1, y.size):
-        if direction == 0:
-            if abs(y[i] - y[0]) >= min_swing:
-                direction, k = (1 if y[i] > y[0] else -1), i
-        elif direction > 0:
-            if y[i] > y[k]:
-                k = i
-            elif y[k] - y[i] >= min_swing:
-                out.append((float(t[k]), float(y[k])))
-                direction, k = -1, i
-        else:
-            if y[i] < y[k]:
-                k = i
-            elif y[i] - y[k] >= min_swing:
-                out.append((float(t[k]), float(y[k])))
-                direction, k = 1, i
-    return out
 
 
 def fit_oscillation(

@@ -35,9 +35,18 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 
+from services.autotuner.identify.experiments import (
+    Demand,
+    Event,
+    Identification,
+    Progress,
+    Settings,
+    Setup,
+)
 from services.autotuner.identify.model_fit import (
     ProcessFit,
     choose_on_record,
@@ -45,7 +54,7 @@ from services.autotuner.identify.model_fit import (
     through_ultimate_point,
 )
 from services.autotuner.identify.oscillation import Oscillation, fit_oscillation
-from services.autotuner.identify.reaction_curve import at_rest, noise_level
+from shared.control.signals import Sample, at_rest, noise_level
 
 
 @dataclass(frozen=True)
@@ -63,6 +72,41 @@ class RampConfig:
     total_periods: float = 200.0  # periods of the oscillation the test may run once it has one
     settle_periods: float = 20.0  # periods a calming may take before its gain is halved
     headroom: float = 0.5  # of the output's room to its nearer limit, a trial's kick may take
+    # --- thresholds and factors ---
+    # tenfold (at rest) or factor³ (after a trial) cuts of a start gain too high, at most
+    max_backoffs: int = 8
+    # halvings of the calming gain in one calming before giving up
+    max_calm_cuts: int = 4
+    # trial lengths the search may take after the first, while no period is known
+    search_lengths: float = 40.0
+    # the quiet period without ``quiet``: enough samples for a trend and a noise level
+    quiet_samples: int = 40
+    # never fewer samples in the quiet period: a regression on fewer says nothing
+    min_quiet_samples: int = 10
+    # quiet periods to wait for the PV to come to rest before giving up
+    quiet_periods: int = 20
+    # a start gain that saturates the output at rest is divided by this
+    rest_backoff: float = 10.0
+    # an output at a limit this fraction of a window is stuck there (at rest, or calming)
+    stuck_fraction: float = 0.5
+    # the smallest bump worth a trial, in σ of the noise: a smaller one drowns in it
+    min_bump_sigmas: float = 6.0
+    # the output's noise taken into a trial's kick, in σ of the PV noise (times Kc)
+    kick_sigmas: float = 3.0
+    # a trial before any period is known is watched at most this many quiet periods
+    trial_cap_quiet: int = 1000
+    # the calming gain: this fraction of the last decaying one (comfortably below K_u)
+    calm_gain: float = 0.7
+    # the next gain stays this fraction of the bracket away from its ends (Illinois)
+    bracket_margin: float = 0.05
+    # the PV has moved (the trial's response began) this fraction of the bump away…
+    moving_fraction: float = 0.02
+    # … or this many σ of the noise, whichever is more
+    moving_sigmas: float = 6.0
+    # a fitted oscillation counts only if its largest amplitude is this many σ of the noise
+    fit_sigmas: float = 2.0
+    # trials within this range of K_u (as fractions of it) give the ZOH correction's slope
+    near_ku: tuple[float, float] = (0.7, 1.3)
 
     def __post_init__(self) -> None:
         if not (self.kc_start > 0 and math.isfinite(self.kc_start)):
@@ -77,14 +121,6 @@ class RampConfig:
             raise ValueError("max_time, total_periods and settle_periods: must be > 0")
         if not 0 < self.headroom <= 1:
             raise ValueError(f"headroom {self.headroom}: must be in (0, 1]")
-
-
-@dataclass(frozen=True)
-class Demand:
-    """What the experiment wants of the loop: P-only gain and setpoint, in auto."""
-
-    kc: float
-    sp: float
 
 
 @dataclass(frozen=True)
@@ -108,11 +144,35 @@ class RampResult:
     ku_loop: float = math.nan  # the sampled loop's own ultimate point (before the ZOH correction)
     pu_loop: float = math.nan
     model: ProcessFit | None = None  # fitted to the whole record (None without the outputs)
+    bump: float = math.nan  # PV units: the configured setpoint bump
+    bump_final: float = math.nan  # PV units: the bump after any halving (saturation)
 
+    def to_dict(self) -> dict[str, Any]:
+        """The run's ``experiment`` object (its keys are part of the JSON interface)."""
+        return {
+            "trials": self.trials,
+            "ku_sampled_loop": self.ku_loop,
+            "pu_sampled_loop": self.pu_loop,
+            **(self.model.to_dict() if self.model else {}),
+            "kc_low": self.kc_low,
+            "kc_high": self.kc_high,
+            "bump": self.bump,
+            "bump_final": self.bump_final,
+            "noise_std": self.noise_std,
+            "rest_pv": self.rest_pv,
+        }
 
-MAX_BACKOFFS = 8  # tenfold (at rest) or factor³ (after a trial) cuts of a start gain too high
-MAX_CALM_CUTS = 4  # halvings of the calming gain in one calming before giving up
-SEARCH_LENGTHS = 40.0  # trial lengths the search may take after the first, with no period
+    def identification(self) -> Identification:
+        return Identification(
+            ku=self.ku,
+            pu=self.pu,
+            ku_spread=(self.kc_high - self.kc_low) / self.ku,
+            experiment=self,
+            timescale=self.pu,
+            noise=self.noise_std,
+            rest_pv=self.rest_pv,
+            model=self.model,
+        )
 
 
 def _white(y: np.ndarray) -> bool:
@@ -136,11 +196,14 @@ class RampTest:
     reason: str = ""
     result: RampResult | None = None
     trials: list[Trial] = field(default_factory=list)
-    events: list[tuple[float, str, dict]] = field(default_factory=list)
+    events: list[Event] = field(default_factory=list)
+
+    needs_hold_time: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
-        q = self.config.quiet if self.config.quiet is not None else 40 * self.sample_time
-        self._quiet_n = max(10, math.ceil(q / self.sample_time))
+        cfg = self.config
+        q = cfg.quiet if cfg.quiet is not None else cfg.quiet_samples * self.sample_time
+        self._quiet_n = max(cfg.min_quiet_samples, math.ceil(q / self.sample_time))
         self._t: list[float] = []
         self._y: list[float] = []
         self._u: list[float] = []  # the loop's output, held from each sample
@@ -182,17 +245,38 @@ class RampTest:
     def finished(self) -> bool:
         return self.phase in ("done", "aborted")
 
-    def _abort(self, reason: str) -> Demand:
-        self.phase, self.reason = "aborted", reason
-        self.events.append((self._t[-1], "aborted", {"reason": reason}))
-        return Demand(self.kc, self.sp)
+    @property
+    def demand(self) -> Demand:
+        """The gain and setpoint to hold now."""
+        return Demand(kc=self.demand_kc, sp=self.sp)
 
-    def feed(self, t: float, pv: float, op: float = math.nan) -> Demand:
-        """Take the PV sampled at ``t`` (and the output the loop holds from ``t``, %: for the
-        process model and to see the output saturate); return the gain and setpoint to hold
-        from ``t`` on."""
+    def held(self, t: float) -> None:
+        """Nothing to do: a new gain or setpoint is timed from the sample it follows."""
+
+    def progress(self) -> Progress:
+        n = len(self.trials)
+        if not n:
+            return Progress("ramp", 0)
+        tr = self.trials[-1]
+        message = f"Kc {tr.kc:.4g}: growth {tr.growth:.3g}/s"
+        return Progress("ramp", n, cycles=n, pu=tr.period, message=message)
+
+    def identification(self) -> Identification | None:
+        return self.result.identification() if self.result is not None else None
+
+    def _abort(self, reason: str) -> Demand:
+        """Every abort: the phase, the reason and an ``aborted`` event."""
+        self.phase, self.reason = "aborted", reason
+        self.events.append(Event(self._t[-1], "aborted", {"reason": reason}))
+        return Demand(kc=self.kc, sp=self.sp)
+
+    def feed(self, sample: Sample) -> Demand:
+        """Take the PV sampled at ``sample.t`` (and the output the loop holds from then, %:
+        for the process model and to see the output saturate); return the gain and setpoint
+        to hold from ``sample.t`` on."""
+        t, pv, op = sample.t, sample.pv, sample.op
         if self.finished:
-            return Demand(self.kc, self.sp)
+            return Demand(kc=self.kc, sp=self.sp)
         self._t.append(t)
         self._y.append(pv)
         self._u.append(op)
@@ -213,14 +297,14 @@ class RampTest:
             self._watch_trial(t)
         elif self.phase == "settle":
             self._watch_settle(t)
-        return Demand(self.demand_kc, self.sp)
+        return Demand(kc=self.demand_kc, sp=self.sp)
 
     # --- budgets and the output's limits ---------------------------------------------------
 
     def _update_budget(self) -> None:
         """The sim time by which the test must be over: ``max_time`` from the start, and from
         what the test has seen: ``total_periods`` of the first period measured, after it;
-        before that, ``SEARCH_LENGTHS`` trial lengths (the longest so far) after the first."""
+        before that, ``search_lengths`` trial lengths (the longest so far) after the first."""
         cfg = self.config
         self._deadline = self._start + cfg.max_time
         self._budget = f"no result within max_time = {cfg.max_time:g} s"
@@ -232,9 +316,9 @@ class RampTest:
             )
         elif math.isfinite(self._first_end):
             length = max(self._trial_max, self._quiet_n * self.sample_time)
-            end = self._first_end + SEARCH_LENGTHS * length
+            end = self._first_end + cfg.search_lengths * length
             why = (
-                f"no oscillation within {SEARCH_LENGTHS:g} trial lengths ({length:.4g} s, the "
+                f"no oscillation within {cfg.search_lengths:g} trial lengths ({length:.4g} s, the "
                 "longest so far) after the first trial"
             )
         else:
@@ -271,7 +355,8 @@ class RampTest:
     def _min_bump(self) -> float:
         """The smallest bump worth a trial, PV units: 6σ of the noise (a thousandth of the
         configured bump without noise), never more than the configured bump."""
-        return min(self.config.bump, max(6.0 * self._noise, 1e-3 * self.config.bump))
+        cfg = self.config
+        return min(cfg.bump, max(cfg.min_bump_sigmas * self._noise, 1e-3 * cfg.bump))
 
     # --- quiet period ----------------------------------------------------------------------
 
@@ -282,14 +367,16 @@ class RampTest:
         n = self._quiet_n
         seen = len(self._y) - self._quiet_from
         saturated = self._sat_fraction(n) if seen >= n else 0.0
-        if saturated >= 0.5:
-            if self._backoffs >= MAX_BACKOFFS:
+        if saturated >= self.config.stuck_fraction:
+            if self._backoffs >= self.config.max_backoffs:
                 self._abort(
                     f"the output stays at its limit at rest, even at Kc = {self.kc:.4g} "
                     f"(start gain {self.config.kc_start:g} backed off {self._backoffs} times)"
                 )
                 return
-            self._back_off(t, self.kc / 10, "the output sits at its limit at rest")
+            self._back_off(
+                t, self.kc / self.config.rest_backoff, "the output sits at its limit at rest"
+            )
             self._quiet_from, self._sat_run = len(self._y), 0
             return
         if seen >= n:
@@ -298,13 +385,13 @@ class RampTest:
                 self._r, self._noise = float(base.mean()), noise_level(base)
                 self._quiet_end = len(self._y)
                 self._begin_trial(t)
-            elif seen >= 20 * n:
+            elif seen >= self.config.quiet_periods * n:
                 why = "the output keeps reaching its limits" if saturated else "it keeps drifting"
                 self._abort(f"the PV is not at rest before the test ({why})")
 
     def _back_off(self, t: float, kc: float, why: str) -> None:
         self._backoffs += 1
-        self.events.append((t, "back_off", {"kc": kc, "from": self.kc, "reason": why}))
+        self.events.append(Event(t, "back_off", {"kc": kc, "from": self.kc, "reason": why}))
         self.kc = self._calm_kc = kc
 
     # --- trials ----------------------------------------------------------------------------
@@ -317,15 +404,17 @@ class RampTest:
             if room <= 0:
                 self._abort(f"the output rests at its limit ({self._u[-1]:.4g} %): no room")
                 return
-            fits = self.config.headroom * room / self.kc - 3.0 * self._noise
+            fits = self.config.headroom * room / self.kc - self.config.kick_sigmas * self._noise
             if bump > fits:
                 if fits >= self._min_bump():
                     bump = fits
                     self.events.append(
-                        (t, "bump", {"bump": bump, "kc": self.kc, "reason": "kick fitted"})
+                        Event(t, "bump", {"bump": bump, "kc": self.kc, "reason": "kick fitted"})
                     )
-                elif self._lo is None and self._backoffs < MAX_BACKOFFS:
-                    kc = self.config.headroom * room / (bump + 3.0 * self._noise)
+                elif self._lo is None and self._backoffs < self.config.max_backoffs:
+                    kc = (
+                        self.config.headroom * room / (bump + self.config.kick_sigmas * self._noise)
+                    )
                     self._back_off(t, kc, "the kick Kc·bump would saturate the output")
                 else:
                     self._abort(
@@ -344,14 +433,17 @@ class RampTest:
         self._sat_run = 0
         self.phase = "trial"
         self.events.append(
-            (t, "trial", {"n": len(self.trials) + 1, "kc": self.kc, "sp": self.sp, "bump": bump})
+            Event(
+                t, "trial", {"n": len(self.trials) + 1, "kc": self.kc, "sp": self.sp, "bump": bump}
+            )
         )
 
     def _trial_cap(self) -> float:
         """s to watch a trial before any period is known: ``first_trial_time``, and 1000
         quiet windows. (A gain nearer K_u rings longer than a lower one did: an earlier
         response's length is no bound on the next.)"""
-        return min(self.config.first_trial_time, 1000 * self._quiet_n * self.sample_time)
+        cfg = self.config
+        return min(cfg.first_trial_time, cfg.trial_cap_quiet * self._quiet_n * self.sample_time)
 
     def _watch_trial(self, t: float) -> None:
         n = len(self._y) - self._trial_start
@@ -385,15 +477,15 @@ class RampTest:
             return
         self._last_len = t - self._trial_t0
         self.events.append(
-            (t, "saturated", {"kc": self.kc, "bump": self._trial_bump, "op": self._u[-1]})
+            Event(t, "saturated", {"kc": self.kc, "bump": self._trial_bump, "op": self._u[-1]})
         )
         half = 0.5 * self._trial_bump
         if half >= self._min_bump():
             self.bump = min(self.bump, half)
             self.events.append(
-                (t, "bump", {"bump": self.bump, "kc": self.kc, "reason": "output saturated"})
+                Event(t, "bump", {"bump": self.bump, "kc": self.kc, "reason": "output saturated"})
             )
-        elif self._lo is None and self._backoffs < MAX_BACKOFFS:
+        elif self._lo is None and self._backoffs < self.config.max_backoffs:
             self._back_off(t, self.kc / self.config.factor**3, "the output saturates")
         else:
             self._abort(
@@ -433,7 +525,8 @@ class RampTest:
     def _moving_level(self) -> float:
         """PV units from the rest that tell a response from the dead time before it: at a low
         gain the PV moves by Kc·K/(1 + Kc·K) of the bump, which can be a small fraction of it."""
-        return max(0.02 * self._trial_bump, 6 * self._noise)
+        cfg = self.config
+        return max(cfg.moving_fraction * self._trial_bump, cfg.moving_sigmas * self._noise)
 
     def _swing_limit_hit(self) -> bool:
         """The PV has swung further from where it rested before the trial than allowed."""
@@ -454,7 +547,7 @@ class RampTest:
             return None  # "swings" of the noise, not an oscillation seen for 1.5 periods
         # its amplitude where largest: at the start (decaying) or at the end (growing)
         seen = osc.amplitude * math.exp(min(max(osc.growth * watched, 0.0), 50.0))
-        return osc if seen >= 2.0 * self._noise else None
+        return osc if seen >= self.config.fit_sigmas * self._noise else None
 
     def _close_trial(
         self, t: float, cut: bool, end: int | None = None, capped: bool = False
@@ -478,7 +571,9 @@ class RampTest:
         self._last_len = watched
         self.trials.append(trial)
         self.events.append(
-            (t, "trial_result", {"kc": trial.kc, "growth": trial.growth, "period": trial.period})
+            Event(
+                t, "trial_result", {"kc": trial.kc, "growth": trial.growth, "period": trial.period}
+            )
         )
         self._trial_max = max(self._trial_max, watched)
         if len(self.trials) == 1:
@@ -517,7 +612,9 @@ class RampTest:
     def _begin_settle(self, t: float) -> None:
         """Calm the loop at a gain known to decay (or below the present one) before the next
         trial."""
-        self._calm_kc = 0.7 * (self._lo.kc if self._lo else self.kc / self.config.factor)
+        self._calm_kc = self.config.calm_gain * (
+            self._lo.kc if self._lo else self.kc / self.config.factor
+        )
         self.phase = "settle"
         self._settle_start, self._settle_t0 = len(self._y) - 1, t
         self._calm_cuts = 0
@@ -534,7 +631,8 @@ class RampTest:
             k = lo.kc + width * (-lo.growth) / (hi.growth - lo.growth)
         else:
             k = math.sqrt(lo.kc * hi.kc)
-        return min(max(k, lo.kc + 0.05 * width), hi.kc - 0.05 * width)
+        m = self.config.bracket_margin
+        return min(max(k, lo.kc + m * width), hi.kc - m * width)
 
     def _converged(self) -> bool:
         lo, hi = self._lo, self._hi
@@ -564,9 +662,11 @@ class RampTest:
             ku,
             pu,
             self._process_model(ku_plant, pu_plant),
+            self.config.bump,
+            self.bump,
         )
         self.phase = "done"
-        self.events.append((self._t[-1], "done", {"ku": ku, "pu": pu}))
+        self.events.append(Event(self._t[-1], "done", {"ku": ku, "pu": pu}))
         return True
 
     def _process_model(self, ku: float, pu: float) -> ProcessFit | None:
@@ -602,10 +702,11 @@ class RampTest:
         closed-loop pole s = g + jω satisfies L(s) = −1/Kc for the loop L = G·ZOH; together
         they give dL/ds, hence the phase and log-magnitude slopes of L at the crossover, and
         the frequency where arg L + ωT/2 = −π. Unchanged if the trials lack what it needs."""
+        low, high = self.config.near_ku
         near = [
             tr
             for tr in self.trials
-            if tr.period and math.isfinite(tr.growth) and 0.7 * ku <= tr.kc <= 1.3 * ku
+            if tr.period and math.isfinite(tr.growth) and low * ku <= tr.kc <= high * ku
         ]
         if len(near) < 2:
             return ku, pu
@@ -632,15 +733,18 @@ class RampTest:
         """Let the loop calm at a gain known to decay, then start the next trial from where
         the PV has come to rest. A calming whose output sat at a limit for half of the last
         period, or that outlasts ``settle_periods`` periods (before any period is known: trial
-        lengths), is at a gain that does not calm: the gain is halved, ``MAX_CALM_CUTS`` times
+        lengths), is at a gain that does not calm: the gain is halved, ``max_calm_cuts`` times
         at most."""
         scale = self._period or max(
             self._trial_max, self._last_len, self._quiet_n * self.sample_time
         )
         window = max(1, round(scale / self.sample_time))
-        stuck = len(self._y) - self._settle_start >= window and self._sat_fraction(window) >= 0.5
+        stuck = (
+            len(self._y) - self._settle_start >= window
+            and self._sat_fraction(window) >= self.config.stuck_fraction
+        )
         if stuck or t - self._settle_t0 > self.config.settle_periods * scale:
-            if self._calm_cuts >= MAX_CALM_CUTS:
+            if self._calm_cuts >= self.config.max_calm_cuts:
                 self._abort(
                     f"the loop does not calm between trials, even at Kc = {self._calm_kc:.4g}"
                 )
@@ -648,7 +752,7 @@ class RampTest:
             self._calm_cuts += 1
             self._calm_kc *= 0.5
             why = "output saturated" if stuck else "not calm in time"
-            self.events.append((t, "calm", {"kc": self._calm_kc, "reason": why}))
+            self.events.append(Event(t, "calm", {"kc": self._calm_kc, "reason": why}))
             self._settle_start, self._settle_t0, self._sat_run = len(self._y) - 1, t, 0
             return
         window = max(20, round((self._period or 40 * self.sample_time) / self.sample_time))
@@ -677,3 +781,26 @@ class RampTest:
     def demand_kc(self) -> float:
         """The gain to hold now: the trial's, or a calming one between trials."""
         return self._calm_kc if self.phase == "settle" else self.kc
+
+
+def build(settings: Settings, setup: Setup) -> RampTest:
+    """The ramp a request and a loop's set-up ask for; ValueError naming the setting that
+    cannot work. With the loop's ``time_scale`` (s), a trial before any period is known is
+    watched 30 time scales (and 200 samples at least)."""
+    if setup.kc_start is None or setup.bump is None or setup.sp_start is None:
+        raise ValueError("kc_start, bump, sp_start: required for a ramp test")
+    ts, scale = setup.sample_time, setup.time_scale
+    first = (
+        {"first_trial_time": min(RampConfig.first_trial_time, max(30 * scale, 200 * ts))}
+        if scale
+        else {}
+    )
+    budget = {"max_time": settings.max_time} if settings.max_time else {}
+    cfg = RampConfig(
+        kc_start=setup.kc_start,
+        bump=setup.bump,
+        tolerance=min(settings.tolerance, 0.02) / 2,
+        **first,
+        **budget,
+    )
+    return RampTest(cfg, setup.pv_limits, ts, sp_start=setup.sp_start, op_limits=setup.op_limits)

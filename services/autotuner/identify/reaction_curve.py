@@ -42,6 +42,8 @@ import numpy as np
 from scipy.optimize import brentq, least_squares, minimize_scalar
 from scipy.signal import savgol_filter
 
+from shared.control.signals import first_crossing, range_end
+
 
 @dataclass(frozen=True)
 class ReactionCurve:
@@ -67,54 +69,18 @@ class ReactionCurve:
     dead_time_tangent: float | None = None  # s, the tangent's L before the floor
     dead_time_floor: float = 0.0  # s, half a sample time (see the module docstring)
 
-    def to_dict(self) -> dict[str, float]:
+    def to_dict(self) -> dict[str, float | int | str | None]:
+        """The result's ``step`` object (JSON): every field by its name, in this order."""
         return asdict(self)
 
 
-def noise_level(y: np.ndarray) -> float:
-    """Standard deviation of ``y`` about its straight-line trend (0 for fewer than 3 points)."""
-    if y.size < 3:
-        return 0.0
-    x = np.arange(y.size, dtype=float)
-    coef = np.polyfit(x, y, 1)
-    return float(np.std(y - np.polyval(coef, x), ddof=2))
-
-
-def range_end(
-    y: np.ndarray, pv_range: tuple[float, float], noise_std: float | None = None
-) -> str | None:
-    """'top' or 'bottom' when the PV sits at, or within 3σ of, an end of ``pv_range``.
-
-    The transmitter clips the measurement to its range, so a PV there is flat and noise-free
-    whatever the process does: any sample at the end, or a mean within 3σ of it, counts.
-    σ is ``noise_std`` if given, else the record's own (which clipping lowers).
-    """
-    y = np.asarray(y, dtype=float)
-    if y.size == 0:
-        return None
-    lo, hi = pv_range
-    tol = 1e-9 * max(1.0, abs(lo), abs(hi), hi - lo)
-    sigma = noise_level(y) if noise_std is None else noise_std
-    mean = float(np.mean(y))
-    if np.any(y >= hi - tol) or mean >= hi - 3.0 * sigma - tol:
-        return "top"
-    if np.any(y <= lo + tol) or mean <= lo + 3.0 * sigma + tol:
-        return "bottom"
-    return None
-
-
-def at_rest(y: np.ndarray, pv_range: tuple[float, float] | None = None) -> bool:
-    """No trend beyond the noise: the straight-line fit moves less than 3σ (and less than
-    1e-9 of the level) over the record; and, given the transmitter's ``pv_range``, the PV is
-    not at or within noise of one of its ends (``range_end``)."""
-    if y.size < 3:
-        return False
-    if pv_range is not None and range_end(y, pv_range) is not None:
-        return False
-    x = np.arange(y.size, dtype=float)
-    slope = float(np.polyfit(x, y, 1)[0])
-    drift = abs(slope) * (y.size - 1)
-    return drift <= max(3.0 * noise_level(y), 1e-9 * max(1.0, float(np.max(np.abs(y)))))
+def _reached(t: np.ndarray, z: np.ndarray, level: float) -> float:
+    """``first_crossing`` of the normalised response z, which the analysis needs: ValueError
+    if the PV never reached ``level`` of its change."""
+    crossed = first_crossing(t, z, level)
+    if crossed is None:
+        raise ValueError(f"the PV never reached {level:.0%} of its change")
+    return crossed
 
 
 def _window(noise: float, change: float, rise_samples: float) -> int:
@@ -162,7 +128,7 @@ def analyze_step(
     dt = float(np.median(np.diff(t)))
     sign = math.copysign(1.0, change)
     z = (y - pv_before) / change  # normalised response, 0 → 1
-    rise_samples = max((_first_crossing(t, z, 0.632) - t_step) / dt, 7.0)
+    rise_samples = max((_reached(t, z, 0.632) - t_step) / dt, 7.0)
     if noise_std <= 1e-9 * abs(change):
         # Noise-free: the steepest secant between samples, at its midpoint. Exact to O(T²)
         # on a smooth curve, and never overshoots where the slope jumps (a pure dead time).
@@ -192,7 +158,7 @@ def analyze_step(
         raise ValueError("the PV has no slope after the step")
     t_inf -= t_step
     dead_time = t_inf - (y_at - pv_before) / slope
-    t63 = _first_crossing(t, (ys - pv_before) / change, 0.632) - t_step
+    t63 = _reached(t, (ys - pv_before) / change, 0.632) - t_step
     method, fit_rms = "data", None
     if noise_std > 1e-9 * abs(change):
         fit = fit_sopdt(t - t_step, y - pv_before, change, dead_time, slope)
@@ -311,17 +277,6 @@ def fit_sopdt(
     return SopdtFit(float(k), float(max(t1, t2)), float(min(t1, t2)), float(th), rms)
 
 
-def _first_crossing(t: np.ndarray, z: np.ndarray, level: float) -> float:
-    """Time where z first reaches ``level``, interpolated linearly between samples."""
-    above = np.nonzero(z >= level)[0]
-    if above.size == 0:
-        raise ValueError(f"the PV never reached {level:.0%} of its change")
-    i = int(above[0])
-    if i == 0:
-        return float(t[0])
-    return float(t[i - 1] + (level - z[i - 1]) / (z[i] - z[i - 1]) * (t[i] - t[i - 1]))
-
-
 def settled(
     t: np.ndarray,
     y: np.ndarray,
@@ -354,10 +309,10 @@ def settled(
     if pv_range is not None and range_end(yw, pv_range, noise_std) is not None:
         return False, rest
     elapsed = t[-1] - t_step
-    try:
-        t63 = _first_crossing(t, (y - pv_before) / change, 0.632) - t_step
-    except ValueError:
+    reached = first_crossing(t, (y - pv_before) / change, 0.632)
+    if reached is None:
         return False, rest
+    t63 = reached - t_step
     if elapsed < 3.0 * t63:
         return False, rest
     x = tw - tw.mean()

@@ -14,43 +14,52 @@ keeping the oscillation symmetric under a load change.
 The test ends when the last N cycles agree within a tolerance (period and amplitude), giving
 the describing-function estimate K_u = 4d/(π·√(a² − ε²)) and P_u, the mean period, with
 their spread, and the exact G(jω) at the oscillation frequency and its 3rd and 5th
-harmonics from the Fourier components of those whole cycles (``fourier``);
-it fails with a reason after a cycle or time budget, or when the PV leaves
-its limits.
+harmonics from the Fourier components of those whole cycles (``fourier``). Stage 2 (phase
+``stage2``) re-aims the cycle past −180° so that the two stages' points bracket it. It aborts
+(one path, ``_abort``: the reason and an ``aborted`` event) after a cycle or time budget, or
+when the PV leaves its limits.
+
+This module is the state machine; K_u and P_u from the stages' points are
+``relay_estimate``'s, the process model on the record ``relay_model``'s, the result and its
+JSON ``relay_result``'s. Every threshold is a field of ``RelayConfig`` (or of its
+``EstimateConfig``), with its reason.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
-from scipy.optimize import brentq
 
-from services.autotuner.identify.fourier import FrequencyPoint, frequency_points
-from services.autotuner.identify.model_fit import (
-    ProcessFit,
-    choose,
-    choose_on_record,
-    fit_models,
-    refine_on_record,
-    response_to,
+from services.autotuner.identify.experiments import (
+    Demand,
+    Event,
+    Identification,
+    Progress,
+    Settings,
+    Setup,
 )
-from services.autotuner.identify.reaction_curve import at_rest, noise_level
-
-STAGE_TWO_CYCLES = 2  # one to settle into the new cycle, one to measure
-NEAR_DEG = 25.0  # a measured point this close to −180° makes the crossover "measured"
-OVERSHOOT = 0.5  # stage 2 aims past −180° by half stage 1's miss…
-MIN_SHIFT_DEG = 2.0  # … and moves the cycle's phase by at least this
+from services.autotuner.identify.fourier import frequency_points
+from services.autotuner.identify.relay_estimate import (
+    EstimateConfig,
+    StageOne,
+    estimate,
+    g_scatter,
+    refine,
+    spread,
+)
+from services.autotuner.identify.relay_model import RelayRecord, corrector, process_model
+from services.autotuner.identify.relay_result import RelayResult
+from shared.control.signals import Sample, at_rest, noise_level
 
 
 @dataclass(frozen=True)
 class RelayConfig:
     amplitude: float = 5.0  # d, % of output
     hysteresis: float | None = None  # ε, PV units; None: 3σ of the quiet period's noise
-    quiet: float | None = None  # s; None: 40 samples
+    quiet: float | None = None  # s; None: ``quiet_samples`` samples
     cycles: int = 3  # N: how many of the last cycles must agree
     tolerance: float = 0.02  # their relative spread (max − min)/mean, period and amplitude
     max_cycles: int = 30
@@ -58,6 +67,56 @@ class RelayConfig:
     bias_adaptation: bool = True
     refine: bool = True  # run the second, phase-shifted and biased stage
     low_ratio: float = 1.0  # second stage: the low output is b − low_ratio·d (the bias)
+    # --- thresholds and factors ---
+    # the quiet period without ``quiet``: enough samples for a trend and a noise level
+    quiet_samples: int = 40
+    # never fewer samples in the quiet period: a regression on fewer says nothing
+    min_quiet_samples: int = 10
+    # quiet periods to wait for the PV to come to rest before giving up
+    quiet_periods: int = 20
+    # ε = this many σ of the noise: a switch on noise alone is then a 3σ event
+    hysteresis_sigmas: float = 3.0
+    # a noisy cycle's PV is smoothed (over 1/``smooth_divisor`` of it, 3 samples at least)
+    # before its peak-to-peak is read, once it has this many samples
+    smooth_min_samples: int = 9
+    smooth_divisor: int = 20
+    # a cycle within these ratios of the one before (amplitude and period) is steady (noise
+    # can split a cycle): only then may the bias move
+    steady_ratios: tuple[float, float] = (0.8, 1.25)
+    # the bias moves when the high part's skew exceeds this many samples of the period
+    # (quantisation alone skews it by about one)
+    bias_skew_samples: float = 2.5
+    # a bias step is at most this fraction of d: a noisy cycle moves it less
+    bias_step: float = 0.5
+    # noise scatters each cycle's period and amplitude by about σ/a: the agreement asked
+    # of the cycles is no tighter than this many σ/a (the Fourier points average it out)
+    noise_agreement: float = 2.0
+    # cycles after the first full ones before the time budget becomes a cycle budget (the
+    # cycle grows from nothing at start-up, and noise can close a short first cycle)
+    budget_after_cycles: int = 3
+    # the cycle budget: ``max_cycles`` plus this many of the longest cycle
+    budget_spare_cycles: int = 2
+    # stage 2: one cycle to settle into the new cycle, one to measure
+    stage_two_cycles: int = 2
+    # stage 2 gets this many times its cycles' worth of stage 1's period to close them
+    stage_two_patience: float = 2.0
+    # stage 2 runs near stage 1's period: a crossing sooner than this fraction of it is noise
+    spurious_fraction: float = 0.6
+    # stage 2 aims past −180° by this fraction of stage 1's miss…
+    overshoot: float = 0.5
+    # … and moves the cycle's phase by at least this many degrees
+    min_shift_deg: float = 2.0
+    # the hysteresis level's phase is kept within ± this (asin of h/a near its flat end
+    # gives no control of the phase)
+    max_level_deg: float = 60.0
+    # stage 2: a cycle's crossing is armed once the PV is this fraction of the way down to
+    # its trough (stage 2 may switch high while still above r)
+    cross_fraction: float = 0.5
+    # stage 2 with a lead: the next switch is armed this fraction of the way from the level
+    # to the expected peak, so that noise cannot make it chatter
+    lead_fraction: float = 0.5
+    # the K_u/P_u estimator's thresholds (relay_estimate)
+    estimate: EstimateConfig = field(default_factory=EstimateConfig)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.amplitude) and self.amplitude > 0):
@@ -83,37 +142,6 @@ class Cycle:
     bias: float
 
 
-@dataclass(frozen=True)
-class RelayResult:
-    ku: float
-    pu: float
-    amplitude: float  # a, PV units (mean over the agreeing cycles)
-    relay_amplitude: float  # d, %
-    hysteresis: float  # ε, PV units
-    bias: float  # b at the end, %
-    noise_std: float
-    cycles: int  # how many cycles were run
-    ku_spread: float  # (max − min)/mean over the agreeing cycles
-    pu_spread: float
-    rest_pv: float  # r
-    frequency: tuple[FrequencyPoint, ...] = ()  # exact G(jkω), k = 1, 3, 5 (fourier module)
-    ku_df: float = math.nan  # the describing-function estimate of stage 1
-    pu_df: float = math.nan
-    stage_one_cycles: int = 0
-    second: tuple[FrequencyPoint, ...] = ()  # stage 2's exact G(jkω₂), k = 1, 2, 3
-    # the process gain of the model fitted on a record with stage 2's bias (None: no bias);
-    # the bias's step in the mean output is what pins it (the DC ratio of two short stages is
-    # not yet settled)
-    static_gain: float | None = None
-    model: ProcessFit | None = None  # fitted to both stages' points (model_fit)
-    # how K_u and P_u were found: "bracketed" (the stages' points lie on both sides of
-    # −180°), "near" (a point within NEAR_DEG of it: a short interpolation), or "not reached"
-    # (both far from it: ku/pu are then the model's own ultimate point, NaN without a model)
-    crossing: str = "bracketed"
-    phase_reached_deg: float = -180.0  # the measured phase closest to −180°
-    cycle_period: float = math.nan  # s, stage 1's mean period
-
-
 @dataclass
 class RelayTest:
     config: RelayConfig
@@ -123,14 +151,16 @@ class RelayTest:
     sample_time: float
     direction: float = 1.0  # +1 reverse-acting loop (PV rises with the output), −1 direct
 
-    phase: str = "quiet"  # quiet → relay → done | aborted
+    phase: str = "quiet"  # quiet → relay → stage2 → done | aborted
     reason: str = ""
     result: RelayResult | None = None
     cycles: list[Cycle] = field(default_factory=list)
-    events: list[tuple[float, str, dict]] = field(default_factory=list)
+    events: list[Event] = field(default_factory=list)
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
     op: list[float] = field(default_factory=list)
+
+    needs_hold_time: ClassVar[bool] = False  # each switch holds from the sample it follows
 
     def __post_init__(self) -> None:
         d, lo, hi = self.config.amplitude, *self.op_limits
@@ -139,8 +169,9 @@ class RelayTest:
                 f"relay amplitude {d:g} %: the output would swing {self.op_start - d:g}–"
                 f"{self.op_start + d:g} %, beyond the loop's limits [{lo:g}, {hi:g}] %"
             )
-        quiet = self.config.quiet if self.config.quiet is not None else 40 * self.sample_time
-        self._quiet_samples = max(10, math.ceil(quiet / self.sample_time))
+        cfg = self.config
+        quiet = cfg.quiet if cfg.quiet is not None else cfg.quiet_samples * self.sample_time
+        self._quiet_samples = max(cfg.min_quiet_samples, math.ceil(quiet / self.sample_time))
         self.bias = self.op_start
         self._state = 1.0  # +1: pushing the PV up
         self._r = math.nan
@@ -153,25 +184,55 @@ class RelayTest:
         self._switch_armed = True  # the next switch may happen (stage 2's lead needs a lockout)
         self._margin = 0.0  # how far past the opposite level the PV must go to arm a switch
         self._cross_margin = 0.0  # how far below r the PV must go to arm a cycle's crossing
-        self._agreement = self.config.tolerance  # asked of the cycles (wider with noise)
+        self._agreement = cfg.tolerance  # asked of the cycles (wider with noise)
         self._low = 1.0  # the low output is b − low·d (stage 2: the bias)
-        self._stage1: _StageOne | None = None
+        self._stage1: StageOne | None = None
+        self._demand = Demand(op=self.op_start)
+
+    # --- the experiment protocol ---------------------------------------------------------
 
     @property
     def finished(self) -> bool:
         return self.phase in ("done", "aborted")
+
+    @property
+    def demand(self) -> Demand:
+        return self._demand
+
+    def feed(self, sample: Sample) -> Demand:
+        """Take the PV sampled at ``sample.t``; return the output to hold from then on."""
+        self._demand = Demand(op=self._feed(sample.t, sample.pv))
+        return self._demand
+
+    def held(self, t: float) -> None:
+        """Nothing to do: a switch is timed from the sample that caused it."""
+
+    def horizon(self, cap: int) -> int:
+        return 1  # every sample may switch the relay
+
+    def progress(self) -> Progress:
+        n = len(self.cycles)
+        if not n:
+            return Progress("relay", 0)
+        cyc = self.cycles[-1]
+        return Progress("relay", n, cycles=n, ku=self.ku_of(cyc.amplitude), pu=cyc.period)
+
+    def identification(self) -> Identification | None:
+        return self.result.identification() if self.result is not None else None
+
+    # --- the state machine ---------------------------------------------------------------
 
     def _out(self) -> float:
         swing = 1.0 if self._state > 0 else -self._low
         return self.bias + self.direction * swing * self.config.amplitude
 
     def _abort(self, reason: str) -> float:
+        """Every abort: the phase, the reason and an ``aborted`` event; the output at rest."""
         self.phase, self.reason = "aborted", reason
-        self.events.append((self.t[-1] if self.t else 0.0, "aborted", {"reason": reason}))
+        self.events.append(Event(self.t[-1] if self.t else 0.0, "aborted", {"reason": reason}))
         return self.op_start
 
-    def feed(self, t: float, pv: float) -> float:
-        """Take the PV sampled at ``t``; return the output to hold from ``t`` on."""
+    def _feed(self, t: float, pv: float) -> float:
         if self.finished:
             return self.op_start
         self.t.append(t)
@@ -185,48 +246,48 @@ class RelayTest:
 
     def _quiet(self, t: float) -> float:
         """Wait until the last quiet period shows the PV at rest (no trend beyond its noise);
-        give up after 20 quiet periods."""
-        n = self._quiet_samples
+        give up after ``quiet_periods`` quiet periods."""
+        cfg, n = self.config, self._quiet_samples
         if len(self.pv) < n:
             return self.op_start
         base = np.asarray(self.pv[-n:])
         if not at_rest(base):
-            if len(self.pv) >= 20 * n:
+            if len(self.pv) >= cfg.quiet_periods * n:
                 return self._abort("the PV is not at rest before the test (it keeps drifting)")
             return self.op_start
         self._r = float(base.mean())
         self._noise = noise_level(base)
-        h = self.config.hysteresis
-        self._eps = 3.0 * self._noise if h is None else h
+        h = cfg.hysteresis
+        self._eps = cfg.hysteresis_sigmas * self._noise if h is None else h
         self._level = self._eps
         self._margin = self._eps
         self._cross_margin = self._eps
         self._relay_start = t
         self.phase = "relay"
         self.events.append(
-            (
+            Event(
                 t,
                 "relay_start",
                 {"rest_pv": self._r, "noise_std": self._noise, "hysteresis": self._eps},
             )
         )
-        self.events.append((t, "switch", {"op": self._out()}))
+        self.events.append(Event(t, "switch", {"op": self._out()}))
         return self._out()
 
     def _relay(self, t: float, pv: float) -> float:
-        r, h = self._r, self._level
+        cfg, r, h = self.config, self._r, self._level
         self._arm(pv)
         if self._switch_armed and self._state > 0 and pv > r + h:
             self._state, self._switch_armed = -1.0, False
-            self.events.append((t, "switch", {"op": self._out()}))
+            self.events.append(Event(t, "switch", {"op": self._out()}))
         elif self._switch_armed and self._state < 0 and pv < r - h:
             self._state, self._switch_armed = 1.0, False
-            self.events.append((t, "switch", {"op": self._out()}))
+            self.events.append(Event(t, "switch", {"op": self._out()}))
         self._arm(pv)
         if self._state > 0 and pv < r - self._cross_margin:
             # the next upward crossing of r closes a cycle: the relay is high and the PV has
             # been below r by the margin (stage 2 may switch high while still above r, so
-            # there the PV must first be half-way down to its trough)
+            # there the PV must first be part of the way down to its trough)
             self._armed = True
         # upward crossing of r, interpolated between the last two samples
         if self._armed and len(self.pv) >= 2 and self.pv[-2] < r <= pv:
@@ -235,26 +296,34 @@ class RelayTest:
             self._armed = False
             self._crossings.append(tc)
             s1 = self._stage1
-            if s1 is not None and tc - self._crossings[-2] < 0.6 * s1.pu:
+            if (
+                self.phase == "stage2"
+                and s1 is not None
+                and tc - self._crossings[-2] < cfg.spurious_fraction * s1.pu
+            ):
                 self._crossings.pop()  # noise, not a cycle: stage 2 runs near stage 1's period
-                self.events.append((t, "spurious_crossing", {"t": tc}))
+                self.events.append(Event(t, "spurious_crossing", {"t": tc}))
             elif len(self._crossings) >= 2:
                 self._close_cycle(self._crossings[-2], tc)
                 if self.finished:
                     return self.op_start
         s1 = self._stage1
-        if s1 is not None and t - s1.t_end > 2.0 * STAGE_TWO_CYCLES * s1.pu:
+        if (
+            self.phase == "stage2"
+            and s1 is not None
+            and t - s1.t_end > cfg.stage_two_patience * cfg.stage_two_cycles * s1.pu
+        ):
             # stage 2 never settled into its cycle: keep what stage 1 measured
-            self.events.append((t, "stage", {"stage": 2, "abandoned": True}))
+            self.events.append(Event(t, "stage", {"stage": 2, "abandoned": True}))
             self._finish(stage_two=False)
             return self.op_start if self.finished else self._out()
-        budget = self.config.max_time
-        if len(self.cycles) >= 3:  # the cycle grows from nothing at start-up (and noise can
-            # close a short first cycle): budget on the longest once there are a few
-            budget = (self.config.max_cycles + 2) * max(c.period for c in self.cycles)
+        budget = cfg.max_time
+        if len(self.cycles) >= cfg.budget_after_cycles:  # once there are a few cycles: the
+            # longest of them bounds the rest
+            budget = (cfg.max_cycles + cfg.budget_spare_cycles) * max(c.period for c in self.cycles)
         if t - self._relay_start > budget:
             return self._abort(
-                f"no limit cycle that repeats within {self.config.tolerance:.0%} after "
+                f"no limit cycle that repeats within {cfg.tolerance:.0%} after "
                 f"{len(self.cycles)} cycles and {t - self._relay_start:g} s"
             )
         return self._out()
@@ -271,18 +340,19 @@ class RelayTest:
                 self._switch_armed = pv > r - h + margin
 
     def _close_cycle(self, t0: float, t1: float) -> None:
+        cfg = self.config
         t, y, u = np.asarray(self.t), np.asarray(self.pv), np.asarray([*self.op, self._out()])
         sel = (t >= t0) & (t <= t1)
         ys = y[sel]
-        if self._noise > 0 and ys.size >= 9:
-            w = max(3, ys.size // 20) | 1
+        if self._noise > 0 and ys.size >= cfg.smooth_min_samples:
+            w = max(3, ys.size // cfg.smooth_divisor) | 1
             ys = np.convolve(ys, np.ones(w) / w, mode="valid")
         amplitude = 0.5 * float(ys.max() - ys.min())
         high = u[sel] > self.bias
         cycle = Cycle(t0, t1 - t0, amplitude, float(high.mean()) if high.size else 0.5, self.bias)
         self.cycles.append(cycle)
         self.events.append(
-            (
+            Event(
                 t1,
                 "cycle",
                 {
@@ -294,47 +364,46 @@ class RelayTest:
             )
         )
         previous = self.cycles[-2] if len(self.cycles) >= 2 else None
+        lo_ratio, hi_ratio = cfg.steady_ratios
         steady = (
             len(self.cycles) >= 3
             and previous is not None
-            and 0.8 <= amplitude / previous.amplitude <= 1.25
-            and 0.8 <= cycle.period / previous.period <= 1.25  # noise can split a cycle
+            and lo_ratio <= amplitude / previous.amplitude <= hi_ratio
+            and lo_ratio <= cycle.period / previous.period <= hi_ratio
         )
-        if self.config.bias_adaptation and steady and self._stage1 is None:
+        if cfg.bias_adaptation and steady and self.phase == "relay":
             skew = 2.0 * cycle.high_fraction - 1.0
-            if abs(skew) > 2.5 * self.sample_time / cycle.period:
-                d, (lo, hi) = self.config.amplitude, self.op_limits
-                step = min(max(d * skew, -0.5 * d), 0.5 * d)  # a noisy cycle moves it less
+            if abs(skew) > cfg.bias_skew_samples * self.sample_time / cycle.period:
+                d, (lo, hi) = cfg.amplitude, self.op_limits
+                most = cfg.bias_step * d
+                step = min(max(d * skew, -most), most)
                 self.bias = min(max(self.bias + step, lo + d), hi - d)
-                self.events.append((t1, "bias", {"bias": self.bias}))
-        if self._stage1 is not None:
-            if len(self.cycles) - self._stage1.cycles >= STAGE_TWO_CYCLES:
+                self.events.append(Event(t1, "bias", {"bias": self.bias}))
+        if self.phase == "stage2":
+            assert self._stage1 is not None
+            if len(self.cycles) - self._stage1.cycles >= cfg.stage_two_cycles:
                 self._finish()
             return
-        n = self.config.cycles
+        n = cfg.cycles
         recent = self.cycles[1:][-n:]  # the first cycle is the start-up transient
         if len(recent) == n:
-            pu_spread = _spread([c.period for c in recent])
-            a_spread = _spread([c.amplitude for c in recent])
-            # noise scatters each cycle's period and amplitude by about σ/a: the Fourier
-            # points average it out, so the agreement asked for is no tighter than that
+            pu_spread = spread([c.period for c in recent])
+            a_spread = spread([c.amplitude for c in recent])
             tol = self._agreement = max(
-                self.config.tolerance, 2.0 * self._noise / np.mean([c.amplitude for c in recent])
+                cfg.tolerance,
+                cfg.noise_agreement * self._noise / np.mean([c.amplitude for c in recent]),
             )
             if pu_spread <= tol and a_spread <= tol:
                 self._stage1 = self._summarise(recent, pu_spread)
-                if self.config.refine and self._stage1.points:
+                if cfg.refine and self._stage1.points:
                     self._start_stage_two(t1)
                 else:
                     self._finish()
                 return
-        if len(self.cycles) >= self.config.max_cycles:
-            self.phase, self.reason = (
-                "aborted",
-                (
-                    f"the last {n} of {len(self.cycles)} cycles still differ by more than "
-                    f"{self._agreement:.0%}"
-                ),
+        if len(self.cycles) >= cfg.max_cycles:
+            self._abort(
+                f"the last {n} of {len(self.cycles)} cycles still differ by more than "
+                f"{self._agreement:.0%}"
             )
 
     def ku_of(self, amplitude: float) -> float:
@@ -342,7 +411,7 @@ class RelayTest:
         a2 = amplitude**2 - self._eps**2
         return 4.0 * self.config.amplitude / (math.pi * math.sqrt(a2)) if a2 > 0 else math.inf
 
-    def _summarise(self, recent: list[Cycle], pu_spread: float) -> _StageOne:
+    def _summarise(self, recent: list[Cycle], pu_spread: float) -> StageOne:
         """Stage 1's describing-function estimate and its exact frequency points."""
         kus = [self.ku_of(c.amplitude) for c in recent]
         period = float(np.mean([c.period for c in recent]))
@@ -359,14 +428,14 @@ class RelayTest:
         except ValueError:
             points, per_cycle = (), []
         t1 = recent[-1].t_start + recent[-1].period
-        return _StageOne(
+        return StageOne(
             ku=float(np.mean(kus)),
             pu=period,
-            ku_spread=_spread(kus),
+            ku_spread=spread(kus),
             pu_spread=pu_spread,
             amplitude=float(np.mean([c.amplitude for c in recent])),
             points=points,
-            g_scatter=_g_scatter(per_cycle),
+            g_scatter=g_scatter(per_cycle),
             cycles=len(self.cycles),
             t_end=t1,
             window=(recent[0].t_start, period, len(recent)),
@@ -376,117 +445,77 @@ class RelayTest:
         """Re-aim the relay at −180°: stage 1's exact phase φ₁ at ω₁ shows how far off its
         cycle ran; the hysteresis level h moves the cycle's phase by about asin(h/a), so
         stage 2 asks for φ₁ + 180° more lag (or lead, with negative h), overshooting by
-        half (at least 2°) so that the two stages bracket −180°. The low output drops to
-        b − low_ratio·d when asked: the step in the mean output lets the model fitted on the
-        record pin the static gain."""
-        s1 = self._stage1
+        ``overshoot`` (at least ``min_shift_deg``) so that the two stages bracket −180°. The
+        low output drops to b − low_ratio·d when asked: the step in the mean output lets the
+        model fitted on the record pin the static gain."""
+        cfg, s1 = self.config, self._stage1
         assert s1 is not None
         a = s1.amplitude
         miss = math.radians(s1.points[0].phase_deg + 180.0)  # > 0: stage 1 ran short of −180°
         sign = 1.0 if miss >= 0 else -1.0
-        shift = miss + sign * max(OVERSHOOT * abs(miss), math.radians(MIN_SHIFT_DEG))
+        shift = miss + sign * max(cfg.overshoot * abs(miss), math.radians(cfg.min_shift_deg))
         now = math.asin(min(self._eps / a, 1.0)) if a > 0 else 0.0
-        target = min(max(now - shift, -math.radians(60.0)), math.radians(60.0))
+        bound = math.radians(cfg.max_level_deg)
+        target = min(max(now - shift, -bound), bound)
         self._level = a * math.sin(target)
-        self._cross_margin = max(self._eps, 0.5 * a)
+        self._cross_margin = max(self._eps, cfg.cross_fraction * a)
         if self._level < self._eps:
-            # a lead (or less hysteresis than the noise needs): arm the next switch only half-way
-            # from the switching level to the expected peak, so noise cannot make it chatter
-            self._margin = max(self._eps, 0.5 * (a - abs(self._level)))
-        self._low = self.config.low_ratio
+            # a lead (or less hysteresis than the noise needs): arm the next switch only part
+            # of the way from the switching level to the expected peak
+            self._margin = max(self._eps, cfg.lead_fraction * (a - abs(self._level)))
+        self._low = cfg.low_ratio
         # at an upward crossing of r: if the relay is still high, the PV came up from its
         # trough, past either level; if it has just switched low, it must first rise past the
         # new level for going high again
         self._switch_armed = self._state > 0
         self._arm(self.pv[-1])
-        self.events.append((t, "stage", {"stage": 2, "level": self._level, "low_ratio": self._low}))
+        self.phase = "stage2"
+        self.events.append(
+            Event(t, "stage", {"stage": 2, "level": self._level, "low_ratio": self._low})
+        )
 
     def _stage_two_harmonics(self) -> tuple[int, ...]:
         """The 2nd harmonic is excited only by a biased stage 2 (otherwise it is noise)."""
         return (1, 2, 3) if self._low < 1.0 else (1, 3)
 
-    def _corrector(self, s1: _StageOne, window2: tuple[float, float, int] | None) -> Corrector:
-        """Remove what the window's non-periodicity leaks into the Fourier points.
-
-        Over a window that is not a steady cycle (stage 2's second period still carries the
-        change of stage), Y/U ≠ G(jω). The model, simulated over the same output record from
-        the same rest, leaks in nearly the same way; so G ≈ M(jω) + (Y − Ŷ)/U, which is exact
-        for a perfect model and leaves only the model's error times the (small) leakage."""
+    def _record(self) -> RelayRecord:
         t = np.asarray(self.t)
-        op = np.asarray([*self.op, self._out()][: t.size])
-
-        def correct(model: ProcessFit) -> tuple[Points, Points]:
-            try:
-                y_hat = response_to(model, self.sample_time, op - self.op_start)
-            except (ValueError, np.linalg.LinAlgError):
-                return (), ()
-            residual = np.asarray(self.pv) - y_hat
-
-            def points(window: tuple[float, float, int], harmonics: tuple[int, ...]) -> Points:
-                start, period, n = window
-                try:
-                    found = frequency_points(t, residual, op, start, period, n, harmonics)
-                except ValueError:
-                    return ()
-                return tuple(
-                    FrequencyPoint(p.omega, p.g + complex(model.response(p.omega))) for p in found
-                )
-
-            first = points(s1.window, (1, 3, 5))
-            return first, (points(window2, self._stage_two_harmonics()) if window2 else ())
-
-        return correct
-
-    def _process_model(self, candidates: tuple[ProcessFit, ...]) -> ProcessFit | None:
-        """The process model for rules and robustness: each model fitted to the frequency
-        points, refined on the whole record from rest (which adds the slow response and the
-        static gain), the best by its information criterion."""
-        y = np.asarray(self.pv) - self._r
-        u = np.asarray([*self.op, self._out()][: y.size]) - self.op_start
-        refined = [
-            f
-            for start in candidates
-            if (f := refine_on_record(start, self.sample_time, u, y)) is not None
-        ]
-        best = choose_on_record(refined, y.size)
-        if best is None:
-            return choose(candidates)
-        return dataclasses.replace(best, noise_rms=self._noise / (float(np.std(y)) or 1.0))
+        return RelayRecord(
+            t=t,
+            pv=np.asarray(self.pv),
+            op=np.asarray([*self.op, self._out()][: t.size]),
+            sample_time=self.sample_time,
+            op_start=self.op_start,
+            rest_pv=self._r,
+            noise=self._noise,
+        )
 
     def _finish(self, stage_two: bool = True) -> None:
-        s1 = self._stage1
+        s1, est_cfg = self._stage1, self.config.estimate
         assert s1 is not None
+        record = self._record()
         refined = None
         if stage_two and len(self.cycles) > s1.cycles:
             c = self.cycles[-1]
             op = [*self.op, self._out()]
+            harmonics = self._stage_two_harmonics()
             try:
                 second = tuple(
-                    frequency_points(
-                        self.t, self.pv, op, c.t_start, c.period, 1, self._stage_two_harmonics()
-                    )
+                    frequency_points(self.t, self.pv, op, c.t_start, c.period, 1, harmonics)
                 )
             except ValueError:
                 second = ()
             if second:
-                refined = _refine(s1, second, self._corrector(s1, (c.t_start, c.period, 1)))
+                correct = corrector(record, s1.window, (c.t_start, c.period, 1), harmonics)
+                refined = refine(s1, second, correct, est_cfg)
         if refined is None and s1.points:  # stage 2 missing: the model from stage 1 alone
-            refined = _refine(s1, (), self._corrector(s1, None))
-        model = self._process_model(refined.candidates) if refined else None
-        ku, pu = (refined.ku, refined.pu) if refined else (s1.ku, s1.pu)
-        phases = [p.phase_deg for p in (*s1.points[:1], *(refined.points[:1] if refined else ()))]
-        closest = min(phases, key=lambda ph: abs(ph + 180.0), default=math.nan)
-        if len(phases) == 2 and (phases[0] + 180.0) * (phases[1] + 180.0) <= 0:
-            crossing = "bracketed"
-        elif abs(closest + 180.0) <= NEAR_DEG and math.isfinite(ku):
-            crossing = "near"
-        else:
-            crossing = "not reached"
-            up = model.ultimate_point() if model is not None else None
-            ku, pu = (float(up[0]), float(up[1])) if up else (math.nan, math.nan)
+            correct = corrector(record, s1.window, None, self._stage_two_harmonics())
+            refined = refine(s1, (), correct, est_cfg)
+        model = process_model(record, refined.candidates) if refined else None
+        est = estimate(s1, refined, model, est_cfg)
         self.result = RelayResult(
-            ku=ku,
-            pu=pu,
+            ku=est.ku,
+            pu=est.pu,
             amplitude=s1.amplitude,
             relay_amplitude=self.config.amplitude,
             hysteresis=self._eps,
@@ -505,154 +534,32 @@ class RelayTest:
                 model.gain if model is not None and model.kind != "ipdt" and self._low < 1 else None
             ),
             model=model,
-            crossing=crossing,
-            phase_reached_deg=float(closest),
+            crossing=est.crossing,
+            phase_reached_deg=est.phase_reached_deg,
             cycle_period=s1.pu,
+            ku_method=est.ku_method,
         )
         self.phase = "done"
         t_done = self.cycles[-1].t_start + self.cycles[-1].period
-        self.events.append((t_done, "done", {"ku": ku, "pu": pu}))
+        self.events.append(Event(t_done, "done", {"ku": est.ku, "pu": est.pu}))
 
 
-@dataclass(frozen=True)
-class _StageOne:
-    ku: float  # describing function
-    pu: float
-    ku_spread: float
-    pu_spread: float
-    amplitude: float
-    points: tuple[FrequencyPoint, ...]
-    g_scatter: float  # relative cycle-to-cycle scatter of G(jω₁)
-    cycles: int
-    t_end: float
-    window: tuple[float, float, int]  # start, period, periods of the points
-
-
-@dataclass(frozen=True)
-class _Refined:
-    ku: float
-    pu: float
-    ku_uncertainty: float
-    pu_uncertainty: float
-    points: tuple[FrequencyPoint, ...]
-    model: ProcessFit | None = None
-    candidates: tuple[ProcessFit, ...] = ()  # every model fitted to the points
-
-
-def _g_scatter(values: list[complex]) -> float:
-    if len(values) < 2:
-        return 0.0
-    g = np.asarray(values)
-    return float(np.max(np.abs(g / np.mean(g) - 1.0)))
-
-
-Points = tuple[FrequencyPoint, ...]
-Corrector = Callable[[ProcessFit], tuple[Points, Points]]
-
-
-def _fits(points: list[FrequencyPoint], p1: FrequencyPoint, p2: FrequencyPoint) -> list[ProcessFit]:
-    weights = [10.0 if p in (p1, p2) else 1.0 / max(1.0, p.omega / p1.omega - 2.0) for p in points]
-    try:
-        return fit_models([p.omega for p in points], [p.g for p in points], weights)
-    except ValueError:  # fewer than two points
-        return []
-
-
-def _refine(
-    s1: _StageOne,
-    second: Points,
-    correct: Corrector | None = None,
-) -> _Refined:
-    """K_u and P_u where the phase crosses −180°, from the two stages' exact points.
-
-    A low-order model is fitted to all the points (``model_fit``); its small misfit at the two
-    fundamentals is interpolated linearly in log ω between them, so the model only supplies the
-    curvature between two exact points a few degrees apart. Without a model, phase and
-    log-magnitude are interpolated linearly. The uncertainty is the scatter of the measured
-    point (cycle to cycle, over √cycles) plus the difference between the two interpolations
-    of the same leakage-corrected points.
-    """
-    p1, p2 = s1.points[0], (second[0] if second else s1.points[0])
-    fits = _fits([*s1.points, *second], p1, p2)
-    model = choose(fits)
-    for _ in range(2 if correct is not None else 0):
-        if model is None:
-            break
-        first, later = correct(model)  # the transients' leakage taken out, using the model
-        if not first or (second and not later):
-            break
-        p1, p2 = first[0], (later[0] if second else first[0])
-        fits = _fits([*first, *later], p1, p2) or fits
-        model = choose(fits) or model
-    linear = _linear_crossing(p1, p2) if second else (1.0 / p1.magnitude, 2.0 * math.pi / p1.omega)
-    crossing = _model_crossing(model, p1, p2) if model is not None else None
-    if crossing is not None and not _plausible(crossing, p1, p2):
-        crossing = None
-    if not _plausible(linear, p1, p2):
-        linear = (1.0 / p1.magnitude, 2.0 * math.pi / p1.omega)
-    ku, pu = crossing or linear
-    scatter = s1.g_scatter / math.sqrt(max(1, s1.window[2]))  # of the mean over the cycles
-    return _Refined(
-        ku=ku,
-        pu=pu,
-        ku_uncertainty=scatter + abs(ku / linear[0] - 1.0),
-        pu_uncertainty=0.5 * scatter * abs(math.log(p2.omega / p1.omega)) / math.pi
-        + abs(pu / linear[1] - 1.0),
-        points=second,
-        model=model,
-        candidates=tuple(fits),
+def build(settings: Settings, setup: Setup) -> RelayTest:
+    """The relay test a request and a loop's set-up ask for; ValueError naming the setting
+    that cannot work. With the loop's ``time_scale`` (s) and no ``max_time``, the relay
+    before its first cycles is budgeted 100 time scales (and 400 samples at least)."""
+    if setup.op_start is None or setup.direction is None:
+        raise ValueError("op_start, direction: required for a relay test")
+    ts, scale = setup.sample_time, setup.time_scale
+    budget = {"max_time": settings.max_time} if settings.max_time else {}
+    if scale and not settings.max_time:
+        budget = {"max_time": min(RelayConfig.max_time, max(100 * scale, 400 * ts))}
+    cfg = RelayConfig(
+        amplitude=settings.amplitude,
+        hysteresis=settings.hysteresis,
+        cycles=settings.cycles,
+        tolerance=settings.tolerance,
+        low_ratio=1.0 - settings.relay_bias,
+        **budget,
     )
-
-
-def _plausible(estimate: tuple[float, float], p1: FrequencyPoint, p2: FrequencyPoint) -> bool:
-    """The crossover lies near the two measured points (the cycles ran within tens of degrees
-    of −180°); an estimate far outside comes from a fit gone astray, not from the plant."""
-    ku, pu = estimate
-    if not (math.isfinite(ku) and math.isfinite(pu) and ku > 0 and pu > 0):
-        return False
-    w = 2.0 * math.pi / pu
-    lo, hi = min(p1.omega, p2.omega), max(p1.omega, p2.omega)
-    kus = (1.0 / p1.magnitude, 1.0 / p2.magnitude)
-    return lo / 1.3 <= w <= hi * 1.3 and min(kus) / 1.5 <= ku <= max(kus) * 1.5
-
-
-def _linear_crossing(p1: FrequencyPoint, p2: FrequencyPoint) -> tuple[float, float]:
-    """Phase and log-magnitude linear in log ω through the two points, at −180°."""
-    x1, x2 = math.log(p1.omega), math.log(p2.omega)
-    f1, f2 = p1.phase_deg, p2.phase_deg
-    m1, m2 = math.log(p1.magnitude), math.log(p2.magnitude)
-    frac = (-180.0 - f1) / (f2 - f1) if abs(f2 - f1) > 1e-9 else 0.0
-    xu, mu = x1 + frac * (x2 - x1), m1 + frac * (m2 - m1)
-    return math.exp(-mu), 2.0 * math.pi / math.exp(xu)
-
-
-def _model_crossing(
-    model: ProcessFit, p1: FrequencyPoint, p2: FrequencyPoint
-) -> tuple[float, float] | None:
-    """The model's crossover, corrected by its misfit at the two points (linear in log ω)."""
-    x1, x2 = math.log(p1.omega), math.log(p2.omega)
-    span = x2 - x1 if abs(x2 - x1) > 1e-9 else math.inf  # one point: a constant misfit
-
-    def misfit(p: FrequencyPoint) -> complex:
-        r = complex(np.log(p.g / model.response(p.omega)))
-        return complex(r.real, math.remainder(r.imag, 2.0 * math.pi))
-
-    r1, r2 = misfit(p1), misfit(p2)
-
-    def r_at(x: float) -> complex:
-        return r1 + (x - x1) / span * (r2 - r1)
-
-    def excess(x: float) -> float:
-        return model.phase(math.exp(x)) + r_at(x).imag + math.pi
-
-    lo, hi = min(x1, x2) - 0.5, max(x1, x2) + 0.5
-    if not excess(lo) > 0 > excess(hi):
-        return None
-    xu = brentq(excess, lo, hi, xtol=1e-12)
-    gain = float(abs(model.response(math.exp(xu)))) * math.exp(r_at(xu).real)
-    return 1.0 / gain, 2.0 * math.pi / math.exp(xu)
-
-
-def _spread(values: list[float]) -> float:
-    m = float(np.mean(values))
-    return float((max(values) - min(values)) / abs(m)) if m else math.inf
+    return RelayTest(cfg, setup.op_start, setup.op_limits, setup.pv_limits, ts, setup.direction)

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.autotuner.identify.reaction_curve import range_end
+from shared.control.signals import difference_noise, range_end
 
 MIN_SAMPLES = 40
 MAX_WINDOW = 900.0  # s: the longest window watched (a slow level loop's Ti can be hours)
@@ -85,7 +85,7 @@ class RestCheck:
         # line, the tail of an exponential inflates σ and hides its own drift), and from
         # sample-to-sample changes (white noise: σ·√2; a slow swing barely counts)
         wide = float(np.std(y - np.polyval(np.polyfit(x, y, 2), x), ddof=3))
-        white = float(np.std(np.diff(y)) / math.sqrt(2.0))
+        white = difference_noise(y)
         self.noise = min(wide, white) if white > 0 else wide
         self.drift = float(np.polyfit(x, y, 1)[0])
         tiny = 1e-9 * max(1.0, float(np.max(np.abs(y))))

@@ -24,21 +24,28 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 
+from services.autotuner.design.rules import StepModel, model_of
+from services.autotuner.identify.experiments import (
+    Demand,
+    Event,
+    Identification,
+    Progress,
+    Settings,
+    Setup,
+)
 from services.autotuner.identify.model_fit import ProcessFit, choose_on_record, refine_on_record
 from services.autotuner.identify.reaction_curve import (
     ReactionCurve,
     SteadyRamp,
     analyze_step,
-    at_rest,
-    noise_level,
-    range_end,
     settled,
     steady_ramp,
 )
-from shared.control.signals import Sample
+from shared.control.signals import Sample, at_rest, noise_level, range_end
 from shared.errors import AutotuneError
 
 SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over a window)
@@ -55,6 +62,22 @@ class StepTestConfig:
     baseline: float | None = None  # s of quiet before the step; None: 40 samples
     timeout: float = 7200.0  # s after the step to wait for rest (and, at most, to return)
     pv_limits: tuple[float, float] | None = None  # abort outside; None: the loop's PV range
+
+
+@dataclass(frozen=True)
+class StepFindings:
+    """The run's ``experiment`` object for a step test."""
+
+    step_size: float  # % of output
+    method: str  # how the reaction curve was read (``ReactionCurve.method``)
+    model: ProcessFit | None  # refined on the record (None: the tangent's model stands)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "step_size": self.step_size,
+            "method": self.method,
+            **(self.model.to_dict() if self.model else {}),
+        }
 
 
 @dataclass
@@ -80,11 +103,15 @@ class StepTest:
     _pulse: tuple[float, str] = (math.inf, "")  # integrating: the return pulse's end, reason
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
-    events: list[tuple[float, str, dict]] = field(default_factory=list)
+    events: list[Event] = field(default_factory=list)
     _baseline_samples: int = 0
     _pv_before: float = math.nan
     _noise: float = 0.0
     _t_moved: float | None = None  # s from the step until the PV first cleared its noise
+    _op: float = math.nan  # the output it wants held now
+
+    # the reaction curve is timed from when the stepped output is held
+    needs_hold_time: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         cfg = self.config
@@ -101,6 +128,7 @@ class StepTest:
         if not base >= 0:
             raise ValueError(f"baseline {base}: must be ≥ 0 s")
         self._baseline_samples = max(10, math.ceil(base / self.sample_time))
+        self._op = self.op_start
 
     @property
     def finished(self) -> bool:
@@ -125,13 +153,57 @@ class StepTest:
     def _rate_units(self) -> str:
         return f"{self.pv_units or 'PV units'}/s per %"
 
+    # --- the experiment protocol ---------------------------------------------------------
+
+    @property
+    def demand(self) -> Demand:
+        return Demand(op=self._op)
+
+    def feed(self, s: Sample) -> Demand:
+        """Take the sample at ``s.t``; return the output to hold from ``s.t`` on."""
+        self._op = self._feed(s)
+        return Demand(op=self._op)
+
+    def held(self, t: float) -> None:
+        """The driver reports the sim time from which the changed output is held (event
+        ``step_started``; a replay reads it back)."""
+        self.step_started(t)
+        self.events.append(Event(self.t[-1] if self.t else t, "step_started", {"t": t}))
+
+    def horizon(self, cap: int) -> int:
+        return 1  # the step and its timing are decided sample by sample
+
+    def progress(self) -> Progress:
+        if self.t_step is None:
+            return Progress("step", 0)
+        return Progress("step", 1, message=f"output stepped to {self.op_target:g} %")
+
+    def identification(self) -> Identification | None:
+        rc = self.result
+        if rc is None:
+            return None
+        step_model = StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)
+        fitted = self.process_model()
+        return Identification(
+            step=rc,
+            step_model=step_model,
+            model=fitted or model_of(step_model),
+            integrating=False,  # it settled
+            experiment=StepFindings(rc.step_size, rc.method, fitted),
+            timescale=4 * rc.dead_time + rc.time_constant_63,
+            noise=rc.noise_std,
+            rest_pv=rc.pv_before,
+        )
+
+    # --- the state machine ---------------------------------------------------------------
+
     def _abort(self, reason: str) -> float:
+        """Every abort: the phase, the reason and an ``aborted`` event; the output at rest."""
         self.phase, self.reason = "aborted", reason
-        self.events.append((self.t[-1] if self.t else 0.0, "aborted", {"reason": reason}))
+        self.events.append(Event(self.t[-1] if self.t else 0.0, "aborted", {"reason": reason}))
         return self.op_start
 
-    def feed(self, s: Sample) -> float:
-        """Take the sample at ``s.t``; return the output to hold from ``s.t`` on."""
+    def _feed(self, s: Sample) -> float:
         if self.finished:
             return self.op_start
         self.t.append(s.t)
@@ -167,7 +239,7 @@ class StepTest:
         self._noise = noise_level(base)
         self.phase = "step"
         self.events.append(
-            (
+            Event(
                 s.t,
                 "step",
                 {"op": self.op_target, "pv_before": self._pv_before, "noise_std": self._noise},
@@ -213,7 +285,7 @@ class StepTest:
                 return self._abort(str(err))
             self.phase = "done"
             self.events.append(
-                (s.t, "done", {"gain": self.result.gain, "dead_time": self.result.dead_time})
+                Event(s.t, "done", {"gain": self.result.gain, "dead_time": self.result.dead_time})
             )
             return self.op_start
         return self.op_target
@@ -256,7 +328,7 @@ class StepTest:
         rate = ramp.slope / self.config.size
         dead_time = max(ramp.dead_time, 0.5 * self.sample_time)
         self.events.append(
-            (
+            Event(
                 t,
                 "integrating",
                 {"slope": ramp.slope, "reaction_rate": rate, "dead_time": dead_time},
@@ -284,7 +356,7 @@ class StepTest:
             return self._abort(reason + "; the PV stays where the step took it")
         self._pulse = (t + (t - self.t_step), reason)
         self.phase = "return"
-        self.events.append((t, "return_pulse", {"op": back, "until": self._pulse[0]}))
+        self.events.append(Event(t, "return_pulse", {"op": back, "until": self._pulse[0]}))
         return back
 
     def _return_pulse(self, s: Sample) -> float:
@@ -389,3 +461,28 @@ def return_timeout(config: StepTestConfig, t_step: float, t_end: float) -> float
     """Seconds to wait for the return to rest: a few times the step's own settling time (the
     way back has the same dynamics), capped by the test's timeout."""
     return min(config.timeout, RETURN_WAIT_FACTOR * max(t_end - t_step, 0.0))
+
+
+def build(settings: Settings, setup: Setup) -> StepTest:
+    """The step test a request and a loop's set-up ask for; ValueError naming the setting
+    that cannot work. Its wait for rest after the step is the request's ``max_time``, else
+    200 of the loop's time scales (and 400 samples at least) when one is known."""
+    if setup.op_start is None:
+        raise ValueError("op_start: required for a step test")
+    ts, scale = setup.sample_time, setup.time_scale
+    if settings.max_time:
+        timeout = {"timeout": settings.max_time}
+    elif scale:
+        timeout = {"timeout": min(StepTestConfig.timeout, max(200 * scale, 400 * ts))}
+    else:
+        timeout = {}
+    cfg = StepTestConfig(size=settings.step_size, pv_limits=setup.pv_limits, **timeout)
+    return StepTest(
+        cfg,
+        setup.op_start,
+        setup.op_limits,
+        setup.pv_limits,
+        ts,
+        pv_range=setup.pv_range,
+        pv_units=setup.pv_units or "",
+    )

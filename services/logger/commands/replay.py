@@ -90,12 +90,7 @@ def recorded_prefix(path: Path | str, meta: dict[str, str], records: list[Record
         return meta["prefix"]
     candidates: set[str] | None = None
     for r in records:
-        parts = r.key.split("/")
-        mine = {
-            "/".join(parts[:i])
-            for i in range(1, len(parts))
-            if parts[i] in ("plant", "tune") and model_for("/".join(parts[:i]), r.key)
-        }
+        mine = {p for p in keys.candidate_prefixes(r.key) if model_for(p, r.key)}
         candidates = mine if candidates is None else candidates & mine
         if not candidates:
             break
@@ -148,7 +143,7 @@ def select(
     t0 = min(r.log_time for r in records)
     keep = []
     for r, (lp, command) in zip(records, checked, strict=True):
-        key = prefix + r.key[len(recorded) :]
+        key = keys.reprefix(r.key, recorded, prefix)  # every record is under it: checked
         if command and not with_commands:
             continue
         if loop is not None and lp != loop:

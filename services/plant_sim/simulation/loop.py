@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from services.plant_sim.simulation.models import ProcessModel
-from shared.control.pid import PidBlock
+from shared.control.pid import PidBlock, PidSettings
 from shared.errors import one_line as brief
 from shared.messages import (
     Action,
@@ -131,7 +131,7 @@ class LoopSnapshot:
     mode: Mode
     op: float
     sp: float
-    gains: PidGains
+    gains: PidSettings
     disturbances: dict[str, float]
 
 
@@ -148,7 +148,7 @@ class SimLoop:
         self.pv = self._measure(pv_rest)
         self.sp = settings.setpoint if settings.setpoint is not None else pv_rest
         self.pid = PidBlock(
-            settings.gains,
+            settings.gains.to_core(),
             settings.sample_time,
             settings.op_limits,
             settings.action,
@@ -280,7 +280,7 @@ class SimLoop:
             op=self.op,
             mode=self.mode,
             action=s.action,
-            gains=self.pid.gains,
+            gains=PidGains.from_core(self.pid.gains),
             op_limits=s.op_limits,
             pv_range=s.pv_range,
             disturbances=self.disturbances(),
@@ -398,7 +398,7 @@ class SimLoop:
                 problem = gains_problem(gains, self.sample_time, self.settings.pv_range)
                 if problem:
                     raise CommandRejected("range", f"gains refused: {problem}")
-                self.pid.set_gains(gains, self.sp, self.pv)
+                self.pid.set_gains(gains.to_core(), self.sp, self.pv)
             case DisturbanceCommand(name=name, value=value):
                 try:
                     names = tuple(call_model("disturbance_names()", self.process.disturbance_names))

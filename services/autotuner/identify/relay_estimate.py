@@ -1,0 +1,261 @@
+"""K_u and P_u from the relay's two stages: where the plant's phase crosses −180°.
+
+Stage 1's cycle gives the describing-function estimate and the exact frequency points
+G(jkω₁) (``fourier``); stage 2, re-aimed past −180°, gives G(jω₂) on the other side. A
+low-order model fitted to all the points supplies the curvature between the two fundamentals;
+its misfit there is interpolated in log ω, so K_u and P_u rest on the measured points. Which
+path produced them is said by ``ku_method`` (``KU_METHODS``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import brentq
+
+from services.autotuner.identify.fourier import FrequencyPoint
+from services.autotuner.identify.model_fit import ProcessFit, choose, fit_models
+
+Points = tuple[FrequencyPoint, ...]
+Corrector = Callable[[ProcessFit], tuple[Points, Points]]
+
+# how K_u and P_u were found (the run's ``experiment.ku_method``)
+MODEL_CROSSING = "model crossing"  # the fitted model's −180°, corrected by its misfit at the
+# two stages' points: the exact crossing between the stages
+LINEAR_CROSSING = "linear crossing"  # phase and log-magnitude linear in log ω between them
+FUNDAMENTAL_POINT = "fundamental point"  # stage 1's exact G(jω₁) taken as the crossover
+DESCRIBING_FUNCTION = "describing function"  # stage 1's 4d/(π√(a² − ε²)): no exact points
+MODEL_ULTIMATE_POINT = "model ultimate point"  # the cycles ran far from −180°: the model's own
+NOT_MEASURED = "not measured"  # far from −180° and no model: NaN
+KU_METHODS = (
+    MODEL_CROSSING,
+    LINEAR_CROSSING,
+    FUNDAMENTAL_POINT,
+    DESCRIBING_FUNCTION,
+    MODEL_ULTIMATE_POINT,
+    NOT_MEASURED,
+)
+
+
+@dataclass(frozen=True)
+class EstimateConfig:
+    """The estimator's thresholds."""
+
+    # a measured point this close to −180° makes the crossover "near" (a short interpolation)
+    near_deg: float = 25.0
+    # the fit weighs the two fundamentals this much more than a harmonic: they carry K_u
+    fundamental_weight: float = 10.0
+    # passes of the leakage correction (each uses the model the last one improved)
+    corrections: int = 2
+    # an estimate whose ω lies beyond the measured ω range by more than this factor, or whose
+    # K_u beyond the measured 1/|G| range by ``plausible_ku``, comes from a fit gone astray
+    plausible_omega: float = 1.3
+    plausible_ku: float = 1.5
+    # the model crossing is searched this far (in ln ω) beyond the two points
+    search_span: float = 0.5
+
+
+@dataclass(frozen=True)
+class StageOne:
+    """What stage 1's agreeing cycles measured."""
+
+    ku: float  # describing function
+    pu: float
+    ku_spread: float
+    pu_spread: float
+    amplitude: float
+    points: Points
+    g_scatter: float  # relative cycle-to-cycle scatter of G(jω₁)
+    cycles: int
+    t_end: float
+    window: tuple[float, float, int]  # start, period, periods of the points
+
+
+@dataclass(frozen=True)
+class Refined:
+    """K_u and P_u from both stages' exact points."""
+
+    ku: float
+    pu: float
+    ku_uncertainty: float
+    pu_uncertainty: float
+    points: Points
+    ku_method: str
+    model: ProcessFit | None = None
+    candidates: tuple[ProcessFit, ...] = ()  # every model fitted to the points
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The relay's final K_u, P_u and how they were found."""
+
+    ku: float
+    pu: float
+    crossing: str  # "bracketed", "near" or "not reached"
+    ku_method: str
+    phase_reached_deg: float  # the measured phase closest to −180°
+
+
+def g_scatter(values: list[complex]) -> float:
+    """The largest relative deviation of the per-cycle G(jω) from their mean."""
+    if len(values) < 2:
+        return 0.0
+    g = np.asarray(values)
+    return float(np.max(np.abs(g / np.mean(g) - 1.0)))
+
+
+def spread(values: list[float]) -> float:
+    """(max − min)/mean; inf for a zero mean."""
+    m = float(np.mean(values))
+    return float((max(values) - min(values)) / abs(m)) if m else math.inf
+
+
+def _fits(
+    points: list[FrequencyPoint], p1: FrequencyPoint, p2: FrequencyPoint, cfg: EstimateConfig
+) -> list[ProcessFit]:
+    weights = [
+        cfg.fundamental_weight if p in (p1, p2) else 1.0 / max(1.0, p.omega / p1.omega - 2.0)
+        for p in points
+    ]
+    try:
+        return fit_models([p.omega for p in points], [p.g for p in points], weights)
+    except ValueError:  # fewer than two points
+        return []
+
+
+def refine(
+    s1: StageOne,
+    second: Points,
+    correct: Corrector | None = None,
+    cfg: EstimateConfig = EstimateConfig(),
+) -> Refined:
+    """K_u and P_u where the phase crosses −180°, from the two stages' exact points.
+
+    A low-order model is fitted to all the points (``model_fit``); its small misfit at the two
+    fundamentals is interpolated linearly in log ω between them, so the model only supplies the
+    curvature between two exact points a few degrees apart. Without a model, phase and
+    log-magnitude are interpolated linearly. The uncertainty is the scatter of the measured
+    point (cycle to cycle, over √cycles) plus the difference between the two interpolations
+    of the same leakage-corrected points.
+    """
+    p1, p2 = s1.points[0], (second[0] if second else s1.points[0])
+    fits = _fits([*s1.points, *second], p1, p2, cfg)
+    model = choose(fits)
+    for _ in range(cfg.corrections if correct is not None else 0):
+        if model is None:
+            break
+        first, later = correct(model)  # the transients' leakage taken out, using the model
+        if not first or (second and not later):
+            break
+        p1, p2 = first[0], (later[0] if second else first[0])
+        fits = _fits([*first, *later], p1, p2, cfg) or fits
+        model = choose(fits) or model
+    point = (1.0 / p1.magnitude, 2.0 * math.pi / p1.omega)
+    linear, linear_method = (
+        (linear_crossing(p1, p2), LINEAR_CROSSING) if second else (point, FUNDAMENTAL_POINT)
+    )
+    crossing = model_crossing(model, p1, p2, cfg) if model is not None else None
+    if crossing is not None and not plausible(crossing, p1, p2, cfg):
+        crossing = None
+    if not plausible(linear, p1, p2, cfg):
+        linear, linear_method = point, FUNDAMENTAL_POINT
+    ku, pu = crossing or linear
+    scatter = s1.g_scatter / math.sqrt(max(1, s1.window[2]))  # of the mean over the cycles
+    return Refined(
+        ku=ku,
+        pu=pu,
+        ku_uncertainty=scatter + abs(ku / linear[0] - 1.0),
+        pu_uncertainty=0.5 * scatter * abs(math.log(p2.omega / p1.omega)) / math.pi
+        + abs(pu / linear[1] - 1.0),
+        points=second,
+        ku_method=MODEL_CROSSING if crossing else linear_method,
+        model=model,
+        candidates=tuple(fits),
+    )
+
+
+def estimate(
+    s1: StageOne,
+    refined: Refined | None,
+    model: ProcessFit | None,
+    cfg: EstimateConfig = EstimateConfig(),
+) -> Estimate:
+    """The final K_u and P_u: the refined crossing where the stages' points bracket −180° or
+    one lies within ``near_deg`` of it; otherwise the process model's own ultimate point."""
+    if refined is not None:
+        ku, pu, method = refined.ku, refined.pu, refined.ku_method
+    else:
+        ku, pu, method = s1.ku, s1.pu, DESCRIBING_FUNCTION
+    phases = [p.phase_deg for p in (*s1.points[:1], *(refined.points[:1] if refined else ()))]
+    closest = min(phases, key=lambda ph: abs(ph + 180.0), default=math.nan)
+    if len(phases) == 2 and (phases[0] + 180.0) * (phases[1] + 180.0) <= 0:
+        crossing = "bracketed"
+    elif abs(closest + 180.0) <= cfg.near_deg and math.isfinite(ku):
+        crossing = "near"
+    else:
+        crossing = "not reached"
+        up = model.ultimate_point() if model is not None else None
+        ku, pu = (float(up[0]), float(up[1])) if up else (math.nan, math.nan)
+        method = MODEL_ULTIMATE_POINT if up else NOT_MEASURED
+    return Estimate(ku, pu, crossing, method, float(closest))
+
+
+def plausible(
+    estimate: tuple[float, float],
+    p1: FrequencyPoint,
+    p2: FrequencyPoint,
+    cfg: EstimateConfig = EstimateConfig(),
+) -> bool:
+    """The crossover lies near the two measured points (the cycles ran within tens of degrees
+    of −180°); an estimate far outside comes from a fit gone astray, not from the plant."""
+    ku, pu = estimate
+    if not (math.isfinite(ku) and math.isfinite(pu) and ku > 0 and pu > 0):
+        return False
+    w = 2.0 * math.pi / pu
+    lo, hi = min(p1.omega, p2.omega), max(p1.omega, p2.omega)
+    kus = (1.0 / p1.magnitude, 1.0 / p2.magnitude)
+    f, k = cfg.plausible_omega, cfg.plausible_ku
+    return lo / f <= w <= hi * f and min(kus) / k <= ku <= max(kus) * k
+
+
+def linear_crossing(p1: FrequencyPoint, p2: FrequencyPoint) -> tuple[float, float]:
+    """Phase and log-magnitude linear in log ω through the two points, at −180°."""
+    x1, x2 = math.log(p1.omega), math.log(p2.omega)
+    f1, f2 = p1.phase_deg, p2.phase_deg
+    m1, m2 = math.log(p1.magnitude), math.log(p2.magnitude)
+    frac = (-180.0 - f1) / (f2 - f1) if abs(f2 - f1) > 1e-9 else 0.0
+    xu, mu = x1 + frac * (x2 - x1), m1 + frac * (m2 - m1)
+    return math.exp(-mu), 2.0 * math.pi / math.exp(xu)
+
+
+def model_crossing(
+    model: ProcessFit,
+    p1: FrequencyPoint,
+    p2: FrequencyPoint,
+    cfg: EstimateConfig = EstimateConfig(),
+) -> tuple[float, float] | None:
+    """The model's crossover, corrected by its misfit at the two points (linear in log ω)."""
+    x1, x2 = math.log(p1.omega), math.log(p2.omega)
+    span = x2 - x1 if abs(x2 - x1) > 1e-9 else math.inf  # one point: a constant misfit
+
+    def misfit(p: FrequencyPoint) -> complex:
+        r = complex(np.log(p.g / model.response(p.omega)))
+        return complex(r.real, math.remainder(r.imag, 2.0 * math.pi))
+
+    r1, r2 = misfit(p1), misfit(p2)
+
+    def r_at(x: float) -> complex:
+        return r1 + (x - x1) / span * (r2 - r1)
+
+    def excess(x: float) -> float:
+        return model.phase(math.exp(x)) + r_at(x).imag + math.pi
+
+    lo, hi = min(x1, x2) - cfg.search_span, max(x1, x2) + cfg.search_span
+    if not excess(lo) > 0 > excess(hi):
+        return None
+    xu = brentq(excess, lo, hi, xtol=1e-12)
+    gain = float(abs(model.response(math.exp(xu)))) * math.exp(r_at(xu).real)
+    return 1.0 / gain, 2.0 * math.pi / math.exp(xu)

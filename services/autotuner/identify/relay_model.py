@@ -1,0 +1,93 @@
+"""The process model of a relay test, identified on its record.
+
+Two uses: the leakage correction of the stages' Fourier points (a window that is not a
+steady cycle leaks; the model, simulated over the same output record, leaks alike), and the
+model the rules and the robustness figures use (each model fitted to the points, refined on
+the whole record from rest, the best by its information criterion).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.autotuner.identify.fourier import FrequencyPoint, frequency_points
+from services.autotuner.identify.model_fit import (
+    ProcessFit,
+    choose,
+    choose_on_record,
+    refine_on_record,
+    response_to,
+)
+from services.autotuner.identify.relay_estimate import Corrector, Points
+
+
+@dataclass(frozen=True)
+class RelayRecord:
+    """The test's record: times (s), PV (PV units), output held from each sample (%), from
+    the start of the quiet period; and the rest the test started from."""
+
+    t: np.ndarray
+    pv: np.ndarray
+    op: np.ndarray
+    sample_time: float  # s
+    op_start: float  # %, the output at rest
+    rest_pv: float  # PV units
+    noise: float  # σ of the PV at rest
+
+
+def corrector(
+    record: RelayRecord,
+    first_window: tuple[float, float, int],
+    second_window: tuple[float, float, int] | None,
+    second_harmonics: tuple[int, ...],
+) -> Corrector:
+    """Remove what the window's non-periodicity leaks into the Fourier points.
+
+    Over a window that is not a steady cycle (stage 2's second period still carries the
+    change of stage), Y/U ≠ G(jω). The model, simulated over the same output record from
+    the same rest, leaks in nearly the same way; so G ≈ M(jω) + (Y − Ŷ)/U, which is exact
+    for a perfect model and leaves only the model's error times the (small) leakage."""
+    t, op = record.t, record.op
+
+    def correct(model: ProcessFit) -> tuple[Points, Points]:
+        try:
+            y_hat = response_to(model, record.sample_time, op - record.op_start)
+        except (ValueError, np.linalg.LinAlgError):
+            return (), ()
+        residual = record.pv - y_hat
+
+        def points(window: tuple[float, float, int], harmonics: tuple[int, ...]) -> Points:
+            start, period, n = window
+            try:
+                found = frequency_points(t, residual, op, start, period, n, harmonics)
+            except ValueError:
+                return ()
+            return tuple(
+                FrequencyPoint(p.omega, p.g + complex(model.response(p.omega))) for p in found
+            )
+
+        first = points(first_window, (1, 3, 5))
+        later = points(second_window, second_harmonics) if second_window else ()
+        return first, later
+
+    return correct
+
+
+def process_model(record: RelayRecord, candidates: tuple[ProcessFit, ...]) -> ProcessFit | None:
+    """The process model for rules and robustness: each model fitted to the frequency
+    points, refined on the whole record from rest (which adds the slow response and the
+    static gain), the best by its information criterion."""
+    y = record.pv - record.rest_pv
+    u = record.op[: y.size] - record.op_start
+    refined = [
+        f
+        for start in candidates
+        if (f := refine_on_record(start, record.sample_time, u, y)) is not None
+    ]
+    best = choose_on_record(refined, y.size)
+    if best is None:
+        return choose(candidates)
+    return dataclasses.replace(best, noise_rms=record.noise / (float(np.std(y)) or 1.0))

@@ -1,0 +1,120 @@
+"""What a relay test found: K_u, P_u, the exact frequency points and the model, as the
+rules need them (``identification``) and as the run's ``experiment`` object (``to_dict``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from services.autotuner.identify.experiments import Identification
+from services.autotuner.identify.fourier import FrequencyPoint
+from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.relay_estimate import MODEL_CROSSING
+
+
+@dataclass(frozen=True)
+class RelayResult:
+    ku: float
+    pu: float
+    amplitude: float  # a, PV units (mean over the agreeing cycles)
+    relay_amplitude: float  # d, %
+    hysteresis: float  # ε, PV units
+    bias: float  # b at the end, %
+    noise_std: float
+    cycles: int  # how many cycles were run
+    ku_spread: float  # (max − min)/mean over the agreeing cycles
+    pu_spread: float
+    rest_pv: float  # r
+    frequency: tuple[FrequencyPoint, ...] = ()  # exact G(jkω), k = 1, 3, 5 (fourier module)
+    ku_df: float = math.nan  # the describing-function estimate of stage 1
+    pu_df: float = math.nan
+    stage_one_cycles: int = 0
+    second: tuple[FrequencyPoint, ...] = ()  # stage 2's exact G(jkω₂), k = 1, 2, 3
+    # the process gain of the model fitted on a record with stage 2's bias (None: no bias);
+    # the bias's step in the mean output is what pins it (the DC ratio of two short stages is
+    # not yet settled)
+    static_gain: float | None = None
+    model: ProcessFit | None = None  # fitted to both stages' points (model_fit)
+    # how K_u and P_u were found: "bracketed" (the stages' points lie on both sides of
+    # −180°), "near" (a point within near_deg of it: a short interpolation), or "not reached"
+    # (both far from it: ku/pu are then the model's own ultimate point, NaN without a model)
+    crossing: str = "bracketed"
+    phase_reached_deg: float = -180.0  # the measured phase closest to −180°
+    cycle_period: float = math.nan  # s, stage 1's mean period
+    ku_method: str = MODEL_CROSSING  # which path produced K_u (relay_estimate.KU_METHODS)
+
+    @property
+    def measured(self) -> bool:
+        """K_u and P_u were measured (the cycles ran near enough −180°)."""
+        return self.crossing != "not reached"
+
+    def to_dict(self) -> dict[str, Any]:
+        """The run's ``experiment`` object (its keys are part of the JSON interface)."""
+        return {
+            "crossing": self.crossing,
+            "ku_method": self.ku_method,
+            "phase_reached_deg": self.phase_reached_deg,
+            **({} if self.measured else {"ku_model": self.ku, "pu_model": self.pu}),
+            "relay_amplitude": self.relay_amplitude,
+            "amplitude": self.amplitude,
+            "hysteresis": self.hysteresis,
+            "bias": self.bias,
+            "cycles": self.cycles,
+            "noise_std": self.noise_std,
+            "rest_pv": self.rest_pv,
+            "ku_describing_function": self.ku_df,
+            "pu_describing_function": self.pu_df,
+            "stage_one_cycles": self.stage_one_cycles,
+            **frequency_fields(self.frequency),
+            **{f"stage2_{k}": v for k, v in frequency_fields(self.second).items()},
+            **(self.model.to_dict() if self.model else {}),
+            **({"static_gain": self.static_gain} if self.static_gain is not None else {}),
+        }
+
+    def identification(self) -> Identification:
+        measured = self.measured
+        notes = []
+        if not measured:
+            notes.append(
+                f"the relay's cycle ran at {self.phase_reached_deg:.0f}°, far from −180° (the "
+                f"hysteresis the noise needs, {self.hysteresis:.3g}, is as large as the "
+                "cycle): K_u and P_u were not measured, so the rules that need them are not "
+                "offered"
+                + (
+                    f"; the model's own ultimate point is K_u ≈ {self.ku:.4g}, "
+                    f"P_u ≈ {self.pu:.4g} s"
+                    if math.isfinite(self.ku)
+                    else ""
+                )
+            )
+        return Identification(
+            static_gain_known=self.static_gain is not None,
+            ku=self.ku if measured else None,
+            pu=self.pu if measured else None,
+            ku_spread=self.ku_spread if measured else None,
+            pu_spread=self.pu_spread if measured else None,
+            notes=notes,
+            experiment=self,
+            timescale=self.pu if math.isfinite(self.pu) else self.cycle_period,
+            noise=self.noise_std,
+            rest_pv=self.rest_pv,
+            model=self.model,
+        )
+
+
+def frequency_fields(points: tuple[FrequencyPoint, ...]) -> dict[str, float]:
+    """The exact frequency points of a relay test, flat for JSON: omega_k (rad/s),
+    g_k_magnitude (PV units per %) and g_k_phase_deg, k = 1, 3, 5."""
+    out: dict[str, float] = {}
+    previous = 0.0
+    for p in points:
+        k = round(p.omega / points[0].omega)
+        phase = p.phase_deg
+        while phase > previous:  # unwrapped: the lag grows with frequency
+            phase -= 360.0
+        previous = phase
+        out[f"omega_{k}"] = p.omega
+        out[f"g_{k}_magnitude"] = p.magnitude
+        out[f"g_{k}_phase_deg"] = phase
+    return out

@@ -1,0 +1,124 @@
+"""Step figures read off a measured record, on synthetic records whose figures are known in
+closed form: the underdamped second-order step (overshoot e^{−πζ/√(1−ζ²)}, decay ratio its
+square), a first-order step short of its setpoint (P control's offset), and a load dip
+D·(t/τ)·e^{1−t/τ} (peak D at τ, IAE D·e·τ).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+from scipy.optimize import brentq
+
+from services.autotuner.design.measured_response import (
+    load_step,
+    measured_setpoint_step,
+    within_band,
+)
+
+ZETA, WN = 0.3, 1.0  # rad/s
+SIGMA, WD = ZETA * WN, WN * math.sqrt(1 - ZETA**2)
+T0, Y0, TARGET = 5.0, 20.0, 30.0
+
+
+def z_of(t):
+    """(y − y₀)/(r − y₀) of 1/(s²/ω_n² + 2ζs/ω_n + 1) after a unit step at 0."""
+    return 1 - np.exp(-SIGMA * t) * (np.cos(WD * t) + SIGMA / WD * np.sin(WD * t))
+
+
+def second_order_record(dt: float = 0.001, span: float = 40.0):
+    t = np.linspace(0.0, span, round(span / dt) + 1)
+    return T0 + t, Y0 + (TARGET - Y0) * z_of(t)
+
+
+def test_second_order_step_figures_are_the_closed_forms():
+    t, y = second_order_record()
+    f = measured_setpoint_step(t, y, T0, Y0, TARGET, band=0.02)
+    overshoot = math.exp(-math.pi * ZETA / math.sqrt(1 - ZETA**2))
+    assert f["overshoot"] == pytest.approx(100 * overshoot, rel=1e-5)
+    # the peaks above r come every 2π/ω_d, each e^{−σ·2π/ω_d} of the one before
+    assert f["decay_ratio"] == pytest.approx(overshoot**2, rel=1e-4)
+    t10 = brentq(lambda s: z_of(s) - 0.1, 0.0, math.pi / WD)
+    t90 = brentq(lambda s: z_of(s) - 0.9, 0.0, math.pi / WD)
+    assert f["rise_time"] == pytest.approx(t90 - t10, abs=1e-5)
+    # |z − 1| peaks at kπ/ω_d with height e^{−σkπ/ω_d}: the last peak outside the band,
+    # then the fall to the band before the zero of z − 1 at ω_d t = φ + π/2 + kπ
+    k = max(k for k in range(100) if math.exp(-SIGMA * k * math.pi / WD) > 0.02)
+    phi = math.atan(SIGMA / WD)
+    t_settle = brentq(
+        lambda s: abs(z_of(s) - 1) - 0.02, k * math.pi / WD, (phi + math.pi / 2 + k * math.pi) / WD
+    )
+    assert f["settling_time"] == pytest.approx(t_settle, abs=2e-3) and f["settled"] is True
+    zeros = [(phi + math.pi / 2 + j * math.pi) / WD for j in range(13)]
+    iae, _ = quad(lambda s: abs(1 - z_of(s)), 0.0, 40.0, points=zeros, limit=200)
+    assert f["iae"] == pytest.approx((TARGET - Y0) * iae, rel=1e-5)
+
+
+def test_a_step_down_reads_the_same_as_a_step_up():
+    t, y = second_order_record()
+    up = measured_setpoint_step(t, y, T0, Y0, TARGET)
+    down = measured_setpoint_step(t, 2 * Y0 - y, T0, Y0, 2 * Y0 - TARGET)
+    assert down == pytest.approx(up, rel=1e-9)
+
+
+def test_an_offset_short_of_the_setpoint_is_no_overshoot_and_never_settles():
+    """0.8(1 − e^{−t/2}): P control's offset of 20 % never reaches the setpoint: no
+    overshoot, no decay ratio, no 90 % rise, not settled within 2 %."""
+    t = np.linspace(0.0, 30.0, 3001)
+    z = 0.8 * (1 - np.exp(-t / 2.0))
+    f = measured_setpoint_step(T0 + t, Y0 + 10.0 * z, T0, Y0, Y0 + 10.0)
+    assert f["overshoot"] == 0.0 and f["decay_ratio"] is None and f["rise_time"] is None
+    assert f["settled"] is False and f["settling_time"] is None
+
+
+def test_noise_is_averaged_before_the_peaks_are_read():
+    """σ = 0.2 % of the step on 630 samples per period: the smoothed peaks keep the closed
+    forms within a few tenths of a percent of the step."""
+    t, y = second_order_record(dt=0.01)
+    rng = np.random.default_rng(3)
+    noisy = y + 0.02 * rng.standard_normal(y.size)
+    f = measured_setpoint_step(t, noisy, T0, Y0, TARGET, noise=0.02)
+    overshoot = math.exp(-math.pi * ZETA / math.sqrt(1 - ZETA**2))
+    assert f["overshoot"] == pytest.approx(100 * overshoot, abs=0.3)
+    assert f["decay_ratio"] == pytest.approx(overshoot**2, abs=0.02)
+
+
+D, TAU, SP = 3.0, 4.0, 50.0
+
+
+def load_record(span: float):
+    t = np.linspace(0.0, span, round(span / 0.001) + 1)
+    return T0 + t, SP - D * (t / TAU) * np.exp(1 - t / TAU)
+
+
+def test_load_dip_figures_are_the_closed_forms():
+    t, y = load_record(80.0)
+    f = load_step(t, y, T0, SP)
+    assert f["max_deviation"] == pytest.approx(D, rel=1e-9)
+    # ∫₀^T D(t/τ)e^{1−t/τ} dt = D·e·τ·(1 − (1 + T/τ)e^{−T/τ})
+    assert f["iae"] == pytest.approx(D * math.e * TAU * (1 - 21 * math.exp(-20)), rel=1e-6)
+    # back within a tenth of the peak where x·e^{1−x} = 0.1, x = t/τ > 1
+    x = brentq(lambda v: v * math.exp(1 - v) - 0.1, 1.0, 20.0)
+    assert f["recovery_time"] == pytest.approx(x * TAU, abs=2e-3) and f["recovered"] is True
+
+
+def test_a_load_dip_cut_short_has_not_recovered():
+    t, y = load_record(2 * TAU)  # still at 2e^{−1} ≈ 74 % of its peak
+    f = load_step(t, y, T0, SP)
+    assert f["recovered"] is False and f["recovery_time"] is None
+
+
+@pytest.mark.parametrize(
+    ("y", "band", "expected"),
+    [
+        ([1.0, 1.5, 0.75], 0.75, True),  # binary-exact: the spread is 0.75 to the bit
+        ([1.0, 1.5, 0.75], 0.7499, False),
+        ([], 1.0, False),
+        ([1.0, math.nan], 1.0, False),
+    ],
+)
+def test_within_band_is_the_spread(y, band, expected):
+    assert within_band(np.array(y), band) is expected

@@ -1,0 +1,386 @@
+"""services/logger/recorder.py in-process, no Zenoh: messages handed to the Recorder as the
+bus would, the files read back. One run one file, the pre-run buffer and its bound, dedupe,
+the run's end statuses, replays."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.logger.mcap_io import read_run
+from services.logger.recorder import BUFFER, RESULT_GRACE, Recorder, model_for
+from shared import keys, wire
+from shared.messages import (
+    LeaseCommand,
+    LoopStatus,
+    Message,
+    OutputCommand,
+    PidGains,
+    ProcessSample,
+    SetpointCommand,
+    TuneProgress,
+    TuneResult,
+    TunerEvent,
+)
+
+P = "rec"
+LOOP = "hx1"
+DT = 0.05
+
+
+class Clock:
+    """A monotonic clock the test moves by hand."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture
+def rec(tmp_path: Path, clock: Clock) -> Recorder:
+    return Recorder(tmp_path, P, flush_interval=3600.0, clock=clock)
+
+
+def send(rec: Recorder, key: str, msg: Message, replay: str | None = None) -> None:
+    rec.handle(key, wire.encode(msg), replay)
+
+
+def sample(seq: int, pv: float = 60.0, loop: str = LOOP) -> ProcessSample:
+    return ProcessSample(loop=loop, seq=seq, t=seq * DT, pv=pv, sp=60.0, op=40.0, mode="auto")
+
+
+def status(seq: int, reason: str, node: str = "plant", leased_by: str | None = None) -> LoopStatus:
+    return LoopStatus(
+        loop=LOOP,
+        node=node,
+        seq=seq,
+        t=seq * DT,
+        pv=60.0,
+        sp=60.0,
+        op=40.0,
+        mode="auto",
+        action="reverse",
+        gains=PidGains(kc=1.0, ti=10.0),
+        op_limits=(0.0, 100.0),
+        pv_range=(0.0, 100.0),
+        disturbances={},
+        clock="lockstep",
+        accepted=0,
+        rejected=0,
+        reason=reason,
+        leased_by=leased_by,
+    )
+
+
+def start(run_id: str, t: float) -> TuneProgress:
+    return TuneProgress(run_id=run_id, loop=LOOP, t=t, phase="start", message="relay test")
+
+
+def result(run_id: str, t: float, status: str = "ok") -> TuneResult:
+    return TuneResult(
+        run_id=run_id, loop=LOOP, t=t, method="relay", rule="zn-pi", status=status, ku=2.5, pu=8.0
+    )
+
+
+def samples(rec: Recorder, first: int, last: int) -> None:
+    for n in range(first, last + 1):
+        send(rec, keys.pv(P, LOOP), sample(n))
+
+
+def only_file(rec: Recorder) -> tuple[dict[str, str], list[str]]:
+    """The one finished file's metadata and its records' keys."""
+    assert len(rec.finished) == 1, rec.finished
+    meta, records = read_run(rec.finished[0])
+    return meta, [r.key for r in records]
+
+
+# --- one run, one file --------------------------------------------------------------------
+
+
+def test_a_run_from_start_to_result_is_one_file_with_its_messages(rec: Recorder) -> None:
+    samples(rec, 0, 9)  # before the run: t < its start, not its context
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 10 * DT))
+    samples(rec, 10, 14)
+    send(rec, keys.command(P, LOOP, "lease", "tuner"), LeaseCommand(loop=LOOP, source="tuner:r1"))
+    send(rec, keys.command(P, LOOP, "output"), OutputCommand(loop=LOOP, op=45.0))
+    send(rec, keys.status(P, LOOP), status(14, "output"))
+    ev = TunerEvent(run_id="r1", loop=LOOP, t=14 * DT, kind="cycle", data={"n": 1})
+    send(rec, keys.tune_event(P, LOOP), ev)
+    samples(rec, 15, 19)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 19 * DT))
+    samples(rec, 20, 22)  # after the result: no run, not written
+
+    meta, recorded = only_file(rec)
+    assert rec.finished[0].name.endswith(f"_{LOOP}_relay_r1.mcap")
+    assert recorded == [
+        keys.tune_progress(P, LOOP),
+        *[keys.pv(P, LOOP)] * 5,
+        keys.command(P, LOOP, "lease", "tuner"),
+        keys.command(P, LOOP, "output"),
+        keys.status(P, LOOP),
+        keys.tune_event(P, LOOP),
+        *[keys.pv(P, LOOP)] * 5,
+        keys.tune_result(P, LOOP),
+    ]
+    assert meta["format"] == "1"
+    assert (meta["run_id"], meta["loop"], meta["status"], meta["prefix"]) == ("r1", LOOP, "ok", P)
+    assert (meta["samples"], meta["first_seq"], meta["last_seq"]) == ("10", "10", "19")
+    assert (meta["dropped"], meta["messages"], meta["left_out"]) == ("0", "16", "0")
+    assert (meta["ku"], meta["pu"], meta["plant_node"]) == ("2.5", "8.0", "plant")
+    assert TuneResult.model_validate_json(meta["result"]) == result("r1", 19 * DT)
+    assert rec.open_runs() == [] and rec.counts["runs"] == 1 and rec.counts["written"] == 16
+
+
+def test_another_runs_tuner_messages_are_left_out_and_counted(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 2)
+    stale = TunerEvent(run_id="old", loop=LOOP, t=0.1, kind="cycle", data={})
+    send(rec, keys.tune_event(P, LOOP), stale)
+    send(rec, keys.tune_result(P, LOOP), result("old", 0.1))  # ends nothing: not this run's
+    assert rec.open_runs() == ["r1"]
+    send(rec, keys.tune_result(P, LOOP), result("r1", 0.1))
+    meta, recorded = only_file(rec)
+    assert meta["left_out"] == "2" and meta["status"] == "ok"
+    assert recorded.count(keys.tune_result(P, LOOP)) == 1
+
+
+def test_gaps_in_the_sample_numbers_are_counted_as_dropped(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    for n in (0, 1, 4, 5, 9):
+        send(rec, keys.pv(P, LOOP), sample(n))
+    send(rec, keys.tune_result(P, LOOP), result("r1", 9 * DT))
+    meta, _ = only_file(rec)
+    assert (meta["samples"], meta["dropped"]) == ("5", "5")  # 2, 3, 6, 7, 8
+    assert rec.counts["dropped"] == 5
+
+
+# --- the pre-run buffer -------------------------------------------------------------------
+
+
+def test_samples_that_overtook_the_start_go_into_the_file_if_not_older_than_it(
+    rec: Recorder,
+) -> None:
+    samples(rec, 0, 9)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 6 * DT))  # samples 6..9 came first
+    send(rec, keys.tune_result(P, LOOP), result("r1", 9 * DT))
+    meta, recorded = only_file(rec)
+    assert (meta["first_seq"], meta["last_seq"], meta["samples"]) == ("6", "9", "4")
+    assert recorded[0] == keys.pv(P, LOOP)  # in arrival order: the samples, then the start
+    assert recorded[4] == keys.tune_progress(P, LOOP)
+
+
+def test_the_pre_run_buffer_keeps_the_last_BUFFER_messages_of_a_loop(rec: Recorder) -> None:
+    n = BUFFER + 500
+    samples(rec, 0, n - 1)
+    assert len(rec.streams[(LOOP, "")].recent) == BUFFER
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))  # all of them would qualify
+    send(rec, keys.tune_result(P, LOOP), result("r1", (n - 1) * DT))
+    meta, _ = only_file(rec)
+    # the buffer holds the start itself and the BUFFER - 1 samples before it
+    assert meta["samples"] == str(BUFFER - 1)
+    assert meta["first_seq"] == str(n - (BUFFER - 1)) and meta["last_seq"] == str(n - 1)
+
+
+def test_what_came_before_the_previous_run_ended_is_not_the_next_runs(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 4)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 4 * DT))
+    send(rec, keys.tune_progress(P, LOOP), start("r2", 0.0))  # t 0: would take anything
+    send(rec, keys.tune_result(P, LOOP), result("r2", 4 * DT))
+    assert len(rec.finished) == 2
+    meta, recorded = read_run(rec.finished[1])
+    assert meta["samples"] == "0"
+    assert [r.key for r in recorded] == [keys.tune_progress(P, LOOP), keys.tune_result(P, LOOP)]
+
+
+# --- dedupe and plant instances -----------------------------------------------------------
+
+
+def test_a_sample_delivered_twice_is_written_once(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 3)
+    send(rec, keys.pv(P, LOOP), sample(3))  # the same bytes again
+    samples(rec, 4, 5)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 5 * DT))
+    meta, _ = only_file(rec)
+    assert rec.counts["duplicates"] == 1
+    assert (meta["samples"], meta["dropped"], meta["plant_changed"]) == ("6", "0", "")
+
+
+def test_a_sample_number_again_with_other_values_is_a_new_plant_left_out(
+    rec: Recorder,
+) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 5)
+    send(rec, keys.pv(P, LOOP), sample(5, pv=99.0))  # another plant numbering from here
+    send(rec, keys.pv(P, LOOP), sample(6, pv=99.0))
+    send(rec, keys.command(P, LOOP, "setpoint"), SetpointCommand(loop=LOOP, sp=61.0))
+    send(rec, keys.tune_result(P, LOOP), result("r1", 6 * DT))
+    meta, recorded = only_file(rec)
+    assert meta["plant_changed"] == "sample 5 came again, with other values"
+    assert (meta["samples"], meta["last_seq"], meta["left_out"]) == ("6", "5", "3")
+    assert keys.command(P, LOOP, "setpoint") not in recorded
+    assert rec.counts["plant_instances"] == 1
+
+
+def test_a_start_status_mid_run_is_a_new_plant_instance(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 3)
+    send(rec, keys.status(P, LOOP), status(0, "start"))
+    samples(rec, 1, 2)  # the restarted plant's: going back is no longer evidence
+    send(rec, keys.tune_result(P, LOOP), result("r1", 3 * DT))
+    meta, _ = only_file(rec)
+    assert meta["plant_changed"] == "the plant started (status 'start')"
+    assert (meta["samples"], meta["left_out"]) == ("4", "3")
+
+
+# --- how a run ends -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("status", ["ok", "rejected", "aborted", "failed"])
+def test_a_result_ends_the_run_with_its_status(rec: Recorder, status: str) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    send(rec, keys.tune_result(P, LOOP), result("r1", 0.0, status))
+    assert only_file(rec)[0]["status"] == status
+
+
+def test_a_new_start_supersedes_the_open_run(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 2)
+    send(rec, keys.tune_progress(P, LOOP), start("r2", 2 * DT))
+    assert rec.open_runs() == ["r2"]
+    meta, _ = read_run(rec.finished[0])
+    assert (meta["run_id"], meta["status"], meta["result"]) == ("r1", "superseded", "")
+
+
+def test_the_same_start_again_opens_nothing(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))  # delivered twice: written twice
+    send(rec, keys.tune_result(P, LOOP), result("r1", 0.0))
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))  # after its file: never again
+    assert rec.counts["repeated_runs"] == 1 and rec.counts["runs"] == 1
+    assert rec.open_runs() == []
+    assert only_file(rec)[1].count(keys.tune_progress(P, LOOP)) == 2
+
+
+def test_a_vanished_run_token_ends_the_run_after_the_grace(rec: Recorder, clock: Clock) -> None:
+    rec.run_token(LOOP, True)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    rec.run_token(LOOP, False)
+    clock.now += RESULT_GRACE - 0.01
+    rec.tick()
+    assert rec.open_runs() == ["r1"]  # the result may still be on its way
+    clock.now += 0.01
+    rec.tick()
+    assert rec.open_runs() == []
+    assert only_file(rec)[0]["status"] == "tuner lost"
+
+
+def test_a_run_token_back_within_the_grace_keeps_the_run(rec: Recorder, clock: Clock) -> None:
+    rec.run_token(LOOP, True)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    rec.run_token(LOOP, False)
+    clock.now += 1.0
+    rec.run_token(LOOP, True)  # a reconnection
+    clock.now += 10 * RESULT_GRACE
+    rec.tick()
+    assert rec.open_runs() == ["r1"]
+
+
+def test_the_result_within_the_grace_ends_the_run_ok(rec: Recorder, clock: Clock) -> None:
+    rec.run_token(LOOP, True)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    rec.run_token(LOOP, False)
+    clock.now += RESULT_GRACE / 2
+    send(rec, keys.tune_result(P, LOOP), result("r1", 0.0))
+    assert only_file(rec)[0]["status"] == "ok"
+
+
+def test_a_watchdog_restore_without_the_run_token_ends_the_run(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 2)
+    send(rec, keys.status(P, LOOP), status(2, "watchdog"))
+    assert rec.open_runs() == []
+    meta, recorded = only_file(rec)
+    assert meta["status"] == "tuner lost" and recorded[-1] == keys.status(P, LOOP)
+
+
+def test_a_watchdog_status_naming_the_runs_lease_ends_nothing(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    send(rec, keys.status(P, LOOP), status(0, "watchdog", leased_by="tuner:r1"))
+    assert rec.open_runs() == ["r1"]
+
+
+def test_a_watchdog_while_the_token_lives_waits_for_the_token(rec: Recorder) -> None:
+    rec.run_token(LOOP, True)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    send(rec, keys.status(P, LOOP), status(0, "watchdog"))
+    assert rec.open_runs() == ["r1"]  # the tuner lives: it ends its run with a result
+    rec.run_token(LOOP, False)  # it did not: gone now, nothing more to wait for
+    assert rec.open_runs() == []
+    assert only_file(rec)[0]["status"] == "tuner lost"
+
+
+def test_close_all_finishes_every_open_file_incomplete(rec: Recorder) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    send(rec, keys.tune_progress(P, "lvl1"), start("r2", 0.0).model_copy(update={"loop": "lvl1"}))
+    rec.close_all()
+    assert sorted(read_run(f)[0]["status"] for f in rec.finished) == ["incomplete"] * 2
+    assert rec.open_runs() == []
+
+
+# --- input it does not record -------------------------------------------------------------
+
+
+def test_invalid_and_foreign_messages_are_counted_not_recorded(rec: Recorder) -> None:
+    rec.handle(keys.pv(P, LOOP), b'{"loop": "hx1"}')
+    rec.handle(keys.info(P, LOOP), b"{}")
+    rec.handle("elsewhere/plant/hx1/pv", wire.encode(sample(0)))
+    rec.handle(keys.command(P, LOOP, "explode"), b"{}")
+    assert (rec.counts["received"], rec.counts["invalid"], rec.counts["ignored"]) == (4, 1, 3)
+    assert rec.streams == {}
+
+
+def test_model_for_reads_each_recorded_key() -> None:
+    assert model_for(P, keys.pv(P, LOOP)) == (LOOP, ProcessSample)
+    assert model_for(P, keys.status(P, LOOP)) == (LOOP, LoopStatus)
+    assert model_for(P, keys.command(P, LOOP, "output", "u")) == (LOOP, OutputCommand)
+    assert model_for(P, keys.tune_progress(P, LOOP)) == (LOOP, TuneProgress)
+    assert model_for(P, keys.tune_event(P, LOOP)) == (LOOP, TunerEvent)
+    assert model_for(P, keys.tune_result(P, LOOP)) == (LOOP, TuneResult)
+    for key in (
+        keys.info(P, LOOP),
+        keys.loop_alive(P, LOOP),
+        keys.tune_cancel(P, LOOP),
+        keys.tune_running(P, LOOP),
+        keys.logger_status(P, "logger"),
+        keys.pv("other", LOOP),
+    ):
+        assert model_for(P, key) is None, key
+
+
+def test_replays_are_left_out_unless_asked_for(tmp_path: Path, clock: Clock) -> None:
+    rec = Recorder(tmp_path, P, flush_interval=3600.0, clock=clock)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0), replay="a.mcap")
+    assert rec.counts["replayed_ignored"] == 1 and rec.streams == {}
+
+
+def test_a_recorded_replay_is_its_own_stream_and_file(tmp_path: Path, clock: Clock) -> None:
+    rec = Recorder(tmp_path, P, flush_interval=3600.0, record_replays=True, clock=clock)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))  # live
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0), replay="a.mcap")
+    send(rec, keys.pv(P, LOOP), sample(0), replay="a.mcap")
+    send(rec, keys.tune_result(P, LOOP), result("r1", 0.0), replay="a.mcap")
+    assert rec.open_runs() == ["r1"]  # the live run is untouched
+    meta, _ = read_run(rec.finished[0])
+    assert rec.finished[0].name.endswith("_r1_replay.mcap")
+    assert (meta["replay"], meta["status"], meta["samples"]) == ("a.mcap", "ok", "1")
+    assert (LOOP, "a.mcap") not in rec.streams  # a replay's stream ends with its run

@@ -1,0 +1,130 @@
+"""The step test's state machine fed a synthetic first-order-plus-dead-time response, sample
+by sample, against the closed forms: PV = pv₀ + K·Δu·(1 − e^{−(t − t_h − L)/T}) after the
+stepped output is held from t_h.
+
+Sampled at Ts, the steepest secant is the one just after the kink at L: its slope is
+K·Δu·(1 − e^{−Ts/T})/Ts and its line meets the baseline at L exactly; the record ends when the
+PV is called at rest, a little short of K·Δu (the exponential's tail), which the gain and T63
+read to within it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import pytest
+
+from services.autotuner.design.selection import l_over_t
+from services.autotuner.identify.step_test import StepTest, StepTestConfig
+
+K, T, L, TS, PV0, OP0 = 2.0, 20.0, 3.0, 0.1, 30.0, 50.0
+
+
+@dataclass(frozen=True)
+class Sample:
+    t: float  # s
+    pv: float  # PV units
+    op: float  # %
+
+
+def run_step(
+    size: float, pv_limits=(0.0, 100.0), pv_range=None, max_samples: int = 100_000
+) -> StepTest:
+    """Feed the test until it finishes; the output it asks for is held from that sample on
+    (lockstep), and it is told so (``held``)."""
+    test = StepTest(StepTestConfig(size=size), OP0, (0.0, 100.0), pv_limits, TS, pv_range)
+    op, t_hold = OP0, None
+    for k in range(1, max_samples):
+        t = k * TS
+        moved = t_hold is not None and t > t_hold + L
+        pv = PV0 + (K * (op - OP0) * (1 - math.exp(-(t - t_hold - L) / T)) if moved else 0.0)
+        demand = test.feed(Sample(t, pv, op))
+        if demand.op != op and t_hold is None:
+            t_hold = t
+            test.held(t)
+        op = demand.op
+        if test.finished:
+            return test
+    raise AssertionError("the step test never finished")
+
+
+@pytest.mark.parametrize("size", [5.0, -4.0])
+def test_first_order_plus_dead_time_reads_as_the_closed_form(size):
+    test = run_step(size)
+    assert test.phase == "done", test.reason
+    rc = test.result
+    assert rc.step_size == size and rc.pv_before == pytest.approx(PV0, abs=1e-12)
+    assert rc.dead_time == pytest.approx(L, abs=1e-9)
+    assert rc.slope == pytest.approx(K * size * (1 - math.exp(-TS / T)) / TS, rel=1e-9)
+    assert rc.reaction_rate == pytest.approx(rc.slope / size, rel=1e-12)
+    assert rc.gain == pytest.approx(K, rel=3e-3)  # short of K by the tail left at rest
+    assert rc.time_constant_63 == pytest.approx(T, rel=5e-3)
+    assert rc.time_constant_tangent == pytest.approx(rc.gain / rc.reaction_rate, rel=1e-12)
+    assert rc.l_over_t == pytest.approx(rc.dead_time / rc.time_constant_tangent, rel=1e-12)
+    # the model refined on the whole record is the plant itself
+    model = test.identification().model
+    assert model.kind == "fopdt"
+    assert model.gain == pytest.approx(K, rel=1e-6)
+    assert model.lags == pytest.approx((T,), rel=1e-6)
+    assert model.delay == pytest.approx(L, rel=1e-6)
+
+
+def test_the_identification_carries_the_reaction_curve_typed_and_as_json():
+    """The design code reads the figures; the result's ``step`` object keeps its keys."""
+    test = run_step(5.0)
+    ident = test.identification()
+    assert ident.step is test.result
+    assert l_over_t(ident) == test.result.l_over_t
+    step = ident.step.to_dict()
+    assert list(step) == [
+        "step_size",
+        "pv_before",
+        "pv_after",
+        "gain",
+        "dead_time",
+        "slope",
+        "reaction_rate",
+        "time_constant_tangent",
+        "time_constant_63",
+        "t_inflection",
+        "t_63",
+        "a",
+        "l_over_t",
+        "noise_std",
+        "smoothing_window",
+        "method",
+        "fit_rms",
+        "dead_time_tangent",
+        "dead_time_floor",
+    ]
+    assert step["dead_time"] == test.result.dead_time and step["method"] == "data"
+    assert step["smoothing_window"] == 2 and step["fit_rms"] is None  # noise-free: a secant
+
+
+def test_the_output_returns_to_where_it_was_when_done():
+    test = run_step(5.0)
+    assert test.demand.op == OP0
+    kinds = [e[1] for e in test.events]
+    assert kinds[0] == "step" and kinds[-1] == "done" and "step_started" in kinds
+
+
+def test_leaving_the_pv_limits_aborts_with_the_output_back():
+    """Limits inside a wider transmitter range: K·Δu = 10 from 30, the PV crosses 35 at
+    L + T·ln 2 after the step."""
+    test = run_step(5.0, pv_limits=(0.0, 35.0), pv_range=(0.0, 100.0))
+    assert test.phase == "aborted" and test.result is None
+    assert test.reason.startswith("PV 35.") and "left its limits [0, 35]" in test.reason
+    assert test.demand.op == OP0 and test.events[-1][1] == "aborted"
+    assert test.t[-1] - test.t_step == pytest.approx(L + T * math.log(2.0), abs=TS)
+
+
+def test_heading_for_the_end_of_the_range_stops_before_it():
+    """Limits that are the range's ends: the test stops when the trend, extended by twice the
+    time the PV took to start moving (L plus one sample, noise-free) and four samples, would
+    reach the end — before the measurement clips."""
+    test = run_step(5.0, pv_limits=(0.0, 35.0))
+    assert test.phase == "aborted" and test.demand.op == OP0
+    horizon = 2 * (L + TS) + 4 * TS
+    assert f"the PV would reach its upper limit (35) within {horizon:g} s" in test.reason
+    assert max(test.pv) < 35.0

@@ -1,0 +1,138 @@
+"""The run's safety logic (apply, verify, restore) against an in-process loop: the exact state
+it leaves the loop in after an ok run, a refusal and an abort mid-test, and that nothing is
+written to the loop once the run has let it go.
+
+The plant is 6/((s+1)(s+2)(s+3)) (K_u = 10, P_u = 2π/√11 ≈ 1.9 s), noise-free, sampled at 20 ms
+(~95 samples per period): a whole relay run takes a fraction of a second in process.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from services.autotuner.tuning import RunHooks, TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.messages import (
+    GainsCommand,
+    LeaseCommand,
+    ModeCommand,
+    OutputCommand,
+    PidGains,
+    ReleaseCommand,
+    SetpointCommand,
+    TuneProgress,
+    TuneRequest,
+)
+
+OLD_GAINS = {"kc": 2.0, "ti": 2.0}
+WRITES = (GainsCommand, ModeCommand, OutputCommand, SetpointCommand)
+
+
+def third_order_loop(mode: str = "manual", setpoint: float | None = None):
+    cfg = {
+        "model": "transfer_function",
+        "num": [6.0],
+        "den": [1.0, 6.0, 11.0, 6.0],
+        "sample_time": 0.02,
+        "noise_std": 0.0,
+        "mode": mode,
+        "pid": dict(OLD_GAINS),
+    }
+    if setpoint is not None:
+        cfg["setpoint"] = setpoint
+    return build_plant({"seed": 1, "loops": {"x": cfg}})["x"]
+
+
+def state(client: LocalLoopClient) -> tuple:
+    """What a supervisor sets: mode, setpoint, gains, and the output when in manual (in auto
+    the PID block moves it)."""
+    st = client.sync()
+    return st.mode, st.sp, st.gains, st.op if st.mode == "manual" else None
+
+
+def run(client: LocalLoopClient, hooks: RunHooks | None = None, **req):
+    return TuningRun(client, TuneRequest(loop="x", **req), "unit", hooks).run()
+
+
+def assert_let_go(client: LocalLoopClient) -> None:
+    """The run's last command gives the lease back; no write follows it, and the loop holds
+    what it was left with while it runs on."""
+    kinds = [type(c) for c in client.commands]
+    last_release = max(i for i, k in enumerate(kinds) if k is ReleaseCommand)
+    assert not [k for k in kinds[last_release:] if k in WRITES]
+    assert not client.holding
+    left = state(client)
+    client.advance(500)
+    assert state(client) == left
+
+
+def test_an_ok_run_applies_exactly_the_chosen_gains():
+    loop = third_order_loop()
+    client = LocalLoopClient(loop)
+    before = client.sync()
+    r = run(client, method="relay")
+    assert (r.status, r.applied, r.restored) == ("ok", True, False), r.reason
+    st = client.sync()
+    chosen = r.chosen["isa"]
+    assert st.mode == "auto"
+    assert st.gains == PidGains(kc=chosen["kc"], ti=chosen["ti"], td=chosen["td"])
+    # a loop that was in manual is held at the PV it rested at (noise-free: the PV itself)
+    assert st.sp == pytest.approx(before.pv, abs=1e-9)
+    assert r.previous_gains == before.gains
+    assert isinstance(client.commands[0], LeaseCommand)
+    assert_let_go(client)
+
+
+def test_a_refusal_restores_an_auto_loop_exactly():
+    """An Ms bound no rule can meet (1.01): the gains are refused and the loop is put back
+    as it was — in auto, at its setpoint, with its old gains."""
+    loop = third_order_loop("auto", setpoint=50.0)
+    client = LocalLoopClient(loop)
+    client.advance(2000)  # 40 s: at rest on its setpoint
+    before = state(client)
+    r = run(client, method="relay", ms_bound=1.01)
+    assert (r.status, r.applied, r.restored) == ("rejected", False, True)
+    assert r.reason.startswith("no rule could be recommended"), r.reason
+    assert "predicted Ms" in r.reason and "above the bound 1.01" in r.reason
+    assert state(client) == before
+    assert before[:3] == ("auto", 50.0, PidGains(**OLD_GAINS))
+    assert_let_go(client)
+
+
+def test_an_abort_mid_test_restores_a_manual_loop_exactly():
+    """Cancelled at the relay's first reported cycle: the loop is back in manual at its old
+    output, setpoint and gains."""
+    loop = third_order_loop()
+    client = LocalLoopClient(loop)
+    before = state(client)
+    cancel = threading.Event()
+    phases: list[str] = []
+
+    def progress(p: TuneProgress) -> None:
+        phases.append(p.phase)
+        if p.cycles >= 1:
+            cancel.set()
+
+    r = run(client, RunHooks(progress=progress, cancelled=cancel), method="relay")
+    assert (r.status, r.reason, r.restored) == ("aborted", "cancelled", True)
+    assert r.applied is not True
+    assert state(client) == before
+    # it was mid-test: the relay had switched the output before the cancel
+    assert any(isinstance(c, OutputCommand) and c.op != before[3] for c in client.commands)
+    assert_let_go(client)
+
+
+def test_leaving_the_pv_limits_aborts_and_restores():
+    """The relay drives the PV out of a ±0.05 band around its rest (its swing is 4d/(πK_u)
+    ≈ 0.64 for d = 5 %): aborted, restored."""
+    loop = third_order_loop()
+    client = LocalLoopClient(loop)
+    before = state(client)
+    pv = client.sync().pv
+    r = run(client, method="relay", pv_limits=(pv - 0.05, pv + 0.05))
+    assert (r.status, r.restored) == ("aborted", True)
+    assert state(client) == before
+    assert_let_go(client)

@@ -1,0 +1,263 @@
+"""shared/wire.py: every message type through encode → decode, refusals that name the field,
+the encoding checks, and the replay attachment."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+import shared.messages as messages
+from shared import wire
+from shared.errors import DecodeError
+from shared.messages import (
+    AdvanceCommand,
+    DisturbanceCommand,
+    GainsCommand,
+    LeaseCommand,
+    LoggerStatus,
+    LoopInfo,
+    LoopStatus,
+    Message,
+    ModeCommand,
+    OutputCommand,
+    PidGains,
+    ProcessSample,
+    ReleaseCommand,
+    ServiceStatus,
+    SetpointCommand,
+    SyncCommand,
+    TuneAccepted,
+    TuneProgress,
+    TuneRequest,
+    TuneResult,
+    TunerEvent,
+    Verification,
+)
+
+GAINS = PidGains(kc=2.5, ti=30.0, td=1.5, n=8.0, beta=0.5)
+VERIFICATION = Verification(
+    gains=GAINS,
+    sp_step=5.0,
+    overshoot=12.5,
+    decay_ratio=0.2,
+    rise_time=3.0,
+    settling_time=None,
+    iae_sp=4.25,
+    load_step=None,
+    iae_load=None,
+    max_deviation_load=None,
+    recovery_time=None,
+    stable=True,
+    saturated=False,
+    score=1.75,
+)
+SAMPLE = ProcessSample(loop="hx1", seq=7, t=0.35, pv=60.125, sp=60.0, op=40.5, mode="auto")
+
+EXAMPLES: list[Message] = [
+    GAINS,
+    SAMPLE,
+    LoopStatus(
+        loop="hx1",
+        node="plant",
+        seq=7,
+        t=0.35,
+        pv=60.125,
+        sp=60.0,
+        op=40.5,
+        mode="manual",
+        action="reverse",
+        gains=GAINS,
+        op_limits=(0.0, 100.0),
+        pv_range=(0.0, 150.0),
+        disturbances={"load": 1.5},
+        clock="lockstep",
+        accepted=3,
+        rejected=1,
+        last_reject="op: too big",
+        sync_token=42,
+        reason="sync",
+        leased_by="tuner:abc",
+        lease_user="tuner",
+    ),
+    LoopInfo(
+        loop="hx1",
+        node="plant",
+        t=0.0,
+        model="fopdt",
+        description="a heat exchanger",
+        model_params={"gain": 1.2, "lags": [10.0, 2.0]},
+        sample_time=0.05,
+        pv_units="°C",
+        pv_range=(0.0, 150.0),
+        op_limits=(0.0, 100.0),
+        disturbances=["load"],
+        noise_std=0.01,
+        clock="realtime",
+        speed=10.0,
+    ),
+    ServiceStatus(
+        node="plant",
+        clock="lockstep",
+        speed=1.0,
+        loops={"hx1": 12.5},
+        accepted=10,
+        rejected=2,
+        rejected_by_reason={"malformed": 2},
+        overruns=0,
+    ),
+    ModeCommand(loop="hx1", mode="auto", source="op", t=1.0),
+    OutputCommand(loop="hx1", op=55.5),
+    SetpointCommand(loop="hx1", sp=-3.25),
+    GainsCommand(loop="hx1", gains=GAINS),
+    DisturbanceCommand(loop="hx1", name="load", value=-2.0),
+    AdvanceCommand(loop="hx1", steps=20),
+    SyncCommand(loop="hx1", token=99),
+    LeaseCommand(loop="hx1", timeout=7.5, source="tuner:abc"),
+    ReleaseCommand(loop="hx1", source="tuner:abc"),
+    TuneRequest(loop="hx1", method="ramp", rule="zn-pi", pv_limits=(10.0, 90.0), apply=False),
+    TuneAccepted(run_id="abc", loop="hx1", t=0.0, method="relay", rule="auto"),
+    TuneProgress(run_id="abc", loop="hx1", t=4.0, phase="relay", cycles=2, ku=3.5, pu=20.0),
+    TunerEvent(run_id="abc", loop="hx1", t=4.0, kind="cycle", data={"n": 2, "why": None}),
+    VERIFICATION,
+    TuneResult(
+        run_id="abc",
+        loop="hx1",
+        t=100.0,
+        method="relay",
+        rule="zn-pi",
+        status="ok",
+        ku=3.5,
+        pu=20.0,
+        gains={"zn-pi": {"kc": 1.575}},
+        previous_gains=GAINS,
+        after=VERIFICATION,
+        warnings=["noisy"],
+        wall_time=1.25,
+    ),
+    LoggerStatus(
+        node="logger",
+        runs_dir="runs",
+        open_runs=["abc"],
+        finished_runs=1,
+        received=10,
+        written=9,
+        invalid=1,
+        dropped=0,
+    ),
+]
+
+
+def test_the_examples_cover_every_message_type() -> None:
+    defined = {
+        c
+        for c in vars(messages).values()
+        if isinstance(c, type) and issubclass(c, Message) and c not in (Message, messages.Command)
+    }
+    assert {type(m) for m in EXAMPLES} == defined
+
+
+@pytest.mark.parametrize("msg", EXAMPLES, ids=lambda m: type(m).__name__)
+def test_round_trip_with_its_encoding(msg: Message) -> None:
+    model = type(msg)
+    encoding = str(wire.encoding_for(model))
+    assert encoding == f"application/json;{model.__name__}"
+    payload = wire.encode(msg)
+    assert json.loads(payload) == msg.model_dump(mode="json")  # plain JSON, every field
+    assert wire.decode(model, payload, encoding) == msg
+    assert wire.decode(model, payload) == msg  # no encoding: the model decides
+
+
+@pytest.mark.parametrize(
+    "encoding", ["zenoh/bytes", "zenoh/string", "text/plain", "application/json"]
+)
+def test_generic_encodings_are_accepted(encoding: str) -> None:
+    assert wire.decode(ProcessSample, wire.encode(SAMPLE), encoding) == SAMPLE
+
+
+def test_another_schema_or_mime_type_is_refused() -> None:
+    payload = wire.encode(SAMPLE)
+    with pytest.raises(DecodeError, match=r"^schema 'LoopStatus' does not match expected Process"):
+        wire.decode(ProcessSample, payload, "application/json;LoopStatus")
+    with pytest.raises(DecodeError, match=r"^encoding 'text/csv' is not application/json$"):
+        wire.decode(ProcessSample, payload, "text/csv")
+
+
+def _sample_json(**change: object) -> bytes:
+    fields = SAMPLE.model_dump(mode="json")
+    for name, value in change.items():
+        if value is _MISSING:
+            del fields[name]
+        else:
+            fields[name] = value
+    return json.dumps(fields).encode()
+
+
+_MISSING = object()
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (_sample_json(op=150.0), "op: Input should be less than or equal to 100"),
+        (_sample_json(op=-0.5), "op: Input should be greater than or equal to 0"),
+        (_sample_json(seq=_MISSING), "seq: Field required"),
+        (_sample_json(seq="7"), "seq: Input should be a valid integer"),  # strict
+        (_sample_json(mode="cascade"), "mode: Input should be 'manual' or 'auto'"),
+        (_sample_json(loop="a/b"), "loop: String should match pattern"),
+        (_sample_json(extra=1), "extra: Extra inputs are not permitted"),
+        (_sample_json().replace(b"60.125", b"NaN"), "pv: Input should be a finite number"),
+        (b"not json", "payload: Invalid JSON"),
+        (b"[1, 2]", "payload: Input should be an object"),
+    ],
+)
+def test_a_bad_payload_is_refused_naming_the_field(payload: bytes, reason: str) -> None:
+    with pytest.raises(DecodeError) as err:
+        wire.decode(ProcessSample, payload, "application/json;ProcessSample")
+    assert str(err.value).startswith(reason)
+    assert "\n" not in str(err.value)
+
+
+def test_a_nested_field_is_named_by_its_path() -> None:
+    payload = json.dumps({"loop": "hx1", "gains": {"kc": -1.0, "ti": 0.0}, "source": "op"}).encode()
+    with pytest.raises(DecodeError) as err:
+        wire.decode(GainsCommand, payload)
+    assert str(err.value) == (
+        "gains.kc: Input should be greater than or equal to 0; "
+        "gains.ti: Input should be greater than 0"
+    )
+
+
+def test_many_bad_fields_name_three_and_count_the_rest() -> None:
+    with pytest.raises(DecodeError) as err:
+        wire.decode(ProcessSample, b'{"loop": "hx1"}')
+    assert str(err.value) == (
+        "seq: Field required; t: Field required; pv: Field required; (+3 more)"
+    )
+
+
+def test_replay_attachment_round_trip() -> None:
+    mark = wire.replay_attachment("20260101T000000Z_hx1_relay_abc.mcap")
+    assert json.loads(mark) == {"replay": "20260101T000000Z_hx1_relay_abc.mcap"}
+    assert wire.replay_source(mark) == "20260101T000000Z_hx1_relay_abc.mcap"
+
+
+@pytest.mark.parametrize(
+    "attachment",
+    [
+        None,
+        b"",
+        b"not json",
+        b"\xff\xfe",
+        b"[1]",
+        b'"replay"',
+        b'{"other": "x"}',
+        b'{"replay": null}',
+    ],
+)
+def test_what_is_not_a_replay_mark_is_live_traffic(attachment: bytes | None) -> None:
+    assert wire.replay_source(attachment) is None
+
+
+def test_a_replay_mark_that_is_not_a_string_is_read_as_text() -> None:
+    assert wire.replay_source(b'{"replay": 12}') == "12"
