@@ -147,16 +147,24 @@ def test_shared_imports_no_service():
 # What each service package may import of the others. services/offline composes plant_sim's
 # core with the autotuner (benchmark, in-process loop) and is exempt, as are the top-level
 # composition modules (services/cli.py, demo.py, up.py, stack.py...). The logger replays runs
-# offline with the autotuner's pure code, and validates the recorded request as the tuner did.
+# offline with the autotuner's pure code (identification and design, the request check
+# included), and nothing else of it.
 MAY_IMPORT = {
     "plant_sim": (),
     "autotuner": (),
-    "logger": (
-        "services.autotuner.identify",
-        "services.autotuner.design",
-        "services.autotuner.requests",
-    ),
+    "logger": ("services.autotuner.identify", "services.autotuner.design"),
 }
+
+
+def test_identification_does_not_import_design():
+    """Layers go one way: design builds on what identification found, never the reverse."""
+    found = [
+        f"{p.relative_to(ROOT)}:{line}: {name}"
+        for p in modules_in("services/autotuner/identify")
+        for line, name in imported_names(p)
+        if under(name, "services.autotuner.design")
+    ]
+    assert found == []
 
 
 @pytest.mark.parametrize("package", sorted(MAY_IMPORT))

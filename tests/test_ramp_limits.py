@@ -17,9 +17,8 @@ from scipy.optimize import brentq
 
 from services.autotuner.identify import methods
 from services.autotuner.identify.driver import drive as drive_experiment
-from services.autotuner.identify.experiments import Setup
+from services.autotuner.identify.experiments import DEFAULT_BUMP_FRACTION, Settings, Setup
 from services.autotuner.identify.ramp import RampConfig, RampTest
-from services.autotuner.requests import DEFAULT_BUMP_FRACTION, settings_of
 from services.offline.local_loop import Reading, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.loop import SimLoop
@@ -76,7 +75,7 @@ def ramp_for(loop: SimLoop, kc_start: float | None = None, bump: float | None = 
         bump=bump or DEFAULT_BUMP_FRACTION * (hi - lo),
         sp_start=loop.pv,
     )
-    test = methods.build("ramp", settings_of(TuneRequest(loop="x", method="ramp")), setup)
+    test = methods.build("ramp", Settings.of(TuneRequest(loop="x", method="ramp")), setup)
     assert isinstance(test, RampTest)
     loop.apply(GainsCommand(loop="x", gains=PidGains(kc=test.kc)))
     return test

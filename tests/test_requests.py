@@ -8,8 +8,8 @@ import math
 
 import pytest
 
+from services.autotuner.design.request_check import validate_request
 from services.autotuner.design.rules import RULES
-from services.autotuner.requests import validate_request
 from shared.messages import TuneRequest
 
 GIVES = {"closed": {"relay", "ramp"}, "open": {"step"}, "model": {"relay", "step"}}

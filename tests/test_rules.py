@@ -4,8 +4,8 @@ import math
 
 import pytest
 
-from services.autotuner.design.rules import RULES, StepModel, UltimatePoint, apply_rules, model_of
-from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.design.rules import RULES, UltimatePoint, apply_rules
+from services.autotuner.identify.model_fit import ProcessFit, StepModel, model_of
 from shared.control.forms import (
     IsaGains,
     ParallelGains,

@@ -5,10 +5,9 @@ import json
 
 import pytest
 
-from services.autotuner.design.rules import StepModel, model_of
 from services.autotuner.design.selection import assessments_dict, guidance, select
 from services.autotuner.identify import experiments
-from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.model_fit import ProcessFit, StepModel, model_of
 from services.autotuner.identify.reaction_curve import ReactionCurve
 from tests.exact import lag_ultimate
 from tests.plants import HX, run_relay

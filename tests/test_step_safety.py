@@ -9,8 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.design.rules import StepModel, apply_rules
+from services.autotuner.design.rules import apply_rules
 from services.autotuner.identify.driver import drive as drive_experiment
+from services.autotuner.identify.model_fit import StepModel
 from services.autotuner.identify.reaction_curve import analyze_step, settled, steady_ramp
 from services.autotuner.identify.step_test import (
     ReturnWatch,

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import zenoh
 
+from services.autotuner.design.request_check import validate_request
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
-from services.autotuner.requests import validate_request
 from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging

@@ -32,11 +32,6 @@ from services.autotuner.identify.experiments import Demand, Experiment, Setup
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.rest import RestCheck, rest_window
 from services.autotuner.loop_client import LeaseLost, LoopClient
-from services.autotuner.requests import (
-    DEFAULT_BUMP_FRACTION,
-    DEFAULT_RELAY_AMPLITUDE,
-    settings_of,
-)
 from shared.control.forms import IsaGains, all_forms
 from shared.errors import AutotuneError
 from shared.messages import (
@@ -466,7 +461,7 @@ class TuningRun:
         — under a lease again, since it writes to the loop. Returns the PV after it."""
         if model.kind != "ipdt" or not model.gain > 0:
             return pv
-        c, d = self.client, DEFAULT_RELAY_AMPLITUDE
+        c, d = self.client, experiments.DEFAULT_RELAY_AMPLITUDE
         sign = 1.0 if self.before is not None and self.before.action == "reverse" else -1.0
         lo, hi = self.info.op_limits
         push = st.op + sign * d * math.copysign(1.0, target - pv)
@@ -540,7 +535,7 @@ class TuningRun:
             return Setup(
                 **common,
                 kc_start=req.kc_start or (0.5 * b.gains.kc if b.gains.kc > 0 else 1.0),
-                bump=req.bump or DEFAULT_BUMP_FRACTION * (hi - lo),
+                bump=req.bump or experiments.DEFAULT_BUMP_FRACTION * (hi - lo),
                 sp_start=c.sync().pv,
             )
         st = c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
@@ -566,7 +561,7 @@ class TuningRun:
         req, c = self.req, self.client
         setup = self._setup()
         try:
-            machine = methods.build(req.method, settings_of(req), setup)
+            machine = methods.build(req.method, experiments.Settings.of(req), setup)
         except ValueError as err:
             raise TuneAborted(str(err)) from None
         start = machine.demand
@@ -776,7 +771,7 @@ class TuningRun:
         stable = stable and (sp_m["decay_ratio"] or 0) < 1
         before = c.sync()
         if stable and "load" in before.disturbances:
-            load_size = self.req.amplitude or DEFAULT_RELAY_AMPLITUDE
+            load_size = self.req.amplitude or experiments.DEFAULT_RELAY_AMPLITUDE
             base = before.disturbances["load"]
             t1 = self._t
             c.command(

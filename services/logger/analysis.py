@@ -22,11 +22,11 @@ from pathlib import Path
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from services.autotuner.design.request_check import validate_request
 from services.autotuner.design.selection import Selection, assessments_dict, select
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Demand
-from services.autotuner.requests import settings_of, validate_request
 from services.logger.mcap_io import (
     decode,
     one_result,
@@ -209,7 +209,9 @@ def analyze_file(path: str | Path) -> Analysis:
     meta, run = _read(path)
     req, data = run.request, run.setup
     try:
-        machine = methods.build(req.method, settings_of(req), experiments.Setup.from_dict(data))
+        machine = methods.build(
+            req.method, experiments.Settings.of(req), experiments.Setup.from_dict(data)
+        )
     except (ValueError, TypeError, KeyError, ArithmeticError) as err:
         raise AutotuneError(
             f"{path}: the experiment event's set-up does not build a {req.method} test: "

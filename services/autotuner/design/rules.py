@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.model_fit import ProcessFit, StepModel, model_of
 from shared.control.forms import IsaGains
 
 
@@ -27,19 +27,6 @@ class UltimatePoint:
 
     ku: float
     pu: float
-
-
-@dataclass(frozen=True)
-class StepModel:
-    """Reaction-curve figures: process gain K, dead time L, time constant T (tangent), R = K/T."""
-
-    gain: float
-    dead_time: float
-    time_constant: float
-
-    @property
-    def reaction_rate(self) -> float:
-        return self.gain / self.time_constant
 
 
 @dataclass(frozen=True)
@@ -161,13 +148,6 @@ def fopdt_of(m: ProcessFit) -> StepModel:
         raise ValueError("an integrating model has no first-order equivalent")
     t2 = m.lags[1] if len(m.lags) > 1 else 0.0
     return StepModel(m.gain, m.delay + t2 / 2.0, m.lags[0] + t2 / 2.0)
-
-
-def model_of(step: StepModel) -> ProcessFit:
-    """The step test's reaction curve as a first-order-plus-dead-time model."""
-    return ProcessFit(
-        "fopdt", step.gain, (step.time_constant,), step.dead_time, 0.0, source="reaction curve"
-    )
 
 
 def _on_fopdt(rule: Callable[[StepModel], IsaGains]) -> Callable[[ProcessFit], IsaGains]:

@@ -16,8 +16,7 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any, NamedTuple, Protocol
 
-from services.autotuner.design.rules import StepModel
-from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.model_fit import ProcessFit, StepModel
 from services.autotuner.identify.reaction_curve import ReactionCurve
 from shared.control.signals import Sample
 
@@ -93,6 +92,11 @@ class Identification:
     static_gain_known: bool = True
 
 
+DEFAULT_RELAY_AMPLITUDE = 5.0  # %: also the load step of the verification
+DEFAULT_STEP_SIZE = 5.0  # %
+DEFAULT_BUMP_FRACTION = 0.01  # of the PV range, ramp setpoint bump
+
+
 @dataclass(frozen=True)
 class Settings:
     """What the engineer asked of the experiment, plain (the shell converts a request)."""
@@ -104,6 +108,20 @@ class Settings:
     relay_bias: float = 0.0  # relay stage 2: low output b − (1 − relay_bias)·d
     step_size: float = 5.0  # step test, % of output
     max_time: float | None = None  # s of sim time for the experiment; None: its own budgets
+
+    @classmethod
+    def of(cls, req: Any) -> Settings:
+        """From a tune request (read by attribute: the bus's ``TuneRequest``, or anything with
+        its fields), the defaults filled in where it leaves a field unset."""
+        return cls(
+            amplitude=req.amplitude or DEFAULT_RELAY_AMPLITUDE,
+            hysteresis=req.hysteresis,
+            cycles=req.cycles,
+            tolerance=req.tolerance,
+            relay_bias=req.relay_bias or 0.0,
+            step_size=req.step_size or DEFAULT_STEP_SIZE,
+            max_time=req.max_time,
+        )
 
 
 @dataclass(frozen=True)

@@ -267,3 +267,23 @@ def through_ultimate_point(ku: float, pu: float) -> list[ProcessFit]:
     out.append(ProcessFit("sopdt", (1.0 + x * x) / ku, (t, t), 0.2 * t, math.inf))
     out.append(ProcessFit("ipdt", w / ku, (), math.pi / (2.0 * w), math.inf))
     return out
+
+
+@dataclass(frozen=True)
+class StepModel:
+    """Reaction-curve figures: process gain K, dead time L, time constant T (tangent), R = K/T."""
+
+    gain: float
+    dead_time: float
+    time_constant: float
+
+    @property
+    def reaction_rate(self) -> float:
+        return self.gain / self.time_constant
+
+
+def model_of(step: StepModel) -> ProcessFit:
+    """The step test's reaction curve as a first-order-plus-dead-time model."""
+    return ProcessFit(
+        "fopdt", step.gain, (step.time_constant,), step.dead_time, 0.0, source="reaction curve"
+    )

@@ -28,7 +28,6 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from services.autotuner.design.rules import StepModel, model_of
 from services.autotuner.identify.experiments import (
     Demand,
     Event,
@@ -37,7 +36,13 @@ from services.autotuner.identify.experiments import (
     Settings,
     Setup,
 )
-from services.autotuner.identify.model_fit import ProcessFit, choose_on_record, refine_on_record
+from services.autotuner.identify.model_fit import (
+    ProcessFit,
+    StepModel,
+    choose_on_record,
+    model_of,
+    refine_on_record,
+)
 from services.autotuner.identify.reaction_curve import (
     ReactionCurve,
     SteadyRamp,

@@ -1,38 +1,32 @@
-"""A tune request at the edge: checked (``validate_request``) and turned into the plain
-``Settings`` the experiments take (``settings_of``), with the defaults the README lists."""
+"""Can this request be designed from? The rule asked for must be one whose needs the method's
+identification meets (``rules.Rule.kind`` against the registry's ``gives``), and the limits
+and step size must make sense. Pure: the request is read by attribute (the bus's
+``TuneRequest`` or anything with the same fields), so the tuner and the offline analysis judge
+it alike."""
 
 from __future__ import annotations
 
 import math
+from typing import Protocol
 
 from services.autotuner.design.rules import check_rule
-from services.autotuner.identify.experiments import Settings
 from services.autotuner.identify.methods import METHODS
-from shared.messages import TuneRequest
-
-DEFAULT_RELAY_AMPLITUDE = 5.0  # %: also the load step of the verification
-DEFAULT_STEP_SIZE = 5.0  # %
-DEFAULT_BUMP_FRACTION = 0.01  # of the PV range, ramp setpoint bump
 
 
-def settings_of(req: TuneRequest) -> Settings:
-    """What the request asks of the experiment, defaults filled in."""
-    return Settings(
-        amplitude=req.amplitude or DEFAULT_RELAY_AMPLITUDE,
-        hysteresis=req.hysteresis,
-        cycles=req.cycles,
-        tolerance=req.tolerance,
-        relay_bias=req.relay_bias or 0.0,
-        step_size=req.step_size or DEFAULT_STEP_SIZE,
-        max_time=req.max_time,
-    )
+class Request(Protocol):
+    """The fields of a tune request this check reads."""
+
+    rule: str
+    method: str
+    pv_limits: tuple[float, float] | None
+    step_size: float | None
 
 
 def _giving(kind: str) -> list[str]:
     return [name for name, m in METHODS.items() if kind in m.gives]
 
 
-def validate_request(req: TuneRequest) -> None:
+def validate_request(req: Request) -> None:
     """ValueError naming the field when the request cannot be run."""
     if req.rule != "auto":
         try:
