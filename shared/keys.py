@@ -153,6 +153,12 @@ def parse_tune_key(prefix: str, key: str) -> tuple[str, str] | None:
     return parts[0], parts[1]
 
 
+def leaf(key: str) -> str:
+    """The last chunk of a key (``pv``, ``event``, ``result`` …): what a recorded topic is,
+    for readers of a file that may not say its prefix."""
+    return key.rsplit("/", 1)[-1]
+
+
 def candidate_prefixes(key: str) -> list[str]:
     """The prefixes ``key`` may be under, shortest first: the chunks before each ``plant``
     or ``tune`` chunk (for a recording that does not say its prefix)."""

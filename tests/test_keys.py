@@ -209,3 +209,9 @@ def test_wildcards_cover_exactly_their_keys() -> None:
     assert not hits(keys.everything(p), keys.pv("autotune2", "hx1"))
     assert hits(keys.loop_alive(p, keys.ANY), keys.loop_alive(p, "flow1"))
     assert not hits(keys.loop_alive(p, keys.ANY), keys.service_alive(p, "plant_sim", "plant"))
+
+
+def test_leaf_is_the_last_chunk():
+    assert keys.leaf(keys.pv("a/b", "hx1")) == "pv"
+    assert keys.leaf(keys.tune_event("p", "x1")) == "event"
+    assert keys.leaf("result") == "result"

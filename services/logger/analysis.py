@@ -34,6 +34,7 @@ from services.logger.mcap_io import (
     unique_samples,
     validation_reason,
 )
+from shared import keys
 from shared.control.forms import GainForms, all_forms
 from shared.errors import AutotuneError, one_line
 from shared.messages import ProcessSample, TuneRequest, TuneResult, TunerEvent
@@ -151,7 +152,7 @@ class _Run:
 
 def _read(path: str | Path) -> tuple[dict[str, str], _Run]:
     meta, records = read_run(path)
-    events = [(r, decode(path, r, TunerEvent)) for r in records if r.topic.endswith("/event")]
+    events = [(r, decode(path, r, TunerEvent)) for r in records if keys.leaf(r.topic) == "event"]
     run_id = meta.get("run_id") or next((e.run_id for _, e in events if e.kind == "request"), None)
     runs = sorted({e.run_id for _, e in events if e.kind == "request"})
     if runs and run_id not in runs:
@@ -196,7 +197,7 @@ def _read(path: str | Path) -> tuple[dict[str, str], _Run]:
                 raise AutotuneError(f"{path}: {r.where()}: data.t: must be a time ≥ 0 s, got {t!r}")
             step_times.append(float(t))
     samples = unique_samples(path, records)
-    results = [(r, decode(path, r, TuneResult)) for r in records if r.topic.endswith("/result")]
+    results = [(r, decode(path, r, TuneResult)) for r in records if keys.leaf(r.topic) == "result"]
     result = one_result(path, [(r, x) for r, x in results if x.run_id == run_id])
     data = dict(setup[1].data)
     first_seq = int(data.pop("first_seq"))

@@ -22,6 +22,7 @@ import pydantic
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
+from shared import keys
 from shared.errors import AutotuneError, one_line
 from shared.messages import Message, ProcessSample, TuneResult
 
@@ -164,7 +165,7 @@ def unique_samples(path: Path | str, records: list[Record]) -> list[ProcessSampl
     different samples with one seq are an AutotuneError naming both records."""
     by_seq: dict[int, tuple[Record, ProcessSample]] = {}
     for r in records:
-        if not r.topic.endswith("/pv"):
+        if keys.leaf(r.topic) != "pv":
             continue
         s = decode(path, r, ProcessSample)
         seen = by_seq.get(s.seq)

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from services.logger.mcap_io import decode, one_result, read_run, unique_samples
+from shared import keys
 from shared.errors import AutotuneError, one_line
 from shared.messages import TuneProgress, TuneResult, TunerEvent
 
@@ -46,9 +47,9 @@ def load_series(path: str | Path) -> RunSeries:
     if not samples:
         raise AutotuneError(f"{path}: no process samples recorded")
     run_id = meta.get("run_id")
-    events = [decode(path, r, TunerEvent) for r in records if r.topic.endswith("/event")]
-    progress = [decode(path, r, TuneProgress) for r in records if r.topic.endswith("/progress")]
-    results = [(r, decode(path, r, TuneResult)) for r in records if r.topic.endswith("/result")]
+    events = [decode(path, r, TunerEvent) for r in records if keys.leaf(r.topic) == "event"]
+    progress = [decode(path, r, TuneProgress) for r in records if keys.leaf(r.topic) == "progress"]
+    results = [(r, decode(path, r, TuneResult)) for r in records if keys.leaf(r.topic) == "result"]
     if run_id:  # another run's messages (a stale tail) are not this run's
         events = [e for e in events if e.run_id == run_id]
         progress = [p for p in progress if p.run_id == run_id]

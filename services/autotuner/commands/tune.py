@@ -309,11 +309,11 @@ def follow(
                         appeared = True
                     elif appeared and gone is None:
                         gone = time.monotonic()
-                elif key.endswith("/progress") and on_progress:
+                elif key == keys.tune_progress(prefix, loop) and on_progress:
                     p = wire.decode_sample(TuneProgress, sample)
                     if p.run_id == run_id:
                         on_progress(p)
-                elif key.endswith("/result"):
+                elif key == keys.tune_result(prefix, loop):
                     r = wire.decode_sample(TuneResult, sample)
                     if r.run_id == run_id:
                         if cancelled:
