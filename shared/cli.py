@@ -101,6 +101,7 @@ _TUNE = {
     "hysteresis": Bound(0.0),
     "bump": Bound(0.0, low_open=True),
     "kc_start": Bound(0.0, low_open=True),
+    "lambda_s": _SECONDS,
 }
 
 # Per command: every numeric flag's bounds (NaN and ±inf are refused for every flag anyway).

@@ -263,6 +263,16 @@ class TuneRequest(Message):
     ms_bound: float = Field(
         default=2.0, gt=1.0, le=10.0, description="refuse gains whose predicted Ms exceeds it"
     )
+    lambda_s: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=1e7,
+        description="lambda rules: the closed-loop time constant λ, s (None: the larger of the "
+        "model's lag and 3 × its dead time; integrating: 3 × the dead time)",
+    )
+    aim: Literal["balanced", "robust", "fast"] = Field(
+        default="balanced", description="what the recommended rule favours (README)"
+    )
     rest_window: float | None = Field(
         default=None,
         gt=0.0,

@@ -110,7 +110,15 @@ def test_bad_models_are_refused_and_the_fallback_is_tyreus_luyben_pi(ku, pu, mod
     assert sel.refusal is None and sel.rule == "tl-pi"
     assert sel.chosen.kc == pytest.approx(ku / 3.2) and sel.chosen.ti == pytest.approx(2.2 * pu)
     assert "refused" in sel.recommended.reason and sel.recommended.predicted_ms is None
-    assert set(sel.unavailable) == {"amigo-pi", "amigo-pid", "simc-pi", "simc-pid", "simc-pi-int"}
+    assert set(sel.unavailable) == {
+        "amigo-pi",
+        "amigo-pid",
+        "simc-pi",
+        "simc-pid",
+        "simc-pi-int",
+        "lambda-pi",
+        "lambda-pid",
+    }
     assert not set(sel.unavailable) & set(sel.table)
     assert any("was refused" in w for w in sel.warnings)
     assert all(a.robustness is None for a in sel.assessments.values())  # none predicted

@@ -227,7 +227,7 @@ class TuningRun:
                 step=ident.step.to_dict() if ident.step is not None else None,
                 experiment=ident.experiment.to_dict() if ident.experiment else {},
             )
-            sel = select(ident, req.rule, req.ms_bound, req.force, self.ts)
+            sel = select(ident, req.rule, req.ms_bound, req.force, self.ts, req.lambda_s, req.aim)
             rec = sel.recommended
             result.update(
                 rule=sel.rule or req.rule,

@@ -226,7 +226,15 @@ def analyze_file(path: str | Path) -> Analysis:
                 f"{path}: the recorded samples do not complete the {req.method} "
                 f"test ({machine.reason or 'the recording ends first'})"
             )
-        sel = select(ident, req.rule, req.ms_bound, req.force, data.get("sample_time"))
+        sel = select(
+            ident,
+            req.rule,
+            req.ms_bound,
+            req.force,
+            data.get("sample_time"),
+            req.lambda_s,
+            req.aim,
+        )
     except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as err:
         raise AutotuneError(
             f"{path}: the recorded samples cannot be re-identified as a {req.method} test "

@@ -74,6 +74,22 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
         "model exceeds this (default: %(default)s)",
     )
     parser.add_argument(
+        "--lambda",
+        "--lambda-s",
+        dest="lambda_s",
+        type=float,
+        metavar="SECONDS",
+        help="lambda rules: the closed-loop time constant λ (default: the larger of the "
+        "model's lag and 3 × its dead time; integrating: 3 × the dead time)",
+    )
+    parser.add_argument(
+        "--aim",
+        choices=("balanced", "robust", "fast"),
+        default="balanced",
+        help="what the recommended rule (auto) favours: balanced, robust (lambda rules first) "
+        "or fast (README; default: %(default)s)",
+    )
+    parser.add_argument(
         "--max-overshoot",
         type=float,
         default=35.0,
@@ -170,6 +186,8 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
             apply=not args.no_apply,
             force=args.force,
             ms_bound=args.ms_bound,
+            lambda_s=args.lambda_s,
+            aim=args.aim,
             max_overshoot=args.max_overshoot,
             max_decay_ratio=args.max_decay_ratio,
             overshoot_miss=args.overshoot_miss,
@@ -410,6 +428,9 @@ def format_result(r: TuneResult) -> str:
                 f"  {name:<15}{isa['kc']:>10.4g}{_fmt(isa['ti']):>10}"
                 f"{isa['td']:>10.4g}{par['ki']:>10.4g}{par['kd']:>10.4g}{fig} {mark}"
             )
+        lam = next((a["lambda_s"] for a in (rob or {}).values() if "lambda_s" in a), None)
+        if lam is not None:
+            lines.append(f"  lambda rules: closed-loop time constant λ = {lam:.4g} s")
     if r.recommended:
         lines.append(f"  recommended: {r.recommended['rule']} ({r.recommended['reason']})")
     lines.extend(f"  warning: {w}" for w in r.warnings)

@@ -21,6 +21,12 @@ lag-dominated plants that alone can destabilise the loop; the PID rules' derivat
 high frequency, where without a model nothing says what the plant does. After a step test
 (no K_u) the fallback is AMIGO PI (designed for Ms ≈ 1.4), if its model passed its checks.
 
+The aim (``--aim``) chooses among the same safe candidates: ``balanced`` (the default) is the
+above; ``robust``, with a model, takes the first of lambda-pi, lambda-pid, then the robust
+fallbacks (tl-pi, amigo-pi, simc-pi-int) that is within the margin of the Ms bound (else as
+balanced); ``fast``, with a model, takes the largest integral gain Kc/Ti within the margin of
+the Ms bound without preferring a calm predicted step (else as balanced).
+
 The safety envelope: a candidate with Kc at or above the measured K_u, or predicted unstable,
 or with Ms above the bound, is never recommended (``envelope_problem``).
 """
@@ -45,6 +51,8 @@ MODEL_MARGIN = 0.9  # recommend only below 0.9 × the bound: the model is an app
 # the derivative acts where such a model is least certain (a zero approximated by a delay)
 APPROXIMATE_PID_MARGIN = 0.75
 FALLBACKS = ("tl-pi", "amigo-pi", "simc-pi-int")  # robust by design, in this order
+ROBUST_RULES = ("lambda-pi", "lambda-pid", *FALLBACKS)  # --aim robust, in this order
+AIMS = ("balanced", "robust", "fast")
 
 
 @dataclass(frozen=True)
@@ -206,11 +214,14 @@ def recommend(
     ms_bound: float = MS_BOUND,
     candidates: dict[str, Assessment] | None = None,
     without_model: str | None = None,
+    aim: str = "balanced",
 ) -> Recommendation | None:
-    """The rule to apply by default (see the module's docstring); ``candidates`` as
+    """The rule to apply by default for the ``aim`` (see the module's docstring); ``candidates`` as
     ``assess`` gives them (every ultimate-point rule if not given); ``without_model`` says
     why there is no model to judge on (a refusal by ``model_check``). None when no candidate
     is inside the safety envelope."""
+    if aim not in AIMS:
+        raise ValueError(f"unknown aim {aim!r}; expected one of {', '.join(AIMS)}")
     candidates = assess(ultimate, model) if candidates is None else candidates
     safe = {
         k: a
@@ -232,6 +243,25 @@ def recommend(
             return APPROXIMATE_PID_MARGIN if pid and model.approximate else MODEL_MARGIN
 
         ok = [a for a in safe.values() if a.within(margin(a.rule) * ms_bound)]
+        if aim == "robust":
+            first = next((a for r in ROBUST_RULES for a in ok if a.rule == r), None)
+            if first is not None:
+                return Recommendation(
+                    first.rule,
+                    first.gains,
+                    _number(first.robustness.ms),
+                    f"aim robust: the first of {', '.join(ROBUST_RULES)} with "
+                    f"Ms ≤ {margin(first.rule) * ms_bound:.2g} on {on}",
+                )
+        if aim == "fast" and ok:
+            best = max(ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
+            return Recommendation(
+                best.rule,
+                best.gains,
+                _number(best.robustness.ms),
+                f"aim fast: largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g} "
+                f"on {on}",
+            )
         # the verification will hold the loop to its overshoot and decay limits: prefer the
         # candidates whose predicted step already keeps well inside them
         calm = [a for a in ok if _calm(a)]

@@ -14,6 +14,7 @@ quarter-decay response for robustness.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -36,6 +37,7 @@ class Rule:
     controller: str  # "P", "PI", "PID"
     source: str
     compute: Callable[..., IsaGains]
+    tuned_by_lambda: bool = False  # compute(source, lambda_s): λ in s, None for the default
 
 
 def _zn_closed_p(u: UltimatePoint) -> IsaGains:
@@ -190,6 +192,61 @@ def _simc_pi_int(m: ProcessFit) -> IsaGains:
     return IsaGains(1.0 / (k_int * 2.0 * th), 8.0 * th)
 
 
+def default_lambda(m: ProcessFit) -> float:
+    """The default closed-loop time constant λ (s) of the lambda rules: the larger of the
+    process lag T and 3 × the dead time L of the model's first-order equivalent (seed 001's
+    robust choice, λ ≥ 3L); an integrating model has no lag: 3 × L."""
+    if m.kind == "ipdt":
+        return 3.0 * m.delay
+    f = fopdt_of(m)
+    return max(f.time_constant, 3.0 * f.dead_time)
+
+
+def lambda_used(m: ProcessFit, lambda_s: float | None) -> float:
+    """λ as asked for, else the default; ValueError unless positive and finite."""
+    lam = default_lambda(m) if lambda_s is None else float(lambda_s)
+    if not (math.isfinite(lam) and lam > 0):
+        raise ValueError(f"lambda tuning needs λ > 0, got {lam}")
+    return lam
+
+
+def _lambda_int_pi(m: ProcessFit, lam: float) -> IsaGains:
+    """Lambda PI for an integrating process K'·e^{−Ls}/s: Kc = (2λ + L)/(K'(λ + L)²),
+    Ti = 2λ + L."""
+    k, lag = m.gain, m.delay
+    return IsaGains((2.0 * lam + lag) / (k * (lam + lag) ** 2), 2.0 * lam + lag)
+
+
+def _lambda_pi(m: ProcessFit, lambda_s: float | None = None) -> IsaGains:
+    """Lambda PI (Dahlin 1968; seed 001): on K·e^{−Ls}/(Ts + 1) (a SOPDT by the half rule)
+    Kc = T/(K(λ + L)), Ti = T, so that the loop is e^{−Ls}/((λ + L)s); on an integrating
+    model, Kc = (2λ + L)/(K'(λ + L)²), Ti = 2λ + L."""
+    lam = lambda_used(m, lambda_s)
+    if m.kind == "ipdt":
+        return _lambda_int_pi(m, lam)
+    f = fopdt_of(m)
+    k, t, lag = f.gain, f.time_constant, f.dead_time
+    if t <= 0:
+        raise ValueError("lambda PI needs a lag T > 0")
+    return IsaGains(t / (k * (lam + lag)), t)
+
+
+def _lambda_pid(m: ProcessFit, lambda_s: float | None = None) -> IsaGains:
+    """Lambda PID, the IMC design with a first-order Padé for the delay (Rivera, Morari &
+    Skogestad 1986): Kc = (T + L/2)/(K(λ + L/2)), Ti = T + L/2, Td = TL/(2T + L). On an
+    integrating model it is the integrating lambda PI (no derivative)."""
+    lam = lambda_used(m, lambda_s)
+    if m.kind == "ipdt":
+        return _lambda_int_pi(m, lam)
+    f = fopdt_of(m)
+    k, t, lag = f.gain, f.time_constant, f.dead_time
+    if t <= 0:
+        raise ValueError("lambda PID needs a lag T > 0")
+    return IsaGains(
+        (t + lag / 2.0) / (k * (lam + lag / 2.0)), t + lag / 2.0, t * lag / (2.0 * t + lag)
+    )
+
+
 def _half(rule: Callable[..., IsaGains]) -> Callable[..., IsaGains]:
     def halved(x: UltimatePoint | StepModel) -> IsaGains:
         g = rule(x)
@@ -202,6 +259,11 @@ ZN_STEP_RANGE = (0.15, 0.6)  # L/T where the ZN step-response rules work (seed 0
 
 _ZN_SRC = "Ziegler & Nichols 1942 (seeds 000, 002, 003)"
 _OL_SRC = "Ziegler & Nichols 1942, reaction curve (seeds 000, 001, 002, 003)"
+_LAMBDA_SRC = "Lambda tuning: Dahlin 1968 (seed 001)"
+_IMC_SRC = (
+    "Lambda/IMC with a first-order Padé: Rivera, Morari & Skogestad 1986 (seed 001); "
+    "integrating model: the lambda PI"
+)
 _HALF = "; gain halved as seeds 001 and 002 recommend"
 
 RULES: dict[str, Rule] = {
@@ -234,6 +296,8 @@ RULES: dict[str, Rule] = {
             "Skogestad 2003, SIMC for integrating processes, τc = θ",
             _simc_pi_int,
         ),
+        Rule("lambda-pi", "model", "PI", _LAMBDA_SRC, _lambda_pi, tuned_by_lambda=True),
+        Rule("lambda-pid", "model", "PID", _IMC_SRC, _lambda_pid, tuned_by_lambda=True),
     )
 }
 
@@ -242,9 +306,11 @@ def apply_rules(
     ultimate: UltimatePoint | None,
     step: StepModel | None,
     model: ProcessFit | None = None,
+    lambda_s: float | None = None,
 ) -> dict[str, IsaGains]:
-    """Every rule the available identification supports, by name. Model rules (AMIGO, SIMC)
-    take the fitted model, or else the step test's reaction curve as a first-order model."""
+    """Every rule the available identification supports, by name. Model rules (AMIGO, SIMC,
+    lambda) take the fitted model, or else the step test's reaction curve as a first-order
+    model; the lambda rules take ``lambda_s`` (s; None: ``default_lambda``)."""
     if model is None and step is not None:
         model = model_of(step)
     sources = {"closed": ultimate, "open": step, "model": model}
@@ -254,7 +320,10 @@ def apply_rules(
         if source is None:
             continue
         try:
-            out[name] = rule.compute(source)
+            if rule.tuned_by_lambda:
+                out[name] = rule.compute(source, lambda_s)
+            else:
+                out[name] = rule.compute(source)
         except ValueError:
             continue
     return out

@@ -34,10 +34,11 @@ from services.autotuner.design.rules import (
     UltimatePoint,
     apply_rules,
     fopdt_of,
+    lambda_used,
 )
 from services.autotuner.identify.experiments import Identification
 from services.autotuner.identify.model_check import ModelCheck, check_model
-from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.model_fit import ProcessFit, model_of
 from shared.control.forms import IsaGains
 
 UNBIASED_RELAY_RULES = ("tl-pid", "tl-pi")  # recommended when the static gain is unknown
@@ -61,6 +62,7 @@ class Selection:
     unsafe: dict[str, str] = field(default_factory=dict)
     model_check: ModelCheck | None = None  # the verdict on the identified model (None: none)
     sample_time: float | None = None  # s: the loop the figures are for (None: continuous)
+    lambda_s: float | None = None  # s: the λ the lambda rules used (None: no lambda rule)
 
 
 def l_over_t(ident: Identification, model: ProcessFit | None = None) -> float | None:
@@ -125,10 +127,13 @@ def select(
     ms_bound: float = 2.0,
     force: bool = False,
     sample_time: float | None = None,
+    lambda_s: float | None = None,
+    aim: str = "balanced",
 ) -> Selection:
-    """The gains for ``rule`` ("auto": the recommended rule), judged at the loop's
-    ``sample_time`` (s; None: in continuous time), refused (``refusal``) outside the safety
-    envelope unless ``force``."""
+    """The gains for ``rule`` ("auto": the recommended rule for the ``aim``, see
+    ``recommend``), judged at the loop's ``sample_time`` (s; None: in continuous time),
+    refused (``refusal``) outside the safety envelope unless ``force``; the lambda rules with
+    ``lambda_s`` (s; None: their default)."""
     ku, pu = _finite(ident.ku), _finite(ident.pu)
     ultimate = UltimatePoint(ku, pu) if ku and pu and ku > 0 and pu > 0 else None
     ts = _finite(sample_time)
@@ -157,7 +162,10 @@ def select(
     table = {
         name: g
         for name, g in apply_rules(
-            ultimate, None if "open" in _kinds(unavailable) else ident.step_model, design
+            ultimate,
+            None if "open" in _kinds(unavailable) else ident.step_model,
+            design,
+            lambda_s,
         ).items()
         if name not in unavailable
     }
@@ -197,7 +205,7 @@ def select(
         # tighter margin of an approximate model (TL PID on a sampled integrator: Ms 1.7
         # predicted on a two-lag fit, 2.6 true)
         judge = dataclasses.replace(model, source="relay points")
-    rec = recommend(ultimate, judge, ms_bound, pool, without_model)
+    rec = recommend(ultimate, judge, ms_bound, pool, without_model, aim)
     unsafe = {
         name: p
         for name, a in assessments.items()
@@ -217,6 +225,13 @@ def select(
         unsafe=unsafe,
         model_check=check,
         sample_time=ts if model is not None else None,
+        lambda_s=_lambda_of(
+            table,
+            design
+            if design is not None or ident.step_model is None
+            else model_of(ident.step_model),
+            lambda_s,
+        ),
     )
     if sel.chosen is None:
         if rule == "auto":
@@ -252,6 +267,18 @@ def select(
     return sel
 
 
+def _lambda_of(
+    table: dict[str, IsaGains], design: ProcessFit | None, lambda_s: float | None
+) -> float | None:
+    """The λ the lambda rules in ``table`` were designed with (None if none is there)."""
+    if design is None or not any(RULES[k].tuned_by_lambda for k in table if k in RULES):
+        return None
+    try:
+        return lambda_used(design, lambda_s)
+    except ValueError:
+        return None
+
+
 def _kinds(unavailable: dict[str, str]) -> set[str]:
     return {RULES[name].kind for name in unavailable if name in RULES}
 
@@ -272,5 +299,7 @@ def assessments_dict(sel: Selection) -> dict[str, dict]:
     for k, a in sel.assessments.items():
         if d := a.to_dict():
             d["within_envelope"] = k not in sel.unsafe
+            if k in RULES and RULES[k].tuned_by_lambda and sel.lambda_s is not None:
+                d["lambda_s"] = sel.lambda_s  # the closed-loop time constant λ used, s
             out[k] = d
     return out
