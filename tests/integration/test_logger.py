@@ -142,12 +142,12 @@ def test_step_and_ramp_runs_reanalyse_exactly(start_plant, start_tuner, start_lo
         assert a["gains"] == live["gains"] and a["gains"]
 
 
-def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
-    start_plant, start_tuner, start_logger, tmp_path
-):
-    runs = tmp_path / "runs"
-    p, logger = stack(start_plant, start_tuner, start_logger, runs, HX)
-    seen: list[tuple[int, float]] = []  # (seq, wall time) of every sample, seen by the test
+def signal_mid_run(p, logger, sig: int, after: float):
+    """Start a long tune, watch every sample on the bus, and send ``sig`` to the logger once
+    ``after`` s of wall time have passed since the run's first progress message. Returns
+    (seen, t_start, t_signal): the (seq, wall time) of every sample the test received, and
+    the wall times of the run's first progress and of the signal."""
+    seen: list[tuple[int, float]] = []
     inbox: queue.Queue = queue.Queue()
     with open_session(p.client_settings()) as s:
         sub = s.declare_subscriber(f"{p.prefix}/**")
@@ -155,25 +155,36 @@ def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
             target=lambda: [inbox.put((x, time.monotonic())) for x in sub], daemon=True
         ).start()
         cli = long_tune(p)
-        t_kill = t_start = None
+        t_start = t_signal = None
         try:
-            while t_kill is None:
+            while t_signal is None:
                 sample, at = inbox.get(timeout=60)
                 key = str(sample.key_expr)
-                assert not key.endswith("/result"), "the run ended before the kill"
+                assert not key.endswith("/result"), "the run ended before the signal"
                 if key.endswith("/progress") and t_start is None:
                     t_start = at
                 elif key.endswith("/pv"):
                     seen.append((wire.decode_sample(ProcessSample, sample).seq, at))
-                    # mid-run, 3 s into it: the logger flushes at least every second, and
-                    # on a loaded machine it may start its file a second after the test saw
-                    # the run begin (killed at 1.5 s it once had flushed nothing yet)
-                    if t_start is not None and at > t_start + 3.0:
-                        logger.send_signal(signal.SIGKILL)
-                        t_kill = time.monotonic()
+                    if t_start is not None and at > t_start + after:
+                        logger.send_signal(sig)
+                        t_signal = time.monotonic()
+            if sig == signal.SIGTERM:
+                assert logger.wait(timeout=30) == 0
         finally:
             cli.wait(timeout=120)
             sub.undeclare()
+    return seen, t_start, t_signal
+
+
+def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
+    start_plant, start_tuner, start_logger, tmp_path
+):
+    runs = tmp_path / "runs"
+    p, logger = stack(start_plant, start_tuner, start_logger, runs, HX)
+    # mid-run, 3 s into it: the logger flushes at least every second, and on a loaded machine
+    # it may start its file a second after the test saw the run begin (killed at 1.5 s it
+    # once had flushed nothing yet)
+    seen, _, t_kill = signal_mid_run(p, logger, signal.SIGKILL, 3.0)
     broken = next(runs.glob("*.mcap"))
     run = autotune("analyze", str(broken))
     assert run.returncode == 2 and "autotune recover" in run.stderr
@@ -197,29 +208,8 @@ def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
 def test_sigterm_finishes_the_file(start_plant, start_tuner, start_logger, tmp_path):
     runs = tmp_path / "runs"
     p, logger = stack(start_plant, start_tuner, start_logger, runs, HX)
-    seen: list[tuple[int, float]] = []  # (seq, wall time) of every sample, seen by the test
-    inbox: queue.Queue = queue.Queue()
-    with open_session(p.client_settings()) as s:
-        sub = s.declare_subscriber(f"{p.prefix}/**")
-        threading.Thread(
-            target=lambda: [inbox.put((x, time.monotonic())) for x in sub], daemon=True
-        ).start()
-        cli = long_tune(p)
-        t_start = t_term = None
-        while t_term is None:  # let it record for 1.5 s from its first progress, then stop it
-            sample, at = inbox.get(timeout=60)
-            key = str(sample.key_expr)
-            assert not key.endswith("/result"), "the run ended before the stop"
-            if key.endswith("/progress") and t_start is None:
-                t_start = at
-            elif key.endswith("/pv"):
-                seen.append((wire.decode_sample(ProcessSample, sample).seq, at))
-                if t_start is not None and at > t_start + 1.5:
-                    logger.send_signal(signal.SIGTERM)
-                    t_term = time.monotonic()
-        assert logger.wait(timeout=30) == 0
-        cli.wait(timeout=120)
-        sub.undeclare()
+    # let it record for 1.5 s from the run's first progress, then stop it
+    seen, t_start, t_term = signal_mid_run(p, logger, signal.SIGTERM, 1.5)
     meta, records = read_run(next(runs.glob("*.mcap")))  # finished: the seeking reader opens it
     assert meta["status"] == "incomplete"
     got = seqs(records)

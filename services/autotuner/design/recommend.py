@@ -253,26 +253,20 @@ def recommend(
                     f"aim robust: the first of {', '.join(ROBUST_RULES)} with "
                     f"Ms ≤ {margin(first.rule) * ms_bound:.2g} on {on}",
                 )
-        if aim == "fast" and ok:
-            best = max(ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
-            return Recommendation(
-                best.rule,
-                best.gains,
-                _number(best.robustness.ms),
-                f"aim fast: largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g} "
-                f"on {on}",
-            )
         # the verification will hold the loop to its overshoot and decay limits: prefer the
-        # candidates whose predicted step already keeps well inside them
-        calm = [a for a in ok if _calm(a)]
+        # candidates whose predicted step already keeps well inside them (not when the aim
+        # is fast)
+        calm = [] if aim == "fast" else [a for a in ok if _calm(a)]
         if ok:
             best = max(calm or ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
+            lead = "aim fast: " if aim == "fast" else ""
             also = f" and a predicted overshoot ≤ {CALM_OVERSHOOT:g} %" if calm else ""
             return Recommendation(
                 best.rule,
                 best.gains,
                 _number(best.robustness.ms) if best.robustness else None,
-                f"largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g}{also} on {on}",
+                f"{lead}largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g}{also} "
+                f"on {on}",
             )
         judged = [a for a in safe.values() if a.robustness is not None]
         safest = min(judged, key=lambda a: a.robustness.ms, default=None)
