@@ -252,6 +252,52 @@ def test_a_result_ends_the_run_with_its_status(rec: Recorder, status: str) -> No
     assert only_file(rec)[0]["status"] == status
 
 
+def test_a_result_that_overtook_the_last_samples_waits_for_them(rec: Recorder) -> None:
+    """The result comes from the tuner, the samples from the plant: on a loaded machine the
+    result can arrive first. The file closes once the sample of the result's time is in."""
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 5)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 9 * DT))
+    assert rec.open_runs() == ["r1"]
+    samples(rec, 6, 8)
+    assert rec.open_runs() == ["r1"]
+    samples(rec, 9, 11)  # 9 closes it; 10 and 11 come after the run
+    meta, recorded = only_file(rec)
+    assert (meta["status"], meta["last_seq"], meta["samples"]) == ("ok", "9", "10")
+    assert recorded[-1] == keys.pv(P, LOOP) and recorded[7] == keys.tune_result(P, LOOP)
+
+
+def test_a_result_whose_samples_never_come_ends_the_run_after_the_grace(
+    rec: Recorder, clock: Clock
+) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 5)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 9 * DT, "aborted"))
+    send(rec, keys.status(P, LOOP), status(5, "watchdog"))  # the result is in: not "lost"
+    clock.now += RESULT_GRACE - 0.01
+    rec.tick()
+    assert rec.open_runs() == ["r1"]
+    clock.now += 0.01
+    rec.tick()
+    meta, _ = only_file(rec)
+    assert (meta["status"], meta["last_seq"]) == ("aborted", "5")
+    assert TuneResult.model_validate_json(meta["result"]).status == "aborted"
+
+
+def test_a_new_start_while_the_last_samples_are_awaited_ends_the_run_with_its_result(
+    rec: Recorder,
+) -> None:
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 2)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 5 * DT))
+    send(rec, keys.tune_progress(P, LOOP), start("r2", 5 * DT))
+    assert rec.open_runs() == ["r2"]
+    meta, _ = read_run(rec.finished[0])
+    assert (meta["run_id"], meta["status"]) == ("r1", "ok")
+    rec.close_all()
+    assert read_run(rec.finished[1])[0]["status"] == "incomplete"
+
+
 def test_a_new_start_supersedes_the_open_run(rec: Recorder) -> None:
     send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
     samples(rec, 0, 2)

@@ -1,6 +1,9 @@
 """Turn the tuning traffic into one MCAP file per run (no Zenoh in here).
 
-A run starts with its first TuneProgress (phase ``start``) and ends with its TuneResult. A
+A run starts with its first TuneProgress (phase ``start``) and ends with its TuneResult: at
+once when the file already holds the run's samples up to the result's sim time, else once a
+sample of that time is written or ``RESULT_GRACE`` s after the result (the result travels
+from the tuner, the samples from the plant: the result can overtake the last of them). A
 run whose tuner is gone ends "tuner lost": when the run's liveliness token
 (``<prefix>/tune/<loop>/running``) vanished and no result followed within ``RESULT_GRACE``
 s, or when the plant's watchdog restored the loop (status reason ``watchdog``) while no
@@ -137,6 +140,9 @@ class OpenRun:
     lease_holders: set[str] = field(default_factory=set)
     lost: str = ""  # "token" (the run's token vanished) or "watchdog" (the plant restored)
     lost_at: float = 0.0  # wall clock (monotonic) of ``lost``
+    last_t: float | None = None  # sim time of the last sample written
+    ending: TuneResult | None = None  # the result, in the file, while samples catch up to it
+    ending_at: float = 0.0  # wall clock (monotonic) the result came
 
 
 @dataclass
@@ -238,7 +244,10 @@ class Recorder:
             if run is not None and run.run_id == msg.run_id:
                 self._write(run, item)
                 return
-            if run is not None:  # a new run on the loop: the old one's tuner let it go
+            if run is not None and run.ending is not None:  # its result is in: it ended
+                self._end(stream)
+                stream.recent.append(item)
+            elif run is not None:  # a new run on the loop: the old one's tuner let it go
                 self._close(stream, status="superseded", result=None)
                 stream.recent.append(item)  # the close cleared what came before
             if not stream.replay and msg.run_id in self._recorded:
@@ -255,7 +264,13 @@ class Recorder:
             run.left_out += 1
             return
         if isinstance(msg, TuneResult):
-            self._close(stream, status=msg.status, result=msg)
+            if run.last_t is None or run.last_t >= msg.t or run.plant_changed:
+                self._close(stream, status=msg.status, result=msg)
+            else:  # the plant's last samples are still on their way
+                run.ending, run.ending_at = msg, self.clock()
+        elif run.ending is not None:
+            if isinstance(msg, ProcessSample) and msg.t >= run.ending.t:
+                self._end(stream)
         elif isinstance(msg, LoopStatus):
             self._status(stream, run, msg)
 
@@ -267,6 +282,8 @@ class Recorder:
             # context kept from before the interruption is never a later run's
             stream.recent.clear()
             log.info("loop %s: its plant's token vanished", loop_id)
+            if stream.run is not None and stream.run.ending is not None:
+                self._end(stream)  # the samples its result waits for are not coming
         stream.plant_alive = alive
 
     def run_token(self, loop_id: str, alive: bool) -> None:
@@ -274,7 +291,7 @@ class Recorder:
         stream = self._stream(loop_id, "")
         stream.run_token = alive
         run = stream.run
-        if run is None:
+        if run is None or run.ending is not None:  # no run, or its result is in
             return
         if alive:
             if run.lost == "token":  # back (a reconnection): the tuner still runs it
@@ -286,13 +303,25 @@ class Recorder:
 
     def tick(self) -> None:
         """Close the runs whose token vanished ``RESULT_GRACE`` s ago without a result, and
-        flush the open files that are due (called about every 0.25 s)."""
+        those whose result came that long ago (their last samples are not coming); flush the
+        open files that are due (called about every 0.25 s)."""
         now = self.clock()
         for stream in list(self.streams.values()):
             run = stream.run
-            if run is not None and run.lost == "token" and now - run.lost_at >= RESULT_GRACE:
+            if run is None:
+                continue
+            if run.ending is not None:
+                if now - run.ending_at >= RESULT_GRACE:
+                    self._end(stream)
+            elif run.lost == "token" and now - run.lost_at >= RESULT_GRACE:
                 self._close(stream, status="tuner lost", result=None)
         self.flush_due()
+
+    def _end(self, stream: Stream) -> None:
+        """Close the stream's run with the result it already wrote."""
+        result = stream.run.ending if stream.run is not None else None
+        if result is not None:
+            self._close(stream, status=result.status, result=result)
 
     # --- evidence ---------------------------------------------------------------------------
 
@@ -436,6 +465,7 @@ class Recorder:
                 run.gaps += max(0, msg.seq - run.last_seq - 1)
             run.first_seq = msg.seq if run.first_seq is None else run.first_seq
             run.last_seq = msg.seq
+            run.last_t = msg.t
             run.samples += 1
         elif isinstance(msg, LoopStatus):
             run.plant_node = run.plant_node or msg.node
@@ -511,9 +541,14 @@ class Recorder:
                 stream.run.writer.flush_if_due()
 
     def close_all(self, status: str = "incomplete") -> None:
-        """Finish every open file (on SIGTERM or Ctrl-C): nothing received is lost."""
+        """Finish every open file (on SIGTERM or Ctrl-C): nothing received is lost; a run
+        whose result is in keeps its status."""
         for stream in list(self.streams.values()):
-            self._close(stream, status=status, result=None)
+            run = stream.run
+            if run is not None and run.ending is not None:
+                self._end(stream)
+            else:
+                self._close(stream, status=status, result=None)
 
     def open_runs(self) -> list[str]:
         return [s.run.run_id for s in self.streams.values() if s.run is not None]
