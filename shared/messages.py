@@ -376,7 +376,7 @@ class TuneResult(Message):
         default_factory=dict, description="per rule on the identified model"
     )
     warnings: list[str] = Field(default_factory=list)
-    step: dict[str, float | int | str | None] | None = Field(
+    step: dict[str, bool | float | int | str | None] | None = Field(
         default=None, description="reaction-curve figures"
     )
     experiment: dict[str, float | int | str | None] = Field(default_factory=dict)

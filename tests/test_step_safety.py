@@ -12,7 +12,12 @@ import pytest
 from services.autotuner.design.rules import apply_rules
 from services.autotuner.identify.driver import drive as drive_experiment
 from services.autotuner.identify.model_fit import StepModel
-from services.autotuner.identify.reaction_curve import analyze_step, settled, steady_ramp
+from services.autotuner.identify.reaction_curve import (
+    IntegratingCurve,
+    analyze_step,
+    settled,
+    steady_ramp,
+)
 from services.autotuner.identify.step_test import (
     ReturnWatch,
     StepTest,
@@ -113,24 +118,22 @@ def test_without_pv_range_the_limits_stand_for_it():
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
-def test_lvl2_stops_on_its_ramp_and_names_r_and_l(seed):
+def test_lvl2_reads_its_reaction_curve_and_gives_its_level_back(seed):
     """lvl2: A·dh/dt = q_in − q_pump, R = inflow_max/(100·A) = 1e-4 m/s per %, 2 s delay."""
     test = drive(sim_loop({"model": "tank_level_integrating"}, seed))
-    assert test.phase == "aborted" and test.result is None
-    assert test.reason.startswith("integrating process: the PV ramps at R = ")
-    assert "m/s per %" in test.reason and "use the relay method" in test.reason
+    assert test.phase == "done", test.reason
+    rc = test.result
+    assert isinstance(rc, IntegratingCurve) and rc.stopped_by == "precision"
     seen = next(e[0] for e in test.events if e[1] == "integrating") - test.t_step
     assert seen < 600.0  # bounded: ≈ 440 s at σ = 0.002 m, not the 7200 s timeout
-    assert elapsed(test) == pytest.approx(2 * seen, abs=2.0)  # then a pulse as long back
+    assert rc.held == pytest.approx(seen, abs=1.0) and rc.pulse_held == rc.held
     assert max(test.pv) < 2.0  # nowhere near the 3 m top, let alone clipped there
-    # the equal and opposite pulse gave the volume back: the level ends within its noise
-    # (and the dead time's worth of ramp) of where it rested
-    assert "opposite pulse" in test.reason
-    assert test.pv[-1] == pytest.approx(test.pv[0], abs=0.02)
-    ramp = test.ramp
-    assert ramp.slope / 5.0 == pytest.approx(1e-4, rel=0.03)
-    assert ramp.dead_time == pytest.approx(2.0, abs=4 * ramp.dead_time_se + 1.0)
-    assert any(e[1] == "integrating" for e in test.events)
+    # the equal and opposite pulse gave the volume back: the level rests where it did
+    assert rc.returned and rc.pv_after == pytest.approx(rc.pv_before, abs=0.01)
+    assert rc.reaction_rate == pytest.approx(1e-4, rel=0.03)
+    assert rc.reaction_rate_precision <= 0.02
+    assert rc.dead_time == pytest.approx(2.0, abs=4 * rc.dead_time_se + 1.0)
+    assert rc.a == pytest.approx(rc.reaction_rate * rc.dead_time, rel=1e-12)
 
 
 def test_noise_free_integrating_dead_time_is_exact():
@@ -151,9 +154,17 @@ def test_integrating_near_the_top_stops_before_the_measurement_clips():
 
 def test_a_large_step_on_a_self_regulating_loop_stops_before_its_top():
     """lvl1 from 1.5 m, +40 %: its rest (≈ 4.9 m) lies above the 3 m transmitter."""
-    test = drive(sim_loop({"model": "tank_level"}), size=40.0)
+    test = drive(sim_loop({"model": "tank_level"}), size=40.0, max_move=1.0)
     assert test.phase == "aborted" and "would reach the top of its range" in test.reason
     assert max(test.pv) < 3.0
+
+
+def test_the_default_allowance_stops_it_first_at_a_quarter_of_the_range():
+    """The same step, with the default allowance: 25 % of 3 m above the 1.5 m rest."""
+    test = drive(sim_loop({"model": "tank_level"}), size=40.0)
+    assert test.phase == "aborted" and "would leave the test's allowance" in test.reason
+    assert "25 % of its range" in test.reason
+    assert max(test.pv) < 1.5 + 0.25 * 3.0
 
 
 def test_ipdt_with_a_lag_is_integrating_with_the_lag_in_its_dead_time():
@@ -276,11 +287,14 @@ def test_run_step_test_no_wait_returns_at_once():
     assert loop.pv > 64.0  # still at the stepped rest: the CLI says so
 
 
-def test_run_step_test_on_lvl2_aborts_restored_with_the_integrating_reason():
+def test_run_step_test_on_lvl2_reports_the_integrating_curve_restored():
     loop = sim_loop({"model": "tank_level_integrating"})
-    with pytest.raises(StepTestAborted, match=r"integrating process.*loop restored"):
-        run_step_test(LocalLoopClient(loop), StepTestConfig(size=5.0))
+    report = run_step_test(LocalLoopClient(loop), StepTestConfig(size=5.0))
+    d = report.to_dict()
+    assert d["method"] == "integrating" and d["restored"] and d["returned_to_rest"]
+    assert d["pv_end"] == d["pv_after"] and d["t_return"] == d["t_end"]
     assert loop.op == 50.0 and loop.t < 1200.0
+    assert abs(loop.pv - 1.5) < 0.01  # the level where it was
 
 
 def test_return_watch_gives_up_at_its_timeout():

@@ -8,7 +8,7 @@ import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from services.autotuner.identify.reaction_curve import ReactionCurve
+from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
 from services.autotuner.identify.step_test import (
     ReturnWatch,
     StepTest,
@@ -37,7 +37,7 @@ class StepTestReport:
     t_step: float
     t_end: float
     samples: int
-    curve: ReactionCurve
+    curve: ReactionCurve | IntegratingCurve
     restored: bool
     returned_to_rest: bool | None = None  # None: not waited for (--no-wait, or not restored)
     pv_end: float | None = None  # PV units: the rest after the return, else the last PV seen
@@ -136,7 +136,9 @@ def run_step_test(
         )
     t_step, t_end = test.t_step or 0.0, test.t[-1]
     returned, pv_end, t_return = None, None, None
-    if wait_return and restored:
+    if isinstance(test.result, IntegratingCurve):  # the test itself watched the level's return
+        returned, pv_end, t_return = test.result.returned, test.result.pv_after, t_end
+    elif wait_return and restored:
         lag = 0.0 if info.clock == "lockstep" else info.sample_time
         watch = ReturnWatch(
             t_end + lag,

@@ -27,6 +27,7 @@ from services.autotuner.design.selection import Selection, assessments_dict, sel
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Demand
+from services.autotuner.identify.reaction_curve import IntegratingCurve
 from services.logger.mcap_io import (
     decode,
     one_result,
@@ -191,7 +192,7 @@ def _read(path: str | Path) -> tuple[dict[str, str], _Run]:
         raise AutotuneError(f"{path}: {r.where()}: data.{problem}")
     step_times = []
     for r, e in events:
-        if e.kind == "step_started":
+        if e.kind in ("step_started", "pulse_started"):  # in the order held
             t = e.data.get("t")
             if isinstance(t, bool) or not isinstance(t, int | float) or not 0 <= t < math.inf:
                 raise AutotuneError(f"{path}: {r.where()}: data.t: must be a time ≥ 0 s, got {t!r}")
@@ -278,7 +279,13 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
     lines = [f"{a.path}: {a.method} test of {a.loop}, re-identified offline"]
     if a.ident.ku is not None:
         lines.append(f"  K_u = {a.ident.ku:.6g}   P_u = {a.ident.pu:.6g} s")
-    if a.ident.step is not None:
+    if isinstance(a.ident.step, IntegratingCurve):
+        s = a.ident.step
+        lines.append(
+            f"  integrating: R = K' = {s.reaction_rate:.4g} per s per %  L = {s.dead_time:.4g} s"
+            f"  a = R·L = {s.a:.4g}"
+        )
+    elif a.ident.step is not None:
         s = a.ident.step
         lines.append(
             f"  K = {s.gain:.4g}  L = {s.dead_time:.4g} s  "

@@ -7,6 +7,7 @@ import json
 import sys
 
 from services.autotuner.design.rules import ZN_STEP_RANGE
+from services.autotuner.identify.reaction_curve import IntegratingCurve
 from services.autotuner.identify.step_test import StepTest, StepTestConfig
 from services.autotuner.loop_client import LoopClient, wait_for_loop
 from services.autotuner.step_run import StepTestReport, run_step_test
@@ -85,6 +86,8 @@ def config_from_args(args: argparse.Namespace) -> StepTestConfig:
 
 
 def format_report(r: StepTestReport) -> str:
+    if isinstance(r.curve, IntegratingCurve):
+        return format_integrating(r)
     c, u = r.curve, r.pv_units
     lo, hi = ZN_STEP_RANGE
     fit = (
@@ -127,6 +130,44 @@ def format_report(r: StepTestReport) -> str:
         else "WARNING: the loop could not be restored; check it."
     )
     lines = [head, body, *([floor] if floor else []), tail, return_line(r)]
+    return "\n".join(line for line in lines if line)
+
+
+def format_integrating(r: StepTestReport) -> str:
+    """The reaction curve of an integrating loop (Ziegler and Nichols' original method)."""
+    c, u = r.curve, r.pv_units
+    why = (
+        f"R known to ± {c.reaction_rate_precision:.1%}"
+        if c.stopped_by == "precision"
+        else f"the PV's allowance reached; R known to ± {c.reaction_rate_precision:.1%}"
+    )
+    rows = [
+        (
+            "reaction rate R = K'",
+            f"{c.reaction_rate:.4g} {u}/s per %  (± {c.reaction_rate_precision:.1%}, 2σ)",
+        ),
+        ("slope after the step", f"{c.slope:.4g} {u}/s"),
+        ("dead time L", f"{c.dead_time:.4g} s  (± {c.dead_time_se:.2g} s)"),
+        ("a = R·L", f"{c.a:.4g} {u}/%"),
+        ("model", f"K'·e^(-Ls)/s, K' = {c.reaction_rate:.4g} {u}/s per %, L = {c.dead_time:.4g} s"),
+        ("PV before → peak → after", f"{c.pv_before:.4g} → {c.pv_peak:.4g} → {c.pv_after:.4g} {u}"),
+        ("PV noise σ", f"{c.noise_std:.3g} {u}"),
+    ]
+    head = (
+        f"Step test of {r.loop} ({r.model}): integrating. Output {r.op_before:g} → "
+        f"{r.op_before + c.step_size:g} % at t = {r.t_step:g} s, held {c.held:.4g} s ({why}); "
+        f"then a pulse of equal and opposite area ({c.pulse_op:g} % for {c.pulse_held:.4g} s) "
+        f"gave the level back by "
+        f"t = {r.t_end:g} s"
+    )
+    width = max(len(k) for k, _ in rows)
+    body = "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+    tail = (
+        f"Loop restored: {r.mode_before}, output {r.op_before:g} %."
+        if r.restored
+        else "WARNING: the loop could not be restored; check it."
+    )
+    lines = [head, body, tail, return_line(r)]
     return "\n".join(line for line in lines if line)
 
 

@@ -391,7 +391,14 @@ def format_result(r: TuneResult) -> str:
             + f"    P_u = {r.pu:.4g} s"
             + (f" (spread {100 * r.pu_spread:.2g} %)" if r.pu_spread is not None else "")
         )
-    if r.step:
+    if r.step and r.step.get("method") == "integrating":
+        s = r.step
+        lines.append(
+            f"  integrating: R = K' = {s['reaction_rate']:.4g} {pv_units}/s per % "
+            f"(± {100 * s['reaction_rate_precision']:.2g} %)  L = {s['dead_time']:.4g} s  "
+            f"a = R·L = {s['a']:.4g} {pv_units}/%  (level given back to {s['pv_after']:.4g})"
+        )
+    elif r.step:
         s = r.step
         lines.append(
             f"  K = {s['gain']:.4g}  L = {s['dead_time']:.4g} s  T = "

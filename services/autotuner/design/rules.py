@@ -83,6 +83,8 @@ def _zn_open_pid(m: StepModel) -> IsaGains:
 
 
 def _cc(m: StepModel) -> tuple[float, float, float]:
+    if m.is_integrating:
+        raise ValueError("Cohen–Coon needs a self-regulating process (a gain K and lag T)")
     if m.dead_time <= 0:
         raise ValueError("Cohen–Coon needs a dead time θ > 0")
     return m.gain, m.time_constant, m.dead_time

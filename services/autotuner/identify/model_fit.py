@@ -271,19 +271,36 @@ def through_ultimate_point(ku: float, pu: float) -> list[ProcessFit]:
 
 @dataclass(frozen=True)
 class StepModel:
-    """Reaction-curve figures: process gain K, dead time L, time constant T (tangent), R = K/T."""
+    """Reaction-curve figures: process gain K, dead time L, time constant T (tangent), R = K/T.
+
+    An integrating process (``StepModel.integrating``) has no K nor T (both inf): its
+    reaction rate R, the ramp's slope per % of output, is given as ``rate``."""
 
     gain: float
     dead_time: float
     time_constant: float
+    rate: float | None = None  # R, PV units per s per %, for an integrating process
+
+    @classmethod
+    def integrating(cls, rate: float, dead_time: float) -> StepModel:
+        return cls(math.inf, dead_time, math.inf, rate)
+
+    @property
+    def is_integrating(self) -> bool:
+        return self.rate is not None
 
     @property
     def reaction_rate(self) -> float:
-        return self.gain / self.time_constant
+        return self.rate if self.rate is not None else self.gain / self.time_constant
 
 
 def model_of(step: StepModel) -> ProcessFit:
-    """The step test's reaction curve as a first-order-plus-dead-time model."""
+    """The step test's reaction curve as a first-order-plus-dead-time model (an integrating
+    one's as K'·e^{−Ls}/s, K' = R)."""
+    if step.is_integrating:
+        return ProcessFit(
+            "ipdt", step.reaction_rate, (), step.dead_time, 0.0, source="reaction curve"
+        )
     return ProcessFit(
         "fopdt", step.gain, (step.time_constant,), step.dead_time, 0.0, source="reaction curve"
     )

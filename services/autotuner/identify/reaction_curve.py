@@ -74,6 +74,53 @@ class ReactionCurve:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class IntegratingCurve:
+    """The reaction curve of an integrating process (Ziegler & Nichols' original method, seed
+    001): after a step Δu the PV ramps at a steady slope S; R = S/Δu (PV units per s per %)
+    is the process's K', and the ramp's line meets the baseline a dead time L after the step
+    (lags fold into L, as in the tangent construction). a = R·L feeds the open-loop rules.
+    Times in s from the step, PV in its own units."""
+
+    step_size: float  # Δu, % of output
+    pv_before: float  # y₀, the rest before the step
+    slope: float  # S, PV units per s, of the trailing window when the step ended
+    reaction_rate: float  # R = S/Δu = K', PV units per s per %
+    reaction_rate_precision: float  # two standard errors of R, relative (0.02: ± 2 %)
+    dead_time: float  # L, s (where the ramps' lines meet the rests), floored at half a sample
+    dead_time_se: float  # s, its standard error
+    a: float  # R·L, PV units per %
+    held: float  # s the step was held
+    pv_peak: float  # the PV when the step ended (the furthest the test took it, about)
+    pv_after: float  # the PV's rest after the equal and opposite pulse (its dead time on)
+    returned: bool  # the PV was at rest there (no trend beyond its noise)
+    pulse_op: float  # % output of that pulse (the start − the step, or less where limited)
+    pulse_held: float  # s it was held (its area equals the step's)
+    noise_std: float  # PV noise seen before the step
+    window: float  # s, the trailing window over which the slope was steady
+    dead_time_tangent: float  # s, L before the floor
+    dead_time_floor: float  # s, half a sample time
+    method: str = "integrating"
+    stopped_by: str = "precision"  # "precision" (R known), or "range" (the PV's allowance)
+    # "fit": R and L least-squares fitted to the whole record, step and pulse (the lines of
+    # both ramps met with the rests: ``fit_integrator``); "ramp": the trailing ramp's slope and
+    # its line met with the baseline (when the fit failed)
+    read_by: str = "fit"
+    fit_rms: float | None = None  # PV units, the fit's residual RMS
+    # PV units per s the level drifted at the output before the step (it does not balance the
+    # integrator exactly; "fit" only): the level keeps drifting so after the test
+    drift: float = 0.0
+
+    @property
+    def l_over_t(self) -> None:
+        """An integrator has no time constant: L/T does not apply."""
+        return None
+
+    def to_dict(self) -> dict[str, float | int | str | None]:
+        """The result's ``step`` object (JSON): every field by its name, in this order."""
+        return asdict(self)
+
+
 def _reached(t: np.ndarray, z: np.ndarray, level: float) -> float:
     """``first_crossing`` of the normalised response z, which the analysis needs: ValueError
     if the PV never reached ``level`` of its change."""
@@ -342,6 +389,12 @@ class SteadyRamp:
     slope_change_se: float  # its standard error (relative)
     window: float  # s, the trailing window the ramp was steady over
     elapsed: float  # s since the step
+    slope_se: float = math.inf  # PV units per s, the slope's standard error
+
+    @property
+    def precision(self) -> float:
+        """Two standard errors of the slope, relative to it (0.02: R known to ±2 %)."""
+        return 2.0 * self.slope_se / abs(self.slope) if self.slope else math.inf
 
 
 def steady_ramp(
@@ -409,6 +462,7 @@ def steady_ramp(
         slope_change_se=change_se,
         window=span,
         elapsed=elapsed,
+        slope_se=math.sqrt(var_slope),
     )
 
 
@@ -439,3 +493,75 @@ def _kink_dead_time(t: np.ndarray, dy: np.ndarray, longest: float) -> tuple[floa
     cross = (float(np.mean(yy)) / slope**2) ** 2 * s2 / sxx
     se = math.sqrt(s2 / n / slope**2 + cross)
     return lag, se
+
+
+@dataclass(frozen=True)
+class IntegratorFit:
+    """K'·e^{−Ls}/s fitted to a whole record:
+    y = c + d·(t − t₀) + K'·Σ Δu_k·max(t − t_k − L, 0)."""
+
+    rate: float  # K', PV units per s per %
+    dead_time: float  # L, s
+    level: float  # c, the PV at the record's first sample t₀ (as the fit has it)
+    drift: float  # d, PV units per s: the output at rest was not the one that balances
+    rate_se: float  # standard errors (linearised)
+    dead_time_se: float
+    rms: float  # residual RMS, PV units
+
+
+def fit_integrator(
+    t: np.ndarray, y: np.ndarray, changes: list[tuple[float, float]], longest: float
+) -> IntegratorFit | None:
+    """Least squares of an integrator with dead time to the record of a known output: the
+    output's changes ``(t_k, Δu_k)`` (s, %) each start a ramp L later. Every kink informs L
+    (a step and its return pulse: two) and every quiet stretch the level, so this pins L far
+    better than one ramp's line met with the baseline. An integrator is at rest only at the
+    one output that balances it: any other output at the start is a drift d, which the ramps
+    up and down (slopes K'Δu + d and −K'A + d) tell apart from K'. For fixed L it is linear
+    in (c, d, K'); L (0 … ``longest`` s) is found by a bounded scalar search. None if the
+    record does not determine it."""
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    if t.size < 4 or not changes:
+        return None
+
+    def regressor(lag: float) -> np.ndarray:
+        x = np.zeros_like(t)
+        for tk, du in changes:
+            x += du * np.maximum(t - tk - lag, 0.0)
+        return x
+
+    t0 = float(t[0])
+
+    def solve(lag: float) -> tuple[np.ndarray, np.ndarray]:
+        a = np.column_stack([np.ones_like(t), t - t0, regressor(lag)])
+        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+        return coef, y - a @ coef
+
+    def sse(lag: float) -> float:
+        r = solve(lag)[1]
+        return float(r @ r)
+
+    longest = max(longest, 1e-9)
+    grid = np.linspace(0.0, longest, 41)  # the SSE may have local minima at the sample grid
+    best = float(grid[int(np.argmin([sse(g) for g in grid]))])
+    step = grid[1] - grid[0]
+    lo, hi = max(0.0, best - step), min(longest, best + step)
+    opt = {"xatol": 1e-10 * max(longest, 1.0)}
+    lag = float(minimize_scalar(sse, bounds=(lo, hi), method="bounded", options=opt).x)
+    (c, d, k), r = solve(lag)
+    if not k or not math.isfinite(k):
+        return None
+    n = t.size
+    s2 = float(r @ r) / max(n - 4, 1)
+    d_lag = np.zeros_like(t)  # ∂y/∂L = −K'·Σ Δu_k·[t > t_k + L]
+    for tk, du in changes:
+        d_lag -= k * du * (t > tk + lag)
+    jac = np.column_stack([np.ones_like(t), t - t0, regressor(lag), d_lag])
+    try:
+        cov = s2 * np.linalg.inv(jac.T @ jac)
+        se_k, se_lag = math.sqrt(max(cov[2, 2], 0.0)), math.sqrt(max(cov[3, 3], 0.0))
+    except np.linalg.LinAlgError:
+        se_k = se_lag = math.inf
+    rms = math.sqrt(float(r @ r) / n)
+    return IntegratorFit(float(k), lag, float(c), float(d), se_k, se_lag, rms)

@@ -9,9 +9,18 @@ reaction-curve figures. It stops, and the driver restores the output, when:
 * after the step, the PV reaches an end of that range, or would within twice the time it took
   to start moving plus four samples (about what it keeps moving for once the output is
   restored);
-* the PV ramps steadily (``reaction_curve.steady_ramp``): an integrating process, which never
-  comes to rest; the reason names its slope R and dead time L;
+* the PV would leave the band of ``max_move`` × its range about its rest before the step
+  (the test's allowance: an integrating loop never stops moving, a self-regulating one with a
+  large gain may go far);
 * the PV leaves ``pv_limits``, or no rest comes within ``timeout`` seconds of the step.
+
+An integrating process (a level) never comes to rest: the PV ramps
+(``reaction_curve.steady_ramp``). That is Ziegler and Nichols' original reaction curve: the
+test goes on until the ramp's slope R is known to ``rate_precision`` (two standard errors) or
+the PV would leave its allowance, then holds an equal and opposite pulse of the same area
+(the step's size for as long as the step was held, or a smaller pulse for longer where the
+output's limits leave less room), which gives the integrator back its level, and ends with an
+``IntegratingCurve``: K' = R and the dead time L where the ramp's line meets the baseline.
 
 ``services.autotuner.step_run.run_step_test`` drives a live loop with it, always restores the
 loop's mode and output, and then waits (bounded) for the PV to return to rest, so that what
@@ -44,9 +53,11 @@ from services.autotuner.identify.model_fit import (
     refine_on_record,
 )
 from services.autotuner.identify.reaction_curve import (
+    IntegratingCurve,
     ReactionCurve,
     SteadyRamp,
     analyze_step,
+    fit_integrator,
     settled,
     steady_ramp,
 )
@@ -67,6 +78,10 @@ class StepTestConfig:
     baseline: float | None = None  # s of quiet before the step; None: 40 samples
     timeout: float = 7200.0  # s after the step to wait for rest (and, at most, to return)
     pv_limits: tuple[float, float] | None = None  # abort outside; None: the loop's PV range
+    # the PV may move this fraction of its range either way from its rest (the allowance)
+    max_move: float = 0.25
+    # integrating: the ramp's slope R is known to this, relative, at two standard errors
+    rate_precision: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -100,12 +115,19 @@ class StepTest:
     sample_time: float
     pv_range: tuple[float, float] | None = None
     pv_units: str = ""
-    phase: str = "baseline"  # baseline → step → done | aborted (integrating: → return →)
+    # baseline → step → done | aborted; integrating: step → return (the pulse) → settle → done
+    phase: str = "baseline"
     reason: str = ""
     t_step: float | None = None
-    result: ReactionCurve | None = None
+    result: ReactionCurve | IntegratingCurve | None = None
     ramp: SteadyRamp | None = None  # set when the test stopped on an integrating response
-    _pulse: tuple[float, str] = (math.inf, "")  # integrating: the return pulse's end, reason
+    _pulse_op: float = math.nan  # integrating: the return pulse's output, %
+    _pulse_for: float = 0.0  # s it is held (equal area: step size × time held / its size)
+    _pulse_start: float | None = None  # sim time from which it is held
+    _stopped: tuple[float, float, str] = (math.nan, math.nan, "")  # t, PV, and why the step ended
+    _settle: tuple[float, float] = (math.inf, math.inf)  # integrating: rest window from, until
+    _restore_at: float | None = None  # integrating: sim time the output is back at its start
+    _pulse_end_seen: float = math.nan  # integrating: the sample at which the pulse ended
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
     events: list[Event] = field(default_factory=list)
@@ -129,6 +151,10 @@ class StepTest:
                 f"size {cfg.size:+g} %: the output would go from {self.op_start:g} "
                 f"to {target:g} %, outside the loop's limits [{lo:g}, {hi:g}] %"
             )
+        if not 0 < cfg.max_move <= 1:
+            raise ValueError(f"max_move {cfg.max_move}: must be a fraction of the range, 0–1")
+        if not 0 < cfg.rate_precision < 1:
+            raise ValueError(f"rate_precision {cfg.rate_precision}: must be between 0 and 1")
         base = cfg.baseline if cfg.baseline is not None else 40 * self.sample_time
         if not base >= 0:
             raise ValueError(f"baseline {base}: must be ≥ 0 s")
@@ -147,6 +173,14 @@ class StepTest:
     def ends(self) -> tuple[float, float]:
         """The PV values where the measurement clips: the transmitter's range."""
         return tuple(self.pv_range) if self.pv_range is not None else tuple(self.pv_limits)
+
+    @property
+    def allowance(self) -> tuple[float, float]:
+        """The PV values the test may take it to: ``max_move`` × the range either way from the
+        rest before the step, within the range."""
+        lo, hi = self.ends
+        reach = self.config.max_move * (hi - lo)
+        return max(lo, self._pv_before - reach), min(hi, self._pv_before + reach)
 
     def _end_words(self, end: str) -> str:
         lo, hi = self.ends
@@ -171,9 +205,11 @@ class StepTest:
 
     def held(self, t: float) -> None:
         """The driver reports the sim time from which the changed output is held (event
-        ``step_started``; a replay reads it back)."""
+        ``step_started``, or ``pulse_started`` for an integrating loop's return pulse; a
+        replay reads it back)."""
+        kind = "step_started" if self.t_step is None else "pulse_started"
         self.step_started(t)
-        self.events.append(Event(self.t[-1] if self.t else t, "step_started", {"t": t}))
+        self.events.append(Event(self.t[-1] if self.t else t, kind, {"t": t}))
 
     def horizon(self, cap: int) -> int:
         return 1  # the step and its timing are decided sample by sample
@@ -187,6 +223,19 @@ class StepTest:
         rc = self.result
         if rc is None:
             return None
+        if isinstance(rc, IntegratingCurve):
+            step_model = StepModel.integrating(rc.reaction_rate, rc.dead_time)
+            return Identification(
+                step=rc,
+                step_model=step_model,
+                model=model_of(step_model),
+                integrating=True,
+                experiment=StepFindings(rc.step_size, rc.method, None),
+                # the closed loop's time scale: SIMC's integral time for a level, 8 L
+                timescale=8.0 * rc.dead_time,
+                noise=rc.noise_std,
+                rest_pv=rc.pv_after,
+            )
         step_model = StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)
         fitted = self.process_model()
         return Identification(
@@ -220,6 +269,8 @@ class StepTest:
             return self._baseline(s)
         if self.phase == "return":
             return self._return_pulse(s)
+        if self.phase == "settle":
+            return self._settled(s)
         if self.t_step is None:
             return self.op_target
         return self._after_step(s)
@@ -269,10 +320,13 @@ class StepTest:
         if (len(self.pv) % SETTLE_CHECK_EVERY) != 0:
             return self.op_target
         t, y = np.asarray(self.t), np.asarray(self.pv)
+        ramp = steady_ramp(t, y, self.t_step, self._pv_before, self._noise)
+        if ramp is not None and ramp.precision <= self.config.rate_precision:
+            return self._integrating(s, ramp, "precision")
         if reason := self._heading_out(t, y, elapsed):
+            if ramp is not None:  # R is known, if less precisely than asked: say so
+                return self._integrating(s, ramp, "range")
             return self._abort(reason)
-        if (ramp := steady_ramp(t, y, self.t_step, self._pv_before, self._noise)) is not None:
-            return self._integrating(s.t, ramp)
         done, rest = settled(t, y, self.t_step, self._pv_before, self._noise, pv_range=self.ends)
         if done:
             try:
@@ -296,7 +350,8 @@ class StepTest:
         return self.op_target
 
     def _heading_out(self, t: np.ndarray, y: np.ndarray, elapsed: float) -> str | None:
-        """Why to stop now if the PV, on its present trend, nears an end of its range.
+        """Why to stop now if the PV, on its present trend, nears an end of its range or of
+        the test's allowance (``max_move``).
 
         After the output is restored the PV keeps moving for about its dead time (and lags):
         the horizon is twice the time it took to start moving (an upper bound on the dead
@@ -325,51 +380,138 @@ class StepTest:
                     f"{level:.4g}{u}, moving {slope:.3g}{u}/s): stopped before the measurement "
                     "clips; use a smaller step"
                 )
+        a_lo, a_hi = self.allowance
+        if max(level, reach) >= a_hi or min(level, reach) <= a_lo:
+            return (
+                f"the PV would leave the test's allowance, {a_lo:.4g}–{a_hi:.4g}{u} "
+                f"({100 * self.config.max_move:.3g} % of its range either way from its rest), "
+                "within "
+                f"{horizon:.3g} s (now {level:.4g}{u}, moving {slope:.3g}{u}/s); use a smaller "
+                "step or a larger allowance"
+            )
         return None
 
-    def _integrating(self, t: float, ramp: SteadyRamp) -> float:
-        """Stop on a steady ramp: name its slope and dead time (the floor as in analyze_step)."""
+    def _integrating(self, s: Sample, ramp: SteadyRamp, stopped_by: str) -> float:
+        """End the step on a steady ramp (R known, or the allowance reached) and hold the
+        equal and opposite pulse that gives the integrator back its level (exactly, for a
+        linear integrator, whatever its dead time)."""
         self.ramp = ramp
         rate = ramp.slope / self.config.size
-        dead_time = max(ramp.dead_time, 0.5 * self.sample_time)
         self.events.append(
             Event(
-                t,
+                s.t,
                 "integrating",
-                {"slope": ramp.slope, "reaction_rate": rate, "dead_time": dead_time},
+                {
+                    "slope": ramp.slope,
+                    "reaction_rate": rate,
+                    "dead_time": ramp.dead_time,
+                    "precision": ramp.precision,
+                    "stopped_by": stopped_by,
+                },
             )
         )
-        u = f" {self.pv_units}" if self.pv_units else ""
-        # the baseline's mean is known to σ/√n, which shifts where the ramp meets it
-        base_se = self._noise / math.sqrt(self._baseline_samples) / abs(ramp.slope)
-        se = math.hypot(ramp.dead_time_se, base_se)
-        steady = 100 * max(abs(ramp.slope_change), 3 * ramp.slope_change_se)
-        reason = (
-            f"integrating process: the PV ramps at R = {rate:.3g} {self._rate_units()} "
-            f"({ramp.slope:.3g}{u}/s for the {self.config.size:+g} % step, steady within "
-            f"{steady:.2g} % over the last {ramp.window:.4g} s) after a dead time "
-            f"L ≈ {dead_time:.3g} s (± {se:.2g} s); it never comes to rest, so the test "
-            "stopped; the reaction curve of integrating loops comes in a "
-            "later issue — use the relay method"
-        )
-        # an integrator keeps the level the step gave it: an equal and opposite pulse, held
-        # as long as the step was, gives back the volume and so the PV's rest (exactly, for a
-        # linear integrator, whatever its dead time)
-        back = self.op_start - self.config.size
-        lo, hi = self.op_limits
-        if self.t_step is None or not lo <= back <= hi:
-            return self._abort(reason + "; the PV stays where the step took it")
-        self._pulse = (t + (t - self.t_step), reason)
+        size, lo, hi = self.config.size, *self.op_limits
+        room = self.op_start - lo if size > 0 else hi - self.op_start
+        amplitude = min(abs(size), room)
+        if self.t_step is None or amplitude < 0.2 * abs(size):
+            return self._abort(
+                f"integrating process (R = {rate:.3g} {self._rate_units()}, L ≈ "
+                f"{ramp.dead_time:.3g} s), but the output has no room below its start for "
+                "the return pulse: the PV stays where the step took it"
+            )
+        self._pulse_op = self.op_start - math.copysign(amplitude, size)
+        self._pulse_for = (s.t - self.t_step) * abs(size) / amplitude  # refined when held
+        self._stopped = (s.t, s.pv, stopped_by)
         self.phase = "return"
-        self.events.append(Event(t, "return_pulse", {"op": back, "until": self._pulse[0]}))
-        return back
+        self.events.append(
+            Event(s.t, "return_pulse", {"op": self._pulse_op, "for": self._pulse_for})
+        )
+        return self._pulse_op
 
     def _return_pulse(self, s: Sample) -> float:
-        until, reason = self._pulse
-        if s.t < until:
-            return self.op_start - self.config.size
-        return self._abort(
-            reason + "; an equal and opposite pulse brought the PV back toward its rest"
+        """Hold the pulse its length; then the output at its start again, and the PV watched
+        for its dead time (the pulse's end reaches it that much later) and 20 samples more,
+        over which its rest is measured."""
+        start = self._pulse_start
+        if start is None or s.t < start + self._pulse_for - 1e-9 * max(1.0, abs(s.t)):
+            return self._pulse_op
+        after = s.t + max(self.ramp.dead_time, 0.0) + 2.0 * self.sample_time
+        self._settle = (after, after + 20.0 * self.sample_time)
+        self._restore_at = None  # told by the driver (held), else this sample's time
+        self._pulse_end_seen = s.t
+        self.phase = "settle"
+        self.events.append(Event(s.t, "pulse_end", {"op": self.op_start}))
+        return self.op_start
+
+    def _settled(self, s: Sample) -> float:
+        if s.t < self._settle[1] - 1e-9 * max(1.0, abs(s.t)):
+            return self.op_start
+        t = np.asarray(self.t)
+        rest = np.asarray(self.pv)[t >= self._settle[0] - 1e-9 * max(1.0, abs(s.t))]
+        self.result = self._integrating_curve(float(rest.mean()), at_rest(rest, self.ends))
+        self.phase = "done"
+        self.events.append(
+            Event(
+                s.t,
+                "done",
+                {"reaction_rate": self.result.reaction_rate, "dead_time": self.result.dead_time},
+            )
+        )
+        return self.op_start
+
+    def _integrating_curve(self, pv_after: float, returned: bool) -> IntegratingCurve:
+        """R and L fitted to the whole record (``fit_integrator``: the step's kink and the
+        pulse's both inform L); the trailing ramp's own figures if the fit fails."""
+        ramp, size = self.ramp, self.config.size
+        t_stop, pv_peak, stopped_by = self._stopped
+        pulse_start = self._pulse_start if self._pulse_start is not None else t_stop
+        restore = self._restore_at if self._restore_at is not None else self._pulse_end_seen
+        changes = [
+            (self.t_step, size),
+            (pulse_start, self._pulse_op - (self.op_start + size)),
+            (restore, self.op_start - self._pulse_op),
+        ]
+        fit = fit_integrator(
+            np.asarray(self.t), np.asarray(self.pv), changes, pulse_start - self.t_step
+        )
+        if fit is not None:
+            rate, lag, lag_se = fit.rate, fit.dead_time, fit.dead_time_se
+            precision, how, rms = 2.0 * fit.rate_se / abs(fit.rate), "fit", fit.rms
+            drift = fit.drift
+        else:
+            # the baseline's mean is known to σ/√n, which shifts where the ramp meets it
+            base_se = self._noise / math.sqrt(self._baseline_samples) / abs(ramp.slope)
+            rate, lag, lag_se = (
+                ramp.slope / size,
+                ramp.dead_time,
+                math.hypot(ramp.dead_time_se, base_se),
+            )
+            precision, how, rms, drift = ramp.precision, "ramp", None, 0.0
+        floor = 0.5 * self.sample_time
+        dead_time = max(lag, floor)
+        return IntegratingCurve(
+            step_size=size,
+            pv_before=self._pv_before,
+            slope=ramp.slope,
+            reaction_rate=rate,
+            reaction_rate_precision=precision,
+            dead_time=dead_time,
+            dead_time_se=lag_se,
+            a=rate * dead_time,
+            held=(self._pulse_start or t_stop) - self.t_step,
+            pv_peak=pv_peak,
+            pv_after=pv_after,
+            returned=returned,
+            pulse_op=self._pulse_op,
+            pulse_held=self._pulse_for,
+            noise_std=self._noise,
+            window=ramp.window,
+            dead_time_tangent=lag,
+            dead_time_floor=floor,
+            stopped_by=stopped_by,
+            read_by=how,
+            fit_rms=rms,
+            drift=drift,
         )
 
     def process_model(self) -> ProcessFit | None:
@@ -380,7 +522,7 @@ class StepTest:
         robust on the plant than predicted (seen: Ms 2.6 predicted 1.5, on a plant with an
         inverse response)."""
         rc = self.result
-        if rc is None or self.t_step is None:
+        if not isinstance(rc, ReactionCurve) or self.t_step is None:
             return None
         t, y = np.asarray(self.t), np.asarray(self.pv) - self._pv_before
         u = np.where(t >= self.t_step - 1e-9 * max(1.0, abs(self.t_step)), rc.step_size, 0.0)
@@ -406,10 +548,17 @@ class StepTest:
         )
 
     def step_started(self, t: float) -> None:
-        """The driver reports the sim time from which the stepped output is held (the first
-        change of output only: the return pulse of an integrating loop is not a step)."""
+        """The driver reports the sim time from which the changed output is held: the step's,
+        then (integrating) the return pulse's, whose length then gives back the step's area
+        exactly (the step size × the time it was held, at the pulse's amplitude)."""
         if self.t_step is None:
             self.t_step = t
+        elif self.phase == "return" and self._pulse_start is None:
+            self._pulse_start = t
+            amplitude = abs(self._pulse_op - self.op_start)
+            self._pulse_for = (t - self.t_step) * abs(self.config.size) / amplitude
+        elif self.phase == "settle" and self._restore_at is None:
+            self._restore_at = t
 
 
 @dataclass
