@@ -21,7 +21,6 @@ from services.autotuner.identify.reaction_curve import (
 from services.autotuner.identify.step_test import (
     ReturnWatch,
     StepTest,
-    StepTestAborted,
     StepTestConfig,
 )
 from services.autotuner.step_run import run_step_test

@@ -225,12 +225,23 @@ class StepTest:
             return None
         if isinstance(rc, IntegratingCurve):
             step_model = StepModel.integrating(rc.reaction_rate, rc.dead_time)
+            fitted = None
+            if rc.read_by == "fit" and rc.fit_rms is not None:  # least squares on the record
+                spread = float(np.std(self.pv)) or 1.0
+                fitted = ProcessFit(
+                    "ipdt",
+                    rc.reaction_rate,
+                    (),
+                    rc.dead_time,
+                    rc.fit_rms / spread,
+                    noise_rms=rc.noise_std / spread,
+                )
             return Identification(
                 step=rc,
                 step_model=step_model,
-                model=model_of(step_model),
+                model=fitted or model_of(step_model),
                 integrating=True,
-                experiment=StepFindings(rc.step_size, rc.method, None),
+                experiment=StepFindings(rc.step_size, rc.method, fitted),
                 # the closed loop's time scale: SIMC's integral time for a level, 8 L
                 timescale=8.0 * rc.dead_time,
                 noise=rc.noise_std,
