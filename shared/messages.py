@@ -253,6 +253,11 @@ class TuneRequest(Message):
     bump: float | None = Field(default=None, gt=0.0, description="ramp setpoint bump, PV units")
     kc_start: float | None = Field(default=None, gt=0.0, description="ramp first gain")
     step_size: float | None = Field(default=None, description="step test output step, %")
+    repeat: int | Literal["auto"] | None = Field(
+        default=None,
+        description="step tests, up and down in turn (None: one); auto: until their mean is "
+        "known to ± 5 %, at most 6",
+    )
     pv_limits: tuple[float, float] | None = None
     max_time: float | None = Field(default=None, gt=0.0, description="experiment budget, sim s")
     verify: bool = True
@@ -361,9 +366,17 @@ class TuneResult(Message):
     method: Method
     rule: str
     pv_units: str = ""
+    pv_range: tuple[float, float] | None = Field(
+        default=None,
+        description="the loop's transmitter range (lo, hi), PV units: the span hi − lo the "
+        "% of span figures are of (None: not known, no % figures)",
+    )
     status: RunStatus
     reason: str | None = None
     ku: float | None = Field(default=None, description="% of output per PV unit")
+    ku_percent: float | None = Field(
+        default=None, description="K_u in % of output per % of span: ku·span/100"
+    )
     pu: float | None = Field(default=None, description="s")
     ku_spread: float | None = None
     pu_spread: float | None = None
@@ -379,8 +392,25 @@ class TuneResult(Message):
     step: dict[str, bool | float | int | str | None] | None = Field(
         default=None, description="reaction-curve figures"
     )
-    experiment: dict[str, float | int | str | None] = Field(default_factory=dict)
-    gains: dict[str, dict[str, Any]] = Field(default_factory=dict, description="every rule")
+    repeats: list[dict[str, bool | float | int | str | None]] | None = Field(
+        default=None, description="repeated step tests: every test's figures (step: the mean)"
+    )
+    step_percent: dict[str, float | None] | None = Field(
+        default=None,
+        description="the step's process gains in % of span: gain (% of span per %), "
+        "reaction_rate (% of span per s per %), a (% of span per %); ×100/span",
+    )
+    experiment: dict[str, bool | float | int | str | None] = Field(default_factory=dict)
+    model_gain_percent: float | None = Field(
+        default=None,
+        description="the identified model's gain (experiment's model_gain) in % of span per % "
+        "(integrating: % of span per s per %): model_gain·100/span",
+    )
+    gains: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="every rule, every form; isa_percent: kc (% per % of span), ti, td (s), "
+        "pb (100/kc, % of span), where pv_range is known",
+    )
     chosen: dict[str, Any] | None = None
     previous_gains: PidGains | None = None
     applied: bool = False

@@ -5,10 +5,12 @@ module only drives the loop client)."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
+from services.autotuner.identify.repeated_steps import RepeatedSteps, Spread
 from services.autotuner.identify.step_test import (
     ReturnWatch,
     StepTest,
@@ -17,6 +19,7 @@ from services.autotuner.identify.step_test import (
     return_timeout,
 )
 from services.autotuner.loop_client import CommandRefused, LeaseLost, LoopClient
+from shared.control.forms import pv_span, step_percent
 from shared.errors import AutotuneError
 from shared.messages import (
     LeaseCommand,
@@ -42,6 +45,22 @@ class StepTestReport:
     returned_to_rest: bool | None = None  # None: not waited for (--no-wait, or not restored)
     pv_end: float | None = None  # PV units: the rest after the return, else the last PV seen
     t_return: float | None = None  # s, sim time the wait for the return ended
+    # repeated tests (``--repeat``): every test's curve (``curve`` is then their mean), each
+    # figure's spread, and what the engineer must know of it; empty for one test
+    tests: tuple[ReactionCurve | IntegratingCurve, ...] = ()
+    spreads: dict[str, Spread] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
+    pv_range: tuple[float, float] | None = None  # the transmitter's, PV units
+
+    @property
+    def percent(self) -> dict[str, float | None] | None:
+        """The process gains K, R and a in % of span (``forms.step_percent``); None without
+        a usable range."""
+        try:
+            span = pv_span(self.pv_range)
+        except ValueError:
+            return None
+        return None if span is None else step_percent(self.curve.to_dict(), span)
 
     def to_dict(self) -> dict:
         return {
@@ -58,35 +77,46 @@ class StepTestReport:
             "returned_to_rest": self.returned_to_rest,
             "pv_end": self.pv_end,
             "t_return": self.t_return,
+            "pv_range": list(self.pv_range) if self.pv_range else None,
+            "step_percent": self.percent,
             **self.curve.to_dict(),
+            **(
+                {
+                    "tests": [c.to_dict() for c in self.tests],
+                    "spreads": {k: dataclasses.asdict(v) for k, v in self.spreads.items()},
+                    "notes": list(self.notes),
+                }
+                if self.tests
+                else {}
+            ),
         }
 
 
 def run_step_test(
     client: LoopClient,
     config: StepTestConfig,
-    progress: Callable[[StepTest, ProcessSample], None] | None = None,
+    progress: Callable[[StepTest | RepeatedSteps, ProcessSample], None] | None = None,
     wait_return: bool = True,
+    repeat: int = 1,
+    auto: bool = False,
 ) -> StepTestReport:
     """Run the step test on a live loop; restore its mode and output afterwards, always.
 
-    With ``wait_return``, after a completed test it then follows the PV until it is back at
-    rest (``ReturnWatch``, at most ``return_timeout``), so that whatever runs next does not
-    identify on a recovering PV; ``progress`` keeps being called meanwhile.
+    ``repeat`` > 1 (or ``auto``): repeated tests, up and down in turn, each from rest
+    (``RepeatedSteps``). With ``wait_return``, after a completed test it then follows the PV
+    until it is back at rest (``ReturnWatch``, at most ``return_timeout``), so that whatever
+    runs next does not identify on a recovering PV; ``progress`` keeps being called meanwhile.
     """
     before = client.sync()
     info = client.info
     pv_limits = config.pv_limits or tuple(info.pv_range)
+    args = (config, before.op, tuple(info.op_limits), pv_limits, info.sample_time)
+    where = {"pv_range": tuple(info.pv_range), "pv_units": info.pv_units}
     try:
-        test = StepTest(
-            config,
-            before.op,
-            tuple(info.op_limits),
-            pv_limits,
-            info.sample_time,
-            pv_range=tuple(info.pv_range),
-            pv_units=info.pv_units,
-        )
+        if repeat > 1 or auto:
+            test: StepTest | RepeatedSteps = RepeatedSteps(*args, **where, repeat=repeat, auto=auto)
+        else:
+            test = StepTest(*args, **where)
     except ValueError as err:
         raise StepTestAborted(f"loop {client.loop}: {err}") from None
     restored = False
@@ -134,17 +164,19 @@ def run_step_test(
             f"{'loop restored' if restored else 'LOOP NOT RESTORED'} "
             f"({before.mode}, {before.op:g} %)"
         )
-    t_step, t_end = test.t_step or 0.0, test.t[-1]
+    last = test.done[-1] if isinstance(test, RepeatedSteps) else test
+    first = test.done[0] if isinstance(test, RepeatedSteps) else test
+    t_step, t_end = first.t_step or 0.0, last.t[-1]
     returned, pv_end, t_return = None, None, None
-    if isinstance(test.result, IntegratingCurve):  # the test itself watched the level's return
-        returned, pv_end, t_return = test.result.returned, test.result.pv_after, t_end
+    if isinstance(last.result, IntegratingCurve):  # the test itself watched the level's return
+        returned, pv_end, t_return = last.result.returned, last.result.pv_after, t_end
     elif wait_return and restored:
         lag = 0.0 if info.clock == "lockstep" else info.sample_time
         watch = ReturnWatch(
             t_end + lag,
-            test.result.pv_after,
-            test.result.noise_std,
-            return_timeout(config, t_step, t_end),
+            last.result.pv_after,
+            last.result.noise_std,
+            return_timeout(config, last.t_step or 0.0, t_end),
             tuple(info.pv_range),
         )
         try:
@@ -166,12 +198,18 @@ def run_step_test(
         before.op,
         t_step,
         t_end,
-        len(test.t),
+        sum(len(t.t) for t in test.done) if isinstance(test, RepeatedSteps) else len(test.t),
         test.result,
         restored,
         returned,
         pv_end,
         t_return,
+        *(
+            (tuple(test.curves()), test.spreads(), tuple(test.notes()))
+            if isinstance(test, RepeatedSteps)
+            else ((), {}, ())
+        ),
+        tuple(info.pv_range),
     )
 
 

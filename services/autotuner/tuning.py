@@ -32,7 +32,14 @@ from services.autotuner.identify.experiments import Demand, Experiment, Setup
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.rest import RestCheck, rest_window
 from services.autotuner.loop_client import LeaseLost, LoopClient
-from shared.control.forms import IsaGains, all_forms
+from shared.control.forms import (
+    IsaGains,
+    all_forms,
+    kc_percent,
+    process_gain_percent,
+    pv_span,
+    step_percent,
+)
 from shared.errors import AutotuneError
 from shared.messages import (
     DisturbanceCommand,
@@ -114,6 +121,15 @@ def _number(v: float | None) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
 
 
+def _span(pv_range: tuple[float, float]) -> float | None:
+    """The PV's span (PV units) for the result's % of span figures; None if the range is
+    not lo < hi, finite (the plant file refuses such a range; a foreign plant may not)."""
+    try:
+        return pv_span(pv_range)
+    except ValueError:
+        return None
+
+
 class TuningRun:
     def __init__(
         self, client: LoopClient, req: TuneRequest, run_id: str, hooks: RunHooks | None = None
@@ -184,7 +200,9 @@ class TuningRun:
             "requested_rule": req.rule,
             "previous_gains": first.gains,
             "pv_units": self.info.pv_units,
+            "pv_range": tuple(self.info.pv_range),
         }
+        span = _span(self.info.pv_range)  # None: no % of span figures (a range not lo < hi)
         lo, hi = self.pv_limits
         if not lo <= first.pv <= hi:
             raise ValueError(
@@ -225,14 +243,23 @@ class TuningRun:
                 ku_spread=ident.ku_spread,
                 pu_spread=ident.pu_spread,
                 step=ident.step.to_dict() if ident.step is not None else None,
+                repeats=[c.to_dict() for c in ident.repeats] or None,
                 experiment=ident.experiment.to_dict() if ident.experiment else {},
             )
+            if span is not None:  # the same figures in % of span (shared.control.forms)
+                result.update(
+                    ku_percent=kc_percent(ident.ku, span),
+                    step_percent=step_percent(result["step"], span),
+                    model_gain_percent=process_gain_percent(
+                        result["experiment"].get("model_gain"), span
+                    ),
+                )
             sel = select(ident, req.rule, req.ms_bound, req.force, self.ts, req.lambda_s, req.aim)
             rec = sel.recommended
             result.update(
                 rule=sel.rule or req.rule,
                 l_over_t=sel.l_over_t,
-                gains={name: all_forms(g).to_dict() for name, g in sel.table.items()},
+                gains={name: all_forms(g, span).to_dict() for name, g in sel.table.items()},
                 robustness=assessments_dict(sel),
                 recommended=(
                     {"rule": rec.rule, "reason": rec.reason, "ms": rec.predicted_ms}
@@ -244,7 +271,7 @@ class TuningRun:
             chosen = sel.chosen
             if chosen is None or (sel.refusal and req.apply):
                 raise TuneRefused(sel.refusal or "no gains")
-            result["chosen"] = all_forms(chosen).to_dict()
+            result["chosen"] = all_forms(chosen, span).to_dict()
             self._progress(
                 "identified",
                 ku=ident.ku,
@@ -337,7 +364,7 @@ class TuningRun:
             "done", ku=result.get("ku"), pu=result.get("pu"), message=result.get("reason") or ""
         )
         clean = {
-            k: finite(v) if k not in ("before", "after", "previous_gains") else v
+            k: finite(v) if k not in ("before", "after", "previous_gains", "pv_range") else v
             for k, v in result.items()
         }
         try:

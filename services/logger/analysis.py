@@ -28,6 +28,7 @@ from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Demand
 from services.autotuner.identify.reaction_curve import IntegratingCurve
+from services.autotuner.identify.step_test import HOLD_EVENTS
 from services.logger.mcap_io import (
     decode,
     one_result,
@@ -36,7 +37,14 @@ from services.logger.mcap_io import (
     validation_reason,
 )
 from shared import keys
-from shared.control.forms import GainForms, all_forms
+from shared.control.forms import (
+    GainForms,
+    all_forms,
+    kc_percent,
+    process_gain_percent,
+    pv_span,
+    step_percent,
+)
 from shared.errors import AutotuneError, one_line
 from shared.messages import ProcessSample, TuneRequest, TuneResult, TunerEvent
 
@@ -50,6 +58,12 @@ class Analysis:
     gains: dict[str, GainForms]  # every rule's
     live: TuneResult | None
     selection: Selection | None = None
+    pv_range: tuple[float, float] | None = None  # the transmitter's, as the run recorded it
+
+    @property
+    def span(self) -> float | None:
+        """The PV's span (PV units) for the % of span figures; None without a usable range."""
+        return _span(self.pv_range)
 
     def to_dict(self, rule: str | None) -> dict:
         out = {
@@ -65,6 +79,15 @@ class Analysis:
             "experiment": self.ident.experiment.to_dict() if self.ident.experiment else None,
             "gains": {name: g.to_dict() for name, g in self.gains.items()},
         }
+        span = self.span
+        if span is not None:  # as the live result has them (shared.control.forms)
+            model = out["experiment"].get("model_gain") if out["experiment"] else None
+            out.update(
+                pv_range=list(self.pv_range or ()),
+                ku_percent=kc_percent(self.ident.ku, span),
+                step_percent=step_percent(out["step"], span),
+                model_gain_percent=process_gain_percent(model, span),
+            )
         if self.selection is not None:
             rec = self.selection.recommended
             out["robustness"] = assessments_dict(self.selection)
@@ -192,7 +215,7 @@ def _read(path: str | Path) -> tuple[dict[str, str], _Run]:
         raise AutotuneError(f"{path}: {r.where()}: data.{problem}")
     step_times = []
     for r, e in events:
-        if e.kind in ("step_started", "pulse_started"):  # in the order held
+        if e.kind in HOLD_EVENTS:  # in the order held
             t = e.data.get("t")
             if isinstance(t, bool) or not isinstance(t, int | float) or not 0 <= t < math.inf:
                 raise AutotuneError(f"{path}: {r.where()}: data.t: must be a time ≥ 0 s, got {t!r}")
@@ -241,15 +264,27 @@ def analyze_file(path: str | Path) -> Analysis:
             f"{path}: the recorded samples cannot be re-identified as a {req.method} test "
             f"({type(err).__name__}: {one_line(err)})"
         ) from None
+    lo, hi = data.get("pv_range_lo"), data.get("pv_range_hi")
+    pv_range = None if lo is None or hi is None else (float(lo), float(hi))
+    span = _span(pv_range)
     return Analysis(
         str(path),
         meta.get("loop", req.loop),
         req.method,
         ident,
-        {name: all_forms(g) for name, g in sel.table.items()},
+        {name: all_forms(g, span) for name, g in sel.table.items()},
         run.result,
         sel,
+        pv_range,
     )
+
+
+def _span(pv_range: tuple[float, float] | None) -> float | None:
+    """``pv_span``, None where the range is missing or unusable (no % of span figures)."""
+    try:
+        return pv_span(pv_range)
+    except ValueError:
+        return None
 
 
 class _Record:

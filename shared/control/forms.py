@@ -9,6 +9,16 @@
 
 Integral action may be given as a time (s or min) or as a reset rate in repeats per minute
 (= 60/Ti with Ti in s), as seed 001 explains. Ti = None (or inf) means no integral action.
+
+Normalised figures (% of span, seed 001: industrial controllers work on 0–100 % signals). The
+output is already in %; the PV is in engineering units over the transmitter's range (lo, hi),
+span = hi − lo. Then
+
+* a controller gain (or K_u) in % per PV unit becomes Kc·span/100 in % per % (dimensionless);
+* the proportional band is PB = 100/Kc(%/%) in % of span (None for Kc = 0);
+* a process gain K in PV units per % becomes K·100/span in % of span per % (an integrating
+  process's K' in PV units per s per %: K'·100/span in % of span per s per %);
+* Ti and Td are times: unchanged (s).
 """
 
 from __future__ import annotations
@@ -85,11 +95,78 @@ def integral_time_from_reset_rate(repeats_per_minute: float) -> float | None:
     return None if repeats_per_minute == 0 else 60.0 / repeats_per_minute
 
 
+def pv_span(pv_range: tuple[float, float] | None) -> float | None:
+    """The span hi − lo of a transmitter range (PV units); None without a range. ValueError
+    unless lo < hi and the span is finite (no % of span figure can be had of such a range)."""
+    if pv_range is None:
+        return None
+    lo, hi = pv_range
+    span = hi - lo
+    if not (math.isfinite(lo) and math.isfinite(hi) and math.isfinite(span) and span > 0):
+        raise ValueError(f"pv_range must be two finite numbers lo < hi, got {list(pv_range)}")
+    return float(span)
+
+
+def kc_percent(kc: float | None, span: float) -> float | None:
+    """A controller gain or K_u in % per PV unit as % of output per % of span (Kc·span/100)."""
+    return None if kc is None else kc * span / 100.0
+
+
+def process_gain_percent(k: float | None, span: float) -> float | None:
+    """A process gain in PV units per % (or PV units per s per %: K', R) as % of span per %
+    (or % of span per s per %): K·100/span."""
+    return None if k is None else k * 100.0 / span
+
+
+def proportional_band(kc_pct: float) -> float | None:
+    """PB = 100/Kc in % of span, Kc in % per %; None for Kc = 0 (no proportional action)."""
+    return None if kc_pct <= 0 else 100.0 / kc_pct
+
+
+@dataclass(frozen=True)
+class PercentGains:
+    """ISA gains on normalised signals: Kc in % of output per % of span, PB = 100/Kc in % of
+    span (None for Kc = 0), Ti and Td in s as in engineering units (Ti None: no integral)."""
+
+    kc: float
+    ti: float | None
+    td: float
+    pb: float | None
+
+    def to_dict(self) -> dict[str, float | None]:
+        """The result's ``isa_percent`` object."""
+        return {"kc": self.kc, "ti": self.ti, "td": self.td, "pb": self.pb}
+
+
+def to_percent(g: IsaGains, span: float) -> PercentGains:
+    """``g`` (Kc in % per PV unit) on a PV of ``span`` PV units, normalised."""
+    kc = g.kc * span / 100.0
+    return PercentGains(kc, g.ti, g.td, proportional_band(kc))
+
+
+# the reaction curve's figures (the result's ``step`` keys) that scale with 1/span, and their
+# units once normalised; the other keys (times, sizes in %, the PV's own levels) do not
+STEP_PERCENT = {
+    "gain": "% of span per %",
+    "reaction_rate": "% of span per s per %",
+    "a": "% of span per %",
+}
+
+
+def step_percent(step: dict[str, Any] | None, span: float) -> dict[str, float | None] | None:
+    """The result's ``step_percent`` object: the reaction curve's process gains (K, R, a = R·L;
+    an integrating curve's R = K' and a) as % of span (STEP_PERCENT); None without a step."""
+    if step is None:
+        return None
+    return {k: process_gain_percent(step[k], span) for k in STEP_PERCENT if step.get(k) is not None}
+
+
 @dataclass(frozen=True)
 class GainForms:
     """One set of gains in every form a controller may take (``all_forms``): ISA, parallel,
     series (None where Ti < 4·Td: it has none), and the ISA times in minutes and the reset
-    rate, as controllers' faceplates show them."""
+    rate, as controllers' faceplates show them; given the PV's span, the ISA gains also in %
+    of span (``isa_percent``)."""
 
     isa: IsaGains
     parallel: ParallelGains
@@ -97,11 +174,13 @@ class GainForms:
     ti_min: float | None  # Ti in min (None: no integral action)
     td_min: float  # Td in min
     reset_rate_rpm: float  # repeats per minute (0: no integral action)
+    isa_percent: PercentGains | None = None  # None: the PV's span was not given
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready, the result's ``gains``/``chosen`` object (None where a form lacks)."""
+        """JSON-ready, the result's ``gains``/``chosen`` object (None where a form lacks;
+        ``isa_percent`` only where the span was given)."""
         isa, par, ser = self.isa, self.parallel, self.series
-        return {
+        out: dict[str, Any] = {
             "isa": {"kc": isa.kc, "ti": isa.ti, "td": isa.td},
             "parallel": {"kp": par.kp, "ki": par.ki, "kd": par.kd},
             "series": None if ser is None else {"kc": ser.kc, "ti": ser.ti, "td": ser.td},
@@ -109,10 +188,13 @@ class GainForms:
             "td_min": self.td_min,
             "reset_rate_rpm": self.reset_rate_rpm,
         }
+        if self.isa_percent is not None:
+            out["isa_percent"] = self.isa_percent.to_dict()
+        return out
 
 
-def all_forms(g: IsaGains) -> GainForms:
-    """The gains ``g`` in every form."""
+def all_forms(g: IsaGains, span: float | None = None) -> GainForms:
+    """The gains ``g`` in every form; with the PV's ``span`` (PV units), in % of span too."""
     return GainForms(
         isa=g,
         parallel=to_parallel(g),
@@ -120,4 +202,5 @@ def all_forms(g: IsaGains) -> GainForms:
         ti_min=None if g.ti is None else g.ti / 60.0,
         td_min=g.td / 60.0,
         reset_rate_rpm=reset_rate(g.ti),
+        isa_percent=None if span is None else to_percent(g, span),
     )

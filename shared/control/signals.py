@@ -74,11 +74,14 @@ def range_end(
     return None
 
 
-def at_rest(y: np.ndarray, pv_range: tuple[float, float] | None = None) -> bool:
+def at_rest(
+    y: np.ndarray, pv_range: tuple[float, float] | None = None, allowance: float = 0.0
+) -> bool:
     """No trend beyond the noise: the straight-line fit moves less than 3σ (``noise_level``,
-    and less than 1e-9 of the level) over the record; and, given the transmitter's
-    ``pv_range``, the PV is not at or within noise of one of its ends (``range_end``). False
-    for fewer than 3 samples."""
+    and less than 1e-9 of the level, or than ``allowance`` in the PV's units: a drift the
+    caller counts as rest) over the record; and, given the transmitter's ``pv_range``, the
+    PV is not at or within noise of one of its ends (``range_end``). False for fewer than 3
+    samples."""
     if y.size < 3:
         return False
     if pv_range is not None and range_end(y, pv_range) is not None:
@@ -86,7 +89,8 @@ def at_rest(y: np.ndarray, pv_range: tuple[float, float] | None = None) -> bool:
     x = np.arange(y.size, dtype=float)
     slope = float(np.polyfit(x, y, 1)[0])
     drift = abs(slope) * (y.size - 1)
-    return drift <= max(3.0 * noise_level(y), 1e-9 * max(1.0, float(np.max(np.abs(y)))))
+    floor = 1e-9 * max(1.0, float(np.max(np.abs(y))))
+    return drift <= max(3.0 * noise_level(y), floor, allowance)
 
 
 # --- crossings, turning points, integrals ------------------------------------------------------

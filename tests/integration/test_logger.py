@@ -129,11 +129,16 @@ def test_step_and_ramp_runs_reanalyse_exactly(start_plant, start_tuner, start_lo
     runs = tmp_path / "runs"
     p, _ = stack(start_plant, start_tuner, start_logger, runs, FAST)
     lives = {}
-    for args in (["--method", "step", "--rule", "cc-pi"], ["--method", "ramp", "--kc-start", "2"]):
+    for args in (
+        ["--method", "step", "--rule", "cc-pi"],
+        ["--method", "step", "--repeat", "2"],  # every hold time replayed in order
+        ["--method", "ramp", "--kc-start", "2"],
+    ):
         live = tune(p, "x1", *args, "--no-apply")
         assert live["status"] == "ok", live["reason"]
         lives[live["run_id"]] = live
-    assert wait_finished(p, 2).finished_runs == 2
+    assert wait_finished(p, 3).finished_runs == 3
+    assert [len(v["repeats"] or ()) for v in lives.values()] == [0, 2, 0]
     for run_id, live in lives.items():
         f = next(runs.glob(f"*_{run_id}.mcap"))
         a = json.loads(autotune("analyze", str(f), "--json").stdout)

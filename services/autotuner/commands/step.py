@@ -8,6 +8,12 @@ import sys
 
 from services.autotuner.design.rules import ZN_STEP_RANGE
 from services.autotuner.identify.reaction_curve import IntegratingCurve
+from services.autotuner.identify.repeated_steps import (
+    AUTO_FIRST,
+    AUTO_LIMIT,
+    DEFAULT_TOLERANCE,
+    MAX_REPEAT,
+)
 from services.autotuner.identify.step_test import StepTest, StepTestConfig
 from services.autotuner.loop_client import LoopClient, wait_for_loop
 from services.autotuner.step_run import StepTestReport, run_step_test
@@ -23,6 +29,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("loop", metavar="LOOP", help="loop id, e.g. hx1")
     add_step_options(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    parser.add_argument(
+        "--units",
+        choices=("engineering", "percent"),
+        default="engineering",
+        help="engineering (PV units) or percent: the process gains also in %% of the PV's span "
+        "per %% of output (--json carries both) (default: %(default)s)",
+    )
     parser.add_argument(
         "--no-wait",
         action="store_true",
@@ -64,6 +77,37 @@ def add_step_options(parser: argparse.ArgumentParser) -> None:
         metavar=("LO", "HI"),
         help="abort if the PV leaves [LO, HI] (default: the loop's PV range)",
     )
+    parser.add_argument(
+        "--max-move",
+        type=float,
+        default=25.0,
+        metavar="PERCENT",
+        help="the PV may move this %% of its range either way from its rest; the test stops "
+        "before (an integrating loop: with R as known by then) (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--repeat",
+        type=parse_repeat,
+        default=1,
+        metavar="N|auto",
+        help="N step tests, up and down in turn, each from rest: every test's figures, their "
+        f"mean and spread; auto: {AUTO_FIRST} tests, then more until the mean of every figure "
+        f"is known to ± {100 * DEFAULT_TOLERANCE:g} %% (two standard errors), at most "
+        f"{AUTO_LIMIT} (default: 1)",
+    )
+
+
+def parse_repeat(text: str) -> int | str:
+    """``--repeat``: a whole number of tests, 1–20, or ``auto``."""
+    if text == "auto":
+        return "auto"
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: a number of tests (1–20) or auto") from None
+    if not 1 <= n <= MAX_REPEAT:
+        raise argparse.ArgumentTypeError(f"{n}: must be 1–{MAX_REPEAT} tests, or auto")
+    return n
 
 
 def config_from_args(args: argparse.Namespace) -> StepTestConfig:
@@ -77,15 +121,20 @@ def config_from_args(args: argparse.Namespace) -> StepTestConfig:
         raise ConfigError(f"--baseline {args.baseline}: must be a finite number ≥ 0 s")
     if args.pv_limits and not args.pv_limits[0] < args.pv_limits[1]:
         raise ConfigError(f"--pv-limits {args.pv_limits}: LO must be below HI")
+    if not 0 < args.max_move <= 100:  # also refuses NaN
+        raise ConfigError(f"--max-move {args.max_move}: must be a % of the range, 0–100")
     return StepTestConfig(
         size=args.size,
         baseline=args.baseline,
         timeout=args.timeout,
         pv_limits=tuple(args.pv_limits) if args.pv_limits else None,
+        max_move=args.max_move / 100.0,
     )
 
 
 def format_report(r: StepTestReport) -> str:
+    if r.tests:
+        return format_repeated(r)
     if isinstance(r.curve, IntegratingCurve):
         return format_integrating(r)
     c, u = r.curve, r.pv_units
@@ -171,6 +220,81 @@ def format_integrating(r: StepTestReport) -> str:
     return "\n".join(line for line in lines if line)
 
 
+_FIGURES = {  # name → (column heading, unit template)
+    "gain": ("K", "{u}/%"),
+    "dead_time": ("L s", "s"),
+    "time_constant_tangent": ("T s", "s"),
+    "time_constant_63": ("T63 s", "s"),
+    "reaction_rate": ("R", "{u}/s per %"),
+}
+
+
+def format_repeated(r: StepTestReport) -> str:
+    """Every test's figures, their mean, spread and the mean's precision."""
+    u = r.pv_units
+    names = list(r.spreads)
+    integrating = isinstance(r.curve, IntegratingCurve)
+    head = (
+        f"{len(r.tests)} step tests of {r.loop} ({r.model}"
+        + (", integrating" if integrating else "")
+        + f"), ±{abs(r.tests[0].step_size):g} % in turn from {r.op_before:g} %, "
+        f"t = {r.t_step:g} … {r.t_end:g} s"
+    )
+    cols = [_FIGURES[n][0] for n in names]
+    lines = [head, "  " + f"{'test':<10}" + "".join(f"{c:>12}" for c in cols)]
+    for i, c in enumerate(r.tests, 1):
+        label = f"{i} ({c.step_size:+g} %)"
+        lines.append("  " + f"{label:<10}" + "".join(f"{getattr(c, n):>12.4g}" for n in names))
+    lines.append("  " + f"{'mean':<10}" + "".join(f"{r.spreads[n].mean:>12.4g}" for n in names))
+    lines.append(
+        "  " + f"{'spread %':<10}" + "".join(f"{100 * r.spreads[n].spread:>12.2g}" for n in names)
+    )
+    lines.append(
+        "  "
+        + f"{'mean ± %':<10}"
+        + "".join(f"{100 * r.spreads[n].precision:>12.2g}" for n in names)
+    )
+    units = ", ".join(f"{_FIGURES[n][0].split()[0]} in {_FIGURES[n][1].format(u=u)}" for n in names)
+    lines.append(
+        f"  ({units}; spread: the tests' standard deviation, mean ±: two standard errors, "
+        "both relative to the mean)"
+    )
+    if not integrating:
+        c = r.curve
+        lines.append(
+            f"  mean curve: R = K/T = {c.reaction_rate:.4g} {u}/s per %, a = R·L = {c.a:.4g} "
+            f"{u}/%, L/T = {c.l_over_t:.3f}"
+        )
+    else:
+        c = r.curve
+        lines.append(f"  mean curve: a = R·L = {c.a:.4g} {u}/%")
+    lines += [f"  NOTE: {n}" for n in r.notes]
+    lines.append(
+        f"Loop restored: {r.mode_before}, output {r.op_before:g} %."
+        if r.restored
+        else "WARNING: the loop could not be restored; check it."
+    )
+    lines.append(return_line(r))
+    return "\n".join(line for line in lines if line)
+
+
+def percent_line(r: StepTestReport) -> str:
+    """The process gains in % of span, the engineering figures beside them."""
+    pct = r.percent
+    if not pct:
+        return "No usable PV range: no % of span figures."
+    lo, hi = r.pv_range
+    u = r.pv_units
+    units = {"gain": ("K", "%/%", f"{u}/%"), "reaction_rate": ("R", "%/s per %", f"{u}/s per %")}
+    units["a"] = ("a = R·L", "%/%", f"{u}/%")
+    parts = [
+        f"{units[k][0]} = {v:.4g} {units[k][1]} ({r.curve.to_dict()[k]:.4g} {units[k][2]})"
+        for k, v in pct.items()
+        if v is not None
+    ]
+    return f"In % of span (PV range {lo:g} to {hi:g} {u}, span {hi - lo:g}): " + ", ".join(parts)
+
+
 def return_line(r: StepTestReport) -> str:
     """What the PV did after the restore (empty if the loop was not restored)."""
     if not r.restored:
@@ -213,8 +337,13 @@ def run(args: argparse.Namespace) -> int:
                 config,
                 None if args.json else progress_line,
                 wait_return=not args.no_wait,
+                repeat=AUTO_LIMIT if args.repeat == "auto" else args.repeat,
+                auto=args.repeat == "auto",
             )
     if sys.stderr.isatty() and not args.json:
         print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
-    print(json.dumps(report.to_dict(), indent=2) if args.json else format_report(report))
+    text = format_report(report)
+    if args.units == "percent" and not args.json:
+        text += "\n" + percent_line(report)
+    print(json.dumps(report.to_dict(), indent=2) if args.json else text)
     return 0

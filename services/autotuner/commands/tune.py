@@ -2,7 +2,10 @@
 
 With ``--json`` the result is printed as one JSON object (the TuneResult message): ``ku``
 (% per PV unit), ``pu`` (s), ``gains`` (every rule, every form), ``chosen``, ``before`` and
-``after`` (verification figures), ``status``, ``reason``, ``applied``, ``restored``.
+``after`` (verification figures), ``status``, ``reason``, ``applied``, ``restored``; and the
+same figures in % of the PV's span (``pv_range``): ``ku_percent``, ``step_percent``,
+``model_gain_percent`` and per rule ``isa_percent`` (kc in % per %, ti, td in s, pb in %).
+``--units percent`` prints the tables in % of span, the engineering figures beside them.
 Ctrl-C cancels the run; the tuner restores the loop before it answers.
 """
 
@@ -20,10 +23,18 @@ import time
 import pydantic
 import zenoh
 
+from services.autotuner.commands.step import parse_repeat
 from services.autotuner.design.rules import RULES
 from services.autotuner.loop_client import wait_for_token
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids
+from shared.control.forms import (
+    IsaGains,
+    kc_percent,
+    process_gain_percent,
+    pv_span,
+    to_percent,
+)
 from shared.errors import AutotuneError, ConfigError
 from shared.messages import LoopStatus, TuneAccepted, TuneProgress, TuneRequest, TuneResult
 from shared.session import open_session, settings_from_args
@@ -34,6 +45,7 @@ HELP = "tune a loop through the running autotuner (relay, ramp or step test)"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("loop", metavar="LOOP", help="loop id, e.g. hx1")
     add_tune_options(parser)
+    add_units_option(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     parser.add_argument("--node", default="*", help="which autotuner (default: any)")
     parser.add_argument(
@@ -49,6 +61,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "Ctrl-C, SIGTERM and SIGHUP cancel it and wait for the loop's restore",
     )
     add_common_arguments(parser)
+
+
+UNITS = ("engineering", "percent")
+
+
+def add_units_option(parser: argparse.ArgumentParser) -> None:
+    """``--units engineering|percent``: what ``format_result``'s tables print."""
+    parser.add_argument(
+        "--units",
+        choices=UNITS,
+        default="engineering",
+        help="what the tables print: engineering (Kc in %% of output per PV unit, process "
+        "gains in PV units per %%) or percent (Kc in %% of output per %% of the PV's span, "
+        "the proportional band PB = 100/Kc in %%, process gains in %% of span per %%; the "
+        "engineering figures beside them). --json carries both (default: %(default)s)",
+    )
 
 
 def add_tune_options(parser: argparse.ArgumentParser) -> None:
@@ -151,6 +179,13 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--step-size", type=float, help="step test output step, %% (default 5)")
     parser.add_argument(
+        "--repeat",
+        type=parse_repeat,
+        metavar="N|auto",
+        help="step test: N tests, up and down in turn, their mean used (auto: until every "
+        "figure's mean is known to ± 5 %%, at most 6; default: one test)",
+    )
+    parser.add_argument(
         "--pv-limits",
         type=float,
         nargs=2,
@@ -180,6 +215,7 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
             bump=args.bump,
             kc_start=args.kc_start,
             step_size=args.step_size,
+            repeat=args.repeat,
             pv_limits=tuple(args.pv_limits) if args.pv_limits else None,
             max_time=args.max_time,
             verify=not args.no_verify,
@@ -378,25 +414,134 @@ def _fixed(v, decimals: int) -> str:
     return "—" if v is None else f"{v:.{decimals}f}"
 
 
-def format_result(r: TuneResult) -> str:
+def _robust_head(rob: dict) -> str:
+    return f"{'Ms':>7}{'GM':>7}{'PM °':>7}{'OS %':>7}{'DR':>6}" if rob else ""
+
+
+def _robust_row(a: dict) -> str:
+    """A rule's predicted Ms, margins, overshoot and decay ratio (blank without them)."""
+    if not a:
+        return ""
+    return (
+        f"{_fmt(a.get('ms'), digits=3):>7}{_fmt(a.get('gain_margin'), digits=3):>7}"
+        f"{_fmt(a.get('phase_margin_deg'), digits=3):>7}"
+        f"{_fixed(a.get('overshoot_pct'), 1):>7}{_fixed(a.get('decay_ratio'), 2):>6}"
+    )
+
+
+def _percent_table(r: TuneResult, span: float, pv_units: str) -> list[str]:
+    """The rules' gains in % of span: Kc (% of output per % of span), PB = 100/Kc (% of
+    span), Ti and Td (s), and the engineering Kc (% per PV unit) beside them."""
+    rob = r.robustness
+    eng = f"Kc %/{pv_units}"
+    lines = [
+        f"  {'rule':<15}{'Kc %/%':>10}{'PB %':>10}{'Ti (s)':>10}{'Td (s)':>10}{eng:>14}"
+        + _robust_head(rob)
+    ]
+    for name, g in r.gains.items():
+        isa = g["isa"]
+        pct = to_percent(IsaGains(isa["kc"], isa["ti"], isa["td"]), span)
+        mark = "←" if name == r.rule else ""
+        lines.append(
+            f"  {name:<15}{pct.kc:>10.4g}{_fmt(pct.pb):>10}{_fmt(pct.ti):>10}"
+            f"{pct.td:>10.4g}{isa['kc']:>14.4g}{_robust_row(rob.get(name, {}))} {mark}"
+        )
+    return lines
+
+
+def _result_span(r: TuneResult) -> float | None:
+    """The span of the result's PV range (PV units); None without a usable range."""
+    try:
+        return pv_span(r.pv_range)
+    except ValueError:
+        return None
+
+
+_REPEAT_FIGURES = {
+    "gain": "K",
+    "dead_time": "L",
+    "time_constant_tangent": "T",
+    "time_constant_63": "T63",
+    "reaction_rate": "R",
+}
+
+
+def _repeats_lines(r: TuneResult) -> list[str]:
+    """Repeated step tests: every test's figures in one line each, and per figure the mean
+    (the figures above), the spread and the mean's precision."""
+    if not r.repeats:
+        return []
+    e = r.experiment
+    names = [n for n in _REPEAT_FIGURES if f"{n}_mean" in e]
+    lines = [
+        f"  {len(r.repeats)} step tests, up and down in turn; the figures above are their mean"
+        + ("" if e.get("settled", True) else " (NOT within the tolerance: see the warning)")
+    ]
+    for i, t in enumerate(r.repeats, 1):
+        figures = "  ".join(f"{_REPEAT_FIGURES[n]} = {t[n]:.4g}" for n in names)
+        lines.append(f"    test {i} ({t['step_size']:+g} %): {figures}")
+    lines.append(
+        "    spread (mean ±): "
+        + "  ".join(
+            f"{_REPEAT_FIGURES[n]} {100 * e[f'{n}_spread']:.2g} % "
+            f"({100 * e[f'{n}_precision']:.2g} %)"
+            for n in names
+        )
+    )
+    return lines
+
+
+def format_result(r: TuneResult, units: str = "engineering") -> str:
+    """The result as text; ``units`` "percent" prints K_u, the process gains and the rules'
+    table in % of the PV's span (Kc in % per %, PB = 100/Kc in %), engineering beside."""
     pv_units = r.pv_units or "PV unit"
     lines = [
         f"Tuning of {r.loop} by {r.method} test, rule {r.rule}: {r.status}"
         + (f" ({r.reason})" if r.reason else "")
     ]
-    if r.ku is not None:
+    span = _result_span(r) if units == "percent" else None
+    if units == "percent" and span is None:
+        lines.append("  no PV range in the result: the figures are in engineering units")
+    elif span is not None and r.pv_range is not None:
+        lo, hi = r.pv_range
         lines.append(
-            f"  K_u = {r.ku:.4g} %/{pv_units}"
+            f"  in % of span: PV range {lo:g} to {hi:g} {pv_units} (span {span:g}), "
+            "Kc in %/% (dimensionless), PB = 100/Kc in %"
+        )
+    if r.ku is not None:
+        ku = f"{r.ku:.4g} %/{pv_units}"
+        if span is not None:
+            ku = f"{kc_percent(r.ku, span):.4g} %/% ({ku})"
+        lines.append(
+            f"  K_u = {ku}"
             + (f" (spread {100 * r.ku_spread:.2g} %)" if r.ku_spread is not None else "")
             + f"    P_u = {r.pu:.4g} s"
             + (f" (spread {100 * r.pu_spread:.2g} %)" if r.pu_spread is not None else "")
         )
-    if r.step and r.step.get("method") == "integrating":
+    if r.step and r.step.get("method") == "integrating" and span is not None:
+        s = r.step
+        lines.append(
+            f"  integrating: R = K' = {process_gain_percent(s['reaction_rate'], span):.4g} "
+            f"%/s per % ({s['reaction_rate']:.4g} {pv_units}/s per %) "
+            f"(± {100 * s['reaction_rate_precision']:.2g} %)  L = {s['dead_time']:.4g} s  "
+            f"a = R·L = {process_gain_percent(s['a'], span):.4g} %/% ({s['a']:.4g} "
+            f"{pv_units}/%)  (level given back to {s['pv_after']:.4g} {pv_units})"
+        )
+    elif r.step and r.step.get("method") == "integrating":
         s = r.step
         lines.append(
             f"  integrating: R = K' = {s['reaction_rate']:.4g} {pv_units}/s per % "
             f"(± {100 * s['reaction_rate_precision']:.2g} %)  L = {s['dead_time']:.4g} s  "
             f"a = R·L = {s['a']:.4g} {pv_units}/%  (level given back to {s['pv_after']:.4g})"
+        )
+    elif r.step and span is not None:
+        s = r.step
+        lines.append(
+            f"  K = {process_gain_percent(s['gain'], span):.4g} %/% ({s['gain']:.4g} "
+            f"{pv_units}/%)  L = {s['dead_time']:.4g} s  T = "
+            f"{s['time_constant_tangent']:.4g} s  R = "
+            f"{process_gain_percent(s['reaction_rate'], span):.4g} %/s per % "
+            f"({s['reaction_rate']:.4g} {pv_units}/s per %)  L/T = {s['l_over_t']:.3f}"
         )
     elif r.step:
         s = r.step
@@ -405,37 +550,41 @@ def format_result(r: TuneResult) -> str:
             f"{s['time_constant_tangent']:.4g} s  R = {s['reaction_rate']:.4g}  "
             f"L/T = {s['l_over_t']:.3f}"
         )
+    lines.extend(_repeats_lines(r))
     model = {k: v for k, v in r.experiment.items() if k.startswith("model")}
     if model:
         lags = [f"{model[k]:.4g}" for k in sorted(model) if k.startswith("model_lag")]
+        gain = f"{model['model_gain']:.4g}"
+        if span is not None:  # an integrator's K' is per second
+            per = "/s per %" if model["model"] == "ipdt" else "/%"
+            gain = (
+                f"{process_gain_percent(model['model_gain'], span):.4g} %{per} "
+                f"({gain} {pv_units}{per})"
+            )
         lines.append(
-            f"  model {str(model['model']).upper()}: K = {model['model_gain']:.4g}"
+            f"  model {str(model['model']).upper()}: K = {gain}"
             + (f"  T = {', '.join(lags)} s" if lags else "")
             + f"  L = {model['model_delay']:.4g} s"
             + (f"  L/T = {r.l_over_t:.3f}" if r.l_over_t is not None else "")
         )
-    if r.gains:
+    if r.gains and span is not None:
+        lines.extend(_percent_table(r, span, pv_units))
+    elif r.gains:
         rob = r.robustness
         lines.append(
             f"  {'rule':<15}{'Kc':>10}{'Ti (s)':>10}{'Td (s)':>10}{'Ki':>10}{'Kd':>10}"
-            + (f"{'Ms':>7}{'GM':>7}{'PM °':>7}{'OS %':>7}{'DR':>6}" if rob else "")
+            + _robust_head(rob)
         )
         for name, g in r.gains.items():
             isa, par = g["isa"], g["parallel"]
             mark = "←" if name == r.rule else ""
-            a = rob.get(name, {})
-            fig = (
-                f"{_fmt(a.get('ms'), digits=3):>7}{_fmt(a.get('gain_margin'), digits=3):>7}"
-                f"{_fmt(a.get('phase_margin_deg'), digits=3):>7}"
-                f"{_fixed(a.get('overshoot_pct'), 1):>7}{_fixed(a.get('decay_ratio'), 2):>6}"
-                if a
-                else ""
-            )
             lines.append(
                 f"  {name:<15}{isa['kc']:>10.4g}{_fmt(isa['ti']):>10}"
-                f"{isa['td']:>10.4g}{par['ki']:>10.4g}{par['kd']:>10.4g}{fig} {mark}"
+                f"{isa['td']:>10.4g}{par['ki']:>10.4g}{par['kd']:>10.4g}"
+                f"{_robust_row(rob.get(name, {}))} {mark}"
             )
-        lam = next((a["lambda_s"] for a in (rob or {}).values() if "lambda_s" in a), None)
+    if r.gains:
+        lam = next((a["lambda_s"] for a in r.robustness.values() if "lambda_s" in a), None)
         if lam is not None:
             lines.append(f"  lambda rules: closed-loop time constant λ = {lam:.4g} s")
     if r.recommended:
@@ -450,10 +599,14 @@ def format_result(r: TuneResult) -> str:
             ("IAE load", "iae_load"),
             ("stable", "stable"),
         ]
+        if span is not None:  # an IAE in PV units·s as % of span·s
+            rows[3:5] = [("IAE setpoint %·s", "iae_sp"), ("IAE load %·s", "iae_load")]
         lines.append(f"  {'verification':<18}{'before':>12}{'after':>12}")
         for label, field in rows:
             b = getattr(r.before, field) if r.before else None
             a = getattr(r.after, field)
+            if span is not None and field.startswith("iae"):
+                b, a = process_gain_percent(b, span), process_gain_percent(a, span)
             lines.append(
                 f"  {label:<18}{_fmt(b) if not isinstance(b, bool) else str(b):>12}"
                 f"{_fmt(a) if not isinstance(a, bool) else str(a):>12}"
@@ -535,6 +688,8 @@ def run(args: argparse.Namespace) -> int:
     if sys.stderr.isatty() and not args.json:
         print("\r" + " " * 100 + "\r", end="", file=sys.stderr)
     print(
-        json.dumps(result.model_dump(mode="json"), indent=2) if args.json else format_result(result)
+        json.dumps(result.model_dump(mode="json"), indent=2)
+        if args.json
+        else format_result(result, args.units)
     )
     return 0 if result.status == "ok" else 1

@@ -11,6 +11,7 @@ from typing import Protocol
 
 from services.autotuner.design.rules import check_rule
 from services.autotuner.identify.methods import METHODS
+from services.autotuner.identify.repeated_steps import MAX_REPEAT
 
 
 class Request(Protocol):
@@ -20,6 +21,7 @@ class Request(Protocol):
     method: str
     pv_limits: tuple[float, float] | None
     step_size: float | None
+    repeat: int | str | None
 
 
 def _giving(kind: str) -> list[str]:
@@ -45,3 +47,9 @@ def validate_request(req: Request) -> None:
         raise ValueError(f"pv_limits: low must be below high, got {list(req.pv_limits)}")
     if req.step_size is not None and not (math.isfinite(req.step_size) and req.step_size != 0):
         raise ValueError("step_size: must be a non-zero number of %")
+    repeat = req.repeat
+    if repeat is not None:
+        if req.method != "step":
+            raise ValueError(f"repeat: repeated tests are step tests, not method {req.method}")
+        if repeat != "auto" and not 1 <= repeat <= MAX_REPEAT:
+            raise ValueError(f"repeat: {repeat} tests: must be 1–{MAX_REPEAT}, or auto")

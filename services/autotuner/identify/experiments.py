@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
-from services.autotuner.identify.reaction_curve import ReactionCurve
+from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
 from shared.control.signals import Sample
 
 
@@ -74,7 +74,7 @@ class Identification:
     pu: float | None = None
     ku_spread: float | None = None
     pu_spread: float | None = None
-    step: ReactionCurve | None = None  # the step test's figures (None: another method)
+    step: ReactionCurve | IntegratingCurve | None = None  # the step test's figures
     step_model: StepModel | None = None
     model: ProcessFit | None = None  # the process model fitted to the test (relay, step)
     experiment: Findings | None = None
@@ -86,6 +86,8 @@ class Identification:
     # accepts an integrating model only if it reproduces the measured ultimate point)
     integrating: bool | None = None
     notes: list[str] = field(default_factory=list)  # what the engineer must know (warnings)
+    # repeated step tests: every test's curve (``step`` is then their mean); empty otherwise
+    repeats: list[ReactionCurve | IntegratingCurve] = field(default_factory=list)
     # False when the experiment did not pin the model's static gain (a relay without bias: its
     # mean output never moves, so K is extrapolated from points near ω_u): the rules that
     # scale with 1/K (AMIGO, SIMC) are then offered but not recommended
@@ -108,6 +110,8 @@ class Settings:
     relay_bias: float = 0.0  # relay stage 2: low output b − (1 − relay_bias)·d
     step_size: float = 5.0  # step test, % of output
     max_time: float | None = None  # s of sim time for the experiment; None: its own budgets
+    repeat: int | None = None  # step tests to run (None: one); with repeat_auto, the most
+    repeat_auto: bool = False  # step tests added until their mean is known (repeated_steps)
 
     @classmethod
     def of(cls, req: Any) -> Settings:
@@ -121,6 +125,8 @@ class Settings:
             relay_bias=req.relay_bias or 0.0,
             step_size=req.step_size or DEFAULT_STEP_SIZE,
             max_time=req.max_time,
+            repeat=None if req.repeat in (None, "auto") else req.repeat,
+            repeat_auto=req.repeat == "auto",
         )
 
 

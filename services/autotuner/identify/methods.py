@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from services.autotuner.identify import ramp, relay, step_test
+from services.autotuner.identify import ramp, relay, repeated_steps
 from services.autotuner.identify.experiments import Experiment, Settings, Setup
 
 
@@ -30,7 +30,7 @@ class Method:
 METHODS: dict[str, Method] = {
     "relay": Method(relay.build, False, ("op_start", "direction"), frozenset({"closed", "model"})),
     "ramp": Method(ramp.build, True, ("kc_start", "bump", "sp_start"), frozenset({"closed"})),
-    "step": Method(step_test.build, False, ("op_start",), frozenset({"open", "model"})),
+    "step": Method(repeated_steps.build, False, ("op_start",), frozenset({"open", "model"})),
 }
 
 

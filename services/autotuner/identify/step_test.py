@@ -64,6 +64,7 @@ from services.autotuner.identify.reaction_curve import (
 from shared.control.signals import Sample, at_rest, noise_level, range_end
 from shared.errors import AutotuneError
 
+HOLD_EVENTS = ("step_started", "pulse_started", "output_held")  # the driver's hold times
 SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over a window)
 RETURN_WAIT_FACTOR = 3.0  # the return to rest may take this many times the step's own settling
 
@@ -115,6 +116,9 @@ class StepTest:
     sample_time: float
     pv_range: tuple[float, float] | None = None
     pv_units: str = ""
+    # PV units the baseline may drift over its window and still be rest: a repeated test's
+    # return's exponential tail, which a noise-free PV shows (0: the noise alone decides)
+    rest_drift: float = 0.0
     # baseline → step → done | aborted; integrating: step → return (the pulse) → settle → done
     phase: str = "baseline"
     reason: str = ""
@@ -205,9 +209,16 @@ class StepTest:
 
     def held(self, t: float) -> None:
         """The driver reports the sim time from which the changed output is held (event
-        ``step_started``, or ``pulse_started`` for an integrating loop's return pulse; a
-        replay reads it back)."""
-        kind = "step_started" if self.t_step is None else "pulse_started"
+        ``step_started``; an integrating loop's return pulse ``pulse_started``, its output
+        back at the start ``output_held``: ``HOLD_EVENTS``, which a replay reads back in
+        order)."""
+        kind = (
+            "step_started"
+            if self.t_step is None
+            else "pulse_started"
+            if self.phase == "return"
+            else "output_held"
+        )
         self.step_started(t)
         self.events.append(Event(self.t[-1] if self.t else t, kind, {"t": t}))
 
@@ -298,7 +309,7 @@ class StepTest:
                 "transmitter is flat and noise-free whatever the process does, so it cannot "
                 "show rest; bring the PV inside its range first"
             )
-        if not at_rest(base):
+        if not at_rest(base, allowance=self.rest_drift):
             if len(self.pv) >= 20 * n:
                 return self._abort("the PV is not at rest before the step (it keeps drifting)")
             return self.op_start

@@ -1,0 +1,354 @@
+"""Gains in % of span (issue 13, item 4; seed 001: industrial controllers work on normalised
+0–100 % signals).
+
+The output is in % already; the PV is in engineering units over its transmitter's range
+(lo, hi), span = hi − lo. Every expected figure here is converted by hand from the span:
+
+* a controller gain or K_u (% of output per PV unit): × span/100 → % of output per % of span;
+* the proportional band PB = 100/Kc(%/%), in % of span;
+* a process gain K (PV units per %), a reaction rate or K' (PV units per s per %), a = R·L:
+  × 100/span → % of span per % (per s per %);
+* Ti and Td: unchanged, s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import zenoh
+
+from services.autotuner.commands.tune import format_result
+from services.autotuner.identify.experiments import Identification
+from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
+from services.autotuner.tuning import TuningRun
+from services.cli import build_parser, main
+from services.logger.analysis import Analysis
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.control.forms import (
+    IsaGains,
+    all_forms,
+    kc_percent,
+    process_gain_percent,
+    proportional_band,
+    pv_span,
+    step_percent,
+    to_percent,
+)
+from shared.messages import TuneRequest, TuneResult, Verification
+
+# (pv_range, Kc in % per PV unit, Kc in % per % by hand, PB in % by hand)
+CONTROLLER = [
+    ((0.0, 150.0), 2.0, 3.0, 100.0 / 3.0),  # hx1: 2 %/degC on 150 degC is 3 %/%, PB 33.3 %
+    ((0.0, 3.0), 20.0, 0.6, 100.0 / 0.6),  # a 3 m tank: 20 %/m is 0.6 %/%, PB 167 %
+    ((0.0, 40.0), 0.3, 0.12, 100.0 / 0.12),  # a 40 m3/h flow: 0.3 %/(m3/h) is 0.12 %/%
+    ((-50.0, 250.0), 1.0, 3.0, 100.0 / 3.0),  # span 300, not hi: 1 %/unit is 3 %/%
+    ((20.0, 70.0), 4.0, 2.0, 50.0),  # span 50: 4 %/unit is 2 %/%, PB 50 %
+]
+
+
+@pytest.mark.parametrize(("pv_range", "kc", "kc_pct", "pb"), CONTROLLER)
+def test_controller_gain_and_proportional_band_by_hand(pv_range, kc, kc_pct, pb):
+    span = pv_span(pv_range)
+    assert span == pv_range[1] - pv_range[0]
+    assert kc_percent(kc, span) == pytest.approx(kc_pct, rel=1e-12)
+    assert proportional_band(kc_pct) == pytest.approx(pb, rel=1e-12)
+    g = to_percent(IsaGains(kc, 120.0, 30.0), span)
+    assert (g.kc, g.pb) == (pytest.approx(kc_pct, rel=1e-12), pytest.approx(pb, rel=1e-12))
+    assert (g.ti, g.td) == (120.0, 30.0)  # times do not scale
+
+
+def test_isa_percent_in_the_gains_json_beside_isa():
+    """``all_forms(g, span).to_dict()`` keeps every key it had and adds ``isa_percent``; with
+    no span the object is as before (no key)."""
+    g = IsaGains(2.0, 120.0, 30.0)
+    before = all_forms(g).to_dict()
+    assert "isa_percent" not in before
+    with_pct = all_forms(g, 150.0).to_dict()
+    assert {k: v for k, v in with_pct.items() if k != "isa_percent"} == before
+    assert with_pct["isa_percent"] == {
+        "kc": pytest.approx(3.0, rel=1e-12),
+        "ti": 120.0,
+        "td": 30.0,
+        "pb": pytest.approx(100.0 / 3.0, rel=1e-12),
+    }
+    p_only = all_forms(IsaGains(3.0), 50.0).to_dict()["isa_percent"]
+    assert p_only == {"kc": pytest.approx(1.5), "ti": None, "td": 0.0, "pb": pytest.approx(200 / 3)}
+    assert to_percent(IsaGains(0.0), 150.0).pb is None  # no proportional action: no band
+
+
+# (pv_range, process figure in PV units per % or per s per %, by hand in % of span)
+PROCESS = [
+    ((0.0, 150.0), 0.85, 0.85 * 100 / 150),  # hx1: 0.85 degC/% is 0.567 % of span per %
+    ((0.0, 3.0), 0.01, 1.0 / 3.0),  # a tank's K' 0.01 m/s per % is 0.333 %/s per %
+    ((-50.0, 250.0), 0.9, 0.3),
+    ((20.0, 70.0), -0.5, -1.0),  # a direct-acting process keeps its sign
+]
+
+
+@pytest.mark.parametrize(("pv_range", "k", "k_pct"), PROCESS)
+def test_process_gain_by_hand(pv_range, k, k_pct):
+    assert process_gain_percent(k, pv_span(pv_range)) == pytest.approx(k_pct, rel=1e-12)
+
+
+def test_step_figures_by_hand_for_both_curves():
+    """The step's K, R and a (the fields of ReactionCurve and IntegratingCurve by those names)
+    × 100/span; the other figures (times, sizes in %, levels) are left out."""
+    for cls in (ReactionCurve, IntegratingCurve):
+        names = {f.name for f in dataclasses.fields(cls)}
+        assert {"reaction_rate", "a"} <= names
+    assert "gain" in {f.name for f in dataclasses.fields(ReactionCurve)}
+    self_regulating = {"gain": 0.9, "reaction_rate": 0.03, "a": 0.15, "dead_time": 5.0}
+    assert step_percent(self_regulating, 150.0) == {
+        "gain": pytest.approx(0.6),
+        "reaction_rate": pytest.approx(0.02),
+        "a": pytest.approx(0.1),
+    }
+    integrating = {"method": "integrating", "reaction_rate": 0.01, "a": 0.03, "slope": 0.05}
+    assert step_percent(integrating, 3.0) == {
+        "reaction_rate": pytest.approx(1 / 3),
+        "a": pytest.approx(1.0),
+    }
+    assert step_percent(None, 150.0) is None
+
+
+@pytest.mark.parametrize(
+    "bad", [(5.0, 1.0), (1.0, 1.0), (0.0, math.inf), (math.nan, 1.0), (-1e308, 1e308)]
+)
+def test_a_range_that_has_no_span_is_refused(bad):
+    with pytest.raises(ValueError, match="pv_range"):
+        pv_span(bad)
+    assert pv_span(None) is None
+
+
+# --- the tuner's result -----------------------------------------------------------------------
+
+RANGE = (-50.0, 250.0)  # span 300: × 3 for a controller gain, ÷ 3 for a process gain
+THIRD = {
+    "model": "transfer_function",
+    "num": [6.0],
+    "den": [1.0, 6.0, 11.0, 6.0],
+    "sample_time": 0.02,
+    "noise_std": 0.0,
+    "mode": "manual",
+    "pid": {"kc": 2.0, "ti": 2.0},
+    "pv_range": list(RANGE),
+    "pv_units": "degC",
+}
+
+
+def tune(spec: dict, method: str) -> TuneResult:
+    loop = build_plant({"seed": 1, "loops": {"x": spec}})["x"]
+    req = TuneRequest(loop="x", method=method, apply=False)
+    r = TuningRun(LocalLoopClient(loop), req, "unit").run()
+    assert r.status == "ok", r.reason
+    # what the bus carries: the same result back from its JSON
+    assert TuneResult.model_validate_json(r.model_dump_json()) == r
+    return r
+
+
+def assert_rules_by_hand(r: TuneResult, up: float) -> None:
+    """Every rule's isa_percent (and the chosen one's): Kc × ``up`` (span/100), PB = 100/that,
+    Ti and Td as in isa."""
+    for name, g in [*r.gains.items(), ("chosen", r.chosen)]:
+        isa, pct = g["isa"], g["isa_percent"]
+        assert pct["kc"] == pytest.approx(isa["kc"] * up, rel=1e-12), name
+        assert pct["pb"] == pytest.approx(100.0 / (isa["kc"] * up), rel=1e-12), name
+        assert (pct["ti"], pct["td"]) == (isa["ti"], isa["td"]), name
+
+
+def test_a_relay_result_carries_both():
+    r = tune(THIRD, "relay")
+    assert r.pv_range == RANGE
+    assert r.ku_percent == pytest.approx(r.ku * 3.0, rel=1e-12)
+    assert r.model_gain_percent == pytest.approx(r.experiment["model_gain"] / 3.0, rel=1e-12)
+    assert r.step is None and r.step_percent is None
+    assert_rules_by_hand(r, 3.0)
+
+
+def test_a_step_result_carries_both():
+    """K, R and a ÷ 3; and ZN's open-loop P rule Kc = 1/a gives PB = 100·a(% of span)."""
+    r = tune(THIRD, "step")
+    assert r.ku is None and r.ku_percent is None
+    for k in ("gain", "reaction_rate", "a"):
+        assert r.step_percent[k] == pytest.approx(r.step[k] / 3.0, rel=1e-12), k
+    assert_rules_by_hand(r, 3.0)
+    a_pct = r.step["a"] * 100.0 / 300.0
+    assert r.gains["zn-ol-p"]["isa_percent"]["pb"] == pytest.approx(100.0 * a_pct, rel=1e-9)
+
+
+def test_an_integrating_step_result_in_percent_of_span():
+    """K'·e^{−Ls}/s with K' = 0.01 m/s per %, L = 3 s, on a 20–70 m range (span 50): R = K'
+    is 0.01 × 100/50 = 0.02 % of span per s per %, a = R·L = 0.06 % of span per %."""
+    spec = {
+        "model": "ipdt",
+        "gain": 0.01,
+        "delay": 3.0,
+        "sample_time": 0.5,
+        "noise_std": 0.0,
+        "pv0": 50.0,
+        "op0": 50.0,
+        "pv_range": [20.0, 70.0],
+        "pv_units": "m",
+        "mode": "manual",
+    }
+    r = tune(spec, "step")
+    assert r.step["method"] == "integrating"
+    assert r.step_percent == {
+        "reaction_rate": pytest.approx(0.02, rel=1e-6),
+        "a": pytest.approx(0.06, rel=1e-6),
+    }
+    assert r.model_gain_percent == pytest.approx(0.02, rel=1e-6)
+    assert_rules_by_hand(r, 0.5)
+
+
+def test_an_old_result_without_the_new_fields_still_reads():
+    old = '{"run_id": "a", "loop": "hx1", "t": 1.0, "method": "relay", "rule": "zn-pi", '
+    old += '"status": "ok", "ku": 15.0, "gains": {"zn-pi": {"isa": {"kc": 1, "ti": 2, "td": 0}}}}'
+    r = TuneResult.model_validate_json(old)
+    assert (r.pv_range, r.ku_percent, r.step_percent, r.model_gain_percent) == (None,) * 4
+
+
+# --- the printed tables ------------------------------------------------------------------------
+
+HX1 = (0.0, 150.0)  # span 150: Kc × 1.5, process gains ÷ 1.5
+
+
+def verification(iae_sp: float, iae_load: float) -> Verification:
+    return Verification(
+        gains={"kc": 1.0},
+        sp_step=3.0,
+        overshoot=5.0,
+        decay_ratio=None,
+        rise_time=10.0,
+        settling_time=100.0,
+        iae_sp=iae_sp,
+        load_step=5.0,
+        iae_load=iae_load,
+        max_deviation_load=1.0,
+        recovery_time=50.0,
+        stable=True,
+        saturated=False,
+        score=1.0,
+    )
+
+
+def hx1_result(**extra) -> TuneResult:
+    gains = {
+        "zn-pi": all_forms(IsaGains(6.9, 36.4, 0.0)).to_dict(),
+        "tl-pid": all_forms(IsaGains(6.972, 96.09, 6.933)).to_dict(),
+    }
+    fields = {
+        "run_id": "r1",
+        "loop": "hx1",
+        "t": 1344.0,
+        "method": "relay",
+        "rule": "tl-pid",
+        "pv_units": "degC",
+        "status": "ok",
+        "ku": 15.34,
+        "pu": 43.68,
+        "experiment": {"model": "sopdt", "model_gain": 0.8494, "model_delay": 5.0},
+        "gains": gains,
+        "after": verification(54.41, 69.27),
+        "applied": True,
+    }
+    return TuneResult(**{**fields, **extra})
+
+
+def test_the_percent_table_by_hand():
+    r = hx1_result(pv_range=HX1)
+    text = format_result(r, "percent")
+    assert "PV range 0 to 150 degC (span 150)" in text
+    assert f"K_u = {15.34 * 1.5:.4g} %/% (15.34 %/degC)" in text
+    assert f"K = {0.8494 / 1.5:.4g} %/% (0.8494 degC/%)" in text
+    rows = {w[0]: w for w in map(str.split, text.splitlines()) if w[0] in ("zn-pi", "tl-pid")}
+    # rule, Kc %/%, PB %, Ti, Td, Kc %/degC (engineering, beside)
+    assert rows["zn-pi"][1:6] == [
+        f"{6.9 * 1.5:.4g}",
+        f"{100 / (6.9 * 1.5):.4g}",
+        "36.4",
+        "0",
+        "6.9",
+    ]
+    assert rows["tl-pid"][1:6] == [
+        f"{6.972 * 1.5:.4g}",
+        f"{100 / (6.972 * 1.5):.4g}",
+        "96.09",
+        "6.933",
+        "6.972",
+    ]
+    assert rows["tl-pid"][-1] == "←"
+    # the verification's IAE (PV units·s) in % of span·s: before (none), after
+    iae = {w[1]: w[3:] for w in map(str.split, text.splitlines()) if w[0] == "IAE"}
+    assert iae == {"setpoint": ["—", f"{54.41 / 1.5:.4g}"], "load": ["—", f"{69.27 / 1.5:.4g}"]}
+
+
+def test_engineering_is_the_default_and_prints_no_percent():
+    r = hx1_result(pv_range=HX1)
+    text = format_result(r)
+    assert text == format_result(r, "engineering")
+    assert "%/%" not in text and "PB" not in text
+    assert "K_u = 15.34 %/degC" in text and "model SOPDT: K = 0.8494  " in text
+
+
+def test_percent_without_a_range_says_so_and_prints_engineering():
+    r = hx1_result()
+    text = format_result(r, "percent")
+    assert "no PV range in the result: the figures are in engineering units" in text
+    assert text.replace(text.splitlines()[1] + "\n", "") == format_result(r)
+
+
+def test_the_integrating_step_line_in_percent():
+    """R = K' and a on the tank's 0–3 m: × 100/3."""
+    step = {
+        "method": "integrating",
+        "reaction_rate": 0.001,
+        "reaction_rate_precision": 0.02,
+        "dead_time": 2.0,
+        "a": 0.002,
+        "pv_after": 1.5,
+    }
+    r = hx1_result(method="step", pv_range=(0.0, 3.0), pv_units="m", step=step, ku=None)
+    line = next(x for x in format_result(r, "percent").splitlines() if "integrating" in x)
+    assert f"R = K' = {0.001 * 100 / 3:.4g} %/s per % (0.001 m/s per %)" in line
+    assert f"a = R·L = {0.002 * 100 / 3:.4g} %/% (0.002 m/%)" in line
+
+
+# --- the flag ----------------------------------------------------------------------------------
+
+
+def test_the_units_flag(monkeypatch, capsys):
+    parse = build_parser().parse_args
+    assert parse(["tune", "hx1"]).units == "engineering"
+    assert parse(["tune", "hx1", "--units", "percent"]).units == "percent"
+
+    def refuse(*_a, **_k):
+        raise AssertionError("a session was opened before the flags were judged")
+
+    monkeypatch.setattr(zenoh, "open", refuse)
+    try:
+        code = main(["tune", "hx1", "--units", "kelvin"])
+    except SystemExit as stop:
+        code = stop.code
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert "--units" in err and "invalid choice" in err
+
+
+# --- the offline analysis ----------------------------------------------------------------------
+
+
+def test_the_analysis_json_carries_the_percent_figures():
+    ident = Identification(ku=10.0, pu=2.0)
+    gains = {"zn-pi": all_forms(IsaGains(4.5, 1.6), 300.0)}
+    a = Analysis("f.mcap", "x", "relay", ident, gains, None, None, RANGE)
+    d = a.to_dict(None)
+    assert d["pv_range"] == list(RANGE)
+    assert d["ku_percent"] == pytest.approx(30.0)
+    assert d["gains"]["zn-pi"]["isa_percent"]["kc"] == pytest.approx(13.5)
+    assert d["gains"]["zn-pi"]["isa_percent"]["pb"] == pytest.approx(100 / 13.5)
+    bare = Analysis("f.mcap", "x", "relay", ident, {}, None, None).to_dict(None)
+    assert "ku_percent" not in bare
