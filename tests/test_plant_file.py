@@ -126,6 +126,24 @@ def test_user_model_class_is_swapped_in(tmp_path, monkeypatch):
             def set_disturbance(self, name, value):
                 self.bias = value
 
+        class Rangeless:
+            """No pv_range, pv_units of its own: the plant file gives them."""
+
+            def __init__(self, sample_time, op0=10.0):
+                self.sample_time, self.op0 = sample_time, op0
+
+            def reset(self):
+                return self.op0
+
+            def step(self, op):
+                return op
+
+            def disturbance_names(self):
+                return ()
+
+            def set_disturbance(self, name, value):
+                raise KeyError(name)
+
         class Broken:
             def __init__(self, sample_time):
                 pass
@@ -141,6 +159,11 @@ def test_user_model_class_is_swapped_in(tmp_path, monkeypatch):
     assert p1.advance().pv == 61.0
     p1.apply(DisturbanceCommand(loop="p1", name="bias", value=-1.0))
     assert p1.advance().pv == 60.0
+    given = {"model": "my_plants:Rangeless", "pv_range": [0.0, 50.0], "pv_units": "kPa"}
+    p3 = build_plant({"loops": {"p3": {**given, "sample_time": 1.0}}})["p3"]
+    assert p3.settings.pv_range == (0.0, 50.0) and p3.settings.pv_units == "kPa"
+    with pytest.raises(ConfigError, match=r"loops\.p4\.model: .*\(missing: pv_units, pv_range\)"):
+        build_plant({"loops": {"p4": {"model": "my_plants:Rangeless", "sample_time": 1.0}}})
     with pytest.raises(ConfigError, match=r"loops\.p2\.model: my_plants:Broken does not implement"):
         build_plant({"loops": {"p2": {"model": "my_plants:Broken", "sample_time": 1.0}}})
     sys.modules.pop("my_plants", None)

@@ -266,7 +266,7 @@ def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "pl
         action=cfg.action or defaults.action,
         op_limits=(float(lo), float(hi)),
         pv_range=(float(pv_range[0]), float(pv_range[1])),
-        pv_units=cfg.pv_units or got["pv_units"],
+        pv_units=cfg.pv_units if cfg.pv_units is not None else got["pv_units"],
         gains=gains,
         sp_track=cfg.sp_track,
         description=cfg.description or (inspect.getdoc(cls) or "").split("\n")[0],
@@ -290,11 +290,13 @@ def _read_protocol(process: object, cfg: LoopConfig) -> dict[str, Any]:
     when one is missing or unusable (attributes the plant file overrides are not judged)."""
     values: dict[str, Any] = {}
     missing = []
+    overridden = {"pv_range": cfg.pv_range is not None, "pv_units": cfg.pv_units is not None}
     for name in PROTOCOL:
         try:
             values[name] = getattr(process, name)
         except AttributeError:
-            missing.append(name)
+            if not overridden.get(name, False):  # the plant file gives it: not needed
+                missing.append(name)
         except Exception as err:  # a property of the user's that raises
             raise ModelParamError(
                 "model", f"{cfg.model}: .{name} raised {type(err).__name__}: {brief(err)}"
