@@ -103,6 +103,17 @@ class LoopStatus(Message):
         default=None,
         description="why the loop's model failed (the loop is then held in manual), if it did",
     )
+    by_source: str | None = Field(
+        default=None,
+        max_length=64,
+        description="the source label of the command that caused this status (a lease, a "
+        "release or an applied command), if one did",
+    )
+    by_user: str | None = Field(
+        default=None,
+        description="that command's sender as the bus knows it: the Zenoh user its key names "
+        "(verified by the router's access control in a secure deployment), if any",
+    )
 
 
 class LoopInfo(Message):

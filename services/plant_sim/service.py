@@ -130,15 +130,24 @@ class PlantService:
     # --- messages -------------------------------------------------------------------------
 
     def loop_status(
-        self, loop: SimLoop, reason: str, token: int | None = None, source: str | None = None
+        self,
+        loop: SimLoop,
+        reason: str,
+        token: int | None = None,
+        source: str | None = None,
+        by: tuple[str, str | None] | None = None,
     ) -> LoopStatus:
+        """The loop's status; ``by``: the (source, key user) of the command that caused it."""
         lease = self.leases.get(loop.settings.loop_id)
         status = loop.status(
             self.opt.node, self.opt.clock, reason, token, source, lease.source if lease else None
         )
+        update = {}
         if lease is not None and lease.user is not None:
-            status = status.model_copy(update={"lease_user": lease.user})
-        return status
+            update["lease_user"] = lease.user
+        if by is not None:
+            update["by_source"], update["by_user"] = by
+        return status.model_copy(update=update) if update else status
 
     def loop_info(self, loop: SimLoop) -> LoopInfo:
         return loop.info(self.opt.node, self.opt.clock, self.opt.speed)
@@ -274,12 +283,18 @@ class PlantService:
                     user,
                 )
                 log.info("loop %s leased by %s", loop_id, _holder(cmd.source, user))
-            out.append((keys.status(prefix, loop_id), self.loop_status(loop, "lease")))
+            out.append(
+                (
+                    keys.status(prefix, loop_id),
+                    self.loop_status(loop, "lease", by=(cmd.source, user)),
+                )
+            )
         elif isinstance(cmd, ReleaseCommand):
             lapsed.pop(sender, None)
             if self.leases.pop(loop_id, None) is not None:
                 log.info("loop %s released by %s", loop_id, _holder(cmd.source, user))
-            out.append((keys.status(prefix, loop_id), self.loop_status(loop, "release")))
+            status = self.loop_status(loop, "release", by=(cmd.source, user))
+            out.append((keys.status(prefix, loop_id), status))
         elif isinstance(cmd, AdvanceCommand):
             if self.opt.clock != "lockstep":
                 self._reject(
@@ -306,7 +321,8 @@ class PlantService:
             except CommandRejected as err:
                 self._reject(loop, err.category, f"{kind}: {err.reason}", out, sender)
                 return
-            out.append((keys.status(prefix, loop_id), self.loop_status(loop, kind)))
+            status = self.loop_status(loop, kind, by=(cmd.source, user))
+            out.append((keys.status(prefix, loop_id), status))
         loop.accepted += 1
         self.accepted += 1
 
