@@ -13,7 +13,8 @@ peak-to-peak PV swing 2a ≈ 8d/(πK_u).
 
 A second table reproduces Iinoya & Hotta (1958) for K·e^{−Ls}/(Ts+1): the measured K₀·R·L
 and τ₀/L against their closed form (tan ω₀L = −Tω₀, K₀·K = √(1 + (Tω₀)²), R = K/T), and the
-decay ratio that the Ziegler–Nichols P rule (Kc = 0.5K_u) actually gives against its 25 % aim.
+decay ratio that the Ziegler–Nichols P rule (Kc = 0.5K_u) actually gives against its 25 % aim;
+it and the paper's three figures live in ``services.offline.iinoya_hotta``.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy.optimize import brentq
 
 from services.autotuner.design.predicted_response import predicted_setpoint_step
 from services.autotuner.design.sampled_loop import sampled_loop_robustness
@@ -234,14 +234,19 @@ def _recommendation(plant: Plant, test) -> dict:
 
 
 # --- Iinoya & Hotta ------------------------------------------------------------------------
+# The section lives in ``services.offline.iinoya_hotta`` (the paper's three figures); its
+# names are re-exported here for the code that reads them from the benchmark, imported on
+# first use because that module builds on this one.
+
+_IINOYA_HOTTA = ("iinoya_hotta", "IinoyaHottaRow", "iinoya_hotta_row", "IH_RATIOS")
 
 
-def iinoya_hotta(t_over_l: float) -> tuple[float, float]:
-    """Closed form for K·e^{−Ls}/(Ts+1): (K₀·R·L, τ₀/L) (Iinoya & Hotta 1958, eq. 5)."""
-    r = t_over_l  # with L = 1: ω₀ in (π/2, π) solves tan ω₀ = −Tω₀
-    w0 = brentq(lambda w: math.sin(w) + r * w * math.cos(w), math.pi / 2, math.pi, xtol=1e-15)
-    k0 = math.hypot(1.0, r * w0)  # K₀·K
-    return k0 / r, 2.0 * math.pi / w0  # K₀·(K/T)·L, τ₀/L
+def __getattr__(name: str):
+    if name in _IINOYA_HOTTA:
+        from services.offline import iinoya_hotta
+
+        return getattr(iinoya_hotta, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def decay_ratio(gains: IsaGains, plant: Plant, pu: float, periods: float = 12.0) -> float:
@@ -251,37 +256,3 @@ def decay_ratio(gains: IsaGains, plant: Plant, pu: float, periods: float = 12.0)
     return predicted_setpoint_step(
         gains, plant.tf, pu, pu / 2000, periods, int(periods * 2000)
     ).decay_ratio
-
-
-@dataclass(frozen=True)
-class IinoyaHottaRow:
-    t_over_l: float
-    krl_exact: float
-    krl_measured: float
-    tau_exact: float
-    tau_measured: float
-    decay_ratio_zn_p: float
-
-    @property
-    def krl_error(self) -> float:
-        return self.krl_measured / self.krl_exact - 1.0
-
-    @property
-    def tau_error(self) -> float:
-        return self.tau_measured / self.tau_exact - 1.0
-
-    def to_dict(self) -> dict:
-        return {**asdict(self), "krl_error": self.krl_error, "tau_error": self.tau_error}
-
-
-IH_RATIOS = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)
-
-
-def iinoya_hotta_row(t_over_l: float) -> IinoyaHottaRow:
-    plant = Plant.of(f"fopdt T/L={t_over_l:g}", "fopdt", (1.0,), (t_over_l, 1.0), 1.0)
-    outcome = run_relay(plant, 0.0)
-    ku = outcome.ku_exact * (1.0 + outcome.ku_error)
-    pu = outcome.pu_exact * (1.0 + outcome.pu_error)
-    krl, tau = iinoya_hotta(t_over_l)
-    dr = decay_ratio(IsaGains(0.5 * ku), plant, pu)
-    return IinoyaHottaRow(t_over_l, krl, ku / t_over_l, tau, pu, dr)
