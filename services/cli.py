@@ -16,11 +16,14 @@ import warnings
 
 from services import demo, health, router, up
 from services.autotuner import service as tuner_service
+from services.autotuner.commands import apply as apply_command
+from services.autotuner.commands import revert as revert_command
 from services.autotuner.commands import step as step_command
 from services.autotuner.commands import tune as tune_command
 from services.logger import report
 from services.logger import service as logger_service
 from services.logger.commands import analyze as analyze_command
+from services.logger.commands import history as history_command
 from services.logger.commands import recover as recover_command
 from services.logger.commands import replay as replay_command
 from services.logger.commands import runs as runs_command
@@ -38,8 +41,11 @@ SUBCOMMANDS = {
     "step": step_command,
     "tuner": tuner_service,
     "tune": tune_command,
+    "apply": apply_command,
+    "revert": revert_command,
     "logger": logger_service,
     "runs": runs_command,
+    "history": history_command,
     "replay": replay_command,
     "analyze": analyze_command,
     "report": report,

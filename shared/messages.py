@@ -133,6 +133,11 @@ class LoopInfo(Message):
     noise_std: float = Field(ge=0.0)
     clock: ClockMode
     speed: float = Field(gt=0.0, description="realtime speed-up of the wall clock")
+    instance: str | None = Field(
+        default=None,
+        description="drawn at random when the plant process starts: a restarted plant, or "
+        "another serving the same loop id, has another",
+    )
 
 
 class ServiceStatus(Message):
@@ -289,6 +294,18 @@ class TuneRequest(Message):
     aim: Literal["balanced", "robust", "fast"] = Field(
         default="balanced", description="what the recommended rule favours (README)"
     )
+    apply_from: str | None = Field(
+        default=None,
+        max_length=64,
+        description="autotune apply: no experiment; apply_gains (a recorded run's) are applied "
+        "and verified as a tune's would be",
+    )
+    apply_gains: PidGains | None = None
+    apply_predicted_overshoot: float | None = Field(
+        default=None, description="%: the recorded run's prediction for apply_gains"
+    )
+    apply_timescale: float | None = Field(default=None, gt=0.0, le=1e7)
+    apply_noise: float | None = Field(default=None, ge=0.0)
     rest_window: float | None = Field(
         default=None,
         gt=0.0,
@@ -438,6 +455,19 @@ class TuneResult(Message):
         default=None,
         description="the loop as the run left it: mode, sp, op, pv, gains, pv_rest, returned",
     )
+    applied_from: str | None = Field(
+        default=None,
+        description="autotune apply: the run whose recorded gains this run applied and verified",
+    )
+    identified_on: dict[str, Any] | None = Field(
+        default=None,
+        description="the loop the run identified: node, instance, model, model_params, "
+        "sample_time (autotune apply checks it is still the same)",
+    )
+    timescale: float | None = Field(
+        default=None, description="s: the identified loop's time scale (verification windows)"
+    )
+    noise: float | None = Field(default=None, description="the PV's noise σ seen, PV units")
     sim_duration: float = 0.0
     wall_time: float = 0.0
 

@@ -201,6 +201,14 @@ class TuningRun:
             "previous_gains": first.gains,
             "pv_units": self.info.pv_units,
             "pv_range": tuple(self.info.pv_range),
+            "identified_on": {
+                "node": self.info.node,
+                "instance": self.info.instance,
+                "model": self.info.model,
+                "model_params": self.info.model_params,
+                "sample_time": self.info.sample_time,
+            },
+            "applied_from": req.apply_from,
         }
         span = _span(self.info.pv_range)  # None: no % of span figures (a range not lo < hi)
         lo, hi = self.pv_limits
@@ -210,7 +218,12 @@ class TuningRun:
             )
         restored = False
         try:
-            self._progress("start", message=f"{req.method} test, rule {req.rule}")
+            self._progress(
+                "start",
+                message=f"apply of run {req.apply_from}'s gains, rule {req.rule}"
+                if req.apply_from
+                else f"{req.method} test, rule {req.rule}",
+            )
             rest = self._wait_for_rest(first)
             result["rest"] = rest
             if not rest["at_rest"]:
@@ -236,54 +249,21 @@ class TuningRun:
                 before.t,
                 {"request": req.model_dump_json(), "info": self.info.model_dump_json()},
             )
-            ident = self._experiment()
-            result.update(
-                ku=ident.ku,
-                pu=ident.pu,
-                ku_spread=ident.ku_spread,
-                pu_spread=ident.pu_spread,
-                step=ident.step.to_dict() if ident.step is not None else None,
-                repeats=[c.to_dict() for c in ident.repeats] or None,
-                experiment=ident.experiment.to_dict() if ident.experiment else {},
-            )
-            if span is not None:  # the same figures in % of span (shared.control.forms)
-                result.update(
-                    ku_percent=kc_percent(ident.ku, span),
-                    step_percent=step_percent(result["step"], span),
-                    model_gain_percent=process_gain_percent(
-                        result["experiment"].get("model_gain"), span
-                    ),
-                )
-            sel = select(ident, req.rule, req.ms_bound, req.force, self.ts, req.lambda_s, req.aim)
-            rec = sel.recommended
-            result.update(
-                rule=sel.rule or req.rule,
-                l_over_t=sel.l_over_t,
-                gains={name: all_forms(g, span).to_dict() for name, g in sel.table.items()},
-                robustness=assessments_dict(sel),
-                recommended=(
-                    {"rule": rec.rule, "reason": rec.reason, "ms": rec.predicted_ms}
-                    if rec
-                    else None
-                ),
-                warnings=[*ident.notes, *sel.warnings],
-            )
-            chosen = sel.chosen
-            if chosen is None or (sel.refusal and req.apply):
-                raise TuneRefused(sel.refusal or "no gains")
-            result["chosen"] = all_forms(chosen, span).to_dict()
+            if req.apply_from:  # autotune apply: a recorded run's gains, no experiment
+                ident, chosen, predicted = self._recorded(req, result, span)
+            else:
+                ident, chosen, predicted = self._identify_and_design(result, span)
+            result.update(timescale=ident.timescale or None, noise=ident.noise)
             self._progress(
                 "identified",
                 ku=ident.ku,
                 pu=ident.pu,
-                message=f"{sel.rule}: Kc {chosen.kc:.4g}, Ti {_seconds(chosen.ti)}, "
+                message=f"{result['rule']}: Kc {chosen.kc:.4g}, Ti {_seconds(chosen.ti)}, "
                 f"Td {chosen.td:.4g} s",
             )
             if req.apply:
-                step = sel.assessments.get(sel.rule)
-                predicted = step.step.overshoot if step is not None and step.step else None
                 outcome = self._apply_and_verify(ident, chosen, predicted)
-                result["warnings"] = [*result["warnings"], *outcome.pop("notes", [])]
+                result["warnings"] = [*result.get("warnings", []), *outcome.pop("notes", [])]
                 result.update(outcome)
                 restored = not result["applied"]
                 wait_back = restored
@@ -333,6 +313,67 @@ class TuningRun:
             model=ident.model if ident is not None else None,
         )
         return self._result(result, t0, wall0, left)
+
+    def _identify_and_design(
+        self, result: dict, span: float | None
+    ) -> tuple[experiments.Identification, IsaGains, float | None]:
+        """The experiment, then every rule's gains and the chosen ones (TuneRefused when
+        none may be applied); the result's identification and design fields filled in.
+        Returns the identification, the chosen gains and their predicted overshoot (%)."""
+        req = self.req
+        ident = self._experiment()
+        result.update(
+            ku=ident.ku,
+            pu=ident.pu,
+            ku_spread=ident.ku_spread,
+            pu_spread=ident.pu_spread,
+            step=ident.step.to_dict() if ident.step is not None else None,
+            repeats=[c.to_dict() for c in ident.repeats] or None,
+            experiment=ident.experiment.to_dict() if ident.experiment else {},
+        )
+        if span is not None:  # the same figures in % of span (shared.control.forms)
+            result.update(
+                ku_percent=kc_percent(ident.ku, span),
+                step_percent=step_percent(result["step"], span),
+                model_gain_percent=process_gain_percent(
+                    result["experiment"].get("model_gain"), span
+                ),
+            )
+        sel = select(ident, req.rule, req.ms_bound, req.force, self.ts, req.lambda_s, req.aim)
+        rec = sel.recommended
+        result.update(
+            rule=sel.rule or req.rule,
+            l_over_t=sel.l_over_t,
+            gains={name: all_forms(g, span).to_dict() for name, g in sel.table.items()},
+            robustness=assessments_dict(sel),
+            recommended=(
+                {"rule": rec.rule, "reason": rec.reason, "ms": rec.predicted_ms} if rec else None
+            ),
+            warnings=[*ident.notes, *sel.warnings],
+        )
+        chosen = sel.chosen
+        if chosen is None or (sel.refusal and req.apply):
+            raise TuneRefused(sel.refusal or "no gains")
+        result["chosen"] = all_forms(chosen, span).to_dict()
+        step = sel.assessments.get(sel.rule)
+        predicted = step.step.overshoot if step is not None and step.step else None
+        return ident, chosen, predicted
+
+    def _recorded(
+        self, req: TuneRequest, result: dict, span: float | None
+    ) -> tuple[experiments.Identification, IsaGains, float | None]:
+        """``autotune apply``: a recorded run's gains, judged and verified on the time scale
+        and noise that run identified (its client checked the loop is the same one)."""
+        g = req.apply_gains
+        if g is None or req.apply_timescale is None:
+            raise TuneAborted("apply: the request names no gains or time scale")
+        chosen = IsaGains(g.kc, g.ti, g.td)
+        ident = experiments.Identification(
+            timescale=req.apply_timescale, noise=req.apply_noise or 0.0
+        )
+        forms = all_forms(chosen, span).to_dict()
+        result.update(rule=req.rule, gains={req.rule: forms}, chosen=forms, warnings=[])
+        return ident, chosen, req.apply_predicted_overshoot
 
     def _seen_after_loss(self, before: LoopStatus) -> dict | None:
         """The loop as its plant shows it once back in reach (a query, no command): whether it

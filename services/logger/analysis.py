@@ -187,6 +187,16 @@ def _read(path: str | Path) -> tuple[dict[str, str], _Run]:
     events = [(r, e) for r, e in events if e.run_id == run_id]  # another run's: not this one
     request = next(((r, e) for r, e in events if e.kind == "request"), None)
     setup = next(((r, e) for r, e in events if e.kind == "experiment"), None)
+    if request is not None and setup is None:  # an apply run: gains, no experiment
+        try:
+            applied = TuneRequest.model_validate_json(request[1].data.get("request") or "")
+        except pydantic.ValidationError:
+            applied = None
+        if applied is not None and applied.apply_from:
+            raise AutotuneError(
+                f"{path}: an apply run (the gains of run {applied.apply_from}, verified): it "
+                "has no experiment to re-identify; analyse that run's file"
+            )
     if request is None or setup is None:
         raise AutotuneError(
             f"{path}: no experiment recorded in this run (it ended before the experiment started)"

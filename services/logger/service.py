@@ -20,6 +20,7 @@ from pathlib import Path
 
 import zenoh
 
+from services.logger.history import ChangeHistory
 from services.logger.recorder import Recorder, prepare_runs_dir
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
@@ -35,11 +36,19 @@ CHANNEL_CAPACITY = 1 << 20
 
 
 class LoggerService:
-    def __init__(self, session: zenoh.Session, recorder: Recorder, node: str):
+    def __init__(
+        self,
+        session: zenoh.Session,
+        recorder: Recorder,
+        node: str,
+        history: ChangeHistory | None = None,
+    ):
         self.session = session
         self.recorder = recorder
         self.node = node
         self.lock = threading.Lock()
+        # every loop's gains changes, kept beside the run files (``history.jsonl``)
+        self.history = history or ChangeHistory(recorder.runs_dir, recorder.prefix)
 
     def status(self) -> LoggerStatus:
         c = self.recorder.counts
@@ -62,6 +71,11 @@ class LoggerService:
                 self.recorder.handle(str(sample.key_expr), sample.payload.to_bytes(), replay)
             except Exception:  # a write error must not stop the recording of others
                 log.exception("recording %s failed", sample.key_expr)
+            if replay is None:  # a replay changes no loop's settings
+                try:
+                    self.history.handle(str(sample.key_expr), sample.payload.to_bytes())
+                except Exception:
+                    log.exception("the change history of %s failed", sample.key_expr)
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         """A loop's token (``<prefix>/plant/<loop>/alive``) or a run's

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import secrets
 import sys
 import threading
 import time
@@ -126,6 +127,8 @@ class PlantService:
         # their commands are refused until they lease again, so a tuner that missed the news
         # (paused, cut off) cannot drive a loop it no longer holds
         self.lapsed: dict[str, dict[str, str]] = {}
+        # this process's identity among plant instances (LoopInfo.instance)
+        self.instance = secrets.token_hex(6)
 
     # --- messages -------------------------------------------------------------------------
 
@@ -150,7 +153,8 @@ class PlantService:
         return status.model_copy(update=update) if update else status
 
     def loop_info(self, loop: SimLoop) -> LoopInfo:
-        return loop.info(self.opt.node, self.opt.clock, self.opt.speed)
+        info = loop.info(self.opt.node, self.opt.clock, self.opt.speed)
+        return info.model_copy(update={"instance": self.instance})
 
     def service_status(self) -> ServiceStatus:
         return ServiceStatus(

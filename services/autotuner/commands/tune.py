@@ -495,10 +495,12 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
     """The result as text; ``units`` "percent" prints K_u, the process gains and the rules'
     table in % of the PV's span (Kc in % per %, PB = 100/Kc in %), engineering beside."""
     pv_units = r.pv_units or "PV unit"
-    lines = [
-        f"Tuning of {r.loop} by {r.method} test, rule {r.rule}: {r.status}"
-        + (f" ({r.reason})" if r.reason else "")
-    ]
+    what = (
+        f"Applying run {r.applied_from}'s {r.rule} gains to {r.loop}"
+        if r.applied_from
+        else f"Tuning of {r.loop} by {r.method} test, rule {r.rule}"
+    )
+    lines = [f"{what}: {r.status}" + (f" ({r.reason})" if r.reason else "")]
     span = _result_span(r) if units == "percent" else None
     if units == "percent" and span is None:
         lines.append("  no PV range in the result: the figures are in engineering units")

@@ -1,0 +1,173 @@
+"""``autotune apply RUN_ID [--rule RULE] [--no-verify]``: apply a recorded run's gains later.
+
+The approval step commercial tuners give (Rockwell, ABB: the engineer accepts the result
+before it is loaded): ``autotune tune LOOP --no-apply`` leaves a run's recommended and
+alternative gains on record in the logger's change history (``--runs``); ``apply`` loads
+them. Before anything is sent it checks that the loop is still the one the run identified
+(the same plant instance, model and model parameters, sample time) and that the gains are
+within the safety envelope the run judged them by (the recommended rule always is; another
+rule must have been judged within it, or be below the run's K_u where no model judged it).
+The autotuner then applies them bumplessly and verifies them exactly as a tune would (a
+setpoint step and a load step against the acceptance limits, the previous gains restored if
+they fail), unless ``--no-verify``; the result is a run of its own (``applied_from`` names
+the recorded run), and the logger records the change. Exit 0 when the gains were applied
+and verified; 1 when the autotuner rejected them (the loop restored); 2 when nothing was sent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+from services.autotuner.commands.tune import (
+    _interrupt,
+    add_units_option,
+    follow,
+    format_result,
+    progress_line,
+    submit,
+)
+from shared import keys, wire
+from shared.cli import add_common_arguments, check_ids
+from shared.errors import AutotuneError, ConfigError
+from shared.history_file import HISTORY_FILE, read_history
+from shared.messages import LoopInfo, PidGains, TuneRequest
+from shared.session import open_session, settings_from_args
+
+HELP = "apply (and verify) the gains a recorded run recommended, e.g. after tune --no-apply"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run_id", metavar="RUN_ID", help="the run whose gains to apply")
+    parser.add_argument(
+        "--rule", help="one of the run's other rules (default: the one it recommended)"
+    )
+    parser.add_argument("--no-verify", action="store_true", help="apply without verifying")
+    parser.add_argument(
+        "--runs",
+        default="runs",
+        metavar="DIR",
+        help="the logger's runs directory, where history.jsonl is (default: %(default)s)",
+    )
+    parser.add_argument("--node", default="*", help="which autotuner (default: any)")
+    parser.add_argument("--json", action="store_true", help="print the result as JSON")
+    parser.add_argument(
+        "--wait",
+        type=float,
+        default=3600.0,
+        help="seconds to wait for the result (default: %(default)s)",
+    )
+    add_units_option(parser)
+    add_common_arguments(parser)
+
+
+def recorded_run(runs: Path, run_id: str) -> dict[str, Any]:
+    """The run's ``tune`` record in the change history; ConfigError when there is none."""
+    found = [
+        r
+        for r in read_history(runs / HISTORY_FILE)
+        if r.get("record") == "tune" and r.get("run_id") == run_id
+    ]
+    if not found:
+        raise ConfigError(f"{run_id}: no run of that id in {runs / HISTORY_FILE}")
+    return found[-1]
+
+
+def choose(run: dict[str, Any], rule: str | None) -> tuple[str, PidGains, float | None]:
+    """The rule, its gains and their predicted overshoot (%); ConfigError naming ``--rule``
+    or the run when they may not be applied."""
+    if run.get("status") not in ("ok", "rejected"):
+        raise ConfigError(f"run {run.get('run_id')}: {run.get('status')}, no gains to apply")
+    rule = rule or run.get("recommended") or run.get("rule")
+    gains = run.get("gains") or {}
+    if rule not in gains or not gains[rule]:
+        raise ConfigError(f"--rule {rule}: the run has no gains for it ({', '.join(gains)})")
+    isa = gains[rule]
+    judged = (run.get("robustness") or {}).get(rule)
+    if judged is not None:
+        if judged.get("within_envelope") is not True:
+            raise ConfigError(
+                f"--rule {rule}: outside the safety envelope the run judged it by "
+                f"(predicted Ms {judged.get('ms')}); tune again with --force if you must"
+            )
+    elif run.get("ku") is None or not isa["kc"] < run["ku"]:
+        raise ConfigError(f"--rule {rule}: not judged by the run, and Kc not below its K_u")
+    predicted = judged.get("overshoot_pct") if judged else None
+    return rule, PidGains(kc=isa["kc"], ti=isa.get("ti"), td=isa.get("td") or 0.0), predicted
+
+
+def same_loop(recorded: dict[str, Any] | None, info: LoopInfo) -> str | None:
+    """Why ``info`` is not the loop the run identified, or None when it is."""
+    if not recorded:
+        return "the run did not record the loop it identified"
+    now = {
+        "node": info.node,
+        "instance": info.instance,
+        "model": info.model,
+        "model_params": info.model_params,
+        "sample_time": info.sample_time,
+    }
+    for key, what in (
+        ("node", "plant node"),
+        ("instance", "plant instance (it restarted since the run)"),
+        ("model", "model"),
+        ("model_params", "model parameters"),
+        ("sample_time", "sample time"),
+    ):
+        if recorded.get(key) != now[key]:
+            return f"another {what}: {recorded.get(key)!r} then, {now[key]!r} now"
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    check_ids(args.prefix)
+    runs = Path(args.runs)
+    if not runs.is_dir():
+        raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")
+    if not 0 < args.wait < float("inf"):
+        raise ConfigError(f"--wait {args.wait}: must be a finite number of seconds > 0")
+    rec = recorded_run(runs, args.run_id)
+    loop = str(rec.get("loop"))
+    rule, gains, predicted = choose(rec, args.rule)
+    if not rec.get("timescale"):
+        raise ConfigError(f"run {args.run_id}: no time scale on record to verify with")
+    req = TuneRequest(
+        loop=loop,
+        method=rec.get("method") or "relay",
+        rule=rule,
+        verify=not args.no_verify,
+        apply_from=args.run_id,
+        apply_gains=gains,
+        apply_predicted_overshoot=predicted,
+        apply_timescale=rec["timescale"],
+        apply_noise=rec.get("noise"),
+        source="autotune-apply",
+    )
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, _interrupt)
+    with open_session(settings_from_args(args)) as session:
+        info = wire.query_one(session, keys.info(args.prefix, loop), LoopInfo, 5.0)
+        if info is None:
+            raise AutotuneError(f"loop {loop}: no plant answers for it")
+        if (why := same_loop(rec.get("identified_on"), info)) is not None:
+            raise AutotuneError(f"loop {loop} is not the loop run {args.run_id} identified: {why}")
+        result = follow(
+            session,
+            args.prefix,
+            loop,
+            lambda: submit(session, args.prefix, args.node, req),
+            args.wait,
+            None if args.json else progress_line,
+        )
+    if sys.stderr.isatty() and not args.json:
+        print("\r" + " " * 100 + "\r", end="", file=sys.stderr)
+    print(
+        json.dumps(result.model_dump(mode="json"), indent=2)
+        if args.json
+        else format_result(result, args.units)
+    )
+    return 0 if result.status == "ok" else 1

@@ -1,0 +1,124 @@
+"""``autotune history LOOP [--runs DIR] [--json]``: the loop's gains changes, oldest first.
+
+Read from the logger's ``history.jsonl`` in its runs directory (``services.logger.history``):
+every change of the loop's gains with its UTC and sim time, who made it (the command's source
+and the Zenoh user its key named), the gains before and after, and, for a tuning run, the
+run's rule and its verification. Runs that recommended gains without applying them
+(``tune --no-apply``, or rejected) are listed too: ``autotune apply RUN_ID`` applies them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from shared.cli import check_ids
+from shared.errors import ConfigError
+from shared.history_file import HISTORY_FILE, read_history
+
+HELP = "the change history of a loop's gains (kept by the logger)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("loop", metavar="LOOP", help="loop id, e.g. hx1")
+    parser.add_argument(
+        "--runs",
+        default="runs",
+        metavar="DIR",
+        help="the logger's runs directory, where history.jsonl is (default: %(default)s)",
+    )
+    parser.add_argument("--json", action="store_true", help="the entries as one JSON list")
+
+
+def entries(runs: Path, loop: str) -> list[dict[str, Any]]:
+    """The loop's changes, each with its run's ``tune`` record (None for changes not made
+    by a run), and the runs that changed nothing (``record`` ``tune``), in file order."""
+    records = [r for r in read_history(runs / HISTORY_FILE) if r.get("loop") == loop]
+    tunes = {r.get("run_id"): r for r in records if r.get("record") == "tune"}
+    changed = {r.get("run_id") for r in records if r.get("record") == "change"}
+    out = []
+    for r in records:
+        if r.get("record") == "change":
+            out.append({**r, "tune": tunes.get(r.get("run_id")) if r.get("run_id") else None})
+        elif r.get("record") == "tune" and r.get("run_id") not in changed:
+            out.append(r)
+    return out
+
+
+def _num(x: Any, unit: str = "") -> str:
+    if x is None:
+        return "—"
+    return f"{x:.4g}{unit}" if isinstance(x, int | float) else str(x)
+
+
+def _gains_line(before: dict | None, after: dict | None) -> str:
+    before, after = before or {}, after or {}
+    parts = []
+    for name, unit in (("kc", ""), ("ti", " s"), ("td", " s"), ("beta", "")):
+        b, a = before.get(name), after.get(name)
+        if b != a:
+            parts.append(f"{name.capitalize()} {_num(b)} → {_num(a)}{unit}")
+    for name in ("n",):
+        if before.get(name) != after.get(name):
+            parts.append(f"N {_num(before.get(name))} → {_num(after.get(name))}")
+    return "  ".join(parts) or "no change"
+
+
+def _who(r: dict) -> str:
+    src, user = r.get("by_source"), r.get("by_user")
+    if src is None and user is None:
+        return {
+            "start": "the plant (re)started with its configured gains",
+            "another plant": "another plant node now serves the loop",
+            "unseen": "changed while the logger was not running (who is not known)",
+        }.get(r.get("cause"), "not known")
+    return f"{src or '?'}" + (f" (user {user})" if user else "")
+
+
+def _verification(v: dict | None) -> str:
+    if not v:
+        return ""
+    return (
+        f"overshoot {_num(v.get('overshoot'), ' %')}, decay ratio {_num(v.get('decay_ratio'))}, "
+        f"settling {_num(v.get('settling_time'), ' s')}, IAE {_num(v.get('iae_sp'))}"
+    )
+
+
+def format_entries(loop: str, path: Path, items: list[dict]) -> str:
+    if not items:
+        return f"No change of {loop}'s gains on record in {path}."
+    lines = [f"Gains of {loop} ({path}), oldest first:"]
+    for r in items:
+        when = f"{r.get('utc', '?')}  t = {_num(r.get('t'), ' s')}"
+        if r.get("record") == "tune":
+            rule = r.get("recommended") or r.get("rule")
+            lines.append(
+                f"  {when}  run {r.get('run_id')} ({r.get('method')}): {r.get('status')}, "
+                f"not applied; recommended {rule}: `autotune apply {r.get('run_id')}`"
+            )
+            continue
+        tune = r.get("tune")
+        what = f"run {r['run_id']}" if r.get("run_id") else r.get("cause", "")
+        if tune:
+            what += f" ({tune.get('method')}, {tune.get('rule')}"
+            what += f", from run {tune['applied_from']})" if tune.get("applied_from") else ")"
+        lines.append(f"  {when}  {_who(r)}: {what}")
+        lines.append(f"      {_gains_line(r.get('before'), r.get('after'))}")
+        if tune and tune.get("verification_after"):
+            lines.append(f"      verified: {_verification(tune['verification_after'])}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    check_ids("autotune", loop=args.loop)
+    runs = Path(args.runs)
+    if not runs.is_dir():
+        raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")
+    items = entries(runs, args.loop)
+    if args.json:
+        print(json.dumps(items, indent=2))
+    else:
+        print(format_entries(args.loop, runs / HISTORY_FILE, items))
+    return 0

@@ -1,0 +1,210 @@
+"""The change history of every loop's gains (seed 001: "make note of the previous controller
+settings, the new settings, and the date and time of change").
+
+Kept by the logger, append-only, in ``<runs>/history.jsonl`` beside the run files: one JSON
+object per line, written and flushed as it happens, so it survives restarts. Two records:
+
+* ``change``: the gains of a loop differ from those it had; the plant's status says who caused
+  it (``by_source``, the command's label, and ``by_user``, the Zenoh user its key names: the
+  sender's identity as the bus knows it, verified by the router in a secure deployment) and
+  what (``cause``: ``gains``, ``release``…). Changes under a tuning run's lease are the
+  experiment's and are not changes of the loop's settings: the run's net change is recorded
+  when it lets the loop go (the release), against the gains in force before it took it.
+  ``run_id`` names the run (a ``tuner:<run id>`` source), ``before`` and ``after`` are the
+  whole gains (``kc``, ``ti``, ``td``, ``n``, ``beta``). A loop first seen is learned, not a
+  change. A plant that (re)starts with other gains than the last known is a change with
+  ``cause`` ``start`` (tuned gains lost with the plant's restart show here); after this
+  logger's own restart the last gains on record are the baseline, and a loop whose gains
+  moved meanwhile gets a change with ``cause`` ``unseen`` (who is not known).
+* ``tune``: a run's result, applied or not (its status, rule, the gains it chose and the
+  previous ones, its verification before and after): ``autotune history`` shows a change
+  with the verification of the run that made it, and ``autotune apply`` what a run
+  recommended.
+
+Times: ``utc`` (ISO 8601, when the logger saw it) and ``t`` (the loop's sim time, s).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import pydantic
+
+from shared import keys
+from shared.history_file import HISTORY_FILE, read_history, run_of
+from shared.messages import LoopStatus, TuneResult
+
+log = logging.getLogger("logger")
+
+
+@dataclass
+class _Loop:
+    node: str
+    gains: dict[str, Any]  # in force outside any lease: the baseline of the next change
+    leased: bool
+
+
+class ChangeHistory:
+    """Watches the loops' statuses and the runs' results; appends records to the file."""
+
+    def __init__(
+        self,
+        runs_dir: Path,
+        prefix: str,
+        now: Callable[[], datetime] = lambda: datetime.now(UTC),
+    ):
+        self.path = Path(runs_dir) / HISTORY_FILE
+        self.prefix = prefix
+        self.now = now
+        self.loops: dict[str, _Loop] = {}
+        self.written = 0
+        self.invalid = 0
+        # the last gains on record per loop (and the node they were of): a restart's baseline
+        self._on_record: dict[str, tuple[str | None, dict[str, Any]]] = {}
+        for rec in read_history(self.path):
+            if rec.get("record") == "change" and isinstance(rec.get("after"), dict):
+                self._on_record[str(rec.get("loop"))] = (rec.get("node"), rec["after"])
+
+    def handle(self, key: str, payload: bytes) -> None:
+        """One live message from the bus (statuses and results; the rest is ignored)."""
+        loop_key = keys.parse_loop_key(self.prefix, key)
+        tune_key = keys.parse_tune_key(self.prefix, key)
+        try:
+            if loop_key is not None and loop_key[1] == "status":
+                self._status(LoopStatus.model_validate_json(payload))
+            elif tune_key is not None and tune_key[1] == "result":
+                self._result(TuneResult.model_validate_json(payload))
+        except pydantic.ValidationError:
+            self.invalid += 1  # the recorder counts and logs invalid messages already
+
+    # --- what changed -----------------------------------------------------------------------
+
+    def _status(self, st: LoopStatus) -> None:
+        gains = st.gains.model_dump()
+        known = self.loops.get(st.loop)
+        if known is None or known.node != st.node or st.reason == "start":
+            self._first_seen(st, gains, known)
+            return
+        if st.leased_by is not None:  # a supervisor's experiment: its changes are not settings
+            known.leased = True
+            return
+        known.leased = False
+        if gains != known.gains:
+            self._append(
+                {
+                    "record": "change",
+                    "utc": self._utc(),
+                    "t": st.t,
+                    "loop": st.loop,
+                    "node": st.node,
+                    "by_source": st.by_source,
+                    "by_user": st.by_user,
+                    "cause": st.reason,
+                    "run_id": run_of(st.by_source),
+                    "mode": st.mode,
+                    "before": known.gains,
+                    "after": gains,
+                }
+            )
+            known.gains = gains
+
+    def _first_seen(self, st: LoopStatus, gains: dict[str, Any], known: _Loop | None) -> None:
+        """Learn a loop, or a new plant instance of it. Gains that differ from the last known
+        are recorded: a plant (re)started with its configured gains (``start``), another
+        plant node serving the loop (``another plant``), or a change made while this logger
+        was not running (``unseen``; the last gains on record are its baseline)."""
+        leased = st.leased_by is not None
+        node, on_record = self._on_record.pop(st.loop, (None, None))
+        if known is not None:
+            prev = known.gains
+        else:
+            prev = on_record if node == st.node or st.reason == "start" else None
+        if st.reason == "start":
+            cause = "start"
+        elif known is not None and known.node != st.node:
+            cause = "another plant"
+        else:
+            cause = "unseen"
+        if prev is not None and prev != gains and not leased:
+            self._append(
+                {
+                    "record": "change",
+                    "utc": self._utc(),
+                    "t": st.t,
+                    "loop": st.loop,
+                    "node": st.node,
+                    "by_source": None,
+                    "by_user": None,
+                    "cause": cause,
+                    "run_id": None,
+                    "mode": st.mode,
+                    "before": prev,
+                    "after": gains,
+                }
+            )
+        baseline = prev if leased and prev is not None else gains
+        self.loops[st.loop] = _Loop(st.node, baseline, leased)
+
+    def _result(self, r: TuneResult) -> None:
+        chosen = (r.chosen or {}).get("isa")
+        self._append(
+            {
+                "record": "tune",
+                "utc": self._utc(),
+                "t": r.t,
+                "loop": r.loop,
+                "run_id": r.run_id,
+                "status": r.status,
+                "reason": r.reason,
+                "method": r.method,
+                "rule": r.rule,
+                "applied": r.applied,
+                "recommended": (r.recommended or {}).get("rule"),
+                "previous_gains": r.previous_gains.model_dump() if r.previous_gains else None,
+                "chosen": chosen,
+                "verification_before": r.before.model_dump() if r.before else None,
+                "verification_after": r.after.model_dump() if r.after else None,
+                "applied_from": r.applied_from,
+                # what autotune apply needs of a run that did not apply its gains: every rule's
+                # ISA gains, whether each is within the safety envelope and its predicted
+                # overshoot, K_u, and the loop it identified (to check it is still that one)
+                "gains": {k: v.get("isa") for k, v in r.gains.items()},
+                "robustness": {
+                    k: {
+                        "within_envelope": v.get("within_envelope"),
+                        "overshoot_pct": v.get("overshoot_pct"),
+                        "ms": v.get("ms"),
+                    }
+                    for k, v in r.robustness.items()
+                },
+                "ku": r.ku,
+                "identified_on": r.identified_on,
+                "timescale": r.timescale,
+                "noise": r.noise,
+            }
+        )
+
+    # --- the file ---------------------------------------------------------------------------
+
+    def _utc(self) -> str:
+        return self.now().isoformat().replace("+00:00", "Z")
+
+    def _append(self, record: dict[str, Any]) -> None:
+        line = json.dumps(record, separators=(",", ":"), allow_nan=False)
+        with self.path.open("a", encoding="utf-8") as f:
+            f.write(line + "\n")
+            f.flush()
+        self.written += 1
+        if record["record"] == "change":
+            log.info(
+                "loop %s: gains changed by %s (%s)",
+                record["loop"],
+                record["by_source"] or "someone unseen",
+                record["cause"],
+            )

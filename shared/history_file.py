@@ -1,0 +1,50 @@
+"""The change history's file: ``history.jsonl`` in the logger's runs directory, one JSON object
+per line, append-only (written by ``services.logger.history``; read by ``autotune history``,
+``revert`` and ``apply``). Record kinds: ``change`` (a loop's gains changed: ``before``,
+``after``, who and why) and ``tune`` (a run's result: what it recommended, chose and verified).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+HISTORY_FILE = "history.jsonl"
+RUN_SOURCE = "tuner:"  # a tuning run's command source: tuner:<run id>
+
+
+def run_of(source: str | None) -> str | None:
+    """The run id a command source names (``tuner:<run id>``), else None."""
+    if source and source.startswith(RUN_SOURCE):
+        return source[len(RUN_SOURCE) :] or None
+    return None
+
+
+def read_history(path: Path) -> Iterator[dict[str, Any]]:
+    """The records of a history file, oldest first; a line that is not a JSON object (a
+    line cut short by a crash, an edit) is skipped. Nothing if there is no file."""
+    try:
+        f = path.open(encoding="utf-8")
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        log.warning("%s: cannot read the history (%s)", path, err.strerror or err)
+        return
+    with f:
+        for line in f:
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(rec, dict):
+                yield rec
+
+
+def loop_changes(path: Path, loop: str) -> list[dict[str, Any]]:
+    """The ``change`` records of ``loop``, oldest first."""
+    return [r for r in read_history(path) if r.get("record") == "change" and r.get("loop") == loop]

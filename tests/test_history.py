@@ -1,0 +1,219 @@
+"""The change history (issue 14): services/logger/history.py fed statuses and results as the
+bus would, the file read back; and the pure parts of `revert` and `apply`."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from pathlib import Path
+
+import pytest
+
+from services.autotuner.commands.apply import choose, same_loop
+from services.autotuner.commands.revert import target
+from services.logger.history import ChangeHistory
+from shared import keys, wire
+from shared.errors import ConfigError
+from shared.history_file import HISTORY_FILE, loop_changes, read_history
+from shared.messages import LoopInfo, LoopStatus, PidGains, TuneResult
+
+P, LOOP = "hist", "hx1"
+G0 = PidGains(kc=2.0, ti=60.0)
+G1 = PidGains(kc=6.9, ti=96.0, td=6.9)
+
+
+def status(gains: PidGains, reason: str = "query", **kw) -> LoopStatus:
+    base = dict(
+        loop=LOOP,
+        node="plant",
+        seq=1,
+        t=10.0,
+        pv=60.0,
+        sp=60.0,
+        op=40.0,
+        mode="auto",
+        action="reverse",
+        gains=gains,
+        op_limits=(0.0, 100.0),
+        pv_range=(0.0, 150.0),
+        disturbances={},
+        clock="lockstep",
+        accepted=0,
+        rejected=0,
+        reason=reason,
+    )
+    return LoopStatus(**{**base, **kw})
+
+
+def feed(h: ChangeHistory, msg) -> None:
+    key = keys.status(P, LOOP) if isinstance(msg, LoopStatus) else keys.tune_result(P, LOOP)
+    h.handle(key, wire.encode(msg))
+
+
+def history(tmp_path: Path) -> ChangeHistory:
+    return ChangeHistory(tmp_path, P, now=lambda: datetime(2026, 12, 2, 3, 0, tzinfo=UTC))
+
+
+def changes(tmp_path: Path) -> list[dict]:
+    return loop_changes(tmp_path / HISTORY_FILE, LOOP)
+
+
+def test_a_loop_first_seen_is_learned_and_a_set_is_a_change_by_its_sender(tmp_path):
+    h = history(tmp_path)
+    feed(h, status(G0))
+    assert changes(tmp_path) == []
+    feed(h, status(G1, "gains", by_source="autotune-set", by_user="operator1", t=12.5))
+    feed(h, status(G1, "sync"))  # the same gains again: nothing
+    (c,) = changes(tmp_path)
+    assert (c["by_source"], c["by_user"], c["cause"], c["t"]) == (
+        "autotune-set",
+        "operator1",
+        "gains",
+        12.5,
+    )
+    assert c["before"] == G0.model_dump() and c["after"] == G1.model_dump()
+    assert c["utc"] == "2026-12-02T03:00:00Z" and c["run_id"] is None
+
+
+def test_a_runs_experiment_is_not_a_change_its_applied_gains_are_one(tmp_path):
+    h = history(tmp_path)
+    feed(h, status(G0))
+    src = "tuner:abc123"
+    feed(h, status(G0, "lease", leased_by=src, by_source=src))
+    for kc in (1.0, 3.0, 5.0):  # a ramp's P-only trials, the verification's gains
+        feed(h, status(PidGains(kc=kc), "gains", leased_by=src, by_source=src))
+    feed(h, status(G1, "gains", leased_by=src, by_source=src))
+    feed(h, status(G1, "release", by_source=src))
+    (c,) = changes(tmp_path)
+    assert (c["run_id"], c["cause"]) == ("abc123", "release")
+    assert c["before"] == G0.model_dump() and c["after"] == G1.model_dump()
+
+
+def test_a_rejected_run_restores_and_changes_nothing(tmp_path):
+    h = history(tmp_path)
+    feed(h, status(G0))
+    src = "tuner:r2"
+    feed(h, status(G0, "lease", leased_by=src))
+    feed(h, status(G1, "gains", leased_by=src))
+    feed(h, status(G0, "gains", leased_by=src))  # restored
+    feed(h, status(G0, "release", by_source=src))
+    assert changes(tmp_path) == []
+
+
+def test_a_plant_restart_with_other_gains_is_recorded_as_start(tmp_path):
+    h = history(tmp_path)
+    feed(h, status(G1))
+    feed(h, status(G0, "start"))
+    (c,) = changes(tmp_path)
+    assert c["cause"] == "start" and c["by_source"] is None and c["after"] == G0.model_dump()
+
+
+def test_after_a_logger_restart_the_record_is_the_baseline(tmp_path):
+    h = history(tmp_path)
+    feed(h, status(G0))
+    feed(h, status(G1, "gains", by_source="autotune-set"))
+    again = history(tmp_path)  # restarted: nothing seen yet
+    feed(again, status(G1))  # as on record: nothing
+    assert len(changes(tmp_path)) == 1
+    third = history(tmp_path)
+    feed(third, status(G0))  # moved while no logger ran
+    last = changes(tmp_path)[-1]
+    assert (last["cause"], last["before"], last["after"]) == (
+        "unseen",
+        G1.model_dump(),
+        G0.model_dump(),
+    )
+
+
+def test_a_result_is_a_tune_record_with_what_apply_needs(tmp_path):
+    h = history(tmp_path)
+    r = TuneResult(
+        run_id="r9",
+        loop=LOOP,
+        t=100.0,
+        method="relay",
+        rule="tl-pid",
+        status="ok",
+        ku=15.2,
+        recommended={"rule": "tl-pid"},
+        gains={"tl-pid": {"isa": {"kc": 6.9, "ti": 96.0, "td": 6.9}}},
+        robustness={"tl-pid": {"ms": 1.7, "within_envelope": True, "overshoot_pct": 0.0}},
+        identified_on={"node": "plant", "instance": "a1", "model": "heat_exchanger"},
+        timescale=43.6,
+        noise=0.02,
+    )
+    feed(h, r)
+    (rec,) = [x for x in read_history(tmp_path / HISTORY_FILE) if x["record"] == "tune"]
+    assert rec["gains"] == {"tl-pid": {"kc": 6.9, "ti": 96.0, "td": 6.9}}
+    assert rec["robustness"]["tl-pid"]["within_envelope"] is True
+    assert (rec["timescale"], rec["noise"], rec["ku"]) == (43.6, 0.02, 15.2)
+
+
+def test_a_torn_last_line_is_skipped(tmp_path):
+    h = history(tmp_path)
+    feed(h, status(G0))
+    feed(h, status(G1, "gains", by_source="autotune-set"))
+    with (tmp_path / HISTORY_FILE).open("a") as f:
+        f.write('{"record": "change", "loop": "hx1", "bef')  # a crash mid-line
+    assert len(changes(tmp_path)) == 1
+
+
+# --- revert and apply, their pure parts -----------------------------------------------------
+
+
+def test_revert_picks_the_change_to_undo_or_names_the_flag():
+    cs = [{"run_id": "a", "before": 1}, {"run_id": None, "before": 2}, {"run_id": "b", "before": 3}]
+    assert target(cs, None, 1)["before"] == 3
+    assert target(cs, None, 3)["before"] == 1
+    assert target(cs, "a", 1)["before"] == 1
+    with pytest.raises(ConfigError, match="--steps 4: only 3 change"):
+        target(cs, None, 4)
+    with pytest.raises(ConfigError, match="--to zz: no change"):
+        target(cs, "zz", 1)
+    with pytest.raises(ConfigError, match="--steps 0"):
+        target(cs, None, 0)
+
+
+RUN = {
+    "run_id": "r1",
+    "status": "ok",
+    "recommended": "tl-pid",
+    "rule": "tl-pid",
+    "ku": 15.2,
+    "gains": {
+        "tl-pid": {"kc": 6.9, "ti": 96.0, "td": 6.9},
+        "zn-pid": {"kc": 9.1, "ti": 21.8, "td": 5.5},
+        "zn-p": {"kc": 7.6, "ti": None, "td": 0.0},
+        "tl-pi": {"kc": 4.75, "ti": 96.0, "td": 0.0},
+    },
+    "robustness": {
+        "tl-pid": {"within_envelope": True, "overshoot_pct": 1.0, "ms": 1.7},
+        "zn-pid": {"within_envelope": False, "overshoot_pct": 59.0, "ms": 2.3},
+    },
+}
+
+
+def test_apply_takes_the_recommended_rule_and_refuses_one_outside_the_envelope():
+    rule, gains, predicted = choose(RUN, None)
+    assert (rule, gains, predicted) == ("tl-pid", PidGains(kc=6.9, ti=96.0, td=6.9), 1.0)
+    with pytest.raises(ConfigError, match="--rule zn-pid: outside the safety envelope"):
+        choose(RUN, "zn-pid")
+    assert choose(RUN, "tl-pi")[1].kc == 4.75  # not judged, but below K_u
+    with pytest.raises(ConfigError, match="--rule cc-pi: the run has no gains"):
+        choose(RUN, "cc-pi")
+    with pytest.raises(ConfigError, match="aborted, no gains"):
+        choose({**RUN, "status": "aborted"}, None)
+
+
+def test_apply_checks_the_loop_is_the_one_identified():
+    info = LoopInfo(
+        loop="hx1", node="plant", t=0.0, model="heat_exchanger", description="",
+        model_params={"gain": 1.0}, sample_time=0.25, pv_units="degC", pv_range=(0.0, 150.0),
+        op_limits=(0.0, 100.0), disturbances=[], noise_std=0.02, clock="lockstep", speed=1.0,
+        instance="a1",
+    )  # fmt: skip
+    rec = {"node": "plant", "instance": "a1", "model": "heat_exchanger",
+           "model_params": {"gain": 1.0}, "sample_time": 0.25}  # fmt: skip
+    assert same_loop(rec, info) is None
+    assert "plant instance" in same_loop({**rec, "instance": "b2"}, info)
+    assert "model parameters" in same_loop({**rec, "model_params": {"gain": 2.0}}, info)
+    assert "did not record" in same_loop(None, info)
