@@ -29,7 +29,7 @@ from services.logger.commands import replay as replay_command
 from services.logger.commands import runs as runs_command
 from services.offline import benchmark_command, wall_times
 from services.plant_sim import service as plant_service
-from shared.cli import OneLineParser, check_flags, check_runs_dir
+from shared.cli import OneLineParser, check_flags, check_runs_dir, exit_now
 from shared.errors import AutotuneError, one_line
 
 SUBCOMMANDS = {
@@ -130,5 +130,14 @@ def main(argv: list[str] | None = None) -> int:
         return EX_SOFTWARE
 
 
+def entry(argv: list[str] | None = None) -> None:
+    """The ``autotune`` console script and ``python -m`` entry: ``main`` then ``exit_now``."""
+    try:
+        code = main(argv)
+    except SystemExit as stop:
+        code = stop.code
+    exit_now(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

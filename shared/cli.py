@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import math
 import os
 import signal
+import sys
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -175,3 +177,17 @@ def check_runs_dir(flag: str, path: str) -> None:
         raise ConfigError(f"{flag} {path}: {probe} is not a directory")
     if not os.access(probe, os.W_OK | os.X_OK):
         raise ConfigError(f"{flag} {path}: {probe} is not writable")
+
+
+def exit_now(code: int | str | None) -> None:
+    """Leave the process with ``code`` once its output is flushed, without the interpreter's
+    teardown: every session is closed by then, and Zenoh's native threads, caught between
+    callbacks as Python finalises, could otherwise abort the process (SIGABRT, "exception not
+    rethrown") after a clean run — an exit code a script would read as a crash."""
+    if isinstance(code, str):  # SystemExit("message"): printed, exit 1 as Python does
+        print(code, file=sys.stderr)
+        code = 1
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a closed pipe: nothing more to say
+            stream.flush()
+    os._exit(code if isinstance(code, int) else 0)

@@ -60,6 +60,12 @@ POSITIONALS = {
     "report": ["run.mcap"],
     "recover": ["run.mcap", "-o", "fixed.mcap"],
     "runs": ["runs"],
+    "apply": ["r1"],
+    "revert": ["hx1"],
+    "history": ["hx1"],
+    "loops": [],
+    "set": ["hx1"],
+    "watch": ["hx1"],
 }
 
 

@@ -2,6 +2,6 @@
 
 import sys
 
-from services.cli import main
+from services.cli import entry
 
-sys.exit(main(["tuner", *sys.argv[1:]]))
+entry(["tuner", *sys.argv[1:]])

@@ -2,6 +2,6 @@
 
 import sys
 
-from services.cli import main
+from services.cli import entry
 
-sys.exit(main(["logger", *sys.argv[1:]]))
+entry(["logger", *sys.argv[1:]])

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,6 +19,7 @@ import numpy as np
 from services.logger.mcap_io import decode, one_result, read_run, unique_samples
 from shared import keys
 from shared.errors import AutotuneError, one_line
+from shared.history_file import HISTORY_FILE, loop_changes
 from shared.messages import TuneProgress, TuneResult, TunerEvent
 
 if TYPE_CHECKING:
@@ -37,6 +38,9 @@ class RunSeries:
     verify_spans: list[tuple[float, float]]
     result: TuneResult | None
     meta: dict[str, str]
+    # the loop's gains changes from the change history beside the file (history.jsonl), and
+    # the watch's assessments after this run's change where the tuner kept them
+    history: list[str] = field(default_factory=list)
 
 
 def load_series(path: str | Path) -> RunSeries:
@@ -76,7 +80,41 @@ def load_series(path: str | Path) -> RunSeries:
         spans,
         result,
         meta,
+        history_lines(Path(path).parent, meta.get("loop", ""), run_id or ""),
     )
+
+
+HISTORY_SHOWN = 8  # the last changes the report lists
+
+
+def _gains_text(g: dict | None) -> str:
+    if not isinstance(g, dict):
+        return "—"
+    ti = g.get("ti")
+    return (
+        f"Kc {_g(g.get('kc'), '.4g')}  Ti {'off' if ti is None else _g(ti, '.4g', ' s')}  "
+        f"Td {_g(g.get('td'), '.3g', ' s')}"
+    )
+
+
+def history_lines(runs: Path, loop: str, run_id: str) -> list[str]:
+    """The loop's last gains changes (this run's marked ▶), oldest first: UTC, who, before →
+    after; empty without a history beside the file."""
+    changes = loop_changes(runs / HISTORY_FILE, loop) if loop else []
+    if not changes:
+        return []
+    mine = [i for i, c in enumerate(changes) if run_id and c.get("run_id") == run_id]
+    end = mine[-1] + HISTORY_SHOWN // 2 if mine else len(changes)
+    shown = changes[max(0, end - HISTORY_SHOWN) : end]
+    lines = [f"changes of {loop}'s gains ({HISTORY_FILE}, {len(changes)} on record):"]
+    for c in shown:
+        mark = "▶" if run_id and c.get("run_id") == run_id else " "
+        who = c.get("by_source") or c.get("cause") or "?"
+        lines.append(
+            f"{mark} {str(c.get('utc', ''))[:19]}  {who:<22.22}  {_gains_text(c.get('before'))}"
+            f"  →  {_gains_text(c.get('after'))}"
+        )
+    return lines
 
 
 def _g(value: object, spec: str, unit: str = "") -> str:
@@ -122,9 +160,25 @@ def build_figure(s: RunSeries) -> Figure:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(12, 7), layout="constrained")
+    rows = 3 if s.history else 2
+    fig = Figure(figsize=(12, 7 + 0.22 * len(s.history)), layout="constrained")
     FigureCanvasAgg(fig)
-    ax_pv, ax_op = fig.subplots(2, 1, sharex=True, height_ratios=[2, 1])
+    heights = [2, 1, 0.12 * len(s.history)] if s.history else [2, 1]
+    axes = fig.subplots(rows, 1, height_ratios=heights)
+    ax_pv, ax_op = axes[0], axes[1]
+    ax_op.sharex(ax_pv)
+    if s.history:
+        ax_h = axes[2]
+        ax_h.axis("off")
+        ax_h.text(
+            0.0,
+            1.0,
+            "\n".join(s.history),
+            transform=ax_h.transAxes,
+            va="top",
+            fontsize=8,
+            family="monospace",
+        )
     units = s.result.pv_units if s.result else ""
     ax_pv.plot(s.t, s.pv, lw=1.0, color="tab:blue", label="PV")
     ax_pv.plot(

@@ -1,7 +1,6 @@
 """``python -m services.plant_sim``: the same as ``autotune plant``."""
 
-import sys
-
 from services.plant_sim.service import main
+from shared.cli import exit_now
 
-sys.exit(main())
+exit_now(main())
