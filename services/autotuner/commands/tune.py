@@ -307,6 +307,17 @@ def pick_tuner(session: zenoh.Session, prefix: str, pattern: str, timeout: float
 RESULT_GRACE = 2.0  # s to wait for a result after the run's token vanished
 
 
+RECONNECT_WAIT = 20.0  # s to wait for the bus when this client sees nothing of it
+
+
+def _cut_off(session: zenoh.Session, prefix: str, loop: str) -> bool:
+    """Neither the loop's plant nor any tuner is in sight: this client lost the bus (its
+    router restarting), rather than the run its tuner."""
+    return not wait_for_token(session, keys.loop_alive(prefix, loop), 0.3) and not (
+        wait_for_token(session, keys.tuner_alive(prefix, "*"), 0.3)
+    )
+
+
 class TunerGone(AutotuneError):
     """The run's tuner vanished before its result (killed, or cut off from the bus)."""
 
@@ -319,7 +330,9 @@ def follow(
     tuner restores the loop first); a second Ctrl-C leaves at once. The run's liveliness
     token (``<prefix>/tune/<loop>/running``) is watched too: when it vanishes and no result
     follows within RESULT_GRACE s, the tuner is gone — TunerGone, at once, not after
-    ``wait``."""
+    ``wait`` — unless this client sees neither the plant nor any tuner (it lost the bus: a
+    router restarting); it then waits up to RECONNECT_WAIT s for the bus and asks for the
+    run's result, which the tuner keeps."""
     inbox: queue.Queue = queue.Queue()
     sub = session.declare_subscriber(
         f"{keys.tune_root(prefix, loop)}/*", zenoh.handlers.FifoChannel(4096)
@@ -342,6 +355,13 @@ def follow(
                     deadline = time.monotonic() + wait
                 now = time.monotonic()
                 if gone is not None and now > gone + RESULT_GRACE:
+                    if _cut_off(session, prefix, loop):  # the bus went, not (only) the tuner:
+                        # wait, bounded, for it to come back (a router restarting)
+                        wait_for_token(
+                            session,
+                            keys.tuner_alive(prefix, "*"),
+                            max(0.0, min(RECONNECT_WAIT, deadline - time.monotonic())),
+                        )
                     late = wire.query_one(  # published while this client was cut off?
                         session, keys.tune_result(prefix, loop), TuneResult, RESULT_GRACE
                     )
