@@ -17,7 +17,9 @@ import warnings
 from services import demo, health, router, up
 from services.autotuner import service as tuner_service
 from services.autotuner.commands import apply as apply_command
+from services.autotuner.commands import loops as loops_command
 from services.autotuner.commands import revert as revert_command
+from services.autotuner.commands import set_loop as set_command
 from services.autotuner.commands import step as step_command
 from services.autotuner.commands import tune as tune_command
 from services.logger import report
@@ -38,6 +40,8 @@ SUBCOMMANDS = {
     "router": router,
     "health": health,
     "plant": plant_service,
+    "loops": loops_command,
+    "set": set_command,
     "step": step_command,
     "tuner": tuner_service,
     "tune": tune_command,
