@@ -22,6 +22,7 @@ from services.autotuner.commands import revert as revert_command
 from services.autotuner.commands import set_loop as set_command
 from services.autotuner.commands import step as step_command
 from services.autotuner.commands import tune as tune_command
+from services.autotuner.commands import watch as watch_command
 from services.logger import report
 from services.logger import service as logger_service
 from services.logger.commands import analyze as analyze_command
@@ -45,6 +46,7 @@ SUBCOMMANDS = {
     "step": step_command,
     "tuner": tuner_service,
     "tune": tune_command,
+    "watch": watch_command,
     "apply": apply_command,
     "revert": revert_command,
     "logger": logger_service,

@@ -26,6 +26,8 @@ Layout (IDs in their own chunks, most-varying part last)::
     <prefix>/tune/<loop>/running           liveliness token held while a run owns the loop
     <prefix>/logger/<node>/status          LoggerStatus (queryable)
     <prefix>/logger/<node>/alive           liveliness token of one logger process
+    <prefix>/monitor/<loop>                LoopMonitor: the tuner's assessment of a loop it
+                                           tuned, every window of normal operation
 """
 
 from __future__ import annotations
@@ -221,3 +223,17 @@ def logger_status(prefix: str, node: str) -> str:
 
 def logger_alive(prefix: str, node: str) -> str:
     return f"{prefix}/logger/{node}/alive"
+
+
+def monitor(prefix: str, loop: str) -> str:
+    """Where the tuner publishes its assessment of a loop it tuned (``LoopMonitor``)."""
+    return f"{prefix}/monitor/{loop}"
+
+
+def parse_monitor_key(prefix: str, key: str) -> str | None:
+    """The loop of ``<prefix>/monitor/<loop>``; None if ``key`` is not one."""
+    head = f"{prefix}/monitor/"
+    if not key.startswith(head):
+        return None
+    loop = key[len(head) :]
+    return loop if loop and "/" not in loop else None

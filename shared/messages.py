@@ -505,3 +505,52 @@ class LoggerStatus(Message):
     written: int = Field(ge=0)
     invalid: int = Field(ge=0, description="payloads that failed validation, left out")
     dropped: int = Field(ge=0, description="process samples missing (gaps in seq)")
+
+
+MonitorFlag = Literal["oscillating", "sluggish", "saturated", "degraded"]
+
+
+class LoopMonitor(Message):
+    """A loop watched in normal operation, no test signal: one window's figures and flags.
+
+    Published by the tuner on ``<prefix>/monitor/<loop>`` every window for each loop it tuned
+    (``node`` the tuner; ``autotune watch --json`` prints the same object, ``node`` "watch").
+    Errors are e = sp − pv in PV units, over the samples in auto; Hägglund's detector (IAE
+    between zero crossings of the error against ``iae_limit`` = a·T_u/π) counts ``detections``
+    within 50 T_u and flags an oscillation beyond ``detection_limit``; ``idle_index`` (−1…1)
+    reads the load disturbances (near +1: sluggish). ``flags`` maps each flag to its reason;
+    ``baseline`` holds the last tune's figures compared with (``run_id``).
+    """
+
+    loop: LoopId
+    node: str
+    t: SimTime = Field(description="the window's last sample, s")
+    t_start: SimTime = Field(description="the window's first sample, s")
+    samples: int = Field(ge=0)
+    auto_fraction: float = Field(ge=0.0, le=1.0, description="of the samples, in auto")
+    pv_units: str = ""
+    period: float = Field(gt=0.0, description="T_u the detector used, s")
+    period_source: str = Field(description="where T_u came from")
+    iae_rate: float | None = Field(ge=0.0, description="IAE per unit time: mean |e|, PV units")
+    error_std: float | None = Field(ge=0.0, description="s.d. of the error, PV units")
+    saturation: float | None = Field(ge=0.0, le=100.0, description="% of time at an op limit")
+    travel: float | None = Field(ge=0.0, description="Σ|Δop| over the window, % of output")
+    travel_rate: float | None = Field(ge=0.0, description="output travel, % per hour in auto")
+    reversals: int | None = Field(ge=0, description="output reversals over the window")
+    oscillating: bool
+    oscillation_period: float | None = Field(gt=0.0, description="s, when oscillating")
+    detections: int = Field(ge=0, description="most detections within 50 T_u in the window")
+    detection_limit: int = Field(ge=0, description="n_lim: more is an oscillation")
+    iae_limit: float = Field(ge=0.0, description="IAE_lim, PV units·s")
+    idle_index: float | None = Field(ge=-1.0, le=1.0)
+    flags: dict[MonitorFlag, str]
+    run_id: str | None = Field(description="the tune compared with, if any")
+    figures: dict[str, float | int | None] = Field(
+        default_factory=dict,
+        description="more figures: error_mean, reversal_rate, reversal_deadband, op_noise, "
+        "pv_noise, duration, supervision, amplitude, pv_noise_estimate, idle_seconds",
+    )
+    baseline: dict[str, Any] | None = Field(
+        default=None, description="the last tune's figures compared with"
+    )
+    notes: list[str] = Field(default_factory=list)

@@ -21,7 +21,12 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-PURE_DIRS = ("shared/control", "services/autotuner/identify", "services/autotuner/design")
+PURE_DIRS = (
+    "shared/control",
+    "services/autotuner/identify",
+    "services/autotuner/design",
+    "services/autotuner/monitor",
+)
 HEAVY = ("zenoh", "pydantic", "mcap", "matplotlib")
 SERVICE_PACKAGES = ("plant_sim", "autotuner", "logger", "offline")
 
@@ -107,12 +112,13 @@ def allowed_in_control(name: str) -> bool:
 
 
 def allowed_in_autotuner_core(name: str) -> bool:
-    """identify/ and design/ add the project's plain error types and each other."""
+    """identify/, design/ and monitor/ add the project's plain error types and each other."""
     return (
         allowed_in_control(name)
         or under(name, "shared.errors")
         or under(name, "services.autotuner.identify")
         or under(name, "services.autotuner.design")
+        or under(name, "services.autotuner.monitor")
     )
 
 
@@ -129,7 +135,10 @@ def test_the_control_core_imports_only_numpy_scipy_and_the_standard_library():
     assert bad_imports("shared/control", allowed_in_control) == []
 
 
-@pytest.mark.parametrize("directory", ["services/autotuner/identify", "services/autotuner/design"])
+@pytest.mark.parametrize(
+    "directory",
+    ["services/autotuner/identify", "services/autotuner/design", "services/autotuner/monitor"],
+)
 def test_identification_and_design_import_only_the_core(directory):
     assert bad_imports(directory, allowed_in_autotuner_core) == []
 

@@ -6,6 +6,11 @@ a TuneAccepted, or an error naming the field at fault. Each run holds the liveli
 publishes progress, events and a result under ``<prefix>/tune/<loop>/``, and is cancelled by
 a put on ``<prefix>/tune/<loop>/cancel``. Stopping the service cancels every run, which
 restores its loop before the process ends.
+
+Every loop a run left tuned (``ok``, gains applied) is then watched in normal operation: its
+samples (whatever advances them; the tuner never commands it) feed a ``monitor.Watcher``, and
+every window a ``LoopMonitor`` goes out on ``<prefix>/monitor/<loop>``. Samples while a test
+holds the loop's lease, or while this tuner runs on it, are not normal operation: left out.
 """
 
 from __future__ import annotations
@@ -21,18 +26,56 @@ import zenoh
 
 from services.autotuner.design.request_check import validate_request
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
+from services.autotuner.monitor.assessment import Baseline, MonitorSettings, Watcher, choose_period
 from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.identity import auth_user
-from shared.messages import LoopStatus, TuneAccepted, TuneRequest, TuneResult
+from shared.messages import (
+    LoopInfo,
+    LoopMonitor,
+    LoopStatus,
+    ProcessSample,
+    TuneAccepted,
+    TuneRequest,
+    TuneResult,
+)
 from shared.service_shell import ServiceShell, run_until_stopped
 from shared.session import settings_from_args
 
 log = logging.getLogger("autotuner")
 
 HELP = "run the autotuner service"
+
+
+@dataclass
+class Watched:
+    """A loop a run left tuned, watched in normal operation."""
+
+    watcher: Watcher
+    pv_units: str
+    leased: bool = False  # a test holds the loop: its samples are not normal operation
+
+
+def watched(result: TuneResult, info: LoopInfo, status: LoopStatus) -> Watched | None:
+    """What to watch after ``result`` (None unless ok with its gains applied): T_u from the
+    run's P_u (else the loop's Ti), the loop's ranges, action and integral action as the run
+    left them (``status``), its verification as the baseline."""
+    if result.status != "ok" or not result.applied:
+        return None
+    period, source = choose_period(None, result.pu, status.gains.ti, info.sample_time)
+    settings = MonitorSettings(
+        period,
+        source,
+        info.sample_time,
+        tuple(info.pv_range),
+        tuple(info.op_limits),
+        status.action,
+        integral=status.gains.ti is not None,
+    )
+    baseline = Baseline.from_result(result.model_dump())
+    return Watched(Watcher(settings, baseline), info.pv_units)
 
 
 @dataclass
@@ -63,6 +106,8 @@ class TunerService:
         self.active: dict[str, ActiveRun] = {}
         self.results: dict[str, TuneResult] = {}  # the last result per loop (queryable)
         self.rejected = 0
+        self.monitors: dict[str, Watched] = {}  # the loops left tuned, watched (monitor)
+        self.shell: ServiceShell | None = None
 
     def _start(self, req: TuneRequest) -> TuneAccepted:
         validate_request(req)
@@ -93,6 +138,7 @@ class TunerService:
         p, s = self.prefix, self.session
         token = s.liveliness().declare_token(keys.tune_running(p, req.loop))
         started = time.monotonic()
+        seen: tuple[LoopInfo, LoopStatus] | None = None  # the loop as the run left it
         hooks = RunHooks(
             progress=lambda m: wire.put(s, keys.tune_progress(p, req.loop), m),
             event=lambda m: wire.put(s, keys.tune_event(p, req.loop), m),
@@ -109,6 +155,7 @@ class TunerService:
                 user=self.user,
             ) as client:
                 result = TuningRun(client, req, run_id, hooks).run()
+                seen = client.info, client.last_status
         except Exception as err:  # whatever happens, the run ends with a result
             expected = isinstance(err, AutotuneError | ValueError)
             if expected:  # the run could not go on: its reason, and where it came from
@@ -130,6 +177,8 @@ class TunerService:
                 self.active.pop(req.loop, None)
         with self.lock:
             self.results[req.loop] = result
+        if seen is not None and result.status == "ok" and result.applied:
+            self._monitor(req.loop, result, *seen)
         wire.put(s, keys.tune_result(p, req.loop), result)
         token.undeclare()
         log.info(
@@ -142,6 +191,58 @@ class TunerService:
             result.pu,
             result.wall_time,
         )
+
+    def _monitor(self, loop: str, result: TuneResult, info: LoopInfo, left: LoopStatus) -> None:
+        """Watch ``loop`` from now on (a run left it tuned): its samples and status to
+        ``_on_loop``, one subscriber per loop for the process's life. A failure here is
+        logged: it never changes the run's result."""
+        try:
+            watch = watched(result, info, left)
+        except (ValueError, TypeError):
+            log.exception("monitor of %s: not started", loop)
+            return
+        if watch is None:
+            return
+        with self.lock:
+            known = loop in self.monitors
+            self.monitors[loop] = watch
+        if not known and self.shell is not None:
+            self.shell.subscribe(
+                keys.loop_feed(self.prefix, loop), lambda x: self._on_loop(loop, x), 1 << 16
+            )
+
+    def _on_loop(self, loop: str, sample: zenoh.Sample) -> None:
+        """A watched loop's sample (to its watcher; a LoopMonitor at each window's end) or
+        status (whether a test holds it)."""
+        leaf = keys.leaf(str(sample.key_expr))
+        mark = sample.attachment
+        with self.lock:
+            watch = self.monitors.get(loop)
+            busy = loop in self.active
+        if (
+            watch is None
+            or leaf not in ("pv", "status")
+            or (mark is not None and wire.replay_source(mark.to_bytes()) is not None)
+        ):
+            return
+        try:
+            if leaf == "status":
+                watch.leased = wire.decode_sample(LoopStatus, sample).leased_by is not None
+                return
+            if busy or watch.leased:
+                return
+            s = wire.decode_sample(ProcessSample, sample)
+        except DecodeError as err:
+            log.warning("monitor of %s: %s", loop, err)
+            return
+        w = watch.watcher
+        w.feed(s.t, s.sp, s.pv, s.op, s.mode == "auto")
+        start = w.window_start
+        if start is not None and s.t - start >= w.settings.window:
+            report = w.report().to_dict()
+            msg = LoopMonitor(loop=loop, node=self.node, pv_units=watch.pv_units, **report)
+            wire.put(self.session, keys.monitor(self.prefix, loop), msg)
+            log.info("monitor of %s at t = %g s: %s", loop, msg.t, ", ".join(msg.flags) or "ok")
 
     def _on_request(self, query: zenoh.Query) -> None:
         try:
@@ -185,6 +286,7 @@ class TunerService:
 
     def run(self, stop: threading.Event) -> None:
         p, shell = self.prefix, ServiceShell(self.session, log)
+        self.shell = shell
         requests = shell.queryable(keys.tuner_request(p, self.node), self._on_request, 256)
         shell.subscribe(keys.tune_cancel(p, keys.ANY), self._on_cancel, 256)
         results = shell.queryable(keys.tune_result(p, keys.ANY), self._on_results_query, 256)

@@ -19,7 +19,7 @@ import numpy as np
 from services.logger.mcap_io import decode, one_result, read_run, unique_samples
 from shared import keys
 from shared.errors import AutotuneError, one_line
-from shared.history_file import HISTORY_FILE, loop_changes
+from shared.history_file import HISTORY_FILE, loop_changes, read_history
 from shared.messages import TuneProgress, TuneResult, TunerEvent
 
 if TYPE_CHECKING:
@@ -80,11 +80,48 @@ def load_series(path: str | Path) -> RunSeries:
         spans,
         result,
         meta,
-        history_lines(Path(path).parent, meta.get("loop", ""), run_id or ""),
+        history_lines(Path(path).parent, meta.get("loop", ""), run_id or "")
+        + watch_lines(Path(path).parent, meta.get("loop", ""), run_id or ""),
     )
 
 
 HISTORY_SHOWN = 8  # the last changes the report lists
+MONITOR_FILE = "monitor.jsonl"  # the tuner's watch of the loops it tuned, kept by the logger
+
+
+def watch_lines(runs: Path, loop: str, run_id: str) -> list[str]:
+    """The performance after this run's change, where the tuner watched the loop (its
+    assessments compared with this run, from ``monitor.jsonl`` beside the file): the windows,
+    their flags, the latest window's figures. Empty where there is none."""
+    if not run_id:
+        return []
+    windows = [
+        m
+        for m in read_history(runs / MONITOR_FILE)
+        if m.get("loop") == loop and m.get("run_id") == run_id
+    ]
+    if not windows:
+        return []
+    flagged = sorted({f for m in windows for f in (m.get("flags") or {})})
+    last = windows[-1]
+    osc = (
+        f"oscillating, period {_g(last.get('oscillation_period'), '.3g', ' s')}"
+        if last.get("oscillating")
+        else "no oscillation"
+    )
+    lines = [
+        f"watched after the change: {len(windows)} window(s), t = "
+        f"{_g(windows[0].get('t_start'), '.6g')} … {_g(last.get('t'), '.6g')} s; "
+        f"flags: {', '.join(flagged) if flagged else 'none'}",
+        f"  last window: IAE/time {_g(last.get('iae_rate'), '.3g')} {last.get('pv_units', '')}, "
+        f"error s.d. {_g(last.get('error_std'), '.3g')}, saturation "
+        f"{_g(last.get('saturation'), '.0f', ' %')}, output reversals "
+        f"{_g(last.get('reversals'), 'd')}, idle index {_g(last.get('idle_index'), '.2f')}, "
+        f"{osc} (T_u {_g(last.get('period'), '.3g', ' s')}, {last.get('period_source', '')})",
+    ]
+    for flag, why in (last.get("flags") or {}).items():
+        lines.append(f"  {flag}: {str(why)[:110]}")
+    return lines
 
 
 def _gains_text(g: dict | None) -> str:

@@ -21,6 +21,7 @@ from pathlib import Path
 import zenoh
 
 from services.logger.history import ChangeHistory
+from services.logger.monitor_log import MonitorLog
 from services.logger.recorder import Recorder, prepare_runs_dir
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
@@ -49,6 +50,8 @@ class LoggerService:
         self.lock = threading.Lock()
         # every loop's gains changes, kept beside the run files (``history.jsonl``)
         self.history = history or ChangeHistory(recorder.runs_dir, recorder.prefix)
+        # the tuner's assessments of the loops it tuned (``monitor.jsonl``)
+        self.monitor_log = MonitorLog(recorder.runs_dir, recorder.prefix)
 
     def status(self) -> LoggerStatus:
         c = self.recorder.counts
@@ -92,6 +95,13 @@ class LoggerService:
             except Exception:
                 log.exception("liveliness %s failed", key)
 
+    def _on_monitor(self, sample: zenoh.Sample) -> None:
+        """A LoopMonitor (``<prefix>/monitor/<loop>``): appended, or counted invalid."""
+        try:
+            self.monitor_log.handle(str(sample.key_expr), sample.payload.to_bytes())
+        except OSError:
+            log.exception("monitor.jsonl: %s not written", sample.key_expr)
+
     def _on_query(self, query: zenoh.Query) -> None:
         with self.lock:
             wire.reply(query, keys.logger_status(self.recorder.prefix, self.node), self.status())
@@ -100,6 +110,7 @@ class LoggerService:
         prefix, shell = self.recorder.prefix, ServiceShell(self.session, log)
         shell.subscribe(keys.everything(prefix), self._on_sample, CHANNEL_CAPACITY)
         shell.queryable(keys.logger_status(prefix, self.node), self._on_query, 64)
+        shell.subscribe(keys.monitor(prefix, keys.ANY), self._on_monitor, 1024)
         for pattern in (keys.loop_alive(prefix, keys.ANY), keys.tune_running(prefix, keys.ANY)):
             shell.subscribe(pattern, self._on_token, 1024, liveliness=True, history=True)
         shell.announce(keys.logger_alive(prefix, self.node))

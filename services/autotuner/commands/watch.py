@@ -1,0 +1,228 @@
+"""``autotune watch LOOP``: a loop's performance in normal operation, no test signal.
+
+Watches the loop for ``--duration`` seconds of sim time and prints, over its samples in auto:
+the IAE per unit time and the error's s.d. (PV units), the time at an output limit (%), the
+output's travel (% and % per hour) and reversals, Hägglund's oscillation detector (the IAE
+between zero crossings of the error against a·T_u/π, a = 1 % of the PV's span; more than 10
+detections within 50 T_u is an oscillation, whose period is given) and the idle index
+(Hägglund's: near +1 a sluggish answer to load disturbances); compared with the last tune's
+verification when the tuner has one; and the flags (oscillating, sluggish, saturated,
+degraded), each with its reason. ``--json``: one object, the ``LoopMonitor`` the tuner
+publishes for the loops it tuned.
+
+T_u is ``--period``, else the P_u of the loop's last tune (asked of the running tuner), else the
+loop's integral time Ti (Hägglund's stand-in), else 50 sample times; the output says which.
+A lockstep plant only moves when told: with nobody holding the loop's lease, ``watch`` advances
+it itself (advancing is not a test signal: nothing else is written). A loop a test holds is not
+in normal operation: it is refused, and a watch a test interrupts stops there. In realtime it
+only listens.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import zenoh
+
+from services.autotuner.loop_client import LoopClient, PlantLost, wait_for_loop, wait_for_token
+from services.autotuner.monitor.assessment import Baseline, MonitorSettings, Watcher, choose_period
+from services.autotuner.monitor.oscillation import SUPERVISION_PERIODS
+from shared import keys, wire
+from shared.cli import MAX_SECONDS, add_common_arguments, check_ids
+from shared.errors import AutotuneError, ConfigError
+from shared.identity import auth_user
+from shared.messages import LoopMonitor, ProcessSample, TuneResult
+from shared.session import open_session, settings_from_args
+
+HELP = "watch a loop in normal operation: IAE, saturation, travel, oscillation, idle index, flags"
+CHUNK = 256  # samples per lockstep round trip
+MAX_SAMPLES = 500_000  # samples one watch holds in memory (about 100 MB)
+RESULT_TIMEOUT = 2.0  # s of wall time to ask a running tuner for the loop's last result
+
+
+def seconds(text: str) -> float:
+    """An argparse type: a finite number of seconds, > 0 and at most MAX_SECONDS (argparse
+    names the flag in its complaint)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: not a number of seconds") from None
+    if not math.isfinite(value) or not 0 < value <= MAX_SECONDS:
+        raise argparse.ArgumentTypeError(
+            f"{text}: must be a finite number of seconds, > 0 and at most {MAX_SECONDS:g}"
+        )
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("loop", metavar="LOOP", help="loop id, e.g. hx1")
+    parser.add_argument(
+        "--duration",
+        type=seconds,
+        metavar="S",
+        help=f"seconds of sim time to watch (default: {SUPERVISION_PERIODS:g} × T_u, the "
+        "oscillation detector's supervision time)",
+    )
+    parser.add_argument(
+        "--period",
+        type=seconds,
+        metavar="S",
+        help="T_u, s: the ultimate period the detector's limit is set from (default: the P_u "
+        "of the loop's last tune, else its integral time Ti, else 50 sample times)",
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument(
+        "--wait",
+        type=seconds,
+        default=10.0,
+        metavar="S",
+        help="seconds to wait for the loop to appear on the bus (default: %(default)s)",
+    )
+    add_common_arguments(parser)
+
+
+def last_result(session: zenoh.Session, prefix: str, loop: str) -> TuneResult | None:
+    """The loop's last tune result, from a running tuner (None when no tuner shows up within
+    RESULT_TIMEOUT, or it has none for the loop). A session just opened learns of the other
+    peers' tokens as they arrive: waited for, not asked once."""
+    if not wait_for_token(session, keys.tuner_alive(prefix, keys.ANY), RESULT_TIMEOUT):
+        return None
+    return wire.query_one(session, keys.tune_result(prefix, loop), TuneResult, RESULT_TIMEOUT)
+
+
+def collect(client: LoopClient, watcher: Watcher, samples: int) -> str | None:
+    """Feed ``samples`` samples of the loop to ``watcher`` (advancing a lockstep loop in
+    chunks); stops early, saying why, when a test takes the loop's lease."""
+    got = 0
+    while got < samples:
+        try:
+            batch = client.samples(min(CHUNK, samples - got))
+        except PlantLost:
+            if client.last_status.leased_by is None:
+                raise
+            batch = []
+        status = client.last_status
+        for s in batch:
+            if status.leased_by is not None and s.t > status.t:
+                break
+            feed(watcher, s)
+        got += len(batch)
+        if status.leased_by is not None:
+            return (
+                f"a test took the loop ({status.leased_by}) at t = {status.t:.6g} s: the watch "
+                "stopped there"
+            )
+    return None
+
+
+def feed(watcher: Watcher, s: ProcessSample) -> None:
+    watcher.feed(s.t, s.sp, s.pv, s.op, s.mode == "auto")
+
+
+def run(args: argparse.Namespace) -> int:
+    check_ids(args.prefix, loop=args.loop)
+    settings = settings_from_args(args)
+    with open_session(settings) as session:
+        wait_for_loop(session, args.prefix, args.loop, args.wait)
+        result = last_result(session, args.prefix, args.loop)
+        with LoopClient(
+            session, args.prefix, args.loop, source="autotune-watch", user=auth_user(settings)
+        ) as client:
+            info, status = client.info, client.last_status
+            if status.leased_by is not None:
+                raise AutotuneError(
+                    f"loop {args.loop} is held by {status.leased_by!r} for a test, not in normal "
+                    "operation: watch it once it is released"
+                )
+            pu = result.pu if result is not None else None
+            period, source = choose_period(args.period, pu, status.gains.ti, info.sample_time)
+            if source == "given":
+                source = "--period"
+            duration = args.duration or SUPERVISION_PERIODS * period
+            n = max(2, round(duration / info.sample_time))
+            if n > MAX_SAMPLES:
+                raise ConfigError(
+                    f"--duration {duration:g}: {n} samples at {info.sample_time:g} s; at most "
+                    f"{MAX_SAMPLES * info.sample_time:g} s for this loop"
+                )
+            watch_settings = MonitorSettings(
+                period,
+                source,
+                info.sample_time,
+                tuple(info.pv_range),
+                tuple(info.op_limits),
+                status.action,
+                integral=status.gains.ti is not None,
+            )
+            baseline = Baseline.from_result(result.model_dump() if result is not None else None)
+            watcher = Watcher(watch_settings, baseline)
+            stopped = collect(client, watcher, n)
+            gains = client.last_status.gains
+    assessment = watcher.report()
+    if stopped:
+        assessment.notes.append(stopped)
+    if baseline is not None and baseline.gains is not None:
+        now = (gains.kc, gains.ti, gains.td)
+        if now != baseline.gains:
+            assessment.notes.append(
+                f"the loop's gains (Kc {gains.kc:.4g}, Ti {gains.ti}, Td {gains.td:.4g}) are no "
+                f"longer those of the tune {baseline.run_id}: the comparison is with other gains"
+            )
+    msg = LoopMonitor(loop=args.loop, node="watch", pv_units=info.pv_units, **assessment.to_dict())
+    print(json.dumps(msg.model_dump(mode="json"), indent=2) if args.json else format_monitor(msg))
+    return 0
+
+
+def _num(v: float | None, unit: str = "", fmt: str = ".4g") -> str:
+    return "–" if v is None else f"{v:{fmt}}{unit}"
+
+
+def format_monitor(m: LoopMonitor) -> str:
+    """The figures, the comparison with the tune and the flags, as a person reads them."""
+    u = f" {m.pv_units}" if m.pv_units else ""
+    f = m.figures
+    osc = (
+        f"{m.detections} detections within {SUPERVISION_PERIODS:g} T_u (limit "
+        f"{m.detection_limit}), IAE limit {m.iae_limit:.3g}{u}·s"
+    )
+    if m.oscillating:
+        osc += f": OSCILLATING, period {_num(m.oscillation_period, ' s')}"
+    idle = (
+        f"{m.idle_index:.2f} over {f.get('idle_seconds', 0):.4g} s of load disturbances"
+        if m.idle_index is not None
+        else "– (no load disturbance long enough)"
+    )
+    deadband = _num(f.get("reversal_deadband"), " %", ".3g")
+    rows = [
+        ("IAE per unit time", _num(m.iae_rate, u)),
+        ("error s.d.", _num(m.error_std, u)),
+        ("output at a limit", _num(m.saturation, " % of the time", ".3g")),
+        ("output travel", f"{_num(m.travel, ' %')} ({_num(m.travel_rate, ' % per hour')})"),
+        ("output reversals", f"{_num(m.reversals, '', 'd')} (beyond {deadband})"),
+        ("oscillation detector", osc),
+        ("idle index", idle),
+    ]
+    width = max(len(k) for k, _ in rows)
+    head = (
+        f"Watch of {m.loop}: t = {m.t_start:.6g} → {m.t:.6g} s, {m.samples} samples "
+        f"({100 * m.auto_fraction:.0f} % in auto); T_u = {m.period:.4g} s ({m.period_source})"
+    )
+    lines = [head, *(f"  {k:<{width}}  {v}" for k, v in rows)]
+    b = m.baseline
+    if b:
+        lines.append(
+            f"Compared with the tune {b.get('run_id')}: output noise σ "
+            f"{_num(b.get('op_noise'), ' %', '.3g')} then, {_num(f.get('op_noise'), ' %', '.3g')} "
+            f"now; PV noise σ {_num(b.get('pv_noise'), u, '.3g')} then, "
+            f"{_num(f.get('pv_noise'), u, '.3g')} now; the verification's decay ratio "
+            f"{_num(b.get('decay_ratio'), '', '.2g')}, overshoot "
+            f"{_num(b.get('overshoot'), ' %', '.3g')}"
+        )
+    if m.flags:
+        lines += [f"{flag.upper()}: {why}" for flag, why in m.flags.items()]
+    else:
+        lines.append("No flags: not oscillating, sluggish, saturated or degraded.")
+    lines += [f"  note: {n}" for n in m.notes]
+    return "\n".join(lines)

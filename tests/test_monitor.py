@@ -1,0 +1,379 @@
+"""Watching a loop (issue 14, item 6): the pure core of ``autotune watch`` and the tuner's monitor,
+fed by the product's own loop simulation in process (lockstep, seeded noise).
+
+The plant is e^{−s}/(s + 1) (K = 1, T = 1 s, L = 1 s) sampled at 20 ms, measurement noise σ =
+0.2 % of its 0–100 % span. Its ultimate point comes from the phase condition ω_u·L + atan(ω_u·T)
+= π: K_u = √(1 + (ω_u·T)²)/K ≈ 2.262, P_u = 2π/ω_u ≈ 3.10 s (``tests/exact.lag_ultimate``).
+With P-only gains at 0.9 and 1.0 × K_u and a setpoint bump the detector must flag an
+oscillation, its period within 5 % of P_u (the closed loop's own frequency at 0.9 K_u is 1.3 %
+lower, the 10 ms hold lag costs about 1 % more); with the product's recommended gains (a
+whole tune, in process) it must not; nor on pure noise over 1,000 periods.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.autotuner.monitor.assessment import (
+    Baseline,
+    MonitorSettings,
+    Watcher,
+    choose_period,
+)
+from services.autotuner.monitor.idle_index import SLUGGISH_LIMIT
+from services.autotuner.monitor.oscillation import DETECTION_LIMIT, OscillationDetector
+from services.autotuner.monitor.performance import performance
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from services.plant_sim.simulation.loop import SimLoop
+from shared import keys
+from shared.messages import (
+    DisturbanceCommand,
+    GainsCommand,
+    LoopMonitor,
+    ModeCommand,
+    PidGains,
+    SetpointCommand,
+    TuneRequest,
+)
+from tests.exact import lag_ultimate
+
+ROOT = Path(__file__).resolve().parents[1]
+K, T, L, H, NOISE = 1.0, 1.0, 1.0, 0.02, 0.2
+KU, PU = lag_ultimate(K, (T,), L)
+BUMP = 10.0  # % of span: a setpoint bump well clear of the noise
+
+
+def plant(noise: float = NOISE, seed: int = 1, **extra) -> SimLoop:
+    spec = {
+        "model": "fopdt",
+        "gain": K,
+        "time_constant": T,
+        "delay": L,
+        "sample_time": H,
+        "noise_std": noise,
+        "pv0": 50.0,
+        "pv_range": [0.0, 100.0],
+        **extra,
+    }
+    return build_plant({"seed": seed, "loops": {"x": spec}})["x"]
+
+
+def settings(loop: SimLoop, period: float = PU, source: str = "exact P_u") -> MonitorSettings:
+    st = loop.settings
+    return MonitorSettings(
+        period,
+        source,
+        st.sample_time,
+        st.pv_range,
+        st.op_limits,
+        st.action,
+        integral=loop.pid.gains.ti is not None,
+    )
+
+
+def auto(loop: SimLoop, gains: PidGains) -> None:
+    loop.apply(GainsCommand(loop="x", gains=gains))
+    loop.apply(ModeCommand(loop="x", mode="auto"))
+
+
+def run(loop: SimLoop, watcher: Watcher, periods: float) -> None:
+    for _ in range(round(periods * PU / H)):
+        s = loop.advance()
+        watcher.feed(s.t, s.sp, s.pv, s.op, s.mode == "auto")
+
+
+def test_the_plant_ultimate_point_is_the_phase_crossover():
+    """The figures the tests judge by, from the phase condition itself."""
+    wu = 2 * math.pi / PU
+    assert wu * L + math.atan(wu * T) == pytest.approx(math.pi, abs=1e-9)
+    assert pytest.approx(math.hypot(1.0, wu * T) / K, rel=1e-12) == KU
+
+
+# --- the acceptance: P-only at 0.9 and 1.0 × K_u oscillates; the recommended gains do not ----
+
+
+@pytest.mark.parametrize("fraction", [0.9, 1.0])
+def test_p_only_near_the_ultimate_gain_is_flagged_oscillating_with_its_period(fraction):
+    loop = plant()
+    auto(loop, PidGains(kc=fraction * KU))
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 2)
+    loop.apply(SetpointCommand(loop="x", sp=loop.sp + BUMP))
+    run(loop, watcher, 50)
+    a = watcher.report()
+    assert "oscillating" in a.flags, (a.flags, a.detections)
+    assert a.detections > DETECTION_LIMIT
+    assert a.oscillation_period == pytest.approx(PU, rel=0.05)
+    assert "period" in a.flags["oscillating"]
+    msg = LoopMonitor(loop="x", node="test", **a.to_dict())  # what the bus carries
+    assert msg.oscillating and msg.oscillation_period == a.oscillation_period
+
+
+@pytest.fixture(scope="module")
+def tuned():
+    """The product's whole tune in process (relay, the recommended rule, apply, verify): the
+    loop left in auto with the recommended gains, and the run's result."""
+    loop = plant()
+    result = TuningRun(LocalLoopClient(loop), TuneRequest(loop="x"), "unit").run()
+    assert result.status == "ok" and result.applied, result.reason
+    return loop, result
+
+
+def tuned_watcher(loop: SimLoop, result) -> Watcher:
+    """As the tuner watches a loop it tuned: T_u from the run's P_u, its verification the
+    baseline."""
+    period, source = choose_period(None, result.pu, loop.pid.gains.ti, H)
+    assert source == "the last tune's P_u" and period == result.pu
+    return Watcher(settings(loop, period, source), Baseline.from_result(result.model_dump()))
+
+
+def test_the_recommended_gains_are_not_flagged_oscillating(tuned):
+    loop, result = tuned
+    watcher = tuned_watcher(loop, result)
+    run(loop, watcher, 2)
+    loop.apply(SetpointCommand(loop="x", sp=loop.sp + BUMP))
+    run(loop, watcher, 50)
+    a = watcher.report()
+    assert "oscillating" not in a.flags and "degraded" not in a.flags, a.flags
+    assert a.detections <= DETECTION_LIMIT and a.oscillation_period is None
+    assert a.to_dict()["run_id"] == "unit" and a.baseline.op_noise == result.after.op_noise
+    loop.apply(SetpointCommand(loop="x", sp=loop.sp - BUMP))  # leave it as found
+    run(loop, watcher, 10)
+    watcher.report()
+
+
+def test_no_false_alarm_on_pure_noise_over_a_thousand_periods():
+    """White noise as the error, at 0.2 % and at 1 % of the span (the amplitude a itself),
+    fifty samples a period: not one oscillation, however the noise falls."""
+    rng = np.random.default_rng(7)
+    n = 1000 * 50
+    h = PU / 50
+    for sigma in (0.2, 1.0):
+        st = MonitorSettings(PU, "exact P_u", h, (0.0, 100.0), (0.0, 100.0))
+        watcher = Watcher(st)
+        noise = sigma * rng.standard_normal(n)
+        for k in range(n):
+            watcher.feed(k * h, 50.0, 50.0 + noise[k], 50.0, True)
+        a = watcher.report()
+        assert "oscillating" not in a.flags and a.detections <= 2, (sigma, a.detections)
+        # σ from the last ~200 samples' second differences: within its own spread (~10 %)
+        assert a.pv_noise_estimate == pytest.approx(sigma, rel=0.3)
+
+
+# --- sluggish, saturated, degraded --------------------------------------------------------
+
+
+def load_response(gains: PidGains) -> Watcher:
+    loop = plant()
+    auto(loop, gains)
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 5)
+    watcher.report()
+    loop.apply(DisturbanceCommand(loop="x", name="load", value=5.0))
+    run(loop, watcher, 40)
+    return watcher
+
+
+def test_a_detuned_pi_is_sluggish_after_a_load_and_a_ziegler_nichols_pi_is_not():
+    """Ziegler–Nichols PI from the exact point (0.45 K_u, P_u/1.2) answers a load step hard:
+    its idle index stays low; a tenth of its gain with twice its integral time creeps."""
+    slow = load_response(PidGains(kc=0.045 * KU, ti=2 * PU / 1.2)).report()
+    assert "sluggish" in slow.flags and slow.idle_index > SLUGGISH_LIMIT, slow.idle_index
+    assert "idle index" in slow.flags["sluggish"]
+    fast = load_response(PidGains(kc=0.45 * KU, ti=PU / 1.2)).report()
+    assert fast.idle_index is not None and fast.idle_index < SLUGGISH_LIMIT
+    assert not fast.flags, fast.flags
+
+
+def test_an_output_held_at_its_limit_is_flagged_saturated():
+    """A setpoint the output cannot reach: it sits at its 60 % limit the whole time."""
+    loop = plant(op_limits=[0.0, 60.0])
+    auto(loop, PidGains(kc=1.0, ti=2.0))
+    loop.apply(SetpointCommand(loop="x", sp=80.0))
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 20)
+    a = watcher.report()
+    assert a.figures["saturation"] > 90.0 and "saturated" in a.flags, a.figures["saturation"]
+
+
+def test_degraded_against_the_tune_names_what_got_worse():
+    """The verification saw a quiet output and decaying steps; the loop now oscillates with a
+    noisy output."""
+    loop = plant()
+    auto(loop, PidGains(kc=KU))
+    baseline = Baseline(run_id="r1", op_noise=0.01, pv_noise=NOISE, decay_ratio=0.2, stable=True)
+    watcher = Watcher(settings(loop), baseline)
+    loop.apply(SetpointCommand(loop="x", sp=loop.sp + BUMP))
+    run(loop, watcher, 30)
+    a = watcher.report()
+    why = a.flags["degraded"]
+    assert "oscillates" in why and "output's noise" in why and "PV's noise" not in why
+    assert a.to_dict()["run_id"] == "r1"
+
+
+def test_without_a_tune_nothing_is_called_degraded_and_manual_is_not_assessed():
+    loop = plant()
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 5)  # the loop is in manual
+    a = watcher.report()
+    assert not a.flags and a.figures["iae_rate"] is None
+    assert any("not in auto" in n for n in a.notes)
+
+
+# --- the figures against closed forms -----------------------------------------------------
+
+
+def test_window_figures_against_closed_forms():
+    """e = A·sin(ωt) over whole periods: mean |e| = 2A/π, s.d. A/√2. The output a triangle
+    wave of amplitude B, P periods: travel 4·B·P, 2·P − 1 reversals inside the window; a
+    quarter of the samples pinned at the top limit."""
+    n_per, periods, a_sp, b_op = 400, 10, 3.0, 20.0
+    t = np.arange(n_per * periods) * 0.01
+    w = 2 * math.pi / (n_per * 0.01)
+    pv = 50.0 - a_sp * np.sin(w * t)
+    phase = (t * w / (2 * math.pi)) % 1.0
+    op = 50.0 + b_op * (1 - 4 * np.abs(phase - 0.5))  # 30 … 70, peaks mid-period
+    every = np.ones(t.size, bool)
+    f = performance(t, np.full_like(t, 50.0), pv, op, every, (0.0, 100.0), 25)
+    assert f["iae_rate"] == pytest.approx(2 * a_sp / math.pi, rel=1e-3)
+    assert f["error_std"] == pytest.approx(a_sp / math.sqrt(2), rel=1e-3)
+    assert f["travel"] == pytest.approx(4 * b_op * periods, rel=1e-2)
+    assert f["reversals"] == 2 * periods - 1 and f["saturation"] == 0.0
+    held = op.copy()
+    held[: t.size // 4] = 100.0
+    g = performance(t, np.full_like(t, 50.0), pv, held, every, (0.0, 100.0), 25)
+    assert g["saturation"] == pytest.approx(25.0)
+    hours = t.size * 0.01 / 3600
+    assert f["travel_rate"] == pytest.approx(f["travel"] / hours)
+    # white noise on the output (σ 2 %): averaged over 25 samples, σ/5; the deadband, 10 × that,
+    # is beyond the noise's own extremes
+    noisy = 50.0 + 2.0 * np.random.default_rng(3).standard_normal(t.size)
+    h = performance(t, np.full_like(t, 50.0), pv, noisy, every, (0.0, 100.0), 25)
+    assert h["op_noise"] == pytest.approx(2.0, rel=0.05)
+    assert h["reversal_deadband"] == pytest.approx(10 * h["op_noise"] / 5)
+    assert h["reversals"] == 0
+
+
+def test_the_detector_limit_is_a_half_period_of_a_sinusoid_of_amplitude_a():
+    """IAE_lim = a·T_u/π = ∫ a·|sin ω_u t| over T_u/2; the noise floor only raises it."""
+    det = OscillationDetector(4.0, 0.5, 0.01)
+    assert det.limit() == pytest.approx(0.5 * 4.0 / math.pi)
+    w = 2 * math.pi / 4.0
+    half = 0.5 * (1 - math.cos(w * 2.0)) / w  # a·∫₀^{T/2} sin ωt dt with a = 0.5
+    assert det.limit() == pytest.approx(half)
+
+
+def test_a_sinusoid_just_above_and_just_below_a():
+    """Noise-free sinusoids at ω_u: 1.2·a is detected every half-period (an oscillation, its
+    period exact), 0.8·a never."""
+    for amp, expect in ((1.2, True), (0.8, False)):
+        det = OscillationDetector(4.0, 1.0, 0.01)
+        for k in range(4000):
+            t = k * 0.01
+            det.feed(t, 0.0, amp * math.sin(2 * math.pi * t / 4.0))
+        assert det.oscillating() is expect, (amp, det.count())
+        if expect:
+            assert det.period_estimate() == pytest.approx(4.0, rel=1e-3)
+
+
+def test_the_period_comes_from_the_flag_the_tune_ti_or_the_default():
+    assert choose_period(5.0, 3.0, 2.0, 0.1) == (5.0, "given")
+    assert choose_period(None, 3.0, 2.0, 0.1) == (3.0, "the last tune's P_u")
+    assert choose_period(None, None, 2.0, 0.1) == (2.0, "Ti")
+    period, source = choose_period(None, None, None, 0.1)
+    assert period == pytest.approx(5.0) and source.startswith("default")
+
+
+def test_a_baseline_only_from_an_applied_ok_tune(tuned):
+    _, result = tuned
+    b = Baseline.from_result(result.model_dump())
+    assert b.run_id == "unit" and b.gains[0] == result.after.gains.kc
+    assert b.pv_noise is not None and b.pv_noise > 0
+    assert Baseline.from_result({**result.model_dump(), "applied": False}) is None
+    assert Baseline.from_result(None) is None
+
+
+# --- the core stays pure; the key; the logger's file --------------------------------------
+
+
+def test_the_monitor_core_is_pure():
+    """numpy, the standard library's computing part, the control core and itself: no bus, no
+    schema library (the same code runs live, on a file and here)."""
+    names = sorted(
+        ".".join(p.relative_to(ROOT).with_suffix("").parts)
+        for p in (ROOT / "services/autotuner/monitor").glob("*.py")
+    )
+    code = (
+        "import importlib, sys\n"
+        f"for n in {names!r}: importlib.import_module(n)\n"
+        "print(sorted({m.split('.')[0] for m in sys.modules} & "
+        "{'zenoh', 'pydantic', 'mcap', 'matplotlib', 'scipy'}))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0 and json.loads(out.stdout.replace("'", '"')) == [], out
+
+
+def test_monitor_keys_round_trip():
+    key = keys.monitor("a/b", "hx1")
+    assert key == "a/b/monitor/hx1" and keys.parse_monitor_key("a/b", key) == "hx1"
+    for bad in ("a/b/monitor/", "a/b/monitor/x/y", "a/c/monitor/x", "a/b/tune/x/result"):
+        assert keys.parse_monitor_key("a/b", bad) is None, bad
+
+
+def test_the_logger_appends_valid_monitor_messages_and_counts_the_rest(tmp_path):
+    from services.logger.monitor_log import FILE_NAME, MonitorLog, read_monitor_log
+
+    loop = plant()
+    auto(loop, PidGains(kc=KU))
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 3)
+    msg = LoopMonitor(loop="x", node="tuner", **watcher.report().to_dict())
+    log = MonitorLog(tmp_path, "p")
+    assert log.handle("p/monitor/x", msg.model_dump_json().encode()) == msg
+    assert log.handle("p/monitor/y", msg.model_dump_json().encode()) is None  # not its loop
+    assert log.handle("p/monitor/x", b'{"loop": "x"}') is None
+    (tmp_path / FILE_NAME).open("ab").write(b'{"loop": "x", "cut sh')  # a crash mid-line
+    again = MonitorLog(tmp_path, "p")  # a restarted logger appends to the same file
+    again.handle("p/monitor/x", msg.model_dump_json().encode())
+    assert read_monitor_log(tmp_path) == [msg, msg]
+    assert log.counts["invalid"] == 2 and log.counts["written"] == 1
+    assert len((tmp_path / FILE_NAME).read_text().splitlines()) == 3
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--duration", "0"], "--duration"),
+        (["--duration", "nan"], "--duration"),
+        (["--period", "-2"], "--period"),
+        (["--period", "inf"], "--period"),
+        (["--wait", "abc"], "--wait"),
+        (["--duration", "1e12"], "--duration"),
+    ],
+)
+def test_watch_refuses_bad_flags_in_one_line(argv, needle, capsys, monkeypatch):
+    import zenoh
+
+    from services.cli import main
+
+    def refuse(*_a, **_k):
+        raise AssertionError("a session was opened before the flags were judged")
+
+    monkeypatch.setattr(zenoh, "open", refuse)
+    try:
+        code = main(["watch", "x1", *argv])
+    except SystemExit as stop:
+        code = stop.code
+    err = capsys.readouterr().err
+    assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
