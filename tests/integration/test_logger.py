@@ -276,6 +276,10 @@ def test_replay_delivers_every_message_in_order(start_plant, start_tuner, start_
         assert got == expected and marks == {f.name}
 
 
+def live_run_id(f: Path) -> str:
+    return read_run(f)[0]["run_id"]
+
+
 def test_report_plots_the_recorded_series(start_plant, start_tuner, start_logger, tmp_path):
     runs = tmp_path / "runs"
     p, _ = stack(start_plant, start_tuner, start_logger, runs, FAST)
@@ -291,8 +295,11 @@ def test_report_plots_the_recorded_series(start_plant, start_tuner, start_logger
         (ProcessSample.model_validate_json(r.data) for r in records if r.topic.endswith("/pv")),
         key=lambda s: s.seq,
     )
-    fig = build_figure(load_series(f))
-    ax_pv, ax_op = fig.axes
+    series = load_series(f)
+    fig = build_figure(series)
+    ax_pv, ax_op, ax_history = fig.axes  # the run applied its gains: a change on record
+    assert series.history[1].startswith("▶") and live_run_id(f) in series.history[1]
+    assert ax_history.texts[0].get_text() == "\n".join(series.history)
     pv_line, sp_line = ax_pv.lines[0], ax_pv.lines[1]
     assert list(pv_line.get_xdata()) == [s.t for s in samples]
     assert list(pv_line.get_ydata()) == [s.pv for s in samples]
