@@ -10,9 +10,10 @@ and the decay ratio that Ziegler–Nichols P (Kc = 0.5K_u) achieves against its 
 
 With --iinoya-hotta, only Iinoya & Hotta's (1958) three figures for K·e^{−Ls}/(1 + sT), each
 from the paper's equations (5, 7, 12, 15) and from the product's experiments on the plant
-(relay, step test, closed-loop setpoint steps searched for 25 % damping): Fig. 1, P control's
-K₀/K₄ and K₄·R·L beside ZN's K₀/2 and 1/(R·L) rules; Fig. 2, K₀·R·L and τ₀/L; Fig. 3, the
-integral time T_I4/L at ZN's PI gain 0.9/(R·L) against ZN's 3.33, and the derivative time
+(relay, step test, and the settings where the dominant mode of a closed-loop setpoint step
+decays by a quarter per period, or "none" where no setting gives such a response): Fig. 1, P
+control's K₀/K₄ and K₄·R·L beside ZN's K₀/2 and 1/(R·L) rules; Fig. 2, K₀·R·L and τ₀/L; Fig. 3,
+the integral time T_I4/L at ZN's PI gain 0.9/(R·L) against ZN's 3.33, and the derivative time
 T_D4/L at the PD gain 1.2/(R·L), both branches, against the paper's 0.36–0.37. --plot DIR
 writes the three figures as PNG: the curves, the rules and the measured points.
 """
@@ -270,27 +271,38 @@ def _e(x: float | None) -> str:
     return "      –" if x is None else f"{100 * x:+6.2f}%"
 
 
+def _m(row: dict, key: str, status: str) -> str:
+    """A measured value, or ``none`` where no setting gives a 25 %-damped response."""
+    if row.get(status) in (ih.NOT_DOMINANT, ih.NO_CROSSING):
+        return f"{'none':>7}"
+    return _v(row.get(f"{key}_measured"))
+
+
 def print_figures(figs: ih.Figures) -> None:
     """The three tables, their notes and the paper's turning points, as text."""
     print(
         "Iinoya & Hotta (1958), K·e^{-Ls}/(1+sT); eq. = the paper's closed form, meas. = the "
         "product's experiments\non K = 1, L = 1 s, T = T/L s (relay, step test, setpoint steps "
-        "through the PID block, 25 % searched by brentq);\nDR = decay ratio of the whole "
-        "setpoint response (the 25 % pair's is 0.25)\n"
+        "through the PID block): the setting where the response's\ndominant mode, read off its "
+        "tail by a matrix pencil, decays by 0.25 per period (none: no setting gives a 25 %-damped"
+        "\nresponse, the pair does not dominate); at the curve's own setting, DR = the whole "
+        "response's first two crests (what a trend\nshows), mode = its dominant mode's decay "
+        "ratio (the 25 % pair's is 0.25)\n"
     )
     print(
         "Fig. 1  P control: K₄ gives 25 % damping (eq. 7); ZN's rules K₀/2 and 1/(R·L) are "
         "K₀/K₄ = 2 and K₄·R·L = 1\n"
         f"{'T/L':>6} {'ω₄L':>6} | {'K₀/K₄ eq.':>9} {'meas.':>7} {'err':>7} | "
-        f"{'K₄RL eq.':>9} {'meas.':>7} {'err':>7} | {'DR at K₄':>8} | "
+        f"{'K₄RL eq.':>9} {'meas.':>7} {'err':>7} | {'DR at K₄':>8} {'mode':>5} | "
         f"{'DR ZN K₀/2':>10} {'DR ZN 1/RL':>10}"
     )
     for r in figs.fig1:
         print(
             f"{r['t_over_l']:6g} {r['w4l']:6.3f} | {r['k0_over_k4']:9.4f} "
-            f"{_v(r.get('k0_over_k4_measured'))} {_e(r.get('k0_over_k4_error'))} | "
-            f"{r['k4rl']:9.4f} {_v(r.get('k4rl_measured'))} {_e(r.get('k4rl_error'))} | "
-            f"{_v(r.get('decay_ratio_at_closed_form'), '8.3f')} | "
+            f"{_m(r, 'k0_over_k4', 'k4_status')} {_e(r.get('k0_over_k4_error'))} | "
+            f"{r['k4rl']:9.4f} {_m(r, 'k4rl', 'k4_status')} {_e(r.get('k4rl_error'))} | "
+            f"{_v(r.get('decay_ratio_at_closed_form'), '8.3f')} "
+            f"{_v(r.get('mode_decay_ratio_at_closed_form'), '5.3f')} | "
             f"{_v(r.get('decay_ratio_zn_ultimate'), '10.3f')} "
             f"{_v(r.get('decay_ratio_zn_reaction'), '10.3f')}"
         )
@@ -310,20 +322,23 @@ def print_figures(figs: ih.Figures) -> None:
         "\nFig. 3  T_I4/L at ZN's PI gain 0.9/(R·L) (eq. 12; ZN: 3.33) and T_D4/L at the PD "
         "gain 1.2/(R·L) (eq. 15; the paper: 0.36–0.37),\n        curve b (the higher ω) and "
         "b′ (the lower, above T/L ≈ 1.49)\n"
-        f"{'T/L':>6} | {'T_I4/L eq.':>10} {'meas.':>7} {'err':>7} {'DR':>5} | "
-        f"{'T_D4/L b eq.':>12} {'meas.':>7} {'err':>7} {'DR':>5} | "
-        f"{'b′ eq.':>7} {'meas.':>7} {'err':>7} {'DR':>5}"
+        f"{'T/L':>6} | {'T_I4/L eq.':>10} {'meas.':>7} {'err':>7} {'DR':>5} {'mode':>5} | "
+        f"{'T_D4/L b eq.':>12} {'meas.':>7} {'err':>7} {'DR':>5} {'mode':>5} | "
+        f"{'b′ eq.':>7} {'meas.':>7} {'err':>7} {'DR':>5} {'mode':>5}"
     )
     for r in figs.fig3:
         print(
-            f"{r['t_over_l']:6g} | {r['ti4']:10.4f} {_v(r.get('ti4_measured'))} "
-            f"{_e(r.get('ti4_error'))} {_v(r.get('decay_ratio_pi_at_closed_form'), '5.3f')} | "
-            f"{r['td4_upper']:12.4f} {_v(r.get('td4_upper_measured'))} "
+            f"{r['t_over_l']:6g} | {r['ti4']:10.4f} {_m(r, 'ti4', 'ti4_status')} "
+            f"{_e(r.get('ti4_error'))} {_v(r.get('decay_ratio_pi_at_closed_form'), '5.3f')} "
+            f"{_v(r.get('mode_decay_ratio_pi_at_closed_form'), '5.3f')} | "
+            f"{r['td4_upper']:12.4f} {_m(r, 'td4_upper', 'td4_upper_status')} "
             f"{_e(r.get('td4_upper_error'))} "
-            f"{_v(r.get('decay_ratio_pd_upper_at_closed_form'), '5.3f')} | "
-            f"{_v(r['td4_lower'])} {_v(r.get('td4_lower_measured'))} "
+            f"{_v(r.get('decay_ratio_pd_upper_at_closed_form'), '5.3f')} "
+            f"{_v(r.get('mode_decay_ratio_pd_upper_at_closed_form'), '5.3f')} | "
+            f"{_v(r['td4_lower'])} {_m(r, 'td4_lower', 'td4_lower_status')} "
             f"{_e(r.get('td4_lower_error'))} "
-            f"{_v(r.get('decay_ratio_pd_lower_at_closed_form'), '5.3f')}"
+            f"{_v(r.get('decay_ratio_pd_lower_at_closed_form'), '5.3f')} "
+            f"{_v(r.get('mode_decay_ratio_pd_lower_at_closed_form'), '5.3f')}"
         )
     notes = [
         (row["t_over_l"], n)
@@ -380,13 +395,21 @@ def _axes(fig: Figure, title: str, ylabel: str) -> Axes:
     return ax
 
 
-def _measured(ax: Axes, rows: list[dict], key: str, color: str, label: str) -> None:
-    """Measured points: filled on their curve (within the tolerance), open where off it."""
+def _measured(
+    ax: Axes, rows: list[dict], key: str, color: str, label: str, status: str | None = None
+) -> None:
+    """Measured points: filled on their curve (within the tolerance), open where off it; a
+    cross on the curve where no setting gives a 25 %-damped response (``status``)."""
     on = [(r["t_over_l"], r[f"{key}_measured"]) for r in rows if _within(r, key)]
     off = [
         (r["t_over_l"], r[f"{key}_measured"])
         for r in rows
         if r.get(f"{key}_measured") is not None and not _within(r, key)
+    ]
+    none = [
+        (r["t_over_l"], r[key])
+        for r in rows
+        if status and r.get(status) in (ih.NOT_DOMINANT, ih.NO_CROSSING)
     ]
     if on:
         ax.plot(*zip(*on, strict=True), "o", color=color, ms=6, label=f"{label}, measured")
@@ -399,6 +422,15 @@ def _measured(ax: Axes, rows: list[dict], key: str, color: str, label: str) -> N
             ms=8,
             mew=1.5,
             label=f"{label}, measured > {100 * ih.TOLERANCE:g} % off (see notes)",
+        )
+    if none:
+        ax.plot(
+            *zip(*none, strict=True),
+            "x",
+            color=color,
+            ms=9,
+            mew=2,
+            label=f"{label}: no 25 %-damped response measured (the pair does not dominate)",
         )
 
 
@@ -433,8 +465,10 @@ def figure_1(figs: ih.Figures, c: dict[str, np.ndarray]) -> Figure:
     ax.axhline(
         ih.ZN_P_REACTION, color="tab:red", ls="--", lw=1, label="ZN $K_1 = 1/(RL)$: $K_1 RL$ = 1"
     )
-    _measured(ax, figs.fig1, "k0_over_k4", "tab:blue", "$K_0/K_4$ (relay, closed loop)")
-    _measured(ax, figs.fig1, "k4rl", "tab:red", "$K_4 RL$ (closed loop, step test)")
+    _measured(
+        ax, figs.fig1, "k0_over_k4", "tab:blue", "$K_0/K_4$ (relay, closed loop)", "k4_status"
+    )
+    _measured(ax, figs.fig1, "k4rl", "tab:red", "$K_4 RL$ (closed loop, step test)", "k4_status")
     ax.set_ylim(0, min(6.0, float(np.nanmax(c["k4rl"])) * 1.05))
     ax.legend(fontsize=8, loc="upper right")
     ax.text(
@@ -492,7 +526,7 @@ def figure_3(figs: ih.Figures, c: dict[str, np.ndarray]) -> Figure:
         ha="right",
         fontsize=8,
     )
-    _measured(top, figs.fig3, "ti4", "tab:blue", "$T_{I4}/L$")
+    _measured(top, figs.fig3, "ti4", "tab:blue", "$T_{I4}/L$", "ti4_status")
     top.set_ylabel("$T_{I4}/L$ (dimensionless)")
     top.legend(fontsize=8, loc="upper left")
     ok = c["pd_dominated"]
@@ -517,8 +551,8 @@ def figure_3(figs: ih.Figures, c: dict[str, np.ndarray]) -> Figure:
         fontsize=8,
         color="tab:purple",
     )
-    _measured(bottom, figs.fig3, "td4_upper", "tab:red", "$T_{D4}/L$ (b)")
-    _measured(bottom, figs.fig3, "td4_lower", "tab:purple", "$T_{D4}/L$ (b′)")
+    _measured(bottom, figs.fig3, "td4_upper", "tab:red", "$T_{D4}/L$ (b)", "td4_upper_status")
+    _measured(bottom, figs.fig3, "td4_lower", "tab:purple", "$T_{D4}/L$ (b′)", "td4_lower_status")
     bottom.set_ylim(0, 1.0)
     bottom.set_ylabel("$T_{D4}/L$ at $K = 1.2/(RL)$ (dimensionless)")
     bottom.set_xlabel(X_LABEL)

@@ -29,25 +29,41 @@ eq. 15 no longer gives a 25 %-damped response (``chain_decay``).
 Measured points: the same figures from the product's experiments on the plant (M = 1 PV unit
 per %, L = 1 s, T = r s), in process and without noise: K₀ and τ₀ from the relay
 (``benchmark.run_relay``), R and L from the step test (``StepTest`` driven by ``driver.drive``
-over a plant_sim loop), and the 25 % settings by a root search (brentq) on the decay ratio of
-setpoint steps through the product's PID block (``shared.control.pid``, derivative on the
-measurement, its filter at the block's largest N = 1000 so the derivative is the paper's ideal
-one to within the sample time) closing the loop on the plant discretised exactly
-(``shared.control.lti``). The gains come from the measured R and L (0.9/(R·L), 1.2/(R·L)).
+over a plant_sim loop), and the 25 % settings by a root search on setpoint steps through the
+product's PID block (``shared.control.pid``, derivative on the measurement, its filter at the
+block's largest N = 1000 so the derivative is the paper's ideal one to within the sample time)
+closing the loop on the plant discretised exactly (``lti.discretize``; ``SampledPlant`` steps
+it on floats, the samples of ``lti.DelayedLinearSystem`` at a tenth of its cost). The gains
+come from the measured R and L (0.9/(R·L), 1.2/(R·L)): the step test under-reads R by 0.1 %,
+and where that alone moves a curve by more than 1 % (curve b′ near T/L = 3) a note says so.
 
-The excitation is a setpoint step: the paper's eq. 3 is the setpoint-to-PV transfer function J
-and 25 % is a property of its denominator, so any excitation of the pair decays at ¼ per period
-when the pair dominates. The decay ratio is the product's ``measured_setpoint_step``: the second
-crest over the first, read about the loop's final value (P and PD leave an offset, so the final
-value is M·K/(1 + M·K) of the step, not the setpoint). Where the pair does not dominate, the
-whole response's decay ratio at the closed-form setting differs from 0.25 (reported beside each
-point), and the measured setting moves off the curve: the notes say so.
+What is measured is the paper's 25 % damping itself: the decay of the response's dominant
+oscillatory mode, not of its first two crests, on which faster roots still weigh (PI at ZN's
+gain has a real root at −0.42…−0.69/L beside the pair's −0.25/L; P at T/L = 0.1 a second pair
+at −0.88/L beside −0.63/L; the PD loops their high-frequency roots). Each setpoint step is
+watched for L + 6 τ₀ (PI, whose period is up to 2.1 τ₀: 9 τ₀); from L + τ₀ on, a matrix pencil
+(Hua & Sarkar 1990) fits up to 8 modes to its first differences sampled every τ₀/16, and the
+oscillatory mode largest at the end is the dominant one: s = −α + iω, decay ratio e^{−2πα/ω}.
+The search (brentq on a loop sampled at L/100 to bracket it, the secant method at L/1000, then
+at L/4000 on curve b′, whose T_D moves 14 times as much as L near T/L = 3 and so with the
+loop's half-sample lag) finds the setting where that ratio is 0.25. The dominance check
+compares the mode with the whole response, sampled in full: over its last two periods above
+rounding, its largest deviation from the final value must fall per period as the mode's does,
+to 5 %, and its turning points (every one) repeat at the mode's period, to 2 %. Where they do
+not, a mode the fit leaves out has taken the tail over (the ideal PD's high-frequency roots
+below T/L ≈ 0.42), the paper's setting gives no 25 %-damped response, and the table says "none"
+rather than a number. The product's own decay ratio of the first two crests
+(``measured_setpoint_step``) is reported beside each point, as a trend would show it.
 """
 
 from __future__ import annotations
 
 import math
+import multiprocessing
+import os
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -60,7 +76,7 @@ from services.offline.benchmark import Plant, decay_ratio, run_relay
 from services.offline.local_loop import SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from shared.control.forms import IsaGains
-from shared.control.lti import DelayedLinearSystem, discretize, tf_to_ss
+from shared.control.lti import discretize, tf_to_ss
 from shared.control.pid import PidBlock, PidSettings
 
 SIGMA4 = math.log(4.0) / (2.0 * math.pi)  # eq. 6: ¼ amplitude per period
@@ -77,14 +93,29 @@ SCAN_POINTS = 4096
 
 IH_RATIOS = (0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0)  # the benchmark's table
 FIGURE_RATIOS = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)  # the three figures' tables
+MAX_WORKERS = 4  # processes measuring T/L values at once
 TOLERANCE = 0.02  # a measured point further than this (relative) from its curve gets a note
 
-# the closed-loop simulations: sample times in units of L (ZOH lag ts/2 = 0.05 % of L on the
-# fine one), the derivative filter, and how long a response is watched
-COARSE_TS, FINE_TS = 1e-2, 1e-3
+# the closed-loop simulations: sample times in units of L (the ZOH lags ts/2), the derivative
+# filter, how long a response is watched and how its tail is read
+COARSE_TS = 1e-2  # the searches' brackets
+FINE_TS = 1e-3  # the measured settings: ts/2 = 0.05 % of L
+FINEST_TS = 2.5e-4  # curve b′, whose T_D moves up to 14× as fast as L (T/L ≈ 3)
 DERIVATIVE_N = 1000.0  # the PID block's largest: T_f = T_D/1000, below the sample time
-WATCH_PERIODS = 10.0  # at most L + this × τ₀ (the relay's) per response
-DR_SLACK = 0.005  # a decay ratio further from 0.25 at the closed-form setting: not dominant
+WATCH_PERIODS = 6.0  # a response is watched for L + this × τ₀ (the relay's) ...
+WATCH_PERIODS_PI = 9.0  # ... PI's for longer, its period being up to 2.1 τ₀ ...
+TAIL_FROM = 1.0  # ... and its tail read from L + this × τ₀ on,
+TAIL_SAMPLES = 16  # every τ₀/16 by the matrix pencil,
+PENCIL_ORDER = 8  # fitting this many modes at most
+PENCIL_RANK = 1e-13  # singular values below this (relative) are rounding
+CREST_FLOOR = 1e-7  # deviations below this share of the setpoint step: rounding near crests
+CREST_RATIO_TOL = 0.05  # the late crests decay within 5 % of the mode's ratio ...
+CREST_PERIOD_TOL = 0.02  # ... and repeat within 2 % of its period: the mode dominates
+QUARTER_SLACK = 1e-3  # a crossing's mode ratio further from 0.25: a jump, not a crossing
+JUMP = 0.02  # the coarse loop's: there the mode ratio jumps across 0.25 (another mode)
+SOLVE_TOL = 1e-5  # the fine loop's crossings are solved to |mode ratio − 0.25| ≤ this
+CLOSED_SLACK = 0.01  # the curve's exact setting on the sampled loop: 25 % to within this
+RL_NOTE = 0.01  # a curve the step test's R·L error alone moves further than this: a note
 
 
 # --- closed forms (L = 1, r = T/L) -------------------------------------------------------
@@ -277,8 +308,8 @@ def step_test(r: float) -> tuple[float, float]:
     """(R in PV units/s per %, L in s) from the product's step test on the plant: a +5 %
     step from 50 %, read by the tangent. The sample time L/max(10, ⌈500·L/T⌉) is a whole
     part of L (L is read exactly) and ≤ T/500: the steepest secant between samples then
-    under-reads R by ≤ 0.1 % (ts/(2T)), which moves eq. 15's curve b′ by up to 1.5 % (its T_D
-    grows fast with K·R·L near T/L ≈ 1.5, where it starts from 0)."""
+    under-reads R by ≤ 0.1 % (ts/(2T)); what that alone does to each curve is reported
+    (``rl_shift``)."""
     ts = 1.0 / max(10, math.ceil(500.0 / r))
     spec = {
         "model": "transfer_function",
@@ -300,66 +331,291 @@ def step_test(r: float) -> tuple[float, float]:
     return test.result.reaction_rate, test.result.dead_time
 
 
-def setpoint_decay_ratio(r: float, gains: PidSettings, ts: float, horizon: float) -> float:
-    """Decay ratio of a setpoint step of the product's PID block (``gains``, the loop's own
-    sample time ``ts`` s) on e^{−s}/(1 + r·s), read by ``measured_setpoint_step`` about the
-    loop's final value; 0 with fewer than two crests. Watched for at most ``horizon`` s, and
-    no longer than the fourth crossing of the final value (the second crest is then whole)."""
-    plant = DelayedLinearSystem(discretize(*tf_to_ss([1.0], [r, 1.0]), ts, 1.0))
+class SampledPlant:
+    """e^{−s}/(1 + r·s) sampled every ``ts`` s, exactly (``lti.discretize``, zero-order hold),
+    stepped on plain floats with a ring buffer for the dead time: the samples of
+    ``lti.DelayedLinearSystem`` (to rounding, checked in the tests) at a fraction of its cost,
+    whose delay line is a deque read in its middle."""
+
+    def __init__(self, r: float, ts: float):
+        sys = discretize(*tf_to_ss([1.0], [r, 1.0]), ts, 1.0)
+        self.phi = float(sys.phi[0, 0])
+        self.gamma_new = float(sys.gamma_new[0, 0])
+        self.gamma_old = float(sys.gamma_old[0, 0])
+        self.c = float(sys.c[0, 0])
+        self.d = float(sys.d)
+        self.n = sys.delay_samples
+        self._line = [0.0] * (self.n + 2)  # u[k], u[k−1], … from index self._at on
+        self._at = 0
+        self._x = 0.0
+
+    def step(self, u: float) -> float:
+        """Hold ``u`` for one sample period; the PV at the end of it."""
+        size = self.n + 2
+        self._at = (self._at - 1) % size
+        self._line[self._at] = u
+        u_new = self._line[(self._at + self.n) % size]  # u[k−n]
+        u_old = self._line[(self._at + self.n + 1) % size]
+        self._x = self.phi * self._x + self.gamma_new * u_new + self.gamma_old * u_old
+        return self.c * self._x + self.d * u_new
+
+
+def setpoint_response(
+    r: float, gains: PidSettings, ts: float, horizon: float, crossings: int | None = None
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """A setpoint step of the product's PID block (``gains``, sample time ``ts`` s) on
+    e^{−s}/(1 + r·s), from rest: (t s, PV, the step, the loop's final value), in deviations
+    (PV units). Watched for ``horizon`` s, or only until the PV has crossed the final value
+    ``crossings`` times. P and PD leave an offset: the final value is M·K/(1 + M·K) of the
+    step (M = 1), not the setpoint."""
+    plant = SampledPlant(r, ts)
     pid = PidBlock(gains, ts, (0.0, 100.0), mode="auto", op=50.0)
     sp = min(1.0, 10.0 / gains.kc)  # a P kick of 10 % at most: the output limits stay away
-    final = sp if gains.ti is not None else sp * gains.kc / (1.0 + gains.kc)  # M = 1
-    y = [0.0]
-    pv, above, crossings = 0.0, False, 0
-    for _ in range(int(horizon / ts)):
+    final = sp if gains.ti is not None else sp * gains.kc / (1.0 + gains.kc)
+    y = np.zeros(round(horizon / ts) + 1)
+    pv, above, crossed = 0.0, False, 0
+    for k in range(1, y.size):
         pv = plant.step(pid.update(sp, pv) - 50.0)  # deviations: rest at PV 0, output 50 %
-        y.append(pv)
-        if (pv > final) != above:
-            above, crossings = not above, crossings + 1
-            if crossings == 4:
+        y[k] = pv
+        if crossings is not None and (pv > final) != above:
+            above, crossed = not above, crossed + 1
+            if crossed == crossings:
+                y = y[: k + 1]
                 break
-    t = ts * np.arange(len(y))
-    dr = measured_setpoint_step(t, np.asarray(y), 0.0, 0.0, final)["decay_ratio"]
+    return ts * np.arange(y.size), y, sp, final
+
+
+def first_crests(t: np.ndarray, y: np.ndarray, final: float) -> float:
+    """The product's decay ratio of a setpoint step (``measured_setpoint_step``): its second
+    crest over its first, about the final value; 0 with fewer than two."""
+    dr = measured_setpoint_step(t, y, 0.0, 0.0, final)["decay_ratio"]
     return 0.0 if dr is None else float(dr)
 
 
-def _sign_changes(g: Callable[[float], float], grid: Sequence[float]) -> list[tuple[float, float]]:
-    """Neighbouring grid points between which g changes sign."""
-    v = [g(p) for p in grid]
-    return [
-        (grid[i], grid[i + 1]) for i in range(len(grid) - 1) if v[i] * v[i + 1] < 0 or v[i] == 0
+def setpoint_decay_ratio(r: float, gains: PidSettings, ts: float, horizon: float) -> float:
+    """``first_crests`` of a setpoint step watched to the fourth crossing of the final value
+    (the second crest is then whole), for at most ``horizon`` s."""
+    t, y, _, final = setpoint_response(r, gains, ts, horizon, crossings=4)
+    return first_crests(t, y, final)
+
+
+def tail_mode(t: np.ndarray, y: np.ndarray, t_from: float, h: float) -> complex | None:
+    """The dominant oscillatory mode s (1/s) of the record's tail from ``t_from`` s: a matrix
+    pencil (Hua & Sarkar 1990) on its first differences taken every ``h`` s (the final value
+    drops out), ``PENCIL_ORDER`` modes at most; of the oscillatory ones, the largest at the
+    record's end. None without one."""
+    ts = float(t[1] - t[0])
+    step = max(1, round(h / ts))
+    z = np.diff(y[round(t_from / ts) :: step])
+    if z.size < 4 * PENCIL_ORDER:
+        return None
+    hankel = np.lib.stride_tricks.sliding_window_view(z, z.size // 2 + 1)
+    _, sv, vt = np.linalg.svd(hankel, full_matrices=False)
+    order = min(PENCIL_ORDER, int(np.count_nonzero(sv > PENCIL_RANK * sv[0])))
+    v = vt[:order].T
+    lam = np.linalg.eigvals(np.linalg.pinv(v[:-1]) @ v[1:])
+    amp = np.linalg.lstsq(lam[None, :] ** np.arange(z.size)[:, None], z, rcond=None)[0]
+    size = np.abs(amp * lam ** (z.size - 1))
+    osc = [k for k in range(lam.size) if lam[k].imag > 1e-12 * abs(lam[k])]
+    if not osc:
+        return None
+    k = max(osc, key=lambda k: size[k])
+    return complex(np.log(lam[k])) / (step * ts)
+
+
+def late_crests(
+    t: np.ndarray, y: np.ndarray, final: float, period: float, t_from: float, floor: float
+) -> tuple[float | None, float | None]:
+    """What the record itself shows over its last two ``period`` s (the mode's period) before
+    its deviation from ``final`` sinks below ``floor`` (PV units; rounding below it): the
+    largest deviation over the last period over that over the one before (the decay ratio
+    about the final value, read late), and the period of its turning points there (s; every
+    one counts, so a faster oscillation riding on the mode shortens it). (None, None) where
+    that stretch would start before ``t_from`` s; the period None with fewer than three
+    turning points."""
+    dev = y - final
+    above = np.nonzero(np.abs(dev) > floor)[0]
+    if above.size == 0:
+        return None, None
+    end = float(t[above[-1]])
+    if end - 2.0 * period < t_from:
+        return None, None
+    last = (t > end - period) & (t <= end)
+    before = (t > end - 2.0 * period) & (t <= end - period)
+    ratio = float(np.max(np.abs(dev[last])) / np.max(np.abs(dev[before])))
+    tw = t[before | last]
+    d = np.diff(dev[before | last])
+    turns = tw[1:-1][d[:-1] * d[1:] < 0]
+    if turns.size < 3:
+        return ratio, None
+    return ratio, float(2.0 * (turns[-1] - turns[0]) / (turns.size - 1))
+
+
+@dataclass(frozen=True)
+class Reading:
+    """What one simulated setpoint response shows (times in s, rates in 1/s; here L = 1 s).
+
+    The mode: the tail's dominant oscillatory mode s = −``mode_decay`` + i·``mode_omega``
+    (``tail_mode``), its decay ratio e^{−2π·decay/ω} per period (0 without one). The crests:
+    what the response itself shows over its last two periods above rounding (``late_crests``),
+    its largest deviation from the final value per period over the one before, and the period
+    of its turning points. ``dominant``: the mode accounts for the response's
+    tail, which decays and repeats as the mode does (within ``CREST_RATIO_TOL`` and
+    ``CREST_PERIOD_TOL``); not so where a mode the fit leaves out (the ideal PD's fast roots)
+    takes the tail over. ``first_crests``: the product's decay ratio of the whole
+    response, its second crest over its first, about the final value: what a trend shows,
+    where faster modes still weigh."""
+
+    mode_decay: float | None
+    mode_omega: float | None
+    mode_ratio: float
+    crest_ratio: float | None
+    crest_period: float | None
+    first_crests: float
+    dominant: bool
+
+    @property
+    def quarter(self) -> bool:
+        """A 25 %-damped response: the dominant mode decays by ¼ per period (to
+        ``QUARTER_SLACK``)."""
+        return self.dominant and abs(self.mode_ratio - QUARTER) <= QUARTER_SLACK
+
+
+def read_response(
+    t: np.ndarray, y: np.ndarray, sp: float, final: float, dead: float, tau0: float
+) -> Reading:
+    """The ``Reading`` of a setpoint response; its tail starts ``TAIL_FROM`` ultimate periods
+    (``tau0`` s, the relay's) after the dead time ``dead`` s (the step test's)."""
+    t_from = dead + TAIL_FROM * tau0
+    s = tail_mode(t, y, t_from, tau0 / TAIL_SAMPLES)
+    ratio = 0.0 if s is None else math.exp(2.0 * math.pi * s.real / s.imag)
+    cr, cp = (None, None)
+    if s is not None:
+        cr, cp = late_crests(t, y, final, 2.0 * math.pi / s.imag, t_from, CREST_FLOOR * abs(sp))
+    dominant = (
+        s is not None
+        and cr is not None
+        and cp is not None
+        and abs(cr / ratio - 1.0) <= CREST_RATIO_TOL
+        and abs(cp * s.imag / (2.0 * math.pi) - 1.0) <= CREST_PERIOD_TOL
+    )
+    return Reading(
+        mode_decay=None if s is None else -s.real,
+        mode_omega=None if s is None else s.imag,
+        mode_ratio=ratio,
+        crest_ratio=cr,
+        crest_period=cp,
+        first_crests=first_crests(t, y, final),
+        dominant=dominant,
+    )
+
+
+@dataclass(frozen=True)
+class Crossing:
+    """A setting (K in % per PV unit, T_I or T_D in s) where the response's dominant mode
+    decays by ¼ per period, found on the loop sampled every ``sample_time`` s, and the
+    response there. ``quarter``: a 25 %-damped response; not so at a jump (the dominant mode
+    changes there) or where the mode does not account for the response."""
+
+    value: float
+    sample_time: float
+    reading: Reading
+    quarter: bool
+
+
+def _secant(
+    g: Callable[[float], float], p: float, slope: float, lo: float, hi: float
+) -> tuple[float | None, float]:
+    """g(p) = 0 by the secant method from ``p`` (``slope`` a first guess of g′) to |g| ≤
+    ``SOLVE_TOL`` within (lo, hi): the root (None if it leaves that range or does not settle)
+    and the last slope."""
+    gp = g(p)
+    q = p - gp / slope if slope else p + 0.01 * (hi - lo)
+    for _ in range(10):
+        if abs(gp) <= SOLVE_TOL:
+            return p, slope
+        if not lo < q < hi:
+            return None, slope
+        gq = g(q)
+        if gq == gp:
+            return None, slope
+        slope = (gq - gp) / (q - p)
+        if abs(gq) <= SOLVE_TOL or abs(q - p) <= 1e-7 * (hi - lo):
+            return q, slope
+        p, gp, q = q, gq, q - gq / slope
+    return None, slope
+
+
+def _crossings(
+    read_at: Callable[[float, float], Reading],
+    grid: Sequence[float],
+    fine_ts: Callable[[bool], tuple[float, ...]],
+    lowest: float = 0.0,
+) -> list[Crossing]:
+    """Every setting where ``read_at(p, ts).mode_ratio`` crosses ¼: bracketed on ``grid``
+    (a, b, falling) and solved on the coarse loop, then on finer ones (``fine_ts(falling)``,
+    s) in turn by the secant method, each from the previous roots extrapolated in the sample
+    time, within the bracket's cell and its neighbours (no lower than ``lowest``; brentq
+    where the secant fails). A crossing where the ratio jumps (another mode takes the tail
+    over) or where the mode does not account for the response is kept, not refined, and not
+    ``quarter``."""
+
+    def coarse(p: float) -> float:
+        return read_at(p, COARSE_TS).mode_ratio - QUARTER
+
+    values = [coarse(p) for p in grid]
+    brackets = [
+        (grid[i], grid[i + 1], values[i] > values[i + 1])
+        for i in range(len(grid) - 1)
+        if values[i] * values[i + 1] < 0 or values[i] == 0
     ]
+    out = []
+    for a, b, falling in brackets:
+        pc = brentq(coarse, a, b, xtol=1e-3 * (b - a))  # a start: the fine loops refine it
+        reading = read_at(pc, COARSE_TS)
+        if abs(reading.mode_ratio - QUARTER) > JUMP:
+            out.append(Crossing(pc, COARSE_TS, reading, False))
+            continue
+        stages = fine_ts(falling)
+        reading = read_at(pc, stages[0])
+        if not reading.dominant:
+            out.append(Crossing(pc, stages[0], reading, False))
+            continue
+        roots: list[tuple[float, float]] = [(COARSE_TS, pc)]
+        dp = 0.01 * (b - a)
+        slope = (coarse(pc + dp) - coarse(pc)) / dp
+        lo, hi = max(a - (b - a), lowest), b + (b - a)  # the bracket and its neighbours
+        for ts in stages:
+            (t1, p1), (t0, p0) = roots[-1], roots[-2] if len(roots) > 1 else roots[-1]
+            start = p1 if t1 == t0 else p1 + (p1 - p0) * (ts - t1) / (t1 - t0)
+            start = min(max(start, lo + dp), hi - dp)
 
+            def fine(p: float, ts: float = ts) -> float:
+                return read_at(p, ts).mode_ratio - QUARTER
 
-def _coarse(dr_at: Callable[[float, float], float]) -> Callable[[float], float]:
-    """p ↦ dr_at(p) − ¼ on the coarse loop (to bracket the crossings)."""
-    return lambda p: dr_at(p, COARSE_TS) - QUARTER
-
-
-def _refined(dr_at: Callable[[float, float], float], a: float, b: float) -> float | None:
-    """The setting p in [a, b] (bracketed on the coarse loop) where dr_at(p, ts) = ¼ on the
-    fine loop: brentq on the coarse one, then on the fine one within ±5 % (±20 %) of it."""
-    coarse = brentq(lambda p: dr_at(p, COARSE_TS) - QUARTER, a, b, xtol=1e-3 * max(b, 1e-3))
-    memo: dict[float, float] = {}
-
-    def g(p: float) -> float:
-        if p not in memo:
-            memo[p] = dr_at(p, FINE_TS) - QUARTER
-        return memo[p]
-
-    for width in (0.05, 0.2):
-        lo, hi = coarse * (1 - width), coarse * (1 + width)
-        if g(lo) * g(hi) < 0:
-            return brentq(g, lo, hi, xtol=1e-4 * coarse)
-    return None
+            p, slope = _secant(fine, start, slope, lo, hi)
+            for x0, x1 in ((a, b), (lo, hi)) if p is None else ():
+                if fine(x0) * fine(x1) < 0:
+                    p = brentq(fine, x0, x1, xtol=1e-6 * (b - a))
+                    break
+            if p is None:
+                break
+            roots.append((ts, p))
+        ts, p = roots[-1]
+        if ts != COARSE_TS:
+            reading = read_at(p, ts)
+            out.append(Crossing(p, ts, reading, reading.quarter))
+    return out
 
 
 @dataclass(frozen=True)
 class Measured:
     """The figures at one T/L read off the product's experiments (M = 1, L = 1 s): K₀ and τ₀
     (s) from the relay, R (PV units/s per %) and L (s) from the step test, the 25 % settings
-    found on the closed loop (K₄ % per PV unit, T_I4 and T_D4 in s), and decay ratios of the
-    whole response at the closed-form settings and at ZN's two P rules."""
+    found on the closed loop (K₄ % per PV unit, T_I4 and T_D4 in s: where the dominant mode
+    is the 25 % pair, None or left out where no setting gives a 25 %-damped response), every
+    crossing found with its response, the responses at the closed forms' exact settings, and
+    the first-crest decay ratios at the closed-form settings and at ZN's two P rules."""
 
     t_over_l: float
     k0: float
@@ -368,12 +624,18 @@ class Measured:
     dead_time: float
     k4: float | None
     ti4: float | None
-    td4: tuple[float, ...]  # every T_D where the decay ratio crosses 0.25, ascending
-    dr_closed_p: float
+    td4: tuple[float, ...]  # every 25 %-damped T_D, ascending
+    dr_closed_p: float  # first crests, as ``Reading.first_crests``
     dr_closed_pi: float
     dr_closed_pd: tuple[float, ...]  # per closed-form branch, as ``ClosedForm.pd``
     dr_zn_ultimate: float  # K = K₀/2
     dr_zn_reaction: float  # K = 1/(R·L)
+    p_crossings: tuple[Crossing, ...] = ()
+    pi_crossings: tuple[Crossing, ...] = ()
+    pd_crossings: tuple[Crossing, ...] = ()
+    closed_p: Reading | None = None
+    closed_pi: Reading | None = None
+    closed_pd: tuple[Reading, ...] = ()
 
     @property
     def a(self) -> float:
@@ -384,9 +646,9 @@ class Measured:
         return asdict(self)
 
 
-def _watch(tau0: float) -> float:
+def _watch(dead: float, tau0: float, periods: float = WATCH_PERIODS) -> float:
     """How long a response is watched, s."""
-    return 1.0 + WATCH_PERIODS * tau0
+    return dead + periods * tau0
 
 
 def measure(r: float, parts: Sequence[str] = ("p", "pi", "pd")) -> Measured:
@@ -399,51 +661,74 @@ def measure(r: float, parts: Sequence[str] = ("p", "pi", "pd")) -> Measured:
     tau0 = outcome.pu_exact * (1.0 + outcome.pu_error)
     rate, dead = step_test(r)
     a = rate * dead
-    horizon = _watch(tau0)
+    horizon = _watch(dead, tau0)
     cf = closed_form(r)
+    memo: dict[tuple[PidSettings, float], Reading] = {}
 
-    def p_dr(kc: float, ts: float) -> float:
-        return setpoint_decay_ratio(r, PidSettings(kc=kc), ts, horizon)
+    def read(gains: PidSettings, ts: float) -> Reading:
+        if (gains, ts) not in memo:
+            watch = horizon if gains.ti is None else _watch(dead, tau0, WATCH_PERIODS_PI)
+            t, y, sp, final = setpoint_response(r, gains, ts, watch)
+            memo[gains, ts] = read_response(t, y, sp, final, dead, tau0)
+        return memo[gains, ts]
 
-    def pi_dr(kc: float) -> Callable[[float, float], float]:
-        return lambda ti, ts: setpoint_decay_ratio(r, PidSettings(kc=kc, ti=ti), ts, horizon)
+    def p_gains(kc: float) -> PidSettings:
+        return PidSettings(kc=kc)
 
-    def pd_dr(kc: float) -> Callable[[float, float], float]:
-        def dr(td: float, ts: float) -> float:
-            gains = PidSettings(kc=kc, td=td, n=DERIVATIVE_N)
-            return setpoint_decay_ratio(r, gains, ts, horizon)
+    def pi_gains(ti: float, kc: float = PI_GAIN / a) -> PidSettings:
+        return PidSettings(kc=kc, ti=ti)
 
-        return dr
+    def pd_gains(td: float, kc: float = PD_GAIN / a) -> PidSettings:
+        return PidSettings(kc=kc, td=td, n=DERIVATIVE_N)
 
-    k4 = ti4 = None
-    td4: list[float] = []
-    if "p" in parts:  # the decay ratio grows with the gain: the first crossing
-        found = _sign_changes(_coarse(p_dr), [k0 * f for f in (0.2, 0.35, 0.5, 0.65, 0.8, 0.95)])
-        k4 = _refined(p_dr, *found[0]) if found else None
-    if "pi" in parts:  # it falls as T_I grows: the largest crossing, the least integral action
-        found = _sign_changes(_coarse(pi_dr(PI_GAIN / a)), dead * np.geomspace(0.01, 30.0, 10))
-        ti4 = _refined(pi_dr(PI_GAIN / a), *found[-1]) if found else None
+    def fine(_falling: bool) -> tuple[float, ...]:
+        return (FINE_TS,)
+
+    def pd_fine(falling: bool) -> tuple[float, ...]:  # b′: T_D moves 14× as fast as L there
+        return (FINE_TS, FINEST_TS) if falling else (FINE_TS,)
+
+    found: dict[str, list[Crossing]] = {"p": [], "pi": [], "pd": []}
+    if "p" in parts:  # the decay ratio grows with the gain: one crossing
+        grid = [k0 * f for f in (0.2, 0.35, 0.5, 0.65, 0.8, 0.95)]
+        found["p"] = _crossings(lambda k, ts: read(p_gains(k), ts), grid, fine)
+    if "pi" in parts:  # it falls as T_I grows: the largest 25 % T_I, the least integral action
+        grid = list(dead * np.geomspace(0.01, 30.0, 10))
+        found["pi"] = _crossings(lambda ti, ts: read(pi_gains(ti), ts), grid, fine, grid[0] / 2)
     if "pd" in parts:  # it may cross twice: falling at b′, rising at b
-        found = _sign_changes(_coarse(pd_dr(PD_GAIN / a)), dead * np.linspace(0.0, 1.2, 25))
-        td4 = [t for t in (_refined(pd_dr(PD_GAIN / a), *ab) for ab in found) if t is not None]
+        grid = list(dead * np.linspace(0.0, 1.2, 13))
+        found["pd"] = _crossings(lambda td, ts: read(pd_gains(td), ts), grid, pd_fine)
+    quarter = {key: [c.value for c in cs if c.quarter] for key, cs in found.items()}
+    # the responses at the closed forms' exact settings (M = L = 1)
+    closed_p = read(p_gains(cf.mk4), FINE_TS) if "p" in parts else None
+    closed_pi = read(pi_gains(cf.ti4, PI_GAIN * r), FINE_TS) if "pi" in parts else None
+    pd_tds = [td for _, td in cf.pd] if "pd" in parts else []
+    closed_pd = tuple(read(pd_gains(td, PD_GAIN * r), FINE_TS) for td in pd_tds)
     return Measured(
         t_over_l=r,
         k0=k0,
         tau0=tau0,
         rate=rate,
         dead_time=dead,
-        k4=k4,
-        ti4=ti4,
-        td4=tuple(td4),
-        dr_closed_p=p_dr(cf.mk4, FINE_TS),  # the closed forms' exact settings (M = L = 1)
-        dr_closed_pi=pi_dr(PI_GAIN * r)(cf.ti4, FINE_TS),
-        dr_closed_pd=tuple(pd_dr(PD_GAIN * r)(td, FINE_TS) for _, td in cf.pd),
-        dr_zn_ultimate=p_dr(0.5 * k0, FINE_TS),
-        dr_zn_reaction=p_dr(1.0 / a, FINE_TS),
+        k4=quarter["p"][0] if quarter["p"] else None,
+        ti4=quarter["pi"][-1] if quarter["pi"] else None,
+        td4=tuple(sorted(quarter["pd"])),
+        dr_closed_p=math.nan if closed_p is None else closed_p.first_crests,
+        dr_closed_pi=math.nan if closed_pi is None else closed_pi.first_crests,
+        dr_closed_pd=tuple(c.first_crests for c in closed_pd),
+        dr_zn_ultimate=setpoint_decay_ratio(r, p_gains(0.5 * k0), FINE_TS, horizon),
+        dr_zn_reaction=setpoint_decay_ratio(r, p_gains(1.0 / a), FINE_TS, horizon),
+        p_crossings=tuple(found["p"]),
+        pi_crossings=tuple(found["pi"]),
+        pd_crossings=tuple(found["pd"]),
+        closed_p=closed_p,
+        closed_pi=closed_pi,
+        closed_pd=closed_pd,
     )
 
 
 # --- the three tables ----------------------------------------------------------------------
+
+MEASURED, NOT_DOMINANT, NO_CROSSING = "measured", "not dominant", "no crossing"
 
 
 def _error(measured: float | None, closed: float) -> float | None:
@@ -453,35 +738,110 @@ def _error(measured: float | None, closed: float) -> float | None:
     return measured / closed - 1.0
 
 
-def _notes(name: str, closed: float, measured: float | None, dr: float | None) -> list[str]:
-    """What a reader must know about one measured point: a whole-response decay ratio at the
-    curve's setting that is not the pair's (the pair does not dominate), a point off its
-    curve (and, where the pair does dominate, why it still may be)."""
-    notes = []
-    dominated = dr is None or abs(dr - QUARTER) <= DR_SLACK
-    if not dominated:
-        grows = " (above 1: the response grows)" if dr >= 1.0 else ""
+def _gain_factor(m: Measured) -> float:
+    """K·R·L with the plant's own R·L (= L/T = 1/r) over the rule's λ: the step test's R·L
+    error alone makes the applied gain λ·this/(R·L)."""
+    return 1.0 / (m.t_over_l * m.a)
+
+
+def _ratio_text(reading: Reading) -> str:
+    """How a response's tail behaves, for a note (L = 1 s)."""
+    ratio, turns = reading.crest_ratio, reading.crest_period
+    if ratio is None or not reading.mode_omega:
+        return "leaves no oscillation above rounding to read"
+    period = 2.0 * math.pi / reading.mode_omega
+    change = f"grows {ratio:.3g}-fold" if ratio >= 1.0 else f"falls to {ratio:.3f}"
+    spacing = "" if turns is None else f", turning every {turns / 2:.3g} L"
+    return f"{change} per {period:.3g} L at its end{spacing}"
+
+
+def _point(
+    name: str,
+    key: str,
+    closed: float,
+    wl: float,
+    crossing: Crossing | None,
+    crossings: Sequence[Crossing],
+    at_curve: Reading | None,
+    scale: float,
+    rl_shift: float,
+    symbol: str,
+    dead: float,
+) -> tuple[dict, list[str]]:
+    """One measured setting beside its curve ``closed`` (and the curve's ωL ``wl``): the
+    measured value (``crossing``'s, over ``scale``; None where no setting gives a 25 %-damped
+    response), its error, status, mode and first crests there, what the response does at the
+    curve's own setting (``at_curve``), the step test's R·L shift, and the notes (naming the
+    setting ``symbol``; ``dead`` the measured L, s)."""
+    notes: list[str] = []
+    if at_curve is None and not crossings:  # this controller was not measured
+        return {f"{key}_measured": None, f"{key}_error": None, f"{key}_status": None}, notes
+    value = None if crossing is None else crossing.value / scale
+    status = MEASURED if crossing is not None else NO_CROSSING
+    if crossing is None and any(not c.quarter for c in crossings):
+        status = NOT_DOMINANT
+    pair_there = at_curve is not None and (
+        at_curve.dominant and abs(at_curve.mode_ratio - QUARTER) <= CLOSED_SLACK
+    )
+    if at_curve is not None and not pair_there:
         notes.append(
-            f"{name}: at the curve's setting the whole response's decay ratio is {dr:.3f}"
-            f"{grows}, not 0.25: other roots than the 25 % pair weigh on its first crests "
-            "(the pair does not dominate)"
+            f"{name}: at the curve's setting the response is not 25 % damped: its tail "
+            f"{_ratio_text(at_curve)}, the 25 % pair would decay 0.25 per "
+            f"{2 * math.pi / wl:.2f} L (the pair does not dominate)"
         )
-    err = _error(measured, closed)
-    if measured is None and math.isfinite(closed):
-        notes.append(f"{name}: the measured decay ratio never crosses 0.25 near the curve")
-    elif err is not None and abs(err) > TOLERANCE:
-        why = ""
-        if dr is not None and dominated:
-            why = (
-                f", though the response there decays as the pair does ({dr:.3f}): the "
-                "decay ratio changes slowly with this setting, so the loop's sampling and the "
-                "step test's R·L move the crossing"
+    if crossing is None and math.isfinite(closed):
+        where = "; ".join(
+            f"at {symbol} = {c.value / scale:.4g}, "
+            + (
+                "another mode takes the tail over (the ratio jumps)"
+                if c.sample_time == COARSE_TS
+                else f"the mode does not account for the response, which {_ratio_text(c.reading)}"
             )
-        notes.append(
-            f"{name}: measured {measured:.4g} is {100 * err:+.1f} % off the curve "
-            f"({closed:.4g}){why}"
+            for c in crossings
+            if not c.quarter
         )
-    return notes
+        notes.append(
+            f"{name}: no setting gives a 25 %-damped response: the decay ratio of the "
+            + (
+                f"response's dominant mode crosses 0.25 only where it is not dominant: {where}"
+                if where
+                else "response's dominant mode never crosses 0.25"
+            )
+        )
+    err = _error(value, closed)
+    if crossing is not None and at_curve is not None and pair_there:
+        first = at_curve.first_crests
+        if abs(first - QUARTER) > 0.01:
+            notes.append(
+                f"{name}: a trend's first two crests show {first:.3f} at the curve's "
+                "setting (faster modes still weigh there), its tail decays as the 25 % pair"
+            )
+    if math.isfinite(rl_shift) and abs(rl_shift) > RL_NOTE:
+        notes.append(
+            f"{name}: the step test's R·L error alone moves this curve by "
+            f"{100 * rl_shift:+.2f} % (the gain λ/(R·L) is applied with the measured R·L)"
+        )
+    if err is not None and abs(err) > TOLERANCE:
+        share = (
+            f", {100 * rl_shift:+.2f} % of it from the step test's R·L"
+            if math.isfinite(rl_shift)
+            else ""
+        )
+        notes.append(
+            f"{name}: measured {value:.4g} is {100 * err:+.1f} % off the curve ({closed:.4g})"
+            + share
+        )
+    row = {
+        f"{key}_measured": value,
+        f"{key}_error": err,
+        f"{key}_status": status if math.isfinite(closed) else None,
+        f"{key}_wl_measured": None if crossing is None else crossing.reading.mode_omega * dead,
+        f"{key}_first_crests_measured": None if crossing is None else crossing.reading.first_crests,
+        f"{key}_sample_time": None if crossing is None else crossing.sample_time,
+        f"{key}_pair_dominates_at_closed_form": None if at_curve is None else pair_there,
+        f"{key}_rl_shift": rl_shift if math.isfinite(rl_shift) else None,
+    }
+    return row, notes
 
 
 def fig1_row(cf: ClosedForm, m: Measured | None) -> dict:
@@ -496,17 +856,38 @@ def fig1_row(cf: ClosedForm, m: Measured | None) -> dict:
     }
     if m is None:
         return row | {"notes": []}
-    k0_over_k4 = None if m.k4 is None else m.k0 / m.k4
-    k4rl = None if m.k4 is None else m.k4 * m.a
+    crossing = next((c for c in m.p_crossings if c.quarter), None)
+    point, notes = _point(
+        "P K₄",
+        "k4",
+        cf.mk4,
+        cf.w4l,
+        crossing,
+        m.p_crossings,
+        m.closed_p,
+        1.0,
+        m.a * m.t_over_l - 1,
+        "K",
+        m.dead_time,
+    )
+    k4 = point.get("k4_measured")
+    k0_over_k4 = None if k4 is None else m.k0 / k4
+    k4rl = None if k4 is None else k4 * m.a
     return row | {
         "k0_over_k4_measured": k0_over_k4,
         "k0_over_k4_error": _error(k0_over_k4, cf.k0_over_k4),
         "k4rl_measured": k4rl,
         "k4rl_error": _error(k4rl, cf.k4rl),
+        "k4_status": point.get("k4_status"),
+        "w4l_measured": point.get("k4_wl_measured"),
+        "k4rl_rl_shift": point.get("k4_rl_shift"),
         "decay_ratio_at_closed_form": m.dr_closed_p,
+        "mode_decay_ratio_at_closed_form": None if m.closed_p is None else m.closed_p.mode_ratio,
+        "pair_dominates_at_closed_form": point.get("k4_pair_dominates_at_closed_form"),
+        "decay_ratio_at_measured": point.get("k4_first_crests_measured"),
         "decay_ratio_zn_ultimate": m.dr_zn_ultimate,
         "decay_ratio_zn_reaction": m.dr_zn_reaction,
-        "notes": _notes("P K₄", cf.mk4, m.k4, m.dr_closed_p),
+        "notes": notes,
     }
 
 
@@ -522,28 +903,40 @@ def fig2_row(cf: ClosedForm, m: Measured | None) -> dict:
     if m is None:
         return row | {"notes": []}
     k0rl, tau0 = m.k0 * m.a, m.tau0 / m.dead_time
-    notes = _notes("K₀·R·L", cf.k0rl, k0rl, None) + _notes("τ₀/L", cf.tau0, tau0, None)
+    notes = []
+    for name, value, closed in (("K₀·R·L", k0rl, cf.k0rl), ("τ₀/L", tau0, cf.tau0)):
+        err = _error(value, closed)
+        if err is not None and abs(err) > TOLERANCE:
+            notes.append(f"{name}: measured {value:.4g} is {100 * err:+.1f} % off ({closed:.4g})")
     return row | {
         "k0rl_measured": k0rl,
         "k0rl_error": _error(k0rl, cf.k0rl),
+        "k0rl_rl_shift": m.a * m.t_over_l - 1.0,
         "tau0_measured": tau0,
         "tau0_error": _error(tau0, cf.tau0),
         "notes": notes,
     }
 
 
-def _match(closed: Sequence[float], measured: Sequence[float]) -> list[float | None]:
-    """Each closed-form branch's nearest measured value (relative), none used twice."""
+def _match(closed: Sequence[float], measured: Sequence[Crossing]) -> list[Crossing | None]:
+    """Each closed-form branch's nearest measured crossing (relative), none used twice."""
     left = list(measured)
-    out: list[float | None] = []
+    out: list[Crossing | None] = []
     for c in closed:
         if not left:
             out.append(None)
             continue
-        best = min(left, key=lambda v: abs(v / c - 1.0))
+        best = min(left, key=lambda x: abs(x.value / c - 1.0))
         left.remove(best)
         out.append(best)
     return out
+
+
+def _shifted(values: Sequence[float], shifted: Sequence[float]) -> list[float]:
+    """Each value's relative shift, NaN where the shifted solution lost a branch."""
+    if len(values) != len(shifted):
+        return [math.nan] * len(values)
+    return [s / v - 1.0 for v, s in zip(values, shifted, strict=True)]
 
 
 def fig3_row(cf: ClosedForm, m: Measured | None) -> dict:
@@ -571,35 +964,74 @@ def fig3_row(cf: ClosedForm, m: Measured | None) -> dict:
     ]
     if m is None:
         return row | {"notes": notes}
-    ti4 = None if m.ti4 is None else m.ti4 / m.dead_time
-    tds = [t / m.dead_time for t in m.td4]
-    matched = _match([td for _, td in cf.pd], tds)
+    f = _gain_factor(m)
+    pi_cross = [c for c in m.pi_crossings if c.quarter][-1:]
+    pi, pi_notes = _point(
+        "PI T_I4",
+        "ti4",
+        cf.ti4,
+        cf.pi_wl,
+        pi_cross[0] if pi_cross else None,
+        m.pi_crossings,
+        m.closed_pi,
+        m.dead_time,
+        quarter_pi(m.t_over_l, PI_GAIN * f)[1] / cf.ti4 - 1.0,
+        "T_I/L",
+        m.dead_time,
+    )
     names = ("lower", "upper")[2 - len(cf.pd) :]  # b′ then b, or b alone
-    by_branch = dict(zip(names, matched, strict=True))
-    dr_pd = dict(zip(names, m.dr_closed_pd, strict=True))
-    notes = _notes("PI T_I4", cf.ti4, ti4, m.dr_closed_pi) + notes
-    for branch, closed, label in (("upper", upper, "b"), ("lower", lower, "b′")):
-        if math.isfinite(closed):
-            notes += _notes(f"PD T_D4 ({label})", closed, by_branch.get(branch), dr_pd.get(branch))
-    extra = [t for t in tds if t not in matched]
-    if extra:
-        notes.append(
-            "PD: the measured decay ratio also crosses 0.25 at T_D/L = "
-            + ", ".join(f"{t:.3f}" for t in extra)
+    labels = {"lower": "b′", "upper": "b"}
+    quarter = [c for c in m.pd_crossings if c.quarter]
+    matched = _match([td for _, td in cf.pd], quarter)
+    shifts = _shifted(
+        [td for _, td in cf.pd], [td for _, td in quarter_pd(m.t_over_l, PD_GAIN * f)]
+    )
+    pd: dict = {}
+    pd_notes: list[str] = []
+    for i, branch in enumerate(names):
+        point, n = _point(
+            f"PD T_D4 ({labels[branch]})",
+            f"td4_{branch}",
+            cf.pd[i][1],
+            cf.pd[i][0],
+            matched[i],
+            m.pd_crossings,
+            m.closed_pd[i] if i < len(m.closed_pd) else None,
+            m.dead_time,
+            shifts[i],
+            "T_D/L",
+            m.dead_time,
         )
-    return row | {
-        "ti4_measured": ti4,
-        "ti4_error": _error(ti4, cf.ti4),
-        "decay_ratio_pi_at_closed_form": m.dr_closed_pi,
-        "td4_upper_measured": by_branch.get("upper"),
-        "td4_upper_error": _error(by_branch.get("upper"), upper),
-        "td4_lower_measured": by_branch.get("lower"),
-        "td4_lower_error": _error(by_branch.get("lower"), lower),
-        "decay_ratio_pd_upper_at_closed_form": dr_pd.get("upper"),
-        "decay_ratio_pd_lower_at_closed_form": dr_pd.get("lower"),
-        "td4_measured_all": tds,
-        "notes": notes,
-    }
+        pd |= point
+        pd_notes += n
+    extra = [c for c in quarter if c not in matched]
+    if extra:
+        pd_notes.append(
+            "PD: the response is also 25 % damped at T_D/L = "
+            + ", ".join(f"{c.value / m.dead_time:.3f}" for c in extra)
+        )
+    closed_pd = [c.mode_ratio for c in m.closed_pd]
+    return (
+        row
+        | {f"td4_{b}_{k}": None for b in ("upper", "lower") for k in ("measured", "error")}
+        | pi
+        | pd
+        | {
+            "decay_ratio_pi_at_closed_form": m.dr_closed_pi,
+            "decay_ratio_pd_upper_at_closed_form": _branch(m.dr_closed_pd, names, "upper"),
+            "decay_ratio_pd_lower_at_closed_form": _branch(m.dr_closed_pd, names, "lower"),
+            "mode_decay_ratio_pi_at_closed_form": m.closed_pi and m.closed_pi.mode_ratio,
+            "mode_decay_ratio_pd_upper_at_closed_form": _branch(closed_pd, names, "upper"),
+            "mode_decay_ratio_pd_lower_at_closed_form": _branch(closed_pd, names, "lower"),
+            "td4_measured_all": [c.value / m.dead_time for c in quarter],
+            "notes": pi_notes + notes + pd_notes,
+        }
+    )
+
+
+def _branch(values: Sequence, names: Sequence[str], branch: str):
+    """The value of ``branch`` ('lower' b′, 'upper' b) in per-branch ``values``, or None."""
+    return values[names.index(branch)] if branch in names and len(values) == len(names) else None
 
 
 def findings() -> dict[str, float]:
@@ -638,24 +1070,59 @@ class Figures:
             "findings": self.findings,
             "experiments": [m.to_dict() for m in self.measured],
             "failures": self.failures,
-            "sample_time_over_l": {"search": COARSE_TS, "measured": FINE_TS},
+            "sample_time_over_l": {
+                "search": COARSE_TS,
+                "measured": FINE_TS,
+                "measured_curve_b_lower": FINEST_TS,
+            },
             "derivative_filter_n": DERIVATIVE_N,
+            "tail": {
+                "watched_for": f"L + {WATCH_PERIODS:g} τ0 (PI: {WATCH_PERIODS_PI:g} τ0)",
+                "read_from": f"L + {TAIL_FROM:g} τ0",
+                "pencil_step_over_tau0": 1.0 / TAIL_SAMPLES,
+                "pencil_order": PENCIL_ORDER,
+                "crest_ratio_tolerance": CREST_RATIO_TOL,
+                "crest_period_tolerance": CREST_PERIOD_TOL,
+            },
             "tolerance": TOLERANCE,
         }
 
 
-def figures(ratios: Sequence[float], measure_at: Sequence[float]) -> Figures:
+def _measure_or_reason(r: float) -> Measured | str:
+    """``measure(r)``, or the reason it failed (a worker's result)."""
+    try:
+        return measure(r)
+    except RuntimeError as err:
+        return str(err)
+
+
+def figures(
+    ratios: Sequence[float], measure_at: Sequence[float], workers: int | None = None
+) -> Figures:
     """Closed forms at every T/L of ``ratios`` and ``measure_at`` (ascending), the product's
-    experiments at ``measure_at``; an experiment that fails leaves its row unmeasured and a
-    line in ``failures``."""
+    experiments at ``measure_at``, in up to ``workers`` processes (default: one per CPU, at
+    most ``MAX_WORKERS``); an experiment that fails leaves its row unmeasured and a line in
+    ``failures``."""
     rows = sorted(set(ratios) | set(measure_at))
-    measured: dict[float, Measured] = {}
-    failures = []
-    for r in sorted(set(measure_at)):
+    todo = sorted(set(measure_at), reverse=True)  # the longest first
+    if workers is None:
+        workers = min(os.cpu_count() or 1, MAX_WORKERS)
+    workers = min(workers, len(todo))
+    results: dict[float, Measured | str] = {}
+    if workers > 1:
+        # spawned, not forked: the parent may hold threads (a bus session, BLAS); where no
+        # process can be started (no semaphores in a sandbox), one after the other below
+        context = multiprocessing.get_context("spawn")
         try:
-            measured[r] = measure(r)
-        except RuntimeError as err:
-            failures.append(str(err))
+            with ProcessPoolExecutor(workers, mp_context=context) as pool:
+                results = dict(zip(todo, pool.map(_measure_or_reason, todo), strict=True))
+        except (OSError, BrokenProcessPool):
+            results = {}
+    for r in todo:
+        if r not in results:
+            results[r] = _measure_or_reason(r)
+    measured = {r: v for r, v in sorted(results.items()) if isinstance(v, Measured)}
+    failures = [v for _, v in sorted(results.items()) if isinstance(v, str)]
     forms = [closed_form(r) for r in rows]
     return Figures(
         fig1=[fig1_row(cf, measured.get(cf.t_over_l)) for cf in forms],
