@@ -32,6 +32,7 @@ from services.logger.commands import replay as replay_command
 from services.logger.commands import runs as runs_command
 from services.offline import benchmark_command, wall_times
 from services.plant_sim import service as plant_service
+from services.plant_sim.commands import model_check as model_command
 from shared.cli import OneLineParser, check_flags, check_runs_dir, exit_now
 from shared.errors import AutotuneError, one_line
 
@@ -41,6 +42,7 @@ SUBCOMMANDS = {
     "router": router,
     "health": health,
     "plant": plant_service,
+    "model": model_command,
     "loops": loops_command,
     "set": set_command,
     "step": step_command,

@@ -14,7 +14,8 @@ Loop keys (all optional but ``model``): sample_time (s), noise_std (PV units), s
 ("manual"/"auto"), setpoint (PV units), action ("reverse"/"direct"), op_limits ([lo, hi] %),
 pv_range ([lo, hi] PV units), pv_units, sp_track (bool), description, and a ``pid`` table
 (kc, ti, td, n, beta). Every other key is a parameter of the model. A top-level ``seed``
-seeds every loop's noise (each loop also mixes in its own id).
+seeds every loop's noise (each loop also mixes in its own id). ``model = "fmu"`` runs a
+Functional Mock-up Unit (simulation/fmu.py): its ``path`` is relative to the plant file.
 
 Whatever the file holds, loading it either gives loops that run or raises one ConfigError:
 one line naming the loop and field (or the file) and the reason — for a user's model class,
@@ -38,6 +39,7 @@ import numpy as np
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field
 
+from services.plant_sim.simulation.fmu import FmuModel
 from services.plant_sim.simulation.loop import LoopSettings, ModelFailure, SimLoop, gains_problem
 from services.plant_sim.simulation.models import ModelParamError
 from services.plant_sim.simulation.presets import CUSTOM_DEFAULTS, DEFAULTS, MODELS, LoopDefaults
@@ -122,13 +124,17 @@ def load_plant_file(
         for table in data["loops"].values():
             if isinstance(table, dict):
                 table["noise_std"] = noise_std
-    return build_plant(data, source=str(path), seed=seed)
+    return build_plant(data, source=str(path), seed=seed, base_dir=path.parent)
 
 
 def build_plant(
-    data: dict[str, Any], source: str = "plant", seed: int | None = None
+    data: dict[str, Any],
+    source: str = "plant",
+    seed: int | None = None,
+    base_dir: Path | None = None,
 ) -> dict[str, SimLoop]:
-    """Build every loop of a parsed plant file (``seed`` overrides the file's)."""
+    """Build every loop of a parsed plant file (``seed`` overrides the file's; an FMU's
+    relative ``path`` is taken from ``base_dir``, the plant file's folder)."""
     try:
         # JSON mode: arrays are accepted for tuples, numbers stay strict ("5" is not 5).
         plant = PlantConfig.model_validate_json(json.dumps(data))
@@ -141,7 +147,7 @@ def build_plant(
     plant_seed = plant.seed if seed is None else seed
     loops = {}
     for loop_id, cfg in plant.loops.items():
-        loops[loop_id] = build_loop(loop_id, cfg, plant_seed, source)
+        loops[loop_id] = build_loop(loop_id, cfg, plant_seed, source, base_dir)
     return loops
 
 
@@ -159,9 +165,12 @@ def _first_error(err: pydantic.ValidationError) -> str:
 def _resolve_model(name: str) -> tuple[type, LoopDefaults]:
     if name in MODELS:
         return MODELS[name], DEFAULTS[name]
+    if name == "fmu":
+        return FmuModel, CUSTOM_DEFAULTS
     if ":" not in name:
         raise ValueError(
-            f"unknown model {name!r}: use one of {', '.join(MODELS)} or 'package.module:Class'"
+            f"unknown model {name!r}: use one of {', '.join(MODELS)}, 'fmu' or "
+            "'package.module:Class'"
         )
     module_name, _, class_name = name.partition(":")
     try:
@@ -203,7 +212,13 @@ def _check_params(cls: type, params: dict[str, Any], model: str) -> str | None:
     return None
 
 
-def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "plant") -> SimLoop:
+def build_loop(
+    loop_id: str,
+    cfg: LoopConfig,
+    plant_seed: int,
+    source: str = "plant",
+    base_dir: Path | None = None,
+) -> SimLoop:
     """Construct the process model and the loop around it."""
 
     def fail(field: str, reason: str) -> ConfigError:
@@ -225,6 +240,8 @@ def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "pl
     if problem:
         field, _, reason = problem.partition(": ")
         raise fail(field, reason)
+    if cls is FmuModel and isinstance(params.get("path"), str) and base_dir is not None:
+        params["path"] = str(base_dir / params["path"])  # an absolute path stays as it is
     try:
         with np.errstate(all="ignore"):  # overflow is judged by the model, not printed
             process = cls(sample_time=sample_time, **params)
@@ -234,6 +251,12 @@ def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "pl
         raise fail("model", f"{cfg.model} rejected its parameters: {brief(err)}") from None
     except (Exception, SystemExit) as err:  # a user's class: its own words, on one line
         raise fail("model", f"{cfg.model}() raised {type(err).__name__}: {brief(err)}") from None
+    if cls is FmuModel and cfg.pv_range is None and process.pv_range is None:
+        raise fail(
+            "pv_range",
+            f"required: the FMU's output {process.output_name!r} declares no min and max "
+            "(give the transmitter's range, [lo, hi] in PV units)",
+        )
     try:
         got = _read_protocol(process, cfg)
     except ModelParamError as err:
@@ -269,7 +292,8 @@ def build_loop(loop_id: str, cfg: LoopConfig, plant_seed: int, source: str = "pl
         pv_units=cfg.pv_units if cfg.pv_units is not None else got["pv_units"],
         gains=gains,
         sp_track=cfg.sp_track,
-        description=cfg.description or (inspect.getdoc(cls) or "").split("\n")[0],
+        description=cfg.description
+        or (process.description if cls is FmuModel else (inspect.getdoc(cls) or "").split("\n")[0]),
     )
     try:
         loop = SimLoop(settings, process)

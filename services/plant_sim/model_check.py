@@ -1,0 +1,553 @@
+"""Check a process model open loop before anyone tunes it: any ProcessModel — a preset, a
+transfer function, a user's class or an FMU.
+
+From rest at its operating point the model is stepped up and down at two sizes (2 % and
+10 % of output, within the loop's output limits), each run until it settles, ramps or runs
+away. From the responses:
+
+* **behaviour**: self-regulating (settles), integrating (ends on a constant slope) or unstable
+  (accelerates without bound; said so, with its doubling time);
+* **static gain** (PV units per %; for an integrating model, PV units/s per %) for each step,
+  and the **nonlinearity**: the largest over the smallest gain, up vs down and small vs large;
+* **dead time**: when the PV first moves, to a fraction of a sample (the onset fitted as
+  c·(t − L)^r through its first three samples, which is exact for a pure power law and
+  within a few thousandths of a sample for lags that are many samples long);
+* **time constants**: T63 (to 63 % of the final change, after the dead time), the sum of the
+  lags (mean residence time − dead time: exact for lags and dead time in series), and the
+  reaction curve's apparent dead time and lag (the tangent at the inflection);
+* **ultimate point** K_u (% per PV unit), P_u (s): exact from the transfer function for the
+  linear models that have one, and for every model from its sampled step response: the pulse
+  response's z-transform on the unit circle, the zero-order hold divided out, gives G(jω) up
+  to aliasing (negligible when the period spans many samples), and the first phase crossing
+  of −180° is solved for. The small up and down steps are averaged (a central difference:
+  the even-order nonlinearity cancels), so this is the model's linear part at op0;
+* **sample time** against the dynamics: samples per ultimate period, a warning below 20.
+
+A model whose PV is not a finite number, whose ``step`` raises, or that does not move at all
+for any step, is refused. Pure computation over the model (numpy), no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import brentq
+
+from services.plant_sim.simulation.loop import ModelFailure, SimLoop, model_pv
+from shared.control.transfer import model_ultimate_point
+
+SMALL_STEP = 2.0  # % of output
+LARGE_STEP = 10.0  # % of output
+MIN_STEP = 0.05  # % of output: less room than this at op0 and that direction is not stepped
+FIRST_WINDOW = 64  # samples: the first look at a response, doubled until it is judged
+MAX_SAMPLES = 2**17  # samples per step response at most
+REST_SAMPLES = 256  # samples held at op0 to see the model is at rest
+SETTLED = 5e-4  # a response moving less than this fraction of its size in its last quarter
+RAMPING = 1e-3  # slopes of the last two quarters agreeing to this fraction: a ramp
+RUNAWAY = 100.0  # spans of the PV range (or of the rest PV): a response past it runs away
+HELD = "the run held at op0"
+MIN_SAMPLES_PER_PERIOD = 20  # fewer per ultimate period and sampling shapes the loop
+LINEAR = 0.01  # gains spread no more than this: linear
+
+
+@dataclass
+class StepResponse:
+    """One open-loop step from rest at op0: ``size`` (%, signed), PV at t = k·T."""
+
+    size: float
+    pv: np.ndarray
+    behaviour: str  # self-regulating, integrating, unstable, not settled, no response
+    gain: float | None = None  # PV units per % (integrating: PV units/s per %)
+    growth: float | None = None  # unstable: 1/s
+
+    @property
+    def label(self) -> str:
+        return f"{self.size:+g} %"
+
+
+@dataclass
+class ModelReport:
+    """What ``check_model`` found for one loop; ``refused`` says why a model cannot be tuned."""
+
+    loop: str
+    model: str
+    sample_time: float
+    op0: float
+    pv0: float | None
+    pv_units: str
+    pv_range: tuple[float, float]
+    behaviour: str = "unknown"
+    gains: dict[str, float] = field(default_factory=dict)
+    gain: float | None = None
+    nonlinearity: float | None = None
+    dead_time: float | None = None
+    onset_order: float | None = None
+    t63: float | None = None
+    lag_sum: float | None = None
+    apparent_dead_time: float | None = None
+    apparent_lag: float | None = None
+    doubling_time: float | None = None
+    ku_exact: float | None = None
+    pu_exact: float | None = None
+    ku_step: float | None = None
+    pu_step: float | None = None
+    samples_per_period: float | None = None
+    rest_drift: float | None = None  # PV units/s with the output held at op0
+    horizon: float | None = None  # s, the longest response run
+    warnings: list[str] = field(default_factory=list)
+    refused: str | None = None
+    responses: list[StepResponse] = field(default_factory=list)
+
+    @property
+    def ku(self) -> float | None:
+        return self.ku_exact if self.ku_exact is not None else self.ku_step
+
+    @property
+    def pu(self) -> float | None:
+        return self.pu_exact if self.pu_exact is not None else self.pu_step
+
+    def to_dict(self) -> dict[str, Any]:
+        """Everything but the raw responses, JSON-ready (non-finite numbers as None)."""
+
+        def clean(v: Any) -> Any:
+            if isinstance(v, float) and not math.isfinite(v):
+                return None
+            if isinstance(v, dict):
+                return {k: clean(x) for k, x in v.items()}
+            if isinstance(v, list | tuple):
+                return [clean(x) for x in v]
+            return v
+
+        out = {k: v for k, v in vars(self).items() if k != "responses"}
+        out["status"] = "refused" if self.refused else "ok"
+        out["ku"], out["pu"] = self.ku, self.pu
+        out["steps"] = [
+            {"size": r.size, "behaviour": r.behaviour, "gain": r.gain, "samples": len(r.pv) - 1}
+            for r in self.responses
+        ]
+        return clean(out)
+
+
+class Refused(Exception):
+    """The model cannot be checked (and so must not be tuned): non-finite PV, a step that
+    raises, a model that ignores its input."""
+
+
+def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
+    """Check a built loop's process model (noise, PID block and transmitter range aside)."""
+    s = loop.settings
+    return check_model(
+        loop.process,
+        loop_id=loop_id,
+        model=s.model_name,
+        sample_time=s.sample_time,
+        op_limits=s.op_limits,
+        pv_range=s.pv_range,
+        pv_units=s.pv_units,
+    )
+
+
+def check_model(
+    process: Any,
+    *,
+    loop_id: str = "",
+    model: str = "",
+    sample_time: float,
+    op_limits: tuple[float, float] = (0.0, 100.0),
+    pv_range: tuple[float, float] = (0.0, 100.0),
+    pv_units: str = "",
+    max_samples: int = MAX_SAMPLES,
+) -> ModelReport:
+    """Step ``process`` open loop from rest at its ``op0`` and report what it does."""
+    op0 = float(process.op0)
+    report = ModelReport(loop_id, model, sample_time, op0, None, pv_units, pv_range)
+    try:
+        _check(process, report, op_limits, max_samples)
+    except Refused as err:
+        report.refused = str(err)
+    return report
+
+
+# --- running the model -------------------------------------------------------------------
+
+
+def _run(
+    process: Any, op: float, label: str, t_step: float, n: int, y: list[float] | None, scale: float
+) -> list[float]:
+    """Extend the response ``y`` (PV at t = k·T from rest, y[0] at reset) to n + 1 samples
+    with the output at ``op``; Refused naming the step if the model fails."""
+    if y is None:
+        y = [_pv(process, "reset()", process.reset, label, 0.0)]
+    y0 = y[0]
+    while len(y) <= n:
+        t = len(y) * t_step
+        value = _pv(process, "step()", process.step, label, t, op)
+        y.append(value)
+        if abs(value - y0) > RUNAWAY * scale:
+            break
+    return y
+
+
+def _pv(process: Any, what: str, fn: Callable[..., Any], label: str, t: float, *args: Any) -> float:
+    try:
+        return model_pv(what, fn, *args)
+    except ModelFailure as err:
+        raise Refused(f"{err.reason} (at t = {t:g} s of {label})") from None
+
+
+def _classify(d: np.ndarray, dt: float, final: bool) -> tuple[str, float | None, float | None]:
+    """(behaviour, end value or slope, growth rate) of a response d (PV change) at t = k·dt;
+    'pending' when more samples are needed to tell."""
+    n = len(d) - 1
+    size = float(np.max(np.abs(d)))
+    if size == 0.0 or n < 8:
+        return ("no response" if final else "pending"), None, None
+    q = n // 4
+    last = d[n - q :]
+    if float(np.ptp(last)) <= SETTLED * size:
+        return "self-regulating", float(d[n]), None
+    s2 = (d[n - 2 * q] - d[n - 3 * q]) / (q * dt)
+    s3 = (d[n - q] - d[n - 2 * q]) / (q * dt)
+    s4 = (d[n] - d[n - q]) / (q * dt)
+    mid = d[n - q // 2] - 0.5 * (d[n] + d[n - q])  # the last quarter's bow from a straight line
+    if s4 != 0 and abs(s4 - s3) <= RAMPING * abs(s4) and abs(mid) <= RAMPING * abs(s4 * q * dt):
+        return "integrating", float(s4), None
+    growing = s2 != 0 and s3 / s2 > 1.0 + RAMPING and s4 / s3 > 1.0 + RAMPING
+    rate = math.log(s4 / s3) / (q * dt) if growing else None
+    if final:
+        return ("unstable" if growing else "not settled"), None, rate
+    return "pending", None, rate
+
+
+def _respond(
+    process: Any, op0: float, size: float, dt: float, scale: float, max_samples: int
+) -> StepResponse:
+    """Step to op0 + size and run until the response is judged (or max_samples)."""
+    label = f"the {size:+g} % step"
+    y: list[float] | None = None
+    n = FIRST_WINDOW
+    rates: list[float] = []
+    while True:
+        y = _run(process, op0 + size, label, dt, n, y, scale)
+        d = np.asarray(y) - y[0]
+        ran_away = len(y) <= n
+        final = ran_away or n >= max_samples
+        kind, value, rate = _classify(d, dt, final)
+        if ran_away:
+            growth = _growth(d, dt)
+            return StepResponse(size, np.asarray(y), "unstable", None, growth or rate)
+        if rate is not None:
+            rates.append(rate)
+            if len(rates) >= 4 and _consistent(rates[-4:]) and rate * n * dt > 6.0:
+                return StepResponse(size, np.asarray(y), "unstable", None, rate)
+        else:
+            rates.clear()
+        if kind != "pending":
+            gain = value / size if value is not None else None
+            return StepResponse(size, np.asarray(y), kind, gain, rate)
+        n *= 2
+
+
+def _consistent(rates: list[float]) -> bool:
+    return min(rates) > 0 and max(rates) <= 1.2 * min(rates)
+
+
+def _growth(d: np.ndarray, dt: float) -> float | None:
+    """Exponential growth rate (1/s) of a response that ran away, from its last samples."""
+    a = np.abs(d[len(d) // 2 :])
+    a = a[a > 0]
+    if len(a) < 4:
+        return None
+    r = math.log(a[-1] / a[len(a) // 2]) / ((len(a) - 1 - len(a) // 2) * dt)
+    return r if r > 0 else None
+
+
+# --- the analysis --------------------------------------------------------------------------
+
+
+def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], max_n: int) -> None:
+    dt = report.sample_time
+    op0 = report.op0
+    lo, hi = op_limits
+    span = report.pv_range[1] - report.pv_range[0]
+    # at rest?
+    rest = _run(process, op0, HELD, dt, REST_SAMPLES, None, math.inf)
+    report.pv0 = rest[0]
+    scale = max(span, abs(rest[0]), 1.0)
+    report.rest_drift = (rest[-1] - rest[0]) / (REST_SAMPLES * dt)
+    up, down = hi - op0, op0 - lo
+    sizes = _sizes(up, down)
+    if not sizes:
+        raise Refused(f"op0 = {op0:g} % leaves no room to step within the output limits {[lo, hi]}")
+    for size in sizes:
+        report.responses.append(_respond(process, op0, size, dt, scale, max_n))
+    responses = report.responses
+    report.horizon = max(len(r.pv) - 1 for r in responses) * dt
+    if abs(rest[-1] - rest[0]) > 1e-12 * scale:
+        _correct_drift(process, report)
+    if all(r.behaviour == "no response" for r in responses):
+        raise Refused(
+            f"it ignores its input: the PV did not move in {report.horizon:g} s after steps of "
+            f"{', '.join(r.label for r in responses)}"
+        )
+    kinds = {r.behaviour for r in responses} - {"no response"}
+    for r in responses:
+        if r.gain is not None:
+            report.gains[r.label] = r.gain
+    for kind in ("unstable", "not settled", "integrating", "self-regulating"):
+        if kind in kinds:
+            report.behaviour = kind
+            break
+    if len(kinds) > 1:
+        report.warnings.append(
+            "the steps disagree on its behaviour: "
+            + ", ".join(f"{r.label} {r.behaviour}" for r in responses)
+        )
+    if report.behaviour == "unstable":
+        rates = [r.growth for r in responses if r.growth]
+        if rates:
+            report.doubling_time = math.log(2.0) / max(rates)
+        report.warnings.append(
+            "unstable: the PV runs away open loop"
+            + (f" (doubling every {report.doubling_time:.3g} s)" if report.doubling_time else "")
+            + "; a relay or step test would drive it to a limit"
+        )
+    elif report.behaviour == "not settled":
+        report.warnings.append(
+            f"not settled after {report.horizon:g} s: oscillating, or slower than the check runs"
+        )
+    gains = list(report.gains.values())
+    if len(gains) >= 2 and all(g != 0 for g in gains):
+        mags = [abs(g) for g in gains]
+        report.nonlinearity = max(mags) / min(mags) - 1.0
+        if any(g * gains[0] < 0 for g in gains):
+            report.nonlinearity = math.inf
+        if report.nonlinearity > LINEAR:
+            report.warnings.append(
+                f"nonlinear: the gain varies by {_pct(report.nonlinearity)} between the steps "
+                "(the ultimate point is that of its linear part at op0)"
+            )
+    for r in responses:
+        if r.behaviour in ("self-regulating", "integrating"):
+            peak = r.pv[int(np.argmax(np.abs(r.pv - r.pv[0])))]
+            if not report.pv_range[0] <= peak <= report.pv_range[1]:
+                report.warnings.append(
+                    f"the {r.label} step takes the PV to {peak:.6g}, out of pv_range "
+                    f"{list(report.pv_range)}: the transmitter would clip it"
+                )
+                break
+    _shape(report)
+    exact = model_ultimate_point(process) if _has_transfer(process) else None
+    if exact is not None:
+        report.ku_exact, report.pu_exact = exact
+    if report.pu is not None:
+        report.samples_per_period = report.pu / dt
+        if report.samples_per_period < MIN_SAMPLES_PER_PERIOD:
+            report.warnings.append(
+                f"sample time {dt:g} s is {report.samples_per_period:.3g} samples per ultimate "
+                f"period (P_u {report.pu:.4g} s): below {MIN_SAMPLES_PER_PERIOD}, sampling "
+                "shapes the loop (and blurs a step-response estimate of it); sample faster"
+            )
+
+
+def _has_transfer(process: Any) -> bool:
+    return getattr(process, "num", None) is not None and getattr(process, "den", None) is not None
+
+
+def _pct(x: float) -> str:
+    return "sign" if not math.isfinite(x) else f"{100 * x:.3g} %"
+
+
+def _sizes(up: float, down: float) -> list[float]:
+    """The signed steps: small and large, up and down, as far as the limits allow."""
+    out: list[float] = []
+    for step in (SMALL_STEP, LARGE_STEP):
+        both = min(step, up, down)
+        for sign, room in ((1.0, up), (-1.0, down)):
+            size = both if both >= MIN_STEP else min(step, room)
+            if size >= MIN_STEP and sign * size not in out:
+                out.append(sign * size)
+    return out
+
+
+def _correct_drift(process: Any, report: ModelReport) -> None:
+    """The PV moves with the output held at op0: subtract that run, as long as the longest
+    step's, from every step (exact for a linear model, whatever the drift's shape), judge the
+    steps again, and say so."""
+    dt = report.sample_time
+    longest = max(len(r.pv) for r in report.responses) - 1
+    base = np.asarray(_run(process, report.op0, HELD, dt, longest, None, math.inf))
+    for r in report.responses:
+        n = len(r.pv)
+        r.pv = r.pv - (base[:n] - base[0])
+        if r.behaviour != "unstable":
+            kind, value, _ = _classify(r.pv - r.pv[0], dt, final=True)
+            r.behaviour, r.gain = kind, (value / r.size if value is not None else None)
+    drift = report.rest_drift or 0.0
+    report.warnings.append(
+        f"not at rest at op0 = {report.op0:g} %: the PV drifts {drift:.3g} "
+        f"{report.pv_units or 'PV units'}/s with the output held (the step figures are corrected "
+        "for it: each step minus the run held at op0); an FMU may need settle = SECONDS, or op0 "
+        "at its balance point"
+    )
+
+
+def _linear_response(report: ModelReport) -> tuple[np.ndarray, float] | None:
+    """(response per % of the small steps, central difference where both exist; step size)."""
+    small = [r for r in report.responses if r.behaviour == report.behaviour]
+    if not small:
+        return None
+    size = min(abs(r.size) for r in small)
+    pair = [r for r in small if abs(r.size) == size]
+    n = min(len(r.pv) for r in pair)
+    if len(pair) == 2:
+        upr, dnr = sorted(pair, key=lambda r: -r.size)
+        s = ((upr.pv[:n] - upr.pv[0]) - (dnr.pv[:n] - dnr.pv[0])) / (2 * size)
+    else:
+        r = pair[0]
+        s = (r.pv[:n] - r.pv[0]) / r.size
+    return s, size
+
+
+def _shape(report: ModelReport) -> None:
+    """Gain, dead time, time constants and the ultimate point from the linear response."""
+    got = _linear_response(report)
+    if got is None or report.behaviour not in ("self-regulating", "integrating"):
+        return
+    s, _ = got
+    dt = report.sample_time
+    t = np.arange(len(s)) * dt
+    integrating = report.behaviour == "integrating"
+    n = len(s) - 1
+    q = n // 4
+    # the end value (PV units per %), or the final slope (PV units/s per %)
+    k_gain = (s[n] - s[n - q]) / (q * dt) if integrating else float(s[n])
+    report.gain = k_gain
+    if k_gain == 0:
+        return
+    report.dead_time, report.onset_order = _dead_time(s, dt)
+    if integrating:
+        report.apparent_dead_time = float(t[n] - s[n] / k_gain)  # the asymptote's intercept
+    else:
+        _time_constants(report, s, t, k_gain)
+    report.ku_step, report.pu_step = _ultimate_from_step(s, dt, integrating) or (None, None)
+
+
+def _dead_time(s: np.ndarray, dt: float) -> tuple[float | None, float | None]:
+    """(L, r): the onset c·(t − L)^r through the first three samples that moved."""
+    size = float(np.max(np.abs(s)))
+    moved = np.nonzero(np.abs(s) > 1e-9 * size)[0]
+    if len(moved) == 0:
+        return None, None
+    k = int(moved[0])
+    if k + 2 >= len(s):
+        return (k - 1) * dt, None
+    d1, d2, d3 = (abs(s[k + i]) for i in range(3))
+    t1, t2, t3 = k * dt, (k + 1) * dt, (k + 2) * dt
+    if not (0 < d1 < d2 < d3) or np.sign(s[k]) != np.sign(s[k + 2]):
+        return (k - 1) * dt, None
+    ratio = math.log(d3 / d2) / math.log(d2 / d1)
+
+    def g(lag: float) -> float:
+        return math.log((t3 - lag) / (t2 - lag)) / math.log((t2 - lag) / (t1 - lag)) - ratio
+
+    a, b = t1 - dt, t1 - 1e-9 * dt
+    if g(a) <= 0:  # started at once on the sample before: no dead time within it
+        lag = a
+    elif g(b) >= 0:
+        lag = b
+    else:
+        lag = brentq(g, a, b, xtol=1e-12 * max(dt, 1.0))
+    order = math.log(d2 / d1) / math.log((t2 - lag) / (t1 - lag))
+    return max(lag, 0.0), order
+
+
+def _time_constants(report: ModelReport, s: np.ndarray, t: np.ndarray, k_gain: float) -> None:
+    """T63, the sum of lags and the tangent's apparent dead time and lag."""
+    dt = report.sample_time
+    lag = report.dead_time or 0.0
+    frac = s / k_gain
+    above = np.nonzero(frac >= 1.0 - math.exp(-1.0))[0]
+    if len(above) and above[0] > 0:
+        i = int(above[0])
+        f0, f1 = frac[i - 1], frac[i]
+        t_63 = t[i - 1] + dt * ((1.0 - math.exp(-1.0)) - f0) / (f1 - f0)
+        report.t63 = float(t_63 - lag)
+    area = float(np.trapezoid(1.0 - frac, t))  # mean residence time
+    report.lag_sum = area - lag
+    slope = np.gradient(frac, dt)
+    k = int(np.argmax(slope))
+    onset = int(np.nonzero(np.abs(frac) > 1e-9)[0][0])
+    if k <= onset + 1 and onset + 3 < len(frac):  # steepest as it starts: a first-order onset
+        mids = t[onset : onset + 3] + dt / 2
+        secants = np.diff(frac[onset : onset + 4]) / dt
+        m = float(np.polyval(np.polyfit(mids, secants, 2), lag))
+        report.apparent_dead_time = lag
+        report.apparent_lag = 1.0 / m if m > 0 else None
+        return
+    lo, hi = max(k - 3, 0), min(k + 4, len(frac))
+    if hi - lo < 5:
+        return
+    p = np.polyfit(t[lo:hi] - t[k], frac[lo:hi], 3)
+    if p[0] != 0:
+        x = -p[1] / (3 * p[0])  # the cubic's inflection
+        x = x if abs(x) <= dt else 0.0
+    else:
+        x = 0.0
+    m = float(np.polyval(np.polyder(p), x))
+    v = float(np.polyval(p, x))
+    if m > 0:
+        report.apparent_dead_time = float(t[k] + x - v / m)
+        report.apparent_lag = 1.0 / m
+
+
+def _ultimate_from_step(s: np.ndarray, dt: float, integrating: bool) -> tuple[float, float] | None:
+    """(K_u, P_u) of the model whose sampled unit-step response is ``s`` (s[0] = 0)."""
+    h = np.diff(s)  # pulse response, h[k−1] ↔ z^−k
+    hinf = 0.0
+    if integrating:
+        q = max(len(h) // 8, 1)
+        hinf = float(np.mean(h[-q:]))
+    r = h - hinf
+    n = len(r)
+    size = 1 << max(math.ceil(math.log2(16 * n)), 12)
+
+    def g_of(w: np.ndarray) -> np.ndarray:
+        z1 = np.exp(-1j * w * dt)
+        return z1 * (1j * w * dt) / (1.0 - z1)  # z^−1 times the hold divided out
+
+    spectrum = np.fft.rfft(r, size)  # Σ r_k e^{−jωkT}, k from 0 ↔ z^−(k+1)
+    w = 2 * np.pi * np.fft.rfftfreq(size, dt)
+    w, spectrum = w[1:], spectrum[1:]
+    hold = g_of(w)
+    g = spectrum * hold
+    if integrating:
+        g = g + hinf * hold / (1.0 - np.exp(-1j * w * dt))
+    low = g[0] if not integrating else g[0] * 1j  # an integrator's phase starts at −90°
+    sign = 1.0 if np.real(low) >= 0 else -1.0
+    phase = np.unwrap(np.angle(sign * g))
+    keep = w <= 0.95 * np.pi / dt
+    below = np.nonzero((phase + np.pi < 0) & keep)[0]
+    if len(below) == 0 or below[0] == 0:
+        return None
+    i = int(below[0])
+
+    def g_at(om: float) -> complex:
+        k = np.arange(n)
+        val = complex(np.sum(r * np.exp(-1j * om * dt * k))) * complex(g_of(np.array([om]))[0])
+        if integrating:
+            val += hinf * complex(g_of(np.array([om]))[0]) / (1.0 - np.exp(-1j * om * dt))
+        return val
+
+    def f(om: float) -> float:
+        return float(np.angle(-sign * g_at(om)))
+
+    try:
+        wu = brentq(f, w[i - 1], w[i], xtol=1e-14, rtol=1e-13)
+    except ValueError:
+        wu = float(w[i])
+    return 1.0 / abs(g_at(wu)), 2 * math.pi / wu

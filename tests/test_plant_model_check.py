@@ -1,0 +1,405 @@
+"""``autotune model check`` (issue 17, item 2): any model checked open loop before it is tuned.
+
+Every preset, and the three test FMUs (first order plus dead time, heat exchanger, nonlinear
+tank), against closed forms computed here: static gains (each step's, for the tank's
+square-root law), dead time, time constants, the reaction curve's tangent, and the ultimate
+point — exact from the transfer function where the model has one, and from the step response
+for every model — within 1 %. Unstable, drifting, silent and failing models; the command's
+text, JSON, plot and one-line refusals.
+(tests/test_model_check.py is the autotuner's check of a fitted model: another module.)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+
+from services.cli import main
+from services.plant_sim.model_check import check_loop
+from services.plant_sim.plant_file import build_plant, default_plant_path, load_plant_file
+from tests.exact import lag_ultimate, sopdt_tangent, ultimate_point
+from tests.fmus import build_all
+
+ROOT = Path(__file__).resolve().parents[1]
+HERE = "tests.test_plant_model_check"
+
+
+@pytest.fixture(scope="session")
+def fmus(tmp_path_factory) -> dict[str, Path]:
+    return build_all(tmp_path_factory.mktemp("fmus"))
+
+
+@pytest.fixture(scope="module")
+def presets():
+    loops = load_plant_file(default_plant_path())
+    return {lid: check_loop(lid, loop) for lid, loop in loops.items()}
+
+
+def check(table: dict, loop_id: str = "x"):
+    return check_loop(loop_id, build_plant({"loops": {loop_id: table}})[loop_id])
+
+
+def t63_sopdt(t1: float, t2: float) -> float:
+    """Time after the dead time to 63.2 % of 1/((t1 s + 1)(t2 s + 1))'s step."""
+    return brentq(
+        lambda x: (
+            1 - (t1 * math.exp(-x / t1) - t2 * math.exp(-x / t2)) / (t1 - t2) - (1 - 1 / math.e)
+        ),
+        1e-6,
+        100 * (t1 + t2),
+    )
+
+
+def within(got: float | None, exact: float, rel: float = 0.01) -> None:
+    assert got is not None and got == pytest.approx(exact, rel=rel), (got, exact)
+
+
+def assert_fopdt_figures(r, k: float, tau: float, lag: float) -> None:
+    within(r.gain, k, 1e-4)
+    within(r.dead_time, lag)
+    within(r.t63, tau)
+    within(r.lag_sum, tau)
+    within(r.apparent_dead_time, lag)
+    within(r.apparent_lag, tau)
+    ku, pu = lag_ultimate(k, (tau,), lag)
+    within(r.ku_step, ku)
+    within(r.pu_step, pu)
+
+
+def assert_heat_exchanger_figures(r) -> None:
+    """e^{−5s}/((10s + 1)(60s + 1)) °C per %."""
+    within(r.gain, 1.0, 1e-4)
+    within(r.dead_time, 5.0)
+    within(r.lag_sum, 70.0)
+    within(r.t63, t63_sopdt(10.0, 60.0))
+    lag, slope = sopdt_tangent(1.0, 10.0, 60.0, 5.0)
+    within(r.apparent_dead_time, lag)
+    within(r.apparent_lag, 1.0 / slope)
+    ku, pu = lag_ultimate(1.0, (10.0, 60.0), 5.0)
+    within(r.ku_step, ku)
+    within(r.pu_step, pu)
+    assert r.samples_per_period == pytest.approx(pu / 0.25, rel=0.01)
+    assert r.nonlinearity < 1e-6 and r.warnings == []
+
+
+# --- the presets -------------------------------------------------------------------------
+
+
+def test_heat_exchanger_preset(presets):
+    r = presets["hx1"]
+    assert r.behaviour == "self-regulating" and r.refused is None
+    assert_heat_exchanger_figures(r)
+    ku, pu = lag_ultimate(1.0, (10.0, 60.0), 5.0)
+    assert r.ku_exact == pytest.approx(ku, rel=1e-9) and r.pu_exact == pytest.approx(pu, rel=1e-9)
+
+
+def test_physical_heat_exchanger_preset(presets):
+    """Linear in the valve (linear characteristic): the energy balances give
+    G(s) = K_q·UA/((C_w s + UA)(C_f s + F c_p + UA) − UA²) · e^{−5s}/(s + 1)."""
+    cp, h_fg, steam_max, flow, ua = 4186.0, 2.1e6, 0.4, 2.0, 12000.0
+    c_f, c_w = 60.0 * cp, 250000.0
+    k_q = steam_max * h_fg / 100.0  # W per % of valve
+    den = np.polysub(np.polymul([c_w, ua], [c_f, flow * cp + ua]), [0.0, 0.0, ua**2])
+    den = np.polymul(den, [1.0, 1.0])
+    r = presets["hx2"]
+    within(r.gain, k_q / (flow * cp), 1e-4)
+    assert set(r.gains) == {"+2 %", "-2 %", "+10 %", "-10 %"}
+    within(r.dead_time, 5.0)
+    ku, pu = ultimate_point([k_q * ua], den, 5.0)
+    within(r.ku_step, ku)
+    within(r.pu_step, pu)
+    assert r.ku_exact is None  # no transfer function of its own: the step response's
+
+
+def test_tank_level_preset_is_nonlinear_and_sampled_too_slowly(presets):
+    """At rest h = level0·(op/op0)²: each step's gain in closed form; linearised, a lag of
+    2·area·level0/q0 = 600 s with 1 s dead time, whose P_u (4 s) is 4 samples."""
+    r = presets["lvl1"]
+    for label, gain in r.gains.items():
+        d = float(label.split()[0])
+        within(gain, 1.5 * ((50 + d) ** 2 - 50**2) / (50**2 * d), 1e-3)
+    within(r.gain, 2 * 1.5 / 50, 1e-3)
+    within(r.dead_time, 1.0)
+    within(r.t63, 600.0)
+    assert r.nonlinearity == pytest.approx(0.066 / 0.054 - 1, rel=1e-3)
+    assert any(w.startswith("nonlinear: the gain varies by 22.2 %") for w in r.warnings)
+    assert any("samples per ultimate period" in w and "below 20" in w for w in r.warnings)
+
+
+def test_integrating_tank_preset(presets):
+    """A·dh/dt = inflow_max·op/100 − q_pump: 1e-4 m/s per %, 2 s dead time."""
+    r = presets["lvl2"]
+    assert r.behaviour == "integrating"
+    within(r.gain, 0.02 / (100 * 2.0), 1e-6)
+    assert all(g == pytest.approx(1e-4, rel=1e-6) for g in r.gains.values())
+    within(r.dead_time, 2.0)
+    within(r.apparent_dead_time, 2.0)
+
+
+def test_flow_preset(presets):
+    """Linear valve: 1 m³/h per %, lags 1.5 s (actuator), 0.5 s (fluid), 0.3 s (transmitter),
+    1 s dead time."""
+    r = presets["flow1"]
+    within(r.gain, 1.0, 1e-4)
+    within(r.dead_time, 1.0)
+    within(r.lag_sum, 2.3)
+    ku, pu = lag_ultimate(1.0, (1.5, 0.5, 0.3), 1.0)
+    within(r.ku_step, ku)
+    within(r.pu_step, pu)
+
+
+@pytest.mark.parametrize(
+    ("table", "exact"),
+    [
+        (
+            {"model": "fopdt", "gain": 2.0, "time_constant": 10.0, "delay": 2.0},
+            lag_ultimate(2.0, (10.0,), 2.0),
+        ),
+        ({"model": "ipdt", "gain": 0.02, "delay": 3.0}, (math.pi / (2 * 0.02 * 3.0), 12.0)),
+        (
+            {"model": "transfer_function", "num": [6.0], "den": [1.0, 6.0, 11.0, 6.0]},
+            ultimate_point([6.0], [1.0, 6.0, 11.0, 6.0]),
+        ),
+    ],
+    ids=["fopdt", "ipdt", "third-order"],
+)
+def test_linear_presets_exact_and_from_the_step(table, exact):
+    r = check({**table, "sample_time": 0.01 if table["model"] == "transfer_function" else 0.1})
+    assert r.ku_exact == pytest.approx(exact[0], rel=1e-9)
+    assert r.pu_exact == pytest.approx(exact[1], rel=1e-9)
+    within(r.ku_step, exact[0])
+    within(r.pu_step, exact[1])
+    if table["model"] == "fopdt":
+        assert_fopdt_figures(r, 2.0, 10.0, 2.0)
+
+
+# --- the three test FMUs --------------------------------------------------------------------
+
+
+def fmu_table(path: Path, **keys) -> dict:
+    return {
+        "model": "fmu",
+        "path": str(path),
+        "input": "u",
+        "output": "y",
+        "sample_time": 0.1,
+        "pv_range": [0.0, 200.0],
+        **keys,
+    }
+
+
+def test_fopdt_fmu(fmus):
+    r = check(fmu_table(fmus["Fopdt"], parameters={"K": 2.0, "tau": 10.0, "L": 2.0}))
+    assert r.behaviour == "self-regulating" and r.warnings == []
+    assert_fopdt_figures(r, 2.0, 10.0, 2.0)
+
+
+def test_fopdt_fmu_by_model_exchange(fmus):
+    r = check(fmu_table(fmus["LagMe"], delay=2.0))
+    assert_fopdt_figures(r, 2.0, 10.0, 2.0)
+
+
+def test_heat_exchanger_fmu(fmus):
+    r = check(
+        fmu_table(
+            fmus["HeatExchanger"],
+            input="valve",
+            output="T_out",
+            op_scale=[0.0, 1.0],
+            op0=40.0,
+            delay=5.0,
+            sample_time=0.25,
+            disturbances={"inlet_temp": "T_in"},
+        )
+    )
+    assert_heat_exchanger_figures(r)
+
+
+def test_nonlinear_tank_fmu(fmus):
+    """area·dh/dt = q_max·v/100 − cv·√h with the loop's 2 s: each step's gain from
+    h = level0·(v/v0)², the linear part a 60 s lag of gain 0.06 m/% (1 % against it)."""
+    r = check(fmu_table(fmus["Tank"], input="valve", output="h", delay=2.0, pv_range=[0, 6]))
+    for label, gain in r.gains.items():
+        d = float(label.split()[0])
+        within(gain, 1.5 * ((50 + d) ** 2 - 50**2) / (50**2 * d), 1e-3)
+    within(r.gain, 0.06, 1e-3)
+    within(r.dead_time, 2.0)
+    within(r.t63, 60.0)
+    ku, pu = lag_ultimate(0.06, (60.0,), 2.0)
+    within(r.ku_step, ku)
+    within(r.pu_step, pu)
+    assert r.nonlinearity > 0.2 and any(w.startswith("nonlinear") for w in r.warnings)
+
+
+# --- models that must not be tuned as they are ---------------------------------------------
+
+
+class _User:
+    pv_units = "bar"
+    pv_range = (0.0, 100.0)
+
+    def __init__(self, sample_time: float, op0: float = 50.0):
+        self.sample_time, self.op0 = sample_time, op0
+        self.x, self.n = 0.0, 0
+
+    def reset(self) -> float:
+        self.x, self.n = 0.0, 0
+        return 50.0
+
+    def disturbance_names(self) -> tuple[str, ...]:
+        return ()
+
+    def set_disturbance(self, name: str, value: float) -> None:
+        raise KeyError(name)
+
+
+class Unstable(_User):
+    """dx/dt = x/20 + 0.1·(op − op0), exactly sampled: doubles every 20·ln 2 s."""
+
+    def step(self, op: float) -> float:
+        a = math.exp(self.sample_time / 20.0)
+        self.x = a * self.x + (a - 1.0) * 2.0 * (op - self.op0)
+        return 50.0 + self.x
+
+
+class Ignores(_User):
+    def step(self, op: float) -> float:
+        return 50.0
+
+
+class NaNAfter(_User):
+    def step(self, op: float) -> float:
+        self.n += 1
+        return math.nan if self.n > 30 else 50.0 + 0.1 * (op - self.op0)
+
+
+class Raises(_User):
+    def step(self, op: float) -> float:
+        self.n += 1
+        if self.n > 5:
+            raise RuntimeError("valve stuck")
+        return 50.0
+
+
+class Drifts(_User):
+    """An integrator not balanced at op0: 0.002 bar/s at rest, 0.01 bar/s per %."""
+
+    def step(self, op: float) -> float:
+        self.x += (0.002 + 0.01 * (op - self.op0)) * self.sample_time
+        return 50.0 + self.x
+
+
+def test_an_unstable_model_is_said_to_run_away():
+    r = check({"model": f"{HERE}:Unstable", "sample_time": 0.5})
+    assert r.behaviour == "unstable" and r.refused is None and r.ku is None
+    within(r.doubling_time, 20.0 * math.log(2.0))
+    assert any(w.startswith("unstable: the PV runs away") for w in r.warnings)
+
+
+def test_a_model_not_at_rest_is_corrected_for_its_drift_and_said_so():
+    r = check({"model": f"{HERE}:Drifts", "sample_time": 0.5})
+    assert r.behaviour == "integrating"
+    assert all(g == pytest.approx(0.01, rel=1e-9) for g in r.gains.values())
+    assert r.rest_drift == pytest.approx(0.002, rel=1e-9)
+    assert any(w.startswith("not at rest at op0 = 50 %: the PV drifts 0.002") for w in r.warnings)
+
+
+@pytest.mark.parametrize(
+    ("cls", "needle"),
+    [
+        ("Ignores", "it ignores its input: the PV did not move in"),
+        ("NaNAfter", "the model's step() returned PV nan (at t = 15.5 s of the run held at op0)"),
+        ("Raises", "the model's step() raised RuntimeError: valve stuck"),
+    ],
+)
+def test_models_that_cannot_be_tuned_are_refused(cls, needle):
+    r = check({"model": f"{HERE}:{cls}", "sample_time": 0.5})
+    assert r.refused is not None and needle in r.refused and "\n" not in r.refused
+
+
+# --- the command ----------------------------------------------------------------------------
+
+
+def plant_with(tmp_path: Path, fmus: dict[str, Path], extra: str = "") -> Path:
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[loops.fo1]\nmodel = "fmu"\npath = "{fmus["Fopdt"]}"\ninput = "u"\noutput = "y"\n'
+        'sample_time = 0.1\npv_range = [0.0, 200.0]\npv_units = "degC"\n\n'
+        '[loops.ip]\nmodel = "ipdt"\ngain = 0.02\ndelay = 3.0\nsample_time = 0.1\n' + extra
+    )
+    return path
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    try:
+        code = main(list(argv))
+    except SystemExit as stop:
+        code = stop.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_the_command_prints_json_and_a_plot(fmus, tmp_path, capsys):
+    plant = plant_with(tmp_path, fmus)
+    png = tmp_path / "check.png"
+    code, out, err = run_cli(capsys, "model", "check", str(plant), "--json", "--plot", str(png))
+    assert code == 0, err
+    loops = {x["loop"]: x for x in json.loads(out)["loops"]}
+    assert set(loops) == {"fo1", "ip"} and loops["fo1"]["status"] == "ok"
+    within(loops["fo1"]["ku"], lag_ultimate(2.0, (10.0,), 2.0)[0])
+    assert loops["ip"]["ku_exact"] == pytest.approx(math.pi / (2 * 0.02 * 3.0), rel=1e-9)
+    assert loops["ip"]["behaviour"] == "integrating"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    code, out, err = run_cli(capsys, "model", "check", str(plant), "--loop", "ip")
+    assert code == 0 and out.startswith("loop ip: model ipdt") and "loop fo1" not in out
+    assert "ultimate point: K_u 26.18 % per %, P_u 12 s (exact, from the transfer function" in out
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--loop", "nope"], "--loop nope: no such loop in"),
+        (["--plot", "x.jpg"], "--plot x.jpg: must name a .png file"),
+        (["--plot", "/no/such/dir/x.png"], "the directory /no/such/dir does not exist"),
+    ],
+)
+def test_bad_flags_are_one_line(fmus, tmp_path, capsys, args, needle):
+    code, _, err = run_cli(capsys, "model", "check", str(plant_with(tmp_path, fmus)), *args)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and needle in err, err
+
+
+def test_a_refused_model_is_reported_and_exits_2_in_one_line(fmus, tmp_path, capsys):
+    extra = f'\n[loops.bad]\nmodel = "{HERE}:NaNAfter"\nsample_time = 0.5\n'
+    code, out, err = run_cli(capsys, "model", "check", str(plant_with(tmp_path, fmus, extra)))
+    assert code == 2 and "loop fo1" in out and "REFUSED" in out
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert "loops.bad.model: refused: the model's step() returned PV nan" in err
+
+
+def test_through_a_real_interpreter(fmus, tmp_path):
+    plant = plant_with(tmp_path, fmus)
+    run = subprocess.run(
+        [sys.executable, "-m", "services.cli", "model", "check", str(plant), "--loop", "fo1"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert run.returncode == 0, run.stderr
+    assert "loop fo1: model fmu" in run.stdout and "behaviour: self-regulating" in run.stdout
+    assert "dead time: 2.00" in run.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "services.cli", "model", "chek", str(plant)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
