@@ -45,6 +45,14 @@ def read_history(path: Path) -> Iterator[dict[str, Any]]:
                 yield rec
 
 
-def loop_changes(path: Path, loop: str) -> list[dict[str, Any]]:
-    """The ``change`` records of ``loop``, oldest first."""
-    return [r for r in read_history(path) if r.get("record") == "change" and r.get("loop") == loop]
+def of_loop(rec: dict[str, Any], loop: str, prefix: str | None) -> bool:
+    """Is ``rec`` of ``loop`` on the bus ``prefix`` (None: any; a record written before
+    records named their prefix counts as any)?"""
+    return rec.get("loop") == loop and (prefix is None or rec.get("prefix", prefix) == prefix)
+
+
+def loop_changes(path: Path, loop: str, prefix: str | None = None) -> list[dict[str, Any]]:
+    """The ``change`` records of ``loop`` (on the bus ``prefix``; None: any), oldest first."""
+    return [
+        r for r in read_history(path) if r.get("record") == "change" and of_loop(r, loop, prefix)
+    ]

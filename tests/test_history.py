@@ -10,6 +10,7 @@ import pytest
 
 from services.autotuner.commands.apply import choose, same_loop
 from services.autotuner.commands.revert import target
+from services.logger.commands.history import entries
 from services.logger.history import ChangeHistory
 from shared import keys, wire
 from shared.errors import ConfigError
@@ -155,6 +156,19 @@ def test_a_torn_last_line_is_skipped(tmp_path):
     with (tmp_path / HISTORY_FILE).open("a") as f:
         f.write('{"record": "change", "loop": "hx1", "bef')  # a crash mid-line
     assert len(changes(tmp_path)) == 1
+
+
+def test_one_runs_directory_two_buses_a_loop_id_is_a_loop_within_its_prefix(tmp_path):
+    """The demo records under its own prefix beside `autotune up`'s: their hx1s are two."""
+    h = history(tmp_path)
+    feed(h, status(G0))
+    feed(h, status(G1, "gains", by_source="autotune-set"))
+    other = ChangeHistory(tmp_path, "other", now=h.now)  # another bus, the same file
+    other.handle(keys.status("other", LOOP), wire.encode(status(G0)))  # learned, not a change
+    assert len(changes(tmp_path)) == 1
+    assert loop_changes(tmp_path / HISTORY_FILE, LOOP, "other") == []
+    assert len(loop_changes(tmp_path / HISTORY_FILE, LOOP, P)) == 1
+    assert entries(tmp_path, LOOP, "other") == [] and len(entries(tmp_path, LOOP, P)) == 1
 
 
 # --- revert and apply, their pure parts -----------------------------------------------------

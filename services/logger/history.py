@@ -21,7 +21,9 @@ object per line, written and flushed as it happens, so it survives restarts. Two
   with the verification of the run that made it, and ``autotune apply`` what a run
   recommended.
 
-Times: ``utc`` (ISO 8601, when the logger saw it) and ``t`` (the loop's sim time, s).
+Times: ``utc`` (ISO 8601, when the logger saw it) and ``t`` (the loop's sim time, s). Every
+record names its bus's ``prefix``: one runs directory may serve several (a loop id is a loop
+only within its prefix).
 """
 
 from __future__ import annotations
@@ -67,8 +69,12 @@ class ChangeHistory:
         self.invalid = 0
         # the last gains on record per loop (and the node they were of): a restart's baseline
         self._on_record: dict[str, tuple[str | None, dict[str, Any]]] = {}
-        for rec in read_history(self.path):
-            if rec.get("record") == "change" and isinstance(rec.get("after"), dict):
+        for rec in read_history(self.path):  # this bus's (prefix's) loops only
+            if (
+                rec.get("record") == "change"
+                and isinstance(rec.get("after"), dict)
+                and rec.get("prefix", prefix) == prefix
+            ):
                 self._on_record[str(rec.get("loop"))] = (rec.get("node"), rec["after"])
 
     def handle(self, key: str, payload: bytes) -> None:
@@ -101,6 +107,7 @@ class ChangeHistory:
                     "record": "change",
                     "utc": self._utc(),
                     "t": st.t,
+                    "prefix": self.prefix,
                     "loop": st.loop,
                     "node": st.node,
                     "by_source": st.by_source,
@@ -137,6 +144,7 @@ class ChangeHistory:
                     "record": "change",
                     "utc": self._utc(),
                     "t": st.t,
+                    "prefix": self.prefix,
                     "loop": st.loop,
                     "node": st.node,
                     "by_source": None,
@@ -158,6 +166,7 @@ class ChangeHistory:
                 "record": "tune",
                 "utc": self._utc(),
                 "t": r.t,
+                "prefix": self.prefix,
                 "loop": r.loop,
                 "run_id": r.run_id,
                 "status": r.status,

@@ -80,7 +80,7 @@ def load_series(path: str | Path) -> RunSeries:
         spans,
         result,
         meta,
-        history_lines(Path(path).parent, meta.get("loop", ""), run_id or "")
+        history_lines(Path(path).parent, meta.get("loop", ""), run_id or "", meta.get("prefix"))
         + watch_lines(Path(path).parent, meta.get("loop", ""), run_id or ""),
     )
 
@@ -134,10 +134,10 @@ def _gains_text(g: dict | None) -> str:
     )
 
 
-def history_lines(runs: Path, loop: str, run_id: str) -> list[str]:
+def history_lines(runs: Path, loop: str, run_id: str, prefix: str | None = None) -> list[str]:
     """The loop's last gains changes (this run's marked ▶), oldest first: UTC, who, before →
     after; empty without a history beside the file."""
-    changes = loop_changes(runs / HISTORY_FILE, loop) if loop else []
+    changes = loop_changes(runs / HISTORY_FILE, loop, prefix) if loop else []
     if not changes:
         return []
     mine = [i for i, c in enumerate(changes) if run_id and c.get("run_id") == run_id]

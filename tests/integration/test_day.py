@@ -74,7 +74,9 @@ def test_a_day_with_a_loop(start_plant, start_tuner, start_logger, tmp_path):
     assert g1 == {**g0, **tuned["chosen"]["isa"]}
     (first,) = changes_seen(runs, 1)
     assert (first["run_id"], first["before"], first["after"]) == (tuned["run_id"], g0, g1)
-    shown = json.loads(local("history", LOOP, "--runs", str(runs), "--json").stdout)
+    shown = json.loads(
+        local("history", LOOP, "--runs", str(runs), "--prefix", plant.prefix, "--json").stdout
+    )
     assert shown[0]["tune"]["verification_after"]["overshoot"] == tuned["after"]["overshoot"]
 
     reverted = json.loads(cli(plant, "revert", LOOP, "--runs", str(runs), "--json").stdout)
@@ -112,10 +114,12 @@ def test_a_day_with_a_loop(start_plant, start_tuner, start_logger, tmp_path):
         "autotune-revert",
     ]
     assert [c["after"] for c in final] == [g1, g0, g2, g3, g2]
-    shown = json.loads(local("history", LOOP, "--runs", str(runs), "--json").stdout)
+    shown = json.loads(
+        local("history", LOOP, "--runs", str(runs), "--prefix", plant.prefix, "--json").stdout
+    )
     # the no-apply run changed nothing: listed as a run that recommended gains
     assert [e["record"] for e in shown] == ["change", "change", "tune", *["change"] * 3]
     assert shown[2]["run_id"] == pending["run_id"] and shown[2]["applied"] is False
     assert shown[3]["tune"]["applied_from"] == pending["run_id"]
-    text = local("history", LOOP, "--runs", str(runs)).stdout
+    text = local("history", LOOP, "--runs", str(runs), "--prefix", plant.prefix).stdout
     assert f"run {tuned['run_id']}" in text and "autotune-set" in text

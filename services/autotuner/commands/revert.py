@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
             now = client.sync()
             deadline = time.monotonic() + CATCH_UP
             while True:  # the logger writes a change down as it sees it: let it catch up
-                changes = loop_changes(path, args.loop)
+                changes = loop_changes(path, args.loop, args.prefix)
                 last = changes[-1] if changes else None
                 current = last is not None and _gains(last["after"], "last") == now.gains
                 if current or time.monotonic() > deadline:
@@ -130,7 +130,11 @@ def run(args: argparse.Namespace) -> int:
                 return 1
     if status.gains != back:  # the plant said yes: it must show them
         raise AutotuneError(f"loop {args.loop}: the plant shows {_line(status.gains)}")
-    what = f"run {undo['run_id']}" if undo.get("run_id") else f"the change by {undo.get('cause')}"
+    what = (
+        f"run {undo['run_id']}"
+        if undo.get("run_id")
+        else f"the change by {undo.get('by_source') or 'someone unseen'} ({undo.get('cause')})"
+    )
     report = {
         "loop": args.loop,
         "reverted": {k: undo.get(k) for k in ("utc", "t", "run_id", "cause", "by_source")},

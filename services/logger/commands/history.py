@@ -16,7 +16,8 @@ from typing import Any
 
 from shared.cli import check_ids
 from shared.errors import ConfigError
-from shared.history_file import HISTORY_FILE, read_history
+from shared.history_file import HISTORY_FILE, of_loop, read_history
+from shared.keys import DEFAULT_PREFIX
 
 HELP = "the change history of a loop's gains (kept by the logger)"
 
@@ -30,12 +31,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the logger's runs directory, where history.jsonl is (default: %(default)s)",
     )
     parser.add_argument("--json", action="store_true", help="the entries as one JSON list")
+    parser.add_argument(
+        "--prefix",
+        default=DEFAULT_PREFIX,
+        help="the bus the loop is on, the root of its key expressions (default: %(default)s)",
+    )
 
 
-def entries(runs: Path, loop: str) -> list[dict[str, Any]]:
-    """The loop's changes, each with its run's ``tune`` record (None for changes not made
-    by a run), and the runs that changed nothing (``record`` ``tune``), in file order."""
-    records = [r for r in read_history(runs / HISTORY_FILE) if r.get("loop") == loop]
+def entries(runs: Path, loop: str, prefix: str | None = None) -> list[dict[str, Any]]:
+    """The loop's changes (on the bus ``prefix``; None: any), each with its run's ``tune``
+    record (None for changes not made by a run), and the runs that changed nothing
+    (``record`` ``tune``), in file order."""
+    records = [r for r in read_history(runs / HISTORY_FILE) if of_loop(r, loop, prefix)]
     tunes = {r.get("run_id"): r for r in records if r.get("record") == "tune"}
     changed = {r.get("run_id") for r in records if r.get("record") == "change"}
     out = []
@@ -104,7 +111,8 @@ def format_entries(loop: str, path: Path, items: list[dict]) -> str:
         if tune:
             what += f" ({tune.get('method')}, {tune.get('rule')}"
             what += f", from run {tune['applied_from']})" if tune.get("applied_from") else ")"
-        lines.append(f"  {when}  {_who(r)}: {what}")
+        said = f": {what}" if r.get("by_source") or r.get("run_id") else ""
+        lines.append(f"  {when}  {_who(r)}{said}")
         lines.append(f"      {_gains_line(r.get('before'), r.get('after'))}")
         if tune and tune.get("verification_after"):
             lines.append(f"      verified: {_verification(tune['verification_after'])}")
@@ -112,11 +120,11 @@ def format_entries(loop: str, path: Path, items: list[dict]) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_ids("autotune", loop=args.loop)
+    check_ids(args.prefix, loop=args.loop)
     runs = Path(args.runs)
     if not runs.is_dir():
         raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")
-    items = entries(runs, args.loop)
+    items = entries(runs, args.loop, args.prefix)
     if args.json:
         print(json.dumps(items, indent=2))
     else:
