@@ -30,7 +30,7 @@ from services.logger.commands import history as history_command
 from services.logger.commands import recover as recover_command
 from services.logger.commands import replay as replay_command
 from services.logger.commands import runs as runs_command
-from services.offline import benchmark_command, wall_times
+from services.offline import benchmark_command, perf_command, wall_times
 from services.plant_sim import service as plant_service
 from services.plant_sim.commands import model_check as model_command
 from shared.cli import OneLineParser, check_flags, check_runs_dir, exit_now
@@ -60,6 +60,7 @@ SUBCOMMANDS = {
     "recover": recover_command,
     "benchmark": benchmark_command,
     "wall-times": wall_times,
+    "perf": perf_command,
 }
 
 

@@ -1,0 +1,81 @@
+"""``autotune perf`` is a benchmark, not a test: here it only runs, on its tiny size, end to end
+as the user runs it, and reports a positive finite number for every figure. The figures
+themselves are never asserted (a loaded machine makes any limit flaky)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+from tests.test_fuzz_cli import one_line_refusal, run_cli
+
+
+def _numbers(doc: object, where: str = "") -> list[tuple[str, float]]:
+    """(path, value) of every number in ``doc``; booleans and counts of things are left out."""
+    if isinstance(doc, dict):
+        return [n for k, v in doc.items() for n in _numbers(v, f"{where}.{k}")]
+    if isinstance(doc, list):
+        return [n for i, v in enumerate(doc) for n in _numbers(v, f"{where}[{i}]")]
+    if isinstance(doc, int | float) and not isinstance(doc, bool):
+        return [(where, float(doc))]
+    return []
+
+
+PERF_TINY = ["perf", "--size", "tiny", "--json", "--skip", "demo", "--tunes", "2"]
+
+
+def test_perf_runs_on_its_tiny_size_and_reports_every_figure():
+    run = subprocess.run(
+        [sys.executable, "-m", "services.cli", *PERF_TINY],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        stdin=subprocess.DEVNULL,
+    )
+    assert run.returncode == 0, run.stderr
+    doc = json.loads(run.stdout)
+    assert set(doc) == {
+        "size",
+        "seconds",
+        "pingpong",
+        "inprocess",
+        "lockstep",
+        "realtime",
+        "logger",
+        "ratios",
+    }
+    assert set(doc["ratios"]) == {
+        "lockstep_one_over_pingpong",
+        "lockstep_many_over_one",
+        "lockstep_one_over_inprocess",
+        "logger_over_raw_writer",
+    }
+    figures = {
+        "pingpong": ("rate",),
+        "inprocess": ("rate", "samples"),
+        "lockstep.one": ("rate", "samples", "wall"),
+        "lockstep.many": ("rate", "samples", "wall"),
+        "lockstep.cpu_us_per_sample": ("plant", "tuner", "logger"),
+        "realtime.sizes[0]": ("kept", "kept_mean", "cpu", "samples_per_s"),
+        "realtime": ("capacity_samples_per_s",),
+        "logger": ("capacity", "raw_writer"),
+        "ratios": tuple(doc["ratios"]),
+    }
+    numbers = dict(_numbers(doc))
+    for part, names in figures.items():
+        for name in names:
+            key = f".{part}.{name}"
+            assert key in numbers, key
+            assert math.isfinite(numbers[key]) and numbers[key] > 0, (key, numbers[key])
+    assert doc["lockstep"]["many"]["loops"] == 2
+
+
+def test_bad_flags_are_refused_in_one_line_naming_the_flag(capsys):
+    for argv, flag in (
+        (["perf", "--skip", "pingpong,nope"], "--skip"),
+        (["perf", "--tunes", "0"], "--tunes"),
+    ):
+        code, err = run_cli(capsys, argv)
+        one_line_refusal(code, err, argv, flag)
