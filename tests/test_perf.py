@@ -63,12 +63,16 @@ def test_perf_runs_on_its_tiny_size_and_reports_every_figure():
         "logger": ("capacity", "raw_writer"),
         "ratios": tuple(doc["ratios"]),
     }
+    # the logger's zero-drop capacity may read 0 on a loaded machine (none of the tiny rates
+    # drained in time): a figure, not a failure
+    may_be_zero = {".logger.capacity", ".ratios.logger_over_raw_writer"}
     numbers = dict(_numbers(doc))
     for part, names in figures.items():
         for name in names:
             key = f".{part}.{name}"
             assert key in numbers, key
-            assert math.isfinite(numbers[key]) and numbers[key] > 0, (key, numbers[key])
+            low_ok = key in may_be_zero and numbers[key] == 0
+            assert math.isfinite(numbers[key]) and (numbers[key] > 0 or low_ok), (key, numbers[key])
     assert doc["lockstep"]["many"]["loops"] == 2
 
 

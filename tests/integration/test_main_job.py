@@ -108,6 +108,16 @@ def _interrupt_mid_tune(proc: subprocess.Popen, pid_line: str) -> list[int]:
     return pids
 
 
+def _sigint_as_a_terminal_sends_it() -> None:
+    """In the child before it runs: SIGINT at its default and unblocked. A child inherits an
+    ignored SIGINT and a blocked signal mask from the process that starts it (a non-interactive
+    shell's background job ignores SIGINT; a runner's worker may block it): twice in a full
+    suite run the demo took no notice of the test's SIGINT at all (no KeyboardInterrupt, no
+    "cancelling"), which Ctrl-C at a terminal never gives a foreground process."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+
+
 def test_ctrl_c_on_demo_mid_tune(tmp_path):
     runs = tmp_path / "runs"
     proc = subprocess.Popen(
@@ -126,6 +136,7 @@ def test_ctrl_c_on_demo_mid_tune(tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_sigint_as_a_terminal_sends_it,
     )
     pids = _interrupt_mid_tune(proc, "services started")
     _out, err = proc.communicate(timeout=60)
@@ -158,6 +169,7 @@ def test_up_with_a_router_tunes_and_stops_cleanly_on_ctrl_c(tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_sigint_as_a_terminal_sends_it,
     )
     pids: list[int] = []
     for line in up.stderr:
