@@ -26,6 +26,7 @@ from shared import keys, wire
 from shared.messages import LoopStatus
 from shared.session import open_session
 from tests.integration.tuning_cli import autotune
+from tests.test_loops_set import CONTRACT  # the loops JSON keys, listed once
 
 pytestmark = pytest.mark.integration
 
@@ -65,30 +66,6 @@ ti = 12.0
 td = 0.5
 beta = 0.75
 """
-
-CONTRACT = {
-    "loop",
-    "node",
-    "description",
-    "model",
-    "mode",
-    "action",
-    "sp",
-    "pv",
-    "op",
-    "pv_units",
-    "pv_range",
-    "op_limits",
-    "gains",
-    "gains_percent",
-    "disturbances",
-    "clock",
-    "sample_time",
-    "t",
-    "leased_by",
-    "lease_user",
-    "fault",
-}
 
 
 class Cli:

@@ -17,26 +17,17 @@ and verified; 1 when the autotuner rejected them (the loop restored); 2 when not
 from __future__ import annotations
 
 import argparse
-import json
-import signal
-import sys
 from pathlib import Path
 from typing import Any
 
-from services.autotuner.commands.tune import (
-    _interrupt,
-    add_units_option,
-    follow,
-    format_result,
-    progress_line,
-    submit,
-)
+import zenoh
+
+from services.autotuner.commands.tune import add_units_option, run_and_report
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
 from shared.history_file import HISTORY_FILE, read_history
 from shared.messages import LoopInfo, PidGains, TuneRequest
-from shared.session import open_session, settings_from_args
 
 HELP = "apply (and verify) the gains a recorded run recommended, e.g. after tune --no-apply"
 
@@ -147,27 +138,12 @@ def run(args: argparse.Namespace) -> int:
         apply_noise=rec.get("noise"),
         source="autotune-apply",
     )
-    for sig in (signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, _interrupt)
-    with open_session(settings_from_args(args)) as session:
+
+    def same_as_identified(session: zenoh.Session) -> None:
         info = wire.query_one(session, keys.info(args.prefix, loop), LoopInfo, 5.0)
         if info is None:
             raise AutotuneError(f"loop {loop}: no plant answers for it")
         if (why := same_loop(rec.get("identified_on"), info)) is not None:
             raise AutotuneError(f"loop {loop} is not the loop run {args.run_id} identified: {why}")
-        result = follow(
-            session,
-            args.prefix,
-            loop,
-            lambda: submit(session, args.prefix, args.node, req),
-            args.wait,
-            None if args.json else progress_line,
-        )
-    if sys.stderr.isatty() and not args.json:
-        print("\r" + " " * 100 + "\r", end="", file=sys.stderr)
-    print(
-        json.dumps(result.model_dump(mode="json"), indent=2)
-        if args.json
-        else format_result(result, args.units)
-    )
-    return 0 if result.status == "ok" else 1
+
+    return run_and_report(args, req, same_as_identified)

@@ -19,6 +19,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import pydantic
 import zenoh
@@ -694,15 +695,28 @@ def run(args: argparse.Namespace) -> int:
             f"{accepted.rule}); left going: `autotune tune` was detached"
         )
         return 0
+    return run_and_report(args, req)
+
+
+def run_and_report(
+    args: argparse.Namespace,
+    req: TuneRequest,
+    check: Callable[[zenoh.Session], None] | None = None,
+) -> int:
+    """Submit ``req``, follow the run to its result and print it (``--json`` or text in
+    ``--units``); exit 0 for ``ok``, 1 otherwise. ``check`` runs on the open session first
+    (raising stops it before anything is sent)."""
     # a terminal closed or a service manager's stop cancels the run like Ctrl-C: the tuner
     # restores the loop, and the result is still waited for
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, _interrupt)
     with open_session(settings_from_args(args)) as session:
+        if check is not None:
+            check(session)
         result = follow(
             session,
             args.prefix,
-            args.loop,
+            req.loop,
             lambda: submit(session, args.prefix, args.node, req),
             args.wait,
             None if args.json else progress_line,
