@@ -1,20 +1,24 @@
 """Drive one plant_sim loop over Zenoh: read it, command it, step its clock.
 
-Samples and status arrive on one FIFO subscriber (order kept) that a reader thread moves onto
-a queue, so every wait is bounded: a silent plant becomes ``PlantLost``, never a hang. The
-loop's liveliness token is watched too: a plant that dies or is cut off is ``PlantLost`` at
-once. While the client holds the loop's lease, every status the plant publishes says who holds
-it: one that no longer names this client (the plant's watchdog restored the loop, the plant
-restarted) is ``LeaseLost`` at once, and so is a refusal because the lease lapsed.
+Samples and status arrive on one subscriber whose callback (Zenoh's receiving thread, order
+kept) puts them on a queue, so every wait is bounded: a silent plant becomes ``PlantLost``,
+never a hang. The loop's liveliness token is watched too: a plant that dies or is cut off is
+``PlantLost`` at once. While the client holds the loop's lease, every status the plant
+publishes says who holds it: one that no longer names this client (the plant's watchdog
+restored the loop, the plant restarted) is ``LeaseLost`` at once, and so is a refusal because
+the lease lapsed.
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import queue
 import secrets
 import threading
 import time
+from collections import deque
+from collections.abc import Generator
 
 import zenoh
 
@@ -114,28 +118,61 @@ class LoopClient:
         self._loop_refused = 0
         self.holding = False  # this client holds the loop's lease (confirmed by the plant)
         self.gone = False  # the plant's liveliness token vanished since this client began
-        self._inbox: queue.Queue[tuple[str, bytes, str]] = queue.Queue()
-        self._sub = session.declare_subscriber(
-            keys.loop_feed(prefix, loop), zenoh.handlers.FifoChannel(65536)
-        )
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
+        # Zenoh's receiving thread puts each message straight on the inbox, in order: no
+        # reader thread of ours runs per message, and the waiting run is woken once per
+        # batch of samples it waits for (``_want``), or at once by anything else
+        self._inbox: deque[tuple[str, bytes, str]] = deque()
+        self._ready = threading.Condition()
+        self._want = 1  # samples the run waits for before it is woken
+        self._others = 0  # messages in the inbox that are not samples
+        self._pv_key = keys.pv(prefix, loop)
+        # lockstep: samples asked for by advances and not yet received; those received while
+        # waiting for a sync's answer are held back for the next taker, in order
+        self._flight = 0
+        self._held: deque[ProcessSample] = deque()
+        self._sub = session.declare_subscriber(keys.loop_feed(prefix, loop), self._read)
         self._alive = session.liveliness().declare_subscriber(
             keys.loop_alive(prefix, loop), zenoh.handlers.FifoChannel(64)
         )
         threading.Thread(target=self._watch_alive, daemon=True).start()
-        self._pv_key = keys.pv(prefix, loop)
         self._status_key = keys.status(prefix, loop)
         self.info = self._query_info()
         self.last_sample: ProcessSample | None = None
         self.last_status: LoopStatus = self.sync()
 
-    def _read(self) -> None:
-        for s in self._sub:
-            mark = s.attachment
-            if mark is not None and wire.replay_source(mark.to_bytes()) is not None:
-                continue  # `autotune replay` of a recorded run: not this loop's present
-            self._inbox.put((str(s.key_expr), s.payload.to_bytes(), str(s.encoding)))
+    def _read(self, s: zenoh.Sample) -> None:
+        mark = s.attachment
+        if mark is not None and wire.replay_source(mark.to_bytes()) is not None:
+            return  # `autotune replay` of a recorded run: not this loop's present
+        self._put((str(s.key_expr), s.payload.to_bytes(), str(s.encoding)))
+
+    def _put(self, item: tuple[str, bytes, str]) -> None:
+        with self._ready:
+            self._inbox.append(item)
+            if item[0] != self._pv_key:
+                self._others += 1
+                self._ready.notify()
+            elif len(self._inbox) >= self._want:
+                self._ready.notify()
+
+    def _get(self, timeout: float, want: int) -> tuple[str, bytes, str] | None:
+        """The inbox's first message; with it empty, wait (at most ``timeout`` s) until
+        ``want`` samples or any other message are in. None if nothing came."""
+        with self._ready:
+            if not self._inbox:
+                self._want = max(1, want)
+                try:
+                    self._ready.wait_for(
+                        lambda: self._others or len(self._inbox) >= self._want, timeout
+                    )
+                finally:
+                    self._want = 1
+                if not self._inbox:
+                    return None
+            item = self._inbox.popleft()
+            if item[0] != self._pv_key:
+                self._others -= 1
+            return item
 
     def _watch_alive(self) -> None:
         """The plant's token vanishing (killed, or this client cut off from it) ends the wait
@@ -143,7 +180,7 @@ class LoopClient:
         for s in self._alive:
             if s.kind == zenoh.SampleKind.DELETE:
                 self.gone = True
-                self._inbox.put((_GONE, b"", ""))
+                self._put((_GONE, b"", ""))
 
     def close(self) -> None:
         self._sub.undeclare()
@@ -173,18 +210,20 @@ class LoopClient:
             )
         return info
 
-    def _next(self, wait: float | None = None) -> Message | None:
+    def _next(self, wait: float | None = None, want: int = 1) -> Message | None:
         """The next sample or status on the loop's feed (others' too). With ``wait``, None
-        when nothing comes within it; else PlantLost after ``timeout`` s of silence."""
+        when nothing comes within it; else PlantLost after ``timeout`` s of silence.
+        ``want``: samples expected (an advance's); with the inbox empty, the wait ends when
+        that many are in, or anything else is (a status, the plant gone)."""
         while True:
-            try:
-                key, payload, enc = self._inbox.get(timeout=self.timeout if wait is None else wait)
-            except queue.Empty:
+            got = self._get(self.timeout if wait is None else wait, want)
+            if got is None:
                 if wait is not None:
                     return None
                 raise PlantLost(
                     f"loop {self.loop!r}: no message from the plant for {self.timeout:g} s"
-                ) from None
+                )
+            key, payload, enc = got
             if key == _GONE:
                 self.holding = False
                 self.gone = True
@@ -265,6 +304,9 @@ class LoopClient:
                 self.send(SyncCommand(loop=self.loop, token=token, source=self.source))
                 resend = now + RESEND_EVERY
             msg = self._next(wait=max(0.0, min(resend, deadline) - time.monotonic()))
+            if isinstance(msg, ProcessSample) and self._flight > 0:  # asked for: kept
+                self._flight -= 1
+                self._held.append(msg)
             if isinstance(msg, LoopStatus) and msg.sync_token in tokens:
                 self._refused = msg.sync_rejected or 0
                 self._loop_refused = msg.rejected
@@ -291,16 +333,78 @@ class LoopClient:
                 raise CommandRefused(f"loop {self.loop}: lease not granted")
         return status
 
-    def advance(self, steps: int) -> list[ProcessSample]:
-        """Lockstep: advance ``steps`` periods in one round trip; return their samples."""
-        last = self.last_sample.t if self.last_sample is not None else self.last_status.t
-        self.send(AdvanceCommand(loop=self.loop, steps=steps, source=self.source, t=last))
-        out: list[ProcessSample] = []
-        while len(out) < steps:
-            msg = self._next()
+    # --- lockstep samples: asked for by advances, taken in order ------------------------------
+
+    def _ask(self, steps: int) -> None:
+        """Lockstep: ask the plant for ``steps`` more periods (their samples come later)."""
+        s = self.last_sample
+        t = s.t if s is not None else self.last_status.t
+        self.send(AdvanceCommand(loop=self.loop, steps=steps, source=self.source, t=t))
+        self._flight += steps
+
+    def _take(self, want: int = 1) -> ProcessSample:
+        """Lockstep: the next sample in order (one held back by a sync first); ``want``: how
+        many are expected, so that the wait is woken once for them all."""
+        if self._held:
+            return self._held.popleft()
+        while True:
+            msg = self._next(want=max(1, min(want, self._flight)))
             if isinstance(msg, ProcessSample):
-                out.append(msg)
+                self._flight = max(0, self._flight - 1)
+                return msg
+
+    def advance(self, steps: int) -> list[ProcessSample]:
+        """Lockstep: the next ``steps`` samples (those already asked for first), the rest
+        asked for in one round trip."""
+        out: list[ProcessSample] = []
+        while self._held and len(out) < steps:
+            out.append(self._held.popleft())
+        missing = steps - len(out) - self._flight
+        if missing > 0:
+            self._ask(missing)
+        while len(out) < steps:
+            out.append(self._take(steps - len(out)))
         return out
+
+    def settle(self) -> None:
+        """Lockstep: receive the samples still on their way (bounded by ``timeout``) and drop
+        them with any held back: the next exchange starts from the loop as it is now."""
+        with contextlib.suppress(AutotuneError):  # a plant lost meanwhile: said by the next
+            while self._flight > 0 and not self.gone:
+                msg = self._next(wait=self.timeout, want=self._flight)
+                if msg is None or (isinstance(msg, LoopStatus) and msg.reason == "reject"):
+                    break  # silent, or the advances refused (the lease lapsed): none coming
+                if isinstance(msg, ProcessSample):
+                    self._flight -= 1
+        self._flight = 0
+        self._held.clear()
+
+    def stream(self, steps: int, batch: int) -> Generator[ProcessSample, None, None]:
+        """The next ``steps`` samples one by one as they arrive, for a phase where the loop's
+        own PID is in charge and nothing is decided per sample (a verification). In
+        lockstep, ``batch`` samples per advance, the next advance sent as soon as at most
+        one batch is outstanding: the plant steps the next batch while this one is watched,
+        so a round trip's wait is hidden. A consumer that stops early (the PV crossed its
+        limits) leaves at most the next batch behind it: it is drained (``settle``) before
+        anything else is read, so no later exchange takes those samples for its own.
+        ``LocalLoopClient.stream`` steps the same samples."""
+        if self.info.clock != "lockstep":
+            for _ in range(steps):
+                yield self.next_sample()
+            return
+        batch = max(1, batch)
+        got = 0
+        try:
+            while got < steps:
+                coming = len(self._held) + self._flight
+                while got + coming < steps and coming <= batch:  # one more batch ahead
+                    n = min(batch, steps - got - coming)
+                    self._ask(n)
+                    coming += n
+                got += 1
+                yield self._take(min(batch, self._flight))
+        finally:
+            self.settle()
 
     def samples(self, steps: int) -> list[ProcessSample]:
         """The next ``steps`` samples, advancing the clock in lockstep, waiting in realtime."""
@@ -311,17 +415,9 @@ class LoopClient:
     def next_sample(self) -> ProcessSample:
         """The next sample: in lockstep, advance the loop one period first."""
         if self.info.clock == "lockstep":
-            self.send(
-                AdvanceCommand(
-                    loop=self.loop,
-                    steps=1,
-                    source=self.source,
-                    t=self.last_status.t if self.last_sample is None else self.last_sample.t,
-                )
-            )
+            return self.advance(1)[0]
         while True:
-            if self.info.clock != "lockstep":
-                self._keep_lease()
+            self._keep_lease()
             msg = self._next()
             if isinstance(msg, ProcessSample):
                 return msg

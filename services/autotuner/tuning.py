@@ -734,31 +734,49 @@ class TuningRun:
         """Run the loop (in auto) up to ``seconds``; stop early when ``done(t, y)``. With a
         ``target`` setpoint and a guard ``window`` (s), stop within a few windows once the
         output stays saturated or the oscillation about the target grows. Returns
-        (t, pv, op, why it stopped early or None)."""
+        (t, pv, op, why it stopped early or None).
+
+        The loop's PID is in charge: nothing is decided per sample, so the samples stream in
+        batches (``LoopClient.stream``: the next batch is stepped while this one is watched).
+        Each sample is checked against the PV limits as it arrives; the guard, ``done`` and
+        a cancel are looked at once per batch. A crossing stops the record at once: the loop
+        has run at most the batch in flight past it."""
         c = self.client
         n_max = max(1, round(seconds / self.ts))
         chunk = max(1, min(MAX_CHUNK, n_max // 100))
-        t, y, u = [], [], []
+        t: list[float] = []
+        y: list[float] = []
+        u: list[float] = []
         lo, hi = self.pv_limits
         guard = (
             _Guard(self.info.op_limits, window / self.ts) if window and target is not None else None
         )
-        while len(t) < n_max:
-            self._check_cancel()
-            for s in c.samples(chunk):
+        windows = 0  # the guard's whole windows already judged
+        self._check_cancel()
+        samples = c.stream(n_max, chunk)
+        try:
+            for s in samples:
                 t.append(s.t)
                 y.append(s.pv)
                 u.append(s.op)
-            self._take([c.last_sample] if c.last_sample else [])
-            if not all(lo <= v <= hi for v in y[-chunk:]):
-                why = f"the PV left its limits [{lo:g}, {hi:g}] at t = {t[-1]:g} s"
-                return np.array(t), np.array(y), np.array(u), why
-            if guard is not None:
-                why = guard.check(np.asarray(y) - target, np.asarray(u))
-                if why:
+                self._t = s.t
+                if not lo <= s.pv <= hi:
+                    why = f"the PV left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s"
                     return np.array(t), np.array(y), np.array(u), why
-            if len(t) % (chunk * 8) < chunk and done(np.array(t), np.array(y)):
-                break
+                if len(t) % chunk and len(t) < n_max:
+                    continue  # the rest is judged once per batch
+                self._check_cancel()
+                if guard is not None and len(t) // guard.n > windows:
+                    windows = len(t) // guard.n  # a verdict changes only with a new window
+                    why = guard.check(np.asarray(y) - target, np.asarray(u))
+                    if why:
+                        return np.array(t), np.array(y), np.array(u), why
+                if len(t) % (chunk * 8) < chunk and done(np.array(t), np.array(y)):
+                    break
+        finally:
+            samples.close()  # the batch in flight is drained here, not by a later read
+            if c.last_sample is not None:  # the loop's time: after the batch drained
+                self._t = c.last_sample.t
         return np.array(t), np.array(y), np.array(u), None
 
     def _verify(

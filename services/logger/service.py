@@ -108,7 +108,8 @@ class LoggerService:
 
     def run(self, stop: threading.Event) -> None:
         prefix, shell = self.recorder.prefix, ServiceShell(self.session, log)
-        shell.subscribe(keys.everything(prefix), self._on_sample, CHANNEL_CAPACITY)
+        # on Zenoh's receiving thread (in order, no thread woken per message): the hot path
+        shell.subscribe(keys.everything(prefix), self._on_sample, CHANNEL_CAPACITY, direct=True)
         shell.queryable(keys.logger_status(prefix, self.node), self._on_query, 64)
         shell.subscribe(keys.monitor(prefix, keys.ANY), self._on_monitor, 1024)
         for pattern in (keys.loop_alive(prefix, keys.ANY), keys.tune_running(prefix, keys.ANY)):

@@ -14,6 +14,8 @@ plant model driven open loop, noise added.
 from __future__ import annotations
 
 import math
+from collections import deque
+from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +56,7 @@ class LocalLoopClient:
         self.gone = False  # an in-process loop never goes away
         self.lease_timeout = 10.0  # s; asked for, never expires in process
         self.commands: list[Command] = []  # every accepted command, in order
+        self._ahead: deque[ProcessSample] = deque()  # stepped, not yet taken (``stream``)
 
     @property
     def holding(self) -> bool:
@@ -107,16 +110,38 @@ class LocalLoopClient:
         return status
 
     def advance(self, steps: int) -> list[ProcessSample]:
+        """Step the loop ``steps`` periods; their samples (what the plant would publish)."""
         out = [self.sim.advance() for _ in range(steps)]
         if out:
             self.last_sample = out[-1]
         return out
 
     def samples(self, steps: int) -> list[ProcessSample]:
-        return self.advance(steps)
+        """The next ``steps`` samples: any stepped ahead first (``stream``)."""
+        out = [self._ahead.popleft() for _ in range(min(steps, len(self._ahead)))]
+        return out + self.advance(steps - len(out)) if len(out) < steps else out
+
+    def settle(self) -> None:
+        """Drop the samples stepped ahead (``LoopClient.settle``)."""
+        self._ahead.clear()
+
+    def stream(self, steps: int, batch: int) -> Generator[ProcessSample, None, None]:
+        """The next ``steps`` samples, ``batch`` per advance, one batch stepped ahead of the
+        consumer as ``LoopClient.stream`` does over the bus: the same samples, the loop left
+        at the same time when the consumer stops early."""
+        batch, got = max(1, batch), 0
+        try:
+            while got < steps:
+                while got + len(self._ahead) < steps and len(self._ahead) <= batch:
+                    n = min(batch, steps - got - len(self._ahead))
+                    self._ahead.extend(self.advance(n))
+                got += 1
+                yield self._ahead.popleft()
+        finally:
+            self.settle()
 
     def next_sample(self) -> ProcessSample:
-        return self.advance(1)[0]
+        return self.samples(1)[0]
 
 
 @dataclass(frozen=True)

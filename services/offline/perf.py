@@ -12,10 +12,12 @@ every wait is bounded and every process is stopped (try/finally).
   the numeric limit.
 * ``lockstep``: plant_sim, the autotuner and the logger as processes; one ``autotune tune``
   (timed on the bus from its first progress message to its result: the CLI's start-up is
-  not in it), then N at once on N loops of the same plant through the one tuner: samples/s;
-  and the CPU each service used during the single tune per sample (µs/sample).
-* ``realtime``: a plant process serving L linear loops at R samples/s on the realtime clock:
-  the fraction of real time it keeps (sim time advanced / wall time, from its ServiceStatus).
+  not in it), then N at once on N loops of the same plant through the one tuner, then N more
+  spread over N tuner processes: samples/s; and the CPU each service used during the single
+  tune per sample (µs/sample).
+* ``realtime``: a plant process serving L linear loops at R samples/s on the realtime clock,
+  every sample subscribed to here: the fraction of real time it keeps (each loop's samples
+  per wall second against R, from their arrival times; the slowest loop and the mean).
 * ``logger``: synthetic runs (a start progress, samples, a result) published at increasing
   rates to a logger process; the highest rate whose file holds every sample sent and that
   the logger keeps up with; against the raw MCAP writer (RunWriter) in this process.
@@ -40,8 +42,10 @@ from dataclasses import dataclass, field
 from importlib.resources import files
 from pathlib import Path
 
+import numpy as np
 import zenoh
 
+from services.autotuner.loop_client import wait_for_token
 from services.autotuner.tuning import TuningRun
 from services.launcher import free_tcp_port, start_service, stop_service
 from services.logger.mcap_io import RunWriter, read_run
@@ -80,7 +84,7 @@ SIZES = {
     "tiny": Size(200, ((10, 10.0),), 1.0, (500.0, 2000.0), 0.3),
     "normal": Size(
         5000,
-        ((100, 10.0), (1000, 1.0), (1000, 10.0)),
+        ((100, 10.0), (1000, 1.0), (1000, 10.0), (10000, 1.0)),
         5.0,
         (5000.0, 20000.0, 40000.0, 80000.0, 160000.0),
         2.0,
@@ -272,6 +276,7 @@ class LockstepReport:
     one: Lockstep
     many: Lockstep
     cpu_us_per_sample: dict[str, float]  # service → CPU µs per sample of the single tune
+    many_tuners: Lockstep | None = None  # the same number at once, each through its own tuner
 
 
 def _plant_file(path: Path, names: list[str], model: str, sample_time: float) -> None:
@@ -282,10 +287,17 @@ def _plant_file(path: Path, names: list[str], model: str, sample_time: float) ->
 
 
 def _tunes(
-    watch: TuneWatch, loops: list[str], prefix: str, endpoint: str, timeout: float
+    watch: TuneWatch,
+    loops: list[str],
+    prefix: str,
+    endpoint: str,
+    timeout: float,
+    nodes: list[str] | None = None,
 ) -> Lockstep:
-    """``autotune tune LOOP --json`` for each of ``loops`` at once, as processes."""
+    """``autotune tune LOOP --json`` for each of ``loops`` at once, as processes; each through
+    the tuner of ``nodes`` at its place (default: the one named ``tuner``)."""
     t0 = time.perf_counter()
+    nodes = nodes or ["tuner"] * len(loops)
     procs = [
         subprocess.Popen(
             [
@@ -296,6 +308,8 @@ def _tunes(
                 loop,
                 "--prefix",
                 prefix,
+                "--node",
+                node,
                 "--json",
                 *_client_args(endpoint),
             ],
@@ -304,7 +318,7 @@ def _tunes(
             stdin=subprocess.DEVNULL,
             text=True,
         )
-        for loop in loops
+        for loop, node in zip(loops, nodes, strict=True)
     ]
     try:
         for p in procs:
@@ -330,14 +344,18 @@ def _tunes(
     return Lockstep(len(loops), statuses, samples, wall, samples / wall, cli_wall)
 
 
-def lockstep(tunes: int, timeout: float = 300.0) -> LockstepReport:
-    """One tune, then ``tunes`` at once, through one plant, one tuner and one logger."""
+def lockstep(tunes: int, tuners: int = 0, timeout: float = 300.0) -> LockstepReport:
+    """One tune, then ``tunes`` at once, through one plant, one tuner and one logger; then,
+    with ``tuners`` > 1, ``tunes`` more at once on other loops spread over that many tuner
+    processes (round robin)."""
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     prefix = _prefix("ls")
     many = [f"hx{i}" for i in range(1, tunes + 1)]
+    spread = [f"hy{i}" for i in range(1, tunes + 1)] if tuners > 1 else []
+    others = [f"tuner{i}" for i in range(2, tuners + 1)] if tuners > 1 else []
     with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryFile("w+") as logs:
         plant = Path(tmp) / "plant.toml"
-        _plant_file(plant, ["one", *many], HX, HX_SAMPLE_TIME)
+        _plant_file(plant, ["one", *many, *spread], HX, HX_SAMPLE_TIME)
         stack = Stack(prefix, _settings(endpoint), logs)
         try:
             pre = ["--prefix", prefix]
@@ -350,15 +368,18 @@ def lockstep(tunes: int, timeout: float = 300.0) -> LockstepReport:
             zc = _client_args(endpoint)
             stack.start("tuner", "services.autotuner", pre, zc)
             stack.start("logger", "services.logger", [*pre, "--runs", f"{tmp}/runs"], zc)
+            for node in others:  # idle until the last measurement
+                stack.start(node, "services.autotuner", [*pre, "--node", node], zc)
             stack.wait_ready(
                 [
                     keys.tuner_alive(prefix, "tuner"),
+                    *(keys.tuner_alive(prefix, node) for node in others),
                     keys.logger_alive(prefix, "logger"),
                     keys.loop_alive(prefix, "one"),
-                    keys.loop_alive(prefix, many[-1]),
+                    keys.loop_alive(prefix, [*many, *spread][-1]),
                 ]
             )
-            pids = {name: p.pid for name, p in stack.procs.items()}
+            pids = {name: stack.procs[name].pid for name in ("plant", "tuner", "logger")}
             with open_session(_settings(endpoint)) as s:
                 watch = TuneWatch(s, prefix, pids)
                 try:
@@ -370,11 +391,20 @@ def lockstep(tunes: int, timeout: float = 300.0) -> LockstepReport:
                         for name in pids
                     }
                     par = _tunes(watch, many, prefix, endpoint, timeout)
+                    nodes = ["tuner", *others]
+                    by_node = [nodes[i % len(nodes)] for i in range(len(spread))]
+                    apart = (
+                        _tunes(watch, spread, prefix, endpoint, timeout, by_node)
+                        if spread
+                        else None
+                    )
                 finally:
                     watch.close()
         finally:
+            for node in others:  # the stack stops the services it knows by name
+                stop_service(stack.procs.pop(node), timeout=30.0)
             stack.stop()
-    return LockstepReport(one, par, cpu)
+    return LockstepReport(one, par, cpu, apart)
 
 
 # --- 5. realtime plant capacity -------------------------------------------------------------
@@ -389,6 +419,8 @@ class Realtime:
     kept_mean: float  # the same, mean over the loops
     overruns: int  # realtime periods started late, during the measurement
     cpu: float  # the plant process's CPU s per wall s (1.0: one core busy)
+    received: int = 0  # samples that reached the subscriber in this process
+    start_s: float = 0.0  # s from the plant's start to its service token (loops built, declared)
 
     @property
     def samples_per_s(self) -> float:
@@ -396,13 +428,46 @@ class Realtime:
         return self.loops * self.rate * self.kept_mean
 
 
+class ArrivalLog:
+    """Every pv sample's arrival (monotonic s) by key, from a subscriber on all loops: a
+    loop's pace is its samples' spacing, measured to the tick (the plant's status gives sim
+    time only to the sample period, 1 s at 1 sample/s)."""
+
+    def __init__(self) -> None:
+        self.on = False
+        self.times: dict[str, list[float]] = {}
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        if self.on:
+            now = time.monotonic()
+            self.times.setdefault(str(sample.key_expr), []).append(now)
+
+    def kept(self, loops: int, period: float) -> tuple[float, float, int]:
+        """(slowest, mean, samples) of sim time per wall time, each loop's from the
+        least-squares slope of its arrival times against the sample count (the delivery's
+        jitter averages out); a loop with fewer than three arrivals kept nothing."""
+        paces = []
+        for t in self.times.values():
+            if len(t) < 3:
+                paces.append(0.0)
+                continue
+            k = np.arange(len(t), dtype=float)
+            slope = np.polyfit(k, np.asarray(t) - t[0], 1)[0]  # wall s per sample
+            paces.append(period / slope if slope > 0 else 0.0)
+        paces += [0.0] * (loops - len(paces))
+        received = sum(len(t) for t in self.times.values())
+        return min(paces), sum(paces) / len(paces), received
+
+
 def realtime(loops: int, rate: float, seconds: float, timeout: float = 120.0) -> Realtime:
-    """A plant process serving ``loops`` linear loops at ``rate`` samples/s in realtime."""
+    """A plant process serving ``loops`` linear loops at ``rate`` samples/s in realtime, every
+    sample subscribed to in this process (as a logger would): how much of real time it keeps."""
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     prefix = _prefix("rt")
     with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryFile("w+") as logs:
         plant = Path(tmp) / "plant.toml"
         _plant_file(plant, [f"r{i}" for i in range(loops)], HX, 1.0 / rate)
+        t0 = time.monotonic()
         proc = start_service(
             "services.plant_sim",
             [
@@ -420,26 +485,43 @@ def realtime(loops: int, rate: float, seconds: float, timeout: float = 120.0) ->
         )
         try:
             key = keys.service_status(prefix, "plant_sim", "plant")
-            with open_session(_settings(endpoint)) as s:
-                first = wire.query_one(s, key, ServiceStatus, timeout)
-                if first is None:
-                    raise AutotuneError(f"perf: a plant of {loops} loops did not answer")
+            arrivals = ArrivalLog()
+            # a client of the plant: a peer subscriber pays per message in proportion to the
+            # loops' liveliness tokens under the same keys (zenoh 1.10: ~350 samples/s with
+            # 10,000 loops), which would measure the subscriber, not the plant
+            client = ZenohSettings(
+                mode="client",
+                connect=(endpoint,),
+                cfg=(f"connect/timeout_ms:{round(timeout * 1000)}",),  # the loops are built first
+                no_multicast_scouting=True,
+            )
+            with open_session(client) as s:
+                sub = s.declare_subscriber(keys.pv(prefix, keys.ANY), arrivals)
+                alive = keys.service_alive(prefix, "plant_sim", "plant")  # announced last
+                if not wait_for_token(s, alive, timeout):
+                    raise AutotuneError(f"perf: a plant of {loops} loops did not come up")
+                started = time.monotonic() - t0
                 time.sleep(min(1.0, seconds / 2))  # past the start
                 a, wa, ca = _status(s, key), time.monotonic(), cpu_seconds(proc.pid)
-                time.sleep(seconds)
+                arrivals.on = True
+                time.sleep(max(seconds, 10.0 / rate))  # at least 10 samples a loop
+                arrivals.on = False
                 b, wb, cb = _status(s, key), time.monotonic(), cpu_seconds(proc.pid)
+                sub.undeclare()
         finally:
             stop_service(proc)
     wall = wb - wa
-    advanced = [b.loops[n] - a.loops[n] for n in a.loops if n in b.loops]
+    kept, kept_mean, received = arrivals.kept(loops, 1.0 / rate)
     return Realtime(
         loops,
         rate,
         wall,
-        min(advanced) / wall,
-        sum(advanced) / len(advanced) / wall,
+        kept,
+        kept_mean,
         b.overruns - a.overruns,
         (cb - ca) / wall,
+        received,
+        started,
     )
 
 

@@ -2,10 +2,13 @@
 
 Raw Zenoh ping-pong between two processes (the limit of any lockstep exchange), the relay tune
 in this process (the numeric limit), lockstep tunes over the bus (one, then N at once through
-one tuner), the CPU each service spends per lockstep sample, the realtime plant's capacity
-(loops × rate kept at ≥ 99 % of real time), the logger's capacity with zero drops against the
-raw MCAP writer, and the wall time of `autotune demo`. Ratios are printed beside the absolute
-figures: machines differ. A benchmark, not a test; --size tiny takes seconds.
+one tuner and through N tuners), the CPU each service spends per lockstep sample, the realtime
+plant's capacity (loops × rate kept at ≥ 99 % of real time), the logger's capacity with zero
+drops against the raw MCAP writer, the wall time of `autotune demo`, and the wall time per
+sample of the phases where the loop's PID is in charge (a ramp's trials, the verification)
+over the bus against in this process (``perf_phases``; --source runs the services of another
+source tree, for a before/after in one run). Ratios are printed beside the absolute figures:
+machines differ. A benchmark, not a test; --size tiny takes seconds.
 """
 
 from __future__ import annotations
@@ -15,12 +18,14 @@ import json
 import sys
 import time
 from dataclasses import asdict
+from pathlib import Path
 
-from services.offline import perf
+from services.offline import perf, perf_phases
 
 HELP = "measure speed and scale: bus limit, lockstep, CPU per sample, realtime, logger, demo"
 KEEP = 0.99  # fraction of real time a realtime plant must keep
 GIVE_UP = 0.9  # a realtime size below this: larger ones are not tried
+PARTS = (*perf.PARTS, "phases")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,24 +40,52 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--tunes", type=int, default=4, help="lockstep tunes at once, one tuner (default 4)"
     )
     parser.add_argument(
-        "--skip", default="", help=f"parts left out, comma-separated: {', '.join(perf.PARTS)}"
+        "--tuners",
+        type=int,
+        default=None,
+        help="the N tunes again on other loops, spread over this many tuner processes "
+        "(default: as many as --tunes; 1: not measured)",
+    )
+    parser.add_argument(
+        "--skip", default="", help=f"parts left out, comma-separated: {', '.join(PARTS)}"
+    )
+    parser.add_argument(
+        "--source",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="phases: run the services from this source tree (an older checkout: its figures "
+        "beside this one's in the same run)",
     )
 
 
 def _parse(args: argparse.Namespace) -> list[str]:
     if not 1 <= args.tunes <= 32:
         raise SystemExit(f"autotune perf: --tunes {args.tunes}: must be 1 to 32")
+    if args.tuners is not None and not 1 <= args.tuners <= 32:
+        raise SystemExit(f"autotune perf: --tuners {args.tuners}: must be 1 to 32")
+    if args.source is not None and not (args.source / "services" / "cli.py").is_file():
+        raise SystemExit(
+            f"autotune perf: --source {args.source}: not a source tree (no services/cli.py)"
+        )
     skip = [p.strip() for p in args.skip.split(",") if p.strip()]
-    bad = [p for p in skip if p not in perf.PARTS]
+    bad = [p for p in skip if p not in PARTS]
     if bad:
         raise SystemExit(
             f"autotune perf: --skip {args.skip!r}: unknown {', '.join(bad)} "
-            f"(choose from {', '.join(perf.PARTS)})"
+            f"(choose from {', '.join(PARTS)})"
         )
-    return [p for p in perf.PARTS if p not in skip]
+    return [p for p in PARTS if p not in skip]
 
 
-def measure(parts: list[str], size: perf.Size, tunes: int, log=None) -> dict:
+def measure(
+    parts: list[str],
+    size: perf.Size,
+    tunes: int,
+    log=None,
+    tuners: int | None = None,
+    source: Path | None = None,
+) -> dict:
     """Every part asked for, then the ratios between them: one JSON-ready dict."""
     out: dict = {}
 
@@ -67,8 +100,15 @@ def measure(parts: list[str], size: perf.Size, tunes: int, log=None) -> dict:
         note("in-process relay tune…")
         out["inprocess"] = asdict(perf.in_process())
     if "lockstep" in parts:
-        note(f"lockstep over the bus: one tune, then {tunes} at once…")
-        out["lockstep"] = asdict(perf.lockstep(tunes))
+        spread = tunes if tuners is None else tuners
+        note(
+            f"lockstep over the bus: one tune, then {tunes} at once"
+            + (f", then {tunes} through {spread} tuners…" if spread > 1 else "…")
+        )
+        out["lockstep"] = asdict(perf.lockstep(tunes, spread))
+    if "phases" in parts:
+        note("closed-loop phases (ramp trials, verification), over the bus and in process…")
+        out["phases"] = asdict(perf_phases.phases(source))
     if "realtime" in parts:
         rows = []
         for loops, rate in size.realtime:
@@ -101,8 +141,15 @@ def ratios(out: dict) -> dict[str, float]:
         r["lockstep_one_over_pingpong"] = ls["one"]["rate"] / pp["rate"]
     if ls:
         r["lockstep_many_over_one"] = ls["many"]["rate"] / ls["one"]["rate"]
+        if ls.get("many_tuners"):
+            r["lockstep_many_tuners_over_one"] = ls["many_tuners"]["rate"] / ls["one"]["rate"]
     if ls and ip:
         r["lockstep_one_over_inprocess"] = ls["one"]["rate"] / ip["rate"]
+    ph = out.get("phases")
+    for name in ("trials", "verify"):  # wall per sample in process over that on the bus
+        if ph and name in ph["bus"] and name in ph["inprocess"]:
+            bus, local = ph["bus"][name], ph["inprocess"][name]
+            r[f"{name}_bus_over_inprocess"] = bus["rate"] / local["rate"]
     lg = out.get("logger")
     if lg and lg["raw_writer"] > 0:
         r["logger_over_raw_writer"] = lg["capacity"] / lg["raw_writer"]
@@ -126,7 +173,10 @@ def _print(out: dict, size: str, seconds: float) -> None:
         )
     if "lockstep" in out:
         x = out["lockstep"]
-        for k, what in (("one", "one tune"), ("many", f"{x['many']['loops']} tunes at once")):
+        rows = [("one", "one tune"), ("many", f"{x['many']['loops']} tunes at once")]
+        if x.get("many_tuners"):
+            rows.append(("many_tuners", f"{x['many_tuners']['loops']}, N tuners"))
+        for k, what in rows:
             y = x[k]
             statuses = ", ".join(sorted(set(y["statuses"])))
             p(
@@ -137,6 +187,21 @@ def _print(out: dict, size: str, seconds: float) -> None:
         cpu = x["cpu_us_per_sample"]
         parts = ", ".join(f"{n} {v:.0f}" for n, v in cpu.items())
         p(f"  CPU per lockstep sample    {sum(cpu.values()):9.0f} µs in all     ({parts} µs)")
+    if "phases" in out:
+        x = out["phases"]
+        for where, label in (("bus", "bus"), ("inprocess", "in-process")):
+            for name, what in (("trials", "ramp trials"), ("verify", "verification")):
+                y = x[where].get(name)
+                if y:
+                    p(
+                        f"  {what + ', ' + label:<27}{y['rate']:9.0f} samples/s      "
+                        f"({y['us_per_sample']:.1f} µs per sample, {y['samples']:.0f} samples"
+                        + (
+                            f"; services from {x['source']}, {x['status']})"
+                            if where == "bus"
+                            else ")"
+                        )
+                    )
     if "realtime" in out:
         x = out["realtime"]
         for r in x["sizes"]:
@@ -176,7 +241,7 @@ def _print(out: dict, size: str, seconds: float) -> None:
 def run(args: argparse.Namespace) -> int:
     parts = _parse(args)
     t0 = time.perf_counter()
-    out = measure(parts, perf.SIZES[args.size], args.tunes, log=sys.stderr)
+    out = measure(parts, perf.SIZES[args.size], args.tunes, sys.stderr, args.tuners, args.source)
     seconds = time.perf_counter() - t0
     if args.json:
         print(json.dumps({"size": args.size, "seconds": seconds, **out}, indent=1))

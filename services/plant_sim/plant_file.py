@@ -31,6 +31,7 @@ import json
 import math
 import numbers
 import tomllib
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -99,9 +100,15 @@ def default_plant_path() -> Path:
 
 
 def load_plant_file(
-    path: str | Path, seed: int | None = None, noise_std: float | None = None
+    path: str | Path,
+    seed: int | None = None,
+    noise_std: float | None = None,
+    select: Callable[[list[str]], list[str]] | None = None,
 ) -> dict[str, SimLoop]:
-    """Read a plant file and build its loops; ConfigError names the loop and field at fault."""
+    """Read a plant file and build its loops; ConfigError names the loop and field at fault.
+
+    ``select``: given the file's loop ids in file order, the ids to build (a shard of the
+    file); its ConfigError is raised as it is."""
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -124,7 +131,7 @@ def load_plant_file(
         for table in data["loops"].values():
             if isinstance(table, dict):
                 table["noise_std"] = noise_std
-    return build_plant(data, source=str(path), seed=seed, base_dir=path.parent)
+    return build_plant(data, source=str(path), seed=seed, base_dir=path.parent, select=select)
 
 
 def build_plant(
@@ -132,6 +139,7 @@ def build_plant(
     source: str = "plant",
     seed: int | None = None,
     base_dir: Path | None = None,
+    select: Callable[[list[str]], list[str]] | None = None,
 ) -> dict[str, SimLoop]:
     """Build every loop of a parsed plant file (``seed`` overrides the file's; an FMU's
     relative ``path`` is taken from ``base_dir``, the plant file's folder)."""
@@ -145,9 +153,10 @@ def build_plant(
     if seed is not None and seed < 0:
         raise _error(f"plant file {source}: seed: must be ≥ 0, got {seed}")
     plant_seed = plant.seed if seed is None else seed
+    chosen = list(plant.loops) if select is None else select(list(plant.loops))
     loops = {}
-    for loop_id, cfg in plant.loops.items():
-        loops[loop_id] = build_loop(loop_id, cfg, plant_seed, source, base_dir)
+    for loop_id in chosen:
+        loops[loop_id] = build_loop(loop_id, plant.loops[loop_id], plant_seed, source, base_dir)
     return loops
 
 

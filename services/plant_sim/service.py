@@ -5,12 +5,17 @@ channel keeps the senders' order, so a lockstep run is deterministic. Commands a
 and validated; a bad one is refused with a logged reason and counted, and changes nothing.
 
 Clocks: *lockstep* advances a loop only on an ``advance`` command; *realtime* advances every
-loop on the wall clock (times ``speed``), holding the last output between samples.
+loop on the wall clock (times ``speed``), holding the last output between samples: the loops
+of one sample time together, the linear ones as arrays (``realtime.py``).
+
+A process may serve part of a plant file (``--loops``, ``--shard K/N``: ``shards.py``); it
+refuses to start when another plant process under its prefix serves one of its loops.
 """
 
 from __future__ import annotations
 
 import argparse
+import heapq
 import logging
 import secrets
 import sys
@@ -23,6 +28,9 @@ from functools import partial
 import zenoh
 
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
+from services.plant_sim.publishers import Publishers
+from services.plant_sim.realtime import RealtimeSteppers
+from services.plant_sim.shards import check_not_served, select_loops
 from services.plant_sim.simulation.loop import CommandRejected, LoopSnapshot, SimLoop
 from shared import keys, wire
 from shared.cli import (
@@ -41,6 +49,7 @@ from shared.messages import (
     LoopInfo,
     LoopStatus,
     Message,
+    ProcessSample,
     ReleaseCommand,
     ServiceStatus,
     SyncCommand,
@@ -129,6 +138,21 @@ class PlantService:
         self.lapsed: dict[str, dict[str, str]] = {}
         # this process's identity among plant instances (LoopInfo.instance)
         self.instance = secrets.token_hex(6)
+        self.publishers = Publishers(session)
+        # realtime: the loops stepped by sample time, linear ones as arrays; a loop is read or
+        # changed only checked out of them (``_fresh``), and taken back by ``_settle``
+        self.steppers = RealtimeSteppers(loops) if options.clock == "realtime" else None
+
+    def _fresh(self, loop_id: str) -> SimLoop:
+        """The loop, exact (realtime: checked out of its batch until ``_settle``)."""
+        if self.steppers is not None:
+            return self.steppers.check_out(loop_id)
+        return self.loops[loop_id]
+
+    def _settle(self) -> None:
+        """Take what commands changed in the loops checked out back into the batches."""
+        if self.steppers is not None:
+            self.steppers.check_in()
 
     # --- messages -------------------------------------------------------------------------
 
@@ -161,7 +185,11 @@ class PlantService:
             node=self.opt.node,
             clock=self.opt.clock,
             speed=self.opt.speed,
-            loops={lid: lp.t for lid, lp in self.loops.items()},
+            loops=(
+                self.steppers.times()
+                if self.steppers is not None
+                else {lid: lp.t for lid, lp in self.loops.items()}
+            ),
             accepted=self.accepted,
             rejected=sum(self.rejected_by_reason.values()),
             rejected_by_reason=dict(self.rejected_by_reason),
@@ -170,7 +198,7 @@ class PlantService:
 
     def _publish(self, out: list[tuple[str, Message]]) -> None:
         for key, msg in out:
-            wire.put(self.session, key, msg)
+            self.publishers.put(key, msg)
 
     # --- commands -------------------------------------------------------------------------
 
@@ -201,7 +229,10 @@ class PlantService:
         """Validate and apply one command, then publish what it caused."""
         out: list[tuple[str, Message]] = []
         with self.lock:
-            self._handle(key, payload, encoding, out)
+            try:
+                self._handle(key, payload, encoding, out)
+            finally:
+                self._settle()
         self._publish(out)
 
     def _handle(
@@ -213,7 +244,7 @@ class PlantService:
             self._reject(None, "key", f"unexpected key {key!r}", out)
             return
         loop_id, kind, user = parsed  # user: verified by the router's ACL when deployed secure
-        loop = self.loops.get(loop_id)
+        loop = self._fresh(loop_id) if loop_id in self.loops else None
         if loop is None:
             if loop_id not in self._remote_loops:
                 self._reject(
@@ -345,7 +376,11 @@ class PlantService:
     def _on_query(self, query: zenoh.Query, what: str) -> None:
         try:
             with self.lock:
-                replies = self._answer(query.key_expr, what)
+                try:
+                    replies = self._answer(query.key_expr, what)
+                finally:
+                    if self.steppers is not None:  # read only: nothing to take back
+                        self.steppers.release()
             for key, msg in replies:
                 wire.reply(query, key, msg)
         except Exception:
@@ -359,6 +394,7 @@ class PlantService:
         for loop_id, loop in self.loops.items():
             key = keys.status(prefix, loop_id) if what == "status" else keys.info(prefix, loop_id)
             if asked.intersects(zenoh.KeyExpr(key)):
+                loop = self._fresh(loop_id)
                 msg = self.loop_status(loop, "query") if what == "status" else self.loop_info(loop)
                 replies.append((key, msg))
         return replies
@@ -381,7 +417,7 @@ class PlantService:
             lease = self.leases.pop(loop_id, None)
             if lease is None:
                 return
-            loop = self.loops[loop_id]
+            loop = self._fresh(loop_id)
             loop.restore(lease.snapshot)
             lapsed = self.lapsed.setdefault(loop_id, {})
             ended = f"its lease ended at t = {loop.t:.6g} s: {why}"
@@ -389,6 +425,7 @@ class PlantService:
             while len(lapsed) > MAX_LAPSED:  # bounded: the oldest are forgotten first
                 lapsed.pop(next(iter(lapsed)))
             out.append((keys.status(self.opt.prefix, loop_id), self.loop_status(loop, "watchdog")))
+            self._settle()
         log.warning(
             "loop %s: %s; restored to its state before the experiment (%s, op %.4g %%)",
             loop_id,
@@ -423,41 +460,62 @@ class PlantService:
             self.expire_lease(parsed[0], "its supervisor's run token disappeared")
 
     def _pace(self, stop: threading.Event) -> None:
-        """Realtime clock: advance each loop when its next sample is due on the wall clock."""
-        period = {lid: lp.sample_time / self.opt.speed for lid, lp in self.loops.items()}
+        """Realtime clock: advance the loops of each sample time together when their next
+        sample is due on the wall clock (k·T/speed after the start, never accumulated)."""
+        steppers = self.steppers
+        assert steppers is not None
+        groups = steppers.groups
+        period = [g.sample_time / self.opt.speed for g in groups]
         start = time.monotonic()
-        due = {lid: 1 for lid in self.loops}
-        with self.lock:
-            held = {lid: lp.op for lid, lp in self.loops.items()}
+        due = [(period[i], 1, i) for i in range(len(groups))]  # (time, sample k, group)
+        heapq.heapify(due)
+        prefix = self.opt.prefix
+        pv_key = {lid: keys.pv(prefix, lid) for lid in self.loops}
         while not stop.is_set():
-            lid = min(due, key=lambda k: due[k] * period[k])
-            wait = start + due[lid] * period[lid] - time.monotonic()
+            at, k, i = due[0]
+            wait = start + at - time.monotonic()
             if wait > 0 and stop.wait(wait):
                 break
-            late = -wait > period[lid]
+            group = groups[i]
             with self.lock:
-                self.overruns += int(late)
-                loop = self.loops[lid]
-                had = loop.fault
-                sample = loop.advance(held[lid])
-                held[lid] = sample.op
-                faulted = self.loop_status(loop, "fault") if loop.fault and not had else None
-            wire.put(self.session, keys.pv(self.opt.prefix, lid), sample)
-            if faulted is not None:  # the model failed: say so once, on the status
-                wire.put(self.session, keys.status(self.opt.prefix, lid), faulted)
-            due[lid] += 1
+                self.overruns += group.size * int(-wait > period[i])
+                tick = steppers.tick(group)
+                faulted = [
+                    (lp.settings.loop_id, self.loop_status(lp, "fault")) for lp in tick.faulted
+                ]
+            for lid, payload in tick.samples:
+                self.publishers.put_json(pv_key[lid], ProcessSample, payload)
+            for lid, status in faulted:  # the model failed: say so once, on the status
+                self.publishers.put(keys.status(prefix, lid), status)
+            heapq.heapreplace(due, ((k + 1) * period[i], k + 1, i))
 
     def run(self, stop: threading.Event) -> None:
         """Serve until ``stop`` is set; undeclare everything on the way out."""
         prefix, shell = self.opt.prefix, ServiceShell(self.session, log)
-        shell.subscribe(keys.all_commands(prefix), self._on_command, CHANNEL_CAPACITY)
+        # first the claim: what this process serves, answered before any command is taken;
+        # another process serving one of its loops makes it refuse to start
+        service_key = keys.service_status(prefix, SERVICE, self.opt.node)
+        shell.queryable(service_key, partial(self._on_query, what="service"), 1024)
+        try:
+            check_not_served(self.session, prefix, set(self.loops))
+        except ConfigError:
+            shell.undeclare()
+            shell.join(2.0)
+            raise
+        # the declarations below cost time in proportion to those made before (Zenoh's
+        # routing tables): the one-off start statuses go first, while there are few
+        for lid, lp in self.loops.items():
+            wire.put(self.session, keys.status(prefix, lid), self.loop_status(lp, "start"))
+        if self.opt.clock == "realtime":
+            self.publishers.declare([keys.pv(prefix, lid) for lid in self.loops], ProcessSample)
+        # on Zenoh's receiving thread: a lockstep round trip's command wakes no thread of ours
+        shell.subscribe(keys.all_commands(prefix), self._on_command, CHANNEL_CAPACITY, direct=True)
         shell.subscribe(
             keys.loop_alive(prefix, keys.ANY), self._on_peer, 1024, liveliness=True, history=True
         )
         for what, key in (
             ("status", keys.status(prefix, keys.ANY)),
             ("info", keys.info(prefix, keys.ANY)),
-            ("service", keys.service_status(prefix, SERVICE, self.opt.node)),
         ):
             shell.queryable(key, partial(self._on_query, what=what), 1024)
         shell.subscribe(
@@ -466,17 +524,12 @@ class PlantService:
         shell.thread(lambda: self._watchdog(stop), name="watchdog")
         if self.opt.clock == "realtime":
             shell.thread(lambda: self._pace(stop), name="clock")
-        out: list[tuple[str, Message]] = [
-            (keys.status(prefix, lid), self.loop_status(lp, "start"))
-            for lid, lp in self.loops.items()
-        ]
-        self._publish(out)
         for lid in self.loops:
             shell.announce(keys.loop_alive(prefix, lid))
         shell.announce(keys.service_alive(prefix, SERVICE, self.opt.node))
         log.info(
             "serving %s (%s clock%s) under %s/plant/",
-            ", ".join(self.loops),
+            _some(list(self.loops)),
             self.opt.clock,
             f", ×{self.opt.speed:g}" if self.opt.clock == "realtime" else "",
             prefix,
@@ -487,11 +540,19 @@ class PlantService:
             shell.withdraw()
             shell.undeclare()
             shell.join(2.0)
+            self.publishers.close()
             log.info(
                 "stopped: %d commands applied, %d refused",
                 self.accepted,
                 sum(self.rejected_by_reason.values()),
             )
+
+
+def _some(ids: list[str], limit: int = 20) -> str:
+    """The ids, the first ``limit`` of them and the count when there are more."""
+    if len(ids) <= limit:
+        return ", ".join(ids)
+    return f"{len(ids)} loops ({', '.join(ids[:limit])}, …)"
 
 
 # --- command line ---------------------------------------------------------------------------
@@ -531,6 +592,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--node", default="plant", help="this process's id on the bus (default: %(default)s)"
     )
+    parser.add_argument(
+        "--loops",
+        metavar="ID,...",
+        help="serve only these loops of the plant file (the others: another plant process)",
+    )
+    parser.add_argument(
+        "--shard",
+        metavar="K/N",
+        help="serve the K-th of N shares of the plant file's loops, dealt round-robin in "
+        "file order (run N processes, K = 1 … N)",
+    )
     add_common_arguments(parser)
 
 
@@ -548,7 +620,10 @@ def run(args: argparse.Namespace) -> int:
     if args.noise_std is not None and not 0 <= args.noise_std < float("inf"):
         raise ConfigError(f"--noise-std {args.noise_std}: must be a finite number ≥ 0")
     loops = load_plant_file(
-        args.plant or default_plant_path(), seed=args.seed, noise_std=args.noise_std
+        args.plant or default_plant_path(),
+        seed=args.seed,
+        noise_std=args.noise_std,
+        select=lambda ids: select_loops(ids, args.loops, args.shard),
     )
     run_until_stopped(
         settings_from_args(args), lambda session: PlantService(session, loops, options)

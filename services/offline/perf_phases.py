@@ -1,0 +1,184 @@
+"""Wall time per sample of the phases where the loop's own PID is in charge: a ramp test's
+closed-loop trials and the verification of the gains, over the bus and in this process.
+
+One ramp tune of the heat-exchanger preset goes through plant_sim, the autotuner and the logger
+as processes on loopback; the progress messages on the bus mark the phases (the experiment
+from ``quiet`` to ``identified``; the verification from the first ``verify`` to ``done``) and
+carry their sim time, so each phase's samples are its sim time over the sample time and its
+wall time is read where the messages arrive. The same tune in this process (no bus) is the
+yardstick: its phases are timed by the run's own progress hook.
+
+The services (and the CLI) can be started from another source tree (``source``): the same
+measurement of an older version of the code, on the same machine, in the same run.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from services.autotuner.loop_client import wait_for_token
+from services.autotuner.tuning import RunHooks, TuningRun
+from services.launcher import free_tcp_port, stop_service
+from services.offline import perf
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared import keys, wire
+from shared.errors import AutotuneError
+from shared.messages import TuneProgress, TuneRequest, TuneResult
+from shared.session import open_session
+
+LOOP = "ph1"
+METHOD = "ramp"  # closed-loop trials, then the verification: both phases in one run
+# phase → (progress phase that opens it, progress phase that closes it)
+PHASES = {"trials": ("quiet", "identified"), "verify": ("verify", "done")}
+
+
+@dataclass
+class Phase:
+    samples: float  # sim time of the phase / sample time
+    wall: float  # s
+    rate: float  # samples/s
+    us_per_sample: float  # wall µs per sample
+
+
+@dataclass
+class PhasesReport:
+    status: str  # the bus run's status (a figure of a failed run means little)
+    source: str  # the source tree the services ran from
+    bus: dict[str, Phase]
+    inprocess: dict[str, Phase]
+
+
+def _phases(marks: list[tuple[str, float, float]], ts: float) -> dict[str, Phase]:
+    """Each phase from its first opening mark to the first closing mark after it; ``marks``:
+    (progress phase, sim time s, wall s) in order of arrival."""
+    out: dict[str, Phase] = {}
+    for name, (opens, closes) in PHASES.items():
+        start = next((i for i, m in enumerate(marks) if m[0] == opens), None)
+        if start is None:
+            continue
+        end = next((m for m in marks[start + 1 :] if m[0] == closes), None)
+        if end is None:
+            continue
+        _, t0, w0 = marks[start]
+        samples, wall = (end[1] - t0) / ts, end[2] - w0
+        if samples > 0 and wall > 0:
+            out[name] = Phase(samples, wall, samples / wall, 1e6 * wall / samples)
+    return out
+
+
+def in_process() -> dict[str, Phase]:
+    """The ramp tune against the plant in this process, its phases timed by its progress."""
+    marks: list[tuple[str, float, float]] = []
+
+    def note(p: TuneProgress) -> None:
+        marks.append((p.phase, p.t, time.perf_counter()))
+
+    sim = build_plant(
+        {"seed": 1, "loops": {LOOP: {"model": perf.HX, "sample_time": perf.HX_SAMPLE_TIME}}}, "perf"
+    )[LOOP]
+    hooks = RunHooks(progress=note)
+    TuningRun(LocalLoopClient(sim), TuneRequest(loop=LOOP, method=METHOD), "perf", hooks).run()
+    return _phases(marks, sim.sample_time)
+
+
+def _start(module: str, args: list[str], source: Path, logs) -> subprocess.Popen:
+    """``python -m module args`` run from ``source`` (its code first on the path)."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(source)}
+    return subprocess.Popen(
+        [sys.executable, "-m", module, *args],
+        cwd=source,
+        env=env,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=logs,
+        start_new_session=True,
+    )
+
+
+def over_bus(source: Path, timeout: float = 300.0) -> tuple[str, dict[str, Phase]]:
+    """The ramp tune through plant_sim, the autotuner and the logger as processes (all, and
+    the CLI, run from ``source``); (its status, its phases)."""
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    prefix = perf._prefix("ph")
+    marks: list[tuple[str, float, float]] = []
+    status: list[str] = []
+    done = threading.Event()
+
+    def on_progress(sample: zenoh.Sample) -> None:
+        p = wire.decode_sample(TuneProgress, sample)
+        marks.append((p.phase, p.t, time.perf_counter()))
+
+    def on_result(sample: zenoh.Sample) -> None:
+        status.append(wire.decode_sample(TuneResult, sample).status)
+        done.set()
+
+    source = source.resolve()
+    with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryFile("w+") as logs:
+        plant = Path(tmp) / "plant.toml"
+        perf._plant_file(plant, [LOOP], perf.HX, perf.HX_SAMPLE_TIME)
+        zc = perf._client_args(endpoint)
+        pre = ["--prefix", prefix]
+        procs: list[subprocess.Popen] = []
+        try:
+            listen = ["-l", endpoint, "--no-multicast-scouting"]
+            procs.append(
+                _start("services.plant_sim", [*pre, "--plant", str(plant), *listen], source, logs)
+            )
+            procs.append(_start("services.autotuner", [*pre, *zc], source, logs))
+            procs.append(
+                _start("services.logger", [*pre, "--runs", f"{tmp}/runs", *zc], source, logs)
+            )
+            with open_session(perf._settings(endpoint)) as s:
+                for key in (
+                    keys.tuner_alive(prefix, "tuner"),
+                    keys.logger_alive(prefix, "logger"),
+                    keys.loop_alive(prefix, LOOP),
+                ):
+                    if not wait_for_token(s, key, 20.0):
+                        raise AutotuneError(f"perf: {key} did not come up within 20 s")
+                subs = [
+                    s.declare_subscriber(keys.tune_progress(prefix, LOOP), on_progress),
+                    s.declare_subscriber(keys.tune_result(prefix, LOOP), on_result),
+                ]
+                try:
+                    cli = _start(
+                        "services.cli",
+                        ["tune", LOOP, "--method", METHOD, *pre, "--json", *zc],
+                        source,
+                        logs,
+                    )
+                    procs.append(cli)
+                    try:
+                        cli.wait(timeout=timeout)
+                    except subprocess.TimeoutExpired:
+                        raise AutotuneError(
+                            f"perf: the ramp tune did not end within {timeout:g} s"
+                        ) from None
+                    if not done.wait(10.0):
+                        raise AutotuneError("perf: the ramp tune's result was not seen")
+                finally:
+                    for sub in subs:
+                        sub.undeclare()
+        finally:
+            for p in reversed(procs):
+                stop_service(p, timeout=30.0)
+    return status[0], _phases(marks, perf.HX_SAMPLE_TIME)
+
+
+def phases(source: Path | None = None) -> PhasesReport:
+    """The ramp tune's closed-loop phases over the bus (services from ``source``, default
+    this tree) and in this process."""
+    here = Path(__file__).resolve().parents[2]
+    src = source or here
+    status, bus = over_bus(src)
+    return PhasesReport(status, str(src), bus, in_process())
