@@ -23,6 +23,7 @@ from services.autotuner.commands import set_loop as set_command
 from services.autotuner.commands import step as step_command
 from services.autotuner.commands import tune as tune_command
 from services.autotuner.commands import watch as watch_command
+from services.console import command as console_command
 from services.logger import report
 from services.logger import service as logger_service
 from services.logger.commands import analyze as analyze_command
@@ -61,6 +62,7 @@ SUBCOMMANDS = {
     "benchmark": benchmark_command,
     "wall-times": wall_times,
     "perf": perf_command,
+    "console": console_command,
 }
 
 

@@ -26,6 +26,7 @@ from services.autotuner.commands.tune import (
     request_from_args,
     submit,
 )
+from services.console import launch as console_launch
 from services.launcher import free_tcp_port
 from services.logger.report import build_figure, load_series
 from services.plant_sim.simulation.models import TransferFunctionModel
@@ -74,6 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="print the result as one JSON object (with mcap and report paths)",
     )
     add_tune_options(parser)
+    console_launch.add_arguments(parser)
 
 
 def exact_point(info: LoopInfo) -> tuple[float, float] | None:
@@ -136,13 +138,17 @@ def run(args: argparse.Namespace) -> int:
     if not (args.speed > 0 and args.speed < float("inf")):
         raise ConfigError(f"--speed {args.speed}: must be a finite number > 0")
     req = request_from_args(args, source="autotune-demo")
+    if args.console:
+        console_launch.check_port(args.console_port)
     runs = runs_dir(args.runs)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    prefix = f"autotune/demo{os.getpid()}"
+    # the topics of `autotune up` (a Foxglove layout fits both), isolated by a namespace
+    prefix = keys.DEFAULT_PREFIX
+    namespace = f"namespace:{json.dumps(f'demo{os.getpid()}')}"
     client = ZenohSettings(
         mode="peer",
         connect=(endpoint,),
-        cfg=("connect/timeout_ms:10000",),
+        cfg=("connect/timeout_ms:10000", namespace),
         no_multicast_scouting=True,
     )
     plant_args = ["--prefix", prefix]
@@ -151,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
     plant_args += ["--noise-std", str(args.noise)] if args.noise is not None else []
     plant_args += ["--clock", "realtime", "--speed", str(args.speed)] if args.realtime else []
     zenoh_client = ["-e", endpoint, "--no-multicast-scouting", "--cfg", "connect/timeout_ms:10000"]
+    zenoh_client += ["--cfg", namespace]
     mcap = report = info = None
     with tempfile.TemporaryFile("w+") as logs:
         stack = Stack(prefix, client, logs)
@@ -159,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
                 "plant",
                 "services.plant_sim",
                 plant_args,
-                ["-l", endpoint, "--no-multicast-scouting"],
+                ["-l", endpoint, "--no-multicast-scouting", "--cfg", namespace],
             )
             stack.start("tuner", "services.autotuner", ["--prefix", prefix], zenoh_client)
             stack.start(
@@ -177,6 +184,9 @@ def run(args: argparse.Namespace) -> int:
             except AutotuneError as err:
                 logs.seek(0)
                 raise AutotuneError(f"{err}\n{logs.read().strip()}") from None
+            if args.console:  # up before the run: the page shows it live, and after
+                url = console_launch.start(stack, prefix, runs, args.console_port, zenoh_client)
+                print(f"the commissioning console: {url}", file=sys.stderr, flush=True)
             with open_session(client) as session:
                 info = wire.query_one(session, keys.info(prefix, args.loop), LoopInfo, 10.0)
                 if info is None:
@@ -193,8 +203,21 @@ def run(args: argparse.Namespace) -> int:
                 mcap = wait_for_file(session, prefix, runs, result.run_id)
             report = mcap.with_suffix(".png")
             build_figure(load_series(mcap)).savefig(report, dpi=110)
+            if args.console:  # the outcome now, then the page stays up until Ctrl-C
+                _print_outcome(args, result, info, mcap, report)
+                console_launch.hold(url)
         finally:
+            console_launch.stop(stack)
             stack.stop()
+    if not args.console:
+        _print_outcome(args, result, info, mcap, report)
+    return 0 if result.status == "ok" else 1
+
+
+def _print_outcome(
+    args: argparse.Namespace, result: TuneResult, info: LoopInfo | None, mcap: Path, report: Path
+) -> None:
+    """The run's outcome on stdout: ``--json``'s object, or the demo's text."""
     if sys.stderr.isatty() and not args.json:
         print("\r" + " " * 100 + "\r", end="", file=sys.stderr)
     exact = exact_point(info) if info else None
@@ -207,5 +230,4 @@ def run(args: argparse.Namespace) -> int:
         )
         print(json.dumps(out, indent=2))
     else:
-        print(format_demo(result, exact, info.model, mcap, report))
-    return 0 if result.status == "ok" else 1
+        print(format_demo(result, exact, info.model, mcap, report), flush=True)

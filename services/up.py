@@ -47,6 +47,7 @@ from typing import IO, Any, Literal
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field
 
+from services.console import launch as console_launch
 from services.stack import Stack, runs_dir, service_tokens
 from shared import keys
 from shared.cli import check_ids, install_stop_handlers
@@ -397,6 +398,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--speed", type=float)
     parser.add_argument("--seed", type=int)
     parser.add_argument("--runs", metavar="DIR", help="the logger's directory (default: runs)")
+    console_launch.add_arguments(parser)
 
 
 def load_config(args: argparse.Namespace) -> UpConfig:
@@ -532,8 +534,18 @@ def start(cfg: UpConfig, logs: IO[str] | None = None) -> Stack:
     return stack
 
 
+def _client_args(cfg: UpConfig, deployment: SecureDeployment | None) -> list[str]:
+    """How a client joins this stack's bus (the console: as an operator when secure)."""
+    if deployment is not None:
+        return ["-c", str(deployment.config("operator"))]
+    connect = ["-e", cfg.endpoint, "--no-multicast-scouting", "--cfg", "connect/timeout_ms:30000"]
+    return ["-m", "client", *connect] if cfg.router else connect
+
+
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args)
+    if args.console:
+        console_launch.check_port(args.console_port)
     deployment = None
     if cfg.secure:
         deployment = write_secure(Path(cfg.secure_dir), cfg.prefix, cfg.endpoint)
@@ -545,6 +557,15 @@ def run(args: argparse.Namespace) -> int:
     stack = start_secure(cfg, deployment) if deployment else start(cfg)
     try:
         stack.wait_ready(service_tokens(cfg.prefix, None), timeout=40.0)
+        if args.console:
+            url = console_launch.start(
+                stack,
+                cfg.prefix,
+                runs_dir(cfg.runs),
+                args.console_port,
+                _client_args(cfg, deployment),
+            )
+            print(f"the commissioning console: {url}", file=sys.stderr, flush=True)
         pids = ", ".join(f"{n} pid {p.pid}" for n, p in stack.procs.items())
         how = " through a router" if cfg.router else ""
         if deployment:
@@ -570,6 +591,7 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{', '.join(dead)} exited; stopping the others", file=sys.stderr)
                 return 1
     finally:
+        console_launch.stop(stack)
         codes = stack.stop()
         print(
             "stopped: " + ", ".join(f"{n} exit {c}" for n, c in codes.items()),

@@ -24,6 +24,8 @@ Layout (IDs in their own chunks, most-varying part last)::
     <prefix>/tune/<loop>/result            TuneResult at the end of a run (queryable: the last)
     <prefix>/tune/<loop>/cancel            a put here cancels the loop's run (loop restored)
     <prefix>/tune/<loop>/running           liveliness token held while a run owns the loop
+    <prefix>/tune/<loop>/run               a run file's metadata as a message (RunRecord):
+                                           a channel of the MCAP file, never on the bus
     <prefix>/logger/<node>/status          LoggerStatus (queryable)
     <prefix>/logger/<node>/alive           liveliness token of one logger process
     <prefix>/monitor/<loop>                LoopMonitor: the tuner's assessment of a loop it
@@ -215,6 +217,11 @@ def tune_cancel(prefix: str, loop: str) -> str:
 
 def tune_running(prefix: str, loop: str) -> str:
     return f"{tune_root(prefix, loop)}/running"
+
+
+def tune_run_record(prefix: str, loop: str) -> str:
+    """The channel of a run file's RunRecord (its metadata as a message); not a bus key."""
+    return f"{tune_root(prefix, loop)}/run"
 
 
 def logger_status(prefix: str, node: str) -> str:

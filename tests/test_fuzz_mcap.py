@@ -22,13 +22,9 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from services.autotuner.tuning import RunHooks, TuningRun
 from services.cli import main
-from services.logger.recorder import Recorder
-from services.offline.local_loop import LocalLoopClient
-from services.plant_sim.plant_file import build_plant
-from shared import keys, wire
-from shared.messages import Command, ProcessSample, TuneRequest, TuneResult
+from shared.messages import ProcessSample, TuneResult
+from tests.recorded_run import record_in_process
 
 PREFIX = "fuzz"
 LOOP = "x1"
@@ -59,33 +55,8 @@ class Recorded:
 def record_run(runs: Path, method: str, **request) -> Recorded:
     """One tuning run through the live tuner's code (TuningRun over an in-process loop), every
     message it and the loop publish handed to the logger's Recorder as the bus would."""
-    loop = build_plant(PLANT)[LOOP]
-    recorder = Recorder(runs, PREFIX, flush_interval=3600.0)
-
-    def put(key: str, msg) -> None:
-        recorder.handle(key, wire.encode(msg))
-
-    class Recording(LocalLoopClient):
-        def _apply(self, cmd: Command) -> None:
-            super()._apply(cmd)
-            if cmd.kind not in ("advance", "sync", "lease", "release"):
-                put(keys.command(PREFIX, LOOP, cmd.kind), cmd)
-
-        def advance(self, steps: int) -> list[ProcessSample]:
-            out = super().advance(steps)
-            for s in out:
-                put(keys.pv(PREFIX, LOOP), s)
-            return out
-
-    hooks = RunHooks(
-        progress=lambda m: put(keys.tune_progress(PREFIX, LOOP), m),
-        event=lambda m: put(keys.tune_event(PREFIX, LOOP), m),
-    )
-    req = TuneRequest(loop=LOOP, method=method, **request)
-    live = TuningRun(Recording(loop), req, f"run{method}", hooks).run()
-    put(keys.tune_result(PREFIX, LOOP), live)
+    path, live = record_in_process(runs, PREFIX, PLANT, LOOP, method, **request)
     assert live.status == "ok", live.reason
-    (path,) = recorder.finished
     return Recorded(path, live)
 
 
@@ -405,16 +376,14 @@ CASES = [
     (
         "request-bad-method",
         "relay",
-        edit_event_data(
-            "request", lambda d: {**d, "request": d["request"].replace('"relay"', '"guess"')}
-        ),
+        edit_event_data("request", lambda d: {**d, "request": {**d["request"], "method": "guess"}}),
         {"analyze": [REC, "data.request.method"]},
     ),
     (
         "request-bad-rule",
         "relay",
         edit_event_data(
-            "request", lambda d: {**d, "request": d["request"].replace('"auto"', '"zn-banana"')}
+            "request", lambda d: {**d, "request": {**d["request"], "rule": "zn-banana"}}
         ),
         {"analyze": [REC, "data.request.rule"]},
     ),
@@ -599,11 +568,11 @@ CASES = [
     (
         "meta-future-format",
         "relay",
-        edit_meta(set_("format", "2")),
+        edit_meta(set_("format", "3")),
         {
-            "analyze": ["format", "version 2", "upgrade"],
-            "report": ["format", "version 2"],
-            "runs": ["format", "version 2"],
+            "analyze": ["format", "version 3", "upgrade"],
+            "report": ["format", "version 3"],
+            "runs": ["format", "version 3"],
         },
     ),
     (

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from services.logger.mcap_io import read_run
+from services.logger.mcap_io import FORMAT_VERSION, read_run
 from services.logger.recorder import BUFFER, RESULT_GRACE, Recorder, model_for
 from shared import keys, wire
 from shared.messages import (
@@ -130,7 +130,7 @@ def test_a_run_from_start_to_result_is_one_file_with_its_messages(rec: Recorder)
         *[keys.pv(P, LOOP)] * 5,
         keys.tune_result(P, LOOP),
     ]
-    assert meta["format"] == "1"
+    assert meta["format"] == str(FORMAT_VERSION)
     assert (meta["run_id"], meta["loop"], meta["status"], meta["prefix"]) == ("r1", LOOP, "ok", P)
     assert (meta["samples"], meta["first_seq"], meta["last_seq"]) == ("10", "10", "19")
     assert (meta["dropped"], meta["messages"], meta["left_out"]) == ("0", "16", "0")

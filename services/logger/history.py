@@ -60,9 +60,12 @@ class ChangeHistory:
         runs_dir: Path,
         prefix: str,
         now: Callable[[], datetime] = lambda: datetime.now(UTC),
+        bus: str | None = None,
     ):
         self.path = Path(runs_dir) / HISTORY_FILE
         self.prefix = prefix
+        # the bus its records name: the prefix, under the Zenoh namespace if there is one
+        self.bus = bus or prefix
         self.now = now
         self.loops: dict[str, _Loop] = {}
         self.written = 0
@@ -73,7 +76,7 @@ class ChangeHistory:
             if (
                 rec.get("record") == "change"
                 and isinstance(rec.get("after"), dict)
-                and rec.get("prefix", prefix) == prefix
+                and rec.get("prefix", self.bus) == self.bus
             ):
                 self._on_record[str(rec.get("loop"))] = (rec.get("node"), rec["after"])
 
@@ -109,7 +112,7 @@ class ChangeHistory:
                     "record": "change",
                     "utc": self._utc(),
                     "t": st.t,
-                    "prefix": self.prefix,
+                    "prefix": self.bus,
                     "loop": st.loop,
                     "node": st.node,
                     "by_source": st.by_source,
@@ -146,7 +149,7 @@ class ChangeHistory:
                     "record": "change",
                     "utc": self._utc(),
                     "t": st.t,
-                    "prefix": self.prefix,
+                    "prefix": self.bus,
                     "loop": st.loop,
                     "node": st.node,
                     "by_source": None,
@@ -168,7 +171,7 @@ class ChangeHistory:
                 "record": "tune",
                 "utc": self._utc(),
                 "t": r.t,
-                "prefix": self.prefix,
+                "prefix": self.bus,
                 "loop": r.loop,
                 "run_id": r.run_id,
                 "status": r.status,

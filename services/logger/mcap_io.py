@@ -1,8 +1,12 @@
-"""MCAP files of tuning runs: writing with schemas and sim time, reading with clear errors.
+"""MCAP files of tuning runs: writing with schemas and wall-clock log times, reading with
+clear errors.
 
-Topics are the Zenoh key expressions with a leading '/'; messages are ``json`` with a
-``jsonschema`` schema generated from the pydantic model (Foxglove plots them as they are);
-``log_time`` is the message's sim time in nanoseconds, so the time axis is the plant's.
+Topics are the Zenoh key expressions with a leading '/'; messages are ``json`` in their
+recorded form (``record_form``: what Foxglove's JSON Schema parser takes) with a draft
+2020-12 ``jsonschema`` generated from the pydantic model. ``log_time`` is on the wall-clock
+timeline: the run's start (ns since the Unix epoch) plus the sim time since the run's start,
+``log_time_zero + t·1e9`` with ``log_time_zero`` in the run's metadata; every message keeps its
+sim time in ``t``. Files of format 1 (sim-time log times, the bus's JSON) read as before.
 
 Reading never trusts the file: a damaged container (truncated, not MCAP, corrupt chunks), a
 run written by a newer format (``format`` in the run's metadata), and — through ``decode`` —
@@ -12,9 +16,11 @@ file, the record (topic, index in the file, log time), the field and the reason.
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO, TypeVar
 
@@ -22,6 +28,7 @@ import pydantic
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
+from services.logger.record_form import RunRecord, bus_payload, run_record, schema_bytes
 from shared import keys
 from shared.errors import AutotuneError, one_line
 from shared.messages import Message, ProcessSample, TuneResult
@@ -29,8 +36,10 @@ from shared.messages import Message, ProcessSample, TuneResult
 PROFILE = ""  # no ROS profile: plain JSON messages
 MAGIC = b"\x89MCAP0\r\n"
 LIBRARY = "autotune"
-FORMAT_VERSION = 1  # of the run files written here: "format" in the run's metadata
+FORMAT_VERSION = 2  # of the run files written here: "format" in the run's metadata
+# 1: log time = sim time, the bus's JSON; 2: wall-clock log times, the recorded form
 M = TypeVar("M", bound=Message)
+WALL_CLOCK_NS = 10**18  # 2001-09-09: a log time past it is on the wall clock, not sim time
 
 
 def topic_of(key: str) -> str:
@@ -46,11 +55,32 @@ def sim_ns(t: float) -> int:
     return max(0, round(t * 1e9))
 
 
-class RunWriter:
-    """One MCAP file being written: schemas and channels on first use, flushed on demand."""
+def bus_name(namespace: str, prefix: str) -> str:
+    """The bus a run was recorded on, as the change history names it: the prefix, under the
+    Zenoh namespace (``autotune demo``'s) if there was one."""
+    return f"{namespace}/{prefix}" if namespace else prefix
 
-    def __init__(self, path: Path, flush_interval: float = 1.0):
+
+def bus_of(meta: dict[str, str]) -> str | None:
+    """The bus of a run file's metadata (None: the file does not say)."""
+    prefix = meta.get("prefix")
+    return bus_name(meta.get("namespace", ""), prefix) if prefix else None
+
+
+def log_time_zero(wall_ns: int, t_start: float) -> int:
+    """The log time of sim time 0 for a run that started at sim time ``t_start`` (s) at the
+    wall-clock instant ``wall_ns`` (ns since the Unix epoch): log time = zero + t·1e9."""
+    return max(0, wall_ns - sim_ns(t_start))
+
+
+class RunWriter:
+    """One MCAP file being written: schemas and channels on first use, flushed on demand.
+
+    ``log_time_zero``: ns added to each message's sim time for its log time (0: sim time)."""
+
+    def __init__(self, path: Path, flush_interval: float = 1.0, log_time_zero: int = 0):
         self.path = path
+        self.log_time_zero = log_time_zero
         self._file: IO[bytes] = path.open("wb")
         self._writer = Writer(self._file, compression=CompressionType.ZSTD)
         self._writer.start(profile=PROFILE, library=LIBRARY)
@@ -63,14 +93,16 @@ class RunWriter:
         self._last_flush = time.monotonic()
         self.finished = False
 
-    def _schema(self, model: type[Message]) -> int:
+    def _schema(self, model: type[pydantic.BaseModel]) -> int:
         name = model.__name__
         if name not in self._schemas:
-            schema = json.dumps(model.model_json_schema()).encode()
-            self._schemas[name] = self._writer.register_schema(name, "jsonschema", schema)
+            self._schemas[name] = self._writer.register_schema(
+                name, "jsonschema", schema_bytes(model)
+            )
         return self._schemas[name]
 
-    def write(self, key: str, model: type[Message], payload: bytes, t: float) -> None:
+    def write(self, key: str, model: type[pydantic.BaseModel], payload: bytes, t: float) -> None:
+        """Record ``payload`` (the recorded form of a ``model`` message) at sim time ``t``, s."""
         topic = topic_of(key)
         if topic not in self._channels:
             self._channels[topic] = self._writer.register_channel(
@@ -79,7 +111,7 @@ class RunWriter:
         channel = self._channels[topic]
         seq = self._sequence.get(channel, 0)
         self._sequence[channel] = seq + 1
-        ns = sim_ns(t)
+        ns = self.log_time_zero + sim_ns(t)
         self._writer.add_message(channel, log_time=ns, data=payload, publish_time=ns, sequence=seq)
         self.messages += 1
 
@@ -90,13 +122,32 @@ class RunWriter:
             self._writer.flush()
             self._last_flush = time.monotonic()
 
-    def finish(self, metadata: dict[str, str]) -> None:
+    def finish(
+        self, metadata: dict[str, str], record_key: str | None = None, t: float = 0.0
+    ) -> None:
+        """Write the metadata ``run`` and close the file; with ``record_key`` the metadata also
+        goes on that key as a RunRecord message at sim time ``t``, s."""
         if self.finished:
             return
-        self._writer.add_metadata("run", {"format": str(FORMAT_VERSION), **metadata})
+        meta = {"format": str(FORMAT_VERSION), "log_time_zero": str(self.log_time_zero)}
+        meta.update(metadata)
+        if record_key is not None:
+            self.write(record_key, RunRecord, run_record(meta, t, self.log_time_zero), t)
+        self._writer.add_metadata("run", meta)
         self._writer.finish()
         self._file.close()
         self.finished = True
+
+
+@functools.cache
+def recorded_form(schema: bytes) -> bool:
+    """Does a channel with this schema carry the recorded form (format 2: ``$schema`` stated),
+    rather than the bus's JSON (format 1)? Told by the schema, so a file that lost its
+    metadata (a recovered one) reads right too."""
+    try:
+        return isinstance(s := json.loads(schema), dict) and "$schema" in s
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return False
 
 
 def not_readable(path: Path | str, why: str) -> AutotuneError:
@@ -125,7 +176,11 @@ class Record:
         return json.loads(self.data)
 
     def where(self) -> str:
-        """The record as an error message names it: topic, index, log time."""
+        """The record as an error message names it: topic, index, log time (UTC for a
+        wall-clock log time, seconds for a format-1 file's sim time)."""
+        if self.log_time >= WALL_CLOCK_NS:
+            at = datetime.fromtimestamp(self.log_time / 1e9, UTC).isoformat(timespec="milliseconds")
+            return f"{self.topic} message {self.index} (log time {at.replace('+00:00', 'Z')})"
         return f"{self.topic} message {self.index} (log time {self.log_time / 1e9:.9g} s)"
 
 
@@ -238,14 +293,14 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
                 if m.name == "run":
                     meta = dict(m.metadata)
             f.seek(0)
-            records = [
-                Record(
-                    ch.topic, sc.name if sc else "", msg.log_time, msg.data, i, ch.message_encoding
-                )
-                for i, (sc, ch, msg) in enumerate(
-                    make_reader(f).iter_messages(log_time_order=False)
-                )
-            ]
+            records = []
+            for i, (sc, ch, msg) in enumerate(make_reader(f).iter_messages(log_time_order=False)):
+                name, data = (sc.name, msg.data) if sc else ("", msg.data)
+                if sc is not None and recorded_form(sc.data):
+                    if name == RunRecord.__name__:
+                        continue  # the metadata again, as a message: not a bus message
+                    data = bus_payload(name, data)  # back to the bus's message
+                records.append(Record(ch.topic, name, msg.log_time, data, i, ch.message_encoding))
     except AutotuneError:
         raise
     except Exception as err:  # the mcap library on damaged bytes: any of a dozen kinds

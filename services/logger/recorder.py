@@ -53,7 +53,8 @@ from pathlib import Path
 
 import pydantic
 
-from services.logger.mcap_io import RunWriter
+from services.logger.mcap_io import RunWriter, log_time_zero
+from services.logger.record_form import recorded_payload
 from shared import keys
 from shared.errors import ConfigError
 from shared.messages import (
@@ -194,9 +195,11 @@ class Recorder:
         flush_interval: float = 1.0,
         record_replays: bool = False,
         clock: Callable[[], float] = time.monotonic,
+        namespace: str = "",
     ):
         self.runs_dir = prepare_runs_dir(runs_dir)
         self.prefix = prefix
+        self.namespace = namespace  # the session's Zenoh namespace (keys are read without it)
         self.flush_interval = flush_interval
         self.record_replays = record_replays
         self.clock = clock
@@ -422,7 +425,8 @@ class Recorder:
     # --- files ------------------------------------------------------------------------------
 
     def _open(self, stream: Stream, start: TuneProgress) -> None:
-        now = datetime.now(UTC)
+        wall_ns = time.time_ns()  # the run's start on the wall clock: its log times' origin
+        now = datetime.fromtimestamp(wall_ns / 1e9, UTC)
         method = start.message.split(" ")[0] if start.message else "run"
         tail = "_replay" if stream.replay else ""
         name = f"{now:%Y%m%dT%H%M%SZ}_{stream.loop}_{method}_{start.run_id}{tail}.mcap"
@@ -436,7 +440,7 @@ class Recorder:
             stream.loop,
             method,
             "",
-            RunWriter(path, self.flush_interval),
+            RunWriter(path, self.flush_interval, log_time_zero(wall_ns, start.t)),
             start.t,
             now.isoformat(),
             instance=stream.instance,
@@ -480,7 +484,7 @@ class Recorder:
                 run.method = request.get("method", run.method)
             except (json.JSONDecodeError, AttributeError):
                 pass
-        run.writer.write(item.key, item.model, item.payload, item.t)
+        run.writer.write(item.key, item.model, recorded_payload(msg, item.payload), item.t)
         self.counts["written"] += 1
 
     def _close(self, stream: Stream, status: str, result: TuneResult | None) -> None:
@@ -500,6 +504,7 @@ class Recorder:
             "started": run.started,
             "finished": datetime.now(UTC).isoformat(),
             "prefix": self.prefix,
+            "namespace": self.namespace,
             "samples": str(run.samples),
             "first_seq": str(run.first_seq),
             "last_seq": str(run.last_seq),
@@ -515,7 +520,8 @@ class Recorder:
             "plant_changed": run.plant_changed,
             "left_out": str(run.left_out),
         }
-        run.writer.finish(meta)
+        end = result.t if result is not None else (run.last_t or run.t_start)
+        run.writer.finish(meta, keys.tune_run_record(self.prefix, run.loop), max(end, run.t_start))
         self.finished.append(run.writer.path)
         if not run.replay:
             self._recorded[run.run_id] = None

@@ -1,31 +1,57 @@
-"""``autotune report RUN.mcap -o report.png``: the figure for a commissioning report.
+"""``autotune report RUN.mcap -o report.png``: the figures a control engineer expects of a run.
 
-PV and setpoint (top) and output (bottom) against sim time, from the recorded samples; the
-relay's cycle boundaries or the ramp's trials marked; the verification steps shaded; K_u,
-P_u, the chosen gains and the verification figures in a box. matplotlib's object API with
-the Agg canvas: no display and no global pyplot state.
+From the recorded samples and messages (sim time ``t`` of each message, never the file's log
+time): PV and setpoint (top) and output against sim time, with a legend for every mark —
+relay switches, cycles, stage 2, ramp trials with their Kc, the verifications and their load
+steps — and K_u, P_u and the chosen gains (Kc with its units, as %/% and PB) in a box; the
+fitted model simulated over the recorded data; a Bode and a Nyquist plot of the measured
+frequency points with their stated uncertainty, the model's curve and the −180° crossings;
+the verifications before and after side by side with their figures; the loop's change
+history and the watch after the change. The numbers come from the pure modules beside this
+one (``run_marks``, ``bode``, ``overlay``, ``before_after``, ``gain_text``); this module
+reads the file and draws, with matplotlib's object API on the Agg canvas (no display, no
+global pyplot state). ``build_figure`` is the trend page alone; ``render`` the whole report
+as PNG or SVG bytes (the console serves those).
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from services.logger.mcap_io import decode, one_result, read_run, unique_samples
+from services.logger.before_after import VerifyTrace, figures_rows, verify_traces
+from services.logger.bode import FrequencyFigure, frequency_figure
+from services.logger.gain_text import gains_text, kc_text, span_of
+from services.logger.mcap_io import bus_of, decode, one_result, read_run, unique_samples
+from services.logger.overlay import Overlay, model_overlay
+from services.logger.result_model import result_model
+from services.logger.run_marks import Mark, VerifyWindow, experiment_marks, verify_windows
 from shared import keys
 from shared.errors import AutotuneError, one_line
 from shared.history_file import HISTORY_FILE, loop_changes, read_history
-from shared.messages import TuneProgress, TuneResult, TunerEvent
+from shared.messages import (
+    DisturbanceCommand,
+    SetpointCommand,
+    TuneProgress,
+    TuneResult,
+    TunerEvent,
+)
 
 if TYPE_CHECKING:
+    from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-HELP = "plot a recorded run (PV, setpoint, output, cycles, verification) to a PNG"
+HELP = (
+    "the run's report: trends with every mark, model against data, Bode and Nyquist, before/after"
+)
+FORMATS = ("png", "svg")
 
 
 @dataclass
@@ -41,6 +67,26 @@ class RunSeries:
     # the loop's gains changes from the change history beside the file (history.jsonl), and
     # the watch's assessments after this run's change where the tuner kept them
     history: list[str] = field(default_factory=list)
+    events: list[Mark] = field(default_factory=list)  # every mark of the experiment
+    windows: list[VerifyWindow] = field(default_factory=list)  # the verifications
+    setup: dict[str, Any] = field(default_factory=dict)  # the experiment event's data
+    seq: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))  # the samples'
+
+    @property
+    def units(self) -> str:
+        return self.result.pv_units if self.result else str(self.setup.get("pv_units") or "")
+
+    @property
+    def span(self) -> float | None:
+        """The PV's span (PV units): the result's range, else the experiment's set-up's."""
+        span = span_of(self.result.pv_range) if self.result else None
+        if span is None:
+            span = span_of((self.setup.get("pv_range_lo"), self.setup.get("pv_range_hi")))
+        return span
+
+
+def _by_schema(path: str | Path, records: list, model: type) -> list:
+    return [decode(path, r, model) for r in records if r.schema == model.__name__]
 
 
 def load_series(path: str | Path) -> RunSeries:
@@ -59,29 +105,30 @@ def load_series(path: str | Path) -> RunSeries:
         progress = [p for p in progress if p.run_id == run_id]
         results = [(r, x) for r, x in results if x.run_id == run_id]
     result = one_result(path, results)
+    setpoints = _by_schema(path, records, SetpointCommand)
+    loads = _by_schema(path, records, DisturbanceCommand)
     marks = [(e.t, f"cycle {e.data.get('n')}") for e in events if e.kind == "cycle"]
     marks += [(e.t, f"trial {e.data.get('n')}") for e in events if e.kind == "trial"]
-    spans: list[tuple[float, float]] = []
-    start = None
-    for p in progress:
-        if p.phase == "verify" and start is None:
-            start = p.t
-        elif p.phase != "verify" and start is not None:
-            spans.append((start, p.t))
-            start = None
-    if start is not None:
-        spans.append((start, samples[-1].t))
+    windows = verify_windows(
+        progress, setpoints, loads, samples[-1].t, result is not None and result.before is not None
+    )
+    setup = next((dict(e.data) for e in events if e.kind == "experiment"), {})
+    units = result.pv_units if result else str(setup.get("pv_units") or "")
     return RunSeries(
         np.array([s.t for s in samples]),
         np.array([s.pv for s in samples]),
         np.array([s.sp for s in samples]),
         np.array([s.op for s in samples]),
         marks,
-        spans,
+        [(w.start, w.end) for w in windows],
         result,
         meta,
-        history_lines(Path(path).parent, meta.get("loop", ""), run_id or "", meta.get("prefix"))
+        history_lines(Path(path).parent, meta.get("loop", ""), run_id or "", bus_of(meta))
         + watch_lines(Path(path).parent, meta.get("loop", ""), run_id or ""),
+        experiment_marks(events, units),
+        windows,
+        setup,
+        np.array([s.seq for s in samples]),
     )
 
 
@@ -165,9 +212,18 @@ def _summary(s: RunSeries) -> str:
     r = s.result
     if r is None:
         return f"status: {s.meta.get('status', 'incomplete')}"
+    span = s.span
     lines = [f"{r.method} test · rule {r.rule} · {r.status}"]
     if r.ku is not None:
-        lines.append(f"K_u = {_g(r.ku, '.4g')} %/{r.pv_units}   P_u = {_g(r.pu, '.4g', ' s')}")
+        lines.append(
+            f"K_u = {_g(r.ku, '.4g')} %/{r.pv_units}"
+            + (
+                f" = {_g(r.ku * span / 100, '.4g')} %/%"
+                if span and span != 100 and isinstance(r.ku, float)
+                else ""
+            )
+            + f"   P_u = {_g(r.pu, '.4g', ' s')}"
+        )
     step = r.step if isinstance(r.step, dict) else {}
     if step:
         lines.append(
@@ -176,10 +232,7 @@ def _summary(s: RunSeries) -> str:
         )
     isa = (r.chosen or {}).get("isa") if isinstance(r.chosen, dict) else None
     if isinstance(isa, dict):
-        lines.append(
-            f"Kc = {_g(isa.get('kc'), '.4g')}  Ti = {_g(isa.get('ti'), '.4g', ' s')}  "
-            f"Td = {_g(isa.get('td'), '.4g', ' s')}"
-        )
+        lines.append(gains_text(isa, r.pv_units, span))
     if r.after is not None:
         a = r.after
         lines.append(
@@ -191,58 +244,102 @@ def _summary(s: RunSeries) -> str:
     return "\n".join(lines)
 
 
-def build_figure(s: RunSeries) -> Figure:
-    # imported here: every service process imports this module through the CLI, and only
-    # the report needs matplotlib (0.2 s of start-up)
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+# the marks' styles: (colour, line style); a cycle's is dotted and only a cycle's
+MARK_STYLE = {
+    "cycle": ("0.55", ":"),
+    "stage 2": ("tab:purple", "-"),
+    "trial": ("tab:purple", "--"),
+    "load": ("tab:brown", "-."),
+    "output step": ("tab:cyan", "-"),
+}
 
-    rows = 3 if s.history else 2
-    fig = Figure(figsize=(12, 7 + 0.22 * len(s.history)), layout="constrained")
-    FigureCanvasAgg(fig)
-    heights = [2, 1, 0.12 * len(s.history)] if s.history else [2, 1]
-    axes = fig.subplots(rows, 1, height_ratios=heights)
-    ax_pv, ax_op = axes[0], axes[1]
+
+def _proxy(label: str, color: str, ls: str = "-", marker: str = "", lw: float = 1.0) -> Any:
+    """A legend entry that is not drawn on the axes (the marks' own lines carry no label)."""
+    from matplotlib.lines import Line2D
+
+    return Line2D([], [], color=color, ls=ls, marker=marker, lw=lw, label=label)
+
+
+def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
+    """PV and setpoint over output against sim time, every mark in the legend."""
     ax_op.sharex(ax_pv)
-    if s.history:
-        ax_h = axes[2]
-        ax_h.axis("off")
-        ax_h.text(
-            0.0,
-            1.0,
-            "\n".join(s.history),
-            transform=ax_h.transAxes,
-            va="top",
-            fontsize=8,
-            family="monospace",
-        )
-    units = s.result.pv_units if s.result else ""
+    units = s.units
     ax_pv.plot(s.t, s.pv, lw=1.0, color="tab:blue", label="PV")
     ax_pv.plot(
         s.t, s.sp, lw=1.0, color="tab:red", ls="--", drawstyle="steps-post", label="setpoint"
     )
     ax_op.plot(s.t, s.op, lw=1.0, color="tab:green", drawstyle="steps-post", label="output")
-    for t, _ in s.marks:
-        ax_pv.axvline(t, color="0.6", lw=0.6, ls=":")
-    for a, b in s.verify_spans:
+    handles_pv: list[Any] = []
+    handles_op: list[Any] = []
+    kinds = {m.kind for m in s.events}
+    for m in s.events:
+        if m.kind in ("cycle", "stage 2", "trial", "output step"):
+            color, ls = MARK_STYLE[m.kind]
+            for ax in (ax_pv, ax_op) if m.kind == "output step" else (ax_pv,):
+                ax.axvline(m.t, color=color, lw=0.7, ls=ls)
+        if m.kind in ("cycle", "trial"):
+            ax_pv.text(
+                m.t,
+                1.0,
+                m.label.split(":")[1].strip() if m.kind == "trial" else m.label.split()[-1],
+                transform=ax_pv.get_xaxis_transform(),
+                rotation=90,
+                va="top",
+                ha="right",
+                fontsize=6,
+                color=MARK_STYLE[m.kind][0],
+            )
+    if not s.events and s.marks:  # a file whose events only the old marks list holds
+        for t, _ in s.marks:
+            ax_pv.axvline(t, color="0.6", lw=0.6, ls=":")
+    switches = [m for m in s.events if m.kind == "switch"]
+    if switches:
+        ts = np.array([m.t for m in switches])
+        ax_op.plot(ts, np.interp(ts, s.t, s.op), ls="", marker="v", ms=3, color="tab:olive")
+        handles_op.append(_proxy(f"relay switch ({len(switches)})", "tab:olive", "", "v"))
+    if "cycle" in kinds:
+        n = sum(1 for m in s.events if m.kind == "cycle")
+        handles_pv.append(_proxy(f"relay cycle closed (n = 1…{n})", *MARK_STYLE["cycle"]))
+    if "stage 2" in kinds:
+        handles_pv.append(_proxy("relay stage 2 starts", *MARK_STYLE["stage 2"]))
+    if "output step" in kinds:
+        first = next(m for m in s.events if m.kind == "output step")
+        handles_pv.append(_proxy(f"step test: {first.label}", *MARK_STYLE["output step"]))
+        handles_op.append(_proxy(f"step test: {first.label}", *MARK_STYLE["output step"]))
+    if "trial" in kinds:
+        handles_pv.append(
+            _proxy(f"ramp trial (its Kc, %/{units or 'PV unit'})", *MARK_STYLE["trial"])
+        )
+    for w in s.windows:
         for ax in (ax_pv, ax_op):
-            ax.axvspan(a, b, color="tab:orange", alpha=0.08, lw=0)
-    if s.verify_spans:
+            ax.axvspan(w.start, w.end, color="tab:orange", alpha=0.08, lw=0)
+            if w.load_t is not None:
+                ax.axvline(w.load_t, color=MARK_STYLE["load"][0], lw=0.9, ls=MARK_STYLE["load"][1])
         ax_pv.text(
-            s.verify_spans[0][0],
-            1.0,
-            " verification",
+            w.start,
+            0.02,
+            f" verification {w.label}",
             transform=ax_pv.get_xaxis_transform(),
-            va="top",
-            fontsize=8,
+            va="bottom",
+            fontsize=7,
             color="tab:orange",
         )
+    if s.windows:
+        handles_pv.append(_proxy("verification (setpoint step, load step)", "tab:orange", lw=6))
+        loads = [w for w in s.windows if w.load_t is not None]
+        if loads:
+            size = loads[-1].load
+            text = f"load step {size:+.3g} %" if size is not None else "load step"
+            handles_pv.append(_proxy(text, *MARK_STYLE["load"]))
+            handles_op.append(_proxy(text, *MARK_STYLE["load"]))
     ax_pv.set_ylabel(f"PV, setpoint ({units})" if units else "PV, setpoint")
     ax_op.set_ylabel("output (%)")
     ax_op.set_xlabel("sim time (s)")
-    for ax in (ax_pv, ax_op):
+    for ax, extra in ((ax_pv, handles_pv), (ax_op, handles_op)):
         ax.grid(True, lw=0.4, alpha=0.5)
-        ax.legend(loc="upper right", fontsize=8)
+        base, _ = ax.get_legend_handles_labels()
+        ax.legend(handles=[*base, *extra], loc="upper right", fontsize=7)
     ax_pv.text(
         0.01,
         0.98,
@@ -253,11 +350,472 @@ def build_figure(s: RunSeries) -> Figure:
         family="monospace",
         bbox={"boxstyle": "round", "fc": "white", "alpha": 0.85},
     )
-    fig.suptitle(
+
+
+def _text_panel(ax: Axes, lines: list[str], fontsize: float = 8) -> None:
+    ax.axis("off")
+    ax.text(
+        0.0,
+        1.0,
+        "\n".join(lines),
+        transform=ax.transAxes,
+        va="top",
+        fontsize=fontsize,
+        family="monospace",
+    )
+
+
+def _title(s: RunSeries) -> str:
+    return (
         f"{s.meta.get('loop', '')}: {s.meta.get('method', '')} tuning run "
         f"{s.meta.get('run_id', '')} ({s.meta.get('started', '')[:19]} UTC)"
     )
+
+
+def _canvas(fig: Figure) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+
+
+def build_figure(s: RunSeries) -> Figure:
+    """The trend page alone: PV and setpoint, output, the change history."""
+    # imported here: every service process imports this module through the CLI, and only
+    # the report needs matplotlib (0.2 s of start-up)
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12, 7 + 0.22 * len(s.history)), layout="constrained")
+    _canvas(fig)
+    heights = [2, 1, 0.12 * len(s.history)] if s.history else [2, 1]
+    axes = fig.subplots(len(heights), 1, height_ratios=heights)
+    draw_trends(axes[0], axes[1], s)
+    if s.history:
+        _text_panel(axes[2], s.history)
+    fig.suptitle(_title(s))
     return fig
+
+
+# --- the whole report -------------------------------------------------------------------
+
+
+@dataclass
+class Report:
+    """Everything the report draws: the series and the figures' data (None: not available,
+    with the reason in ``notes``)."""
+
+    path: str
+    series: RunSeries
+    frequency: FrequencyFigure | None
+    overlay: Overlay | None
+    traces: list[VerifyTrace]
+    notes: dict[str, str] = field(default_factory=dict)
+
+
+def load_report(path: str | Path) -> Report:
+    """The run's series and every figure's data; AutotuneError as ``load_series``."""
+    s = load_series(path)
+    notes: dict[str, str] = {}
+    freq = overlay = None
+    try:
+        freq = frequency_figure(s.result)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as err:
+        notes["frequency"] = f"cannot be computed: {one_line(err)}"
+    if freq is None and "frequency" not in notes:
+        notes["frequency"] = "no frequency point nor model recorded"
+    try:
+        overlay = _overlay(s)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as err:
+        notes["overlay"] = f"cannot be simulated: {one_line(err)}"
+    if overlay is None and "overlay" not in notes:
+        notes["overlay"] = "no model, or no experiment set-up recorded"
+    traces = verify_traces(s.t, s.pv, s.sp, s.op, s.windows)
+    return Report(str(path), s, freq, overlay, traces, notes)
+
+
+def _overlay(s: RunSeries) -> Overlay | None:
+    """The model against the data, from the experiment's first sample to the first load step."""
+    r = s.result
+    model = result_model(r.experiment, r.step) if r is not None else None
+    ts = s.setup.get("sample_time")
+    if model is None or not isinstance(ts, int | float) or isinstance(ts, bool):
+        return None
+    first = s.setup.get("first_seq")  # the experiment's first sample
+    start = int(np.searchsorted(s.seq, first)) if isinstance(first, int) and s.seq.size else 0
+    loads = [w.load_t for w in s.windows if w.load_t is not None]
+    end = int(np.searchsorted(s.t, loads[0])) if loads else s.t.size
+    return model_overlay(s.t, s.pv, s.op, model, float(ts), start, end)
+
+
+def _unavailable(ax: Axes, title: str, why: str) -> None:
+    ax.set_title(title, fontsize=9)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.text(
+        0.5,
+        0.5,
+        f"not available: {why}",
+        ha="center",
+        va="center",
+        fontsize=8,
+        transform=ax.transAxes,
+        wrap=True,
+    )
+
+
+def draw_overlay(ax: Axes, rep: Report) -> None:
+    """The recorded PV and the model's, driven by the recorded output, over the window."""
+    o, s = rep.overlay, rep.series
+    title = "model against data"
+    if o is None:
+        _unavailable(ax, title, rep.notes.get("overlay", ""))
+        return
+    units = s.units
+    ax.plot(o.t, o.pv, lw=0.9, color="tab:blue", label="PV recorded")
+    ax.plot(
+        o.t,
+        o.model_pv,
+        lw=1.2,
+        color="black",
+        ls="--",
+        label="model, driven by the recorded output",
+    )
+    m = s.result and result_model(s.result.experiment, s.result.step)
+    desc = _model_text(m) if m else "model"
+    ax.set_title(
+        f"{title}: {desc}; fit {o.fit_percent:.1f} % (100·(1 − ‖y − ŷ‖/‖y − ȳ‖)), "
+        f"rms {o.rms:.3g} {units}",
+        fontsize=9,
+    )
+    for w in s.windows:
+        if w.start <= o.end:
+            ax.axvspan(w.start, min(w.end, o.end), color="tab:orange", alpha=0.08, lw=0)
+    ax.set_xlabel("sim time (s)")
+    ax.set_ylabel(f"PV ({units})" if units else "PV")
+    ax.grid(True, lw=0.4, alpha=0.5)
+    ax.legend(loc="upper right", fontsize=7)
+
+
+def _model_text(m: Any) -> str:
+    lags = ", ".join(f"{x:.4g}" for x in m.lags)
+    body = f"K {m.gain:.4g}" + (f", T {lags} s" if lags else "") + f", L {m.delay:.4g} s"
+    return f"{m.kind.upper()} ({body})"
+
+
+STAGE_STYLE = {
+    "stage 1": ("tab:blue", "o"),
+    "stage 2": ("tab:red", "s"),
+    "ultimate point": ("tab:red", "D"),
+}
+
+
+def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
+    """Bode (magnitude and phase) and Nyquist of the measured points and the model."""
+    f = rep.frequency
+    if f is None:
+        why = rep.notes.get("frequency", "")
+        for ax, title in ((ax_mag, "Bode"), (ax_ph, ""), (ax_ny, "Nyquist")):
+            _unavailable(ax, title, why) if title else ax.axis("off")
+        return
+    units = rep.series.units or "PV unit"
+    if f.model is not None:
+        c = f.model
+        ax_mag.loglog(c.omega, c.magnitude, color="black", lw=1.1, label=c.label)
+        ax_ph.semilogx(c.omega, c.phase_deg, color="black", lw=1.1, label=c.label)
+        ax_ny.plot(c.g.real, c.g.imag, color="black", lw=1.1, label=c.label)
+    for stage in dict.fromkeys(p.stage for p in f.points):
+        color, marker = STAGE_STYLE.get(stage, ("tab:green", "o"))
+        pts = [p for p in f.points if p.stage == stage]
+        fund = [p for p in pts if p.harmonic == 1]
+        harm = [p for p in pts if p.harmonic != 1]
+        if fund:
+            w = np.array([p.omega for p in fund])
+            mag = np.array([p.magnitude for p in fund])
+            ph = np.array([p.phase_deg for p in fund])
+            if all(p.uncertainty is not None for p in fund):
+                lo_hi = np.array([p.magnitude_bounds for p in fund]).T
+                err_mag = np.vstack((mag - lo_hi[0], lo_hi[1] - mag))
+                err_ph = np.array([p.phase_bound_deg for p in fund])
+                d = fund[0].uncertainty or 0.0
+                label = f"{stage}: G(jω) ± {100 * d:.2g} %"
+            else:
+                err_mag = err_ph = None
+                label = f"{stage}: G(jω)"
+            ax_mag.errorbar(
+                w,
+                mag,
+                yerr=err_mag,
+                ls="",
+                marker=marker,
+                color=color,
+                ms=5,
+                capsize=3,
+                label=label,
+                gid=f"{stage} fundamental",
+            )
+            ax_ph.errorbar(
+                w,
+                ph,
+                yerr=err_ph,
+                ls="",
+                marker=marker,
+                color=color,
+                ms=5,
+                capsize=3,
+                label=label,
+                gid=f"{stage} fundamental",
+            )
+            g = np.array([p.g for p in fund])
+            ax_ny.plot(
+                g.real,
+                g.imag,
+                ls="",
+                marker=marker,
+                color=color,
+                ms=5,
+                label=label,
+                gid=f"{stage} fundamental",
+            )
+            for p in fund:
+                if p.uncertainty is not None:
+                    from matplotlib.patches import Circle
+
+                    ax_ny.add_patch(
+                        Circle(
+                            (p.g.real, p.g.imag),
+                            p.uncertainty * p.magnitude,
+                            fill=False,
+                            color=color,
+                            lw=0.8,
+                        )
+                    )
+        if harm:
+            w = np.array([p.omega for p in harm])
+            label = f"{stage}: harmonics k = {', '.join(str(p.harmonic) for p in harm)}"
+            ax_mag.loglog(
+                w,
+                [p.magnitude for p in harm],
+                ls="",
+                marker=marker,
+                mfc="none",
+                color=color,
+                ms=5,
+                label=label,
+            )
+            ax_ph.semilogx(
+                w,
+                [p.phase_deg for p in harm],
+                ls="",
+                marker=marker,
+                mfc="none",
+                color=color,
+                ms=5,
+                label=label,
+            )
+            g = np.array([p.g for p in harm])
+            ax_ny.plot(
+                g.real, g.imag, ls="", marker=marker, mfc="none", color=color, ms=5, label=label
+            )
+    for c in f.crossings:
+        marker, color = ("x", "tab:purple") if c.source == "result" else ("+", "black")
+        label = (
+            f"−180°: result K_u {1 / c.magnitude:.4g}, P_u {2 * math.pi / c.omega:.4g} s"
+            if c.source == "result"
+            else f"−180°: model K_u {1 / c.magnitude:.4g}, P_u {2 * math.pi / c.omega:.4g} s"
+        )
+        ax_mag.plot(
+            [c.omega], [c.magnitude], ls="", marker=marker, ms=9, mew=1.5, color=color, label=label
+        )
+        ax_ph.plot(
+            [c.omega], [-180.0], ls="", marker=marker, ms=9, mew=1.5, color=color, label=label
+        )
+        ax_ny.plot(
+            [-c.magnitude], [0.0], ls="", marker=marker, ms=9, mew=1.5, color=color, label=label
+        )
+    ax_ph.axhline(-180.0, color="0.4", lw=0.7, ls="--")
+    ax_ny.axhline(0.0, color="0.6", lw=0.5)
+    ax_ny.axvline(0.0, color="0.6", lw=0.5)
+    ax_mag.set_title(
+        f"Bode: measured points and fitted model ({f.uncertainty_note})"
+        if f.uncertainty_note
+        else "Bode",
+        fontsize=9,
+    )
+    ax_mag.set_ylabel(f"|G| ({units}/%)")
+    ax_ph.set_ylabel("phase (deg)")
+    ax_ph.set_xlabel("ω (rad/s)")
+    ax_ph.sharex(ax_mag)
+    ax_mag.tick_params(labelbottom=False)
+    from matplotlib.ticker import LogLocator, NullFormatter, NullLocator
+
+    # few minor ticks: each is an artist, and they are most of the drawing time
+    ax_mag.yaxis.set_minor_locator(NullLocator())
+    ax_mag.xaxis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+    ax_ph.xaxis.set_minor_formatter(NullFormatter())
+    discs = any(p.uncertainty is not None for p in f.points)
+    ax_ny.set_title(f"Nyquist: G(jω){', discs of radius δ·|G|' if discs else ''}", fontsize=9)
+    ax_ny.set_xlabel(f"Re G ({units}/%)")
+    ax_ny.set_ylabel(f"Im G ({units}/%)")
+    _nyquist_limits(ax_ny, f)
+    for ax in (ax_mag, ax_ph, ax_ny):
+        ax.grid(True, which="both", lw=0.3, alpha=0.5)
+    ax_mag.legend(fontsize=6, loc="lower left")
+    ax_ny.legend(fontsize=6, loc="lower right")
+
+
+def _nyquist_limits(ax: Axes, f: FrequencyFigure) -> None:
+    """Frame the measured points and the crossings (the model's low-frequency arc is long)."""
+    g = [p.g for p in f.points] + [complex(-c.magnitude, 0) for c in f.crossings]
+    if not g:
+        return
+    re = np.array([z.real for z in g] + [0.0])
+    im = np.array([z.imag for z in g] + [0.0])
+    r = max(np.ptp(re), np.ptp(im), 1e-12)
+    ax.set_xlim(re.min() - 0.5 * r, re.max() + 0.5 * r)
+    ax.set_ylim(im.min() - 0.5 * r, im.max() + 0.5 * r)
+    ax.set_aspect("equal", adjustable="box")
+
+
+def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
+    """The verifications side by side on one scale, and their figures as a table."""
+    s, r = rep.series, rep.series.result
+    units = s.units
+    by_label = {tr.label: tr for tr in rep.traces}
+    labels = ["before", "after"]
+    ys = [tr.pv for tr in rep.traces] + [tr.sp for tr in rep.traces]
+    lim = (min(float(np.min(y)) for y in ys), max(float(np.max(y)) for y in ys)) if ys else None
+    for ax, label in zip(axes, labels, strict=True):
+        tr = by_label.get(label)
+        if tr is None:
+            why = (
+                "the loop was not in auto before the run:\nno verification of its old gains"
+                if label == "before"
+                else "no verification recorded"
+            )
+            _unavailable(ax, f"{label}", why)
+            continue
+        ax.plot(tr.t, tr.pv, color="tab:blue", lw=0.9, label="PV − SP₀")
+        ax.plot(
+            tr.t,
+            tr.sp,
+            color="tab:red",
+            lw=0.9,
+            ls="--",
+            drawstyle="steps-post",
+            label="setpoint − SP₀",
+        )
+        if tr.load_t is not None:
+            text = f"load step {tr.load:+.3g} %" if tr.load is not None else "load step"
+            ax.axvline(
+                tr.load_t, color=MARK_STYLE["load"][0], ls=MARK_STYLE["load"][1], lw=0.9, label=text
+            )
+        ax.set_title(f"{label}: {tr.gains}", fontsize=8)
+        ax.set_xlabel("s since the setpoint step")
+        ax.set_ylabel(f"deviation ({units})" if units else "deviation")
+        if lim is not None and lim[1] > lim[0]:
+            pad = 0.05 * (lim[1] - lim[0])
+            ax.set_ylim(lim[0] - pad, lim[1] + pad)
+        ax.grid(True, lw=0.4, alpha=0.5)
+        ax.legend(fontsize=6, loc="upper right")
+    rows = figures_rows(r.before if r else None, r.after if r else None, units)
+    lines = [f"{'':<28}{'before':>10}{'after':>10}"]
+    lines += [f"{a:<28.28}{b:>10}{c:>10}" for a, b, c in rows]
+    if r is not None and isinstance(r.acceptance, dict):
+        lines.append("")
+        lines.append(f"acceptance: {'passed' if r.acceptance.get('passed') else 'not passed'}")
+        pred = r.acceptance.get("predicted_overshoot")
+        if isinstance(pred, int | float):
+            lines.append(f"predicted overshoot {pred:.3g} %")
+    _text_panel(ax_table, lines, 7.5)
+    ax_table.set_title("verification figures", fontsize=9, loc="left")
+
+
+def _gains_lines(s: RunSeries) -> list[str]:
+    """The chosen gains in every unit, and the loop's gains before (what revert gives back)."""
+    r = s.result
+    if r is None:
+        return []
+    span = s.span
+    lines = []
+    isa = (r.chosen or {}).get("isa") if isinstance(r.chosen, dict) else None
+    if isinstance(isa, dict):
+        lines.append(f"chosen ({r.rule}): {gains_text(isa, r.pv_units, span)}")
+    if r.previous_gains is not None:
+        g = r.previous_gains
+        lines.append(
+            f"before the run:  {kc_text(g.kc, r.pv_units, span)}  Ti "
+            f"{'off' if g.ti is None else _g(g.ti, '.4g', ' s')}  Td {_g(g.td, '.4g', ' s')}"
+        )
+    if span is None:
+        lines.append("(no PV range recorded: no %/% nor PB)")
+    return lines
+
+
+# the report's rows (inches): trends, output, overlay, Bode magnitude and phase (Nyquist
+# beside), verifications; gaps between; a fixed grid is several times faster to lay out than
+# matplotlib's constrained layout
+ROWS_IN = (4.2, 2.0, 0.8, 3.0, 0.9, 2.8, 2.8, 0.8, 3.2, 0.6)
+TEXT_LINE_IN = 0.16
+
+
+def build_report(rep: Report) -> Figure:
+    """The whole report on one page."""
+    from matplotlib.figure import Figure
+
+    s = rep.series
+    text = _gains_lines(s) + ([""] if s.history else []) + s.history
+    heights = [*ROWS_IN, 0.3 + TEXT_LINE_IN * len(text)]
+    total = sum(heights) + 1.0
+    fig = Figure(figsize=(13, total))
+    _canvas(fig)
+    grid = fig.add_gridspec(
+        len(heights),
+        3,
+        height_ratios=heights,
+        width_ratios=[1, 0.5, 1],
+        left=0.07,
+        right=0.98,
+        top=1 - 0.55 / total,
+        bottom=0.15 / total,
+        hspace=0.0,
+        wspace=0.3,
+    )
+    ax_pv, ax_op = fig.add_subplot(grid[0, :]), fig.add_subplot(grid[1, :])
+    draw_trends(ax_pv, ax_op, s)
+    ax_pv.tick_params(labelbottom=False)
+    draw_overlay(fig.add_subplot(grid[3, :]), rep)
+    draw_bode(
+        fig.add_subplot(grid[5, :2]),
+        fig.add_subplot(grid[6, :2]),
+        fig.add_subplot(grid[5:7, 2]),
+        rep,
+    )
+    ver = grid[8, :].subgridspec(1, 3, width_ratios=[1, 1, 0.85], wspace=0.25)
+    ax_b, ax_a, ax_t = (fig.add_subplot(ver[0, i]) for i in range(3))
+    ax_a.sharey(ax_b)
+    draw_before_after([ax_b, ax_a], ax_t, rep)
+    _text_panel(fig.add_subplot(grid[10, :]), text)
+    fig.suptitle(_title(s), y=1 - 0.15 / total)
+    return fig
+
+
+def render(path: str | Path, fmt: str = "png", dpi: int = 110) -> bytes:
+    """The run's whole report as PNG or SVG bytes; AutotuneError (one line) for a file that
+    cannot be read or plotted."""
+    if fmt not in FORMATS:
+        raise AutotuneError(f"format {fmt!r}: the report is one of {', '.join(FORMATS)}")
+    return draw_report(load_report(path), fmt, dpi)
+
+
+def draw_report(rep: Report, fmt: str = "png", dpi: int = 110) -> bytes:
+    """``rep`` drawn as PNG or SVG bytes."""
+    out = io.BytesIO()
+    try:
+        build_report(rep).savefig(out, format=fmt, dpi=dpi)
+    except (ValueError, OverflowError) as err:  # e.g. values beyond what an axis can scale
+        raise AutotuneError(
+            f"{rep.path}: cannot plot the recorded series: {one_line(err)}"
+        ) from None
+    return out.getvalue()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -266,24 +824,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "-o",
         "--output",
         default="report.png",
-        metavar="PNG",
-        help="where to write the figure (default: %(default)s)",
+        metavar="PNG|SVG",
+        help="where to write the report, .png or .svg (default: %(default)s)",
     )
     parser.add_argument("--dpi", type=int, default=110)
 
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
-    if out.suffix.lower() != ".png":
-        raise AutotuneError(f"-o {out}: the report is a PNG file (name it .png)")
-    series = load_series(args.file)
+    fmt = out.suffix.lower().lstrip(".")
+    if fmt not in FORMATS:
+        raise AutotuneError(f"-o {out}: the report is a PNG or SVG file (name it .png or .svg)")
+    rep = load_report(args.file)
+    data = draw_report(rep, fmt, args.dpi)
     try:
-        build_figure(series).savefig(out, dpi=args.dpi)
-    except (ValueError, OverflowError) as err:  # e.g. values beyond what an axis can scale
-        raise AutotuneError(
-            f"{args.file}: cannot plot the recorded series: {one_line(err)}"
-        ) from None
+        out.write_bytes(data)
     except OSError as err:
         raise AutotuneError(f"-o {out}: cannot write it: {err.strerror}") from None
-    print(json.dumps({"report": str(out), "samples": int(series.t.size)}))
+    print(json.dumps({"report": str(out), "samples": int(rep.series.t.size)}))
     return 0

@@ -14,6 +14,7 @@ cannot be written, is refused before anything starts.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import threading
 from pathlib import Path
@@ -21,13 +22,14 @@ from pathlib import Path
 import zenoh
 
 from services.logger.history import ChangeHistory
+from services.logger.mcap_io import bus_name
 from services.logger.monitor_log import MonitorLog
 from services.logger.recorder import Recorder, prepare_runs_dir
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
 from shared.messages import LoggerStatus
 from shared.service_shell import ServiceShell, run_until_stopped
-from shared.session import settings_from_args
+from shared.session import settings_from_args, zenoh_config
 from shared.wire import replay_source
 
 log = logging.getLogger("logger")
@@ -49,7 +51,9 @@ class LoggerService:
         self.node = node
         self.lock = threading.Lock()
         # every loop's gains changes, kept beside the run files (``history.jsonl``)
-        self.history = history or ChangeHistory(recorder.runs_dir, recorder.prefix)
+        self.history = history or ChangeHistory(
+            recorder.runs_dir, recorder.prefix, bus=bus_name(recorder.namespace, recorder.prefix)
+        )
         # the tuner's assessments of the loops it tuned (``monitor.jsonl``)
         self.monitor_log = MonitorLog(recorder.runs_dir, recorder.prefix)
 
@@ -162,8 +166,10 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.verbose + 1, "logger")
     check_ids(args.prefix, node=args.node)
     runs = prepare_runs_dir(Path(args.runs))  # before anything starts: one line if it is bad
-    recorder = Recorder(runs, args.prefix, record_replays=args.record_replays)
-    run_until_stopped(
-        settings_from_args(args), lambda session: LoggerService(session, recorder, args.node)
+    settings = settings_from_args(args)
+    namespace = json.loads(zenoh_config(settings).get_json("namespace")) or ""
+    recorder = Recorder(
+        runs, args.prefix, record_replays=args.record_replays, namespace=str(namespace)
     )
+    run_until_stopped(settings, lambda session: LoggerService(session, recorder, args.node))
     return 0

@@ -108,7 +108,8 @@ def test_relay_tune_is_recorded_whole_and_reanalysed_exactly(
         summary.schemas[ch.schema_id].encoding == "jsonschema" and ch.message_encoding == "json"
         for ch in summary.channels.values()
     )
-    assert summary.statistics.message_count == len(records)
+    # and one RunRecord (the metadata as a message: a file record, not a bus message)
+    assert summary.statistics.message_count == len(records) + 1
     # analyze: the same K_u, P_u and gains as the live run, to the bit
     run = autotune("analyze", str(files[0]), "--json")
     assert run.returncode == 0, run.stderr

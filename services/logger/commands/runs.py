@@ -1,5 +1,5 @@
 """``autotune runs [DIR]``: list the recorded runs (time, loop, method, K_u, P_u, rule, gains,
-status), newest last.
+status), newest last; ``--compare RUN RUN``: two runs' figures side by side (``compare``).
 
 A file that cannot be read — not MCAP, truncated, corrupt, a newer format, metadata that is
 not what the logger writes — is listed too, its status ``unreadable: <reason>`` (with
@@ -12,6 +12,7 @@ import argparse
 import json
 from pathlib import Path
 
+from services.logger.compare import compare, format_compare
 from services.logger.mcap_io import read_run
 from shared.errors import AutotuneError, one_line
 
@@ -27,6 +28,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the logger's runs directory (default: %(default)s)",
     )
     parser.add_argument("--json", action="store_true", help="one JSON object per run, a list")
+    parser.add_argument(
+        "--compare",
+        nargs=2,
+        metavar="RUN",
+        help="two runs' figures side by side: each a file, a file name in DIR or a run id",
+    )
+
+
+def resolve_run(folder: Path, run: str) -> Path:
+    """A run named on the command line: a file, a file name in ``folder``, or a run id (the
+    file in ``folder`` whose name ends with ``_<id>.mcap``)."""
+    for candidate in (Path(run), folder / run):
+        if candidate.is_file():
+            return candidate
+    hits = sorted(folder.glob(f"*_{run}.mcap")) if folder.is_dir() and "/" not in run else []
+    if len(hits) == 1:
+        return hits[0]
+    if len(hits) > 1:
+        raise AutotuneError(f"--compare {run}: several files in {folder} have that run id")
+    raise AutotuneError(f"--compare {run}: no such file, nor a run of that id in {folder}")
 
 
 def summarize(path: Path) -> dict:
@@ -101,6 +122,11 @@ def _num(v, fmt: str = ".4g") -> str:
 
 def run(args: argparse.Namespace) -> int:
     folder = Path(args.runs)
+    if args.compare:
+        a, b = (resolve_run(folder, r) for r in args.compare)
+        c = compare(a, b)
+        print(json.dumps(c, indent=2) if args.json else format_compare(c))
+        return 0
     if not folder.is_dir():
         raise AutotuneError(f"{folder}: no such directory (the logger's --runs)")
     rows = [summarize(p) for p in sorted(folder.glob("*.mcap"))]

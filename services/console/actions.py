@@ -1,0 +1,152 @@
+"""What the page's buttons do, through the same paths as the CLI's commands.
+
+Tune and cancel are ``autotune tune``'s (``submit``, ``follow``, the cancel key); apply is
+``autotune apply``'s (the run's record in the change history, the rule's envelope checked, the
+loop checked to be the one identified, then a run of its own through the autotuner, verified);
+revert is ``autotune revert``'s (the change history, a lease-respecting gains command through
+``LoopClient``, confirmed by the plant). The console never writes to a loop by itself: only
+the autotuner's runs and the plant's own command path do, as for any other client.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from services.autotuner.commands.apply import choose, recorded_run, same_loop
+from services.autotuner.commands.revert import CATCH_UP, target
+from services.autotuner.commands.tune import follow, submit
+from services.autotuner.loop_client import CommandRefused, LoopClient, wait_for_loop
+from shared import keys, wire
+from shared.errors import AutotuneError, ConfigError
+from shared.history_file import HISTORY_FILE, loop_changes
+from shared.messages import GainsCommand, LoopInfo, PidGains, TuneAccepted, TuneRequest, TuneResult
+
+SOURCE = "autotune-console"
+RESULT_WAIT = 3600.0  # s of wall time a run may take before the console stops waiting
+RECORD_WAIT = 5.0  # s the logger may take to write a finished run into the change history
+LOOP_WAIT = 5.0  # s to wait for a loop's plant to be seen
+
+
+def run_tune(
+    session: zenoh.Session,
+    prefix: str,
+    req: TuneRequest,
+    on_accepted: Callable[[TuneAccepted], None],
+) -> TuneResult:
+    """Submit ``req`` to any autotuner and follow the run to its result (``tune``'s path:
+    the tuner gone, or the bus lost, end the wait with the reason)."""
+
+    def start() -> TuneAccepted:
+        accepted = submit(session, prefix, "*", req)
+        on_accepted(accepted)
+        return accepted
+
+    return follow(session, prefix, req.loop, start, RESULT_WAIT)
+
+
+def cancel(session: zenoh.Session, prefix: str, loop: str, run_id: str | None) -> None:
+    """Ask the loop's run to stop (the tuner restores the loop before it answers)."""
+    keys.check_id(loop)
+    session.put(keys.tune_cancel(prefix, loop), (run_id or "").encode())
+
+
+def _record(runs: Path, run_id: str) -> dict[str, Any]:
+    """The run's record in the change history, waiting for the logger to write it."""
+    deadline = time.monotonic() + RECORD_WAIT
+    while True:
+        try:
+            return recorded_run(runs, run_id)
+        except ConfigError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def apply_request(
+    session: zenoh.Session, prefix: str, runs: Path, run_id: str, rule: str | None
+) -> TuneRequest:
+    """``autotune apply RUN_ID [--rule RULE]``'s request, after its checks (the record, the
+    rule's envelope, the loop still the one identified); ConfigError or AutotuneError with
+    the reason otherwise."""
+    rec = _record(runs, run_id)
+    loop = str(rec.get("loop"))
+    rule, gains, predicted = choose(rec, rule)
+    if not rec.get("timescale"):
+        raise ConfigError(f"run {run_id}: no time scale on record to verify with")
+    info = wire.query_one(session, keys.info(prefix, loop), LoopInfo, LOOP_WAIT)
+    if info is None:
+        raise AutotuneError(f"loop {loop}: no plant answers for it")
+    if (why := same_loop(rec.get("identified_on"), info)) is not None:
+        raise AutotuneError(f"loop {loop} is not the loop run {run_id} identified: {why}")
+    return TuneRequest(
+        loop=loop,
+        method=rec.get("method") or "relay",
+        rule=rule,
+        verify=True,
+        apply_from=run_id,
+        apply_gains=gains,
+        apply_predicted_overshoot=predicted,
+        apply_timescale=rec["timescale"],
+        apply_noise=rec.get("noise"),
+        source=SOURCE,
+    )
+
+
+def revert(
+    session: zenoh.Session,
+    prefix: str,
+    runs: Path,
+    loop: str,
+    to: str | None = None,
+    user: str | None = None,
+) -> dict[str, Any]:
+    """``autotune revert LOOP [--to RUN_ID]``: the gains before the loop's last change (or
+    before run ``to``'s), written bumplessly by one gains command and confirmed by the plant;
+    refused when the loop's gains are not the last on record (a change the history missed).
+    Returns what was done: loop, the change undone, before and after gains."""
+    keys.check_id(loop)
+    path = runs / HISTORY_FILE
+    wait_for_loop(session, prefix, loop, LOOP_WAIT)
+    with LoopClient(session, prefix, loop, source=SOURCE, user=user) as client:
+        now = client.sync()
+        deadline = time.monotonic() + CATCH_UP
+        while True:  # the logger writes a change down as it sees it: let it catch up
+            changes = loop_changes(path, loop, prefix)
+            last = changes[-1] if changes else None
+            current = last is not None and _gains(last["after"]) == now.gains
+            if current or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        if not changes:
+            raise ConfigError(f"{path}: no change of {loop}'s gains on record")
+        undo = target(changes, to, 1)
+        if not current:
+            raise AutotuneError(
+                f"loop {loop}: its gains are not the last on record (a change the history "
+                "did not see; is the logger running on this runs directory?): not reverted"
+            )
+        back = _gains(undo["before"])
+        try:
+            status = client.command(GainsCommand(loop=loop, gains=back, source=SOURCE, t=now.t))
+        except CommandRefused as err:
+            raise AutotuneError(f"revert refused by the plant: {err}") from None
+    if status.gains != back:
+        raise AutotuneError(f"loop {loop}: the plant shows other gains than those written")
+    return {
+        "loop": loop,
+        "reverted": {k: undo.get(k) for k in ("utc", "run_id", "cause", "by_source")},
+        "before": now.gains.model_dump(),
+        "after": status.gains.model_dump(),
+    }
+
+
+def _gains(d: dict[str, Any]) -> PidGains:
+    try:
+        return PidGains.model_validate(d)
+    except Exception:
+        raise AutotuneError(f"the change history holds gains that are not valid: {d!r}") from None

@@ -1,0 +1,398 @@
+// The autotune console's page: live data from the console's websocket, drawn on canvases.
+// No library: everything here ships with the Python package and works offline.
+"use strict";
+
+const S = {
+  ws: null, nextId: 1, history: 600, rules: [],
+  loops: {},          // loop → {status, info}
+  alive: new Set(),   // loops whose plant announces them
+  running: new Set(), // loops with a run in progress
+  trends: {},         // loop → {t, pv, sp, op}
+  progress: {},       // loop → last TuneProgress
+  phases: {},         // loop → {run, list}: the phases its last run went through
+  results: {},        // loop → {result, predicted}
+  selected: null, chosenRule: null, runRows: [], ticked: [],
+  dirty: true,
+};
+
+const $ = (id) => document.getElementById(id);
+const fmt = (v, d = 4) => (v === null || v === undefined || !isFinite(v)) ? "—" : Number(v).toPrecision(d).replace(/\.?0+(e|$)/, "$1");
+const fixed = (v, d) => (v === null || v === undefined || !isFinite(v)) ? "—" : Number(v).toFixed(d);
+const esc = (s) => String(s ?? "").replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
+
+function say(text, ok = true) {
+  const li = document.createElement("li");
+  li.textContent = `${new Date().toLocaleTimeString()}  ${text}`;
+  if (!ok) li.className = "bad";
+  $("messages").prepend(li);
+  while ($("messages").children.length > 50) $("messages").lastChild.remove();
+}
+
+// --- the websocket -----------------------------------------------------------------------------
+
+function connect() {
+  const ws = new WebSocket(`ws://${location.host}/ws`);
+  S.ws = ws;
+  ws.onopen = () => { $("svc-link").dataset.up = "true"; };
+  ws.onclose = () => {
+    $("svc-link").dataset.up = "false";
+    for (const s of ["plant_sim", "tuner", "logger"]) $(`svc-${s}`).dataset.up = "false";
+    setTimeout(connect, 1000);
+  };
+  ws.onmessage = (ev) => handle(JSON.parse(ev.data));
+}
+
+function send(msg) {
+  if (!S.ws || S.ws.readyState !== WebSocket.OPEN) { say("not connected to the console", false); return null; }
+  msg.id = S.nextId++;
+  S.ws.send(JSON.stringify(msg));
+  return msg.id;
+}
+
+const handlers = {
+  hello(m) {
+    S.history = m.history; S.rules = m.rules;
+    $("prefix").textContent = `prefix ${m.prefix} · runs ${m.runs}`;
+    const sel = $("rule-select");
+    sel.innerHTML = '<option value="auto">auto (recommended)</option>' +
+      m.rules.map((r) => `<option value="${esc(r.name)}">${esc(r.name)}</option>`).join("");
+  },
+  services(m) {
+    for (const s of ["plant_sim", "tuner", "logger"]) {
+      const el = $(`svc-${s}`);
+      el.dataset.up = String(m[s].length > 0);
+      el.title = m[s].length ? `up: ${m[s].join(", ")}` : "not on the bus";
+    }
+    S.alive = new Set(m.loops); S.running = new Set(m.running);
+    renderLoops(); renderTuneButtons();
+  },
+  loop(m) {
+    const cur = S.loops[m.loop] || {};
+    S.loops[m.loop] = { status: m.status || cur.status, info: m.info || cur.info };
+    if (!S.selected) select(m.loop);
+    renderLoops();
+  },
+  trend(m) {
+    let tr = S.trends[m.loop];
+    if (m.reset || !tr || (m.t.length && tr.t.length && m.t[0] < tr.t[tr.t.length - 1] - 1e-9 && m.t[0] < 1e-9)) {
+      tr = S.trends[m.loop] = { t: [], pv: [], sp: [], op: [] };
+    }
+    for (const k of ["t", "pv", "sp", "op"]) tr[k].push(...m[k]);
+    const last = tr.t[tr.t.length - 1];
+    let cut = 0;
+    while (cut < tr.t.length && tr.t[cut] < last - S.history) cut++;
+    if (cut) for (const k of ["t", "pv", "sp", "op"]) tr[k].splice(0, cut);
+    if (m.loop === S.selected) S.dirty = true;
+  },
+  progress(m) {
+    const seen = S.phases[m.loop];
+    if (!seen || seen.run !== m.run_id) S.phases[m.loop] = { run: m.run_id, list: [m.phase] };
+    else if (seen.list[seen.list.length - 1] !== m.phase) seen.list.push(m.phase);
+    S.progress[m.loop] = m;
+    if (m.loop === S.selected) renderProgress();
+  },
+  result(m) {
+    S.results[m.loop] = m;
+    setTimeout(loadRuns, 1500);  // the logger finishes the run's file once the result is out
+    if (m.loop === S.selected) { S.chosenRule = null; renderResult(); }
+    say(`result of run ${m.result.run_id} on ${m.loop}: ${m.result.status}` + (m.result.reason ? ` (${m.result.reason})` : ""), m.result.status === "ok");
+  },
+  action(m) {
+    say(m.message, m.ok);
+    if (m.action === "tune" && m.stage === "accepted") renderTuneButtons();
+  },
+};
+
+function handle(m) { (handlers[m.type] || (() => {}))(m); }
+
+// --- the loops ---------------------------------------------------------------------------------
+
+function select(loop) {
+  S.selected = loop; S.chosenRule = null; S.dirty = true;
+  $("trend-title").textContent = `Trend of ${loop}`;
+  $("tune-loop").textContent = loop;
+  renderLoops(); renderProgress(); renderResult(); renderTuneButtons();
+}
+
+function gainsText(g) {
+  if (!g) return "";
+  return `Kc ${fmt(g.kc)} · Ti ${g.ti === null ? "off" : fmt(g.ti) + " s"} · Td ${fmt(g.td)} s`;
+}
+
+function renderLoops() {
+  const ids = Object.keys(S.loops).sort();
+  if (!ids.length) return;
+  $("loops").innerHTML = ids.map((id) => {
+    const { status: st, info } = S.loops[id];
+    const units = info ? info.pv_units : "";
+    const off = S.alive.size && !S.alive.has(id) ? " offline" : "";
+    const lease = st && st.leased_by ? `<div class="muted">held by ${esc(st.leased_by)}</div>` : "";
+    const run = S.running.has(id) ? ' <span class="muted">tuning…</span>' : "";
+    return `<div class="loop${id === S.selected ? " selected" : ""}${off}" data-loop="${esc(id)}">
+      <span class="id">${esc(id)}</span>${run}<span class="mode">${st ? esc(st.mode) : "?"}</span>
+      <div class="muted">${esc(info ? info.description : "")}</div>
+      <div class="figs">SP ${st ? fmt(st.sp) : "—"} · PV ${st ? fmt(st.pv) : "—"} ${esc(units)} · OP ${st ? fmt(st.op) : "—"} %</div>
+      <div class="figs gains">${gainsText(st && st.gains)}</div>${lease}
+      ${off ? '<div class="muted">plant not on the bus</div>' : ""}</div>`;
+  }).join("");
+  for (const el of document.querySelectorAll(".loop")) el.onclick = () => select(el.dataset.loop);
+}
+
+// --- drawing -----------------------------------------------------------------------------------
+
+function niceRange(lo, hi) {
+  if (!isFinite(lo) || !isFinite(hi)) return [0, 1];
+  if (hi - lo < 1e-9) { const d = Math.max(Math.abs(hi) * 0.01, 1e-3); return [lo - d, hi + d]; }
+  const pad = 0.06 * (hi - lo);
+  return [lo - pad, hi + pad];
+}
+
+function fitCanvas(c) {
+  const w = c.clientWidth || c.width;
+  if (c.width !== w) c.width = w;
+  const g = c.getContext("2d");
+  g.clearRect(0, 0, c.width, c.height);
+  return g;
+}
+
+// one pane: series [{x, y, color, width, step}] over [x0, x1] × [y0, y1] in the box
+function pane(g, box, x0, x1, y0, y1, series, label) {
+  const [L, T, W, H] = box;
+  const X = (x) => L + ((x - x0) / (x1 - x0)) * W;
+  const Y = (y) => T + H - ((y - y0) / (y1 - y0)) * H;
+  g.strokeStyle = "#ccc"; g.lineWidth = 1; g.strokeRect(L, T, W, H);
+  g.fillStyle = "#555"; g.font = "11px system-ui";
+  for (let i = 0; i <= 4; i++) {
+    const v = y0 + ((y1 - y0) * i) / 4, y = Y(v);
+    g.strokeStyle = "#eee"; g.beginPath(); g.moveTo(L, y); g.lineTo(L + W, y); g.stroke();
+    g.fillText(fmt(v, 4), 2, y + 4);
+  }
+  g.fillText(label, L + 4, T + 12);
+  g.save(); g.beginPath(); g.rect(L, T, W, H); g.clip();
+  for (const s of series) {
+    if (!s.x.length) continue;
+    g.strokeStyle = s.color; g.lineWidth = s.width || 1.2; g.setLineDash(s.dash || []);
+    g.beginPath();
+    for (let i = 0; i < s.x.length; i++) {
+      const x = X(s.x[i]), y = Y(s.y[i]);
+      if (i === 0) g.moveTo(x, y);
+      else if (s.step) { g.lineTo(x, Y(s.y[i - 1])); g.lineTo(x, y); } else g.lineTo(x, y);
+    }
+    g.stroke();
+  }
+  g.restore(); g.setLineDash([]);
+  return { X, Y };
+}
+
+function drawTrend() {
+  const c = $("trend"), g = fitCanvas(c);
+  const tr = S.trends[S.selected];
+  const info = (S.loops[S.selected] || {}).info;
+  if (!tr || !tr.t.length) {
+    g.fillStyle = "#777"; g.font = "13px system-ui";
+    g.fillText(S.selected ? `no samples of ${S.selected} yet (a lockstep loop moves only while driven)` : "", 60, 40);
+    return;
+  }
+  const t1 = tr.t[tr.t.length - 1], t0 = Math.min(tr.t[0], t1 - 1e-6);
+  const L = 60, W = c.width - L - 10, H1 = Math.round(c.height * 0.62) - 20, H2 = c.height - H1 - 56;
+  const [a, b] = niceRange(Math.min(...tr.pv, ...tr.sp), Math.max(...tr.pv, ...tr.sp));
+  pane(g, [L, 6, W, H1], t0, t1, a, b, [
+    { x: tr.t, y: tr.sp, color: "#c62828", step: true, dash: [5, 3] },
+    { x: tr.t, y: tr.pv, color: "#1565c0" },
+  ], `PV, setpoint${info ? " (" + info.pv_units + ")" : ""}`);
+  const [c0, c1] = niceRange(Math.min(...tr.op), Math.max(...tr.op));
+  pane(g, [L, H1 + 22, W, H2], t0, t1, c0, c1, [{ x: tr.t, y: tr.op, color: "#2e7d32", step: true }], "output (%)");
+  g.fillStyle = "#555";
+  for (let i = 0; i <= 5; i++) {
+    const t = t0 + ((t1 - t0) * i) / 5;
+    g.fillText(fmt(t, 5), L + (W * i) / 5 - (i === 5 ? 30 : 0), c.height - 18);
+  }
+  g.fillText("sim time (s)", L + W / 2 - 30, c.height - 4);
+  $("trend-window").textContent = `last ${Math.round(t1 - t0)} s of sim time (keeps ${S.history} s)`;
+}
+
+function drawStep() {
+  const c = $("step"), g = fitCanvas(c);
+  const r = S.results[S.selected];
+  const curves = r && r.predicted ? r.predicted : {};
+  const names = Object.keys(curves).filter((n) => curves[n]);
+  if (!names.length) return;
+  const rec = r.result.recommended ? r.result.recommended.rule : r.result.rule;
+  const chosen = S.chosenRule || rec;
+  let xmax = 0, ymax = 1.2;
+  for (const n of names) { xmax = Math.max(xmax, curves[n].t[curves[n].t.length - 1]); }
+  for (const n of [rec, chosen]) if (curves[n]) ymax = Math.max(ymax, Math.max(...curves[n].y) * 1.05);
+  const series = names.filter((n) => n !== rec && n !== chosen).map((n) => ({ x: curves[n].t, y: curves[n].y.map((v) => Math.min(v, ymax)), color: "#ccc", width: 1 }));
+  series.push({ x: [0, xmax], y: [1, 1], color: "#c62828", dash: [4, 3] });
+  if (curves[rec]) series.push({ x: curves[rec].t, y: curves[rec].y, color: "#ef6c00", width: 2.2 });
+  if (chosen !== rec && curves[chosen]) series.push({ x: curves[chosen].t, y: curves[chosen].y, color: "#1565c0", width: 2 });
+  pane(g, [50, 6, c.width - 60, c.height - 30], 0, xmax, -0.1, ymax, series, "PV / setpoint step");
+  g.fillStyle = "#555";
+  g.fillText(`0 … ${fmt(xmax, 3)} s`, c.width / 2 - 20, c.height - 8);
+  $("step-legend").innerHTML = `predicted setpoint step on the identified model: <b style="color:#ef6c00">${esc(rec)}</b> (recommended)` +
+    (chosen !== rec ? `, <b style="color:#1565c0">${esc(chosen)}</b> (chosen)` : "") + ", the other rules grey";
+}
+
+function frame() {
+  if (S.dirty) { S.dirty = false; drawTrend(); }
+  requestAnimationFrame(frame);
+}
+
+// --- tuning ------------------------------------------------------------------------------------
+
+function renderTuneButtons() {
+  const run = S.selected && S.running.has(S.selected);
+  $("tune-start").disabled = !S.selected || run;
+  $("tune-cancel").disabled = !run;
+}
+
+function renderProgress() {
+  const p = S.progress[S.selected];
+  $("progress-phase").textContent = p ? p.phase : "—";
+  $("progress-t").textContent = p ? `${fmt(p.t, 5)} s` : "—";
+  $("progress-cycles").textContent = p ? p.cycles : "—";
+  $("progress-run").textContent = p ? p.run_id : "—";
+  $("progress-ku").textContent = p && p.ku ? fmt(p.ku) : "—";
+  $("progress-pu").textContent = p && p.pu ? `${fmt(p.pu)} s` : "—";
+  $("progress-message").textContent = p ? p.message : "";
+  const seen = S.phases[S.selected];
+  $("progress-phases").textContent = seen ? seen.list.join(" → ") : "";
+}
+
+function tuneFields() {
+  const f = $("tune-form").elements, out = {};
+  out.method = f.method.value;
+  out.rule = f.rule.value;
+  out.aim = f.aim.value;
+  for (const n of ["amplitude", "max-time", "max-overshoot"]) if (f[n].value.trim()) out[n] = f[n].value.trim();
+  const lo = f["pv-lo"].value.trim(), hi = f["pv-hi"].value.trim();
+  if (lo || hi) out["pv-limits"] = [lo, hi];
+  out["no-apply"] = !f["apply-now"].checked;
+  return out;
+}
+
+$("tune-start").onclick = () => {
+  if (!S.selected) return;
+  send({ type: "tune", loop: S.selected, fields: tuneFields() });
+  say(`tune of ${S.selected} requested`);
+};
+$("tune-cancel").onclick = () => {
+  const p = S.progress[S.selected];
+  send({ type: "cancel", loop: S.selected, run_id: p ? p.run_id : null });
+};
+
+// --- the result --------------------------------------------------------------------------------
+
+function renderResult() {
+  const m = S.results[S.selected];
+  const head = $("result-head"), thead = $("rules").tHead, tbody = $("rules").tBodies[0];
+  if (!m) {
+    head.textContent = "no result for this loop yet"; $("result-status").textContent = "";
+    thead.innerHTML = tbody.innerHTML = ""; $("apply").disabled = $("reject").disabled = true;
+    drawStep(); return;
+  }
+  const r = m.result, e = r.experiment || {}, units = r.pv_units || "PV unit";
+  $("result-status").textContent = `${r.status} · run ${r.run_id}`;
+  const lags = Object.keys(e).filter((k) => k.startsWith("model_lag")).sort().map((k) => fmt(e[k])).join(", ");
+  const model = e.model ? `model ${String(e.model).toUpperCase()}: K = ${fmt(e.model_gain)}${lags ? `, T = ${lags} s` : ""}, L = ${fmt(e.model_delay)} s` : "no model";
+  head.innerHTML = `<div>${esc(r.applied_from ? `applying run ${r.applied_from}'s gains` : `${r.method} test, rule ${r.rule}`)}${r.reason ? " — " + esc(r.reason) : ""}</div>
+    <div><b>K<sub>u</sub></b> = <span id="result-ku">${fmt(r.ku)}</span> %/${esc(units)} &nbsp; <b>P<sub>u</sub></b> = <span id="result-pu">${fmt(r.pu)}</span> s &nbsp; <span id="result-model">${esc(model)}</span></div>
+    <div>${r.applied ? "new gains applied, loop in auto" : r.restored ? "loop as before the test: the gains wait for Apply" : ""}</div>
+    ${m.applied_by ? `<div id="result-applied"><b>${esc(m.applied_by.rule)} applied</b> by run ${esc(m.applied_by.run_id)}: ${esc(m.applied_by.status)}${m.applied_by.applied ? ", verified, loop in auto" : ", not applied: the loop restored"}${m.applied_by.reason ? " (" + esc(m.applied_by.reason) + ")" : ""}</div>` : ""}
+    ${r.recommended ? `<div class="muted">recommended: ${esc(r.recommended.rule)} (${esc(r.recommended.reason)})</div>` : ""}`;
+  thead.innerHTML = "<tr><th>rule</th><th>Kc</th><th>Ti s</th><th>Td s</th><th>Ms</th><th>GM</th><th>PM °</th><th>OS %</th><th>DR</th></tr>";
+  const rec = r.recommended ? r.recommended.rule : r.rule;
+  const chosen = S.chosenRule || rec;
+  tbody.innerHTML = Object.entries(r.gains || {}).map(([name, g]) => {
+    const a = (r.robustness || {})[name] || {}, isa = g.isa || {};
+    const cls = [name === rec ? "recommended" : "", name === chosen ? "chosen" : ""].join(" ");
+    return `<tr class="${cls}" data-rule="${esc(name)}"><td>${esc(name)}</td><td>${fmt(isa.kc)}</td><td>${isa.ti === null ? "off" : fmt(isa.ti)}</td><td>${fmt(isa.td)}</td>
+      <td>${fmt(a.ms, 3)}</td><td>${fmt(a.gain_margin, 3)}</td><td>${fmt(a.phase_margin_deg, 3)}</td><td>${fixed(a.overshoot_pct, 1)}</td><td>${fixed(a.decay_ratio, 2)}</td></tr>`;
+  }).join("");
+  for (const tr of tbody.rows) tr.onclick = () => { S.chosenRule = tr.dataset.rule; renderResult(); };
+  const applied = r.applied || (m.applied_by && m.applied_by.applied);
+  const pending = ["ok", "rejected"].includes(r.status) && !applied && !r.applied_from && Object.keys(r.gains || {}).length > 0;
+  $("apply").disabled = !pending;
+  $("reject").disabled = !(pending || applied);
+  $("apply").textContent = pending ? `Apply ${chosen}` : "Apply";
+  drawStep();
+}
+
+$("apply").onclick = () => {
+  const m = S.results[S.selected];
+  if (!m) return;
+  const r = m.result, rec = r.recommended ? r.recommended.rule : r.rule;
+  const rule = S.chosenRule && S.chosenRule !== rec ? S.chosenRule : null;
+  send({ type: "apply", run_id: r.run_id, rule });
+  $("apply").disabled = true;
+  say(`apply of run ${r.run_id}'s ${rule || rec} gains requested (verified as a tune)`);
+};
+$("reject").onclick = () => {
+  const m = S.results[S.selected];
+  if (m) send({ type: "reject", loop: S.selected, run_id: m.result.run_id });
+  $("apply").disabled = $("reject").disabled = true;
+};
+$("revert").onclick = () => { if (S.selected) send({ type: "revert", loop: S.selected }); };
+
+// --- the recorded runs -------------------------------------------------------------------------
+
+async function loadRuns() {
+  try {
+    const res = await fetch("/api/runs");
+    S.runRows = await res.json();
+  } catch (err) { say(`runs: ${err}`, false); return; }
+  S.ticked = S.ticked.filter((f) => S.runRows.some((r) => r.file === f));
+  $("runs").tBodies[0].innerHTML = S.runRows.slice().reverse().map((r) => `<tr data-file="${esc(r.file)}">
+    <td><input type="checkbox" ${S.ticked.includes(r.file) ? "checked" : ""}></td><td>${esc((r.started || "").slice(0, 19))}</td>
+    <td>${esc(r.loop)}</td><td>${esc(r.method)}</td><td>${fmt(r.ku)}</td><td>${fmt(r.pu)}</td><td>${esc(r.rule)}</td>
+    <td>${esc(r.status)}${r.reason ? ": " + esc(r.reason) : ""}</td><td><button type="button" class="open">report</button></td></tr>`).join("");
+  for (const tr of $("runs").tBodies[0].rows) {
+    tr.querySelector(".open").onclick = () => showReports([tr.dataset.file]);
+    tr.querySelector("input").onchange = (ev) => {
+      const f = tr.dataset.file;
+      S.ticked = S.ticked.filter((x) => x !== f);
+      if (ev.target.checked) S.ticked.push(f);
+      $("compare").disabled = S.ticked.length !== 2;
+    };
+  }
+  $("compare").disabled = S.ticked.length !== 2;
+}
+
+function showReports(files) {
+  $("reports").innerHTML = files.map((f) => `<figure><figcaption>${esc(f)}</figcaption>
+    <img alt="report of ${esc(f)}" src="/api/report.svg?file=${encodeURIComponent(f)}"></figure>`).join("");
+  if (files.length < 2) $("compare-table").innerHTML = "";
+}
+
+function table(rows) {
+  return `<table>${rows.map((r) => `<tr>${r.map((c, i) => i ? `<td>${esc(c)}</td>` : `<th>${esc(c)}</th>`).join("")}</tr>`).join("")}</table>`;
+}
+
+$("compare").onclick = async () => {
+  const [a, b] = S.ticked;
+  showReports([a, b]);
+  try {
+    const res = await fetch(`/api/compare?a=${encodeURIComponent(a)}&b=${encodeURIComponent(b)}`);
+    if (!res.ok) throw new Error(await res.text());
+    const cmp = await res.json();
+    const show = (v) => (typeof v === "number" ? fmt(v) : v && typeof v === "object" ? JSON.stringify(v) : v ?? "—");
+    if (cmp.kind === "rows") {
+      const keys = ["started", "loop", "method", "rule", "ku", "pu", "status", "samples"];
+      $("compare-table").innerHTML = table([["", a, b], ...keys.map((k) => [k, show(cmp.rows[0][k]), show(cmp.rows[1][k])])]);
+    } else {  // the logger's comparison (autotune runs --compare): a row per figure
+      const c = cmp.compare, [ra, rb] = c.runs;
+      const run = (r) => `${r.loop} ${r.method} run ${r.run_id} (${(r.started || "").slice(0, 19)})`;
+      const cell = (row, v) => (typeof v === "number" && row.key.endsWith("_spread") ? fmt(100 * v, 3) : show(v));
+      $("compare-table").innerHTML = table([["", `A: ${run(ra)}`, `B: ${run(rb)}`, "B vs A"],
+        ...c.rows.map((r) => [r.unit ? `${r.label} (${r.unit})` : r.label, cell(r, r.a), cell(r, r.b),
+          r.change === null ? "" : `${r.change >= 0 ? "+" : ""}${(100 * r.change).toFixed(1)} %`])]);
+    }
+  } catch (err) { say(`compare: ${err}`, false); }
+};
+$("runs-refresh").onclick = loadRuns;
+
+connect();
+loadRuns();
+setInterval(loadRuns, 15000);
+requestAnimationFrame(frame);
+window.addEventListener("resize", () => { S.dirty = true; drawStep(); });

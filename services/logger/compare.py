@@ -1,0 +1,197 @@
+"""``autotune runs --compare RUN RUN``: two runs' figures side by side — what was identified
+(K_u, P_u, the model), the gains chosen (Kc with units, as %/% and PB), their predicted
+robustness and the verification measured after — with the change from the first to the
+second. ``compare(path_a, path_b)`` is the dict ``--json`` prints (the console shows it too);
+``format_compare`` its text."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from services.logger.gain_text import kc_forms, number, span_of
+from services.logger.mcap_io import decode, one_result, read_run
+from shared import keys
+from shared.messages import TuneResult, TunerEvent
+
+# (key, label, unit; "PV" stands for the PV's units)
+ROWS = (
+    ("ku", "K_u", "%/PV"),
+    ("ku_percent", "K_u", "%/%"),
+    ("pu", "P_u", "s"),
+    ("ku_spread", "K_u spread", "%"),
+    ("pu_spread", "P_u spread", "%"),
+    ("model", "model", ""),
+    ("model_gain", "model K", "PV/%"),
+    ("model_lag_1", "model T1", "s"),
+    ("model_lag_2", "model T2", "s"),
+    ("model_delay", "model L", "s"),
+    ("l_over_t", "L/T", ""),
+    ("rule", "rule", ""),
+    ("kc", "Kc", "%/PV"),
+    ("kc_percent", "Kc", "%/%"),
+    ("pb", "PB", "% of span"),
+    ("ti", "Ti", "s"),
+    ("td", "Td", "s"),
+    ("ms", "Ms (predicted)", ""),
+    ("gain_margin", "gain margin", ""),
+    ("phase_margin_deg", "phase margin", "deg"),
+    ("overshoot_pct", "overshoot (predicted)", "%"),
+    ("overshoot", "overshoot (measured)", "%"),
+    ("decay_ratio", "decay ratio", ""),
+    ("rise_time", "rise time", "s"),
+    ("settling_time", "settling time", "s"),
+    ("iae_sp", "IAE, setpoint", "PV·s"),
+    ("iae_load", "IAE, load", "PV·s"),
+    ("max_deviation_load", "max deviation, load", "PV"),
+    ("recovery_time", "recovery time, load", "s"),
+    ("status", "status", ""),
+    ("sim_duration", "sim time", "s"),
+)
+PERCENT_KEYS = ("ku_spread", "pu_spread")  # fractions shown as %
+
+
+def _result(path: Path) -> tuple[dict[str, str], TuneResult | None, float | None]:
+    """The run's metadata, its result (None: none recorded) and the PV's span."""
+    meta, records = read_run(path)
+    run_id = meta.get("run_id")
+    results = [(r, decode(path, r, TuneResult)) for r in records if keys.leaf(r.topic) == "result"]
+    result = one_result(path, [(r, x) for r, x in results if not run_id or x.run_id == run_id])
+    span = span_of(result.pv_range) if result is not None else None
+    if span is None:  # files from before the result carried it: the experiment's set-up
+        for r in records:
+            if keys.leaf(r.topic) == "event":
+                e = decode(path, r, TunerEvent)
+                if e.kind == "experiment" and (not run_id or e.run_id == run_id):
+                    span = span_of((e.data.get("pv_range_lo"), e.data.get("pv_range_hi")))
+    return meta, result, span
+
+
+def figures(meta: dict[str, str], r: TuneResult | None, span: float | None) -> dict:
+    """The run's figures by ``ROWS`` key (None where it has none)."""
+    out: dict = {k: None for k, _, _ in ROWS}
+    out["status"] = meta.get("status")
+    if r is None:
+        return out
+    e = r.experiment or {}
+    chosen = r.chosen if isinstance(r.chosen, dict) else {}
+    isa = chosen.get("isa") if isinstance(chosen.get("isa"), dict) else {}
+    rob = r.robustness.get(r.rule, {}) if isinstance(r.robustness, dict) else {}
+    kc_pct, pb = kc_forms(isa.get("kc"), span)
+    ku_pct = kc_forms(r.ku, span)[0]
+    out.update(
+        ku=r.ku,
+        ku_percent=r.ku_percent if r.ku_percent is not None else ku_pct,
+        pu=r.pu,
+        ku_spread=r.ku_spread,
+        pu_spread=r.pu_spread,
+        model=e.get("model"),
+        model_gain=e.get("model_gain"),
+        model_lag_1=e.get("model_lag_1"),
+        model_lag_2=e.get("model_lag_2"),
+        model_delay=e.get("model_delay"),
+        l_over_t=r.l_over_t,
+        rule=r.rule,
+        kc=isa.get("kc"),
+        kc_percent=kc_pct,
+        pb=pb,
+        ti=isa.get("ti"),
+        td=isa.get("td"),
+        status=r.status,
+        sim_duration=r.sim_duration,
+    )
+    for k in ("ms", "gain_margin", "phase_margin_deg", "overshoot_pct"):
+        out[k] = rob.get(k)
+    if r.after is not None:
+        for k in (
+            "overshoot",
+            "decay_ratio",
+            "rise_time",
+            "settling_time",
+            "iae_sp",
+            "iae_load",
+            "max_deviation_load",
+            "recovery_time",
+        ):
+            out[k] = getattr(r.after, k)
+    return out
+
+
+def _number(v: object) -> float | None:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
+def compare(path_a: str | Path, path_b: str | Path) -> dict:
+    """Both runs' figures, row by row, with the relative change from a to b (numbers only);
+    AutotuneError (one line naming the file) for a file that cannot be read."""
+    runs, values, units = [], [], []
+    for path in (Path(path_a), Path(path_b)):
+        meta, result, span = _result(path)
+        runs.append(
+            {
+                "file": str(path),
+                "run_id": meta.get("run_id"),
+                "loop": meta.get("loop"),
+                "method": meta.get("method"),
+                "started": meta.get("started"),
+                "pv_units": result.pv_units if result else "",
+                "span": span,
+            }
+        )
+        values.append(figures(meta, result, span))
+        units.append(result.pv_units if result else "")
+    pv = units[0] if units[0] == units[1] else f"{units[0]}|{units[1]}"
+    rows = []
+    for key, label, unit in ROWS:
+        a, b = values[0][key], values[1][key]
+        if a is None and b is None:
+            continue
+        na, nb = _number(a), _number(b)
+        change = (nb - na) / abs(na) if na is not None and nb is not None and na != 0 else None
+        rows.append(
+            {
+                "key": key,
+                "label": label,
+                "unit": unit.replace("PV", pv or "PV unit"),
+                "a": a,
+                "b": b,
+                "change": change,
+            }
+        )
+    return {"runs": runs, "rows": rows}
+
+
+def _cell(key: str, v: object) -> str:
+    if v is None:
+        return "—"
+    if key in PERCENT_KEYS and _number(v) is not None:
+        return number(100.0 * float(v), ".3g")  # type: ignore[arg-type]
+    if isinstance(v, int | float) and not isinstance(v, bool):
+        return number(v, ".5g")
+    return str(v)
+
+
+def format_compare(c: dict) -> str:
+    """The comparison as a table: one row per figure, the runs in two columns."""
+    a, b = c["runs"]
+    head = []
+    for name, run in (("A", a), ("B", b)):
+        started = (run.get("started") or "")[:19]
+        head += [
+            f"{name}  {run['file']}",
+            f"   {run.get('loop')} {run.get('method')} run {run.get('run_id')}  ({started} UTC)",
+        ]
+    head += [
+        "",
+        f"{'':<32}{'A':>14}{'B':>14}{'B vs A':>10}",
+    ]
+    for r in c["rows"]:
+        label = f"{r['label']} ({r['unit']})" if r["unit"] else r["label"]
+        ch = r["change"]
+        change = "" if ch is None else f"{100 * ch:+.1f} %"
+        head.append(
+            f"{label:<32.32}{_cell(r['key'], r['a']):>14}{_cell(r['key'], r['b']):>14}{change:>10}"
+        )
+    return "\n".join(head)

@@ -1,0 +1,111 @@
+"""The marks of a recorded run on its sim-time axis, each with the label its legend shows:
+relay switches, relay cycles, the start of the relay's stage 2, ramp trials with their Kc,
+the step test's output steps, and per verification the gains applied, the setpoint step and
+the load step. Pure: from the decoded messages' own sim time ``t`` (never the file's log
+time, which may be wall-clock)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from shared.messages import DisturbanceCommand, SetpointCommand, TuneProgress, TunerEvent
+
+LOAD = "load"  # the disturbance input the verification steps (tuning._verify)
+
+
+@dataclass(frozen=True)
+class Mark:
+    t: float  # s, sim time
+    kind: str  # "switch", "cycle", "stage 2", "trial", "output step"
+    label: str
+
+
+def _num(value: object) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+def experiment_marks(events: Sequence[TunerEvent], units: str) -> list[Mark]:
+    """The experiment's marks in time order: each relay switch (to its output), each cycle
+    closed (its number), stage 2's start, each ramp trial (its number and Kc, % per PV
+    unit), each output step of a step test (to its output, %)."""
+    out = []
+    for e in events:
+        d = e.data
+        if e.kind == "switch":
+            op = _num(d.get("op"))
+            out.append(Mark(e.t, "switch", f"relay to {op:.4g} %" if op is not None else "relay"))
+        elif e.kind == "cycle":
+            out.append(Mark(e.t, "cycle", f"cycle {d.get('n')}"))
+        elif e.kind == "stage" and d.get("stage") == 2 and not d.get("abandoned"):
+            out.append(Mark(e.t, "stage 2", "stage 2"))
+        elif e.kind == "step":
+            op = _num(d.get("op"))
+            text = f"output step to {op:.4g} %" if op is not None else "output step"
+            out.append(Mark(e.t, "output step", text))
+        elif e.kind == "trial":
+            kc = _num(d.get("kc"))
+            kc_s = f"Kc {kc:.4g} %/{units or 'PV unit'}" if kc is not None else "Kc ?"
+            out.append(Mark(e.t, "trial", f"trial {d.get('n')}: {kc_s}"))
+    return sorted(out, key=lambda m: m.t)
+
+
+@dataclass(frozen=True)
+class VerifyWindow:
+    """One verification of a set of gains: from the gains applied to the next verification
+    (or the run's end); the setpoint step and the load step in it (None: not made)."""
+
+    label: str  # "before" (the loop's own gains) or "after" (the new gains)
+    start: float  # s
+    end: float  # s
+    gains: str  # as the run's progress said them
+    sp0: float | None = None  # the setpoint the step started from
+    step_t: float | None = None
+    sp: float | None = None  # the stepped setpoint
+    load_t: float | None = None
+    load: float | None = None  # the load's change, its units
+    load_off_t: float | None = None
+
+
+def verify_windows(
+    progress: Sequence[TuneProgress],
+    setpoints: Sequence[SetpointCommand],
+    disturbances: Sequence[DisturbanceCommand],
+    t_end: float,
+    with_before: bool,
+) -> list[VerifyWindow]:
+    """Each ``verify`` phase of the run as a window; the last is "after", one before it
+    "before" when the result has a before-verification."""
+    starts = [p for p in progress if p.phase == "verify"]
+    out = []
+    for i, p in enumerate(starts):
+        later = [q.t for q in progress if q.t > p.t and q.phase not in ("verify",)]
+        end = min([*later, *(q.t for q in starts[i + 1 :]), t_end])
+        sps = [c for c in setpoints if c.t is not None and p.t <= c.t < end]
+        sp0 = sps[0].sp if sps else None
+        step = next((c for c in sps if sp0 is not None and c.sp != sp0), None)
+        loads = [
+            c for c in disturbances if c.name == LOAD and c.t is not None and p.t <= c.t <= end
+        ]
+        # on: base + size, then off: base (the size is the difference)
+        load = loads[0].value - loads[1].value if len(loads) >= 2 else None
+        last = i == len(starts) - 1
+        label = "after" if last else ("before" if with_before and i == len(starts) - 2 else "")
+        out.append(
+            VerifyWindow(
+                label or f"verification {i + 1}",
+                p.t,
+                end,
+                p.message,
+                sp0,
+                step.t if step else None,
+                step.sp if step else None,
+                loads[0].t if loads else None,
+                load,
+                loads[1].t if len(loads) >= 2 else None,
+            )
+        )
+    return out

@@ -1,0 +1,55 @@
+"""The console's bridge on a real Zenoh session of its own (nothing else on it): the page's
+requests that cannot be carried out are answered in one line, and nothing is sent."""
+
+from __future__ import annotations
+
+import queue
+
+import pytest
+
+from services.console.bridge import Bridge
+from shared.session import ZenohSettings, open_session
+
+ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
+
+
+@pytest.fixture(scope="module")
+def bridge(tmp_path_factory):
+    """One bridge for the module: closing one joins its threads, which takes a query's wait."""
+    with open_session(ALONE) as session:
+        b = Bridge(session, "consoletest", tmp_path_factory.mktemp("runs"), lambda msg: None)
+        yield b
+        b.close()  # its threads joined: none is inside a call of the session as it closes
+
+
+def answer(bridge: Bridge, msg: dict) -> dict:
+    replies: queue.Queue[dict] = queue.Queue()
+    bridge.act(msg, replies.put)
+    return replies.get(timeout=10.0)
+
+
+@pytest.mark.parametrize(
+    ("msg", "says"),
+    [
+        ({"type": "launch"}, "type: 'launch' is not a request the console takes"),
+        ({"type": "tune", "loop": "hx1", "fields": {"amplitude": "-1"}},
+         "--amplitude: Input should be greater than 0"),
+        ({"type": "tune", "loop": "h x", "fields": {}}, "loop id 'h x' is not valid"),
+        ({"type": "cancel"}, "loop: None is not a loop"),
+        ({"type": "apply", "run_id": 7}, "run_id: 7 is not a run id"),
+        ({"type": "reject", "run_id": "r1"}, "loop: None is not a loop"),
+        ({"type": "revert", "loop": ""}, "loop: '' is not a loop"),
+    ],
+)  # fmt: skip
+def test_a_request_that_cannot_be_carried_out_is_refused_in_one_line(bridge, msg, says):
+    got = answer(bridge, {**msg, "id": 3})
+    assert (got["type"], got["id"], got["ok"]) == ("action", 3, False)
+    assert got["message"].startswith(says), got["message"]
+
+
+def test_a_new_page_gets_the_form_s_choices_and_who_is_up(bridge):
+    hello, services = bridge.snapshot()[:2]
+    assert hello["type"] == "hello" and "tl-pid" in {r["name"] for r in hello["rules"]}
+    assert services == {"type": "services", "plant_sim": [], "tuner": [], "logger": [],
+                        "loops": [], "running": []}  # fmt: skip
+    assert bridge.tick() == []  # nothing on this bus

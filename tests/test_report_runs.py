@@ -1,0 +1,106 @@
+"""The report of runs other than the demo's, on a fast plant (6/((s+1)(s+2)(s+3)), 0.05 s
+samples) that starts in auto: a relay run verified before and after, side by side, and a
+ramp run whose trials are labelled with their Kc and whose ultimate point is drawn with its
+bracket. Recorded in-process (``tests.recorded_run``); the expected values are read from the
+file's raw JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from services.logger.report import build_report, load_report
+from tests.recorded_run import record_in_process
+
+LOOP = "x1"
+PLANT = {
+    "seed": 3,
+    "loops": {
+        LOOP: {
+            "model": "transfer_function",
+            "num": [6.0],
+            "den": [1.0, 6.0, 11.0, 6.0],
+            "sample_time": 0.05,
+            "noise_std": 0.002,
+            "mode": "auto",
+            "pid": {"kc": 0.5, "ti": 2.0},
+        }
+    },
+}
+
+
+def raw(path) -> dict[str, list[dict]]:
+    out: dict[str, list[dict]] = {}
+    with path.open("rb") as f:
+        for _, ch, m in make_reader(f).iter_messages(log_time_order=False):
+            parts = ch.topic.split("/")
+            name = parts[parts.index("cmd") + 1] if "cmd" in parts else parts[-1]
+            out.setdefault(name, []).append(json.loads(m.data))
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    out = {}
+    for method in ("relay", "ramp"):
+        path, live = record_in_process(tmp_path_factory.mktemp(method), "r", PLANT, LOOP, method)
+        assert live.status == "ok" and live.before is not None, live.reason
+        out[method] = (raw(path), build_report(load_report(path)))
+    return out
+
+
+def axes_titled(fig, start: str):
+    return next(ax for ax in fig.axes if ax.get_title().startswith(start))
+
+
+def test_before_and_after_side_by_side_from_their_setpoint_steps(runs):
+    msgs, fig = runs["relay"]
+    (result,) = msgs["result"]
+    before, after = axes_titled(fig, "before: Kc 0.5"), axes_titled(fig, "after: Kc")
+    assert f"Kc {result['chosen']['isa']['kc']:.4g}" in after.get_title()
+    assert before.get_ylim() == after.get_ylim()  # one scale
+    steps = sorted(c["t"] for c in msgs["setpoint"])
+    loads = [c for c in msgs["disturbance"] if c["name"] == "load"]
+    for ax, load, v in ((before, loads[0], "before"), (after, loads[2], "after")):
+        pv, sp = ax.lines[0], ax.lines[1]
+        t, y = np.asarray(sp.get_xdata()), np.asarray(sp.get_ydata())
+        # the setpoint steps by the verification's step after 0 s (the command's time is
+        # the last sample the tuner saw), and the load step sits where its command was sent
+        assert y[t <= 0].tolist() == [0.0] * int(np.sum(t <= 0))
+        assert y[(t > 0) & (t < 1)] == pytest.approx(result[v]["sp_step"], rel=1e-12)
+        step_t = max(s for s in steps if s < load["t"])  # the step, then the load
+        (load_line,) = [ln for ln in ax.lines if ln.get_linestyle() == "-."]
+        assert load_line.get_xdata()[0] == pytest.approx(load["t"] - step_t)
+        assert pv.get_xdata()[0] < 0 < pv.get_xdata()[-1]
+    ax_table = next(ax for ax in fig.axes if ax.get_title(loc="left") == "verification figures")
+    rows = ax_table.texts[0].get_text().splitlines()
+    assert rows[0].split() == ["before", "after"]
+    over = f"{result['before']['overshoot']:.4g}", f"{result['after']['overshoot']:.4g}"
+    assert next(r for r in rows if r.startswith("overshoot (%)")).split()[-2:] == list(over)
+
+
+def test_ramp_trials_carry_their_kc_and_the_ultimate_point_its_bracket(runs):
+    msgs, fig = runs["ramp"]
+    (result,) = msgs["result"]
+    trials = [e for e in msgs["event"] if e["kind"] == "trial"]
+    ax_pv = next(ax for ax in fig.axes if ax.get_ylabel().startswith("PV, setpoint"))
+    dashed = [ln.get_xdata()[0] for ln in ax_pv.lines if ln.get_linestyle() == "--"][1:]
+    assert dashed == [e["t"] for e in trials]  # the first dashed line is the setpoint
+    labels = [t.get_text() for t in ax_pv.texts]
+    for e in trials:
+        assert f"Kc {e['data']['kc']:.4g} %/{result['pv_units']}" in labels
+    legend = [t.get_text() for t in ax_pv.get_legend().get_texts()]
+    assert f"ramp trial (its Kc, %/{result['pv_units']})" in legend
+    ax_mag = next(ax for ax in fig.axes if ax.get_ylabel().startswith("|G|"))
+    (c,) = [c for c in ax_mag.containers if c.get_label().startswith("ultimate point")]
+    (w,), (mag,) = c.lines[0].get_data()
+    assert w == pytest.approx(2 * math.pi / result["pu"], rel=1e-12)
+    assert mag == pytest.approx(1 / result["ku"], rel=1e-12)
+    (seg,) = c.lines[2][0].get_segments()
+    e = result["experiment"]
+    half = (e["kc_high"] - e["kc_low"]) / result["ku"] * mag  # ku_spread, relative
+    assert (seg[1][1] - seg[0][1]) / 2 == pytest.approx(half, rel=1e-9)
