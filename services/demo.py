@@ -28,7 +28,7 @@ from services.autotuner.commands.tune import (
 )
 from services.console import launch as console_launch
 from services.launcher import free_tcp_port
-from services.logger.report import build_figure, load_series
+from services.logger.report import render
 from services.plant_sim.simulation.models import TransferFunctionModel
 from services.plant_sim.simulation.presets import MODELS
 from services.stack import Stack, runs_dir, service_tokens
@@ -202,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
                 )
                 mcap = wait_for_file(session, prefix, runs, result.run_id)
             report = mcap.with_suffix(".png")
-            build_figure(load_series(mcap)).savefig(report, dpi=110)
+            report.write_bytes(render(mcap))  # the whole report: trends, model, Bode, before/after
             if args.console:  # the outcome now, then the page stays up until Ctrl-C
                 _print_outcome(args, result, info, mcap, report)
                 console_launch.hold(url)
