@@ -147,6 +147,17 @@ function niceRange(lo, hi) {
   return [lo - pad, hi + pad];
 }
 
+// round tick values (1, 2 or 5 × 10^k apart), about n of them within [lo, hi]
+function niceTicks(lo, hi, n) {
+  const raw = (hi - lo) / Math.max(n, 1);
+  if (!(raw > 0) || !isFinite(raw)) return [lo];
+  const mag = Math.pow(10, Math.floor(Math.log10(raw)));
+  const r = raw / mag, step = (r < 1.5 ? 1 : r < 3 ? 2 : r < 7 ? 5 : 10) * mag;
+  const out = [];
+  for (let v = Math.ceil(lo / step) * step; v <= hi + step * 1e-9; v += step) out.push(Math.abs(v) < step * 1e-9 ? 0 : v);
+  return out;
+}
+
 function fitCanvas(c) {
   const w = c.clientWidth || c.width;
   if (c.width !== w) c.width = w;
@@ -162,8 +173,8 @@ function pane(g, box, x0, x1, y0, y1, series, label) {
   const Y = (y) => T + H - ((y - y0) / (y1 - y0)) * H;
   g.strokeStyle = "#ccc"; g.lineWidth = 1; g.strokeRect(L, T, W, H);
   g.fillStyle = "#555"; g.font = "11px system-ui";
-  for (let i = 0; i <= 4; i++) {
-    const v = y0 + ((y1 - y0) * i) / 4, y = Y(v);
+  for (const v of niceTicks(y0, y1, 4)) {
+    const y = Y(v);
     g.strokeStyle = "#eee"; g.beginPath(); g.moveTo(L, y); g.lineTo(L + W, y); g.stroke();
     g.fillText(fmt(v, 4), 2, y + 4);
   }
@@ -203,9 +214,10 @@ function drawTrend() {
   const [c0, c1] = niceRange(Math.min(...tr.op), Math.max(...tr.op));
   pane(g, [L, H1 + 22, W, H2], t0, t1, c0, c1, [{ x: tr.t, y: tr.op, color: "#2e7d32", step: true }], "output (%)");
   g.fillStyle = "#555";
-  for (let i = 0; i <= 5; i++) {
-    const t = t0 + ((t1 - t0) * i) / 5;
-    g.fillText(fmt(t, 5), L + (W * i) / 5 - (i === 5 ? 30 : 0), c.height - 18);
+  for (const t of niceTicks(t0, t1, 6)) {
+    const x = L + ((t - t0) / (t1 - t0)) * W;
+    g.strokeStyle = "#ccc"; g.beginPath(); g.moveTo(x, c.height - 34); g.lineTo(x, c.height - 30); g.stroke();
+    g.fillText(fmt(t, 5), Math.min(x - 10, L + W - 30), c.height - 18);
   }
   g.fillText("sim time (s)", L + W / 2 - 30, c.height - 4);
   $("trend-window").textContent = `last ${Math.round(t1 - t0)} s of sim time (keeps ${S.history} s)`;
