@@ -4,16 +4,18 @@ status), newest last; ``--compare RUN RUN``: two runs' figures side by side (``c
 A file that cannot be read — not MCAP, truncated, corrupt, a newer format, metadata that is
 not what the logger writes — is listed too, its status ``unreadable: <reason>`` (with
 ``--json``: ``"status": "unreadable"`` and ``"reason"``); the others are listed as usual and
-the exit code stays 0."""
+the exit code stays 0. A file a logger is still writing (no MCAP footer yet, and open in a
+process on this machine) is a run in progress, status ``recording``, not a broken file."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 from services.logger.compare import compare, format_compare
-from services.logger.mcap_io import read_run
+from services.logger.mcap_io import MAGIC, read_run
 from shared.errors import AutotuneError, one_line
 
 HELP = "list the recorded tuning runs"
@@ -56,7 +58,44 @@ def summarize(path: Path) -> dict:
         meta, _ = read_run(path)
         return _row(path, meta)
     except AutotuneError as err:
+        if being_written(path):
+            return _recording_row(path)
         return {"file": path.name, "status": "unreadable", "reason": _reason(path, err)}
+
+
+def being_written(path: Path, proc: Path = Path("/proc")) -> bool:
+    """No MCAP footer yet, and the file open in a process of this machine (a logger's run in
+    progress); a footerless file nobody has open is a broken one (``autotune recover``)."""
+    try:
+        with path.open("rb") as f:
+            f.seek(max(0, path.stat().st_size - len(MAGIC)))
+            if f.read() == MAGIC:
+                return False
+        target = path.resolve()
+        for fd in proc.glob("[0-9]*/fd/*"):
+            try:
+                if Path(os.readlink(fd)) == target:
+                    return True
+            except OSError:  # gone, or another user's
+                continue
+    except OSError:
+        return False
+    return False
+
+
+def _recording_row(path: Path) -> dict:
+    """What the file's name tells of a run in progress: ``<UTC>_<loop>_<method>_<id>.mcap``."""
+    parts = path.stem.removesuffix("_replay").split("_")
+    loop = "_".join(parts[1:-2]) if len(parts) >= 4 else None
+    method = parts[-2] if len(parts) >= 4 else None
+    return {
+        "file": path.name,
+        "started": parts[0] if len(parts) >= 4 else None,
+        "loop": loop,
+        "method": method,
+        "status": "recording",
+        "reason": "in progress: a logger is writing it",
+    }
 
 
 def _reason(path: Path, err: AutotuneError) -> str:
