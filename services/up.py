@@ -107,7 +107,12 @@ def acl_rules(prefix: str) -> list[dict[str, Any]]:
             "plant-publish",
             ["put"],
             ["ingress"],
-            [f"{p}/plant/*/pv", f"{p}/plant/*/status", f"{p}/plant/*/info"],
+            [
+                f"{p}/plant/*/pv",
+                f"{p}/plant/*/pv_batch",
+                f"{p}/plant/*/status",
+                f"{p}/plant/*/info",
+            ],
         ),
         rule("plant-serve", ["declare_queryable", "reply"], ["ingress"], status),
         rule("plant-queries", ["query"], ["egress"], status),

@@ -7,6 +7,8 @@ this module splits a key on '/'.
 Layout (IDs in their own chunks, most-varying part last)::
 
     <prefix>/plant/<loop>/pv               ProcessSample, one per sample period
+    <prefix>/plant/<loop>/pv_batch         ProcessSamples: the samples of one lockstep
+                                           advance of several periods, in one message
     <prefix>/plant/<loop>/status           LoopStatus, on every change (queryable too)
     <prefix>/plant/<loop>/info             LoopInfo (queryable)
     <prefix>/plant/<loop>/cmd/<kind>       commands to the loop (see shared.messages.COMMANDS)
@@ -68,6 +70,11 @@ def loop_root(prefix: str, loop: str) -> str:
 
 def pv(prefix: str, loop: str) -> str:
     return f"{loop_root(prefix, loop)}/pv"
+
+
+def pv_batch(prefix: str, loop: str) -> str:
+    """Lockstep: the samples of one advance of several periods, as one message."""
+    return f"{loop_root(prefix, loop)}/pv_batch"
 
 
 def status(prefix: str, loop: str) -> str:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.control.pid import Action, Mode, PidSettings
 
@@ -61,6 +61,33 @@ class ProcessSample(Message):
     sp: float
     op: Percent
     mode: Mode
+
+
+MAX_BATCH = 1024  # samples in one ProcessSamples at most (an advance of more: several)
+
+
+class ProcessSamples(Message):
+    """Lockstep: the samples of one advance of several periods, in order, as one message
+    (``<prefix>/plant/<loop>/pv_batch``); each is what ``pv`` would have carried, and every
+    consumer takes it as that many ProcessSamples. Why: a message's cost on the bus (a wake
+    of every subscriber's thread) is paid once per batch, not once per sample."""
+
+    loop: LoopId
+    samples: list[ProcessSample] = Field(min_length=1, max_length=MAX_BATCH)
+
+    @model_validator(mode="after")
+    def _one_loop_in_order(self) -> ProcessSamples:
+        """Every sample is this loop's, numbered one after the other: a batch with a hole
+        or out of order inside is refused whole (a missing batch shows as a gap in seq)."""
+        first = self.samples[0].seq
+        for i, s in enumerate(self.samples):
+            if s.loop != self.loop:
+                raise ValueError(f"samples.{i}.loop: {s.loop!r} in a batch of loop {self.loop!r}")
+            if s.seq != first + i:
+                raise ValueError(
+                    f"samples.{i}.seq: {s.seq}, expected {first + i} (one after the other)"
+                )
+        return self
 
 
 class LoopStatus(Message):

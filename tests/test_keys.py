@@ -16,6 +16,7 @@ LOOPS = ["hx1", "lvl_2", "x.y-z", "_0"]
 def test_loop_keys_round_trip(prefix: str, loop: str) -> None:
     for build, leaf in (
         (keys.pv, "pv"),
+        (keys.pv_batch, "pv_batch"),
         (keys.status, "status"),
         (keys.info, "info"),
         (keys.loop_alive, "alive"),

@@ -24,6 +24,7 @@ from shared.messages import (
     OutputCommand,
     PidGains,
     ProcessSample,
+    ProcessSamples,
     ReleaseCommand,
     ServiceStatus,
     SetpointCommand,
@@ -54,10 +55,12 @@ VERIFICATION = Verification(
     score=1.75,
 )
 SAMPLE = ProcessSample(loop="hx1", seq=7, t=0.35, pv=60.125, sp=60.0, op=40.5, mode="auto")
+NEXT = ProcessSample(loop="hx1", seq=8, t=0.4, pv=60.25, sp=60.0, op=40.25, mode="auto")
 
 EXAMPLES: list[Message] = [
     GAINS,
     SAMPLE,
+    ProcessSamples(loop="hx1", samples=[SAMPLE, NEXT]),
     LoopStatus(
         loop="hx1",
         node="plant",
@@ -242,6 +245,45 @@ def test_a_bad_payload_is_refused_naming_the_field(payload: bytes, reason: str) 
         wire.decode(ProcessSample, payload, "application/json;ProcessSample")
     assert str(err.value).startswith(reason)
     assert "\n" not in str(err.value)
+
+
+def _batch_json(loop: str = "hx1", *samples: dict) -> bytes:
+    return json.dumps({"loop": loop, "samples": list(samples)}).encode()
+
+
+_S7, _S8 = SAMPLE.model_dump(mode="json"), NEXT.model_dump(mode="json")
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (_batch_json("hx1"), "samples: List should have at least 1 item"),
+        (_batch_json("hx1", _S7, {**_S8, "op": 150.0}), "samples.1.op: Input should be less"),
+        (_batch_json("hx2", _S7, _S8), "payload: Value error, samples.0.loop: 'hx1' in a batch"),
+        (_batch_json("hx1", _S8, _S7), "payload: Value error, samples.1.seq: 7, expected 9"),
+        (_batch_json("hx1", _S7, {**_S8, "seq": 9}), "payload: Value error, samples.1.seq: 9"),
+        (_batch_json("hx1", _S7, _S7), "payload: Value error, samples.1.seq: 7, expected 8"),
+        (json.dumps({"loop": "hx1", "samples": _S7}).encode(), "samples: Input should be a"),
+    ],
+)
+def test_a_bad_batch_is_refused_whole_in_one_line_naming_the_field(
+    payload: bytes, reason: str
+) -> None:
+    """A batch with a bad sample, a sample of another loop, or a hole or a step back in its
+    numbering: refused whole (its samples then show as a gap wherever they are counted)."""
+    with pytest.raises(DecodeError) as err:
+        wire.decode(ProcessSamples, payload, "application/json;ProcessSamples")
+    assert str(err.value).startswith(reason), str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_a_batch_holds_at_most_max_batch_samples() -> None:
+    many = [
+        SAMPLE.model_copy(update={"seq": k, "t": 0.05 * k}) for k in range(messages.MAX_BATCH + 1)
+    ]
+    assert len(ProcessSamples(loop="hx1", samples=many[:-1]).samples) == messages.MAX_BATCH
+    with pytest.raises(DecodeError, match=r"^samples: List should have at most 1024 items"):
+        wire.decode(ProcessSamples, _batch_json("hx1", *[s.model_dump() for s in many]))
 
 
 def test_a_nested_field_is_named_by_its_path() -> None:

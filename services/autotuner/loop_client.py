@@ -1,7 +1,8 @@
 """Drive one plant_sim loop over Zenoh: read it, command it, step its clock.
 
 Samples and status arrive on one subscriber whose callback (Zenoh's receiving thread, order
-kept) puts them on a queue, so every wait is bounded: a silent plant becomes ``PlantLost``,
+kept) puts them on a queue (a lockstep advance's batch, ``pv_batch``, as its samples one by
+one), so every wait is bounded: a silent plant becomes ``PlantLost``,
 never a hang. The loop's liveliness token is watched too: a plant that dies or is cut off is
 ``PlantLost`` at once. While the client holds the loop's lease, every status the plant
 publishes says who holds it: one that no longer names this client (the plant's watchdog
@@ -23,7 +24,7 @@ from collections.abc import Generator
 import zenoh
 
 from shared import keys, wire
-from shared.errors import AutotuneError
+from shared.errors import AutotuneError, DecodeError
 from shared.messages import (
     AdvanceCommand,
     Command,
@@ -32,6 +33,7 @@ from shared.messages import (
     LoopStatus,
     Message,
     ProcessSample,
+    ProcessSamples,
     ReleaseCommand,
     SyncCommand,
 )
@@ -121,11 +123,13 @@ class LoopClient:
         # Zenoh's receiving thread puts each message straight on the inbox, in order: no
         # reader thread of ours runs per message, and the waiting run is woken once per
         # batch of samples it waits for (``_want``), or at once by anything else
-        self._inbox: deque[tuple[str, bytes, str]] = deque()
+        # (key, payload, encoding); a batch's samples go in one by one, already decoded
+        self._inbox: deque[tuple[str, bytes | ProcessSample, str]] = deque()
         self._ready = threading.Condition()
         self._want = 1  # samples the run waits for before it is woken
         self._others = 0  # messages in the inbox that are not samples
         self._pv_key = keys.pv(prefix, loop)
+        self._batch_key = keys.pv_batch(prefix, loop)
         # lockstep: samples asked for by advances and not yet received; those received while
         # waiting for a sync's answer are held back for the next taker, in order
         self._flight = 0
@@ -144,7 +148,21 @@ class LoopClient:
         mark = s.attachment
         if mark is not None and wire.replay_source(mark.to_bytes()) is not None:
             return  # `autotune replay` of a recorded run: not this loop's present
-        self._put((str(s.key_expr), s.payload.to_bytes(), str(s.encoding)))
+        key, payload, enc = str(s.key_expr), s.payload.to_bytes(), str(s.encoding)
+        if key == self._batch_key:  # a lockstep advance's samples: each its own, in order
+            try:
+                batch = wire.decode(ProcessSamples, payload, enc)
+            except DecodeError:  # kept as it came: read in turn, it raises its reason
+                batch = None
+            if batch is None or batch.loop != self.loop:
+                self._put((key, payload, enc))
+                return
+            with self._ready:
+                self._inbox.extend((self._pv_key, x, "") for x in batch.samples)
+                if len(self._inbox) >= self._want:
+                    self._ready.notify()
+            return
+        self._put((key, payload, enc))
 
     def _put(self, item: tuple[str, bytes, str]) -> None:
         with self._ready:
@@ -155,7 +173,7 @@ class LoopClient:
             elif len(self._inbox) >= self._want:
                 self._ready.notify()
 
-    def _get(self, timeout: float, want: int) -> tuple[str, bytes, str] | None:
+    def _get(self, timeout: float, want: int) -> tuple[str, bytes | ProcessSample, str] | None:
         """The inbox's first message; with it empty, wait (at most ``timeout`` s) until
         ``want`` samples or any other message are in. None if nothing came."""
         with self._ready:
@@ -233,8 +251,15 @@ class LoopClient:
                     "or this tuner was cut off from it)"
                 )
             if key == self._pv_key:
-                self.last_sample = wire.decode(ProcessSample, payload, enc)
+                self.last_sample = (
+                    payload
+                    if isinstance(payload, ProcessSample)
+                    else wire.decode(ProcessSample, payload, enc)
+                )
                 return self.last_sample
+            if key == self._batch_key:  # one that could not be taken (see ``_read``)
+                batch = wire.decode(ProcessSamples, payload, enc)
+                raise DecodeError(f"loop: {batch.loop!r} in a batch of loop {self.loop!r}")
             if key == self._status_key:
                 self.last_status = status = wire.decode(LoopStatus, payload, enc)
                 if self.holding and status.leased_by != self.source:

@@ -37,6 +37,7 @@ from shared.messages import (
     LoopMonitor,
     LoopStatus,
     ProcessSample,
+    ProcessSamples,
     TuneAccepted,
     TuneRequest,
     TuneResult,
@@ -221,7 +222,7 @@ class TunerService:
             busy = loop in self.active
         if (
             watch is None
-            or leaf not in ("pv", "status")
+            or leaf not in ("pv", "pv_batch", "status")
             or (mark is not None and wire.replay_source(mark.to_bytes()) is not None)
         ):
             return
@@ -231,18 +232,22 @@ class TunerService:
                 return
             if busy or watch.leased:
                 return
-            s = wire.decode_sample(ProcessSample, sample)
+            if leaf == "pv":
+                samples = [wire.decode_sample(ProcessSample, sample)]
+            else:  # a lockstep advance's samples in one message: each in turn
+                samples = wire.decode_sample(ProcessSamples, sample).samples
         except DecodeError as err:
             log.warning("monitor of %s: %s", loop, err)
             return
         w = watch.watcher
-        w.feed(s.t, s.sp, s.pv, s.op, s.mode == "auto")
-        start = w.window_start
-        if start is not None and s.t - start >= w.settings.window:
-            report = w.report().to_dict()
-            msg = LoopMonitor(loop=loop, node=self.node, pv_units=watch.pv_units, **report)
-            wire.put(self.session, keys.monitor(self.prefix, loop), msg)
-            log.info("monitor of %s at t = %g s: %s", loop, msg.t, ", ".join(msg.flags) or "ok")
+        for s in samples:
+            w.feed(s.t, s.sp, s.pv, s.op, s.mode == "auto")
+            start = w.window_start
+            if start is not None and s.t - start >= w.settings.window:
+                report = w.report().to_dict()
+                msg = LoopMonitor(loop=loop, node=self.node, pv_units=watch.pv_units, **report)
+                wire.put(self.session, keys.monitor(self.prefix, loop), msg)
+                log.info("monitor of %s at t = %g s: %s", loop, msg.t, ", ".join(msg.flags) or "ok")
 
     def _on_request(self, query: zenoh.Query) -> None:
         try:

@@ -32,7 +32,7 @@ from services.console.requests import tune_request
 from services.console.trends import HISTORY, Trend
 from shared import keys, wire
 from shared.errors import AutotuneError, ConfigError, DecodeError, one_line
-from shared.messages import LoopStatus, ProcessSample, TuneProgress, TuneResult
+from shared.messages import LoopStatus, ProcessSample, ProcessSamples, TuneProgress, TuneResult
 
 log = logging.getLogger("console")
 
@@ -75,9 +75,11 @@ class Bridge:
         self._threads: list[threading.Thread] = []
         any_loop = keys.ANY
         # samples and statuses come at the loops' rate: a ring that drops the oldest never
-        # holds the plant back when the page is slow
+        # holds the plant back when the page is slow. The samples (one by one on ``pv``, a
+        # lockstep advance's as one message on ``pv_batch``) come through one subscriber to
+        # the loops' feeds, so in the order they were sent
         for key, handler in (
-            (keys.pv(prefix, any_loop), self._on_sample),
+            (keys.loop_feed(prefix, any_loop), self._on_sample),
             (keys.status(prefix, any_loop), self._on_status),
         ):
             self._listen(
@@ -122,14 +124,20 @@ class Bridge:
         if mark is not None and wire.replay_source(mark.to_bytes()) is not None:
             return  # a replay of a recorded run is not the loop's present
         parsed = keys.parse_loop_key(self.prefix, str(sample.key_expr))
-        if parsed is None:
-            return
-        s = wire.decode_sample(ProcessSample, sample)
+        if parsed is None or parsed[1] not in ("pv", "pv_batch"):
+            return  # the loop's status: read by its own subscriber
+        if parsed[1] == "pv":
+            one = wire.decode_sample(ProcessSample, sample)
+            loop, samples = one.loop, [one]
+        else:  # a lockstep advance's samples in one message: each to the trend, in order
+            batch = wire.decode_sample(ProcessSamples, sample)
+            loop, samples = batch.loop, batch.samples
         with self._lock:
-            trend = self.trends.get(s.loop)
+            trend = self.trends.get(loop)
             if trend is None:
-                trend = self.trends[s.loop] = Trend(self.history)
-            trend.add(s.t, s.pv, s.sp, s.op)
+                trend = self.trends[loop] = Trend(self.history)
+            for s in samples:
+                trend.add(s.t, s.pv, s.sp, s.op)
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         if keys.parse_loop_key(self.prefix, str(sample.key_expr)) is None:

@@ -11,9 +11,11 @@ token of the run was there. A watchdog status that still names a lease holder of
 or that comes while the run's token is alive (the tuner lives and will end its run with a
 result), closes nothing.
 
-Everything on the loop's keys in between goes into the file: process samples, status, every
-command, the tuner's progress, events and result. Messages are validated against their model
-first; one that is not valid is counted and left out.
+Everything on the loop's keys in between goes into the file: process samples (those a
+lockstep advance sends as one batch on ``pv_batch``, each as its own ``pv`` message, as the
+plant would have sent it), status, every command, the tuner's progress, events and result.
+Messages are validated against their model first; one that is not valid is counted and left
+out (a batch whole).
 
 **One run, one file.** A file holds only its run's messages, from the plant instance the run
 tuned:
@@ -63,6 +65,7 @@ from shared.messages import (
     LoopStatus,
     Message,
     ProcessSample,
+    ProcessSamples,
     TuneProgress,
     TuneResult,
     TunerEvent,
@@ -165,6 +168,11 @@ class Stream:
     run_token: bool | None = None  # the run's liveliness token (None: not seen yet)
 
 
+def _encoded(sample: ProcessSample) -> bytes:
+    """A sample's JSON as the plant puts it on ``pv`` (``wire.encode``: the model's dump)."""
+    return sample.model_dump_json().encode()
+
+
 def model_for(prefix: str, key: str) -> tuple[str, type[Message]] | None:
     """(loop, model) of a key the logger records, or None."""
     plant = keys.parse_loop_key(prefix, key)
@@ -222,7 +230,10 @@ class Recorder:
             return
         found = model_for(self.prefix, key)
         if found is None:
-            self.counts["ignored"] += 1
+            if (batch := keys.parse_loop_key(self.prefix, key)) and batch[1] == "pv_batch":
+                self._batch(batch[0], payload, replay)
+            else:
+                self.counts["ignored"] += 1
             return
         loop_id, model = found
         try:
@@ -230,6 +241,36 @@ class Recorder:
         except pydantic.ValidationError:
             self.counts["invalid"] += 1
             return
+        self._take(key, loop_id, model, payload, msg, replay)
+
+    def _batch(self, loop_id: str, payload: bytes, replay: str | None) -> None:
+        """A lockstep advance's samples in one message (``pv_batch``): each taken as if it had
+        come on its own on ``pv``, its payload what the plant puts there (the same JSON), so
+        the file holds one ``pv`` message per sample as always. Not valid: counted, left out
+        whole (its samples then show as a gap)."""
+        try:
+            batch = ProcessSamples.model_validate_json(payload)
+        except pydantic.ValidationError:
+            self.counts["invalid"] += 1
+            return
+        if batch.loop != loop_id:
+            self.counts["invalid"] += 1
+            return
+        key = keys.pv(self.prefix, loop_id)
+        self.counts["received"] += len(batch.samples) - 1  # as many as came on their own
+        for sample in batch.samples:
+            self._take(key, loop_id, ProcessSample, _encoded(sample), sample, replay)
+
+    def _take(
+        self,
+        key: str,
+        loop_id: str,
+        model: type[Message],
+        payload: bytes,
+        msg: Message,
+        replay: str | None,
+    ) -> None:
+        """One valid message of a loop: into its stream's context and its run's file."""
         stream = self._stream(loop_id, replay or "")
         if isinstance(msg, ProcessSample):
             if msg.seq == stream.last_sample_seq and payload == stream.last_sample:

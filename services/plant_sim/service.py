@@ -4,7 +4,9 @@ Every command to every loop arrives on one subscriber (``<prefix>/plant/*/cmd/*`
 channel keeps the senders' order, so a lockstep run is deterministic. Commands are decoded
 and validated; a bad one is refused with a logged reason and counted, and changes nothing.
 
-Clocks: *lockstep* advances a loop only on an ``advance`` command; *realtime* advances every
+Clocks: *lockstep* advances a loop only on an ``advance`` command (the samples of an advance
+of several periods go out as one ``ProcessSamples`` on ``pv_batch``, one per sample on ``pv``
+otherwise); *realtime* advances every
 loop on the wall clock (times ``speed``), holding the last output between samples: the loops
 of one sample time together, the linear ones as arrays (``realtime.py``).
 
@@ -43,6 +45,7 @@ from shared.cli import (
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.messages import (
     COMMANDS,
+    MAX_BATCH,
     AdvanceCommand,
     ClockMode,
     LeaseCommand,
@@ -50,6 +53,7 @@ from shared.messages import (
     LoopStatus,
     Message,
     ProcessSample,
+    ProcessSamples,
     ReleaseCommand,
     ServiceStatus,
     SyncCommand,
@@ -336,10 +340,15 @@ class PlantService:
                     loop, "clock", "advance refused: the plant runs in realtime", out, sender
                 )
                 return
-            pv_key = keys.pv(prefix, loop_id)
             had = loop.fault
-            for _ in range(cmd.steps):
-                out.append((pv_key, loop.advance()))
+            if cmd.steps == 1:
+                out.append((keys.pv(prefix, loop_id), loop.advance()))
+            else:  # one message per batch: a message's cost on the bus is per message
+                batch_key = keys.pv_batch(prefix, loop_id)
+                for start in range(0, cmd.steps, MAX_BATCH):
+                    n = min(MAX_BATCH, cmd.steps - start)
+                    samples = [loop.advance() for _ in range(n)]
+                    out.append((batch_key, ProcessSamples(loop=loop_id, samples=samples)))
             if loop.fault and not had:  # the model failed: say so once, on the status
                 out.append((keys.status(prefix, loop_id), self.loop_status(loop, "fault")))
         elif isinstance(cmd, SyncCommand):

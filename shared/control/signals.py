@@ -126,21 +126,25 @@ def extrema(t: np.ndarray, y: np.ndarray, min_swing: float) -> list[tuple[float,
     fallen (risen) ``min_swing`` (``y``'s units) from it. The starting point is never one."""
     out: list[tuple[float, float]] = []
     direction, k = 0, 0
-    for i in range(1, y.size):
+    # plain floats: the same doubles and the same arithmetic, without a numpy scalar per
+    # element (this loop runs over every sample of a record, often)
+    tv, yv = np.asarray(t, dtype=float).tolist(), np.asarray(y, dtype=float).tolist()
+    for i in range(1, len(yv)):
+        yi = yv[i]
         if direction == 0:
-            if abs(y[i] - y[0]) >= min_swing:
-                direction, k = (1 if y[i] > y[0] else -1), i
+            if abs(yi - yv[0]) >= min_swing:
+                direction, k = (1 if yi > yv[0] else -1), i
         elif direction > 0:
-            if y[i] > y[k]:
+            if yi > yv[k]:
                 k = i
-            elif y[k] - y[i] >= min_swing:
-                out.append((float(t[k]), float(y[k])))
+            elif yv[k] - yi >= min_swing:
+                out.append((tv[k], yv[k]))
                 direction, k = -1, i
         else:
-            if y[i] < y[k]:
+            if yi < yv[k]:
                 k = i
-            elif y[i] - y[k] >= min_swing:
-                out.append((float(t[k]), float(y[k])))
+            elif yi - yv[k] >= min_swing:
+                out.append((tv[k], yv[k]))
                 direction, k = 1, i
     return out
 

@@ -33,13 +33,7 @@ def fit_oscillation(
     """Fit a growing/decaying sinusoid to (t, y); None if there is no clear oscillation."""
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
-    if t.size < 16:
-        return None
-    dt = float(np.median(np.diff(t)))
-    width = 1 if noise_std <= 0 else max(1, int((period_hint or 0.0) / dt / 12))
-    ys = smooth(y, width)
-    span = float(ys.max() - ys.min())
-    ext = extrema(t, ys, max(4.0 * noise_std / math.sqrt(width), 0.02 * span, 1e-12))
+    ext = _turning_points(t, y, noise_std, period_hint)
     if len(ext) < 3:
         return None
     te = np.array([e[0] for e in ext])
@@ -76,6 +70,30 @@ def fit_oscillation(
         rms=float(np.sqrt(np.mean(sol.fun**2))),
         swings=len(ext) - 1,
     )
+
+
+def swings(t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None = None) -> int:
+    """The half-cycles ``fit_oscillation`` would count in (t, y) (its ``swings`` when it finds
+    an oscillation; 0 when it finds none for want of turning points), without the fit: a
+    caller that needs so many swings asks this first, and fits only once they are there."""
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    return max(0, len(_turning_points(t, y, noise_std, period_hint)) - 1)
+
+
+def _turning_points(
+    t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None
+) -> list[tuple[float, float]]:
+    """The extrema the fit starts from: those of the record smoothed over a twelfth of the
+    hinted period, swinging by 4σ of the (smoothed) noise and 2 % of the span; none for
+    fewer than 16 samples."""
+    if t.size < 16:
+        return []
+    dt = float(np.median(np.diff(t)))
+    width = 1 if noise_std <= 0 else max(1, int((period_hint or 0.0) / dt / 12))
+    ys = smooth(y, width)
+    span = float(ys.max() - ys.min())
+    return extrema(t, ys, max(4.0 * noise_std / math.sqrt(width), 0.02 * span, 1e-12))
 
 
 def _with_slow_mode(tt: np.ndarray, y: np.ndarray, p0: np.ndarray, rms0: float):

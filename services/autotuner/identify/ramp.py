@@ -53,7 +53,7 @@ from services.autotuner.identify.model_fit import (
     refine_on_record,
     through_ultimate_point,
 )
-from services.autotuner.identify.oscillation import Oscillation, fit_oscillation
+from services.autotuner.identify.oscillation import Oscillation, fit_oscillation, swings
 from shared.control.signals import Sample, at_rest, noise_level
 
 
@@ -461,9 +461,13 @@ class RampTest:
             if self._died_out(n):
                 self._close_trial(t, cut=False)
                 return
-            osc = self._fit(raw=True)  # enough swings seen (its verdict is judged at the close)
-            if osc is not None and osc.swings >= 2 * self.config.trial_periods + 1:
-                self._close_trial(t, cut=False)
+            # enough swings seen (its verdict is judged at the close): counted first, and the
+            # fit (which counts the same) made only once there are enough to close on
+            enough = 2 * self.config.trial_periods + 1
+            if self._swings() >= enough:
+                osc = self._fit(raw=True)
+                if osc is not None and osc.swings >= enough:
+                    self._close_trial(t, cut=False)
 
     def _trial_saturated(self, t: float) -> None:
         """The output has sat at a limit: the loop is not linear any more. Judged growing if
@@ -531,6 +535,12 @@ class RampTest:
     def _swing_limit_hit(self) -> bool:
         """The PV has swung further from where it rested before the trial than allowed."""
         return abs(self._y[-1] - self._r) > self.config.swing_limit * self._trial_bump
+
+    def _swings(self) -> int:
+        """The half-cycles the fit of the trial's record so far would count (no fit made)."""
+        t = np.asarray(self._t[self._trial_start :])
+        y = np.asarray(self._y[self._trial_start :])
+        return swings(t, y, self._noise, self._period)
 
     def _fit(self, end: int | None = None, raw: bool = False) -> Oscillation | None:
         """The oscillation in the trial's record (up to sample ``end``), if it is one (or

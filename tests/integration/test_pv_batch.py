@@ -1,0 +1,108 @@
+"""Lockstep batches on the bus against plant_sim as a process: an advance of several periods
+goes out as one ``ProcessSamples`` on ``pv_batch`` (at most ``MAX_BATCH`` samples a message),
+one period as a ``ProcessSample`` on ``pv``; the tuner's ``LoopClient`` and the console's
+bridge see every sample, in order, the same as the in-process loop steps them; a batch that
+is not valid stops the client in one line naming the field."""
+
+from __future__ import annotations
+
+import json
+import queue
+import time
+import tomllib
+
+import pytest
+
+from services.autotuner.loop_client import LoopClient
+from services.console.bridge import Bridge
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared import keys, wire
+from shared.errors import DecodeError
+from shared.messages import MAX_BATCH, ProcessSample, ProcessSamples
+from shared.session import open_session
+
+pytestmark = pytest.mark.integration
+
+PLANT = """
+seed = 3
+[loops.b1]
+model = "heat_exchanger"
+sample_time = 0.5
+noise_std = 0.1
+"""
+STEPS = MAX_BATCH + 6  # two messages: a full batch and the rest
+
+
+def test_an_advance_is_one_message_per_batch_and_the_client_reads_every_sample(
+    start_plant, tmp_path
+):
+    plant = start_plant(PLANT, loops=("b1",))
+    local = LocalLoopClient(build_plant(tomllib.loads(PLANT))["b1"])
+    seen: queue.Queue[tuple[str, bytes]] = queue.Queue()
+    with open_session(plant.client_settings()) as session:
+        sub = session.declare_subscriber(
+            keys.loop_feed(plant.prefix, "b1"),
+            lambda x: seen.put((keys.leaf(str(x.key_expr)), x.payload.to_bytes())),
+        )
+        bridge = Bridge(session, plant.prefix, tmp_path, lambda msg: None)
+        try:
+            with LoopClient(session, plant.prefix, "b1", timeout=10.0) as client:
+                start = client.sync().seq
+                many = client.advance(STEPS)
+                one = client.advance(1)
+                few = client.advance(3)
+            got = [*many, *one, *few]
+            # the console's trend: every sample, in order (its reader thread may trail)
+            deadline, trend = time.monotonic() + 10.0, {"t": []}
+            while len(trend["t"]) < len(got) and time.monotonic() < deadline:
+                time.sleep(0.01)
+                shown = [m for m in bridge.snapshot() if m["type"] == "trend"]
+                trend = shown[0] if shown else trend
+        finally:
+            bridge.close()
+            sub.undeclare()
+    assert [s.seq for s in got] == list(range(start + 1, start + STEPS + 5))
+    rows = list(zip(trend["t"], trend["pv"], trend["sp"], trend["op"], strict=True))
+    assert rows == [(s.t, s.pv, s.sp, s.op) for s in got]
+
+    messages, carried = [], []  # what went over the bus, samples only, in order
+    while len(carried) < len(got):
+        leaf, payload = seen.get(timeout=10.0)
+        if leaf == "pv":
+            messages.append((leaf, 1))
+            carried.append(wire.decode(ProcessSample, payload))
+        elif leaf == "pv_batch":
+            batch = wire.decode(ProcessSamples, payload).samples
+            messages.append((leaf, len(batch)))
+            carried += batch
+    assert messages == [
+        ("pv_batch", MAX_BATCH),
+        ("pv_batch", 6),
+        ("pv", 1),
+        ("pv_batch", 3),
+    ]
+    assert carried == got
+
+    # the same plant file and seed in process: the same samples, to the bit
+    assert local.sync().seq == start
+    assert local.advance(STEPS) + local.advance(1) + local.advance(3) == got
+
+
+def test_a_bad_batch_stops_the_client_in_one_line_naming_the_field(start_plant):
+    """Put on the loop's batch key by the client's own session (delivered before the
+    plant's answer to the advance that follows)."""
+    plant = start_plant(PLANT, loops=("b1",))
+    empty = json.dumps({"loop": "b1", "samples": []}).encode()
+    alien = ProcessSample(loop="b9", seq=1, t=0.5, pv=1.0, sp=1.0, op=1.0, mode="auto")
+    other = wire.encode(ProcessSamples(loop="b9", samples=[alien]))  # valid, of another loop
+    with open_session(plant.client_settings()) as session:
+        for payload, says in (
+            (empty, r"^samples: List should have at least 1 item"),
+            (other, r"^loop: 'b9' in a batch of loop 'b1'$"),
+        ):
+            with LoopClient(session, plant.prefix, "b1", timeout=10.0) as client:
+                client.sync()
+                session.put(keys.pv_batch(plant.prefix, "b1"), payload)
+                with pytest.raises(DecodeError, match=says):
+                    client.advance(2)

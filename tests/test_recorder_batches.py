@@ -1,0 +1,122 @@
+"""The logger's recorder takes a lockstep batch (``pv_batch``, one ProcessSamples) as its
+samples one by one: the run file is the one the same samples sent one message each make, to
+the byte (one ``pv`` message per sample, log time from its own t), and a batch missing, out of
+order or not valid counts as its samples would have (a gap, a new plant instance, invalid)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+from services.logger.mcap_io import read_run, topic_of
+from services.logger.recorder import Recorder
+from shared import keys, wire
+from shared.messages import ProcessSample, ProcessSamples, TuneProgress, TuneResult
+
+P = "batch"
+LOOP = "hx1"
+DT = 0.25
+
+
+def sample(seq: int) -> ProcessSample:
+    """Sample ``seq`` of a loop ringing about 50 (values that differ from sample to sample)."""
+    return ProcessSample(
+        loop=LOOP, seq=seq, t=seq * DT, pv=50.0 + 0.1 * (seq % 7), sp=50.0, op=40.0 + 0.01 * seq,
+        mode="auto",
+    )  # fmt: skip
+
+
+def one_by_one(rec: Recorder, first: int, last: int) -> None:
+    for n in range(first, last + 1):
+        rec.handle(keys.pv(P, LOOP), wire.encode(sample(n)))
+
+
+def batched(rec: Recorder, first: int, last: int) -> None:
+    batch = ProcessSamples(loop=LOOP, samples=[sample(n) for n in range(first, last + 1)])
+    rec.handle(keys.pv_batch(P, LOOP), wire.encode(batch))
+
+
+def recorded(tmp_path: Path, name: str, traffic: Callable[[Recorder], None]) -> tuple:
+    """One run (start at sample 10, result at sample 40) with ``traffic`` between: the file's
+    metadata (less what names the file or the wall clock), its records (topic, schema, data,
+    log time from the first) and the recorder's counts."""
+    rec = Recorder(tmp_path / name, P, flush_interval=3600.0, clock=lambda: 0.0)
+    start = TuneProgress(run_id="r1", loop=LOOP, t=10 * DT, phase="start", message="ramp test")
+    rec.handle(keys.tune_progress(P, LOOP), wire.encode(start))
+    traffic(rec)
+    end = TuneResult(run_id="r1", loop=LOOP, t=40 * DT, method="ramp", rule="zn-pi", status="ok")
+    rec.handle(keys.tune_result(P, LOOP), wire.encode(end))
+    assert len(rec.finished) == 1, rec.finished
+    meta, records = read_run(rec.finished[0])
+    meta = {k: v for k, v in meta.items() if k not in ("started", "finished", "log_time_zero")}
+    t0 = records[0].log_time
+    rows = [(r.topic, r.schema, r.data, r.log_time - t0) for r in records]
+    return meta, rows, dict(rec.counts)
+
+
+def test_a_batch_is_written_as_its_samples_one_message_each(tmp_path: Path) -> None:
+    def singles(rec: Recorder) -> None:
+        one_by_one(rec, 10, 40)
+
+    def batches(rec: Recorder) -> None:
+        batched(rec, 10, 10)
+        batched(rec, 11, 30)
+        one_by_one(rec, 31, 31)
+        batched(rec, 32, 40)
+
+    meta, rows, counts = recorded(tmp_path, "batches", batches)
+    assert (meta, rows, counts) == recorded(tmp_path, "singles", singles)
+    pv = [r for r in rows if r[0] == topic_of(keys.pv(P, LOOP))]
+    assert len(pv) == 31 and meta["samples"] == "31" and meta["dropped"] == "0"
+    # each its own message, logged at its own t (ns from the run's first message at t = 2.5 s)
+    assert [r[3] for r in pv] == [round((n - 10) * DT * 1e9) for n in range(10, 41)]
+    assert [json.loads(r[2])["seq"] for r in pv] == list(range(10, 41))
+
+
+def test_a_missing_batch_is_a_gap_of_its_samples(tmp_path: Path) -> None:
+    def singles(rec: Recorder) -> None:
+        one_by_one(rec, 10, 19)
+        one_by_one(rec, 30, 40)  # 20…29 lost
+
+    def batches(rec: Recorder) -> None:
+        batched(rec, 10, 19)
+        batched(rec, 30, 40)  # the batch 20…29 lost
+
+    meta, rows, counts = recorded(tmp_path, "batches", batches)
+    assert (meta, rows, counts) == recorded(tmp_path, "singles", singles)
+    assert meta["dropped"] == "10" and counts["dropped"] == 10
+
+
+def test_a_batch_out_of_order_counts_as_its_samples_out_of_order(tmp_path: Path) -> None:
+    def singles(rec: Recorder) -> None:
+        one_by_one(rec, 10, 19)
+        one_by_one(rec, 30, 40)
+        one_by_one(rec, 20, 29)  # late: the numbering went back
+
+    def batches(rec: Recorder) -> None:
+        batched(rec, 10, 19)
+        batched(rec, 30, 40)
+        batched(rec, 20, 29)
+
+    meta, rows, counts = recorded(tmp_path, "batches", batches)
+    assert (meta, rows, counts) == recorded(tmp_path, "singles", singles)
+    assert meta["dropped"] == "10" and meta["plant_changed"].startswith("the sample number went")
+
+
+def test_a_bad_batch_is_counted_invalid_and_left_out_whole(tmp_path: Path) -> None:
+    good = ProcessSamples(loop=LOOP, samples=[sample(n) for n in range(20, 30)])
+    bad = json.loads(wire.encode(good))
+    bad["samples"][3]["op"] = 150.0  # one sample out of range: the whole batch is refused
+
+    def traffic(rec: Recorder) -> None:
+        batched(rec, 10, 19)
+        rec.handle(keys.pv_batch(P, LOOP), json.dumps(bad).encode())
+        rec.handle(keys.pv_batch(P, LOOP), b"not json")
+        hx2 = [s.model_copy(update={"loop": "hx2"}) for s in good.samples]
+        other = ProcessSamples(loop="hx2", samples=hx2)  # not the loop its key names
+        rec.handle(keys.pv_batch(P, LOOP), wire.encode(other))
+        batched(rec, 30, 40)
+
+    meta, _, counts = recorded(tmp_path, "bad", traffic)
+    assert counts["invalid"] == 3 and meta["dropped"] == "10" and meta["samples"] == "21"
