@@ -240,6 +240,8 @@ class RampTest:
         self._silent = False  # the last trial's PV never moved clear of the noise
         self._deadline = math.inf  # s: sim time by which the test must be over
         self._budget = ""  # which budget that is, for the abort's reason
+        # the last fit of a trial's record: (trial start, end, noise, period hint), its result
+        self._last_fit: tuple[tuple, Oscillation | None] | None = None
 
     @property
     def finished(self) -> bool:
@@ -549,7 +551,15 @@ class RampTest:
         means nothing: adopted, it would cut the next trials short)."""
         t = np.asarray(self._t[self._trial_start : end])
         y = np.asarray(self._y[self._trial_start : end])
-        osc = fit_oscillation(t, y, self._noise, self._period)
+        # the same record fitted again (a check that closes the trial, then its close) gives
+        # the same fit: the last one is kept
+        stop = len(self._t) if end is None else min(end, len(self._t))
+        key = (self._trial_start, stop, self._noise, self._period)
+        if self._last_fit is not None and self._last_fit[0] == key:
+            osc = self._last_fit[1]
+        else:
+            osc = fit_oscillation(t, y, self._noise, self._period)
+            self._last_fit = (key, osc)
         if raw or osc is None or t.size < 2:
             return osc
         watched = float(t[-1] - t[0])
