@@ -26,7 +26,7 @@ import zenoh
 
 from services.autotuner.design.request_check import validate_request
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
-from services.autotuner.monitor.assessment import Baseline, MonitorSettings, Watcher, choose_period
+from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
 from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
@@ -66,17 +66,7 @@ def watched(result: TuneResult, info: LoopInfo, status: LoopStatus) -> Watched |
     if result.status != "ok" or not result.applied:
         return None
     period, source = choose_period(None, result.pu, status.gains.ti, info.sample_time)
-    settings = MonitorSettings(
-        period,
-        source,
-        info.sample_time,
-        tuple(info.pv_range),
-        tuple(info.op_limits),
-        status.action,
-        integral=status.gains.ti is not None,
-    )
-    baseline = Baseline.from_result(result.model_dump())
-    return Watched(Watcher(settings, baseline), info.pv_units)
+    return Watched(loop_watcher(period, source, info, status, result.model_dump()), info.pv_units)
 
 
 @dataclass

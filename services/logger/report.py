@@ -540,41 +540,12 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
             else:
                 err_mag = err_ph = None
                 label = f"{stage}: G(jω)"
-            ax_mag.errorbar(
-                w,
-                mag,
-                yerr=err_mag,
-                ls="",
-                marker=marker,
-                color=color,
-                ms=5,
-                capsize=3,
-                label=label,
-                gid=f"{stage} fundamental",
-            )
-            ax_ph.errorbar(
-                w,
-                ph,
-                yerr=err_ph,
-                ls="",
-                marker=marker,
-                color=color,
-                ms=5,
-                capsize=3,
-                label=label,
-                gid=f"{stage} fundamental",
-            )
+            style = dict(ls="", marker=marker, color=color, ms=5, label=label)
+            gid = f"{stage} fundamental"
+            for ax, values, err in ((ax_mag, mag, err_mag), (ax_ph, ph, err_ph)):
+                ax.errorbar(w, values, yerr=err, capsize=3, gid=gid, **style)
             g = np.array([p.g for p in fund])
-            ax_ny.plot(
-                g.real,
-                g.imag,
-                ls="",
-                marker=marker,
-                color=color,
-                ms=5,
-                label=label,
-                gid=f"{stage} fundamental",
-            )
+            ax_ny.plot(g.real, g.imag, gid=gid, **style)
             for p in fund:
                 if p.uncertainty is not None:
                     from matplotlib.patches import Circle
@@ -591,30 +562,11 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
         if harm:
             w = np.array([p.omega for p in harm])
             label = f"{stage}: harmonics k = {', '.join(str(p.harmonic) for p in harm)}"
-            ax_mag.loglog(
-                w,
-                [p.magnitude for p in harm],
-                ls="",
-                marker=marker,
-                mfc="none",
-                color=color,
-                ms=5,
-                label=label,
-            )
-            ax_ph.semilogx(
-                w,
-                [p.phase_deg for p in harm],
-                ls="",
-                marker=marker,
-                mfc="none",
-                color=color,
-                ms=5,
-                label=label,
-            )
+            style = dict(ls="", marker=marker, mfc="none", color=color, ms=5, label=label)
+            ax_mag.loglog(w, [p.magnitude for p in harm], **style)
+            ax_ph.semilogx(w, [p.phase_deg for p in harm], **style)
             g = np.array([p.g for p in harm])
-            ax_ny.plot(
-                g.real, g.imag, ls="", marker=marker, mfc="none", color=color, ms=5, label=label
-            )
+            ax_ny.plot(g.real, g.imag, **style)
     for c in f.crossings:
         marker, color = ("x", "tab:purple") if c.source == "result" else ("+", "black")
         label = (

@@ -27,7 +27,7 @@ import math
 import zenoh
 
 from services.autotuner.loop_client import LoopClient, PlantLost, wait_for_loop, wait_for_token
-from services.autotuner.monitor.assessment import Baseline, MonitorSettings, Watcher, choose_period
+from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
 from services.autotuner.monitor.oscillation import SUPERVISION_PERIODS
 from shared import keys, wire
 from shared.cli import MAX_SECONDS, add_common_arguments, check_ids
@@ -147,17 +147,9 @@ def run(args: argparse.Namespace) -> int:
                     f"--duration {duration:g}: {n} samples at {info.sample_time:g} s; at most "
                     f"{MAX_SAMPLES * info.sample_time:g} s for this loop"
                 )
-            watch_settings = MonitorSettings(
-                period,
-                source,
-                info.sample_time,
-                tuple(info.pv_range),
-                tuple(info.op_limits),
-                status.action,
-                integral=status.gains.ti is not None,
-            )
-            baseline = Baseline.from_result(result.model_dump() if result is not None else None)
-            watcher = Watcher(watch_settings, baseline)
+            last = result.model_dump() if result is not None else None
+            watcher = loop_watcher(period, source, info, status, last)
+            baseline = watcher.baseline
             stopped = collect(client, watcher, n)
             gains = client.last_status.gains
     assessment = watcher.report()

@@ -330,3 +330,22 @@ def judge(a: Assessment, s: MonitorSettings) -> tuple[dict[str, str], list[str]]
     if worse:
         flags["degraded"] = "; ".join(worse)
     return flags, notes
+
+
+def loop_watcher(
+    period: float, period_source: str, info: Any, status: Any, result: dict[str, Any] | None
+) -> Watcher:
+    """A Watcher of one loop: its sample time, PV range and output limits from ``info`` (a
+    LoopInfo), its action and integral action from ``status`` (a LoopStatus; read by
+    attribute: this layer imports no message model), the baseline from ``result`` (a
+    TuneResult as a dict) when there is one."""
+    settings = MonitorSettings(
+        period,
+        period_source,
+        info.sample_time,
+        tuple(info.pv_range),
+        tuple(info.op_limits),
+        status.action,
+        integral=status.gains.ti is not None,
+    )
+    return Watcher(settings, Baseline.from_result(result))
