@@ -12,6 +12,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.control.pid import Action, Mode, PidSettings
+from shared.control.signals import outside
 
 ClockMode = Literal["lockstep", "realtime"]
 
@@ -224,10 +225,24 @@ class DisturbanceCommand(Command):
 
 
 class AdvanceCommand(Command):
-    """Lockstep clock: advance the loop by ``steps`` sample periods, publishing each sample."""
+    """Lockstep clock: advance the loop by ``steps`` sample periods, publishing each sample;
+    with ``stop_below``/``stop_above``, stop early after the first sample whose PV is at or
+    below/above them (``stops_at``). Why: a relay decides nothing while the PV stays between
+    its levels, so it asks for a half-cycle in one round trip and the plant stops at the sample
+    where the next decision falls, which the asker then knows without being told."""
 
     kind: ClassVar[str] = "advance"
     steps: int = Field(default=1, ge=1, le=100_000)
+    stop_below: float | None = Field(
+        default=None, description="PV units: the advance ends with a sample at or below this"
+    )
+    stop_above: float | None = Field(
+        default=None, description="PV units: the advance ends with a sample at or above this"
+    )
+
+    def stops_at(self, pv: float) -> bool:
+        """True when a sample of PV ``pv`` ends this advance (``outside``)."""
+        return outside(pv, self.stop_below, self.stop_above)
 
 
 class SyncCommand(Command):

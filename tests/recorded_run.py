@@ -7,6 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from services.autotuner.identify.experiments import Band
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.logger.recorder import Recorder
 from services.offline.local_loop import LocalLoopClient
@@ -31,8 +32,8 @@ def record_in_process(
             if cmd.kind not in ("advance", "sync", "lease", "release"):
                 put(keys.command(prefix, loop_id, cmd.kind), cmd)
 
-        def advance(self, steps: int) -> list[ProcessSample]:
-            out = super().advance(steps)
+        def advance(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
+            out = super().advance(steps, band)
             for s in out:
                 put(keys.pv(prefix, loop_id), s)
             return out

@@ -23,6 +23,7 @@ from collections.abc import Generator
 
 import zenoh
 
+from services.autotuner.identify.experiments import Band
 from shared import keys, wire
 from shared.errors import AutotuneError, DecodeError
 from shared.messages import (
@@ -431,11 +432,41 @@ class LoopClient:
         finally:
             self.settle()
 
-    def samples(self, steps: int) -> list[ProcessSample]:
-        """The next ``steps`` samples, advancing the clock in lockstep, waiting in realtime."""
+    def samples(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
+        """The next ``steps`` samples, advancing the clock in lockstep, waiting in realtime;
+        with ``band``, ending with the first whose PV leaves it (``advance_within``)."""
         if self.info.clock == "lockstep":
-            return self.advance(steps)
-        return [self.next_sample() for _ in range(steps)]
+            return self.advance(steps) if band is None else self.advance_within(steps, band)
+        out: list[ProcessSample] = []
+        while len(out) < steps and not (out and band is not None and band.ends(out[-1].pv)):
+            out.append(self.next_sample())
+        return out
+
+    def advance_within(self, steps: int, band: Band) -> list[ProcessSample]:
+        """Lockstep: up to ``steps`` samples in one round trip, the plant stopping after the
+        first whose PV leaves ``band`` (the advance's ``stop_below``/``stop_above``); this
+        client tells that sample by the same test, so it knows the advance has ended. With
+        samples of an earlier advance still to take: the next one alone."""
+        if self._held or self._flight:
+            return self.advance(1)
+        below, above = band.stops()
+        s = self.last_sample
+        cmd = AdvanceCommand(
+            loop=self.loop,
+            steps=steps,
+            source=self.source,
+            t=s.t if s is not None else self.last_status.t,
+            stop_below=below,
+            stop_above=above,
+        )
+        self.send(cmd)
+        self._flight += steps
+        out: list[ProcessSample] = []
+        while self._flight > 0:
+            out.append(self._take())
+            if cmd.stops_at(out[-1].pv):
+                self._flight = 0  # the plant stopped here: nothing more is coming
+        return out
 
     def next_sample(self) -> ProcessSample:
         """The next sample: in lockstep, advance the loop one period first."""

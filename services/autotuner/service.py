@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import threading
 import time
 import uuid
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 
 import zenoh
 
+from services.autotuner.compute_pool import ComputePool, inline
 from services.autotuner.design.request_check import validate_request
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
 from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
@@ -48,6 +50,7 @@ from shared.session import settings_from_args
 log = logging.getLogger("autotuner")
 
 HELP = "run the autotuner service"
+DEFAULT_WORKERS = min(4, os.cpu_count() or 1)
 
 
 @dataclass
@@ -86,9 +89,13 @@ class TunerService:
         loop_timeout: float = 10.0,
         lease_timeout: float = LEASE_TIMEOUT,
         user: str | None = None,
+        workers: int = DEFAULT_WORKERS,
     ):
         self.session = session
         self.user = user
+        # the runs' heavy pure steps (the relay's fits, the design) in worker processes, so
+        # that tunes at once use every core (0: in each run's own thread)
+        self.pool = ComputePool(workers) if workers > 0 else None
         self.lease_timeout = lease_timeout
         self.prefix = prefix
         self.node = node
@@ -134,6 +141,7 @@ class TunerService:
             progress=lambda m: wire.put(s, keys.tune_progress(p, req.loop), m),
             event=lambda m: wire.put(s, keys.tune_event(p, req.loop), m),
             cancelled=cancel,
+            compute=self.pool.call if self.pool is not None else inline,
         )
         try:
             wait_for_loop(s, p, req.loop, self.loop_timeout)
@@ -286,6 +294,8 @@ class TunerService:
         shell.subscribe(keys.tune_cancel(p, keys.ANY), self._on_cancel, 256)
         results = shell.queryable(keys.tune_result(p, keys.ANY), self._on_results_query, 256)
         shell.announce(keys.tuner_alive(p, self.node))
+        if self.pool is not None:  # started now, in the background: a run finds it ready
+            shell.thread(self.pool.warm, name="compute-pool")
         log.info("autotuner %s ready at %s", self.node, keys.tuner_request(p, self.node))
         try:
             shell.wait(stop, 0.5)
@@ -300,6 +310,8 @@ class TunerService:
             shell.undeclare()
             shell.withdraw()
             shell.join(2.0)
+            if self.pool is not None:
+                self.pool.close()
             log.info("stopped")
 
 
@@ -315,6 +327,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="s of wall time without a word from this tuner after which the plant takes a "
         "leased loop back and restores it (default: %(default)g; 1–3600)",
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=DEFAULT_WORKERS,
+        metavar="N",
+        help="worker processes for the runs' model fits and design, so that tunes at once "
+        "use every core (default: %(default)s, the cores here, at most 4; 0: in each run's "
+        "thread)",
+    )
     add_common_arguments(parser)
 
 
@@ -323,6 +344,8 @@ def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix, node=args.node)
     if not 1.0 <= args.lease_timeout <= 3600.0:  # also refuses NaN
         raise ConfigError(f"--lease-timeout {args.lease_timeout:g}: must be 1–3600 s")
+    if not 0 <= args.workers <= 64:
+        raise ConfigError(f"--workers {args.workers}: must be 0–64")
     settings = settings_from_args(args)
     run_until_stopped(
         settings,
@@ -332,6 +355,7 @@ def run(args: argparse.Namespace) -> int:
             args.node,
             lease_timeout=args.lease_timeout,
             user=auth_user(settings),
+            workers=args.workers,
         ),
     )
     return 0

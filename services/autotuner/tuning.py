@@ -20,16 +20,19 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pydantic
 
+from services.autotuner.compute_pool import inline
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.selection import assessments_dict, select
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
-from services.autotuner.identify.experiments import Demand, Experiment, Setup
+from services.autotuner.identify.experiments import Band, Demand, Experiment, Setup
 from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.relay import RelayTest
 from services.autotuner.identify.rest import RestCheck, rest_window
 from services.autotuner.loop_client import LeaseLost, LoopClient
 from shared.control.forms import (
@@ -89,6 +92,9 @@ class RunHooks:
     progress: Callable[[TuneProgress], None] = lambda p: None
     event: Callable[[TunerEvent], None] = lambda e: None
     cancelled: threading.Event | None = None
+    # how the run's heavy pure steps are computed, ``compute(fn, *args)``: in its own thread,
+    # or by the tuner's worker processes (``compute_pool``)
+    compute: Callable[..., Any] = inline
 
 
 def _seconds(ti: float | None) -> str:
@@ -339,7 +345,9 @@ class TuningRun:
                     result["experiment"].get("model_gain"), span
                 ),
             )
-        sel = select(ident, req.rule, req.ms_bound, req.force, self.ts, req.lambda_s, req.aim)
+        sel = self.hooks.compute(
+            select, ident, req.rule, req.ms_bound, req.force, self.ts, req.lambda_s, req.aim
+        )
         rec = sel.recommended
         result.update(
             rule=sel.rule or req.rule,
@@ -632,6 +640,8 @@ class TuningRun:
             machine = methods.build(req.method, experiments.Settings.of(req), setup)
         except ValueError as err:
             raise TuneAborted(str(err)) from None
+        if isinstance(machine, RelayTest):
+            machine.compute = self.hooks.compute
         start = machine.demand
         if start.auto:
             c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=start.kc), source=c.source))
@@ -921,10 +931,15 @@ class _LivePort:
         self.first = True
         self._hold = math.nan
 
-    def samples(self, n: int) -> list[ProcessSample]:
+    def samples(self, n: int, band: Band | None = None) -> list[ProcessSample]:
         r = self.run
         r._check_cancel()
-        batch = r.client.samples(n)
+        if band is None:
+            batch = r.client.samples(n)
+        elif r.info.clock == "lockstep":  # a relay's half-cycle in one round trip
+            batch = r.client.samples(n, band)
+        else:  # realtime: the plant's own pace, so one sample and the cancel checked at once
+            batch = r.client.samples(1)
         if self.first and batch:
             s = batch[0]
             r._event("experiment", s.t, {**self.setup.to_dict(), "first_seq": s.seq})

@@ -9,13 +9,15 @@ the output limits do not bind, so the curve is the linear loop's, in units of th
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
 from services.autotuner.identify.model_fit import ProcessFit
-from shared.control.lti import DelayedLinearSystem, discretize, tf_to_ss
-from shared.control.pid import PidBlock, PidSettings
+from shared.control.forms import IsaGains
+from shared.control.lti import discretize, tf_to_ss
+from shared.control.setpoint_steps import setpoint_steps
 from shared.control.transfer import DelayedTF
 
 HORIZON = 10.0  # time scales shown (P_u, else the model's delay plus lag)
@@ -54,29 +56,36 @@ def timescale_of(model: ProcessFit, pu: float | None) -> float:
     return scale if math.isfinite(scale) and scale > 0 else 10.0 * max(model.delay, 1.0)
 
 
+def step_curves(
+    gains: Mapping[str, IsaGains], plant: DelayedTF, timescale: float, sample_time: float
+) -> dict[str, tuple[np.ndarray, np.ndarray] | None]:
+    """Per candidate, (t in s, PV in units of the setpoint step) over HORIZON time scales;
+    None when its loop is unstable (the curve would say nothing but that). All simulated
+    together (``shared.control.setpoint_steps``)."""
+    if not gains:
+        return {}
+    span = HORIZON * timescale
+    ts = max(sample_time, span / POINTS)
+    sys = discretize(*tf_to_ss(plant.num, plant.den), ts, plant.delay)
+    n = int(span / ts)
+    # a proportional kick of 10 % at most
+    steps = [min(1.0, 10.0 / g.kc) if g.kc > 0 else 1.0 for g in gains.values()]
+    y, blown = setpoint_steps(list(gains.values()), sys, n, steps, 1e3)
+    t = ts * np.arange(1, n + 1)
+    out: dict[str, tuple[np.ndarray, np.ndarray] | None] = {}
+    for j, name in enumerate(gains):
+        # still swinging at the end as much as at the start: unstable, held only by the
+        # output limits (the tuner's own judgement of "stable", design/predicted_response.py)
+        swinging = np.ptp(y[j, -(n // 5) :]) > 0.5 * (np.ptp(y[j, : n // 5]) or 1.0)
+        out[name] = None if blown[j] or swinging else (t, y[j])
+    return out
+
+
 def step_curve(
     kc: float, ti: float | None, td: float, plant: DelayedTF, timescale: float, sample_time: float
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """(t in s, PV in units of the setpoint step) over HORIZON time scales; None when the
-    loop is unstable (the curve would say nothing but that)."""
-    span = HORIZON * timescale
-    ts = max(sample_time, span / POINTS)
-    sys = DelayedLinearSystem(discretize(*tf_to_ss(plant.num, plant.den), ts, plant.delay))
-    pid = PidBlock(PidSettings(kc=kc, ti=ti, td=td), ts, (0.0, 100.0), mode="auto", op=50.0)
-    step = min(1.0, 10.0 / kc) if kc > 0 else 1.0  # a proportional kick of 10 % at most
-    n = int(span / ts)
-    y = np.empty(n)
-    pv = 0.0
-    for k in range(n):
-        pv = sys.step(pid.update(step, pv) - 50.0)  # deviations about the 50 % rest
-        y[k] = pv / step
-        if not math.isfinite(y[k]) or abs(y[k]) > 1e3:
-            return None
-    # still swinging at the end as much as at the start: unstable, held only by the output
-    # limits (the tuner's own judgement of "stable", design/predicted_response.py)
-    if np.ptp(y[-(n // 5) :]) > 0.5 * (np.ptp(y[: n // 5]) or 1.0):
-        return None
-    return ts * np.arange(1, n + 1), y
+    """``step_curves`` of one candidate."""
+    return step_curves({"": IsaGains(kc, ti, td)}, plant, timescale, sample_time)[""]
 
 
 def predicted_curves(result: dict[str, Any]) -> dict[str, dict[str, list[float]] | None]:
@@ -88,18 +97,17 @@ def predicted_curves(result: dict[str, Any]) -> dict[str, dict[str, list[float]]
         return {}
     scale = timescale_of(model, result.get("pu"))
     out: dict[str, dict[str, list[float]] | None] = {}
+    gains: dict[str, IsaGains] = {}
     for rule, forms in (result.get("gains") or {}).items():
         isa = (forms or {}).get("isa") or {}
         try:
-            curve = step_curve(
-                float(isa["kc"]),
-                isa.get("ti"),
-                float(isa.get("td") or 0.0),
-                model.transfer,
-                scale,
-                float(sample_time),
-            )
-        except (KeyError, TypeError, ValueError, ArithmeticError, np.linalg.LinAlgError):
-            curve = None
+            gains[rule] = IsaGains(float(isa["kc"]), isa.get("ti"), float(isa.get("td") or 0.0))
+        except (KeyError, TypeError, ValueError):
+            out[rule] = None
+    try:
+        curves = step_curves(gains, model.transfer, scale, float(sample_time))
+    except (TypeError, ValueError, ArithmeticError, np.linalg.LinAlgError):
+        curves = dict.fromkeys(gains)
+    for rule, curve in curves.items():
         out[rule] = None if curve is None else {"t": curve[0].tolist(), "y": curve[1].tolist()}
-    return out
+    return {rule: out[rule] for rule in (result.get("gains") or {})}

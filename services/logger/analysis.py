@@ -26,7 +26,7 @@ from services.autotuner.design.request_check import validate_request
 from services.autotuner.design.selection import Selection, assessments_dict, select
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
-from services.autotuner.identify.experiments import Demand
+from services.autotuner.identify.experiments import Band, Demand
 from services.autotuner.identify.reaction_curve import IntegratingCurve
 from services.autotuner.identify.step_test import HOLD_EVENTS
 from services.logger.mcap_io import (
@@ -306,8 +306,11 @@ class _Record:
         self.path, self._samples, self._times = path, samples, list(hold_times)
         self._next = 0
 
-    def samples(self, n: int) -> list[ProcessSample]:
+    def samples(self, n: int, band: Band | None = None) -> list[ProcessSample]:
         out = self._samples[self._next : self._next + n]
+        if band is not None:  # the live loop stopped where the PV left the band
+            ends = [i for i, s in enumerate(out) if band.ends(s.pv)]
+            out = out[: ends[0] + 1] if ends else out
         self._next += len(out)
         return out
 

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.autotuner.identify.experiments import Demand
+from services.autotuner.identify.driver import until_band
+from services.autotuner.identify.experiments import Band, Demand
 from services.autotuner.loop_client import CommandRefused
 from services.plant_sim.simulation.loop import CommandRejected, SimLoop
 from services.plant_sim.simulation.models import ProcessModel
@@ -109,17 +110,24 @@ class LocalLoopClient:
             raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
         return status
 
-    def advance(self, steps: int) -> list[ProcessSample]:
-        """Step the loop ``steps`` periods; their samples (what the plant would publish)."""
-        out = [self.sim.advance() for _ in range(steps)]
+    def advance(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
+        """Step the loop ``steps`` periods, stopping after the first sample that leaves
+        ``band`` as the plant does (``AdvanceCommand.stops_at``); their samples (what the
+        plant would publish)."""
+        out = until_band(self.sim.advance, steps, band)
         if out:
             self.last_sample = out[-1]
         return out
 
-    def samples(self, steps: int) -> list[ProcessSample]:
-        """The next ``steps`` samples: any stepped ahead first (``stream``)."""
-        out = [self._ahead.popleft() for _ in range(min(steps, len(self._ahead)))]
-        return out + self.advance(steps - len(out)) if len(out) < steps else out
+    def samples(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
+        """The next ``steps`` samples (ending with the first that leaves ``band``): any
+        stepped ahead first (``stream``)."""
+        out: list[ProcessSample] = []
+        while self._ahead and len(out) < steps:
+            out.append(self._ahead.popleft())
+            if band is not None and band.ends(out[-1].pv):
+                return out
+        return out + self.advance(steps - len(out), band) if len(out) < steps else out
 
     def settle(self) -> None:
         """Drop the samples stepped ahead (``LoopClient.settle``)."""
@@ -163,14 +171,14 @@ class SimLoopPort:
         self._present = present_first
         self._t0, self._limit = loop.t, limit
 
-    def samples(self, n: int) -> list[Reading | ProcessSample]:
+    def samples(self, n: int, band: Band | None = None) -> list[Reading | ProcessSample]:
         loop = self.loop
         if self._present:
             self._present = False
             return [Reading(loop.t, loop.pv, loop.op)]
         if not loop.t - self._t0 <= self._limit:
             return []
-        return [loop.advance() for _ in range(n)]
+        return until_band(loop.advance, n, band)
 
     def apply(self, demand: Demand, before: Demand) -> None:
         loop, name = self.loop, self.loop.settings.loop_id
@@ -210,13 +218,13 @@ class ModelPort:
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self.k = 0
 
-    def samples(self, n: int) -> list[Reading]:
-        out = []
-        for _ in range(n):
-            self.k += 1
-            pv = self.model.step(self.op) + self.noise * self.rng.standard_normal()
-            out.append(Reading(self.k * self.ts, pv, self.op))
-        return out
+    def samples(self, n: int, band: Band | None = None) -> list[Reading]:
+        return until_band(self._step, n, band)
+
+    def _step(self) -> Reading:
+        self.k += 1
+        pv = self.model.step(self.op) + self.noise * self.rng.standard_normal()
+        return Reading(self.k * self.ts, pv, self.op)
 
     def apply(self, demand: Demand, before: Demand) -> None:
         self.op = demand.op

@@ -112,11 +112,34 @@ def _prefix(what: str) -> str:
     return f"perf{what}{os.getpid()}x{secrets.token_hex(3)}"
 
 
+def _stat(pid: int) -> list[str] | None:
+    """The fields of /proc/PID/stat after the command (field 3 on); None if it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        return None
+
+
 def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of process ``pid`` (all its threads), s."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime, stime (fields 14, 15)
+    """User + system CPU time of process ``pid`` (all its threads) and of its descendants —
+    the tuner's compute workers are its work too — living or ended, s."""
+    parent: dict[int, int] = {}
+    for entry in os.scandir("/proc"):
+        if entry.name.isdigit() and (fields := _stat(int(entry.name))) is not None:
+            parent[int(entry.name)] = int(fields[1])
+    family, total = {pid}, 0.0
+    for p in sorted(parent):  # a child's pid may be below its parent's: close the family
+        q = p
+        while q in parent and q not in family and q > 1:
+            q = parent[q]
+        if q in family:
+            family.add(p)
+    for p in family:
+        if (fields := _stat(p)) is not None:
+            # utime, stime, and cutime, cstime: those of its children already ended
+            total += sum(int(fields[i]) for i in (11, 12, 13, 14)) / CLK_TCK
+    return total
 
 
 # --- 1. raw Zenoh ping-pong -----------------------------------------------------------------

@@ -341,14 +341,19 @@ class PlantService:
                 )
                 return
             had = loop.fault
-            if cmd.steps == 1:
-                out.append((keys.pv(prefix, loop_id), loop.advance()))
+            # the advance ends early with a sample its stops name (a relay's next decision)
+            samples = []
+            for _ in range(cmd.steps):
+                samples.append(loop.advance())
+                if cmd.stops_at(samples[-1].pv):
+                    break
+            if len(samples) == 1:
+                out.append((keys.pv(prefix, loop_id), samples[0]))
             else:  # one message per batch: a message's cost on the bus is per message
                 batch_key = keys.pv_batch(prefix, loop_id)
-                for start in range(0, cmd.steps, MAX_BATCH):
-                    n = min(MAX_BATCH, cmd.steps - start)
-                    samples = [loop.advance() for _ in range(n)]
-                    out.append((batch_key, ProcessSamples(loop=loop_id, samples=samples)))
+                for start in range(0, len(samples), MAX_BATCH):
+                    part = samples[start : start + MAX_BATCH]
+                    out.append((batch_key, ProcessSamples(loop=loop_id, samples=part)))
             if loop.fault and not had:  # the model failed: say so once, on the status
                 out.append((keys.status(prefix, loop_id), self.loop_status(loop, "fault")))
         elif isinstance(cmd, SyncCommand):

@@ -153,3 +153,11 @@ def trapezoid(y: np.ndarray, t: np.ndarray) -> float:
     """∫ y dt over the record by the trapezoid rule (``y``'s units × s); 0 for fewer than two
     samples."""
     return float(np.sum(0.5 * (y[1:] + y[:-1]) * np.diff(t))) if t.size > 1 else 0.0
+
+
+def outside(pv: float, below: float | None, above: float | None) -> bool:
+    """``pv`` at or past either bound (None: no bound on that side), or not a number: where a
+    lockstep advance with stops ends (``AdvanceCommand.stops_at``), and where a relay's band
+    ends (``identify.experiments.Band``) — one test, so that the plant and the tuner agree on
+    the sample that ends a batch."""
+    return not ((below is None or pv > below) and (above is None or pv < above))

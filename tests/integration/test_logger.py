@@ -29,8 +29,16 @@ pytestmark = pytest.mark.integration
 FAST = {**THIRD, "sample_time": 0.01}
 
 
-def stack(start_plant, start_tuner, start_logger, runs: Path, plant: dict, noise: float = 0.0):
-    p = start_plant(plant_toml("x1", plant, noise=noise), loops=("x1",))
+def stack(
+    start_plant,
+    start_tuner,
+    start_logger,
+    runs: Path,
+    plant: dict,
+    noise: float = 0.0,
+    clock: tuple[str, ...] = (),
+):
+    p = start_plant(plant_toml("x1", plant, noise=noise), *clock, loops=("x1",))
     start_tuner(p)
     logger = start_logger(p, runs)
     return p, logger
@@ -58,9 +66,15 @@ def final_seq(p) -> int:
         return c.last_status.seq
 
 
+# the plant's clock for a run of known wall time: in lockstep a relay runs as fast as the
+# machine (its half-cycles in one round trip each), in realtime at 20 × it takes P_u/20 s a
+# cycle, whatever the machine's speed
+REALTIME = ("--clock", "realtime", "--speed", "20")
+
+
 def long_tune(p) -> subprocess.Popen:
-    """A relay tune that runs all its 30 cycles (they never agree within 0.01 %): several
-    seconds of wall time whatever the machine's speed, in the background."""
+    """A relay tune that runs all its 30 cycles (they never agree within 0.01 %): on a
+    realtime plant, several seconds of wall time, in the background."""
     return subprocess.Popen(
         [
             sys.executable,
@@ -177,7 +191,8 @@ def signal_mid_run(p, logger, sig: int, after: float):
             if sig == signal.SIGTERM:
                 assert logger.wait(timeout=30) == 0
         finally:
-            cli.wait(timeout=120)
+            cli.terminate()  # the run is cancelled (the loop restored): it has done its part
+            cli.wait(timeout=60)
             sub.undeclare()
     return seen, t_start, t_signal
 
@@ -186,7 +201,7 @@ def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
     start_plant, start_tuner, start_logger, tmp_path
 ):
     runs = tmp_path / "runs"
-    p, logger = stack(start_plant, start_tuner, start_logger, runs, HX)
+    p, logger = stack(start_plant, start_tuner, start_logger, runs, HX, clock=REALTIME)
     # mid-run, 4 s into it: the logger flushes at least every second, and on a loaded machine
     # it may start its file a second or more after the test saw the run begin (killed at
     # 1.5 s it once had flushed nothing yet)
@@ -217,7 +232,7 @@ def test_logger_killed_mid_run_is_recovered_but_for_the_last_second(
 
 def test_sigterm_finishes_the_file(start_plant, start_tuner, start_logger, tmp_path):
     runs = tmp_path / "runs"
-    p, logger = stack(start_plant, start_tuner, start_logger, runs, HX)
+    p, logger = stack(start_plant, start_tuner, start_logger, runs, HX, clock=REALTIME)
     # let it record for 1.5 s from the run's first progress, then stop it
     seen, t_start, t_term = signal_mid_run(p, logger, signal.SIGTERM, 1.5)
     meta, records = read_run(next(runs.glob("*.mcap")))  # finished: the seeking reader opens it

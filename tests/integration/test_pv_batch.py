@@ -13,6 +13,7 @@ import tomllib
 
 import pytest
 
+from services.autotuner.identify.experiments import Band
 from services.autotuner.loop_client import LoopClient
 from services.console.bridge import Bridge
 from services.offline.local_loop import LocalLoopClient
@@ -106,3 +107,28 @@ def test_a_bad_batch_stops_the_client_in_one_line_naming_the_field(start_plant):
                 session.put(keys.pv_batch(plant.prefix, "b1"), payload)
                 with pytest.raises(DecodeError, match=says):
                     client.advance(2)
+
+
+def test_an_advance_with_stops_ends_at_the_first_sample_past_them(start_plant):
+    """A relay's band over the bus: the plant stops after the first sample at or past a stop,
+    the client knows it has (no sample more comes: the next advance carries on from there),
+    and the samples are the in-process loop's."""
+    plant = start_plant(PLANT, loops=("b1",))
+    local = LocalLoopClient(build_plant(tomllib.loads(PLANT))["b1"])
+    with (
+        open_session(plant.client_settings()) as session,
+        LoopClient(session, plant.prefix, "b1", timeout=10.0) as client,
+    ):
+        start = client.sync().seq
+        first = client.advance(1)[0]
+        band = Band(first.pv - 0.2, first.pv + 0.2)  # σ 0.1 of noise leaves it soon
+        runs = [client.samples(500, band) for _ in range(3)]
+        after = client.advance(1)
+    got = [first, *(s for run in runs for s in run), *after]
+    assert [s.seq for s in got] == list(range(start + 1, start + len(got) + 1))
+    for run in runs:
+        assert 1 <= len(run) < 500
+        assert band.ends(run[-1].pv) and not any(band.ends(s.pv) for s in run[:-1])
+    assert local.sync().seq == start
+    same = local.advance(1) + [s for _ in runs for s in local.samples(500, band)]
+    assert same + local.advance(1) == got

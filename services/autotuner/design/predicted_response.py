@@ -17,17 +17,19 @@ does not oscillate; ``stable`` False when the response grows.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from shared.control.forms import IsaGains
-from shared.control.lti import DelayedLinearSystem, discretize, tf_to_ss
-from shared.control.pid import PidBlock, PidSettings
+from shared.control.lti import discretize, tf_to_ss
+from shared.control.setpoint_steps import setpoint_steps
 from shared.control.signals import extrema
 from shared.control.transfer import DelayedTF
 
 MAX_SAMPLES = 2000  # the simulation is resampled coarser (≥ 60 samples per time scale)
+BLOWN = 1e6  # a response past this many steps has left any linear loop's range: unstable
 
 
 @dataclass(frozen=True)
@@ -50,31 +52,37 @@ def predicted_setpoint_step(
     ``sample_time`` (s; default a hundredth of ``timescale``, coarser if the ``horizon`` — in
     time scales — would take more than ``max_samples``). Overshoot about the final value (see
     the module)."""
+    figures = predicted_setpoint_steps(
+        {"": gains}, plant, timescale, sample_time, horizon, max_samples
+    )
+    return figures[""]
+
+
+def predicted_setpoint_steps(
+    gains: Mapping[str, IsaGains],
+    plant: DelayedTF,
+    timescale: float,
+    sample_time: float | None = None,
+    horizon: float = 30.0,
+    max_samples: int = MAX_SAMPLES,
+) -> dict[str, StepFigures]:
+    """``predicted_setpoint_step`` for every candidate in ``gains``, all simulated together
+    (``shared.control.setpoint_steps``: each one's samples are those of its loop alone)."""
+    if not gains:
+        return {}
     horizon *= timescale
     ts = sample_time or timescale / 100.0
     ts = max(ts, horizon / max_samples)
-    sys = DelayedLinearSystem(discretize(*tf_to_ss(plant.num, plant.den), ts, plant.delay))
-    pid = PidBlock(
-        PidSettings(kc=gains.kc, ti=gains.ti, td=gains.td),
-        ts,
-        (0.0, 100.0),
-        mode="auto",
-        op=50.0,
-    )
-    n = int(horizon / ts)
-    y = np.empty(n)
-    pv = 0.0
+    sys = discretize(*tf_to_ss(plant.num, plant.den), ts, plant.delay)
     # a step small enough that the proportional kick is 10 % at most: the 0–100 % limits
     # around the 50 % rest do not bind, and the figures (relative to the step) are the
     # linear loop's
-    step = min(1.0, 10.0 / gains.kc) if gains.kc > 0 else 1.0
-    for k in range(n):
-        op = pid.update(step, pv) - 50.0  # deviations: rest at PV 0, output 50 %
-        pv = sys.step(op)
-        y[k] = pv / step
-        if not math.isfinite(y[k]) or abs(y[k]) > 1e6:
-            return StepFigures(math.inf, math.inf, False)
-    return _figures(y)
+    steps = [min(1.0, 10.0 / g.kc) if g.kc > 0 else 1.0 for g in gains.values()]
+    y, blown = setpoint_steps(list(gains.values()), sys, int(horizon / ts), steps, BLOWN)
+    return {
+        name: StepFigures(math.inf, math.inf, False) if blown[j] else _figures(y[j])
+        for j, name in enumerate(gains)
+    }
 
 
 def _figures(y: np.ndarray) -> StepFigures:

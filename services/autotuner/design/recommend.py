@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.autotuner.design.predicted_response import StepFigures, predicted_setpoint_step
+from services.autotuner.design.predicted_response import StepFigures, predicted_setpoint_steps
 from services.autotuner.design.robustness import Robustness, robustness
 from services.autotuner.design.rules import RULES, UltimatePoint, apply_rules
 from services.autotuner.design.sampled_loop import SampledPlant, sampled_plant, sampled_robustness
@@ -164,9 +164,9 @@ def assess(
             plant = sampled_plant(tf, sample_time)
         except (ValueError, ArithmeticError, np.linalg.LinAlgError):
             plant = None
-    out = {}
+    judged: dict[str, tuple[Robustness | None, Robustness | None]] = {}
     for name, g in gains.items():
-        rb, st, cont = None, None, None
+        rb, cont = None, None
         if tf is not None:
             try:
                 cont = robustness(g, tf)
@@ -178,10 +178,26 @@ def assess(
                     rb = sampled_robustness(g, plant)
                 except (ValueError, ArithmeticError, np.linalg.LinAlgError):
                     rb = None
-            if simulate and rb is not None and timescale > 0:
-                st = predicted_setpoint_step(g, tf, timescale, sample_time)
-        out[name] = Assessment(name, g, rb, st, cont if plant is not None else None)
-    return out
+        judged[name] = (rb, cont)
+    steps: dict[str, StepFigures] = {}
+    if simulate and tf is not None and timescale > 0:
+        # every judged candidate's setpoint step, simulated together
+        steps = predicted_setpoint_steps(
+            {k: g for k, g in gains.items() if judged[k][0] is not None},
+            tf,
+            timescale,
+            sample_time,
+        )
+    return {
+        name: Assessment(
+            name,
+            g,
+            judged[name][0],
+            steps.get(name),
+            judged[name][1] if plant is not None else None,
+        )
+        for name, g in gains.items()
+    }
 
 
 @dataclass(frozen=True)

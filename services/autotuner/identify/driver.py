@@ -10,18 +10,21 @@ demand; the experiment alone decides.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import Protocol, TypeVar
 
-from services.autotuner.identify.experiments import Demand, Experiment, Identification
+from services.autotuner.identify.experiments import Band, Demand, Experiment, Identification
 from shared.control.signals import Sample
+
+S = TypeVar("S", bound=Sample)
 
 
 class LoopPort(Protocol):
     """A loop as the driver sees it."""
 
-    def samples(self, n: int) -> Sequence[Sample]:
+    def samples(self, n: int, band: Band | None = None) -> Sequence[Sample]:
         """The next ``n`` samples, holding what was applied (fewer, or none, at the end of a
-        record or of the time allowed)."""
+        record or of the time allowed); with ``band``, ending with the first sample whose PV
+        leaves it (``Band.ends``): a loop in lockstep must not step past that one."""
         ...
 
     def apply(self, demand: Demand, before: Demand) -> None:
@@ -45,12 +48,16 @@ def drive(
     return its findings (None if it has none: ``experiment.reason`` says why).
 
     ``held``: what the loop holds at the start (default: what the experiment starts from).
-    Samples come in batches of ``experiment.horizon(max_chunk)``; only the demand after a
-    batch's last sample is applied (none once it has finished). ``watch`` is called after
-    each batch, its demand applied, with the last sample fed."""
+    Samples come in batches of ``experiment.horizon(max_chunk)``, each ending early where
+    the PV leaves the experiment's ``band`` (a relay's half-cycle in one batch, ending at the
+    sample that switches it); only the demand after a batch's last sample is applied (none
+    once it has finished). ``watch`` is called after each batch, its demand applied, with the
+    last sample fed."""
     held = experiment.demand if held is None else held
     while not experiment.finished:
-        batch = loop.samples(experiment.horizon(max_chunk))
+        n = experiment.horizon(max_chunk)
+        band = experiment.band() if n > 1 else None
+        batch = loop.samples(n) if band is None else loop.samples(n, band)
         if not batch:
             break
         want, last = held, batch[0]
@@ -66,3 +73,14 @@ def drive(
         if watch is not None:
             watch(last)
     return experiment.identification()
+
+
+def until_band(step: Callable[[], S], n: int, band: Band | None) -> list[S]:
+    """``n`` samples from ``step``, ending with the first whose PV leaves ``band`` (None: all
+    ``n``): a port's batch as the driver asks for it."""
+    out: list[S] = []
+    for _ in range(n):
+        out.append(step())
+        if band is not None and band.ends(out[-1].pv):
+            break
+    return out

@@ -18,7 +18,7 @@ from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
-from shared.control.signals import Sample
+from shared.control.signals import Sample, outside
 
 
 @dataclass(frozen=True)
@@ -174,6 +174,28 @@ class Setup:
         return (self.pv_range_lo, self.pv_range_hi)
 
 
+@dataclass(frozen=True)
+class Band:
+    """The PV range (PV units, open at both ends; ±inf: unbounded) inside which the samples to
+    come change nothing the loop must be told: a batch may run on while the PV stays inside,
+    and must end with the first sample at or past either bound (``shared.messages.outside``)."""
+
+    below: float
+    above: float
+
+    def ends(self, pv: float) -> bool:
+        """True for the sample that ends a batch."""
+        return outside(pv, _bound(self.below), _bound(self.above))
+
+    def stops(self) -> tuple[float | None, float | None]:
+        """(stop_below, stop_above) of an AdvanceCommand: None for an unbounded side."""
+        return _bound(self.below), _bound(self.above)
+
+
+def _bound(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
 class Experiment(Protocol):
     """The interface every experiment implements (and the driver relies on)."""
 
@@ -200,7 +222,13 @@ class Experiment(Protocol):
         ...
 
     def horizon(self, cap: int) -> int:
-        """How many samples (≤ ``cap``, ≥ 1) may pass before its next demand matters."""
+        """How many samples (≤ ``cap``, ≥ 1) may pass before its next demand matters — as
+        long as the PV stays in ``band()`` when that is not None."""
+        ...
+
+    def band(self) -> Band | None:
+        """The PV band within which the next ``horizon`` samples decide nothing (None: any
+        sample's PV may matter only by count, as ``horizon`` says)."""
         ...
 
     def progress(self) -> Progress: ...

@@ -797,6 +797,9 @@ class RampTest:
             n = (len(self._y) - self._trial_start) // 50 if self.phase == "trial" else 1
         return max(1, min(cap, n))
 
+    def band(self) -> None:
+        return None  # a trial is judged on its fit, wherever the PV is
+
     @property
     def demand_kc(self) -> float:
         """The gain to hold now: the trial's, or a calming one between trials."""

@@ -28,12 +28,14 @@ JSON ``relay_result``'s. Every threshold is a field of ``RelayConfig`` (or of it
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
 from services.autotuner.identify.experiments import (
+    Band,
     Demand,
     Event,
     Identification,
@@ -160,6 +162,10 @@ class RelayTest:
     pv: list[float] = field(default_factory=list)
     op: list[float] = field(default_factory=list)
 
+    # how the closing fits are computed: ``compute(fn, *args)`` (None: in this thread; the
+    # tuner hands them to its worker processes, ``compute_pool``)
+    compute: Callable[..., Any] | None = field(default=None, repr=False, compare=False)
+
     needs_hold_time: ClassVar[bool] = False  # each switch holds from the sample it follows
 
     def __post_init__(self) -> None:
@@ -208,7 +214,55 @@ class RelayTest:
         """Nothing to do: a switch is timed from the sample that caused it."""
 
     def horizon(self, cap: int) -> int:
-        return 1  # every sample may switch the relay
+        """While the relay runs, as many as ``cap`` (the ``band`` ends a batch where the next
+        switch or crossing may fall), short of the time budgets; in the quiet period, the
+        samples that fill its first window (none of them can start the relay), then 1: any
+        sample may show the PV at rest."""
+        if self.phase == "quiet":
+            return max(1, min(cap, self._quiet_samples - len(self.pv)))
+        if self.phase not in ("relay", "stage2") or not self.t:
+            return 1
+        t, cfg = self.t[-1], self.config
+        deadlines = [self._relay_start + self._budget()]
+        s1 = self._stage1
+        if self.phase == "stage2" and s1 is not None:
+            deadlines.append(s1.t_end + cfg.stage_two_patience * cfg.stage_two_cycles * s1.pu)
+        # the first sample past a deadline must be a batch's last: stop one short of it
+        room = math.floor((min(deadlines) - t) / self.sample_time) - 1
+        return max(1, min(cap, room))
+
+    def band(self) -> Band | None:
+        """Where the PV may go without a decision, from the state now (``_relay``, ``_arm``):
+        the relay switches only once armed and past its level on the side it pushes towards
+        (r + h while high, r − h while low), and is armed only past the opposite level by its
+        margin; a cycle closes only when the PV crosses r upwards once armed (so a batch below
+        r ends at r, one above it once the PV is back below), and is armed only while the relay
+        is high, the PV below r by its margin; the PV limits abort. Every bound is where such a
+        step may happen, so a batch ends on it, or earlier: a batch that ends without a
+        decision costs a round trip, never a late switch."""
+        if self.phase == "quiet":  # the PV limits alone: past them the test aborts
+            return Band(*self.pv_limits)
+        if self.phase not in ("relay", "stage2") or not self.pv:
+            return None
+        r, h, pv = self._r, self._level, self.pv[-1]
+        below, above = self.pv_limits
+        if self._state > 0:
+            if self._switch_armed:
+                above = min(above, r + h)
+            else:
+                below = max(below, r + h - self._margin)
+            if not self._armed:
+                below = max(below, r - self._cross_margin)
+        elif self._switch_armed:
+            below = max(below, r - h)
+        else:
+            above = min(above, r - h + self._margin)
+        if self._armed:
+            if pv < r:
+                above = min(above, r)
+            else:
+                below = max(below, r)
+        return Band(below, above)
 
     def progress(self) -> Progress:
         n = len(self.cycles)
@@ -315,18 +369,23 @@ class RelayTest:
         ):
             # stage 2 never settled into its cycle: keep what stage 1 measured
             self.events.append(Event(t, "stage", {"stage": 2, "abandoned": True}))
-            self._finish(stage_two=False)
+            self._conclude(stage_two=False)
             return self.op_start if self.finished else self._out()
-        budget = cfg.max_time
-        if len(self.cycles) >= cfg.budget_after_cycles:  # once there are a few cycles: the
-            # longest of them bounds the rest
-            budget = (cfg.max_cycles + cfg.budget_spare_cycles) * max(c.period for c in self.cycles)
+        budget = self._budget()
         if t - self._relay_start > budget:
             return self._abort(
                 f"no limit cycle that repeats within {cfg.tolerance:.0%} after "
                 f"{len(self.cycles)} cycles and {t - self._relay_start:g} s"
             )
         return self._out()
+
+    def _budget(self) -> float:
+        """The relay's time budget, s from its start: ``max_time``, then, once there are a
+        few cycles, the longest of them bounds the rest."""
+        cfg = self.config
+        if len(self.cycles) >= cfg.budget_after_cycles:
+            return (cfg.max_cycles + cfg.budget_spare_cycles) * max(c.period for c in self.cycles)
+        return cfg.max_time
 
     def _arm(self, pv: float) -> None:
         """Allow the next switch once the PV has passed the opposite level by the noise margin
@@ -382,7 +441,7 @@ class RelayTest:
         if self.phase == "stage2":
             assert self._stage1 is not None
             if len(self.cycles) - self._stage1.cycles >= cfg.stage_two_cycles:
-                self._finish()
+                self._conclude()
             return
         n = cfg.cycles
         recent = self.cycles[1:][-n:]  # the first cycle is the start-up transient
@@ -398,7 +457,7 @@ class RelayTest:
                 if cfg.refine and self._stage1.points:
                     self._start_stage_two(t1)
                 else:
-                    self._finish()
+                    self._conclude()
                 return
         if len(self.cycles) >= cfg.max_cycles:
             self._abort(
@@ -490,6 +549,20 @@ class RelayTest:
             noise=self._noise,
         )
 
+    def _conclude(self, stage_two: bool = True) -> None:
+        """``_finish``, through ``compute`` when given: the same result from a copy of this
+        test (pure, so computed anywhere it is the same to the bit)."""
+        if self.compute is None:
+            self._finish(stage_two)
+            return
+        done = self.compute(_finished, self, stage_two)
+        self.result, self.phase, self.events = done.result, done.phase, done.events
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state["compute"] = None  # a worker's copy computes in its own thread
+        return state
+
     def _finish(self, stage_two: bool = True) -> None:
         s1, est_cfg = self._stage1, self.config.estimate
         assert s1 is not None
@@ -542,6 +615,12 @@ class RelayTest:
         self.phase = "done"
         t_done = self.cycles[-1].t_start + self.cycles[-1].period
         self.events.append(Event(t_done, "done", {"ku": est.ku, "pu": est.pu}))
+
+
+def _finished(test: RelayTest, stage_two: bool) -> RelayTest:
+    """``test`` (a copy) with its findings computed (``RelayTest._conclude``)."""
+    test._finish(stage_two)
+    return test
 
 
 def build(settings: Settings, setup: Setup) -> RelayTest:

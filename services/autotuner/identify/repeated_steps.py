@@ -201,6 +201,9 @@ class RepeatedSteps:
     def horizon(self, cap: int) -> int:
         return 1
 
+    def band(self) -> None:
+        return None  # a step is timed by samples, not by where the PV is
+
     def progress(self) -> Progress:
         n = len(self.done) + (1 if self.phase == "test" else 0)
         return Progress("step", max(n, 1), message=f"step test {max(n, 1)} of {self._planned()}")

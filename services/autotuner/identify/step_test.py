@@ -225,6 +225,9 @@ class StepTest:
     def horizon(self, cap: int) -> int:
         return 1  # the step and its timing are decided sample by sample
 
+    def band(self) -> None:
+        return None  # a step is timed by samples, not by where the PV is
+
     def progress(self) -> Progress:
         if self.t_step is None:
             return Progress("step", 0)

@@ -24,6 +24,7 @@ import numpy as np
 from services.plant_sim.simulation.loop import SimLoop
 from services.plant_sim.simulation.models import TransferFunctionModel
 from shared.control.pid import PidTerms
+from shared.control.pid_batch import PidGainArrays, execute, filtered_rate
 
 # the methods a linear model's class must not override to be stepped here
 _LINEAR_METHODS = ("reset", "step", "disturbance_names", "set_disturbance")
@@ -101,6 +102,20 @@ class LinearBatch:
         self.kc, self.ti, self.td = np.zeros(n), np.ones(n), np.zeros(n)
         self.tf, self.beta = np.zeros(n), np.ones(n)
         self.integral = np.zeros(n, dtype=bool)
+        # the same arrays, as the shared block arithmetic takes them (``load_loop`` writes
+        # their elements in place)
+        self.gains = PidGainArrays(
+            self.sign,
+            self.kc,
+            self.ti,
+            self.td,
+            self.tf,
+            self.beta,
+            self.integral,
+            self.op_lo,
+            self.op_hi,
+            self.sample_time,
+        )
         self.active = np.ones(n, dtype=bool)  # False: faulted, stepped by its SimLoop
         for j in range(n):
             self.load_loop(j)
@@ -200,10 +215,7 @@ class LinearBatch:
     def _pid(self, go: np.ndarray) -> list[int]:
         """The PID blocks' execution (auto) or tracking (manual), as ``PidBlock`` does it."""
         pv = self.pv
-        dpv = self.tf / (self.tf + self.sample_time) * self.dpv + (pv - self.pv_prev) / (
-            self.tf + self.sample_time
-        )
-        dpv = np.where(self.has_prev, dpv, 0.0)
+        dpv = filtered_rate(self.gains, self.dpv, pv, self.pv_prev, self.has_prev)
         self.dpv = np.where(go, dpv, self.dpv)
         self.pv_prev = np.where(go, pv, self.pv_prev)
         self.has_prev = self.has_prev | go
@@ -211,23 +223,12 @@ class LinearBatch:
         manual = ~self.auto & go
         # manual: setpoint tracking, the output held (clamped)
         self.sp = np.where(manual & self.sp_track, pv, self.sp)
-        sp = self.sp
-        lo, hi = self.op_lo, self.op_hi
-        p = self.sign * self.kc * (self.beta * sp - pv)
-        d = -self.sign * self.kc * self.td * self.dpv
-        v = p + self.i + d
-        u = np.minimum(np.maximum(v, lo), hi)
-        step = self.sign * self.kc * self.sample_time / self.ti * (sp - pv)
-        winding = ((v >= hi) & (step > 0)) | ((v <= lo) & (step < 0))
-        i_next = self.i + step
-        i_next = np.where((step > 0) & (i_next > hi), np.maximum(self.i, hi), i_next)
-        i_next = np.where((step < 0) & (i_next < lo), np.minimum(self.i, lo), i_next)
-        integrate = auto & self.integral & ~winding
-        self.p = np.where(auto, p, self.p)
-        self.dd = np.where(auto, d, self.dd)
-        self.i = np.where(integrate, i_next, self.i)
-        op = np.where(auto, u, np.minimum(np.maximum(self.op, lo), hi))
-        self.op = np.where(go, op, self.op)
+        run = execute(self.gains, self.sp, pv, self.i, self.dpv)
+        self.p = np.where(auto, run.p, self.p)
+        self.dd = np.where(auto, run.d, self.dd)
+        self.i = np.where(auto, run.i_next, self.i)
+        held = np.minimum(np.maximum(self.op, self.op_lo), self.op_hi)
+        self.op = np.where(go, np.where(auto, run.op, held), self.op)
         faulted = [int(j) for j in np.flatnonzero(auto & ~np.isfinite(self.op))]
         for j in faulted:  # the PID block's output overflowed: as SimLoop.advance faults it
             held = float(self.held[j])

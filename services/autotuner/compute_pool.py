@@ -1,0 +1,91 @@
+"""Worker processes for a run's CPU-heavy pure steps: the relay's model fits, the design.
+
+Why: one tuner runs many loops' tunes at once, each on its own thread, but Python runs one
+thread at a time (the GIL). A run's steps between samples are light; its two heavy steps —
+the relay's closing fits (dozens of least-squares fits of process models) and the design
+(every rule judged on the sampled loop, its setpoint step simulated) — are hundreds of
+milliseconds of pure Python and numpy each. Done in worker processes they run on every core
+while the runs' threads go on exchanging samples, so N tunes through one tuner add up.
+
+The steps are pure functions of picklable values, so a worker computes exactly what the
+run's own thread would (the same code on the same numbers: results equal to the bit). The
+workers fork from a clean server process (``forkserver``), not from the tuner, whose Zenoh
+threads a fork would copy in an unknown state; the server imports the heavy modules once, so
+each worker starts in milliseconds. It starts with the first run, not with the tuner. A pool
+that breaks (a worker killed) is replaced, and that step computed in the run's own thread:
+a run never fails for want of a worker.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import threading
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any, TypeVar
+
+from shared.errors import AutotuneError
+
+log = logging.getLogger("autotuner")
+
+T = TypeVar("T")
+
+# what the workers run: imported once by the server they fork from
+PRELOAD = [
+    "services.autotuner.design.selection",
+    "services.autotuner.identify.relay",
+]
+WAIT = 600.0  # s: a step no run's thread would finish either is a failure, said as such
+
+
+def inline(fn: Callable[..., T], *args: Any) -> T:
+    """A step computed in the caller's thread (tests, offline analysis, a tuner of one)."""
+    return fn(*args)
+
+
+class ComputePool:
+    """``workers`` processes that compute a run's heavy steps (``call``)."""
+
+    def __init__(self, workers: int):
+        if workers < 1:
+            raise ValueError(f"workers {workers}: need at least one")
+        self.workers = workers
+        self._pool: ProcessPoolExecutor | None = None
+        self._lock = threading.Lock()
+
+    def _executor(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                ctx = multiprocessing.get_context("forkserver")
+                ctx.set_forkserver_preload(PRELOAD)
+                self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx)
+            return self._pool
+
+    def warm(self) -> None:
+        """Start the server and the workers now (a run about to start will need them)."""
+        pool = self._executor()
+        for _ in range(self.workers):
+            pool.submit(int)
+
+    def call(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` in a worker; in this thread if the pool broke (then replaced)."""
+        pool = self._executor()
+        try:
+            return pool.submit(fn, *args).result(timeout=WAIT)
+        except TimeoutError:
+            raise AutotuneError(f"{fn.__name__}: not computed within {WAIT:g} s") from None
+        except BrokenProcessPool as err:
+            log.warning("a compute worker was lost (%s): computing in the run's thread", err)
+            with self._lock:
+                if self._pool is pool:
+                    self._pool = None
+            pool.shutdown(wait=False, cancel_futures=True)
+            return fn(*args)
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)

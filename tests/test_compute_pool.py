@@ -1,0 +1,60 @@
+"""The tuner's worker processes compute a run's heavy steps exactly as its own thread would
+(the relay's closing fits, the design), and a lost worker costs the run nothing."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+
+import pytest
+
+from services.autotuner.compute_pool import ComputePool
+from services.autotuner.design.selection import select
+from services.autotuner.identify.driver import drive
+from services.autotuner.identify.relay import RelayConfig, RelayTest
+from services.offline.local_loop import SimLoopPort
+from services.plant_sim.plant_file import build_plant
+
+PLANT = {"seed": 5, "loops": {"x": {"model": "heat_exchanger", "noise_std": 0.05}}}
+
+
+@pytest.fixture(scope="module")
+def pool():
+    p = ComputePool(1)
+    yield p
+    p.close()
+
+
+def relay_run(compute=None) -> RelayTest:
+    loop = build_plant(PLANT)["x"]
+    st = loop.settings
+    test = RelayTest(RelayConfig(), loop.op, st.op_limits, st.pv_range, st.sample_time)
+    test.compute = compute
+    drive(test, SimLoopPort(loop), max_chunk=64)
+    return test
+
+
+def test_the_relay_and_the_design_computed_by_a_worker_are_computed_here(pool):
+    here, there = relay_run(), relay_run(pool.call)
+    assert here.result is not None, here.reason
+    assert repr(there.result) == repr(here.result) and there.events == here.events
+    assert there.compute == pool.call  # the worker's copy came back as data only
+    ident = here.identification()
+    args = (ident, "auto", 2.0, False, 0.5, None, "balanced")
+    assert repr(pool.call(select, *args)) == repr(select(*args))
+
+
+def _dies_in_a_worker(x: int) -> int:
+    if multiprocessing.parent_process() is not None:
+        os._exit(3)  # a worker killed mid-step
+    return 2 * x
+
+
+def test_a_lost_worker_costs_the_run_nothing(pool):
+    assert pool.call(_dies_in_a_worker, 21) == 42  # computed here instead
+    assert pool.call(abs, -3) == 3  # and the pool replaced
+
+
+def test_a_pool_needs_a_worker():
+    with pytest.raises(ValueError, match="workers 0"):
+        ComputePool(0)

@@ -1,0 +1,87 @@
+"""The relay's half-cycles in one lockstep round trip: a batch ends at the sample where the PV
+leaves the relay's band (``RelayTest.band``), so the run is the run fed sample by sample —
+the same samples, the same switches, the same result to the bit — in a tenth of the round
+trips. Checked on whole in-process runs of the preset loops, noise and a biased stage 2
+included, and on the band's edges."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections import Counter
+from importlib.resources import files
+
+import pytest
+
+from services.autotuner.identify.experiments import Band
+from services.autotuner.identify.relay import RelayTest
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.messages import AdvanceCommand, TuneRequest
+
+PLANT = tomllib.loads(files("services.plant_sim").joinpath("plants/default.toml").read_text())
+
+
+def tune(loop: str, per_sample: bool, monkeypatch, **request) -> tuple[dict, tuple, Counter]:
+    """A whole relay run on a fresh preset loop: its result (less its wall time), the loop
+    as left, and how the run asked for its samples."""
+    sim = build_plant(PLANT, "default")[loop]
+    calls: Counter[str] = Counter()
+    take = LocalLoopClient.samples
+
+    def counted(self, steps, band=None):
+        out = take(self, steps, band)
+        calls["batches"] += 1
+        calls["banded"] += band is not None
+        calls["samples"] += len(out)
+        if band is not None:  # every sample but the last inside the band
+            assert not any(band.ends(s.pv) for s in out[:-1])
+        return out
+
+    with monkeypatch.context() as m:
+        m.setattr(LocalLoopClient, "samples", counted)
+        if per_sample:
+            m.setattr(RelayTest, "horizon", lambda self, cap: 1)
+        req = TuneRequest(loop=loop, method="relay", **request)
+        result = TuningRun(LocalLoopClient(sim), req, "band").run().model_dump()
+    result.pop("wall_time")
+    return result, (sim.seq, sim.pv, sim.op, sim.sp, sim.mode), calls
+
+
+@pytest.mark.parametrize(
+    ("loop", "request_"),
+    [("hx1", {}), ("hx2", {}), ("lvl1", {}), ("flow1", {}), ("hx1", {"relay_bias": 0.3})],
+)
+def test_banded_runs_are_the_runs_fed_sample_by_sample(loop, request_, monkeypatch):
+    one, left_one, by_one = tune(loop, True, monkeypatch, **request_)
+    banded, left, by_band = tune(loop, False, monkeypatch, **request_)
+    assert one["status"] == "ok", one["reason"]
+    assert banded == one and left == left_one
+    assert by_band["samples"] == by_one["samples"] and by_one["banded"] == 0
+    assert by_band["banded"] > 0 and by_band["batches"] < 0.25 * by_one["batches"]
+
+
+def test_a_band_ends_at_or_past_its_bounds_and_on_a_pv_that_is_no_number():
+    band = Band(1.0, 2.0)
+    assert [band.ends(x) for x in (1.5, 1.0, 2.0, 0.5, 2.5, math.nan)] == [
+        False,
+        True,
+        True,
+        True,
+        True,
+        True,
+    ]
+    assert not Band(-math.inf, math.inf).ends(1e300)
+    assert Band(-math.inf, 3.0).stops() == (None, 3.0)
+    cmd = AdvanceCommand(loop="x", steps=9, stop_below=1.0, stop_above=2.0)
+    assert [cmd.stops_at(x) for x in (1.5, 1.0, 2.0, math.nan)] == [False, True, True, True]
+    assert not AdvanceCommand(loop="x", steps=9).stops_at(math.nan)
+
+
+def test_an_advance_refuses_stops_that_are_not_numbers():
+    import pydantic
+
+    for bad in ('{"loop":"x","steps":3,"stop_above":"NaN"}', '{"loop":"x","stop_below":"a"}'):
+        with pytest.raises(pydantic.ValidationError):
+            AdvanceCommand.model_validate_json(bad)
