@@ -13,14 +13,18 @@ workers fork from a clean server process (``forkserver``), not from the tuner, w
 threads a fork would copy in an unknown state; the server imports the heavy modules once, so
 each worker starts in milliseconds. It starts with the first run, not with the tuner. A pool
 that breaks (a worker killed) is replaced, and that step computed in the run's own thread:
-a run never fails for want of a worker.
+a run never fails for want of a worker. A tuner killed outright takes its workers with it:
+each watches the tuner and ends when it has gone (then the server, and the resource tracker,
+end as their last user does).
 """
 
 from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -38,6 +42,31 @@ PRELOAD = [
     "services.autotuner.identify.relay",
 ]
 WAIT = 600.0  # s: a step no run's thread would finish either is a failure, said as such
+PARENT_CHECK = 0.5  # s between a worker's checks that the tuner is still there
+
+
+def _started(pid: int) -> str | None:
+    """Process ``pid``'s start time (clock ticks since boot; None if it is gone): with the
+    pid, it names that process and no later one given the same number."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def _outlive_not(tuner: int, started: str | None) -> None:
+    """In each worker: end when the tuner has ended. A tuner killed outright (SIGKILL) tells
+    nobody, and a worker waiting for work would wait forever (it holds its own queue's pipe,
+    and the server it was forked from lives while any worker does)."""
+
+    def watch() -> None:
+        while True:
+            time.sleep(PARENT_CHECK)
+            if _started(tuner) != started:
+                os._exit(0)
+
+    threading.Thread(target=watch, daemon=True, name="tuner-watch").start()
 
 
 def inline(fn: Callable[..., T], *args: Any) -> T:
@@ -60,7 +89,12 @@ class ComputePool:
             if self._pool is None:
                 ctx = multiprocessing.get_context("forkserver")
                 ctx.set_forkserver_preload(PRELOAD)
-                self._pool = ProcessPoolExecutor(self.workers, mp_context=ctx)
+                self._pool = ProcessPoolExecutor(
+                    self.workers,
+                    mp_context=ctx,
+                    initializer=_outlive_not,
+                    initargs=(os.getpid(), _started(os.getpid())),
+                )
             return self._pool
 
     def warm(self) -> None:
