@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 
 def free_tcp_port() -> int:
@@ -17,14 +18,23 @@ def free_tcp_port() -> int:
         return int(s.getsockname()[1])
 
 
-def start_service(module: str, args: Sequence[str], *, stderr=None) -> subprocess.Popen:
-    """``python -m <module> <args>`` in its own process group (Ctrl-C reaches it through us)."""
+def start_service(
+    module: str, args: Sequence[str], *, stderr=None, stdout=None, source: Path | None = None
+) -> subprocess.Popen:
+    """``python -m <module> <args>`` in its own process group (Ctrl-C reaches it through us);
+    with ``source``, run from that source tree (its code first on the path: an older
+    checkout's services, for a before/after in one run)."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if source is not None:
+        env["PYTHONPATH"] = str(source)
     return subprocess.Popen(
         [sys.executable, "-m", module, *args],
         stdin=subprocess.DEVNULL,
+        stdout=stdout,
         stderr=stderr,
         start_new_session=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        env=env,
+        cwd=source,
     )
 
 

@@ -28,9 +28,12 @@ class Stack:
     client: ZenohSettings  # how a client (and each service) joins the bus
     logs: IO[str] | None = None
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
+    source: Path | None = None  # run the services from this source tree (default: this one)
 
     def start(self, name: str, module: str, args: list[str], zenoh_args: list[str]) -> None:
-        self.procs[name] = start_service(module, [*args, *zenoh_args], stderr=self.logs)
+        self.procs[name] = start_service(
+            module, [*args, *zenoh_args], stderr=self.logs, source=self.source
+        )
 
     def wait_ready(self, tokens: list[str], timeout: float = 20.0) -> None:
         with open_session(self.client) as s:

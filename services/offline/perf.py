@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
+from services.autotuner.commands.tune import submit
 from services.autotuner.loop_client import wait_for_token
 from services.autotuner.tuning import TuningRun
 from services.launcher import free_tcp_port, start_service, stop_service
@@ -291,7 +292,7 @@ class Lockstep:
     samples: float  # in all: Σ sim_duration / sample_time
     wall: float  # s, first progress to last result on the bus (CLI start-up not included)
     rate: float  # samples/s in all
-    cli_wall: float  # s, the CLI process(es) from start to exit
+    submit_wall: float  # s, from the first request submitted to the last result seen
 
 
 @dataclass
@@ -311,75 +312,57 @@ def _plant_file(path: Path, names: list[str], model: str, sample_time: float) ->
 
 def _tunes(
     watch: TuneWatch,
+    session: zenoh.Session,
     loops: list[str],
     prefix: str,
-    endpoint: str,
     timeout: float,
     nodes: list[str] | None = None,
 ) -> Lockstep:
-    """``autotune tune LOOP --json`` for each of ``loops`` at once, as processes; each through
-    the tuner of ``nodes`` at its place (default: the one named ``tuner``)."""
+    """A relay tune of each of ``loops`` at once, each through the tuner of ``nodes`` at its
+    place (default: the one named ``tuner``), submitted from this process as ``autotune
+    tune`` submits (``submit``), one after the other in a few ms: N command-line processes
+    starting at once would spend seconds of CPU importing on the cores the tunes run on."""
     t0 = time.perf_counter()
     nodes = nodes or ["tuner"] * len(loops)
-    procs = [
-        subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "services.cli",
-                "tune",
-                loop,
-                "--prefix",
-                prefix,
-                "--node",
-                node,
-                "--json",
-                *_client_args(endpoint),
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            stdin=subprocess.DEVNULL,
-            text=True,
-        )
-        for loop, node in zip(loops, nodes, strict=True)
-    ]
-    try:
-        for p in procs:
-            p.communicate(timeout=max(1.0, timeout - (time.perf_counter() - t0)))
-    except subprocess.TimeoutExpired:
-        raise AutotuneError(
-            f"perf: {len(loops)} tune(s) did not end within {timeout:g} s"
-        ) from None
-    finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-    cli_wall = time.perf_counter() - t0
+    for loop, node in zip(loops, nodes, strict=True):
+        submit(session, prefix, node, TuneRequest(loop=loop), timeout=min(30.0, timeout))
     with watch.done:
-        watch.done.wait_for(lambda: all(lp in watch.results for lp in loops), timeout=10.0)
-    missing = [lp for lp in loops if lp not in watch.results or lp not in watch.started]
+        done = watch.done.wait_for(
+            lambda: all(lp in watch.results for lp in loops),
+            timeout=max(1.0, timeout - (time.perf_counter() - t0)),
+        )
+    if not done:
+        raise AutotuneError(f"perf: {len(loops)} tune(s) did not end within {timeout:g} s")
+    submit_wall = time.perf_counter() - t0
+    missing = [lp for lp in loops if lp not in watch.started]
     if missing:
-        raise AutotuneError(f"perf: no result seen on the bus for {', '.join(missing)}")
+        raise AutotuneError(f"perf: no progress seen on the bus for {', '.join(missing)}")
     samples = sum(watch.results[lp].sim_duration / HX_SAMPLE_TIME for lp in loops)
     wall = max(watch.ended[lp] for lp in loops) - min(watch.started[lp] for lp in loops)
     statuses = [watch.results[lp].status for lp in loops]
-    return Lockstep(len(loops), statuses, samples, wall, samples / wall, cli_wall)
+    return Lockstep(len(loops), statuses, samples, wall, samples / wall, submit_wall)
 
 
-def lockstep(tunes: int, tuners: int = 0, timeout: float = 300.0) -> LockstepReport:
+def lockstep(
+    tunes: int, tuners: int = 0, timeout: float = 300.0, source: Path | None = None
+) -> LockstepReport:
     """One tune, then ``tunes`` at once, through one plant, one tuner and one logger; then,
     with ``tuners`` > 1, ``tunes`` more at once on other loops spread over that many tuner
-    processes (round robin)."""
+    processes (round robin); the services from ``source`` (default: this tree). First a
+    tune through each tuner, not measured: a service's
+    first run pays its start-up (its compute workers coming up, modules imported on first
+    use), which is not the cost of a sample."""
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     prefix = _prefix("ls")
     many = [f"hx{i}" for i in range(1, tunes + 1)]
     spread = [f"hy{i}" for i in range(1, tunes + 1)] if tuners > 1 else []
     others = [f"tuner{i}" for i in range(2, tuners + 1)] if tuners > 1 else []
+    nodes = ["tuner", *others]
+    warm = [f"warm{i}" for i in range(len(nodes))]
     with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryFile("w+") as logs:
         plant = Path(tmp) / "plant.toml"
-        _plant_file(plant, ["one", *many, *spread], HX, HX_SAMPLE_TIME)
-        stack = Stack(prefix, _settings(endpoint), logs)
+        _plant_file(plant, [*warm, "one", *many, *spread], HX, HX_SAMPLE_TIME)
+        stack = Stack(prefix, _settings(endpoint), logs, source=source)
         try:
             pre = ["--prefix", prefix]
             stack.start(
@@ -406,21 +389,17 @@ def lockstep(tunes: int, tuners: int = 0, timeout: float = 300.0) -> LockstepRep
             with open_session(_settings(endpoint)) as s:
                 watch = TuneWatch(s, prefix, pids)
                 try:
-                    one = _tunes(watch, ["one"], prefix, endpoint, timeout)
+                    _tunes(watch, s, warm, prefix, timeout, nodes)
+                    one = _tunes(watch, s, ["one"], prefix, timeout)
                     cpu = {
                         name: 1e6
                         * (watch.cpu_end["one"][name] - watch.cpu_start["one"][name])
                         / one.samples
                         for name in pids
                     }
-                    par = _tunes(watch, many, prefix, endpoint, timeout)
-                    nodes = ["tuner", *others]
+                    par = _tunes(watch, s, many, prefix, timeout)
                     by_node = [nodes[i % len(nodes)] for i in range(len(spread))]
-                    apart = (
-                        _tunes(watch, spread, prefix, endpoint, timeout, by_node)
-                        if spread
-                        else None
-                    )
+                    apart = _tunes(watch, s, spread, prefix, timeout, by_node) if spread else None
                 finally:
                     watch.close()
         finally:

@@ -54,8 +54,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="DIR",
-        help="phases: run the services from this source tree (an older checkout: its figures "
-        "beside this one's in the same run)",
+        help="lockstep and phases: run the services from this source tree (an older "
+        "checkout: its figures, measured the same way, beside this one's)",
     )
 
 
@@ -105,7 +105,7 @@ def measure(
             f"lockstep over the bus: one tune, then {tunes} at once"
             + (f", then {tunes} through {spread} tuners…" if spread > 1 else "…")
         )
-        out["lockstep"] = asdict(perf.lockstep(tunes, spread))
+        out["lockstep"] = asdict(perf.lockstep(tunes, spread, source=source))
     if "phases" in parts:
         note("closed-loop phases (ramp trials, verification), over the bus and in process…")
         out["phases"] = asdict(perf_phases.phases(source))
@@ -182,7 +182,7 @@ def _print(out: dict, size: str, seconds: float) -> None:
             p(
                 f"  lockstep, {what:<17}{y['rate']:9.0f} samples/s      "
                 f"({y['samples']:.0f} samples in {y['wall']:.2f} s on the bus, first progress "
-                f"to last result; CLI {y['cli_wall']:.2f} s; {statuses})"
+                f"to last result; submitted to last result {y['submit_wall']:.2f} s; {statuses})"
             )
         cpu = x["cpu_us_per_sample"]
         parts = ", ".join(f"{n} {v:.0f}" for n, v in cpu.items())

@@ -14,9 +14,7 @@ measurement of an older version of the code, on the same machine, in the same ru
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -27,7 +25,7 @@ import zenoh
 
 from services.autotuner.loop_client import wait_for_token
 from services.autotuner.tuning import RunHooks, TuningRun
-from services.launcher import free_tcp_port, stop_service
+from services.launcher import free_tcp_port, start_service, stop_service
 from services.offline import perf
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
@@ -93,16 +91,7 @@ def in_process() -> dict[str, Phase]:
 
 def _start(module: str, args: list[str], source: Path, logs) -> subprocess.Popen:
     """``python -m module args`` run from ``source`` (its code first on the path)."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(source)}
-    return subprocess.Popen(
-        [sys.executable, "-m", module, *args],
-        cwd=source,
-        env=env,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=logs,
-        start_new_session=True,
-    )
+    return start_service(module, args, stderr=logs, stdout=subprocess.DEVNULL, source=source)
 
 
 def over_bus(source: Path, timeout: float = 300.0) -> tuple[str, dict[str, Phase]]:
