@@ -11,7 +11,8 @@ The steps are pure functions of picklable values, so a worker computes exactly w
 run's own thread would (the same code on the same numbers: results equal to the bit). The
 workers fork from a clean server process (``forkserver``), not from the tuner, whose Zenoh
 threads a fork would copy in an unknown state; the server imports the heavy modules once, so
-each worker starts in milliseconds. It starts with the first run, not with the tuner. A pool
+each worker starts in milliseconds. It starts with the tuner's first run (a tuner that never
+tunes starts none), in the background while the run measures the loop's rest. A pool
 that breaks (a worker killed) is replaced, and that step computed in the run's own thread:
 a run never fails for want of a worker. A tuner killed outright takes its workers with it:
 each watches the tuner and ends when it has gone (then the server, and the resource tracker,
@@ -83,6 +84,7 @@ class ComputePool:
         self.workers = workers
         self._pool: ProcessPoolExecutor | None = None
         self._lock = threading.Lock()
+        self._warmed = False
 
     def _executor(self) -> ProcessPoolExecutor:
         with self._lock:
@@ -98,7 +100,11 @@ class ComputePool:
             return self._pool
 
     def warm(self) -> None:
-        """Start the server and the workers now (a run about to start will need them)."""
+        """Start the server and the workers now (a run about to start will need them); once."""
+        with self._lock:
+            if self._warmed:
+                return
+            self._warmed = True
         pool = self._executor()
         for _ in range(self.workers):
             pool.submit(int)

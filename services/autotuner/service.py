@@ -129,6 +129,9 @@ class TunerService:
                 target=self._run, args=(req, run_id, cancel), daemon=True, name=f"tune-{req.loop}"
             )
             self.active[req.loop] = ActiveRun(run_id, req, cancel, th)
+        if self.pool is not None:  # started with the first run (a tuner that never tunes
+            # starts none), in the background: ready by the end of its relay, as a rule
+            threading.Thread(target=self.pool.warm, daemon=True, name="compute-pool").start()
         th.start()
         return TuneAccepted(run_id=run_id, loop=req.loop, t=0.0, method=req.method, rule=req.rule)
 
@@ -294,8 +297,6 @@ class TunerService:
         shell.subscribe(keys.tune_cancel(p, keys.ANY), self._on_cancel, 256)
         results = shell.queryable(keys.tune_result(p, keys.ANY), self._on_results_query, 256)
         shell.announce(keys.tuner_alive(p, self.node))
-        if self.pool is not None:  # started now, in the background: a run finds it ready
-            shell.thread(self.pool.warm, name="compute-pool")
         log.info("autotuner %s ready at %s", self.node, keys.tuner_request(p, self.node))
         try:
             shell.wait(stop, 0.5)
