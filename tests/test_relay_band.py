@@ -23,10 +23,29 @@ from shared.messages import AdvanceCommand, TuneRequest
 PLANT = tomllib.loads(files("services.plant_sim").joinpath("plants/default.toml").read_text())
 
 
-def tune(loop: str, per_sample: bool, monkeypatch, **request) -> tuple[dict, tuple, Counter]:
-    """A whole relay run on a fresh preset loop: its result (less its wall time), the loop
-    as left, and how the run asked for its samples."""
-    sim = build_plant(PLANT, "default")[loop]
+# a direct-acting loop (the PV falls as the output rises), a fractional dead time, noise
+DIRECT = {
+    "seed": 7,
+    "loops": {
+        "d1": {
+            "model": "fopdt",
+            "sample_time": 0.25,
+            "gain": -2.0,
+            "time_constant": 8.0,
+            "delay": 1.3,
+            "action": "direct",
+            "noise_std": 0.05,
+        }
+    },
+}
+
+
+def tune(
+    loop: str, per_sample: bool, monkeypatch, plant: dict = PLANT, **request
+) -> tuple[dict, tuple, Counter]:
+    """A whole relay run on a fresh loop (a preset's by default): its result (less its wall
+    time), the loop as left, and how the run asked for its samples."""
+    sim = build_plant(plant, "default")[loop]
     calls: Counter[str] = Counter()
     take = LocalLoopClient.samples
 
@@ -51,7 +70,14 @@ def tune(loop: str, per_sample: bool, monkeypatch, **request) -> tuple[dict, tup
 
 @pytest.mark.parametrize(
     ("loop", "request_"),
-    [("hx1", {}), ("hx2", {}), ("lvl1", {}), ("flow1", {}), ("hx1", {"relay_bias": 0.3})],
+    [
+        ("hx1", {}),
+        ("hx2", {}),
+        ("lvl1", {}),
+        ("flow1", {}),
+        ("hx1", {"relay_bias": 0.3}),
+        ("d1", {"plant": DIRECT}),
+    ],
 )
 def test_banded_runs_are_the_runs_fed_sample_by_sample(loop, request_, monkeypatch):
     one, left_one, by_one = tune(loop, True, monkeypatch, **request_)

@@ -443,7 +443,10 @@ def _overlay(s: RunSeries) -> Overlay | None:
     start = int(np.searchsorted(s.seq, first)) if isinstance(first, int) and s.seq.size else 0
     loads = [w.load_t for w in s.windows if w.load_t is not None]
     end = int(np.searchsorted(s.t, loads[0])) if loads else s.t.size
-    return model_overlay(s.t, s.pv, s.op, model, float(ts), start, end)
+    # a direct-acting loop's model is of the process as its controller acts on it (−G): it
+    # is driven by the output turned over, as the controller turns it
+    op = -s.op if s.setup.get("direction") == -1 else s.op
+    return model_overlay(s.t, s.pv, op, model, float(ts), start, end)
 
 
 def _unavailable(ax: Axes, title: str, why: str) -> None:

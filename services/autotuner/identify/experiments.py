@@ -13,7 +13,7 @@ Units: time in s (sim time), PV in engineering units, output in % of its range.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, is_dataclass, replace
 from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
@@ -92,6 +92,38 @@ class Identification:
     # mean output never moves, so K is extrapolated from points near ω_u): the rules that
     # scale with 1/K (AMIGO, SIMC) are then offered but not recommended
     static_gain_known: bool = True
+
+
+DIRECT_NOTE = (
+    "direct-acting loop: the model and its gain are of the process as its controller acts on "
+    "it, the sign of its gain turned (−G), as the PID block's direct action turns it"
+)
+
+
+def as_controlled(ident: Identification, direction: float) -> Identification:
+    """An open-loop test's findings as the controller acts on the process: for a
+    direct-acting loop (``direction`` −1, the PV falls as the output rises) the step model's
+    and the model's gains (and reaction rate) with their sign turned, so that the rules, the
+    model checks and the robustness see a positive gain and give gains for the block's
+    action, and so the model the result states; the measured reaction curve is kept as
+    measured. Unchanged for a reverse-acting loop."""
+    if direction > 0:
+        return ident
+    sm, model = ident.step_model, ident.model
+    if sm is not None:
+        sm = replace(
+            sm,
+            gain=-sm.gain if math.isfinite(sm.gain) else sm.gain,
+            rate=-sm.rate if sm.rate is not None else None,
+        )
+    if model is not None:
+        model = replace(model, gain=-model.gain)
+    found = ident.experiment  # the result's model (the record's fit), the same way
+    if is_dataclass(found) and getattr(found, "model", None) is not None:
+        found = replace(found, model=replace(found.model, gain=-found.model.gain))
+    return replace(
+        ident, step_model=sm, model=model, experiment=found, notes=[*ident.notes, DIRECT_NOTE]
+    )
 
 
 DEFAULT_RELAY_AMPLITUDE = 5.0  # %: also the load step of the verification

@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from services.autotuner.identify.experiments import (
+    DIRECT_NOTE,
     Band,
     Demand,
     Event,
@@ -272,13 +273,34 @@ class RelayTest:
         return Progress("relay", n, cycles=n, ku=self.ku_of(cyc.amplitude), pu=cyc.period)
 
     def identification(self) -> Identification | None:
-        return self.result.identification() if self.result is not None else None
+        if self.result is None:
+            return None
+        found = self.result.identification()
+        if self.direction < 0:  # worked in the loop's own sense: say what the model is of
+            found.notes.append(DIRECT_NOTE)
+        return found
 
     # --- the state machine ---------------------------------------------------------------
 
     def _out(self) -> float:
+        """The relay's output in the loop's own sense (``_actual``: the output to hold)."""
         swing = 1.0 if self._state > 0 else -self._low
-        return self.bias + self.direction * swing * self.config.amplitude
+        return self.bias + swing * self.config.amplitude
+
+    def _actual(self, v: float) -> float:
+        """The output to hold for ``v`` in the loop's own sense: the same for a reverse-acting
+        loop, mirrored about the output at rest for a direct-acting one. The relay works, and
+        records, in the loop's sense (up pushes the PV up), so that its frequency points, its
+        model and its bias adaptation are those of the process as its controller acts on it
+        (−G for a direct-acting loop: a positive gain, K_u and gains for the block's action)."""
+        return v if self.direction > 0 else 2.0 * self.op_start - v
+
+    def _limits(self) -> tuple[float, float]:
+        """The output limits in the loop's own sense (%)."""
+        lo, hi = self.op_limits
+        if self.direction > 0:
+            return lo, hi
+        return 2.0 * self.op_start - hi, 2.0 * self.op_start - lo
 
     def _abort(self, reason: str) -> float:
         """Every abort: the phase, the reason and an ``aborted`` event; the output at rest."""
@@ -296,7 +318,7 @@ class RelayTest:
             return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")
         out = self._quiet(t) if self.phase == "quiet" else self._relay(t, pv)
         self.op.append(out)
-        return out
+        return self._actual(out)
 
     def _quiet(self, t: float) -> float:
         """Wait until the last quiet period shows the PV at rest (no trend beyond its noise);
@@ -325,7 +347,7 @@ class RelayTest:
                 {"rest_pv": self._r, "noise_std": self._noise, "hysteresis": self._eps},
             )
         )
-        self.events.append(Event(t, "switch", {"op": self._out()}))
+        self.events.append(Event(t, "switch", {"op": self._actual(self._out())}))
         return self._out()
 
     def _relay(self, t: float, pv: float) -> float:
@@ -333,10 +355,10 @@ class RelayTest:
         self._arm(pv)
         if self._switch_armed and self._state > 0 and pv > r + h:
             self._state, self._switch_armed = -1.0, False
-            self.events.append(Event(t, "switch", {"op": self._out()}))
+            self.events.append(Event(t, "switch", {"op": self._actual(self._out())}))
         elif self._switch_armed and self._state < 0 and pv < r - h:
             self._state, self._switch_armed = 1.0, False
-            self.events.append(Event(t, "switch", {"op": self._out()}))
+            self.events.append(Event(t, "switch", {"op": self._actual(self._out())}))
         self._arm(pv)
         if self._state > 0 and pv < r - self._cross_margin:
             # the next upward crossing of r closes a cycle: the relay is high and the PV has
@@ -433,11 +455,11 @@ class RelayTest:
         if cfg.bias_adaptation and steady and self.phase == "relay":
             skew = 2.0 * cycle.high_fraction - 1.0
             if abs(skew) > cfg.bias_skew_samples * self.sample_time / cycle.period:
-                d, (lo, hi) = cfg.amplitude, self.op_limits
+                d, (lo, hi) = cfg.amplitude, self._limits()
                 most = cfg.bias_step * d
                 step = min(max(d * skew, -most), most)
                 self.bias = min(max(self.bias + step, lo + d), hi - d)
-                self.events.append(Event(t1, "bias", {"bias": self.bias}))
+                self.events.append(Event(t1, "bias", {"bias": self._actual(self.bias)}))
         if self.phase == "stage2":
             assert self._stage1 is not None
             if len(self.cycles) - self._stage1.cycles >= cfg.stage_two_cycles:
@@ -592,7 +614,7 @@ class RelayTest:
             amplitude=s1.amplitude,
             relay_amplitude=self.config.amplitude,
             hysteresis=self._eps,
-            bias=self.bias,
+            bias=self._actual(self.bias),
             noise_std=self._noise,
             cycles=len(self.cycles),
             ku_spread=refined.ku_uncertainty if refined else s1.ku_spread,

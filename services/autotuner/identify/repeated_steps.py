@@ -31,6 +31,7 @@ from services.autotuner.identify.experiments import (
     Progress,
     Settings,
     Setup,
+    as_controlled,
 )
 from services.autotuner.identify.model_fit import ProcessFit, StepModel, model_of
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
@@ -115,6 +116,7 @@ class RepeatedSteps:
     repeat: int = 3  # tests to run (with ``auto``: the most it may run)
     auto: bool = False
     tolerance: float = DEFAULT_TOLERANCE
+    direction: float = 1.0  # −1: a direct-acting loop (the findings ``as_controlled``)
     phase: str = "test"  # test → return → test … → done | aborted
     reason: str = ""
     done: list[StepTest] = field(default_factory=list)
@@ -209,6 +211,10 @@ class RepeatedSteps:
         return Progress("step", max(n, 1), message=f"step test {max(n, 1)} of {self._planned()}")
 
     def identification(self) -> Identification | None:
+        found = self._identification()
+        return None if found is None else as_controlled(found, self.direction)
+
+    def _identification(self) -> Identification | None:
         if self.phase != "done" or not self.done:
             return None
         idents = [t.identification() for t in self.done]
@@ -401,4 +407,5 @@ def build(settings: Settings, setup: Setup) -> StepTest | RepeatedSteps:
         pv_units=single.pv_units,
         repeat=settings.repeat or AUTO_LIMIT,
         auto=settings.repeat_auto,
+        direction=single.direction,
     )

@@ -44,6 +44,7 @@ from services.autotuner.identify.experiments import (
     Progress,
     Settings,
     Setup,
+    as_controlled,
 )
 from services.autotuner.identify.model_fit import (
     ProcessFit,
@@ -132,6 +133,9 @@ class StepTest:
     _settle: tuple[float, float] = (math.inf, math.inf)  # integrating: rest window from, until
     _restore_at: float | None = None  # integrating: sim time the output is back at its start
     _pulse_end_seen: float = math.nan  # integrating: the sample at which the pulse ended
+    # +1 reverse-acting loop, −1 direct: its findings are given as its controller acts
+    # (``as_controlled``); the curve itself is kept as measured
+    direction: float = 1.0
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
     events: list[Event] = field(default_factory=list)
@@ -234,6 +238,10 @@ class StepTest:
         return Progress("step", 1, message=f"output stepped to {self.op_target:g} %")
 
     def identification(self) -> Identification | None:
+        found = self._identification()
+        return None if found is None else as_controlled(found, self.direction)
+
+    def _identification(self) -> Identification | None:
         rc = self.result
         if rc is None:
             return None
@@ -549,18 +557,24 @@ class StepTest:
         rc = self.result
         if not isinstance(rc, ReactionCurve) or self.t_step is None:
             return None
-        t, y = np.asarray(self.t), np.asarray(self.pv) - self._pv_before
+        if not (math.isfinite(rc.gain) and rc.gain != 0):
+            return None
+        # a process whose PV falls as the output rises (a direct-acting loop's) is fitted
+        # turned over, its gain given back its sign
+        sign = 1.0 if rc.gain > 0 else -1.0
+        t, y = np.asarray(self.t), sign * (np.asarray(self.pv) - self._pv_before)
         u = np.where(t >= self.t_step - 1e-9 * max(1.0, abs(self.t_step)), rc.step_size, 0.0)
         lag = max(rc.time_constant_63, self.sample_time)
         delay = max(rc.dead_time, 0.0)
+        gain = sign * rc.gain
         starts = (
-            ProcessFit("fopdt", rc.gain, (lag,), delay, math.inf),
-            ProcessFit("sopdt", rc.gain, (0.7 * lag, 0.3 * lag), 0.5 * delay, math.inf),
+            ProcessFit("fopdt", gain, (lag,), delay, math.inf),
+            ProcessFit("sopdt", gain, (0.7 * lag, 0.3 * lag), 0.5 * delay, math.inf),
         )
         fits = [
             f
             for start in starts
-            if rc.gain > 0 and (f := refine_on_record(start, self.sample_time, u, y)) is not None
+            if (f := refine_on_record(start, self.sample_time, u, y)) is not None
         ]
         best = choose_on_record(fits, y.size)
         if best is None:
@@ -568,6 +582,7 @@ class StepTest:
         # a dead time below half a sample is not resolved by the record (as for the tangent)
         return dataclasses.replace(
             best,
+            gain=sign * best.gain,
             delay=max(best.delay, 0.5 * self.sample_time),
             noise_rms=self._noise / (float(np.std(y)) or 1.0),
         )
@@ -664,4 +679,5 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         ts,
         pv_range=setup.pv_range,
         pv_units=setup.pv_units or "",
+        direction=setup.direction or 1.0,
     )
