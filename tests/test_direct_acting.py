@@ -69,6 +69,15 @@ def test_the_step_test_of_a_direct_acting_loop_designs_for_its_action():
     assert stable_on_the_true_loop(r.chosen["isa"]) < 2.0
 
 
+def test_the_ramp_on_a_direct_acting_loop_fits_its_model_as_the_twin_does():
+    direct, twin = tune(-K, "ramp", noise=0.02), tune(K, "ramp", noise=0.02)
+    assert direct.status == twin.status == "ok", direct.reason
+    assert direct.ku == pytest.approx(twin.ku, rel=1e-6)
+    assert direct.experiment["model_gain"] == pytest.approx(twin.experiment["model_gain"], 1e-6)
+    assert direct.rule == twin.rule and DIRECT_NOTE in direct.warnings
+    assert stable_on_the_true_loop(direct.chosen["isa"]) < 2.0
+
+
 def test_a_direct_acting_relay_run_reanalyses_to_the_live_result(tmp_path):
     path, live = record_in_process(tmp_path, "p", plant(-K, 0.02), "x", "relay")
     assert live.status == "ok", live.reason

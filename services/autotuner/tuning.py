@@ -603,6 +603,9 @@ class TuningRun:
             "pv_range_lo": self.info.pv_range[0],
             "pv_range_hi": self.info.pv_range[1],
             "pv_units": self.info.pv_units,
+            # +1 reverse-acting, −1 direct: every test gives its findings as the controller
+            # acts on the process
+            "direction": 1.0 if b.action == "reverse" else -1.0,
         }
         if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
             common["time_scale"] = self._rest["window"]
@@ -619,7 +622,7 @@ class TuningRun:
             lo, hi = self.info.op_limits
             op = min(max(self._rest["op"], lo), hi)
             st = c.command(OutputCommand(loop=c.loop, op=op, source=c.source, t=self._t))
-        return Setup(**common, op_start=st.op, direction=1.0 if b.action == "reverse" else -1.0)
+        return Setup(**common, op_start=st.op)
 
     def _event(self, kind: str, t: float, data: dict) -> None:
         self.hooks.event(

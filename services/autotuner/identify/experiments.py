@@ -180,7 +180,7 @@ class Setup:
     bump: float | None = None  # closed-loop tests: setpoint bump, PV units
     sp_start: float | None = None  # closed-loop tests: the setpoint at the start
     op_start: float | None = None  # open-loop tests: the output held at the start, %
-    direction: float | None = None  # open-loop tests: +1 reverse-acting loop, −1 direct
+    direction: float | None = None  # +1 reverse-acting loop, −1 direct (None: unrecorded, +1)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

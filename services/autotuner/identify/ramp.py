@@ -40,6 +40,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from services.autotuner.identify.experiments import (
+    DIRECT_NOTE,
     Demand,
     Event,
     Identification,
@@ -191,6 +192,7 @@ class RampTest:
     sample_time: float
     sp_start: float = math.nan  # the setpoint held during the quiet period (NaN: first PV)
     op_limits: tuple[float, float] = (0.0, 100.0)  # the loop's output limits, %
+    direction: float = 1.0  # +1 reverse-acting loop, −1 direct (its model fitted as −G)
 
     phase: str = "quiet"  # quiet → trial ⇄ settle → done | aborted
     reason: str = ""
@@ -264,7 +266,12 @@ class RampTest:
         return Progress("ramp", n, cycles=n, pu=tr.period, message=message)
 
     def identification(self) -> Identification | None:
-        return self.result.identification() if self.result is not None else None
+        if self.result is None:
+            return None
+        found = self.result.identification()
+        if self.direction < 0 and found.model is not None:
+            found.notes.append(DIRECT_NOTE)
+        return found
 
     def _abort(self, reason: str) -> Demand:
         """Every abort: the phase, the reason and an ``aborted`` event."""
@@ -703,10 +710,12 @@ class RampTest:
             return None
         u0 = float(np.mean(u[:rest]))
         y0 = float(np.mean(y[:rest]))
+        du = u - u0 if self.direction > 0 else u0 - u  # a direct-acting loop's, turned over:
+        # the model is of the process as the controller acts on it (−G), as K_u is
         fits = [
             f
             for start in through_ultimate_point(ku, pu)
-            if (f := refine_on_record(start, self.sample_time, u - u0, y - y0)) is not None
+            if (f := refine_on_record(start, self.sample_time, du, y - y0)) is not None
         ]
         best = choose_on_record(fits, y.size)
         if best is None:
@@ -826,4 +835,11 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         **first,
         **budget,
     )
-    return RampTest(cfg, setup.pv_limits, ts, sp_start=setup.sp_start, op_limits=setup.op_limits)
+    return RampTest(
+        cfg,
+        setup.pv_limits,
+        ts,
+        sp_start=setup.sp_start,
+        op_limits=setup.op_limits,
+        direction=setup.direction or 1.0,
+    )
