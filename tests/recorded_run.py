@@ -4,8 +4,11 @@ Recorder as the bus would. Fast (no processes), the same writer as the logger's.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
+
+from mcap.reader import make_reader
 
 from services.autotuner.identify.experiments import Band
 from services.autotuner.tuning import RunHooks, TuningRun
@@ -47,3 +50,15 @@ def record_in_process(
     put(keys.tune_result(prefix, loop_id), live)
     (path,) = recorder.finished
     return path, live
+
+
+def raw_messages(path: Path) -> dict[str, list[dict]]:
+    """Every message's JSON in a run file, read with the ``mcap`` library alone (as Foxglove
+    would), by the topic's last chunk (commands by their kind)."""
+    out: dict[str, list[dict]] = {}
+    with path.open("rb") as f:
+        for _, ch, m in make_reader(f).iter_messages(log_time_order=False):
+            parts = ch.topic.split("/")
+            name = parts[parts.index("cmd") + 1] if "cmd" in parts else parts[-1]
+            out.setdefault(name, []).append(json.loads(m.data))
+    return out

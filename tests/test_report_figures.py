@@ -21,7 +21,7 @@ from scipy import signal
 from services.logger.compare import compare, format_compare
 from services.logger.report import build_report, load_report, render
 from tests.exact import ultimate_point
-from tests.recorded_run import record_in_process
+from tests.recorded_run import raw_messages, record_in_process
 
 PREFIX = "autotune"
 LOOP = "hx1"  # the demo's loop: e^{-5s}/((10s+1)(60s+1)), degC per %, range 0–150 degC
@@ -36,22 +36,11 @@ def record_demo(runs: Path) -> Path:
     return path
 
 
-def raw(path: Path) -> dict[str, list[dict]]:
-    """Every message's JSON by the topic's last chunk (commands by their kind)."""
-    out: dict[str, list[dict]] = {}
-    with path.open("rb") as f:
-        for _, ch, m in make_reader(f).iter_messages(log_time_order=False):
-            parts = ch.topic.split("/")
-            name = parts[parts.index("cmd") + 1] if "cmd" in parts else parts[-1]
-            out.setdefault(name, []).append(json.loads(m.data))
-    return out
-
-
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     path = record_demo(tmp_path_factory.mktemp("runs"))
     report = load_report(path)
-    return path, raw(path), report, build_report(report)
+    return path, raw_messages(path), report, build_report(report)
 
 
 def axes_by_label(fig, ylabel: str):

@@ -6,15 +6,13 @@ file's raw JSON."""
 
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
 
 from services.logger.report import build_report, load_report
-from tests.recorded_run import record_in_process
+from tests.recorded_run import raw_messages, record_in_process
 
 LOOP = "x1"
 PLANT = {
@@ -33,23 +31,13 @@ PLANT = {
 }
 
 
-def raw(path) -> dict[str, list[dict]]:
-    out: dict[str, list[dict]] = {}
-    with path.open("rb") as f:
-        for _, ch, m in make_reader(f).iter_messages(log_time_order=False):
-            parts = ch.topic.split("/")
-            name = parts[parts.index("cmd") + 1] if "cmd" in parts else parts[-1]
-            out.setdefault(name, []).append(json.loads(m.data))
-    return out
-
-
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     out = {}
     for method in ("relay", "ramp"):
         path, live = record_in_process(tmp_path_factory.mktemp(method), "r", PLANT, LOOP, method)
         assert live.status == "ok" and live.before is not None, live.reason
-        out[method] = (raw(path), build_report(load_report(path)))
+        out[method] = (raw_messages(path), build_report(load_report(path)))
     return out
 
 
