@@ -138,20 +138,21 @@ def test_leaving_the_pv_limits_aborts_and_restores():
     assert_let_go(client)
 
 
-def test_a_batched_record_stops_at_the_crossing_with_the_loop_one_batch_ahead():
-    """The verification's record streams batches (the next one stepped while this one is
-    watched): it stops at the first sample past the PV limits, and the loop has run on to the
-    end of the batch after the one that sample was in — never further."""
+def test_a_batched_record_stops_at_the_crossing_with_the_loop_left_there():
+    """The verification's record advances in batches (to its next judging point), each
+    banded by the PV limits: it stops at the first sample past them, and the loop has not
+    run a sample further (the plant stopped the advance there)."""
     loop = third_order_loop("auto", setpoint=50.0)
     client = LocalLoopClient(loop)
     tuning = TuningRun(client, TuneRequest(loop="x", pv_limits=(40.0, 55.0)), "unit")
     start = client.sync().seq
     client.command(SetpointCommand(loop="x", sp=60.0, source=client.source))
     seconds = 20.0
-    batch = round(seconds / loop.sample_time) // 100  # the record's batch: 1 % of its samples
-    _, y, _, why = tuning._record(seconds, lambda t, y: False)
+    judge = round(seconds / loop.sample_time) // 100  # the record's judging interval
+    t, y, _, why = tuning._record(seconds, lambda t, y: False)
     assert why is not None and why.startswith("the PV left its limits [40, 55]")
     assert y[-1] > 55.0 and (y[:-1] <= 55.0).all()
     k = y.size  # samples taken, the last one past the limit
-    assert client.sync().seq - start == batch * ((k - 1) // batch + 2)
-    assert tuning._t == client.sync().t  # the run's clock is the loop's, past the drained batch
+    assert k % (8 * judge)  # mid-batch: the plant, not a judging point, ended it
+    assert client.sync().seq - start == k
+    assert tuning._t == t[-1] == client.sync().t  # the run's clock is the loop's

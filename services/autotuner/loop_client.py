@@ -12,14 +12,12 @@ the lease lapsed.
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import queue
 import secrets
 import threading
 import time
 from collections import deque
-from collections.abc import Generator
 
 import zenoh
 
@@ -391,46 +389,6 @@ class LoopClient:
         while len(out) < steps:
             out.append(self._take(steps - len(out)))
         return out
-
-    def settle(self) -> None:
-        """Lockstep: receive the samples still on their way (bounded by ``timeout``) and drop
-        them with any held back: the next exchange starts from the loop as it is now."""
-        with contextlib.suppress(AutotuneError):  # a plant lost meanwhile: said by the next
-            while self._flight > 0 and not self.gone:
-                msg = self._next(wait=self.timeout, want=self._flight)
-                if msg is None or (isinstance(msg, LoopStatus) and msg.reason == "reject"):
-                    break  # silent, or the advances refused (the lease lapsed): none coming
-                if isinstance(msg, ProcessSample):
-                    self._flight -= 1
-        self._flight = 0
-        self._held.clear()
-
-    def stream(self, steps: int, batch: int) -> Generator[ProcessSample, None, None]:
-        """The next ``steps`` samples one by one as they arrive, for a phase where the loop's
-        own PID is in charge and nothing is decided per sample (a verification). In
-        lockstep, ``batch`` samples per advance, the next advance sent as soon as at most
-        one batch is outstanding: the plant steps the next batch while this one is watched,
-        so a round trip's wait is hidden. A consumer that stops early (the PV crossed its
-        limits) leaves at most the next batch behind it: it is drained (``settle``) before
-        anything else is read, so no later exchange takes those samples for its own.
-        ``LocalLoopClient.stream`` steps the same samples."""
-        if self.info.clock != "lockstep":
-            for _ in range(steps):
-                yield self.next_sample()
-            return
-        batch = max(1, batch)
-        got = 0
-        try:
-            while got < steps:
-                coming = len(self._held) + self._flight
-                while got + coming < steps and coming <= batch:  # one more batch ahead
-                    n = min(batch, steps - got - coming)
-                    self._ask(n)
-                    coming += n
-                got += 1
-                yield self._take(min(batch, self._flight))
-        finally:
-            self.settle()
 
     def samples(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
         """The next ``steps`` samples, advancing the clock in lockstep, waiting in realtime;

@@ -749,47 +749,52 @@ class TuningRun:
         output stays saturated or the oscillation about the target grows. Returns
         (t, pv, op, why it stopped early or None).
 
-        The loop's PID is in charge: nothing is decided per sample, so the samples stream in
-        batches (``LoopClient.stream``: the next batch is stepped while this one is watched).
-        Each sample is checked against the PV limits as it arrives; the guard, ``done`` and
-        a cancel are looked at once per batch. A crossing stops the record at once: the loop
-        has run at most the batch in flight past it."""
+        The loop's PID is in charge: nothing is decided per sample. ``done`` is asked every
+        ``8·judge`` samples and the guard at the first ``judge`` boundary after each of its
+        windows (``judge`` about 1 % of the record); in lockstep the loop is advanced
+        straight to the next of those points in one round trip (``judged_batches``), the
+        plant stopping at once at a sample past the PV limits (the advance's band), so the
+        loop never runs on beyond a limit nor past the point where the record stops. In
+        realtime the samples come as the plant's clock gives them, a cancel looked at every
+        ``judge`` samples."""
         c = self.client
         n_max = max(1, round(seconds / self.ts))
-        chunk = max(1, min(MAX_CHUNK, n_max // 100))
+        judge = max(1, min(MAX_CHUNK, n_max // 100))
         t: list[float] = []
         y: list[float] = []
         u: list[float] = []
         lo, hi = self.pv_limits
+        limits = Band(lo, hi)
         guard = (
             _Guard(self.info.op_limits, window / self.ts) if window and target is not None else None
         )
         windows = 0  # the guard's whole windows already judged
-        self._check_cancel()
-        samples = c.stream(n_max, chunk)
-        try:
-            for s in samples:
+        lockstep = self.info.clock == "lockstep"
+        while len(t) < n_max:
+            self._check_cancel()
+            k = len(t)
+            upto = judged_batch_end(k, n_max, judge, guard.n if guard else None, windows)
+            if not lockstep:
+                upto = min(upto, k + judge)
+            batch = c.samples(upto - k, limits)
+            for s in batch:
                 t.append(s.t)
                 y.append(s.pv)
                 u.append(s.op)
-                self._t = s.t
-                if not lo <= s.pv <= hi:
-                    why = f"the PV left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s"
+            self._t = batch[-1].t
+            last = batch[-1]
+            if not lo <= last.pv <= hi:
+                why = f"the PV left its limits [{lo:g}, {hi:g}] at t = {last.t:g} s"
+                return np.array(t), np.array(y), np.array(u), why
+            if len(t) % judge and len(t) < n_max:
+                continue  # ended at a PV on a limit (the band's edge): not a judging point
+            if guard is not None and len(t) // guard.n > windows:
+                windows = len(t) // guard.n  # a verdict changes only with a new window
+                why = guard.check(np.asarray(y) - target, np.asarray(u))
+                if why:
                     return np.array(t), np.array(y), np.array(u), why
-                if len(t) % chunk and len(t) < n_max:
-                    continue  # the rest is judged once per batch
-                self._check_cancel()
-                if guard is not None and len(t) // guard.n > windows:
-                    windows = len(t) // guard.n  # a verdict changes only with a new window
-                    why = guard.check(np.asarray(y) - target, np.asarray(u))
-                    if why:
-                        return np.array(t), np.array(y), np.array(u), why
-                if len(t) % (chunk * 8) < chunk and done(np.array(t), np.array(y)):
-                    break
-        finally:
-            samples.close()  # the batch in flight is drained here, not by a later read
-            if c.last_sample is not None:  # the loop's time: after the batch drained
-                self._t = c.last_sample.t
+            if len(t) % (judge * 8) < judge and done(np.array(t), np.array(y)):
+                break
         return np.array(t), np.array(y), np.array(u), None
 
     def _verify(
@@ -964,6 +969,19 @@ class _LivePort:
 
     def hold_time(self) -> float:
         return self._hold
+
+
+def judged_batch_end(k: int, n_max: int, judge: int, window: int | None, windows: int) -> int:
+    """The sample count at which ``TuningRun._record``, holding ``k`` of ``n_max`` samples,
+    next judges its record: the next multiple of ``8·judge`` (``done``), the first multiple
+    of ``judge`` at or after the guard's next whole ``window`` (samples; None: no guard;
+    ``windows`` already judged), and ``n_max`` at the latest. Between two such points the
+    record is only watched for the PV limits, which the plant itself stops at."""
+    end = min(n_max, (k // (8 * judge) + 1) * (8 * judge))
+    if window is not None:
+        due = (windows + 1) * window
+        end = min(end, max(k + 1, -(-due // judge) * judge))
+    return end
 
 
 class _Guard:

@@ -14,8 +14,6 @@ plant model driven open loop, noise added.
 from __future__ import annotations
 
 import math
-from collections import deque
-from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,7 +55,6 @@ class LocalLoopClient:
         self.gone = False  # an in-process loop never goes away
         self.lease_timeout = 10.0  # s; asked for, never expires in process
         self.commands: list[Command] = []  # every accepted command, in order
-        self._ahead: deque[ProcessSample] = deque()  # stepped, not yet taken (``stream``)
 
     @property
     def holding(self) -> bool:
@@ -114,39 +111,14 @@ class LocalLoopClient:
         """Step the loop ``steps`` periods, stopping after the first sample that leaves
         ``band`` as the plant does (``AdvanceCommand.stops_at``); their samples (what the
         plant would publish)."""
-        out = until_band(self.sim.advance, steps, band)
+        out = self.sim.advance_many(steps, band.ends if band is not None else None)
         if out:
             self.last_sample = out[-1]
         return out
 
     def samples(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
-        """The next ``steps`` samples (ending with the first that leaves ``band``): any
-        stepped ahead first (``stream``)."""
-        out: list[ProcessSample] = []
-        while self._ahead and len(out) < steps:
-            out.append(self._ahead.popleft())
-            if band is not None and band.ends(out[-1].pv):
-                return out
-        return out + self.advance(steps - len(out), band) if len(out) < steps else out
-
-    def settle(self) -> None:
-        """Drop the samples stepped ahead (``LoopClient.settle``)."""
-        self._ahead.clear()
-
-    def stream(self, steps: int, batch: int) -> Generator[ProcessSample, None, None]:
-        """The next ``steps`` samples, ``batch`` per advance, one batch stepped ahead of the
-        consumer as ``LoopClient.stream`` does over the bus: the same samples, the loop left
-        at the same time when the consumer stops early."""
-        batch, got = max(1, batch), 0
-        try:
-            while got < steps:
-                while got + len(self._ahead) < steps and len(self._ahead) <= batch:
-                    n = min(batch, steps - got - len(self._ahead))
-                    self._ahead.extend(self.advance(n))
-                got += 1
-                yield self._ahead.popleft()
-        finally:
-            self.settle()
+        """The next ``steps`` samples, ending with the first that leaves ``band``."""
+        return self.advance(steps, band)
 
     def next_sample(self) -> ProcessSample:
         return self.samples(1)[0]

@@ -128,7 +128,10 @@ def tf_to_ss(num: list[float], den: list[float]) -> tuple[np.ndarray, ...]:
 
 
 class DelayedLinearSystem:
-    """State and delay line of a DiscreteDelaySystem, in deviation variables (rest = 0)."""
+    """State and delay line of a DiscreteDelaySystem, in deviation variables (rest = 0).
+
+    ``step`` runs once per sample in every loop the plant steps: the arrays it multiplies
+    are looked up once here (the very same arrays, so the arithmetic is unchanged to the bit)."""
 
     def __init__(self, sys: DiscreteDelaySystem):
         self.sys = sys
@@ -136,6 +139,13 @@ class DelayedLinearSystem:
         self._inputs: deque[float] = deque(
             [0.0] * (sys.delay_samples + 2), maxlen=sys.delay_samples + 2
         )
+        self._n = sys.delay_samples
+        self._phi = sys.phi
+        self._g_new = sys.gamma_new[:, 0]
+        # without a fractional delay Γ_old is zero: its term adds nothing (but its cost)
+        self._g_old = sys.gamma_old[:, 0] if sys.delay_fraction > 0.0 else None
+        self._c = sys.c[0]
+        self._d = sys.d
 
     def reset(self) -> None:
         """Back to rest: zero state, zero inputs in the delay line."""
@@ -145,23 +155,21 @@ class DelayedLinearSystem:
 
     def output(self) -> float:
         """y at the current sample instant (feed-through sees the input held before it)."""
-        y = float(self.sys.c[0] @ self._x) if self.sys.order else 0.0
+        y = float(self._c @ self._x) if self.sys.order else 0.0
         # After step(u[k]) the line holds u[k] at index 0; u(t_{k+1}⁻ − θ) = u[k−n] is at n.
-        return y + self.sys.d * self._inputs[self.sys.delay_samples]
+        return y + self._d * self._inputs[self._n]
 
     def step(self, u: float) -> float:
         """Hold ``u`` for one sample period; return y at the end of it."""
-        self._inputs.appendleft(float(u))
-        n = self.sys.delay_samples
-        u_new = self._inputs[n]
+        inputs, n = self._inputs, self._n
+        inputs.appendleft(float(u))
         if self.sys.order:
-            u_old = self._inputs[n + 1]
-            self._x = (
-                self.sys.phi @ self._x
-                + self.sys.gamma_new[:, 0] * u_new
-                + self.sys.gamma_old[:, 0] * u_old
-            )
-        return self.output()
+            x = self._phi @ self._x + self._g_new * inputs[n]
+            if self._g_old is not None:
+                x = x + self._g_old * inputs[n + 1]
+            self._x = x
+            return float(self._c @ x) + self._d * inputs[n]
+        return 0.0 + self._d * inputs[n]
 
 
 def simulate(sys: DiscreteDelaySystem, u: np.ndarray) -> np.ndarray:

@@ -64,21 +64,28 @@ def call_model(what: str, fn: Callable[..., Any], *args: Any) -> Any:
         with np.errstate(all="ignore"):  # overflow is judged from the value, not printed
             return fn(*args)
     except Exception as err:
-        msg = brief(err)
-        raise ModelFailure(
-            f"the model's {what} raised {type(err).__name__}{': ' + msg if msg else ''}"
-        ) from None
+        raise ModelFailure(_raised(what, err)) from None
+
+
+def _raised(what: str, err: Exception) -> str:
+    msg = brief(err)
+    return f"the model's {what} raised {type(err).__name__}{': ' + msg if msg else ''}"
 
 
 def model_pv(what: str, fn: Callable[..., Any], *args: Any) -> float:
     """A PV from the model: a finite real number, else ModelFailure."""
-    value = call_model(what, fn, *args)
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ModelFailure(f"the model's {what} returned {brief(repr(value))}, not a number")
-    pv = float(value)
-    if not math.isfinite(pv):
-        raise ModelFailure(f"the model's {what} returned PV {pv}")
-    return pv
+    return _pv_of(what, call_model(what, fn, *args))
+
+
+def _pv_of(what: str, value: Any) -> float:
+    """``value`` as a PV: a finite real number, else ModelFailure naming ``what``."""
+    if value.__class__ is not float:  # the usual answer, told from the rest at once
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ModelFailure(f"the model's {what} returned {brief(repr(value))}, not a number")
+        value = float(value)
+    if not math.isfinite(value):
+        raise ModelFailure(f"the model's {what} returned PV {value}")
+    return value
 
 
 class CommandRejected(Exception):
@@ -206,12 +213,32 @@ class SimLoop:
         present output (lockstep: the clock stands still between samples). Never raises: a
         model that fails faults the loop (see the module's doc) and the sample holds.
         """
+        with np.errstate(all="ignore"):  # overflow is judged from the value, not printed
+            return self._advance(held_op)
+
+    def advance_many(
+        self, steps: int, stops_at: Callable[[float], bool] | None = None
+    ) -> list[ProcessSample]:
+        """Lockstep: ``steps`` periods as ``advance`` does each, ending early after the first
+        sample whose PV ``stops_at`` names (an advance's ``stop_below``/``stop_above``)."""
+        out: list[ProcessSample] = []
+        with np.errstate(all="ignore"):
+            for _ in range(steps):
+                s = self._advance(None)
+                out.append(s)
+                if stops_at is not None and stops_at(s.pv):
+                    break
+        return out
+
+    def _advance(self, held_op: float | None) -> ProcessSample:
         op = self.pid.op if held_op is None else held_op
         if self.fault is None:
             try:
-                pv_true = model_pv("step()", self.process.step, op)
+                pv_true = _pv_of("step()", self.process.step(op))
             except ModelFailure as err:
                 self._set_fault(err.reason, op, self.t + self.sample_time)
+            except Exception as err:
+                self._set_fault(_raised("step()", err), op, self.t + self.sample_time)
         self.seq += 1
         if self.fault is not None:
             return self.sample()
