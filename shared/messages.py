@@ -227,9 +227,11 @@ class DisturbanceCommand(Command):
 class AdvanceCommand(Command):
     """Lockstep clock: advance the loop by ``steps`` sample periods, publishing each sample;
     with ``stop_below``/``stop_above``, stop early after the first sample whose PV is at or
-    below/above them (``stops_at``). Why: a relay decides nothing while the PV stays between
-    its levels, so it asks for a half-cycle in one round trip and the plant stops at the sample
-    where the next decision falls, which the asker then knows without being told."""
+    below/above them, with ``stop_op_below``/``stop_op_above`` likewise for its output
+    (``stops_at``). Why: a relay decides nothing while the PV stays between its levels, so it
+    asks for a half-cycle in one round trip and the plant stops at the sample where the next
+    decision falls, which the asker then knows without being told; a ramp trial also decides
+    where the output first sits at a limit."""
 
     kind: ClassVar[str] = "advance"
     steps: int = Field(default=1, ge=1, le=100_000)
@@ -239,10 +241,27 @@ class AdvanceCommand(Command):
     stop_above: float | None = Field(
         default=None, description="PV units: the advance ends with a sample at or above this"
     )
+    stop_op_below: float | None = Field(
+        default=None, description="%: the advance ends with a sample whose output is at or below"
+    )
+    stop_op_above: float | None = Field(
+        default=None, description="%: the advance ends with a sample whose output is at or above"
+    )
 
-    def stops_at(self, pv: float) -> bool:
-        """True when a sample of PV ``pv`` ends this advance (``outside``)."""
-        return outside(pv, self.stop_below, self.stop_above)
+    @property
+    def banded(self) -> bool:
+        """Whether any stop is set (else the advance runs its ``steps``)."""
+        stops = (self.stop_below, self.stop_above, self.stop_op_below, self.stop_op_above)
+        return any(x is not None for x in stops)
+
+    def stops_at(self, pv: float, op: float | None = None) -> bool:
+        """True when a sample of PV ``pv`` (and output ``op``, %) ends this advance
+        (``outside``: the PV, or the output, at or past a stop)."""
+        if outside(pv, self.stop_below, self.stop_above):
+            return True
+        if op is None or (self.stop_op_below is None and self.stop_op_above is None):
+            return False
+        return outside(op, self.stop_op_below, self.stop_op_above)
 
 
 class SyncCommand(Command):

@@ -55,7 +55,7 @@ def tune(
         calls["banded"] += band is not None
         calls["samples"] += len(out)
         if band is not None:  # every sample but the last inside the band
-            assert not any(band.ends(s.pv) for s in out[:-1])
+            assert not any(band.ends(s.pv, s.op) for s in out[:-1])
         return out
 
     with monkeypatch.context() as m:
@@ -84,8 +84,9 @@ def test_banded_runs_are_the_runs_fed_sample_by_sample(loop, request_, monkeypat
     banded, left, by_band = tune(loop, False, monkeypatch, **request_)
     assert one["status"] == "ok", one["reason"]
     assert banded == one and left == left_one
-    assert by_band["samples"] == by_one["samples"] and by_one["banded"] == 0
-    assert by_band["banded"] > 0 and by_band["batches"] < 0.25 * by_one["batches"]
+    assert by_band["samples"] == by_one["samples"]
+    # the relay's bands on top of the verification's (banded by the PV limits in both)
+    assert by_band["banded"] > by_one["banded"] and by_band["batches"] < 0.25 * by_one["batches"]
 
 
 def test_a_band_ends_at_or_past_its_bounds_and_on_a_pv_that_is_no_number():
@@ -105,9 +106,38 @@ def test_a_band_ends_at_or_past_its_bounds_and_on_a_pv_that_is_no_number():
     assert not AdvanceCommand(loop="x", steps=9).stops_at(math.nan)
 
 
+def test_a_band_with_output_bounds_ends_on_the_output_too():
+    """A ramp's band: the output (%) at or past its bounds ends a batch as the PV does; no
+    output given (a caller that reads the PV alone) or no output bounds: the PV decides."""
+    band = Band(1.0, 2.0, 10.0, 90.0)
+    assert [band.ends(1.5, op) for op in (50.0, 10.0, 90.0, 5.0, 95.0, math.nan)] == [
+        False,
+        True,
+        True,
+        True,
+        True,
+        True,
+    ]
+    assert band.ends(2.0, 50.0) and not band.ends(1.5) and not Band(1.0, 2.0).ends(1.5, 100.0)
+    assert band.op_stops() == (10.0, 90.0) and Band(1.0, 2.0).op_stops() == (None, None)
+    cmd = AdvanceCommand(loop="x", steps=9, stop_op_below=10.0, stop_op_above=90.0)
+    assert cmd.banded and not AdvanceCommand(loop="x", steps=9).banded
+    assert [cmd.stops_at(1.5, op) for op in (50.0, 10.0, 90.0, math.nan)] == [
+        False,
+        True,
+        True,
+        True,
+    ]
+    assert not cmd.stops_at(1.5) and not AdvanceCommand(loop="x", steps=9).stops_at(1.5, 100.0)
+
+
 def test_an_advance_refuses_stops_that_are_not_numbers():
     import pydantic
 
-    for bad in ('{"loop":"x","steps":3,"stop_above":"NaN"}', '{"loop":"x","stop_below":"a"}'):
+    for bad in (
+        '{"loop":"x","steps":3,"stop_above":"NaN"}',
+        '{"loop":"x","stop_below":"a"}',
+        '{"loop":"x","stop_op_above":"NaN"}',
+    ):
         with pytest.raises(pydantic.ValidationError):
             AdvanceCommand.model_validate_json(bad)

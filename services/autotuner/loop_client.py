@@ -396,7 +396,9 @@ class LoopClient:
         if self.info.clock == "lockstep":
             return self.advance(steps) if band is None else self.advance_within(steps, band)
         out: list[ProcessSample] = []
-        while len(out) < steps and not (out and band is not None and band.ends(out[-1].pv)):
+        while len(out) < steps and not (
+            out and band is not None and band.ends(out[-1].pv, out[-1].op)
+        ):
             out.append(self.next_sample())
         return out
 
@@ -408,6 +410,7 @@ class LoopClient:
         if self._held or self._flight:
             return self.advance(1)
         below, above = band.stops()
+        op_below, op_above = band.op_stops()
         s = self.last_sample
         cmd = AdvanceCommand(
             loop=self.loop,
@@ -416,13 +419,15 @@ class LoopClient:
             t=s.t if s is not None else self.last_status.t,
             stop_below=below,
             stop_above=above,
+            stop_op_below=op_below,
+            stop_op_above=op_above,
         )
         self.send(cmd)
         self._flight += steps
         out: list[ProcessSample] = []
         while self._flight > 0:
             out.append(self._take())
-            if cmd.stops_at(out[-1].pv):
+            if cmd.stops_at(out[-1].pv, out[-1].op):
                 self._flight = 0  # the plant stopped here: nothing more is coming
         return out
 

@@ -45,6 +45,7 @@ from shared.control.forms import (
 )
 from shared.errors import AutotuneError
 from shared.messages import (
+    MAX_BATCH,
     DisturbanceCommand,
     GainsCommand,
     LeaseCommand,
@@ -68,6 +69,9 @@ VERIFY_NOISE = 20.0  # … unless that leaves the step below this many σ of the
 VERIFY_MAX_KICK = 50.0  # … which a kick up to this % of output may buy…
 VERIFY_MIN_NOISE = 8.0  # … and this many σ in any case
 MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
+# samples per lockstep round trip of an experiment at most: each ends its batches exactly
+# where its next decision may fall (``horizon``, ``band``), so any cap gives the same run
+EXPERIMENT_CHUNK = MAX_BATCH
 GUARD_WINDOW = 2.0  # time scales per window of the verification's growth and saturation guard
 OP_NOISE_WARN = 5.0  # % of output (σ): more output noise than this is worth a warning
 LOSS_QUERY_TIMEOUT = 2.0  # s of wall time to find a lost plant back in reach (a reconnect)
@@ -658,7 +662,7 @@ class TuningRun:
             if not machine.finished:
                 self._report(machine)
 
-        ident = drive(machine, _LivePort(self, setup), max_chunk=MAX_CHUNK, watch=watch)
+        ident = drive(machine, _LivePort(self, setup), max_chunk=EXPERIMENT_CHUNK, watch=watch)
         self._forward_events(machine.events)
         if ident is None:
             raise TuneAborted(f"{req.method} test: {machine.reason}")

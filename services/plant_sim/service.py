@@ -342,8 +342,7 @@ class PlantService:
                 return
             had = loop.fault
             # the advance ends early with a sample its stops name (a relay's next decision)
-            banded = cmd.stop_below is not None or cmd.stop_above is not None
-            samples = loop.advance_many(cmd.steps, cmd.stops_at if banded else None)
+            samples = loop.advance_many(cmd.steps, cmd.stops_at if cmd.banded else None)
             if len(samples) == 1:
                 out.append((keys.pv(prefix, loop_id), samples[0]))
             else:  # one message per batch: a message's cost on the bus is per message

@@ -7,6 +7,7 @@ is not valid stops the client in one line naming the field."""
 from __future__ import annotations
 
 import json
+import math
 import queue
 import time
 import tomllib
@@ -20,7 +21,14 @@ from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared import keys, wire
 from shared.errors import DecodeError
-from shared.messages import MAX_BATCH, ProcessSample, ProcessSamples
+from shared.messages import (
+    MAX_BATCH,
+    GainsCommand,
+    ModeCommand,
+    PidGains,
+    ProcessSample,
+    ProcessSamples,
+)
 from shared.session import open_session
 
 pytestmark = pytest.mark.integration
@@ -130,5 +138,38 @@ def test_an_advance_with_stops_ends_at_the_first_sample_past_them(start_plant):
         assert 1 <= len(run) < 500
         assert band.ends(run[-1].pv) and not any(band.ends(s.pv) for s in run[:-1])
     assert local.sync().seq == start
+    same = local.advance(1) + [s for _ in runs for s in local.samples(500, band)]
+    assert same + local.advance(1) == got
+
+
+def test_an_advance_with_output_stops_ends_where_the_output_reaches_one(start_plant):
+    """A ramp's band over the bus: in auto at a high gain the output carries the PV's noise
+    times Kc; the plant stops after the first sample whose output is at or past an output
+    stop, and the samples are the in-process loop's."""
+    plant = start_plant(PLANT, loops=("b1",))
+    local = LocalLoopClient(build_plant(tomllib.loads(PLANT))["b1"])
+    auto = [
+        GainsCommand(loop="b1", gains=PidGains(kc=20.0), source="t"),
+        ModeCommand(loop="b1", mode="auto", source="t"),
+    ]
+    with (
+        open_session(plant.client_settings()) as session,
+        LoopClient(session, plant.prefix, "b1", timeout=10.0) as client,
+    ):
+        start = client.sync().seq
+        for cmd in auto:
+            client.command(cmd.model_copy(update={"source": client.source}))
+        first = client.advance(1)[0]
+        band = Band(-math.inf, math.inf, first.op - 1.0, first.op + 1.0)  # σ 2 % of output
+        runs = [client.samples(500, band) for _ in range(3)]
+        after = client.advance(1)
+    got = [first, *(s for run in runs for s in run), *after]
+    assert [s.seq for s in got] == list(range(start + 1, start + len(got) + 1))
+    for run in runs:
+        assert 1 <= len(run) < 500
+        assert band.ends(run[-1].pv, run[-1].op)
+        assert not any(band.ends(s.pv, s.op) for s in run[:-1])
+    for cmd in auto:
+        local.command(cmd.model_copy(update={"source": local.source}))
     same = local.advance(1) + [s for _ in runs for s in local.samples(500, band)]
     assert same + local.advance(1) == got

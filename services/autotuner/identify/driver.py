@@ -24,7 +24,7 @@ class LoopPort(Protocol):
     def samples(self, n: int, band: Band | None = None) -> Sequence[Sample]:
         """The next ``n`` samples, holding what was applied (fewer, or none, at the end of a
         record or of the time allowed); with ``band``, ending with the first sample whose PV
-        leaves it (``Band.ends``): a loop in lockstep must not step past that one."""
+        or output leaves it (``Band.ends``): a loop in lockstep must not step past that one."""
         ...
 
     def apply(self, demand: Demand, before: Demand) -> None:
@@ -81,6 +81,6 @@ def until_band(step: Callable[[], S], n: int, band: Band | None) -> list[S]:
     out: list[S] = []
     for _ in range(n):
         out.append(step())
-        if band is not None and band.ends(out[-1].pv):
+        if band is not None and band.ends(out[-1].pv, out[-1].op):
             break
     return out

@@ -208,20 +208,31 @@ class Setup:
 
 @dataclass(frozen=True)
 class Band:
-    """The PV range (PV units, open at both ends; ±inf: unbounded) inside which the samples to
-    come change nothing the loop must be told: a batch may run on while the PV stays inside,
-    and must end with the first sample at or past either bound (``shared.messages.outside``)."""
+    """The PV range (PV units, open at both ends; ±inf: unbounded), and the output's (%),
+    inside which the samples to come change nothing the loop must be told: a batch may run
+    on while both stay inside, and must end with the first sample at or past a bound
+    (``shared.messages.outside``)."""
 
     below: float
     above: float
+    op_below: float = -math.inf
+    op_above: float = math.inf
 
-    def ends(self, pv: float) -> bool:
-        """True for the sample that ends a batch."""
-        return outside(pv, _bound(self.below), _bound(self.above))
+    def ends(self, pv: float, op: float | None = None) -> bool:
+        """True for the sample (PV ``pv``, output ``op``) that ends a batch."""
+        if outside(pv, _bound(self.below), _bound(self.above)):
+            return True
+        if op is None or not (math.isfinite(self.op_below) or math.isfinite(self.op_above)):
+            return False
+        return outside(op, _bound(self.op_below), _bound(self.op_above))
 
     def stops(self) -> tuple[float | None, float | None]:
         """(stop_below, stop_above) of an AdvanceCommand: None for an unbounded side."""
         return _bound(self.below), _bound(self.above)
+
+    def op_stops(self) -> tuple[float | None, float | None]:
+        """(stop_op_below, stop_op_above) of an AdvanceCommand."""
+        return _bound(self.op_below), _bound(self.op_above)
 
 
 def _bound(x: float) -> float | None:

@@ -41,6 +41,7 @@ import numpy as np
 
 from services.autotuner.identify.experiments import (
     DIRECT_NOTE,
+    Band,
     Demand,
     Event,
     Identification,
@@ -352,8 +353,13 @@ class RampTest:
     def _saturated(self) -> bool:
         """The output has sat at a limit for a few samples in a row (2 % of a period, once
         one is known): the loop is no longer linear."""
-        n = 3 if self._period is None else max(3, math.ceil(0.02 * self._period / self.sample_time))
-        return self._sat_run >= n
+        return self._sat_run >= self._sat_samples()
+
+    def _sat_samples(self) -> int:
+        """Samples in a row at a limit that make a saturated output (``_saturated``)."""
+        if self._period is None:
+            return 3
+        return max(3, math.ceil(0.02 * self._period / self.sample_time))
 
     def _room(self) -> float:
         """% from the present output to its nearer limit (NaN if the output is not known)."""
@@ -764,10 +770,7 @@ class RampTest:
         period, or that outlasts ``settle_periods`` periods (before any period is known: trial
         lengths), is at a gain that does not calm: the gain is halved, ``max_calm_cuts`` times
         at most."""
-        scale = self._period or max(
-            self._trial_max, self._last_len, self._quiet_n * self.sample_time
-        )
-        window = max(1, round(scale / self.sample_time))
+        scale, window = self._settle_scale()
         stuck = (
             len(self._y) - self._settle_start >= window
             and self._sat_fraction(window) >= self.config.stuck_fraction
@@ -784,7 +787,7 @@ class RampTest:
             self.events.append(Event(t, "calm", {"kc": self._calm_kc, "reason": why}))
             self._settle_start, self._settle_t0, self._sat_run = len(self._y) - 1, t, 0
             return
-        window = max(20, round((self._period or 40 * self.sample_time) / self.sample_time))
+        window = self._calm_window()
         if len(self._y) - self._settle_start < window or len(self._y) % 8:
             return
         y = np.asarray(self._y[-window:])
@@ -797,17 +800,69 @@ class RampTest:
             self._trials_from_rest = False
             self._begin_trial(t)
 
+    def _settle_scale(self) -> tuple[float, int]:
+        """(s, samples): a calming's time scale — the period, else the longest trial so far
+        — over which its output must not sit at a limit half the time."""
+        scale = self._period or max(
+            self._trial_max, self._last_len, self._quiet_n * self.sample_time
+        )
+        return scale, max(1, round(scale / self.sample_time))
+
+    def _calm_window(self) -> int:
+        """Samples of the last period whose stretches must agree for the loop to be calm."""
+        return max(20, round((self._period or 40 * self.sample_time) / self.sample_time))
+
     def horizon(self, cap: int) -> int:
-        """How many samples may pass before the next decision matters (≤ ``cap``): about 2 %
-        of the oscillation's period once known, fewer early in a trial."""
-        if self._period is not None:
-            n = int(0.02 * self._period / self.sample_time)
-        else:
-            n = (len(self._y) - self._trial_start) // 50 if self.phase == "trial" else 1
+        """How many samples (≤ ``cap``, ≥ 1) may pass before the next one at which the test
+        may decide anything — change the gain or setpoint, or end — as long as the PV and the
+        output stay inside ``band()``: so a batch of that many, fed one by one, leaves the
+        test exactly where feeding them one at a time would. Each count is a lower bound
+        (a time limit is counted a sample short where rounding could put it either side)."""
+        if not self._t or self.finished:
+            return 1
+        t, n = self._t[-1], cap
+        n = min(n, self._before(self._deadline - t))
+        length = len(self._y)
+        if self.phase == "quiet":
+            n = min(n, self._quiet_n - (length - self._quiet_from))
+        elif self.phase == "trial":
+            if self._sat_run:  # the output at a limit: a run long enough cuts the trial
+                n = min(n, self._sat_samples() - self._sat_run)
+            elapsed = t - self._trial_t0
+            if self._period is not None:
+                n = min(n, self._before((self.config.trial_periods + 0.5) * self._period - elapsed))
+            else:
+                n = min(n, self._before(self._trial_cap() - elapsed))
+                n = min(n, self._next_check - (length - self._trial_start))
+        elif self.phase == "settle":
+            if self._sat_run:
+                return 1  # how long the calming has sat at a limit counts sample by sample
+            scale, window = self._settle_scale()
+            if length - self._settle_start < window:
+                n = min(n, self._settle_start + window - length)
+            n = min(n, self._before(self.config.settle_periods * scale - (t - self._settle_t0)))
+            first = max(length + 1, self._settle_start + self._calm_window())
+            n = min(n, -(-first // 8) * 8 - length)  # the calm check: every 8th sample
         return max(1, min(cap, n))
 
-    def band(self) -> None:
-        return None  # a trial is judged on its fit, wherever the PV is
+    def band(self) -> Band:
+        """The PV limits (and in a trial the swing limit about the rest, ±``swing_limit``·bump),
+        and, while the output is off its limits, its limits: the first sample at one of them
+        starts the count of a saturated output."""
+        lo, hi = self.pv_limits
+        if self.phase == "trial":
+            swing = self.config.swing_limit * self._trial_bump
+            lo, hi = max(lo, self._r - swing), min(hi, self._r + swing)
+        if self._sat_run:
+            return Band(lo, hi)
+        op_lo, op_hi = self.op_limits
+        eps = 1e-6 * (op_hi - op_lo)  # as ``_watch_output`` tells a sample at a limit
+        return Band(lo, hi, op_lo + eps, op_hi - eps)
+
+    def _before(self, seconds: float) -> int:
+        """Samples that surely pass before ``seconds`` more of sim time have (≥ 1)."""
+        x = seconds / self.sample_time
+        return max(1, math.floor(x - 1e-6)) if math.isfinite(x) else 1 << 30
 
     @property
     def demand_kc(self) -> float:

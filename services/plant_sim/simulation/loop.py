@@ -217,16 +217,16 @@ class SimLoop:
             return self._advance(held_op)
 
     def advance_many(
-        self, steps: int, stops_at: Callable[[float], bool] | None = None
+        self, steps: int, stops_at: Callable[[float, float], bool] | None = None
     ) -> list[ProcessSample]:
         """Lockstep: ``steps`` periods as ``advance`` does each, ending early after the first
-        sample whose PV ``stops_at`` names (an advance's ``stop_below``/``stop_above``)."""
+        sample whose PV and output ``stops_at`` names (an advance's stops)."""
         out: list[ProcessSample] = []
         with np.errstate(all="ignore"):
             for _ in range(steps):
                 s = self._advance(None)
                 out.append(s)
-                if stops_at is not None and stops_at(s.pv):
+                if stops_at is not None and stops_at(s.pv, s.op):
                     break
         return out
 

@@ -1,0 +1,171 @@
+"""The P-gain ramp in few lockstep round trips: ``RampTest.horizon`` counts the samples up to
+the next one at which the test may decide anything, and ``RampTest.band`` ends a batch at the
+first sample past the PV limits, the trial's swing limit, or with the output at a limit — so
+a run in batches is the run fed sample by sample: the same samples, events, trials and
+result, to the bit. Checked on the ramp's hard cases (output saturating at rest and in a
+trial, start gains far too high, budgets running out) and on whole live-path runs of the
+preset loops and a direct-acting loop."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections import Counter
+from importlib.resources import files
+
+import numpy as np
+import pytest
+
+from services.autotuner.identify.driver import drive
+from services.autotuner.identify.ramp import RampConfig, RampTest
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient, SimLoopPort
+from shared.messages import GainsCommand, PidGains, TuneRequest
+from tests.test_ramp_limits import (
+    RELAY_SWING,
+    fopdt_ultimate,
+    hx_ultimate,
+    lags_ultimate,
+    make_loop,
+    ramp_for,
+)
+from tests.test_relay_band import DIRECT
+
+PLANT = tomllib.loads(files("services.plant_sim").joinpath("plants/default.toml").read_text())
+
+
+def lag_dominated():
+    ku, pu = fopdt_ultimate(1.0, 50.0, 1.0)
+    loop = make_loop([1.0], [50.0, 1.0], 1.0, pu / 400, noise=0.01 * RELAY_SWING / ku, seed=3)
+    return loop, ramp_for(loop), 400 * pu
+
+
+def huge_start(noise: float):
+    def build():
+        ku, pu = fopdt_ultimate(1.0, 1.0, 1.0)
+        loop = make_loop([1.0], [1.0, 1.0], 1.0, pu / 400, noise=noise * RELAY_SWING / ku, seed=1)
+        return loop, ramp_for(loop, kc_start=1e6), 200 * pu
+
+    return build
+
+
+def saturating_trial():
+    _, pu = hx_ultimate()
+    loop = make_loop([1.0], [600.0, 70.0, 1.0], 5.0, 0.05, kc=4.0)
+    return loop, ramp_for(loop), 200 * pu
+
+
+def eight_lags():
+    ku, pu = lags_ultimate(8)
+    den = [float(c) for c in np.poly([-1.0] * 8)]
+    loop = make_loop([1.0], den, 0.0, pu / 400, noise=0.01 * RELAY_SWING / ku, seed=2)
+    return loop, ramp_for(loop), 200 * pu
+
+
+def budget(**limits):
+    """A 4-lag loop whose budget (``total_periods``; ``max_time`` in exact periods) runs out."""
+
+    def build():
+        ku, pu = lags_ultimate(4)
+        ts = pu / 400
+        loop = make_loop([1.0], [float(c) for c in np.poly([-1.0] * 4)], 0.0, ts)
+        scaled = {k: v * pu if k == "max_time" else v for k, v in limits.items()}
+        cfg = RampConfig(kc_start=0.3 * ku, bump=1.0, **scaled)
+        test = RampTest(cfg, (0.0, 100.0), ts, sp_start=loop.pv, op_limits=(0.0, 100.0))
+        loop.apply(GainsCommand(loop="x", gains=PidGains(kc=cfg.kc_start)))
+        return loop, test, 200 * pu
+
+    return build
+
+
+def swinging():
+    """A tight swing limit on a noisy loop: trials cut by the swing band."""
+    ku, pu = lags_ultimate(3)
+    ts = pu / 200
+    loop = make_loop([1.0], [1.0, 3.0, 3.0, 1.0], 0.0, ts, noise=0.05, seed=4)
+    cfg = RampConfig(kc_start=0.5 * ku, bump=1.0, swing_limit=1.5)
+    test = RampTest(cfg, (0.0, 100.0), ts, sp_start=loop.pv, op_limits=(0.0, 100.0))
+    loop.apply(GainsCommand(loop="x", gains=PidGains(kc=cfg.kc_start)))
+    return loop, test, 300 * pu
+
+
+CASES = {
+    "lag-dominated": lag_dominated,
+    "huge-start-noise": huge_start(0.01),
+    "huge-start-quiet": huge_start(0.0),
+    "saturating-trial": saturating_trial,
+    "eight-lags": eight_lags,
+    "period-budget": budget(total_periods=6.0),
+    "max-time": budget(max_time=5.0),
+    "swing-limit": swinging,
+}
+
+
+def run(case: str, cap: int):
+    loop, test, limit = CASES[case]()
+    port = SimLoopPort(loop, present_first=True, limit=limit)
+    calls: Counter[str] = Counter()
+    take = port.samples
+
+    def counted(n, band=None):
+        out = take(n, band)
+        calls["batches"] += 1
+        if band is not None:  # every sample but the last inside the band
+            assert not any(band.ends(s.pv, s.op) for s in out[:-1])
+        return out
+
+    port.samples = counted
+    drive(test, port, held=port.held_now(), max_chunk=cap)
+    record = (test._t, test._y, test._u, test.events, test.trials, test.phase, test.reason)
+    return record, test.result, (loop.seq, loop.pv, loop.op, loop.sp), calls, test
+
+
+def _kinds(test: RampTest) -> list[str]:
+    return [e[1] for e in test.events]
+
+
+# what each case is there for (else it tests less than it says)
+REACHES = {
+    "lag-dominated": lambda t: t.result is not None and "bump" in _kinds(t),
+    "huge-start-noise": lambda t: "back_off" in _kinds(t),
+    "huge-start-quiet": lambda t: "back_off" in _kinds(t),
+    "saturating-trial": lambda t: "saturated" in _kinds(t),
+    "eight-lags": lambda t: t.finished,
+    "period-budget": lambda t: "periods" in t.reason,
+    "max-time": lambda t: "max_time" in t.reason,
+    "swing-limit": lambda t: any(tr.cut_short for tr in t.trials),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_batched_ramp_is_the_ramp_fed_sample_by_sample(case: str) -> None:
+    one, result_one, left_one, by_one, _ = run(case, 1)
+    batched, result, left, by_batch, test = run(case, 1024)
+    assert REACHES[case](test), case
+    assert batched == one
+    assert repr(result) == repr(result_one)  # NaN-safe, to the bit
+    assert left == left_one
+    assert by_batch["batches"] < 0.5 * by_one["batches"]
+
+
+def tune(loop: str, per_sample: bool, monkeypatch, plant: dict = PLANT) -> tuple[dict, tuple]:
+    """A whole live-path ramp run on a fresh loop: its result (less its wall time) and the
+    loop as left."""
+    from services.plant_sim.plant_file import build_plant
+
+    sim = build_plant(plant, "default")[loop]
+    with monkeypatch.context() as m:
+        if per_sample:
+            m.setattr(RampTest, "horizon", lambda self, cap: 1)
+        req = TuneRequest(loop=loop, method="ramp")
+        result = TuningRun(LocalLoopClient(sim), req, "band").run().model_dump()
+    result.pop("wall_time")
+    return result, (sim.seq, sim.pv, sim.op, sim.sp, sim.mode)
+
+
+@pytest.mark.parametrize(("loop", "plant"), [("hx1", PLANT), ("flow1", PLANT), ("d1", DIRECT)])
+def test_live_ramp_runs_are_the_runs_fed_sample_by_sample(loop, plant, monkeypatch) -> None:
+    one, left_one = tune(loop, True, monkeypatch, plant)
+    batched, left = tune(loop, False, monkeypatch, plant)
+    assert one["ku"] is not None and math.isfinite(one["ku"]), one["reason"]
+    assert batched == one and left == left_one
