@@ -36,7 +36,7 @@ PLANT = tomllib.loads(files("services.plant_sim").joinpath("plants/default.toml"
 
 def lag_dominated():
     ku, pu = fopdt_ultimate(1.0, 50.0, 1.0)
-    loop = make_loop([1.0], [50.0, 1.0], 1.0, pu / 400, noise=0.01 * RELAY_SWING / ku, seed=3)
+    loop = make_loop([1.0], [50.0, 1.0], 1.0, pu / 100, noise=0.01 * RELAY_SWING / ku, seed=3)
     return loop, ramp_for(loop), 400 * pu
 
 
