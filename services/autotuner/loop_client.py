@@ -331,6 +331,11 @@ class LoopClient:
             if isinstance(msg, ProcessSample) and self._flight > 0:  # asked for: kept
                 self._flight -= 1
                 self._held.append(msg)
+            elif isinstance(msg, ProcessSample) and self.info.clock != "lockstep":
+                # realtime: the loop went on while the sync waited; its samples are the
+                # run's as much as any (an experiment that missed them would decide on a
+                # record with holes, and a replay of the file, which has them, otherwise)
+                self._held.append(msg)
             if isinstance(msg, LoopStatus) and msg.sync_token in tokens:
                 self._refused = msg.sync_rejected or 0
                 self._loop_refused = msg.rejected
@@ -435,6 +440,8 @@ class LoopClient:
         """The next sample: in lockstep, advance the loop one period first."""
         if self.info.clock == "lockstep":
             return self.advance(1)[0]
+        if self._held:  # those that came while a command was confirmed, in order
+            return self._held.popleft()
         while True:
             self._keep_lease()
             msg = self._next()
