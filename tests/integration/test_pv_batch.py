@@ -117,10 +117,11 @@ def test_a_bad_batch_stops_the_client_in_one_line_naming_the_field(start_plant):
                     client.advance(2)
 
 
-def test_an_advance_with_stops_ends_at_the_first_sample_past_them(start_plant):
-    """A relay's band over the bus: the plant stops after the first sample at or past a stop,
-    the client knows it has (no sample more comes: the next advance carries on from there),
-    and the samples are the in-process loop's."""
+def _banded_runs(start_plant, band_about, commands=()) -> None:
+    """Three banded advances over the bus (the band from the first sample: ``band_about``),
+    after ``commands``: each ends at the first sample past the band (the client knows it has:
+    no sample more comes, the next advance carries on from there), and the samples are the
+    in-process loop's."""
     plant = start_plant(PLANT, loops=("b1",))
     local = LocalLoopClient(build_plant(tomllib.loads(PLANT))["b1"])
     with (
@@ -128,39 +129,10 @@ def test_an_advance_with_stops_ends_at_the_first_sample_past_them(start_plant):
         LoopClient(session, plant.prefix, "b1", timeout=10.0) as client,
     ):
         start = client.sync().seq
-        first = client.advance(1)[0]
-        band = Band(first.pv - 0.2, first.pv + 0.2)  # σ 0.1 of noise leaves it soon
-        runs = [client.samples(500, band) for _ in range(3)]
-        after = client.advance(1)
-    got = [first, *(s for run in runs for s in run), *after]
-    assert [s.seq for s in got] == list(range(start + 1, start + len(got) + 1))
-    for run in runs:
-        assert 1 <= len(run) < 500
-        assert band.ends(run[-1].pv) and not any(band.ends(s.pv) for s in run[:-1])
-    assert local.sync().seq == start
-    same = local.advance(1) + [s for _ in runs for s in local.samples(500, band)]
-    assert same + local.advance(1) == got
-
-
-def test_an_advance_with_output_stops_ends_where_the_output_reaches_one(start_plant):
-    """A ramp's band over the bus: in auto at a high gain the output carries the PV's noise
-    times Kc; the plant stops after the first sample whose output is at or past an output
-    stop, and the samples are the in-process loop's."""
-    plant = start_plant(PLANT, loops=("b1",))
-    local = LocalLoopClient(build_plant(tomllib.loads(PLANT))["b1"])
-    auto = [
-        GainsCommand(loop="b1", gains=PidGains(kc=20.0), source="t"),
-        ModeCommand(loop="b1", mode="auto", source="t"),
-    ]
-    with (
-        open_session(plant.client_settings()) as session,
-        LoopClient(session, plant.prefix, "b1", timeout=10.0) as client,
-    ):
-        start = client.sync().seq
-        for cmd in auto:
+        for cmd in commands:
             client.command(cmd.model_copy(update={"source": client.source}))
         first = client.advance(1)[0]
-        band = Band(-math.inf, math.inf, first.op - 1.0, first.op + 1.0)  # σ 2 % of output
+        band = band_about(first)
         runs = [client.samples(500, band) for _ in range(3)]
         after = client.advance(1)
     got = [first, *(s for run in runs for s in run), *after]
@@ -169,7 +141,25 @@ def test_an_advance_with_output_stops_ends_where_the_output_reaches_one(start_pl
         assert 1 <= len(run) < 500
         assert band.ends(run[-1].pv, run[-1].op)
         assert not any(band.ends(s.pv, s.op) for s in run[:-1])
-    for cmd in auto:
+    assert local.sync().seq == start
+    for cmd in commands:
         local.command(cmd.model_copy(update={"source": local.source}))
     same = local.advance(1) + [s for _ in runs for s in local.samples(500, band)]
     assert same + local.advance(1) == got
+
+
+def test_an_advance_with_stops_ends_at_the_first_sample_past_them(start_plant):
+    """A relay's band over the bus: PV stops (σ 0.1 of noise leaves ±0.2 soon)."""
+    _banded_runs(start_plant, lambda first: Band(first.pv - 0.2, first.pv + 0.2))
+
+
+def test_an_advance_with_output_stops_ends_where_the_output_reaches_one(start_plant):
+    """A ramp's band over the bus: output stops. In auto at a high gain the output carries
+    the PV's noise times Kc (σ 2 % of output: ±1 % is soon left)."""
+    auto = [
+        GainsCommand(loop="b1", gains=PidGains(kc=20.0), source="t"),
+        ModeCommand(loop="b1", mode="auto", source="t"),
+    ]
+    _banded_runs(
+        start_plant, lambda first: Band(-math.inf, math.inf, first.op - 1.0, first.op + 1.0), auto
+    )
