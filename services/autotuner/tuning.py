@@ -756,7 +756,7 @@ class TuningRun:
         The loop's PID is in charge: nothing is decided per sample. ``done`` is asked every
         ``8·judge`` samples and the guard at the first ``judge`` boundary after each of its
         windows (``judge`` about 1 % of the record); in lockstep the loop is advanced
-        straight to the next of those points in one round trip (``judged_batches``), the
+        straight to the next of those points in one round trip (``judged_batch_end``), the
         plant stopping at once at a sample past the PV limits (the advance's band), so the
         loop never runs on beyond a limit nor past the point where the record stops. In
         realtime the samples come as the plant's clock gives them, a cancel looked at every
