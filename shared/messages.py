@@ -304,7 +304,9 @@ COMMANDS: dict[str, type[Command]] = {
 }
 
 Method = Literal["relay", "ramp", "step"]
-RunStatus = Literal["ok", "rejected", "aborted", "failed"]
+# ``ok``: the gains were verified on the loop and passed; ``unverified``: applied without
+# verification, as ``verify = false`` asks (not known to be safe); the rest: nothing applied
+RunStatus = Literal["ok", "unverified", "rejected", "aborted", "failed"]
 
 
 class TuneRequest(Message):

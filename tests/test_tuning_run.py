@@ -156,3 +156,21 @@ def test_a_batched_record_stops_at_the_crossing_with_the_loop_left_there():
     assert k % (8 * judge)  # mid-batch: the plant, not a judging point, ended it
     assert client.sync().seq - start == k
     assert tuning._t == t[-1] == client.sync().t  # the run's clock is the loop's
+
+
+def test_gains_applied_without_verification_are_unverified_never_ok():
+    """``ok`` means the gains were tried on the loop and passed. Applied without verification
+    (``verify = false``, ``--no-verify``), the run says so: status ``unverified`` with the
+    reason, the gains in the loop (``applied``), no verification figures; verified, ``ok``
+    carries its acceptance."""
+    unverified = TuningRun(
+        LocalLoopClient(third_order_loop()), TuneRequest(loop="x", verify=False), "unit"
+    ).run()
+    assert unverified.status == "unverified" and unverified.applied is True
+    assert "without verification" in unverified.reason and "not known to be safe" in (
+        unverified.reason
+    )
+    assert unverified.after is None and unverified.acceptance is None
+    verified = TuningRun(LocalLoopClient(third_order_loop()), TuneRequest(loop="x"), "unit").run()
+    assert verified.status == "ok" and verified.applied is True and verified.reason is None
+    assert verified.after is not None and verified.acceptance["passed"] is True

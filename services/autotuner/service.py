@@ -29,7 +29,7 @@ from services.autotuner.compute_pool import ComputePool, inline
 from services.autotuner.design.request_check import validate_request
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
 from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
-from services.autotuner.tuning import RunHooks, TuningRun
+from services.autotuner.tuning import APPLIED_STATUSES, RunHooks, TuningRun
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
 from shared.errors import AutotuneError, ConfigError, DecodeError
@@ -66,7 +66,7 @@ def watched(result: TuneResult, info: LoopInfo, status: LoopStatus) -> Watched |
     """What to watch after ``result`` (None unless ok with its gains applied): T_u from the
     run's P_u (else the loop's Ti), the loop's ranges, action and integral action as the run
     left them (``status``), its verification as the baseline."""
-    if result.status != "ok" or not result.applied:
+    if result.status not in APPLIED_STATUSES or not result.applied:
         return None
     period, source = choose_period(None, result.pu, status.gains.ti, info.sample_time)
     return Watched(loop_watcher(period, source, info, status, result.model_dump()), info.pv_units)
@@ -179,7 +179,7 @@ class TunerService:
                 self.active.pop(req.loop, None)
         with self.lock:
             self.results[req.loop] = result
-        if seen is not None and result.status == "ok" and result.applied:
+        if seen is not None and result.status in APPLIED_STATUSES and result.applied:
             self._monitor(req.loop, result, *seen)
         wire.put(s, keys.tune_result(p, req.loop), result)
         token.undeclare()

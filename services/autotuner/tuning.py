@@ -69,6 +69,8 @@ VERIFY_NOISE = 20.0  # … unless that leaves the step below this many σ of the
 VERIFY_MAX_KICK = 50.0  # … which a kick up to this % of output may buy…
 VERIFY_MIN_NOISE = 8.0  # … and this many σ in any case
 MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
+# the statuses of a run that may have left its gains in the loop (``applied`` says whether)
+APPLIED_STATUSES = ("ok", "unverified")
 # samples per lockstep round trip of an experiment at most: each ends its batches exactly
 # where its next decision may fall (``horizon``, ``band``), so any cap gives the same run
 EXPERIMENT_CHUNK = MAX_BATCH
@@ -281,6 +283,12 @@ class TuningRun:
                 self._restore()
                 restored = True
             status = "ok" if result.get("applied") or not req.apply else "rejected"
+            if result.get("applied") and not req.verify:  # not tried on the loop: not ok
+                status = "unverified"
+                result["reason"] = (
+                    "applied without verification (verify = false, --no-verify): the gains "
+                    "were not tried on the loop, so they are not known to be safe"
+                )
             result.update(status=status, restored=restored)
         except LeaseLost as err:  # the plant took the loop back and restored it: hands off
             wait_back = False
@@ -307,7 +315,7 @@ class TuningRun:
                     c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
         scale = ident.timescale if ident is not None and ident.timescale > 0 else None
         cancelled = self.hooks.cancelled is not None and self.hooks.cancelled.is_set()
-        if result.get("status") != "ok" and (c.gone or not result.get("restored")):
+        if result.get("status") not in APPLIED_STATUSES and (c.gone or not result.get("restored")):
             # cut off from the plant, or the restore failed: its watchdog restores the loop
             # when our run token vanishes or our lease lapses; say what it shows
             left = self._seen_after_loss(before)

@@ -180,7 +180,7 @@ def test_up_with_a_router_tunes_and_stops_cleanly_on_ctrl_c(tmp_path):
     client = ["--prefix", "upt", "-m", "client", "-e", endpoint, "--no-multicast-scouting"]
     assert cli("health", "tuner", *client).returncode == 0
     r = json.loads(cli("tune", "hx1", "--json", "--no-verify", *client).stdout)
-    assert r["status"] == "ok" and r["applied"] is True
+    assert r["status"] == "unverified" and r["applied"] is True
     tune = subprocess.Popen(
         [
             sys.executable,

@@ -281,7 +281,7 @@ def test_a_viewer_can_neither_command_release_nor_publish_a_result(secure):
         assert hammered["by_kind"]["token/running"] > 2
         assert events.get("tune/hx1/running PUT") == 1, events
         assert events.get("tune/hx1/running DELETE", 0) <= 1, events
-        assert result.status == "ok" and result.applied and result.reason is None
+        assert result.status == "unverified" and result.applied  # verify=False: not ok
         assert [r.run_id for r in results.got] == [accepted.run_id]  # the tuner's only
         assert len(answers) == 1 and wire.decode_sample(LoopStatus, answers[0]).node == "plant"
         assert [str(t.ok.key_expr) for t in tuners] == [keys.tuner_alive(p, "tuner")]
@@ -297,7 +297,7 @@ def test_a_viewer_can_neither_command_release_nor_publish_a_result(secure):
                 break
             time.sleep(0.1)
         meta, records = read_run(files[0])
-        assert meta["status"] == "ok"
+        assert meta["status"] == "unverified"
         assert not [r for r in records if rogue.is_rogue(r.topic[1:], r.data)]
         assert st.invalid == logger_before.invalid  # the logger was handed nothing forged
     finally:

@@ -655,6 +655,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             )
     state = (
         "new gains applied, loop in auto"
+        + (", NOT verified (--no-verify)" if r.status == "unverified" else "")
         if r.applied
         else "loop restored to its state before the test"
         if r.restored
@@ -704,7 +705,8 @@ def run_and_report(
     check: Callable[[zenoh.Session], None] | None = None,
 ) -> int:
     """Submit ``req``, follow the run to its result and print it (``--json`` or text in
-    ``--units``); exit 0 for ``ok``, 1 otherwise. ``check`` runs on the open session first
+    ``--units``); exit 0 for ``ok`` (and ``unverified``: applied as ``--no-verify`` asked), 1
+    otherwise. ``check`` runs on the open session first
     (raising stops it before anything is sent)."""
     # a terminal closed or a service manager's stop cancels the run like Ctrl-C: the tuner
     # restores the loop, and the result is still waited for
@@ -728,4 +730,4 @@ def run_and_report(
         if args.json
         else format_result(result, args.units)
     )
-    return 0 if result.status == "ok" else 1
+    return 0 if result.status in ("ok", "unverified") else 1

@@ -77,9 +77,12 @@ class Baseline:
 
     @classmethod
     def from_result(cls, result: dict[str, Any] | None) -> Baseline | None:
-        """From a TuneResult as a plain dict (``model_dump()``): None unless the run was ok and
-        left its gains applied (nothing of it is then in the loop)."""
-        if not result or result.get("status") != "ok" or not result.get("applied"):
+        """From a TuneResult as a plain dict (``model_dump()``): None unless the run left its
+        gains applied (nothing of it is then in the loop): ``ok``, or ``unverified`` (applied
+        without verification: no verification figures to compare with)."""
+        if not result or result.get("status") not in ("ok", "unverified"):
+            return None
+        if not result.get("applied"):
             return None
         after = result.get("after") or {}
         rest = result.get("rest") or {}
