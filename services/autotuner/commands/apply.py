@@ -9,9 +9,11 @@ within the safety envelope the run judged them by (the recommended rule always i
 rule must have been judged within it, or be below the run's K_u where no model judged it).
 The autotuner then applies them bumplessly and verifies them exactly as a tune would (a
 setpoint step and a load step against the acceptance limits, the previous gains restored if
-they fail), unless ``--no-verify``; the result is a run of its own (``applied_from`` names
-the recorded run), and the logger records the change. Exit 0 when the gains were applied
-and verified; 1 when the autotuner rejected them (the loop restored); 2 when nothing was sent.
+they fail), unless ``--no-verify`` (the run then ends ``unverified``, not ``ok``); the result
+is a run of its own (``applied_from`` names the recorded run), and the logger records the
+change. Exit 0 when the gains were applied and verified (or applied unverified, as
+``--no-verify`` asks); 1 when the autotuner rejected them (the loop restored); 2 when nothing
+was sent.
 """
 
 from __future__ import annotations
