@@ -12,7 +12,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.control.pid import Action, Mode, PidSettings
-from shared.control.signals import outside
+from shared.control.signals import ends_batch
 
 ClockMode = Literal["lockstep", "realtime"]
 
@@ -256,12 +256,9 @@ class AdvanceCommand(Command):
 
     def stops_at(self, pv: float, op: float | None = None) -> bool:
         """True when a sample of PV ``pv`` (and output ``op``, %) ends this advance
-        (``outside``: the PV, or the output, at or past a stop)."""
-        if outside(pv, self.stop_below, self.stop_above):
-            return True
-        if op is None or (self.stop_op_below is None and self.stop_op_above is None):
-            return False
-        return outside(op, self.stop_op_below, self.stop_op_above)
+        (``ends_batch``: the PV, or the output, at or past a stop)."""
+        pv_stops = (self.stop_below, self.stop_above)
+        return ends_batch(pv, op, pv_stops, (self.stop_op_below, self.stop_op_above))
 
 
 class SyncCommand(Command):

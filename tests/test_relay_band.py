@@ -91,14 +91,8 @@ def test_banded_runs_are_the_runs_fed_sample_by_sample(loop, request_, monkeypat
 
 def test_a_band_ends_at_or_past_its_bounds_and_on_a_pv_that_is_no_number():
     band = Band(1.0, 2.0)
-    assert [band.ends(x) for x in (1.5, 1.0, 2.0, 0.5, 2.5, math.nan)] == [
-        False,
-        True,
-        True,
-        True,
-        True,
-        True,
-    ]
+    inside, edges = 1.5, (1.0, 2.0, 0.5, 2.5, math.nan)  # at, past, not a number
+    assert not band.ends(inside) and all(band.ends(x) for x in edges)
     assert not Band(-math.inf, math.inf).ends(1e300)
     assert Band(-math.inf, 3.0).stops() == (None, 3.0)
     cmd = AdvanceCommand(loop="x", steps=9, stop_below=1.0, stop_above=2.0)
@@ -110,24 +104,13 @@ def test_a_band_with_output_bounds_ends_on_the_output_too():
     """A ramp's band: the output (%) at or past its bounds ends a batch as the PV does; no
     output given (a caller that reads the PV alone) or no output bounds: the PV decides."""
     band = Band(1.0, 2.0, 10.0, 90.0)
-    assert [band.ends(1.5, op) for op in (50.0, 10.0, 90.0, 5.0, 95.0, math.nan)] == [
-        False,
-        True,
-        True,
-        True,
-        True,
-        True,
-    ]
+    edges = (10.0, 90.0, 5.0, 95.0, math.nan)  # at, past, not a number
+    assert not band.ends(1.5, 50.0) and all(band.ends(1.5, op) for op in edges)
     assert band.ends(2.0, 50.0) and not band.ends(1.5) and not Band(1.0, 2.0).ends(1.5, 100.0)
     assert band.op_stops() == (10.0, 90.0) and Band(1.0, 2.0).op_stops() == (None, None)
     cmd = AdvanceCommand(loop="x", steps=9, stop_op_below=10.0, stop_op_above=90.0)
     assert cmd.banded and not AdvanceCommand(loop="x", steps=9).banded
-    assert [cmd.stops_at(1.5, op) for op in (50.0, 10.0, 90.0, math.nan)] == [
-        False,
-        True,
-        True,
-        True,
-    ]
+    assert not cmd.stops_at(1.5, 50.0) and all(cmd.stops_at(1.5, op) for op in edges)
     assert not cmd.stops_at(1.5) and not AdvanceCommand(loop="x", steps=9).stops_at(1.5, 100.0)
 
 

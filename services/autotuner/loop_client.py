@@ -21,6 +21,7 @@ from collections import deque
 
 import zenoh
 
+from services.autotuner.identify.driver import until_band
 from services.autotuner.identify.experiments import Band
 from shared import keys, wire
 from shared.errors import AutotuneError, DecodeError
@@ -130,7 +131,8 @@ class LoopClient:
         self._pv_key = keys.pv(prefix, loop)
         self._batch_key = keys.pv_batch(prefix, loop)
         # lockstep: samples asked for by advances and not yet received; those received while
-        # waiting for a sync's answer are held back for the next taker, in order
+        # waiting for a sync's answer (in realtime, every one) are held back for the next
+        # taker, in order
         self._flight = 0
         self._held: deque[ProcessSample] = deque()
         self._sub = session.declare_subscriber(keys.loop_feed(prefix, loop), self._read)
@@ -400,12 +402,7 @@ class LoopClient:
         with ``band``, ending with the first whose PV leaves it (``advance_within``)."""
         if self.info.clock == "lockstep":
             return self.advance(steps) if band is None else self.advance_within(steps, band)
-        out: list[ProcessSample] = []
-        while len(out) < steps and not (
-            out and band is not None and band.ends(out[-1].pv, out[-1].op)
-        ):
-            out.append(self.next_sample())
-        return out
+        return until_band(self.next_sample, steps, band)
 
     def advance_within(self, steps: int, band: Band) -> list[ProcessSample]:
         """Lockstep: up to ``steps`` samples in one round trip, the plant stopping after the

@@ -161,3 +161,19 @@ def outside(pv: float, below: float | None, above: float | None) -> bool:
     ends (``identify.experiments.Band``) — one test, so that the plant and the tuner agree on
     the sample that ends a batch."""
     return not ((below is None or pv > below) and (above is None or pv < above))
+
+
+def ends_batch(
+    pv: float,
+    op: float | None,
+    pv_stops: tuple[float | None, float | None],
+    op_stops: tuple[float | None, float | None],
+) -> bool:
+    """A sample (PV ``pv``, output ``op`` %, None: not known) ends a banded batch: its PV at
+    or past a PV stop, or its output at or past an output stop (``outside``; a side with no
+    stop is None). The one test of the plant's advance and the tuner's band."""
+    if outside(pv, *pv_stops):
+        return True
+    if op is None or op_stops == (None, None):
+        return False
+    return outside(op, *op_stops)

@@ -18,7 +18,7 @@ from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
-from shared.control.signals import Sample, outside
+from shared.control.signals import Sample, ends_batch
 
 
 @dataclass(frozen=True)
@@ -211,7 +211,7 @@ class Band:
     """The PV range (PV units, open at both ends; ±inf: unbounded), and the output's (%),
     inside which the samples to come change nothing the loop must be told: a batch may run
     on while both stay inside, and must end with the first sample at or past a bound
-    (``shared.messages.outside``)."""
+    (``shared.control.signals.ends_batch``)."""
 
     below: float
     above: float
@@ -220,11 +220,7 @@ class Band:
 
     def ends(self, pv: float, op: float | None = None) -> bool:
         """True for the sample (PV ``pv``, output ``op``) that ends a batch."""
-        if outside(pv, _bound(self.below), _bound(self.above)):
-            return True
-        if op is None or not (math.isfinite(self.op_below) or math.isfinite(self.op_above)):
-            return False
-        return outside(op, _bound(self.op_below), _bound(self.op_above))
+        return ends_batch(pv, op, self.stops(), self.op_stops())
 
     def stops(self) -> tuple[float | None, float | None]:
         """(stop_below, stop_above) of an AdvanceCommand: None for an unbounded side."""
@@ -270,8 +266,8 @@ class Experiment(Protocol):
         ...
 
     def band(self) -> Band | None:
-        """The PV band within which the next ``horizon`` samples decide nothing (None: any
-        sample's PV may matter only by count, as ``horizon`` says)."""
+        """The PV (and output) band within which the next ``horizon`` samples decide nothing
+        (None: any sample may matter only by count, as ``horizon`` says)."""
         ...
 
     def progress(self) -> Progress: ...
