@@ -304,6 +304,8 @@ Method = Literal["relay", "ramp", "step"]
 # ``ok``: the gains were verified on the loop and passed; ``unverified``: applied without
 # verification, as ``verify = false`` asks (not known to be safe); the rest: nothing applied
 RunStatus = Literal["ok", "unverified", "rejected", "aborted", "failed"]
+# the statuses of a run that may have left its gains in the loop (``applied`` says whether)
+APPLIED_STATUSES: tuple[RunStatus, ...] = ("ok", "unverified")
 
 
 class TuneRequest(Message):

@@ -29,12 +29,13 @@ from services.autotuner.compute_pool import ComputePool, inline
 from services.autotuner.design.request_check import validate_request
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
 from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
-from services.autotuner.tuning import APPLIED_STATUSES, RunHooks, TuningRun
+from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.identity import auth_user
 from shared.messages import (
+    APPLIED_STATUSES,
     LoopInfo,
     LoopMonitor,
     LoopStatus,

@@ -45,6 +45,7 @@ from shared.control.forms import (
 )
 from shared.errors import AutotuneError
 from shared.messages import (
+    APPLIED_STATUSES,
     MAX_BATCH,
     DisturbanceCommand,
     GainsCommand,
@@ -69,8 +70,6 @@ VERIFY_NOISE = 20.0  # … unless that leaves the step below this many σ of the
 VERIFY_MAX_KICK = 50.0  # … which a kick up to this % of output may buy…
 VERIFY_MIN_NOISE = 8.0  # … and this many σ in any case
 MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
-# the statuses of a run that may have left its gains in the loop (``applied`` says whether)
-APPLIED_STATUSES = ("ok", "unverified")
 # samples per lockstep round trip of an experiment at most: each ends its batches exactly
 # where its next decision may fall (``horizon``, ``band``), so any cap gives the same run
 EXPERIMENT_CHUNK = MAX_BATCH

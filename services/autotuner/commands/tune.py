@@ -37,7 +37,14 @@ from shared.control.forms import (
     to_percent,
 )
 from shared.errors import AutotuneError, ConfigError
-from shared.messages import LoopStatus, TuneAccepted, TuneProgress, TuneRequest, TuneResult
+from shared.messages import (
+    APPLIED_STATUSES,
+    LoopStatus,
+    TuneAccepted,
+    TuneProgress,
+    TuneRequest,
+    TuneResult,
+)
 from shared.session import open_session, settings_from_args
 
 HELP = "tune a loop through the running autotuner (relay, ramp or step test)"
@@ -730,4 +737,4 @@ def run_and_report(
         if args.json
         else format_result(result, args.units)
     )
-    return 0 if result.status in ("ok", "unverified") else 1
+    return 0 if result.status in APPLIED_STATUSES else 1

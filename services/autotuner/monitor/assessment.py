@@ -80,6 +80,7 @@ class Baseline:
         """From a TuneResult as a plain dict (``model_dump()``): None unless the run left its
         gains applied (nothing of it is then in the loop): ``ok``, or ``unverified`` (applied
         without verification: no verification figures to compare with)."""
+        # ``shared.messages.APPLIED_STATUSES``, written out: the monitor core imports no pydantic
         if not result or result.get("status") not in ("ok", "unverified"):
             return None
         if not result.get("applied"):
