@@ -114,9 +114,7 @@ class DecayingSine:
         x = np.asarray(p, dtype=float)
         e, s, ae, aes, f0 = self._factors(x)
         tt, y = self.tt, self.y
-        sign = (x >= 0).astype(float) * 2 - 1
-        h = _FD_STEP * sign * np.maximum(1.0, np.abs(x))
-        xh = [x[i] + h[i] for i in range(5)]  # each parameter stepped alone
+        xh = forward_steps(x)
         c, a, _, w, phi = x
         stepped = (
             xh[0] + aes - y,
@@ -125,10 +123,92 @@ class DecayingSine:
             c + ae * np.sin(xh[3] * tt + phi) - y,
             c + ae * np.sin(w * tt + xh[4]) - y,
         )
-        jt = np.empty((5, f0.size))
-        for i, fi in enumerate(stepped):
-            jt[i] = (fi - f0) / (xh[i] - x[i])
-        return jt.T
+        return _quotients(stepped, f0, xh, x)
+
+
+class DriftingSine:
+    """``DecayingSine`` with a slow real mode beside it: c + b·e^{−λ·t} + A·e^{g·t}·sin(ω·t + φ)
+    − y, p = (c, A, g, ω, φ, b, λ), for a fit within bounds (``lb``, ``ub``): its forward
+    differences are scipy's ``'2-point'`` ones with the steps scipy takes at those bounds."""
+
+    def __init__(self, tt: np.ndarray, y: np.ndarray, lb: np.ndarray, ub: np.ndarray):
+        self.tt = tt  # s from the record's start
+        self.y = y
+        self.lb = np.asarray(lb, dtype=float)
+        self.ub = np.asarray(ub, dtype=float)
+        self._at: bytes | None = None
+        self._parts: tuple[np.ndarray, ...] = ()
+
+    def _factors(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        """e^{−λ·t}, c + b·e^{−λ·t}, e^{g·t}, sin(ω·t + φ), A·e^{g·t}, A·e^{g·t}·sin(ω·t + φ)
+        and the residual at ``p`` (kept for the next call at the same p)."""
+        key = p.tobytes()
+        if key != self._at:
+            c, a, g, w, phi, b, lam = p
+            drift = np.exp(-lam * self.tt)
+            base = c + b * drift
+            e = np.exp(g * self.tt)
+            s = np.sin(w * self.tt + phi)
+            ae = a * e
+            aes = ae * s
+            self._parts = (drift, base, e, s, ae, aes, base + aes - self.y)
+            self._at = key
+        return self._parts
+
+    def resid(self, p: np.ndarray) -> np.ndarray:
+        return self._factors(np.asarray(p, dtype=float))[6].copy()
+
+    def jac(self, p: np.ndarray) -> np.ndarray:
+        """∂resid/∂p, (samples × 7), as ``approx_derivative(resid, p, '2-point', bounds=…)``."""
+        x = np.asarray(p, dtype=float)
+        drift, base, e, s, ae, aes, f0 = self._factors(x)
+        tt, y = self.tt, self.y
+        xh = forward_steps(x, self.lb, self.ub)
+        c, a, _, w, phi, b, _ = x
+        stepped = (
+            xh[0] + b * drift + aes - y,
+            base + xh[1] * e * s - y,
+            base + a * np.exp(xh[2] * tt) * s - y,
+            base + ae * np.sin(xh[3] * tt + phi) - y,
+            base + ae * np.sin(w * tt + xh[4]) - y,
+            c + xh[5] * drift + aes - y,
+            c + b * np.exp(-xh[6] * tt) + aes - y,
+        )
+        return _quotients(stepped, f0, xh, x)
+
+
+def forward_steps(
+    x: np.ndarray, lb: np.ndarray | None = None, ub: np.ndarray | None = None
+) -> list[float]:
+    """Each parameter stepped alone, as scipy's ``'2-point'`` scheme steps it: by √ε·max(1,
+    |x|) with x's sign, turned back where the step would cross a bound and cut to the
+    bound where neither direction fits (``_numdiff._adjust_scheme_to_bounds``, 1-sided)."""
+    sign = (x >= 0).astype(float) * 2 - 1
+    h = _FD_STEP * sign * np.maximum(1.0, np.abs(x))
+    if lb is not None and ub is not None and not np.all((lb == -np.inf) & (ub == np.inf)):
+        h_adjusted = h.copy()
+        lower_dist, upper_dist = x - lb, ub - x
+        stepped = x + h
+        violated = (stepped < lb) | (stepped > ub)
+        fitting = np.abs(h) <= np.maximum(lower_dist, upper_dist)
+        h_adjusted[violated & fitting] *= -1
+        forward = (upper_dist >= lower_dist) & ~fitting
+        h_adjusted[forward] = upper_dist[forward] / 1
+        backward = (upper_dist < lower_dist) & ~fitting
+        h_adjusted[backward] = -lower_dist[backward] / 1
+        h = h_adjusted
+    return [x[i] + h[i] for i in range(x.size)]
+
+
+def _quotients(
+    stepped: tuple[np.ndarray, ...], f0: np.ndarray, xh: list[float], x: np.ndarray
+) -> np.ndarray:
+    """The Jacobian (samples × parameters) from the residuals with each parameter stepped:
+    (f(x + hᵢ) − f(x)) / ((xᵢ + hᵢ) − xᵢ), laid out as scipy returns it."""
+    jt = np.empty((len(stepped), f0.size))
+    for i, fi in enumerate(stepped):
+        jt[i] = (fi - f0) / (xh[i] - x[i])
+    return jt.T
 
 
 def swings(t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None = None) -> int:
@@ -162,18 +242,15 @@ def _with_slow_mode(tt: np.ndarray, y: np.ndarray, p0: np.ndarray, rms0: float):
     c, a, g, w, phi = p0
     span = float(tt[-1] - tt[0]) or 1.0
 
-    def resid(p: np.ndarray) -> np.ndarray:
-        c, a, g, w, phi, b, lam = p
-        return c + b * np.exp(-lam * tt) + a * np.exp(g * tt) * np.sin(w * tt + phi) - y
-
     best = None
     for lam0 in (1.0 / span, 4.0 / span):
         b0 = float(y[0] - c - a * math.sin(phi))
         x0 = [c, a, g, w, phi, b0, lam0]
         lo = [-np.inf, -np.inf, -np.inf, 0.5 * w, -np.inf, -np.inf, 0.1 / span]
         hi = [np.inf, np.inf, np.inf, 2.0 * w, np.inf, np.inf, 0.5 * w]
+        model = DriftingSine(tt, y, np.array(lo), np.array(hi))
         try:
-            sol = least_squares(resid, x0, bounds=(lo, hi), max_nfev=400)
+            sol = least_squares(model.resid, x0, jac=model.jac, bounds=(lo, hi), max_nfev=400)
         except (ValueError, FloatingPointError):
             continue
         if np.all(np.isfinite(sol.x)) and (best is None or sol.cost < best.cost):
