@@ -25,7 +25,10 @@ def encoding_for(model: type[Message]) -> zenoh.Encoding:
 
 
 def encode(msg: Message) -> bytes:
-    return msg.model_dump_json().encode()
+    """``msg``'s JSON, the bytes of ``msg.model_dump_json().encode()``: the model's own
+    serializer called directly (a third of the cost: no keyword handling, no str round trip;
+    the logger encodes every sample of a batch this way)."""
+    return type(msg).__pydantic_serializer__.to_json(msg)
 
 
 def put(session: zenoh.Session, key: str, msg: Message) -> None:

@@ -193,6 +193,7 @@ def test_round_trip_with_its_encoding(msg: Message) -> None:
     assert encoding == f"application/json;{model.__name__}"
     payload = wire.encode(msg)
     assert json.loads(payload) == msg.model_dump(mode="json")  # plain JSON, every field
+    assert payload == msg.model_dump_json().encode()  # the model's own dump, to the byte
     assert wire.decode(model, payload, encoding) == msg
     assert wire.decode(model, payload) == msg  # no encoding: the model decides
 

@@ -57,7 +57,7 @@ import pydantic
 
 from services.logger.mcap_io import RunWriter, log_time_zero
 from services.logger.record_form import recorded_payload
-from shared import keys
+from shared import keys, wire
 from shared.errors import ConfigError
 from shared.messages import (
     COMMANDS,
@@ -170,7 +170,7 @@ class Stream:
 
 def _encoded(sample: ProcessSample) -> bytes:
     """A sample's JSON as the plant puts it on ``pv`` (``wire.encode``: the model's dump)."""
-    return sample.model_dump_json().encode()
+    return wire.encode(sample)
 
 
 def model_for(prefix: str, key: str) -> tuple[str, type[Message]] | None:

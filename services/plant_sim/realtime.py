@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 from services.plant_sim.simulation.linear_batch import LinearBatch, batch_key, batchable
 from services.plant_sim.simulation.loop import SimLoop
+from shared import wire
 from shared.messages import ProcessSample
 
 # A JSON object the same as ProcessSample.model_dump_json()'s up to number formatting
@@ -125,7 +126,7 @@ class RealtimeSteppers:
                 faulted.append(lp)
                 left.append(lp)
                 group.held[b.ids[j]] = lp.op
-                samples.append((b.ids[j], lp.sample().model_dump_json().encode()))
+                samples.append((b.ids[j], wire.encode(lp.sample())))
             live = b.active.nonzero()[0].tolist()
             seq, pv, sp, op, auto = (a.tolist() for a in (b.seq, b.pv, b.sp, b.op, b.auto))
             tt = (b.seq * b.sample_time).tolist()
@@ -141,6 +142,6 @@ class RealtimeSteppers:
             group.held[lid] = s.op
             if lp.fault and not had:
                 faulted.append(lp)
-            samples.append((lid, s.model_dump_json().encode()))
+            samples.append((lid, wire.encode(s)))
         group.singles += left
         return Tick(samples, faulted)
