@@ -193,9 +193,9 @@ def forward_steps(
         fitting = np.abs(h) <= np.maximum(lower_dist, upper_dist)
         h_adjusted[violated & fitting] *= -1
         forward = (upper_dist >= lower_dist) & ~fitting
-        h_adjusted[forward] = upper_dist[forward] / 1
+        h_adjusted[forward] = upper_dist[forward]  # num_steps 1
         backward = (upper_dist < lower_dist) & ~fitting
-        h_adjusted[backward] = -lower_dist[backward] / 1
+        h_adjusted[backward] = -lower_dist[backward]
         h = h_adjusted
     return [x[i] + h[i] for i in range(x.size)]
 
