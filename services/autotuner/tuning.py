@@ -618,6 +618,8 @@ class TuningRun:
             # acts on the process
             "direction": 1.0 if b.action == "reverse" else -1.0,
         }
+        if self.info.clock == "realtime":  # a command takes effect at the next sample
+            common["outputs_from_samples"] = True
         if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
             common["time_scale"] = self._rest["window"]
         if methods.method(req.method).closed_loop:

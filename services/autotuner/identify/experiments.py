@@ -181,6 +181,10 @@ class Setup:
     sp_start: float | None = None  # closed-loop tests: the setpoint at the start
     op_start: float | None = None  # open-loop tests: the output held at the start, %
     direction: float | None = None  # +1 reverse-acting loop, −1 direct (None: unrecorded, +1)
+    # True on the realtime clock: a changed output is held from the sample after the one that
+    # caused it (or later), so an output record is read from the samples, each of which
+    # carries the output held from it (None: lockstep, held from the sample that caused it)
+    outputs_from_samples: bool | None = None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

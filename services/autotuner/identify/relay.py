@@ -153,6 +153,9 @@ class RelayTest:
     pv_limits: tuple[float, float]
     sample_time: float
     direction: float = 1.0  # +1 reverse-acting loop (PV rises with the output), −1 direct
+    # the realtime clock: a switch takes effect at the next sample (or later), so the record
+    # takes each sample's own output, not the relay's decision at it (``Setup``)
+    outputs_from_samples: bool = False
 
     phase: str = "quiet"  # quiet → relay → stage2 → done | aborted
     reason: str = ""
@@ -208,7 +211,7 @@ class RelayTest:
 
     def feed(self, sample: Sample) -> Demand:
         """Take the PV sampled at ``sample.t``; return the output to hold from then on."""
-        self._demand = Demand(op=self._feed(sample.t, sample.pv))
+        self._demand = Demand(op=self._feed(sample.t, sample.pv, sample.op))
         return self._demand
 
     def held(self, t: float) -> None:
@@ -308,7 +311,13 @@ class RelayTest:
         self.events.append(Event(self.t[-1] if self.t else 0.0, "aborted", {"reason": reason}))
         return self.op_start
 
-    def _feed(self, t: float, pv: float) -> float:
+    def _feed(self, t: float, pv: float, held: float) -> float:
+        """Take the PV at ``t``; ``held``: the output the sample says is held from ``t``.
+        The record's output at ``t`` is the relay's decision there (lockstep: it holds from
+        that very sample), or, with ``outputs_from_samples``, the sample's own: on the
+        realtime clock a switch holds from the next sample, and a record of the decisions
+        would put every switch a sample early (K_u 5–6 % low, P_u 3–4 % long on hx1 and
+        flow1)."""
         if self.finished:
             return self.op_start
         self.t.append(t)
@@ -317,7 +326,8 @@ class RelayTest:
         if not lo <= pv <= hi:
             return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")
         out = self._quiet(t) if self.phase == "quiet" else self._relay(t, pv)
-        self.op.append(out)
+        # in the loop's sense (``_actual`` is its own inverse)
+        self.op.append(self._actual(held) if self.outputs_from_samples else out)
         return self._actual(out)
 
     def _quiet(self, t: float) -> float:
@@ -663,4 +673,12 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         low_ratio=1.0 - settings.relay_bias,
         **budget,
     )
-    return RelayTest(cfg, setup.op_start, setup.op_limits, setup.pv_limits, ts, setup.direction)
+    return RelayTest(
+        cfg,
+        setup.op_start,
+        setup.op_limits,
+        setup.pv_limits,
+        ts,
+        setup.direction,
+        outputs_from_samples=bool(setup.outputs_from_samples),
+    )
