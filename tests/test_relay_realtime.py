@@ -44,8 +44,11 @@ class RealtimePort:
         return (self.k + 1) * self.ts
 
 
-def _relay_on_realtime(outputs_from_samples: bool) -> RelayTest:
+def _relay_on_realtime(outputs_from_samples: bool, direction: float) -> RelayTest:
+    """The relay on the heat exchanger; ``direction`` −1: a direct-acting loop (the process's
+    gain negative), whose outputs the relay records mirrored, in the loop's own sense."""
     num, den, delay, ts = HX
+    num = [direction * c for c in num]
     model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
     model.reset()
     setup = Setup(
@@ -55,7 +58,7 @@ def _relay_on_realtime(outputs_from_samples: bool) -> RelayTest:
         pv_lo=-1e6,
         pv_hi=1e6,
         op_start=50.0,
-        direction=1.0,
+        direction=direction,
         outputs_from_samples=outputs_from_samples or None,
     )
     test = build(Settings(), setup)
@@ -64,19 +67,21 @@ def _relay_on_realtime(outputs_from_samples: bool) -> RelayTest:
     return test
 
 
-def test_recorded_from_the_samples_the_ultimate_point_is_the_processs():
+@pytest.mark.parametrize("direction", [1.0, -1.0], ids=["reverse", "direct"])
+def test_recorded_from_the_samples_the_ultimate_point_is_the_processs(direction):
     ku, pu = ultimate_point(*HX[:3])
-    r = _relay_on_realtime(True).result
+    r = _relay_on_realtime(True, direction).result
     assert r is not None
     assert r.ku == pytest.approx(ku, rel=0.01)
     assert r.pu == pytest.approx(pu, rel=0.01)
 
 
-def test_recorded_as_decided_every_switch_is_a_sample_early_and_the_point_is_off():
+@pytest.mark.parametrize("direction", [1.0, -1.0], ids=["reverse", "direct"])
+def test_recorded_as_decided_every_switch_is_a_sample_early_and_the_point_is_off(direction):
     """What the relay measured on this clock before (K_u 5 % low on hx1): the check above
     is not one any record would pass."""
     ku, pu = ultimate_point(*HX[:3])
-    r = _relay_on_realtime(False).result
+    r = _relay_on_realtime(False, direction).result
     assert r is not None
     assert r.ku < 0.97 * ku and r.pu > 1.02 * pu
 
