@@ -74,7 +74,31 @@ def fit_oscillation(
 _FD_STEP = float(np.finfo(np.float64).eps ** 0.5)
 
 
-class DecayingSine:
+class _Residuals:
+    """A model's residuals over a record (``tt``: s from its start, ``y``), their factors kept
+    for the next call at the same parameters: MINPACK asks for the Jacobian where it has just
+    evaluated the residuals. ``_evaluate`` returns the factors, the residual last."""
+
+    def __init__(self, tt: np.ndarray, y: np.ndarray):
+        self.tt = tt
+        self.y = y
+        self._at: bytes | None = None  # the parameters of the factors below
+        self._parts: tuple[np.ndarray, ...] = ()
+
+    def _evaluate(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        raise NotImplementedError
+
+    def _factors(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        key = p.tobytes()
+        if key != self._at:
+            self._parts, self._at = self._evaluate(p), key
+        return self._parts
+
+    def resid(self, p: np.ndarray) -> np.ndarray:
+        return self._factors(np.asarray(p, dtype=float))[-1].copy()
+
+
+class DecayingSine(_Residuals):
     """Residuals of c + A·e^{g·t}·sin(ω·t + φ) − y over a record, p = (c, A, g, ω, φ), and
     their Jacobian by forward differences: the very numbers scipy's ``'2-point'`` scheme
     gives (its steps, each element by the same operations in the same order), so a fit is
@@ -83,29 +107,14 @@ class DecayingSine:
     each) and none of the finite-difference machinery — the sinusoid fits were most of a
     ramp trial's wall time."""
 
-    def __init__(self, tt: np.ndarray, y: np.ndarray):
-        self.tt = tt  # s from the record's start
-        self.y = y
-        self._at: bytes | None = None  # the parameters of the factors below
-        self._parts: tuple[np.ndarray, ...] = ()
-
-    def _factors(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
-        """e^{g·t}, sin(ω·t + φ), A·e^{g·t}, A·e^{g·t}·sin(ω·t + φ) and the residual at ``p``
-        (kept for the next call at the same p: MINPACK asks for the Jacobian where it has
-        just evaluated the residuals)."""
-        key = p.tobytes()
-        if key != self._at:
-            c, a, g, w, phi = p
-            e = np.exp(g * self.tt)
-            s = np.sin(w * self.tt + phi)
-            ae = a * e
-            aes = ae * s
-            self._parts = (e, s, ae, aes, c + aes - self.y)
-            self._at = key
-        return self._parts
-
-    def resid(self, p: np.ndarray) -> np.ndarray:
-        return self._factors(np.asarray(p, dtype=float))[4].copy()
+    def _evaluate(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        """e^{g·t}, sin(ω·t + φ), A·e^{g·t}, A·e^{g·t}·sin(ω·t + φ), the residual."""
+        c, a, g, w, phi = p
+        e = np.exp(g * self.tt)
+        s = np.sin(w * self.tt + phi)
+        ae = a * e
+        aes = ae * s
+        return e, s, ae, aes, c + aes - self.y
 
     def jac(self, p: np.ndarray) -> np.ndarray:
         """∂resid/∂p, (samples × 5), as ``approx_derivative(resid, p, '2-point')``: the
@@ -126,37 +135,27 @@ class DecayingSine:
         return _quotients(stepped, f0, xh, x)
 
 
-class DriftingSine:
+class DriftingSine(_Residuals):
     """``DecayingSine`` with a slow real mode beside it: c + b·e^{−λ·t} + A·e^{g·t}·sin(ω·t + φ)
     − y, p = (c, A, g, ω, φ, b, λ), for a fit within bounds (``lb``, ``ub``): its forward
     differences are scipy's ``'2-point'`` ones with the steps scipy takes at those bounds."""
 
     def __init__(self, tt: np.ndarray, y: np.ndarray, lb: np.ndarray, ub: np.ndarray):
-        self.tt = tt  # s from the record's start
-        self.y = y
+        super().__init__(tt, y)
         self.lb = np.asarray(lb, dtype=float)
         self.ub = np.asarray(ub, dtype=float)
-        self._at: bytes | None = None
-        self._parts: tuple[np.ndarray, ...] = ()
 
-    def _factors(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
-        """e^{−λ·t}, c + b·e^{−λ·t}, e^{g·t}, sin(ω·t + φ), A·e^{g·t}, A·e^{g·t}·sin(ω·t + φ)
-        and the residual at ``p`` (kept for the next call at the same p)."""
-        key = p.tobytes()
-        if key != self._at:
-            c, a, g, w, phi, b, lam = p
-            drift = np.exp(-lam * self.tt)
-            base = c + b * drift
-            e = np.exp(g * self.tt)
-            s = np.sin(w * self.tt + phi)
-            ae = a * e
-            aes = ae * s
-            self._parts = (drift, base, e, s, ae, aes, base + aes - self.y)
-            self._at = key
-        return self._parts
-
-    def resid(self, p: np.ndarray) -> np.ndarray:
-        return self._factors(np.asarray(p, dtype=float))[6].copy()
+    def _evaluate(self, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        """e^{−λ·t}, c + b·e^{−λ·t}, e^{g·t}, sin(ω·t + φ), A·e^{g·t}, A·e^{g·t}·sin(ω·t + φ),
+        the residual."""
+        c, a, g, w, phi, b, lam = p
+        drift = np.exp(-lam * self.tt)
+        base = c + b * drift
+        e = np.exp(g * self.tt)
+        s = np.sin(w * self.tt + phi)
+        ae = a * e
+        aes = ae * s
+        return drift, base, e, s, ae, aes, base + aes - self.y
 
     def jac(self, p: np.ndarray) -> np.ndarray:
         """∂resid/∂p, (samples × 7), as ``approx_derivative(resid, p, '2-point', bounds=…)``."""
