@@ -185,6 +185,10 @@ class Setup:
     # caused it (or later), so an output record is read from the samples, each of which
     # carries the output held from it (None: lockstep, held from the sample that caused it)
     outputs_from_samples: bool | None = None
+    # True: a relay test whose stage 2 is stuck for a stage-1 period sets it again from the
+    # cycle it got (``RelayConfig.stuck_periods``); None: a run recorded before, whose stage 2
+    # was abandoned there instead (so its replay makes the live run's decisions)
+    stage_two_rearm: bool | None = None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

@@ -44,7 +44,7 @@ from services.autotuner.identify.experiments import (
     Settings,
     Setup,
 )
-from services.autotuner.identify.fourier import frequency_points
+from services.autotuner.identify.fourier import FrequencyPoint, frequency_points
 from services.autotuner.identify.relay_estimate import (
     EstimateConfig,
     StageOne,
@@ -118,6 +118,10 @@ class RelayConfig:
     # stage 2 with a lead: the next switch is armed this fraction of the way from the level
     # to the expected peak, so that noise cannot make it chatter
     lead_fraction: float = 0.5
+    # stage 2: no switch for this many of stage 1's periods (over the low output's share,
+    # with a bias) means the lead shrank the cycle short of its lockout: the lockout is set
+    # again from the peak the PV reached, once (None: never; stage 2 is abandoned instead)
+    stuck_periods: float | None = 1.0
     # the K_u/P_u estimator's thresholds (relay_estimate)
     estimate: EstimateConfig = field(default_factory=EstimateConfig)
 
@@ -194,6 +198,12 @@ class RelayTest:
         self._switch_armed = True  # the next switch may happen (stage 2's lead needs a lockout)
         self._margin = 0.0  # how far past the opposite level the PV must go to arm a switch
         self._cross_margin = 0.0  # how far below r the PV must go to arm a cycle's crossing
+        self._switched_at = math.nan  # s: the last switch
+        self._extreme = math.nan  # the PV's farthest since then towards arming the next switch
+        self._rearmed = False  # stage 2's lockout was set again from the cycle it got
+        self._aim = 0.0  # rad: stage 2 aims its level at a·sin(_aim)
+        self._stage_two_from = 0  # stage 2's cycles count from this many
+        self._stage_two_start = math.nan  # s: its patience runs from here
         self._agreement = cfg.tolerance  # asked of the cycles (wider with noise)
         self._low = 1.0  # the low output is b − low·d (stage 2: the bias)
         self._stage1: StageOne | None = None
@@ -226,12 +236,16 @@ class RelayTest:
             return max(1, min(cap, self._quiet_samples - len(self.pv)))
         if self.phase not in ("relay", "stage2") or not self.t:
             return 1
-        t, cfg = self.t[-1], self.config
+        t = self.t[-1]
         deadlines = [self._relay_start + self._budget()]
         s1 = self._stage1
         if self.phase == "stage2" and s1 is not None:
-            deadlines.append(s1.t_end + cfg.stage_two_patience * cfg.stage_two_cycles * s1.pu)
-        # the first sample past a deadline must be a batch's last: stop one short of it
+            deadlines.append(self._stage_two_deadline())
+            stuck = self._stuck_at()
+            if stuck is not None:
+                deadlines.append(stuck)
+        # the first sample past a deadline must be a batch's last: stop one short of it (past
+        # the stuck one, each sample may show the PV turned back: one at a time)
         room = math.floor((min(deadlines) - t) / self.sample_time) - 1
         return max(1, min(cap, room))
 
@@ -361,15 +375,18 @@ class RelayTest:
         return self._out()
 
     def _relay(self, t: float, pv: float) -> float:
+        self._arm(pv)
+        stuck = self._stuck_at()
+        if stuck is not None and t >= stuck and abs(pv - self._extreme) > self._margin:
+            self._rearm(t)  # overdue, and the PV turned back from short of arming the switch
         cfg, r, h = self.config, self._r, self._level
-        self._arm(pv)
         if self._switch_armed and self._state > 0 and pv > r + h:
-            self._state, self._switch_armed = -1.0, False
-            self.events.append(Event(t, "switch", {"op": self._actual(self._out())}))
+            self._switch(t, pv, -1.0)
         elif self._switch_armed and self._state < 0 and pv < r - h:
-            self._state, self._switch_armed = 1.0, False
-            self.events.append(Event(t, "switch", {"op": self._actual(self._out())}))
+            self._switch(t, pv, 1.0)
         self._arm(pv)
+        # the PV's trough while high, its peak while low, since the last switch
+        self._extreme = (min if self._state > 0 else max)(self._extreme, pv)
         if self._state > 0 and pv < r - self._cross_margin:
             # the next upward crossing of r closes a cycle: the relay is high and the PV has
             # been below r by the margin (stage 2 may switch high while still above r, so
@@ -393,15 +410,15 @@ class RelayTest:
                 self._close_cycle(self._crossings[-2], tc)
                 if self.finished:
                     return self.op_start
-        s1 = self._stage1
-        if (
-            self.phase == "stage2"
-            and s1 is not None
-            and t - s1.t_end > cfg.stage_two_patience * cfg.stage_two_cycles * s1.pu
-        ):
-            # stage 2 never settled into its cycle: keep what stage 1 measured
-            self.events.append(Event(t, "stage", {"stage": 2, "abandoned": True}))
-            self._conclude(stage_two=False)
+        if self.phase == "stage2" and t - self._stage_two_deadline() > 0:
+            if self._rearmed and len(self.cycles) - self._stage_two_from >= cfg.stage_two_cycles:
+                # set again, its cycle is still converging: its last cycle is its closest
+                self.events.append(Event(t, "stage", {"stage": 2, "unsettled": True}))
+                self._conclude()
+            else:
+                # stage 2 never settled into its cycle: keep what stage 1 measured
+                self.events.append(Event(t, "stage", {"stage": 2, "abandoned": True}))
+                self._conclude(stage_two=False)
             return self.op_start if self.finished else self._out()
         budget = self._budget()
         if t - self._relay_start > budget:
@@ -410,6 +427,63 @@ class RelayTest:
                 f"{len(self.cycles)} cycles and {t - self._relay_start:g} s"
             )
         return self._out()
+
+    def _switch(self, t: float, pv: float, state: float) -> None:
+        self._state, self._switch_armed = state, False
+        self._switched_at, self._extreme = t, pv
+        self.events.append(Event(t, "switch", {"op": self._actual(self._out())}))
+
+    def _stage_two_deadline(self) -> float:
+        """Stage 2 is abandoned past this (s): its cycles' worth of stage 1's period, times
+        ``stage_two_patience``, from its start (or from its lockout set again)."""
+        cfg, s1 = self.config, self._stage1
+        assert s1 is not None
+        return self._stage_two_start + cfg.stage_two_patience * cfg.stage_two_cycles * s1.pu
+
+    def _stuck_at(self) -> float | None:
+        """When (s) stage 2's relay, still locked out of its next switch, counts as stuck: a
+        lead shrinks the cycle (a higher frequency, a smaller gain), and one set from stage
+        1's amplitude can then lock out a PV that turns before its margin. Once only."""
+        s1 = self._stage1
+        if self.phase != "stage2" or self._rearmed or self._switch_armed or s1 is None:
+            return None
+        if math.isnan(self._switched_at) or self.config.stuck_periods is None:
+            return None
+        share = max(1.0, 1.0 / self._low)  # a biased low output makes that half slower
+        return self._switched_at + self.config.stuck_periods * s1.pu * share
+
+    def _rearm(self, t: float) -> None:
+        """Stage 2 got stuck (``_stuck_at``): aim again at the same phase with the amplitude
+        the PV reached since the last switch (the level, the lockout and the crossing's
+        margin), and arm the switch. Its cycles and its patience count from here; it ends on
+        two that agree, or, out of patience, on its last (``_relay``)."""
+        cfg = self.config
+        reached = abs(self._extreme - self._r) if math.isfinite(self._extreme) else 0.0
+        a = max(reached, self._eps)
+        self._level = a * math.sin(self._aim)
+        self._margin = max(self._eps, cfg.lead_fraction * (a - abs(self._level)))
+        self._cross_margin = max(self._eps, cfg.cross_fraction * a)
+        self._switch_armed, self._rearmed = True, True
+        # the cycle under way is cut short by the forced switch: it does not count either
+        self._stage_two_from, self._stage_two_start = len(self.cycles) + 1, t
+        self.events.append(
+            Event(t, "stage", {"stage": 2, "rearmed": True, "level": self._level, "amplitude": a})
+        )
+
+    def _moved(self, point: FrequencyPoint) -> bool:
+        """Stage 2's point lies at least ``min_shift_deg`` from stage 1's: two points, not
+        one measured twice (whose difference, their noise, would be read as a slope)."""
+        assert self._stage1 is not None
+        first = self._stage1.points[0]
+        return abs(point.phase_deg - first.phase_deg) >= self.config.min_shift_deg
+
+    def _settled(self) -> bool:
+        """The last two cycles agree (period and amplitude) as stage 1's had to: after a
+        forced switch (``_rearm``) stage 2's cycle takes more than one cycle to settle."""
+        last, before = self.cycles[-1], self.cycles[-2]
+        return spread([last.period, before.period]) <= self._agreement and (
+            spread([last.amplitude, before.amplitude]) <= self._agreement
+        )
 
     def _budget(self) -> float:
         """The relay's time budget, s from its start: ``max_time``, then, once there are a
@@ -472,7 +546,9 @@ class RelayTest:
                 self.events.append(Event(t1, "bias", {"bias": self._actual(self.bias)}))
         if self.phase == "stage2":
             assert self._stage1 is not None
-            if len(self.cycles) - self._stage1.cycles >= cfg.stage_two_cycles:
+            if len(self.cycles) - self._stage_two_from >= cfg.stage_two_cycles and (
+                not self._rearmed or self._settled()
+            ):
                 self._conclude()
             return
         n = cfg.cycles
@@ -547,7 +623,7 @@ class RelayTest:
         shift = miss + sign * max(cfg.overshoot * abs(miss), math.radians(cfg.min_shift_deg))
         now = math.asin(min(self._eps / a, 1.0)) if a > 0 else 0.0
         bound = math.radians(cfg.max_level_deg)
-        target = min(max(now - shift, -bound), bound)
+        target = self._aim = min(max(now - shift, -bound), bound)
         self._level = a * math.sin(target)
         self._cross_margin = max(self._eps, cfg.cross_fraction * a)
         if self._level < self._eps:
@@ -560,6 +636,7 @@ class RelayTest:
         # new level for going high again
         self._switch_armed = self._state > 0
         self._arm(self.pv[-1])
+        self._stage_two_from, self._stage_two_start = len(self.cycles), s1.t_end
         self.phase = "stage2"
         self.events.append(
             Event(t, "stage", {"stage": 2, "level": self._level, "low_ratio": self._low})
@@ -610,6 +687,8 @@ class RelayTest:
                 )
             except ValueError:
                 second = ()
+            if second and self._rearmed and not self._moved(second[0]):
+                second = ()  # set again, the cycle went back to stage 1's: no second point
             if second:
                 correct = corrector(record, s1.window, (c.t_start, c.period, 1), harmonics)
                 refined = refine(s1, second, correct, est_cfg)
@@ -671,6 +750,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         cycles=settings.cycles,
         tolerance=settings.tolerance,
         low_ratio=1.0 - settings.relay_bias,
+        stuck_periods=RelayConfig.stuck_periods if setup.stage_two_rearm else None,
         **budget,
     )
     return RelayTest(

@@ -191,9 +191,12 @@ def estimate(
         ku, pu, method = s1.ku, s1.pu, DESCRIBING_FUNCTION
     phases = [p.phase_deg for p in (*s1.points[:1], *(refined.points[:1] if refined else ()))]
     closest = min(phases, key=lambda ph: abs(ph + 180.0), default=math.nan)
-    if len(phases) == 2 and (phases[0] + 180.0) * (phases[1] + 180.0) <= 0:
+    # stage 1's point taken as the crossover is one only as near to −180° as it lies itself
+    used = phases[:1] if method == FUNDAMENTAL_POINT else phases
+    nearest = min(used, key=lambda ph: abs(ph + 180.0), default=math.nan)
+    if len(used) == 2 and (used[0] + 180.0) * (used[1] + 180.0) <= 0:
         crossing = "bracketed"
-    elif abs(closest + 180.0) <= cfg.near_deg and math.isfinite(ku):
+    elif abs(nearest + 180.0) <= cfg.near_deg and math.isfinite(ku):
         crossing = "near"
     else:
         crossing = "not reached"
