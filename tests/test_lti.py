@@ -1,5 +1,7 @@
 """Exact ZOH discretisation with dead time, against closed forms and scipy.signal."""
 
+import warnings
+
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
@@ -143,3 +145,20 @@ def test_vectorised_simulation_matches_the_step_by_step_system(num, den, delay, 
     got = simulate(sys, u)
     assert got.shape == expected.shape
     assert np.max(np.abs(got - expected)) <= 1e-9 * np.max(np.abs(expected))
+
+
+def test_a_tiny_gain_is_realised_without_scipys_warning():
+    """A model fit's search passes through gains far below 1e-14 of the denominator's
+    leading coefficient; scipy would warn that the numerator is "badly conditioned" (it has
+    nothing to trim). The realisation is the same, scaled, and its DC gain exact."""
+    num, den = [3e-12], [1e3, 110.0, 1.0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        a, b, c, d = tf_to_ss(num, den)
+    dc = float((c @ np.linalg.solve(-a, b)).item()) + d
+    assert dc == pytest.approx(3e-12, rel=1e-12)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref = signal.tf2ss(num, den)
+    for ours, theirs in zip((a, b, c), ref[:3], strict=True):
+        assert_allclose(ours, theirs, rtol=1e-12, atol=0)

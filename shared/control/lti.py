@@ -123,6 +123,13 @@ def tf_to_ss(num: list[float], den: list[float]) -> tuple[np.ndarray, ...]:
         return np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), float(num_a[-1] / den_a[0])
     from scipy.signal import tf2ss  # here: scipy.signal costs 0.25 s of every CLI's start-up
 
+    gain = num_a[0] / den_a[0]
+    if num_a.size == 1 and abs(gain) <= 1e-14:
+        # scipy warns that such a numerator is "badly conditioned" (it would trim leading
+        # zeros, and there are none to trim): the same realisation, scaled, without the
+        # warning (a model fit's search passes through gains this small)
+        a, b, c, d = tf2ss([1.0], den_a / den_a[0])
+        return a, b, c * gain, float(np.asarray(d).item()) * gain
     a, b, c, d = tf2ss(num_a, den_a)
     return a, b, c, float(np.asarray(d).item())
 
