@@ -38,11 +38,12 @@ from tests.test_relay_realtime import RealtimePort
 CUBIC = ([6.0], [1.0, 6.0, 11.0, 6.0], 0.0)
 
 
-def _relay(samples_per_period: int, rearm: bool) -> RelayTest:
-    """The relay on the realtime clock (a switch holds from the next sample)."""
+def _relay(samples_per_period: int, rearm: bool, direction: float = 1.0) -> RelayTest:
+    """The relay on the realtime clock (a switch holds from the next sample); ``direction``
+    −1: a direct-acting loop (the process's gain negative)."""
     num, den, delay = CUBIC
     ts = ultimate_point(*CUBIC)[1] / samples_per_period
-    model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
+    model = TransferFunctionModel(ts, num=[direction * c for c in num], den=den, delay=delay)
     model.reset()
     setup = Setup(
         sample_time=ts,
@@ -51,7 +52,7 @@ def _relay(samples_per_period: int, rearm: bool) -> RelayTest:
         pv_lo=-1e6,
         pv_hi=1e6,
         op_start=50.0,
-        direction=1.0,
+        direction=direction,
         outputs_from_samples=True,
         stage_two_rearm=rearm or None,
     )
@@ -68,10 +69,13 @@ def test_the_closed_form_is_the_cubics():
     assert ultimate_point(*CUBIC) == pytest.approx((10.0, 2.0 * math.pi / math.sqrt(11.0)))
 
 
+@pytest.mark.parametrize("direction", [1.0, -1.0], ids=["reverse", "direct"])
 @pytest.mark.parametrize("samples_per_period", [47, 24])
-def test_a_stuck_stage_two_is_set_again_and_lands_on_the_ultimate_point(samples_per_period):
+def test_a_stuck_stage_two_is_set_again_and_lands_on_the_ultimate_point(
+    samples_per_period, direction
+):
     ku, pu = ultimate_point(*CUBIC)
-    test = _relay(samples_per_period, rearm=True)
+    test = _relay(samples_per_period, rearm=True, direction=direction)
     r = test.result
     assert r is not None
     assert any(d.get("rearmed") for d in _stage_events(test))
