@@ -445,12 +445,25 @@ class TuningRun:
                 wall_time=clean["wall_time"],
             )
 
+    def _rest_band(self) -> float:
+        """How near its target (PV units) a PV at rest is: 4σ of the loop's noise, and at
+        least 0.1 % of its range."""
+        lo, hi = self.info.pv_range
+        return max(4.0 * max(self.info.noise_std, 0.0), 0.001 * (hi - lo))
+
     def _wait_for_rest(self, first: LoopStatus) -> dict:
         """Watch the PV, changing nothing, until it is at rest over a window as long as the
         loop's slowest known dynamics (``rest``); bounded. Returns what was seen."""
         c = self.client
         window = rest_window(self.ts, first.gains.ti, self.req.rest_window)
-        check = RestCheck(self.ts, window, tuple(self.info.pv_range))
+        # a loop in auto with integral action rests on its setpoint (unless its output is at a
+        # limit: then the PV rests where the output can hold it)
+        lo, hi = self.info.op_limits
+        integrating = first.mode == "auto" and bool(first.gains.ti) and lo < first.op < hi
+        target = first.sp if integrating else None
+        check = RestCheck(
+            self.ts, window, tuple(self.info.pv_range), target=target, band=self._rest_band()
+        )
         ops: list[float] = []
         chunk = max(1, min(MAX_CHUNK, check.samples // 4))
         reported = 0.0
@@ -497,9 +510,8 @@ class TuningRun:
             return None
         target = pv_rest if st.mode == "manual" else st.sp
         pv = c.last_sample.pv if c.last_sample is not None else st.pv
-        noise = max(self.info.noise_std, 0.0)
         lo, hi = self.info.pv_range
-        band = max(4.0 * noise, 0.001 * (hi - lo))
+        band = self._rest_band()
         returned = abs(pv - target) <= band
         waited = 0.0
         if wait:  # back near the target is not enough: the PV must be at rest there

@@ -56,6 +56,10 @@ class RestCheck:
     drift: float = 0.0  # PV units per s over the last window
     noise: float = 0.0
     rest_pv: float = math.nan
+    # a loop in auto with integral action is at rest only on its setpoint: ``target`` (PV
+    # units) within ``band``; None: anywhere (manual, or a P-only controller's offset)
+    target: float | None = None
+    band: float = 0.0
 
     def __post_init__(self) -> None:
         self._n = max(MIN_SAMPLES, math.ceil(self.window / self.sample_time))
@@ -96,7 +100,8 @@ class RestCheck:
         smooth = np.convolve(y, np.ones(k) / k, mode="valid")
         swing = float(np.ptp(smooth))
         still = moved <= max(3.0 * wide, tiny) and swing <= max(4.0 * white, 3.0 * wide, tiny)
-        if end is None and still:
+        off = self._off_target(float(np.mean(y)))
+        if end is None and still and off is None:
             self.done, self.at_rest = True, True
             self.rest_pv = float(np.mean(y))
             return
@@ -107,12 +112,32 @@ class RestCheck:
                 f"the PV sits at the {end} of its range [{lo:g}, {hi:g}]: a clipped "
                 "measurement is not a rest"
                 if end
+                else f"the PV did not come to rest within {self.waited:.4g} s ({off})"
+                if still and off is not None
                 else f"the PV did not come to rest within {self.waited:.4g} s (it still moves "
                 f"by {self.drift:.3g} per s over the last {self._n * self.sample_time:.4g} s)"
             )
 
+    def _off_target(self, mean: float) -> str | None:
+        """Why a PV averaging ``mean`` is not at rest for a loop held to ``target`` (None:
+        it is, or there is no target). A PI loop's integral moves its output until the PV
+        averages its setpoint: a steady PV off it is a slow recovery still under way (seen: a
+        relay begun 0.2 °C off after a ramp test fitted a static gain of 0.25 for 1.0)."""
+        if self.target is None or abs(mean - self.target) <= self.band:
+            return None
+        return (
+            f"it averages {mean:.6g}, {mean - self.target:+.3g} off its setpoint "
+            f"{self.target:.6g}: the loop in auto is still settling"
+        )
+
     def describe(self) -> str:
         """One progress line while waiting."""
+        off = self._off_target(float(np.mean(self.y[-self._n :]))) if self.y else None
+        if off is not None:
+            return (
+                f"{off}: waiting for rest, {self.waited:.4g} of at most "
+                f"{self.windows * self._n * self.sample_time:.4g} s"
+            )
         return (
             f"the PV still moves ({self.drift:.3g} per s over the last "
             f"{self._n * self.sample_time:.4g} s): waiting for rest, {self.waited:.4g} of at most "
