@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -12,12 +13,47 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+PORT_SPAN = 12000  # listener ports are drawn from this many just below the ephemeral range
+_given: set[int] = set()  # handed out by this process (never twice)
+_draw = random.Random()
+
 
 def free_tcp_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    """A TCP port on 127.0.0.1 that was free a moment ago, for a listener to bind soon.
+
+    Drawn at random below the kernel's ephemeral range, not by binding port 0: the kernel
+    gives port 0 from that range, where every outgoing connection (a Zenoh client's) takes
+    its local port too, so between the pick and the listener's bind a connection could take
+    it (seen: a test's plant_sim failing with "Address already in use"). Port 0 remains the
+    fallback where that range leaves no room below it."""
+    low = _ephemeral_low()
+    if low - PORT_SPAN >= 1024:
+        for _ in range(100):
+            port = _draw.randint(low - PORT_SPAN, low - 1)
+            if port not in _given and _bindable(port):
+                _given.add(port)
+                return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def _ephemeral_low() -> int:
+    """The first port of the kernel's ephemeral range (Linux's default 32768 if unreadable)."""
+    try:
+        return int(EPHEMERAL_RANGE.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
+def _bindable(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
 
 
 def start_service(

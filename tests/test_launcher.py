@@ -1,13 +1,15 @@
 """``launcher.stop_service``: a stopped service leaves nothing behind in its process group (a
 tuner's compute workers and their fork server), whether its helpers go by themselves or have
-to be killed."""
+to be killed; ``launcher.free_tcp_port``: a listener's port no outgoing connection takes."""
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 import textwrap
 
+from services import launcher
 from services.launcher import _group_alive, stop_service
 
 # a "service" that starts a helper in its own process group, then waits to be stopped
@@ -56,3 +58,15 @@ def test_a_service_already_gone_is_only_reaped():
     proc.wait()
     assert stop_service(proc, timeout=30.0) == proc.returncode
     assert not _group_alive(proc.pid)
+
+
+def test_free_ports_lie_below_the_ephemeral_range_and_are_never_handed_out_twice():
+    """Outgoing connections take their local ports from the ephemeral range: a listener's
+    port picked there could be taken before the listener binds it."""
+    low = launcher._ephemeral_low()
+    ports = [launcher.free_tcp_port() for _ in range(50)]
+    assert len(set(ports)) == len(ports)
+    for port in ports:
+        assert low - launcher.PORT_SPAN <= port < low
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", port))
