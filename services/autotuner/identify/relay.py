@@ -722,6 +722,7 @@ class RelayTest:
             phase_reached_deg=est.phase_reached_deg,
             cycle_period=s1.pu,
             ku_method=est.ku_method,
+            sample_time=self.sample_time,
         )
         self.phase = "done"
         t_done = self.cycles[-1].t_start + self.cycles[-1].period

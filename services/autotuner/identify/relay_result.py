@@ -43,6 +43,7 @@ class RelayResult:
     phase_reached_deg: float = -180.0  # the measured phase closest to −180°
     cycle_period: float = math.nan  # s, stage 1's mean period
     ku_method: str = MODEL_CROSSING  # which path produced K_u (relay_estimate.KU_METHODS)
+    sample_time: float = math.nan  # s (for what is said of a cycle short of −180°)
 
     @property
     def measured(self) -> bool:
@@ -72,15 +73,38 @@ class RelayResult:
             **({"static_gain": self.static_gain} if self.static_gain is not None else {}),
         }
 
+    def _why_short(self) -> str:
+        """What kept the cycle short of −180°, and what would help: the hysteresis the noise
+        needs (its lag asin(ε/a)), and the sampling (a switch lands up to a sample late:
+        360° over the samples a period)."""
+        short = 180.0 + self.phase_reached_deg
+        lag = _short_of(self.hysteresis, self.amplitude)
+        per_sample = 360.0 * self.sample_time / self.cycle_period
+        causes = []
+        if lag >= 0.25 * short:
+            causes.append(
+                f"the hysteresis the noise needs, {self.hysteresis:.3g}, is "
+                f"{self.hysteresis / self.amplitude:.0%} of the cycle's amplitude, "
+                f"{lag:.0f}° of lag (a larger --amplitude lifts the cycle clear of the noise)"
+            )
+        if math.isfinite(per_sample) and per_sample >= 0.25 * short:
+            causes.append(
+                f"the cycle has {self.cycle_period / self.sample_time:.3g} samples a period, "
+                f"and a switch lands up to a sample ({per_sample:.0f}°) late (a shorter "
+                "sample time resolves it)"
+            )
+        return "; ".join(causes) or (
+            f"the relay's own lag: its hysteresis gives {lag:.0f}° of the {short:.0f}°"
+        )
+
     def identification(self) -> Identification:
         measured = self.measured
         notes = []
         if not measured:
             notes.append(
-                f"the relay's cycle ran at {self.phase_reached_deg:.0f}°, far from −180° (the "
-                f"hysteresis the noise needs, {self.hysteresis:.3g}, is as large as the "
-                "cycle): K_u and P_u were not measured, so the rules that need them are not "
-                "offered"
+                f"the relay's cycle ran at {self.phase_reached_deg:.0f}°, far from −180° "
+                f"({self._why_short()}): K_u and P_u were not measured, so the rules that need "
+                "them are not offered"
                 + (
                     f"; the model's own ultimate point is K_u ≈ {self.ku:.4g}, "
                     f"P_u ≈ {self.pu:.4g} s"
@@ -101,6 +125,11 @@ class RelayResult:
             rest_pv=self.rest_pv,
             model=self.model,
         )
+
+
+def _short_of(hysteresis: float, amplitude: float) -> float:
+    """Degrees of lag a relay's hysteresis gives a cycle of this amplitude, asin(ε/a)."""
+    return math.degrees(math.asin(min(hysteresis / amplitude, 1.0))) if amplitude > 0 else 90.0
 
 
 def frequency_fields(points: tuple[FrequencyPoint, ...]) -> dict[str, float]:
