@@ -248,6 +248,7 @@ def _summary(s: RunSeries) -> str:
 MARK_STYLE = {
     "cycle": ("0.55", ":"),
     "stage 2": ("tab:purple", "-"),
+    "stage 2 again": ("tab:pink", "-"),
     "trial": ("tab:purple", "--"),
     "load": ("tab:brown", "-."),
     "output step": ("tab:cyan", "-"),
@@ -274,7 +275,7 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
     handles_op: list[Any] = []
     kinds = {m.kind for m in s.events}
     for m in s.events:
-        if m.kind in ("cycle", "stage 2", "trial", "output step"):
+        if m.kind in MARK_STYLE:
             color, ls = MARK_STYLE[m.kind]
             for ax in (ax_pv, ax_op) if m.kind == "output step" else (ax_pv,):
                 ax.axvline(m.t, color=color, lw=0.7, ls=ls)
@@ -303,6 +304,8 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
         handles_pv.append(_proxy(f"relay cycle closed (n = 1…{n})", *MARK_STYLE["cycle"]))
     if "stage 2" in kinds:
         handles_pv.append(_proxy("relay stage 2 starts", *MARK_STYLE["stage 2"]))
+    if "stage 2 again" in kinds:
+        handles_pv.append(_proxy("relay stage 2 set again (stuck)", *MARK_STYLE["stage 2 again"]))
     if "output step" in kinds:
         first = next(m for m in s.events if m.kind == "output step")
         handles_pv.append(_proxy(f"step test: {first.label}", *MARK_STYLE["output step"]))

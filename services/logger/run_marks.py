@@ -18,7 +18,7 @@ LOAD = "load"  # the disturbance input the verification steps (tuning._verify)
 @dataclass(frozen=True)
 class Mark:
     t: float  # s, sim time
-    kind: str  # "switch", "cycle", "stage 2", "trial", "output step"
+    kind: str  # "switch", "cycle", "stage 2", "stage 2 again", "trial", "output step"
     label: str
 
 
@@ -30,7 +30,8 @@ def _num(value: object) -> float | None:
 
 def experiment_marks(events: Sequence[TunerEvent], units: str) -> list[Mark]:
     """The experiment's marks in time order: each relay switch (to its output), each cycle
-    closed (its number), stage 2's start, each ramp trial (its number and Kc, % per PV
+    closed (its number), stage 2's start (and its setting again, when it got stuck: never
+    its end, abandoned or out of patience), each ramp trial (its number and Kc, % per PV
     unit), each output step of a step test (to its output, %)."""
     out = []
     for e in events:
@@ -40,7 +41,9 @@ def experiment_marks(events: Sequence[TunerEvent], units: str) -> list[Mark]:
             out.append(Mark(e.t, "switch", f"relay to {op:.4g} %" if op is not None else "relay"))
         elif e.kind == "cycle":
             out.append(Mark(e.t, "cycle", f"cycle {d.get('n')}"))
-        elif e.kind == "stage" and d.get("stage") == 2 and not d.get("abandoned"):
+        elif e.kind == "stage" and d.get("stage") == 2 and d.get("rearmed"):
+            out.append(Mark(e.t, "stage 2 again", "stage 2 set again"))
+        elif e.kind == "stage" and d.get("stage") == 2 and "level" in d:  # its start
             out.append(Mark(e.t, "stage 2", "stage 2"))
         elif e.kind == "step":
             op = _num(d.get("op"))

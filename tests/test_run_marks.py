@@ -1,0 +1,33 @@
+"""The marks a relay run's figure shows for its stage 2: its start, and, where it got stuck,
+its setting again; never its end (abandoned or out of patience). Flags are 0/1, as the bus
+carries them."""
+
+from __future__ import annotations
+
+from services.logger.run_marks import experiment_marks
+from shared.messages import TunerEvent
+
+
+def _event(t: float, **data) -> TunerEvent:
+    return TunerEvent(run_id="r", loop="hx1", t=t, kind="stage", data=data)
+
+
+def test_stage_two_is_marked_where_it_starts_and_where_it_is_set_again():
+    events = [
+        _event(10.0, stage=2, level=-0.28, low_ratio=1.0),
+        _event(16.7, stage=2, rearmed=1, level=-0.18, amplitude=0.59),
+        _event(25.7, stage=2, unsettled=1),
+    ]
+    marks = experiment_marks(events, "degC")
+    assert [(m.t, m.kind, m.label) for m in marks] == [
+        (10.0, "stage 2", "stage 2"),
+        (16.7, "stage 2 again", "stage 2 set again"),
+    ]
+
+
+def test_an_abandoned_stage_two_is_marked_at_its_start_only():
+    events = [
+        _event(10.0, stage=2, level=-0.28, low_ratio=1.0),
+        _event(22.4, stage=2, abandoned=1),
+    ]
+    assert [m.t for m in experiment_marks(events, "degC")] == [10.0]
