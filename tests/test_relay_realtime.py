@@ -44,26 +44,26 @@ class RealtimePort:
         return (self.k + 1) * self.ts
 
 
-def _relay_on_realtime(outputs_from_samples: bool, direction: float) -> RelayTest:
-    """The relay on the heat exchanger; ``direction`` −1: a direct-acting loop (the process's
-    gain negative), whose outputs the relay records mirrored, in the loop's own sense."""
-    num, den, delay, ts = HX
-    num = [direction * c for c in num]
-    model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
+def relay_on_realtime(
+    num: list[float], den: list[float], delay: float, ts: float, direction: float, **setup
+) -> RelayTest:
+    """The relay, as a live run builds it, on num/den·e^{−delay·s} sampled every ``ts`` s on
+    the realtime clock (``RealtimePort``); ``direction`` −1: a direct-acting loop (the
+    process's gain negative), whose outputs the relay records mirrored, in the loop's own
+    sense; ``setup``: the set-up's other fields (``outputs_from_samples``, …)."""
+    model = TransferFunctionModel(ts, num=[direction * c for c in num], den=den, delay=delay)
     model.reset()
-    setup = Setup(
-        sample_time=ts,
-        op_lo=0.0,
-        op_hi=100.0,
-        pv_lo=-1e6,
-        pv_hi=1e6,
-        op_start=50.0,
-        direction=direction,
-        outputs_from_samples=outputs_from_samples or None,
-    )
-    test = build(Settings(), setup)
-    assert test.outputs_from_samples is outputs_from_samples
+    limits = {"op_lo": 0.0, "op_hi": 100.0, "pv_lo": -1e6, "pv_hi": 1e6}
+    st = Setup(sample_time=ts, **limits, op_start=50.0, direction=direction, **setup)
+    test = build(Settings(), st)
     drive(test, RealtimePort(model, ts, 50.0))
+    return test
+
+
+def _relay_on_realtime(outputs_from_samples: bool, direction: float) -> RelayTest:
+    """The relay on the heat exchanger, recording from the samples or from its decisions."""
+    test = relay_on_realtime(*HX, direction, outputs_from_samples=outputs_from_samples or None)
+    assert test.outputs_from_samples is outputs_from_samples
     return test
 
 

@@ -18,7 +18,6 @@ import math
 
 import pytest
 
-from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Setup
 from services.autotuner.identify.fourier import FrequencyPoint
 from services.autotuner.identify.model_fit import ProcessFit
@@ -30,35 +29,19 @@ from services.autotuner.identify.relay_estimate import (
     StageOne,
     estimate,
 )
-from services.plant_sim.simulation.models import TransferFunctionModel
 from tests.exact import lag_ultimate, ultimate_point
-from tests.test_relay_realtime import RealtimePort
+from tests.test_relay_realtime import relay_on_realtime
 
 # 6/((s+1)(s+2)(s+3)): no dead time, K_u 10 and ω_u √11 exactly
 CUBIC = ([6.0], [1.0, 6.0, 11.0, 6.0], 0.0)
 
 
 def _relay(samples_per_period: int, rearm: bool, direction: float = 1.0) -> RelayTest:
-    """The relay on the realtime clock (a switch holds from the next sample); ``direction``
-    −1: a direct-acting loop (the process's gain negative)."""
-    num, den, delay = CUBIC
+    """The relay on the cubic on the realtime clock (a switch holds from the next sample)."""
     ts = ultimate_point(*CUBIC)[1] / samples_per_period
-    model = TransferFunctionModel(ts, num=[direction * c for c in num], den=den, delay=delay)
-    model.reset()
-    setup = Setup(
-        sample_time=ts,
-        op_lo=0.0,
-        op_hi=100.0,
-        pv_lo=-1e6,
-        pv_hi=1e6,
-        op_start=50.0,
-        direction=direction,
-        outputs_from_samples=True,
-        stage_two_rearm=rearm or None,
+    return relay_on_realtime(
+        *CUBIC, ts, direction, outputs_from_samples=True, stage_two_rearm=rearm or None
     )
-    test = build(Settings(), setup)
-    drive(test, RealtimePort(model, ts, 50.0))
-    return test
 
 
 def _stage_events(test: RelayTest) -> list[dict]:
