@@ -515,7 +515,9 @@ class TuneResult(Message):
     )
     left: dict[str, Any] | None = Field(
         default=None,
-        description="the loop as the run left it: mode, sp, op, pv, gains, pv_rest, returned",
+        description="the loop as the run left it: mode, sp, op, gains, pv (its last sample), "
+        "pv_rest (the mean at rest it was judged by; None when not waited for or not at rest), "
+        "pv_target, band (how far from the target counts as back), returned, waited",
     )
     applied_from: str | None = Field(
         default=None,

@@ -352,3 +352,27 @@ def test_the_analysis_json_carries_the_percent_figures():
     assert d["gains"]["zn-pi"]["isa_percent"]["pb"] == pytest.approx(100 / 13.5)
     bare = Analysis("f.mcap", "x", "relay", ident, {}, None, None).to_dict(None)
     assert "ku_percent" not in bare
+
+
+def test_the_left_line_prints_the_mean_at_rest_it_judged_by():
+    """A noisy loop's last sample can sit 4σ off the target while its mean at rest is on it:
+    the line gives the mean (what "back where it was" is judged by) and the sample beside."""
+    left = {
+        "mode": "auto",
+        "sp": 50.0,
+        "op": 41.0,
+        "gains": {},
+        "pv": 49.21,
+        "pv_rest": 50.02,
+        "pv_target": 50.0,
+        "band": 0.8,
+        "returned": True,
+        "waited": 30.0,
+    }
+    line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
+    assert "PV 50.02 degC at rest (last sample 49.21)" in line
+    assert "(the PV is back where it was: target 50 ± 0.8)" in line
+    # not waited for (or never at rest): the last sample alone, as before
+    left = {**left, "pv_rest": None, "returned": False}
+    line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
+    assert "PV 49.21 degC (the PV is still on its way back: target 50 ± 0.8)" in line

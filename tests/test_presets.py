@@ -44,6 +44,9 @@ def test_every_preset_by_every_method_ends_safe_or_with_a_reason(loop, method):
     assert r.status == "ok" or r.reason
     after = client.sync()
     assert r.left is not None and r.left["mode"] == after.mode
+    lf = r.left
+    if lf["pv_rest"] is not None:  # "returned" is judged by the mean at rest, as printed
+        assert lf["returned"] is (abs(lf["pv_rest"] - lf["pv_target"]) <= lf["band"]), lf
     if r.applied:
         assert after.mode == "auto" and after.gains.kc == pytest.approx(r.chosen["isa"]["kc"])
         # a loop that was in manual is held at the PV it rested at before the test

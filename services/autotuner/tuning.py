@@ -513,6 +513,7 @@ class TuningRun:
         lo, hi = self.info.pv_range
         band = self._rest_band()
         returned = abs(pv - target) <= band
+        rest_pv: float | None = None  # the mean at rest the judgement used (when waited)
         waited = 0.0
         if wait:  # back near the target is not enough: the PV must be at rest there
             slow = rest_window(self.ts, before.gains.ti, self.req.rest_window)
@@ -533,11 +534,13 @@ class TuningRun:
                         break
             except AutotuneError:
                 pass
-            rest_pv = check.rest_pv if check.at_rest else pv
-            returned = abs(rest_pv - target) <= band
-            if not returned and check.at_rest and st.mode == "manual" and model is not None:
-                pv = self._give_back(st, target, rest_pv, model, horizon)
-                returned = abs(pv - target) <= band
+            rest_pv = check.rest_pv if check.at_rest else None
+            returned = abs((pv if rest_pv is None else rest_pv) - target) <= band
+            if not returned and rest_pv is not None and st.mode == "manual" and model is not None:
+                back = self._give_back(st, target, rest_pv, model, horizon)
+                if back is not None:
+                    rest_pv, pv = back
+                    returned = abs(rest_pv - target) <= band
             waited = self._t - t_start
             with contextlib.suppress(AutotuneError):
                 st = c.sync()  # as the loop is now, after the wait
@@ -547,26 +550,29 @@ class TuningRun:
             "op": st.op,
             "gains": st.gains.model_dump(),
             "pv": pv,
+            "pv_rest": rest_pv,
             "pv_target": target,
+            "band": band,
             "returned": bool(returned),
             "waited": waited,
         }
 
     def _give_back(
         self, st: LoopStatus, target: float, pv: float, model: ProcessFit, horizon: float
-    ) -> float:
+    ) -> tuple[float, float] | None:
         """An integrating loop in manual keeps the level the test left it at: a pulse of the
         output, sized on the identified integrating gain K' (PV units/s per %), moves it back
-        — under a lease again, since it writes to the loop. Returns the PV after it."""
+        — under a lease again, since it writes to the loop. Returns the PV after it (the
+        mean of its settled tail, and its last sample); None if no pulse was given."""
         if model.kind != "ipdt" or not model.gain > 0:
-            return pv
+            return None
         c, d = self.client, experiments.DEFAULT_RELAY_AMPLITUDE
         sign = 1.0 if self.before is not None and self.before.action == "reverse" else -1.0
         lo, hi = self.info.op_limits
         push = st.op + sign * d * math.copysign(1.0, target - pv)
         seconds = abs(target - pv) / (model.gain * d)
         if not lo <= push <= hi or seconds > horizon:
-            return pv
+            return None
         self._progress("return", message=f"output {push:.4g} % for {seconds:.4g} s: the level back")
         try:
             c.command(
@@ -581,9 +587,9 @@ class TuningRun:
             k = max(4, round((2 * model.delay + 20 * self.ts) / self.ts))
             tail = c.samples(k)
             self._take(tail)
-            return float(np.mean([s.pv for s in tail[-max(4, k // 2) :]]))
+            return float(np.mean([s.pv for s in tail[-max(4, k // 2) :]])), tail[-1].pv
         except AutotuneError:
-            return pv
+            return None
 
     def _restore(self) -> bool:
         """Put the loop back exactly as it was before the test; False if that failed."""

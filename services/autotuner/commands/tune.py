@@ -673,13 +673,19 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         lf = r.left
         if lf.get("pv_target") is None:  # seen by a query after the plant was lost
             back = "as its plant shows it once back in reach"
-        elif lf.get("returned"):
-            back = f"the PV is back where it was: target {lf['pv_target']:.4g}"
         else:
-            back = f"the PV is still on its way back: target {lf['pv_target']:.4g}"
+            where = "back where it was" if lf.get("returned") else "still on its way back"
+            within = f" ± {lf['band']:.2g}" if lf.get("band") is not None else ""
+            back = f"the PV is {where}: target {lf['pv_target']:.4g}{within}"
+        # the mean at rest is what was judged; the last sample alone carries the noise
+        pv = (
+            f"PV {lf['pv_rest']:.4g} {pv_units} at rest (last sample {lf['pv']:.4g})"
+            if lf.get("pv_rest") is not None
+            else f"PV {lf['pv']:.4g} {pv_units}"
+        )
         lines.append(
-            f"  left: {lf['mode']}, SP {lf['sp']:.4g} {pv_units}, OP {lf['op']:.4g} %, PV "
-            f"{lf['pv']:.4g} {pv_units} ({back})"
+            f"  left: {lf['mode']}, SP {lf['sp']:.4g} {pv_units}, OP {lf['op']:.4g} %, "
+            f"{pv} ({back})"
         )
     return "\n".join(lines)
 
