@@ -302,6 +302,13 @@ class LoopClient:
         wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind, self.user), cmd)
         self._last_sent = time.monotonic()
 
+    def renew_lease(self) -> None:
+        """Renew a held lease if nothing was sent for a renewal interval: a run that waits on
+        its own bounded computation in lockstep (the plant does not move meanwhile) is still
+        at work, and a slow step on a busy machine must not look like a tuner gone."""
+        if self.holding and not self.gone:
+            self._keep_lease()
+
     def _keep_lease(self) -> None:
         """In realtime a run may send nothing for minutes (a relay half-cycle, a verification
         step): a sync every few seconds of wall time keeps the plant's lease on the loop

@@ -77,6 +77,8 @@ GUARD_WINDOW = 2.0  # time scales per window of the verification's growth and sa
 OP_NOISE_WARN = 5.0  # % of output (σ): more output noise than this is worth a warning
 LOSS_QUERY_TIMEOUT = 2.0  # s of wall time to find a lost plant back in reach (a reconnect)
 RETURN_SCALES = 5.0  # time scales to wait for the PV of a restored loop to come back to rest
+COMPUTE_CHECK = 0.25  # s of wall time between a lockstep run's checks of its lease while
+# a heavy step computes (renewed once quiet for the client's renewal interval)
 
 log = logging.getLogger("autotuner")
 
@@ -331,6 +333,33 @@ class TuningRun:
         )
         return self._result(result, t0, wall0, left)
 
+    def _compute(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """``fn(*args)`` through ``hooks.compute``; in lockstep with the loop's lease renewed
+        while it runs. The plant does not move meanwhile, and a step that outlasts the lease
+        (a worker starting on a machine whose cores are all taken) would otherwise have the
+        plant's watchdog take back a loop this run is still working on. In realtime the loop
+        goes on under the output held meanwhile: there the lease stays the bound."""
+        if self.info.clock != "lockstep":
+            return self.hooks.compute(fn, *args)
+        out: list[tuple[bool, Any]] = []
+
+        def work() -> None:
+            try:
+                out.append((True, self.hooks.compute(fn, *args)))
+            except BaseException as err:  # raised again in the run's thread
+                out.append((False, err))
+
+        worker = threading.Thread(target=work, name=f"compute {self.req.loop}", daemon=True)
+        worker.start()
+        while worker.is_alive():
+            worker.join(COMPUTE_CHECK)
+            if worker.is_alive():
+                self.client.renew_lease()
+        ok, value = out[0]
+        if not ok:
+            raise value
+        return value
+
     def _identify_and_design(
         self, result: dict, span: float | None
     ) -> tuple[experiments.Identification, IsaGains, float | None]:
@@ -356,7 +385,7 @@ class TuningRun:
                     result["experiment"].get("model_gain"), span
                 ),
             )
-        sel = self.hooks.compute(
+        sel = self._compute(
             select, ident, req.rule, req.ms_bound, req.force, self.ts, req.lambda_s, req.aim
         )
         rec = sel.recommended
@@ -677,7 +706,7 @@ class TuningRun:
         except ValueError as err:
             raise TuneAborted(str(err)) from None
         if isinstance(machine, RelayTest):
-            machine.compute = self.hooks.compute
+            machine.compute = self._compute
         start = machine.demand
         if start.auto:
             c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=start.kc), source=c.source))

@@ -67,6 +67,9 @@ class LocalLoopClient:
     def __exit__(self, *exc: object) -> None:
         return None
 
+    def renew_lease(self) -> None:
+        """Nothing to renew: a loop in this process has no watchdog."""
+
     def sync(self) -> LoopStatus:
         self.last_status = self.sim.status(NODE, "lockstep", "sync", 0)
         return self.last_status
