@@ -164,17 +164,33 @@ def refine(
         linear, linear_method = point, FUNDAMENTAL_POINT
     ku, pu = crossing or linear
     scatter = s1.g_scatter / math.sqrt(max(1, s1.window[2]))  # of the mean over the cycles
+    ku_far, pu_far = extrapolated(ku, pu, p1, p2) if second else (0.0, 0.0)
     return Refined(
         ku=ku,
         pu=pu,
-        ku_uncertainty=scatter + abs(ku / linear[0] - 1.0),
+        ku_uncertainty=scatter + max(abs(ku / linear[0] - 1.0), ku_far),
         pu_uncertainty=0.5 * scatter * abs(math.log(p2.omega / p1.omega)) / math.pi
-        + abs(pu / linear[1] - 1.0),
+        + max(abs(pu / linear[1] - 1.0), pu_far),
         points=second,
         ku_method=MODEL_CROSSING if crossing else linear_method,
         model=model,
         candidates=tuple(fits),
     )
+
+
+def extrapolated(
+    ku: float, pu: float, p1: FrequencyPoint, p2: FrequencyPoint
+) -> tuple[float, float]:
+    """How far (relative) K_u and P_u lie from the nearer point's 1/|G| and 2π/ω when −180°
+    lies further beyond both points than they lie apart: the slope through two points that
+    close (one cycle measured twice, when stage 2 switched on stage 1's very samples) is
+    their difference, not the plant's, and both interpolations extrapolate it alike; the
+    estimate is then no surer than the whole way it was carried. (0, 0) otherwise."""
+    d1, d2 = p1.phase_deg + 180.0, p2.phase_deg + 180.0
+    if d1 * d2 <= 0 or min(abs(d1), abs(d2)) <= abs(d2 - d1):
+        return 0.0, 0.0
+    near = p1 if abs(d1) <= abs(d2) else p2
+    return abs(ku * near.magnitude - 1.0), abs(pu * near.omega / (2.0 * math.pi) - 1.0)
 
 
 def estimate(
