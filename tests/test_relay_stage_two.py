@@ -84,7 +84,9 @@ def test_recorded_before_stage_two_is_abandoned_there_as_it_was(samples_per_peri
 def test_only_relay_set_ups_that_say_so_are_set_again():
     setup = Setup(sample_time=0.1, op_lo=0, op_hi=100, pv_lo=0, pv_hi=1, op_start=50, direction=1)
     assert build(Settings(), setup).config.stuck_periods is None
+    assert build(Settings(), setup).config.steady_second is False
     assert "stage_two_rearm" not in setup.to_dict()
+    assert "stage_two_steady" not in setup.to_dict()
 
 
 def _point(omega: float, magnitude: float, phase_deg: float) -> FrequencyPoint:
@@ -145,3 +147,35 @@ def test_one_cycle_measured_twice_says_its_ku_is_unsure():
     first, second = r.frequency[0].phase_deg, r.second[0].phase_deg
     assert abs(second - first) < 1.0 < abs(first + 180.0)  # one cycle, short of −180°
     assert r.ku_spread >= 0.2
+
+
+# 1/(s+1)³: K_u 8 and ω_u √3 exactly
+TRIPLE_LAG = ([1.0], [1.0, 3.0, 3.0, 1.0], 0.0)
+
+
+@pytest.mark.parametrize("steady", [True, False], ids=["as-measured", "recorded-before"])
+def test_a_set_again_stage_two_that_agrees_is_not_corrected_off_its_cycle(steady):
+    """Realtime, 47 samples a period: stage 2 is set again and ends on two cycles that agree,
+    its point exact (178.2° at ω 1.693: −3·atan ω is 178.3°). The leakage correction through
+    a model fitted to the cut-short cycles before it (a relay without bias leaves its static
+    gain free: 3.1 against 1) moved that point by 9 % and K_u with it. A point that steady
+    is now kept as measured; a set-up recorded before (no ``stage_two_steady``) corrects it
+    as it did, so its replay gives the live run's figures."""
+    ku, pu = ultimate_point(*TRIPLE_LAG)
+    assert (ku, pu) == pytest.approx((8.0, 2 * math.pi / math.sqrt(3.0)))
+    test = relay_on_realtime(
+        *TRIPLE_LAG,
+        pu / 47,
+        1.0,
+        outputs_from_samples=True,
+        stage_two_rearm=True,
+        stage_two_steady=steady or None,
+    )
+    r = test.result
+    assert r is not None
+    assert any(d.get("rearmed") for d in _stage_events(test))
+    if steady:
+        assert r.ku == pytest.approx(ku, rel=0.01)
+        assert r.pu == pytest.approx(pu, rel=0.01)
+    else:
+        assert r.ku < 0.93 * ku

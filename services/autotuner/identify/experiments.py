@@ -189,6 +189,10 @@ class Setup:
     # cycle it got (``RelayConfig.stuck_periods``); None: a run recorded before, whose stage 2
     # was abandoned there instead (so its replay makes the live run's decisions)
     stage_two_rearm: bool | None = None
+    # True: such a stage 2, ended on two agreeing cycles, keeps its points as measured where
+    # a correction would move them by more than that (``RelayConfig.steady_second``); None:
+    # recorded before, its points always corrected
+    stage_two_steady: bool | None = None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

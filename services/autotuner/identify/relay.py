@@ -45,8 +45,11 @@ from services.autotuner.identify.experiments import (
     Setup,
 )
 from services.autotuner.identify.fourier import FrequencyPoint, frequency_points
+from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.relay_estimate import (
+    Corrector,
     EstimateConfig,
+    Points,
     StageOne,
     estimate,
     g_scatter,
@@ -122,6 +125,9 @@ class RelayConfig:
     # with a bias) means the lead shrank the cycle short of its lockout: the lockout is set
     # again from the peak the PV reached, once (None: never; stage 2 is abandoned instead)
     stuck_periods: float | None = 1.0
+    # stage 2 set again and ended on two agreeing cycles: its points kept as measured where
+    # the leakage correction would move them by more than the cycles' agreement
+    steady_second: bool = True
     # the K_u/P_u estimator's thresholds (relay_estimate)
     estimate: EstimateConfig = field(default_factory=EstimateConfig)
 
@@ -691,6 +697,8 @@ class RelayTest:
                 second = ()  # set again, the cycle went back to stage 1's: no second point
             if second:
                 correct = corrector(record, s1.window, (c.t_start, c.period, 1), harmonics)
+                if self.config.steady_second and self._rearmed and self._settled():
+                    correct = _steady_second(correct, second, self._agreement)
                 refined = refine(s1, second, correct, est_cfg)
         if refined is None and s1.points:  # stage 2 missing: the model from stage 1 alone
             correct = corrector(record, s1.window, None, self._stage_two_harmonics())
@@ -729,6 +737,21 @@ class RelayTest:
         self.events.append(Event(t_done, "done", {"ku": est.ku, "pu": est.pu}))
 
 
+def _steady_second(correct: Corrector, second: Points, agreement: float) -> Corrector:
+    """``correct``, but stage 2's points kept as measured where the correction would move its
+    fundamental by more than ``agreement``: set again, stage 2 ran until two cycles agreed
+    within that, so its window leaks less than such a correction, which is then the error of
+    a model fitted to cut-short cycles (a relay without bias leaves its static gain free)."""
+
+    def keep(model: ProcessFit) -> tuple[Points, Points]:
+        first, later = correct(model)
+        if later and abs(later[0].g / second[0].g - 1.0) > agreement:
+            return first, second
+        return first, later
+
+    return keep
+
+
 def _finished(test: RelayTest, stage_two: bool) -> RelayTest:
     """``test`` (a copy) with its findings computed (``RelayTest._conclude``)."""
     test._finish(stage_two)
@@ -752,6 +775,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         tolerance=settings.tolerance,
         low_ratio=1.0 - settings.relay_bias,
         stuck_periods=RelayConfig.stuck_periods if setup.stage_two_rearm else None,
+        steady_second=bool(setup.stage_two_steady),
         **budget,
     )
     return RelayTest(
