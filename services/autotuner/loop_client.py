@@ -244,13 +244,8 @@ class LoopClient:
                 )
             key, payload, enc = got
             if key == _GONE:
-                self.holding = False
                 self.gone = True
-                raise PlantLost(
-                    f"loop {self.loop!r}: lost the plant (its liveliness token "
-                    f"{keys.loop_alive(self.prefix, self.loop)} vanished: the plant stopped, "
-                    "or this tuner was cut off from it)"
-                )
+                self.check_plant()
             if key == self._pv_key:
                 self.last_sample = (
                     payload
@@ -301,6 +296,17 @@ class LoopClient:
             cmd = cmd.model_copy(update={"source": self.source})
         wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind, self.user), cmd)
         self._last_sent = time.monotonic()
+
+    def check_plant(self) -> None:
+        """PlantLost if the plant's token has vanished (``_watch_alive``), without waiting for
+        a message: a run busy with a long step ends at once."""
+        if self.gone:
+            self.holding = False
+            raise PlantLost(
+                f"loop {self.loop!r}: lost the plant (its liveliness token "
+                f"{keys.loop_alive(self.prefix, self.loop)} vanished: the plant stopped, "
+                "or this tuner was cut off from it)"
+            )
 
     def renew_lease(self) -> None:
         """Renew a held lease if nothing was sent for a renewal interval: a run that waits on

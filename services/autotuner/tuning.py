@@ -77,8 +77,8 @@ GUARD_WINDOW = 2.0  # time scales per window of the verification's growth and sa
 OP_NOISE_WARN = 5.0  # % of output (σ): more output noise than this is worth a warning
 LOSS_QUERY_TIMEOUT = 2.0  # s of wall time to find a lost plant back in reach (a reconnect)
 RETURN_SCALES = 5.0  # time scales to wait for the PV of a restored loop to come back to rest
-COMPUTE_CHECK = 0.25  # s of wall time between a lockstep run's checks of its lease while
-# a heavy step computes (renewed once quiet for the client's renewal interval)
+COMPUTE_CHECK = 0.25  # s of wall time between a run's checks while a heavy step computes:
+# cancelled, the plant gone, the lease (renewed once quiet for the client's renewal interval)
 
 log = logging.getLogger("autotuner")
 
@@ -334,13 +334,12 @@ class TuningRun:
         return self._result(result, t0, wall0, left)
 
     def _compute(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """``fn(*args)`` through ``hooks.compute``; in lockstep with the loop's lease renewed
-        while it runs. The plant does not move meanwhile, and a step that outlasts the lease
-        (a worker starting on a machine whose cores are all taken) would otherwise have the
-        plant's watchdog take back a loop this run is still working on. In realtime the loop
-        goes on under the output held meanwhile: there the lease stays the bound."""
-        if self.info.clock != "lockstep":
-            return self.hooks.compute(fn, *args)
+        """``fn(*args)`` through ``hooks.compute``, watched from the run's thread meanwhile: a
+        cancel, or the plant's token vanishing, ends the run at once (not when the step is
+        done: seconds on a busy machine); in lockstep the loop's lease is renewed meanwhile,
+        since the plant does not move, and a step that outlasts the lease would otherwise
+        have the plant's watchdog take back a loop this run is still working on. In realtime
+        the loop goes on under the output held meanwhile: there the lease stays the bound."""
         out: list[tuple[bool, Any]] = []
 
         def work() -> None:
@@ -351,10 +350,14 @@ class TuningRun:
 
         worker = threading.Thread(target=work, name=f"compute {self.req.loop}", daemon=True)
         worker.start()
+        lockstep = self.info.clock == "lockstep"
         while worker.is_alive():
             worker.join(COMPUTE_CHECK)
             if worker.is_alive():
-                self.client.renew_lease()
+                self._check_cancel()
+                self.client.check_plant()
+                if lockstep:
+                    self.client.renew_lease()
         ok, value = out[0]
         if not ok:
             raise value

@@ -70,6 +70,9 @@ class LocalLoopClient:
     def renew_lease(self) -> None:
         """Nothing to renew: a loop in this process has no watchdog."""
 
+    def check_plant(self) -> None:
+        """Nothing to lose: the loop is in this process."""
+
     def sync(self) -> LoopStatus:
         self.last_status = self.sim.status(NODE, "lockstep", "sync", 0)
         return self.last_status

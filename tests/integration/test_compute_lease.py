@@ -1,13 +1,16 @@
-"""A lockstep run keeps its lease while a heavy step computes (the relay's closing fits, the
-design): the plant does not move meanwhile, and a step that outlasts the lease on a busy
-machine must not have the plant's watchdog take back a loop the run is still working on.
+"""A run watches while a heavy step computes (the relay's closing fits, the design): in
+lockstep it keeps its lease (the plant does not move meanwhile, and a step that outlasts the
+lease on a busy machine must not have the plant's watchdog take back a loop the run is still
+working on); a cancel or the plant's token vanishing ends the run at once, not when the step
+is done.
 
-The slow step is made slow on purpose (it sleeps three lease timeouts before computing): it
-stands for a worker starting on a machine whose cores are all taken.
+The slow steps are made slow on purpose (they sleep before computing): they stand for a
+worker starting on a machine whose cores are all taken.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
@@ -45,3 +48,42 @@ def test_a_step_slower_than_the_lease_leaves_the_loop_leased(start_plant):
         after = c.sync()
     assert after.leased_by is None  # released at the end, not taken back by the watchdog
     assert after.reason != "watchdog"
+
+
+def _run_with(p, compute, cancelled=None):
+    with (
+        open_session(p.client_settings()) as s,
+        LoopClient(s, p.prefix, "x1", lease_timeout=LEASE) as c,
+    ):
+        hooks = RunHooks(compute=compute, cancelled=cancelled)
+        return TuningRun(c, TuneRequest(loop="x1", method="relay"), "watch-test", hooks).run()
+
+
+def test_the_plant_gone_during_a_step_ends_the_run_without_waiting_for_it(start_plant):
+    p = start_plant(plant_toml("x1", CUBIC), loops=("x1",))
+    finished = threading.Event()
+
+    def kill_then_compute(fn, *args):
+        p.proc.kill()
+        time.sleep(60.0)  # a step far longer than the run may wait once the plant is gone
+        finished.set()
+        return fn(*args)
+
+    r = _run_with(p, kill_then_compute)
+    assert r.status == "aborted" and "lost the plant" in r.reason, r.reason
+    assert not finished.is_set()
+
+
+def test_a_cancel_during_a_step_ends_the_run_without_waiting_for_it(start_plant):
+    p = start_plant(plant_toml("x1", CUBIC), loops=("x1",))
+    cancel, finished = threading.Event(), threading.Event()
+
+    def cancel_then_compute(fn, *args):
+        cancel.set()
+        time.sleep(60.0)
+        finished.set()
+        return fn(*args)
+
+    r = _run_with(p, cancel_then_compute, cancel)
+    assert (r.status, r.reason, r.restored) == ("aborted", "cancelled", True)
+    assert not finished.is_set()
