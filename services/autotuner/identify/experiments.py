@@ -193,6 +193,10 @@ class Setup:
     # a correction would move them by more than that (``RelayConfig.steady_second``); None:
     # recorded before, its points always corrected
     stage_two_steady: bool | None = None
+    # True: a relay whose stage-1 cycle lies within its hysteresis (switching on the noise)
+    # widens it and counts again (``RelayConfig.chatter_widenings``); None: recorded before,
+    # such cycles counted as any other
+    relay_chatter: bool | None = None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

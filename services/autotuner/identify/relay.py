@@ -128,6 +128,17 @@ class RelayConfig:
     # stage 2 set again and ended on two agreeing cycles: its points kept as measured where
     # the leakage correction would move them by more than the cycles' agreement
     steady_second: bool = True
+    # ``chatter_cycles`` stage-1 cycles in a row (not the first) whose amplitude is below
+    # ``chatter_fraction`` of the hysteresis are the relay switching on the noise (many
+    # samples to a period give a 3σ excursion every half-cycle, before the process has
+    # answered; the smoothed PV barely moves): ε is widened by ``chatter_factor`` and stage 1
+    # counted again, at most this many times, then the test aborts (None: such cycles
+    # counted as any other). A process's own cycle is never that far inside ε (an integrating
+    # one ramps between the levels: a ≈ ε); noise splitting one makes a single small one
+    chatter_widenings: int | None = 3
+    chatter_cycles: int = 2
+    chatter_fraction: float = 0.5
+    chatter_factor: float = 2.0
     # the K_u/P_u estimator's thresholds (relay_estimate)
     estimate: EstimateConfig = field(default_factory=EstimateConfig)
 
@@ -208,6 +219,8 @@ class RelayTest:
         self._extreme = math.nan  # the PV's farthest since then towards arming the next switch
         self._rearmed = False  # stage 2's lockout was set again from the cycle it got
         self._aim = 0.0  # rad: stage 2 aims its level at a·sin(_aim)
+        self._chatter = 0  # times ε was widened for a relay switching on the noise
+        self._from_cycle = 0  # stage 1's cycles (and the budget's) count from this one
         self._stage_two_from = 0  # stage 2's cycles count from this many
         self._stage_two_start = math.nan  # s: its patience runs from here
         self._agreement = cfg.tolerance  # asked of the cycles (wider with noise)
@@ -492,12 +505,57 @@ class RelayTest:
         )
 
     def _budget(self) -> float:
-        """The relay's time budget, s from its start: ``max_time``, then, once there are a
-        few cycles, the longest of them bounds the rest."""
+        """The relay's time budget, s from its start (or from its last widening of ε):
+        ``max_time``, then, once there are a few cycles, the longest of them bounds the rest."""
         cfg = self.config
-        if len(self.cycles) >= cfg.budget_after_cycles:
-            return (cfg.max_cycles + cfg.budget_spare_cycles) * max(c.period for c in self.cycles)
+        counted = self.cycles[self._from_cycle :]
+        if len(counted) >= cfg.budget_after_cycles:
+            return (cfg.max_cycles + cfg.budget_spare_cycles) * max(c.period for c in counted)
         return cfg.max_time
+
+    def _chattering(self) -> bool:
+        """The last ``chatter_cycles`` cycles (not the first since stage 1's start or its
+        last widening: a start-up transient) all lie below ``chatter_fraction`` of ε: the
+        relay switches on the noise. One such cycle alone is noise splitting a cycle."""
+        cfg = self.config
+        if cfg.chatter_widenings is None:
+            return False
+        counted = self.cycles[self._from_cycle + 1 :][-cfg.chatter_cycles :]
+        return len(counted) == cfg.chatter_cycles and all(
+            c.amplitude < cfg.chatter_fraction * self._eps for c in counted
+        )
+
+    def _chattered(self, t: float, amplitude: float) -> None:
+        """A stage-1 cycle of ``amplitude`` far inside the hysteresis ε: the relay switched on
+        the noise, not on the process's answer (its "cycles" agree only within an agreement the
+        noise has widened past meaning, and K_u, P_u and any model read from them are the
+        noise's). ε is widened and stage 1 counted again from here, ``chatter_widenings``
+        times at most; a hysteresis given by the user is not widened: the test aborts."""
+        cfg = self.config
+        assert cfg.chatter_widenings is not None
+        if cfg.hysteresis is not None or self._chatter >= cfg.chatter_widenings:
+            given = (
+                "as given (--hysteresis)"
+                if cfg.hysteresis is not None
+                else f"after {self._chatter} widenings"
+            )
+            self._abort(
+                f"the relay switches on the noise, not on a limit cycle: a cycle of amplitude "
+                f"{amplitude:.3g} within the hysteresis {self._eps:.3g} {given} (noise σ "
+                f"{self._noise:.3g}); a larger --hysteresis lets the process answer"
+            )
+            return
+        self._chatter += 1
+        self._eps *= cfg.chatter_factor
+        self._level = self._margin = self._cross_margin = self._eps
+        self._from_cycle, self._relay_start = len(self.cycles), t
+        self.events.append(
+            Event(
+                t,
+                "hysteresis",
+                {"hysteresis": self._eps, "amplitude": amplitude, "reason": "noise chatter"},
+            )
+        )
 
     def _arm(self, pv: float) -> None:
         """Allow the next switch once the PV has passed the opposite level by the noise margin
@@ -550,6 +608,9 @@ class RelayTest:
                 step = min(max(d * skew, -most), most)
                 self.bias = min(max(self.bias + step, lo + d), hi - d)
                 self.events.append(Event(t1, "bias", {"bias": self._actual(self.bias)}))
+        if self.phase == "relay" and self._chattering():
+            self._chattered(t1, amplitude)
+            return
         if self.phase == "stage2":
             assert self._stage1 is not None
             if len(self.cycles) - self._stage_two_from >= cfg.stage_two_cycles and (
@@ -558,7 +619,8 @@ class RelayTest:
                 self._conclude()
             return
         n = cfg.cycles
-        recent = self.cycles[1:][-n:]  # the first cycle is the start-up transient
+        # the first cycle (after a widening too) is the start-up transient
+        recent = self.cycles[self._from_cycle + 1 :][-n:]
         if len(recent) == n:
             pu_spread = spread([c.period for c in recent])
             a_spread = spread([c.amplitude for c in recent])
@@ -573,7 +635,7 @@ class RelayTest:
                 else:
                     self._conclude()
                 return
-        if len(self.cycles) >= cfg.max_cycles:
+        if len(self.cycles) - self._from_cycle >= cfg.max_cycles:
             self._abort(
                 f"the last {n} of {len(self.cycles)} cycles still differ by more than "
                 f"{self._agreement:.0%}"
@@ -776,6 +838,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         low_ratio=1.0 - settings.relay_bias,
         stuck_periods=RelayConfig.stuck_periods if setup.stage_two_rearm else None,
         steady_second=bool(setup.stage_two_steady),
+        chatter_widenings=RelayConfig.chatter_widenings if setup.relay_chatter else None,
         **budget,
     )
     return RelayTest(
