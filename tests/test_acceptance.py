@@ -1,0 +1,45 @@
+"""The verification's acceptance (``acceptance_problems``): the new gains are rejected as worse
+than the previous ones only beyond ``SCORE_TOLERANCE`` of their IAE per unit step. The same
+gains re-applied on a noisy loop measured 17.24 against 17.19 and were rejected before."""
+
+from __future__ import annotations
+
+import pytest
+
+from services.autotuner.tuning import SCORE_TOLERANCE, acceptance_problems
+from shared.messages import Verification
+
+LIMITS = {"max_overshoot": 35.0, "max_decay_ratio": 0.35, "overshoot_miss": 20.0}
+
+
+def verification(score: float) -> Verification:
+    return Verification(
+        gains={"kc": 1.0},
+        sp_step=3.0,
+        overshoot=5.0,
+        decay_ratio=None,
+        rise_time=10.0,
+        settling_time=100.0,
+        iae_sp=3.0 * score,
+        load_step=None,
+        iae_load=None,
+        max_deviation_load=None,
+        recovery_time=None,
+        stable=True,
+        saturated=False,
+        score=score,
+    )
+
+
+def test_the_same_gains_measured_again_are_not_worse():
+    assert acceptance_problems(verification(17.24), verification(17.19), LIMITS) == []
+
+
+@pytest.mark.parametrize("worse", [1.0 + SCORE_TOLERANCE + 1e-3, 1.2, 3.0])
+def test_worse_beyond_the_tolerance_is_rejected(worse):
+    problems = acceptance_problems(verification(17.19 * worse), verification(17.19), LIMITS)
+    assert len(problems) == 1 and problems[0].startswith("worse than before"), problems
+
+
+def test_better_is_never_worse():
+    assert acceptance_problems(verification(10.0), verification(17.19), LIMITS) == []
