@@ -507,6 +507,11 @@ class TuneResult(Message):
     before: Verification | None = None
     after: Verification | None = None
     restored: bool = False
+    untouched: bool = Field(
+        default=False,
+        description="nothing was sent to the loop: the run ended before its first write "
+        "(refused, or not started)",
+    )
     rest: dict[str, float | int | str | bool | None] | None = Field(
         default=None, description="the drift check before the test: window, waited, drift"
     )

@@ -12,6 +12,7 @@ import threading
 
 import pytest
 
+from services.autotuner.commands.tune import format_result
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
@@ -174,3 +175,16 @@ def test_gains_applied_without_verification_are_unverified_never_ok():
     verified = TuningRun(LocalLoopClient(third_order_loop()), TuneRequest(loop="x"), "unit").run()
     assert verified.status == "ok" and verified.applied is True and verified.reason is None
     assert verified.after is not None and verified.acceptance["passed"] is True
+
+
+def test_a_request_refused_before_any_write_says_nothing_was_sent():
+    """The PV already outside the limits asked for: the run ends before its first command,
+    and says so (not "the loop may not have been restored")."""
+    client = LocalLoopClient(third_order_loop())
+    before = state(client)
+    r = run(client, method="relay", pv_limits=(60.0, 70.0))
+    assert r.status == "failed" and r.reason.startswith("pv_limits: the PV 50 is already outside")
+    assert (r.untouched, r.restored, r.applied) == (True, True, False)
+    assert client.commands == [] and state(client) == before
+    assert "nothing was sent to the loop" in format_result(r)
+    assert "WARNING" not in format_result(r)

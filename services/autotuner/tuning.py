@@ -229,10 +229,14 @@ class TuningRun:
         }
         span = _span(self.info.pv_range)  # None: no % of span figures (a range not lo < hi)
         lo, hi = self.pv_limits
-        if not lo <= first.pv <= hi:
-            raise ValueError(
-                f"pv_limits: the PV {first.pv:.4g} is already outside [{lo:g}, {hi:g}]"
+        if not lo <= first.pv <= hi:  # refused before anything is sent to the loop
+            result.update(
+                status="failed",
+                reason=f"pv_limits: the PV {first.pv:.4g} is already outside [{lo:g}, {hi:g}]",
+                restored=True,
+                untouched=True,
             )
+            return self._result(result, t0, wall0, None)
         restored = False
         try:
             self._progress(
@@ -246,7 +250,7 @@ class TuningRun:
             if not rest["at_rest"]:
                 raise TuneAborted(f"not started: {rest['reason']}")
         except (TuneAborted, AutotuneError) as err:  # nothing was changed: nothing to restore
-            result.update(status="aborted", reason=str(err), restored=True)
+            result.update(status="aborted", reason=str(err), restored=True, untouched=True)
             return self._result(result, t0, wall0, self._leave(first, first.pv, wait=False))
         self._rest = rest
         self.before = before = c.sync()
@@ -256,7 +260,9 @@ class TuningRun:
                 LeaseCommand(loop=c.loop, source=c.source, timeout=c.lease_timeout, t=before.t)
             )
         except AutotuneError as err:  # another supervisor holds it: nothing was changed
-            result.update(status="aborted", reason=f"not started: {err}", restored=True)
+            result.update(
+                status="aborted", reason=f"not started: {err}", restored=True, untouched=True
+            )
             return self._result(result, t0, wall0, self._leave(before, before.pv, wait=False))
         ident: experiments.Identification | None = None
         wait_back = True

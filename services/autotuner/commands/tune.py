@@ -664,6 +664,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         "new gains applied, loop in auto"
         + (", NOT verified (--no-verify)" if r.status == "unverified" else "")
         if r.applied
+        else "nothing was sent to the loop"
+        if r.untouched
         else "loop restored to its state before the test"
         if r.restored
         else "WARNING: the loop may not have been restored"
