@@ -459,6 +459,8 @@ def test_extreme_but_finite_plants_run_with_the_pv_at_its_transmitter_limit():
         assert judge(plant) == "runs"
         loop = next(iter(build_plant(plant).values()))
         assert (loop.advance().pv == loop.settings.pv_range[1]) == at_top
+        if at_top and loop.settings.setpoint is None:  # not at the unreadable rest beyond it
+            assert loop.sp == loop.settings.pv_range[1]
 
 
 # --- systematic mutations of the presets and of a loop with every key ----------------------

@@ -403,3 +403,22 @@ def test_through_a_real_interpreter(fmus, tmp_path):
         cwd=ROOT,
     )
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_a_process_resting_beyond_its_transmitter_says_so():
+    """pv0 50 on a 0–10 transmitter: the file runs (clipped at 10), and the check says why no
+    test will see the PV move."""
+    r = check(
+        {
+            "model": "fopdt",
+            "gain": 1.0,
+            "time_constant": 10.0,
+            "sample_time": 0.1,
+            "pv_range": [0.0, 10.0],
+            "pv0": 50.0,
+        }
+    )
+    assert r.pv0 == pytest.approx(50.0)
+    assert any(w.startswith("the process rests at PV 50, out of pv_range") for w in r.warnings)
+    inside = check({"model": "fopdt", "gain": 1.0, "time_constant": 10.0, "sample_time": 0.1})
+    assert not any("rests at" in w for w in inside.warnings)

@@ -331,6 +331,12 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
                 f"nonlinear: the gain varies by {_pct(report.nonlinearity)} between the steps "
                 "(the ultimate point is that of its linear part at op0)"
             )
+    lo, hi = report.pv_range
+    if report.pv0 is not None and not lo <= report.pv0 <= hi:
+        report.warnings.append(
+            f"the process rests at PV {report.pv0:.6g}, out of pv_range {list(report.pv_range)}: "
+            "its transmitter reads the limit, and no test can see it move until it comes back"
+        )
     for r in responses:
         if r.behaviour in ("self-regulating", "integrating"):
             peak = r.pv[int(np.argmax(np.abs(r.pv - r.pv[0])))]

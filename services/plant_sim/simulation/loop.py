@@ -153,7 +153,10 @@ class SimLoop:
         self._rng = np.random.default_rng([settings.seed, _stable_hash(settings.loop_id)])
         pv_rest = model_pv("reset()", process.reset)  # ModelFailure: the loop cannot start
         self.pv = self._measure(pv_rest)
-        self.sp = settings.setpoint if settings.setpoint is not None else pv_rest
+        # no setpoint given: the rest, as the transmitter reads it (a process resting beyond
+        # its range runs clipped at the limit, and a setpoint outside the range means nothing)
+        lo, hi = settings.pv_range
+        self.sp = settings.setpoint if settings.setpoint is not None else min(max(pv_rest, lo), hi)
         self.pid = PidBlock(
             settings.gains.to_core(),
             settings.sample_time,
