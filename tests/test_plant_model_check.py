@@ -422,3 +422,19 @@ def test_a_process_resting_beyond_its_transmitter_says_so():
     assert any(w.startswith("the process rests at PV 50, out of pv_range") for w in r.warnings)
     inside = check({"model": "fopdt", "gain": 1.0, "time_constant": 10.0, "sample_time": 0.1})
     assert not any("rests at" in w for w in inside.warnings)
+
+
+def test_a_process_gain_against_the_loops_action_is_warned_of():
+    text = "the process gain is -2 (its PV falls as the output rises) but the loop's PID is "
+    wrong = check({"model": "fopdt", "gain": -2.0, "time_constant": 10.0, "sample_time": 0.1})
+    assert any(w.startswith(text + "reverse-acting") for w in wrong.warnings), wrong.warnings
+    right = check(
+        {
+            "model": "fopdt",
+            "gain": -2.0,
+            "time_constant": 10.0,
+            "sample_time": 0.1,
+            "action": "direct",
+        }
+    )
+    assert not any("the process gain is" in w for w in right.warnings)

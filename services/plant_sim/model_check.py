@@ -140,7 +140,7 @@ class Refused(Exception):
 def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
     """Check a built loop's process model (noise, PID block and transmitter range aside)."""
     s = loop.settings
-    return check_model(
+    report = check_model(
         loop.process,
         loop_id=loop_id,
         model=s.model_name,
@@ -149,6 +149,18 @@ def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
         pv_range=s.pv_range,
         pv_units=s.pv_units,
     )
+    # a reverse-acting PID is for a process whose PV rises with the output, a direct one for
+    # one whose PV falls: the other way round, the loop runs away in auto, and a relay or a
+    # ramp pushes the PV away from where it would switch
+    wants = "direct" if report.gain is not None and report.gain < 0 else "reverse"
+    if report.gain is not None and report.gain != 0 and s.action != wants:
+        moves = "falls" if wants == "direct" else "rises"
+        report.warnings.append(
+            f"the process gain is {report.gain:.4g} (its PV {moves} as the output rises) but "
+            f"the loop's PID is {s.action}-acting: in auto it would run away, and a relay or "
+            f'ramp test pushes the PV the wrong way (action = "{wants}")'
+        )
+    return report
 
 
 def check_model(

@@ -197,6 +197,9 @@ class Setup:
     # widens it and counts again (``RelayConfig.chatter_widenings``); None: recorded before,
     # such cycles counted as any other
     relay_chatter: bool | None = None
+    # True: a relay whose PV comes to rest against its push before any switch aborts there
+    # (``RelayConfig.wrong_way``); None: recorded before, it ran to its time budget
+    relay_wrong_way: bool | None = None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

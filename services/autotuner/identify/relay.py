@@ -136,6 +136,12 @@ class RelayConfig:
     # counted as any other). A process's own cycle is never that far inside ε (an integrating
     # one ramps between the levels: a ≈ ε); noise splitting one makes a single small one
     chatter_widenings: int | None = 3
+    # stage 1 not yet switched, the PV at rest (over the last half of the relay so far, its
+    # stretches' means agreeing) beyond twice the hysteresis against the relay's push: a
+    # process whose gain has the other sign than the loop's action says; the test aborts,
+    # saying so, rather than hold the output to its time budget (an inverse response turns
+    # back: it is never at rest there)
+    wrong_way: bool = True
     chatter_cycles: int = 2
     chatter_fraction: float = 0.5
     chatter_factor: float = 2.0
@@ -266,6 +272,9 @@ class RelayTest:
         # the first sample past a deadline must be a batch's last: stop one short of it (past
         # the stuck one, each sample may show the PV turned back: one at a time)
         room = math.floor((min(deadlines) - t) / self.sample_time) - 1
+        if self._watching_wrong_way():  # the check of a PV at rest against the push
+            q = self._quiet_samples
+            room = min(room, q - len(self.pv) % q)
         return max(1, min(cap, room))
 
     def band(self) -> Band | None:
@@ -398,6 +407,10 @@ class RelayTest:
         stuck = self._stuck_at()
         if stuck is not None and t >= stuck and abs(pv - self._extreme) > self._margin:
             self._rearm(t)  # overdue, and the PV turned back from short of arming the switch
+        if self._watching_wrong_way() and len(self.pv) % self._quiet_samples == 0:
+            why = self._at_rest_against_the_push()
+            if why:
+                return self._abort(f"no limit cycle: {why}")
         cfg, r, h = self.config, self._r, self._level
         if self._switch_armed and self._state > 0 and pv > r + h:
             self._switch(t, pv, -1.0)
@@ -443,9 +456,54 @@ class RelayTest:
         if t - self._relay_start > budget:
             return self._abort(
                 f"no limit cycle that repeats within {cfg.tolerance:.0%} after "
-                f"{len(self.cycles)} cycles and {t - self._relay_start:g} s"
+                f"{len(self.cycles)} cycles and {t - self._relay_start:g} s" + self._wrong_way()
             )
         return self._out()
+
+    def _wrong_way(self) -> str:
+        """Why no cycle came, when the PV shows it (``_against``): a suffix for the abort
+        on the time budget; empty otherwise."""
+        if self._switched() or len(self.pv) < 2:
+            return ""
+        tail = float(np.mean(self.pv[-self._quiet_samples :]))
+        return f": {self._against(tail)}" if self._against(tail) else ""
+
+    def _switched(self) -> bool:
+        """The relay has switched since it started (its start is a switch event too)."""
+        return sum(e.kind == "switch" for e in self.events) > 1
+
+    def _watching_wrong_way(self) -> bool:
+        return self.config.wrong_way and self.phase == "relay" and not self._switched()
+
+    def _at_rest_against_the_push(self) -> str:
+        """``_against``, for a PV at rest over the last half of the relay so far (a quiet
+        period's worth at least): the means of ten stretches of it agree within 2 % of how
+        far it went (and the noise averaged in each). A straight-line trend would not do: a
+        window straddling an inverse response's turn has none. Empty otherwise."""
+        since = round((self.t[-1] - self._relay_start) / self.sample_time)
+        y = np.asarray(self.pv[-max(self._quiet_samples, since // 2) :])
+        stretches = y[-(y.size // 10) * 10 :].reshape(10, -1)
+        means = stretches.mean(axis=1)
+        away = abs(float(np.mean(y)) - self._r)
+        limit = max(0.02 * away, 6.0 * self._noise / math.sqrt(stretches.shape[1]))
+        if float(np.ptp(means)) > limit:
+            return ""
+        return self._against(float(np.mean(y)), rest=True)
+
+    def _against(self, pv: float, rest: bool = False) -> str:
+        """The PV at ``pv`` went the other way from the relay's push by more than twice the
+        hysteresis: what that says of the loop's action. Empty otherwise."""
+        if (pv - self._r) * self._state >= -max(2.0 * self._eps, 1e-12):
+            return ""
+        action = "reverse" if self.direction > 0 else "direct"
+        other = "direct" if self.direction > 0 else "reverse"
+        moved = "fell" if pv < self._r else "rose"
+        output = "raised" if self._state * self.direction > 0 else "lowered"
+        return (
+            f"the PV {moved} from {self._r:.4g} to {pv:.4g}{' and came to rest' if rest else ''}"
+            f" with the output {output}, against the push — the loop is {action}-acting; is "
+            f"the process one for a {other}-acting PID?"
+        )
 
     def _switch(self, t: float, pv: float, state: float) -> None:
         self._state, self._switch_armed = state, False
@@ -837,6 +895,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         tolerance=settings.tolerance,
         low_ratio=1.0 - settings.relay_bias,
         stuck_periods=RelayConfig.stuck_periods if setup.stage_two_rearm else None,
+        wrong_way=bool(setup.relay_wrong_way),
         steady_second=bool(setup.stage_two_steady),
         chatter_widenings=RelayConfig.chatter_widenings if setup.relay_chatter else None,
         **budget,

@@ -1,0 +1,42 @@
+"""A relay on a process whose gain has the other sign than the loop's action: the relay pushes
+the PV up, and it falls, so the relay never switches. It used to hold the output to its time
+budget (14,400 s) and say only that no cycle came; now, once the PV has come to rest against
+the push beyond twice the hysteresis, it aborts and names the action. An inverse response
+(a right-half-plane zero) also starts the wrong way, but turns back: it is never at rest
+there, and its ultimate point is measured as before (``tests.exact``)."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.exact import ultimate_point
+from tests.plants import run_relay
+
+WRONG = ([-2.0], [10.0, 1.0], 1.0, 0.1)  # −2 e^{−s}/(10s + 1) under a reverse-acting loop
+INVERSE = ([-2.0, 1.0], [1.0, 3.0, 3.0, 1.0], 0.0, 0.01)  # (1 − 2s)/(s + 1)³
+SAYS = "against the push — the loop is reverse-acting; is the process one for a direct-acting PID?"
+
+
+def test_a_pv_at_rest_against_the_push_aborts_and_names_the_action():
+    test = run_relay(*WRONG)
+    assert test.phase == "aborted"
+    assert test.reason.startswith("no limit cycle: the PV fell from 50 to ")
+    assert "and came to rest with the output raised" in test.reason and SAYS in test.reason
+    # at rest at 50 − 2·5 = 40 after a few time constants, not at the end of the budget
+    assert test.t[-1] < 400.0 < test.config.max_time
+
+
+def test_recorded_before_it_held_the_output_to_its_budget():
+    test = run_relay(*WRONG, wrong_way=False)
+    assert test.phase == "aborted" and test.t[-1] >= test.config.max_time
+    assert test.reason.startswith("no limit cycle that repeats within 2% after 0 cycles")
+    assert SAYS in test.reason  # the budget's abort says what the PV did, too
+
+
+def test_an_inverse_response_starts_the_wrong_way_and_is_measured():
+    ku, pu = ultimate_point(*INVERSE[:3])
+    test = run_relay(*INVERSE)
+    r = test.result
+    assert r is not None, test.reason
+    assert r.ku == pytest.approx(ku, rel=0.02)
+    assert r.pu == pytest.approx(pu, rel=0.02)
