@@ -5,11 +5,13 @@ import json
 
 import pytest
 
+from services.autotuner.design.recommend import assess, recommend
+from services.autotuner.design.rules import UltimatePoint
 from services.autotuner.design.selection import assessments_dict, guidance, select
 from services.autotuner.identify import experiments
 from services.autotuner.identify.model_fit import ProcessFit, StepModel, model_of
 from services.autotuner.identify.reaction_curve import ReactionCurve
-from tests.exact import lag_ultimate
+from tests.exact import lag_ultimate, ultimate_point
 from tests.plants import HX, run_relay
 
 
@@ -197,3 +199,20 @@ def test_unstable_on_the_sampled_loop_is_refused_though_stable_in_continuous_tim
     assert "unstable on the sampled loop" in sel.refusal
     assert select(lag_dominated, "zn-pi-half", ms_bound=1e6).refusal is None  # continuous
     _json_safe(sel)
+
+
+def test_the_most_robust_candidate_names_the_margins_it_was_held_to():
+    """A model that fits worse than the noise allows holds PID candidates to 0.75 × the bound
+    (1.5), not 0.9 × (1.8): tl-pid at Ms 1.69 is outside it, and the reason says which."""
+    model = ProcessFit("sopdt", 1.5, (20.0, 5.0), 2.0, 0.1, noise_rms=0.01)
+    assert model.approximate
+    ku, pu = ultimate_point([1.5], [100.0, 25.0, 1.0], 2.0)
+    ultimate = UltimatePoint(ku, pu)
+    every = assess(ultimate, model, sample_time=0.1)
+    tl = {r: a for r, a in every.items() if r in ("tl-pi", "tl-pid")}
+    assert 1.5 < tl["tl-pid"].robustness.ms < 1.8 < 2.0 < tl["tl-pi"].robustness.ms
+    rec = recommend(ultimate, model, 2.0, tl)
+    assert rec.rule == "tl-pid"
+    assert rec.reason.endswith(
+        "(none within the margin Ms ≤ 1.8, PID ≤ 1.5 on a model this approximate)"
+    )

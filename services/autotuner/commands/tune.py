@@ -287,7 +287,7 @@ def loop_state(session: zenoh.Session, prefix: str, loop: str, timeout: float = 
     held = f", still held by {st.leased_by}" if st.leased_by else ""
     return (
         f"loop {loop} now: {st.mode}, SP {st.sp:.4g}, OP {st.op:.4g} %, PV {st.pv:.4g}, "
-        f"Kc {g.kc:.4g}, Ti {g.ti if g.ti is not None else 'off'}, Td {g.td:.4g}{held}"
+        f"Kc {g.kc:.4g}, Ti {'off' if g.ti is None else f'{g.ti:.4g} s'}, Td {g.td:.4g} s{held}"
     )
 
 

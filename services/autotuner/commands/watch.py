@@ -159,8 +159,10 @@ def run(args: argparse.Namespace) -> int:
         now = (gains.kc, gains.ti, gains.td)
         if now != baseline.gains:
             assessment.notes.append(
-                f"the loop's gains (Kc {gains.kc:.4g}, Ti {gains.ti}, Td {gains.td:.4g}) are no "
-                f"longer those of the tune {baseline.run_id}: the comparison is with other gains"
+                f"the loop's gains (Kc {gains.kc:.4g}, Ti "
+                f"{'off' if gains.ti is None else f'{gains.ti:.4g} s'}, Td {gains.td:.4g} s) are "
+                f"no longer those of the tune {baseline.run_id}: the comparison is with other "
+                "gains"
             )
     msg = LoopMonitor(loop=args.loop, node="watch", pv_units=info.pv_units, **assessment.to_dict())
     print(json.dumps(msg.model_dump(mode="json"), indent=2) if args.json else format_monitor(msg))

@@ -292,16 +292,24 @@ def recommend(
                 safest.gains,
                 _number(safest.robustness.ms),
                 f"the most robust candidate on {on} (none within the margin "
-                f"Ms ≤ {MODEL_MARGIN * ms_bound:.2g})",
+                f"{_margins(model, ms_bound)})",
             )
     fallback = next((safe[r] for r in FALLBACKS if r in safe), None)
     if fallback is None:
         return None
     rb = fallback.robustness
     if model is not None:
-        reason = f"no candidate within Ms ≤ {MODEL_MARGIN * ms_bound:.2g} on the model"
+        reason = f"no candidate within {_margins(model, ms_bound)} on the model"
     elif without_model:
         reason = f"{without_model}: the robust default, from K_u and P_u alone"
     else:
         reason = "no model to judge the candidates on: the robust default"
     return Recommendation(fallback.rule, fallback.gains, _number(rb.ms) if rb else None, reason)
+
+
+def _margins(model: ProcessFit, ms_bound: float) -> str:
+    """The Ms margins a model's candidates were held to, as the reason states them."""
+    text = f"Ms ≤ {MODEL_MARGIN * ms_bound:.2g}"
+    if model.approximate:
+        text += f", PID ≤ {APPROXIMATE_PID_MARGIN * ms_bound:.2g} on a model this approximate"
+    return text
