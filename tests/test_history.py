@@ -183,6 +183,10 @@ def test_revert_picks_the_change_to_undo_or_names_the_flag():
         target(cs, None, 4)
     with pytest.raises(ConfigError, match="--to zz: no change"):
         target(cs, "zz", 1)
+    # an approved run's gains, written by `autotune apply` (run "c"): either id names it
+    applied = [*cs, {"run_id": "c", "applied_from": "b", "before": 4}]
+    assert target(applied, "c", 1)["before"] == 4
+    assert target(applied, "b", 1)["before"] == 4
     with pytest.raises(ConfigError, match="--steps 0"):
         target(cs, None, 0)
 

@@ -63,10 +63,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def target(changes: list[dict[str, Any]], to: str | None, steps: int) -> dict[str, Any]:
-    """The change to undo: the last of run ``to``, else the ``steps``-th last; ConfigError
-    naming the flag when there is none."""
+    """The change to undo: the last of run ``to`` (the run that wrote the gains, or the run
+    whose gains ``autotune apply`` wrote: the history names it "from run"), else the
+    ``steps``-th last; ConfigError naming the flag when there is none."""
     if to is not None:
-        mine = [c for c in changes if c.get("run_id") == to]
+        mine = [c for c in changes if to in (c.get("run_id"), c.get("applied_from"))]
         if not mine:
             raise ConfigError(f"--to {to}: no change of the loop's gains by that run on record")
         return mine[-1]
