@@ -8,27 +8,14 @@ import pytest
 
 from services.autotuner.tuning import SCORE_TOLERANCE, acceptance_problems
 from shared.messages import Verification
+from tests import test_percent_span as percent_span
 
 LIMITS = {"max_overshoot": 35.0, "max_decay_ratio": 0.35, "overshoot_miss": 20.0}
 
 
 def verification(score: float) -> Verification:
-    return Verification(
-        gains={"kc": 1.0},
-        sp_step=3.0,
-        overshoot=5.0,
-        decay_ratio=None,
-        rise_time=10.0,
-        settling_time=100.0,
-        iae_sp=3.0 * score,
-        load_step=None,
-        iae_load=None,
-        max_deviation_load=None,
-        recovery_time=None,
-        stable=True,
-        saturated=False,
-        score=score,
-    )
+    """A stable verification whose IAE per unit step is ``score``."""
+    return percent_span.verification(3.0 * score, 0.0).model_copy(update={"score": score})
 
 
 def test_the_same_gains_measured_again_are_not_worse():
