@@ -220,6 +220,9 @@ class RampTest:
         self.bump = self.config.bump  # PV units; halved each time a trial saturates the output
         self._trial_bump = self.config.bump  # the present trial's (≤ bump: the kick must fit)
         self._bumps = 0  # setpoint bumps so far (their sign alternates)
+        self._trial_sign = 1.0  # the present trial's bump: +1 up, −1 down
+        # per trial: its PV went the other way from its bump (−1), with it (+1), unclear (0)
+        self._went: list[int] = []
         self._trial_start = 0  # index into the record
         self._trial_t0 = 0.0
         self._lo: Trial | None = None
@@ -442,7 +445,8 @@ class RampTest:
         self._trial_bump = bump
         # from the present setpoint, not from where the PV rests: under P-only control the PV
         # settles off the setpoint, and a bump from the PV's rest would kick by that offset too
-        self.sp += bump * (1 if n % 2 == 0 else -1)
+        self._trial_sign = 1.0 if n % 2 == 0 else -1.0
+        self.sp += bump * self._trial_sign
         self._trial_start, self._trial_t0 = len(self._y) - 1, t
         self._next_check = 16
         self._sat_run = 0
@@ -589,6 +593,11 @@ class RampTest:
         or watched to its end (``capped``: to the time limit before any period is known)."""
         osc = self._fit(end)
         watched = t - self._trial_t0
+        # where the last half of the trial went, against its bump or with it (said only)
+        y_trial = np.asarray(self._y[self._trial_start : end])
+        away = (float(np.mean(y_trial[y_trial.size // 2 :])) - self._r) * self._trial_sign
+        clear = self._moving_level()
+        self._went.append(-1 if away < -clear else 1 if away > clear else 0)
         self._silent = False
         if osc is None or osc.swings < (2 if cut else 3):
             # no oscillation to fit: an overdamped response, or one that ran away at once
@@ -642,6 +651,22 @@ class RampTest:
         self.kc = self._next_gain()
         self._begin_settle(t)
 
+    def _wrong_way(self) -> str:
+        """Why no trial oscillated, when the trials say it: the PV went clearly the other way
+        from its setpoint bump in two trials of three or more, two at least (the loop's
+        feedback positive: a process whose gain has the other sign than the loop's action;
+        a trial that starts on what the one before left can go either way). An inverse
+        response starts the wrong way but ends with its bump. Empty otherwise."""
+        against = self._went.count(-1)
+        if against < 2 or 3 * against < 2 * len(self._went):
+            return ""
+        action = "reverse" if self.direction > 0 else "direct"
+        other = "direct" if self.direction > 0 else "reverse"
+        return (
+            f": the trials' PV went the other way from their setpoint bumps — the loop is "
+            f"{action}-acting; is the process one for a {other}-acting PID?"
+        )
+
     def _begin_settle(self, t: float) -> None:
         """Calm the loop at a gain known to decay (or below the present one) before the next
         trial."""
@@ -680,7 +705,7 @@ class RampTest:
         elif periods:
             pu = periods[0]
         else:
-            self._abort("the loop never oscillated")
+            self._abort("the loop never oscillated" + self._wrong_way())
             return True
         ku, pu = float(ku), float(pu)  # plain floats for JSON (the fits give numpy scalars)
         ku_plant, pu_plant = (float(x) for x in self._plant_crossover(ku, pu))

@@ -1,14 +1,23 @@
-"""A relay on a process whose gain has the other sign than the loop's action: the relay pushes
+"""A process whose gain has the other sign than the loop's action.
+
+The relay pushes
 the PV up, and it falls, so the relay never switches. It used to hold the output to its time
 budget (14,400 s) and say only that no cycle came; now, once the PV has come to rest against
 the push beyond twice the hysteresis, it aborts and names the action. An inverse response
 (a right-half-plane zero) also starts the wrong way, but turns back: it is never at rest
-there, and its ultimate point is measured as before (``tests.exact``)."""
+there, and its ultimate point is measured as before (``tests.exact``).
+
+The ramp's closed loop is positive feedback there: no trial oscillates, and its abort says
+why when two trials of three or more went the other way from their setpoint bumps."""
 
 from __future__ import annotations
 
 import pytest
 
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.messages import TuneRequest
 from tests.exact import ultimate_point
 from tests.plants import run_relay
 
@@ -40,3 +49,15 @@ def test_an_inverse_response_starts_the_wrong_way_and_is_measured():
     assert r is not None, test.reason
     assert r.ku == pytest.approx(ku, rel=0.02)
     assert r.pu == pytest.approx(pu, rel=0.02)
+
+
+def test_a_ramp_whose_trials_go_against_their_bumps_says_why_none_oscillated():
+    table = {"model": "fopdt", "gain": -2.0, "time_constant": 10.0, "delay": 1.0}
+    sim = build_plant({"loops": {"n1": {**table, "sample_time": 0.1}}})["n1"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="n1", method="ramp"), "wrong").run()
+    assert (r.status, r.restored) == ("aborted", True)
+    assert r.reason.startswith(
+        "ramp test: the loop never oscillated: the trials' PV went the "
+        "other way from their setpoint bumps"
+    )
+    assert SAYS.split("against the push — ")[1] in r.reason
