@@ -42,6 +42,10 @@ LEASE_TIMEOUT = 10.0  # s of wall time without a command before the plant restor
 RENEW_EVERY = 2.0  # s of wall time between lease-keeping syncs in realtime, at most
 RESEND_EVERY = 1.0  # s: a sync whose answer is late is sent again (lost while reconnecting)
 _GONE = "<gone>"  # inbox marker: the loop's liveliness token vanished
+# a wait that ends this long past its deadline did not run: this process was paused or
+# starved (SIGSTOP, a suspended VM), and what the plant sent meanwhile may still be coming in
+OVERSLEPT = 1.0  # s
+RESUMED_WAIT = 2.0  # s: then waited for once more, so the cause is the plant's word
 
 
 class PlantLost(AutotuneError):
@@ -235,13 +239,24 @@ class LoopClient:
         ``want``: samples expected (an advance's); with the inbox empty, the wait ends when
         that many are in, or anything else is (a status, the plant gone)."""
         while True:
+            started = time.monotonic()
             got = self._get(self.timeout if wait is None else wait, want)
+            if got is None and wait is None:
+                paused = time.monotonic() - started - self.timeout
+                if paused > OVERSLEPT:  # this process did not run: hear what came meanwhile
+                    got = self._get(RESUMED_WAIT, want)
+                if got is None:
+                    own = (
+                        f" (this process did not run for {paused:.0f} s: paused or starved)"
+                        if paused > OVERSLEPT
+                        else ""
+                    )
+                    raise PlantLost(
+                        f"loop {self.loop!r}: no message from the plant for {self.timeout:g} s"
+                        + own
+                    )
             if got is None:
-                if wait is not None:
-                    return None
-                raise PlantLost(
-                    f"loop {self.loop!r}: no message from the plant for {self.timeout:g} s"
-                )
+                return None
             key, payload, enc = got
             if key == _GONE:
                 self.gone = True

@@ -320,6 +320,8 @@ def _run_case(stack: Stack) -> None:
         assert ended < case.bound, context
         if case.expect != "ok":
             assert result["reason"], context
+        if case.fault == "pause" and case.target == "tuner":  # its own pause, not the plant's
+            assert "lease lost" in result["reason"] or "paused" in result["reason"], context
     if case.expect == "ok":
         assert after.mode == "auto", context
         isa = result["chosen"]["isa"]
