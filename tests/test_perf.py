@@ -70,11 +70,14 @@ def test_perf_runs_on_its_tiny_size_and_reports_every_figure():
     }
     # the logger's zero-drop capacity may read 0 on a loaded machine (none of the tiny rates
     # drained in time): a figure, not a failure; so may the tiny realtime plant's CPU (10
-    # loops at 10/s for 1 s: a few ms, read in the kernel's 10 ms ticks)
+    # loops at 10/s for 1 s: a few ms, read in the kernel's 10 ms ticks), and its capacity
+    # (one second of wall time, the 99 % it must keep missed by a start-up's jitter: seen
+    # once in a fresh clone's CI)
     may_be_zero = {
         ".logger.capacity",
         ".ratios.logger_over_raw_writer",
         ".realtime.sizes[0].cpu",
+        ".realtime.capacity_samples_per_s",
     }
     numbers = dict(_numbers(doc))
     for part, names in figures.items():
