@@ -126,6 +126,13 @@ def as_controlled(ident: Identification, direction: float) -> Identification:
     )
 
 
+def action_question(direction: float) -> str:
+    """What a PV moving against an experiment's push asks of a loop of ``direction`` (+1
+    reverse-acting, −1 direct): a process whose gain has the other sign than its action."""
+    action, other = ("reverse", "direct") if direction > 0 else ("direct", "reverse")
+    return f"the loop is {action}-acting; is the process one for a {other}-acting PID?"
+
+
 DEFAULT_RELAY_AMPLITUDE = 5.0  # %: also the load step of the verification
 DEFAULT_STEP_SIZE = 5.0  # %
 DEFAULT_BUMP_FRACTION = 0.01  # of the PV range, ramp setpoint bump

@@ -48,6 +48,7 @@ from services.autotuner.identify.experiments import (
     Progress,
     Settings,
     Setup,
+    action_question,
 )
 from services.autotuner.identify.model_fit import (
     ProcessFit,
@@ -660,11 +661,8 @@ class RampTest:
         against = self._went.count(-1)
         if against < 2 or 3 * against < 2 * len(self._went):
             return ""
-        action = "reverse" if self.direction > 0 else "direct"
-        other = "direct" if self.direction > 0 else "reverse"
-        return (
-            f": the trials' PV went the other way from their setpoint bumps — the loop is "
-            f"{action}-acting; is the process one for a {other}-acting PID?"
+        return ": the trials' PV went the other way from their setpoint bumps — " + action_question(
+            self.direction
         )
 
     def _begin_settle(self, t: float) -> None:

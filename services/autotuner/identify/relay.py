@@ -43,6 +43,7 @@ from services.autotuner.identify.experiments import (
     Progress,
     Settings,
     Setup,
+    action_question,
 )
 from services.autotuner.identify.fourier import FrequencyPoint, frequency_points
 from services.autotuner.identify.model_fit import ProcessFit
@@ -496,14 +497,11 @@ class RelayTest:
         hysteresis: what that says of the loop's action. Empty otherwise."""
         if (pv - self._r) * self._state >= -max(2.0 * self._eps, 1e-12):
             return ""
-        action = "reverse" if self.direction > 0 else "direct"
-        other = "direct" if self.direction > 0 else "reverse"
         moved = "fell" if pv < self._r else "rose"
         output = "raised" if self._state * self.direction > 0 else "lowered"
         return (
             f"the PV {moved} from {self._r:.4g} to {pv:.4g}{' and came to rest' if rest else ''}"
-            f" with the output {output}, against the push — the loop is {action}-acting; is "
-            f"the process one for a {other}-acting PID?"
+            f" with the output {output}, against the push — {action_question(self.direction)}"
         )
 
     def _switch(self, t: float, pv: float, state: float) -> None:
