@@ -24,7 +24,7 @@ from typing import Any
 
 import zenoh
 
-from services.autotuner.commands.tune import add_units_option, run_and_report
+from services.autotuner.commands.tune import add_units_option, figure, run_and_report
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
@@ -85,7 +85,7 @@ def choose(run: dict[str, Any], rule: str | None) -> tuple[str, PidGains, float 
         if judged.get("within_envelope") is not True:
             raise ConfigError(
                 f"--rule {rule}: outside the safety envelope the run judged it by "
-                f"(predicted Ms {_fmt(judged.get('ms'))}); tune again with --force if you must"
+                f"(predicted Ms {figure(judged.get('ms'))}); tune again with --force if you must"
             )
     elif run.get("ku") is None or not isa["kc"] < run["ku"]:
         raise ConfigError(f"--rule {rule}: not judged by the run, and Kc not below its K_u")
@@ -149,8 +149,3 @@ def run(args: argparse.Namespace) -> int:
             raise AutotuneError(f"loop {loop} is not the loop run {args.run_id} identified: {why}")
 
     return run_and_report(args, req, same_as_identified)
-
-
-def _fmt(x: object) -> str:
-    """A recorded figure as the run printed it (4 significant digits), or as it is."""
-    return f"{x:.4g}" if isinstance(x, int | float) and not isinstance(x, bool) else str(x)

@@ -432,7 +432,8 @@ def progress_line(p: TuneProgress) -> None:
     )
 
 
-def _fmt(v, unit: str = "", digits: int = 4) -> str:
+def figure(v, unit: str = "", digits: int = 4) -> str:
+    """A figure as the tables print it (``digits`` significant), "—" when there is none."""
     if v is None:
         return "—"
     return f"{v:.{digits}g}{unit}"
@@ -451,8 +452,8 @@ def _robust_row(a: dict) -> str:
     if not a:
         return ""
     return (
-        f"{_fmt(a.get('ms'), digits=3):>7}{_fmt(a.get('gain_margin'), digits=3):>7}"
-        f"{_fmt(a.get('phase_margin_deg'), digits=3):>7}"
+        f"{figure(a.get('ms'), digits=3):>7}{figure(a.get('gain_margin'), digits=3):>7}"
+        f"{figure(a.get('phase_margin_deg'), digits=3):>7}"
         f"{_fixed(a.get('overshoot_pct'), 1):>7}{_fixed(a.get('decay_ratio'), 2):>6}"
     )
 
@@ -471,7 +472,7 @@ def _percent_table(r: TuneResult, span: float, pv_units: str) -> list[str]:
         pct = to_percent(IsaGains(isa["kc"], isa["ti"], isa["td"]), span)
         mark = "←" if name == r.rule else ""
         lines.append(
-            f"  {name:<15}{pct.kc:>10.4g}{_fmt(pct.pb):>10}{_fmt(pct.ti):>10}"
+            f"  {name:<15}{pct.kc:>10.4g}{figure(pct.pb):>10}{figure(pct.ti):>10}"
             f"{pct.td:>10.4g}{isa['kc']:>14.4g}{_robust_row(rob.get(name, {}))} {mark}"
         )
     return lines
@@ -609,7 +610,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             isa, par = g["isa"], g["parallel"]
             mark = "←" if name == r.rule else ""
             lines.append(
-                f"  {name:<15}{isa['kc']:>10.4g}{_fmt(isa['ti']):>10}"
+                f"  {name:<15}{isa['kc']:>10.4g}{figure(isa['ti']):>10}"
                 f"{isa['td']:>10.4g}{par['ki']:>10.4g}{par['kd']:>10.4g}"
                 f"{_robust_row(rob.get(name, {}))} {mark}"
             )
@@ -638,8 +639,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             if span is not None and field.startswith("iae"):
                 b, a = process_gain_percent(b, span), process_gain_percent(a, span)
             lines.append(
-                f"  {label:<18}{_fmt(b) if not isinstance(b, bool) else str(b):>12}"
-                f"{_fmt(a) if not isinstance(a, bool) else str(a):>12}"
+                f"  {label:<18}{figure(b) if not isinstance(b, bool) else str(b):>12}"
+                f"{figure(a) if not isinstance(a, bool) else str(a):>12}"
             )
     if r.acceptance and r.acceptance.get("passed") is not None:
         a = r.acceptance
