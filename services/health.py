@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     node = args.node or DEFAULT_NODES[args.service]
     check_ids(args.prefix, node=node)
     key = TOKENS[args.service](args.prefix, node)
-    with open_session(settings_from_args(args)) as session:
+    with open_session(settings_from_args(args), args.timeout) as session:
         up = wait_for_token(session, key, args.timeout)
     print(f"{args.service}: {'up' if up else 'DOWN'} ({key})", file=sys.stderr)
     return 0 if up else 1

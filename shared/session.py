@@ -40,6 +40,7 @@ RENDEZVOUS_ENV = "AUTOTUNE_RENDEZVOUS"
 LOOPBACK_ANY = "tcp/127.0.0.1:0"  # an ephemeral port on loopback
 # the rendezvous listener: tried once, no failure if another process holds the port
 RENDEZVOUS_LISTEN = "#exit_on_failure=false"
+OPEN_TIMEOUT = "transport/unicast/open_timeout"  # ms, a link's handshake (Zenoh: 10,000)
 CONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
 
 
@@ -199,11 +200,14 @@ def _resolve_files(conf: zenoh.Config, path: str | None, source: str | None) -> 
             raise ConfigError(f"zenoh config {source or '--cfg'}: {key}: {value}: no such file")
 
 
-def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
+def zenoh_config(settings: ZenohSettings, open_timeout: float | None = None) -> zenoh.Config:
     """Build the zenoh.Config that ``settings`` describe; ConfigError names the bad setting.
 
     The file, then the flags, then ``--cfg``; what none of them set gets the secure defaults
-    of the module's docstring."""
+    of the module's docstring. ``open_timeout`` (s) bounds each link's handshake where the
+    user left Zenoh's own 10 s (``transport/unicast/open_timeout``): a command told to wait
+    2 s must not sit 10 s in the handshake of a peer that is paused (its port accepts, its
+    process does not answer)."""
     conf, path = _load(settings)
     source = settings.config_file or (f"ZENOH_CONFIG={path}" if path else None)
 
@@ -234,6 +238,9 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
             raise ConfigError(f"--cfg {item!r}: expected KEY:VALUE, e.g. connect/timeout_ms:30000")
         insert(f"--cfg {item!r}", key, value)
     _secure_defaults(conf, insert)
+    if open_timeout is not None and _get(conf, OPEN_TIMEOUT) == _get(zenoh.Config(), OPEN_TIMEOUT):
+        ms = max(100, min(int(open_timeout * 1000), int(_get(conf, OPEN_TIMEOUT))))
+        insert("--timeout", OPEN_TIMEOUT, str(ms))
     _resolve_files(conf, path, source)
     return conf
 
@@ -280,6 +287,6 @@ def open_config(conf: zenoh.Config) -> zenoh.Session:
         raise ConfigError(f"cannot open zenoh session: {reason}") from None
 
 
-def open_session(settings: ZenohSettings) -> zenoh.Session:
+def open_session(settings: ZenohSettings, open_timeout: float | None = None) -> zenoh.Session:
     """Open a session as ``settings`` describe (see ``zenoh_config``)."""
-    return open_config(zenoh_config(settings))
+    return open_config(zenoh_config(settings, open_timeout))

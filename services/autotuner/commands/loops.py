@@ -254,7 +254,7 @@ def run(args: argparse.Namespace) -> int:
         check_ids(args.prefix, loop=args.loop)
     else:
         check_ids(args.prefix)
-    with open_session(settings_from_args(args)) as session:
+    with open_session(settings_from_args(args), args.timeout) as session:
         if args.loop is not None:
             objs = [loop_object(*read_loop(session, args.prefix, args.loop, args.timeout))]
         else:

@@ -398,7 +398,7 @@ def run(args: argparse.Namespace) -> int:
     asked.check()
     check_ids(args.prefix, loop=args.loop)
     settings = settings_from_args(args)
-    with open_session(settings) as session:
+    with open_session(settings, args.timeout) as session:
         wait_for_loop(session, args.prefix, args.loop, args.timeout)
         with LoopClient(
             session,

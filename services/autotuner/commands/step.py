@@ -327,7 +327,7 @@ def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     check_ids(args.prefix, loop=args.loop)
     settings = settings_from_args(args)
-    with open_session(settings) as session:
+    with open_session(settings, args.wait) as session:
         wait_for_loop(session, args.prefix, args.loop, args.wait)
         with LoopClient(
             session, args.prefix, args.loop, source="autotune-step", user=auth_user(settings)
