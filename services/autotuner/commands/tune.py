@@ -365,6 +365,12 @@ def follow(
                 if gone is not None and now > gone + RESULT_GRACE:
                     if _cut_off(session, prefix, loop):  # the bus went, not (only) the tuner:
                         # wait, bounded, for it to come back (a router restarting)
+                        print(
+                            f"run {run_id} on {loop}: neither its plant nor any tuner is in "
+                            f"sight (this client lost the bus?): waiting up to "
+                            f"{RECONNECT_WAIT:g} s for it to come back (Ctrl-C twice leaves)",
+                            file=sys.stderr,
+                        )
                         wait_for_token(
                             session,
                             keys.tuner_alive(prefix, "*"),
