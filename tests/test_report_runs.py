@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 
+from services.logger.compare import compare, format_compare
 from services.logger.report import build_report, load_report
 from tests.recorded_run import raw_messages, record_in_process
 
@@ -38,6 +39,7 @@ def runs(tmp_path_factory):
         path, live = record_in_process(tmp_path_factory.mktemp(method), "r", PLANT, LOOP, method)
         assert live.status == "ok" and live.before is not None, live.reason
         out[method] = (raw_messages(path), build_report(load_report(path)))
+        out[f"{method} file"] = path
     return out
 
 
@@ -92,3 +94,14 @@ def test_ramp_trials_carry_their_kc_and_the_ultimate_point_its_bracket(runs):
     e = result["experiment"]
     half = (e["kc_high"] - e["kc_low"]) / result["ku"] * mag  # ku_spread, relative
     assert (seg[1][1] - seg[0][1]) / 2 == pytest.approx(half, rel=1e-9)
+
+
+def test_runs_compare_shows_a_gain_once_where_its_pv_is_in_percent_over_0_to_100(runs):
+    """PV units % over 0–100 %: Kc in %/PV unit is Kc in %/%, one row, not two equal rows."""
+    (result,) = runs["relay"][0]["result"]
+    assert result["pv_units"] == "%" and result["pv_range"] == [0.0, 100.0]
+    c = compare(runs["relay file"], runs["ramp file"])
+    keys = [r["key"] for r in c["rows"]]
+    assert "ku" in keys and "kc" in keys and "pb" in keys
+    assert "ku_percent" not in keys and "kc_percent" not in keys
+    assert sum(line.startswith("Kc (") for line in format_compare(c).splitlines()) == 1

@@ -49,6 +49,8 @@ ROWS = (
     ("sim_duration", "sim time", "s"),
 )
 PERCENT_KEYS = ("ku_spread", "pu_spread")  # fractions shown as %
+# a gain in %/% and the row of the same gain in %/PV unit (equal when the PV's span is 100 %)
+SAME_IN_PERCENT = {"ku_percent": "ku", "kc_percent": "kc"}
 
 
 def _result(path: Path) -> tuple[dict[str, str], TuneResult | None, float | None]:
@@ -148,6 +150,9 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
         a, b = values[0][key], values[1][key]
         if a is None and b is None:
             continue
+        base = SAME_IN_PERCENT.get(key)
+        if base is not None and (a, b) == (values[0][base], values[1][base]):
+            continue  # a PV in % over 0–100: the %/% row would repeat the row above it
         na, nb = _number(a), _number(b)
         change = (nb - na) / abs(na) if na is not None and nb is not None and na != 0 else None
         rows.append(
