@@ -12,9 +12,12 @@ why when two trials of three or more went the other way from their setpoint bump
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
-from services.autotuner.tuning import TuningRun
+from services.autotuner.identify import methods
+from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.messages import TuneRequest
@@ -51,13 +54,43 @@ def test_an_inverse_response_starts_the_wrong_way_and_is_measured():
     assert r.pu == pytest.approx(pu, rel=0.02)
 
 
-def test_a_ramp_whose_trials_go_against_their_bumps_says_why_none_oscillated():
-    table = {"model": "fopdt", "gain": -2.0, "time_constant": 10.0, "delay": 1.0}
+RAMP_WRONG = {"model": "fopdt", "gain": -2.0, "time_constant": 10.0, "delay": 1.0}
+
+
+def _ramp(table: dict, monkeypatch=None, recorded_before: bool = False):
+    """(the run's result, its trials' sim times) of a ramp on ``table`` at 0.1 s samples."""
+    if recorded_before:  # as a run recorded before the flag: the ramp runs on
+        method = methods.METHODS["ramp"]
+        before = replace(
+            method, build=lambda st, setup: method.build(st, replace(setup, ramp_wrong_way=None))
+        )
+        monkeypatch.setitem(methods.METHODS, "ramp", before)
     sim = build_plant({"loops": {"n1": {**table, "sample_time": 0.1}}})["n1"]
-    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="n1", method="ramp"), "wrong").run()
+    trials: list[float] = []
+
+    def event(e) -> None:
+        if e.kind == "trial_result":
+            trials.append(e.t)
+
+    hooks = RunHooks(event=event)
+    req = TuneRequest(loop="n1", method="ramp")
+    return TuningRun(LocalLoopClient(sim), req, "wrong", hooks).run(), trials
+
+
+def test_a_ramp_whose_trials_go_against_their_bumps_stops_there_and_says_why():
+    r, trials = _ramp(RAMP_WRONG)
     assert (r.status, r.restored) == ("aborted", True)
     assert r.reason.startswith(
         "ramp test: the loop never oscillated: the trials' PV went the "
         "other way from their setpoint bumps"
     )
     assert SAYS.split("against the push — ")[1] in r.reason
+    # two trials of three went against their bumps: no fourth (positive feedback only
+    # brackets the gain, 1/|K| = 0.5, at which the loop runs away without a period)
+    assert len(trials) == 3
+
+
+def test_recorded_before_the_ramp_bracketed_the_runaway_gain_to_the_end(monkeypatch):
+    r, trials = _ramp(RAMP_WRONG, monkeypatch, recorded_before=True)
+    assert r.status == "aborted" and "the loop never oscillated" in r.reason
+    assert len(trials) > 3

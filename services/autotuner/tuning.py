@@ -685,6 +685,8 @@ class TuningRun:
             common["stage_two_steady"] = True
             common["relay_chatter"] = True
             common["relay_wrong_way"] = True
+        if req.method == "ramp":
+            common["ramp_wrong_way"] = True
         if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
             common["time_scale"] = self._rest["window"]
         if methods.method(req.method).closed_loop:

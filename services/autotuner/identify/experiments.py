@@ -207,6 +207,9 @@ class Setup:
     # True: a relay whose PV comes to rest against its push before any switch aborts there
     # (``RelayConfig.wrong_way``); None: recorded before, it ran to its time budget
     relay_wrong_way: bool | None = None
+    # True: a ramp whose trials went against their bumps, none oscillating, aborts there
+    # (``RampConfig.stop_wrong_way``); None: recorded before, it ran on to its limits
+    ramp_wrong_way: bool | None = None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:
