@@ -330,6 +330,36 @@ def test_a_vanished_run_token_ends_the_run_after_the_grace(rec: Recorder, clock:
     assert only_file(rec)[0]["status"] == "tuner lost"
 
 
+def test_a_result_after_the_grace_goes_into_the_file_closed_tuner_lost(
+    rec: Recorder, clock: Clock
+) -> None:
+    """A tuner paused past the grace, then resumed: its file was closed "tuner lost"; its
+    result (an abort: the plant restored the loop meanwhile) is written into it after all,
+    every message before it kept as it was."""
+    rec.run_token(LOOP, True)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 3)
+    rec.run_token(LOOP, False)
+    clock.now += RESULT_GRACE
+    rec.tick()
+    assert only_file(rec)[0]["status"] == "tuner lost"
+    before = read_run(rec.finished[0])[1]
+    clock.now += 30.0
+    late = result("r1", 3 * DT, status="aborted").model_copy(update={"ku": None, "pu": None})
+    send(rec, keys.tune_result(P, LOOP), late)
+    assert rec.counts["late_results"] == 1
+    meta, records = read_run(rec.finished[0])
+    assert (meta["status"], meta["run_id"], meta["ku"]) == ("aborted", "r1", "")
+    assert meta["late_result"] and TuneResult.model_validate_json(meta["result"]) == late
+    assert records[:-1] == before  # the same messages, the same times
+    assert records[-1].key == keys.tune_result(P, LOOP)
+    assert TuneResult.model_validate_json(records[-1].data) == late
+    assert meta["messages"] == str(len(records))
+    # only once: the same result again, or another run's, changes nothing more
+    send(rec, keys.tune_result(P, LOOP), late)
+    assert rec.counts["late_results"] == 1 and len(read_run(rec.finished[0])[1]) == len(records)
+
+
 def test_a_run_token_back_within_the_grace_keeps_the_run(rec: Recorder, clock: Clock) -> None:
     rec.run_token(LOOP, True)
     send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))

@@ -115,6 +115,31 @@ class RunWriter:
         self._writer.add_message(channel, log_time=ns, data=payload, publish_time=ns, sequence=seq)
         self.messages += 1
 
+    def copy(self, schema, channel, message) -> None:
+        """One message of another MCAP file as it was there (its schema and channel by name,
+        its times and sequence kept): a run file rewritten (``amend_run``)."""
+        if channel.topic not in self._channels:
+            sid = 0
+            if schema is not None:
+                if schema.name not in self._schemas:
+                    self._schemas[schema.name] = self._writer.register_schema(
+                        schema.name, schema.encoding, schema.data
+                    )
+                sid = self._schemas[schema.name]
+            self._channels[channel.topic] = self._writer.register_channel(
+                channel.topic, channel.message_encoding, sid
+            )
+        cid = self._channels[channel.topic]
+        self._sequence[cid] = max(self._sequence.get(cid, 0), message.sequence + 1)
+        self._writer.add_message(
+            cid,
+            log_time=message.log_time,
+            data=message.data,
+            publish_time=message.publish_time,
+            sequence=message.sequence,
+        )
+        self.messages += 1
+
     def flush_if_due(self) -> None:
         """Close the chunk in progress at most every ``flush_interval`` s (bounds a crash's
         loss to about that much)."""
@@ -137,6 +162,41 @@ class RunWriter:
         self._writer.finish()
         self._file.close()
         self.finished = True
+
+
+def amend_run(
+    path: Path,
+    key: str,
+    model: type[pydantic.BaseModel],
+    payload: bytes,
+    t: float,
+    metadata: dict[str, str],
+    record_key: str,
+) -> None:
+    """Rewrite a finished run file with one message more (``payload``, the recorded form of
+    a ``model`` message on ``key`` at sim time ``t``, s) and its ``run`` metadata updated by
+    ``metadata``: every message it held is copied as it was (schema, channel, log and publish
+    time, sequence), its RunRecord written again from the new metadata. The new file
+    replaces the old at once (a reader sees one or the other, never half of either)."""
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        meta = next((dict(m.metadata) for m in reader.iter_metadata() if m.name == "run"), {})
+    meta.update(metadata)
+    tmp = path.with_name(path.name + ".amending")
+    writer = RunWriter(tmp, log_time_zero=int(meta.get("log_time_zero") or 0))
+    try:
+        with path.open("rb") as f:
+            for schema, channel, msg in make_reader(f).iter_messages(log_time_order=False):
+                if schema is not None and schema.name == RunRecord.__name__:
+                    continue  # written again below, from the new metadata
+                writer.copy(schema, channel, msg)
+        writer.write(key, model, payload, t)
+        if "messages" in meta:  # the run's messages, its RunRecord aside
+            meta["messages"] = str(writer.messages)
+        writer.finish(meta, record_key, t)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 @functools.cache

@@ -9,7 +9,9 @@ run whose tuner is gone ends "tuner lost": when the run's liveliness token
 s, or when the plant's watchdog restored the loop (status reason ``watchdog``) while no
 token of the run was there. A watchdog status that still names a lease holder of the run,
 or that comes while the run's token is alive (the tuner lives and will end its run with a
-result), closes nothing.
+result), closes nothing. Should the tuner's result come after all (a tuner paused past the
+grace, then resumed), the file is rewritten with it (``mcap_io.amend_run``): the tuner's
+status, and ``late_result`` in the metadata.
 
 Everything on the loop's keys in between goes into the file: process samples (those a
 lockstep advance sends as one batch on ``pv_batch``, each as its own ``pv`` message, as the
@@ -55,10 +57,10 @@ from pathlib import Path
 
 import pydantic
 
-from services.logger.mcap_io import RunWriter, log_time_zero
+from services.logger.mcap_io import RunWriter, amend_run, log_time_zero
 from services.logger.record_form import recorded_payload
 from shared import keys, wire
-from shared.errors import ConfigError
+from shared.errors import ConfigError, one_line
 from shared.messages import (
     COMMANDS,
     LeaseCommand,
@@ -215,6 +217,8 @@ class Recorder:
         self.counts: Counter[str] = Counter()
         self.finished: list[Path] = []
         self._recorded: OrderedDict[str, None] = OrderedDict()  # live run ids with a file
+        # live runs closed "tuner lost": their files, should the tuner's result come after all
+        self._lost: OrderedDict[str, Path] = OrderedDict()
         self._replays_seen: set[str] = set()
 
     # --- input ------------------------------------------------------------------------------
@@ -272,6 +276,9 @@ class Recorder:
     ) -> None:
         """One valid message of a loop: into its stream's context and its run's file."""
         stream = self._stream(loop_id, replay or "")
+        if isinstance(msg, TuneResult) and not replay and msg.run_id in self._lost:
+            self._late_result(key, model, payload, msg)
+            return
         if isinstance(msg, ProcessSample):
             if msg.seq == stream.last_sample_seq and payload == stream.last_sample:
                 self.counts["duplicates"] += 1  # the same sample delivered again
@@ -568,6 +575,10 @@ class Recorder:
             self._recorded[run.run_id] = None
             while len(self._recorded) > REMEMBERED_RUNS:
                 self._recorded.popitem(last=False)
+            if status == "tuner lost":
+                self._lost[run.run_id] = run.writer.path
+                while len(self._lost) > REMEMBERED_RUNS:
+                    self._lost.popitem(last=False)
         self.counts["dropped"] += run.gaps
         log.info(
             "run %s on %s%s: %s, %d messages, %d samples, %d dropped, %d left out → %s",
@@ -580,6 +591,50 @@ class Recorder:
             run.gaps,
             run.left_out,
             run.writer.path,
+        )
+
+    def _late_result(
+        self, key: str, model: type[Message], payload: bytes, result: TuneResult
+    ) -> None:
+        """The result of a run whose file was closed "tuner lost" (its tuner paused or cut
+        off past the grace, then back): the file is rewritten with the result in it and the
+        tuner's status, and says that its tuner was lost for a while (``late_result``)."""
+        path = self._lost.pop(result.run_id)
+        meta = {
+            "status": result.status,
+            "late_result": "the tuner's result came after the file was closed 'tuner lost'",
+            "result": result.model_dump_json(),
+            "ku": "" if result.ku is None else repr(result.ku),
+            "pu": "" if result.pu is None else repr(result.pu),
+        }
+        try:
+            amend_run(
+                path,
+                key,
+                model,
+                recorded_payload(result, payload),
+                result.t,
+                meta,
+                keys.tune_run_record(self.prefix, result.loop),
+            )
+        except Exception as err:  # a file moved or damaged since: the result is not lost
+            self.counts["late_results_lost"] += 1
+            log.warning(
+                "run %s on %s: its late result (%s) could not go into %s: %s",
+                result.run_id,
+                result.loop,
+                result.status,
+                path,
+                one_line(err),
+            )
+            return
+        self.counts["late_results"] += 1
+        log.info(
+            "run %s on %s: its tuner's result came late (%s): into %s, closed 'tuner lost'",
+            result.run_id,
+            result.loop,
+            result.status,
+            path,
         )
 
     def flush_due(self) -> None:
