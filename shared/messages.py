@@ -302,8 +302,12 @@ COMMANDS: dict[str, type[Command]] = {
 
 Method = Literal["relay", "ramp", "step"]
 # ``ok``: the gains were verified on the loop and passed; ``unverified``: applied without
-# verification, as ``verify = false`` asks (not known to be safe); the rest: nothing applied
-RunStatus = Literal["ok", "unverified", "rejected", "aborted", "failed"]
+# verification, as ``verify = false`` asks (not known to be safe); ``proposed``: identified
+# and computed, not applied, as ``apply = false`` asks (`autotune apply` applies and verifies
+# them); the rest: nothing applied
+RunStatus = Literal["ok", "unverified", "proposed", "rejected", "aborted", "failed"]
+# the statuses of a run that did what it was asked (the CLI's exit 0)
+DONE_STATUSES: tuple[RunStatus, ...] = ("ok", "unverified", "proposed")
 # the statuses of a run that may have left its gains in the loop (``applied`` says whether)
 APPLIED_STATUSES: tuple[RunStatus, ...] = ("ok", "unverified")
 

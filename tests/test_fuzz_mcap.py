@@ -56,7 +56,7 @@ def record_run(runs: Path, method: str, **request) -> Recorded:
     """One tuning run through the live tuner's code (TuningRun over an in-process loop), every
     message it and the loop publish handed to the logger's Recorder as the bus would."""
     path, live = record_in_process(runs, PREFIX, PLANT, LOOP, method, **request)
-    assert live.status == "ok", live.reason
+    assert live.status == ("ok" if request.get("apply", True) else "proposed"), live.reason
     return Recorded(path, live)
 
 
@@ -834,7 +834,7 @@ def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, 
         row = rows[name]
         if needles is OK:
             live = recorded[run_of[name]].live
-            assert row["status"] == "ok" and row["ku"] == live.ku and row["loop"] == LOOP, row
+            assert row["status"] == live.status and row["ku"] == live.ku and row["loop"] == LOOP
         else:
             assert row["status"] == "unreadable", row
             assert "\n" not in row["reason"] and all(n in row["reason"] for n in needles), row
@@ -848,7 +848,7 @@ def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, 
     lines = out.splitlines()
     assert len(lines) == 5 and lines[0].startswith("started")  # a header, a row per file
     assert sum("unreadable: " in ln for ln in lines) == 3
-    assert " ok  step-untouched.mcap" in out and "unreadable: metadata 'run', field format" in out
+    assert " proposed  step-untouched.mcap" in out and "unreadable: metadata 'run', field format" in out
     print(f"runs: {len(expected)} files, {bad} marked unreadable")
 
 

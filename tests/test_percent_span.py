@@ -143,7 +143,7 @@ def tune(spec: dict, method: str) -> TuneResult:
     loop = build_plant({"seed": 1, "loops": {"x": spec}})["x"]
     req = TuneRequest(loop="x", method=method, apply=False)
     r = TuningRun(LocalLoopClient(loop), req, "unit").run()
-    assert r.status == "ok", r.reason
+    assert r.status == "proposed" and not r.applied and "--no-apply" in r.reason, r.reason
     # what the bus carries: the same result back from its JSON
     assert TuneResult.model_validate_json(r.model_dump_json()) == r
     return r

@@ -293,7 +293,13 @@ class TuningRun:
             else:
                 self._restore()
                 restored = True
-            status = "ok" if result.get("applied") or not req.apply else "rejected"
+            status = "ok" if result.get("applied") else "rejected"
+            if not req.apply:  # computed, not tried on the loop: not ok, not rejected
+                status = "proposed"
+                result["reason"] = (
+                    "not applied (apply = false, --no-apply): the gains were computed, not "
+                    f"tried on the loop; `autotune apply {self.run_id}` applies and verifies them"
+                )
             if result.get("applied") and not req.verify:  # not tried on the loop: not ok
                 status = "unverified"
                 result["reason"] = (

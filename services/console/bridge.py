@@ -348,7 +348,7 @@ class Bridge:
 
         r = actions.run_tune(self.session, self.prefix, req, accepted)
         say(
-            r.status == "ok",
+            r.status in ("ok", "proposed"),
             f"run {r.run_id}: {r.status}" + (f" ({r.reason})" if r.reason else ""),
             run_id=r.run_id,
             stage="done",

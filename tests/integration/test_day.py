@@ -84,7 +84,7 @@ def test_a_day_with_a_loop(start_plant, start_tuner, start_logger, tmp_path):
     assert changes_seen(runs, 2)[-1]["by_source"] == "autotune-revert"
 
     pending = json.loads(cli(plant, "tune", LOOP, "--no-apply", "--json").stdout)
-    assert pending["status"] == "ok" and not pending["applied"] and gains(plant) == g0
+    assert pending["status"] == "proposed" and not pending["applied"] and gains(plant) == g0
     rule = pending["recommended"]["rule"]
     applied = json.loads(
         cli(plant, "apply", pending["run_id"], "--runs", str(runs), "--json").stdout

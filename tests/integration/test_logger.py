@@ -150,7 +150,7 @@ def test_step_and_ramp_runs_reanalyse_exactly(start_plant, start_tuner, start_lo
         ["--method", "ramp", "--kc-start", "2"],
     ):
         live = tune(p, "x1", *args, "--no-apply")
-        assert live["status"] == "ok", live["reason"]
+        assert live["status"] == "proposed", live["reason"]
         lives[live["run_id"]] = live
     assert wait_finished(p, 3).finished_runs == 3
     assert [len(v["repeats"] or ()) for v in lives.values()] == [0, 2, 0]

@@ -42,7 +42,7 @@ def test_relay_tune_within_one_percent(start_plant, start_tuner, name, plant):
     p = start_plant(plant_toml("x1", plant), loops=("x1",))
     start_tuner(p)
     r = tune(p, "x1", "--method", "relay", "--no-apply")
-    assert r["status"] == "ok", r["reason"]
+    assert r["status"] == "proposed", r["reason"]
     assert r["ku"] == pytest.approx(ku, rel=0.01)
     assert r["pu"] == pytest.approx(pu, rel=0.005)
     df = r["experiment"]["ku_describing_function"]
@@ -70,7 +70,7 @@ def test_ramp_tune_finds_the_ultimate_point(start_plant, start_tuner, name, plan
     p = start_plant(plant_toml("x1", plant, noise=noise), loops=("x1",))
     start_tuner(p)
     r = tune(p, "x1", "--method", "ramp", "--kc-start", str(0.2 * ku), "--no-apply")
-    assert r["status"] == "ok", r["reason"]
+    assert r["status"] == "proposed", r["reason"]
     assert r["ku"] == pytest.approx(ku, rel=tol)
     assert r["pu"] == pytest.approx(pu, rel=tol)
 
@@ -230,7 +230,7 @@ def test_detach_leaves_the_run_going(start_plant, start_tuner):
         accepted = json.loads(run.stdout)
         result = wire.decode_sample(TuneResult, results.get(timeout=120))
         sub.undeclare()
-    assert result.run_id == accepted["run_id"] and result.status == "ok", result.reason
+    assert result.run_id == accepted["run_id"] and result.status == "proposed", result.reason
 
 
 def test_two_loops_tuned_at_once(start_plant, start_tuner):
@@ -311,7 +311,7 @@ def test_two_tuners_on_one_bus_make_one_run(start_plant, start_tuner):
         run = autotune("tune", "x1", "--json", "--method", "relay", "--no-apply", *p.cli_args())
         sub.undeclare()
     result = json.loads(run.stdout)
-    assert result["status"] == "ok", run.stderr
+    assert result["status"] == "proposed" and run.returncode == 0, run.stderr
     runs = {json.loads(m)["run_id"] for m in started}
     assert runs == {result["run_id"]}  # one run, nothing from the other tuner
     with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1", source="x") as c:

@@ -73,7 +73,7 @@ def recorded_run(runs: Path, run_id: str) -> dict[str, Any]:
 def choose(run: dict[str, Any], rule: str | None) -> tuple[str, PidGains, float | None]:
     """The rule, its gains and their predicted overshoot (%); ConfigError naming ``--rule``
     or the run when they may not be applied."""
-    if run.get("status") not in (*APPLIED_STATUSES, "rejected"):
+    if run.get("status") not in (*APPLIED_STATUSES, "proposed", "rejected"):
         raise ConfigError(f"run {run.get('run_id')}: {run.get('status')}, no gains to apply")
     rule = rule or run.get("recommended") or run.get("rule")
     gains = run.get("gains") or {}

@@ -38,7 +38,7 @@ from shared.control.forms import (
 )
 from shared.errors import AutotuneError, ConfigError
 from shared.messages import (
-    APPLIED_STATUSES,
+    DONE_STATUSES,
     LoopStatus,
     TuneAccepted,
     TuneProgress,
@@ -752,4 +752,4 @@ def run_and_report(
         if args.json
         else format_result(result, args.units)
     )
-    return 0 if result.status in APPLIED_STATUSES else 1
+    return 0 if result.status in DONE_STATUSES else 1

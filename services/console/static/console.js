@@ -95,7 +95,7 @@ const handlers = {
     S.results[m.loop] = m;
     setTimeout(loadRuns, 1500);  // the logger finishes the run's file once the result is out
     if (m.loop === S.selected) { S.chosenRule = null; renderResult(); }
-    say(`result of run ${m.result.run_id} on ${m.loop}: ${m.result.status}` + (m.result.reason ? ` (${m.result.reason})` : ""), m.result.status === "ok");
+    say(`result of run ${m.result.run_id} on ${m.loop}: ${m.result.status}` + (m.result.reason ? ` (${m.result.reason})` : ""), ["ok", "proposed"].includes(m.result.status));
   },
   action(m) {
     say(m.message, m.ok);
@@ -323,7 +323,7 @@ function renderResult() {
   }).join("");
   for (const tr of tbody.rows) tr.onclick = () => { S.chosenRule = tr.dataset.rule; renderResult(); };
   const applied = r.applied || (m.applied_by && m.applied_by.applied);
-  const pending = ["ok", "rejected"].includes(r.status) && !applied && !r.applied_from && Object.keys(r.gains || {}).length > 0;
+  const pending = ["ok", "proposed", "rejected"].includes(r.status) && !applied && !r.applied_from && Object.keys(r.gains || {}).length > 0;
   $("apply").disabled = !pending;
   $("reject").disabled = !(pending || applied);
   $("apply").textContent = pending ? `Apply ${chosen}` : "Apply";
