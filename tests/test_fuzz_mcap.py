@@ -848,7 +848,8 @@ def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, 
     lines = out.splitlines()
     assert len(lines) == 5 and lines[0].startswith("started")  # a header, a row per file
     assert sum("unreadable: " in ln for ln in lines) == 3
-    assert " proposed  step-untouched.mcap" in out and "unreadable: metadata 'run', field format" in out
+    assert " proposed  step-untouched.mcap" in out
+    assert "unreadable: metadata 'run', field format" in out
     print(f"runs: {len(expected)} files, {bad} marked unreadable")
 
 
