@@ -126,6 +126,35 @@ def test_an_abort_mid_test_restores_a_manual_loop_exactly():
     assert_let_go(client)
 
 
+def test_an_abort_mid_test_puts_an_auto_loop_back_at_its_output_too():
+    """Cancelled mid-relay, a loop that was in auto goes back to auto from the output it had
+    at rest, not from the relay's level (auto from there upset the process for an integral
+    time after "restored"); and the plant's own restore (a lease that lapsed) does the same."""
+    loop = third_order_loop("auto", setpoint=50.0)
+    client = LocalLoopClient(loop)
+    client.advance(2000)  # 40 s: at rest on its setpoint
+    op_rest = client.sync().op
+    snap = loop.snapshot()
+    cancel = threading.Event()
+
+    def progress(p: TuneProgress) -> None:
+        if p.cycles >= 1:
+            cancel.set()
+
+    r = run(client, RunHooks(progress=progress, cancelled=cancel), method="relay")
+    assert (r.status, r.reason, r.restored) == ("aborted", "cancelled", True)
+    # the output back where it rested before auto took over (the first sample after moves
+    # it by Kc·(SP − PV) at most: the PV is back near its setpoint)
+    assert r.left["mode"] == "auto"
+    assert r.left["op"] == pytest.approx(op_rest, abs=0.5)
+    relay = [c.op for c in client.commands if isinstance(c, OutputCommand)]
+    assert any(abs(op - op_rest) > 2.0 for op in relay)  # the relay had moved it
+    loop.pid.set_mode("manual", loop.sp, loop.pv)
+    loop.pid.set_output(op_rest - 5.0)  # as a relay leaves it
+    loop.restore(snap)
+    assert (loop.mode, loop.op) == ("auto", snap.op)
+
+
 def test_leaving_the_pv_limits_aborts_and_restores():
     """The relay drives the PV out of a ±0.05 band around its rest (its swing is 4d/(πK_u)
     ≈ 0.64 for d = 5 %): aborted, restored."""

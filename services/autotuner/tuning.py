@@ -158,6 +158,7 @@ class TuningRun:
         self.info = client.info
         self.ts = client.info.sample_time
         self.before: LoopStatus | None = None
+        self._rest: dict | None = None  # the rest check before the test (``_wait_for_rest``)
         self.pv_limits = tuple(req.pv_limits or client.info.pv_range)
         self._events_sent = 0
         self._reported = 0
@@ -655,8 +656,13 @@ class TuningRun:
                 c.command(GainsCommand(loop=c.loop, gains=b.gains, source=c.source))
             if now.mode != "manual":
                 c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
-            if b.mode == "manual":
-                c.command(OutputCommand(loop=c.loop, op=b.op, source=c.source))
+            # the output first, also for a loop that goes back to auto (bumplessly from it):
+            # where the test left it (a relay's low level) is not where the loop was, and
+            # auto from there upsets the process for an integral time (an auto loop's: its
+            # mean at rest, not its last noisy sample)
+            op = b.op if b.mode == "manual" or self._rest is None else self._rest["op"]
+            lo, hi = self.info.op_limits
+            c.command(OutputCommand(loop=c.loop, op=min(max(op, lo), hi), source=c.source))
             c.command(SetpointCommand(loop=c.loop, sp=b.sp, source=c.source))
             if b.mode == "auto":
                 c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))

@@ -373,8 +373,11 @@ class SimLoop:
         return LoopSnapshot(self.mode, self.op, self.sp, self.pid.gains, self.disturbances())
 
     def restore(self, snap: LoopSnapshot) -> None:
-        """Put the loop back as it was (into auto bumplessly, at the old setpoint); a faulted
-        loop gets its setpoint and gains back but stays in manual at its held output."""
+        """Put the loop back as it was: its output first, then (a loop that was in auto) into
+        auto bumplessly from there, at the old setpoint. The output the test left (a relay's
+        low level) is not where the loop was: auto from there would upset the process for
+        an integral time before it got back. A faulted loop gets its setpoint and gains back
+        but stays in manual at its held output."""
         if self.fault is None:
             for name, value in snap.disturbances.items():
                 try:
@@ -387,9 +390,8 @@ class SimLoop:
         self.sp = snap.sp
         if self.fault is not None:
             return
-        if snap.mode == "manual":
-            self.pid.set_output(snap.op)
-        else:
+        self.pid.set_output(snap.op)
+        if snap.mode == "auto":
             self.pid.set_mode("auto", self.sp, self.pv)
 
     def apply(self, cmd: Command) -> None:
