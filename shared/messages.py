@@ -306,6 +306,8 @@ Method = Literal["relay", "ramp", "step"]
 # and computed, not applied, as ``apply = false`` asks (`autotune apply` applies and verifies
 # them); the rest: nothing applied
 RunStatus = Literal["ok", "unverified", "proposed", "rejected", "aborted", "failed"]
+# the statuses of a run whose gains ``autotune apply`` takes later (all but aborted, failed)
+APPLICABLE_STATUSES: tuple[RunStatus, ...] = ("ok", "unverified", "proposed", "rejected")
 # the statuses of a run that did what it was asked (the CLI's exit 0)
 DONE_STATUSES: tuple[RunStatus, ...] = ("ok", "unverified", "proposed")
 # the statuses of a run that may have left its gains in the loop (``applied`` says whether)

@@ -10,7 +10,7 @@ import pytest
 
 from services.autotuner.commands.apply import choose, same_loop
 from services.autotuner.commands.revert import target
-from services.logger.commands.history import entries
+from services.logger.commands.history import entries, format_entries
 from services.logger.history import ChangeHistory
 from shared import keys, wire
 from shared.errors import ConfigError
@@ -147,6 +147,20 @@ def test_a_result_is_a_tune_record_with_what_apply_needs(tmp_path):
     assert rec["gains"] == {"tl-pid": {"kc": 6.9, "ti": 96.0, "td": 6.9}}
     assert rec["robustness"]["tl-pid"]["within_envelope"] is True
     assert (rec["timescale"], rec["noise"], rec["ku"]) == (43.6, 0.02, 15.2)
+
+
+def test_the_listing_offers_apply_only_for_a_run_with_gains_to_apply():
+    """A proposed (or rejected) run's gains can be applied later; an aborted run has none:
+    the listing told the operator to `autotune apply` it, which then refused."""
+    gains = {"tl-pid": {"kc": 6.9, "ti": 96.0, "td": 6.9}}
+    base = {"record": "tune", "utc": "2026-12-02T22:00:00", "t": 1.0, "method": "relay"}
+    items = [
+        {**base, "run_id": "p1", "status": "proposed", "recommended": "tl-pid", "gains": gains},
+        {**base, "run_id": "a1", "status": "aborted", "recommended": None, "gains": {}},
+    ]
+    lines = format_entries(LOOP, Path("runs"), items).splitlines()[1:]
+    assert lines[0].endswith("proposed, not applied; recommended tl-pid: `autotune apply p1`")
+    assert lines[1].endswith("run a1 (relay): aborted, no gains to apply")
 
 
 def test_a_torn_last_line_is_skipped(tmp_path):

@@ -29,7 +29,7 @@ from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
 from shared.history_file import HISTORY_FILE, read_history
-from shared.messages import APPLIED_STATUSES, LoopInfo, PidGains, TuneRequest
+from shared.messages import APPLICABLE_STATUSES, LoopInfo, PidGains, TuneRequest
 
 HELP = "apply (and verify) the gains a recorded run recommended, e.g. after tune --no-apply"
 
@@ -73,7 +73,7 @@ def recorded_run(runs: Path, run_id: str) -> dict[str, Any]:
 def choose(run: dict[str, Any], rule: str | None) -> tuple[str, PidGains, float | None]:
     """The rule, its gains and their predicted overshoot (%); ConfigError naming ``--rule``
     or the run when they may not be applied."""
-    if run.get("status") not in (*APPLIED_STATUSES, "proposed", "rejected"):
+    if run.get("status") not in APPLICABLE_STATUSES:
         raise ConfigError(f"run {run.get('run_id')}: {run.get('status')}, no gains to apply")
     rule = rule or run.get("recommended") or run.get("rule")
     gains = run.get("gains") or {}

@@ -18,6 +18,7 @@ from shared.cli import check_ids
 from shared.errors import ConfigError
 from shared.history_file import HISTORY_FILE, of_loop, read_history
 from shared.keys import DEFAULT_PREFIX
+from shared.messages import APPLICABLE_STATUSES
 
 HELP = "the change history of a loop's gains (kept by the logger)"
 
@@ -101,10 +102,13 @@ def format_entries(loop: str, path: Path, items: list[dict]) -> str:
         when = f"{r.get('utc', '?')}  t = {_num(r.get('t'), ' s')}"
         if r.get("record") == "tune":
             rule = r.get("recommended") or r.get("rule")
-            lines.append(
-                f"  {when}  run {r.get('run_id')} ({r.get('method')}): {r.get('status')}, "
-                f"not applied; recommended {rule}: `autotune apply {r.get('run_id')}`"
-            )
+            head = f"  {when}  run {r.get('run_id')} ({r.get('method')}): {r.get('status')}, "
+            if r.get("status") in APPLICABLE_STATUSES and r.get("gains"):
+                lines.append(
+                    f"{head}not applied; recommended {rule}: `autotune apply {r.get('run_id')}`"
+                )
+            else:  # an aborted or failed run: nothing `autotune apply` would take
+                lines.append(f"{head}no gains to apply")
             continue
         tune = r.get("tune")
         what = f"run {r['run_id']}" if r.get("run_id") else r.get("cause", "")
