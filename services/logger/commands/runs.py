@@ -187,6 +187,11 @@ def run(args: argparse.Namespace) -> int:
             f"{r.get('rule') or '':<12} {_num(g.get('kc')):>8} {_num(g.get('ti')):>8} "
             f"{_num(g.get('td')):>8} {_status(r)}  {r['file']}"
         )
+    if any("not a readable MCAP file" in (r.get("reason") or "") for r in rows):
+        print(
+            "a file not readable as MCAP, if a logger was killed while writing it: "
+            f"autotune recover {folder}/FILE -o FIXED.mcap salvages its messages"
+        )
     return 0
 
 
