@@ -287,6 +287,19 @@ def open_config(conf: zenoh.Config) -> zenoh.Session:
         raise ConfigError(f"cannot open zenoh session: {reason}") from None
 
 
+def unreached(session: zenoh.Session) -> str:
+    """Why nothing answered, when this session reached no peer and no router at all (else
+    empty): then no service is to blame but whatever it connects to — not running, paused
+    (its port accepts, its process does not answer), or refusing this session."""
+    info = session.info
+    if list(info.peers_zid()) or list(info.routers_zid()):
+        return ""
+    return (
+        "; this client reached no peer or router at all: is the process it connects to (-e) "
+        "running, and not paused?"
+    )
+
+
 def open_session(settings: ZenohSettings, open_timeout: float | None = None) -> zenoh.Session:
     """Open a session as ``settings`` describe (see ``zenoh_config``)."""
     return open_config(zenoh_config(settings, open_timeout))

@@ -37,6 +37,7 @@ from shared.messages import (
     ReleaseCommand,
     SyncCommand,
 )
+from shared.session import unreached
 
 LEASE_TIMEOUT = 10.0  # s of wall time without a command before the plant restores the loop
 RENEW_EVERY = 2.0  # s of wall time between lease-keeping syncs in realtime, at most
@@ -87,7 +88,7 @@ def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float
         raise PlantLost(
             f"loop {loop!r} not found: nothing announces {keys.loop_alive(prefix, loop)} "
             f"after {timeout:g} s (is `autotune plant` running, reachable and serving "
-            "that loop?)"
+            f"that loop?){unreached(session)}"
         )
 
 

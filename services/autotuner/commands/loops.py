@@ -36,7 +36,7 @@ from shared.cli import MAX_SECONDS, add_common_arguments, check_ids
 from shared.control.forms import IsaGains, pv_span, to_percent
 from shared.errors import ConfigError, DecodeError
 from shared.messages import LoopInfo, LoopStatus, Message
-from shared.session import open_session, settings_from_args
+from shared.session import open_session, settings_from_args, unreached
 
 HELP = "every loop on the bus: mode, SP, PV, OP, gains, clock, lease (--json for scripts)"
 
@@ -260,11 +260,12 @@ def run(args: argparse.Namespace) -> int:
         else:
             found = read_loops(session, args.prefix, args.timeout)
             objs = [loop_object(st, info) for st, info in found.values()]
-    if not objs:
-        raise ConfigError(
-            f"no loop answered {keys.status(args.prefix, keys.ANY)} within {args.timeout:g} s "
-            "(is `autotune plant` running and reachable, with this --prefix?)"
-        )
+        if not objs:
+            raise ConfigError(
+                f"no loop answered {keys.status(args.prefix, keys.ANY)} within "
+                f"{args.timeout:g} s (is `autotune plant` running and reachable, with this "
+                f"--prefix?){unreached(session)}"
+            )
     if args.json:
         print(json.dumps(objs[0] if args.loop is not None else objs, indent=2))
     else:

@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")
     path = runs / HISTORY_FILE
     settings = settings_from_args(args)
-    with open_session(settings) as session:
+    with open_session(settings, args.wait) as session:
         wait_for_loop(session, args.prefix, args.loop, args.wait)
         with LoopClient(
             session, args.prefix, args.loop, source=SOURCE, user=auth_user(settings)

@@ -45,7 +45,7 @@ from shared.messages import (
     TuneRequest,
     TuneResult,
 )
-from shared.session import open_session, settings_from_args
+from shared.session import open_session, settings_from_args, unreached
 
 HELP = "tune a loop through the running autotuner (relay, ramp or step test)"
 
@@ -249,13 +249,16 @@ def submit(
 ) -> TuneAccepted:
     """Send the request to an autotuner; return its acceptance or raise with its reason."""
     key = keys.tuner_request(prefix, node)
-    missing = AutotuneError(
-        f"no autotuner answered at {key} within {timeout:g} s (is "
-        "`autotune tuner` running and reachable?)"
-    )
+
+    def missing() -> AutotuneError:
+        return AutotuneError(
+            f"no autotuner answered at {key} within {timeout:g} s (is "
+            f"`autotune tuner` running and reachable?){unreached(session)}"
+        )
+
     deadline = time.monotonic() + timeout
     if not wait_for_token(session, keys.tuner_alive(prefix, node), timeout):
-        raise missing
+        raise missing()
     if "*" in node:  # "any tuner" is one tuner: asking them all started a run on each
         node = pick_tuner(session, prefix, node, max(0.1, deadline - time.monotonic()))
         key = keys.tuner_request(prefix, node)
@@ -275,7 +278,7 @@ def submit(
                 f"{reply.err.payload.to_bytes().decode(errors='replace')}"
             )
         time.sleep(0.05)
-    raise missing
+    raise missing()
 
 
 def loop_state(session: zenoh.Session, prefix: str, loop: str, timeout: float = 2.0) -> str:
@@ -313,6 +316,9 @@ def pick_tuner(session: zenoh.Session, prefix: str, pattern: str, timeout: float
 
 
 RESULT_GRACE = 2.0  # s to wait for a result after the run's token vanished
+# s: each link's handshake, at most (Zenoh's own is 10 s): a peer that is paused (its port
+# accepts, its process does not answer) held tune 12 s before it could even say so
+HANDSHAKE = 3.0
 
 
 RECONNECT_WAIT = 20.0  # s to wait for the bus when this client sees nothing of it
@@ -709,7 +715,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--wait {args.wait}: must be a finite number of seconds > 0")
     req = request_from_args(args, source="autotune-tune")
     if args.detach:
-        with open_session(settings_from_args(args)) as session:
+        with open_session(settings_from_args(args), HANDSHAKE) as session:
             accepted = submit(session, args.prefix, args.node, req)
         print(
             accepted.model_dump_json(indent=2)
@@ -734,7 +740,7 @@ def run_and_report(
     # restores the loop, and the result is still waited for
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, _interrupt)
-    with open_session(settings_from_args(args)) as session:
+    with open_session(settings_from_args(args), HANDSHAKE) as session:
         if check is not None:
             check(session)
         result = follow(

@@ -124,7 +124,7 @@ def feed(watcher: Watcher, s: ProcessSample) -> None:
 def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix, loop=args.loop)
     settings = settings_from_args(args)
-    with open_session(settings) as session:
+    with open_session(settings, args.wait) as session:
         wait_for_loop(session, args.prefix, args.loop, args.wait)
         result = last_result(session, args.prefix, args.loop)
         with LoopClient(
