@@ -428,6 +428,11 @@ def load_config(args: argparse.Namespace) -> UpConfig:
     check_ids(cfg.prefix)
     if cfg.plant and not Path(cfg.plant).is_file():
         raise ConfigError(f"plant: {cfg.plant}: no such file")
+    if cfg.plant:  # read and built here first: its one line, not a stack that comes up
+        # without its plant and blames the tuner 40 s later
+        from services.plant_sim.plant_file import load_plant_file
+
+        load_plant_file(cfg.plant, seed=cfg.seed)
     proto, sep, addr = cfg.endpoint.partition("/")
     if not sep or not proto or ":" not in addr:
         raise ConfigError(f"endpoint {cfg.endpoint!r}: expected PROTOCOL/HOST:PORT")

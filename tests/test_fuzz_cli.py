@@ -125,6 +125,9 @@ REFUSED = [
     (["up", "--seed", "-1"], ["--seed"]),
     (["up", "--config", "/no/such/up.toml"], ["--config", "cannot read"]),
     (["up", "--runs", "run.mcap"], ["--runs", "not a directory"]),
+    # the plant file is read before anything starts (a stack came up without its plant and
+    # blamed the tuner 42 s later)
+    (["up", "--plant", "unstable.toml"], ["loops.a.den", "open-loop unstable"]),
     (["step", "hx1", "--size", "0"], ["--size", "zero"]),
     (["step", "hx1", "--size", "1e9"], ["--size", "at most"]),
     (["step", "hx1", "--size", "-101"], ["--size"]),
@@ -219,6 +222,9 @@ def test_bad_flags_are_refused_in_one_line_before_anything_starts(
 ):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "run.mcap").write_bytes(b"")  # the commands' files exist; flags are judged
+    (tmp_path / "unstable.toml").write_text(
+        '[loops.a]\nmodel = "transfer_function"\nnum = [1.0]\nden = [1.0, -1.0]\n'
+    )
     code, err = run_cli(capsys, argv)
     one_line_refusal(code, err, argv, *needles)
 
