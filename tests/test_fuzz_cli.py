@@ -224,6 +224,7 @@ def test_bad_flags_are_refused_in_one_line_before_anything_starts(
     (tmp_path / "run.mcap").write_bytes(b"")  # the commands' files exist; flags are judged
     (tmp_path / "unstable.toml").write_text(
         '[loops.a]\nmodel = "transfer_function"\nnum = [1.0]\nden = [1.0, -1.0]\n'
+        "sample_time = 0.1\n"
     )
     code, err = run_cli(capsys, argv)
     one_line_refusal(code, err, argv, *needles)
