@@ -699,6 +699,8 @@ class TuningRun:
             common["relay_wrong_way"] = True
         if req.method == "ramp":
             common["ramp_wrong_way"] = True
+        if req.method in ("relay", "ramp"):
+            common["pv_clip"] = True
         if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
             common["time_scale"] = self._rest["window"]
         if methods.method(req.method).closed_loop:

@@ -49,6 +49,7 @@ from services.autotuner.identify.experiments import (
     Settings,
     Setup,
     action_question,
+    clipped,
 )
 from services.autotuner.identify.model_fit import (
     ProcessFit,
@@ -198,6 +199,8 @@ class RampTest:
     sp_start: float = math.nan  # the setpoint held during the quiet period (NaN: first PV)
     op_limits: tuple[float, float] = (0.0, 100.0)  # the loop's output limits, %
     direction: float = 1.0  # +1 reverse-acting loop, −1 direct (its model fitted as −G)
+    # the transmitter's range: a PV at either end is clipped, and aborts (None: not checked)
+    pv_range: tuple[float, float] | None = None
 
     phase: str = "quiet"  # quiet → trial ⇄ settle → done | aborted
     reason: str = ""
@@ -305,6 +308,8 @@ class RampTest:
         lo, hi = self.pv_limits
         if not lo <= pv <= hi:
             return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")
+        if why := clipped(pv, self.pv_range, t, "--bump"):
+            return self._abort(why)
         if t > self._deadline:
             return self._abort(f"{self._budget} (at t = {t:g} s, in phase {self.phase})")
         self._watch_output(op)
@@ -938,4 +943,5 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         sp_start=setup.sp_start,
         op_limits=setup.op_limits,
         direction=setup.direction or 1.0,
+        pv_range=setup.pv_range if setup.pv_clip else None,
     )

@@ -44,6 +44,7 @@ from services.autotuner.identify.experiments import (
     Settings,
     Setup,
     action_question,
+    clipped,
 )
 from services.autotuner.identify.fourier import FrequencyPoint, frequency_points
 from services.autotuner.identify.model_fit import ProcessFit
@@ -184,6 +185,8 @@ class RelayTest:
     # the realtime clock: a switch takes effect at the next sample (or later), so the record
     # takes each sample's own output, not the relay's decision at it (``Setup``)
     outputs_from_samples: bool = False
+    # the transmitter's range: a PV at either end is clipped, and aborts (None: not checked)
+    pv_range: tuple[float, float] | None = None
 
     phase: str = "quiet"  # quiet → relay → stage2 → done | aborted
     reason: str = ""
@@ -369,6 +372,8 @@ class RelayTest:
         lo, hi = self.pv_limits
         if not lo <= pv <= hi:
             return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")
+        if why := clipped(pv, self.pv_range, t, "--amplitude"):
+            return self._abort(why)
         out = self._quiet(t) if self.phase == "quiet" else self._relay(t, pv)
         # in the loop's sense (``_actual`` is its own inverse)
         self.op.append(self._actual(held) if self.outputs_from_samples else out)
@@ -908,4 +913,5 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         ts,
         setup.direction,
         outputs_from_samples=bool(setup.outputs_from_samples),
+        pv_range=setup.pv_range if setup.pv_clip else None,
     )
