@@ -24,7 +24,9 @@ from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.relay import RelayTest, Settings, build
 from services.autotuner.identify.relay_estimate import (
     FUNDAMENTAL_POINT,
+    KU_PER_RADIAN,
     MODEL_ULTIMATE_POINT,
+    PU_PER_RADIAN,
     Refined,
     StageOne,
     estimate,
@@ -124,8 +126,16 @@ def test_a_crossover_carried_far_past_two_close_points_is_no_surer_than_the_carr
     points, or points further apart than −180° lies beyond them, add nothing."""
     p1, p2 = _point(1.60, 1 / 6.73, -174.0), _point(1.599, 1 / 6.71, -173.7)
     ku, pu = 5.04, 3.6
+    way = math.radians(6.0)  # the nearer point's way to −180°, what it may cost at the least
     assert extrapolated(ku, pu, p1, p2) == pytest.approx(
-        (abs(ku / 6.73 - 1), abs(pu * 1.60 / (2 * math.pi) - 1))
+        (
+            abs(ku / 6.73 - 1) + KU_PER_RADIAN * way,
+            abs(pu * 1.60 / (2 * math.pi) - 1) + PU_PER_RADIAN * way,
+        )
+    )
+    # an estimate that stayed at the nearer point: the way alone
+    assert extrapolated(6.73, 2 * math.pi / 1.60, p1, p2) == pytest.approx(
+        (KU_PER_RADIAN * way, PU_PER_RADIAN * way)
     )
     assert extrapolated(ku, pu, p1, _point(1.8, 1 / 8.0, -186.0)) == (0.0, 0.0)
     assert extrapolated(ku, pu, _point(1.5, 1 / 5.9, -170.0), _point(1.7, 1 / 7.6, -178.0)) == (
@@ -147,6 +157,20 @@ def test_one_cycle_measured_twice_says_its_ku_is_unsure():
     first, second = r.frequency[0].phase_deg, r.second[0].phase_deg
     assert abs(second - first) < 1.0 < abs(first + 180.0)  # one cycle, short of −180°
     assert r.ku_spread >= 0.2
+
+
+@pytest.mark.parametrize("samples_per_period", [18, 24])
+def test_the_spread_of_a_cycle_measured_twice_covers_its_error(samples_per_period):
+    """1/(s+1)³ at 18 and 24 samples a period: both stages measured one cycle 5–8° short of
+    −180°; the estimate stayed there (K_u 14–19 % low, P_u 8–10 % long, spreads 0.35–1 %)
+    or was carried the wrong way (K_u 37 % low, spread 25 %). The way still to go to −180°
+    is now in the spread, beside the carry."""
+    num, den = [1.0], [1.0, 3.0, 3.0, 1.0]
+    ku, pu = ultimate_point(num, den, 0.0)
+    r = run_relay(num, den, 0.0, pu / samples_per_period).result
+    assert r is not None
+    assert abs(r.ku / ku - 1.0) <= r.ku_spread
+    assert abs(r.pu / pu - 1.0) <= r.pu_spread
 
 
 # 1/(s+1)³: K_u 8 and ω_u √3 exactly
