@@ -23,6 +23,7 @@ import zenoh
 
 from services.autotuner.identify.driver import until_band
 from services.autotuner.identify.experiments import Band
+from services.autotuner.stall_watch import stall_watch
 from shared import keys, wire
 from shared.errors import AutotuneError, DecodeError
 from shared.messages import (
@@ -47,6 +48,8 @@ _GONE = "<gone>"  # inbox marker: the loop's liveliness token vanished
 # starved (SIGSTOP, a suspended VM), and what the plant sent meanwhile may still be coming in
 OVERSLEPT = 1.0  # s
 RESUMED_WAIT = 2.0  # s: then waited for once more, so the cause is the plant's word
+# s: a stall of this process within this long before the plant's token vanished is why
+CUT_OFF_WINDOW = 30.0
 
 
 class PlantLost(AutotuneError):
@@ -121,6 +124,7 @@ class LoopClient:
         # client takes another's barrier for its own (0 is the lease keeper's, never awaited)
         self._tokens = itertools.count(secrets.randbits(40) + 1)
         self._last_sent = time.monotonic()
+        self._stalls = stall_watch()
         self._refused = 0  # our commands the plant refused so far (from its sync answers)
         self._loop_refused = 0
         self.holding = False  # this client holds the loop's lease (confirmed by the plant)
@@ -243,7 +247,10 @@ class LoopClient:
             started = time.monotonic()
             got = self._get(self.timeout if wait is None else wait, want)
             if got is None and wait is None:
-                paused = time.monotonic() - started - self.timeout
+                # a wait that ran late, or one through which this process did not run
+                paused = max(
+                    time.monotonic() - started - self.timeout, self._stalls.stalled(started)
+                )
                 if paused > OVERSLEPT:  # this process did not run: hear what came meanwhile
                     got = self._get(RESUMED_WAIT, want)
                 if got is None:
@@ -318,10 +325,17 @@ class LoopClient:
         a message: a run busy with a long step ends at once."""
         if self.gone:
             self.holding = False
+            # a link's lease (Zenoh: 10 s) outlived by this process's own stall cut it off
+            paused = self._stalls.stalled(time.monotonic() - CUT_OFF_WINDOW)
+            why = (
+                f"this tuner was cut off from it: its own process did not run for "
+                f"{paused:.0f} s (paused or starved)"
+                if paused > OVERSLEPT
+                else "the plant stopped, or this tuner was cut off from it"
+            )
             raise PlantLost(
                 f"loop {self.loop!r}: lost the plant (its liveliness token "
-                f"{keys.loop_alive(self.prefix, self.loop)} vanished: the plant stopped, "
-                "or this tuner was cut off from it)"
+                f"{keys.loop_alive(self.prefix, self.loop)} vanished: {why})"
             )
 
     def renew_lease(self) -> None:

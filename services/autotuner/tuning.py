@@ -34,7 +34,8 @@ from services.autotuner.identify.experiments import Band, Demand, Experiment, Se
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.relay import RelayTest
 from services.autotuner.identify.rest import RestCheck, rest_window
-from services.autotuner.loop_client import LeaseLost, LoopClient
+from services.autotuner.loop_client import OVERSLEPT, LeaseLost, LoopClient
+from services.autotuner.stall_watch import stall_watch
 from shared.control.forms import (
     IsaGains,
     all_forms,
@@ -469,6 +470,14 @@ class TuningRun:
         result.update(
             t=self._t, sim_duration=self._t - t0, wall_time=time.monotonic() - wall0, left=left
         )
+        stalled = stall_watch().stalled(wall0)
+        if self.info.clock == "realtime" and stalled > OVERSLEPT:  # lockstep: the plant waited
+            result["warnings"] = [
+                *result.get("warnings", []),
+                f"this tuner's process did not run for {stalled:.0f} s of the run (paused or "
+                "starved): on the realtime clock the loop went unsupervised that long, its PV "
+                "limits unwatched",
+            ]
         self._progress(
             "done", ku=result.get("ku"), pu=result.get("pu"), message=result.get("reason") or ""
         )
