@@ -68,3 +68,19 @@ def test_a_run_waits_for_its_loop_in_auto_to_reach_its_setpoint():
     band = max(4 * sim.settings.noise_std, 0.001 * 150.0)
     assert abs(rest["pv"] - st.sp) <= band
     assert rest["waited"] > rest["window"]
+
+
+def test_a_noise_free_loop_is_at_rest_again_after_a_tune():
+    """A noise-free simulation's tail after a tune creeps (5e-6 % per s on 1/(s+1)³): below
+    any transmitter's resolution, yet it held a re-tune off ("did not come to rest within
+    79.95 s") where a move of 1e-5 of the span now counts as none."""
+    from services.plant_sim.plant_file import build_plant
+
+    spec = {"model": "transfer_function", "num": [1.0], "den": [1.0, 3.0, 3.0, 1.0]}
+    spec |= {"sample_time": 0.05, "pv_range": [0.0, 100.0]}
+    client = LocalLoopClient(build_plant({"seed": 7, "loops": {"p": spec}})["p"])
+    first = TuningRun(client, TuneRequest(loop="p", method="relay"), "a").run()
+    assert first.status == "ok", first.reason
+    again = TuningRun(client, TuneRequest(loop="p", method="ramp", apply=False), "b").run()
+    assert again.rest["at_rest"], again.reason
+    assert abs(again.rest["drift"]) * again.rest["window"] <= 1e-5 * 100.0

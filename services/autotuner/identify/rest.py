@@ -9,7 +9,8 @@ watches a window as long as the loop's slowest known dynamics: at least 40 sampl
 least the loop's integral time (a tuned loop's Ti is of the order of its process lag or its
 ultimate period), capped so that a level loop's hour-long Ti does not stall the tuner.
 
-At rest means: no straight-line trend beyond 3σ of the noise over the window (σ about a
+At rest means: no straight-line trend beyond 3σ of the noise over the window, nor beyond
+1e-5 of the PV's span, what no transmitter resolves (σ about a
 parabola fitted to the window, so that the curvature of a slow recovery is not taken for
 noise); no swing either (the PV averaged over a tenth of the window keeps within 4σ of
 white noise, as σ of the sample-to-sample change shows it, or 3σ about the parabola, whichever
@@ -30,6 +31,9 @@ from shared.control.signals import difference_noise, range_end
 MIN_SAMPLES = 40
 MAX_WINDOW = 900.0  # s: the longest window watched (a slow level loop's Ti can be hours)
 WINDOWS = 10  # windows to wait for rest before giving up
+# of the PV's span: a move within it is no move (a 17-bit converter's step; a test's swing is
+# 1–10 % of span, 1,000 times more)
+RESOLUTION = 1e-5
 
 
 def rest_window(sample_time: float, ti: float | None, requested: float | None = None) -> float:
@@ -92,7 +96,11 @@ class RestCheck:
         white = difference_noise(y)
         self.noise = min(wide, white) if white > 0 else wide
         self.drift = float(np.polyfit(x, y, 1)[0])
-        tiny = 1e-9 * max(1.0, float(np.max(np.abs(y))))
+        # below what any transmitter resolves (a noise-free simulation's tail after a test
+        # crept 5e-6 per s, and held a re-tune off for ten windows)
+        lo, hi = self.pv_range
+        span = hi - lo if math.isfinite(hi - lo) and hi > lo else 0.0
+        tiny = max(1e-9 * max(1.0, float(np.max(np.abs(y)))), RESOLUTION * span)
         moved = abs(self.drift) * (x[-1] - x[0])
         # a swing left by the test (the relay's cycle dying out) has no trend over the window:
         # the range of the PV averaged over a tenth of it must stay within the noise too
