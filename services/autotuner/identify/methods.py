@@ -29,7 +29,12 @@ class Method:
 
 METHODS: dict[str, Method] = {
     "relay": Method(relay.build, False, ("op_start", "direction"), frozenset({"closed", "model"})),
-    "ramp": Method(ramp.build, True, ("kc_start", "bump", "sp_start"), frozenset({"closed"})),
+    # the ramp's model (fitted to its whole record, when the fit holds) is what its own
+    # recommendation designs model rules from: asked for by name, or approved by
+    # `autotune apply`, they are the same rules (refused with the reason where no model fits)
+    "ramp": Method(
+        ramp.build, True, ("kc_start", "bump", "sp_start"), frozenset({"closed", "model"})
+    ),
     "step": Method(repeated_steps.build, False, ("op_start",), frozenset({"open", "model"})),
 }
 
