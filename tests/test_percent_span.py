@@ -376,3 +376,19 @@ def test_the_left_line_prints_the_mean_at_rest_it_judged_by():
     left = {**left, "pv_rest": None, "returned": False}
     line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
     assert "PV 49.21 degC (the PV is still on its way back: target 50 ± 0.8)" in line
+
+
+def test_the_rules_table_marks_a_rule_unstable_and_keeps_its_columns_apart():
+    """zn-pid unstable on the model (its margins and overshoot mean nothing) printed
+    "1.34   88.216491.6": a positive gain margin with no mark, two figures run together."""
+    rob = {
+        "zn-pi": {"ms": 1.9, "gain_margin": 2.1, "phase_margin_deg": 88.2, "stable": True}
+        | {"overshoot_pct": 16491.6, "decay_ratio": 0.43},
+        "tl-pid": {"ms": 25.7, "gain_margin": 1.36, "phase_margin_deg": 111.0, "stable": False}
+        | {"overshoot_pct": 8600.6, "decay_ratio": 2.02},
+    }
+    text = format_result(hx1_result(robustness=rob))
+    rows = {w[0]: w for w in map(str.split, text.splitlines()) if w[0] in ("zn-pi", "tl-pid")}
+    assert rows["zn-pi"][-5:] == ["1.9", "2.1", "88.2", "16491.6", "0.43"]
+    assert "UNSTABLE on the model" in " ".join(rows["tl-pid"])
+    assert "1.36" not in rows["tl-pid"] and "8600.6" not in rows["tl-pid"]

@@ -463,11 +463,17 @@ def _robust_row(a: dict) -> str:
     """A rule's predicted Ms, margins, overshoot and decay ratio (blank without them)."""
     if not a:
         return ""
-    return (
-        f"{figure(a.get('ms'), digits=3):>7}{figure(a.get('gain_margin'), digits=3):>7}"
-        f"{figure(a.get('phase_margin_deg'), digits=3):>7}"
-        f"{_fixed(a.get('overshoot_pct'), 1):>7}{_fixed(a.get('decay_ratio'), 2):>6}"
+    if a.get("stable") is False:  # margins and overshoot of an unstable loop mean nothing
+        return f"{'UNSTABLE on the model':>34}"
+    cells = (
+        (figure(a.get("ms"), digits=3), 7),
+        (figure(a.get("gain_margin"), digits=3), 7),
+        (figure(a.get("phase_margin_deg"), digits=3), 7),
+        (_fixed(a.get("overshoot_pct"), 1), 7),
+        (_fixed(a.get("decay_ratio"), 2), 6),
     )
+    # a cell wider than its column still gets a space before it (overshoot 16491.6 %)
+    return "".join(f" {c:>{w - 1}}" if len(c) < w else f" {c}" for c, w in cells)
 
 
 def _percent_table(r: TuneResult, span: float, pv_units: str) -> list[str]:
