@@ -309,9 +309,11 @@ class TuningRun:
                     "were not tried on the loop, so they are not known to be safe"
                 )
             result.update(status=status, restored=restored)
-        except LeaseLost as err:  # the plant took the loop back and restored it: hands off
+        except LeaseLost as err:  # the plant took the loop back: hands off. Restored only
+            # if the plant shows it as before (below): a lease is also lost to a release or
+            # commands in this run's name from another client (a bus without credentials)
             wait_back = False
-            result.update(status="aborted", reason=str(err), restored=True)
+            result.update(status="aborted", reason=str(err), restored=False)
         except TuneRefused as err:
             restored = self._restore()
             result.update(status="rejected", reason=str(err), restored=restored)
@@ -341,6 +343,12 @@ class TuningRun:
             if left is not None and left.pop("as_before"):
                 result["restored"] = True
                 result["reason"] = f"{result.get('reason')}; the plant restored the loop"
+            elif left is not None:
+                result["reason"] = (
+                    f"{result.get('reason')}; the loop is NOT as it was before the test "
+                    f"(now {left['mode']}, SP {left['sp']:.6g}, OP {left['op']:.4g} %, Kc "
+                    f"{left['gains']['kc']:.4g}): something other than this run changed it"
+                )
             return self._result(result, t0, wall0, left)
         left = self._leave(
             before,

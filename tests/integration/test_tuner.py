@@ -21,7 +21,14 @@ import pytest
 
 from services.autotuner.loop_client import LoopClient, wait_for_token
 from shared import keys, wire
-from shared.messages import LeaseCommand, LoopStatus, ReleaseCommand, TuneResult
+from shared.messages import (
+    GainsCommand,
+    LeaseCommand,
+    LoopStatus,
+    PidGains,
+    ReleaseCommand,
+    TuneResult,
+)
 from shared.session import open_session
 from tests.exact import ultimate_point
 from tests.field_cases import Case, true_loop
@@ -325,3 +332,41 @@ def wait_for_tokens_of(plant, key_exprs: list[str]) -> None:
     with open_session(plant.client_settings()) as s:
         for key in key_exprs:
             assert wait_for_token(s, key, 20.0), f"{key} did not come up"
+
+
+def test_a_lease_lost_to_a_forger_is_not_called_restored(start_plant, start_tuner):
+    """On a bus without credentials a client can put commands in the run's name (the
+    README's Security section): it set Kc 50 and released the lease mid-relay, and the run
+    said `restored: true`. Restored is now what the plant shows: as before the test, or not,
+    and the reason says so."""
+    p = start_plant(plant_toml("x1", HX), loops=("x1",))
+    start_tuner(p)
+    with open_session(p.client_settings()) as s:
+        inbox: queue.Queue = queue.Queue()
+        status = s.declare_subscriber(keys.status(p.prefix, "x1"))
+        threading.Thread(target=lambda: [inbox.put(x) for x in status], daemon=True).start()
+        cli = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "tune", "x1", "--json", *p.cli_args()],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            while True:  # the run's lease, and who holds it, as every status shows
+                st = wire.decode_sample(LoopStatus, inbox.get(timeout=30))
+                if st.leased_by is not None:
+                    break
+            forged = st.leased_by
+            for cmd in (
+                GainsCommand(loop="x1", gains=PidGains(kc=50.0, ti=1.0), source=forged),
+                ReleaseCommand(loop="x1", source=forged),
+            ):
+                wire.put(s, keys.command(p.prefix, "x1", cmd.kind), cmd)
+            out, err = cli.communicate(timeout=120)
+        finally:
+            cli.kill()
+            status.undeclare()
+    r = json.loads(out)
+    assert r["status"] == "aborted" and r["restored"] is False, (r["reason"], err)
+    assert "the loop is NOT as it was before the test" in r["reason"]
+    assert r["left"]["gains"]["kc"] == 50.0
