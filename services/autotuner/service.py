@@ -306,6 +306,10 @@ class TunerService:
             with self.lock:
                 runs = list(self.active.values())
             for run in runs:
+                run.cancel.why = (  # type: ignore[attr-defined]
+                    "cancelled: the autotuner service is stopping (SIGTERM or Ctrl-C; under "
+                    "`autotune up`, also when another of its services died)"
+                )
                 run.cancel.set()
             for run in runs:  # each restores its loop, the plant still up
                 run.thread.join(timeout=30.0)

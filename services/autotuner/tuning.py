@@ -198,7 +198,8 @@ class TuningRun:
 
     def _check_cancel(self) -> None:
         if self.hooks.cancelled is not None and self.hooks.cancelled.is_set():
-            raise TuneAborted("cancelled")
+            # why, where the canceller said (the service stopping is no user's cancel)
+            raise TuneAborted(getattr(self.hooks.cancelled, "why", "") or "cancelled")
 
     def _take(self, samples: list[ProcessSample]) -> None:
         if samples:
