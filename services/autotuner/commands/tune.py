@@ -369,7 +369,8 @@ def follow(
                     deadline = time.monotonic() + wait
                 now = time.monotonic()
                 if gone is not None and now > gone + RESULT_GRACE:
-                    if _cut_off(session, prefix, loop):  # the bus went, not (only) the tuner:
+                    cut_off = _cut_off(session, prefix, loop)
+                    if cut_off:  # the bus went, not (only) the tuner:
                         # wait, bounded, for it to come back (a router restarting)
                         print(
                             f"run {run_id} on {loop}: neither its plant nor any tuner is in "
@@ -382,8 +383,14 @@ def follow(
                             keys.tuner_alive(prefix, "*"),
                             max(0.0, min(RECONNECT_WAIT, deadline - time.monotonic())),
                         )
-                    late = wire.query_one(  # published while this client was cut off?
-                        session, keys.tune_result(prefix, loop), TuneResult, RESULT_GRACE
+                    # published while this client was cut off? (in reach all along, it
+                    # would have heard it within the grace)
+                    late = (
+                        wire.query_one(
+                            session, keys.tune_result(prefix, loop), TuneResult, RESULT_GRACE
+                        )
+                        if cut_off
+                        else None
                     )
                     if late is not None and late.run_id == run_id:
                         return late
