@@ -273,7 +273,11 @@ class RampTest:
         if not n:
             return Progress("ramp", 0)
         tr = self.trials[-1]
-        message = f"Kc {tr.kc:.4g}: growth {tr.growth:.3g}/s"
+        if math.isfinite(tr.growth):
+            message = f"Kc {tr.kc:.4g}: growth {tr.growth:.3g}/s"
+        else:  # ±inf stands for "no oscillation": said in words, not as a number
+            went = "ran away" if tr.growth > 0 else "did not oscillate"
+            message = f"Kc {tr.kc:.4g}: {went}"
         return Progress("ramp", n, cycles=n, pu=tr.period, message=message)
 
     def identification(self) -> Identification | None:
