@@ -343,7 +343,9 @@ class TuneRequest(Message):
         "known to ± 5 %, at most 6",
     )
     pv_limits: tuple[float, float] | None = None
-    max_time: float | None = Field(default=None, gt=0.0, description="experiment budget, sim s")
+    max_time: float | None = Field(
+        default=None, gt=0.0, le=1e7, description="experiment budget, sim s (as the CLI bounds it)"
+    )
     verify: bool = True
     apply: bool = True
     force: bool = Field(

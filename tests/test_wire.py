@@ -330,3 +330,11 @@ def test_what_is_not_a_replay_mark_is_live_traffic(attachment: bytes | None) -> 
 
 def test_a_replay_mark_that_is_not_a_string_is_read_as_text() -> None:
     assert wire.replay_source(b'{"replay": 12}') == "12"
+
+
+def test_a_tune_request_over_the_bus_is_bounded_as_the_cli_bounds_it() -> None:
+    """A raw request of max_time 1e300 s was accepted over the bus; the CLI says 1e7."""
+    payload = json.dumps({"loop": "hx1", "max_time": 1e300}).encode()
+    with pytest.raises(DecodeError) as err:
+        wire.decode(messages.TuneRequest, payload, "application/json;TuneRequest")
+    assert str(err.value).startswith("max_time: Input should be less than or equal to 10000000")
