@@ -104,6 +104,16 @@ def test_pv_limit_aborts_and_restores_the_loop_exactly(start_plant, start_tuner)
     )
 
 
+def tune_process(p, stdout=subprocess.PIPE) -> subprocess.Popen:
+    """``autotune tune x1 --json`` against ``p``, running while the test watches the bus."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "tune", "x1", "--json", *p.cli_args()],
+        stdout=stdout,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
 def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner):
     p = start_plant(plant_toml("x1", HX), loops=("x1",))
     tuner = start_tuner(p)
@@ -116,12 +126,7 @@ def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner):
             threading.Thread(
                 target=lambda sub=sub: [inbox.put(x) for x in sub], daemon=True
             ).start()
-        cli = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "tune", "x1", "--json", *p.cli_args()],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+        cli = tune_process(p, stdout=subprocess.DEVNULL)
         try:
             while True:  # wait until the relay is running, then kill the tuner outright
                 msg = inbox.get(timeout=30)
@@ -345,12 +350,7 @@ def test_a_lease_lost_to_a_forger_is_not_called_restored(start_plant, start_tune
         inbox: queue.Queue = queue.Queue()
         status = s.declare_subscriber(keys.status(p.prefix, "x1"))
         threading.Thread(target=lambda: [inbox.put(x) for x in status], daemon=True).start()
-        cli = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "tune", "x1", "--json", *p.cli_args()],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+        cli = tune_process(p)
         try:
             while True:  # the run's lease, and who holds it, as every status shows
                 st = wire.decode_sample(LoopStatus, inbox.get(timeout=30))
