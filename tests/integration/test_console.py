@@ -142,12 +142,12 @@ def test_a_tune_started_watched_and_applied_from_the_page(
         # a relay tune from the form (default: the gains wait for Apply); progress arrives
         click(wait, "#tune-start")
         wait.until(lambda d: text(d, "#progress-phase") not in ("—", ""))
-        wait.until(lambda d: "ok" in text(d, "#result-status"))
+        wait.until(lambda d: "proposed" in text(d, "#result-status"))  # not applied: not ok
         wait.until(lambda d: text(d, "#progress-phases").endswith("done"))
         phases = text(d, "#progress-phases").split(" → ")  # each phase the run went through
         assert {"quiet", "relay", "identified"} <= set(phases), phases
         result = last_result(plant)
-        assert result.status == "ok" and not result.applied
+        assert result.status == "proposed" and not result.applied
         assert bus_gains(plant) == before  # nothing applied yet
         # the result: K_u and P_u as the bus has them, near the plant's exact ultimate point
         ku, pu = lag_ultimate(*HX1)

@@ -343,20 +343,23 @@ def test_a_lease_lost_to_a_forger_is_not_called_restored(start_plant, start_tune
     """On a bus without credentials a client can put commands in the run's name (the
     README's Security section): it set Kc 50 and released the lease mid-relay, and the run
     said `restored: true`. Restored is now what the plant shows: as before the test, or not,
-    and the reason says so."""
-    p = start_plant(plant_toml("x1", HX), loops=("x1",))
+    and the reason says so. On the realtime clock (×50): the relay is still under way when
+    the forged commands land."""
+    p = start_plant(plant_toml("x1", HX), "--clock", "realtime", "--speed", "50", loops=("x1",))
     start_tuner(p)
     with open_session(p.client_settings()) as s:
         inbox: queue.Queue = queue.Queue()
-        status = s.declare_subscriber(keys.status(p.prefix, "x1"))
-        threading.Thread(target=lambda: [inbox.put(x) for x in status], daemon=True).start()
+        progress = s.declare_subscriber(keys.tune_progress(p.prefix, "x1"))
+        threading.Thread(target=lambda: [inbox.put(x) for x in progress], daemon=True).start()
         cli = tune_process(p)
         try:
-            while True:  # the run's lease, and who holds it, as every status shows
-                st = wire.decode_sample(LoopStatus, inbox.get(timeout=30))
-                if st.leased_by is not None:
+            while True:  # the relay under way (its lease granted and confirmed)
+                msg = inbox.get(timeout=30)
+                if b'"relay"' in msg.payload.to_bytes():
                     break
-            forged = st.leased_by
+            # who holds the lease, as every status shows it
+            forged = wire.query_one(s, keys.status(p.prefix, "x1"), LoopStatus, 10.0).leased_by
+            assert forged is not None
             for cmd in (
                 GainsCommand(loop="x1", gains=PidGains(kc=50.0, ti=1.0), source=forged),
                 ReleaseCommand(loop="x1", source=forged),
@@ -365,7 +368,7 @@ def test_a_lease_lost_to_a_forger_is_not_called_restored(start_plant, start_tune
             out, err = cli.communicate(timeout=120)
         finally:
             cli.kill()
-            status.undeclare()
+            progress.undeclare()
     r = json.loads(out)
     assert r["status"] == "aborted" and r["restored"] is False, (r["reason"], err)
     assert "the loop is NOT as it was before the test" in r["reason"]
