@@ -719,6 +719,8 @@ class TuningRun:
             common["ramp_wrong_way"] = True
         if req.method in ("relay", "ramp"):
             common["pv_clip"] = True
+        if req.method == "step":
+            common["step_swing"] = True
         if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
             common["time_scale"] = self._rest["window"]
         if methods.method(req.method).closed_loop:

@@ -129,6 +129,7 @@ def config_from_args(args: argparse.Namespace) -> StepTestConfig:
         timeout=args.timeout,
         pv_limits=tuple(args.pv_limits) if args.pv_limits else None,
         max_move=args.max_move / 100.0,
+        swing_check=True,
     )
 
 

@@ -227,6 +227,9 @@ class Setup:
     # True: a relay or ramp whose PV reaches an end of the transmitter's range (clipped)
     # aborts there (``experiments.clipped``); None: recorded before, it measured on
     pv_clip: bool | None = None
+    # True: a step test's rest asks the PV's scatter about its trend to be noise (an
+    # underdamped response is not at rest mid-swing); None: recorded before
+    step_swing: bool | None = None
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

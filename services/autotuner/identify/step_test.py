@@ -84,6 +84,9 @@ class StepTestConfig:
     max_move: float = 0.25
     # integrating: the ramp's slope R is known to this, relative, at two standard errors
     rate_precision: float = 0.02
+    # rest also asks the PV's scatter about its trend to be noise (``reaction_curve.settled``
+    # ``swing``); False: a run recorded before, whose rest was its trend's alone
+    swing_check: bool = False
 
 
 @dataclass(frozen=True)
@@ -360,7 +363,15 @@ class StepTest:
             if ramp is not None:  # R is known, if less precisely than asked: say so
                 return self._integrating(s, ramp, "range")
             return self._abort(reason)
-        done, rest = settled(t, y, self.t_step, self._pv_before, self._noise, pv_range=self.ends)
+        done, rest = settled(
+            t,
+            y,
+            self.t_step,
+            self._pv_before,
+            self._noise,
+            pv_range=self.ends,
+            swing=self.config.swing_check,
+        )
         if done:
             try:
                 self.result = analyze_step(
@@ -670,7 +681,12 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         timeout = {"timeout": min(StepTestConfig.timeout, max(200 * scale, 400 * ts))}
     else:
         timeout = {}
-    cfg = StepTestConfig(size=settings.step_size, pv_limits=setup.pv_limits, **timeout)
+    cfg = StepTestConfig(
+        size=settings.step_size,
+        pv_limits=setup.pv_limits,
+        swing_check=bool(setup.step_swing),
+        **timeout,
+    )
     return StepTest(
         cfg,
         setup.op_start,
