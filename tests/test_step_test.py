@@ -128,3 +128,19 @@ def test_heading_for_the_end_of_the_range_stops_before_it():
     horizon = 2 * (L + TS) + 4 * TS
     assert f"the PV would reach its upper limit (35) within {horizon:g} s" in test.reason
     assert max(test.pv) < 35.0
+
+
+@pytest.mark.parametrize("zeta", [0.1, 0.2])
+def test_an_underdamped_response_is_not_at_rest_mid_swing(zeta):
+    """1/(s² + 2ζs + 1): its swing has no trend over a window of it, and `autotune step` read
+    a gain of 0.537 (ζ 0.1) and 1.10 (ζ 0.2) for 1. At rest now asks the scatter about the
+    trend to be noise too."""
+    from services.autotuner.step_run import run_step_test
+    from services.offline.local_loop import LocalLoopClient
+    from services.plant_sim.plant_file import build_plant
+
+    spec = {"model": "transfer_function", "num": [1.0], "den": [1.0, 2 * zeta, 1.0]}
+    loop = build_plant({"seed": 7, "loops": {"p": {**spec, "sample_time": 0.02}}})["p"]
+    config = StepTestConfig(size=5.0, swing_check=True)
+    report = run_step_test(LocalLoopClient(loop), config, wait_return=False)
+    assert report.curve.gain == pytest.approx(1.0, rel=0.01)
