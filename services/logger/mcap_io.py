@@ -178,15 +178,15 @@ def amend_run(
     ``metadata``: every message it held is copied as it was (schema, channel, log and publish
     time, sequence), its RunRecord written again from the new metadata. The new file
     replaces the old at once (a reader sees one or the other, never half of either)."""
-    with path.open("rb") as f:
-        reader = make_reader(f)
-        meta = next((dict(m.metadata) for m in reader.iter_metadata() if m.name == "run"), {})
-    meta.update(metadata)
     tmp = path.with_name(path.name + ".amending")
-    writer = RunWriter(tmp, log_time_zero=int(meta.get("log_time_zero") or 0))
+    writer: RunWriter | None = None
     try:
         with path.open("rb") as f:
-            for schema, channel, msg in make_reader(f).iter_messages(log_time_order=False):
+            reader = make_reader(f)
+            meta = next((dict(m.metadata) for m in reader.iter_metadata() if m.name == "run"), {})
+            meta.update(metadata)
+            writer = RunWriter(tmp, log_time_zero=int(meta.get("log_time_zero") or 0))
+            for schema, channel, msg in reader.iter_messages(log_time_order=False):
                 if schema is not None and schema.name == RunRecord.__name__:
                     continue  # written again below, from the new metadata
                 writer.copy(schema, channel, msg)
@@ -196,6 +196,8 @@ def amend_run(
         writer.finish(meta, record_key, t)
         tmp.replace(path)
     finally:
+        if writer is not None and not writer.finished:
+            writer._file.close()  # a failed rewrite leaves no open file behind
         tmp.unlink(missing_ok=True)
 
 
