@@ -758,9 +758,9 @@ CONTAINER = [
         "truncated-half",
         lambda b: b[: len(b) // 2],
         ["not a readable MCAP file", "autotune recover"],
-        0,
+        2,  # the fixture's run is one chunk: half of it decompresses to nothing
     ),
-    ("truncated-to-magic", lambda b: b[:8], ["not a readable MCAP file"], 0),
+    ("truncated-to-magic", lambda b: b[:8], ["not a readable MCAP file"], 2),
     ("footer-zeroed", lambda b: b[:-40] + bytes(40), ["not a readable MCAP file"], 0),
     ("zero-length", lambda b: b"", ["not an MCAP file"], 2),
     ("random-bytes", lambda b: np.random.default_rng(1).bytes(5000), ["not an MCAP file"], 2),
@@ -768,14 +768,14 @@ CONTAINER = [
         "magic-then-random",
         lambda b: b[:8] + np.random.default_rng(2).bytes(5000),
         ["not a readable MCAP file"],
-        0,
+        2,
     ),
     ("text-file", lambda b: b"started,loop\n2026,x1\n", ["not an MCAP file"], 2),
     (
         "chunk-bytes-flipped",
         lambda b: b[:2000] + bytes(x ^ 0xFF for x in b[2000:2050]) + b[2050:],
         ["not a readable MCAP file"],
-        0,
+        2,
     ),
 ]
 
@@ -795,8 +795,9 @@ def test_damaged_containers_and_what_recover_makes_of_them(recorded, tmp_path, c
             code, _, err = cli(capsys, "analyze", str(fixed))  # what it made opens
             assert code in (0, 2) and "not a readable MCAP" not in err, (cid, err)
             assert len(err.strip().splitlines()) <= 1, (cid, err)
-        else:
+        else:  # nothing readable: said, exit 2, and no empty file left behind
             refused(code, err, f"recover {cid}", [str(path), "nothing to recover"])
+            assert not fixed.exists(), cid
     folder = tmp_path / "a.mcap"
     folder.mkdir()
     for argv in (

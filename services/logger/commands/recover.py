@@ -76,6 +76,12 @@ def recover(src: Path, dst: Path) -> dict[str, int | str]:
         except Exception as err:  # the mcap library on damaged bytes: any of a dozen kinds
             stopped = f"truncated: {one_line(err) or type(err).__name__}"
         writer.finish()
+    if counts["messages"] == 0:  # a file with nothing in it is no recovery: say so, leave none
+        dst.unlink()
+        raise AutotuneError(
+            f"{src}: no message could be read (reading stopped at: {stopped}): nothing to "
+            f"recover, {dst} not written"
+        )
     return {**counts, "stopped": stopped}
 
 
