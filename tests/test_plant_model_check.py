@@ -303,6 +303,24 @@ def test_an_unstable_model_is_said_to_run_away():
     assert any(w.startswith("unstable: the PV runs away") for w in r.warnings)
 
 
+def test_a_double_integrator_runs_away_without_a_doubling_time():
+    # 1/s²: t² after a step, accelerating without bound but not exponentially
+    r = check(
+        {"model": "transfer_function", "num": [1.0], "den": [1.0, 0.0, 0.0], "sample_time": 0.5}
+    )
+    assert r.behaviour == "unstable" and r.doubling_time is None
+    assert any("accelerating, but not exponentially" in w for w in r.warnings), r.warnings
+
+
+def test_a_stable_model_of_an_absurd_gain_is_out_of_range_not_unstable():
+    r = check(
+        {"model": "fopdt", "gain": 1e200, "time_constant": 10.0, "delay": 1.0, "sample_time": 0.5}
+    )
+    assert r.behaviour == "out of range" and r.doubling_time is None
+    assert any(w.startswith("out of range: the +2 % step moved the PV by") for w in r.warnings)
+    assert not any(w.startswith("unstable") for w in r.warnings)
+
+
 def test_a_model_not_at_rest_is_corrected_for_its_drift_and_said_so():
     r = check({"model": f"{HERE}:Drifts", "sample_time": 0.5})
     assert r.behaviour == "integrating"

@@ -5,8 +5,10 @@ From rest at its operating point the model is stepped up and down at two sizes (
 10 % of output, within the loop's output limits), each run until it settles, ramps or runs
 away. From the responses:
 
-* **behaviour**: self-regulating (settles), integrating (ends on a constant slope) or unstable
-  (accelerates without bound; said so, with its doubling time);
+* **behaviour**: self-regulating (settles), integrating (ends on a constant slope), unstable
+  (accelerates without bound; said so, with its doubling time where it grows exponentially)
+  or out of range (leaves 100 times its range without accelerating: a gain out of all
+  proportion to it, not an instability);
 * **static gain** (PV units per %; for an integrating model, PV units/s per %) for each step,
   and the **nonlinearity**: the largest over the smallest gain, up vs down and small vs large;
 * **dead time**: when the PV first moves, to a fraction of a sample (the onset fitted as
@@ -60,7 +62,7 @@ class StepResponse:
 
     size: float
     pv: np.ndarray
-    behaviour: str  # self-regulating, integrating, unstable, not settled, no response
+    behaviour: str  # self-regulating, integrating, unstable, out of range, not settled, no response
     gain: float | None = None  # PV units per % (integrating: PV units/s per %)
     growth: float | None = None  # unstable: 1/s
 
@@ -229,7 +231,7 @@ def _classify(d: np.ndarray, dt: float, final: bool) -> tuple[str, float | None,
     if s4 != 0 and abs(s4 - s3) <= RAMPING * abs(s4) and abs(mid) <= RAMPING * abs(s4 * q * dt):
         return "integrating", float(s4), None
     growing = s2 != 0 and s3 / s2 > 1.0 + RAMPING and s4 / s3 > 1.0 + RAMPING
-    rate = math.log(s4 / s3) / (q * dt) if growing else None
+    rate = math.log(s4 / s3) / (q * dt) if growing and _exponential(s3 / s2, s4 / s3) else None
     if final:
         return ("unstable" if growing else "not settled"), None, rate
     return "pending", None, rate
@@ -250,6 +252,8 @@ def _respond(
         final = ran_away or n >= max_samples
         kind, value, rate = _classify(d, dt, final)
         if ran_away:
+            if not _accelerating(d):  # a stable response, of a gain out of all proportion
+                return StepResponse(size, np.asarray(y), "out of range")
             growth = _growth(d, dt)
             return StepResponse(size, np.asarray(y), "unstable", None, growth or rate)
         if rate is not None:
@@ -268,14 +272,35 @@ def _consistent(rates: list[float]) -> bool:
     return min(rates) > 0 and max(rates) <= 1.2 * min(rates)
 
 
+def _exponential(first: float, second: float) -> bool:
+    """Two successive growth ratios (each > 1) of one response tell an exponential runaway
+    (they agree: a doubling time means something) from a power law's (a double integrator's
+    t², whose ratios fall towards 1 as it runs: no doubling time)."""
+    a, b = math.log(first), math.log(second)
+    return abs(a - b) <= 0.1 * max(a, b)  # a power law's differ by 22 % or more
+
+
+def _accelerating(d: np.ndarray) -> bool:
+    """The response (PV change) moved faster and faster up to where it ran away: the last
+    three moves it made grow. A stable lag with a gain out of all proportion to the range
+    leaves it too, but slowing down — or in fewer moves than tell either."""
+    steps = np.abs(np.diff(d[np.nonzero(d)[0][0] - 1 :])) if np.any(d) else np.array([])
+    return steps.size >= 3 and steps[-1] > steps[-2] > steps[-3]
+
+
 def _growth(d: np.ndarray, dt: float) -> float | None:
-    """Exponential growth rate (1/s) of a response that ran away, from its last samples."""
+    """Exponential growth rate (1/s) of a response that ran away, from its last samples; None
+    unless the two halves of that stretch grew at one rate (see ``_exponential``)."""
     a = np.abs(d[len(d) // 2 :])
     a = a[a > 0]
-    if len(a) < 4:
+    if len(a) < 7:
         return None
-    r = math.log(a[-1] / a[len(a) // 2]) / ((len(a) - 1 - len(a) // 2) * dt)
-    return r if r > 0 else None
+    k = len(a) // 3  # three stretches: the growth over the last two compared
+    if not (a[-1] > a[-1 - k] > a[-1 - 2 * k]) or not _exponential(
+        a[-1 - k] / a[-1 - 2 * k], a[-1] / a[-1 - k]
+    ):
+        return None
+    return math.log(a[-1] / a[-1 - k]) / (k * dt)
 
 
 # --- the analysis --------------------------------------------------------------------------
@@ -310,7 +335,7 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
     for r in responses:
         if r.gain is not None:
             report.gains[r.label] = r.gain
-    for kind in ("unstable", "not settled", "integrating", "self-regulating"):
+    for kind in ("out of range", "unstable", "not settled", "integrating", "self-regulating"):
         if kind in kinds:
             report.behaviour = kind
             break
@@ -319,13 +344,26 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
             "the steps disagree on its behaviour: "
             + ", ".join(f"{r.label} {r.behaviour}" for r in responses)
         )
-    if report.behaviour == "unstable":
+    if report.behaviour == "out of range":
+        far = next(r for r in responses if r.behaviour == "out of range")
+        moved = float(far.pv[-1] - far.pv[0])
+        report.warnings.append(
+            f"out of range: the {far.label} step moved the PV by {moved:.3g} in "
+            f"{(len(far.pv) - 1) * dt:g} s, past {RUNAWAY:g} times its range, and not "
+            "accelerating: a gain out of all proportion to the PV range (its units?), not "
+            "an instability; a relay or step test would only drive it to a limit"
+        )
+    elif report.behaviour == "unstable":
         rates = [r.growth for r in responses if r.growth]
         if rates:
             report.doubling_time = math.log(2.0) / max(rates)
         report.warnings.append(
             "unstable: the PV runs away open loop"
-            + (f" (doubling every {report.doubling_time:.3g} s)" if report.doubling_time else "")
+            + (
+                f" (doubling every {report.doubling_time:.3g} s)"
+                if report.doubling_time
+                else " (accelerating, but not exponentially: no doubling time)"
+            )
             + "; a relay or step test would drive it to a limit"
         )
     elif report.behaviour == "not settled":
