@@ -125,6 +125,41 @@ def test_after_a_logger_restart_the_record_is_the_baseline(tmp_path):
     )
 
 
+def test_a_missed_release_is_not_charged_to_the_next_sender(tmp_path):
+    # the logger paused through a run's release: the next status it sees (an operator's
+    # setpoint) shows the run's gains; the change is the run's (by its result), not hers
+    h = history(tmp_path)
+    feed(h, status(G0))
+    src = "tuner:r7"
+    feed(h, status(G0, "lease", leased_by=src, by_source=src))
+    feed(h, status(G1, "gains", leased_by=src, by_source=src))
+    g1 = G1.model_dump()
+    feed(
+        h,
+        TuneResult(
+            run_id="r7",
+            loop=LOOP,
+            t=90.0,
+            method="relay",
+            rule="tl-pid",
+            status="ok",
+            applied=True,
+            chosen={"isa": {k: g1[k] for k in ("kc", "ti", "td")}},
+        ),
+    )
+    feed(h, status(G1, "setpoint", by_source="autotune-set", by_user="operator1"))
+    (c,) = changes(tmp_path)
+    assert (c["cause"], c["by_source"], c["by_user"], c["run_id"]) == ("unseen", None, None, "r7")
+    assert c["before"] == G0.model_dump() and c["after"] == g1
+    (item,) = entries(tmp_path, LOOP)
+    text = format_entries(LOOP, tmp_path / HISTORY_FILE, [item])
+    assert "the gains run r7 applied, by its result" in text and "operator1" not in text
+    # and a change no result explains: unseen, who not known
+    feed(h, status(G0, "sync", by_source="autotune-loops"))
+    last = changes(tmp_path)[-1]
+    assert (last["cause"], last["by_source"], last["run_id"]) == ("unseen", None, None)
+
+
 def test_a_result_is_a_tune_record_with_what_apply_needs(tmp_path):
     h = history(tmp_path)
     r = TuneResult(

@@ -15,7 +15,10 @@ object per line, written and flushed as it happens, so it survives restarts. Two
   change. A plant that (re)starts with other gains than the last known is a change with
   ``cause`` ``start`` (tuned gains lost with the plant's restart show here); after this
   logger's own restart the last gains on record are the baseline, and a loop whose gains
-  moved meanwhile gets a change with ``cause`` ``unseen`` (who is not known).
+  moved meanwhile gets a change with ``cause`` ``unseen`` (who is not known); so does a change
+  first seen on a status that does not change gains (a setpoint's, a sync's: the change was
+  missed, the logger paused or its messages lost), not charged to that status's sender, with
+  the ``run_id`` of the run whose result applied exactly those gains, if one was seen.
 * ``tune``: a run's result, applied or not (its status, rule, the gains it chose and the
   previous ones, its verification before and after): ``autotune history`` shows a change
   with the verification of the run that made it, and ``autotune apply`` what a run
@@ -43,6 +46,10 @@ from shared.history_file import HISTORY_FILE, read_history, run_of
 from shared.messages import LoopStatus, TuneResult
 
 log = logging.getLogger("logger")
+
+# the status reasons that change a loop's gains (a command's, a lease's end, the plant's
+# restore): a change first seen on any other status was made where this logger missed it
+GAIN_CAUSES = frozenset({"gains", "release", "watchdog"})
 
 
 @dataclass
@@ -72,6 +79,8 @@ class ChangeHistory:
         self.invalid = 0
         # the last gains on record per loop (and the node they were of): a restart's baseline
         self._on_record: dict[str, tuple[str | None, dict[str, Any]]] = {}
+        # per loop, the last run whose result says it applied gains, and those gains
+        self._applied: dict[str, tuple[str, dict[str, Any]]] = {}
         for rec in read_history(self.path):  # this bus's (prefix's) loops only
             if (
                 rec.get("record") == "change"
@@ -107,6 +116,11 @@ class ChangeHistory:
             return
         known.leased = False
         if gains != known.gains:
+            if st.reason in GAIN_CAUSES:  # the change this status reports, by its sender
+                by, user, cause, run = st.by_source, st.by_user, st.reason, run_of(st.by_source)
+            else:  # missed (this logger paused, or its messages lost): not this sender's
+                run = self._applied_by(st.loop, gains)
+                by, user, cause = None, None, "unseen"
             self._append(
                 {
                     "record": "change",
@@ -115,16 +129,25 @@ class ChangeHistory:
                     "prefix": self.bus,
                     "loop": st.loop,
                     "node": st.node,
-                    "by_source": st.by_source,
-                    "by_user": st.by_user,
-                    "cause": st.reason,
-                    "run_id": run_of(st.by_source),
+                    "by_source": by,
+                    "by_user": user,
+                    "cause": cause,
+                    "run_id": run,
                     "mode": st.mode,
                     "before": known.gains,
                     "after": gains,
                 }
             )
             known.gains = gains
+
+    def _applied_by(self, loop: str, gains: dict[str, Any]) -> str | None:
+        """The run whose result (seen by this logger) applied exactly ``gains`` to ``loop``,
+        the last such: what a missed release most likely was."""
+        run, chosen = self._applied.get(loop, (None, None))
+        if run is None or not chosen:
+            return None
+        same = all(gains.get(k) == v for k, v in chosen.items() if k in gains)
+        return run if same else None
 
     def _first_seen(self, st: LoopStatus, gains: dict[str, Any], known: _Loop | None) -> None:
         """Learn a loop, or a new plant instance of it. Gains that differ from the last known
@@ -166,6 +189,8 @@ class ChangeHistory:
 
     def _result(self, r: TuneResult) -> None:
         chosen = (r.chosen or {}).get("isa")
+        if r.applied and isinstance(chosen, dict):
+            self._applied[r.loop] = (r.run_id, chosen)
         self._append(
             {
                 "record": "tune",

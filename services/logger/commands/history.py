@@ -80,7 +80,13 @@ def _who(r: dict) -> str:
         return {
             "start": "the plant (re)started with its configured gains",
             "another plant": "another plant node now serves the loop",
-            "unseen": "changed while the logger was not running (who is not known)",
+            "unseen": "changed where the logger did not see it (not running, paused or its "
+            "messages lost)"
+            + (
+                f": the gains run {r['run_id']} applied, by its result"
+                if r.get("run_id")
+                else "; who is not known"
+            ),
         }.get(r.get("cause"), "not known")
     return f"{src or '?'}" + (f" (user {user})" if user else "")
 
