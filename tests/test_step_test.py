@@ -144,3 +144,38 @@ def test_an_underdamped_response_is_not_at_rest_mid_swing(zeta):
     config = StepTestConfig(size=5.0, swing_check=True)
     report = run_step_test(LocalLoopClient(loop), config, wait_return=False)
     assert report.curve.gain == pytest.approx(1.0, rel=0.01)
+
+
+def _inverse_step(num: list[float], den: list[float]) -> StepTest:
+    """(num/den) stepped by 5 %, noise-free, sampled every 0.05 s: fed until done."""
+    from services.plant_sim.simulation.models import TransferFunctionModel
+
+    ts = 0.05
+    plant = TransferFunctionModel(ts, num, den, op0=OP0, pv0=PV0)
+    test = StepTest(StepTestConfig(size=5.0), OP0, (0.0, 100.0), (0.0, 100.0), ts)
+    op, pv = OP0, plant.reset()
+    for k in range(1, 200_000):
+        demand = test.feed(Sample(k * ts, pv, op))
+        if demand.op != op:
+            test.held(k * ts)
+        op = demand.op
+        if test.finished:
+            return test
+        pv = plant.step(op)
+    raise AssertionError("the step test never finished")
+
+
+def test_an_inverse_response_is_said_to_make_the_model_optimistic():
+    """(1 − 2s)/((s + 1)(3s + 1)): its unit step is 1 + 1.5e^{−t} − 2.5e^{−t/3}, lowest at
+    t = 1.5·ln 1.8 s, at −0.2421 (the closed form): the PV first goes the other way by 0.2421
+    of its change, which no FOPDT/SOPDT fit shows (a step test ended `ok` with amigo-pid at Ms
+    1.45 predicted, 2.19 on the plant). Without the zero: no such warning."""
+    test = _inverse_step([-2.0, 1.0], [3.0, 4.0, 1.0])
+    assert test.phase == "done", test.reason
+    (note,) = test.identification().notes
+    t_min = 1.5 * math.log(1.8)
+    y_min = 1 + 1.5 * math.exp(-t_min) - 2.5 * math.exp(-t_min / 3)
+    dip = float(note.split("first went ")[1].split(" ")[0])
+    assert dip == pytest.approx(-5.0 * y_min, rel=0.01)  # 3 significant figures printed
+    assert note.startswith("inverse response:") and "optimistic" in note
+    assert _inverse_step([1.0], [3.0, 4.0, 1.0]).identification().notes == []

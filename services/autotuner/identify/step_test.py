@@ -261,10 +261,13 @@ class StepTest:
                     rc.fit_rms / spread,
                     noise_rms=rc.noise_std / spread,
                 )
+            model = fitted or model_of(step_model)
+            inverse = self.inverse_response(model.kind.upper())
             return Identification(
                 step=rc,
                 step_model=step_model,
-                model=fitted or model_of(step_model),
+                model=model,
+                notes=[inverse] if inverse else [],
                 integrating=True,
                 experiment=StepFindings(rc.step_size, rc.method, fitted),
                 # the closed loop's time scale: SIMC's integral time for a level, 8 L
@@ -274,15 +277,47 @@ class StepTest:
             )
         step_model = StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)
         fitted = self.process_model()
+        model = fitted or model_of(step_model)
+        inverse = self.inverse_response(model.kind.upper())
         return Identification(
             step=rc,
             step_model=step_model,
-            model=fitted or model_of(step_model),
+            model=model,
             integrating=False,  # it settled
             experiment=StepFindings(rc.step_size, rc.method, fitted),
             timescale=4 * rc.dead_time + rc.time_constant_63,
             noise=rc.noise_std,
             rest_pv=rc.pv_before,
+            notes=[inverse] if inverse else [],
+        )
+
+    def inverse_response(self, model: str) -> str | None:
+        """A warning if the PV first went the other way after the step (by more than 6σ of
+        the noise and 2 % of its change): a right-half-plane zero (a drum level's swell, a
+        column's inverse response) that the fitted models have no term for, so the
+        robustness they predict for every rule is optimistic on this process (seen: Ms 1.45
+        predicted, 2.19 on the plant). The record up to the return pulse, if any."""
+        if self.t_step is None or not math.isfinite(self._pv_before):
+            return None
+        t, y = np.asarray(self.t), np.asarray(self.pv) - self._pv_before
+        keep = (t >= self.t_step) & (t < (self._pulse_start or math.inf))
+        t, y = t[keep], y[keep]
+        if y.size < 10:
+            return None
+        change = float(np.mean(y[-max(1, y.size // 10) :]))  # where it went: the end's mean
+        if change == 0.0:
+            return None
+        away = -y * math.copysign(1.0, change)  # > 0: the other way from its change
+        worst = int(np.argmax(away))
+        if away[worst] <= max(6.0 * self._noise, 0.02 * abs(change)):
+            return None
+        u = f" {self.pv_units}" if self.pv_units else ""
+        return (
+            f"inverse response: after the step the PV first went {away[worst]:.3g}{u} the "
+            f"other way (most at t = {t[worst]:.4g} s) before its change of {change:+.3g}{u}: "
+            f"a right-half-plane zero, which the {model} model has no term for, so the "
+            "robustness it predicts for the rules (Ms, margins) is optimistic on this "
+            "process: prefer the most cautious rule, or detune"
         )
 
     # --- the state machine ---------------------------------------------------------------
