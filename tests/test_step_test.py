@@ -169,7 +169,7 @@ def test_an_inverse_response_is_said_to_make_the_model_optimistic():
     """(1 − 2s)/((s + 1)(3s + 1)): its unit step is 1 + 1.5e^{−t} − 2.5e^{−t/3}, lowest at
     t = 1.5·ln 1.8 s, at −0.2421 (the closed form): the PV first goes the other way by 0.2421
     of its change, which no FOPDT/SOPDT fit shows (a step test ended `ok` with amigo-pid at Ms
-    1.45 predicted, 2.19 on the plant). Without the zero: no such warning."""
+    1.45 predicted, about 2.2 on the plant). Without the zero: no such warning."""
     test = _inverse_step([-2.0, 1.0], [3.0, 4.0, 1.0])
     assert test.phase == "done", test.reason
     (note,) = test.identification().notes

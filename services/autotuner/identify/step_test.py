@@ -296,7 +296,7 @@ class StepTest:
         the noise and 2 % of its change): a right-half-plane zero (a drum level's swell, a
         column's inverse response) that the fitted models have no term for, so the
         robustness they predict for every rule is optimistic on this process (seen: Ms 1.45
-        predicted, 2.19 on the plant). The record up to the return pulse, if any."""
+        predicted, about 2.2 on the plant). The record up to the return pulse, if any."""
         if self.t_step is None or not math.isfinite(self._pv_before):
             return None
         t, y = np.asarray(self.t), np.asarray(self.pv) - self._pv_before
