@@ -322,6 +322,7 @@ HANDSHAKE = 3.0
 
 
 RECONNECT_WAIT = 20.0  # s to wait for the bus when this client sees nothing of it
+REJOIN_GRACE = 5.0  # s to ask for a late result once the plant answers again
 
 
 def _cut_off(session: zenoh.Session, prefix: str, loop: str) -> bool:
@@ -354,13 +355,19 @@ def follow(
     token = session.liveliness().declare_subscriber(
         keys.tune_running(prefix, loop), zenoh.handlers.FifoChannel(64)
     )
-    for src in (sub, token):
+    # the plant's token too: seen to vanish, this client may have lost the bus (a router
+    # restarting) — a look at one moment after the grace can miss that, once it is back
+    plant = session.liveliness().declare_subscriber(
+        keys.loop_alive(prefix, loop), zenoh.handlers.FifoChannel(64), history=True
+    )
+    for src in (sub, token, plant):
         threading.Thread(target=lambda src=src: [inbox.put(s) for s in src], daemon=True).start()
     run_id: str | None = None
     cancelled = False
     deadline = math.inf
     gone: float | None = None
     appeared = False
+    plant_lost = False  # the plant's token vanished since the run began
     try:
         while True:
             try:
@@ -369,31 +376,18 @@ def follow(
                     deadline = time.monotonic() + wait
                 now = time.monotonic()
                 if gone is not None and now > gone + RESULT_GRACE:
-                    cut_off = _cut_off(session, prefix, loop)
+                    cut_off = plant_lost or _cut_off(session, prefix, loop)
                     if cut_off:  # the bus went, not (only) the tuner:
                         # wait, bounded, for it to come back (a router restarting)
                         print(
-                            f"run {run_id} on {loop}: neither its plant nor any tuner is in "
-                            f"sight (this client lost the bus?): waiting up to "
-                            f"{RECONNECT_WAIT:g} s for it to come back (Ctrl-C twice leaves)",
+                            f"run {run_id} on {loop}: its plant and tuner went out of sight "
+                            f"(this client lost the bus?): waiting up to {RECONNECT_WAIT:g} s "
+                            "for them to come back (Ctrl-C twice leaves)",
                             file=sys.stderr,
                         )
-                        wait_for_token(
-                            session,
-                            keys.tuner_alive(prefix, "*"),
-                            max(0.0, min(RECONNECT_WAIT, deadline - time.monotonic())),
-                        )
-                    # published while this client was cut off? (in reach all along, it
-                    # would have heard it within the grace)
-                    late = (
-                        wire.query_one(
-                            session, keys.tune_result(prefix, loop), TuneResult, RESULT_GRACE
-                        )
-                        if cut_off
-                        else None
-                    )
-                    if late is not None and late.run_id == run_id:
-                        return late
+                        late = _late_result(session, prefix, loop, run_id, deadline)
+                        if late is not None:
+                            return late
                     raise TunerGone(
                         f"run {run_id} on {loop}: its tuner is gone or cut off (the run's "
                         "liveliness token vanished and no result can be had): the plant's "
@@ -403,7 +397,10 @@ def follow(
                 limit = min(deadline, gone + RESULT_GRACE if gone is not None else math.inf)
                 sample = inbox.get(timeout=max(0.0, limit - now))
                 key = str(sample.key_expr)
-                if key == keys.tune_running(prefix, loop):
+                if key == keys.loop_alive(prefix, loop):
+                    if sample.kind == zenoh.SampleKind.DELETE and run_id is not None:
+                        plant_lost = True
+                elif key == keys.tune_running(prefix, loop):
                     # a token that vanishes counts once ours has appeared (a run that ended
                     # just before ours may still be saying goodbye)
                     if sample.kind == zenoh.SampleKind.PUT:
@@ -435,6 +432,26 @@ def follow(
     finally:
         sub.undeclare()
         token.undeclare()
+        plant.undeclare()
+
+
+def _late_result(
+    session: zenoh.Session, prefix: str, loop: str, run_id: str, deadline: float
+) -> TuneResult | None:
+    """The run's result, published while this client was cut off: the tuner keeps its last
+    result to be asked for. Asked again and again, bounded by RECONNECT_WAIT and the run's
+    ``wait``; given up REJOIN_GRACE s after the plant answers again (the bus is back; each
+    service rejoins its router at its own pace). Seen tokens are no proof that the bus is back:
+    a client whose router is restarting still saw the tuner's token."""
+    until = min(time.monotonic() + RECONNECT_WAIT, deadline)
+    while True:
+        late = wire.query_one(session, keys.tune_result(prefix, loop), TuneResult, 0.5)
+        if late is not None and late.run_id == run_id:
+            return late
+        if wire.query_one(session, keys.status(prefix, loop), LoopStatus, 0.3) is not None:
+            until = min(until, time.monotonic() + REJOIN_GRACE)
+        if time.monotonic() >= until:
+            return None
 
 
 def progress_line(p: TuneProgress) -> None:
