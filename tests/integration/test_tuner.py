@@ -229,6 +229,26 @@ def test_ctrl_c_on_the_client_cancels_and_restores(start_plant, start_tuner, sig
     assert (after.mode, after.sp, after.gains) == (before.mode, before.sp, before.gains)
 
 
+def test_a_wait_that_runs_out_cancels_the_run_and_restores(start_plant, start_tuner):
+    """``--wait`` bounds the run, not only the client: past it the run is cancelled, the loop
+    restored, and tune exits 2 saying so (it exited 2 "no result within 5 s" while the run
+    went on and applied its gains). Realtime ×1: the relay on HX lasts minutes of wall."""
+    toml = plant_toml("x1", HX, extra='mode = "auto"\nsetpoint = 50.0\n')
+    p = start_plant(toml, "--clock", "realtime", loops=("x1",))
+    start_tuner(p)
+    before = loop_state(p, "x1")
+    run = autotune("tune", "x1", "--wait", "2", *p.cli_args())
+    assert run.returncode == 2, run.stderr
+    assert "within 2 s: cancelled, aborted" in run.stderr, run.stderr
+    after = loop_state(p, "x1")
+    assert (after.mode, after.sp, after.gains, after.leased_by) == (
+        before.mode,
+        before.sp,
+        before.gains,
+        None,
+    )
+
+
 def test_detach_leaves_the_run_going(start_plant, start_tuner):
     """`--detach` submits, prints the acceptance and exits 0; the run goes on to its result."""
     p = start_plant(plant_toml("x1", THIRD), loops=("x1",))

@@ -60,7 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--wait",
         type=float,
         default=3600.0,
-        help="wall seconds to wait for the result (default: %(default)s)",
+        help="wall seconds to wait for the result (default: %(default)s); past them the run "
+        "is cancelled, the loop restored, and tune exits 2 (--detach leaves a run going)",
     )
     parser.add_argument(
         "--detach",
@@ -323,6 +324,9 @@ HANDSHAKE = 3.0
 
 RECONNECT_WAIT = 20.0  # s to wait for the bus when this client sees nothing of it
 REJOIN_GRACE = 5.0  # s to ask for a late result once the plant answers again
+# s for a run cancelled when ``--wait`` ran out to say it restored the loop (the tuner's own
+# restore is bounded; a run between the cancel and its end still ends)
+CANCEL_WAIT = 60.0
 
 
 def _cut_off(session: zenoh.Session, prefix: str, loop: str) -> bool:
@@ -347,7 +351,9 @@ def follow(
     follows within RESULT_GRACE s, the tuner is gone — TunerGone, at once, not after
     ``wait`` — unless this client sees neither the plant nor any tuner (it lost the bus: a
     router restarting); it then waits up to RECONNECT_WAIT s for the bus and asks for the
-    run's result, which the tuner keeps."""
+    run's result, which the tuner keeps. No result within ``wait``: the run is cancelled
+    (the tuner restores the loop) and AutotuneError says how it ended, unless it ended ok
+    before the cancel reached it (returned as any result)."""
     inbox: queue.Queue = queue.Queue()
     sub = session.declare_subscriber(
         f"{keys.tune_root(prefix, loop)}/*", zenoh.handlers.FifoChannel(4096)
@@ -368,6 +374,7 @@ def follow(
     gone: float | None = None
     appeared = False
     plant_lost = False  # the plant's token vanished since the run began
+    timed_out: float | None = None  # when ``wait`` ran out (the run was then cancelled)
     try:
         while True:
             try:
@@ -416,11 +423,29 @@ def follow(
                     if r.run_id == run_id:
                         if cancelled:
                             raise KeyboardInterrupt
-                        return r
+                        if timed_out is not None and r.status != "ok":
+                            raise AutotuneError(
+                                f"no result for run {run_id} within {wait:g} s: cancelled, "
+                                f"{r.status}: {r.reason}; {loop_state(session, prefix, loop)}"
+                            )
+                        return r  # done (ok) before the cancel reached it
             except queue.Empty:
                 if gone is not None:
                     continue  # the grace is over: said at the top of the loop
-                raise AutotuneError(f"no result for run {run_id} within {wait:g} s") from None
+                if timed_out is None:  # the wait is over: cancel the run, not leave it going
+                    timed_out = time.monotonic()
+                    session.put(keys.tune_cancel(prefix, loop), run_id.encode())
+                    print(
+                        f"\nno result for run {run_id} within {wait:g} s: cancelling it (the "
+                        "tuner restores the loop)…",
+                        file=sys.stderr,
+                    )
+                    deadline = timed_out + CANCEL_WAIT
+                    continue
+                raise AutotuneError(
+                    f"no result for run {run_id} within {wait:g} s, nor an answer to its "
+                    f"cancel within {CANCEL_WAIT:g} s more: {loop_state(session, prefix, loop)}"
+                ) from None
             except KeyboardInterrupt:
                 if cancelled or run_id is None:
                     if run_id is None:  # interrupted while submitting: cancel whatever runs
