@@ -71,6 +71,67 @@ def test_a_stuck_stage_two_is_set_again_and_lands_on_the_ultimate_point(
     assert r.pu == pytest.approx(pu, rel=0.02)
 
 
+def _stage_two_swing(test: RelayTest) -> float:
+    """The PV's farthest from rest in stage 2, in stage 1's amplitudes."""
+    start = next(e.t for e in test.events if e.kind == "stage")
+    off = max(abs(y - test._r) for t, y in zip(test.t, test.pv, strict=True) if t >= start)
+    assert test._stage1 is not None
+    return off / test._stage1.amplitude
+
+
+@pytest.mark.parametrize("direction", [1.0, -1.0], ids=["reverse", "direct"])
+@pytest.mark.parametrize("samples_per_period", [47, 24, 12])
+def test_a_lockout_the_pv_turns_short_of_is_armed_not_held(samples_per_period, direction):
+    """Set again only once overdue by a stage-1 period, the relay held its output while the
+    PV ran on: 2.9–3.9 × stage 1's amplitude off rest (hx1 on the realtime clock, 2.1 °C).
+    Armed once the PV is back past the level it switched at, stage 2 stays within 1.6 × and
+    lands on the ultimate point as before (at 12 samples a period, −3.3 % as before)."""
+    ku, pu = ultimate_point(*CUBIC)
+    ts = pu / samples_per_period
+    kw = {"outputs_from_samples": True, "stage_two_rearm": True}
+    before = relay_on_realtime(*CUBIC, ts, direction, **kw)
+    now = relay_on_realtime(*CUBIC, ts, direction, stage_two_turn=True, **kw)
+    assert now.config.arm_at_turn and not before.config.arm_at_turn
+    assert _stage_two_swing(before) > 2.5
+    assert _stage_two_swing(now) < 1.6
+    r = now.result
+    assert r is not None
+    if samples_per_period > 12:
+        assert r.ku == pytest.approx(ku, rel=0.01)
+        assert r.pu == pytest.approx(pu, rel=0.01)
+    else:
+        assert r.ku == pytest.approx(ku, rel=0.04)
+
+
+def test_a_biased_stage_two_does_not_drive_the_pv_off_in_lockstep():
+    """hx1 with --relay-bias 0.5, lockstep: stage 2's low output (b − 0.5·d) moves the mean,
+    the PV turned short of the lockout, and the relay held its output 130 s: the PV 7 ×
+    stage 1's swing (3.7 °C) off rest. Now within 1.3 ×, and its estimate within 10 % and 5 %
+    of hx1's exact point, e^{−5s}/(600s² + 70s + 1) (K_u +0.3 %, P_u +0.4 %; over hx1, hx2
+    and flow1 at biases 0–0.7 as before: mean |K_u error| 1.8 → 2.0 %, worst 9.7 → 9.2 %)."""
+    from tests.test_relay_band import tune
+    from tests.test_relay_realtime import HX
+
+    seen: list[RelayTest] = []
+    feed = RelayTest.feed
+
+    def watched(self, sample):
+        if not seen or seen[-1] is not self:
+            seen.append(self)
+        return feed(self, sample)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(RelayTest, "feed", watched)
+        result, _, _ = tune("hx1", False, mp, relay_bias=0.5)
+    test = seen[-1]
+    assert result["status"] == "ok", result["reason"]
+    assert test.config.arm_at_turn
+    assert _stage_two_swing(test) < 1.3
+    ku, pu = ultimate_point(*HX[:3])
+    assert result["ku"] == pytest.approx(ku, rel=0.10)
+    assert result["pu"] == pytest.approx(pu, rel=0.05)
+
+
 @pytest.mark.parametrize("samples_per_period", [47, 24])
 def test_recorded_before_stage_two_is_abandoned_there_as_it_was(samples_per_period):
     """What such a run measured (and its replay still does): stage 1's point alone, 12–23°
@@ -87,7 +148,9 @@ def test_only_relay_set_ups_that_say_so_are_set_again():
     setup = Setup(sample_time=0.1, op_lo=0, op_hi=100, pv_lo=0, pv_hi=1, op_start=50, direction=1)
     assert build(Settings(), setup).config.stuck_periods is None
     assert build(Settings(), setup).config.steady_second is False
+    assert build(Settings(), setup).config.arm_at_turn is False
     assert "stage_two_rearm" not in setup.to_dict()
+    assert "stage_two_turn" not in setup.to_dict()
     assert "stage_two_steady" not in setup.to_dict()
 
 

@@ -712,6 +712,7 @@ class TuningRun:
             common["outputs_from_samples"] = True
         if req.method == "relay":
             common["stage_two_rearm"] = True
+            common["stage_two_turn"] = True
             common["stage_two_steady"] = True
             common["relay_chatter"] = True
             common["relay_wrong_way"] = True

@@ -127,6 +127,13 @@ class RelayConfig:
     # with a bias) means the lead shrank the cycle short of its lockout: the lockout is set
     # again from the peak the PV reached, once (None: never; stage 2 is abandoned instead)
     stuck_periods: float | None = 1.0
+    # stage 2: a switch still locked out is armed once the PV is back past the level the
+    # relay last switched at by the hysteresis ε (the first time by ``stuck_periods``'s
+    # setting again, if set): a PV that turns short of the lockout's margin never arms it,
+    # and the relay held its output while the PV ran on for a stage-1 period or more (hx1
+    # realtime ×20: 2.1 °C off rest; hx1 with --relay-bias 0.5 in lockstep: 7 × stage 1's
+    # swing). False: a run recorded before, whose lockout lasted until it was overdue
+    arm_at_turn: bool = True
     # stage 2 set again and ended on two agreeing cycles: its points kept as measured where
     # the leakage correction would move them by more than the cycles' agreement
     steady_second: bool = True
@@ -297,17 +304,23 @@ class RelayTest:
             return None
         r, h, pv = self._r, self._level, self.pv[-1]
         below, above = self.pv_limits
+        # locked out in stage 2, back past the level it switched at arms it (``_turned``)
+        turn = self.config.arm_at_turn and self.phase == "stage2" and not self._switch_armed
         if self._state > 0:
             if self._switch_armed:
                 above = min(above, r + h)
             else:
                 below = max(below, r + h - self._margin)
+                if turn:
+                    above = min(above, r - h + self._eps)
             if not self._armed:
                 below = max(below, r - self._cross_margin)
         elif self._switch_armed:
             below = max(below, r - h)
         else:
             above = min(above, r - h + self._margin)
+            if turn:
+                below = max(below, r + h - self._eps)
         if self._armed:
             if pv < r:
                 above = min(above, r)
@@ -412,7 +425,13 @@ class RelayTest:
     def _relay(self, t: float, pv: float) -> float:
         self._arm(pv)
         stuck = self._stuck_at()
-        if stuck is not None and t >= stuck and abs(pv - self._extreme) > self._margin:
+        if self._turned(pv):  # short of arming the switch: set again once, or arm it
+            if stuck is not None:
+                self._rearm(t)
+            else:
+                self._switch_armed = True
+                self.events.append(Event(t, "lockout", {"turned": self._extreme}))
+        elif stuck is not None and t >= stuck and abs(pv - self._extreme) > self._margin:
             self._rearm(t)  # overdue, and the PV turned back from short of arming the switch
         if self._watching_wrong_way() and len(self.pv) % self._quiet_samples == 0:
             why = self._at_rest_against_the_push()
@@ -521,6 +540,21 @@ class RelayTest:
         cfg, s1 = self.config, self._stage1
         assert s1 is not None
         return self._stage_two_start + cfg.stage_two_patience * cfg.stage_two_cycles * s1.pu
+
+    def _turned(self, pv: float) -> bool:
+        """Stage 2's next switch still locked out (``arm_at_turn``), the PV at ``pv`` is back
+        past the level the relay last switched at (r + h going low, r − h going high) by
+        the hysteresis ε: it turned short of the lockout's margin, and holding the output on
+        would drive it on. A fixed level, so that a batch (``band``) ends on it."""
+        if not self.config.arm_at_turn or self.phase != "stage2" or self._switch_armed:
+            return False
+        if math.isnan(self._switched_at):
+            return False
+        return (pv - self._switched_level()) * self._state > self._eps
+
+    def _switched_level(self) -> float:
+        """The level the relay last switched at: r + h when it went low, r − h going high."""
+        return self._r - self._state * self._level
 
     def _stuck_at(self) -> float | None:
         """When (s) stage 2's relay, still locked out of its next switch, counts as stuck: a
@@ -900,6 +934,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         tolerance=settings.tolerance,
         low_ratio=1.0 - settings.relay_bias,
         stuck_periods=RelayConfig.stuck_periods if setup.stage_two_rearm else None,
+        arm_at_turn=bool(setup.stage_two_turn),
         wrong_way=bool(setup.relay_wrong_way),
         steady_second=bool(setup.stage_two_steady),
         chatter_widenings=RelayConfig.chatter_widenings if setup.relay_chatter else None,
