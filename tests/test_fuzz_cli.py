@@ -277,3 +277,24 @@ def test_through_real_interpreters_exit_2_one_line_no_traceback(tmp_path):
         out, err = proc.communicate(timeout=60)
         one_line_refusal(proc.returncode, err, argv, "error:")
         assert out == "", (argv, out)
+
+
+def test_ctrl_c_while_the_modules_load_is_one_line(monkeypatch, capsys):
+    """The console script's first step imports numpy, scipy and Zenoh: a Ctrl-C there printed
+    a traceback through the imports (noticed last stop); it is one line and exit 130."""
+    import builtins
+
+    from services.entry import entry
+
+    real = builtins.__import__
+
+    def interrupted(name, globals=None, locals=None, fromlist=(), level=0):
+        if name == "services" and fromlist and "cli" in fromlist:
+            raise KeyboardInterrupt
+        return real(name, globals, locals, fromlist, level)
+
+    monkeypatch.setattr(builtins, "__import__", interrupted)
+    with pytest.raises(SystemExit) as stop:
+        entry()
+    assert stop.value.code == 130
+    assert capsys.readouterr().err == "autotune: interrupted\n"

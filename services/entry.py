@@ -1,0 +1,16 @@
+"""The ``autotune`` console script. Ctrl-C while the product's modules load (numpy, scipy,
+Zenoh: a second or more on a busy machine) ends in one line and exit 130, as it does once a
+command runs (``services.cli.main``), not in a traceback through the imports."""
+
+from __future__ import annotations
+
+import sys
+
+
+def entry() -> None:
+    try:
+        from services import cli
+    except KeyboardInterrupt:
+        print("autotune: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
+    cli.entry()
