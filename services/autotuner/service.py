@@ -27,6 +27,7 @@ import zenoh
 
 from services.autotuner.compute_pool import ComputePool, inline
 from services.autotuner.design.request_check import validate_request
+from services.autotuner.identify.experiments import DEFAULT_STEP_SIZE
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
 from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
 from services.autotuner.tuning import RunHooks, TuningRun
@@ -81,6 +82,26 @@ class ActiveRun:
     thread: threading.Thread
 
 
+def _check_step_size(req: TuneRequest, status: LoopStatus) -> None:
+    """A step test's output step that cannot fit the loop's output limits, refused when the
+    request arrives (ValueError naming ``step_size``), not after the wait for rest (600 s on
+    lvl1) as an aborted run. A manual loop steps from its output now; an auto loop from its
+    controller's mean output, not known yet: refused only when no output could take it."""
+    if req.method != "step":
+        return
+    size = req.step_size or DEFAULT_STEP_SIZE
+    lo, hi = status.op_limits
+    if status.mode == "manual" and not lo <= status.op + size <= hi:
+        raise ValueError(
+            f"step_size {size:+g} %: the output would go from {status.op:g} to "
+            f"{status.op + size:g} %, outside the loop's limits [{lo:g}, {hi:g}] %"
+        )
+    if abs(size) > hi - lo:
+        raise ValueError(
+            f"step_size {size:+g} %: more than the loop's whole output range [{lo:g}, {hi:g}] %"
+        )
+
+
 class TunerService:
     def __init__(
         self,
@@ -119,6 +140,8 @@ class TunerService:
                 f"loop: {req.loop} is held by {status.leased_by!r} for another test; "
                 "try again when it is released"
             )
+        if status is not None:
+            _check_step_size(req, status)
         with self.lock:
             if req.loop in self.active:
                 raise ValueError(
