@@ -359,13 +359,26 @@ class LoopClient:
         realtime); a sync lost on the way (a link re-forming) is sent again every
         RESEND_EVERY s, and any of its answers will do."""
         tokens: set[int] = set()
-        deadline = time.monotonic() + self.timeout
+        started = time.monotonic()
+        deadline = started + self.timeout
         resend = 0.0
+        resumed = False
         while True:
             now = time.monotonic()
             if now > deadline:
+                # a wait through which this process did not run (paused, starved): hear
+                # what came meanwhile once more, then say so (the plant's restore followed)
+                paused = self._stalls.stalled(started)
+                if paused > OVERSLEPT and not resumed:
+                    resumed, deadline = True, now + RESUMED_WAIT
+                    continue
+                own = (
+                    f" (this process did not run for {paused:.0f} s: paused or starved)"
+                    if paused > OVERSLEPT
+                    else ""
+                )
                 raise PlantLost(
-                    f"loop {self.loop!r}: no answer to a sync within {self.timeout:g} s"
+                    f"loop {self.loop!r}: no answer to a sync within {self.timeout:g} s" + own
                 )
             if now >= resend:
                 token = next(self._tokens)
