@@ -809,6 +809,14 @@ def test_damaged_containers_and_what_recover_makes_of_them(recorded, tmp_path, c
         refused(code, err, argv[0], ["no such file"])
     code, _, err = cli(capsys, "recover", str(recorded["relay"].path), "-o", str(tmp_path))
     refused(code, err, "recover -o DIR", ["is a directory"])
+    # an existing file is not overwritten without --force (it was, without a word)
+    kept = tmp_path / "kept.mcap"
+    kept.write_bytes(b"someone's file")
+    code, _, err = cli(capsys, "recover", str(recorded["relay"].path), "-o", str(kept))
+    refused(code, err, "recover -o EXISTING", [str(kept), "exists already", "--force"])
+    assert kept.read_bytes() == b"someone's file"
+    code, out, _ = cli(capsys, "recover", str(recorded["relay"].path), "-o", str(kept), "--force")
+    assert code == 0 and "recovered" in out and kept.read_bytes()[:8] == b"\x89MCAP0\r\n"
 
 
 def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, tmp_path, capsys):

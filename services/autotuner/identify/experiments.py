@@ -211,8 +211,9 @@ class Setup:
     # was abandoned there instead (so its replay makes the live run's decisions)
     stage_two_rearm: bool | None = None
     # True: a relay test's stage 2 arms a switch still locked out once the PV is back past
-    # the level it switched at (``RelayConfig.arm_at_turn``); None: a run recorded before, whose lockout held until
-    # it was overdue by a stage-1 period (so its replay makes the live run's decisions)
+    # the level it switched at (``RelayConfig.arm_at_turn``); None: a run recorded before,
+    # whose lockout held until it was overdue by a stage-1 period (so its replay makes the
+    # live run's decisions)
     stage_two_turn: bool | None = None
     # True: such a stage 2, ended on two agreeing cycles, keeps its points as measured where
     # a correction would move them by more than that (``RelayConfig.steady_second``); None:

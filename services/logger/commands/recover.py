@@ -24,16 +24,23 @@ HELP = "salvage a truncated MCAP file (from a killed logger)"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="BROKEN.mcap")
     parser.add_argument("-o", "--output", required=True, metavar="FIXED.mcap")
+    parser.add_argument(
+        "--force", action="store_true", help="overwrite FIXED.mcap if it exists already"
+    )
 
 
-def recover(src: Path, dst: Path) -> dict[str, int | str]:
-    """Copy what is readable of ``src`` into ``dst``; return counts and where reading stopped."""
+def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
+    """Copy what is readable of ``src`` into ``dst``; return counts and where reading stopped.
+    An existing ``dst`` is refused unless ``force`` (it was overwritten without a word: a
+    recovered file of another run, or a good one, lost to a typo)."""
     if not src.is_file():
         raise AutotuneError(f"{src}: no such file")
     if src.resolve() == dst.resolve():
         raise AutotuneError("-o must name a new file, not the broken one")
     if dst.is_dir():
         raise AutotuneError(f"-o {dst}: is a directory (name the new file)")
+    if dst.exists() and not force:
+        raise AutotuneError(f"-o {dst}: exists already (name a new file, or --force)")
     with src.open("rb") as f:
         if f.read(len(MAGIC)) != MAGIC:
             raise AutotuneError(
@@ -86,7 +93,7 @@ def recover(src: Path, dst: Path) -> dict[str, int | str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    counts = recover(Path(args.file), Path(args.output))
+    counts = recover(Path(args.file), Path(args.output), args.force)
     print(
         f"recovered {counts['messages']} messages on {counts['channels']} channels "
         f"({counts['schemas']} schemas, {counts['metadata']} metadata records) into "
