@@ -105,3 +105,33 @@ def test_runs_compare_shows_a_gain_once_where_its_pv_is_in_percent_over_0_to_100
     assert "ku" in keys and "kc" in keys and "pb" in keys
     assert "ku_percent" not in keys and "kc_percent" not in keys
     assert sum(line.startswith("Kc (") for line in format_compare(c).splitlines()) == 1
+
+
+def test_runs_compare_does_not_take_other_pv_units_for_a_change(runs, tmp_path):
+    """A in %, B in degC: K_u 2 %/% against 3 %/degC is no change of +50 % (it was printed
+    as one, under the unit "%/%|degC"); such rows show both units and no change, and a line
+    says why. Rows in s or % still compare."""
+    plant = {"seed": 3, "loops": {LOOP: {**PLANT["loops"][LOOP], "pv_units": "degC"}}}
+    other, live = record_in_process(tmp_path, "r", plant, LOOP, "relay")
+    assert live.status == "ok" and live.pv_units == "degC", live.reason
+    c = compare(runs["relay file"], other)
+    assert c["pv_units_differ"] is True
+    rows = {r["key"]: r for r in c["rows"]}
+    assert rows["ku"]["unit"] == "%/% | %/degC" and rows["ku"]["change"] is None
+    assert rows["kc"]["change"] is None and rows["model_gain"]["change"] is None
+    assert rows["pu"]["change"] is not None and rows["ti"]["change"] is not None
+    text = format_compare(c)
+    assert "PV units differ (A %, B degC): figures in PV units are shown, not compared" in text
+    same = compare(runs["relay file"], runs["ramp file"])
+    assert same["pv_units_differ"] is False
+    assert {r["key"]: r for r in same["rows"]}["ku"]["change"] is not None
+
+
+def test_runs_compare_gives_spreads_in_the_percent_its_unit_says(runs):
+    """The spreads' unit is "%": their values in --json were the result's fractions."""
+    (result,) = runs["relay"][0]["result"]
+    c = compare(runs["relay file"], runs["ramp file"])
+    row = next(r for r in c["rows"] if r["key"] == "ku_spread")
+    assert row["unit"] == "%" and row["a"] == pytest.approx(100.0 * result["ku_spread"])
+    line = next(x for x in format_compare(c).splitlines() if x.startswith("K_u spread (%)"))
+    assert f"{100.0 * result['ku_spread']:.3g}" in line

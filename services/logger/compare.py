@@ -48,7 +48,7 @@ ROWS = (
     ("status", "status", ""),
     ("sim_duration", "sim time", "s"),
 )
-PERCENT_KEYS = ("ku_spread", "pu_spread")  # fractions shown as %
+PERCENT_KEYS = ("ku_spread", "pu_spread")  # fractions on the result, given in % (JSON too)
 # a gain in %/% and the row of the same gain in %/PV unit (equal when the PV's span is 100 %)
 SAME_IN_PERCENT = {"ku_percent": "ku", "kc_percent": "kc"}
 
@@ -144,35 +144,47 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
         )
         values.append(figures(meta, result, span))
         units.append(result.pv_units if result else "")
-    pv = units[0] if units[0] == units[1] else f"{units[0]}|{units[1]}"
+    mixed = units[0] != units[1]  # a figure in PV units then has no change from a to b
     rows = []
     for key, label, unit in ROWS:
         a, b = values[0][key], values[1][key]
         if a is None and b is None:
             continue
+        if key in PERCENT_KEYS:  # fractions on the result, in % here as the unit says
+            a, b = (100.0 * v if _number(v) is not None else v for v in (a, b))
         base = SAME_IN_PERCENT.get(key)
         if base is not None and (a, b) == (values[0][base], values[1][base]):
             continue  # a PV in % over 0–100: the %/% row would repeat the row above it
         na, nb = _number(a), _number(b)
         change = (nb - na) / abs(na) if na is not None and nb is not None and na != 0 else None
+        in_pv = "PV" in unit
+        if in_pv and mixed:  # 2 %/degC against 3 %/(m3/h) is no change of 50 %
+            change = None
         rows.append(
             {
                 "key": key,
                 "label": label,
-                "unit": unit.replace("PV", pv or "PV unit"),
+                "unit": _unit(unit, units) if in_pv else unit,
                 "a": a,
                 "b": b,
                 "change": change,
             }
         )
-    return {"runs": runs, "rows": rows}
+    return {"runs": runs, "rows": rows, "pv_units_differ": mixed}
+
+
+def _unit(unit: str, units: list[str]) -> str:
+    """``unit`` with "PV" as the runs' PV units: one unit, or A's and B's where they differ
+    (a PV without units: "PV unit")."""
+    a, b = (u or "PV unit" for u in units)
+    return unit.replace("PV", a) if a == b else f"{unit.replace('PV', a)} | {unit.replace('PV', b)}"
 
 
 def _cell(key: str, v: object) -> str:
     if v is None:
         return "—"
     if key in PERCENT_KEYS and _number(v) is not None:
-        return number(100.0 * float(v), ".3g")  # type: ignore[arg-type]
+        return number(float(v), ".3g")  # type: ignore[arg-type]
     if isinstance(v, int | float) and not isinstance(v, bool):
         return number(v, ".5g")
     return str(v)
@@ -187,6 +199,12 @@ def format_compare(c: dict) -> str:
         head += [
             f"{name}  {run['file']}",
             f"   {run.get('loop')} {run.get('method')} run {run.get('run_id')}  ({started} UTC)",
+        ]
+    if c.get("pv_units_differ"):
+        head += [
+            "",
+            f"PV units differ (A {a.get('pv_units') or '—'}, B {b.get('pv_units') or '—'}): "
+            "figures in PV units are shown, not compared",
         ]
     head += [
         "",

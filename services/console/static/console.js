@@ -394,8 +394,9 @@ $("compare").onclick = async () => {
     } else {  // the logger's comparison (autotune runs --compare): a row per figure
       const c = cmp.compare, [ra, rb] = c.runs;
       const run = (r) => `${r.loop} ${r.method} run ${r.run_id} (${(r.started || "").slice(0, 19)})`;
-      const cell = (row, v) => (typeof v === "number" && row.key.endsWith("_spread") ? fmt(100 * v, 3) : show(v));
+      const cell = (row, v) => (typeof v === "number" && row.key.endsWith("_spread") ? fmt(v, 3) : show(v));  // in % already
       $("compare-table").innerHTML = table([["", `A: ${run(ra)}`, `B: ${run(rb)}`, "B vs A"],
+        ...(c.pv_units_differ ? [[`PV units differ (A ${ra.pv_units || "—"}, B ${rb.pv_units || "—"}): figures in PV units are shown, not compared`, "", "", ""]] : []),
         ...c.rows.map((r) => [r.unit ? `${r.label} (${r.unit})` : r.label, cell(r, r.a), cell(r, r.b),
           r.change === null ? "" : `${r.change >= 0 ? "+" : ""}${(100 * r.change).toFixed(1)} %`])]);
     }
