@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import time
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -213,10 +214,37 @@ def recorded_form(schema: bytes) -> bool:
 
 
 def not_readable(path: Path | str, why: str) -> AutotuneError:
+    """Why ``path`` cannot be read, one line: a run a logger is still writing says so (it
+    said "try recover" on a run in progress); otherwise the hint to ``autotune recover``."""
+    if being_written(Path(path)):
+        return AutotuneError(
+            f"{path}: still being recorded (a logger is writing it, its MCAP footer not "
+            "yet written): wait for the run to end"
+        )
     return AutotuneError(
         f"{path}: not a readable MCAP file ({why}); if a logger was killed "
         f"while writing it, try: autotune recover {path} -o FIXED.mcap"
     )
+
+
+def being_written(path: Path, proc: Path = Path("/proc")) -> bool:
+    """No MCAP footer yet, and the file open in a process of this machine (a logger's run in
+    progress); a footerless file nobody has open is a broken one (``autotune recover``)."""
+    try:
+        with path.open("rb") as f:
+            f.seek(max(0, path.stat().st_size - len(MAGIC)))
+            if f.read() == MAGIC:
+                return False
+        target = path.resolve()
+        for fd in proc.glob("[0-9]*/fd/*"):
+            try:
+                if Path(os.readlink(fd)) == target:
+                    return True
+            except OSError:  # gone, or another user's
+                continue
+    except OSError:
+        return False
+    return False
 
 
 @dataclass(frozen=True)

@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
 
 from services.logger.compare import compare, format_compare
-from services.logger.mcap_io import MAGIC, read_run
+from services.logger.mcap_io import being_written, read_run
 from shared.errors import AutotuneError, one_line
 
 HELP = "list the recorded tuning runs"
@@ -61,26 +60,6 @@ def summarize(path: Path) -> dict:
         if being_written(path):
             return _recording_row(path)
         return {"file": path.name, "status": "unreadable", "reason": _reason(path, err)}
-
-
-def being_written(path: Path, proc: Path = Path("/proc")) -> bool:
-    """No MCAP footer yet, and the file open in a process of this machine (a logger's run in
-    progress); a footerless file nobody has open is a broken one (``autotune recover``)."""
-    try:
-        with path.open("rb") as f:
-            f.seek(max(0, path.stat().st_size - len(MAGIC)))
-            if f.read() == MAGIC:
-                return False
-        target = path.resolve()
-        for fd in proc.glob("[0-9]*/fd/*"):
-            try:
-                if Path(os.readlink(fd)) == target:
-                    return True
-            except OSError:  # gone, or another user's
-                continue
-    except OSError:
-        return False
-    return False
 
 
 def _recording_row(path: Path) -> dict:
