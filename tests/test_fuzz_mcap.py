@@ -1003,3 +1003,16 @@ def test_through_real_interpreters_exit_2_one_line_no_traceback(recorded, tmp_pa
         assert proc.returncode == rc and "Traceback" not in err, (argv, err)
         assert len(err.strip().splitlines()) == (1 if rc == 2 else 0), (argv, err)
         assert needle in (err if rc == 2 else out), (argv, out, err)
+
+
+def test_analyze_refuses_a_rule_the_run_does_not_give_and_reads_a_step_as_one(recorded, capsys):
+    """A relay run has no open-loop rules: ``--rule zn-ol-pi`` printed an empty table, exit
+    0. A step run's live comparison printed "K_u = None, P_u = None" (noticed last stop)."""
+    relay, step = (str(recorded[k].path) for k in ("relay", "step"))
+    code, _, err = cli(capsys, "analyze", relay, "--rule", "zn-ol-pi")
+    refused(code, err, "analyze --rule zn-ol-pi", ["--rule zn-ol-pi", "relay test", "zn-pid"])
+    code, out, _ = cli(capsys, "analyze", relay, "--rule", "zn-pid")
+    assert code == 0 and out.splitlines()[-1].split()[0] == "zn-pid"
+    code, out, err = cli(capsys, "analyze", step)
+    assert code == 0 and err == "", err
+    assert "None" not in out and "live run: its step response's figures → identical" in out

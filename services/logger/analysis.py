@@ -340,10 +340,11 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
             f"T = {s.time_constant_tangent:.4g} s  L/T = {s.l_over_t:.3f}"
         )
     if a.live is not None:
-        lines.append(
-            f"  live run: K_u = {a.live.ku}, P_u = {a.live.pu} → "
-            f"{'identical' if a.matches_live() else 'DIFFERENT'}"
-        )
+        same = "identical" if a.matches_live() else "DIFFERENT"
+        if a.live.step is not None:  # a step test's: its reaction curve, not K_u and P_u
+            lines.append(f"  live run: its step response's figures → {same}")
+        else:
+            lines.append(f"  live run: K_u = {a.live.ku}, P_u = {a.live.pu} → {same}")
     lines.append(f"  {'rule':<15}{'Kc':>10}{'Ti (s)':>10}{'Td (s)':>10}")
     for name, g in a.gains.items():
         if rule and name != rule:

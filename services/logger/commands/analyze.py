@@ -7,6 +7,7 @@ import argparse
 
 from services.autotuner.design.rules import RULES
 from services.logger.analysis import analyze_file, dumps, format_analysis
+from shared.errors import AutotuneError
 
 HELP = "re-run identification and tuning rules on a recorded run"
 
@@ -24,5 +25,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     a = analyze_file(args.file)
+    if args.rule and args.rule not in a.gains:  # it printed an empty table, exit 0
+        given = ", ".join(a.gains) or "none"
+        raise AutotuneError(
+            f"--rule {args.rule}: not given by this {a.method} test's findings (it gives: "
+            f"{given})"
+        )
     print(dumps(a, args.rule) if args.json else format_analysis(a, args.rule))
     return 0
