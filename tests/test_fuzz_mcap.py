@@ -1016,3 +1016,20 @@ def test_analyze_refuses_a_rule_the_run_does_not_give_and_reads_a_step_as_one(re
     code, out, err = cli(capsys, "analyze", step)
     assert code == 0 and err == "", err
     assert "None" not in out and "live run: its step response's figures → identical" in out
+
+
+def test_analyze_says_samples_are_missing_from_the_record(recorded, tmp_path, capsys):
+    """One sample taken out of the experiment (a gap in the loop's seq): analyze re-identified
+    on the record with holes without a word (noticed last stop); it says how many are missing
+    and where, as text and as ``missing_samples``."""
+    msgs, meta = load(recorded["relay"].path)
+    i = nth(msgs, "/pv", PV_N)
+    gone = msgs[i].obj()["seq"]
+    holed = save(tmp_path / "holed.mcap", [m for k, m in enumerate(msgs) if k != i], meta)
+    code, out, err = cli(capsys, "analyze", str(holed))
+    assert code == 0 and err == "", err
+    assert f"WARNING: 1 samples missing from the record (the first gap after seq {gone - 1})" in out
+    code, out, _ = cli(capsys, "analyze", str(holed), "--json")
+    assert json.loads(out)["missing_samples"] == 1
+    code, out, _ = cli(capsys, "analyze", str(recorded["relay"].path), "--json")
+    assert json.loads(out)["missing_samples"] == 0

@@ -14,6 +14,7 @@ Another run's messages in the file are left out; a message recorded twice is rea
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from dataclasses import dataclass
@@ -59,6 +60,10 @@ class Analysis:
     live: TuneResult | None
     selection: Selection | None = None
     pv_range: tuple[float, float] | None = None  # the transmitter's, as the run recorded it
+    # samples missing from the record (gaps in the loop's seq), and the seq before the first
+    # gap: the experiment then decided on a record with holes, not the live run's
+    missing: int = 0
+    first_gap: int | None = None
 
     @property
     def span(self) -> float | None:
@@ -106,6 +111,7 @@ class Analysis:
                 "chosen": self.live.chosen,
             }
             out["matches_live"] = self.matches_live()
+        out["missing_samples"] = self.missing
         return out
 
     def _step(self) -> dict | None:
@@ -252,7 +258,9 @@ def analyze_file(path: str | Path) -> Analysis:
             f"{path}: the experiment event's set-up does not build a {req.method} test: "
             f"{one_line(err)}"
         ) from None
-    record = _Record(str(path), [s for s in run.samples if s.seq >= run.first_seq], run.step_times)
+    fed = [s for s in run.samples if s.seq >= run.first_seq]
+    missing, first_gap = _gaps(fed)
+    record = _Record(str(path), fed, run.step_times)
     try:
         ident = drive(machine, record)
         if ident is None:
@@ -286,7 +294,19 @@ def analyze_file(path: str | Path) -> Analysis:
         run.result,
         sel,
         pv_range,
+        missing,
+        first_gap,
     )
+
+
+def _gaps(samples: list[ProcessSample]) -> tuple[int, int | None]:
+    """Samples missing between consecutive ones (by seq), and the seq before the first gap."""
+    missing, first = 0, None
+    for a, b in itertools.pairwise(samples):
+        if b.seq > a.seq + 1:
+            missing += b.seq - a.seq - 1
+            first = a.seq if first is None else first
+    return missing, first
 
 
 def _span(pv_range: tuple[float, float] | None) -> float | None:
@@ -338,6 +358,11 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
         lines.append(
             f"  K = {s.gain:.4g}  L = {s.dead_time:.4g} s  "
             f"T = {s.time_constant_tangent:.4g} s  L/T = {s.l_over_t:.3f}"
+        )
+    if a.missing:
+        lines.append(
+            f"  WARNING: {a.missing} samples missing from the record (the first gap after seq "
+            f"{a.first_gap}): re-identified on a record with holes, not the live run's"
         )
     if a.live is not None:
         same = "identical" if a.matches_live() else "DIFFERENT"
