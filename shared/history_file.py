@@ -25,24 +25,27 @@ def run_of(source: str | None) -> str | None:
     return None
 
 
-def read_history(path: Path) -> Iterator[dict[str, Any]]:
+def read_history(path: Path, skipped: list[int] | None = None) -> Iterator[dict[str, Any]]:
     """The records of a history file, oldest first; a line that is not a JSON object (a
-    line cut short by a crash, an edit) is skipped. Nothing if there is no file."""
+    line cut short by a crash, an edit) is skipped, its number (from 1) added to ``skipped``
+    when given. Nothing if there is no file."""
     try:
-        f = path.open(encoding="utf-8")
+        f = path.open(encoding="utf-8", errors="replace")  # bad bytes: a skipped line
     except FileNotFoundError:
         return
     except OSError as err:
         log.warning("%s: cannot read the history (%s)", path, err.strerror or err)
         return
     with f:
-        for line in f:
+        for n, line in enumerate(f, 1):
             try:
                 rec = json.loads(line)
             except json.JSONDecodeError:
-                continue
+                rec = None
             if isinstance(rec, dict):
                 yield rec
+            elif line.strip() and skipped is not None:
+                skipped.append(n)
 
 
 def of_loop(rec: dict[str, Any], loop: str, prefix: str | None) -> bool:

@@ -207,6 +207,25 @@ def test_a_torn_last_line_is_skipped(tmp_path):
     assert len(changes(tmp_path)) == 1
 
 
+def test_unreadable_lines_are_counted_and_the_history_command_says_so(tmp_path, capsys):
+    """A torn line, an edited one, bad bytes: skipped as before, but ``autotune history``
+    says how many and which (it passed over them without a word: noticed last stop)."""
+    from services.cli import main
+
+    h = history(tmp_path)
+    feed(h, status(G0))
+    with (tmp_path / HISTORY_FILE).open("ab") as f:
+        f.write(b'{"record": "change", "loop": "hx1", "bef\n[1, 2]\n\xff\xfe{\n\n')
+    feed(h, status(G1, "gains", by_source="autotune-set"))
+    skipped: list[int] = []
+    assert len(list(read_history(tmp_path / HISTORY_FILE, skipped))) == 1  # the change
+    assert skipped == [1, 2, 3]  # the blank line is no record, and no damage either
+    code = main(["history", LOOP, "--runs", str(tmp_path), "--prefix", P])
+    err = capsys.readouterr().err
+    assert code == 0
+    assert "3 line(s) not readable as a record (line 1, 2, 3): skipped" in err
+
+
 def test_one_runs_directory_two_buses_a_loop_id_is_a_loop_within_its_prefix(tmp_path):
     """The demo records under its own prefix beside `autotune up`'s: their hx1s are two."""
     h = history(tmp_path)

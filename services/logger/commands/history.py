@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -39,11 +40,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def entries(runs: Path, loop: str, prefix: str | None = None) -> list[dict[str, Any]]:
+def entries(
+    runs: Path, loop: str, prefix: str | None = None, skipped: list[int] | None = None
+) -> list[dict[str, Any]]:
     """The loop's changes (on the bus ``prefix``; None: any), each with its run's ``tune``
     record (None for changes not made by a run), and the runs that changed nothing
-    (``record`` ``tune``), in file order."""
-    records = [r for r in read_history(runs / HISTORY_FILE) if of_loop(r, loop, prefix)]
+    (``record`` ``tune``), in file order; the numbers of unreadable lines into ``skipped``."""
+    history = read_history(runs / HISTORY_FILE, skipped)
+    records = [r for r in history if of_loop(r, loop, prefix)]
     tunes = {r.get("run_id"): r for r in records if r.get("record") == "tune"}
     changed = {r.get("run_id") for r in records if r.get("record") == "change"}
     out = []
@@ -134,7 +138,15 @@ def run(args: argparse.Namespace) -> int:
     runs = Path(args.runs)
     if not runs.is_dir():
         raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")
-    items = entries(runs, args.loop, args.prefix)
+    skipped: list[int] = []
+    items = entries(runs, args.loop, args.prefix, skipped)
+    if skipped:  # a line cut short by a crash, or edited: said, not silently passed over
+        shown = ", ".join(map(str, skipped[:5])) + (", …" if len(skipped) > 5 else "")
+        print(
+            f"autotune history: warning: {runs / HISTORY_FILE}: {len(skipped)} line(s) not "
+            f"readable as a record (line {shown}): skipped",
+            file=sys.stderr,
+        )
     if args.json:
         print(json.dumps(items, indent=2))
     else:
