@@ -760,7 +760,8 @@ CONTAINER = [
         ["not a readable MCAP file", "autotune recover"],
         2,  # the fixture's run is one chunk: half of it decompresses to nothing
     ),
-    ("truncated-to-magic", lambda b: b[:8], ["not a readable MCAP file"], 2),
+    # it said "not a readable MCAP file (OSError: [Errno 22] Invalid argument)"
+    ("truncated-to-magic", lambda b: b[:8], ["MCAP magic bytes and nothing after"], 2),
     ("footer-zeroed", lambda b: b[:-40] + bytes(40), ["not a readable MCAP file"], 0),
     ("zero-length", lambda b: b"", ["not an MCAP file"], 2),
     ("random-bytes", lambda b: np.random.default_rng(1).bytes(5000), ["not an MCAP file"], 2),
@@ -806,7 +807,7 @@ def test_damaged_containers_and_what_recover_makes_of_them(recorded, tmp_path, c
         ["recover", str(folder), "-o", str(tmp_path / "x.mcap")],
     ):
         code, _, err = cli(capsys, *argv)
-        refused(code, err, argv[0], ["no such file"])
+        refused(code, err, argv[0], ["is a directory, not a run file"])  # was "no such file"
     code, _, err = cli(capsys, "recover", str(recorded["relay"].path), "-o", str(tmp_path))
     refused(code, err, "recover -o DIR", ["is a directory"])
     # an existing file is not overwritten without --force (it was, without a word)
@@ -834,7 +835,7 @@ def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, 
         (folder / f"{cid}.mcap").write_bytes(make(good))
         expected[f"{cid}.mcap"] = ["MCAP"]
     (folder / "zz-a-folder.mcap").mkdir()
-    expected["zz-a-folder.mcap"] = ["no such file"]
+    expected["zz-a-folder.mcap"] = ["is a directory"]
     code, out, err = cli(capsys, "runs", str(folder), "--json")
     assert code == 0 and err == "", err
     rows = {r["file"]: r for r in json.loads(out)}

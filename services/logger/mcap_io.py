@@ -361,16 +361,22 @@ def check_format(path: Path | str, meta: dict[str, str]) -> None:
 def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
     """(the run's metadata, its messages in file order); AutotuneError for a bad file."""
     path = Path(path)
+    if path.is_dir():
+        raise AutotuneError(f"{path}: is a directory, not a run file")
     if not path.is_file():
         raise AutotuneError(f"{path}: no such file")
     try:
         with path.open("rb") as f:
-            head = f.read(len(MAGIC))
+            head = f.read(len(MAGIC) + 1)
     except OSError as err:
         raise AutotuneError(f"{path}: cannot read it: {err.strerror}") from None
-    if head != MAGIC:
+    if head[: len(MAGIC)] != MAGIC:
         raise AutotuneError(
             f"{path}: not an MCAP file (it does not start with the MCAP magic bytes)"
+        )
+    if len(head) == len(MAGIC) and not being_written(path):  # said "OSError: Errno 22"
+        raise AutotuneError(
+            f"{path}: the MCAP magic bytes and nothing after them: nothing was recorded"
         )
     try:
         with path.open("rb") as f:

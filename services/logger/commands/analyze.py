@@ -28,8 +28,7 @@ def run(args: argparse.Namespace) -> int:
     if args.rule and args.rule not in a.gains:  # it printed an empty table, exit 0
         given = ", ".join(a.gains) or "none"
         raise AutotuneError(
-            f"--rule {args.rule}: not given by this {a.method} test's findings (it gives: "
-            f"{given})"
+            f"--rule {args.rule}: not given by this {a.method} test's findings (it gives: {given})"
         )
     print(dumps(a, args.rule) if args.json else format_analysis(a, args.rule))
     return 0

@@ -33,6 +33,8 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
     """Copy what is readable of ``src`` into ``dst``; return counts and where reading stopped.
     An existing ``dst`` is refused unless ``force`` (it was overwritten without a word: a
     recovered file of another run, or a good one, lost to a typo)."""
+    if src.is_dir():
+        raise AutotuneError(f"{src}: is a directory, not a run file")
     if not src.is_file():
         raise AutotuneError(f"{src}: no such file")
     if src.resolve() == dst.resolve():
