@@ -1034,3 +1034,14 @@ def test_analyze_says_samples_are_missing_from_the_record(recorded, tmp_path, ca
     assert json.loads(out)["missing_samples"] == 1
     code, out, _ = cli(capsys, "analyze", str(recorded["relay"].path), "--json")
     assert json.loads(out)["missing_samples"] == 0
+
+
+def test_replay_that_keeps_nothing_says_what_the_file_holds(recorded, capsys):
+    """A filter that matches nothing printed "nothing to replay" and no more (noticed last
+    stop): the file's loops, topics and length follow, so the filter can be set right."""
+    path = str(recorded["relay"].path)
+    for extra in (["--loop", "nosuch"], ["--start-offset", "1e9"]):
+        code, out, err = cli(capsys, "replay", path, "--wait", "0", *extra)
+        assert code == 0 and err == "", err
+        assert out.startswith("nothing to replay: no message passes the filters; the file ")
+        assert "loop(s) " in out and "pv" in out and "s long" in out

@@ -106,8 +106,10 @@ def check_records(path: Path | str, prefix: str, records: list[Record]) -> list[
     """(loop, is a command) of every record, each validated as the logger validates it live;
     AutotuneError naming the first bad record (number, topic, sim time) and why."""
     out = []
+    t0 = min((r.log_time for r in records), default=0)
     for i, r in enumerate(records):
-        where = f"{path}: {r.topic} message {i} (log time {r.log_time / 1e9:.9g} s)"
+        # its time into the recording (the log time itself is ns since 1970: "1.79e+09 s")
+        where = f"{path}: {r.topic} message {i} ({(r.log_time - t0) / 1e9:.6g} s in)"
         found = model_for(prefix, r.key)
         if found is None:
             raise AutotuneError(f"{where}: not a topic autotune records under {prefix!r}")
@@ -154,6 +156,27 @@ def select(
             continue
         keep.append(Outgoing(r, lp, command, key))
     return keep
+
+
+def _held(records: list[Record], checked: list[tuple[str, bool]], commands: bool) -> str:
+    """What the file holds, for a selection that kept nothing: its loops, topics and length,
+    so that the filter that missed can be set right."""
+    if not records:
+        return "the file holds no messages"
+    loops = sorted({lp for lp, _ in checked})
+    leaves = sorted(
+        {
+            keys.leaf(r.topic)
+            for r, (_, c) in zip(records, checked, strict=True)
+            if commands or not c
+        }
+    )
+    span = (max(r.log_time for r in records) - min(r.log_time for r in records)) / 1e9
+    without = "" if commands else " (commands only with --with-commands)"
+    return (
+        f"no message passes the filters; the file holds loop(s) {', '.join(loops)}, topics "
+        f"{', '.join(leaves)}{without}, {span:.4g} s long (--start-offset within it)"
+    )
 
 
 def wait_for_subscriber(session: zenoh.Session, key: str, seconds: float) -> bool:
@@ -214,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
         args.with_commands,
     )
     if not chosen:
-        print("nothing to replay")
+        print(f"nothing to replay: {_held(records, checked, args.with_commands)}")
         return 0
     attachment = replay_attachment(Path(args.file).name)
     with open_session(settings_from_args(args)) as session:
