@@ -193,9 +193,18 @@ def test_the_listing_offers_apply_only_for_a_run_with_gains_to_apply():
         {**base, "run_id": "p1", "status": "proposed", "recommended": "tl-pid", "gains": gains},
         {**base, "run_id": "a1", "status": "aborted", "recommended": None, "gains": {}},
     ]
+    # an apply run whose verification rejected run p1's gains: it offered `autotune apply r1`,
+    # which then refused with a confusing flag (noticed last stop)
+    items.append(
+        {**base, "run_id": "r1", "status": "rejected", "rule": "tl-pid", "gains": gains}
+        | {"applied_from": "p1"}
+    )
     lines = format_entries(LOOP, Path("runs"), items).splitlines()[1:]
     assert lines[0].endswith("proposed, not applied; recommended tl-pid: `autotune apply p1`")
     assert lines[1].endswith("run a1 (relay): aborted, no gains to apply")
+    assert lines[2].endswith(
+        "run r1 (apply of run p1): rejected, not applied (the gains of run p1, tl-pid)"
+    )
 
 
 def test_a_torn_last_line_is_skipped(tmp_path):

@@ -112,8 +112,12 @@ def format_entries(loop: str, path: Path, items: list[dict]) -> str:
         when = f"{r.get('utc', '?')}  t = {_num(r.get('t'), ' s')}"
         if r.get("record") == "tune":
             rule = r.get("recommended") or r.get("rule")
-            head = f"  {when}  run {r.get('run_id')} ({r.get('method')}): {r.get('status')}, "
-            if r.get("status") in APPLICABLE_STATUSES and r.get("gains"):
+            source = r.get("applied_from")  # an `autotune apply` run: another run's gains
+            kind = f"apply of run {source}" if source else r.get("method")
+            head = f"  {when}  run {r.get('run_id')} ({kind}): {r.get('status')}, "
+            if source:  # tried on the loop and not kept: apply would try them again
+                lines.append(f"{head}not applied (the gains of run {source}, {rule})")
+            elif r.get("status") in APPLICABLE_STATUSES and r.get("gains"):
                 lines.append(
                     f"{head}not applied; recommended {rule}: `autotune apply {r.get('run_id')}`"
                 )
