@@ -9,6 +9,7 @@ Anything else is a bug: one line too, exit 70, and the traceback only with AUTOT
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import traceback
@@ -80,6 +81,7 @@ class Refused(SystemExit):
 
 RUNS_WRITERS = ("logger", "demo", "up")  # commands whose --runs is a directory they write
 EX_SOFTWARE = 70  # sysexits.h: an internal error
+EX_PIPE = 141  # 128 + SIGPIPE: what a shell reports for a writer whose reader left
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -118,6 +120,10 @@ def main(argv: list[str] | None = None) -> int:
     except AutotuneError as err:
         print(f"{name}: error: {one_line(err, 2000)}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `autotune loops | head -1`: the reader had enough; no error
+        with contextlib.suppress(OSError, ValueError, AttributeError):  # no file behind it
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EX_PIPE
     except OSError as err:  # a file or directory named on the command line, at the edge
         where = f": {err.filename}" if err.filename else ""
         print(f"{name}: error: {one_line(err.strerror or err)}{where}", file=sys.stderr)

@@ -298,3 +298,20 @@ def test_ctrl_c_while_the_modules_load_is_one_line(monkeypatch, capsys):
         entry()
     assert stop.value.code == 130
     assert capsys.readouterr().err == "autotune: interrupted\n"
+
+
+def test_a_reader_that_leaves_the_pipe_early_is_no_error(monkeypatch):
+    """``autotune … | head -1``: it printed "error: Broken pipe" (noticed last stop); now
+    silent, exit 141 as a shell reports for any writer whose reader left."""
+    import io
+
+    class Left(io.StringIO):
+        def write(self, s):
+            raise BrokenPipeError(32, "Broken pipe")
+
+    err = io.StringIO()
+    monkeypatch.setattr(sys, "stdout", Left())
+    monkeypatch.setattr(sys, "stderr", err)
+    plant = ROOT / "services" / "plant_sim" / "plants" / "default.toml"
+    assert main(["model", "check", str(plant), "--loop", "flow1"]) == 141
+    assert err.getvalue() == ""
