@@ -492,7 +492,9 @@ def test_replay_of_an_altered_file_names_the_record(run_file, tmp_path, capsys, 
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     topic = records[index].topic if change != "unknown topic" else f"/{PREFIX}/plant/{LOOP}/temp"
-    assert f"{bad}: {topic} message {index} (log time " in err and says in err, err
+    # placed by its time into the recording (log time i ns here: message i is i ns in)
+    assert f"{bad}: {topic} message {index} ({index * 1e-9:.6g} s in)" in err, err
+    assert says in err, err
 
 
 def test_replay_of_a_missing_or_truncated_file_is_one_line(run_file, tmp_path, capsys):
