@@ -315,8 +315,13 @@ class LoopClient:
             and time.monotonic() - self._last_sent > self._suspect_after
         ):
             self.sync()
+        update: dict = {}
         if cmd.source != self.source:
-            cmd = cmd.model_copy(update={"source": self.source})
+            update["source"] = self.source
+        if cmd.t is None and (now := self._sim_time()) is not None:
+            update["t"] = now  # every message carries sim time: the last this client saw
+        if update:
+            cmd = cmd.model_copy(update=update)
         wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind, self.user), cmd)
         self._last_sent = time.monotonic()
 
@@ -337,6 +342,13 @@ class LoopClient:
                 f"loop {self.loop!r}: lost the plant (its liveliness token "
                 f"{keys.loop_alive(self.prefix, self.loop)} vanished: {why})"
             )
+
+    def _sim_time(self) -> float | None:
+        """The loop's latest sim time this client has seen (s): its last sample's, status's
+        or (before the first sync's answer) its info's; None before any."""
+        last = [getattr(self, k, None) for k in ("info", "last_sample", "last_status")]
+        seen = [m.t for m in last if m is not None]
+        return max(seen) if seen else None
 
     def renew_lease(self) -> None:
         """Renew a held lease if nothing was sent for a renewal interval: a run that waits on

@@ -124,6 +124,12 @@ def test_relay_tune_is_recorded_whole_and_reanalysed_exactly(
     )
     # and one RunRecord (the metadata as a message: a file record, not a bus message)
     assert summary.statistics.message_count == len(records) + 1
+    # sim time in every message, the tuner's commands too (sync, mode, gains, setpoint had
+    # none: noticed last stop)
+    commands = [json.loads(r.data) for r in records if "/cmd/" in r.key]
+    assert commands and all(c.get("t") is not None for c in commands), [
+        c for c in commands if c.get("t") is None
+    ][:3]
     # analyze: the same K_u, P_u and gains as the live run, to the bit
     run = autotune("analyze", str(files[0]), "--json")
     assert run.returncode == 0, run.stderr
