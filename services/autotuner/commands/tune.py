@@ -382,6 +382,16 @@ def follow(
                     run_id = start().run_id
                     deadline = time.monotonic() + wait
                 now = time.monotonic()
+                # a run's token in sight after all: that DELETE was an earlier run's goodbye,
+                # late (``appeared`` may come from a progress message)
+                if (
+                    gone is not None
+                    and now > gone + RESULT_GRACE
+                    and not plant_lost
+                    and wait_for_token(session, keys.tune_running(prefix, loop), 0.3)
+                ):
+                    gone = None
+                    continue
                 if gone is not None and now > gone + RESULT_GRACE:
                     cut_off = plant_lost or _cut_off(session, prefix, loop)
                     if cut_off:  # the bus went, not (only) the tuner:
@@ -414,10 +424,15 @@ def follow(
                         appeared = True
                     elif appeared and gone is None:
                         gone = time.monotonic()
-                elif key == keys.tune_progress(prefix, loop) and on_progress:
+                elif key == keys.tune_progress(prefix, loop):
                     p = wire.decode_sample(TuneProgress, sample)
                     if p.run_id == run_id:
-                        on_progress(p)
+                        # the run's token is declared before its first progress: one whose
+                        # appearance was missed (this subscriber not yet known to the tuner)
+                        # still counts when it vanishes
+                        appeared = True
+                        if on_progress:
+                            on_progress(p)
                 elif key == keys.tune_result(prefix, loop):
                     r = wire.decode_sample(TuneResult, sample)
                     if r.run_id == run_id:
@@ -432,6 +447,11 @@ def follow(
             except queue.Empty:
                 if gone is not None:
                     continue  # the grace is over: said at the top of the loop
+                if cancelled:
+                    raise AutotuneError(
+                        f"run {run_id} on {loop}: cancelled, but no result within "
+                        f"{CANCEL_WAIT:g} s: {loop_state(session, prefix, loop)}"
+                    ) from None
                 if timed_out is None:  # the wait is over: cancel the run, not leave it going
                     timed_out = time.monotonic()
                     session.put(keys.tune_cancel(prefix, loop), run_id.encode())
@@ -453,6 +473,9 @@ def follow(
                     raise
                 cancelled = True
                 session.put(keys.tune_cancel(prefix, loop), run_id.encode())
+                # the restore is the tuner's, bounded: not the rest of ``wait`` (an hour by
+                # default; a client whose tuner was then killed waited on so, 84 min in a test)
+                deadline = min(deadline, time.monotonic() + CANCEL_WAIT)
                 print("\ncancelling: the tuner restores the loop…", file=sys.stderr)
     finally:
         sub.undeclare()
