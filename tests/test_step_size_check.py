@@ -7,29 +7,13 @@ from __future__ import annotations
 import pytest
 
 from services.autotuner.service import _check_step_size
-from shared.messages import LoopStatus, PidGains, TuneRequest
+from shared.messages import LoopStatus, TuneRequest
+from tests.test_loops_set import status
 
 
 def _status(mode: str, op: float) -> LoopStatus:
-    return LoopStatus(
-        loop="lvl1",
-        node="plant",
-        seq=0,
-        t=0.0,
-        pv=1.5,
-        sp=1.5,
-        op=op,
-        mode=mode,
-        action="reverse",
-        gains=PidGains(kc=1.0),
-        op_limits=(0.0, 100.0),
-        pv_range=(0.0, 3.0),
-        disturbances={},
-        clock="lockstep",
-        accepted=0,
-        rejected=0,
-        reason="query",
-    )
+    """A loop at output ``op`` % in ``mode``, its output limits 0–100 %."""
+    return status(mode=mode, op=op, op_limits=(0.0, 100.0))
 
 
 def test_a_step_beyond_the_limits_of_a_manual_loop_is_refused_naming_the_field():
