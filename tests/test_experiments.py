@@ -202,4 +202,26 @@ def test_stage_two_is_an_explicit_phase():
     port = ModelPort(model, ts, 50.0)
     drive(test, port, watch=lambda s: phases.append(test.phase))
     seen = [p for i, p in enumerate(phases) if i == 0 or phases[i - 1] != p]
-    assert seen == ["quiet", "relay", "stage2", "done"]
+    assert seen == ["quiet", "relay", "stage2", "concluding"]
+    assert test.phase == "done"  # its findings computed by the driver's identification()
+
+
+def test_the_output_is_back_at_rest_before_the_closing_fits():
+    """The closing fits take up to seconds (1.7 s for a fast FOPDT here, more under load); a
+    realtime loop runs on meanwhile. Computed inside the last sample's feed, they held the
+    relay's last level: a ×10 realtime FOPDT (1/(5s+1)·e^{-1.5s}) sat at 45 % for 20 s of sim
+    time and its PV went 4.7 off rest, against the relay's swing of 1.1."""
+    num, den, delay, ts = THIRD
+    model = TransferFunctionModel(ts, num=num, den=den, delay=delay)
+    model.reset()
+    test = RelayTest(RelayConfig(), 50.0, (0.0, 100.0), (-1e6, 1e6), ts)
+    port = ModelPort(model, ts, 50.0)
+    held_then: list[float] = []
+
+    def compute(fn, *args):
+        held_then.append(port.op)
+        return fn(*args)
+
+    test.compute = compute
+    assert drive(test, port) is not None and test.phase == "done"
+    assert held_then == [50.0]  # the output at rest, then the fits (once)

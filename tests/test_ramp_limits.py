@@ -139,6 +139,29 @@ def test_lag_dominated_ku_within_two_percent(noise):
     assert_json_finite(test)
 
 
+def test_the_loop_calms_before_the_findings_are_fitted():
+    """The closing fit takes a quarter of a second or more while a realtime loop runs on; it
+    must not hold the last trial's gain, which may lie above K_u: the loop is at a gain below
+    every trial seen to decay (the bracket's low end) before it starts."""
+    ku, pu = fopdt_ultimate(1.0, 1.0, 1.0)
+    loop = make_loop([1.0], [1.0, 1.0], 1.0, pu / 400)
+    test = ramp_for(loop)
+    fitted = test._conclude
+    held_then: list[float] = []
+
+    def conclude() -> None:
+        held_then.append(loop.pid.gains.kc)
+        fitted()
+
+    test._conclude = conclude  # type: ignore[method-assign]
+    drive(test, loop, limit=200 * pu)
+    assert test.phase == "done" and test.result is not None, test.reason
+    assert test.result.ku == pytest.approx(ku, rel=0.03)
+    lo = max(tr.kc for tr in test.trials if tr.growth < 0)
+    assert len(held_then) == 1 and held_then[0] <= test.config.calm_gain * lo + 1e-12
+    assert held_then[0] < test.trials[-1].kc
+
+
 def test_huge_start_gain_backs_off_within_a_few_periods():
     """``kc_start`` 10⁶ on e^{−s}/(s+1) with noise: the output bangs between its limits at
     rest. The test backs the gain off within 5 P_u, and then finishes within 150 P_u."""

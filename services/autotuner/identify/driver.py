@@ -50,9 +50,9 @@ def drive(
     ``held``: what the loop holds at the start (default: what the experiment starts from).
     Samples come in batches of ``experiment.horizon(max_chunk)``, each ending early where
     the PV leaves the experiment's ``band`` (a relay's half-cycle in one batch, ending at the
-    sample that switches it); only the demand after a batch's last sample is applied (none
-    once it has finished). ``watch`` is called after each batch, its demand applied, with the
-    last sample fed."""
+    sample that switches it); only the demand after a batch's last sample is applied, and once
+    it has finished only its ``closing`` demand, before its findings are computed. ``watch``
+    is called after each batch, its demand applied, with the last sample fed."""
     held = experiment.demand if held is None else held
     while not experiment.finished:
         n = experiment.horizon(max_chunk)
@@ -72,6 +72,9 @@ def drive(
                 experiment.held(loop.hold_time())
         if watch is not None:
             watch(last)
+    closing = experiment.closing if experiment.finished else None
+    if closing is not None and closing != held:  # before the findings' seconds of work
+        loop.apply(closing, held)
     return experiment.identification()
 
 

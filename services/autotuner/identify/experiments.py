@@ -302,6 +302,14 @@ class Experiment(Protocol):
     def finished(self) -> bool: ...
 
     @property
+    def closing(self) -> Demand | None:
+        """Once finished, what the loop must hold at once, before ``identification`` computes
+        the findings (None: nothing to apply). That computation can take seconds, and on the
+        realtime clock the loop runs on meanwhile: an output left at an experiment's level
+        that long drives the PV to its full static response."""
+        ...
+
+    @property
     def demand(self) -> Demand:
         """What it wants held now (before any sample: what it starts from)."""
         ...

@@ -202,7 +202,9 @@ class RampTest:
     # the transmitter's range: a PV at either end is clipped, and aborts (None: not checked)
     pv_range: tuple[float, float] | None = None
 
-    phase: str = "quiet"  # quiet → trial ⇄ settle → done | aborted
+    # quiet → trial ⇄ settle → concluding → done | aborted; "concluding": finished, the loop
+    # at a calming gain (``closing``), the findings computed on ``identification``
+    phase: str = "quiet"
     reason: str = ""
     result: RampResult | None = None
     trials: list[Trial] = field(default_factory=list)
@@ -239,6 +241,7 @@ class RampTest:
         self._t_period = math.nan  # s: when the first period was measured
         self._p_first = math.nan  # s: that period
         self._calm_kc = self.config.kc_start
+        self._found = (math.nan, math.nan)  # concluding: K_u and P_u of the sampled loop
         self._settle_start = 0
         self._settle_t0 = 0.0
         self._calm_cuts = 0
@@ -258,7 +261,16 @@ class RampTest:
 
     @property
     def finished(self) -> bool:
-        return self.phase in ("done", "aborted")
+        return self.phase in ("concluding", "done", "aborted")
+
+    @property
+    def closing(self) -> Demand | None:
+        """Done: a gain known to decay, at once. The last trial's gain, which may lie above
+        K_u, would otherwise be held while the findings are fitted (a quarter of a second,
+        more on a busy machine) and until the tuner takes the loop to manual."""
+        if self.phase not in ("concluding", "done"):
+            return None
+        return Demand(kc=min(self._calm_kc, self._calming_gain()), sp=self.sp)
 
     @property
     def demand(self) -> Demand:
@@ -281,6 +293,8 @@ class RampTest:
         return Progress("ramp", n, cycles=n, pu=tr.period, message=message)
 
     def identification(self) -> Identification | None:
+        if self.phase == "concluding":
+            self._conclude()
         if self.result is None:
             return None
         found = self.result.identification()
@@ -694,13 +708,15 @@ class RampTest:
     def _begin_settle(self, t: float) -> None:
         """Calm the loop at a gain known to decay (or below the present one) before the next
         trial."""
-        self._calm_kc = self.config.calm_gain * (
-            self._lo.kc if self._lo else self.kc / self.config.factor
-        )
+        self._calm_kc = self._calming_gain()
         self.phase = "settle"
         self._settle_start, self._settle_t0 = len(self._y) - 1, t
         self._calm_cuts = 0
         self._sat_run = 0
+
+    def _calming_gain(self) -> float:
+        """``calm_gain`` × the highest gain seen to decay (else one step below this one)."""
+        return self.config.calm_gain * (self._lo.kc if self._lo else self.kc / self.config.factor)
 
     def _next_gain(self) -> float:
         lo, hi, f = self._lo, self._hi, self.config.factor
@@ -732,6 +748,18 @@ class RampTest:
             self._abort("the loop never oscillated" + self._wrong_way())
             return True
         ku, pu = float(ku), float(pu)  # plain floats for JSON (the fits give numpy scalars)
+        self._found = (ku, pu)
+        self.phase = "concluding"
+        self.events.append(Event(self._t[-1], "done", {"ku": ku, "pu": pu}))
+        return True
+
+    def _conclude(self) -> None:
+        """The findings from the converged bracket: the plant's ultimate point and a process
+        model fitted on the whole record (a quarter of a second: computed once the loop holds
+        the ``closing`` gain)."""
+        ku, pu = self._found
+        lo, hi = self._lo, self._hi
+        assert lo is not None and hi is not None
         ku_plant, pu_plant = (float(x) for x in self._plant_crossover(ku, pu))
         self.result = RampResult(
             ku_plant,
@@ -748,8 +776,6 @@ class RampTest:
             self.bump,
         )
         self.phase = "done"
-        self.events.append(Event(self._t[-1], "done", {"ku": ku, "pu": pu}))
-        return True
 
     def _process_model(self, ku: float, pu: float) -> ProcessFit | None:
         """A process model for the rules and the robustness figures: models through the

@@ -195,7 +195,9 @@ class RelayTest:
     # the transmitter's range: a PV at either end is clipped, and aborts (None: not checked)
     pv_range: tuple[float, float] | None = None
 
-    phase: str = "quiet"  # quiet → relay → stage2 → done | aborted
+    # quiet → relay → stage2 → concluding → done | aborted; "concluding": finished, the output
+    # back at rest, the findings computed on ``identification``
+    phase: str = "quiet"
     reason: str = ""
     result: RelayResult | None = None
     cycles: list[Cycle] = field(default_factory=list)
@@ -244,13 +246,21 @@ class RelayTest:
         self._agreement = cfg.tolerance  # asked of the cycles (wider with noise)
         self._low = 1.0  # the low output is b − low·d (stage 2: the bias)
         self._stage1: StageOne | None = None
+        self._stage_two_kept = True  # concluding: whether stage 2's cycle is used
+        self._ops_kept = 0  # concluding: the outputs recorded when it decided to end
         self._demand = Demand(op=self.op_start)
 
     # --- the experiment protocol ---------------------------------------------------------
 
     @property
     def finished(self) -> bool:
-        return self.phase in ("done", "aborted")
+        return self.phase in ("concluding", "done", "aborted")
+
+    @property
+    def closing(self) -> Demand | None:
+        """Finished: the output back at rest, before the closing fits (a second on a busy
+        machine, while a realtime loop runs on)."""
+        return Demand(op=self.op_start) if self.finished else None
 
     @property
     def demand(self) -> Demand:
@@ -336,6 +346,8 @@ class RelayTest:
         return Progress("relay", n, cycles=n, ku=self.ku_of(cyc.amplitude), pu=cyc.period)
 
     def identification(self) -> Identification | None:
+        if self.phase == "concluding":
+            self._compute_findings()
         if self.result is None:
             return None
         found = self.result.identification()
@@ -824,13 +836,24 @@ class RelayTest:
         )
 
     def _conclude(self, stage_two: bool = True) -> None:
-        """``_finish``, through ``compute`` when given: the same result from a copy of this
-        test (pure, so computed anywhere it is the same to the bit)."""
-        if self.compute is None:
-            self._finish(stage_two)
-            return
-        done = self.compute(_finished, self, stage_two)
-        self.result, self.phase, self.events = done.result, done.phase, done.events
+        """Finished: the findings (``_finish``, with stage 2's cycle or without) are computed
+        by ``identification``, once the output is back at rest (the driver's ``closing``)."""
+        self.phase, self._stage_two_kept, self._ops_kept = "concluding", stage_two, len(self.op)
+
+    def _compute_findings(self) -> None:
+        """``_finish`` on the record as it was when the test decided to end (the last
+        sample's output not yet recorded), through ``compute`` when given: the same result
+        from a copy of this test (pure, so computed anywhere it is the same to the bit)."""
+        stage_two, ops = self._stage_two_kept, self.op
+        self.op = ops[: self._ops_kept]
+        try:
+            if self.compute is None:
+                self._finish(stage_two)
+                return
+            done = self.compute(_finished, self, stage_two)
+            self.result, self.phase, self.events = done.result, done.phase, done.events
+        finally:
+            self.op = ops
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)

@@ -148,6 +148,11 @@ class RepeatedSteps:
         return self.phase in ("done", "aborted")
 
     @property
+    def closing(self) -> Demand | None:
+        """Finished: the output back at rest."""
+        return Demand(op=self.op_start) if self.finished else None
+
+    @property
     def demand(self) -> Demand:
         if self.phase == "test" and self._test is not None:
             return self._test.demand

@@ -206,6 +206,11 @@ class StepTest:
     # --- the experiment protocol ---------------------------------------------------------
 
     @property
+    def closing(self) -> Demand | None:
+        """Finished: the output back at rest."""
+        return Demand(op=self.op_start) if self.finished else None
+
+    @property
     def demand(self) -> Demand:
         return Demand(op=self._op)
 
