@@ -777,10 +777,17 @@ class TuningRun:
         self._forward_events(machine.events)
         if ident is None:
             raise TuneAborted(f"{req.method} test: {machine.reason}")
+        # in manual at the output it rested at while the rules are designed (seconds on a busy
+        # machine, the realtime loop running on): a ramp's P-only output would be frozen
+        # wherever its last swing left it
         if start.auto:
             c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
-        elif c.last_status.op != setup.op_start:
-            c.command(OutputCommand(loop=c.loop, op=setup.op_start, t=self._t, source=c.source))
+        rest_op = setup.op_start
+        if rest_op is None:
+            lo, hi = self.info.op_limits
+            rest_op = min(max(self._rest["op"], lo), hi)
+        if c.last_status.op != rest_op:
+            c.command(OutputCommand(loop=c.loop, op=rest_op, source=c.source))
         return ident
 
     def _report(self, machine: Experiment) -> None:
