@@ -24,7 +24,12 @@ import pydantic
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.autotuner.design.request_check import validate_request
-from services.autotuner.design.selection import Selection, assessments_dict, select
+from services.autotuner.design.selection import (
+    Selection,
+    assessments_dict,
+    select,
+    stated_spreads,
+)
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Band, Demand
@@ -66,6 +71,11 @@ class Analysis:
     first_gap: int | None = None
 
     @property
+    def spreads(self) -> tuple[float | None, float | None]:
+        """The K_u and P_u spreads as the live result states them (``stated_spreads``)."""
+        return stated_spreads(self.ident, self.selection.model_check if self.selection else None)
+
+    @property
     def span(self) -> float | None:
         """The PV's span (PV units) for the % of span figures; None without a usable range."""
         return _span(self.pv_range)
@@ -77,8 +87,8 @@ class Analysis:
             "method": self.method,
             "ku": self.ident.ku,
             "pu": self.ident.pu,
-            "ku_spread": self.ident.ku_spread,
-            "pu_spread": self.ident.pu_spread,
+            "ku_spread": self.spreads[0],
+            "pu_spread": self.spreads[1],
             "step": self._step(),
             "l_over_t": self.selection.l_over_t if self.selection else None,
             "experiment": self.ident.experiment.to_dict() if self.ident.experiment else None,

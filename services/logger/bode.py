@@ -171,7 +171,7 @@ def frequency_figure(result: TuneResult | None) -> FrequencyFigure | None:
     ku, pu = _num(result.ku), _num(result.pu)
     if result.method == "ramp" and ku and pu and ku > 0 and pu > 0:
         points = [MeasuredPoint("ultimate point", 1, 2 * math.pi / pu, 1 / ku, -180.0, delta)]
-        note = "±δ = ku_spread = (Kc_high − Kc_low)/K_u" if delta is not None else ""
+        note = "±δ = ku_spread of the result" if delta is not None else ""
     model = result_model(e, result.step)
     crossings = []
     if ku and pu and ku > 0 and pu > 0:

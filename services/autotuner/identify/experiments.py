@@ -92,6 +92,9 @@ class Identification:
     # mean output never moves, so K is extrapolated from points near ω_u): the rules that
     # scale with 1/K (AMIGO, SIMC) are then offered but not recommended
     static_gain_known: bool = True
+    # True when K_u lies between two gains tried on the loop (a ramp's bracket): its spread
+    # bounds it, and a fitted model's own K_u says nothing more (``stated_spreads``)
+    ku_bracketed: bool = False
 
 
 DIRECT_NOTE = (

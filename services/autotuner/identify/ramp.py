@@ -174,6 +174,7 @@ class RampResult:
             ku=self.ku,
             pu=self.pu,
             ku_spread=(self.kc_high - self.kc_low) / self.ku,
+            ku_bracketed=True,
             experiment=self,
             timescale=self.pu,
             noise=self.noise_std,
