@@ -199,3 +199,4 @@ def test_a_biased_relay_states_a_spread_that_covers_its_error():
     # within the spread, give or take the model's own error (0.2 % here)
     assert abs(r.ku / ku - 1) <= r.ku_spread + 0.01
     assert abs(r.pu / pu - 1) <= r.pu_spread + 0.01
+    assert any(w.startswith("K_u's spread is stated as") for w in r.warnings), r.warnings

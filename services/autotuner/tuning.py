@@ -27,7 +27,7 @@ import pydantic
 
 from services.autotuner.compute_pool import inline
 from services.autotuner.design import measured_response as metrics
-from services.autotuner.design.selection import assessments_dict, select, stated_spreads
+from services.autotuner.design.selection import assessments_dict, select
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Band, Demand, Experiment, Setup
@@ -418,11 +418,10 @@ class TuningRun:
         sel = self._compute(
             select, ident, req.rule, req.ms_bound, req.force, self.ts, req.lambda_s, req.aim
         )
-        ku_spread, pu_spread = stated_spreads(ident, sel.model_check)
         rec = sel.recommended
         result.update(
-            ku_spread=ku_spread,
-            pu_spread=pu_spread,
+            ku_spread=sel.ku_spread,
+            pu_spread=sel.pu_spread,
             rule=sel.rule or req.rule,
             l_over_t=sel.l_over_t,
             gains={name: all_forms(g, span).to_dict() for name, g in sel.table.items()},

@@ -24,12 +24,7 @@ import pydantic
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.autotuner.design.request_check import validate_request
-from services.autotuner.design.selection import (
-    Selection,
-    assessments_dict,
-    select,
-    stated_spreads,
-)
+from services.autotuner.design.selection import Selection, assessments_dict, select
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Band, Demand
@@ -73,7 +68,9 @@ class Analysis:
     @property
     def spreads(self) -> tuple[float | None, float | None]:
         """The K_u and P_u spreads as the live result states them (``stated_spreads``)."""
-        return stated_spreads(self.ident, self.selection.model_check if self.selection else None)
+        if self.selection is None:
+            return self.ident.ku_spread, self.ident.pu_spread
+        return self.selection.ku_spread, self.selection.pu_spread
 
     @property
     def span(self) -> float | None:

@@ -63,6 +63,9 @@ class Selection:
     model_check: ModelCheck | None = None  # the verdict on the identified model (None: none)
     sample_time: float | None = None  # s: the loop the figures are for (None: continuous)
     lambda_s: float | None = None  # s: the λ the lambda rules used (None: no lambda rule)
+    # the relative spreads of K_u and P_u to state with them (``stated_spreads``)
+    ku_spread: float | None = None
+    pu_spread: float | None = None
 
 
 def l_over_t(ident: Identification, model: ProcessFit | None = None) -> float | None:
@@ -114,6 +117,29 @@ def stated_spreads(
         stated_spread(ident.ku, ident.ku_spread, ku_model),
         stated_spread(ident.pu, ident.pu_spread, check.pu_model),
     )
+
+
+def _widened(
+    ident: Identification,
+    check: ModelCheck | None,
+    ku_spread: float | None,
+    pu_spread: float | None,
+) -> list[str]:
+    """Why a stated spread is wider than the experiment's own: the model's figure beside it."""
+    out = []
+    for label, own, stated, model, unit in (
+        ("K_u", ident.ku_spread, ku_spread, check.ku_model if check else None, ""),
+        ("P_u", ident.pu_spread, pu_spread, check.pu_model if check else None, " s"),
+    ):
+        if stated is None or stated == own or model is None:
+            continue
+        was = f"{100 * own:.2g} %" if own is not None else "none"
+        out.append(
+            f"{label}'s spread is stated as {100 * stated:.2g} %: the identified model's own "
+            f"{label} ({model:.4g}{unit}) lies that far from the measured one (the "
+            f"experiment's own spread: {was}); take the figure as no surer than that"
+        )
+    return out
 
 
 def guidance(ratio: float | None, model: ProcessFit | None) -> list[str]:
@@ -229,6 +255,8 @@ def select(
     }
     ratio = l_over_t(ident, model)
     name = (rec.rule if rec else "") if rule == "auto" else rule
+    ku_spread, pu_spread = stated_spreads(ident, check)
+    warnings += _widened(ident, check, ku_spread, pu_spread)
     sel = Selection(
         name,
         table.get(name),
@@ -240,6 +268,8 @@ def select(
         unavailable=unavailable,
         unsafe=unsafe,
         model_check=check,
+        ku_spread=ku_spread,
+        pu_spread=pu_spread,
         sample_time=ts if model is not None else None,
         lambda_s=_lambda_of(
             table,
