@@ -855,11 +855,17 @@ class TuningRun:
         }
 
     def _set_auto(self, gains: PidGains, sp: float) -> None:
+        """``gains`` and setpoint ``sp`` in auto. Stamped with the latest sim time the client
+        has seen; in realtime it first hears what came while the run was computing (the
+        rules' design: seconds of sim time at ×20), else the recording would put these
+        commands that much before the plant applied them (flow1 at ×20: 8.9 s)."""
         c = self.client
-        c.command(GainsCommand(loop=c.loop, gains=gains, source=c.source, t=self._t))
-        c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source, t=self._t))
+        if self.info.clock == "realtime":
+            c.sync()
+        c.command(GainsCommand(loop=c.loop, gains=gains, source=c.source))
+        c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source))
         if c.last_status.mode != "auto":
-            c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source, t=self._t))
+            c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))
 
     def _record(
         self,
