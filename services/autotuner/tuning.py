@@ -855,17 +855,18 @@ class TuningRun:
         }
 
     def _set_auto(self, gains: PidGains, sp: float) -> None:
-        """``gains`` and setpoint ``sp`` in auto. Stamped with the latest sim time the client
-        has seen; in realtime it first hears what came while the run was computing (the
-        rules' design: seconds of sim time at ×20), else the recording would put these
-        commands that much before the plant applied them (flow1 at ×20: 8.9 s)."""
+        """``gains`` and setpoint ``sp`` in auto. In realtime stamped with the plant's time
+        (a sync first: the run may have been computing, the rules' design, for seconds of
+        sim time at ×20, and the recording would put these commands that much before the
+        plant applied them: flow1 at ×20, 8.9 s); in lockstep with the last sample's."""
         c = self.client
+        t = self._t
         if self.info.clock == "realtime":
-            c.sync()
-        c.command(GainsCommand(loop=c.loop, gains=gains, source=c.source))
-        c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source))
+            t = max(t, c.sync().t)
+        c.command(GainsCommand(loop=c.loop, gains=gains, source=c.source, t=t))
+        c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source, t=t))
         if c.last_status.mode != "auto":
-            c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))
+            c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source, t=t))
 
     def _record(
         self,
