@@ -736,9 +736,9 @@ class TuningRun:
             )
         st = c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
         if b.mode == "auto":  # held at the controller's mean output, not its last (noisy)
-            lo, hi = self.info.op_limits
-            op = min(max(self._rest["op"], lo), hi)
-            st = c.command(OutputCommand(loop=c.loop, op=op, source=c.source, t=self._t))
+            st = c.command(
+                OutputCommand(loop=c.loop, op=self._rest_op(), source=c.source, t=self._t)
+            )
         return Setup(**common, op_start=st.op)
 
     def _event(self, kind: str, t: float, data: dict) -> None:
@@ -784,13 +784,15 @@ class TuningRun:
         # wherever its last swing left it
         if start.auto:
             c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
-        rest_op = setup.op_start
-        if rest_op is None:
-            lo, hi = self.info.op_limits
-            rest_op = min(max(self._rest["op"], lo), hi)
+        rest_op = setup.op_start if setup.op_start is not None else self._rest_op()
         if c.last_status.op != rest_op:
             c.command(OutputCommand(loop=c.loop, op=rest_op, source=c.source))
         return ident
+
+    def _rest_op(self) -> float:
+        """The output the loop rested at before the test (its mean, %), within its limits."""
+        lo, hi = self.info.op_limits
+        return min(max(self._rest["op"], lo), hi)
 
     def _report(self, machine: Experiment) -> None:
         """Progress once per relay cycle, ramp trial or step (the experiment's count)."""
