@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import queue
 import re
 import signal
@@ -19,6 +20,7 @@ import time
 
 import pytest
 
+from services.autotuner.commands.tune import follow, submit
 from services.autotuner.loop_client import LoopClient, wait_for_token
 from shared import keys, wire
 from shared.messages import (
@@ -27,6 +29,7 @@ from shared.messages import (
     LoopStatus,
     PidGains,
     ReleaseCommand,
+    TuneRequest,
     TuneResult,
 )
 from shared.session import open_session
@@ -227,6 +230,47 @@ def test_ctrl_c_on_the_client_cancels_and_restores(start_plant, start_tuner, sig
     assert cli.returncode == 130 and "interrupted" in err
     after = loop_state(p, "x1")
     assert (after.mode, after.sp, after.gains) == (before.mode, before.sp, before.gains)
+
+
+def test_a_signal_before_the_acceptance_still_cancels_and_restores(start_plant, start_tuner):
+    """A signal that lands while the request is in flight (the run may already be going, its
+    acceptance not yet back: the tuner publishes progress first) is held until the run's id
+    is known; the run is then cancelled and its restore waited for. It used to send a cancel
+    naming no run and leave at once: the loop was still manual, mid-restore, and the cancel
+    could even reach the tuner before the run it meant. Realtime ×50, as above."""
+    toml = plant_toml("x1", HX, extra='mode = "auto"\nsetpoint = 50.0\n')
+    p = start_plant(toml, "--clock", "realtime", "--speed", "50", loops=("x1",))
+    start_tuner(p)
+    before = loop_state(p, "x1")
+    handler = signal.getsignal(signal.SIGINT)
+    with open_session(p.client_settings()) as s:
+        runs: list[str] = []
+
+        def start():
+            accepted = submit(s, p.prefix, "tuner", TuneRequest(loop="x1"))
+            runs.append(accepted.run_id)
+            os.kill(os.getpid(), signal.SIGINT)  # the user's Ctrl-C, before start() returns
+            return accepted
+
+        # declared before follow's own subscriber: each result reaches this one first
+        results = s.declare_subscriber(keys.tune_result(p.prefix, "x1"))
+        with pytest.raises(KeyboardInterrupt):
+            follow(s, p.prefix, "x1", start, 600.0)
+        # the client left after the run's result, not before: it had ended, cancelled
+        ended = results.try_recv()
+        results.undeclare()
+        after = wire.query_one(s, keys.status(p.prefix, "x1"), LoopStatus, 5.0)
+    assert ended is not None, "the client left before the run's result"
+    ended = wire.decode_sample(TuneResult, ended)
+    assert ended.run_id == runs[0]
+    assert ended.status == "aborted" and ended.restored is True, ended.reason
+    assert signal.getsignal(signal.SIGINT) is handler  # held only while start() ran
+    assert (after.mode, after.sp, after.gains, after.leased_by) == (
+        before.mode,
+        before.sp,
+        before.gains,
+        None,
+    )
 
 
 def test_a_wait_that_runs_out_cancels_the_run_and_restores(start_plant, start_tuner):

@@ -337,6 +337,36 @@ def _cut_off(session: zenoh.Session, prefix: str, loop: str) -> bool:
     )
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def _held_start(start: Callable[[], TuneAccepted]) -> tuple[TuneAccepted, bool]:
+    """``start()`` with Ctrl-C, SIGTERM and SIGHUP held until it answers; and whether one came.
+
+    A run can begin before its acceptance reaches this client: a signal then had no run to
+    name, and the client left while the tuner was still restoring the loop (seen: a loop left
+    manual that was in auto). Held, the signal cancels the run by its id once known and the
+    restore is waited for. A second one leaves at once (KeyboardInterrupt). Outside the main
+    thread (the console) signals are not this thread's to hold."""
+    if threading.current_thread() is not threading.main_thread():
+        return start(), False
+    held: list[int] = []
+
+    def hold(signum: int, frame: object) -> None:
+        held.append(signum)
+        if len(held) > 1:
+            raise KeyboardInterrupt
+        print("\ncancelling once the run is accepted (again to leave at once)…", file=sys.stderr)
+
+    before = {sig: signal.signal(sig, hold) for sig in STOP_SIGNALS}
+    try:
+        accepted = start()
+    finally:
+        for sig, handler in before.items():  # None: a handler not set from Python
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+    return accepted, bool(held)
+
+
 class TunerGone(AutotuneError):
     """The run's tuner vanished before its result (killed, or cut off from the bus)."""
 
@@ -379,8 +409,11 @@ def follow(
         while True:
             try:
                 if run_id is None:
-                    run_id = start().run_id
+                    accepted, interrupted = _held_start(start)
+                    run_id = accepted.run_id
                     deadline = time.monotonic() + wait
+                    if interrupted:
+                        raise KeyboardInterrupt
                 now = time.monotonic()
                 # a run's token in sight after all: that DELETE was an earlier run's goodbye,
                 # late (``appeared`` may come from a progress message)
