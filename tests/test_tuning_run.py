@@ -217,3 +217,33 @@ def test_a_request_refused_before_any_write_says_nothing_was_sent():
     assert client.commands == [] and state(client) == before
     assert "nothing was sent to the loop" in format_result(r)
     assert "WARNING" not in format_result(r)
+
+
+class RunningOnClient(LocalLoopClient):
+    """The loop on the realtime clock, as the run sees it: the plant's time goes on between
+    the run's looks (here three samples at each sync, as if the run computed meanwhile)."""
+
+    def __init__(self, loop):
+        super().__init__(loop)
+        self.info = loop.info("sim", "realtime", 1.0)
+
+    def sync(self):
+        if hasattr(self, "info") and self.info.clock == "realtime":
+            self.advance(3)
+        return super().sync()
+
+
+def test_the_verifications_mark_and_gains_carry_the_time_the_plant_applied_them():
+    """In realtime the gains under verification are stamped with the plant's time after a
+    sync, and so is the ``verify`` mark that names them: the recording's mark and commands
+    fall where the loop's response starts (the mark came first, seconds early at ×20)."""
+    client = RunningOnClient(third_order_loop("auto", setpoint=50.0))
+    marks: list[TuneProgress] = []
+    result = run(client, RunHooks(progress=marks.append))
+    assert result.status == "ok", result.reason
+    verify = [p for p in marks if p.phase == "verify"]
+    gains = [c for c in client.commands if isinstance(c, GainsCommand)]
+    assert len(verify) == 2 and len(gains) >= 2  # the old gains, then the new
+    for mark, cmd in zip(verify, gains, strict=False):
+        kc = float(mark.message.split()[1].rstrip(","))
+        assert (cmd.gains.kc, cmd.t) == (pytest.approx(kc, rel=1e-3), mark.t)

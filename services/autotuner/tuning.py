@@ -864,7 +864,7 @@ class TuningRun:
         c = self.client
         t = self._t
         if self.info.clock == "realtime":
-            t = max(t, c.sync().t)
+            t = self._t = max(t, c.sync().t)
         c.command(GainsCommand(loop=c.loop, gains=gains, source=c.source, t=t))
         c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source, t=t))
         if c.last_status.mode != "auto":
@@ -952,10 +952,10 @@ class TuningRun:
         span = max(15 * scale, 8 * gains.ti if gains.ti else 0.0)
         band = max(0.02 * abs(step), 4 * ident.noise)
         guard = GUARD_WINDOW * scale
-        self._progress(
+        self._set_auto(gains, sp0)
+        self._progress(  # after: stamped with the sim time the gains went on at
             "verify", message=f"Kc {gains.kc:.4g}, Ti {_seconds(gains.ti)}, Td {gains.td:.4g}"
         )
-        self._set_auto(gains, sp0)
 
         k = max(4, round(scale / self.ts))
         width = max(5, round(scale / self.ts / 20)) | 1
