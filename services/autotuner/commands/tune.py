@@ -358,7 +358,13 @@ def _held_start(start: Callable[[], TuneAccepted]) -> tuple[TuneAccepted, bool]:
             raise KeyboardInterrupt
         print("\ncancelling once the run is accepted (again to leave at once)…", file=sys.stderr)
 
-    before = {sig: signal.signal(sig, hold) for sig in STOP_SIGNALS}
+    # a signal this process ignores (SIGINT of a job a script put in the background, nohup's
+    # SIGHUP) stays ignored: held, it would cancel the run
+    before = {
+        sig: signal.signal(sig, hold)
+        for sig in STOP_SIGNALS
+        if signal.getsignal(sig) is not signal.SIG_IGN
+    }
     try:
         accepted = start()
     finally:

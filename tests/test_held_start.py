@@ -1,0 +1,56 @@
+"""``tune``'s submit with its stop signals held (``_held_start``): a signal while the request
+is in flight is kept until the run's id is known (then the run is cancelled by it, see
+tests/integration/test_tuner.py); a second one leaves at once; a signal the process ignores
+stays ignored; the handlers are the caller's again afterwards."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import pytest
+
+from services.autotuner.commands.tune import _held_start
+
+ACCEPTED = object()
+
+
+def starting(*sigs: signal.Signals):
+    """A start() that receives ``sigs`` while the request is in flight."""
+
+    def start():
+        for sig in sigs:
+            os.kill(os.getpid(), sig)
+        return ACCEPTED
+
+    return start
+
+
+@pytest.fixture
+def handlers():
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    yield before
+    for s, h in before.items():
+        signal.signal(s, h)
+
+
+def test_a_signal_in_flight_is_held_and_reported(handlers):
+    assert _held_start(starting(signal.SIGTERM)) == (ACCEPTED, True)
+    assert {s: signal.getsignal(s) for s in handlers} == handlers
+
+
+def test_no_signal_no_cancel(handlers):
+    assert _held_start(starting()) == (ACCEPTED, False)
+
+
+def test_a_second_signal_leaves_at_once(handlers):
+    with pytest.raises(KeyboardInterrupt):
+        _held_start(starting(signal.SIGINT, signal.SIGHUP))
+    assert {s: signal.getsignal(s) for s in handlers} == handlers
+
+
+def test_an_ignored_signal_stays_ignored(handlers):
+    """SIGINT of a job a script put in the background is ignored: held, it cancelled runs."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    assert _held_start(starting(signal.SIGINT)) == (ACCEPTED, False)
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
