@@ -10,7 +10,7 @@ import signal
 
 import pytest
 
-from services.autotuner.commands.tune import _held_start
+from services.autotuner.commands.tune import _held_start, _interrupt, cancel_on_stop_signals
 
 ACCEPTED = object()
 
@@ -54,3 +54,13 @@ def test_an_ignored_signal_stays_ignored(handlers):
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     assert _held_start(starting(signal.SIGINT)) == (ACCEPTED, False)
     assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+
+
+def test_nohup_keeps_the_run_going_through_a_hangup(handlers):
+    """``nohup autotune tune``: SIGHUP ignored stays ignored (it cancelled the run); SIGTERM
+    still cancels."""
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    cancel_on_stop_signals()
+    assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    assert signal.getsignal(signal.SIGTERM) is _interrupt

@@ -826,6 +826,16 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+def cancel_on_stop_signals() -> None:
+    """A terminal closed (SIGHUP) or a service manager's stop (SIGTERM) cancels the run like
+    Ctrl-C: the tuner restores the loop, and the result is still waited for. A signal the
+    process was started ignoring stays so (``nohup autotune tune …``: the run outlives the
+    terminal, as asked)."""
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            signal.signal(sig, _interrupt)
+
+
 def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix, loop=args.loop)
     if not (args.wait > 0 and args.wait < float("inf")):
@@ -853,10 +863,7 @@ def run_and_report(
     ``--units``); exit 0 for ``ok`` (and ``unverified``: applied as ``--no-verify`` asked), 1
     otherwise. ``check`` runs on the open session first
     (raising stops it before anything is sent)."""
-    # a terminal closed or a service manager's stop cancels the run like Ctrl-C: the tuner
-    # restores the loop, and the result is still waited for
-    for sig in (signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, _interrupt)
+    cancel_on_stop_signals()
     with open_session(settings_from_args(args), HANDSHAKE) as session:
         if check is not None:
             check(session)
