@@ -10,7 +10,13 @@ import signal
 
 import pytest
 
-from services.autotuner.commands.tune import _held_start, _interrupt, cancel_on_stop_signals
+from services.autotuner.commands.tune import (
+    Interrupted,
+    _held_start,
+    _interrupt,
+    cancel_on_stop_signals,
+)
+from shared.messages import TuneResult
 
 ACCEPTED = object()
 
@@ -64,3 +70,22 @@ def test_nohup_keeps_the_run_going_through_a_hangup(handlers):
     cancel_on_stop_signals()
     assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
     assert signal.getsignal(signal.SIGTERM) is _interrupt
+
+
+def _result(**fields):
+    base = dict(run_id="r1", loop="hx1", t=10.0, method="relay", rule="auto", status="ok")
+    return TuneResult(**{**base, **fields})
+
+
+def test_a_cancel_too_late_says_the_gains_are_in_the_loop():
+    """Ctrl-C as a run ends ok: its gains stay (the cancel came after), and the client says so
+    instead of "the tuner restores the loop" (it said only "interrupted")."""
+    said = Interrupted(_result(applied=True), "loop hx1 now: auto").summary()
+    assert said.startswith("run r1 had ended ok before the cancel reached it: its gains are in")
+    assert "`autotune revert hx1`" in said and said.endswith("loop hx1 now: auto")
+
+
+def test_a_cancelled_run_says_how_it_ended_and_whether_restored():
+    r = _result(status="aborted", reason="cancelled", applied=False, restored=False)
+    said = Interrupted(r, "loop hx1 now: manual").summary()
+    assert said == "run r1 cancelled, aborted: cancelled; loop NOT restored; loop hx1 now: manual"

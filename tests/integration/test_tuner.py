@@ -20,7 +20,7 @@ import time
 
 import pytest
 
-from services.autotuner.commands.tune import follow, submit
+from services.autotuner.commands.tune import Interrupted, follow, submit
 from services.autotuner.loop_client import LoopClient, wait_for_token
 from shared import keys, wire
 from shared.messages import (
@@ -254,15 +254,19 @@ def test_a_signal_before_the_acceptance_still_cancels_and_restores(start_plant, 
 
         # declared before follow's own subscriber: each result reaches this one first
         results = s.declare_subscriber(keys.tune_result(p.prefix, "x1"))
-        with pytest.raises(KeyboardInterrupt):
+        with pytest.raises(Interrupted) as stop:
             follow(s, p.prefix, "x1", start, 600.0)
-        # the client left after the run's result, not before: it had ended, cancelled
+        # the client left after the run's result, not before: it had ended, cancelled, and
+        # the client can say how, and where the loop is now
         ended = results.try_recv()
         results.undeclare()
         after = wire.query_one(s, keys.status(p.prefix, "x1"), LoopStatus, 5.0)
     assert ended is not None, "the client left before the run's result"
     ended = wire.decode_sample(TuneResult, ended)
-    assert ended.run_id == runs[0]
+    assert ended.run_id == runs[0] == stop.value.result.run_id
+    said = stop.value.summary()
+    assert f"run {runs[0]} cancelled, aborted" in said and "loop restored" in said, said
+    assert "loop x1 now: auto, SP 50," in said, said
     assert ended.status == "aborted" and ended.restored is True, ended.reason
     assert signal.getsignal(signal.SIGINT) is handler  # held only while start() ran
     assert (after.mode, after.sp, after.gains, after.leased_by) == (

@@ -373,6 +373,28 @@ def _held_start(start: Callable[[], TuneAccepted]) -> tuple[TuneAccepted, bool]:
     return accepted, bool(held)
 
 
+class Interrupted(KeyboardInterrupt):
+    """A signal ended the wait and the cancelled run's ``result`` came: what it did, and the
+    loop's ``state`` as the client leaves it. A run can end ok just before its cancel
+    reaches it: its gains are then in the loop, and the client must say so, not "restored"."""
+
+    def __init__(self, result: TuneResult, state: str):
+        super().__init__(result.run_id)
+        self.result, self.state = result, state
+
+    def summary(self) -> str:
+        r = self.result
+        if r.applied and r.status in DONE_STATUSES:
+            return (
+                f"run {r.run_id} had ended {r.status} before the cancel reached it: its gains "
+                f"are in the loop (`autotune revert {r.loop}` puts the earlier ones back); "
+                f"{self.state}"
+            )
+        why = f": {r.reason}" if r.reason else ""
+        back = "restored" if r.restored else "NOT restored"
+        return f"run {r.run_id} cancelled, {r.status}{why}; loop {back}; {self.state}"
+
+
 class TunerGone(AutotuneError):
     """The run's tuner vanished before its result (killed, or cut off from the bus)."""
 
@@ -446,8 +468,10 @@ def follow(
                             return late
                     raise TunerGone(
                         f"run {run_id} on {loop}: its tuner is gone or cut off (the run's "
-                        "liveliness token vanished and no result can be had): the plant's "
-                        "watchdog returns the loop to its state before the test; "
+                        f"liveliness token vanished and no result followed within "
+                        f"{RESULT_GRACE:g} s): the plant's watchdog returns the loop to its "
+                        "state before the test (a tuner only paused says how its run ended "
+                        "when it runs again); "
                         f"{loop_state(session, prefix, loop)}"
                     )
                 limit = min(deadline, gone + RESULT_GRACE if gone is not None else math.inf)
@@ -476,7 +500,7 @@ def follow(
                     r = wire.decode_sample(TuneResult, sample)
                     if r.run_id == run_id:
                         if cancelled:
-                            raise KeyboardInterrupt
+                            raise Interrupted(r, loop_state(session, prefix, loop))
                         if timed_out is not None and r.status != "ok":
                             raise AutotuneError(
                                 f"no result for run {run_id} within {wait:g} s: cancelled, "
@@ -505,10 +529,17 @@ def follow(
                     f"no result for run {run_id} within {wait:g} s, nor an answer to its "
                     f"cancel within {CANCEL_WAIT:g} s more: {loop_state(session, prefix, loop)}"
                 ) from None
+            except Interrupted:
+                raise
             except KeyboardInterrupt:
                 if cancelled or run_id is None:
                     if run_id is None:  # interrupted while submitting: cancel whatever runs
                         session.put(keys.tune_cancel(prefix, loop), b"")
+                    print(
+                        f"\nleft without waiting for the run's end: {loop} may still be being "
+                        f"restored (`autotune loops {loop}` shows it)",
+                        file=sys.stderr,
+                    )
                     raise
                 cancelled = True
                 session.put(keys.tune_cancel(prefix, loop), run_id.encode())
@@ -867,14 +898,24 @@ def run_and_report(
     with open_session(settings_from_args(args), HANDSHAKE) as session:
         if check is not None:
             check(session)
-        result = follow(
-            session,
-            args.prefix,
-            req.loop,
-            lambda: submit(session, args.prefix, args.node, req),
-            args.wait,
-            None if args.json else progress_line,
-        )
+        try:
+            result = follow(
+                session,
+                args.prefix,
+                req.loop,
+                lambda: submit(session, args.prefix, args.node, req),
+                args.wait,
+                None if args.json else progress_line,
+            )
+        except Interrupted as stop:  # cancelled: the result all the same, and what it did
+            _print_result(args, stop.result)
+            print(stop.summary(), file=sys.stderr)
+            raise KeyboardInterrupt from None
+    _print_result(args, result)
+    return 0 if result.status in DONE_STATUSES else 1
+
+
+def _print_result(args: argparse.Namespace, result: TuneResult) -> None:
     if sys.stderr.isatty() and not args.json:
         print("\r" + " " * 100 + "\r", end="", file=sys.stderr)
     print(
@@ -882,4 +923,3 @@ def run_and_report(
         if args.json
         else format_result(result, args.units)
     )
-    return 0 if result.status in DONE_STATUSES else 1
