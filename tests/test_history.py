@@ -312,3 +312,21 @@ def test_apply_checks_the_loop_is_the_one_identified():
     assert "plant instance" in same_loop({**rec, "instance": "b2"}, info)
     assert "model parameters" in same_loop({**rec, "model_params": {"gain": 2.0}}, info)
     assert "did not record" in same_loop(None, info)
+
+
+def test_a_loop_asked_for_at_start_is_learned_unless_a_live_status_came_first(tmp_path):
+    """The logger asks every loop's status at its start (``learn``): a change made while it
+    was not running is recorded then, not at the loop's next status; a live status that
+    came first is newer than the answer and stands."""
+    h = history(tmp_path)
+    feed(h, status(G0))
+    feed(h, status(G1, "gains", by_source="autotune-set"))
+    again = history(tmp_path)  # the logger restarted; the gains moved meanwhile
+    again.learn(keys.status(P, LOOP), wire.encode(status(G0)))
+    c = changes(tmp_path)[-1]
+    assert (c["cause"], c["before"], c["after"]) == ("unseen", G1.model_dump(), G0.model_dump())
+    third = history(tmp_path)
+    feed(third, status(G1))  # live first: it stands
+    seen = changes(tmp_path)
+    third.learn(keys.status(P, LOOP), wire.encode(status(G0)))
+    assert changes(tmp_path) == seen and seen[-1]["after"] == G1.model_dump()

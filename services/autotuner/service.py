@@ -30,6 +30,7 @@ from services.autotuner.design.request_check import validate_request
 from services.autotuner.identify.experiments import DEFAULT_STEP_SIZE
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
 from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
+from services.autotuner.recorder_watch import RecorderWatch
 from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
@@ -162,6 +163,7 @@ class TunerService:
     def _run(self, req: TuneRequest, run_id: str, cancel: threading.Event) -> None:
         p, s = self.prefix, self.session
         token = s.liveliness().declare_token(keys.tune_running(p, req.loop))
+        recorders = RecorderWatch(s, p)
         started = time.monotonic()
         seen: tuple[LoopInfo, LoopStatus] | None = None  # the loop as the run left it
         hooks = RunHooks(
@@ -201,6 +203,9 @@ class TunerService:
         finally:
             with self.lock:
                 self.active.pop(req.loop, None)
+        unrecorded = recorders.verdict()
+        if unrecorded is not None:
+            result = result.model_copy(update={"warnings": [*result.warnings, unrecorded]})
         with self.lock:
             self.results[req.loop] = result
         if seen is not None and result.status in APPLIED_STATUSES and result.applied:

@@ -103,6 +103,14 @@ class ChangeHistory:
         except pydantic.ValidationError:
             self.invalid += 1  # the recorder counts and logs invalid messages already
 
+    def learn(self, key: str, payload: bytes) -> None:
+        """A loop's status asked for at the logger's start: taken only for a loop no live
+        status has taught yet (a live one may be newer than this answer)."""
+        loop_key = keys.parse_loop_key(self.prefix, key)
+        if loop_key is None or loop_key[1] != "status" or loop_key[0] in self.loops:
+            return
+        self.handle(key, payload)
+
     # --- what changed -----------------------------------------------------------------------
 
     def _status(self, st: LoopStatus) -> None:

@@ -106,6 +106,28 @@ class LoggerService:
         except OSError:
             log.exception("monitor.jsonl: %s not written", sample.key_expr)
 
+    def _learn_loops(self, timeout: float = 5.0) -> None:
+        """Every loop's status, asked once at start: a change of gains made while this logger
+        was not running is recorded now (``unseen``), not at the loop's next status (in
+        lockstep a status comes only with a command: a user's ``revert`` was refused as "no
+        change on record" until one came). Statuses heard meanwhile on the bus come in order
+        on the subscriber; these only teach the history what it has not seen yet."""
+        try:
+            replies = list(
+                self.session.get(keys.status(self.recorder.prefix, keys.ANY), timeout=timeout)
+            )
+        except zenoh.ZError as err:  # the session closing as the logger stops
+            log.warning("loops' statuses not asked at start: %s", err)
+            return
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            with self.lock:
+                try:
+                    self.history.learn(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+                except Exception:
+                    log.exception("the change history of %s failed", reply.ok.key_expr)
+
     def _on_query(self, query: zenoh.Query) -> None:
         with self.lock:
             wire.reply(query, keys.logger_status(self.recorder.prefix, self.node), self.status())
@@ -120,6 +142,7 @@ class LoggerService:
             shell.subscribe(pattern, self._on_token, 1024, liveliness=True, history=True)
         shell.announce(keys.logger_alive(prefix, self.node))
         log.info("logger %s recording %s/** into %s", self.node, prefix, self.recorder.runs_dir)
+        threading.Thread(target=self._learn_loops, daemon=True, name="learn-loops").start()
 
         def tick() -> None:
             with self.lock:

@@ -106,6 +106,7 @@ def test_relay_tune_is_recorded_whole_and_reanalysed_exactly(
     p, _ = stack(start_plant, start_tuner, start_logger, runs, FAST, noise=0.002)
     live = tune(p, "x1")
     assert live["status"] == "ok", live["reason"]
+    assert not [w for w in live["warnings"] if "logger" in w]  # one recorded it throughout
     assert wait_finished(p).finished_runs == 1
     files = list(runs.glob("*_x1_relay_*.mcap"))
     assert len(files) == 1

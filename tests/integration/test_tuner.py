@@ -277,6 +277,19 @@ def test_a_signal_before_the_acceptance_still_cancels_and_restores(start_plant, 
     )
 
 
+def test_a_run_no_logger_recorded_says_so(start_plant, start_tuner):
+    """No logger on the bus: the run ends as it would, and its result warns that neither it
+    nor its change of gains is on record (a tune ended ok with its logger killed, and
+    revert then found no change to take back)."""
+    p = start_plant(plant_toml("x1", THIRD), loops=("x1",))
+    start_tuner(p)
+    r = tune(p, "x1", "--no-apply")
+    assert r["status"] == "proposed", r["reason"]
+    said = [w for w in r["warnings"] if "logger" in w]
+    assert len(said) == 1 and said[0].startswith("no logger recorded this run"), said
+    assert f"{p.prefix}/logger/*/alive" in said[0]
+
+
 def test_a_wait_that_runs_out_cancels_the_run_and_restores(start_plant, start_tuner):
     """``--wait`` bounds the run, not only the client: past it the run is cancelled, the loop
     restored, and tune exits 2 saying so (it exited 2 "no result within 5 s" while the run

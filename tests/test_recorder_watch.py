@@ -1,0 +1,46 @@
+"""RecorderWatch: a run's result says when no logger recorded it, or one went out of sight
+during it, from the loggers' liveliness tokens (one session on loopback, alone)."""
+
+from __future__ import annotations
+
+import time
+
+from services.autotuner.recorder_watch import RecorderWatch
+from shared import keys
+from shared.session import ZenohSettings, open_session
+
+ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
+
+
+def _until(check, timeout: float = 5.0) -> None:
+    """Bounded wait for what a liveliness callback sets."""
+    deadline = time.monotonic() + timeout
+    while not check() and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+def test_no_logger_in_sight_is_said():
+    with open_session(ALONE) as s:
+        said = RecorderWatch(s, "rw1").verdict()
+    assert said is not None and said.startswith("no logger recorded this run")
+
+
+def test_a_logger_throughout_says_nothing():
+    with open_session(ALONE) as s:
+        token = s.liveliness().declare_token(keys.logger_alive("rw2", "logger"))
+        watch = RecorderWatch(s, "rw2")
+        _until(lambda: watch._seen)
+        assert watch.verdict() is None
+        token.undeclare()
+
+
+def test_a_logger_gone_during_the_run_is_said():
+    with open_session(ALONE) as s:
+        token = s.liveliness().declare_token(keys.logger_alive("rw3", "logger"))
+        watch = RecorderWatch(s, "rw3")
+        _until(lambda: watch._seen)
+        token.undeclare()
+        _until(lambda: watch._gap)
+        said = watch.verdict()
+    assert said is not None and "went out of sight during the run" in said
+    assert "none is back" in said
