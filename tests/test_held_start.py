@@ -89,3 +89,9 @@ def test_a_cancelled_run_says_how_it_ended_and_whether_restored():
     r = _result(status="aborted", reason="cancelled", applied=False, restored=False)
     said = Interrupted(r, "loop hx1 now: manual").summary()
     assert said == "run r1 cancelled, aborted: cancelled; loop NOT restored; loop hx1 now: manual"
+
+
+def test_a_run_that_ended_on_its_own_first_is_not_called_cancelled():
+    r = _result(status="proposed", applied=False, restored=True)
+    said = Interrupted(r, "loop hx1 now: manual").summary()
+    assert said.startswith("run r1 had ended proposed before the cancel reached it; loop restored")

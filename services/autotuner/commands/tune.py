@@ -392,6 +392,11 @@ class Interrupted(KeyboardInterrupt):
             )
         why = f": {r.reason}" if r.reason else ""
         back = "restored" if r.restored else "NOT restored"
+        if r.status != "aborted":  # it ended on its own first (proposed, rejected, failed)
+            return (
+                f"run {r.run_id} had ended {r.status} before the cancel reached it{why}; loop "
+                f"{back}; {self.state}"
+            )
         return f"run {r.run_id} cancelled, {r.status}{why}; loop {back}; {self.state}"
 
 
