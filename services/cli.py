@@ -8,6 +8,12 @@ Anything else is a bug: one line too, exit 70, and the traceback only with AUTOT
 
 from __future__ import annotations
 
+if __name__ == "__main__":  # `python -m services.cli` runs as the console script does: Ctrl-C
+    # while the modules below load (seconds on a busy machine) ends in one line, exit 130
+    from services.entry import entry as _console
+
+    _console()  # imports this module under its own name and runs it; never returns
+
 import argparse
 import contextlib
 import os

@@ -4,6 +4,7 @@ command runs (``services.cli.main``), not in a traceback through the imports."""
 
 from __future__ import annotations
 
+import os
 import sys
 
 
@@ -11,6 +12,8 @@ def entry() -> None:
     try:
         from services import cli
     except KeyboardInterrupt:
-        print("autotune: interrupted", file=sys.stderr)
-        raise SystemExit(130) from None
+        print("autotune: interrupted", file=sys.stderr, flush=True)
+        # at once, not through the interpreter's teardown: with modules half loaded (Zenoh's
+        # native library among them) it ended, now and then, killed by SIGINT instead of 130
+        os._exit(130)
     cli.entry()

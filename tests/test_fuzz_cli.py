@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -293,11 +295,33 @@ def test_ctrl_c_while_the_modules_load_is_one_line(monkeypatch, capsys):
             raise KeyboardInterrupt
         return real(name, globals, locals, fromlist, level)
 
+    def leave(code: int) -> None:  # os._exit, as a SystemExit this test can see
+        raise SystemExit(code)
+
     monkeypatch.setattr(builtins, "__import__", interrupted)
+    monkeypatch.setattr(os, "_exit", leave)
     with pytest.raises(SystemExit) as stop:
         entry()
     assert stop.value.code == 130
     assert capsys.readouterr().err == "autotune: interrupted\n"
+
+
+@pytest.mark.parametrize("delay", [0.5, 1.0])
+def test_ctrl_c_early_in_python_m_services_cli_is_one_line(delay):
+    """``python -m services.cli`` (the developer's path) loads as the console script does:
+    a Ctrl-C within its first second (numpy, scipy, Zenoh loading) printed a traceback
+    through the imports, 5 of 5 in a user's trial; now one line and exit 130."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "loops", "--prefix", "early"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(delay)  # the fault itself: a Ctrl-C this long after the start
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "Traceback" not in err, err
+    assert err.strip().endswith("interrupted"), err
 
 
 def test_a_reader_that_leaves_the_pipe_early_is_no_error(monkeypatch):
