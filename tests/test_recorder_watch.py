@@ -6,7 +6,8 @@ from __future__ import annotations
 import time
 
 from services.autotuner.recorder_watch import RecorderWatch
-from shared import keys
+from shared import keys, wire
+from shared.messages import LoggerStatus
 from shared.session import ZenohSettings, open_session
 
 ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
@@ -44,3 +45,33 @@ def test_a_logger_gone_during_the_run_is_said():
         said = watch.verdict()
     assert said is not None and "went out of sight during the run" in said
     assert "none is back" in said
+
+
+def test_samples_a_logger_missed_during_the_run_are_said():
+    """A logger's ``dropped`` count (process samples missing) grew between the run's start
+    and end: its record may have gaps (a logger paused 20 s missed 1,601 samples of a run,
+    and the tune said nothing)."""
+    dropped = iter([5, 12])
+
+    def answer(query):
+        st = LoggerStatus(
+            node="logger",
+            runs_dir="runs",
+            open_runs=[],
+            finished_runs=0,
+            received=0,
+            written=0,
+            invalid=0,
+            dropped=next(dropped),
+        )
+        wire.reply(query, keys.logger_status("rw4", "logger"), st)
+
+    with open_session(ALONE) as s:
+        token = s.liveliness().declare_token(keys.logger_alive("rw4", "logger"))
+        queryable = s.declare_queryable(keys.logger_status("rw4", "logger"), answer)
+        watch = RecorderWatch(s, "rw4")
+        _until(lambda: watch._seen)
+        said = watch.verdict()
+        queryable.undeclare()
+        token.undeclare()
+    assert said is not None and said.startswith("the logger missed 7 process samples"), said

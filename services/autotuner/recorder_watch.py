@@ -2,7 +2,9 @@
 
 A run that no logger recorded is not on record: ``autotune history`` and ``revert`` cannot
 know its change of the loop's gains (seen: a logger killed mid-run, the tune ended ok, and
-revert answered "no change of hx1's gains on record"). The run's result says so."""
+revert answered "no change of hx1's gains on record"). The run's result says so; and when a
+logger missed process samples meanwhile (its ``dropped`` count grew: it fell behind, was
+paused or starved), that its record may have gaps."""
 
 from __future__ import annotations
 
@@ -10,7 +12,11 @@ import threading
 
 import zenoh
 
-from shared import keys
+from shared import keys, wire
+from shared.errors import DecodeError
+from shared.messages import LoggerStatus
+
+ASK = 2.0  # s: a logger's status, asked at the run's start and end
 
 
 class RecorderWatch:
@@ -23,6 +29,30 @@ class RecorderWatch:
         self._seen = False  # any logger in sight since the start
         self._gap = False  # all out of sight at some moment after one was seen
         self._sub = session.liveliness().declare_subscriber(self.key, self._on, history=True)
+        self._status_key = keys.logger_status(prefix, "*")
+        self._before: dict[str, int] = {}
+        self._baseline = threading.Thread(target=self._ask_before, daemon=True)
+        self._baseline.start()
+
+    def _ask_before(self) -> None:
+        self._before = self._dropped()
+
+    def _dropped(self) -> dict[str, int]:
+        """Each logger's count of process samples it missed, by node."""
+        out: dict[str, int] = {}
+        try:
+            replies = list(self.session.get(self._status_key, timeout=ASK))
+        except zenoh.ZError:  # the session closing as the service stops
+            return out
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                st = wire.decode_sample(LoggerStatus, reply.ok)
+            except DecodeError:
+                continue
+            out[st.node] = st.dropped
+        return out
 
     def _on(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr)
@@ -52,8 +82,17 @@ class RecorderWatch:
             )
         if gap:
             return (
-                "the logger went out of sight during the run (killed or cut off): its record "
-                f"of the run may be incomplete{'' if alive else ', and none is back'} "
+                "the logger went out of sight during the run (killed, paused or cut off): its "
+                f"record of the run may be incomplete{'' if alive else ', and none is back'} "
                 "(`autotune runs` shows what was written)"
+            )
+        self._baseline.join(ASK)
+        after = self._dropped()
+        missed = sum(max(0, after[n] - d) for n, d in self._before.items() if n in after)
+        if missed:
+            return (
+                f"the logger missed {missed} process samples during this run (of this loop or "
+                "another: it fell behind, paused or starved): its record of the run may have "
+                "gaps (`autotune runs` shows what was written)"
             )
         return None
