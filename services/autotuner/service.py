@@ -163,7 +163,11 @@ class TunerService:
     def _run(self, req: TuneRequest, run_id: str, cancel: threading.Event) -> None:
         p, s = self.prefix, self.session
         token = s.liveliness().declare_token(keys.tune_running(p, req.loop))
-        recorders = RecorderWatch(s, p)
+        try:  # whether a logger records the run: said in its result, never in its way
+            recorders: RecorderWatch | None = RecorderWatch(s, p)
+        except zenoh.ZError as err:
+            log.warning("run %s on %s: its recording is not watched: %s", run_id, req.loop, err)
+            recorders = None
         started = time.monotonic()
         seen: tuple[LoopInfo, LoopStatus] | None = None  # the loop as the run left it
         hooks = RunHooks(
@@ -203,7 +207,13 @@ class TunerService:
         finally:
             with self.lock:
                 self.active.pop(req.loop, None)
-        unrecorded = recorders.verdict()
+        try:
+            unrecorded = recorders.verdict() if recorders is not None else None
+        except Exception:  # a failure here never withholds the run's result
+            log.exception(
+                "run %s on %s: whether a logger recorded it is not known", run_id, req.loop
+            )
+            unrecorded = None
         if unrecorded is not None:
             result = result.model_copy(update={"warnings": [*result.warnings, unrecorded]})
         with self.lock:
