@@ -12,6 +12,7 @@ import threading
 
 import zenoh
 
+from services.autotuner.loop_client import wait_for_token
 from shared import keys, wire
 from shared.errors import DecodeError
 from shared.messages import LoggerStatus
@@ -69,10 +70,8 @@ class RecorderWatch:
         Stops watching."""
         with self._lock:
             seen, gap, alive = self._seen, self._gap, bool(self._alive)
-        if not seen:  # a run that ended within moments of its start: ask once more
-            seen = alive = any(
-                r.ok is not None for r in self.session.liveliness().get(self.key, timeout=0.5)
-            )
+        if not seen:  # a run that ended within moments of its start: look once more
+            seen = alive = wait_for_token(self.session, self.key, 0.5)
         self._sub.undeclare()
         if not seen:
             return (
