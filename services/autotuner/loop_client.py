@@ -501,6 +501,17 @@ class LoopClient:
                 self._flight = 0  # the plant stopped here: nothing more is coming
         return out
 
+    def hold_arrived(self) -> list[ProcessSample]:
+        """Realtime: the samples that came since the run last read, kept for it in order (it
+        reads them next) and returned to be watched meanwhile; a status on the way is heeded
+        as any (LeaseLost). Does not wait."""
+        new: list[ProcessSample] = []
+        while (msg := self._next(wait=0.0)) is not None:
+            if isinstance(msg, ProcessSample):
+                self._held.append(msg)
+                new.append(msg)
+        return new
+
     def next_sample(self) -> ProcessSample:
         """The next sample: in lockstep, advance the loop one period first."""
         if self.info.clock == "lockstep":

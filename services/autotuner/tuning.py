@@ -363,10 +363,13 @@ class TuningRun:
     def _compute(self, fn: Callable[..., Any], *args: Any) -> Any:
         """``fn(*args)`` through ``hooks.compute``, watched from the run's thread meanwhile: a
         cancel, or the plant's token vanishing, ends the run at once (not when the step is
-        done: seconds on a busy machine); in lockstep the loop's lease is renewed meanwhile,
-        since the plant does not move, and a step that outlasts the lease would otherwise
-        have the plant's watchdog take back a loop this run is still working on. In realtime
-        the loop goes on under the output held meanwhile: there the lease stays the bound."""
+        done: seconds on a busy machine). The loop's lease is renewed meanwhile: a step that
+        outlasts it would otherwise have the plant's watchdog take back a loop this run is
+        still working on (seen in CI: the relay's closing fits took over 3 s on a loaded
+        machine, and a healthy realtime run was aborted). In lockstep the plant does not move
+        meanwhile; in realtime the loop goes on under the output held, so its samples are
+        watched as they come (kept for the run) and the run aborts, restoring the loop, as
+        soon as one leaves the experiment's PV limits."""
         out: list[tuple[bool, Any]] = []
 
         def work() -> None:
@@ -383,12 +386,24 @@ class TuningRun:
             if worker.is_alive():
                 self._check_cancel()
                 self.client.check_plant()
-                if lockstep:
-                    self.client.renew_lease()
+                if not lockstep:
+                    self._watch_limits()
+                self.client.renew_lease()
         ok, value = out[0]
         if not ok:
             raise value
         return value
+
+    def _watch_limits(self) -> None:
+        """Realtime, while a step computes: the samples that came meanwhile checked against
+        the experiment's PV limits (TuneAborted at the first outside them)."""
+        lo, hi = self.pv_limits
+        for s in self.client.hold_arrived():
+            if not lo <= s.pv <= hi:
+                raise TuneAborted(
+                    f"PV {s.pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s, "
+                    "while the run computed"
+                )
 
     def _identify_and_design(
         self, result: dict, span: float | None

@@ -1,8 +1,8 @@
-"""A run watches while a heavy step computes (the relay's closing fits, the design): in
-lockstep it keeps its lease (the plant does not move meanwhile, and a step that outlasts the
-lease on a busy machine must not have the plant's watchdog take back a loop the run is still
-working on); a cancel or the plant's token vanishing ends the run at once, not when the step
-is done.
+"""A run watches while a heavy step computes (the relay's closing fits, the design): it
+keeps its lease (a step that outlasts the lease on a busy machine must not have the plant's
+watchdog take back a loop the run is still working on); in realtime, where the loop goes on
+meanwhile, only while the PV stays within the experiment's limits; a cancel or the plant's
+token vanishing ends the run at once, not when the step is done.
 
 The slow steps are made slow on purpose (they sleep before computing): they stand for a
 worker starting on a machine whose cores are all taken.
@@ -17,7 +17,7 @@ import pytest
 
 from services.autotuner.loop_client import LoopClient
 from services.autotuner.tuning import RunHooks, TuningRun
-from shared.messages import TuneRequest
+from shared.messages import DisturbanceCommand, TuneRequest
 from shared.session import open_session
 from tests.integration.tuning_cli import plant_toml
 
@@ -26,6 +26,9 @@ pytestmark = pytest.mark.integration
 LEASE = 0.5  # s of wall time: the lease this test's client asks for
 # 6/((s+1)(s+2)(s+3)), ~95 samples a period: a relay run of a few thousand samples
 CUBIC = {"num": [6.0], "den": [1.0, 6.0, 11.0, 6.0], "delay": 0.0, "sample_time": 0.02}
+# the same on the realtime clock at ×5: a sample every 10 ms of wall time (38 a period)
+REALTIME = ("--clock", "realtime", "--speed", "5")
+CUBIC_RT = {**CUBIC, "sample_time": 0.05}
 
 
 def test_a_step_slower_than_the_lease_leaves_the_loop_leased(start_plant):
@@ -87,3 +90,55 @@ def test_a_cancel_during_a_step_ends_the_run_without_waiting_for_it(start_plant)
     r = _run_with(p, cancel_then_compute, cancel)
     assert (r.status, r.reason, r.restored) == ("aborted", "cancelled", True)
     assert not finished.is_set()
+
+
+def test_a_step_slower_than_the_lease_in_realtime_leaves_the_loop_leased(start_plant):
+    """Seen in CI: the relay's closing fits took over the 3 s lease of a realtime run on a
+    loaded machine; the plant's watchdog took the loop back and the healthy run aborted."""
+    p = start_plant(plant_toml("x1", CUBIC_RT), *REALTIME, loops=("x1",))
+    steps: list[str] = []
+
+    def slow(fn, *args):
+        time.sleep(3 * LEASE)
+        steps.append(fn.__name__)
+        return fn(*args)
+
+    with (
+        open_session(p.client_settings()) as s,
+        LoopClient(s, p.prefix, "x1", lease_timeout=LEASE) as c,
+    ):
+        # proposed, not applied: the steps are what is tested, not the verification (8 s more)
+        req = TuneRequest(loop="x1", method="relay", apply=False)
+        r = TuningRun(c, req, "lease-test-rt", RunHooks(compute=slow)).run()
+        assert r.status == "proposed", r.reason
+        assert steps == ["_finished", "select"]
+        after = c.sync()
+    assert after.leased_by is None and after.reason != "watchdog"
+
+
+def test_the_pv_leaving_its_limits_during_a_step_in_realtime_aborts_and_restores(start_plant):
+    """The lease is kept through a step only while the loop stays within the experiment's
+    limits: a load upset meanwhile ends the run at once, and the loop is restored."""
+    p = start_plant(plant_toml("x1", CUBIC_RT), *REALTIME, loops=("x1",))
+    finished = threading.Event()
+    with (
+        open_session(p.client_settings()) as s,
+        LoopClient(s, p.prefix, "x1", lease_timeout=LEASE) as c,
+    ):
+        before = c.sync()
+
+        def upset_then_compute(fn, *args):
+            # the process upset while the run computes (sent in the run's name: the loop is
+            # leased, and any other client's command would be refused)
+            c.send(DisturbanceCommand(loop="x1", name="load", value=30.0, source=c.source))
+            time.sleep(30.0)  # far longer than the run may go on once the PV is out
+            finished.set()
+            return fn(*args)
+
+        req = TuneRequest(loop="x1", method="relay", pv_limits=(40.0, 60.0))
+        r = TuningRun(c, req, "limits-test-rt", RunHooks(compute=upset_then_compute)).run()
+        after = c.sync()
+    assert r.status == "aborted" and "left its limits" in r.reason, r.reason
+    assert "while the run computed" in r.reason and r.restored is True
+    assert not finished.is_set()
+    assert (after.mode, after.op, after.leased_by) == (before.mode, before.op, None)
