@@ -10,6 +10,7 @@ payload, ``application/json;<Model>``, congestion control BLOCK (never dropped).
 from __future__ import annotations
 
 import threading
+import time
 
 import zenoh
 
@@ -25,6 +26,9 @@ class Publishers:
         self._pubs: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
         self._closed = False
+        # thread → monotonic time its put began, while it lasts: a put blocked behind a
+        # subscriber that stopped reading (its link's queue full) holds the plant up
+        self._putting: dict[int, float] = {}
 
     def _publisher(self, key: str, model: type[Message]) -> zenoh.Publisher | None:
         pub = self._pubs.get(key)
@@ -56,7 +60,19 @@ class Publishers:
         """Publish a payload already encoded as ``model``'s JSON (nothing once closed)."""
         pub = self._publisher(key, model)
         if pub is not None:
-            pub.put(payload)
+            me = threading.get_ident()
+            self._putting[me] = time.monotonic()
+            try:
+                pub.put(payload)
+            finally:
+                del self._putting[me]
+
+    def held_since(self) -> float | None:
+        """The monotonic time the oldest put still under way began (None: none is). A put
+        lasts microseconds; one that lasts is blocked behind a subscriber that stopped
+        reading (a paused logger): Zenoh's reliable publication waits for room in its
+        link's queue, up to 5 s before it closes the link."""
+        return min(tuple(self._putting.values()), default=None)
 
     def close(self) -> None:
         """Undeclare every publisher; later puts are dropped (the service is stopping)."""

@@ -99,6 +99,7 @@ class RejectLog:
 
 MAX_LAPSED = 64  # lapsed supervisors remembered per loop
 PAUSE_GAP = 1.0  # s between watchdog ticks (0.05 s apart) that means the plant itself paused
+HELD_UP = 0.2  # s a publication has lasted that means the plant is held up behind a subscriber
 
 
 @dataclass
@@ -447,14 +448,18 @@ class PlantService:
 
     def _watchdog(self, stop: threading.Event) -> None:
         """Expire leases whose holder fell silent. A plant that was itself paused (SIGSTOP, a
-        suspended VM) heard nobody meanwhile: the pause is added to every deadline rather
-        than blamed on the supervisors."""
+        suspended VM), or held up publishing behind a subscriber that stopped reading (a
+        paused logger: a lockstep advance's samples block, and the commands queued behind
+        them wait), heard nobody meanwhile: that time is added to every deadline rather than
+        blamed on the supervisors."""
         last = time.monotonic()
         while not stop.wait(0.05):
             now = time.monotonic()
             paused, last = now - last, now
+            held = self.publishers.held_since()
+            held_up = held is not None and now - held > HELD_UP
             with self.lock:
-                if paused > PAUSE_GAP:
+                if paused > PAUSE_GAP or held_up:
                     for ls in self.leases.values():
                         ls.deadline += paused
                 late = [lid for lid, ls in self.leases.items() if now > ls.deadline]
