@@ -75,3 +75,20 @@ def test_samples_a_logger_missed_during_the_run_are_said():
         queryable.undeclare()
         token.undeclare()
     assert said is not None and said.startswith("the logger missed 7 process samples"), said
+
+
+def test_a_logger_that_did_not_answer_at_the_start_is_not_asked_again():
+    """Its token in sight, its status query unanswered (a logger paused through a short
+    lockstep run: the run's result came 3.5 s after its end, two 2 s queries in turn)."""
+    asked: list[str] = []
+    with open_session(ALONE) as s:
+        token = s.liveliness().declare_token(keys.logger_alive("rw5", "logger"))
+        mute = s.declare_queryable(
+            keys.logger_status("rw5", "logger"), lambda q: asked.append(str(q.key_expr))
+        )
+        watch = RecorderWatch(s, "rw5")
+        _until(lambda: watch._seen)
+        assert watch.verdict() is None
+        mute.undeclare()
+        token.undeclare()
+    assert len(asked) == 1

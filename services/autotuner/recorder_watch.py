@@ -86,6 +86,8 @@ class RecorderWatch:
                 "(`autotune runs` shows what was written)"
             )
         self._baseline.join(ASK)
+        if not self._before:  # no logger answered at the start (busy, paused): nothing to
+            return None  # compare with, and asking again would hold the result up 2 s more
         after = self._dropped()
         missed = sum(max(0, after[n] - d) for n, d in self._before.items() if n in after)
         if missed:
