@@ -187,6 +187,19 @@ def test_the_pre_run_buffer_keeps_the_last_BUFFER_messages_of_a_loop(rec: Record
     # the buffer holds the start itself and the BUFFER - 1 samples before it
     assert meta["samples"] == str(BUFFER - 1)
     assert meta["first_seq"] == str(n - (BUFFER - 1)) and meta["last_seq"] == str(n - 1)
+    # those that left the buffer are counted missing (seq 0, at the start's own sim time, is
+    # taken for the last sample before the run): the file does not say 0 dropped
+    assert meta["dropped"] == str(n - BUFFER)
+
+
+def test_a_run_whose_samples_start_on_time_counts_no_head_missing(rec: Recorder) -> None:
+    samples(rec, 0, 9)
+    send(rec, keys.tune_result(P, LOOP), result("r0", 9 * DT))  # nothing open: ignored
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 9 * DT))
+    samples(rec, 10, 20)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 20 * DT))
+    meta, _ = only_file(rec)
+    assert meta["dropped"] == "0" and meta["first_seq"] in ("9", "10")
 
 
 def test_what_came_before_the_previous_run_ended_is_not_the_next_runs(rec: Recorder) -> None:

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import tempfile
 import time
 from collections import Counter, OrderedDict, deque
@@ -168,6 +169,18 @@ class Stream:
     last_t: float | None = None  # of the last sample
     plant_alive: bool | None = None  # the loop's liveliness token (None: not seen yet)
     run_token: bool | None = None  # the run's liveliness token (None: not seen yet)
+
+
+def _missed_head(t_start: float, first: ProcessSample) -> int:
+    """Samples of a run's beginning missing before ``first``, the first of its samples
+    written: those after the sample at its start's sim time ``t_start`` (a plant's sample
+    ``seq`` is at t = seq·T). Why: a logger that fell behind (paused through a lockstep run)
+    took thousands of the run's samples before its start message, the oldest left the
+    pre-run buffer uncounted, and the file said 0 dropped."""
+    if first.seq <= 0 or first.t <= 0:
+        return 0
+    ts = first.t / first.seq
+    return max(0, first.seq - (math.floor(t_start / ts + 1e-6) + 1))
 
 
 def _encoded(sample: ProcessSample) -> bytes:
@@ -515,6 +528,17 @@ class Recorder:
         if isinstance(msg, ProcessSample):
             if run.last_seq is not None and msg.seq != run.last_seq + 1:
                 run.gaps += max(0, msg.seq - run.last_seq - 1)
+            if run.first_seq is None and (head := _missed_head(run.t_start, msg)):
+                run.gaps += head
+                log.warning(
+                    "run %s on %s: its first %d samples did not reach the file (they came "
+                    "before its start, more than the %d messages kept for it: the logger "
+                    "was behind)",
+                    run.run_id,
+                    run.loop,
+                    head,
+                    BUFFER,
+                )
             run.first_seq = msg.seq if run.first_seq is None else run.first_seq
             run.last_seq = msg.seq
             run.last_t = msg.t
