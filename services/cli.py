@@ -119,11 +119,17 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None:
         argv = sys.argv[1:]
     try:
-        args = build_parser(argv).parse_args(argv)
+        args, unknown = build_parser(argv).parse_known_args(argv)
     except KeyboardInterrupt:  # while the command's modules load
         print("autotune: interrupted", file=sys.stderr)
         return 130
     name = f"autotune {args.command}"
+    if unknown:  # named by the command they were given to, as its other errors are
+        print(
+            f"{name}: error: unrecognized arguments: {' '.join(unknown)} (see {name} --help)",
+            file=sys.stderr,
+        )
+        return 2
     try:
         check_args(args)
         return args.run(args)

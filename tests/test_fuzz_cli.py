@@ -213,6 +213,9 @@ REFUSED = [
     (["plant", "-c", "/no/such/zenoh.json5"], ["zenoh config"]),
     (["plant", "-m", "satellite"], ["--mode", "invalid choice"]),
     (["plant", "--no-such-flag"], ["unrecognized arguments"]),
+    # named by the command it was given to, as the command's other refusals are
+    (["tune", "hx1", "--bogus"], ["autotune tune: error: unrecognized arguments: --bogus"]),
+    (["runs", "runs", "--prefix", "x"], ["autotune runs: error: unrecognized", "--prefix x"]),
     (["no-such-command"], ["invalid choice"]),
     ([], ["required"]),
 ]
