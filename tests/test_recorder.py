@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from services.logger.mcap_io import FORMAT_VERSION, read_run
-from services.logger.recorder import BUFFER, RESULT_GRACE, Recorder, model_for
+from services.logger.recorder import BUFFER, LEASED_BUFFER, RESULT_GRACE, Recorder, model_for
 from shared import keys, wire
 from shared.messages import (
     LeaseCommand,
@@ -190,6 +190,20 @@ def test_the_pre_run_buffer_keeps_the_last_BUFFER_messages_of_a_loop(rec: Record
     # those that left the buffer are counted missing (seq 0, at the start's own sim time, is
     # taken for the last sample before the run): the file does not say 0 dropped
     assert meta["dropped"] == str(n - BUFFER)
+
+
+def test_a_leased_loop_keeps_its_samples_until_the_run_s_late_start(rec: Recorder) -> None:
+    """A logger that fell behind takes the run's samples (after the plant's lease status, on
+    the plant's link) before the run's start (on the tuner's): none is lost."""
+    n = BUFFER + 500
+    send(rec, keys.status(P, LOOP), status(0, "lease", leased_by="tuner:r1"))
+    samples(rec, 1, n)
+    assert rec.streams[(LOOP, "")].recent.maxlen == LEASED_BUFFER
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    send(rec, keys.tune_result(P, LOOP), result("r1", n * DT))
+    meta, _ = only_file(rec)
+    assert (meta["samples"], meta["first_seq"], meta["dropped"]) == (str(n), "1", "0")
+    assert rec.streams[(LOOP, "")].recent.maxlen == BUFFER  # back once the run is closed
 
 
 def test_a_run_whose_samples_start_on_time_counts_no_head_missing(rec: Recorder) -> None:

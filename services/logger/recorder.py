@@ -77,6 +77,10 @@ from shared.messages import (
 log = logging.getLogger("logger")
 
 BUFFER = 4096  # recent messages kept per loop (pre-run context)
+# kept instead while the loop is leased and no run on it has started here: a logger that fell
+# behind (paused through a lockstep run) takes the run's samples from the plant's link before
+# the run's start from the tuner's, thousands of them (4,683 seen, lost past BUFFER)
+LEASED_BUFFER = 65536
 RESULT_GRACE = 2.0  # s of wall time a run's result may trail the withdrawal of its token
 REMEMBERED_RUNS = 4096  # finished run ids kept, so that a repeated start opens no new file
 
@@ -169,6 +173,14 @@ class Stream:
     last_t: float | None = None  # of the last sample
     plant_alive: bool | None = None  # the loop's liveliness token (None: not seen yet)
     run_token: bool | None = None  # the run's liveliness token (None: not seen yet)
+
+
+def _size_buffer(stream: Stream, status: LoopStatus) -> None:
+    """The pre-run buffer: LEASED_BUFFER messages while the loop is leased with no run open
+    (a run whose start has not come yet), BUFFER otherwise (its latest kept)."""
+    size = LEASED_BUFFER if status.leased_by and stream.run is None else BUFFER
+    if stream.recent.maxlen != size:
+        stream.recent = deque(stream.recent, maxlen=size)
 
 
 def _missed_head(t_start: float, first: ProcessSample) -> int:
@@ -302,6 +314,8 @@ class Recorder:
         t = getattr(msg, "t", None)
         stream.t = t if t is not None else stream.t
         item = Item(key, model, payload, msg, stream.t, stream.instance)
+        if isinstance(msg, LoopStatus):
+            _size_buffer(stream, msg)
         stream.recent.append(item)
         run = stream.run
         if isinstance(msg, TuneProgress) and msg.phase == "start":
@@ -564,7 +578,8 @@ class Recorder:
         if run is None:
             return
         stream.run = None
-        stream.recent.clear()  # what came before this close is never a later run's context
+        # what came before this close is never a later run's context
+        stream.recent = deque(maxlen=BUFFER)
         if stream.replay:  # a replay's stream ends with its run (memory stays bounded)
             self.streams.pop((stream.loop, stream.replay), None)
         meta = {
