@@ -330,3 +330,18 @@ def test_a_loop_asked_for_at_start_is_learned_unless_a_live_status_came_first(tm
     seen = changes(tmp_path)
     third.learn(keys.status(P, LOOP), wire.encode(status(G0)))
     assert changes(tmp_path) == seen and seen[-1]["after"] == G1.model_dump()
+
+
+def test_no_change_under_the_prefix_asked_names_the_buses_that_have_some(tmp_path, capsys):
+    """`history hx1` without --prefix on a file of another bus's hx1 said only "No change …
+    on record", hiding the filter (helper finding)."""
+    from services.cli import main
+
+    h = history(tmp_path)
+    feed(h, status(G0))
+    feed(h, status(G1, "gains", by_source="autotune-set"))
+    assert main(["history", LOOP, "--runs", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "under prefix 'autotune'" in out and f"it holds hx1's under '{P}'" in out, out
+    assert main(["history", LOOP, "--runs", str(tmp_path), "--prefix", P]) == 0
+    assert "autotune-set" in capsys.readouterr().out

@@ -104,9 +104,20 @@ def _verification(v: dict | None) -> str:
     )
 
 
-def format_entries(loop: str, path: Path, items: list[dict]) -> str:
+def format_entries(
+    loop: str, path: Path, items: list[dict], prefix: str | None = None, elsewhere: tuple = ()
+) -> str:
+    """The entries as text; with none, which bus (``prefix``) was looked at, and the other
+    buses whose records of ``loop`` the file holds (``elsewhere``: --prefix picks one)."""
     if not items:
-        return f"No change of {loop}'s gains on record in {path}."
+        on = f" under prefix {prefix!r}" if prefix is not None else ""
+        other = (
+            f" (it holds {loop}'s under {', '.join(repr(p) for p in elsewhere)}: --prefix "
+            "picks the bus)"
+            if elsewhere
+            else ""
+        )
+        return f"No change of {loop}'s gains on record in {path}{on}{other}."
     lines = [f"Gains of {loop} ({path}), oldest first:"]
     for r in items:
         when = f"{r.get('utc', '?')}  t = {_num(r.get('t'), ' s')}"
@@ -154,5 +165,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(items, indent=2))
     else:
-        print(format_entries(args.loop, runs / HISTORY_FILE, items))
+        elsewhere: tuple = ()
+        if not items:  # the loop's records under another bus's prefix, if any
+            found = {r.get("prefix") for r in entries(runs, args.loop, None)}
+            elsewhere = tuple(sorted(p for p in found if p and p != args.prefix))
+        print(format_entries(args.loop, runs / HISTORY_FILE, items, args.prefix, elsewhere))
     return 0
