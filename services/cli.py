@@ -118,6 +118,14 @@ def main(argv: list[str] | None = None) -> int:
         warnings.simplefilter("ignore")
     if argv is None:
         argv = sys.argv[1:]
+    if argv and argv[0].startswith("-") and argv[0] not in ("-h", "--help"):
+        # argparse would ask for the command and not name the flag it could not place
+        print(
+            f"autotune: error: unrecognized arguments: {argv[0]} (a command comes first: "
+            "see autotune --help)",
+            file=sys.stderr,
+        )
+        return 2
     try:
         args, unknown = build_parser(argv).parse_known_args(argv)
     except KeyboardInterrupt:  # while the command's modules load

@@ -217,6 +217,7 @@ REFUSED = [
     (["tune", "hx1", "--bogus"], ["autotune tune: error: unrecognized arguments: --bogus"]),
     (["runs", "runs", "--prefix", "x"], ["autotune runs: error: unrecognized", "--prefix x"]),
     (["no-such-command"], ["invalid choice"]),
+    (["--bogus", "tune"], ["autotune: error: unrecognized arguments: --bogus"]),
     ([], ["required"]),
 ]
 
