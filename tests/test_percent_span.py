@@ -376,6 +376,11 @@ def test_the_left_line_prints_the_mean_at_rest_it_judged_by():
     left = {**left, "pv_rest": None, "returned": False}
     line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
     assert "PV 49.21 degC (the PV is still on its way back: target 50 ± 0.8)" in line
+    # at rest, but off its target: not "at rest" and "on its way back" at once (helper finding)
+    left = {**left, "pv_rest": 48.6, "returned": False}
+    line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
+    assert "PV 48.6 degC at rest (last sample 49.21)" in line
+    assert "(the PV is not back where it was, at rest off it: target 50 ± 0.8)" in line
 
 
 def test_the_rules_table_marks_a_rule_unstable_and_keeps_its_columns_apart():

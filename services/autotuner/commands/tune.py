@@ -842,7 +842,14 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         if lf.get("pv_target") is None:  # seen by a query after the plant was lost
             back = "as its plant shows it once back in reach"
         else:
-            where = "back where it was" if lf.get("returned") else "still on its way back"
+            where = (
+                "back where it was"
+                if lf.get("returned")
+                # judged at rest (no trend beyond its noise), but off its target
+                else "not back where it was, at rest off it"
+                if lf.get("pv_rest") is not None
+                else "still on its way back"
+            )
             within = f" ± {lf['band']:.2g}" if lf.get("band") is not None else ""
             back = f"the PV is {where}: target {lf['pv_target']:.4g}{within}"
         # the mean at rest is what was judged; the last sample alone carries the noise
