@@ -546,12 +546,11 @@ class Recorder:
                 run.gaps += head
                 log.warning(
                     "run %s on %s: its first %d samples did not reach the file (they came "
-                    "before its start, more than the %d messages kept for it: the logger "
-                    "was behind)",
+                    "before its start, more than are kept for a run not yet started: the "
+                    "logger was behind)",
                     run.run_id,
                     run.loop,
                     head,
-                    BUFFER,
                 )
             run.first_seq = msg.seq if run.first_seq is None else run.first_seq
             run.last_seq = msg.seq
