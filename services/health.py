@@ -7,6 +7,7 @@ Exits 0 when the service's liveliness token is on the bus within ``--timeout`` s
 from __future__ import annotations
 
 import argparse
+import sys
 
 from services.autotuner.loop_client import wait_for_token
 from shared import keys
@@ -35,5 +36,5 @@ def run(args: argparse.Namespace) -> int:
     key = TOKENS[args.service](args.prefix, node)
     with open_session(settings_from_args(args), args.timeout) as session:
         up = wait_for_token(session, key, args.timeout)
-    print(f"{args.service}: {'up' if up else 'DOWN'} ({key})")  # the answer: stdout
+    print(f"{args.service}: {'up' if up else 'DOWN'} ({key})", file=sys.stderr)
     return 0 if up else 1

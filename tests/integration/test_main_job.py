@@ -184,8 +184,7 @@ def test_up_with_a_router_tunes_and_stops_cleanly_on_ctrl_c(tmp_path):
             break
     assert len(pids) == 4, "up did not start router, plant, logger and tuner"
     client = ["--prefix", "upt", "-m", "client", "-e", endpoint, "--no-multicast-scouting"]
-    health = cli("health", "tuner", *client)
-    assert health.returncode == 0 and health.stdout.startswith("tuner: up"), health
+    assert cli("health", "tuner", *client).returncode == 0
     r = json.loads(cli("tune", "hx1", "--json", "--no-verify", *client).stdout)
     assert r["status"] == "unverified" and r["applied"] is True
     tune = subprocess.Popen(
