@@ -98,6 +98,20 @@ def query_one(session: zenoh.Session, key: str, model: type[M], timeout: float) 
         time.sleep(0.02)
 
 
+def query_all(session: zenoh.Session, key: str, model: type[M], timeout: float) -> list[M]:
+    """Every valid reply to one query on ``key`` within ``timeout`` s, decoded as ``model``:
+    an error reply or a payload that fails validation is left out (it is no answer)."""
+    out: list[M] = []
+    for reply in session.get(key, timeout=timeout):
+        if reply.ok is None:
+            continue
+        try:
+            out.append(decode_sample(model, reply.ok))
+        except DecodeError:
+            continue
+    return out
+
+
 REPLAY_ATTACHMENT_KEY = "replay"
 
 

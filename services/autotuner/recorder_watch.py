@@ -14,7 +14,6 @@ import zenoh
 
 from services.autotuner.loop_client import wait_for_token
 from shared import keys, wire
-from shared.errors import DecodeError
 from shared.messages import LoggerStatus
 
 ASK = 2.0  # s: a logger's status, asked at the run's start and end
@@ -40,20 +39,11 @@ class RecorderWatch:
 
     def _dropped(self) -> dict[str, int]:
         """Each logger's count of process samples it missed, by node."""
-        out: dict[str, int] = {}
         try:
-            replies = list(self.session.get(self._status_key, timeout=ASK))
+            answers = wire.query_all(self.session, self._status_key, LoggerStatus, ASK)
         except zenoh.ZError:  # the session closing as the service stops
-            return out
-        for reply in replies:
-            if reply.ok is None:
-                continue
-            try:
-                st = wire.decode_sample(LoggerStatus, reply.ok)
-            except DecodeError:
-                continue
-            out[st.node] = st.dropped
-        return out
+            return {}
+        return {st.node: st.dropped for st in answers}
 
     def _on(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr)

@@ -179,14 +179,10 @@ class Bridge:
     def _last_results(self) -> None:
         """Each loop's last result, kept by the tuner (a console started after a run)."""
         try:
-            for reply in self.session.get(keys.tune_result(self.prefix, keys.ANY), timeout=2.0):
-                if reply.ok is not None:
-                    try:
-                        r = wire.decode_sample(TuneResult, reply.ok)
-                    except DecodeError:
-                        continue
-                    if r.loop not in self.results:
-                        self._publish_result(r)
+            key = keys.tune_result(self.prefix, keys.ANY)
+            for r in wire.query_all(self.session, key, TuneResult, 2.0):
+                if r.loop not in self.results:
+                    self._publish_result(r)
         except zenoh.ZError as err:  # the session closing under it
             log.info("last results: %s", err)
 

@@ -21,7 +21,7 @@ import re
 import zenoh
 
 from shared import keys, wire
-from shared.errors import ConfigError, DecodeError
+from shared.errors import ConfigError
 from shared.messages import ServiceStatus
 
 _SHARD = re.compile(r"^([0-9]+)/([0-9]+)$")
@@ -85,13 +85,8 @@ def served_elsewhere(
     """
     counts: dict[str, int] = {}
     key = keys.service_status(prefix, "plant_sim", keys.ANY)
-    for reply in session.get(key, timeout=timeout):
-        if reply.ok is None:
-            continue
-        try:
-            st = wire.decode_sample(ServiceStatus, reply.ok)
-        except DecodeError:  # a malformed answer is no claim on our loops
-            continue
+    # a malformed answer is no claim on our loops (query_all leaves it out)
+    for st in wire.query_all(session, key, ServiceStatus, timeout):
         for lid in mine.intersection(st.loops):
             counts[lid] = counts.get(lid, 0) + 1
     return sorted(lid for lid, c in counts.items() if c > 1)
