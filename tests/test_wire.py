@@ -338,3 +338,33 @@ def test_a_tune_request_over_the_bus_is_bounded_as_the_cli_bounds_it() -> None:
     with pytest.raises(DecodeError) as err:
         wire.decode(messages.TuneRequest, payload, "application/json;TuneRequest")
     assert str(err.value).startswith("max_time: Input should be less than or equal to 10000000")
+
+
+def test_query_all_decodes_every_valid_answer_and_leaves_out_the_rest():
+    """One query: a valid answer decoded, a payload that fails validation and an error
+    reply left out (one session on loopback, alone)."""
+    from shared.messages import LoggerStatus
+    from shared.session import ZenohSettings, open_session
+
+    good = LoggerStatus(
+        node="a",
+        runs_dir="runs",
+        open_runs=[],
+        finished_runs=1,
+        received=5,
+        written=3,
+        invalid=0,
+        dropped=2,
+    )
+
+    def answer(query):
+        query.reply("qa/logger/a/status", wire.encode(good))
+        query.reply("qa/logger/b/status", b'{"node": "b"}')  # fails validation
+        query.reply_err(b"no status")
+
+    alone = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
+    with open_session(alone) as s:
+        q = s.declare_queryable("qa/logger/*/status", answer)
+        got = wire.query_all(s, "qa/logger/*/status", LoggerStatus, 2.0)
+        q.undeclare()
+    assert got == [good]
