@@ -12,6 +12,7 @@ finishes its files before its token goes.
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 from collections.abc import Callable
@@ -146,4 +147,10 @@ def run_until_stopped(settings: ZenohSettings, make: Callable[[zenoh.Session], S
     stop = threading.Event()
     install_stop_handlers(stop)
     with open_session(settings) as session:
-        make(session).run(stop)
+        service = make(session)
+        # what start-up made (modules, the plant's models) lives as long as the process: out of
+        # the collector's sight, a full collection on the hot path takes microseconds, not the
+        # tens of milliseconds of walking every module's objects (measured: 25-30 ms pauses
+        # mid-advance in the tuner)
+        gc.freeze()
+        service.run(stop)

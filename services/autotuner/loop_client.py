@@ -452,6 +452,31 @@ class LoopClient:
                 self._flight = max(0, self._flight - 1)
                 return msg
 
+    def _take_ready(self, limit: int) -> list[ProcessSample]:
+        """Lockstep: up to ``limit`` samples of a batch already in (decoded as it came), in
+        order, under one lock: the samples of an advance are taken together, not one wait
+        each. Empty when the next message is anything else, or nothing is in: ``_take``."""
+        out: list[ProcessSample] = []
+        if self._held:
+            return out
+        with self._ready:
+            inbox, pv_key = self._inbox, self._pv_key
+            while inbox and len(out) < limit:
+                key, payload, _ = inbox[0]
+                if key != pv_key or not isinstance(payload, ProcessSample):
+                    break
+                inbox.popleft()
+                out.append(payload)
+        if out:
+            self.last_sample = out[-1]
+            self._flight = max(0, self._flight - len(out))
+        return out
+
+    def _give_back(self, samples: list[ProcessSample]) -> None:
+        """Put taken samples back at the head of the inbox, in order (not this advance's)."""
+        with self._ready:
+            self._inbox.extendleft((self._pv_key, s, "") for s in reversed(samples))
+
     def advance(self, steps: int) -> list[ProcessSample]:
         """Lockstep: the next ``steps`` samples (those already asked for first), the rest
         asked for in one round trip."""
@@ -462,7 +487,8 @@ class LoopClient:
         if missing > 0:
             self._ask(missing)
         while len(out) < steps:
-            out.append(self._take(steps - len(out)))
+            ready = self._take_ready(steps - len(out))
+            out += ready if ready else [self._take(steps - len(out))]
         return out
 
     def samples(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
@@ -496,9 +522,15 @@ class LoopClient:
         self._flight += steps
         out: list[ProcessSample] = []
         while self._flight > 0:
-            out.append(self._take())
-            if cmd.stops_at(out[-1].pv, out[-1].op):
-                self._flight = 0  # the plant stopped here: nothing more is coming
+            for j, s in enumerate(got := self._take_ready(self._flight) or [self._take()]):
+                if cmd.stops_at(s.pv, s.op):
+                    out += got[: j + 1]
+                    if j + 1 < len(got):  # the plant stopped at s: these came after it
+                        self._give_back(got[j + 1 :])
+                    self._flight = 0  # the plant stopped here: nothing more is coming
+                    break
+            else:
+                out += got
         return out
 
     def hold_arrived(self) -> list[ProcessSample]:

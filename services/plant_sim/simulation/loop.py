@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from services.plant_sim.simulation import linear_steps
 from services.plant_sim.simulation.models import ProcessModel
 from shared.control.pid import PidBlock, PidSettings
 from shared.errors import one_line as brief
@@ -223,7 +224,18 @@ class SimLoop:
         self, steps: int, stops_at: Callable[[float, float], bool] | None = None
     ) -> list[ProcessSample]:
         """Lockstep: ``steps`` periods as ``advance`` does each, ending early after the first
-        sample whose PV and output ``stops_at`` names (an advance's stops)."""
+        sample whose PV and output ``stops_at`` names (an advance's stops). A plain linear
+        loop is stepped by ``linear_steps`` (the same samples to the bit, a fraction of the
+        cost)."""
+        if linear_steps.steppable(self):
+            with np.errstate(all="ignore"):
+                return linear_steps.advance(self, steps, stops_at)
+        return self.advance_slowly(steps, stops_at)
+
+    def advance_slowly(
+        self, steps: int, stops_at: Callable[[float, float], bool] | None = None
+    ) -> list[ProcessSample]:
+        """``advance_many`` one ``advance`` at a time: any model, a faulted loop."""
         out: list[ProcessSample] = []
         with np.errstate(all="ignore"):
             for _ in range(steps):
