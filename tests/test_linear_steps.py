@@ -9,9 +9,12 @@ same sample and leave the noise generator where sample-by-sample stepping leaves
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.linear_steps import steppable
 from services.plant_sim.simulation.loop import SimLoop
+from shared.control.lti import state_step
 from shared.messages import (
     DisturbanceCommand,
     GainsCommand,
@@ -133,7 +136,8 @@ def test_a_model_that_overflows_mid_advance_faults_as_it_always_did():
     plant = {"seed": 3, "loops": {"u1": {**PLANT["loops"]["hx1"], "model": "heat_exchanger"}}}
     fast, slow = build_plant(plant)["u1"], build_plant(plant)["u1"]
     for lp in (fast, slow):
-        lp.process._sys._phi = lp.process._sys._phi * 1e30
+        sysm = lp.process._sys
+        sysm._step = state_step(replace(sysm.sys, phi=sysm.sys.phi * 1e30))
         lp.apply(SetpointCommand(loop="u1", sp=70.0))
     a = fast.advance_many(300)
     b = slow.advance_slowly(300)
@@ -142,3 +146,16 @@ def test_a_model_that_overflows_mid_advance_faults_as_it_always_did():
     assert "returned PV" in fast.fault
     assert fast.status("n", "lockstep", "q") == slow.status("n", "lockstep", "q")
     assert fast.advance_many(5) == slow.advance_slowly(5)  # held, faulted
+
+
+def test_a_block_whose_output_stops_being_finite_faults_as_it_always_did():
+    """The integral term not finite mid-run (as memory corrupted or a bug would leave it): the
+    SimLoop steps that sample and faults the loop, naming the PID block's output."""
+    fast, slow = build_plant(PLANT)["hx1"], build_plant(PLANT)["hx1"]
+    assert fast.advance_many(50) == slow.advance_slowly(50)
+    for lp in (fast, slow):
+        lp.pid.terms.i = float("nan")
+    assert fast.advance_many(30) == slow.advance_slowly(30)
+    assert fast.fault is not None and fast.fault == slow.fault
+    assert "PID block's output" in fast.fault
+    assert fast.status("n", "lockstep", "q") == slow.status("n", "lockstep", "q")

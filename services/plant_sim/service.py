@@ -68,6 +68,17 @@ CHANNEL_CAPACITY = 65536
 
 
 @dataclass(frozen=True)
+class Encoded:
+    """A message already encoded as ``model``'s JSON (a lockstep batch: ``wire.encode_samples``)."""
+
+    model: type[Message]
+    payload: bytes
+
+
+Outbox = list[tuple[str, Message | Encoded]]  # what one command publishes, in order
+
+
+@dataclass(frozen=True)
 class ServiceOptions:
     prefix: str = keys.DEFAULT_PREFIX
     node: str = "plant"
@@ -201,9 +212,12 @@ class PlantService:
             overruns=self.overruns,
         )
 
-    def _publish(self, out: list[tuple[str, Message]]) -> None:
+    def _publish(self, out: Outbox) -> None:
         for key, msg in out:
-            self.publishers.put(key, msg)
+            if isinstance(msg, Encoded):
+                self.publishers.put_json(key, msg.model, msg.payload)
+            else:
+                self.publishers.put(key, msg)
 
     # --- commands -------------------------------------------------------------------------
 
@@ -212,7 +226,7 @@ class PlantService:
         loop: SimLoop | None,
         category: str,
         reason: str,
-        out: list[tuple[str, Message]],
+        out: Outbox,
         source: str | None = None,
     ) -> None:
         self.rejected_by_reason[category] += 1
@@ -232,7 +246,7 @@ class PlantService:
 
     def handle_command(self, key: str, payload: bytes, encoding: str | None) -> None:
         """Validate and apply one command, then publish what it caused."""
-        out: list[tuple[str, Message]] = []
+        out: Outbox = []
         with self.lock:
             try:
                 self._handle(key, payload, encoding, out)
@@ -240,9 +254,7 @@ class PlantService:
                 self._settle()
         self._publish(out)
 
-    def _handle(
-        self, key: str, payload: bytes, encoding: str | None, out: list[tuple[str, Message]]
-    ) -> None:
+    def _handle(self, key: str, payload: bytes, encoding: str | None, out: Outbox) -> None:
         prefix = self.opt.prefix
         parsed = keys.parse_command(prefix, key)
         if parsed is None:
@@ -343,14 +355,14 @@ class PlantService:
                 return
             had = loop.fault
             # the advance ends early with a sample its stops name (a relay's next decision)
-            samples = loop.advance_many(cmd.steps, cmd.stops_at if cmd.banded else None)
-            if len(samples) == 1:
-                out.append((keys.pv(prefix, loop_id), samples[0]))
+            rows = loop.advance_rows(cmd.steps, cmd.stops_at if cmd.banded else None)
+            if len(rows) == 1:
+                out.append((keys.pv(prefix, loop_id), ProcessSample(**rows[0])))
             else:  # one message per batch: a message's cost on the bus is per message
                 batch_key = keys.pv_batch(prefix, loop_id)
-                for start in range(0, len(samples), MAX_BATCH):
-                    part = samples[start : start + MAX_BATCH]
-                    out.append((batch_key, ProcessSamples(loop=loop_id, samples=part)))
+                for start in range(0, len(rows), MAX_BATCH):
+                    part = wire.encode_samples(loop_id, rows[start : start + MAX_BATCH])
+                    out.append((batch_key, Encoded(ProcessSamples, part)))
             if loop.fault and not had:  # the model failed: say so once, on the status
                 out.append((keys.status(prefix, loop_id), self.loop_status(loop, "fault")))
         elif isinstance(cmd, SyncCommand):
@@ -397,11 +409,11 @@ class PlantService:
         except Exception:
             log.exception("query %s failed", query.selector)
 
-    def _answer(self, asked: zenoh.KeyExpr, what: str) -> list[tuple[str, Message]]:
+    def _answer(self, asked: zenoh.KeyExpr, what: str) -> Outbox:
         prefix = self.opt.prefix
         if what == "service":
             return [(keys.service_status(prefix, SERVICE, self.opt.node), self.service_status())]
-        replies: list[tuple[str, Message]] = []
+        replies: Outbox = []
         for loop_id, loop in self.loops.items():
             key = keys.status(prefix, loop_id) if what == "status" else keys.info(prefix, loop_id)
             if asked.intersects(zenoh.KeyExpr(key)):
@@ -423,7 +435,7 @@ class PlantService:
 
     def expire_lease(self, loop_id: str, why: str) -> None:
         """Restore a leased loop to its pre-experiment state (the supervisor is gone)."""
-        out: list[tuple[str, Message]] = []
+        out: Outbox = []
         with self.lock:
             lease = self.leases.pop(loop_id, None)
             if lease is None:
