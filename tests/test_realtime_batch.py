@@ -184,7 +184,7 @@ def test_sample_json_decodes_to_the_same_sample(value):
 def _blow_up(loop, part: str) -> None:
     """Make ``loop``'s model state (an unstable user model's) or its integral term not finite."""
     if part == "model":
-        loop.process._sys._x = [math.inf] * len(loop.process._sys._x)
+        loop.process._sys._x[:] = math.inf
     else:
         loop.pid.terms.i = math.nan
 

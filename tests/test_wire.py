@@ -368,3 +368,25 @@ def test_query_all_decodes_every_valid_answer_and_leaves_out_the_rest():
         got = wire.query_all(s, "qa/logger/*/status", LoggerStatus, 2.0)
         q.undeclare()
     assert got == [good]
+
+
+def test_samples_encoded_from_their_fields_are_the_bytes_of_the_model() -> None:
+    """``encode_samples`` (the plant's lockstep batches, built from plain dicts) gives the very
+    bytes the model's own serializer gives: every number's shortest form, tiny, huge, −0.0
+    and subnormal included, and both modes."""
+    values = [0.1, 1e-5, 1e22, 123456.789, -0.0, 5e-324, 1.7976931348623157e308, 60.000000001]
+    rows = [
+        {
+            "loop": "a.b-c_1",
+            "seq": 7 + k,
+            "t": abs(v),
+            "pv": v,
+            "sp": -v / 3.0,
+            "op": min(abs(v), 100.0),
+            "mode": "auto" if k % 2 else "manual",
+        }
+        for k, v in enumerate(values)
+    ]
+    model = ProcessSamples(loop="a.b-c_1", samples=[ProcessSample(**r) for r in rows])
+    assert wire.encode_samples("a.b-c_1", rows) == wire.encode(model)
+    assert wire.decode(ProcessSamples, wire.encode_samples("a.b-c_1", rows)) == model

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,118 +134,35 @@ def tf_to_ss(num: list[float], den: list[float]) -> tuple[np.ndarray, ...]:
     return a, b, c, float(np.asarray(d).item())
 
 
-StateStep = Callable[[Sequence[float], float, float], tuple[list[float], float]]
-
-
-def state_step(sys: DiscreteDelaySystem) -> StateStep:
-    """``sys``'s state update on floats: ``step(x, u_new, u_old)`` gives (x_next, C·x_next).
-
-    Every stepping of a linear model (one loop here and in ``linear_steps``, many as arrays in
-    ``next_states``) forms each sum in one order, so that all give the same samples to the
-    bit: x_next[i] = ((Φ[i,0]·x[0] + Φ[i,1]·x[1] + …) + Γ_new[i]·u_new) + Γ_old[i]·u_old, and
-    C·x_next = C[0]·x_next[0] + C[1]·x_next[1] + …, each left to right. Why not ``Φ @ x``: a
-    BLAS product may fuse multiply-adds, which no loop over floats can match, and on a single
-    loop it costs more than the sums themselves (numpy's per-call overhead)."""
-    n = sys.order
-    phi = sys.phi.tolist()
-    g_new = sys.gamma_new[:, 0].tolist()
-    g_old = sys.gamma_old[:, 0].tolist()
-    c = sys.c[0].tolist()
-    if n == 1:
-        ((p,),), (g,), (h,), (c0,) = phi, g_new, g_old, c
-
-        def step1(x: Sequence[float], u: float, uo: float) -> tuple[list[float], float]:
-            x0 = p * x[0] + g * u + h * uo
-            return [x0], c0 * x0
-
-        return step1
-    if n == 2:
-        (p00, p01), (p10, p11) = phi
-        (g0, g1), (h0, h1), (c0, c1) = g_new, g_old, c
-
-        def step2(x: Sequence[float], u: float, uo: float) -> tuple[list[float], float]:
-            a, b = x
-            x0 = p00 * a + p01 * b + g0 * u + h0 * uo
-            x1 = p10 * a + p11 * b + g1 * u + h1 * uo
-            return [x0, x1], c0 * x0 + c1 * x1
-
-        return step2
-    rows = list(zip(phi, g_new, g_old, strict=True))
-
-    def step(x: Sequence[float], u: float, uo: float) -> tuple[list[float], float]:
-        nxt = []
-        for row, g, h in rows:
-            acc = row[0] * x[0]
-            for j in range(1, n):
-                acc += row[j] * x[j]
-            nxt.append(acc + g * u + h * uo)
-        y = c[0] * nxt[0]
-        for j in range(1, n):
-            y += c[j] * nxt[j]
-        return nxt, y
-
-    return step
-
-
-def next_states(
-    phi: np.ndarray,
-    x: np.ndarray,
-    g_new: np.ndarray,
-    u_new: np.ndarray,
-    g_old: np.ndarray,
-    u_old: np.ndarray,
-) -> np.ndarray:
-    """``state_step`` for many systems at once: ``phi`` (m, n, n), ``x``, ``g_new``, ``g_old``
-    (m, n), ``u_new``, ``u_old`` (m,); the same sums in the same order, elementwise (numpy's
-    ``*`` and ``+`` round as Python's float operations do), so each row equals its system
-    stepped alone to the bit."""
-    out = np.empty_like(x)
-    for i in range(x.shape[1]):
-        acc = phi[:, i, 0] * x[:, 0]
-        for j in range(1, x.shape[1]):
-            acc = acc + phi[:, i, j] * x[:, j]
-        out[:, i] = acc + g_new[:, i] * u_new + g_old[:, i] * u_old
-    return out
-
-
-def outputs(c: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """C·x of many systems (``c``, ``x``: (m, n); n ≥ 1), summed as ``state_step`` sums it."""
-    y = c[:, 0] * x[:, 0]
-    for j in range(1, x.shape[1]):
-        y = y + c[:, j] * x[:, j]
-    return y
-
-
 class DelayedLinearSystem:
     """State and delay line of a DiscreteDelaySystem, in deviation variables (rest = 0).
 
-    ``step`` runs once per sample in every loop the plant steps: its arithmetic is
-    ``state_step``'s, on floats (the state is a list)."""
+    ``step`` runs once per sample in every loop the plant steps: the arrays it multiplies
+    are looked up once here (the very same arrays, so the arithmetic is unchanged to the bit)."""
 
     def __init__(self, sys: DiscreteDelaySystem):
         self.sys = sys
-        self._x: list[float] = [0.0] * sys.order
+        self._x = np.zeros(sys.order)
         self._inputs: deque[float] = deque(
             [0.0] * (sys.delay_samples + 2), maxlen=sys.delay_samples + 2
         )
         self._n = sys.delay_samples
-        self._step = state_step(sys)
+        self._phi = sys.phi
+        self._g_new = sys.gamma_new[:, 0]
+        # without a fractional delay Γ_old is zero: its term adds nothing (but its cost)
+        self._g_old = sys.gamma_old[:, 0] if sys.delay_fraction > 0.0 else None
+        self._c = sys.c[0]
         self._d = sys.d
 
     def reset(self) -> None:
         """Back to rest: zero state, zero inputs in the delay line."""
-        self._x = [0.0] * self.sys.order
+        self._x[:] = 0.0
         for i in range(len(self._inputs)):
             self._inputs[i] = 0.0
 
     def output(self) -> float:
         """y at the current sample instant (feed-through sees the input held before it)."""
-        c = self.sys.c[0].tolist()
-        y = 0.0
-        if c:
-            y = c[0] * self._x[0]
-            for j in range(1, len(c)):
-                y += c[j] * self._x[j]
+        y = float(self._c @ self._x) if self.sys.order else 0.0
         # After step(u[k]) the line holds u[k] at index 0; u(t_{k+1}⁻ − θ) = u[k−n] is at n.
         return y + self._d * self._inputs[self._n]
 
@@ -255,8 +171,11 @@ class DelayedLinearSystem:
         inputs, n = self._inputs, self._n
         inputs.appendleft(float(u))
         if self.sys.order:
-            self._x, y = self._step(self._x, inputs[n], inputs[n + 1])
-            return y + self._d * inputs[n]
+            x = self._phi @ self._x + self._g_new * inputs[n]
+            if self._g_old is not None:
+                x = x + self._g_old * inputs[n + 1]
+            self._x = x
+            return float(self._c @ x) + self._d * inputs[n]
         return 0.0 + self._d * inputs[n]
 
 

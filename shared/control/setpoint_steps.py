@@ -4,8 +4,8 @@ Each candidate's loop is the plant's own PID block (``pid``: ISA form, derivativ
 measurement through its filter Tf = Td/N, anti-windup, output limits 0–100 %) at rest at a
 50 % output, closing the plant discretised exactly (``lti.discretize``), in deviations from
 rest; at t = 0 its setpoint steps by that candidate's ``step``. All candidates advance
-together, one array update per sample (``pid_batch``, and the plant's state by
-``lti.next_states``), in the same floating-point operations as ``PidBlock.update`` and
+together, one array update per sample (``pid_batch``, and the plant's state as a stacked
+``matmul``), in the same floating-point operations as ``PidBlock.update`` and
 ``DelayedLinearSystem.step`` stepped alone, so every sample equals theirs to the bit
 (``tests/test_setpoint_steps.py``) — at a fraction of the cost: the tuner judges fifteen rules
 at the end of every run, and the per-sample Python loop of each was most of its CPU time.
@@ -18,7 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from shared.control.forms import IsaGains
-from shared.control.lti import DiscreteDelaySystem, next_states, outputs
+from shared.control.lti import DiscreteDelaySystem
 from shared.control.pid import PidSettings
 from shared.control.pid_batch import PidGainArrays, coefficients, execute, filtered_rate
 
@@ -59,9 +59,8 @@ def setpoint_steps(
     sp = np.asarray(steps, dtype=float).reshape(count)
     order, delay = system.order, system.delay_samples
     phi = np.broadcast_to(system.phi, (count, order, order))
-    g_new = np.broadcast_to(system.gamma_new[:, 0], (count, order))
-    g_old = np.broadcast_to(system.gamma_old[:, 0], (count, order))
-    c = np.broadcast_to(system.c[0], (count, order))
+    g_new, g_old = system.gamma_new[:, 0], system.gamma_old[:, 0]
+    c = np.broadcast_to(system.c[0], (count, 1, order))
     width = delay + 2  # the inputs of the last n + 2 samples, newest at ``pos``
     ring = np.zeros((count, width))
     x = np.zeros((count, order))
@@ -84,8 +83,9 @@ def setpoint_steps(
             u_new = ring[:, (pos - delay) % width]
             if order:
                 u_old = ring[:, (pos - delay - 1) % width]
-                x = next_states(phi, x, g_new, u_new, g_old, u_old)
-                out = outputs(c, x)
+                x = np.matmul(phi, x[:, :, None])[:, :, 0] + g_new * u_new[:, None]
+                x = x + g_old * u_old[:, None]
+                out = np.matmul(c, x[:, :, None])[:, 0, 0]
             else:
                 out = np.zeros(count)
             pv = out + system.d * u_new

@@ -4,8 +4,8 @@ A ``LinearBatch`` holds, as arrays over its loops, exactly what ``SimLoop.advanc
 for a linear model (``TransferFunctionModel`` and the presets built on it): the state x, the
 input delay line, the measured PV, the PID block's state, the held output and the sample
 count. One ``tick`` does for every loop what ``SimLoop.advance(held_op)`` does for one, in the
-same floating-point operations in the same order (the state update is ``lti.next_states``,
-the array form of the per-loop ``lti.state_step``), so each loop's samples equal the per-loop
+same floating-point operations in the same order (the state update is a stacked ``matmul``,
+the same BLAS call per loop as ``Φ @ x``), so each loop's samples equal the per-loop
 stepping's to the bit. Noise is drawn from each loop's own generator, as before.
 
 The loop objects stay the truth for everything else (settings, gains, commands): before a
@@ -23,7 +23,6 @@ import numpy as np
 
 from services.plant_sim.simulation.loop import SimLoop
 from services.plant_sim.simulation.models import TransferFunctionModel
-from shared.control.lti import next_states, outputs
 from shared.control.pid import PidTerms
 from shared.control.pid_batch import PidGainArrays, execute, filtered_rate
 
@@ -71,7 +70,7 @@ class LinearBatch:
         self.phi = np.array([s.phi for s in systems]).reshape(n, order, order)
         self.g_new = np.array([s.gamma_new[:, 0] for s in systems]).reshape(n, order)
         self.g_old = np.array([s.gamma_old[:, 0] for s in systems]).reshape(n, order)
-        self.c = np.array([s.c[0] for s in systems]).reshape(n, order)
+        self.c = np.array([s.c[0] for s in systems]).reshape(n, 1, order)
         self.d = np.array([s.d for s in systems])
         self.delay = np.array([s.delay_samples for s in systems], dtype=np.int64)
         self.pv0 = np.array([lp.process.pv0 for lp in loops])
@@ -152,7 +151,7 @@ class LinearBatch:
         if not self.active[j]:
             return lp
         sysm = lp.process._sys
-        sysm._x = self.x[j].tolist()
+        sysm._x = self.x[j].copy()
         n = len(sysm._inputs)
         sysm._inputs = deque(
             (float(self.ring[j, (self.pos - k) % self.width]) for k in range(n)), maxlen=n
@@ -188,11 +187,9 @@ class LinearBatch:
         late = (pos - self.delay) % w
         u_new = self.ring[self.rows, late]
         u_old = self.ring[self.rows, (late - 1) % w]
-        if self.x.shape[1]:
-            x = next_states(self.phi, self.x, self.g_new, u_new, self.g_old, u_old)
-            y = outputs(self.c, x)
-        else:
-            x, y = self.x, np.zeros(len(u))
+        x = np.matmul(self.phi, self.x[:, :, None])[:, :, 0]
+        x = x + self.g_new * u_new[:, None] + self.g_old * u_old[:, None]
+        y = np.matmul(self.c, x[:, :, None])[:, 0, 0] if x.shape[1] else np.zeros(len(u))
         pv_true = self.pv0 + (y + self.d * u_new)
         model_ok = np.isfinite(pv_true)
         failed = [int(j) for j in np.flatnonzero(~model_ok & self.active)]
