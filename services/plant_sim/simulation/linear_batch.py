@@ -21,23 +21,15 @@ from collections import deque
 
 import numpy as np
 
+from services.plant_sim.simulation.linear_steps import steppable
 from services.plant_sim.simulation.loop import SimLoop
-from services.plant_sim.simulation.models import TransferFunctionModel
 from shared.control.pid import PidTerms
 from shared.control.pid_batch import PidGainArrays, execute, filtered_rate
-
-# the methods a linear model's class must not override to be stepped here
-_LINEAR_METHODS = ("reset", "step", "disturbance_names", "set_disturbance")
 
 
 def batchable(loop: SimLoop) -> bool:
     """A loop whose model is a plain linear one (the class's stepping is ours) and not faulted."""
-    cls = type(loop.process)
-    return (
-        loop.fault is None
-        and isinstance(loop.process, TransferFunctionModel)
-        and all(getattr(cls, m) is getattr(TransferFunctionModel, m) for m in _LINEAR_METHODS)
-    )
+    return steppable(loop)
 
 
 def line_width(delay_samples: int) -> int:

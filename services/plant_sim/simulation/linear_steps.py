@@ -30,18 +30,22 @@ from shared.control.pid import PidTerms
 if TYPE_CHECKING:
     from services.plant_sim.simulation.loop import SimLoop
 
-# the methods a linear model's class must not override to be stepped here
+# the methods a linear model's class must not override to be stepped as ours
 _LINEAR_METHODS = ("reset", "step", "disturbance_names", "set_disturbance")
 
 
-def steppable(loop: SimLoop) -> bool:
-    """A loop whose model is a plain linear one (the class's stepping is ours), not faulted."""
-    cls = type(loop.process)
-    return (
-        loop.fault is None
-        and isinstance(loop.process, TransferFunctionModel)
-        and all(getattr(cls, m) is getattr(TransferFunctionModel, m) for m in _LINEAR_METHODS)
+def plain_linear(process: object) -> bool:
+    """A plain linear model: a ``TransferFunctionModel`` whose class steps it as ours does
+    (a user's subclass that overrides its stepping is stepped by its own methods)."""
+    cls = type(process)
+    return isinstance(process, TransferFunctionModel) and all(
+        getattr(cls, m) is getattr(TransferFunctionModel, m) for m in _LINEAR_METHODS
     )
+
+
+def steppable(loop: SimLoop) -> bool:
+    """A loop whose model is a plain linear one, not faulted."""
+    return loop.fault is None and loop.plain_linear
 
 
 def advance(

@@ -177,6 +177,7 @@ class SimLoop:
         self._refusals: dict[str, tuple[int, str]] = {}  # by sender: count, last reason
         self._disturbances: dict[str, float] = {}
         self._disturbances = self.disturbances()
+        self.plain_linear = linear_steps.plain_linear(process)  # its class never changes
 
     @property
     def t(self) -> float:
