@@ -7,12 +7,13 @@ unit. Messages are strict: wrong types, NaN/inf and unknown fields are rejected 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.control.pid import Action, Mode, PidSettings
-from shared.control.signals import ends_batch
+from shared.control.signals import end_test
 
 ClockMode = Literal["lockstep", "realtime"]
 
@@ -257,8 +258,13 @@ class AdvanceCommand(Command):
     def stops_at(self, pv: float, op: float | None = None) -> bool:
         """True when a sample of PV ``pv`` (and output ``op``, %) ends this advance
         (``ends_batch``: the PV, or the output, at or past a stop)."""
+        return self.stop_test()(pv, op)
+
+    def stop_test(self) -> Callable[[float, float | None], bool]:
+        """``stops_at`` as a function of the sample, the stops read once (``end_test``): for
+        a test asked of every sample of the advance."""
         pv_stops = (self.stop_below, self.stop_above)
-        return ends_batch(pv, op, pv_stops, (self.stop_op_below, self.stop_op_above))
+        return end_test(pv_stops, (self.stop_op_below, self.stop_op_above))
 
 
 class SyncCommand(Command):

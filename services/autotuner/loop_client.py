@@ -521,9 +521,10 @@ class LoopClient:
         self.send(cmd)
         self._flight += steps
         out: list[ProcessSample] = []
+        ends = cmd.stop_test()
         while self._flight > 0:
             for j, s in enumerate(got := self._take_ready(self._flight) or [self._take()]):
-                if cmd.stops_at(s.pv, s.op):
+                if ends(s.pv, s.op):
                     out += got[: j + 1]
                     if j + 1 < len(got):  # the plant stopped at s: these came after it
                         self._give_back(got[j + 1 :])

@@ -336,7 +336,8 @@ class _Record:
     def samples(self, n: int, band: Band | None = None) -> list[ProcessSample]:
         out = self._samples[self._next : self._next + n]
         if band is not None:  # the live loop stopped where the PV left the band
-            ends = [i for i, s in enumerate(out) if band.ends(s.pv, s.op)]
+            test = band.end_test()
+            ends = [i for i, s in enumerate(out) if test(s.pv, s.op)]
             out = out[: ends[0] + 1] if ends else out
         self._next += len(out)
         return out

@@ -117,7 +117,7 @@ class LocalLoopClient:
         """Step the loop ``steps`` periods, stopping after the first sample that leaves
         ``band`` as the plant does (``AdvanceCommand.stops_at``); their samples (what the
         plant would publish)."""
-        out = self.sim.advance_many(steps, band.ends if band is not None else None)
+        out = self.sim.advance_many(steps, band.end_test() if band is not None else None)
         if out:
             self.last_sample = out[-1]
         return out

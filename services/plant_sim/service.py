@@ -355,7 +355,7 @@ class PlantService:
                 return
             had = loop.fault
             # the advance ends early with a sample its stops name (a relay's next decision)
-            rows = loop.advance_rows(cmd.steps, cmd.stops_at if cmd.banded else None)
+            rows = loop.advance_rows(cmd.steps, cmd.stop_test() if cmd.banded else None)
             if len(rows) == 1:
                 out.append((keys.pv(prefix, loop_id), ProcessSample(**rows[0])))
             else:  # one message per batch: a message's cost on the bus is per message

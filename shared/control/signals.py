@@ -12,6 +12,7 @@ replayed record are.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -172,8 +173,25 @@ def ends_batch(
     """A sample (PV ``pv``, output ``op`` %, None: not known) ends a banded batch: its PV at
     or past a PV stop, or its output at or past an output stop (``outside``; a side with no
     stop is None). The one test of the plant's advance and the tuner's band."""
-    if outside(pv, *pv_stops):
-        return True
-    if op is None or op_stops == (None, None):
-        return False
-    return outside(op, *op_stops)
+    return end_test(pv_stops, op_stops)(pv, op)
+
+
+def end_test(
+    pv_stops: tuple[float | None, float | None],
+    op_stops: tuple[float | None, float | None],
+) -> Callable[[float, float | None], bool]:
+    """``ends_batch`` with its stops fixed, as a function of the sample: asked of every sample
+    of a batch (by the plant as it steps, by the tuner as it takes them), where building the
+    stops' tuples each time cost more than the test."""
+    below, above = pv_stops
+    op_below, op_above = op_stops
+    no_op_stop = op_below is None and op_above is None
+
+    def ends(pv: float, op: float | None = None) -> bool:
+        if not ((below is None or pv > below) and (above is None or pv < above)):
+            return True
+        if op is None or no_op_stop:
+            return False
+        return not ((op_below is None or op > op_below) and (op_above is None or op < op_above))
+
+    return ends

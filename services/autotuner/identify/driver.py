@@ -82,8 +82,9 @@ def until_band(step: Callable[[], S], n: int, band: Band | None) -> list[S]:
     """``n`` samples from ``step``, ending with the first whose PV leaves ``band`` (None: all
     ``n``): a port's batch as the driver asks for it."""
     out: list[S] = []
+    ends = band.end_test() if band is not None else None
     for _ in range(n):
         out.append(step())
-        if band is not None and band.ends(out[-1].pv, out[-1].op):
+        if ends is not None and ends(out[-1].pv, out[-1].op):
             break
     return out

@@ -13,12 +13,13 @@ Units: time in s (sim time), PV in engineering units, output in % of its range.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
-from shared.control.signals import Sample, ends_batch
+from shared.control.signals import Sample, end_test, ends_batch
 
 
 @dataclass(frozen=True)
@@ -278,6 +279,11 @@ class Band:
     def ends(self, pv: float, op: float | None = None) -> bool:
         """True for the sample (PV ``pv``, output ``op``) that ends a batch."""
         return ends_batch(pv, op, self.stops(), self.op_stops())
+
+    def end_test(self) -> Callable[[float, float | None], bool]:
+        """``ends`` as a function of the sample, the stops read once (``end_test``): for a
+        batch's every sample."""
+        return end_test(self.stops(), self.op_stops())
 
     def stops(self) -> tuple[float | None, float | None]:
         """(stop_below, stop_above) of an AdvanceCommand: None for an unbounded side."""
