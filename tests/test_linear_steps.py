@@ -20,72 +20,23 @@ from shared.messages import (
     PidGains,
     SetpointCommand,
 )
+from tests.test_realtime_batch import PLANT as REALTIME
 
+# the realtime batches' loops (PID forms, saturation, noise, whole and fractional dead times,
+# direct action, sp tracking, third order, order 0), the physical one left out, and hx2 in
+# auto with noise
 PLANT = {
     "seed": 11,
-    "loops": {
-        # second order, whole dead time, noise, a full PID with a setpoint weight
-        "hx1": {
-            "model": "heat_exchanger",
-            "sample_time": 0.25,
-            "noise_std": 0.05,
-            "mode": "auto",
-            "setpoint": 61.0,
-            "pid": {"kc": 3.0, "ti": 40.0, "td": 4.0, "n": 8.0, "beta": 0.7},
-        },
-        # a fractional dead time, direct action, narrow output limits, noise
-        "hx2": {
-            "model": "heat_exchanger",
-            "sample_time": 0.25,
-            "delay": 1.1,
-            "action": "direct",
-            "op_limits": [30.0, 45.0],
-            "noise_std": 0.03,
-            "mode": "auto",
-            "pid": {"kc": 2.0, "ti": 20.0},
-        },
-        # PI driven into its output limit (anti-windup), a PV pinned at its range
-        "f1": {
-            "model": "fopdt",
-            "sample_time": 0.25,
-            "gain": 2.0,
-            "time_constant": 3.0,
-            "delay": 0.6,
-            "op_limits": [0.0, 60.0],
-            "mode": "auto",
-            "setpoint": 95.0,
-            "pid": {"kc": 1.5, "ti": 2.0},
-        },
-        # integrating, setpoint tracking in manual, noise
-        "i1": {
-            "model": "ipdt",
-            "sample_time": 0.25,
-            "gain": 0.02,
-            "delay": 0.5,
-            "sp_track": True,
-            "noise_std": 0.2,
-        },
-        # third order, P only
-        "t3": {
-            "model": "transfer_function",
-            "num": [6.0],
-            "den": [1.0, 6.0, 11.0, 6.0],
-            "delay": 0.37,
-            "sample_time": 0.1,
-            "mode": "auto",
-            "setpoint": 55.0,
-            "pid": {"kc": 0.8},
-        },
-        # a static gain (order 0)
-        "g0": {"model": "transfer_function", "num": [0.5], "den": [1.0], "sample_time": 0.1},
-    },
+    "loops": {lid: dict(cfg) for lid, cfg in REALTIME["loops"].items() if lid != "lvl"},
 }
+PLANT["loops"]["hx2"].update(noise_std=0.03, mode="auto", pid={"kc": 2.0, "ti": 20.0})
 
 # (advance length, a band on the PV as (low, high) or None, commands after it)
 SCRIPT = [
     (37, None, [SetpointCommand(loop="hx1", sp=58.0), OutputCommand(loop="i1", op=70.0)]),
-    (1, None, [ModeCommand(loop="i1", mode="auto"), SetpointCommand(loop="g0", sp=52.0)]),
+    (1, None, [SetpointCommand(loop="g0", sp=52.0)]),
     (250, (40.0, 60.4), [DisturbanceCommand(loop="f1", name="load", value=-8)]),
+    (300, None, [ModeCommand(loop="i1", mode="auto")]),  # i1's SP tracked its PV till now
     (3, None, [GainsCommand(loop="hx1", gains=PidGains(kc=1.2, ti=25.0, td=2.0))]),
     (500, None, [ModeCommand(loop="f1", mode="manual"), ModeCommand(loop="g0", mode="auto")]),
     (64, (0.0, 49.9), [OutputCommand(loop="f1", op=20.0), SetpointCommand(loop="t3", sp=45.0)]),
