@@ -254,14 +254,19 @@ class LoopClient:
                 if paused > OVERSLEPT:  # this process did not run: hear what came meanwhile
                     got = self._get(RESUMED_WAIT, want)
                 if got is None:
-                    own = (
-                        f" (this process did not run for {paused:.0f} s: paused or starved)"
-                        if paused > OVERSLEPT
-                        else ""
-                    )
+                    if paused > OVERSLEPT:
+                        why = f" (this process did not run for {paused:.0f} s: paused or starved)"
+                    elif not self.gone:  # not "the plant": what is known of it
+                        why = (
+                            "; its liveliness token is still up, so it is silent, not known "
+                            "gone: paused or starved, held up publishing to a subscriber "
+                            "that stopped reading (a paused logger), or cut off from this tuner"
+                        )
+                    else:
+                        why = ""
                     raise PlantLost(
                         f"loop {self.loop!r}: no message from the plant for {self.timeout:g} s"
-                        + own
+                        + why
                     )
             if got is None:
                 return None

@@ -328,6 +328,8 @@ def _run_case(stack: Stack) -> None:
             assert result["reason"], context
         if case.fault == "pause" and case.target == "tuner":  # its own pause, not the plant's
             assert "lease lost" in result["reason"] or "paused" in result["reason"], context
+        if case.fault == "pause" and case.target == "plant" and case.expect != "ok":
+            assert "token is still up" in result["reason"], context  # silent, not gone
     if case.expect == "ok":
         assert after.mode == "auto", context
         isa = result["chosen"]["isa"]
