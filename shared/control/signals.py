@@ -188,10 +188,10 @@ def end_test(
     no_op_stop = op_below is None and op_above is None
 
     def ends(pv: float, op: float | None = None) -> bool:
-        if not ((below is None or pv > below) and (above is None or pv < above)):
+        if outside(pv, below, above):
             return True
         if op is None or no_op_stop:
             return False
-        return not ((op_below is None or op > op_below) and (op_above is None or op < op_above))
+        return outside(op, op_below, op_above)
 
     return ends
