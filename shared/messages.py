@@ -13,6 +13,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.control.pid import Action, Mode, PidSettings
+from shared.control.record_stops import Guard, record_test
 from shared.control.signals import end_test
 
 ClockMode = Literal["lockstep", "realtime"]
@@ -66,6 +67,7 @@ class ProcessSample(Message):
 
 
 MAX_BATCH = 1024  # samples in one ProcessSamples at most (an advance of more: several)
+MAX_ADVANCE = 100_000  # samples one AdvanceCommand may ask for
 
 
 class ProcessSamples(Message):
@@ -225,6 +227,49 @@ class DisturbanceCommand(Command):
     value: float
 
 
+class SettleStop(Message):
+    """A record's end on settling (``record_stops.settled``): the last ``k`` samples' mean
+    within ``band`` of ``target``, their spread within ``flat`` (None: not asked), asked from
+    ``min_samples`` samples on."""
+
+    k: int = Field(ge=1, le=1_000_000)
+    target: float
+    band: float = Field(ge=0.0, description="PV units")
+    flat: float | None = Field(default=None, ge=0.0, description="PV units")
+    min_samples: int = Field(default=1, ge=1, le=1_000_000)
+
+
+class GuardStop(Message):
+    """A record's end on running away (``record_stops.Guard``): its output at a limit, or its
+    deviation from ``target`` growing, over whole ``window``-sample windows."""
+
+    window: int = Field(ge=8, le=1_000_000, description="samples")
+    target: float = Field(description="PV units: the setpoint the deviations are from")
+    op_low: float = Field(description="%: the output's low limit")
+    op_high: float = Field(description="%: the output's high limit")
+
+
+class RecordStops(Message):
+    """The judging of a verification record, for a lockstep advance that is the whole record
+    from its first sample: at every ``judge``-th sample the guard (once a new window is in)
+    and, at multiples of 8·judge, the settling (``record_stops.record_test``)."""
+
+    judge: int = Field(ge=1, le=1_000_000, description="samples between judging points")
+    settle: SettleStop | None = None
+    guard: GuardStop | None = None
+
+    def stop_test(
+        self, steps: int, band_ends: Callable[[float, float | None], bool]
+    ) -> Callable[[float, float | None], bool]:
+        """The end test of an advance of ``steps`` samples that is this record from its first
+        sample, past ``band_ends`` too (``record_stops.record_test``; stateful: one per
+        advance, asked of every sample in turn)."""
+        s, g = self.settle, self.guard
+        settle = (s.k, s.target, s.band, s.flat, s.min_samples) if s is not None else None
+        guard = (Guard((g.op_low, g.op_high), g.window), g.target) if g is not None else None
+        return record_test(steps, self.judge, settle, guard, band_ends)
+
+
 class AdvanceCommand(Command):
     """Lockstep clock: advance the loop by ``steps`` sample periods, publishing each sample;
     with ``stop_below``/``stop_above``, stop early after the first sample whose PV is at or
@@ -235,7 +280,7 @@ class AdvanceCommand(Command):
     where the output first sits at a limit."""
 
     kind: ClassVar[str] = "advance"
-    steps: int = Field(default=1, ge=1, le=100_000)
+    steps: int = Field(default=1, ge=1, le=MAX_ADVANCE)
     stop_below: float | None = Field(
         default=None, description="PV units: the advance ends with a sample at or below this"
     )
@@ -248,12 +293,17 @@ class AdvanceCommand(Command):
     stop_op_above: float | None = Field(
         default=None, description="%: the advance ends with a sample whose output is at or above"
     )
+    record: RecordStops | None = Field(
+        default=None,
+        description="the advance is a verification record from its first sample: it also ends "
+        "where the record's judging would stop it (settled, or running away)",
+    )
 
     @property
     def banded(self) -> bool:
         """Whether any stop is set (else the advance runs its ``steps``)."""
         stops = (self.stop_below, self.stop_above, self.stop_op_below, self.stop_op_above)
-        return any(x is not None for x in stops)
+        return self.record is not None or any(x is not None for x in stops)
 
     def stops_at(self, pv: float, op: float | None = None) -> bool:
         """True when a sample of PV ``pv`` (and output ``op``, %) ends this advance
@@ -264,7 +314,8 @@ class AdvanceCommand(Command):
         """``stops_at`` as a function of the sample, the stops read once (``end_test``): for
         a test asked of every sample of the advance."""
         pv_stops = (self.stop_below, self.stop_above)
-        return end_test(pv_stops, (self.stop_op_below, self.stop_op_above))
+        band = end_test(pv_stops, (self.stop_op_below, self.stop_op_above))
+        return band if self.record is None else self.record.stop_test(self.steps, band)
 
 
 class SyncCommand(Command):

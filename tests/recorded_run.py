@@ -16,7 +16,7 @@ from services.logger.recorder import Recorder
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared import keys, wire
-from shared.messages import Command, ProcessSample, TuneRequest, TuneResult
+from shared.messages import Command, ProcessSample, RecordStops, TuneRequest, TuneResult
 
 
 def record_in_process(
@@ -35,8 +35,10 @@ def record_in_process(
             if cmd.kind not in ("advance", "sync", "lease", "release"):
                 put(keys.command(prefix, loop_id, cmd.kind), cmd)
 
-        def advance(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
-            out = super().advance(steps, band)
+        def advance(
+            self, steps: int, band: Band | None = None, record: RecordStops | None = None
+        ) -> list[ProcessSample]:
+            out = super().advance(steps, band, record)
             for s in out:
                 put(keys.pv(prefix, loop_id), s)
             return out

@@ -13,11 +13,8 @@ import pytest
 from scipy.integrate import quad
 from scipy.optimize import brentq
 
-from services.autotuner.design.measured_response import (
-    load_step,
-    measured_setpoint_step,
-    within_band,
-)
+from services.autotuner.design.measured_response import load_step, measured_setpoint_step
+from shared.control.record_stops import within_band
 
 ZETA, WN = 0.3, 1.0  # rad/s
 SIGMA, WD = ZETA * WN, WN * math.sqrt(1 - ZETA**2)

@@ -49,8 +49,8 @@ def tune(
     calls: Counter[str] = Counter()
     take = LocalLoopClient.samples
 
-    def counted(self, steps, band=None):
-        out = take(self, steps, band)
+    def counted(self, steps, band=None, record=None):
+        out = take(self, steps, band, record)
         calls["batches"] += 1
         calls["banded"] += band is not None
         calls["samples"] += len(out)

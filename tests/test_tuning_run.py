@@ -16,6 +16,7 @@ from services.autotuner.commands.tune import format_result
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
+from shared.control.record_stops import SettleRule
 from shared.messages import (
     GainsCommand,
     LeaseCommand,
@@ -179,7 +180,8 @@ def test_a_batched_record_stops_at_the_crossing_with_the_loop_left_there():
     client.command(SetpointCommand(loop="x", sp=60.0, source=client.source))
     seconds = 20.0
     judge = round(seconds / loop.sample_time) // 100  # the record's judging interval
-    t, y, _, why = tuning._record(seconds, lambda t, y: False)
+    never = SettleRule(10**6, 50.0, 0.0)  # a record far shorter than its settling window
+    t, y, _, why = tuning._record(seconds, never)
     assert why is not None and why.startswith("the PV left its limits [40, 55]")
     assert y[-1] > 55.0 and (y[:-1] <= 55.0).all()
     k = y.size  # samples taken, the last one past the limit

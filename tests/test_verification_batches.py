@@ -12,9 +12,10 @@ import random
 import numpy as np
 import pytest
 
-from services.autotuner.tuning import MAX_CHUNK, TuningRun, _Guard, judged_batch_end
+from services.autotuner.tuning import MAX_CHUNK, TuningRun, judged_batch_end
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
+from shared.control.record_stops import Guard, SettleRule
 from shared.messages import TuneRequest
 
 TS = 0.1
@@ -41,9 +42,9 @@ class Counting(LocalLoopClient):
 
     advances = 0
 
-    def advance(self, steps, band=None):
+    def advance(self, steps, band=None, record=None):
         self.advances += 1
-        return super().advance(steps, band)
+        return super().advance(steps, band, record)
 
 
 def oracle(sim, seconds, done, target, window, pv_limits, op_limits):
@@ -51,7 +52,7 @@ def oracle(sim, seconds, done, target, window, pv_limits, op_limits):
     client = LocalLoopClient(sim)
     n_max = max(1, round(seconds / TS))
     judge = max(1, min(MAX_CHUNK, n_max // 100))
-    guard = _Guard(op_limits, window / TS) if window and target is not None else None
+    guard = Guard(op_limits, window / TS) if window and target is not None else None
     lo, hi = pv_limits
     t, y, u, windows = [], [], [], 0
     while len(t) < n_max:
@@ -67,16 +68,13 @@ def oracle(sim, seconds, done, target, window, pv_limits, op_limits):
             windows = len(t) // guard.n
             if guard.check(np.asarray(y) - target, np.asarray(u)):
                 return t, y, u, "guard"
-        if len(t) % (8 * judge) < judge and done(np.array(t), np.array(y)):
+        if len(t) % (8 * judge) < judge and done.done(np.array(t), np.array(y)):
             break
     return t, y, u, None
 
 
-def settled(target: float, band: float, k: int):
-    def done(t: np.ndarray, y: np.ndarray) -> bool:
-        return y.size >= k and abs(float(np.mean(y[-k:])) - target) < band
-
-    return done
+def settled(target: float, band: float, k: int) -> SettleRule:
+    return SettleRule(k, target, band)
 
 
 CASES = {

@@ -13,6 +13,7 @@ the lease lapsed.
 from __future__ import annotations
 
 import itertools
+import math
 import queue
 import secrets
 import threading
@@ -35,6 +36,7 @@ from shared.messages import (
     Message,
     ProcessSample,
     ProcessSamples,
+    RecordStops,
     ReleaseCommand,
     SyncCommand,
 )
@@ -496,18 +498,28 @@ class LoopClient:
             out += ready if ready else [self._take(steps - len(out))]
         return out
 
-    def samples(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
+    def samples(
+        self, steps: int, band: Band | None = None, record: RecordStops | None = None
+    ) -> list[ProcessSample]:
         """The next ``steps`` samples, advancing the clock in lockstep, waiting in realtime;
-        with ``band``, ending with the first whose PV leaves it (``advance_within``)."""
+        with ``band``, ending with the first whose PV leaves it (``advance_within``); in
+        lockstep with ``record`` (the samples are a verification record from its first), also
+        where its judging would stop it (the plant judges as it steps)."""
         if self.info.clock == "lockstep":
-            return self.advance(steps) if band is None else self.advance_within(steps, band)
+            if band is None and record is None:
+                return self.advance(steps)
+            whole = band if band is not None else Band(-math.inf, math.inf)
+            return self.advance_within(steps, whole, record)
         return until_band(self.next_sample, steps, band)
 
-    def advance_within(self, steps: int, band: Band) -> list[ProcessSample]:
+    def advance_within(
+        self, steps: int, band: Band, record: RecordStops | None = None
+    ) -> list[ProcessSample]:
         """Lockstep: up to ``steps`` samples in one round trip, the plant stopping after the
-        first whose PV leaves ``band`` (the advance's ``stop_below``/``stop_above``); this
-        client tells that sample by the same test, so it knows the advance has ended. With
-        samples of an earlier advance still to take: the next one alone."""
+        first whose PV leaves ``band`` (the advance's ``stop_below``/``stop_above``) or, with
+        ``record``, where the record's judging stops it; this client tells that sample by the
+        same test, so it knows the advance has ended. With samples of an earlier advance still
+        to take: the next one alone (a record's judging counts from its first sample: none)."""
         if self._held or self._flight:
             return self.advance(1)
         below, above = band.stops()
@@ -522,6 +534,7 @@ class LoopClient:
             stop_above=above,
             stop_op_below=op_below,
             stop_op_above=op_above,
+            record=record,
         )
         self.send(cmd)
         self._flight += steps

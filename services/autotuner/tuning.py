@@ -44,20 +44,25 @@ from shared.control.forms import (
     pv_span,
     step_percent,
 )
+from shared.control.record_stops import Guard, SettleRule, judge_point, settle_point
 from shared.errors import AutotuneError
 from shared.messages import (
     APPLIED_STATUSES,
+    MAX_ADVANCE,
     MAX_BATCH,
     DisturbanceCommand,
     GainsCommand,
+    GuardStop,
     LeaseCommand,
     LoopStatus,
     ModeCommand,
     OutputCommand,
     PidGains,
     ProcessSample,
+    RecordStops,
     ReleaseCommand,
     SetpointCommand,
+    SettleStop,
     TuneProgress,
     TuneRequest,
     TuneResult,
@@ -888,23 +893,26 @@ class TuningRun:
     def _record(
         self,
         seconds: float,
-        done: Callable[[np.ndarray, np.ndarray], bool],
+        done: SettleRule,
         target: float | None = None,
         window: float | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str | None]:
-        """Run the loop (in auto) up to ``seconds``; stop early when ``done(t, y)``. With a
-        ``target`` setpoint and a guard ``window`` (s), stop within a few windows once the
-        output stays saturated or the oscillation about the target grows. Returns
-        (t, pv, op, why it stopped early or None).
+        """Run the loop (in auto) up to ``seconds``; stop early when it has settled
+        (``done``). With a ``target`` setpoint and a guard ``window`` (s), stop within a few
+        windows once the output stays saturated or the oscillation about the target grows.
+        Returns (t, pv, op, why it stopped early or None).
 
         The loop's PID is in charge: nothing is decided per sample. ``done`` is asked every
         ``8·judge`` samples and the guard at the first ``judge`` boundary after each of its
-        windows (``judge`` about 1 % of the record); in lockstep the loop is advanced
-        straight to the next of those points in one round trip (``judged_batch_end``), the
-        plant stopping at once at a sample past the PV limits (the advance's band), so the
-        loop never runs on beyond a limit nor past the point where the record stops. In
-        realtime the samples come as the plant's clock gives them, a cancel looked at every
-        ``judge`` samples."""
+        windows (``judge`` about 1 % of the record; ``record_stops``). In lockstep the plant
+        asks the same of the same samples as it steps (the advance's ``RecordStops``), so the
+        whole record is one round trip that ends at the sample where the record ends, or at
+        the first past the PV limits (the advance's band): the loop never runs on beyond a
+        limit nor past the point where the record stops. Should the plant stop where the
+        record goes on (its count of "long enough" is a sample short of the sim time's), the
+        rest comes a judging point per round trip (``judged_batch_end``). In realtime the
+        samples come as the plant's clock gives them, a cancel looked at every ``judge``
+        samples."""
         c = self.client
         n_max = max(1, round(seconds / self.ts))
         judge = max(1, min(MAX_CHUNK, n_max // 100))
@@ -914,36 +922,71 @@ class TuningRun:
         lo, hi = self.pv_limits
         limits = Band(lo, hi)
         guard = (
-            _Guard(self.info.op_limits, window / self.ts) if window and target is not None else None
+            Guard(self.info.op_limits, window / self.ts) if window and target is not None else None
         )
         windows = 0  # the guard's whole windows already judged
         lockstep = self.info.clock == "lockstep"
+        stops = self._record_stops(judge, done, guard, target) if lockstep else None
         while len(t) < n_max:
             self._check_cancel()
             k = len(t)
-            upto = judged_batch_end(k, n_max, judge, guard.n if guard else None, windows)
-            if not lockstep:
-                upto = min(upto, k + judge)
-            batch = c.samples(upto - k, limits)
-            for s in batch:
+            if stops is not None and k == 0:
+                batch = c.samples(min(n_max, MAX_ADVANCE), limits, stops)
+            else:
+                upto = judged_batch_end(k, n_max, judge, guard.n if guard else None, windows)
+                if not lockstep:
+                    upto = min(upto, k + judge)
+                batch = c.samples(upto - k, limits)
+            self._t = batch[-1].t
+            why = None
+            ended = False
+            for j, s in enumerate(batch):
                 t.append(s.t)
                 y.append(s.pv)
                 u.append(s.op)
-            self._t = batch[-1].t
-            last = batch[-1]
-            if not lo <= last.pv <= hi:
-                why = f"the PV left its limits [{lo:g}, {hi:g}] at t = {last.t:g} s"
-                return np.array(t), np.array(y), np.array(u), why
-            if len(t) % judge and len(t) < n_max:
-                continue  # ended at a PV on a limit (the band's edge): not a judging point
-            if guard is not None and len(t) // guard.n > windows:
-                windows = len(t) // guard.n  # a verdict changes only with a new window
-                why = guard.check(np.asarray(y) - target, np.asarray(u))
-                if why:
+                m = len(t)
+                if not lo <= s.pv <= hi:
+                    why = f"the PV left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s"
+                elif not judge_point(m, judge, n_max):
+                    continue
+                elif guard is not None and m // guard.n > windows:
+                    windows = m // guard.n  # a verdict changes only with a new window
+                    why = guard.check(np.asarray(y) - target, np.asarray(u))
+                if why is None and settle_point(m, judge):
+                    ended = done.done(np.array(t), np.array(y))
+                if why is not None or ended:
+                    if j + 1 < len(batch):  # never: the plant stops where the record does
+                        log.warning(
+                            "loop %s: the record ended %d samples before its advance did",
+                            c.loop,
+                            len(batch) - j - 1,
+                        )
                     return np.array(t), np.array(y), np.array(u), why
-            if len(t) % (judge * 8) < judge and done(np.array(t), np.array(y)):
-                break
         return np.array(t), np.array(y), np.array(u), None
+
+    def _record_stops(
+        self, judge: int, done: SettleRule, guard: Guard | None, target: float | None
+    ) -> RecordStops | None:
+        """The record's judging for the plant to ask as it steps (None: numbers no message
+        can carry, and the record is judged a point per round trip instead)."""
+        try:
+            return RecordStops(
+                judge=judge,
+                settle=SettleStop(
+                    k=done.k,
+                    target=done.target,
+                    band=done.band,
+                    flat=done.flat,
+                    min_samples=done.min_samples(self.ts),
+                ),
+                guard=(
+                    GuardStop(window=guard.n, target=target, op_low=guard.lo, op_high=guard.hi)
+                    if guard is not None and target is not None
+                    else None
+                ),
+            )
+        except pydantic.ValidationError:
+            return None
 
     def _verify(
         self, gains: PidGains, sp0: float, ident: experiments.Identification
@@ -975,19 +1018,10 @@ class TuningRun:
         k = max(4, round(scale / self.ts))
         width = max(5, round(scale / self.ts / 20)) | 1
 
-        def at(target: float) -> Callable[[np.ndarray, np.ndarray], bool]:
+        def at(target: float, after: float | None = None) -> SettleRule:
             """Settled at ``target``: the last time scale flat within the band, its mean on
-            the target (the mean, not one noisy sample)."""
-
-            def done(t: np.ndarray, y: np.ndarray) -> bool:
-                tail = y[-k:]
-                return (
-                    y.size >= k
-                    and metrics.within_band(tail, 2 * band)
-                    and abs(float(np.mean(tail)) - target) < band
-                )
-
-            return done
+            the target (the mean, not one noisy sample); ``after``: not before that many s."""
+            return SettleRule(k, target, band, 2 * band, after)
 
         _, y_pre, u_pre, why = self._record(span, at(sp0), sp0, guard)
         # the output's noise at rest: what the gains make of the PV's noise (σ of the sample
@@ -995,22 +1029,17 @@ class TuningRun:
         tail = u_pre[-k:]
         op_noise = float(np.std(np.diff(tail)) / math.sqrt(2.0)) if tail.size > 2 else None
         stopped = why
-        if why is None and not at(sp0)(np.array([]), y_pre):
+        if why is None and not at(sp0).done(np.array([]), y_pre):
             stopped = f"the loop did not settle at its setpoint within {span:.4g} s"
         # the step starts from the setpoint where the loop has settled on it, else from where
         # the PV is (on average over the last time scale)
         t0 = self._t
-        y0 = sp0 if y_pre.size and at(sp0)(np.array([]), y_pre) else float(np.mean(y_pre[-k:]))
+        y0 = sp0 if y_pre.size and at(sp0).done(np.array([]), y_pre) else float(np.mean(y_pre[-k:]))
         sp_m, saturated, load_size, load_m = None, False, None, None
         u = np.array([])
         if stopped is None:
             c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
-            t, y, u, why = self._record(
-                span,
-                lambda t, y: t[-1] - t[0] > 2 * scale and at(sp0 + step)(t, y),
-                sp0 + step,
-                guard,
-            )
+            t, y, u, why = self._record(span, at(sp0 + step, 2 * scale), sp0 + step, guard)
             stopped = why
             sp_m = metrics.measured_setpoint_step(
                 t, y, t0, y0, sp0 + step, noise=ident.noise, width=width
@@ -1031,12 +1060,7 @@ class TuningRun:
                     loop=c.loop, name="load", value=base + load_size, source=c.source, t=t1
                 )
             )
-            t, y, u2, why = self._record(
-                span,
-                lambda t, y: t[-1] - t[0] > 2 * scale and at(sp0 + step)(t, y),
-                sp0 + step,
-                guard,
-            )
+            t, y, u2, why = self._record(span, at(sp0 + step, 2 * scale), sp0 + step, guard)
             stopped = why
             load_m = metrics.load_step(t, y, t1, sp0 + step, noise=ident.noise)
             stable = stable and why is None
@@ -1130,33 +1154,6 @@ def judged_batch_end(k: int, n_max: int, judge: int, window: int | None, windows
         due = (windows + 1) * window
         end = min(end, max(k + 1, -(-due // judge) * judge))
     return end
-
-
-class _Guard:
-    """Stops a verification that runs away: the output saturated over two whole windows, or
-    the largest deviation from the setpoint growing over two successive windows (by ≥ 10 %
-    each and beyond the first window's): either shows within about three windows."""
-
-    def __init__(self, op_limits: tuple[float, float], window_samples: float):
-        self.lo, self.hi = op_limits
-        self.n = max(8, round(window_samples))
-
-    def check(self, dev: np.ndarray, u: np.ndarray) -> str | None:
-        n = self.n
-        k = dev.size // n
-        if k < 2:
-            return None
-        at_limit = (u[: k * n] <= self.lo) | (u[: k * n] >= self.hi)
-        sat = at_limit.reshape(k, n).mean(axis=1)
-        if sat[-1] > 0.5 and sat[-2] > 0.5:
-            return f"the output saturated ({100 * sat[-1]:.0f} % of the last window at a limit)"
-        peaks = np.abs(dev[: k * n]).reshape(k, n).max(axis=1)
-        if k >= 3 and peaks[-1] > 1.1 * peaks[-2] > 1.21 * peaks[-3] and peaks[-1] > peaks[0]:
-            return (
-                f"the oscillation grows (largest deviation {peaks[-3]:.3g} → {peaks[-2]:.3g} → "
-                f"{peaks[-1]:.3g} over successive windows)"
-            )
-        return None
 
 
 def swinging(y: np.ndarray, target: float, k: int, band: float) -> bool:

@@ -33,6 +33,7 @@ from shared.messages import (
     OutputCommand,
     PidGains,
     ProcessSample,
+    RecordStops,
     ReleaseCommand,
     SetpointCommand,
     SyncCommand,
@@ -113,18 +114,26 @@ class LocalLoopClient:
             raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
         return status
 
-    def advance(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
+    def advance(
+        self, steps: int, band: Band | None = None, record: RecordStops | None = None
+    ) -> list[ProcessSample]:
         """Step the loop ``steps`` periods, stopping after the first sample that leaves
-        ``band`` as the plant does (``AdvanceCommand.stops_at``); their samples (what the
-        plant would publish)."""
-        out = self.sim.advance_many(steps, band.end_test() if band is not None else None)
+        ``band`` (or, with ``record``, where that record's judging stops it) as the plant does
+        (``AdvanceCommand.stop_test``); their samples (what the plant would publish)."""
+        ends = band.end_test() if band is not None else None
+        if record is not None:
+            ends = record.stop_test(steps, ends or (lambda pv, op=None: False))
+        out = self.sim.advance_many(steps, ends)
         if out:
             self.last_sample = out[-1]
         return out
 
-    def samples(self, steps: int, band: Band | None = None) -> list[ProcessSample]:
-        """The next ``steps`` samples, ending with the first that leaves ``band``."""
-        return self.advance(steps, band)
+    def samples(
+        self, steps: int, band: Band | None = None, record: RecordStops | None = None
+    ) -> list[ProcessSample]:
+        """The next ``steps`` samples, ending with the first that leaves ``band`` (or where
+        ``record``'s judging stops it)."""
+        return self.advance(steps, band, record)
 
     def next_sample(self) -> ProcessSample:
         return self.samples(1)[0]

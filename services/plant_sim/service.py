@@ -24,6 +24,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
@@ -76,6 +77,13 @@ class Encoded:
 
 
 Outbox = list[tuple[str, Message | Encoded]]  # what one command publishes, in order
+# the rest of a long lockstep advance: steps its next part into the outbox, and returns what
+# is left of it after that (None: the advance is over)
+Rest = Callable[[Outbox], "Rest | None"]
+# samples a lockstep advance steps before it publishes them: the asker (and the logger) read
+# one part while the plant steps the next, rather than all of them after it
+STREAM_CHUNK = 256
+assert STREAM_CHUNK <= MAX_BATCH  # a part is one ProcessSamples
 
 
 @dataclass(frozen=True)
@@ -245,16 +253,22 @@ class PlantService:
             )
 
     def handle_command(self, key: str, payload: bytes, encoding: str | None) -> None:
-        """Validate and apply one command, then publish what it caused."""
+        """Validate and apply one command, then publish what it caused; a long lockstep
+        advance part by part (``_advance``), each published before the next is stepped."""
         out: Outbox = []
         with self.lock:
             try:
-                self._handle(key, payload, encoding, out)
+                rest = self._handle(key, payload, encoding, out)
             finally:
                 self._settle()
         self._publish(out)
+        while rest is not None:
+            out = []
+            with self.lock:
+                rest = rest(out)
+            self._publish(out)
 
-    def _handle(self, key: str, payload: bytes, encoding: str | None, out: Outbox) -> None:
+    def _handle(self, key: str, payload: bytes, encoding: str | None, out: Outbox) -> Rest | None:
         prefix = self.opt.prefix
         parsed = keys.parse_command(prefix, key)
         if parsed is None:
@@ -353,18 +367,10 @@ class PlantService:
                     loop, "clock", "advance refused: the plant runs in realtime", out, sender
                 )
                 return
-            had = loop.fault
-            # the advance ends early with a sample its stops name (a relay's next decision)
-            rows = loop.advance_rows(cmd.steps, cmd.stop_test() if cmd.banded else None)
-            if len(rows) == 1:
-                out.append((keys.pv(prefix, loop_id), ProcessSample(**rows[0])))
-            else:  # one message per batch: a message's cost on the bus is per message
-                batch_key = keys.pv_batch(prefix, loop_id)
-                for start in range(0, len(rows), MAX_BATCH):
-                    part = wire.encode_samples(loop_id, rows[start : start + MAX_BATCH])
-                    out.append((batch_key, Encoded(ProcessSamples, part)))
-            if loop.fault and not had:  # the model failed: say so once, on the status
-                out.append((keys.status(prefix, loop_id), self.loop_status(loop, "fault")))
+            rest = self._advance(loop, cmd, lease, out)
+            loop.accepted += 1
+            self.accepted += 1
+            return rest
         elif isinstance(cmd, SyncCommand):
             out.append(
                 (
@@ -383,6 +389,45 @@ class PlantService:
             out.append((keys.status(prefix, loop_id), status))
         loop.accepted += 1
         self.accepted += 1
+
+    def _advance(
+        self, loop: SimLoop, cmd: AdvanceCommand, lease: Lease | None, out: Outbox
+    ) -> Rest | None:
+        """Step a lockstep advance's first ``STREAM_CHUNK`` samples into ``out``; the rest
+        of it (None: it is over). It ends early with the sample its stops name (a relay's next
+        decision, a verification record's end). Between parts the lock is let go, and the
+        advance goes on only while the loop is held as it was when it began (a lease that
+        expired or changed hands meanwhile ends it: the loop is no longer its asker's)."""
+        prefix, loop_id = self.opt.prefix, loop.settings.loop_id
+        test = cmd.stop_test() if cmd.banded else None
+        stopped = False
+
+        def ends(pv: float, op: float) -> bool:
+            nonlocal stopped
+            stopped = test(pv, op)
+            return stopped
+
+        left = cmd.steps
+        first = True
+
+        def part(out: Outbox) -> Rest | None:
+            nonlocal left, first
+            if self.leases.get(loop_id) is not lease:
+                return None
+            had = loop.fault
+            rows = loop.advance_rows(min(left, STREAM_CHUNK), ends if test else None)
+            left -= len(rows)
+            if first and len(rows) == 1 and (stopped or not left):
+                out.append((keys.pv(prefix, loop_id), ProcessSample(**rows[0])))
+            elif rows:  # one message per part: a message's cost on the bus is per message
+                payload = wire.encode_samples(loop_id, rows)
+                out.append((keys.pv_batch(prefix, loop_id), Encoded(ProcessSamples, payload)))
+            first = False
+            if loop.fault and not had:  # the model failed: say so once, on the status
+                out.append((keys.status(prefix, loop_id), self.loop_status(loop, "fault")))
+            return part if rows and left > 0 and not stopped else None
+
+        return part(out)
 
     # --- threads --------------------------------------------------------------------------
 

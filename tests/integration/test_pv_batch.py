@@ -1,8 +1,9 @@
 """Lockstep batches on the bus against plant_sim as a process: an advance of several periods
-goes out as one ``ProcessSamples`` on ``pv_batch`` (at most ``MAX_BATCH`` samples a message),
-one period as a ``ProcessSample`` on ``pv``; the tuner's ``LoopClient`` and the console's
-bridge see every sample, in order, the same as the in-process loop steps them; a batch that
-is not valid stops the client in one line naming the field."""
+goes out as ``ProcessSamples`` on ``pv_batch``, one message per ``STREAM_CHUNK`` samples
+stepped (each sent before the next is stepped), one period as a ``ProcessSample`` on ``pv``;
+the tuner's ``LoopClient`` and the console's bridge see every sample, in order, the same as
+the in-process loop steps them; a batch that is not valid stops the client in one line
+naming the field."""
 
 from __future__ import annotations
 
@@ -19,10 +20,10 @@ from services.autotuner.loop_client import LoopClient
 from services.console.bridge import Bridge
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
+from services.plant_sim.service import STREAM_CHUNK
 from shared import keys, wire
 from shared.errors import DecodeError
 from shared.messages import (
-    MAX_BATCH,
     GainsCommand,
     ModeCommand,
     PidGains,
@@ -40,7 +41,7 @@ model = "heat_exchanger"
 sample_time = 0.5
 noise_std = 0.1
 """
-STEPS = MAX_BATCH + 6  # two messages: a full batch and the rest
+STEPS = 4 * STREAM_CHUNK + 6  # five messages: four full parts and the rest
 
 
 def test_an_advance_is_one_message_per_batch_and_the_client_reads_every_sample(
@@ -86,7 +87,7 @@ def test_an_advance_is_one_message_per_batch_and_the_client_reads_every_sample(
             messages.append((leaf, len(batch)))
             carried += batch
     assert messages == [
-        ("pv_batch", MAX_BATCH),
+        *[("pv_batch", STREAM_CHUNK)] * 4,
         ("pv_batch", 6),
         ("pv", 1),
         ("pv_batch", 3),

@@ -12,8 +12,6 @@ within a tenth of it (or the noise band).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from shared.control.signals import extrema, first_crossing, smooth, trapezoid
@@ -83,8 +81,3 @@ def load_step(
         "recovery_time": rec,
         "recovered": recovered,
     }
-
-
-def within_band(y: np.ndarray, band: float) -> bool:
-    """The record barely moves: its spread is within ``band``."""
-    return y.size > 0 and float(np.ptp(y)) <= band and math.isfinite(float(y[-1]))

@@ -1,0 +1,147 @@
+"""Where a verification record stops: settled at its target, or running away (the guard).
+
+A record is a loop run in auto under gains on trial, judged at fixed points: every ``judge``
+samples (``judge_point``), the guard once a new whole window is in, ``settled`` at multiples
+of 8·judge. The tuner judges them (``TuningRun._record``); in lockstep the plant asks the same
+questions of the same samples as it steps (``record_test``, built from the advance's
+``RecordStops``), so a whole record is one round trip and the loop still stops at the sample
+that ends it. Why shared: one statement of each rule, the plant's and the tuner's answers the
+same to the bit (the same functions on the same floats).
+
+Units: PV in its engineering units, output in % of span, counts in samples.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def within_band(y: np.ndarray, band: float) -> bool:
+    """The record barely moves: its spread is within ``band`` (and its last value a number)."""
+    return y.size > 0 and float(np.ptp(y)) <= band and math.isfinite(float(y[-1]))
+
+
+def settled(y: np.ndarray, k: int, target: float, band: float, flat: float | None) -> bool:
+    """Settled at ``target``: the last ``k`` samples' mean within ``band`` of it (the mean, not
+    one noisy sample), and (``flat`` not None) their spread within ``flat``."""
+    if y.size < k:
+        return False
+    tail = y[-k:]
+    if flat is not None and not within_band(tail, flat):
+        return False
+    return abs(float(np.mean(tail)) - target) < band
+
+
+@dataclass(frozen=True)
+class SettleRule:
+    """A record's end on settling at ``target`` (``settled``: the last ``k`` samples' mean
+    within ``band``, their spread within ``flat``), once it is longer than ``after`` s of sim
+    time (None: at once)."""
+
+    k: int
+    target: float
+    band: float
+    flat: float | None = None
+    after: float | None = None
+
+    def done(self, t: np.ndarray, y: np.ndarray) -> bool:
+        """Whether the record (sample times ``t`` s, PVs ``y``) has settled."""
+        if self.after is not None and not (t.size and t[-1] - t[0] > self.after):
+            return False
+        return settled(y, self.k, self.target, self.band, self.flat)
+
+    def min_samples(self, ts: float) -> int:
+        """The fewest samples (of period ``ts`` s) of a record that may be longer than
+        ``after``: never more than ``done`` asks (a sample short where rounding could put the
+        sim time either side), so a plant judging by the count stops wherever ``done`` would."""
+        if self.after is None:
+            return 1
+        return max(1, math.ceil(self.after / ts - 1e-6))
+
+
+def judge_point(m: int, judge: int, n_max: int) -> bool:
+    """Whether a record holding ``m`` of ``n_max`` samples is judged now: at multiples of
+    ``judge``, and at its end."""
+    return m % judge == 0 or m >= n_max
+
+
+def settle_point(m: int, judge: int) -> bool:
+    """Whether ``settled`` is asked at a judging point holding ``m`` samples: the first judge
+    of every 8·judge (about 8 % of a record: a settled loop is not in a hurry)."""
+    return m % (8 * judge) < judge
+
+
+class Guard:
+    """Stops a record that runs away: the output saturated over two whole windows, or the
+    largest deviation from the setpoint growing over two successive windows (by ≥ 10 % each
+    and beyond the first window's): either shows within about three windows."""
+
+    def __init__(self, op_limits: tuple[float, float], window_samples: float):
+        self.lo, self.hi = op_limits
+        self.n = max(8, round(window_samples))
+
+    def check(self, dev: np.ndarray, u: np.ndarray) -> str | None:
+        """Why the record runs away (None: it does not); ``dev``: PV − setpoint, ``u``: the
+        output (%), both from the record's first sample."""
+        n = self.n
+        k = dev.size // n
+        if k < 2:
+            return None
+        at_limit = (u[: k * n] <= self.lo) | (u[: k * n] >= self.hi)
+        sat = at_limit.reshape(k, n).mean(axis=1)
+        if sat[-1] > 0.5 and sat[-2] > 0.5:
+            return f"the output saturated ({100 * sat[-1]:.0f} % of the last window at a limit)"
+        peaks = np.abs(dev[: k * n]).reshape(k, n).max(axis=1)
+        if k >= 3 and peaks[-1] > 1.1 * peaks[-2] > 1.21 * peaks[-3] and peaks[-1] > peaks[0]:
+            return (
+                f"the oscillation grows (largest deviation {peaks[-3]:.3g} → {peaks[-2]:.3g} → "
+                f"{peaks[-1]:.3g} over successive windows)"
+            )
+        return None
+
+
+def record_test(
+    steps: int,
+    judge: int,
+    settle: tuple[int, float, float, float | None, int] | None,
+    guard: tuple[Guard, float] | None,
+    band_ends: Callable[[float, float | None], bool],
+) -> Callable[[float, float | None], bool]:
+    """The test that ends a lockstep advance of ``steps`` samples that is a whole record from
+    its first sample, asked of every sample in turn (PV, output %): the sample past the band
+    (``band_ends``), or a judging point where the guard or ``settled`` would stop the record.
+
+    ``settle``: (k, target, band, flat, min_samples): ``settled`` asked from ``min_samples``
+    samples on; ``guard``: (the guard, the setpoint its deviations are from). The record's
+    own "long enough" test is in sim time; the count given here is never above it, so the
+    advance ends at every point the record would and at most at a few more, which the record
+    reads as not ending (and goes on from). Stateful: one per advance."""
+    y = np.empty(steps)
+    u = np.empty(steps)
+    m = 0
+    windows = 0
+
+    def ends(pv: float, op: float | None = None) -> bool:
+        nonlocal m, windows
+        y[m] = pv
+        u[m] = math.nan if op is None else op
+        m += 1
+        if band_ends(pv, op):
+            return True
+        if not judge_point(m, judge, steps):
+            return False
+        if guard is not None and m // guard[0].n > windows:
+            windows = m // guard[0].n
+            if guard[0].check(y[:m] - guard[1], u[:m]):
+                return True
+        if settle is not None and settle_point(m, judge):
+            k, target, band, flat, min_samples = settle
+            if m >= min_samples and settled(y[:m], k, target, band, flat):
+                return True
+        return False
+
+    return ends

@@ -1,0 +1,140 @@
+"""A long lockstep advance is stepped and published part by part (``STREAM_CHUNK`` samples a
+message), so that its asker reads one part while the plant steps the next: the samples equal
+the same advance stepped at once, to the bit; it ends with the sample its stops name, also on a
+part's last sample; and a lease that ends between parts (the watchdog restored the loop) ends
+the advance there: the plant never steps a loop for an asker who no longer holds it.
+
+The plant service runs in this process on a session of its own; what it publishes is caught
+at its publishers."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from services.plant_sim.plant_file import build_plant
+from services.plant_sim.service import STREAM_CHUNK, PlantService, ServiceOptions
+from shared import keys, wire
+from shared.messages import (
+    AdvanceCommand,
+    LeaseCommand,
+    ProcessSample,
+    ProcessSamples,
+    RecordStops,
+    SettleStop,
+)
+from shared.session import ZenohSettings, open_session
+
+ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
+PREFIX = "stream"
+SPEC = {
+    "model": "fopdt",
+    "sample_time": 0.1,
+    "gain": 1.5,
+    "time_constant": 4.0,
+    "delay": 0.35,
+    "noise_std": 0.05,
+    "mode": "auto",
+    "setpoint": 52.0,
+    "pid": {"kc": 1.2, "ti": 5.0},
+}
+
+
+def plant():
+    return build_plant({"seed": 4, "loops": {"x": SPEC}})
+
+
+class Caught:
+    """Stands in for the plant's publishers: keeps what it is given, in order."""
+
+    def __init__(self, on_put=None):
+        self.sent: list[tuple[str, bytes]] = []
+        self.on_put = on_put
+
+    def put_json(self, key, model, payload) -> None:
+        self.sent.append((key, payload))
+        if self.on_put is not None:
+            self.on_put(len(self.sent))
+
+    def put(self, key, msg) -> None:
+        self.put_json(key, type(msg), wire.encode(msg))
+
+    def held_since(self):
+        return None
+
+    def samples(self) -> tuple[list[ProcessSample], int]:
+        """The samples published, in order, and the number of messages they came in."""
+        out, messages = [], 0
+        for key, payload in self.sent:
+            if key == keys.pv_batch(PREFIX, "x"):
+                out += wire.decode(ProcessSamples, payload).samples
+                messages += 1
+            elif key == keys.pv(PREFIX, "x"):
+                out.append(wire.decode(ProcessSample, payload))
+                messages += 1
+        return out, messages
+
+
+@pytest.fixture()
+def service():
+    with open_session(ALONE) as session:
+        yield PlantService(session, plant(), ServiceOptions(prefix=PREFIX))
+
+
+def send(svc: PlantService, cmd) -> None:
+    svc.handle_command(keys.command(PREFIX, "x", cmd.kind), wire.encode(cmd), None)
+
+
+def advance(steps: int, **stops) -> AdvanceCommand:
+    return AdvanceCommand(loop="x", steps=steps, source="me", t=0.0, **stops)
+
+
+def test_a_long_advance_comes_in_parts_equal_to_one_stepping(service) -> None:
+    caught = service.publishers = Caught()
+    steps = 3 * STREAM_CHUNK + 17
+    send(service, advance(steps))
+    got, messages = caught.samples()
+    want = plant()["x"].advance_many(steps)
+    assert messages == math.ceil(steps / STREAM_CHUNK) == 4
+    assert [s.model_dump() for s in got] == [s.model_dump() for s in want]
+
+
+@pytest.mark.parametrize("at", [STREAM_CHUNK + 40, 1])
+def test_it_ends_with_the_sample_its_stops_name(service, at: int) -> None:
+    """Also when that sample is the first of all."""
+    want = plant()["x"].advance_many(at + 300)
+    level = want[at - 1].pv  # the first sample at or above it ends the advance
+    first = next(j for j, s in enumerate(want) if s.pv >= level) + 1
+    caught = service.publishers = Caught()
+    send(service, advance(5 * STREAM_CHUNK, stop_above=level))
+    got, _ = caught.samples()
+    assert len(got) == first
+    assert [s.model_dump() for s in got] == [s.model_dump() for s in want[:first]]
+
+
+def test_a_lease_that_ends_between_parts_ends_the_advance(service) -> None:
+    send(service, LeaseCommand(loop="x", source="me", timeout=30.0, t=0.0))
+
+    def lapse(n: int) -> None:
+        if n == 1:  # the first part out: the watchdog strikes
+            service.expire_lease("x", "test")
+
+    caught = service.publishers = Caught(on_put=lapse)
+    send(service, advance(4 * STREAM_CHUNK))
+    got, messages = caught.samples()
+    assert (len(got), messages) == (STREAM_CHUNK, 1)
+    assert "x" not in service.leases
+
+
+def test_a_stop_on_a_parts_last_sample_ends_the_advance(service) -> None:
+    """A record judged every 32 samples settles at its first settling point, the 256th
+    sample: the last of the first part, and the advance's last."""
+    assert STREAM_CHUNK == 8 * 32
+    want = plant()["x"].advance_many(STREAM_CHUNK)
+    settle = SettleStop(k=1, target=want[-1].pv, band=1e-9)
+    caught = service.publishers = Caught()
+    send(service, advance(4 * STREAM_CHUNK, record=RecordStops(judge=32, settle=settle)))
+    got, messages = caught.samples()
+    assert (len(got), messages) == (STREAM_CHUNK, 1)
+    assert [s.model_dump() for s in got] == [s.model_dump() for s in want]
