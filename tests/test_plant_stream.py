@@ -1,5 +1,6 @@
-"""A long lockstep advance is stepped and published part by part (``STREAM_CHUNK`` samples a
-message), so that its asker reads one part while the plant steps the next: the samples equal
+"""A long lockstep advance is stepped and published part by part (``FIRST_CHUNK`` samples,
+then twice as many each time up to ``STREAM_CHUNK``, a message each), so that its asker reads
+one part while the plant steps the next: the samples equal
 the same advance stepped at once, to the bit; it ends with the sample its stops name, also on a
 part's last sample; and a lease that ends between parts (the watchdog restored the loop) ends
 the advance there: the plant never steps a loop for an asker who no longer holds it.
@@ -9,12 +10,10 @@ at its publishers."""
 
 from __future__ import annotations
 
-import math
-
 import pytest
 
 from services.plant_sim.plant_file import build_plant
-from services.plant_sim.service import STREAM_CHUNK, PlantService, ServiceOptions
+from services.plant_sim.service import FIRST_CHUNK, STREAM_CHUNK, PlantService, ServiceOptions
 from shared import keys, wire
 from shared.messages import (
     AdvanceCommand,
@@ -96,7 +95,13 @@ def test_a_long_advance_comes_in_parts_equal_to_one_stepping(service) -> None:
     send(service, advance(steps))
     got, messages = caught.samples()
     want = plant()["x"].advance_many(steps)
-    assert messages == math.ceil(steps / STREAM_CHUNK) == 4
+    sizes = [FIRST_CHUNK, 2 * FIRST_CHUNK, *[STREAM_CHUNK] * 3]  # 64, 128, 256, 256, 256 …
+    assert FIRST_CHUNK * 4 == STREAM_CHUNK
+    assert [len(wire.decode(ProcessSamples, p).samples) for _, p in caught.sent] == [
+        *sizes[:4],
+        steps - sum(sizes[:4]),
+    ]
+    assert messages == 5
     assert [s.model_dump() for s in got] == [s.model_dump() for s in want]
 
 
@@ -123,18 +128,18 @@ def test_a_lease_that_ends_between_parts_ends_the_advance(service) -> None:
     caught = service.publishers = Caught(on_put=lapse)
     send(service, advance(4 * STREAM_CHUNK))
     got, messages = caught.samples()
-    assert (len(got), messages) == (STREAM_CHUNK, 1)
+    assert (len(got), messages) == (FIRST_CHUNK, 1)
     assert "x" not in service.leases
 
 
 def test_a_stop_on_a_parts_last_sample_ends_the_advance(service) -> None:
-    """A record judged every 32 samples settles at its first settling point, the 256th
+    """A record judged every 8 samples settles at its first settling point, the 64th
     sample: the last of the first part, and the advance's last."""
-    assert STREAM_CHUNK == 8 * 32
-    want = plant()["x"].advance_many(STREAM_CHUNK)
+    assert FIRST_CHUNK == 8 * 8
+    want = plant()["x"].advance_many(FIRST_CHUNK)
     settle = SettleStop(k=1, target=want[-1].pv, band=1e-9)
     caught = service.publishers = Caught()
-    send(service, advance(4 * STREAM_CHUNK, record=RecordStops(judge=32, settle=settle)))
+    send(service, advance(4 * STREAM_CHUNK, record=RecordStops(judge=8, settle=settle)))
     got, messages = caught.samples()
-    assert (len(got), messages) == (STREAM_CHUNK, 1)
+    assert (len(got), messages) == (FIRST_CHUNK, 1)
     assert [s.model_dump() for s in got] == [s.model_dump() for s in want]

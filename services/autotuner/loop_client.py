@@ -422,22 +422,49 @@ class LoopClient:
         """Send ``cmd`` and confirm it was applied; CommandRefused carries the plant's reason.
         The plant counts refusals per sender (a sync's answer carries ours), so another
         client's refused commands are never taken for ours."""
-        before = self._refused
+        before, loop_before = self._refused, self._loop_refused
         if isinstance(cmd, ReleaseCommand):
             self.holding = False  # its own release's status must not read as a lost lease
         self.send(cmd)
-        status = self.sync()
-        mine = status.sync_rejected
-        if mine is None:  # a plant that does not count by sender: the loop's counter
-            if status.rejected > self._loop_refused:
-                raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
-        elif mine > before:
-            raise CommandRefused(f"loop {self.loop}: {status.sync_last_reject}")
+        status = self._confirmed(before, loop_before)
         if isinstance(cmd, LeaseCommand):
             self.holding = status.leased_by == self.source
             if not self.holding:
                 raise CommandRefused(f"loop {self.loop}: lease not granted")
         return status
+
+    def _confirmed(self, before: int, loop_before: int) -> LoopStatus:
+        """A sync's status, once the commands sent since the counts ``before`` (this client's
+        refusals) and ``loop_before`` (the loop's) were read are applied; CommandRefused with
+        the plant's reason if any of them was refused."""
+        status = self.sync()
+        mine = status.sync_rejected
+        if mine is None:  # a plant that does not count by sender: the loop's counter
+            if status.rejected > loop_before:
+                raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
+        elif mine > before:
+            raise CommandRefused(f"loop {self.loop}: {status.sync_last_reject}")
+        return status
+
+    def command_all(self, *cmds: Command) -> LoopStatus:
+        """Send ``cmds`` in order and confirm they were applied (CommandRefused names the
+        last refusal). In lockstep they go at once and one sync confirms them all: the loop
+        does not move between commands (no sim time passes without an advance), so a refusal
+        is known before it runs under any of them, as one at a time; in realtime the loop
+        runs on meanwhile, so each is confirmed before the next is sent (``command``). Not
+        for a lease or its release (``command``)."""
+        if not cmds:
+            raise ValueError("command_all: none given")
+        if self.info.clock != "lockstep" or len(cmds) == 1:
+            for cmd in cmds:
+                status = self.command(cmd)
+            return status
+        if any(isinstance(cmd, LeaseCommand | ReleaseCommand) for cmd in cmds):
+            raise ValueError("command_all: a lease or a release is sent with command()")
+        before, loop_before = self._refused, self._loop_refused
+        for cmd in cmds:
+            self.send(cmd)
+        return self._confirmed(before, loop_before)
 
     # --- lockstep samples: asked for by advances, taken in order ------------------------------
 

@@ -50,6 +50,7 @@ from shared.messages import (
     APPLIED_STATUSES,
     MAX_ADVANCE,
     MAX_BATCH,
+    Command,
     DisturbanceCommand,
     GainsCommand,
     GuardStop,
@@ -885,10 +886,13 @@ class TuningRun:
         t = self._t
         if self.info.clock == "realtime":
             t = self._t = max(t, c.sync().t)
-        c.command(GainsCommand(loop=c.loop, gains=gains, source=c.source, t=t))
-        c.command(SetpointCommand(loop=c.loop, sp=sp, source=c.source, t=t))
+        cmds: list[Command] = [
+            GainsCommand(loop=c.loop, gains=gains, source=c.source, t=t),
+            SetpointCommand(loop=c.loop, sp=sp, source=c.source, t=t),
+        ]
         if c.last_status.mode != "auto":
-            c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source, t=t))
+            cmds.append(ModeCommand(loop=c.loop, mode="auto", source=c.source, t=t))
+        c.command_all(*cmds)  # in lockstep at once, confirmed by one sync
 
     def _record(
         self,
@@ -1051,6 +1055,7 @@ class TuningRun:
         stable = stable and (bool(sp_m["settled"]) or not swinging(y, sp0 + step, k, band))
         stable = stable and (sp_m["decay_ratio"] or 0) < 1
         before = c.sync()
+        back: list[Command] = []  # the load step taken off again, with the setpoint's return
         if stable and "load" in before.disturbances:
             load_size = self.req.amplitude or experiments.DEFAULT_RELAY_AMPLITUDE
             base = before.disturbances["load"]
@@ -1068,15 +1073,17 @@ class TuningRun:
             saturated = saturated or (
                 bool(np.mean((u2 <= op_lo) | (u2 >= op_hi)) > 1 / 3) if u2.size else False
             )
-            c.command(
+            back.append(
                 DisturbanceCommand(loop=c.loop, name="load", value=base, source=c.source, t=self._t)
             )
         if stopped is not None:
             # the new gains drive the loop away: back to the state before the test at once
             # (the caller restores); what was measured so far is reported
             saturated = saturated or "saturat" in stopped
+            if back:
+                c.command_all(*back)
         else:
-            c.command(SetpointCommand(loop=c.loop, sp=sp0, source=c.source, t=self._t))
+            c.command_all(*back, SetpointCommand(loop=c.loop, sp=sp0, source=c.source, t=self._t))
             if stable:
                 self._record(5 * scale, at(sp0))
         iae_sp = sp_m["iae"] if sp_m else 0.0

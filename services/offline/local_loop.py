@@ -114,6 +114,12 @@ class LocalLoopClient:
             raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
         return status
 
+    def command_all(self, *cmds: Command) -> LoopStatus:
+        """``cmds`` in order, each confirmed (the loop stands still between them)."""
+        for cmd in cmds:
+            status = self.command(cmd)
+        return status
+
     def advance(
         self, steps: int, band: Band | None = None, record: RecordStops | None = None
     ) -> list[ProcessSample]:

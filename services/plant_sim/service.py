@@ -81,7 +81,9 @@ Outbox = list[tuple[str, Message | Encoded]]  # what one command publishes, in o
 # is left of it after that (None: the advance is over)
 Rest = Callable[[Outbox], "Rest | None"]
 # samples a lockstep advance steps before it publishes them: the asker (and the logger) read
-# one part while the plant steps the next, rather than all of them after it
+# one part while the plant steps the next, rather than all of them after it; the first part is
+# FIRST_CHUNK, each next twice the last, up to STREAM_CHUNK (the asker starts sooner)
+FIRST_CHUNK = 64
 STREAM_CHUNK = 256
 assert STREAM_CHUNK <= MAX_BATCH  # a part is one ProcessSamples
 
@@ -393,7 +395,7 @@ class PlantService:
     def _advance(
         self, loop: SimLoop, cmd: AdvanceCommand, lease: Lease | None, out: Outbox
     ) -> Rest | None:
-        """Step a lockstep advance's first ``STREAM_CHUNK`` samples into ``out``; the rest
+        """Step a lockstep advance's first part (``FIRST_CHUNK`` samples) into ``out``; the rest
         of it (None: it is over). It ends early with the sample its stops name (a relay's next
         decision, a verification record's end). Between parts the lock is let go, and the
         advance goes on only while the loop is held as it was when it began (a lease that
@@ -408,21 +410,22 @@ class PlantService:
             return stopped
 
         left = cmd.steps
-        first = True
+        size = FIRST_CHUNK
 
         def part(out: Outbox) -> Rest | None:
-            nonlocal left, first
+            nonlocal left, size
             if self.leases.get(loop_id) is not lease:
                 return None
             had = loop.fault
-            rows = loop.advance_rows(min(left, STREAM_CHUNK), ends if test else None)
+            first = left == cmd.steps
+            rows = loop.advance_rows(min(left, size), ends if test else None)
             left -= len(rows)
+            size = min(2 * size, STREAM_CHUNK)
             if first and len(rows) == 1 and (stopped or not left):
                 out.append((keys.pv(prefix, loop_id), ProcessSample(**rows[0])))
             elif rows:  # one message per part: a message's cost on the bus is per message
                 payload = wire.encode_samples(loop_id, rows)
                 out.append((keys.pv_batch(prefix, loop_id), Encoded(ProcessSamples, payload)))
-            first = False
             if loop.fault and not had:  # the model failed: say so once, on the status
                 out.append((keys.status(prefix, loop_id), self.loop_status(loop, "fault")))
             return part if rows and left > 0 and not stopped else None

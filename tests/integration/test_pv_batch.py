@@ -1,9 +1,9 @@
 """Lockstep batches on the bus against plant_sim as a process: an advance of several periods
-goes out as ``ProcessSamples`` on ``pv_batch``, one message per ``STREAM_CHUNK`` samples
-stepped (each sent before the next is stepped), one period as a ``ProcessSample`` on ``pv``;
-the tuner's ``LoopClient`` and the console's bridge see every sample, in order, the same as
-the in-process loop steps them; a batch that is not valid stops the client in one line
-naming the field."""
+goes out as ``ProcessSamples`` on ``pv_batch``, one message per part stepped (each sent
+before the next is stepped: ``FIRST_CHUNK`` samples, then twice as many each time up to
+``STREAM_CHUNK``), one period as a ``ProcessSample`` on ``pv``; the tuner's ``LoopClient``
+and the console's bridge see every sample, in order, the same as the in-process loop steps
+them; a batch that is not valid stops the client in one line naming the field."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from services.autotuner.loop_client import LoopClient
 from services.console.bridge import Bridge
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
-from services.plant_sim.service import STREAM_CHUNK
+from services.plant_sim.service import FIRST_CHUNK, STREAM_CHUNK
 from shared import keys, wire
 from shared.errors import DecodeError
 from shared.messages import (
@@ -41,7 +41,8 @@ model = "heat_exchanger"
 sample_time = 0.5
 noise_std = 0.1
 """
-STEPS = 4 * STREAM_CHUNK + 6  # five messages: four full parts and the rest
+STEPS = 4 * STREAM_CHUNK + 6  # 64, 128, 256, 256, 256 and the rest: six messages
+PARTS = [FIRST_CHUNK, 2 * FIRST_CHUNK, *[STREAM_CHUNK] * 3]
 
 
 def test_an_advance_is_one_message_per_batch_and_the_client_reads_every_sample(
@@ -86,9 +87,10 @@ def test_an_advance_is_one_message_per_batch_and_the_client_reads_every_sample(
             batch = wire.decode(ProcessSamples, payload).samples
             messages.append((leaf, len(batch)))
             carried += batch
+    assert FIRST_CHUNK * 4 == STREAM_CHUNK
     assert messages == [
-        *[("pv_batch", STREAM_CHUNK)] * 4,
-        ("pv_batch", 6),
+        *[("pv_batch", n) for n in PARTS],
+        ("pv_batch", STEPS - sum(PARTS)),
         ("pv", 1),
         ("pv_batch", 3),
     ]
