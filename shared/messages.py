@@ -274,10 +274,13 @@ class AdvanceCommand(Command):
     """Lockstep clock: advance the loop by ``steps`` sample periods, publishing each sample;
     with ``stop_below``/``stop_above``, stop early after the first sample whose PV is at or
     below/above them, with ``stop_op_below``/``stop_op_above`` likewise for its output
-    (``stops_at``). Why: a relay decides nothing while the PV stays between its levels, so it
+    (``stops_at``); with ``record``, also where a verification record's judging would stop it
+    (``RecordStops``). Why: a relay decides nothing while the PV stays between its levels, so it
     asks for a half-cycle in one round trip and the plant stops at the sample where the next
     decision falls, which the asker then knows without being told; a ramp trial also decides
-    where the output first sits at a limit."""
+    where the output first sits at a limit; a verification record only where it settles or
+    runs away, which the plant asks of the samples as it steps them (one round trip a
+    record)."""
 
     kind: ClassVar[str] = "advance"
     steps: int = Field(default=1, ge=1, le=MAX_ADVANCE)
