@@ -13,7 +13,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.control.pid import Action, Mode, PidSettings
-from shared.control.record_stops import Guard, record_test
+from shared.control.record_stops import MAX_WINDOW, CalmCheck, Guard, record_test
 from shared.control.signals import end_test
 
 ClockMode = Literal["lockstep", "realtime"]
@@ -270,11 +270,56 @@ class RecordStops(Message):
         return record_test(steps, self.judge, settle, guard, band_ends)
 
 
+class CalmStop(Message):
+    """A P-gain ramp's calming check (``record_stops.calm_test``), for a lockstep advance that
+    ends where it passes: the ramp had been fed ``fed`` samples (the last of them
+    ``history``, at most ``window``); from count ``start`` on, at each multiple of ``every``,
+    calm when the means of ten stretches of the last ``window`` PVs agree within ``limit``."""
+
+    fed: int = Field(ge=0)
+    start: int = Field(ge=0)
+    every: int = Field(default=8, ge=1, le=MAX_WINDOW)
+    window: int = Field(ge=10, le=MAX_WINDOW, description="samples")
+    limit: float = Field(ge=0.0, description="PV units")
+    history: list[float] = Field(default_factory=list, max_length=MAX_WINDOW)
+
+    @model_validator(mode="after")
+    def _history_fits(self) -> CalmStop:
+        if len(self.history) > self.window:
+            raise ValueError(f"history: {len(self.history)} PVs, more than the window")
+        return self
+
+    @classmethod
+    def of(cls, check: CalmCheck) -> CalmStop:
+        """The message of a ramp's calming checks (ValueError: numbers it cannot carry)."""
+        return cls(
+            fed=check.fed,
+            start=check.start,
+            every=check.every,
+            window=check.window,
+            limit=check.limit,
+            history=list(check.history),
+        )
+
+    def check(self) -> CalmCheck:
+        """The calming checks this message carries."""
+        h = tuple(self.history)
+        return CalmCheck(self.fed, self.start, self.every, self.window, self.limit, h)
+
+    def stop_test(
+        self, band_ends: Callable[[float, float | None], bool]
+    ) -> Callable[[float, float | None], bool]:
+        """The end test of an advance that ends at this check's pass, past ``band_ends`` too
+        (stateful: one per advance)."""
+        return self.check().end_test(band_ends)
+
+
 class AdvanceCommand(Command):
     """Lockstep clock: advance the loop by ``steps`` sample periods, publishing each sample;
     with ``stop_below``/``stop_above``, stop early after the first sample whose PV is at or
     below/above them, with ``stop_op_below``/``stop_op_above`` likewise for its output
-    (``stops_at``); with ``record``, also where a verification record's judging would stop it
+    (``stops_at``); with ``calm``, also at a P-gain ramp's first calming check that passes
+    (``CalmStop``); with ``record``, where a verification record's judging would stop it
     (``RecordStops``). Why: a relay decides nothing while the PV stays between its levels, so it
     asks for a half-cycle in one round trip and the plant stops at the sample where the next
     decision falls, which the asker then knows without being told; a ramp trial also decides
@@ -296,6 +341,11 @@ class AdvanceCommand(Command):
     stop_op_above: float | None = Field(
         default=None, description="%: the advance ends with a sample whose output is at or above"
     )
+    calm: CalmStop | None = Field(
+        default=None,
+        description="the advance also ends at the first of a P-gain ramp's calming checks "
+        "that passes",
+    )
     record: RecordStops | None = Field(
         default=None,
         description="the advance is a verification record from its first sample: it also ends "
@@ -306,7 +356,8 @@ class AdvanceCommand(Command):
     def banded(self) -> bool:
         """Whether any stop is set (else the advance runs its ``steps``)."""
         stops = (self.stop_below, self.stop_above, self.stop_op_below, self.stop_op_above)
-        return self.record is not None or any(x is not None for x in stops)
+        judged = self.record is not None or self.calm is not None
+        return judged or any(x is not None for x in stops)
 
     def stops_at(self, pv: float, op: float | None = None) -> bool:
         """True when a sample of PV ``pv`` (and output ``op``, %) ends this advance
@@ -317,8 +368,10 @@ class AdvanceCommand(Command):
         """``stops_at`` as a function of the sample, the stops read once (``end_test``): for
         a test asked of every sample of the advance."""
         pv_stops = (self.stop_below, self.stop_above)
-        band = end_test(pv_stops, (self.stop_op_below, self.stop_op_above))
-        return band if self.record is None else self.record.stop_test(self.steps, band)
+        test = end_test(pv_stops, (self.stop_op_below, self.stop_op_above))
+        if self.calm is not None:
+            test = self.calm.stop_test(test)
+        return test if self.record is None else self.record.stop_test(self.steps, test)
 
 
 class SyncCommand(Command):

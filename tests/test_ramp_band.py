@@ -169,3 +169,23 @@ def test_live_ramp_runs_are_the_runs_fed_sample_by_sample(loop, plant, monkeypat
     batched, left = tune(loop, False, monkeypatch, plant)
     assert one["ku"] is not None and math.isfinite(one["ku"]), one["reason"]
     assert batched == one and left == left_one
+
+
+def test_a_calming_is_a_batch_or_two_not_one_per_check() -> None:
+    """The loop makes the calming's checks as it steps (``Band.calm``), so a calming between
+    trials ends in a batch or two (its window's start, then the check that passes), where a
+    round trip per check (every 8th sample) took dozens."""
+    loop, test, limit = lag_dominated()
+    port = SimLoopPort(loop, present_first=True, limit=limit)
+    take = port.samples
+    in_settle: Counter[str] = Counter()
+
+    def counted(n, band=None):
+        in_settle[test.phase] += 1
+        return take(n, band)
+
+    port.samples = counted
+    drive(test, port, held=port.held_now(), max_chunk=1024)
+    calmings = sum(1 for e in test.events if e[1] == "trial") - 1
+    assert calmings >= 5 and test.result is not None
+    assert in_settle["settle"] <= 3 * calmings

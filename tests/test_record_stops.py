@@ -16,7 +16,7 @@ import pytest
 
 from services.autotuner.identify.experiments import Band
 from shared.control.record_stops import Guard, SettleRule, judge_point, settle_point
-from shared.messages import AdvanceCommand, GuardStop, RecordStops, SettleStop
+from shared.messages import AdvanceCommand, CalmStop, GuardStop, RecordStops, SettleStop
 
 
 def tuner_end(t, y, u, judge, n_max, done: SettleRule, guard: Guard | None, target, lo, hi):
@@ -147,3 +147,15 @@ def test_long_enough_counts_from_the_first_sample(after: float, want: int) -> No
     cmd = AdvanceCommand(loop="x", steps=n, source="s", t=100.0, record=stops)
     got = plant_end(y, u, cmd)
     assert got == (want if after != 15.0 else 16)
+
+
+def test_a_calm_stop_carries_at_most_its_window() -> None:
+    """A ramp's calming check names the PVs it needs from before the advance: at most one
+    window of them (a message is bounded by what it is for)."""
+    CalmStop(fed=10, start=12, window=10, limit=0.1, history=[1.0] * 10)
+    with pytest.raises(ValueError, match="history"):
+        CalmStop(fed=10, start=12, window=10, limit=0.1, history=[1.0] * 11)
+    with pytest.raises(ValueError):
+        CalmStop.model_validate_json(
+            '{"fed": 1, "start": 2, "window": 10, "limit": 0.1, "history": [NaN]}'
+        )

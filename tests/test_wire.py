@@ -12,6 +12,7 @@ from shared import wire
 from shared.errors import DecodeError
 from shared.messages import (
     AdvanceCommand,
+    CalmStop,
     DisturbanceCommand,
     GainsCommand,
     GuardStop,
@@ -131,6 +132,13 @@ EXAMPLES: list[Message] = [
         ),
     ),
     RecordStops(judge=3),
+    CalmStop(fed=120, start=141, window=40, limit=0.05, history=[50.1, 50.2]),
+    AdvanceCommand(
+        loop="hx1",
+        steps=1024,
+        stop_below=10.0,
+        calm=CalmStop(fed=0, start=40, every=8, window=40, limit=0.5),
+    ),
     SettleStop(k=4, target=-1.5, band=0.0),
     GuardStop(window=8, target=1.0, op_low=-10.0, op_high=110.0),
     SyncCommand(loop="hx1", token=99),

@@ -29,6 +29,7 @@ from shared import keys, wire
 from shared.errors import AutotuneError, DecodeError
 from shared.messages import (
     AdvanceCommand,
+    CalmStop,
     Command,
     LeaseCommand,
     LoopInfo,
@@ -561,6 +562,7 @@ class LoopClient:
             stop_above=above,
             stop_op_below=op_below,
             stop_op_above=op_above,
+            calm=CalmStop.of(band.calm) if band.calm is not None else None,
             record=record,
         )
         self.send(cmd)

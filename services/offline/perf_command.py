@@ -150,6 +150,9 @@ def ratios(out: dict) -> dict[str, float]:
         if ph and name in ph["bus"] and name in ph["inprocess"]:
             bus, local = ph["bus"][name], ph["inprocess"][name]
             r[f"{name}_bus_over_inprocess"] = bus["rate"] / local["rate"]
+        if ph and name in (ph.get("bus_warm") or {}) and name in ph["inprocess"]:
+            bus, local = ph["bus_warm"][name], ph["inprocess"][name]
+            r[f"{name}_bus_warm_over_inprocess"] = bus["rate"] / local["rate"]
     lg = out.get("logger")
     if lg and lg["raw_writer"] > 0:
         r["logger_over_raw_writer"] = lg["capacity"] / lg["raw_writer"]
@@ -189,16 +192,18 @@ def _print(out: dict, size: str, seconds: float) -> None:
         p(f"  CPU per lockstep sample    {sum(cpu.values()):9.0f} µs in all     ({parts} µs)")
     if "phases" in out:
         x = out["phases"]
-        for where, label in (("bus", "bus"), ("inprocess", "in-process")):
+        where_label = (("bus", "bus"), ("bus_warm", "bus, warm"), ("inprocess", "in-process"))
+        for where, label in where_label:
             for name, what in (("trials", "ramp trials"), ("verify", "verification")):
-                y = x[where].get(name)
+                y = (x.get(where) or {}).get(name)
                 if y:
+                    first = " (a fresh tuner's first tune)" if where == "bus" else ""
                     p(
                         f"  {what + ', ' + label:<27}{y['rate']:9.0f} samples/s      "
                         f"({y['us_per_sample']:.1f} µs per sample, {y['samples']:.0f} samples"
                         + (
-                            f"; services from {x['source']}, {x['status']})"
-                            if where == "bus"
+                            f"; services from {x['source']}, {x['status']}{first})"
+                            if where != "inprocess"
                             else ")"
                         )
                     )

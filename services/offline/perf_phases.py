@@ -1,11 +1,14 @@
 """Wall time per sample of the phases where the loop's own PID is in charge: a ramp test's
 closed-loop trials and the verification of the gains, over the bus and in this process.
 
-One ramp tune of the heat-exchanger preset goes through plant_sim, the autotuner and the logger
-as processes on loopback; the progress messages on the bus mark the phases (the experiment
-from ``quiet`` to ``identified``; the verification from the first ``verify`` to ``done``) and
-carry their sim time, so each phase's samples are its sim time over the sample time and its
-wall time is read where the messages arrive. The same tune in this process (no bus) is the
+Two ramp tunes of the heat-exchanger preset, one after the other on two loops, go through
+plant_sim, the autotuner and the logger as processes on loopback; the progress messages on the
+bus mark the phases (the experiment from ``quiet`` to ``identified``; the verification from the
+first ``verify`` to ``done``) and carry their sim time, so each phase's samples are its sim
+time over the sample time and its wall time is read where the messages arrive. The first tune
+of a fresh tuner (``bus``) also pays for the tuner's start-up meanwhile (its compute workers
+start with its first run, and compete for the cores); the second (``bus_warm``) is the
+steady state, the per-sample cost alone. The same tune in this process (no bus) is the
 yardstick: its phases are timed by the run's own progress hook.
 
 The services (and the CLI) can be started from another source tree (``source``): the same
@@ -35,6 +38,7 @@ from shared.messages import TuneProgress, TuneRequest, TuneResult
 from shared.session import open_session
 
 LOOP = "ph1"
+WARM = "ph2"  # tuned after LOOP, the tuner warm
 METHOD = "ramp"  # closed-loop trials, then the verification: both phases in one run
 # phase → (progress phase that opens it, progress phase that closes it)
 PHASES = {"trials": ("quiet", "identified"), "verify": ("verify", "done")}
@@ -52,8 +56,9 @@ class Phase:
 class PhasesReport:
     status: str  # the bus run's status (a figure of a failed run means little)
     source: str  # the source tree the services ran from
-    bus: dict[str, Phase]
+    bus: dict[str, Phase]  # the first tune of a fresh tuner
     inprocess: dict[str, Phase]
+    bus_warm: dict[str, Phase] | None = None  # the same tune next, the tuner warm
 
 
 def _phases(marks: list[tuple[str, float, float]], ts: float) -> dict[str, Phase]:
@@ -94,27 +99,33 @@ def _start(module: str, args: list[str], source: Path, logs) -> subprocess.Popen
     return start_service(module, args, stderr=logs, stdout=subprocess.DEVNULL, source=source)
 
 
-def over_bus(source: Path, timeout: float = 300.0) -> tuple[str, dict[str, Phase]]:
+def over_bus(
+    source: Path, timeout: float = 300.0
+) -> tuple[str, dict[str, Phase], dict[str, Phase]]:
     """The ramp tune through plant_sim, the autotuner and the logger as processes (all, and
-    the CLI, run from ``source``); (its status, its phases)."""
+    the CLI, run from ``source``), on a fresh tuner and then again; (the statuses, the first
+    tune's phases, the second's)."""
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     prefix = perf._prefix("ph")
-    marks: list[tuple[str, float, float]] = []
-    status: list[str] = []
-    done = threading.Event()
+    marks: dict[str, list[tuple[str, float, float]]] = {LOOP: [], WARM: []}
+    status: dict[str, str] = {}
+    done = {LOOP: threading.Event(), WARM: threading.Event()}
 
     def on_progress(sample: zenoh.Sample) -> None:
         p = wire.decode_sample(TuneProgress, sample)
-        marks.append((p.phase, p.t, time.perf_counter()))
+        if p.loop in marks:
+            marks[p.loop].append((p.phase, p.t, time.perf_counter()))
 
     def on_result(sample: zenoh.Sample) -> None:
-        status.append(wire.decode_sample(TuneResult, sample).status)
-        done.set()
+        r = wire.decode_sample(TuneResult, sample)
+        if r.loop in done:
+            status[r.loop] = r.status
+            done[r.loop].set()
 
     source = source.resolve()
     with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryFile("w+") as logs:
         plant = Path(tmp) / "plant.toml"
-        perf._plant_file(plant, [LOOP], perf.HX, perf.HX_SAMPLE_TIME)
+        perf._plant_file(plant, [LOOP, WARM], perf.HX, perf.HX_SAMPLE_TIME)
         zc = perf._client_args(endpoint)
         pre = ["--prefix", prefix]
         procs: list[subprocess.Popen] = []
@@ -132,36 +143,40 @@ def over_bus(source: Path, timeout: float = 300.0) -> tuple[str, dict[str, Phase
                     keys.tuner_alive(prefix, "tuner"),
                     keys.logger_alive(prefix, "logger"),
                     keys.loop_alive(prefix, LOOP),
+                    keys.loop_alive(prefix, WARM),
                 ):
                     if not wait_for_token(s, key, 20.0):
                         raise AutotuneError(f"perf: {key} did not come up within 20 s")
                 subs = [
-                    s.declare_subscriber(keys.tune_progress(prefix, LOOP), on_progress),
-                    s.declare_subscriber(keys.tune_result(prefix, LOOP), on_result),
+                    s.declare_subscriber(keys.tune_progress(prefix, "*"), on_progress),
+                    s.declare_subscriber(keys.tune_result(prefix, "*"), on_result),
                 ]
                 try:
-                    cli = _start(
-                        "services.cli",
-                        ["tune", LOOP, "--method", METHOD, *pre, "--json", *zc],
-                        source,
-                        logs,
-                    )
-                    procs.append(cli)
-                    try:
-                        cli.wait(timeout=timeout)
-                    except subprocess.TimeoutExpired:
-                        raise AutotuneError(
-                            f"perf: the ramp tune did not end within {timeout:g} s"
-                        ) from None
-                    if not done.wait(10.0):
-                        raise AutotuneError("perf: the ramp tune's result was not seen")
+                    for loop in (LOOP, WARM):
+                        cli = _start(
+                            "services.cli",
+                            ["tune", loop, "--method", METHOD, *pre, "--json", *zc],
+                            source,
+                            logs,
+                        )
+                        procs.append(cli)
+                        try:
+                            cli.wait(timeout=timeout)
+                        except subprocess.TimeoutExpired:
+                            raise AutotuneError(
+                                f"perf: the ramp tune of {loop} did not end within {timeout:g} s"
+                            ) from None
+                        if not done[loop].wait(10.0):
+                            raise AutotuneError(f"perf: the ramp tune of {loop}: no result seen")
                 finally:
                     for sub in subs:
                         sub.undeclare()
         finally:
             for p in reversed(procs):
                 stop_service(p, timeout=30.0)
-    return status[0], _phases(marks, perf.HX_SAMPLE_TIME)
+    statuses = status[LOOP] if status[WARM] == status[LOOP] else f"{status[LOOP]}, {status[WARM]}"
+    ts = perf.HX_SAMPLE_TIME
+    return statuses, _phases(marks[LOOP], ts), _phases(marks[WARM], ts)
 
 
 def phases(source: Path | None = None) -> PhasesReport:
@@ -169,5 +184,5 @@ def phases(source: Path | None = None) -> PhasesReport:
     this tree) and in this process."""
     here = Path(__file__).resolve().parents[2]
     src = source or here
-    status, bus = over_bus(src)
-    return PhasesReport(status, str(src), bus, in_process())
+    status, bus, warm = over_bus(src)
+    return PhasesReport(status, str(src), bus, in_process(), warm)

@@ -1,4 +1,5 @@
-"""Where a verification record stops: settled at its target, or running away (the guard).
+"""Where a verification record stops: settled at its target, or running away (the guard);
+and where a P-gain ramp's calming ends (``calm_spread``, ``calm_test``).
 
 A record is a loop run in auto under gains on trial, judged at fixed points: every ``judge``
 samples (``judge_point``), the guard once a new whole window is in, ``settled`` at multiples
@@ -14,7 +15,7 @@ Units: PV in its engineering units, output in % of span, counts in samples.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -143,5 +144,69 @@ def record_test(
             if m >= min_samples and settled(y[:m], k, target, band, flat):
                 return True
         return False
+
+    return ends
+
+
+def calm_spread(y: np.ndarray) -> tuple[float, int]:
+    """A calming's check of the record ``y`` (its last period): the spread of the means of ten
+    stretches of its last 10·⌊n/10⌋ samples (the noise averaged in each), and the stretch's
+    length in samples. Calm when the spread is below a limit (``ramp.RampTest``)."""
+    stretches = y[-(y.size // 10) * 10 :].reshape(10, -1)
+    return float(np.ptp(stretches.mean(axis=1))), stretches.shape[1]
+
+
+MAX_WINDOW = 1_000_000  # samples a calming's window may hold (and its message carry)
+
+
+@dataclass(frozen=True)
+class CalmCheck:
+    """A ramp's calming checks, for the loop to make as it steps: the ramp had been fed
+    ``fed`` samples, the last of them ``history`` (at most ``window``); from count ``start``
+    on, at each multiple of ``every``, calm when ``calm_spread`` of the last ``window`` PVs is
+    below ``limit`` (PV units)."""
+
+    fed: int
+    start: int
+    every: int
+    window: int
+    limit: float
+    history: tuple[float, ...]
+
+    def end_test(
+        self, band_ends: Callable[[float, float | None], bool]
+    ) -> Callable[[float, float | None], bool]:
+        """``calm_test`` of these checks, past ``band_ends`` too."""
+        return calm_test(
+            self.fed, self.start, self.every, self.window, self.limit, self.history, band_ends
+        )
+
+
+def calm_test(
+    fed: int,
+    start: int,
+    every: int,
+    window: int,
+    limit: float,
+    history: Sequence[float],
+    band_ends: Callable[[float, float | None], bool],
+) -> Callable[[float, float | None], bool]:
+    """The test that ends a lockstep advance at a ramp's calming check that passes, past
+    ``band_ends`` too, asked of every sample in turn (PV, output %): the test had been fed
+    ``fed`` samples, the last of them ``history``; it checks at each count from ``start`` on
+    that is a multiple of ``every``, whether ``calm_spread`` of the last ``window`` PVs is
+    below ``limit``. Stateful: one per advance."""
+    y = list(history)
+    count = fed
+
+    def ends(pv: float, op: float | None = None) -> bool:
+        nonlocal count
+        y.append(pv)
+        count += 1
+        if band_ends(pv, op):
+            return True
+        if count < start or count % every:
+            return False
+        return calm_spread(np.asarray(y[-window:]))[0] < limit
 
     return ends

@@ -19,6 +19,7 @@ from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
+from shared.control.record_stops import CalmCheck
 from shared.control.signals import Sample, end_test, ends_batch
 
 
@@ -275,15 +276,18 @@ class Band:
     above: float
     op_below: float = -math.inf
     op_above: float = math.inf
+    # a P-gain ramp calming: the batch also ends at its first calming check that passes
+    calm: CalmCheck | None = None
 
     def ends(self, pv: float, op: float | None = None) -> bool:
-        """True for the sample (PV ``pv``, output ``op``) that ends a batch."""
+        """True for the sample (PV ``pv``, output ``op``) past the band's bounds."""
         return ends_batch(pv, op, self.stops(), self.op_stops())
 
     def end_test(self) -> Callable[[float, float | None], bool]:
-        """``ends`` as a function of the sample, the stops read once (``end_test``): for a
-        batch's every sample."""
-        return end_test(self.stops(), self.op_stops())
+        """The test that ends a batch, asked of its every sample in turn: ``ends``, the stops
+        read once (``end_test``), and the calming check (``calm``: stateful, one per batch)."""
+        test = end_test(self.stops(), self.op_stops())
+        return test if self.calm is None else self.calm.end_test(test)
 
     def stops(self) -> tuple[float | None, float | None]:
         """(stop_below, stop_above) of an AdvanceCommand: None for an unbounded side."""

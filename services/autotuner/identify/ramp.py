@@ -58,7 +58,10 @@ from services.autotuner.identify.model_fit import (
     through_ultimate_point,
 )
 from services.autotuner.identify.oscillation import Oscillation, fit_oscillation, swings
+from shared.control.record_stops import MAX_WINDOW, CalmCheck, calm_spread
 from shared.control.signals import Sample, at_rest, noise_level
+
+CALM_EVERY = 8  # samples between a calming's checks
 
 
 @dataclass(frozen=True)
@@ -864,14 +867,12 @@ class RampTest:
             self._settle_start, self._settle_t0, self._sat_run = len(self._y) - 1, t, 0
             return
         window = self._calm_window()
-        if len(self._y) - self._settle_start < window or len(self._y) % 8:
+        if len(self._y) - self._settle_start < window or len(self._y) % CALM_EVERY:
             return
-        y = np.asarray(self._y[-window:])
         # calm: the means of ten stretches of the last period agree (the noise averaged)
-        stretches = y[-(y.size // 10) * 10 :].reshape(10, -1)
-        spread = float(np.ptp(stretches.mean(axis=1)))
-        limit = max(0.1 * self._trial_bump, 6 * self._noise / math.sqrt(stretches.shape[1]))
-        if spread < limit:
+        y = np.asarray(self._y[-window:])
+        spread, per = calm_spread(y)
+        if spread < self._calm_limit(per):
             self._r = float(np.mean(y))
             self._trials_from_rest = False
             self._begin_trial(t)
@@ -883,6 +884,24 @@ class RampTest:
             self._trial_max, self._last_len, self._quiet_n * self.sample_time
         )
         return scale, max(1, round(scale / self.sample_time))
+
+    def _calm_limit(self, per: int) -> float:
+        """PV units the means of a calming's ten stretches (``per`` samples each) may spread:
+        a tenth of the bump, or 6σ of the noise averaged over a stretch."""
+        return max(0.1 * self._trial_bump, 6 * self._noise / math.sqrt(per))
+
+    def _calm_stop(self) -> CalmCheck | None:
+        """The calming's checks for the loop to make as it steps (``band``): the very test of
+        ``_watch_settle``, on the same PVs (None: numbers a lockstep advance cannot carry, a
+        PV or limit not a number or a window past ``MAX_WINDOW``; the calming is then checked
+        a round trip at a time)."""
+        window = self._calm_window()
+        limit = self._calm_limit(window // 10)
+        history = tuple(self._y[max(self._settle_start, len(self._y) - window) :])
+        if window > MAX_WINDOW or not all(map(math.isfinite, (limit, *history))):
+            return None
+        start = self._settle_start + window
+        return CalmCheck(len(self._y), start, CALM_EVERY, window, limit, history)
 
     def _calm_window(self) -> int:
         """Samples of the last period whose stretches must agree for the loop to be calm."""
@@ -917,8 +936,9 @@ class RampTest:
             if length - self._settle_start < window:
                 n = min(n, self._settle_start + window - length)
             n = min(n, self._before(self.config.settle_periods * scale - (t - self._settle_t0)))
-            first = max(length + 1, self._settle_start + self._calm_window())
-            n = min(n, -(-first // 8) * 8 - length)  # the calm check: every 8th sample
+            if self._calm_stop() is None:  # the calm check: every 8th sample, a round trip
+                first = max(length + 1, self._settle_start + self._calm_window())
+                n = min(n, -(-first // CALM_EVERY) * CALM_EVERY - length)
         return max(1, min(cap, n))
 
     def band(self) -> Band:
@@ -929,11 +949,13 @@ class RampTest:
         if self.phase == "trial":
             swing = self.config.swing_limit * self._trial_bump
             lo, hi = max(lo, self._r - swing), min(hi, self._r + swing)
+        # calming: the batch ends at the first calming check that passes (the loop checks)
+        calm = self._calm_stop() if self.phase == "settle" else None
         if self._sat_run:
-            return Band(lo, hi)
+            return Band(lo, hi, calm=calm)
         op_lo, op_hi = self.op_limits
         eps = 1e-6 * (op_hi - op_lo)  # as ``_watch_output`` tells a sample at a limit
-        return Band(lo, hi, op_lo + eps, op_hi - eps)
+        return Band(lo, hi, op_lo + eps, op_hi - eps, calm)
 
     def _before(self, seconds: float) -> int:
         """Samples that surely pass before ``seconds`` more of sim time have (≥ 1)."""
