@@ -1136,11 +1136,15 @@ class _LivePort:
 
     def apply(self, demand: Demand, before: Demand) -> None:
         r, c = self.run, self.run.client
-        if demand.auto:
+        if demand.auto:  # a trial's gain and setpoint: in lockstep confirmed together
+            cmds: list[Command] = []
             if demand.kc != before.kc:
-                c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=demand.kc), source=c.source))
+                gains = PidGains(kc=demand.kc)
+                cmds.append(GainsCommand(loop=c.loop, gains=gains, source=c.source))
             if demand.sp != before.sp:
-                c.command(SetpointCommand(loop=c.loop, sp=demand.sp, source=c.source))
+                cmds.append(SetpointCommand(loop=c.loop, sp=demand.sp, source=c.source))
+            if cmds:
+                c.command_all(*cmds)
             return
         st = c.command(OutputCommand(loop=c.loop, op=demand.op, t=r._t, source=c.source))
         # lockstep: held from the present sample; realtime: from the next one
