@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import pytest
 
+from services.plant_sim import service as plant_service
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.service import FIRST_CHUNK, STREAM_CHUNK, PlantService, ServiceOptions
 from shared import keys, wire
@@ -143,3 +144,29 @@ def test_a_stop_on_a_parts_last_sample_ends_the_advance(service) -> None:
     got, messages = caught.samples()
     assert (len(got), messages) == (FIRST_CHUNK, 1)
     assert [s.model_dump() for s in got] == [s.model_dump() for s in want]
+
+
+def test_a_long_advance_keeps_its_holders_lease(service, monkeypatch) -> None:
+    """The holder waits while the plant steps for it (its commands queue behind the advance):
+    an advance that outlasts the lease's timeout does not let the watchdog take the loop back.
+    The plant's clock is made to run 0.4 s a part (the lease: 1 s), the watchdog ticking
+    between parts as its thread would."""
+    clock = [1000.0]
+    monkeypatch.setattr(plant_service.time, "monotonic", lambda: clock[0])
+    send(service, LeaseCommand(loop="x", source="me", timeout=1.0, t=0.0))
+
+    def tick(n: int) -> None:
+        clock[0] += 0.4
+        service._check_leases(clock[0], 0.05)
+
+    caught = service.publishers = Caught(on_put=tick)
+    steps = 2 * FIRST_CHUNK + 6 * STREAM_CHUNK  # 64, 128, then 256 each: 8 parts, 3.2 s
+    send(service, advance(steps))
+    got, messages = caught.samples()
+    assert clock[0] - 1000.0 > 3 * 1.0  # the advance lasted three lease timeouts
+    assert (len(got), messages) == (steps, 8)
+    assert service.leases["x"].source == "me"
+    # and a holder that goes silent after it still loses the loop
+    clock[0] += 1.5
+    service._check_leases(clock[0], 0.05)
+    assert "x" not in service.leases

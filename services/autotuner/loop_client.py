@@ -451,9 +451,11 @@ class LoopClient:
         """Send ``cmds`` in order and confirm they were applied (CommandRefused names the
         last refusal). In lockstep they go at once and one sync confirms them all: the loop
         does not move between commands (no sim time passes without an advance), so a refusal
-        is known before it runs under any of them, as one at a time; in realtime the loop
-        runs on meanwhile, so each is confirmed before the next is sent (``command``). Not
-        for a lease or its release (``command``)."""
+        is known before it runs a sample under any of them. Unlike one at a time, the commands
+        after a refused one are still applied (the setpoint after refused gains, say): the
+        caller, told of the refusal, restores the loop before it advances. In realtime the
+        loop runs on meanwhile, so each is confirmed before the next is sent (``command``).
+        Not for a lease or its release (``command``)."""
         if not cmds:
             raise ValueError("command_all: none given")
         if self.info.clock != "lockstep" or len(cmds) == 1:

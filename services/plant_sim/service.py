@@ -5,8 +5,8 @@ channel keeps the senders' order, so a lockstep run is deterministic. Commands a
 and validated; a bad one is refused with a logged reason and counted, and changes nothing.
 
 Clocks: *lockstep* advances a loop only on an ``advance`` command (the samples of an advance
-of several periods go out as one ``ProcessSamples`` on ``pv_batch``, one per sample on ``pv``
-otherwise); *realtime* advances every
+of several periods go out as ``ProcessSamples`` on ``pv_batch``, a message per part as it is
+stepped, a lone sample on ``pv``); *realtime* advances every
 loop on the wall clock (times ``speed``), holding the last output between samples: the loops
 of one sample time together, the linear ones as arrays (``realtime.py``).
 
@@ -399,7 +399,10 @@ class PlantService:
         of it (None: it is over). It ends early with the sample its stops name (a relay's next
         decision, a verification record's end). Between parts the lock is let go, and the
         advance goes on only while the loop is held as it was when it began (a lease that
-        expired or changed hands meanwhile ends it: the loop is no longer its asker's)."""
+        expired or changed hands meanwhile ends it: the loop is no longer its asker's). While
+        the plant steps for the lease's holder, the holder is not silent but waiting: each
+        part renews its lease's deadline (a record of 100,000 samples of a slow model can
+        outlast the lease's timeout; its commands queue behind the advance meanwhile)."""
         prefix, loop_id = self.opt.prefix, loop.settings.loop_id
         test = cmd.stop_test() if cmd.banded else None
         stopped = False
@@ -416,6 +419,8 @@ class PlantService:
             nonlocal left, size
             if self.leases.get(loop_id) is not lease:
                 return None
+            if lease is not None:  # its holder asked for this advance (others are refused)
+                lease.deadline = max(lease.deadline, time.monotonic() + lease.timeout)
             had = loop.fault
             first = left == cmd.steps
             rows = loop.advance_rows(min(left, size), ends if test else None)
@@ -516,15 +521,21 @@ class PlantService:
         while not stop.wait(0.05):
             now = time.monotonic()
             paused, last = now - last, now
-            held = self.publishers.held_since()
-            held_up = held is not None and now - held > HELD_UP
-            with self.lock:
-                if paused > PAUSE_GAP or held_up:
-                    for ls in self.leases.values():
-                        ls.deadline += paused
-                late = [lid for lid, ls in self.leases.items() if now > ls.deadline]
-            for lid in late:
-                self.expire_lease(lid, "no command from its supervisor within the lease timeout")
+            self._check_leases(now, paused)
+
+    def _check_leases(self, now: float, paused: float) -> None:
+        """One watchdog tick at monotonic time ``now``, ``paused`` s after the last: expire
+        the leases past their deadline, after adding a pause of the plant (or a hold-up
+        behind a subscriber) to every deadline."""
+        held = self.publishers.held_since()
+        held_up = held is not None and now - held > HELD_UP
+        with self.lock:
+            if paused > PAUSE_GAP or held_up:
+                for ls in self.leases.values():
+                    ls.deadline += paused
+            late = [lid for lid, ls in self.leases.items() if now > ls.deadline]
+        for lid in late:
+            self.expire_lease(lid, "no command from its supervisor within the lease timeout")
 
     def _on_run_token(self, sample: zenoh.Sample) -> None:
         """A supervisor's run token vanishing (killed, disconnected) expires its lease."""
