@@ -12,7 +12,7 @@ import random
 import numpy as np
 import pytest
 
-from services.autotuner.tuning import MAX_CHUNK, TuningRun, judged_batch_end
+from services.autotuner.tuning import MAX_CHUNK, RECORD_ADVANCE, TuningRun, judged_batch_end
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.control.record_stops import Guard, SettleRule
@@ -93,6 +93,8 @@ CASES = {
     ),
     # no guard, nothing settles: the whole record
     "whole": (dict(kc=0.2, ti=None), 30.0, settled(99.0, 0.01, 50), None, None, None),
+    # longer than the plant judges in one advance: the rest a judging point per round trip
+    "long": (dict(kc=1.0, ti=5.0), 1700.0, settled(99.0, 0.01, 50), 52.0, 300.0, None),
 }
 
 
@@ -121,6 +123,10 @@ def test_the_record_equals_one_judged_sample_at_a_time(case: str) -> None:
     assert client.advances <= len(t) // judge + 2  # at most one round trip per judging point
     if case != "limits":
         assert client.advances < len(t) / 4
+    if case == "long":  # the plant judged the first RECORD_ADVANCE samples in one advance
+        assert len(t) == n_max > RECORD_ADVANCE
+        later = [p for p in _decisions(n_max, judge, round(window / TS)) if p > RECORD_ADVANCE]
+        assert client.advances == 1 + len(later)
 
 
 def test_each_case_ends_as_named() -> None:
@@ -129,7 +135,13 @@ def test_each_case_ends_as_named() -> None:
         sim = loop(**gains)
         pv_limits = limits or (0.0, 100.0)
         *_, why = oracle(sim, seconds, done, target, window, pv_limits, (0.0, 100.0))
-        expected = {"settles": None, "grows": "guard", "limits": "limits", "whole": None}
+        expected = {
+            "settles": None,
+            "grows": "guard",
+            "limits": "limits",
+            "whole": None,
+            "long": None,
+        }
         assert why == expected[case], case
 
 

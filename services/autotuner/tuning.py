@@ -48,7 +48,6 @@ from shared.control.record_stops import Guard, SettleRule, judge_point, settle_p
 from shared.errors import AutotuneError
 from shared.messages import (
     APPLIED_STATUSES,
-    MAX_ADVANCE,
     MAX_BATCH,
     Command,
     DisturbanceCommand,
@@ -81,6 +80,10 @@ MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
 # where its next decision may fall (``horizon``, ``band``), so any cap gives the same run
 EXPERIMENT_CHUNK = MAX_BATCH
 GUARD_WINDOW = 2.0  # time scales per window of the verification's growth and saturation guard
+# samples of a verification record the plant judges in one lockstep advance at most: a cancel
+# is looked at between advances (16,384 samples: 0.05 s of a linear loop, a few tenths of a
+# second of a slow Python model); a longer record goes on a judging point per round trip
+RECORD_ADVANCE = 16_384
 OP_NOISE_WARN = 5.0  # % of output (σ): more output noise than this is worth a warning
 LOSS_QUERY_TIMEOUT = 2.0  # s of wall time to find a lost plant back in reach (a reconnect)
 RETURN_SCALES = 5.0  # time scales to wait for the PV of a restored loop to come back to rest
@@ -935,7 +938,7 @@ class TuningRun:
             self._check_cancel()
             k = len(t)
             if stops is not None and k == 0:
-                batch = c.samples(min(n_max, MAX_ADVANCE), limits, stops)
+                batch = c.samples(min(n_max, RECORD_ADVANCE), limits, stops)
             else:
                 upto = judged_batch_end(k, n_max, judge, guard.n if guard else None, windows)
                 if not lockstep:
