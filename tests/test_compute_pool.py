@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import subprocess
+import sys
 
 import pytest
 
@@ -58,3 +60,39 @@ def test_a_lost_worker_costs_the_run_nothing(pool):
 def test_a_pool_needs_a_worker():
     with pytest.raises(ValueError, match="workers 0"):
         ComputePool(0)
+
+
+# in a fresh interpreter (pytest's own process runs threads): a pool's workers, and whose
+# children they are, with and without a thread running when ``fork_now`` is asked
+FORKED = """
+import os, sys, threading, time
+from services.autotuner.compute_pool import ComputePool
+from services.autotuner.design.selection import select
+if sys.argv[1] == "thread":
+    threading.Thread(target=time.sleep, args=(30,), daemon=True).start()
+pool = ComputePool(2)
+forked = pool.fork_now()
+parent = pool.call(os.getppid)
+print(forked, parent == os.getpid(), pool.call(select.__module__.upper))
+pool.close()
+"""
+
+
+def _forked(mode: str) -> list[str]:
+    out = subprocess.run(
+        [sys.executable, "-c", FORKED, mode], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    return out.stdout.split()
+
+
+def test_workers_forked_at_start_up_are_the_process_own_children():
+    """Alone (the tuner before its session opens): the workers are forked from it at once,
+    its children, and compute as the fork server's would."""
+    assert _forked("alone") == ["True", "True", "SERVICES.AUTOTUNER.DESIGN.SELECTION"]
+
+
+def test_with_a_thread_running_the_workers_come_from_the_fork_server():
+    """A fork would copy the other thread's locks in an unknown state: not forked, the
+    workers are the fork server's children (started with the first call)."""
+    assert _forked("thread") == ["False", "False", "SERVICES.AUTOTUNER.DESIGN.SELECTION"]

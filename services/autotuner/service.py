@@ -113,12 +113,14 @@ class TunerService:
         lease_timeout: float = LEASE_TIMEOUT,
         user: str | None = None,
         workers: int = DEFAULT_WORKERS,
+        pool: ComputePool | None = None,
     ):
         self.session = session
         self.user = user
         # the runs' heavy pure steps (the relay's fits, the design) in worker processes, so
-        # that tunes at once use every core (0: in each run's own thread)
-        self.pool = ComputePool(workers) if workers > 0 else None
+        # that tunes at once use every core (0: in each run's own thread); ``pool``: one
+        # made already (``run``'s, its workers forked at start-up)
+        self.pool = pool or (ComputePool(workers) if workers > 0 else None)
         self.lease_timeout = lease_timeout
         self.prefix = prefix
         self.node = node
@@ -154,8 +156,8 @@ class TunerService:
                 target=self._run, args=(req, run_id, cancel), daemon=True, name=f"tune-{req.loop}"
             )
             self.active[req.loop] = ActiveRun(run_id, req, cancel, th)
-        if self.pool is not None:  # started with the first run (a tuner that never tunes
-            # starts none), in the background: ready by the end of its relay, as a rule
+        if self.pool is not None:  # not forked at start-up (``run``): started with the
+            # first run, in the background: ready by the end of its relay, as a rule
             threading.Thread(target=self.pool.warm, daemon=True, name="compute-pool").start()
         th.start()
         return TuneAccepted(run_id=run_id, loop=req.loop, t=0.0, method=req.method, rule=req.rule)
@@ -391,6 +393,11 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.workers <= 64:
         raise ConfigError(f"--workers {args.workers}: must be 0–64")
     settings = settings_from_args(args)
+    # the workers forked now, before the session's threads exist: up before the first run
+    # (``ComputePool.fork_now``), else started with it from the fork server
+    pool = ComputePool(args.workers) if args.workers > 0 else None
+    if pool is not None and not pool.fork_now():
+        log.info("compute workers: started with the first run (threads run already)")
     run_until_stopped(
         settings,
         lambda session: TunerService(
@@ -400,6 +407,7 @@ def run(args: argparse.Namespace) -> int:
             lease_timeout=args.lease_timeout,
             user=auth_user(settings),
             workers=args.workers,
+            pool=pool,
         ),
     )
     return 0

@@ -65,6 +65,16 @@ def test_relay_tune_within_one_percent(start_plant, start_tuner, name, plant):
     assert g["kc"] == pytest.approx(0.6 * r["ku"]) and g["ti"] == pytest.approx(r["pu"] / 2)
 
 
+def test_the_compute_workers_are_up_before_the_first_run(start_plant, start_tuner):
+    """Forked from the tuner at start-up (``ComputePool.fork_now``): its own children before
+    it has been asked anything, so that no first run shares the cores with their start."""
+    p = start_plant(plant_toml("x1", THIRD), loops=("x1",))
+    tuner = start_tuner(p)
+    with open(f"/proc/{tuner.pid}/task/{tuner.pid}/children") as f:
+        children = f.read().split()
+    assert len(children) == min(4, os.cpu_count() or 1)
+
+
 @pytest.mark.parametrize(
     ("name", "plant", "noise", "tol"),
     [
