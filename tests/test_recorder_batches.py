@@ -120,3 +120,79 @@ def test_a_bad_batch_is_counted_invalid_and_left_out_whole(tmp_path: Path) -> No
 
     meta, _, counts = recorded(tmp_path, "bad", traffic)
     assert counts["invalid"] == 3 and meta["dropped"] == "10" and meta["samples"] == "21"
+
+
+def _variant(seq: int, v: int, t: float | None = None) -> ProcessSample:
+    """Sample ``seq`` as variant ``v`` of the plant gives it (another instance's values), at
+    sim time ``t`` (default seq·DT)."""
+    s = sample(seq)
+    return s.model_copy(update={"pv": s.pv + v, "t": seq * DT if t is None else t})
+
+
+def _both_ways(tmp_path: Path, name: str, parts: list[list[ProcessSample]], result_early: bool):
+    """The run file and counts of ``parts`` sent as batches, and sent a sample a message;
+    with ``result_early`` the run's result (t = 40·DT) comes after the first part, the run
+    ending where a later sample reaches it."""
+
+    def traffic(as_batches: bool) -> Callable[[Recorder], None]:
+        def send(rec: Recorder) -> None:
+            for i, part in enumerate(parts):
+                if result_early and i == 1:
+                    end = TuneResult(
+                        run_id="r1", loop=LOOP, t=40 * DT, method="ramp", rule="zn-pi", status="ok"
+                    )
+                    rec.handle(keys.tune_result(P, LOOP), wire.encode(end))
+                if as_batches:
+                    batch = ProcessSamples(loop=LOOP, samples=part)
+                    rec.handle(keys.pv_batch(P, LOOP), wire.encode(batch))
+                else:
+                    for s in part:
+                        rec.handle(keys.pv(P, LOOP), wire.encode(s))
+
+        return send
+
+    return (
+        recorded(tmp_path, f"{name}-batches", traffic(True)),
+        recorded(tmp_path, f"{name}-singles", traffic(False)),
+    )
+
+
+def test_batches_are_their_samples_through_repeats_restarts_and_the_run_end(tmp_path: Path):
+    """The samples of a batch after its first are written at once where nothing but their
+    writing is left to decide (``Recorder._run_samples``); where anything is (a repeat, a
+    plant that started again with the same numbers, a sim time that went back inside the
+    batch, the run's end reached), the file and the counts are still those of the same
+    samples one message each."""
+    seq = range
+    cases = {
+        "plain": ([[sample(n) for n in seq(10, 25)], [sample(n) for n in seq(25, 41)]], False),
+        "a repeat first": (
+            [[sample(n) for n in seq(10, 20)], [sample(n) for n in seq(19, 41)]],
+            False,
+        ),
+        # the plant started again, its numbering where the first one's was: the same number
+        # with other values, then on from it (not the run's)
+        "a restart": (
+            [[sample(n) for n in seq(10, 20)], [_variant(n, 1) for n in seq(19, 30)]],
+            False,
+        ),
+        "time back inside": (
+            [
+                [sample(n) for n in seq(10, 20)],
+                [sample(20), sample(21), _variant(22, 0, t=3.0), *map(sample, seq(23, 41))],
+            ],
+            False,
+        ),
+        "the end reached": (
+            [[sample(n) for n in seq(10, 20)], [sample(n) for n in seq(20, 50)]],
+            True,
+        ),
+    }
+    for name, (parts, result_early) in cases.items():
+        batches, singles = _both_ways(tmp_path, name.replace(" ", "_"), parts, result_early)
+        assert batches == singles, name
+    # the cases do what they say: the restart and the time going back start a new instance
+    restart, _ = _both_ways(tmp_path, "restart2", *cases["a restart"])
+    assert restart[0]["plant_changed"].startswith("sample 19 came again")
+    back, _ = _both_ways(tmp_path, "back2", *cases["time back inside"])
+    assert back[0]["plant_changed"].startswith("the sim time went back")

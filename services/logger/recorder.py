@@ -286,9 +286,59 @@ class Recorder:
             self.counts["invalid"] += 1
             return
         key = keys.pv(self.prefix, loop_id)
-        self.counts["received"] += len(batch.samples) - 1  # as many as came on their own
-        for sample in batch.samples:
+        samples = batch.samples
+        self.counts["received"] += len(samples) - 1  # as many as came on their own
+        self._take(key, loop_id, ProcessSample, _encoded(samples[0]), samples[0], replay)
+        rest = self._run_samples(self._stream(loop_id, replay or ""), key, samples)
+        for sample in samples[rest:]:
             self._take(key, loop_id, ProcessSample, _encoded(sample), sample, replay)
+
+    def _run_samples(self, stream: Stream, key: str, samples: list[ProcessSample]) -> int:
+        """A batch's samples after its first, taken as ``_take`` takes each, where nothing
+        but their writing is left to decide (the first taken already; the index of the first
+        not taken): a run open and not ending, the first written, and these numbered on from
+        it (the batch's validation says they are) at sim times that never go back — neither
+        a duplicate nor a new plant instance can be among them. Why: the per-message checks
+        were half of the logger's time per sample, and a lockstep run's samples come as
+        batches of up to 256."""
+        run = stream.run
+        first = samples[0]
+        if (
+            run is None
+            or run.ending is not None
+            or stream.instance != run.instance
+            or run.last_seq != first.seq
+            or stream.last_sample_seq != first.seq
+        ):
+            return 1
+        last_t = first.t
+        end = 1
+        for sample in samples[1:]:
+            if sample.t < last_t:
+                break
+            last_t = sample.t
+            end += 1
+        if end == 1:
+            return 1
+        taken = samples[1:end]
+        instance, t = stream.instance, stream.t
+        write = run.writer.write
+        recent = stream.recent
+        payload = b""
+        for sample in taken:
+            payload = _encoded(sample)
+            t = sample.t
+            recent.append(Item(key, ProcessSample, payload, sample, t, instance))
+            write(key, ProcessSample, recorded_payload(sample, payload), t)
+        last = taken[-1]
+        stream.t = t
+        stream.last_sample = payload
+        stream.last_sample_seq, stream.last_t = last.seq, last.t
+        stream.last_seq = max(stream.last_seq or 0, last.seq)
+        run.last_seq, run.last_t = last.seq, last.t
+        run.samples += len(taken)
+        self.counts["written"] += len(taken)
+        return end
 
     def _take(
         self,
