@@ -71,7 +71,12 @@ from services.autotuner.design.selection import select
 if sys.argv[1] == "thread":
     threading.Thread(target=time.sleep, args=(30,), daemon=True).start()
 pool = ComputePool(2)
-forked = pool.fork_now()
+if sys.argv[1] == "no fork":  # the system refuses a fork (a process limit)
+    from unittest import mock
+    with mock.patch("os.fork", side_effect=OSError(11, "Resource temporarily unavailable")):
+        forked = pool.fork_now()
+else:
+    forked = pool.fork_now()
 parent = pool.call(os.getppid)
 print(forked, parent == os.getpid(), pool.call(select.__module__.upper))
 pool.close()
@@ -96,3 +101,9 @@ def test_with_a_thread_running_the_workers_come_from_the_fork_server():
     """A fork would copy the other thread's locks in an unknown state: not forked, the
     workers are the fork server's children (started with the first call)."""
     assert _forked("thread") == ["False", "False", "SERVICES.AUTOTUNER.DESIGN.SELECTION"]
+
+
+def test_a_refused_fork_leaves_the_workers_to_the_fork_server():
+    """No fork to be had at start-up: said in a line, and the workers start with the first
+    call, from the server, as they would with threads running."""
+    assert _forked("no fork") == ["False", "False", "SERVICES.AUTOTUNER.DESIGN.SELECTION"]

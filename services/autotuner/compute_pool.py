@@ -128,8 +128,15 @@ class ComputePool:
                 return False
             self._warmed = True
         pool = self._executor("fork")
-        for _ in range(self.workers):  # a fork pool starts all its workers with the first
-            pool.submit(int)
+        try:
+            for _ in range(self.workers):  # a fork pool starts all its workers with the first
+                pool.submit(int)
+        except OSError as err:  # no fork to be had (a process limit, memory): the server's
+            log.warning("compute workers not forked at start-up (%s): started with a run", err)
+            with self._lock:
+                self._pool, self._warmed = None, False
+            pool.shutdown(wait=False, cancel_futures=True)
+            return False
         return True
 
     def warm(self) -> None:

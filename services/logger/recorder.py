@@ -299,7 +299,7 @@ class Recorder:
         not taken): a run open and not ending, the first written, and these numbered on from
         it (the batch's validation says they are) at sim times that never go back — neither
         a duplicate nor a new plant instance can be among them. Why: the per-message checks
-        were half of the logger's time per sample, and a lockstep run's samples come as
+        were a quarter of the logger's time per sample, and a lockstep run's samples come as
         batches of up to 256."""
         run = stream.run
         first = samples[0]
