@@ -29,6 +29,7 @@ import pydantic
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
+from services.logger import mcap_batch
 from services.logger.record_form import RunRecord, bus_payload, run_record, schema_bytes
 from shared import keys
 from shared.errors import AutotuneError, one_line
@@ -86,6 +87,7 @@ class RunWriter:
         self._writer = Writer(self._file, compression=CompressionType.ZSTD)
         self._writer.start(profile=PROFILE, library=LIBRARY)
         self._writer.flush()  # the header is on disk at once: even a killed writer leaves MCAP
+        self._batched = mcap_batch.usable(self._writer)  # write_many's way, else one by one
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -115,6 +117,28 @@ class RunWriter:
         ns = self.log_time_zero + sim_ns(t)
         self._writer.add_message(channel, log_time=ns, data=payload, publish_time=ns, sequence=seq)
         self.messages += 1
+
+    def write_many(
+        self, key: str, model: type[pydantic.BaseModel], items: list[tuple[bytes, float]]
+    ) -> None:
+        """Record several messages of one key in order, each (its recorded form, sim time
+        s): the file ``write`` makes of them one by one, to the byte (``mcap_batch``)."""
+        if not self._batched:
+            for payload, t in items:
+                self.write(key, model, payload, t)
+            return
+        topic = topic_of(key)
+        if topic not in self._channels:
+            self._channels[topic] = self._writer.register_channel(
+                topic, "json", self._schema(model)
+            )
+        channel = self._channels[topic]
+        seq = self._sequence.get(channel, 0)
+        zero = self.log_time_zero
+        messages = [(zero + sim_ns(t), payload, seq + i) for i, (payload, t) in enumerate(items)]
+        self._sequence[channel] = seq + len(items)
+        mcap_batch.add_messages(self._writer, channel, messages)
+        self.messages += len(items)
 
     def copy(self, schema, channel, message) -> None:
         """One message of another MCAP file as it was there (its schema and channel by name,

@@ -322,14 +322,15 @@ class Recorder:
             return 1
         taken = samples[1:end]
         instance, t = stream.instance, stream.t
-        write = run.writer.write
         recent = stream.recent
         payload = b""
+        written: list[tuple[bytes, float]] = []
         for sample in taken:
             payload = _encoded(sample)
             t = sample.t
             recent.append(Item(key, ProcessSample, payload, sample, t, instance))
-            write(key, ProcessSample, recorded_payload(sample, payload), t)
+            written.append((recorded_payload(sample, payload), t))
+        run.writer.write_many(key, ProcessSample, written)
         last = taken[-1]
         stream.t = t
         stream.last_sample = payload
