@@ -10,7 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from services.logger.mcap_io import read_run, topic_of
-from services.logger.recorder import Recorder
+from services.logger.recorder import Recorder, batch_elements
 from shared import keys, wire
 from shared.messages import ProcessSample, ProcessSamples, TuneProgress, TuneResult
 
@@ -196,3 +196,32 @@ def test_batches_are_their_samples_through_repeats_restarts_and_the_run_end(tmp_
     assert restart[0]["plant_changed"].startswith("sample 19 came again")
     back, _ = _both_ways(tmp_path, "back2", *cases["time back inside"])
     assert back[0]["plant_changed"].startswith("the sim time went back")
+
+
+def test_a_batch_is_cut_into_its_samples_texts_as_the_plant_encodes_each():
+    """``batch_elements``: each sample's text cut out of the batch is the one the plant puts
+    on ``pv`` for it; a batch whose texts cannot be cut surely (whitespace between its
+    samples) is left to be encoded again (None)."""
+    samples = [sample(n) for n in range(10, 30)]
+    rows = [s.model_dump() for s in samples]
+    for payload in (wire.encode(ProcessSamples(loop=LOOP, samples=samples)),
+                    wire.encode_samples(LOOP, rows)):  # fmt: skip
+        assert batch_elements(payload, len(samples)) == [wire.encode(s) for s in samples]
+    one = wire.encode(ProcessSamples(loop=LOOP, samples=samples[:1]))
+    assert batch_elements(one, 1) == [wire.encode(samples[0])]
+    spaced = json.dumps({"loop": LOOP, "samples": rows}).encode()  # ", " and ": " between
+    assert batch_elements(spaced, len(samples)) is None
+    assert batch_elements(wire.encode(ProcessSamples(loop=LOOP, samples=samples)), 19) is None
+
+
+def test_a_batch_spaced_out_is_recorded_as_its_samples_encoded(tmp_path: Path):
+    """Where the cut is not sure, the file is as with the batch encoded compactly."""
+    rows = [sample(n).model_dump() for n in range(10, 41)]
+
+    def spaced(rec: Recorder) -> None:
+        rec.handle(keys.pv_batch(P, LOOP), json.dumps({"loop": LOOP, "samples": rows}).encode())
+
+    def compact(rec: Recorder) -> None:
+        batched(rec, 10, 40)
+
+    assert recorded(tmp_path, "spaced", spaced) == recorded(tmp_path, "compact", compact)

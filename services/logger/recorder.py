@@ -200,6 +200,25 @@ def _encoded(sample: ProcessSample) -> bytes:
     return wire.encode(sample)
 
 
+def batch_elements(payload: bytes, n: int) -> list[bytes] | None:
+    """The JSON texts of the ``n`` samples of a valid ProcessSamples ``payload``, each as the
+    batch carries it (the plant's: what it puts on ``pv``), cut out of the payload rather
+    than encoded again (a sixth of the logger's time per sample); None where the cut is not
+    sure (whitespace between the samples), for them to be encoded instead. Sure because
+    the batch is valid: its one array is ``samples``, and a sample is an object of scalars
+    whose strings (a loop id, a mode) hold no brace or bracket, so ``},{`` appears in the
+    array only between two samples; there being n − 1 of them, each cut is at one."""
+    start, end = payload.find(b"["), payload.rfind(b"]")
+    if start < 0 or end <= start:
+        return None
+    parts = payload[start + 1 : end].split(b"},{")
+    if len(parts) != n:
+        return None
+    if n == 1:
+        return parts
+    return [parts[0] + b"}", *(b"{" + p + b"}" for p in parts[1:-1]), b"{" + parts[-1]]
+
+
 def model_for(prefix: str, key: str) -> tuple[str, type[Message]] | None:
     """(loop, model) of a key the logger records, or None."""
     plant = keys.parse_loop_key(prefix, key)
@@ -287,13 +306,16 @@ class Recorder:
             return
         key = keys.pv(self.prefix, loop_id)
         samples = batch.samples
+        texts = batch_elements(payload, len(samples)) or [_encoded(s) for s in samples]
         self.counts["received"] += len(samples) - 1  # as many as came on their own
-        self._take(key, loop_id, ProcessSample, _encoded(samples[0]), samples[0], replay)
-        rest = self._run_samples(self._stream(loop_id, replay or ""), key, samples)
-        for sample in samples[rest:]:
-            self._take(key, loop_id, ProcessSample, _encoded(sample), sample, replay)
+        self._take(key, loop_id, ProcessSample, texts[0], samples[0], replay)
+        rest = self._run_samples(self._stream(loop_id, replay or ""), key, samples, texts)
+        for sample, text in zip(samples[rest:], texts[rest:], strict=True):
+            self._take(key, loop_id, ProcessSample, text, sample, replay)
 
-    def _run_samples(self, stream: Stream, key: str, samples: list[ProcessSample]) -> int:
+    def _run_samples(
+        self, stream: Stream, key: str, samples: list[ProcessSample], texts: list[bytes]
+    ) -> int:
         """A batch's samples after its first, taken as ``_take`` takes each, where nothing
         but their writing is left to decide (the first taken already; the index of the first
         not taken): a run open and not ending, the first written, and these numbered on from
@@ -325,8 +347,7 @@ class Recorder:
         recent = stream.recent
         payload = b""
         written: list[tuple[bytes, float]] = []
-        for sample in taken:
-            payload = _encoded(sample)
+        for sample, payload in zip(taken, texts[1:end], strict=True):
             t = sample.t
             recent.append(Item(key, ProcessSample, payload, sample, t, instance))
             written.append((recorded_payload(sample, payload), t))
