@@ -8,6 +8,7 @@ from __future__ import annotations
 import random
 from pathlib import Path
 
+import mcap
 import pytest
 from mcap.reader import make_reader
 
@@ -52,7 +53,8 @@ def _file(path: Path, traffic, batched: bool, known: bool = True) -> bytes:
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_write_many_is_add_message_byte_for_byte(tmp_path: Path, seed: int):
     traffic = _traffic(seed)
-    assert mcap_batch.usable(RunWriter(tmp_path / "probe.mcap")._writer)
+    known = mcap_batch.release(mcap.__version__) in mcap_batch.KNOWN
+    assert mcap_batch.usable(RunWriter(tmp_path / "probe.mcap")._writer) == known
     one = _file(tmp_path / "one.mcap", traffic, batched=False)
     many = _file(tmp_path / "many.mcap", traffic, batched=True)
     assert many == one
@@ -67,3 +69,10 @@ def test_a_writer_it_does_not_know_is_written_one_by_one(tmp_path: Path):
     traffic = _traffic(4)
     unknown = _file(tmp_path / "unknown.mcap", traffic, batched=True, known=False)
     assert unknown == _file(tmp_path / "one.mcap", traffic, batched=False)
+
+
+def test_a_release_is_read_as_major_and_minor():
+    assert mcap_batch.release("1.6.0") == (1, 6)
+    assert mcap_batch.release("1.20.1") == (1, 20)  # not 1.2
+    assert mcap_batch.release("2.0.0rc1") == (2, 0)
+    assert mcap_batch.release("dev") == ()

@@ -8,8 +8,8 @@ header and its data appended to the open chunk, with the statistics, the chunk's
 its message index kept exactly as ``add_message`` keeps them, and the chunk closed where
 ``add_message`` would close it: about 1.4 µs a message. It reaches into the Writer's private
 state, so it is used only where that state is as this code knows it (``usable``: the
-``mcap`` 1.x releases whose internals it was written against, a chunked writer); anything
-else goes through ``add_message``. ``tests/test_mcap_batch.py`` checks the two make the same
+``mcap`` releases whose internals it was checked against, a chunked writer); anything else
+goes through ``add_message``. ``tests/test_mcap_batch.py`` checks the two make the same
 bytes on the installed ``mcap``.
 """
 
@@ -26,12 +26,22 @@ from mcap.writer import Writer
 _HEADER = struct.Struct("<BQHIQQ")
 _MESSAGE = 0x05
 _FIXED = 22  # the record's bytes before its data
-KNOWN = ("1.2", "1.3", "1.4", "1.5", "1.6")  # the releases whose Writer internals this knows
+# the releases whose Writer internals this knows (checked byte for byte against each: the
+# product needs 1.5 or later, for Writer.flush)
+KNOWN = {(1, 5), (1, 6)}
+
+
+def release(version: str) -> tuple[int, ...]:
+    """(major, minor) of a version string ("1.6.0" → (1, 6)); () if it is not numbers."""
+    try:
+        return tuple(int(x) for x in version.split(".")[:2])
+    except ValueError:
+        return ()
 
 
 def usable(writer: Writer) -> bool:
     """The writer's state is as this code knows it: a known release, chunked."""
-    if not mcap.__version__.startswith(KNOWN):
+    if release(mcap.__version__) not in KNOWN:
         return False
     cb = getattr(writer, "_Writer__chunk_builder", None)
     return (
