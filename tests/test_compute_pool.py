@@ -65,7 +65,7 @@ def test_a_pool_needs_a_worker():
 # in a fresh interpreter (pytest's own process runs threads): a pool's workers, and whose
 # children they are, with and without a thread running when ``fork_now`` is asked
 FORKED = """
-import os, sys, threading, time
+import os, signal, sys, threading, time
 from services.autotuner.compute_pool import ComputePool
 from services.autotuner.design.selection import select
 if sys.argv[1] == "thread":
@@ -78,6 +78,10 @@ if sys.argv[1] == "no fork":  # the system refuses a fork (a process limit)
 else:
     forked = pool.fork_now()
 parent = pool.call(os.getppid)
+workers = {pool.call(os.getpid) for _ in range(20)}
+for pid in workers:  # Ctrl-C at a terminal reaches them all, pkill -f the forked ones
+    os.kill(pid, signal.SIGINT)
+time.sleep(0.5)
 print(forked, parent == os.getpid(), pool.call(select.__module__.upper))
 pool.close()
 """
@@ -88,6 +92,7 @@ def _forked(mode: str) -> list[str]:
         [sys.executable, "-c", FORKED, mode], capture_output=True, text=True, timeout=120
     )
     assert out.returncode == 0, out.stderr
+    assert "Traceback" not in out.stderr, out.stderr  # a worker interrupted says nothing
     return out.stdout.split()
 
 

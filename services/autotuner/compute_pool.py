@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -63,7 +64,11 @@ def _started(pid: int) -> str | None:
 def _outlive_not(tuner: int, started: str | None) -> None:
     """In each worker: end when the tuner has ended. A tuner killed outright (SIGKILL) tells
     nobody, and a worker waiting for work would wait forever (it holds its own queue's pipe,
-    and the server it was forked from lives while any worker does)."""
+    and the server it was forked from lives while any worker does). A SIGINT is not the
+    worker's to act on: Ctrl-C at a terminal reaches the tuner's whole process group, and a
+    worker forked from the tuner has its command line (``pkill -f``); the tuner stops its
+    workers as it stops (a worker interrupted printed a KeyboardInterrupt's traceback)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def watch() -> None:
         while True:
