@@ -71,10 +71,26 @@ from services.autotuner.design.selection import select
 if sys.argv[1] == "thread":
     threading.Thread(target=time.sleep, args=(30,), daemon=True).start()
 pool = ComputePool(2)
-if sys.argv[1] == "no fork":  # the system refuses a fork (a process limit)
+real_fork, forks = os.fork, []
+
+
+def fork_once():  # the system refuses every fork after the first (a process limit)
+    if forks:
+        raise OSError(11, "Resource temporarily unavailable")
+    pid = real_fork()
+    if pid:
+        forks.append(pid)
+    return pid
+
+
+if sys.argv[1] in ("no fork", "one fork"):
     from unittest import mock
-    with mock.patch("os.fork", side_effect=OSError(11, "Resource temporarily unavailable")):
+    refused = OSError(11, "Resource temporarily unavailable")
+    how = {"side_effect": refused} if sys.argv[1] == "no fork" else {"new": fork_once}
+    with mock.patch("os.fork", **how):
         forked = pool.fork_now()
+    if forks:  # the worker forked before the refusal is gone, not left waiting for work
+        assert not os.path.exists(f"/proc/{forks[0]}"), "a worker forked before the refusal"
 else:
     forked = pool.fork_now()
 parent = pool.call(os.getppid)
@@ -112,3 +128,9 @@ def test_a_refused_fork_leaves_the_workers_to_the_fork_server():
     """No fork to be had at start-up: said in a line, and the workers start with the first
     call, from the server, as they would with threads running."""
     assert _forked("no fork") == ["False", "False", "SERVICES.AUTOTUNER.DESIGN.SELECTION"]
+
+
+def test_a_fork_refused_after_the_first_leaves_no_worker_behind():
+    """The first worker forked, the second refused: the first is stopped (found in review:
+    it waited for work as long as the tuner lived), the rest left to the server."""
+    assert _forked("one fork") == ["False", "False", "SERVICES.AUTOTUNER.DESIGN.SELECTION"]

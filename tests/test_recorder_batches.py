@@ -225,3 +225,39 @@ def test_a_batch_spaced_out_is_recorded_as_its_samples_encoded(tmp_path: Path):
         batched(rec, 10, 40)
 
     assert recorded(tmp_path, "spaced", spaced) == recorded(tmp_path, "compact", compact)
+
+
+def _s(n: int) -> bytes:
+    return wire.encode(sample(n))
+
+
+# valid batches (pydantic keeps a duplicate key's last value and checks no other) whose
+# texts a cut would get wrong, and a batch spaced inside its array
+UNSURE = {
+    "a dropped loop holding a bracket": b'{"loop":"[","loop":"hx1","samples":['
+    + _s(11) + b"," + _s(12) + b"]}",
+    "a dropped array": b'{"loop":"hx1","samples":[],"samples":[' + _s(11) + b"]}",
+    "a dropped mode holding a cut": b'{"loop":"hx1","samples":['
+    + _s(11)[:-1] + b',"mode":"},{","mode":"auto"}, ' + _s(12) + b"]}",
+    "spaces inside the array": b'{"loop":"hx1","samples":[ ' + _s(11) + b"," + _s(12) + b" ]}",
+}  # fmt: skip
+
+
+def test_a_batch_whose_cut_is_not_sure_is_encoded_again(tmp_path: Path):
+    """Each of these is a valid batch; the cut is refused, and the file holds each sample as
+    the plant would have put it on ``pv`` (found in review: the first three were recorded
+    as text that is not JSON)."""
+    for name, payload in UNSURE.items():
+        batch = ProcessSamples.model_validate_json(payload)  # valid
+        assert batch_elements(payload, len(batch.samples)) is None, name
+
+        n = len(batch.samples)
+
+        def traffic(rec: Recorder, payload: bytes = payload, n: int = n) -> None:
+            one_by_one(rec, 10, 10)
+            rec.handle(keys.pv_batch(P, LOOP), payload)
+            one_by_one(rec, 11 + n, 40)
+
+        _, rows, _ = recorded(tmp_path, name.replace(" ", "_"), traffic)
+        pv = [r[2] for r in rows if r[0] == topic_of(keys.pv(P, LOOP))]
+        assert pv == [_s(k) for k in range(10, 41)], name

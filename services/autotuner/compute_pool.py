@@ -127,6 +127,7 @@ class ComputePool:
         with the workers already up. A pool made later (one that replaces a broken pool)
         comes from the fork server."""
         if not _alone():
+            log.info("compute workers: started with the first run (threads run already)")
             return False
         with self._lock:
             if self._pool is not None or self._warmed:
@@ -140,6 +141,11 @@ class ComputePool:
             log.warning("compute workers not forked at start-up (%s): started with a run", err)
             with self._lock:
                 self._pool, self._warmed = None, False
+            # those forked before the refusal: the pool never started the thread that would
+            # stop them, and they would wait for work as long as the tuner lives
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+                proc.join(5.0)
             pool.shutdown(wait=False, cancel_futures=True)
             return False
         return True

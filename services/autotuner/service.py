@@ -396,8 +396,8 @@ def run(args: argparse.Namespace) -> int:
     # the workers forked now, before the session's threads exist: up before the first run
     # (``ComputePool.fork_now``), else started with it from the fork server
     pool = ComputePool(args.workers) if args.workers > 0 else None
-    if pool is not None and not pool.fork_now():
-        log.info("compute workers: started with the first run (threads run already)")
+    if pool is not None:
+        pool.fork_now()  # False (said in its log line): the fork server's, with the first run
     run_until_stopped(
         settings,
         lambda session: TunerService(

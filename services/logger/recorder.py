@@ -200,14 +200,22 @@ def _encoded(sample: ProcessSample) -> bytes:
     return wire.encode(sample)
 
 
+_SPACE = (b" ", b"\n", b"\t", b"\r")
+_FIELDS = 7  # of a ProcessSample, each required: its JSON has exactly this many keys
+
+
 def batch_elements(payload: bytes, n: int) -> list[bytes] | None:
     """The JSON texts of the ``n`` samples of a valid ProcessSamples ``payload``, each as the
     batch carries it (the plant's: what it puts on ``pv``), cut out of the payload rather
     than encoded again (a sixth of the logger's time per sample); None where the cut is not
-    sure (whitespace between the samples), for them to be encoded instead. Sure because
-    the batch is valid: its one array is ``samples``, and a sample is an object of scalars
-    whose strings (a loop id, a mode) hold no brace or bracket, so ``},{`` appears in the
-    array only between two samples; there being n − 1 of them, each cut is at one."""
+    sure, for them to be encoded instead. Sure for a compact payload (no whitespace) with one
+    key per field (2 + 7·n keys, counted by ``":``): the batch is valid, so every key is a
+    field's, every string a loop id or a mode (no brace, bracket or colon in any: a
+    duplicate key's dropped value, which pydantic does not check, would add keys), its one
+    array is ``samples``, and ``},{`` appears in it only between two samples; there being
+    n − 1 of them, each cut is at one."""
+    if any(c in payload for c in _SPACE) or payload.count(b'":') != 2 + _FIELDS * n:
+        return None
     start, end = payload.find(b"["), payload.rfind(b"]")
     if start < 0 or end <= start:
         return None
