@@ -104,14 +104,18 @@ class RunWriter:
             )
         return self._schemas[name]
 
-    def write(self, key: str, model: type[pydantic.BaseModel], payload: bytes, t: float) -> None:
-        """Record ``payload`` (the recorded form of a ``model`` message) at sim time ``t``, s."""
+    def _channel(self, key: str, model: type[pydantic.BaseModel]) -> int:
+        """The channel of ``key``'s topic, registered with ``model``'s schema on first use."""
         topic = topic_of(key)
         if topic not in self._channels:
             self._channels[topic] = self._writer.register_channel(
                 topic, "json", self._schema(model)
             )
-        channel = self._channels[topic]
+        return self._channels[topic]
+
+    def write(self, key: str, model: type[pydantic.BaseModel], payload: bytes, t: float) -> None:
+        """Record ``payload`` (the recorded form of a ``model`` message) at sim time ``t``, s."""
+        channel = self._channel(key, model)
         seq = self._sequence.get(channel, 0)
         self._sequence[channel] = seq + 1
         ns = self.log_time_zero + sim_ns(t)
@@ -127,12 +131,7 @@ class RunWriter:
             for payload, t in items:
                 self.write(key, model, payload, t)
             return
-        topic = topic_of(key)
-        if topic not in self._channels:
-            self._channels[topic] = self._writer.register_channel(
-                topic, "json", self._schema(model)
-            )
-        channel = self._channels[topic]
+        channel = self._channel(key, model)
         seq = self._sequence.get(channel, 0)
         zero = self.log_time_zero
         messages = [(zero + sim_ns(t), payload, seq + i) for i, (payload, t) in enumerate(items)]
