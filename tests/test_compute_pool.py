@@ -3,14 +3,16 @@
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import os
 import subprocess
 import sys
+import threading
 
 import pytest
 
-from services.autotuner.compute_pool import ComputePool
+from services.autotuner.compute_pool import ComputePool, compute_all, inline
 from services.autotuner.design.selection import select
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.relay import RelayConfig, RelayTest
@@ -44,6 +46,61 @@ def test_the_relay_and_the_design_computed_by_a_worker_are_computed_here(pool):
     ident = here.identification()
     args = (ident, "auto", 2.0, False, 0.5, None, "balanced")
     assert repr(pool.call(select, *args)) == repr(select(*args))
+
+
+def test_the_design_judged_in_parts_at_once_is_the_design_judged_in_turn(pool):
+    """The tuner hands the judging's two parts (robustness, simulated steps) to its workers
+    at once: the selection is the same to the bit as one computed in turn here."""
+    ident = relay_run().identification()
+    args = (ident, "auto", 2.0, False, 0.5, None, "balanced")
+    at_once = select(*args, functools.partial(compute_all, pool.call))
+    assert repr(at_once) == repr(select(*args))
+    assert at_once.assessments and all(a.step is not None for a in at_once.assessments.values())
+
+
+def _direct(fn, *args):
+    """A compute that is not ``inline``: each call in the thread that asks."""
+    return fn(*args)
+
+
+def test_compute_all_runs_the_calls_at_once():
+    """Each call waits for the others at a barrier: in turn, the first would wait alone."""
+    barrier = threading.Barrier(3, timeout=10.0)
+
+    def meet(x: int) -> tuple[int, int]:
+        barrier.wait()
+        return x, threading.get_ident()
+
+    out = compute_all(_direct, [(meet, (1,)), (meet, (2,)), (meet, (3,))])
+    assert [x for x, _ in out] == [1, 2, 3]  # in the calls' order
+    assert out[0][1] == threading.get_ident() and len({t for _, t in out}) == 3
+
+
+def test_compute_all_waits_for_every_call_then_raises_the_first_error():
+    done = threading.Event()
+
+    def fails() -> None:
+        raise ArithmeticError("first")
+
+    def slow() -> int:
+        done.wait(0.2)  # still running when the first has failed
+        done.set()
+        return 1
+
+    with pytest.raises(ArithmeticError, match="first"):
+        compute_all(_direct, [(fails, ()), (slow, ()), (fails, ())])
+    assert done.is_set()
+
+
+def test_compute_all_inline_is_in_turn_in_this_thread():
+    seen: list[tuple[int, int]] = []
+
+    def note(x: int) -> int:
+        seen.append((x, threading.get_ident()))
+        return -x
+
+    assert compute_all(inline, [(note, (1,)), (note, (2,))]) == [-1, -2]
+    assert seen == [(1, threading.get_ident()), (2, threading.get_ident())]
 
 
 def _dies_in_a_worker(x: int) -> int:

@@ -216,3 +216,39 @@ def test_the_most_robust_candidate_names_the_margins_it_was_held_to():
     assert rec.reason.endswith(
         "(none within the margin Ms ≤ 1.8, PID ≤ 1.5 on a model this approximate)"
     )
+
+
+def test_a_candidate_that_cannot_be_judged_has_no_step_and_the_others_theirs(monkeypatch):
+    """The judging's two parts run side by side, the steps of every candidate simulated; one
+    whose robustness cannot be computed is kept without a step, and the others' steps are
+    simulated without it, as they were before the parts (the figures the same to the bit)."""
+    from services.autotuner.design import recommend as rec
+    from services.autotuner.design.predicted_response import predicted_setpoint_steps
+
+    model = ProcessFit("sopdt", 1.5, (20.0, 5.0), 2.0, 0.1)
+    ku, pu = ultimate_point([1.5], [100.0, 25.0, 1.0], 2.0)
+    ultimate = UltimatePoint(ku, pu)
+    gains = rec.apply_rules(ultimate, None)
+    bad = gains["zn-pid"]
+    real = rec.sampled_robustness
+
+    def fails_on_one(g, plant):
+        if g == bad:
+            raise ArithmeticError("no figures")
+        return real(g, plant)
+
+    monkeypatch.setattr(rec, "sampled_robustness", fails_on_one)
+    asked: list[str] = []
+
+    def in_turn(calls):
+        asked.extend(fn.__name__ for fn, _ in calls)
+        return rec.in_turn(calls)
+
+    every = assess(ultimate, model, gains, simulate=True, sample_time=0.1, parts=in_turn)
+    assert asked == ["judge_all", "predicted_setpoint_steps"]
+    assert every["zn-pid"].robustness is None and every["zn-pid"].step is None
+    kept = {k: g for k, g in gains.items() if k != "zn-pid"}
+    alone = predicted_setpoint_steps(kept, model.transfer, pu, 0.1)
+    assert {k: repr(a.step) for k, a in every.items() if k in kept} == {
+        k: repr(s) for k, s in alone.items()
+    }

@@ -31,7 +31,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
@@ -91,6 +91,40 @@ def _alone() -> bool:
 def inline(fn: Callable[..., T], *args: Any) -> T:
     """A step computed in the caller's thread (tests, offline analysis, a tuner of one)."""
     return fn(*args)
+
+
+def compute_all(
+    compute: Callable[..., Any], calls: Sequence[tuple[Callable[..., Any], tuple]]
+) -> list[Any]:
+    """[fn(*args), …] for ``calls``, each through ``compute`` and all at once: the first in
+    this thread, the others each in a thread of its own, so that a pool's workers compute
+    them side by side (the design's robustness and its simulated steps, 50 ms each: one
+    worker after the other took 100). ``inline``: in turn, in this thread. Every call is
+    waited for; then the first error (in the calls' order) is raised."""
+    if compute is inline or len(calls) < 2:
+        return [compute(fn, *args) for fn, args in calls]
+    out: list[tuple[bool, Any]] = [(False, None)] * len(calls)
+
+    def one(i: int) -> None:
+        fn, args = calls[i]
+        try:
+            out[i] = (True, compute(fn, *args))
+        except BaseException as err:  # raised again in the caller's thread
+            out[i] = (False, err)
+
+    threads = [
+        threading.Thread(target=one, args=(i,), daemon=True, name="compute-part")
+        for i in range(1, len(calls))
+    ]
+    for th in threads:
+        th.start()
+    one(0)
+    for th in threads:
+        th.join()
+    for ok, value in out:
+        if not ok:
+            raise value
+    return [value for _, value in out]
 
 
 class ComputePool:

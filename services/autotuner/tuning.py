@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import threading
@@ -25,7 +26,7 @@ from typing import Any
 import numpy as np
 import pydantic
 
-from services.autotuner.compute_pool import inline
+from services.autotuner.compute_pool import compute_all, inline
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.selection import assessments_dict, select
 from services.autotuner.identify import experiments, methods
@@ -369,13 +370,14 @@ class TuningRun:
         )
         return self._result(result, t0, wall0, left)
 
-    def _compute(self, fn: Callable[..., Any], *args: Any) -> Any:
-        """``fn(*args)`` through ``hooks.compute``, watched from the run's thread meanwhile: a
-        cancel, or the plant's token vanishing, ends the run at once (not when the step is
-        done: seconds on a busy machine). The loop's lease is renewed meanwhile: a step that
-        outlasts it would otherwise have the plant's watchdog take back a loop this run is
-        still working on (seen in CI: the relay's closing fits took over 3 s on a loaded
-        machine, and a healthy realtime run was aborted). In lockstep the plant does not move
+    def _compute(self, fn: Callable[..., Any], *args: Any, here: bool = False) -> Any:
+        """``fn(*args)`` through ``hooks.compute`` (``here``: in a thread of this process, for
+        a step that hands its own parts to ``hooks.compute``), watched from the run's thread
+        meanwhile: a cancel, or the plant's token vanishing, ends the run at once (not when
+        the step is done: seconds on a busy machine). The loop's lease is renewed meanwhile:
+        a step that outlasts it would otherwise have the plant's watchdog take back a loop
+        this run is still working on (seen in CI: the relay's closing fits took over 3 s on a
+        loaded machine, and a healthy realtime run was aborted). In lockstep the plant does not move
         meanwhile; in realtime the loop goes on under the output held, so its samples are
         watched as they come (kept for the run) and the run aborts, restoring the loop, as
         soon as one leaves the experiment's PV limits."""
@@ -383,7 +385,7 @@ class TuningRun:
 
         def work() -> None:
             try:
-                out.append((True, self.hooks.compute(fn, *args)))
+                out.append((True, fn(*args) if here else self.hooks.compute(fn, *args)))
             except BaseException as err:  # raised again in the run's thread
                 out.append((False, err))
 
@@ -439,8 +441,19 @@ class TuningRun:
                     result["experiment"].get("model_gain"), span
                 ),
             )
+        # the selection's light work here, its judging's two parts in the workers at once
+        parts = functools.partial(compute_all, self.hooks.compute)
         sel = self._compute(
-            select, ident, req.rule, req.ms_bound, req.force, self.ts, req.lambda_s, req.aim
+            select,
+            ident,
+            req.rule,
+            req.ms_bound,
+            req.force,
+            self.ts,
+            req.lambda_s,
+            req.aim,
+            parts,
+            here=True,
         )
         rec = sel.recommended
         result.update(

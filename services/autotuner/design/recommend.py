@@ -34,7 +34,9 @@ or with Ms above the bound, is never recommended (``envelope_problem``).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -44,6 +46,7 @@ from services.autotuner.design.rules import RULES, UltimatePoint, apply_rules
 from services.autotuner.design.sampled_loop import SampledPlant, sampled_plant, sampled_robustness
 from services.autotuner.identify.model_fit import ProcessFit
 from shared.control.forms import IsaGains
+from shared.control.transfer import DelayedTF
 
 MS_BOUND = 2.0
 MODEL_MARGIN = 0.9  # recommend only below 0.9 × the bound: the model is an approximation
@@ -133,31 +136,22 @@ def envelope_problem(a: Assessment, ultimate: UltimatePoint | None, ms_bound: fl
     return None
 
 
-def assess(
-    ultimate: UltimatePoint | None,
-    model: ProcessFit | None,
-    gains: dict[str, IsaGains] | None = None,
-    simulate: bool = False,
-    sample_time: float | None = None,
-) -> dict[str, Assessment]:
-    """Every candidate's robustness on the model (rules needing K_u and P_u unless given):
-    on the sampled loop when ``sample_time`` (s) is given, beside the continuous figures;
-    with ``simulate`` also its closed-loop setpoint step at the loop's sample time."""
-    gains = apply_rules(ultimate, None) if gains is None else gains
-    # the closed loop's time scale: P_u, measured or else the model's own (its slowest lag is
-    # the open loop's, hundreds of times longer for a level, and would coarsen the simulation
-    # of a fast loop past its own sample time)
-    own = model.ultimate_point() if ultimate is None and model is not None else None
-    timescale = (
-        ultimate.pu
-        if ultimate
-        else float(own[1])
-        if own
-        else (model.delay + model.lag if model else 0.0)
-    )
-    if not math.isfinite(timescale) or timescale <= 0:
-        timescale = 10.0 * model.delay if model else 0.0
-    tf = model.transfer if model is not None else None
+# how ``assess`` computes its two independent parts: [fn(*args), …] for [(fn, args), …]; in
+# turn by default, at once by the tuner (``compute_pool.compute_all``: each in a worker)
+Parts = Callable[[Sequence[tuple[Callable[..., Any], tuple]]], list[Any]]
+
+
+def in_turn(calls: Sequence[tuple[Callable[..., Any], tuple]]) -> list[Any]:
+    """Each call in this thread, in order."""
+    return [fn(*args) for fn, args in calls]
+
+
+def judge_all(
+    gains: dict[str, IsaGains], tf: DelayedTF | None, sample_time: float | None
+) -> tuple[dict[str, tuple[Robustness | None, Robustness | None]], bool]:
+    """Every candidate's robustness on ``tf``: (on the sampled loop when ``sample_time`` s is
+    given and the plant samples, else continuous; the continuous figures), and whether the
+    sampled loop was judged. Both None for a candidate whose figures could not be computed."""
     plant: SampledPlant | None = None
     if tf is not None and sample_time is not None and sample_time > 0:
         try:
@@ -179,14 +173,53 @@ def assess(
                 except (ValueError, ArithmeticError, np.linalg.LinAlgError):
                     rb = None
         judged[name] = (rb, cont)
+    return judged, plant is not None
+
+
+def assess(
+    ultimate: UltimatePoint | None,
+    model: ProcessFit | None,
+    gains: dict[str, IsaGains] | None = None,
+    simulate: bool = False,
+    sample_time: float | None = None,
+    parts: Parts = in_turn,
+) -> dict[str, Assessment]:
+    """Every candidate's robustness on the model (rules needing K_u and P_u unless given):
+    on the sampled loop when ``sample_time`` (s) is given, beside the continuous figures;
+    with ``simulate`` also its closed-loop setpoint step at the loop's sample time.
+
+    The robustness and the steps are independent (a hundred milliseconds, half each), so
+    they are computed as two ``parts``: the steps of every candidate, though only those
+    judged are kept; in the rare case that one could not be judged, the steps of the others
+    are simulated again, as they always were, so the figures are the same to the bit."""
+    gains = apply_rules(ultimate, None) if gains is None else gains
+    # the closed loop's time scale: P_u, measured or else the model's own (its slowest lag is
+    # the open loop's, hundreds of times longer for a level, and would coarsen the simulation
+    # of a fast loop past its own sample time)
+    own = model.ultimate_point() if ultimate is None and model is not None else None
+    timescale = (
+        ultimate.pu
+        if ultimate
+        else float(own[1])
+        if own
+        else (model.delay + model.lag if model else 0.0)
+    )
+    if not math.isfinite(timescale) or timescale <= 0:
+        timescale = 10.0 * model.delay if model else 0.0
+    tf = model.transfer if model is not None else None
+    calls: list[tuple[Callable[..., Any], tuple]] = [(judge_all, (gains, tf, sample_time))]
+    simulated = simulate and tf is not None and timescale > 0
+    if simulated:  # every candidate's setpoint step, simulated together
+        calls.append((predicted_setpoint_steps, (gains, tf, timescale, sample_time)))
+    done = parts(calls)
+    judged, sampled = done[0]
     steps: dict[str, StepFigures] = {}
-    if simulate and tf is not None and timescale > 0:
-        # every judged candidate's setpoint step, simulated together
-        steps = predicted_setpoint_steps(
-            {k: g for k, g in gains.items() if judged[k][0] is not None},
-            tf,
-            timescale,
-            sample_time,
+    if simulated:
+        kept = {k: g for k, g in gains.items() if judged[k][0] is not None}
+        steps = (
+            done[1]
+            if len(kept) == len(gains)
+            else predicted_setpoint_steps(kept, tf, timescale, sample_time)
         )
     return {
         name: Assessment(
@@ -194,7 +227,7 @@ def assess(
             g,
             judged[name][0],
             steps.get(name),
-            judged[name][1] if plant is not None else None,
+            judged[name][1] if sampled else None,
         )
         for name, g in gains.items()
     }

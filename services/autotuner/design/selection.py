@@ -23,9 +23,11 @@ from dataclasses import dataclass, field
 
 from services.autotuner.design.recommend import (
     Assessment,
+    Parts,
     Recommendation,
     assess,
     envelope_problem,
+    in_turn,
     recommend,
 )
 from services.autotuner.design.rules import (
@@ -171,11 +173,13 @@ def select(
     sample_time: float | None = None,
     lambda_s: float | None = None,
     aim: str = "balanced",
+    parts: Parts = in_turn,
 ) -> Selection:
     """The gains for ``rule`` ("auto": the recommended rule for the ``aim``, see
     ``recommend``), judged at the loop's ``sample_time`` (s; None: in continuous time),
     refused (``refusal``) outside the safety envelope unless ``force``; the lambda rules with
-    ``lambda_s`` (s; None: their default)."""
+    ``lambda_s`` (s; None: their default). ``parts``: how the judging's two independent
+    parts are computed (``assess``; the tuner: at once, in its workers)."""
     ku, pu = _finite(ident.ku), _finite(ident.pu)
     ultimate = UltimatePoint(ku, pu) if ku and pu and ku > 0 and pu > 0 else None
     ts = _finite(sample_time)
@@ -215,7 +219,7 @@ def select(
         if g.ti is not None and not math.isfinite(g.ti):
             unavailable[name] = f"non-finite integral time {g.ti}"
             del table[name]
-    assessments = assess(ultimate, model, table, simulate=True, sample_time=ts)
+    assessments = assess(ultimate, model, table, simulate=True, sample_time=ts, parts=parts)
     pool = assessments
     if model is not None and ultimate is not None and not ident.static_gain_known:
         # the relay's points pin G near ω_u, not its static gain nor its low frequencies:
