@@ -189,3 +189,26 @@ def test_a_calming_is_a_batch_or_two_not_one_per_check() -> None:
     calmings = sum(1 for e in test.events if e[1] == "trial") - 1
     assert calmings >= 5 and test.result is not None
     assert in_settle["settle"] <= 3 * calmings
+
+
+def test_a_calming_with_its_output_at_a_limit_is_batched_not_a_sample_a_round_trip() -> None:
+    """A calming whose output sits at a limit is stuck once it has sat there for half its
+    window: each sample adds one at most to that count, so the batch runs to the first sample
+    at which it could be (``_until_stuck``), where a round trip a sample took hundreds (the
+    run is still the one fed sample by sample: above)."""
+    loop, test, limit = huge_start(0.0)()
+    port = SimLoopPort(loop, present_first=True, limit=limit)
+    take = port.samples
+    at_limit: Counter[str] = Counter()
+
+    def counted(n, band=None):
+        out = take(n, band)
+        if test.phase == "settle" and test._sat_run:
+            at_limit["batches"] += 1
+            at_limit["samples"] += len(out)
+        return out
+
+    port.samples = counted
+    drive(test, port, held=port.held_now(), max_chunk=1024)
+    assert "calm" in _kinds(test) and at_limit["samples"] >= 200
+    assert at_limit["batches"] <= 0.1 * at_limit["samples"]

@@ -930,16 +930,29 @@ class RampTest:
                 n = min(n, self._before(self._trial_cap() - elapsed))
                 n = min(n, self._next_check - (length - self._trial_start))
         elif self.phase == "settle":
-            if self._sat_run:
-                return 1  # how long the calming has sat at a limit counts sample by sample
             scale, window = self._settle_scale()
-            if length - self._settle_start < window:
-                n = min(n, self._settle_start + window - length)
+            fill = self._settle_start + window - length  # until the calming's window is full
+            if self._sat_run:  # the output at a limit: stuck once the window is full and the
+                # output has sat at a limit for enough of it
+                n = min(n, max(fill, self._until_stuck(window)))
+            elif fill > 0:
+                n = min(n, fill)
             n = min(n, self._before(self.config.settle_periods * scale - (t - self._settle_t0)))
             if self._calm_stop() is None:  # the calm check: every 8th sample, a round trip
                 first = max(length + 1, self._settle_start + self._calm_window())
                 n = min(n, -(-first // CALM_EVERY) * CALM_EVERY - length)
         return max(1, min(cap, n))
+
+    def _until_stuck(self, window: int) -> int:
+        """Samples up to the first at which the output could have sat at a limit for
+        ``stuck_fraction`` of the last ``window`` (``_watch_settle``), each sample adding one
+        at most to the count, a sample short (the fraction's rounding); 1 while the record is
+        shorter than the window. A calming sat at a limit took a round trip a sample."""
+        c = self._sat_count
+        if len(c) <= window:
+            return 1
+        have = c[-1] - c[-window - 1]
+        return max(1, math.ceil(self.config.stuck_fraction * window - have) - 1)
 
     def band(self) -> Band:
         """The PV limits (and in a trial the swing limit about the rest, ±``swing_limit``·bump),
