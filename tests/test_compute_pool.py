@@ -58,6 +58,34 @@ def test_the_design_judged_in_parts_at_once_is_the_design_judged_in_turn(pool):
     assert at_once.assessments and all(a.step is not None for a in at_once.assessments.values())
 
 
+def ramp_run(parts=None):
+    """A ramp on a small lag loop, its closing refines computed by ``parts`` (None: in turn)."""
+    from tests.test_ramp_limits import lags_ultimate, make_loop, ramp_for
+
+    _, pu = lags_ultimate(3)
+    loop = make_loop([1.0], [1.0, 3.0, 3.0, 1.0], 0.0, pu / 100, noise=0.01, seed=4)
+    test = ramp_for(loop)
+    if parts is not None:
+        test.parts = parts
+    drive(test, SimLoopPort(loop, present_first=True), max_chunk=256)
+    return test, test.identification()
+
+
+def test_the_ramp_refined_in_parts_at_once_is_the_ramp_refined_in_turn(pool):
+    """The tuner hands the ramp's closing refines (one per starting model) to its workers at
+    once: the identification is the same to the bit."""
+    asked: list[int] = []
+
+    def at_once(calls):
+        asked.append(len(calls))
+        return compute_all(pool.call, calls)
+
+    _, here = ramp_run()
+    _, there = ramp_run(at_once)
+    assert here.model is not None and asked == [5]
+    assert repr(there) == repr(here)
+
+
 def _direct(fn, *args):
     """A compute that is not ``inline``: each call in the thread that asks."""
     return fn(*args)

@@ -242,7 +242,7 @@ def test_a_candidate_that_cannot_be_judged_has_no_step_and_the_others_theirs(mon
 
     def in_turn(calls):
         asked.extend(fn.__name__ for fn, _ in calls)
-        return rec.in_turn(calls)
+        return [fn(*args) for fn, args in calls]
 
     every = assess(ultimate, model, gains, simulate=True, sample_time=0.1, parts=in_turn)
     assert asked == ["judge_all", "predicted_setpoint_steps"]

@@ -33,9 +33,11 @@ from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Band, Demand, Experiment, Setup
 from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.ramp import RampTest
 from services.autotuner.identify.relay import RelayTest
 from services.autotuner.identify.rest import RestCheck, rest_window
 from services.autotuner.loop_client import OVERSLEPT, LeaseLost, LoopClient
+from services.autotuner.parts import Calls
 from services.autotuner.stall_watch import stall_watch
 from shared.control.forms import (
     IsaGains,
@@ -405,6 +407,11 @@ class TuningRun:
             raise value
         return value
 
+    def _parts(self, calls: Calls) -> list[Any]:
+        """Independent pure parts of a step, each through ``hooks.compute`` and all at once
+        (``compute_all``: in the workers side by side), watched as ``_compute``."""
+        return self._compute(compute_all, self.hooks.compute, calls, here=True)
+
     def _watch_limits(self) -> None:
         """Realtime, while a step computes: the samples that came meanwhile checked against
         the experiment's PV limits (TuneAborted at the first outside them)."""
@@ -442,6 +449,7 @@ class TuningRun:
                 ),
             )
         # the selection's light work here, its judging's two parts in the workers at once
+        # (watched from the run's thread as the selection: ``_compute``)
         parts = functools.partial(compute_all, self.hooks.compute)
         sel = self._compute(
             select,
@@ -799,6 +807,8 @@ class TuningRun:
             raise TuneAborted(str(err)) from None
         if isinstance(machine, RelayTest):
             machine.compute = self._compute
+        elif isinstance(machine, RampTest):
+            machine.parts = self._parts
         start = machine.demand
         if start.auto:
             c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=start.kc), source=c.source))

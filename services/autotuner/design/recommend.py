@@ -34,7 +34,7 @@ or with Ms above the bound, is never recommended (``envelope_problem``).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,6 +45,7 @@ from services.autotuner.design.robustness import Robustness, robustness
 from services.autotuner.design.rules import RULES, UltimatePoint, apply_rules
 from services.autotuner.design.sampled_loop import SampledPlant, sampled_plant, sampled_robustness
 from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.parts import Parts, in_turn
 from shared.control.forms import IsaGains
 from shared.control.transfer import DelayedTF
 
@@ -134,16 +135,6 @@ def envelope_problem(a: Assessment, ultimate: UltimatePoint | None, ms_bound: fl
     if rb.ms > ms_bound:
         return f"predicted Ms {rb.ms:.3g} above the bound {ms_bound:g} on {on}"
     return None
-
-
-# how ``assess`` computes its two independent parts: [fn(*args), …] for [(fn, args), …]; in
-# turn by default, at once by the tuner (``compute_pool.compute_all``: each in a worker)
-Parts = Callable[[Sequence[tuple[Callable[..., Any], tuple]]], list[Any]]
-
-
-def in_turn(calls: Sequence[tuple[Callable[..., Any], tuple]]) -> list[Any]:
-    """Each call in this thread, in order."""
-    return [fn(*args) for fn, args in calls]
 
 
 def judge_all(

@@ -23,11 +23,9 @@ from dataclasses import dataclass, field
 
 from services.autotuner.design.recommend import (
     Assessment,
-    Parts,
     Recommendation,
     assess,
     envelope_problem,
-    in_turn,
     recommend,
 )
 from services.autotuner.design.rules import (
@@ -41,6 +39,7 @@ from services.autotuner.design.rules import (
 from services.autotuner.identify.experiments import Identification
 from services.autotuner.identify.model_check import ModelCheck, check_model, stated_spread
 from services.autotuner.identify.model_fit import ProcessFit, model_of
+from services.autotuner.parts import Parts, in_turn
 from shared.control.forms import IsaGains
 
 UNBIASED_RELAY_RULES = ("tl-pid", "tl-pi")  # recommended when the static gain is unknown

@@ -58,6 +58,7 @@ from services.autotuner.identify.model_fit import (
     through_ultimate_point,
 )
 from services.autotuner.identify.oscillation import Oscillation, fit_oscillation, swings
+from services.autotuner.parts import Parts, in_turn
 from shared.control.record_stops import MAX_WINDOW, CalmCheck, calm_spread
 from shared.control.signals import Sample, at_rest, noise_level
 
@@ -211,6 +212,9 @@ class RampTest:
     phase: str = "quiet"
     reason: str = ""
     result: RampResult | None = None
+    # how the closing refines (one model per start, a tenth of a second in all) are computed:
+    # in turn here; the tuner hands each to a worker, all at once (``parts``)
+    parts: Parts = field(default=in_turn, repr=False, compare=False)
     trials: list[Trial] = field(default_factory=list)
     events: list[Event] = field(default_factory=list)
 
@@ -797,11 +801,11 @@ class RampTest:
         y0 = float(np.mean(y[:rest]))
         du = u - u0 if self.direction > 0 else u0 - u  # a direct-acting loop's, turned over:
         # the model is of the process as the controller acts on it (−G), as K_u is
-        fits = [
-            f
+        refines = [
+            (refine_on_record, (start, self.sample_time, du, y - y0))
             for start in through_ultimate_point(ku, pu)
-            if (f := refine_on_record(start, self.sample_time, du, y - y0)) is not None
         ]
+        fits = [f for f in self.parts(refines) if f is not None]
         best = choose_on_record(fits, y.size)
         if best is None:
             return None
