@@ -975,9 +975,12 @@ class RampTest:
         return Band(lo, hi, op_lo + eps, op_hi - eps, calm)
 
     def _before(self, seconds: float) -> int:
-        """Samples that surely pass before ``seconds`` more of sim time have (≥ 1)."""
+        """Samples up to the first at which ``seconds`` more of sim time may have passed
+        (≥ 1): the first whose time could reach it, the rounding of the sample times either
+        side of it allowed for. (Counted a sample short, every timed trial's end took a round
+        trip of one sample.)"""
         x = seconds / self.sample_time
-        return max(1, math.floor(x - 1e-6)) if math.isfinite(x) else 1 << 30
+        return max(1, math.ceil(x - 1e-6)) if math.isfinite(x) else 1 << 30
 
     @property
     def demand_kc(self) -> float:
