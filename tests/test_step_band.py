@@ -1,0 +1,161 @@
+"""The open-loop step test in few lockstep round trips: ``StepTest.horizon`` counts the
+samples up to the next one at which the test may decide anything (the baseline's rest, the
+rest and trend checks every ``SETTLE_CHECK_EVERY`` samples, the timeout, an integrating
+loop's pulse and rest window), and ``StepTest.band`` ends a batch at the first sample past
+the PV limits or at an end of the transmitter's range — so a run in batches is the run fed
+sample by sample: the same samples, events and result, to the bit. Checked on the test's
+ways to end (at rest, an integrator's return pulse, the range's end, the allowance, the PV
+limits, the timeout) and on whole live-path runs of the preset loops."""
+
+from __future__ import annotations
+
+import tomllib
+from collections import Counter
+from importlib.resources import files
+
+import pytest
+
+from services.autotuner.identify.driver import drive
+from services.autotuner.identify.step_test import StepTest, StepTestConfig
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient, SimLoopPort
+from services.plant_sim.plant_file import build_plant
+from services.plant_sim.simulation.loop import SimLoop
+from shared.messages import ModeCommand, OutputCommand, TuneRequest
+
+PLANT = tomllib.loads(files("services.plant_sim").joinpath("plants/default.toml").read_text())
+
+
+def open_loop(num, den, delay, ts, noise=0.0, seed=0, pv_range=(0.0, 100.0)) -> SimLoop:
+    """A transfer-function loop in manual at 50 % output."""
+    loop = build_plant(
+        {
+            "seed": seed,
+            "loops": {
+                "x": {
+                    "model": "transfer_function",
+                    "num": num,
+                    "den": den,
+                    "delay": delay,
+                    "sample_time": ts,
+                    "noise_std": noise,
+                    "pv_range": list(pv_range),
+                }
+            },
+        }
+    )["x"]
+    loop.apply(ModeCommand(loop="x", mode="manual"))
+    loop.apply(OutputCommand(loop="x", op=50.0))
+    return loop
+
+
+def step_for(loop: SimLoop, size: float, **config) -> StepTest:
+    st = loop.settings
+    limits = config.pop("pv_limits", st.pv_range)
+    return StepTest(
+        StepTestConfig(size=size, **config),
+        loop.op,
+        st.op_limits,
+        limits,
+        loop.sample_time,
+        pv_range=st.pv_range,
+    )
+
+
+def lag(size: float = 5.0, noise: float = 0.02, pv_range=(0.0, 100.0), **config):
+    """A first-order lag with dead time: the PV comes to rest."""
+    loop = open_loop([2.0], [20.0, 1.0], 3.0, 0.1, noise=noise, seed=1, pv_range=pv_range)
+    return loop, step_for(loop, size, **config)
+
+
+def fast():
+    """A lag of a second, no dead time, stepped far past the range's top."""
+    loop = open_loop([2.0], [1.0, 1.0], 0.0, 0.1, noise=0.02, seed=3, pv_range=(0.0, 80.0))
+    # PV limits wider than the range: only the range's end stops the batch
+    return loop, step_for(loop, 30.0, max_move=1.0, pv_limits=(-1000.0, 1000.0))
+
+
+def integrator(**config):
+    """A level: the PV ramps; the return pulse gives it back its level."""
+    loop = open_loop([0.05], [1.0, 0.0], 2.0, 0.1, noise=0.01, seed=2)
+    return loop, step_for(loop, 5.0, **config)
+
+
+CASES = {
+    "at-rest": lambda: lag(),
+    "at-rest-step-down": lambda: lag(-4.0),
+    "quiet": lambda: lag(noise=0.0),
+    "integrating": lambda: integrator(),
+    # the PV's gain takes it past the range's top: stopped before it clips
+    "range-end": lambda: lag(20.0, pv_range=(0.0, 80.0), max_move=1.0),
+    # a fast lag past the range's top between two checks: the band ends the batch there
+    "clipped": lambda: fast(),
+    # a small allowance: stopped before the PV leaves it
+    "allowance": lambda: lag(10.0, max_move=0.05),
+    # PV limits inside the range: aborted where it leaves them
+    "pv-limits": lambda: lag(10.0, pv_limits=(0.0, 55.0)),
+    "timeout": lambda: lag(timeout=31.3),  # between two checks
+}
+
+REACHES = {
+    "at-rest": lambda t: t.phase == "done",
+    "at-rest-step-down": lambda t: t.phase == "done",
+    "quiet": lambda t: t.phase == "done",
+    "integrating": lambda t: t.phase == "done" and t.ramp is not None,
+    "range-end": lambda t: "would reach the top of its range" in t.reason,
+    "clipped": lambda t: "reached the top of its range" in t.reason,
+    "allowance": lambda t: "allowance" in t.reason,
+    "pv-limits": lambda t: "left its limits" in t.reason,
+    "timeout": lambda t: "no steady state" in t.reason,
+}
+
+
+def run(case: str, cap: int):
+    loop, test = CASES[case]()
+    port = SimLoopPort(loop, present_first=True, limit=20_000.0)
+    calls: Counter[str] = Counter()
+    take = port.samples
+
+    def counted(n, band=None):
+        out = take(n, band)
+        calls["batches"] += 1
+        if band is not None:  # every sample but the last inside the band
+            assert not any(band.ends(s.pv, s.op) for s in out[:-1])
+        return out
+
+    port.samples = counted
+    drive(test, port, held=port.held_now(), max_chunk=cap)
+    record = (test.t, test.pv, test.events, test.phase, test.reason, test.t_step)
+    return record, test.identification(), (loop.seq, loop.pv, loop.op), calls, test
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_batched_step_test_is_the_test_fed_sample_by_sample(case: str) -> None:
+    one, found_one, left_one, by_one, _ = run(case, 1)
+    batched, found, left, by_batch, test = run(case, 1024)
+    assert REACHES[case](test), (case, test.phase, test.reason)
+    assert batched == one
+    assert repr(found) == repr(found_one)  # NaN-safe, to the bit
+    assert left == left_one
+    assert by_batch["batches"] < 0.3 * by_one["batches"]
+
+
+def tune(loop: str, per_sample: bool, monkeypatch) -> tuple[dict, tuple]:
+    """A whole live-path step tune on a fresh preset loop: its result (less its wall time)
+    and the loop as left."""
+    sim = build_plant(PLANT, "default")[loop]
+    with monkeypatch.context() as m:
+        if per_sample:
+            m.setattr(StepTest, "horizon", lambda self, cap: 1)
+        req = TuneRequest(loop=loop, method="step")
+        result = TuningRun(LocalLoopClient(sim), req, "band").run().model_dump()
+    result.pop("wall_time")
+    return result, (sim.seq, sim.pv, sim.op, sim.sp, sim.mode)
+
+
+@pytest.mark.parametrize("loop", ["flow1", "hx1", "lvl1"])
+def test_live_step_tunes_are_the_tunes_fed_sample_by_sample(loop, monkeypatch) -> None:
+    one, left_one = tune(loop, True, monkeypatch)
+    batched, left = tune(loop, False, monkeypatch)
+    assert one["status"] in ("ok", "rejected"), one["reason"]
+    assert batched == one and left == left_one
