@@ -112,10 +112,13 @@ def allowed_in_control(name: str) -> bool:
 
 
 def allowed_in_autotuner_core(name: str) -> bool:
-    """identify/, design/ and monitor/ add the project's plain error types and each other."""
+    """identify/, design/ and monitor/ add the project's plain error types, each other, and
+    ``services.autotuner.parts`` (how a step's independent parts are computed: a type and a
+    function of the standard library's, checked below)."""
     return (
         allowed_in_control(name)
         or under(name, "shared.errors")
+        or under(name, "services.autotuner.parts")
         or under(name, "services.autotuner.identify")
         or under(name, "services.autotuner.design")
         or under(name, "services.autotuner.monitor")
@@ -141,6 +144,11 @@ def test_the_control_core_imports_only_numpy_scipy_and_the_standard_library():
 )
 def test_identification_and_design_import_only_the_core(directory):
     assert bad_imports(directory, allowed_in_autotuner_core) == []
+
+
+def test_the_parts_module_imports_only_the_standard_library():
+    path = ROOT / "services/autotuner/parts.py"
+    assert [name for _, name in imported_names(path) if not allowed_in_control(name)] == []
 
 
 def test_shared_imports_no_service():
