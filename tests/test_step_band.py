@@ -5,7 +5,8 @@ loop's pulse and rest window), and ``StepTest.band`` ends a batch at the first s
 the PV limits or at an end of the transmitter's range — so a run in batches is the run fed
 sample by sample: the same samples, events and result, to the bit. Checked on the test's
 ways to end (at rest, an integrator's return pulse, the range's end, the allowance, the PV
-limits, the timeout) and on whole live-path runs of the preset loops."""
+limits, the timeout), on repeated tests (``RepeatedSteps``: the running test's horizon, then
+each return to rest up to its next check), and on whole live-path runs of the preset loops."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from importlib.resources import files
 import pytest
 
 from services.autotuner.identify.driver import drive
+from services.autotuner.identify.repeated_steps import RepeatedSteps
 from services.autotuner.identify.step_test import StepTest, StepTestConfig
 from services.autotuner.tuning import TuningRun
 from services.offline.local_loop import LocalLoopClient, SimLoopPort
@@ -81,6 +83,21 @@ def integrator(**config):
     return loop, step_for(loop, 5.0, **config)
 
 
+def repeated(integrating: bool = False, noise: float = 0.02, **kw):
+    """Up and down steps from rest, each one's return to rest watched (``ReturnWatch``)."""
+    loop, single = integrator() if integrating else lag(noise=noise)
+    test = RepeatedSteps(
+        single.config,
+        single.op_start,
+        single.op_limits,
+        single.pv_limits,
+        single.sample_time,
+        pv_range=single.pv_range,
+        **kw,
+    )
+    return loop, test
+
+
 CASES = {
     "at-rest": lambda: lag(),
     "at-rest-step-down": lambda: lag(-4.0),
@@ -95,6 +112,9 @@ CASES = {
     # PV limits inside the range: aborted where it leaves them
     "pv-limits": lambda: lag(10.0, pv_limits=(0.0, 55.0)),
     "timeout": lambda: lag(timeout=31.3),  # between two checks
+    "repeated": lambda: repeated(repeat=3),
+    "repeated-auto": lambda: repeated(repeat=4, auto=True),
+    "repeated-integrating": lambda: repeated(True, repeat=2),
 }
 
 REACHES = {
@@ -107,6 +127,9 @@ REACHES = {
     "allowance": lambda t: "allowance" in t.reason,
     "pv-limits": lambda t: "left its limits" in t.reason,
     "timeout": lambda t: "no steady state" in t.reason,
+    "repeated": lambda t: t.phase == "done" and len(t.done) == 3,
+    "repeated-auto": lambda t: t.phase == "done" and len(t.done) >= 2,
+    "repeated-integrating": lambda t: t.phase == "done" and len(t.done) == 2,
 }
 
 
@@ -125,7 +148,10 @@ def run(case: str, cap: int):
 
     port.samples = counted
     drive(test, port, held=port.held_now(), max_chunk=cap)
-    record = (test.t, test.pv, test.events, test.phase, test.reason, test.t_step)
+    if isinstance(test, RepeatedSteps):
+        record = ([(s.t, s.pv, s.events) for s in test.done], test.events, test.phase, test.reason)
+    else:
+        record = (test.t, test.pv, test.events, test.phase, test.reason, test.t_step)
     return record, test.identification(), (loop.seq, loop.pv, loop.op), calls, test
 
 
@@ -140,22 +166,23 @@ def test_batched_step_test_is_the_test_fed_sample_by_sample(case: str) -> None:
     assert by_batch["batches"] < 0.3 * by_one["batches"]
 
 
-def tune(loop: str, per_sample: bool, monkeypatch) -> tuple[dict, tuple]:
+def tune(loop: str, per_sample: bool, monkeypatch, repeat: int | None) -> tuple[dict, tuple]:
     """A whole live-path step tune on a fresh preset loop: its result (less its wall time)
     and the loop as left."""
     sim = build_plant(PLANT, "default")[loop]
     with monkeypatch.context() as m:
         if per_sample:
             m.setattr(StepTest, "horizon", lambda self, cap: 1)
-        req = TuneRequest(loop=loop, method="step")
+            m.setattr(RepeatedSteps, "horizon", lambda self, cap: 1)
+        req = TuneRequest(loop=loop, method="step", repeat=repeat)
         result = TuningRun(LocalLoopClient(sim), req, "band").run().model_dump()
     result.pop("wall_time")
     return result, (sim.seq, sim.pv, sim.op, sim.sp, sim.mode)
 
 
-@pytest.mark.parametrize("loop", ["flow1", "hx1", "lvl1"])
-def test_live_step_tunes_are_the_tunes_fed_sample_by_sample(loop, monkeypatch) -> None:
-    one, left_one = tune(loop, True, monkeypatch)
-    batched, left = tune(loop, False, monkeypatch)
+@pytest.mark.parametrize(("loop", "repeat"), [("flow1", None), ("hx1", None), ("lvl1", 2)])
+def test_live_step_tunes_are_the_tunes_fed_sample_by_sample(loop, repeat, monkeypatch) -> None:
+    one, left_one = tune(loop, True, monkeypatch, repeat)
+    batched, left = tune(loop, False, monkeypatch, repeat)
     assert one["status"] in ("ok", "rejected"), one["reason"]
     assert batched == one and left == left_one

@@ -25,6 +25,7 @@ from typing import Any, ClassVar
 
 from services.autotuner.identify import step_test
 from services.autotuner.identify.experiments import (
+    Band,
     Demand,
     Event,
     Identification,
@@ -36,10 +37,12 @@ from services.autotuner.identify.experiments import (
 from services.autotuner.identify.model_fit import ProcessFit, StepModel, model_of
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
 from services.autotuner.identify.step_test import (
+    SETTLE_CHECK_EVERY,
     ReturnWatch,
     StepTest,
     StepTestConfig,
     return_timeout,
+    samples_until,
 )
 from shared.control.signals import Sample
 
@@ -206,10 +209,26 @@ class RepeatedSteps:
     step_started = held  # what ``step_run`` calls (it drives without the driver)
 
     def horizon(self, cap: int) -> int:
-        return 1
+        """The running test's (``StepTest.horizon``); watching a return to rest, up to its
+        next rest check (every ``SETTLE_CHECK_EVERY`` samples) or its timeout, whichever
+        may come first: a batch fed one by one leaves the tests where one sample a batch
+        would."""
+        if self.finished:
+            return 1
+        if self.phase == "test" and self._test is not None:
+            return self._test.horizon(cap)
+        w = self._watch
+        if self.phase != "return" or w is None or not w.t:
+            return 1
+        checks = SETTLE_CHECK_EVERY - len(w.pv) % SETTLE_CHECK_EVERY
+        timeout = samples_until(w.t_restore + w.timeout - w.t[-1], self.sample_time, w.t[-1])
+        return max(1, min(cap, checks, timeout))
 
-    def band(self) -> None:
-        return None  # a step is timed by samples, not by where the PV is
+    def band(self) -> Band | None:
+        """The running test's; none while a return is watched (it aborts on no PV)."""
+        if self.phase == "test" and self._test is not None:
+            return self._test.band()
+        return None
 
     def progress(self) -> Progress:
         n = len(self.done) + (1 if self.phase == "test" else 0)

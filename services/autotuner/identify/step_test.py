@@ -262,15 +262,7 @@ class StepTest:
         return 1
 
     def _until(self, seconds: float) -> int:
-        """Samples up to the first at which ``seconds`` more of sim time may have passed (≥
-        1): the rounding of the sample times either side of it allowed for, and the
-        tolerance of 1e-9 × the time with which the pulse's and the rest window's ends are
-        read (``_return_pulse``, ``_settled``)."""
-        x = seconds / self.sample_time
-        if not math.isfinite(x):
-            return 1 << 30
-        slack = 1e-6 + 2e-9 * max(1.0, abs(self.t[-1]) + abs(seconds)) / self.sample_time
-        return max(1, math.ceil(x - slack))
+        return samples_until(seconds, self.sample_time, self.t[-1])
 
     def band(self) -> Band:
         """The PV limits (the test aborts outside them) and, once the step is held, the ends
@@ -743,6 +735,18 @@ class ReturnWatch:
         if t - self.t_restore >= self.timeout:
             self.done = True
         return self.done
+
+
+def samples_until(seconds: float, sample_time: float, t: float) -> int:
+    """Samples after the one at sim time ``t`` up to the first at which ``seconds`` more may
+    have passed (≥ 1), for a batch's ``horizon``: the rounding of the sample times either
+    side of it allowed for, and the tolerance of 1e-9 × the time with which the pulse's and
+    the rest window's ends are read (``_return_pulse``, ``_settled``)."""
+    x = seconds / sample_time
+    if not math.isfinite(x):
+        return 1 << 30
+    slack = 1e-6 + 2e-9 * max(1.0, abs(t) + abs(seconds)) / sample_time
+    return max(1, math.ceil(x - slack))
 
 
 def return_timeout(config: StepTestConfig, t_step: float, t_end: float) -> float:
