@@ -186,3 +186,42 @@ def test_live_step_tunes_are_the_tunes_fed_sample_by_sample(loop, repeat, monkey
     batched, left = tune(loop, False, monkeypatch, repeat)
     assert one["status"] in ("ok", "rejected"), one["reason"]
     assert batched == one and left == left_one
+
+
+def step_command(model: str, per_sample: bool, monkeypatch, **kw):
+    """``autotune step``'s run (``run_step_test``) on a fresh loop, lockstep in process: its
+    report and the loop as left (with the wait for the return to rest)."""
+    from services.autotuner.identify.step_test import ReturnWatch
+    from services.autotuner.step_run import run_step_test
+
+    sim = build_plant({"seed": 1, "loops": {"x": {"model": model}}})["x"]
+    with monkeypatch.context() as m:
+        if per_sample:
+            m.setattr(StepTest, "horizon", lambda self, cap: 1)
+            m.setattr(RepeatedSteps, "horizon", lambda self, cap: 1)
+            m.setattr(ReturnWatch, "horizon", lambda self, cap, ts: 1)
+        seen: list[float] = []
+        report = run_step_test(
+            LocalLoopClient(sim),
+            StepTestConfig(size=5.0),
+            progress=lambda test, s: seen.append(s.t),
+            **kw,
+        )
+    return report, seen, (sim.seq, sim.pv, sim.op, sim.mode)
+
+
+@pytest.mark.parametrize(
+    ("model", "kw"),
+    [
+        ("heat_exchanger", {}),
+        ("heat_exchanger", {"repeat": 2}),
+        ("tank_level_integrating", {}),
+    ],
+)
+def test_the_step_command_in_batches_is_the_command_fed_sample_by_sample(model, kw, monkeypatch):
+    """``autotune step`` drives its test (and the wait for the return to rest) in the same
+    batches: the same report, every sample shown to its progress once, the loop left alike."""
+    one = step_command(model, True, monkeypatch, **kw)
+    batched = step_command(model, False, monkeypatch, **kw)
+    assert repr(batched[0]) == repr(one[0]) and batched[1:] == one[1:]
+    assert one[0].restored and len(one[1]) == len(set(one[1])) > 100

@@ -22,6 +22,7 @@ from services.autotuner.loop_client import CommandRefused, LeaseLost, LoopClient
 from shared.control.forms import pv_span, step_percent
 from shared.errors import AutotuneError
 from shared.messages import (
+    MAX_BATCH,
     LeaseCommand,
     ModeCommand,
     OutputCommand,
@@ -130,12 +131,20 @@ def run_step_test(
     try:
         if before.mode != "manual":
             client.command(ModeCommand(loop=client.loop, mode="manual", source=client.source))
-        op = before.op
+        op = want = before.op
         while not test.finished:
-            s = client.next_sample()
-            want = test.feed(s).op
-            if progress:
-                progress(test, s)
+            # a batch up to the test's next decision (``horizon``, ``band``): fed one by one,
+            # it is the test fed a sample at a time, in a round trip instead of one each
+            n = test.horizon(MAX_BATCH)
+            batch = client.samples(n, test.band()) if n > 1 else client.samples(1)
+            if not batch:
+                raise AutotuneError(f"loop {client.loop}: no sample came")
+            for s in batch:
+                want = test.feed(s).op
+                if progress:
+                    progress(test, s)
+                if test.finished:
+                    break
             if want != op and not test.finished:
                 status = client.command(
                     OutputCommand(loop=client.loop, op=want, t=s.t, source=client.source)
@@ -180,11 +189,13 @@ def run_step_test(
             tuple(info.pv_range),
         )
         try:
-            while not watch.done:
-                s = client.next_sample()
-                watch.feed(s.t, s.pv)
-                if progress:
-                    progress(test, s)
+            while not watch.done:  # in batches up to its next check, as the test's
+                for s in client.samples(watch.horizon(MAX_BATCH, info.sample_time)):
+                    done = watch.feed(s.t, s.pv)
+                    if progress:
+                        progress(test, s)
+                    if done:
+                        break
         except (KeyboardInterrupt, AutotuneError):
             pass  # the loop is restored and the figures stand: report it as not back at rest
         returned = watch.at_rest

@@ -37,12 +37,10 @@ from services.autotuner.identify.experiments import (
 from services.autotuner.identify.model_fit import ProcessFit, StepModel, model_of
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
 from services.autotuner.identify.step_test import (
-    SETTLE_CHECK_EVERY,
     ReturnWatch,
     StepTest,
     StepTestConfig,
     return_timeout,
-    samples_until,
 )
 from shared.control.signals import Sample
 
@@ -217,12 +215,9 @@ class RepeatedSteps:
             return 1
         if self.phase == "test" and self._test is not None:
             return self._test.horizon(cap)
-        w = self._watch
-        if self.phase != "return" or w is None or not w.t:
+        if self.phase != "return" or self._watch is None:
             return 1
-        checks = SETTLE_CHECK_EVERY - len(w.pv) % SETTLE_CHECK_EVERY
-        timeout = samples_until(w.t_restore + w.timeout - w.t[-1], self.sample_time, w.t[-1])
-        return max(1, min(cap, checks, timeout))
+        return self._watch.horizon(cap, self.sample_time)
 
     def band(self) -> Band | None:
         """The running test's; none while a return is watched (it aborts on no PV)."""

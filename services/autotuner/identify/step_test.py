@@ -714,6 +714,17 @@ class ReturnWatch:
             return self.rest
         return self.pv[-1] if self.pv else math.nan
 
+    def horizon(self, cap: int, sample_time: float) -> int:
+        """Samples (≤ ``cap``, ≥ 1) up to the next at which the watch may end: its next rest
+        check (every ``SETTLE_CHECK_EVERY`` samples) or its timeout (samples ``sample_time``
+        s apart), whichever may come first; 1 before any sample."""
+        if self.done or not self.t:
+            return 1
+        checks = SETTLE_CHECK_EVERY - len(self.pv) % SETTLE_CHECK_EVERY
+        last = self.t[-1]
+        timeout = samples_until(self.t_restore + self.timeout - last, sample_time, last)
+        return max(1, min(cap, checks, timeout))
+
     def feed(self, t: float, pv: float) -> bool:
         """Take one sample; True once done (at rest, or out of time)."""
         if self.done:
