@@ -29,7 +29,7 @@ from tests.test_ramp_limits import (
     make_loop,
     ramp_for,
 )
-from tests.test_relay_band import DIRECT
+from tests.test_relay_band import CLIPPED, DIRECT
 
 PLANT = tomllib.loads(files("services.plant_sim").joinpath("plants/default.toml").read_text())
 
@@ -89,6 +89,18 @@ def swinging():
     return loop, test, 300 * pu
 
 
+def late(build):
+    """The same case on a clock at 1.2e10 s (sample 123,456,789,012 × its sample time):
+    the times' rounding grows with them (``samples_until``)."""
+
+    def built():
+        loop, test, limit = build()
+        loop.seq = 123_456_789_012 if loop.sample_time < 1.0 else 12_345_678_901
+        return loop, test, limit
+
+    return built
+
+
 CASES = {
     "lag-dominated": lag_dominated,
     "huge-start-noise": huge_start(0.01),
@@ -98,6 +110,8 @@ CASES = {
     "period-budget": budget(total_periods=6.0),
     "max-time": budget(max_time=5.0),
     "swing-limit": swinging,
+    "max-time-late": late(budget(max_time=5.0)),
+    "lag-dominated-late": late(lag_dominated),
 }
 
 
@@ -134,6 +148,8 @@ REACHES = {
     "period-budget": lambda t: "periods" in t.reason,
     "max-time": lambda t: "max_time" in t.reason,
     "swing-limit": lambda t: any(tr.cut_short for tr in t.trials),
+    "max-time-late": lambda t: "max_time" in t.reason,
+    "lag-dominated-late": lambda t: t.result is not None,
 }
 
 
@@ -212,3 +228,27 @@ def test_a_calming_with_its_output_at_a_limit_is_batched_not_a_sample_a_round_tr
     drive(test, port, held=port.held_now(), max_chunk=1024)
     assert "calm" in _kinds(test) and at_limit["samples"] >= 200
     assert at_limit["batches"] <= 0.1 * at_limit["samples"]
+
+
+def test_a_pv_clipped_inside_wider_limits_ends_the_batch_where_it_aborts(monkeypatch):
+    """The ramp's band ends a batch at an end of the transmitter's range inside wider PV
+    limits, where the test aborts (``clipped``), as the relay's does."""
+    from services.plant_sim.plant_file import build_plant
+
+    # the range's top 0.5 above the rest: a bump of 0.2 fits under it, a growing swing not
+    plant = {**CLIPPED, "loops": {"c1": {**CLIPPED["loops"]["c1"], "pv_range": [0.0, 60.5]}}}
+
+    def tune_wide(per_sample: bool):
+        sim = build_plant(plant, "default")["c1"]
+        with monkeypatch.context() as m:
+            if per_sample:
+                m.setattr(RampTest, "horizon", lambda self, cap: 1)
+            req = TuneRequest(loop="c1", method="ramp", pv_limits=(-100.0, 200.0), bump=0.2)
+            result = TuningRun(LocalLoopClient(sim), req, "band").run().model_dump()
+        result.pop("wall_time")
+        return result, (sim.seq, sim.pv, sim.op, sim.sp, sim.mode)
+
+    one, left_one = tune_wide(True)
+    batched, left = tune_wide(False)
+    assert one["status"] == "aborted" and "transmitter's range" in one["reason"]
+    assert batched == one and left == left_one

@@ -124,3 +124,21 @@ def test_an_advance_refuses_stops_that_are_not_numbers():
     ):
         with pytest.raises(pydantic.ValidationError):
             AdvanceCommand.model_validate_json(bad)
+
+
+# the transmitter's range ends just above the rest (60 °C): a relay's swing reaches it
+CLIPPED = {
+    "seed": 3,
+    "loops": {"c1": {"model": "heat_exchanger", "pv_range": [0.0, 60.15], "noise_std": 0.02}},
+}
+
+
+def test_a_pv_clipped_inside_wider_limits_ends_the_batch_where_it_aborts(monkeypatch):
+    """PV limits wider than the transmitter's range leave its ends inside them: the band
+    ends a batch there too, where the test aborts (``clipped``); a batch that ran on stepped
+    the loop past the abort, under the relay's output."""
+    wide = {"plant": CLIPPED, "pv_limits": (-100.0, 200.0)}
+    one, left_one, _ = tune("c1", True, monkeypatch, **wide)
+    banded, left, _ = tune("c1", False, monkeypatch, **wide)
+    assert one["status"] == "aborted" and "transmitter's range" in one["reason"]
+    assert banded == one and left == left_one

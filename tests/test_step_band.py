@@ -28,8 +28,10 @@ from shared.messages import ModeCommand, OutputCommand, TuneRequest
 PLANT = tomllib.loads(files("services.plant_sim").joinpath("plants/default.toml").read_text())
 
 
-def open_loop(num, den, delay, ts, noise=0.0, seed=0, pv_range=(0.0, 100.0)) -> SimLoop:
-    """A transfer-function loop in manual at 50 % output."""
+def open_loop(
+    num, den, delay, ts, noise=0.0, seed=0, pv_range=(0.0, 100.0), start: int = 0
+) -> SimLoop:
+    """A transfer-function loop in manual at 50 % output, its clock at sample ``start``."""
     loop = build_plant(
         {
             "seed": seed,
@@ -48,6 +50,7 @@ def open_loop(num, den, delay, ts, noise=0.0, seed=0, pv_range=(0.0, 100.0)) -> 
     )["x"]
     loop.apply(ModeCommand(loop="x", mode="manual"))
     loop.apply(OutputCommand(loop="x", op=50.0))
+    loop.seq = start
     return loop
 
 
@@ -64,9 +67,11 @@ def step_for(loop: SimLoop, size: float, **config) -> StepTest:
     )
 
 
-def lag(size: float = 5.0, noise: float = 0.02, pv_range=(0.0, 100.0), **config):
+def lag(size: float = 5.0, noise: float = 0.02, pv_range=(0.0, 100.0), start=0, **config):
     """A first-order lag with dead time: the PV comes to rest."""
-    loop = open_loop([2.0], [20.0, 1.0], 3.0, 0.1, noise=noise, seed=1, pv_range=pv_range)
+    loop = open_loop(
+        [2.0], [20.0, 1.0], 3.0, 0.1, noise=noise, seed=1, pv_range=pv_range, start=start
+    )
     return loop, step_for(loop, size, **config)
 
 
@@ -77,10 +82,13 @@ def fast():
     return loop, step_for(loop, 30.0, max_move=1.0, pv_limits=(-1000.0, 1000.0))
 
 
-def integrator(**config):
+def integrator(start: int = 0, **config):
     """A level: the PV ramps; the return pulse gives it back its level."""
-    loop = open_loop([0.05], [1.0, 0.0], 2.0, 0.1, noise=0.01, seed=2)
+    loop = open_loop([0.05], [1.0, 0.0], 2.0, 0.1, noise=0.01, seed=2, start=start)
     return loop, step_for(loop, 5.0, **config)
+
+
+LATE = 123_456_789_012  # a clock at 1.2e10 s: the times' rounding is 1e-6 s and more
 
 
 def repeated(integrating: bool = False, noise: float = 0.02, **kw):
@@ -112,6 +120,8 @@ CASES = {
     # PV limits inside the range: aborted where it leaves them
     "pv-limits": lambda: lag(10.0, pv_limits=(0.0, 55.0)),
     "timeout": lambda: lag(timeout=31.3),  # between two checks
+    "integrating-late": lambda: integrator(LATE),
+    "timeout-late": lambda: lag(start=LATE, timeout=0.7),
     "repeated": lambda: repeated(repeat=3),
     "repeated-auto": lambda: repeated(repeat=4, auto=True),
     "repeated-integrating": lambda: repeated(True, repeat=2),
@@ -127,6 +137,8 @@ REACHES = {
     "allowance": lambda t: "allowance" in t.reason,
     "pv-limits": lambda t: "left its limits" in t.reason,
     "timeout": lambda t: "no steady state" in t.reason,
+    "integrating-late": lambda t: t.phase == "done" and t.ramp is not None,
+    "timeout-late": lambda t: "no steady state" in t.reason,
     "repeated": lambda t: t.phase == "done" and len(t.done) == 3,
     "repeated-auto": lambda t: t.phase == "done" and len(t.done) >= 2,
     "repeated-integrating": lambda t: t.phase == "done" and len(t.done) == 2,
@@ -225,3 +237,21 @@ def test_the_step_command_in_batches_is_the_command_fed_sample_by_sample(model, 
     batched = step_command(model, False, monkeypatch, **kw)
     assert repr(batched[0]) == repr(one[0]) and batched[1:] == one[1:]
     assert one[0].restored and len(one[1]) == len(set(one[1])) > 100
+
+
+def test_samples_until_counts_to_the_first_sample_that_may_reach_a_time_limit():
+    """A time limit's batch ends with the first sample whose time may reach it (it may
+    decide there), the rounding either side of the limit allowed for; a limit past, or not a
+    number, is the next sample; none, no bound."""
+    import math
+
+    from services.autotuner.identify.experiments import samples_until
+
+    assert samples_until(1.0, 0.1, 0.0) == 10  # the 10th sample is at the limit: it decides
+    assert samples_until(1.05, 0.1, 0.0) == 11
+    assert samples_until(0.99999999, 0.1, 0.0) == 10
+    assert samples_until(0.0, 0.1, 5.0) == 1 and samples_until(-3.0, 0.1, 5.0) == 1
+    assert samples_until(math.nan, 0.1, 5.0) == 1 and samples_until(-math.inf, 0.1, 5.0) == 1
+    assert samples_until(math.inf, 0.1, 5.0) == 1 << 30
+    # at 1e6 s the slack is 0.02 of a sample; at 1e8 s, 2 samples
+    assert samples_until(1.0, 0.1, 1e6) == 10 and samples_until(1.0, 0.1, 1e8) == 8

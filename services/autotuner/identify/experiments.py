@@ -138,6 +138,23 @@ def action_question(direction: float) -> str:
     return f"the loop is {action}-acting; is the process one for a {other}-acting PID?"
 
 
+def samples_until(seconds: float, sample_time: float, t: float) -> int:
+    """Samples after the one at sim time ``t`` up to the first at which ``seconds`` more may
+    have passed (≥ 1), for a batch's ``horizon``: that sample may decide, so it is the
+    batch's last. The rounding of the sample times (k·T, each rounded) either side of the
+    limit is allowed for, and a tolerance of 1e-9 × the time (the step test's pulse and rest
+    window are read so): both grow with the time, and 1e-6 of a sample alone was a sample
+    short at 5e9 samples. A limit already past (or not a number) is 1; none (+inf), no
+    bound."""
+    x = seconds / sample_time
+    if math.isnan(x) or x <= 0:
+        return 1
+    if math.isinf(x):
+        return 1 << 30
+    slack = 1e-6 + 2e-9 * max(1.0, abs(t) + abs(seconds)) / sample_time
+    return max(1, math.ceil(x - slack))
+
+
 def clipped(pv: float, pv_range: tuple[float, float] | None, t: float, smaller: str) -> str:
     """Why a sample ends a test, when its PV sits at an end of the transmitter's range: the
     transmitter clips there, so the swing beyond is not measured (a relay read a cycle with

@@ -50,6 +50,7 @@ from services.autotuner.identify.experiments import (
     Setup,
     action_question,
     clipped,
+    samples_until,
 )
 from services.autotuner.identify.model_fit import (
     ProcessFit,
@@ -959,10 +960,12 @@ class RampTest:
         return max(1, math.ceil(self.config.stuck_fraction * window - have) - 1)
 
     def band(self) -> Band:
-        """The PV limits (and in a trial the swing limit about the rest, ±``swing_limit``·bump),
-        and, while the output is off its limits, its limits: the first sample at one of them
-        starts the count of a saturated output."""
+        """The PV limits and the transmitter's range (and in a trial the swing limit about
+        the rest, ±``swing_limit``·bump), and, while the output is off its limits, its
+        limits: the first sample at one of them starts the count of a saturated output."""
         lo, hi = self.pv_limits
+        if self.pv_range is not None:  # a sample at an end of the range aborts (``clipped``)
+            lo, hi = max(lo, self.pv_range[0]), min(hi, self.pv_range[1])
         if self.phase == "trial":
             swing = self.config.swing_limit * self._trial_bump
             lo, hi = max(lo, self._r - swing), min(hi, self._r + swing)
@@ -976,11 +979,9 @@ class RampTest:
 
     def _before(self, seconds: float) -> int:
         """Samples up to the first at which ``seconds`` more of sim time may have passed
-        (≥ 1): the first whose time could reach it, the rounding of the sample times either
-        side of it allowed for. (Counted a sample short, every timed trial's end took a round
-        trip of one sample.)"""
-        x = seconds / self.sample_time
-        return max(1, math.ceil(x - 1e-6)) if math.isfinite(x) else 1 << 30
+        (``samples_until``: that sample is the batch's last). (Counted a sample short, every
+        timed trial's end took a round trip of one sample.)"""
+        return samples_until(seconds, self.sample_time, self._t[-1])
 
     @property
     def demand_kc(self) -> float:

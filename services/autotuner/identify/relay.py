@@ -308,12 +308,13 @@ class RelayTest:
         is high, the PV below r by its margin; the PV limits abort. Every bound is where such a
         step may happen, so a batch ends on it, or earlier: a batch that ends without a
         decision costs a round trip, never a late switch."""
-        if self.phase == "quiet":  # the PV limits alone: past them the test aborts
-            return Band(*self.pv_limits)
+        limits = self._abort_band()
+        if self.phase == "quiet":  # the limits alone: past them the test aborts
+            return Band(*limits)
         if self.phase not in ("relay", "stage2") or not self.pv:
             return None
         r, h, pv = self._r, self._level, self.pv[-1]
-        below, above = self.pv_limits
+        below, above = limits
         # locked out in stage 2, back past the level it switched at arms it (``_turned``)
         turn = self.config.arm_at_turn and self.phase == "stage2" and not self._switch_armed
         if self._state > 0:
@@ -337,6 +338,14 @@ class RelayTest:
             else:
                 below = max(below, r)
         return Band(below, above)
+
+    def _abort_band(self) -> tuple[float, float]:
+        """Where a sample aborts the test: outside the PV limits, or at an end of the
+        transmitter's range (``clipped``), which limits wider than the range leave inside."""
+        lo, hi = self.pv_limits
+        if self.pv_range is not None:
+            lo, hi = max(lo, self.pv_range[0]), min(hi, self.pv_range[1])
+        return lo, hi
 
     def progress(self) -> Progress:
         n = len(self.cycles)

@@ -46,6 +46,7 @@ from services.autotuner.identify.experiments import (
     Settings,
     Setup,
     as_controlled,
+    samples_until,
 )
 from services.autotuner.identify.model_fit import (
     ProcessFit,
@@ -746,18 +747,6 @@ class ReturnWatch:
         if t - self.t_restore >= self.timeout:
             self.done = True
         return self.done
-
-
-def samples_until(seconds: float, sample_time: float, t: float) -> int:
-    """Samples after the one at sim time ``t`` up to the first at which ``seconds`` more may
-    have passed (≥ 1), for a batch's ``horizon``: the rounding of the sample times either
-    side of it allowed for, and the tolerance of 1e-9 × the time with which the pulse's and
-    the rest window's ends are read (``_return_pulse``, ``_settled``)."""
-    x = seconds / sample_time
-    if not math.isfinite(x):
-        return 1 << 30
-    slack = 1e-6 + 2e-9 * max(1.0, abs(t) + abs(seconds)) / sample_time
-    return max(1, math.ceil(x - slack))
 
 
 def return_timeout(config: StepTestConfig, t_step: float, t_end: float) -> float:
