@@ -16,11 +16,10 @@ from services.autotuner.identify.ramp import RampConfig, RampTest
 from services.autotuner.identify.relay import RelayConfig, RelayTest
 from services.autotuner.identify.relay_estimate import KU_METHODS, MODEL_CROSSING
 from services.offline.local_loop import ModelPort, SimLoopPort
-from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.models import TransferFunctionModel
 from shared.messages import GainsCommand, ModeCommand, PidGains
 from tests.exact import ultimate_point
-from tests.plants import HX, THIRD, run_relay
+from tests.plants import HX, THIRD, run_relay, transfer_function_loop
 
 
 @pytest.mark.parametrize("plant", [THIRD, HX], ids=["third-order", "heat-exchanger"])
@@ -104,22 +103,7 @@ def test_relay_aborts_at_the_pv_limit_and_refuses_a_too_wide_swing():
 
 
 def run_ramp(num, den, delay, ts, noise=0.0, seed=0, kc_start=1.0, bump=1.0):
-    loop = build_plant(
-        {
-            "seed": seed,
-            "loops": {
-                "x": {
-                    "model": "transfer_function",
-                    "num": num,
-                    "den": den,
-                    "delay": delay,
-                    "sample_time": ts,
-                    "noise_std": noise,
-                    "pv_range": [-1e3, 1e3],
-                }
-            },
-        }
-    )["x"]
+    loop = transfer_function_loop(num, den, delay, ts, noise, seed, (-1e3, 1e3))
     test = RampTest(RampConfig(kc_start=kc_start, bump=bump), (-1e3, 1e3), ts)
     loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc_start)))
     loop.apply(ModeCommand(loop="x", mode="auto"))

@@ -18,9 +18,9 @@ import pytest
 
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.ramp import RampConfig, RampTest
-from services.autotuner.tuning import TuningRun
-from services.offline.local_loop import LocalLoopClient, SimLoopPort
-from shared.messages import GainsCommand, PidGains, TuneRequest
+from services.offline.local_loop import SimLoopPort
+from shared.messages import GainsCommand, PidGains
+from tests.plants import drive_in_batches, live_tune
 from tests.test_ramp_limits import (
     RELAY_SWING,
     fopdt_ultimate,
@@ -117,19 +117,7 @@ CASES = {
 
 def run(case: str, cap: int):
     loop, test, limit = CASES[case]()
-    port = SimLoopPort(loop, present_first=True, limit=limit)
-    calls: Counter[str] = Counter()
-    take = port.samples
-
-    def counted(n, band=None):
-        out = take(n, band)
-        calls["batches"] += 1
-        if band is not None:  # every sample but the last inside the band
-            assert not any(band.ends(s.pv, s.op) for s in out[:-1])
-        return out
-
-    port.samples = counted
-    drive(test, port, held=port.held_now(), max_chunk=cap)
+    calls = drive_in_batches(test, loop, cap, limit)
     record = (test._t, test._y, test._u, test.events, test.trials, test.phase, test.reason)
     return record, test.result, (loop.seq, loop.pv, loop.op, loop.sp), calls, test
 
@@ -164,19 +152,10 @@ def test_batched_ramp_is_the_ramp_fed_sample_by_sample(case: str) -> None:
     assert by_batch["batches"] < 0.5 * by_one["batches"]
 
 
-def tune(loop: str, per_sample: bool, monkeypatch, plant: dict = PLANT) -> tuple[dict, tuple]:
-    """A whole live-path ramp run on a fresh loop: its result (less its wall time) and the
-    loop as left."""
-    from services.plant_sim.plant_file import build_plant
-
-    sim = build_plant(plant, "default")[loop]
-    with monkeypatch.context() as m:
-        if per_sample:
-            m.setattr(RampTest, "horizon", lambda self, cap: 1)
-        req = TuneRequest(loop=loop, method="ramp")
-        result = TuningRun(LocalLoopClient(sim), req, "band").run().model_dump()
-    result.pop("wall_time")
-    return result, (sim.seq, sim.pv, sim.op, sim.sp, sim.mode)
+def tune(loop: str, per_sample: bool, monkeypatch, plant: dict = PLANT, **request):
+    """A whole live-path ramp run on a fresh loop: its result and the loop as left."""
+    one = (RampTest,) if per_sample else ()
+    return live_tune(plant, loop, monkeypatch, one, method="ramp", **request)
 
 
 @pytest.mark.parametrize(("loop", "plant"), [("hx1", PLANT), ("flow1", PLANT), ("d1", DIRECT)])
@@ -233,22 +212,10 @@ def test_a_calming_with_its_output_at_a_limit_is_batched_not_a_sample_a_round_tr
 def test_a_pv_clipped_inside_wider_limits_ends_the_batch_where_it_aborts(monkeypatch):
     """The ramp's band ends a batch at an end of the transmitter's range inside wider PV
     limits, where the test aborts (``clipped``), as the relay's does."""
-    from services.plant_sim.plant_file import build_plant
-
     # the range's top 0.5 above the rest: a bump of 0.2 fits under it, a growing swing not
     plant = {**CLIPPED, "loops": {"c1": {**CLIPPED["loops"]["c1"], "pv_range": [0.0, 60.5]}}}
-
-    def tune_wide(per_sample: bool):
-        sim = build_plant(plant, "default")["c1"]
-        with monkeypatch.context() as m:
-            if per_sample:
-                m.setattr(RampTest, "horizon", lambda self, cap: 1)
-            req = TuneRequest(loop="c1", method="ramp", pv_limits=(-100.0, 200.0), bump=0.2)
-            result = TuningRun(LocalLoopClient(sim), req, "band").run().model_dump()
-        result.pop("wall_time")
-        return result, (sim.seq, sim.pv, sim.op, sim.sp, sim.mode)
-
-    one, left_one = tune_wide(True)
-    batched, left = tune_wide(False)
+    wide = {"plant": plant, "pv_limits": (-100.0, 200.0), "bump": 0.2}
+    one, left_one = tune("c1", True, monkeypatch, **wide)
+    batched, left = tune("c1", False, monkeypatch, **wide)
     assert one["status"] == "aborted" and "transmitter's range" in one["reason"]
     assert batched == one and left == left_one

@@ -20,9 +20,9 @@ from services.autotuner.identify.driver import drive as drive_experiment
 from services.autotuner.identify.experiments import DEFAULT_BUMP_FRACTION, Settings, Setup
 from services.autotuner.identify.ramp import RampConfig, RampTest
 from services.offline.local_loop import Reading, SimLoopPort
-from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.loop import SimLoop
 from shared.messages import GainsCommand, ModeCommand, PidGains, TuneRequest
+from tests.plants import transfer_function_loop
 
 RELAY_SWING = 8.0 * 5.0 / math.pi  # × 1/K_u: a 5 % relay's peak-to-peak PV swing (benchmark)
 
@@ -41,21 +41,7 @@ def lags_ultimate(n: int) -> tuple[float, float]:
 
 def make_loop(num, den, delay, ts, noise=0.0, seed=0, kc=1.0) -> SimLoop:
     """A transfer-function loop (PV 0–100, output 0–100 %) in auto, P-only at ``kc``."""
-    loop = build_plant(
-        {
-            "seed": seed,
-            "loops": {
-                "x": {
-                    "model": "transfer_function",
-                    "num": num,
-                    "den": den,
-                    "delay": delay,
-                    "sample_time": ts,
-                    "noise_std": noise,
-                }
-            },
-        }
-    )["x"]
+    loop = transfer_function_loop(num, den, delay, ts, noise, seed)
     loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc)))
     loop.apply(ModeCommand(loop="x", mode="auto"))
     return loop

@@ -11,19 +11,17 @@ each return to rest up to its next check), and on whole live-path runs of the pr
 from __future__ import annotations
 
 import tomllib
-from collections import Counter
 from importlib.resources import files
 
 import pytest
 
-from services.autotuner.identify.driver import drive
 from services.autotuner.identify.repeated_steps import RepeatedSteps
 from services.autotuner.identify.step_test import StepTest, StepTestConfig
-from services.autotuner.tuning import TuningRun
-from services.offline.local_loop import LocalLoopClient, SimLoopPort
+from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.loop import SimLoop
-from shared.messages import ModeCommand, OutputCommand, TuneRequest
+from shared.messages import ModeCommand, OutputCommand
+from tests.plants import drive_in_batches, live_tune, transfer_function_loop
 
 PLANT = tomllib.loads(files("services.plant_sim").joinpath("plants/default.toml").read_text())
 
@@ -32,22 +30,7 @@ def open_loop(
     num, den, delay, ts, noise=0.0, seed=0, pv_range=(0.0, 100.0), start: int = 0
 ) -> SimLoop:
     """A transfer-function loop in manual at 50 % output, its clock at sample ``start``."""
-    loop = build_plant(
-        {
-            "seed": seed,
-            "loops": {
-                "x": {
-                    "model": "transfer_function",
-                    "num": num,
-                    "den": den,
-                    "delay": delay,
-                    "sample_time": ts,
-                    "noise_std": noise,
-                    "pv_range": list(pv_range),
-                }
-            },
-        }
-    )["x"]
+    loop = transfer_function_loop(num, den, delay, ts, noise, seed, pv_range)
     loop.apply(ModeCommand(loop="x", mode="manual"))
     loop.apply(OutputCommand(loop="x", op=50.0))
     loop.seq = start
@@ -94,16 +77,7 @@ LATE = 123_456_789_012  # a clock at 1.2e10 s: the times' rounding is 1e-6 s and
 def repeated(integrating: bool = False, noise: float = 0.02, **kw):
     """Up and down steps from rest, each one's return to rest watched (``ReturnWatch``)."""
     loop, single = integrator() if integrating else lag(noise=noise)
-    test = RepeatedSteps(
-        single.config,
-        single.op_start,
-        single.op_limits,
-        single.pv_limits,
-        single.sample_time,
-        pv_range=single.pv_range,
-        **kw,
-    )
-    return loop, test
+    return loop, RepeatedSteps.like(single, **kw)
 
 
 CASES = {
@@ -147,19 +121,7 @@ REACHES = {
 
 def run(case: str, cap: int):
     loop, test = CASES[case]()
-    port = SimLoopPort(loop, present_first=True, limit=20_000.0)
-    calls: Counter[str] = Counter()
-    take = port.samples
-
-    def counted(n, band=None):
-        out = take(n, band)
-        calls["batches"] += 1
-        if band is not None:  # every sample but the last inside the band
-            assert not any(band.ends(s.pv, s.op) for s in out[:-1])
-        return out
-
-    port.samples = counted
-    drive(test, port, held=port.held_now(), max_chunk=cap)
+    calls = drive_in_batches(test, loop, cap, 20_000.0)
     if isinstance(test, RepeatedSteps):
         record = ([(s.t, s.pv, s.events) for s in test.done], test.events, test.phase, test.reason)
     else:
@@ -179,17 +141,9 @@ def test_batched_step_test_is_the_test_fed_sample_by_sample(case: str) -> None:
 
 
 def tune(loop: str, per_sample: bool, monkeypatch, repeat: int | None) -> tuple[dict, tuple]:
-    """A whole live-path step tune on a fresh preset loop: its result (less its wall time)
-    and the loop as left."""
-    sim = build_plant(PLANT, "default")[loop]
-    with monkeypatch.context() as m:
-        if per_sample:
-            m.setattr(StepTest, "horizon", lambda self, cap: 1)
-            m.setattr(RepeatedSteps, "horizon", lambda self, cap: 1)
-        req = TuneRequest(loop=loop, method="step", repeat=repeat)
-        result = TuningRun(LocalLoopClient(sim), req, "band").run().model_dump()
-    result.pop("wall_time")
-    return result, (sim.seq, sim.pv, sim.op, sim.sp, sim.mode)
+    """A whole live-path step tune on a fresh preset loop: its result and the loop as left."""
+    one = (StepTest, RepeatedSteps) if per_sample else ()
+    return live_tune(PLANT, loop, monkeypatch, one, method="step", repeat=repeat)
 
 
 @pytest.mark.parametrize(("loop", "repeat"), [("flow1", None), ("hx1", None), ("lvl1", 2)])

@@ -142,6 +142,21 @@ class RepeatedSteps:
             down = dataclasses.replace(self.config, size=-self.config.size)
             StepTest(down, self.op_start, self.op_limits, self.pv_limits, self.sample_time)
 
+    @classmethod
+    def like(cls, single: StepTest, **kw: Any) -> RepeatedSteps:
+        """Repeated tests of ``single``'s step on its loop (``kw``: ``repeat``, ``auto``…)."""
+        return cls(
+            single.config,
+            single.op_start,
+            single.op_limits,
+            single.pv_limits,
+            single.sample_time,
+            pv_range=single.pv_range,
+            pv_units=single.pv_units,
+            direction=single.direction,
+            **kw,
+        )
+
     # --- the experiment protocol ---------------------------------------------------------
 
     @property
@@ -416,15 +431,6 @@ def build(settings: Settings, setup: Setup) -> StepTest | RepeatedSteps:
     single = step_test.build(settings, setup)
     if not settings.repeat_auto and (settings.repeat or 1) == 1:
         return single
-    return RepeatedSteps(
-        single.config,
-        single.op_start,
-        single.op_limits,
-        single.pv_limits,
-        single.sample_time,
-        pv_range=single.pv_range,
-        pv_units=single.pv_units,
-        repeat=settings.repeat or AUTO_LIMIT,
-        auto=settings.repeat_auto,
-        direction=single.direction,
+    return RepeatedSteps.like(
+        single, repeat=settings.repeat or AUTO_LIMIT, auto=settings.repeat_auto
     )
