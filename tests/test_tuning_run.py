@@ -249,3 +249,16 @@ def test_the_verifications_mark_and_gains_carry_the_time_the_plant_applied_them(
     for mark, cmd in zip(verify, gains, strict=False):
         kc = float(mark.message.split()[1].rstrip(","))
         assert (cmd.gains.kc, cmd.t) == (pytest.approx(kc, rel=1e-3), mark.t)
+
+
+def test_a_slow_step_on_a_realtime_loop_in_process_is_watched_without_failing(monkeypatch):
+    """A heavy step that outlasts the run's first check (a quarter of a second) on the
+    realtime clock has the run look at the samples that came meanwhile: an in-process loop
+    has none (it steps only when asked), where the look used to fail the run."""
+    import services.autotuner.tuning as tuning
+
+    monkeypatch.setattr(tuning, "COMPUTE_CHECK", 0.0)  # every step outlasts its first check
+    client = RunningOnClient(third_order_loop("auto", setpoint=50.0))
+    assert client.hold_arrived() == []
+    result = run(client, RunHooks())
+    assert result.status == "ok", result.reason

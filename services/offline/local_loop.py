@@ -74,6 +74,13 @@ class LocalLoopClient:
     def check_plant(self) -> None:
         """Nothing to lose: the loop is in this process."""
 
+    def hold_arrived(self) -> list[ProcessSample]:
+        """None: the loop in this process steps only when asked, never while the run
+        computes (``TuningRun._watch_limits``, asked on the realtime clock of a step that
+        outlasts its first check: a test's loop that says it is realtime took the run down
+        when the design took over a quarter of a second on a loaded machine)."""
+        return []
+
     def sync(self) -> LoopStatus:
         self.last_status = self.sim.status(NODE, "lockstep", "sync", 0)
         return self.last_status
