@@ -74,9 +74,10 @@ def integrator(start: int = 0, **config):
 LATE = 123_456_789_012  # a clock at 1.2e10 s: the times' rounding is 1e-6 s and more
 
 
-def repeated(integrating: bool = False, noise: float = 0.02, **kw):
+def repeated(integrating: bool = False, noise: float = 0.02, pv_limits=None, **kw):
     """Up and down steps from rest, each one's return to rest watched (``ReturnWatch``)."""
-    loop, single = integrator() if integrating else lag(noise=noise)
+    limits = {} if pv_limits is None else {"pv_limits": pv_limits}
+    loop, single = integrator(**limits) if integrating else lag(noise=noise, **limits)
     return loop, RepeatedSteps.like(single, **kw)
 
 
@@ -99,6 +100,9 @@ CASES = {
     "repeated": lambda: repeated(repeat=3),
     "repeated-auto": lambda: repeated(repeat=4, auto=True),
     "repeated-integrating": lambda: repeated(True, repeat=2),
+    # the first (up) step leaves the PV limits; then the second (down) one
+    "repeated-limits-first": lambda: repeated(pv_limits=(0.0, 55.0), repeat=3),
+    "repeated-limits-second": lambda: repeated(pv_limits=(45.0, 100.0), repeat=3),
 }
 
 REACHES = {
@@ -116,6 +120,8 @@ REACHES = {
     "repeated": lambda t: t.phase == "done" and len(t.done) == 3,
     "repeated-auto": lambda t: t.phase == "done" and len(t.done) >= 2,
     "repeated-integrating": lambda t: t.phase == "done" and len(t.done) == 2,
+    "repeated-limits-first": lambda t: t.reason.startswith("test 1 of 3") and not t.done,
+    "repeated-limits-second": lambda t: t.reason.startswith("test 2 of 3") and len(t.done) == 1,
 }
 
 
@@ -191,21 +197,39 @@ def test_the_step_command_in_batches_is_the_command_fed_sample_by_sample(model, 
     batched = step_command(model, False, monkeypatch, **kw)
     assert repr(batched[0]) == repr(one[0]) and batched[1:] == one[1:]
     assert one[0].restored and len(one[1]) == len(set(one[1])) > 100
+    assert batched[2][0] == len(batched[1])  # the loop stepped the samples shown, no more
 
 
 def test_samples_until_counts_to_the_first_sample_that_may_reach_a_time_limit():
     """A time limit's batch ends with the first sample whose time may reach it (it may
-    decide there), the rounding either side of the limit allowed for; a limit past, or not a
-    number, is the next sample; none, no bound."""
+    decide there), never later, the rounding of the sample times (k·T) and the step test's
+    tolerance (1e-9 of the time) allowed for; a limit past, or not a number, is the next
+    sample; none, no bound."""
     import math
+    import random
 
     from services.autotuner.identify.experiments import samples_until
 
     assert samples_until(1.0, 0.1, 0.0) == 10  # the 10th sample is at the limit: it decides
     assert samples_until(1.05, 0.1, 0.0) == 11
-    assert samples_until(0.99999999, 0.1, 0.0) == 10
     assert samples_until(0.0, 0.1, 5.0) == 1 and samples_until(-3.0, 0.1, 5.0) == 1
     assert samples_until(math.nan, 0.1, 5.0) == 1 and samples_until(-math.inf, 0.1, 5.0) == 1
     assert samples_until(math.inf, 0.1, 5.0) == 1 << 30
-    # at 1e6 s the slack is 0.02 of a sample; at 1e8 s, 2 samples
-    assert samples_until(1.0, 0.1, 1e6) == 10 and samples_until(1.0, 0.1, 1e8) == 8
+    rng = random.Random(3)
+    for _ in range(20_000):
+        ts = rng.choice([0.01, 0.05, 0.1, 0.25, 0.37, 1.0, 10.0])
+        seq = rng.choice([0, 1, 17, 10**4, 10**6, 10**8, 123_456_789, 10**11])
+        m = rng.randint(1, 2_000)
+        seconds = rng.choice([m * ts, (m + 0.5) * ts, m * ts * (1 + 1e-12), (m - 1e-9) * ts])
+        t0 = seq * ts
+        k = samples_until(seconds, ts, t0)
+        # the first sample whose time, as the plant computes it, reaches the limit, with
+        # either comparison the experiments make (>= with the tolerance, or > exactly)
+        first = next(
+            j
+            for j in range(1, m + 3)
+            if (seq + j) * ts - t0 >= seconds - 1e-9 * max(1.0, abs((seq + j) * ts))
+        )
+        assert 1 <= k <= first, (ts, seq, seconds, k, first)
+        if seq * ts < 1e3:  # early on, no more than a sample short
+            assert k >= first - 1, (ts, seq, seconds, k, first)

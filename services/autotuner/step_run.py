@@ -132,10 +132,13 @@ def run_step_test(
         if before.mode != "manual":
             client.command(ModeCommand(loop=client.loop, mode="manual", source=client.source))
         op = want = before.op
+        # lockstep: a batch up to the test's next decision (``horizon``, ``band``), fed one
+        # by one, is the test fed a sample at a time, in a round trip instead of one each;
+        # realtime: a sample at a time, as they come (a sample lost on the way must not put a
+        # timed decision inside a batch counted in samples)
+        cap = MAX_BATCH if info.clock == "lockstep" else 1
         while not test.finished:
-            # a batch up to the test's next decision (``horizon``, ``band``): fed one by one,
-            # it is the test fed a sample at a time, in a round trip instead of one each
-            n = test.horizon(MAX_BATCH)
+            n = test.horizon(cap)
             batch = client.samples(n, test.band()) if n > 1 else client.samples(1)
             if not batch:
                 raise AutotuneError(f"loop {client.loop}: no sample came")
@@ -190,7 +193,10 @@ def run_step_test(
         )
         try:
             while not watch.done:  # in batches up to its next check, as the test's
-                for s in client.samples(watch.horizon(MAX_BATCH, info.sample_time)):
+                batch = client.samples(watch.horizon(cap, info.sample_time))
+                if not batch:
+                    raise AutotuneError(f"loop {client.loop}: no sample came")
+                for s in batch:
                     done = watch.feed(s.t, s.pv)
                     if progress:
                         progress(test, s)

@@ -1147,12 +1147,15 @@ class _LivePort:
     def samples(self, n: int, band: Band | None = None) -> list[ProcessSample]:
         r = self.run
         r._check_cancel()
-        if band is None:
-            batch = r.client.samples(n)
-        elif r.info.clock == "lockstep":  # a relay's half-cycle in one round trip
-            batch = r.client.samples(n, band)
-        else:  # realtime: the plant's own pace, so one sample and the cancel checked at once
+        if r.info.clock != "lockstep":
+            # realtime: the plant's own pace, so one sample and the cancel checked at once;
+            # and a sample lost on the way must not put a timed decision inside a batch
+            # counted in samples (an integrator's pulse held a sample too long)
             batch = r.client.samples(1)
+        elif band is None:
+            batch = r.client.samples(n)
+        else:  # a relay's half-cycle, a record, a step's response in one round trip
+            batch = r.client.samples(n, band)
         if self.first and batch:
             s = batch[0]
             r._event("experiment", s.t, {**self.setup.to_dict(), "first_seq": s.seq})
