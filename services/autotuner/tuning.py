@@ -379,9 +379,9 @@ class TuningRun:
         the step is done: seconds on a busy machine). The loop's lease is renewed meanwhile:
         a step that outlasts it would otherwise have the plant's watchdog take back a loop
         this run is still working on (seen in CI: the relay's closing fits took over 3 s on a
-        loaded machine, and a healthy realtime run was aborted). In lockstep the plant does not move
-        meanwhile; in realtime the loop goes on under the output held, so its samples are
-        watched as they come (kept for the run) and the run aborts, restoring the loop, as
+        loaded machine, and a healthy realtime run was aborted). In lockstep the plant does
+        not move meanwhile; in realtime the loop goes on under the output held, so its samples
+        are watched as they come (kept for the run) and the run aborts, restoring the loop, as
         soon as one leaves the experiment's PV limits."""
         out: list[tuple[bool, Any]] = []
 
