@@ -34,9 +34,7 @@ or with Ms above the bound, is never recommended (``envelope_problem``).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -198,7 +196,7 @@ def assess(
     if not math.isfinite(timescale) or timescale <= 0:
         timescale = 10.0 * model.delay if model else 0.0
     tf = model.transfer if model is not None else None
-    calls: list[tuple[Callable[..., Any], tuple]] = [(judge_all, (gains, tf, sample_time))]
+    calls: list = [(judge_all, (gains, tf, sample_time))]  # what ``parts`` computes
     simulated = simulate and tf is not None and timescale > 0
     if simulated:  # every candidate's setpoint step, simulated together
         calls.append((predicted_setpoint_steps, (gains, tf, timescale, sample_time)))

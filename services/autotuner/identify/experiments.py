@@ -155,6 +155,17 @@ def samples_until(seconds: float, sample_time: float, t: float) -> int:
     return max(1, math.ceil(x - slack))
 
 
+def abort_band(
+    pv_limits: tuple[float, float], pv_range: tuple[float, float] | None
+) -> tuple[float, float]:
+    """Where a sample aborts a closed-loop test: outside the PV limits, or at an end of the
+    transmitter's range (``clipped``), which limits wider than the range leave inside."""
+    lo, hi = pv_limits
+    if pv_range is not None:
+        lo, hi = max(lo, pv_range[0]), min(hi, pv_range[1])
+    return lo, hi
+
+
 def clipped(pv: float, pv_range: tuple[float, float] | None, t: float, smaller: str) -> str:
     """Why a sample ends a test, when its PV sits at an end of the transmitter's range: the
     transmitter clips there, so the swing beyond is not measured (a relay read a cycle with

@@ -48,6 +48,7 @@ from services.autotuner.identify.experiments import (
     Progress,
     Settings,
     Setup,
+    abort_band,
     action_question,
     clipped,
     samples_until,
@@ -963,9 +964,7 @@ class RampTest:
         """The PV limits and the transmitter's range (and in a trial the swing limit about
         the rest, ±``swing_limit``·bump), and, while the output is off its limits, its
         limits: the first sample at one of them starts the count of a saturated output."""
-        lo, hi = self.pv_limits
-        if self.pv_range is not None:  # a sample at an end of the range aborts (``clipped``)
-            lo, hi = max(lo, self.pv_range[0]), min(hi, self.pv_range[1])
+        lo, hi = abort_band(self.pv_limits, self.pv_range)
         if self.phase == "trial":
             swing = self.config.swing_limit * self._trial_bump
             lo, hi = max(lo, self._r - swing), min(hi, self._r + swing)

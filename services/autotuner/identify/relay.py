@@ -43,6 +43,7 @@ from services.autotuner.identify.experiments import (
     Progress,
     Settings,
     Setup,
+    abort_band,
     action_question,
     clipped,
 )
@@ -308,7 +309,7 @@ class RelayTest:
         is high, the PV below r by its margin; the PV limits abort. Every bound is where such a
         step may happen, so a batch ends on it, or earlier: a batch that ends without a
         decision costs a round trip, never a late switch."""
-        limits = self._abort_band()
+        limits = abort_band(self.pv_limits, self.pv_range)
         if self.phase == "quiet":  # the limits alone: past them the test aborts
             return Band(*limits)
         if self.phase not in ("relay", "stage2") or not self.pv:
@@ -338,14 +339,6 @@ class RelayTest:
             else:
                 below = max(below, r)
         return Band(below, above)
-
-    def _abort_band(self) -> tuple[float, float]:
-        """Where a sample aborts the test: outside the PV limits, or at an end of the
-        transmitter's range (``clipped``), which limits wider than the range leave inside."""
-        lo, hi = self.pv_limits
-        if self.pv_range is not None:
-            lo, hi = max(lo, self.pv_range[0]), min(hi, self.pv_range[1])
-        return lo, hi
 
     def progress(self) -> Progress:
         n = len(self.cycles)
