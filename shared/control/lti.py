@@ -79,6 +79,20 @@ class DiscreteDelaySystem:
         except np.linalg.LinAlgError:
             return math.inf
 
+    def response(self, omega: np.ndarray | float) -> np.ndarray:
+        """G(e^{jωT}) of the ZOH-sampled system at ω in rad/s, exact (one small linear solve
+        per frequency): z^{−n}·[C(zI − Φ)^{−1}(Γ_new + z^{−1}Γ_old) + D·z^{−1}]."""
+        omega = np.atleast_1d(np.asarray(omega, dtype=float))
+        z = np.exp(1j * omega * self.sample_time)
+        zinv = 1.0 / z
+        out = self.d * zinv
+        if self.order:
+            eye = np.eye(self.order)
+            b = self.gamma_new[:, 0][None, :] + zinv[:, None] * self.gamma_old[:, 0][None, :]
+            x = np.linalg.solve(z[:, None, None] * eye[None] - self.phi[None], b[:, :, None])
+            out = out + (x[:, :, 0] @ self.c[0])
+        return out * zinv**self.delay_samples
+
 
 def discretize(
     a: np.ndarray, b: np.ndarray, c: np.ndarray, d: float, sample_time: float, delay: float

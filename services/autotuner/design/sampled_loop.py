@@ -57,20 +57,7 @@ class SampledPlant:
 
     def at(self, omega: np.ndarray | float) -> np.ndarray:
         """G(e^{jωT}) at any ω (rad/s)."""
-        return discrete_response(self.system, np.atleast_1d(np.asarray(omega, dtype=float)))
-
-
-def discrete_response(sys: DiscreteDelaySystem, omega: np.ndarray) -> np.ndarray:
-    """G(e^{jωT}) of the ZOH-sampled system, exact (one small linear solve per frequency)."""
-    z = np.exp(1j * omega * sys.sample_time)
-    zinv = 1.0 / z
-    out = sys.d * zinv
-    if sys.order:
-        eye = np.eye(sys.order)
-        b = sys.gamma_new[:, 0][None, :] + zinv[:, None] * sys.gamma_old[:, 0][None, :]
-        x = np.linalg.solve(z[:, None, None] * eye[None] - sys.phi[None], b[:, :, None])
-        out = out + (x[:, :, 0] @ sys.c[0])
-    return out * zinv**sys.delay_samples
+        return self.system.response(omega)
 
 
 def pid_response(gains: IsaGains, sample_time: float, z: np.ndarray, n: float = 10.0) -> np.ndarray:
@@ -106,7 +93,7 @@ def sampled_plant(plant: DelayedTF, sample_time: float) -> SampledPlant:
     eig = np.linalg.eigvals(sys.phi) if sys.order else np.zeros(0)
     integrators = int(np.sum(np.abs(eig - 1.0) < UNIT_CIRCLE_TOLERANCE))
     unstable = int(np.sum(np.abs(eig) > 1.0 + UNIT_CIRCLE_TOLERANCE))
-    return SampledPlant(sample_time, grid, discrete_response(sys, grid), unstable, integrators, sys)
+    return SampledPlant(sample_time, grid, sys.response(grid), unstable, integrators, sys)
 
 
 def _wrap(x: float) -> float:

@@ -53,6 +53,7 @@ from services.autotuner.identify.experiments import (
     clipped,
     samples_until,
 )
+from services.autotuner.identify.hold_correction import agree, slope_error, through_model
 from services.autotuner.identify.model_fit import (
     ProcessFit,
     choose_on_record,
@@ -117,6 +118,8 @@ class RampConfig:
     fit_sigmas: float = 2.0
     # trials within this range of K_u (as fractions of it) give the ZOH correction's slope
     near_ku: tuple[float, float] = (0.7, 1.3)
+    # their slope is used only within this relative standard error (three trials or more)
+    max_slope_error: float = 0.15
     # abort as soon as the trials say the feedback is positive (``_wrong_way``) and none has
     # oscillated; False: a run recorded before, which ran on to its trial limit or budget
     stop_wrong_way: bool = False
@@ -159,6 +162,9 @@ class RampResult:
     model: ProcessFit | None = None  # fitted to the whole record (None without the outputs)
     bump: float = math.nan  # PV units: the configured setpoint bump
     bump_final: float = math.nan  # PV units: the bump after any halving (saturation)
+    # how the hold's effect was taken out of the loop's point: "model" (the process model's
+    # sampled and continuous crossovers), "trials" (the trials' poles), "none"
+    hold_correction: str = "none"
 
     def to_dict(self) -> dict[str, Any]:
         """The run's ``experiment`` object (its keys are part of the JSON interface)."""
@@ -166,6 +172,7 @@ class RampResult:
             "trials": self.trials,
             "ku_sampled_loop": self.ku_loop,
             "pu_sampled_loop": self.pu_loop,
+            "hold_correction": self.hold_correction,
             **(self.model.to_dict() if self.model else {}),
             "kc_low": self.kc_low,
             "kc_high": self.kc_high,
@@ -770,10 +777,27 @@ class RampTest:
         ku, pu = self._found
         lo, hi = self._lo, self._hi
         assert lo is not None and hi is not None
-        ku_plant, pu_plant = (float(x) for x in self._plant_crossover(ku, pu))
+        # two estimates of the hold's effect: the trials' poles (exact on a clean loop, but
+        # a slope from a handful of growth rates: on a noisy fast loop it is judged too
+        # uncertain, ``max_slope_error``, and left out) and the process model fitted on the
+        # whole record (robust, but its slopes are those of its class: the effect on hx1 and
+        # hx2 comes out half as large again and half as large). The trials' stands when its
+        # error was judged small, or the model agrees with it; else the model's; else none.
+        ku_t, pu_t, judged = self._plant_crossover(ku, pu)
+        trials = (float(ku_t), float(pu_t))
+        from_trials = trials != (ku, pu)
+        model = self._process_model(*trials)
+        held = None if model is None else through_model(ku, pu, model.transfer, self.sample_time)
+        # two trials leave no residual to judge their slope by: the model's must bear it out
+        if from_trials and (judged or held is None or agree(trials, held, (ku, pu))):
+            (ku_plant, pu_plant), how = trials, "trials"
+        elif held is not None:
+            (ku_plant, pu_plant), how = held, "model"
+        else:
+            (ku_plant, pu_plant), how = (ku, pu), "none"
         self.result = RampResult(
-            ku_plant,
-            pu_plant,
+            float(ku_plant),
+            float(pu_plant),
             lo.kc,
             hi.kc,
             len(self.trials),
@@ -781,9 +805,10 @@ class RampTest:
             self._r,
             ku,
             pu,
-            self._process_model(ku_plant, pu_plant),
+            model,
             self.config.bump,
             self.bump,
+            how,
         )
         self.phase = "done"
 
@@ -813,7 +838,7 @@ class RampTest:
             return None
         return dataclasses.replace(best, noise_rms=self._noise / (float(np.std(y)) or 1.0))
 
-    def _plant_crossover(self, ku: float, pu: float) -> tuple[float, float]:
+    def _plant_crossover(self, ku: float, pu: float) -> tuple[float, float, bool]:
         """The plant's own ultimate point from the sampled loop's.
 
         The P-only loop runs through the zero-order hold, about e^{−sT/2}: it reaches −180°
@@ -821,7 +846,8 @@ class RampTest:
         on a lag-dominated plant at 400 samples per period). Each oscillating trial's
         closed-loop pole s = g + jω satisfies L(s) = −1/Kc for the loop L = G·ZOH; together
         they give dL/ds, hence the phase and log-magnitude slopes of L at the crossover, and
-        the frequency where arg L + ωT/2 = −π. Unchanged if the trials lack what it needs."""
+        the frequency where arg L + ωT/2 = −π. Unchanged if the trials lack what it needs, or
+        if three or more give a slope too uncertain; the flag: three or more judged it."""
         low, high = self.config.near_ku
         near = [
             tr
@@ -829,25 +855,27 @@ class RampTest:
             if tr.period and math.isfinite(tr.growth) and low * ku <= tr.kc <= high * ku
         ]
         if len(near) < 2:
-            return ku, pu
+            return ku, pu, False
         # L(s) = −1/Kc at each trial's pole s = g + jω; a straight line in s through them
-        # (least squares over every oscillating trial near K_u: the noise in each growth
-        # rate averages out) gives dL/ds at the crossover
+        # (least squares over every oscillating trial near K_u) gives dL/ds at the crossover
         s_pts = np.array([complex(tr.growth, 2 * math.pi / tr.period) for tr in near])
         l_pts = np.array([-1.0 / tr.kc for tr in near])
         design = np.column_stack((np.ones_like(s_pts), s_pts - s_pts.mean()))
         (_, slope), *_ = np.linalg.lstsq(design, l_pts, rcond=None)
         if not np.isfinite(slope) or np.ptp(s_pts.imag) + np.ptp(s_pts.real) == 0:
-            return ku, pu
+            return ku, pu, False
+        judged = len(near) > 2  # residuals to judge the slope by
+        if judged and slope_error(s_pts, l_pts) > self.config.max_slope_error:
+            return ku, pu, False  # the growth rates' noise swamps the slope (``_conclude``)
         q = slope * (-ku)  # (dL/ds)/L at the crossover, L = −1/K_u
         w_loop = 2 * math.pi / pu
         half = 0.5 * self.sample_time
         if q.real + half >= 0:  # the phase does not fall with frequency: no correction
-            return ku, pu
+            return ku, pu, False
         dw = -w_loop * half / (q.real + half)
         if abs(dw) > 0.2 * w_loop:
-            return ku, pu
-        return ku * math.exp(q.imag * dw), 2 * math.pi / (w_loop + dw)
+            return ku, pu, False
+        return ku * math.exp(q.imag * dw), 2 * math.pi / (w_loop + dw), judged
 
     def _watch_settle(self, t: float) -> None:
         """Let the loop calm at a gain known to decay, then start the next trial from where

@@ -1,0 +1,126 @@
+"""The plant's own ultimate point from the sampled loop's, through a model of the process.
+
+A P-only loop closed by a sampled PID block runs through the zero-order hold, which lags by
+about ωT/2 at ω: the loop reaches −180° below the plant's own phase crossover, and its K_u
+and P_u differ from the plant's (on a fast loop at 50 samples per period, P_u by 2.5 %). A
+P-gain ramp measures the loop's point. A process model fitted to the whole record tells how
+far the hold moved it: the ratio of the model's own ultimate point to the ultimate point of
+the same model held and sampled at T, applied to the measured point. The ratio rests on the
+model's phase and gain slopes near ω_u, fitted on thousands of samples; the model's absolute
+point need not be right (a first-order model of a third-order flow loop puts K_u 17 % low,
+and still gives the hold's effect within a few tenths of a per cent).
+
+Units: K_u in % of output per PV unit, P_u and T in s, ω in rad/s.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.optimize import brentq
+
+from shared.control.lti import discretize, tf_to_ss
+from shared.control.transfer import DelayedTF
+
+GRID_POINTS = 600  # logarithmic grid up to π/T (a root between two points is refined)
+MAX_SHIFT = 0.3  # the model's sampled crossover this far from the measured one: not its loop
+
+
+def sampled_ultimate_point(plant: DelayedTF, sample_time: float) -> tuple[float, float] | None:
+    """(K_u, P_u) of the P-only loop around ``plant`` held and sampled at ``sample_time``: the
+    first ω ≤ π/T where the phase of G(e^{jωT}) reaches −π, exactly (aliasing included); None
+    if it never does below the Nyquist frequency or the continuous phase never reaches −π.
+
+    The sampled phase is the continuous one, unwrapped exactly from poles and zeros, less ωT/2,
+    plus what aliasing adds (within ±π of it: read from the exact response)."""
+    cont = plant.ultimate_point()
+    if cont is None:
+        return None
+    nyquist = math.pi / sample_time
+    sys = discretize(*tf_to_ss(list(plant.num), list(plant.den)), sample_time, plant.delay)
+    num = np.trim_zeros(np.asarray(plant.num, dtype=float), "f")
+    den = np.trim_zeros(np.asarray(plant.den, dtype=float), "f")
+    zeros, poles = np.roots(num), np.roots(den)
+    flip = 0.0 if num[0] / den[0] > 0 else -math.pi
+
+    def phase(w: np.ndarray) -> np.ndarray:
+        s = 1j * w[:, None]
+        smooth = (
+            np.sum(np.angle(s - zeros[None, :]), axis=1)
+            - np.sum(np.angle(s - poles[None, :]), axis=1)
+            - w * (plant.delay + 0.5 * sample_time)
+            + flip
+        )
+        exact = np.angle(sys.response(w))
+        return smooth + np.angle(np.exp(1j * (exact - smooth)))
+
+    low = 1e-3 * min(2.0 * math.pi / cont[1], nyquist)  # far below either crossover
+    grid = np.logspace(math.log10(low), math.log10(nyquist), GRID_POINTS)
+    grid[-1] = nyquist
+    f = phase(grid) + math.pi
+    below = np.nonzero(f <= 0)[0]
+    if below.size == 0 or below[0] == 0:
+        return None
+    i = int(below[0])
+    w = (
+        grid[i]
+        if f[i] == 0
+        else brentq(
+            lambda x: float(phase(np.array([x]))[0]) + math.pi, grid[i - 1], grid[i], xtol=1e-14
+        )
+    )
+    gain = float(abs(sys.response(w)[0]))
+    if not (gain > 0 and math.isfinite(gain)):
+        return None
+    return 1.0 / gain, 2.0 * math.pi / w
+
+
+def through_model(
+    ku_loop: float, pu_loop: float, plant: DelayedTF, sample_time: float
+) -> tuple[float, float] | None:
+    """The plant's (K_u, P_u) from the measured loop's, corrected for the hold as ``plant``
+    says (see the module); None when the model cannot say: no ultimate point, or its sampled
+    crossover more than ``MAX_SHIFT`` from the measured one (it is not a model of this loop
+    near ω_u)."""
+    cont = plant.ultimate_point()
+    held = sampled_ultimate_point(plant, sample_time)
+    if cont is None or held is None:
+        return None
+    if abs(held[1] / pu_loop - 1.0) > MAX_SHIFT:
+        return None
+    ku, pu = ku_loop * cont[0] / held[0], pu_loop * cont[1] / held[1]
+    if not (math.isfinite(ku) and math.isfinite(pu) and ku > 0 and pu > 0):
+        return None
+    return ku, pu
+
+
+def slope_error(s_pts: np.ndarray, l_pts: np.ndarray) -> float:
+    """The relative standard error of the slope of the straight line fitted through the
+    trials' points (s: closed-loop poles, 1/s; L: the loop's value −1/Kc there), from the
+    residuals of the fit; inf for fewer than three points (no residual to judge by). On a
+    clean loop the trials give the slope to a few per cent; on a noisy fast loop their growth
+    rates scatter by as much as a 1 % change of gain moves them, and the error passes 50 %."""
+    n = s_pts.size
+    ds = s_pts - s_pts.mean()
+    spread = float(np.sum(np.abs(ds) ** 2))
+    if n < 3 or spread == 0.0:
+        return math.inf
+    design = np.column_stack((np.ones_like(s_pts), ds))
+    coef, *_ = np.linalg.lstsq(design, l_pts.astype(complex), rcond=None)
+    resid = l_pts - design @ coef
+    se = math.sqrt(float(np.sum(np.abs(resid) ** 2)) / (n - 2) / spread)
+    return se / abs(coef[1]) if coef[1] != 0 else math.inf
+
+
+def agree(
+    point: tuple[float, float], other: tuple[float, float], loop: tuple[float, float]
+) -> bool:
+    """Two corrections of the loop's (K_u, P_u) agree: each of ``point``'s log-ratios to
+    ``loop`` lies within the size of ``other``'s from ``other``'s (the same sign and at most
+    twice its size)."""
+    for a, b, base in zip(point, other, loop, strict=True):
+        da, db = math.log(a / base), math.log(b / base)
+        if abs(da - db) > abs(db):
+            return False
+    return True
