@@ -35,6 +35,15 @@ class DelayedTF:
         s = 1j * np.asarray(omega, dtype=float)
         return np.polyval(self.num, s) / np.polyval(self.den, s) * np.exp(-s * self.delay)
 
+    def phase(self, omega: np.ndarray) -> np.ndarray:
+        """The continuous phase of G(jω) at every ω of ``omega`` (rad/s), rad, unwrapped
+        exactly from the poles, zeros and dead time (as ``ultimate_point`` follows it)."""
+        num = np.trim_zeros(np.asarray(self.num, dtype=float), "f")
+        den = np.trim_zeros(np.asarray(self.den, dtype=float), "f")
+        sign = float(np.sign(num[0] / den[0]))
+        w = np.atleast_1d(np.asarray(omega, dtype=float))
+        return _phases(np.roots(num), np.roots(den), sign, self.delay, w)
+
     def ultimate_point(self) -> tuple[float, float] | None:
         """(K_u, P_u in s), or None if the phase never reaches −180°."""
         return ultimate_point(list(self.num), list(self.den), self.delay)

@@ -39,19 +39,10 @@ def sampled_ultimate_point(plant: DelayedTF, sample_time: float) -> tuple[float,
         return None
     nyquist = math.pi / sample_time
     sys = discretize(*tf_to_ss(list(plant.num), list(plant.den)), sample_time, plant.delay)
-    num = np.trim_zeros(np.asarray(plant.num, dtype=float), "f")
-    den = np.trim_zeros(np.asarray(plant.den, dtype=float), "f")
-    zeros, poles = np.roots(num), np.roots(den)
-    flip = 0.0 if num[0] / den[0] > 0 else -math.pi
+    held = DelayedTF(plant.num, plant.den, plant.delay + 0.5 * sample_time)  # the hold's lag
 
     def phase(w: np.ndarray) -> np.ndarray:
-        s = 1j * w[:, None]
-        smooth = (
-            np.sum(np.angle(s - zeros[None, :]), axis=1)
-            - np.sum(np.angle(s - poles[None, :]), axis=1)
-            - w * (plant.delay + 0.5 * sample_time)
-            + flip
-        )
+        smooth = held.phase(w)
         exact = np.angle(sys.response(w))
         return smooth + np.angle(np.exp(1j * (exact - smooth)))
 
