@@ -36,12 +36,20 @@ def _traffic(seed: int) -> list[tuple[str, list[tuple[bytes, float]]]]:
     return out
 
 
-def _file(path: Path, traffic, batched: bool, known: bool = True) -> bytes:
+def _file(
+    path: Path, traffic, batched: bool, known: bool = True, first_alone: bool = False
+) -> bytes:
+    """``first_alone``: each batch's first message by ``write`` (as the logger takes a
+    batch's first sample), so that ``add_message`` may begin a chunk's index."""
     w = RunWriter(path, log_time_zero=1_700_000_000 * 10**9)
     w._batched = w._batched and known
     for key, items in traffic:
         model = ProcessSample if key == KEY else TunerEvent
-        if batched:
+        if batched and first_alone:
+            w.write(key, model, *items[0])
+            if items[1:]:
+                w.write_many(key, model, items[1:])
+        elif batched:
             w.write_many(key, model, items)
         else:
             for payload, t in items:
@@ -58,6 +66,7 @@ def test_write_many_is_add_message_byte_for_byte(tmp_path: Path, seed: int):
     one = _file(tmp_path / "one.mcap", traffic, batched=False)
     many = _file(tmp_path / "many.mcap", traffic, batched=True)
     assert many == one
+    assert _file(tmp_path / "mixed.mcap", traffic, batched=True, first_alone=True) == one
     _, records = read_run(tmp_path / "many.mcap")
     assert len(records) == sum(len(items) for _, items in traffic)
     with (tmp_path / "many.mcap").open("rb") as f:
