@@ -53,7 +53,12 @@ from services.autotuner.identify.experiments import (
     clipped,
     samples_until,
 )
-from services.autotuner.identify.hold_correction import agree, slope_error, through_model
+from services.autotuner.identify.hold_correction import (
+    agree,
+    slope_error,
+    through_model,
+    uncertainty,
+)
 from services.autotuner.identify.model_fit import (
     ProcessFit,
     choose_on_record,
@@ -165,6 +170,11 @@ class RampResult:
     # how the hold's effect was taken out of the loop's point: "model" (the process model's
     # sampled and continuous crossovers), "trials" (the trials' poles), "none"
     hold_correction: str = "none"
+    # the relative uncertainty (K_u, P_u) the hold's correction adds (None: none); the other
+    # estimate of the plant's point, where the two disagree, and the loop's sample time
+    hold_spread: tuple[float, float] | None = None
+    hold_other: tuple[float, float] | None = None
+    sample_time: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """The run's ``experiment`` object (its keys are part of the JSON interface)."""
@@ -173,6 +183,8 @@ class RampResult:
             "ku_sampled_loop": self.ku_loop,
             "pu_sampled_loop": self.pu_loop,
             "hold_correction": self.hold_correction,
+            "hold_spread_ku": self.hold_spread[0] if self.hold_spread else None,
+            "hold_spread_pu": self.hold_spread[1] if self.hold_spread else None,
             **(self.model.to_dict() if self.model else {}),
             "kc_low": self.kc_low,
             "kc_high": self.kc_high,
@@ -183,17 +195,50 @@ class RampResult:
         }
 
     def identification(self) -> Identification:
+        bracket = (self.kc_high - self.kc_low) / self.ku
+        held = self.hold_spread
         return Identification(
             ku=self.ku,
             pu=self.pu,
-            ku_spread=(self.kc_high - self.kc_low) / self.ku,
+            ku_spread=bracket if held is None else max(bracket, held[0]),
+            pu_spread=None if held is None else held[1],
             ku_bracketed=True,
             experiment=self,
             timescale=self.pu,
             noise=self.noise_std,
             rest_pv=self.rest_pv,
             model=self.model,
+            notes=self.hold_notes(),
         )
+
+    def hold_notes(self) -> list[str]:
+        """What the engineer must know of the hold's correction: an uncertainty of 1 % or
+        more, or (none made) a hold that lags 1° or more at the crossover."""
+        loop = f"the sampled loop's {self.ku_loop:.4g} and {self.pu_loop:.4g} s"
+        held = self.hold_spread
+        if held is not None and max(held) >= 0.01:
+            spread = f"K_u ±{100 * held[0]:.2g} %, P_u ±{100 * held[1]:.2g} %"
+            if self.hold_correction == "trials" and self.hold_other is not None:
+                k, p = self.hold_other
+                return [
+                    f"the zero-order hold's effect is uncertain: the trials' poles correct "
+                    f"{loop} to K_u {self.ku:.4g} and P_u {self.pu:.4g} s, the process model to "
+                    f"{k:.4g} and {p:.4g} s; the spreads stated cover both ({spread})"
+                ]
+            return [
+                f"K_u and P_u are corrected for the zero-order hold through the process model "
+                f"(the trials' growth rates too noisy to give it; {loop}); a model's class "
+                f"sets its slopes, so the correction may be off by half its size ({spread})"
+            ]
+        lag = math.degrees(math.pi * self.sample_time / self.pu_loop)
+        if self.hold_correction == "none" and lag >= 1.0:
+            return [
+                f"K_u and P_u are the sampled loop's, not the plant's own: the zero-order hold "
+                f"lags {lag:.2g}° at the crossover (T = {self.sample_time:.4g} s), and the "
+                "plant's own point lies at a higher frequency (K_u higher, P_u shorter) by an "
+                "amount neither the trials (too noisy) nor a process model could give"
+            ]
+        return []
 
 
 def _white(y: np.ndarray) -> bool:
@@ -795,6 +840,9 @@ class RampTest:
             (ku_plant, pu_plant), how = held, "model"
         else:
             (ku_plant, pu_plant), how = (ku, pu), "none"
+        made = trials if from_trials else None
+        spread = uncertainty(how, made, held, (ku, pu))
+        other = held if how == "trials" else made
         self.result = RampResult(
             float(ku_plant),
             float(pu_plant),
@@ -809,6 +857,9 @@ class RampTest:
             self.config.bump,
             self.bump,
             how,
+            spread,
+            other if spread is not None else None,
+            self.sample_time,
         )
         self.phase = "done"
 
