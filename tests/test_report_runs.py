@@ -92,7 +92,10 @@ def test_ramp_trials_carry_their_kc_and_the_ultimate_point_its_bracket(runs):
     assert mag == pytest.approx(1 / result["ku"], rel=1e-12)
     (seg,) = c.lines[2][0].get_segments()
     e = result["experiment"]
-    half = (e["kc_high"] - e["kc_low"]) / result["ku"] * mag  # ku_spread, relative
+    # the stated spread: the final bracket, or what the hold's correction leaves, if more
+    assert result["ku_spread"] >= (e["kc_high"] - e["kc_low"]) / result["ku"]
+    assert result["ku_spread"] >= (e["hold_spread_ku"] or 0.0)
+    half = result["ku_spread"] * mag
     assert (seg[1][1] - seg[0][1]) / 2 == pytest.approx(half, rel=1e-9)
 
 

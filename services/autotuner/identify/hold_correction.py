@@ -117,10 +117,13 @@ def agree(
     return True
 
 
-# a process model's correction is off by up to about half the hold's effect, its class's
-# slopes near ω_u for the plant's (hx1's second-order model: 1.6 times the effect on K_u;
-# hx2's first-order: half; a noisy integrating loop at 25 samples a period: two thirds)
-MODEL_BIAS = 0.5
+# the share of its own size by which a correction may be off: the trials' is a first-order
+# step over the crossover's shift, and sees no aliasing (at 20 samples a period it left a
+# fifth to two fifths of the effect on first-order lags with dead time: K_u 2.6–3.4 % high);
+# a process model's has its class's slopes near ω_u for the plant's (hx1's second-order
+# model: 1.6 times the effect on K_u; hx2's first-order: half; a noisy integrating loop at
+# 25 samples a period: two thirds)
+OWN_SHARE = 0.5
 
 
 def uncertainty(
@@ -131,21 +134,20 @@ def uncertainty(
 ) -> tuple[float, float] | None:
     """The relative uncertainty (K_u, P_u) the hold's correction adds to the plant's point
     it gave (``chosen``: "trials", "model" or "none"), from the two estimates beside the
-    sampled loop's point (None: an estimate not made). Trials that the model bears out
-    (``agree``) or that no model can check add none; trials the model contradicts add the
-    distance between the two (one of them is that far off: seen on noisy loops at 20 to 100
-    samples a period, the trials' K_u 7 to 19 % off where the model's was within 3 %, and
-    the other way round); the model's own correction adds ``MODEL_BIAS`` of its size, or the
-    distance to the trials' where they were made and lie further off. None: none added."""
+    sampled loop's point (None: an estimate not made): ``OWN_SHARE`` of the chosen one's own
+    size, or the distance between the two where they disagree (``agree``) and it is more
+    (one of them is that far off: seen on noisy loops at 20 to 100 samples a period, the
+    trials' K_u 7 to 19 % off where the model's was within 3 %, and the other way round).
+    None: no correction made, none added."""
 
     def gap(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
         return float(abs(a[0] / b[0] - 1.0)), float(abs(a[1] / b[1] - 1.0))
 
-    if chosen == "trials" and trials is not None and model is not None:
-        return None if agree(trials, model, loop) else gap(trials, model)
-    if chosen == "model" and model is not None:
-        own = tuple(MODEL_BIAS * g for g in gap(model, loop))
-        if trials is not None and not agree(trials, model, loop):
-            return max(own[0], gap(trials, model)[0]), max(own[1], gap(trials, model)[1])
-        return own[0], own[1]
-    return None
+    point = trials if chosen == "trials" else model
+    if chosen not in ("trials", "model") or point is None:
+        return None
+    ku, pu = (OWN_SHARE * g for g in gap(point, loop))
+    if trials is not None and model is not None and not agree(trials, model, loop):
+        apart = gap(trials, model)
+        ku, pu = max(ku, apart[0]), max(pu, apart[1])
+    return ku, pu

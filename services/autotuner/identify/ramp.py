@@ -212,23 +212,34 @@ class RampResult:
         )
 
     def hold_notes(self) -> list[str]:
-        """What the engineer must know of the hold's correction: an uncertainty of 1 % or
-        more, or (none made) a hold that lags 1° or more at the crossover."""
+        """What the engineer must know of the hold's correction: its two estimates where they
+        disagree, a correction through the model, the trials' adding 2 % or more to a
+        spread, or (none made) a hold that lags 1° or more at the crossover."""
         loop = f"the sampled loop's {self.ku_loop:.4g} and {self.pu_loop:.4g} s"
-        held = self.hold_spread
-        if held is not None and max(held) >= 0.01:
-            spread = f"K_u ±{100 * held[0]:.2g} %, P_u ±{100 * held[1]:.2g} %"
-            if self.hold_correction == "trials" and self.hold_other is not None:
-                k, p = self.hold_other
-                return [
-                    f"the zero-order hold's effect is uncertain: the trials' poles correct "
-                    f"{loop} to K_u {self.ku:.4g} and P_u {self.pu:.4g} s, the process model to "
-                    f"{k:.4g} and {p:.4g} s; the spreads stated cover both ({spread})"
-                ]
+        held, other = self.hold_spread, self.hold_other
+        spread = f"K_u ±{100 * held[0]:.2g} %, P_u ±{100 * held[1]:.2g} %" if held else ""
+        ours = f"K_u {self.ku:.4g} and P_u {self.pu:.4g} s"
+        if other is not None:
+            theirs = f"{other[0]:.4g} and {other[1]:.4g} s"
+            by_trials = self.hold_correction == "trials"
+            return [
+                "the zero-order hold's effect is uncertain: the trials' poles correct "
+                f"{loop} to {ours if by_trials else theirs}, the process model to "
+                f"{theirs if by_trials else ours}; {ours} stated, its spreads covering both "
+                f"({spread})"
+            ]
+        if self.hold_correction == "model":
             return [
                 f"K_u and P_u are corrected for the zero-order hold through the process model "
                 f"(the trials' growth rates too noisy to give it; {loop}); a model's class "
                 f"sets its slopes, so the correction may be off by half its size ({spread})"
+            ]
+        if self.hold_correction == "trials" and held is not None and max(held) >= 0.02:
+            per = self.pu_loop / self.sample_time
+            return [
+                f"K_u and P_u carry the trials' correction for the zero-order hold ({loop}, "
+                f"{per:.0f} samples a period): a first-order step that sees no aliasing, good "
+                f"to about half its size ({spread})"
             ]
         lag = math.degrees(math.pi * self.sample_time / self.pu_loop)
         if self.hold_correction == "none" and lag >= 1.0:
@@ -842,7 +853,8 @@ class RampTest:
             (ku_plant, pu_plant), how = (ku, pu), "none"
         made = trials if from_trials else None
         spread = uncertainty(how, made, held, (ku, pu))
-        other = held if how == "trials" else made
+        apart = made is not None and held is not None and not agree(made, held, (ku, pu))
+        other = (held if how == "trials" else made) if apart else None
         self.result = RampResult(
             float(ku_plant),
             float(pu_plant),
@@ -858,7 +870,7 @@ class RampTest:
             self.bump,
             how,
             spread,
-            other if spread is not None else None,
+            other,
             self.sample_time,
         )
         self.phase = "done"
