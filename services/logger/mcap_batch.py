@@ -19,10 +19,14 @@ from __future__ import annotations
 import struct
 from collections.abc import Sequence
 from itertools import chain
+from typing import TYPE_CHECKING
 
 import mcap
 from mcap.records import MessageIndex
 from mcap.writer import Writer
+
+if TYPE_CHECKING:  # the Writer's own record builder (its module, not a public name)
+    from mcap.data_stream import RecordBuilder
 
 # the Message record: opcode, record length, channel id, sequence, log time, publish time
 _HEADER = struct.Struct("<BQHIQQ")
@@ -40,7 +44,7 @@ class _PackedIndex(MessageIndex):
     """A chunk's message index written as ``MessageIndex.write`` writes it, its entries packed
     at once rather than two calls per message (a third of a chunk's closing)."""
 
-    def write(self, stream) -> None:
+    def write(self, stream: RecordBuilder) -> None:
         n = len(self.records)
         head = _INDEX_HEAD.pack(_MESSAGE_INDEX, 2 + 4 + 16 * n, self.channel_id, 16 * n)
         stream.write(head + struct.pack(f"<{2 * n}Q", *chain.from_iterable(self.records)))
