@@ -1,13 +1,13 @@
 """``autotune health plant|tuner|logger``: is the service up? (compose's healthcheck)
 
 Exits 0 when the service's liveliness token is on the bus within ``--timeout`` seconds,
-1 otherwise: a liveliness query answers in a few milliseconds.
+1 otherwise: a liveliness query answers in a few milliseconds. The answer is the command's
+output, on stdout (``autotune health plant | grep up``); errors go to stderr.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 
 from services.autotuner.loop_client import wait_for_token
 from shared import keys
@@ -36,5 +36,5 @@ def run(args: argparse.Namespace) -> int:
     key = TOKENS[args.service](args.prefix, node)
     with open_session(settings_from_args(args), args.timeout) as session:
         up = wait_for_token(session, key, args.timeout)
-    print(f"{args.service}: {'up' if up else 'DOWN'} ({key})", file=sys.stderr)
+    print(f"{args.service}: {'up' if up else 'DOWN'} ({key})")
     return 0 if up else 1
