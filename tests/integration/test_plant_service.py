@@ -11,6 +11,7 @@ import sys
 
 import numpy as np
 import pytest
+import zenoh
 
 from services.autotuner.loop_client import CommandRefused, LeaseLost, LoopClient
 from services.plant_sim.plant_file import build_plant
@@ -145,8 +146,13 @@ def test_a_thousand_malformed_payloads_are_refused_and_move_nothing(start_plant)
         tf1.next_sample()
         before = tf1.sync()
         bad = malformed_payloads(1000, seed=1)
-        for kind, loop, payload in bad:
-            s.put(keys.command(plant.prefix, loop, kind), payload)
+        for kind, loop, payload in bad:  # reliably, as the product puts (Zenoh's default
+            # drops a put when the link is congested: on a loaded CI machine 87 of 1000 were)
+            s.put(
+                keys.command(plant.prefix, loop, kind),
+                payload,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
         after = tf1.sync()  # the barrier: every payload above has been handled
         replies = list(s.get(keys.service_status(plant.prefix, "plant_sim", "plant"), timeout=5))
         status = wire.decode_sample(ServiceStatus, replies[0].ok)
