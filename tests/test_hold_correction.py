@@ -21,6 +21,7 @@ from services.autotuner.identify.hold_correction import (
 from shared.control.transfer import DelayedTF
 from shared.messages import TuneResult
 from tests.exact import ultimate_point
+from tests.field_cases import _poly
 from tests.test_experiments import run_ramp
 
 
@@ -119,7 +120,8 @@ def test_the_uncertainty_a_correction_adds():
 # a dead-time dominant loop (2·e^{−20s}/(10s + 1)) at 20 samples a period, σ = 0.1 against a
 # bump of 1: the trials' poles put K_u 19 % high where the model put it 2 % low
 DEAD = ((2.0,), (10.0, 1.0), 20.0, 2.745)
-# an integrating loop (e^{−s}/(s(5s + 1))) at 25 samples a period: the hold moves K_u by 26 %
+# an integrating loop (e^{−s}/(s(5s + 1))) at 20 samples a period of the plant's (24 of the
+# sampled loop's): the hold moves K_u by 26 %
 INTEGRATING = ((1.0,), (5.0, 1.0, 0.0), 1.0, 0.7258)
 
 
@@ -156,13 +158,6 @@ def test_a_correction_through_the_model_states_its_class_bias():
     assert found.ku_spread == pytest.approx(0.5 * abs(r.ku / r.ku_loop - 1))
     assert found.ku_spread >= abs(r.ku / ku - 1)  # −9 % against the plant's, stated as ±11 %
     assert any("through the process model" in n for n in found.notes)
-
-
-def _poly(*factors: list[float]) -> tuple[float, ...]:
-    out = np.array([1.0])
-    for f in factors:
-        out = np.polymul(out, f)
-    return tuple(float(x) for x in out)
 
 
 # (num, den, delay): lag and dead time in every proportion, higher orders, an integrator, a zero

@@ -117,6 +117,15 @@ def agree(
     return True
 
 
+def contradicts(
+    trials: tuple[float, float] | None,
+    model: tuple[float, float] | None,
+    loop: tuple[float, float],
+) -> bool:
+    """Both corrections were made and the model's does not bear the trials' out (``agree``)."""
+    return trials is not None and model is not None and not agree(trials, model, loop)
+
+
 # the share of its own size by which a correction may be off: the trials' is a first-order
 # step over the crossover's shift, and sees no aliasing (at 20 samples a period it left a
 # fifth to two fifths of the effect on first-order lags with dead time: K_u 2.6–3.4 % high);
@@ -147,7 +156,7 @@ def uncertainty(
     if chosen not in ("trials", "model") or point is None:
         return None
     ku, pu = (OWN_SHARE * g for g in gap(point, loop))
-    if trials is not None and model is not None and not agree(trials, model, loop):
+    if contradicts(trials, model, loop):
         apart = gap(trials, model)
         ku, pu = max(ku, apart[0]), max(pu, apart[1])
     return ku, pu

@@ -55,6 +55,7 @@ from services.autotuner.identify.experiments import (
 )
 from services.autotuner.identify.hold_correction import (
     agree,
+    contradicts,
     slope_error,
     through_model,
     uncertainty,
@@ -853,7 +854,7 @@ class RampTest:
             (ku_plant, pu_plant), how = (ku, pu), "none"
         made = trials if from_trials else None
         spread = uncertainty(how, made, held, (ku, pu))
-        apart = made is not None and held is not None and not agree(made, held, (ku, pu))
+        apart = contradicts(made, held, (ku, pu))  # the other estimate, named in a warning
         other = (held if how == "trials" else made) if apart else None
         self.result = RampResult(
             float(ku_plant),
