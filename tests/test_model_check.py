@@ -179,8 +179,11 @@ def test_a_sound_model_that_disagrees_widens_the_stated_spread():
 
 def test_a_biased_relay_states_a_spread_that_covers_its_error():
     """hx1 (e^{−5s}/((10s+1)(60s+1)), its preset noise) with ``--relay-bias 0.3``: stage 2's
-    point comes out a few degrees off and K_u about 9 % high, with a cycle scatter of 2.9 %.
-    Its model's own point (near the exact one) shows the error: the stated spread covers it."""
+    point comes out about 6° off (kept as measured: its correction would have moved it by
+    more than the cycles agreed) and K_u about 9 % high. The correction it was not given
+    (8.6 % of G) is its stated uncertainty, so the experiment's own spread covers the error,
+    and the model, whose own point lies near the exact one, is not refused for lying outside
+    a spread that understated it (before: a cycle scatter of 2.9 %, the model refused)."""
     import tomllib
     from pathlib import Path
 
@@ -199,4 +202,5 @@ def test_a_biased_relay_states_a_spread_that_covers_its_error():
     # within the spread, give or take the model's own error (0.2 % here)
     assert abs(r.ku / ku - 1) <= r.ku_spread + 0.01
     assert abs(r.pu / pu - 1) <= r.pu_spread + 0.01
-    assert any(w.startswith("K_u's spread is stated as") for w in r.warnings), r.warnings
+    assert abs(r.ku / ku - 1) > 0.05  # the case in point: a stage-2 point well off
+    assert not any("was refused" in w for w in r.warnings), r.warnings

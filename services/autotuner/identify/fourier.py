@@ -25,6 +25,10 @@ import numpy as np
 class FrequencyPoint:
     omega: float  # rad/s
     g: complex  # G(jω), PV units per %
+    # relative uncertainty of ``g`` (magnitude, and radians of phase) that the window's
+    # leakage leaves: 0 for a point measured as it is (``relay_model.corrector`` sets it on
+    # the points it corrects)
+    leak: float = 0.0
 
     @property
     def magnitude(self) -> float:

@@ -27,6 +27,7 @@ JSON ``relay_result``'s. Every threshold is a field of ``RelayConfig`` (or of it
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -929,8 +930,9 @@ def _steady_second(correct: Corrector, second: Points, agreement: float) -> Corr
 
     def keep(model: ProcessFit) -> tuple[Points, Points]:
         first, later = correct(model)
-        if later and abs(later[0].g / second[0].g - 1.0) > agreement:
-            return first, second
+        if later and (moved := abs(later[0].g / second[0].g - 1.0)) > agreement:
+            # kept as measured: as unsure as the correction it was not given says
+            return first, (dataclasses.replace(second[0], leak=moved), *second[1:])
         return first, later
 
     return keep
