@@ -59,6 +59,7 @@ from services.autotuner.identify.hold_correction import (
     slope_error,
     through_model,
     uncertainty,
+    unmeasured,
 )
 from services.autotuner.identify.model_fit import (
     ProcessFit,
@@ -229,11 +230,13 @@ class RampResult:
                 f"{theirs if by_trials else ours}; {ours} stated, its spreads covering both "
                 f"({spread})"
             ]
+        lag = math.degrees(math.pi * self.sample_time / self.pu_loop)
         if self.hold_correction == "model":
             return [
                 f"K_u and P_u are corrected for the zero-order hold through the process model "
                 f"(the trials' growth rates too noisy to give it; {loop}); a model's class "
-                f"sets its slopes, so the correction may be off by half its size ({spread})"
+                f"sets its slopes, so the correction may be off by half its size, and K_u by "
+                f"as much as the crossover moved ({spread})"
             ]
         if self.hold_correction == "trials" and held is not None and max(held) >= 0.02:
             per = self.pu_loop / self.sample_time
@@ -242,13 +245,13 @@ class RampResult:
                 f"{per:.0f} samples a period): a first-order step that sees no aliasing, good "
                 f"to about half its size ({spread})"
             ]
-        lag = math.degrees(math.pi * self.sample_time / self.pu_loop)
         if self.hold_correction == "none" and lag >= 1.0:
             return [
                 f"K_u and P_u are the sampled loop's, not the plant's own: the zero-order hold "
                 f"lags {lag:.2g}° at the crossover (T = {self.sample_time:.4g} s), and the "
                 "plant's own point lies at a higher frequency (K_u higher, P_u shorter) by an "
                 "amount neither the trials (too noisy) nor a process model could give"
+                + (f" ({spread})" if spread else "")
             ]
         return []
 
@@ -854,6 +857,9 @@ class RampTest:
             (ku_plant, pu_plant), how = (ku, pu), "none"
         made = trials if from_trials else None
         spread = uncertainty(how, made, held, (ku, pu))
+        floor = unmeasured(how, (ku, pu), (ku_plant, pu_plant), self.sample_time)
+        if floor is not None:  # not measured: at least as unsure as the hold's whole lag
+            spread = floor if spread is None else tuple(map(max, spread, floor))
         apart = contradicts(made, held, (ku, pu))  # the other estimate, named in a warning
         other = (held if how == "trials" else made) if apart else None
         self.result = RampResult(
