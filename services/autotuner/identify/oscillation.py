@@ -26,6 +26,8 @@ class Oscillation:
     offset: float  # c
     rms: float  # residual of the fit
     swings: int  # half-cycles in the window
+    # g of the sinusoid alone, where a slow mode fitted beside it replaced it (None: not)
+    growth_alone: float | None = None
 
 
 def fit_oscillation(
@@ -56,7 +58,9 @@ def fit_oscillation(
     if not success or w <= 0 or not np.all(np.isfinite(x)):
         return None
     slow = _with_slow_mode(tt, y, x, float(np.sqrt(np.mean(fun**2))))
+    alone = None
     if slow is not None:
+        alone = float(g)
         c, a, g, w = slow.x[:4]
         fun = slow.fun
     return Oscillation(
@@ -66,6 +70,7 @@ def fit_oscillation(
         offset=float(c),
         rms=float(np.sqrt(np.mean(fun**2))),
         swings=len(ext) - 1,
+        growth_alone=alone,
     )
 
 
