@@ -160,6 +160,24 @@ def _span(pv_range: tuple[float, float]) -> float | None:
         return None
 
 
+def _unknown_state(c: LoopClient) -> str:
+    """What is known of a loop whose plant did not answer after the run lost it: not its
+    state, but what its plant does with it (its watchdog restores the state before the test
+    when the run's token vanishes or its lease lapses)."""
+    lapse = f"its lease lapses ({c.lease_timeout:g} s without a command)"
+    if c.gone:
+        return (
+            "the loop's state is not known: a plant that still runs (this tuner cut off from "
+            f"it) restores it to its state before the test when this run's token vanishes or "
+            f"{lapse}; a plant started again begins from its plant file"
+        )
+    return (
+        f"the plant did not answer within {LOSS_QUERY_TIMEOUT:g} s, so the loop's state is "
+        "not known: once it runs again it restores the loop to its state before the test, "
+        f"this run's token having vanished (as this run ends) or {lapse}"
+    )
+
+
 class TuningRun:
     def __init__(
         self, client: LoopClient, req: TuneRequest, run_id: str, hooks: RunHooks | None = None
@@ -362,6 +380,8 @@ class TuningRun:
                     f"(now {left['mode']}, SP {left['sp']:.6g}, OP {left['op']:.4g} %, Kc "
                     f"{left['gains']['kc']:.4g}): something other than this run changed it"
                 )
+            elif not result.get("restored"):
+                result["reason"] = f"{result.get('reason')}; {_unknown_state(c)}"
             return self._result(result, t0, wall0, left)
         left = self._leave(
             before,

@@ -330,6 +330,11 @@ def _run_case(stack: Stack) -> None:
             assert "lease lost" in result["reason"] or "paused" in result["reason"], context
         if case.fault == "pause" and case.target == "plant" and case.expect != "ok":
             assert "token is still up" in result["reason"], context  # silent, not gone
+        if case.target == "plant" and case.expect != "ok" and not result["restored"]:
+            # not seen restored: said to be not known, with what the plant does with it
+            assert "the loop's state is not known" in result["reason"], context
+            if case.fault == "kill":
+                assert "a plant started again begins from its plant file" in result["reason"]
     if case.expect == "ok":
         assert after.mode == "auto", context
         isa = result["chosen"]["isa"]
