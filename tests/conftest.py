@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,13 @@ from shared import keys
 from tests.running_services import RunningPlant, wait_for_tokens
 
 _counter = itertools.count()
+
+# The suite tries Ctrl-C, a closed terminal and a service manager's stop on the product, which
+# respects a signal ignored when it started (nohup's SIGHUP, a shell's SIGINT for a job in the
+# background): a suite run that way would find them ignored in every process it starts. The
+# default dispositions, for this process and (inherited) the services it starts.
+signal.signal(signal.SIGINT, signal.default_int_handler)
+signal.signal(signal.SIGHUP, signal.SIG_DFL)
 
 
 @pytest.fixture
