@@ -110,3 +110,28 @@ def test_a_random_plant_is_tuned_safely_or_left_as_it_was(seed, method):
     else:
         assert sim.pid.mode == "manual" and sim.pid.gains == before, result.reason
         assert math.isfinite(sim.pv)
+
+
+def test_a_slow_loop_is_back_near_its_setpoint_when_the_run_ends():
+    """0.0137·e^{−16.3s}/(s(13.5s + 1)) at 15 samples a period, σ 0.05 (a seed of the sweep
+    above): its tl-pi has an integral time of 350 s, and the verification's load step took
+    over 2,000 s to recover. The verification now waits as long as its steps took to settle
+    and recover (within its own watch), so the loop is left near its setpoint: the PV within
+    a twentieth of the load step's largest deviation, where it ended 9 % of span off after
+    five time scales before."""
+    spec = {
+        "model": "transfer_function",
+        "num": [0.01370496374513007],
+        "den": [13.536640999548979, 1.0, 0.0],
+        "delay": 16.317562422277042,
+        "sample_time": 7.435298452135509,
+        "noise_std": 0.05,
+        "pv_range": [0.0, 100.0],
+        "setpoint": 50.0,
+    }
+    sim = build_plant({"seed": 6038, "loops": {"x": spec}})["x"]
+    result = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="relay"), "slow").run()
+    assert result.status == "ok" and result.after is not None and result.left is not None
+    after = result.after
+    assert after.recovery_time is not None and after.recovery_time > 5 * result.pu  # in point
+    assert abs(result.left["pv"] - result.left["sp"]) <= 0.05 * after.max_deviation_load

@@ -10,7 +10,7 @@ import pytest
 from services.autotuner.identify.rest import RestCheck
 from services.autotuner.tuning import TuningRun
 from services.offline.local_loop import LocalLoopClient
-from shared.messages import TuneRequest
+from shared.messages import SetpointCommand, TuneRequest
 from tests.test_presets import default_plant
 
 TS, WINDOW, SIGMA = 0.25, 20.0, 0.02
@@ -54,14 +54,18 @@ def test_it_rests_once_the_pv_reaches_its_setpoint():
 
 
 def test_a_run_waits_for_its_loop_in_auto_to_reach_its_setpoint():
-    """hx1 right after a ramp tune: its new PI(D) gains leave the PV 0.2 °C off the setpoint,
-    with no trend its window (Ti) can see. The relay run that follows waits until the PV is
-    on the setpoint (it began 0.2 off before, and fitted a static gain of 0.25 for 1.0)."""
+    """hx1 right after a ramp tune, its setpoint then moved 0.3 °C: its new PI(D) gains are
+    still taking the PV there, slowly, with no trend its window (Ti) can see. The relay run
+    that follows waits until the PV is on the setpoint (one that began 0.2 off fitted a static
+    gain of 0.25 for 1.0). The tune itself now ends with the PV back on its setpoint."""
     sim = default_plant()["hx1"]
     client = LocalLoopClient(sim)
     TuningRun(client, TuneRequest(loop="hx1", method="ramp"), "rest").run()
+    before = client.sync()
+    client.command(SetpointCommand(loop="hx1", sp=before.sp + 0.3, source="test", t=before.t))
+    client.advance(int(60 / sim.sample_time))  # a minute: the PV on its way
     st = client.sync()
-    assert st.mode == "auto" and st.gains.ti
+    assert st.mode == "auto" and st.gains.ti and st.sp == before.sp + 0.3
     r = TuningRun(client, TuneRequest(loop="hx1", method="relay"), "rest").run()
     rest = r.rest
     assert rest is not None and rest["at_rest"]
