@@ -8,6 +8,7 @@ was (manual, its gains untouched)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import pytest
@@ -17,18 +18,12 @@ from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.messages import GainsCommand, ModeCommand, PidGains, TuneRequest
 from tests.exact import ultimate_point
+from tests.field_cases import _poly
 
 FAMILIES = ("fopdt", "sopdt", "lag3", "integrating", "inverse", "underdamped", "lead-lag")
 
 
-def _poly(*factors: list[float]) -> list[float]:
-    out = np.array([1.0])
-    for f in factors:
-        out = np.polymul(out, f)
-    return [float(c) for c in out]
-
-
-def _plant(rng: np.random.Generator, family: str) -> tuple[list[float], list[float], float]:
+def _plant(rng: np.random.Generator, family: str) -> tuple[list[float], Sequence[float], float]:
     """(num, den, delay) of a plant of ``family``, gain 0.5–3, time constants 1–50 s."""
     k = float(rng.uniform(0.5, 3.0))
     if family == "fopdt":

@@ -186,18 +186,17 @@ def leak_spread(p1: FrequencyPoint, p2: FrequencyPoint | None) -> tuple[float, f
     (``FrequencyPoint.leak``, a relative error of G in any direction): through the two
     points' linear crossing (the worst of eight directions; the two points' shares added in
     quadrature), where carrying the points to −180° sets the sensitivity; where −180° lies
-    beyond both further than they lie apart (``extrapolated``), the nearer point's error at
+    beyond both further than they lie apart (``beyond_both``), the nearer point's error at
     the steepest slopes a lag chain has there. With stage 1's point alone, its own. Why: a
     correction through a model that is not the plant's leaves the model's own leakage (a
     triple lag sampled 20 times a period: K_u +2.3 % with a spread of 0.16 % before this
     term). (0, 0) for points measured as they are."""
     if p2 is None:
         return p1.leak, 0.0
+    near = beyond_both(p1, p2)
+    if near is not None:
+        return near.leak * (1.0 + KU_PER_RADIAN), near.leak * PU_PER_RADIAN
     errors = (p1.leak, p2.leak)
-    d1, d2 = p1.phase_deg + 180.0, p2.phase_deg + 180.0
-    if d1 * d2 > 0 and min(abs(d1), abs(d2)) > abs(d2 - d1):  # as ``extrapolated``
-        near = errors[0] if abs(d1) <= abs(d2) else errors[1]
-        return near * (1.0 + KU_PER_RADIAN), near * PU_PER_RADIAN
     base = linear_crossing(p1, p2)
     if not all(math.isfinite(v) and v > 0 for v in base):
         return 0.0, 0.0
@@ -217,6 +216,15 @@ def leak_spread(p1: FrequencyPoint, p2: FrequencyPoint | None) -> tuple[float, f
     return math.sqrt(ku_sq), math.sqrt(pu_sq)
 
 
+def beyond_both(p1: FrequencyPoint, p2: FrequencyPoint) -> FrequencyPoint | None:
+    """The nearer point to −180° where −180° lies beyond both further than they lie apart
+    (their slope then says nothing of the way there); None otherwise."""
+    d1, d2 = p1.phase_deg + 180.0, p2.phase_deg + 180.0
+    if d1 * d2 <= 0 or min(abs(d1), abs(d2)) <= abs(d2 - d1):
+        return None
+    return p1 if abs(d1) <= abs(d2) else p2
+
+
 def extrapolated(
     ku: float, pu: float, p1: FrequencyPoint, p2: FrequencyPoint
 ) -> tuple[float, float]:
@@ -225,16 +233,15 @@ def extrapolated(
     close (one cycle measured twice, when stage 2 switched on stage 1's very samples) is
     their difference, not the plant's, and both interpolations extrapolate it alike; the
     estimate is then no surer than the whole way it was carried. (0, 0) otherwise."""
-    d1, d2 = p1.phase_deg + 180.0, p2.phase_deg + 180.0
-    if d1 * d2 <= 0 or min(abs(d1), abs(d2)) <= abs(d2 - d1):
+    near = beyond_both(p1, p2)
+    if near is None:
         return 0.0, 0.0
-    near = p1 if abs(d1) <= abs(d2) else p2
     # the estimate is as far from the plant's point as it is from the nearer measured one
     # plus what the way from there to −180° may cost, at the steepest a lag chain gives
     # there (an estimate that stayed at the point, the slope saying nothing: 1/(s+1)³ at
     # −172.5° gave K_u −19 %, P_u +10 %, with spreads of 0.35 % before; one carried the wrong
     # way, K_u −37 % with a spread of 25 %)
-    way = math.radians(min(abs(d1), abs(d2)))
+    way = math.radians(abs(near.phase_deg + 180.0))
     return (
         abs(ku * near.magnitude - 1.0) + KU_PER_RADIAN * way,
         abs(pu * near.omega / (2.0 * math.pi) - 1.0) + PU_PER_RADIAN * way,
