@@ -57,7 +57,10 @@ class RecorderWatch:
 
     def verdict(self) -> str | None:
         """A warning for the run's result, or None when a logger was in sight throughout.
-        Stops watching."""
+        Stops watching, and waits (at most ``ASK``) for the start's question to end: the
+        caller may close the session next, and Zenoh refuses to close one a query is still
+        using ("Already borrowed", seen in CI on a run that ended within moments)."""
+        self._baseline.join(ASK)
         with self._lock:
             seen, gap, alive = self._seen, self._gap, bool(self._alive)
         if not seen:  # a run that ended within moments of its start: look once more
@@ -75,7 +78,6 @@ class RecorderWatch:
                 f"record of the run may be incomplete{'' if alive else ', and none is back'} "
                 "(`autotune runs` shows what was written)"
             )
-        self._baseline.join(ASK)
         if not self._before:  # no logger answered at the start (busy, paused): nothing to
             return None  # compare with, and asking again would hold the result up 2 s more
         after = self._dropped()
