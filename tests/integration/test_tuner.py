@@ -237,9 +237,11 @@ def test_ctrl_c_on_the_client_cancels_and_restores(start_plant, start_tuner, sig
         cli.send_signal(sig)
         _, err = cli.communicate(timeout=30)
         progress.undeclare()
-    assert cli.returncode == 130 and "interrupted" in err
+    assert cli.returncode == 130 and "interrupted" in err, err
     after = loop_state(p, "x1")
-    assert (after.mode, after.sp, after.gains) == (before.mode, before.sp, before.gains)
+    # the client's own account in the message: a failure here (once in CI under load, the
+    # loop found in manual) is otherwise not to be told apart from a restore not made
+    assert (after.mode, after.sp, after.gains) == (before.mode, before.sp, before.gains), err
 
 
 def test_a_signal_before_the_acceptance_still_cancels_and_restores(start_plant, start_tuner):
