@@ -142,7 +142,10 @@ class LoggerService:
             shell.subscribe(pattern, self._on_token, 1024, liveliness=True, history=True)
         shell.announce(keys.logger_alive(prefix, self.node))
         log.info("logger %s recording %s/** into %s", self.node, prefix, self.recorder.runs_dir)
-        threading.Thread(target=self._learn_loops, daemon=True, name="learn-loops").start()
+        # a thread of the shell's, joined before the session closes: Zenoh refuses to close
+        # a session a query is still using ("Already borrowed", seen in CI for the tuner's
+        # like question); the question is bounded by its own timeout (5 s)
+        shell.thread(self._learn_loops, name="learn-loops")
 
         def tick() -> None:
             with self.lock:
