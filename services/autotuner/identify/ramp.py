@@ -202,13 +202,17 @@ class RampResult:
             "rest_pv": self.rest_pv,
         }
 
+    @property
+    def bracket(self) -> float:
+        """The final bracket's width relative to K_u: the least K_u is unsure by."""
+        return (self.kc_high - self.kc_low) / self.ku
+
     def identification(self) -> Identification:
-        bracket = (self.kc_high - self.kc_low) / self.ku
         held = self.hold_spread
         return Identification(
             ku=self.ku,
             pu=self.pu,
-            ku_spread=max(bracket, held[0] if held else 0.0, self.mode_gap or 0.0),
+            ku_spread=max(self.bracket, held[0] if held else 0.0, self.mode_gap or 0.0),
             pu_spread=None if held is None else held[1],
             ku_bracketed=True,
             experiment=self,
@@ -224,8 +228,7 @@ class RampResult:
         bracket and the hold's correction leave unsure: both readings, and the spread."""
         gap = self.mode_gap
         held = self.hold_spread[0] if self.hold_spread else 0.0
-        bracket = (self.kc_high - self.kc_low) / self.ku
-        if gap is None or gap <= max(held, bracket):
+        if gap is None or gap <= max(held, self.bracket):
             return []
         return [
             f"the trials' growth rates depend on what is fitted beside their oscillation: "
