@@ -22,7 +22,9 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
+
+# scipy.linalg is imported where it is used, not here: every `autotune` command loads this
+# module, and only a model's discretisation needs it
 
 # A delay within this many sample periods of a whole number is taken as that whole number:
 # it only absorbs floating-point error in θ/T (e.g. 0.3/0.1), it never rounds a real fraction.
@@ -47,6 +49,8 @@ def _zoh_integral(a: np.ndarray, b: np.ndarray, tau: float) -> tuple[np.ndarray,
     m = np.zeros((nx + nu, nx + nu))
     m[:nx, :nx] = a
     m[:nx, nx:] = b
+    from scipy.linalg import expm
+
     e = expm(m * tau)
     return e[:nx, :nx], e[:nx, nx:]
 

@@ -14,7 +14,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
+
+# scipy.optimize is imported where it is used, not here: it is a third of a second of the
+# start of every `autotune` command that loads this module, and most never fit anything
 
 
 @dataclass(frozen=True)
@@ -94,6 +96,8 @@ def ultimate_point(
     if below.size == 0 or below[0] == 0:
         return None
     i = int(below[0])
+    from scipy.optimize import brentq
+
     wu = brentq(
         lambda w: _phase(zeros, poles, sign, delay, w) + math.pi,
         grid[i - 1],

@@ -21,10 +21,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from shared.control.lti import discretize, simulate, tf_to_ss
 from shared.control.transfer import DelayedTF
+
+# scipy.optimize is imported where it is used, not here: it is a third of a second of the
+# start of every `autotune` command that loads this module, and most never fit anything
 
 
 @dataclass(frozen=True)
@@ -130,6 +132,8 @@ def _fit_one(kind: str, omega: np.ndarray, g: np.ndarray, weights: np.ndarray) -
     # bounds keep the search finite: lags within 1e-4…1e5 of 1/ω, delay up to 20/ω
     lo = np.array([-60.0] + [math.log(1e-4 / w0)] * n_lags + [0.0])
     hi = np.array([60.0] + [math.log(1e5 / w0)] * n_lags + [20.0 / w0])
+    from scipy.optimize import least_squares
+
     best = None
     for x0 in starts:
         try:
@@ -224,6 +228,8 @@ def refine_on_record(
             return (response_to(_from_params(start.kind, x, 0.0), sample_time, u) - y) / scale
         except (ValueError, np.linalg.LinAlgError, OverflowError):
             return np.full(y.size, 1e3)
+
+    from scipy.optimize import least_squares
 
     x0 = np.clip(_params(start), lo + 1e-9, hi - 1e-9)
     try:

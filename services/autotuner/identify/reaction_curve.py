@@ -39,10 +39,11 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy.optimize import brentq, least_squares, minimize_scalar
-from scipy.signal import savgol_filter
 
 from shared.control.signals import first_crossing, range_end
+
+# scipy.optimize is imported where it is used, not here: it is a third of a second of the
+# start of every `autotune` command that loads this module, and most never fit anything
 
 
 @dataclass(frozen=True)
@@ -190,6 +191,10 @@ def analyze_step(
         w = _window(noise_std, change, rise_samples)
         if w >= t.size:
             raise ValueError("the response is too short for its noise: record longer")
+        # here, not at the top: scipy.signal (and the scipy.stats it loads) is 0.4 s of the
+        # start-up of the tuner and of every `autotune tune`, and only a noisy step needs it
+        from scipy.signal import savgol_filter
+
         ys = savgol_filter(y, w, 2, mode="interp")
         dys = savgol_filter(y, w, 2, deriv=1, delta=dt, mode="interp")
         k = int(np.argmax(sign * dys))
@@ -275,6 +280,8 @@ class SopdtFit:
         )
         y_at = float(self.response(np.array([th + u]))[0])
         dead_time = th + u - y_at / slope
+        from scipy.optimize import brentq
+
         t63 = brentq(lambda x: self.response(np.array([x]))[0] - 0.632 * k, th, th + 20 * (t1 + t2))
         return th + u, slope, dead_time, float(t63)
 
@@ -310,6 +317,8 @@ def fit_sopdt(
         k, t1, t2, th = p
         a, b = max(t1, t2), min(t1, t2)
         return k * _sopdt_unit(t - th, max(a, 1e-9), max(b, 0.0)) - dy
+
+    from scipy.optimize import least_squares
 
     lo = [-np.inf, 1e-9, 0.0, 0.0]
     hi = [np.inf, np.inf, np.inf, float(t[-1])]
@@ -484,6 +493,8 @@ def _kink_dead_time(t: np.ndarray, dy: np.ndarray, longest: float) -> tuple[floa
         xx = float(x @ x)
         return float(dy @ dy) - (float(x @ dy) ** 2 / xx if xx > 0 else 0.0)
 
+    from scipy.optimize import minimize_scalar
+
     opt = {"xatol": 1e-9 * max(longest, 1.0)}
     lag = float(minimize_scalar(sse, bounds=(0.0, longest), method="bounded", options=opt).x)
     after = t > lag
@@ -553,6 +564,8 @@ def fit_integrator(
     best = float(grid[int(np.argmin([sse(g) for g in grid]))])
     step = grid[1] - grid[0]
     lo, hi = max(0.0, best - step), min(longest, best + step)
+    from scipy.optimize import minimize_scalar
+
     opt = {"xatol": 1e-10 * max(longest, 1.0)}
     lag = float(minimize_scalar(sse, bounds=(lo, hi), method="bounded", options=opt).x)
     (c, d, k), r = solve(lag)
