@@ -150,6 +150,9 @@ def test_gains_not_given_are_kept_exactly_and_ti_none_turns_integral_off():
         (Asked(op=40.0, mode="auto"), status(mode="auto"), ["--op 40", "--mode manual"]),
         (Asked(sp=150.1), status(), ["--sp 150.1", "PV range [0, 150] degC"]),
         (Asked(sp=-1.0, kc=3.0), status(), ["--sp -1", "PV range"]),
+        # hx1's span is 150 degC: 1000 % per % is Kc 666.67 % per degC
+        (Asked(kc=667.0), status(), ["--kc 667", "1000.5 % of output per % of span", "666.7"]),
+        (Asked(kc=1e9, sp=61.0), status(), ["--kc 1e+09", "proportional band of 6.7e-08 %"]),
         (Asked(), status(), ["nothing to set"]),
     ],
 )
@@ -167,6 +170,10 @@ def test_an_output_with_a_switch_to_auto_from_manual_is_written_before_it():
 def test_values_at_the_limits_are_taken():
     writes = plan(Asked(op=5.0, sp=150.0), status(), "degC")
     assert [w.cmd.op if w.what == "output" else w.cmd.sp for w in writes] == [5.0, 150.0]
+    (w,) = plan(Asked(kc=1000.0 * 100.0 / 150.0), status(), "degC")  # PB 0.1 % exactly
+    assert w.cmd.gains.kc == pytest.approx(666.6667, rel=1e-6)
+    (w,) = plan(Asked(kc=33_000.0), status(pv_range=(0.0, 3.0)), "m")  # 990 % per % of 3 m
+    assert w.cmd.gains.kc == 33_000.0
 
 
 # --- running the writes --------------------------------------------------------------------------

@@ -248,6 +248,8 @@ BAD = [  # (loop, flags, what the one line names)
     ("a1", ["--op", "96"], "--op 96: outside the loop's output limits [5, 95] %"),
     ("a1", ["--op", "4.5", "--mode", "auto"], "--op 4.5: outside"),
     ("a1", ["--sp", "200.5"], "--sp 200.5: outside the loop's PV range [0, 200] degC"),
+    # 1e9 % per PV unit on a 200 degC span: a proportional band of 5e-8 % (500 is the most)
+    ("a1", ["--kc", "1e9", "--mode", "auto"], "--kc 1e+09: 2e+09 % of output per % of span"),
     ("a1", ["--mode", "auto", "--kc", "3", "--op", "nan"], "--op"),
     ("b1", ["--op", "40"], "--op 40: b1 is in auto"),
     ("b1", ["--op", "40", "--mode", "auto"], "--mode manual"),

@@ -7,7 +7,12 @@ exit 2, and nothing moves):
   --sp V     setpoint, PV units, within the loop's PV range
   --op V     manual output, %, within the loop's output limits; only in manual: with the loop
              in auto give --mode manual too (the plant refuses a manual output in auto)
-  --kc X     controller gain, % of output per PV unit, > 0
+  --kc X     controller gain, % of output per PV unit, > 0, and at most 1000 % of output per
+             % of span (Kc·span/100 ≤ 1000, a proportional band of at least 0.1 % of span):
+             above that a 0.1 % error drives the output across its whole range, the valve
+             bangs between its limits on the noise, and it is a slip of the keyboard or of the
+             units (% per % for % per PV unit) rather than a tuning. (A check of this
+             command's: the plant itself refuses only gains beyond floating-point range)
   --ti S     integral time, s, > 0; `--ti none` turns integral action off (P or PD with a
              manual reset). 0 is refused: Ti → 0 is not "off" but infinite integral action
   --td S     derivative time, s, ≥ 0 (0: no derivative action)
@@ -57,6 +62,7 @@ from services.autotuner.loop_client import (
     wait_for_loop,
 )
 from shared.cli import add_common_arguments, check_ids
+from shared.control.forms import kc_percent
 from shared.errors import ConfigError, one_line
 from shared.identity import auth_user
 from shared.messages import (
@@ -75,6 +81,7 @@ HELP = "write a loop's mode, setpoint, output or gains, bumplessly, confirmed by
 SOURCE = "autotune-set"  # the source label of every command `set` sends
 DEFAULT_TIMEOUT = 5.0  # s: for the loop to appear, and for each write's confirmation
 NO_INTEGRAL = "none"  # `--ti none`: no integral action (PidGains.ti = None)
+MAX_KC_PERCENT = 1000.0  # % of output per % of span: a proportional band of 0.1 % (see above)
 EXIT_REFUSED = 1
 
 
@@ -258,6 +265,8 @@ def plan(asked: Asked, status: LoopStatus, pv_units: str) -> list[Write]:
         lo, hi = status.pv_range
         if not lo <= asked.sp <= hi:
             raise ConfigError(f"--sp {asked.sp:g}: outside the loop's PV range [{lo:g}, {hi:g}]{u}")
+    if asked.kc is not None:
+        _check_kc(asked.kc, status.pv_range, u)
     writes: list[Write] = []
     if asked.mode == "manual":
         writes.append(
@@ -294,6 +303,19 @@ def plan(asked: Asked, status: LoopStatus, pv_units: str) -> list[Write]:
         Write(w.what, w.change, w.cmd.model_copy(update={"source": SOURCE, "t": status.t}))
         for w in writes
     ]
+
+
+def _check_kc(kc: float, pv_range: tuple[float, float], units: str) -> None:
+    """ConfigError for a gain above ``MAX_KC_PERCENT`` % per % of the loop's span."""
+    span = pv_range[1] - pv_range[0]
+    pct = kc_percent(kc, span)
+    if pct is not None and pct > MAX_KC_PERCENT:
+        raise ConfigError(
+            f"--kc {kc:g}: {pct:.5g} % of output per % of span (a proportional band of "
+            f"{100.0 / pct:.2g} % of the {span:g}{units} span), above the {MAX_KC_PERCENT:g} "
+            f"% per % `set` takes: Kc is in % of output per PV unit, at most "
+            f"{100.0 * MAX_KC_PERCENT / span:.4g} here"
+        )
 
 
 # --- running them -----------------------------------------------------------------------------
