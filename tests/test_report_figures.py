@@ -136,6 +136,20 @@ def test_kc_is_shown_with_its_units_as_percent_per_percent_and_as_proportional_b
     assert f"Kc {kc:.4g} %/degC = {pct:.4g} %/% (PB {100 / pct:.3g} %)" in box
 
 
+def test_the_verification_after_keeps_its_scale_when_before_is_not_available(demo):
+    """The demo's loop was in manual before the run: no "before" panel, and the "after" one,
+    which shares its PV scale, still shows that scale's numbers."""
+    _, _, _, fig = demo
+    fig.canvas.draw()
+    ax = axes_by_label(fig, "deviation")
+    before = next(a for a in fig.axes if a.get_title() == "before")
+    assert any(t.get_text().startswith("not available") for t in before.texts)
+    shown = [t.get_text() for t in ax.get_yticklabels() if t.get_visible() and t.get_text()]
+    lo, hi = ax.get_ylim()
+    within = [v for v in (float(t.replace("−", "-")) for t in shown) if lo <= v <= hi]
+    assert len(within) >= 3, (shown, lo, hi)
+
+
 def test_the_model_is_simulated_over_the_recorded_data(demo):
     """The overlay's model line is the recorded model driven by the recorded output from
     the rest of the experiment's quiet period, up to the load step: checked against

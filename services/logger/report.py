@@ -454,8 +454,9 @@ def _overlay(s: RunSeries) -> Overlay | None:
 
 def _unavailable(ax: Axes, title: str, why: str) -> None:
     ax.set_title(title, fontsize=9)
-    ax.set_xticks([])
-    ax.set_yticks([])
+    # the ticks hidden on this axes alone: emptying its tick locations would empty those of
+    # the axes it shares a scale with too (the "after" panel lost its PV scale so)
+    ax.tick_params(left=False, labelleft=False, bottom=False, labelbottom=False)
     ax.text(
         0.5,
         0.5,
