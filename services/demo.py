@@ -29,6 +29,7 @@ from services.autotuner.commands.tune import (
 from services.console import launch as console_launch
 from services.launcher import free_tcp_port
 from services.logger.report import render
+from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from services.plant_sim.simulation.models import TransferFunctionModel
 from services.plant_sim.simulation.presets import MODELS
 from services.stack import Stack, runs_dir, service_tokens
@@ -76,6 +77,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_tune_options(parser)
     console_launch.add_arguments(parser)
+
+
+def check_loop(plant: str | None, loop: str, seed: int | None) -> None:
+    """ConfigError, before anything starts, for a plant file or a loop of it the plant would
+    refuse (in the plant's words) or a ``--loop`` the file does not have (naming those it
+    has): the services would otherwise start, and the demo wait 20 s for a loop that never
+    comes up."""
+    path = plant or default_plant_path()
+    ids: list[str] = []
+
+    def note(file_ids: list[str]) -> list[str]:  # the loop to tune is built, as a check
+        ids.extend(file_ids)
+        return [loop] if loop in file_ids else []
+
+    load_plant_file(path, seed=seed, select=note)
+    if loop not in ids:
+        where = f"--plant {plant}" if plant else "the default plant"
+        raise ConfigError(f"--loop {loop}: not a loop of {where}; it has: {', '.join(ids)}")
 
 
 def exact_point(info: LoopInfo) -> tuple[float, float] | None:
@@ -137,6 +156,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--plant {args.plant}: no such file")
     if not (args.speed > 0 and args.speed < float("inf")):
         raise ConfigError(f"--speed {args.speed}: must be a finite number > 0")
+    check_loop(args.plant, args.loop, args.seed)
     req = request_from_args(args, source="autotune-demo")
     if args.console:
         console_launch.check_port(args.console_port)
