@@ -91,11 +91,27 @@ def wait_for_token(session: zenoh.Session, key_expr: str, timeout: float) -> boo
 def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float) -> None:
     """Block until the loop's liveliness token is seen, or raise PlantLost after ``timeout``."""
     if not wait_for_token(session, keys.loop_alive(prefix, loop), timeout):
+        present = live_loops(session, prefix)
+        there = (
+            f"; the loops on the bus under {prefix!r} are {', '.join(present)}"
+            if present
+            else " (is `autotune plant` running, reachable and serving that loop?)"
+        )
         raise PlantLost(
             f"loop {loop!r} not found: nothing announces {keys.loop_alive(prefix, loop)} "
-            f"after {timeout:g} s (is `autotune plant` running, reachable and serving "
-            f"that loop?){unreached(session)}"
+            f"after {timeout:g} s{there}{unreached(session)}"
         )
+
+
+def live_loops(session: zenoh.Session, prefix: str, timeout: float = 1.0) -> list[str]:
+    """The ids of the loops whose liveliness tokens are up under ``prefix``, sorted."""
+    found: set[str] = set()
+    for reply in session.liveliness().get(keys.loop_alive(prefix, keys.ANY), timeout=timeout):
+        if reply.ok is not None:
+            parsed = keys.parse_loop_key(prefix, str(reply.ok.key_expr))
+            if parsed is not None and parsed[1] == "alive":
+                found.add(parsed[0])
+    return sorted(found)
 
 
 class LoopClient:

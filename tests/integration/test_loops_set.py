@@ -256,6 +256,7 @@ BAD = [  # (loop, flags, what the one line names)
     ("b1", ["--mode", "manual", "--sp", "55", "--op", "90.5"], "--op 90.5: outside"),
     ("b1", ["--mode", "manual", "--kc", "1", "--sp", "-3"], "--sp -3: outside"),
     ("nope", ["--kc", "1", "--timeout", "1"], "'nope' not found"),
+    ("nope", ["--kc", "1", "--timeout", "1"], "are a1, b1"),  # the loops there, named
 ]
 
 
