@@ -150,6 +150,41 @@ def test_the_verification_after_keeps_its_scale_when_before_is_not_available(dem
     assert len(within) >= 3, (shown, lo, hi)
 
 
+def _points_under_boxes(fig, ax) -> int:
+    """How many vertices of the axes' data lines its legend's box and its boxed notes cover,
+    as drawn."""
+    fig.canvas.draw()
+    boxes = [t.get_window_extent() for t in ax.texts if t.get_bbox_patch() is not None]
+    if ax.get_legend() is not None:
+        boxes.append(ax.get_legend().get_window_extent())
+    under = 0
+    for ln in ax.lines:
+        if ln.get_transform() is not ax.transData:
+            continue  # a mark's vertical line across the plot, not data
+        px = ax.transData.transform(ln.get_xydata())
+        for box in boxes:
+            inside = (px[:, 0] >= box.x0) & (px[:, 0] <= box.x1)
+            under += int(np.sum(inside & (px[:, 1] >= box.y0) & (px[:, 1] <= box.y1)))
+    return under
+
+
+def test_no_legend_or_note_hides_the_recorded_data_or_the_model(demo):
+    """The demo's PV rises to its highest just after the setpoint step, at the right-hand end
+    of the model's window: where the model panel's upper-right legend stood over 471 samples.
+    Every time plot is checked: the trends (legend and the summary box), the model against
+    the data, the verification after."""
+    _, _, _, fig = demo
+    overlay = axes_by_label(fig, "PV (")
+    assert overlay.get_title().startswith("model against data")
+    for ax in (
+        axes_by_label(fig, "PV, setpoint"),
+        axes_by_label(fig, "output"),
+        overlay,
+        axes_by_label(fig, "deviation"),
+    ):
+        assert _points_under_boxes(fig, ax) == 0, ax.get_ylabel()
+
+
 def test_the_model_is_simulated_over_the_recorded_data(demo):
     """The overlay's model line is the recorded model driven by the recorded output from
     the rest of the experiment's quiet period, up to the load step: checked against

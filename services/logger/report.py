@@ -375,6 +375,50 @@ def _title(s: RunSeries) -> str:
     )
 
 
+def keep_clear(fig: Figure) -> None:
+    """Widen each plot's PV (or output) range until no legend and no boxed note of it stands
+    over its data: a legend in the upper part gets headroom, one in the lower part room
+    below. Linear axes only (a log or equal-aspect plot keeps its range); the layout must be
+    final (boxes are measured as drawn)."""
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        if ax.get_yscale() != "linear" or ax.get_aspect() != "auto":
+            continue
+        boxes = [t.get_window_extent(renderer) for t in ax.texts if t.get_bbox_patch()]
+        if ax.get_legend() is not None:
+            boxes.append(ax.get_legend().get_window_extent(renderer))
+        data = [ln.get_xydata() for ln in ax.lines if ln.get_transform() is ax.transData]
+        if not boxes or not data:
+            continue
+        xy = np.vstack(data)
+        xy = xy[np.all(np.isfinite(xy), axis=1)]
+        ax.get_xlim(), ax.get_ylim()  # the autoscaled limits made now, before the transform
+        px = ax.transData.transform(xy)[:, 0] if xy.size else np.array([])
+        for _ in range(2):  # room made below moves the data up: the boxes above are seen again
+            for box in boxes:
+                _clear_of(ax, box, xy[(px >= box.x0) & (px <= box.x1), 1])
+
+
+def _clear_of(ax: Axes, box: Any, ys: np.ndarray, margin: float = 0.02) -> None:
+    """Extend ``ax``'s y range so that the values ``ys`` (those under the box's width) lie
+    below the box (a box in the upper half) or above it (lower half), ``margin`` of the
+    axes' height clear of it."""
+    if ys.size == 0:
+        return
+    lo, hi = ax.get_ylim()
+    (_, f0), (_, f1) = ax.transAxes.inverted().transform([[box.x0, box.y0], [box.x1, box.y1]])
+    if hi <= lo:
+        return
+    if f0 + f1 > 1.0:  # upper: the highest value at most f0 − margin of the height up
+        room, top = f0 - margin, float(np.max(ys))
+        if room > 0.3 and (top - lo) / (hi - lo) > room:
+            ax.set_ylim(lo, lo + (top - lo) / room)
+    else:  # lower: the lowest value at least f1 + margin up
+        room, bottom = f1 + margin, float(np.min(ys))
+        if room < 0.7 and (bottom - lo) / (hi - lo) < room:
+            ax.set_ylim((bottom - room * hi) / (1.0 - room), hi)
+
+
 def _canvas(fig: Figure) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
@@ -395,6 +439,8 @@ def build_figure(s: RunSeries) -> Figure:
     if s.history:
         _text_panel(axes[2], s.history)
     fig.suptitle(_title(s))
+    fig.draw_without_rendering()  # the constrained layout made, the boxes where they will be
+    keep_clear(fig)
     return fig
 
 
@@ -754,6 +800,7 @@ def build_report(rep: Report) -> Figure:
     draw_before_after([ax_b, ax_a], ax_t, rep)
     _text_panel(fig.add_subplot(grid[10, :]), text)
     fig.suptitle(_title(s), y=1 - 0.15 / total)
+    keep_clear(fig)
     return fig
 
 
