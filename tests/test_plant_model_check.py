@@ -180,6 +180,32 @@ def test_linear_presets_exact_and_from_the_step(table, exact):
         assert_fopdt_figures(r, 2.0, 10.0, 2.0)
 
 
+@pytest.mark.parametrize(
+    ("table", "exact"),
+    [
+        (
+            {"model": "fopdt", "gain": -2.0, "time_constant": 10.0, "delay": 2.0},
+            lag_ultimate(2.0, (10.0,), 2.0),
+        ),
+        ({"model": "ipdt", "gain": -0.02, "delay": 3.0}, (math.pi / (2 * 0.02 * 3.0), 12.0)),
+        (
+            {"model": "transfer_function", "num": [-1.5], "den": [10.0, 1.0], "delay": 2.0},
+            lag_ultimate(1.5, (10.0,), 2.0),
+        ),
+    ],
+    ids=["fopdt", "ipdt", "transfer-function"],
+)
+def test_a_direct_acting_loops_exact_point_is_that_of_minus_g(table, exact):
+    """A process whose gain is negative is under a direct-acting controller, which closes the
+    loop around −G: its exact ultimate point is −G's (G's phase starts at −180°, and no
+    exact figure was given: only the step response's)."""
+    r = check({**table, "sample_time": 0.1, "action": "direct"})
+    assert r.ku_exact == pytest.approx(exact[0], rel=1e-9)
+    assert r.pu_exact == pytest.approx(exact[1], rel=1e-9)
+    within(r.ku_step, exact[0])
+    within(r.pu_step, exact[1])
+
+
 # --- the three test FMUs --------------------------------------------------------------------
 
 

@@ -120,6 +120,20 @@ def model_transfer(model: object) -> DelayedTF | None:
 
 
 def model_ultimate_point(model: object) -> tuple[float, float] | None:
-    """The exact ultimate point of a plant_sim linear model (None for others)."""
+    """The exact ultimate point of a plant_sim linear model (None for others), of the loop
+    its controller closes: a process whose gain is negative (its lowest-order coefficients'
+    ratio: the static gain, or an integrator's) is under a direct-acting controller, which
+    closes the loop around −G (whose phase, not G's, starts at 0° and crosses −180°)."""
     tf = model_transfer(model)
-    return None if tf is None else tf.ultimate_point()
+    if tf is None:
+        return None
+    if _low_order_sign(tf) < 0:
+        tf = DelayedTF(tuple(-c for c in tf.num), tf.den, tf.delay)
+    return tf.ultimate_point()
+
+
+def _low_order_sign(tf: DelayedTF) -> float:
+    """The sign of the ratio of the lowest-order nonzero coefficients of num and den."""
+    num = [c for c in tf.num if c != 0.0]
+    den = [c for c in tf.den if c != 0.0]
+    return float(np.sign(num[-1] / den[-1])) if num and den else 1.0
