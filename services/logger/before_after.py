@@ -56,7 +56,8 @@ ROWS = (  # (field of Verification, label, unit; "PV" stands for the PV's units)
     ("overshoot", "overshoot", "%"),
     ("decay_ratio", "decay ratio", ""),
     ("rise_time", "rise time", "s"),
-    ("settling_time", "settling time (2 %)", "s"),
+    # within 2 % of the step, or 3σ of the PV's noise where that is wider (measured_response)
+    ("settling_time", "settling (2 % or 3σ)", "s"),
     ("iae_sp", "IAE, setpoint", "PV·s"),
     ("load_step", "load step", "%"),
     ("iae_load", "IAE, load", "PV·s"),
