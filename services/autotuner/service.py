@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from services.autotuner.compute_pool import ComputePool, inline
+from services.autotuner.compute_pool import ComputePool, inline, preload
 from services.autotuner.design.request_check import validate_request
 from services.autotuner.identify.experiments import DEFAULT_STEP_SIZE
 from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
@@ -393,6 +393,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.workers <= 64:
         raise ConfigError(f"--workers {args.workers}: must be 0–64")
     settings = settings_from_args(args)
+    preload()  # what every run computes with, at start-up, not in the first run
     # the workers forked now, before the session's threads exist: up before the first run
     # (``ComputePool.fork_now``), else started with it from the fork server
     pool = ComputePool(args.workers) if args.workers > 0 else None
