@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.autotuner.tuning import SCORE_TOLERANCE, acceptance_problems
+from services.autotuner.tuning import SCORE_TOLERANCE, acceptance_problems, noisy_step_note
 from shared.messages import Verification
 from tests import test_percent_span as percent_span
 
@@ -30,3 +30,17 @@ def test_worse_beyond_the_tolerance_is_rejected(worse):
 
 def test_better_is_never_worse():
     assert acceptance_problems(verification(10.0), verification(17.19), LIMITS) == []
+
+
+def test_a_rejection_for_overshoot_on_a_step_within_the_noise_says_what_one_reading_is_worth():
+    """lvl2's verification steps are 7-9σ of its noise (a larger one would kick the output by
+    more than 50 %): one reading there scattered 16.5-33.6 % over eight seeds for gains that
+    overshoot 19.5 % without noise, and a rejection by a few points is said to be worth a
+    second run. A step clear of the noise, or another reason, says nothing of it."""
+    over = ["overshoot 39 % above the limit 35 %"]
+    note = noisy_step_note(over, -0.0204, 0.00228)
+    assert note is not None and "8.95σ of the PV's noise" in note and "run again" in note
+    assert noisy_step_note(over, 0.0204, 0.00228) == note  # a step up or down alike
+    assert noisy_step_note(over, 15.0 * 0.00228, 0.00228) is None  # 15σ: clear of the noise
+    assert noisy_step_note(["decay ratio 0.876 above the limit 0.35"], 0.02, 0.00228) is None
+    assert noisy_step_note(over, 0.02, 0.0) is None  # no noise at all
