@@ -330,8 +330,8 @@ class LoopClient:
         instance that never granted this client anything."""
         if self.gone:
             raise PlantLost(
-                f"loop {self.loop!r}: the plant was lost (its liveliness token vanished); "
-                f"{cmd.kind} not sent"
+                f"loop {self.loop!r}: the plant was lost (its liveliness token vanished: the "
+                f"plant stopped, or this process was cut off or paused); {cmd.kind} not sent"
             )
         if (
             self.holding
