@@ -16,7 +16,9 @@ const S = {
 };
 
 const $ = (id) => document.getElementById(id);
-const fmt = (v, d = 4) => (v === null || v === undefined || !isFinite(v)) ? "—" : Number(v).toPrecision(d).replace(/\.?0+(e|$)/, "$1");
+// d significant digits, the zeros after a decimal point dropped (4000 stays 4000: an integer's
+// own zeros are digits, and the old pattern printed lvl2's Ti of 4000 s as "4 s")
+const fmt = (v, d = 4) => (v === null || v === undefined || !isFinite(v)) ? "—" : Number(v).toPrecision(d).replace(/(\.\d*?)0+(?=e|$)/, "$1").replace(/\.(?=e|$)/, "");
 const fixed = (v, d) => (v === null || v === undefined || !isFinite(v)) ? "—" : Number(v).toFixed(d);
 const esc = (s) => String(s ?? "").replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" }[c]));
 

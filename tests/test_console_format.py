@@ -1,0 +1,47 @@
+"""The console page's number format (``fmt`` in console.js), run by node: d significant digits,
+only the zeros after a decimal point dropped. The old pattern also dropped an integer's own
+zeros: lvl2's Ti of 4000 s showed as "4 s" on its card."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from importlib.resources import files
+
+import pytest
+
+VALUES = [4000, 600, 10, 6.973, 15000, 0.1, 96.09, 1e-7, 120, 1000.5, -2500, None]
+EXPECTED = [
+    "4000",
+    "600",
+    "10",
+    "6.973",
+    "1.5e+4",
+    "0.1",
+    "96.09",
+    "1e-7",
+    "120",
+    "1001",
+    "-2500",
+    "—",
+]
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed")
+def test_numbers_keep_their_digits_and_lose_only_trailing_decimal_zeros():
+    script = files("services.console").joinpath("static/console.js").read_text()
+    (line,) = re.findall(r"^const fmt = .*$", script, flags=re.MULTILINE)
+    out = subprocess.run(
+        [
+            "node",
+            "-e",
+            f"{line}\nconsole.log(JSON.stringify({json.dumps(VALUES)}.map((v) => fmt(v))))",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+    )
+    assert json.loads(out.stdout) == EXPECTED
