@@ -145,6 +145,9 @@ def test_relay_tune_is_recorded_whole_and_reanalysed_exactly(
         live["ku"],
         "ok",
     )
+    # the rule whose gains the row shows, and the one asked for ("auto": it listed that)
+    assert (row["rule"], row["requested_rule"]) == (live["rule"], "auto") and live["rule"] != "auto"
+    assert row["gains"] == live["chosen"]["isa"]
 
 
 def test_step_and_ramp_runs_reanalyse_exactly(start_plant, start_tuner, start_logger, tmp_path):

@@ -120,7 +120,10 @@ def _row(path: Path, meta: dict[str, str]) -> dict:
         "started": meta.get("started"),
         "loop": meta.get("loop"),
         "method": meta.get("method"),
-        "rule": meta.get("rule"),
+        # the rule whose gains these are (the run's result); the one asked for beside it: a
+        # run asked for "auto" listed "auto" beside tl-pi's gains
+        "rule": result.get("rule") or meta.get("rule"),
+        "requested_rule": meta.get("rule"),
         "ku": result.get("ku"),
         "pu": result.get("pu"),
         "gains": isa,
@@ -156,14 +159,14 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(
         f"{'started (UTC)':<20} {'loop':<8} {'method':<6} {'K_u':>9} {'P_u (s)':>9} "
-        f"{'rule':<12} {'Kc':>8} {'Ti':>8} {'Td':>8} status"
+        f"{'rule':<14} {'Kc':>8} {'Ti':>8} {'Td':>8} status"
     )
     for r in rows:
         g = r.get("gains") or {}
         print(
             f"{(r.get('started') or '')[:19]:<20} {r.get('loop') or '':<8} "
             f"{r.get('method') or '':<6} {_num(r.get('ku')):>9} {_num(r.get('pu')):>9} "
-            f"{r.get('rule') or '':<12} {_num(g.get('kc')):>8} {_num(g.get('ti')):>8} "
+            f"{r.get('rule') or '':<14} {_num(g.get('kc')):>8} {_num(g.get('ti')):>8} "
             f"{_num(g.get('td')):>8} {_status(r)}  {r['file']}"
         )
     if any("not a readable MCAP file" in (r.get("reason") or "") for r in rows):
