@@ -61,7 +61,7 @@ class LoggerService:
         c = self.recorder.counts
         return LoggerStatus(
             node=self.node,
-            runs_dir=str(self.recorder.runs_dir),
+            runs_dir=str(self.recorder.runs_dir.resolve()),  # absolute: a client elsewhere finds it
             open_runs=self.recorder.open_runs(),
             finished_runs=len(self.recorder.finished),
             received=c["received"],

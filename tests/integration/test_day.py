@@ -79,6 +79,15 @@ def test_a_day_with_a_loop(start_plant, start_tuner, start_logger, tmp_path):
     )
     assert shown[0]["tune"]["verification_after"]["overshoot"] == tuned["after"]["overshoot"]
 
+    # looked for in another directory: none on record there, and the one line says where the
+    # logger on the bus writes (it said only that there was none)
+    empty = tmp_path / "elsewhere"
+    empty.mkdir()
+    wrong = cli(plant, "revert", LOOP, "--runs", str(empty), check=False)
+    assert wrong.returncode == 2 and len(wrong.stderr.strip().splitlines()) == 1, wrong.stderr
+    assert f"writes to {runs.resolve()}: --runs {runs.resolve()}" in wrong.stderr, wrong.stderr
+    assert gains(plant) == g1  # nothing moved
+
     reverted = json.loads(cli(plant, "revert", LOOP, "--runs", str(runs), "--json").stdout)
     assert reverted["after"] == g0 and gains(plant) == g0  # exactly the previous gains
     assert changes_seen(runs, 2)[-1]["by_source"] == "autotune-revert"
@@ -86,6 +95,8 @@ def test_a_day_with_a_loop(start_plant, start_tuner, start_logger, tmp_path):
     pending = json.loads(cli(plant, "tune", LOOP, "--no-apply", "--json").stdout)
     assert pending["status"] == "proposed" and not pending["applied"] and gains(plant) == g0
     rule = pending["recommended"]["rule"]
+    wrong = cli(plant, "apply", pending["run_id"], "--runs", str(empty), check=False)
+    assert wrong.returncode == 2 and f"--runs {runs.resolve()}" in wrong.stderr, wrong.stderr
     applied = json.loads(
         cli(plant, "apply", pending["run_id"], "--runs", str(runs), "--json").stdout
     )

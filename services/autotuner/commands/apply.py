@@ -24,12 +24,14 @@ from typing import Any
 
 import zenoh
 
+from services.autotuner.commands.logger_dirs import elsewhere_asked
 from services.autotuner.commands.tune import add_units_option, figure, run_and_report
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
 from shared.history_file import HISTORY_FILE, read_history
 from shared.messages import APPLICABLE_STATUSES, LoopInfo, PidGains, TuneRequest
+from shared.session import settings_from_args
 
 HELP = "apply (and verify) the gains a recorded run recommended, e.g. after tune --no-apply"
 
@@ -123,7 +125,11 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")
     if not 0 < args.wait < float("inf"):
         raise ConfigError(f"--wait {args.wait}: must be a finite number of seconds > 0")
-    rec = recorded_run(runs, args.run_id)
+    try:
+        rec = recorded_run(runs, args.run_id)
+    except ConfigError as err:
+        hint = elsewhere_asked(settings_from_args(args), args.prefix, runs)
+        raise ConfigError(f"{err}{hint}") from None
     loop = str(rec.get("loop"))
     rule, gains, predicted = choose(rec, args.rule)
     if not rec.get("timescale"):

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from services.autotuner.commands.logger_dirs import elsewhere
 from services.autotuner.loop_client import CommandRefused, LoopClient, wait_for_loop
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
@@ -112,14 +113,17 @@ def run(args: argparse.Namespace) -> int:
                     break
                 time.sleep(0.1)
             if not changes:
-                raise ConfigError(f"{path}: no change of {args.loop}'s gains on record")
+                raise ConfigError(
+                    f"{path}: no change of {args.loop}'s gains on record"
+                    f"{elsewhere(session, args.prefix, runs)}"
+                )
             undo = target(changes, args.to, args.steps)
             if not current and not args.force:
                 raise AutotuneError(
                     f"loop {args.loop}: its gains ({_line(now.gains)}) are not the last on "
                     f"record ({_line(_gains(last['after'], 'last'))}): a change the history "
-                    "did not see (is the logger running on this runs directory?); --force "
-                    "reverts anyway"
+                    f"did not see (is the logger running on this runs directory?"
+                    f"{elsewhere(session, args.prefix, runs)}); --force reverts anyway"
                 )
             back = _gains(undo["before"], "earlier")
             try:
