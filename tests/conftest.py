@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from services.autotuner.compute_pool import preload
 from services.launcher import free_tcp_port, start_service, stop_service
 from shared import keys
 from tests.running_services import RunningPlant, wait_for_tokens
@@ -21,6 +22,12 @@ _counter = itertools.count()
 # default dispositions, for this process and (inherited) the services it starts.
 signal.signal(signal.SIGINT, signal.default_int_handler)
 signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+# The numerics a run computes with, imported now as the tuner service imports them at its
+# start (``compute_pool.preload``): the library imports scipy's modules where they are used,
+# and a run in this process (an in-process TuningRun on a realtime plant) would otherwise pay
+# for them inside its first step, holding a lease of half a second (it lost one so in CI)
+preload()
 
 
 @pytest.fixture

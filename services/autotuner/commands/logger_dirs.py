@@ -7,6 +7,7 @@ from pathlib import Path
 
 import zenoh
 
+from services.autotuner.loop_client import wait_for_token
 from shared import keys, wire
 from shared.messages import LoggerStatus
 from shared.session import ZenohSettings, open_session
@@ -28,9 +29,13 @@ def elsewhere(session: zenoh.Session, prefix: str, runs: Path) -> str:
 
 
 def elsewhere_asked(settings: ZenohSettings, prefix: str, runs: Path) -> str:
-    """``elsewhere`` through a session of its own (empty if none can be opened within 5 s)."""
+    """``elsewhere`` through a session of its own (empty if no logger is seen within 5 s)."""
     try:
         with open_session(settings, 5.0) as session:
+            # a logger's token seen first: the session has reached the bus before it asks
+            # (a query at once, on a loaded machine, went out before it had, and none answered)
+            if not wait_for_token(session, keys.logger_alive(prefix, "*"), 5.0):
+                return ""
             return elsewhere(session, prefix, runs)
     except Exception:  # a hint, not the error: the line it adds to is said either way
         return ""
