@@ -49,6 +49,9 @@ class LoggerService:
         self.session = session
         self.recorder = recorder
         self.node = node
+        # said absolute in its status: a client in another directory (or on another machine)
+        # is told where the runs are (``revert``, ``apply``)
+        self.runs_dir = str(recorder.runs_dir.resolve())
         self.lock = threading.Lock()
         # every loop's gains changes, kept beside the run files (``history.jsonl``)
         self.history = history or ChangeHistory(
@@ -61,7 +64,7 @@ class LoggerService:
         c = self.recorder.counts
         return LoggerStatus(
             node=self.node,
-            runs_dir=str(self.recorder.runs_dir.resolve()),  # absolute: a client elsewhere finds it
+            runs_dir=self.runs_dir,
             open_runs=self.recorder.open_runs(),
             finished_runs=len(self.recorder.finished),
             received=c["received"],
