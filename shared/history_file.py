@@ -25,6 +25,12 @@ def run_of(source: str | None) -> str | None:
     return None
 
 
+def proposed_rule(tune: dict[str, Any]) -> str | None:
+    """The rule a run's ``tune`` record proposed: the one it chose (a ``--rule`` asked for,
+    else the recommended one), the rule ``autotune apply`` applies unless told another."""
+    return tune.get("rule") or tune.get("recommended")
+
+
 def read_history(path: Path, skipped: list[int] | None = None) -> Iterator[dict[str, Any]]:
     """The records of a history file, oldest first; a line that is not a JSON object (a
     line cut short by a crash, an edit) is skipped, its number (from 1) added to ``skipped``

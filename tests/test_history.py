@@ -299,6 +299,18 @@ def test_apply_takes_the_recommended_rule_and_refuses_one_outside_the_envelope()
         choose({**RUN, "status": "aborted"}, None)
 
 
+def test_apply_takes_the_rule_the_tune_proposed():
+    """``tune --no-apply --rule tl-pi`` proposed TL-PI, and its hint said `autotune apply`
+    applies them: apply took the recommended TL-PID instead (seen: AMIGO-PI proposed, SIMC-PI
+    applied at 2.3× its Kc). The listing names both."""
+    proposed = {**RUN, "status": "proposed", "rule": "tl-pi"}
+    assert choose(proposed, None)[:2] == ("tl-pi", PidGains(kc=4.75, ti=96.0, td=0.0))
+    assert choose(proposed, "tl-pid")[0] == "tl-pid"
+    base = {"record": "tune", "utc": "2026-12-04T19:00:00", "t": 1.0, "method": "relay"}
+    line = format_entries(LOOP, Path("runs"), [{**base, **proposed}]).splitlines()[1]
+    assert line.endswith("not applied; proposed tl-pi (recommended tl-pid): `autotune apply r1`")
+
+
 def test_apply_checks_the_loop_is_the_one_identified():
     info = LoopInfo(
         loop="hx1", node="plant", t=0.0, model="heat_exchanger", description="",

@@ -29,7 +29,7 @@ from services.autotuner.commands.tune import add_units_option, figure, run_and_r
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
-from shared.history_file import HISTORY_FILE, read_history
+from shared.history_file import HISTORY_FILE, proposed_rule, read_history
 from shared.messages import APPLICABLE_STATUSES, LoopInfo, PidGains, TuneRequest
 from shared.session import settings_from_args
 
@@ -39,7 +39,9 @@ HELP = "apply (and verify) the gains a recorded run recommended, e.g. after tune
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_id", metavar="RUN_ID", help="the run whose gains to apply")
     parser.add_argument(
-        "--rule", help="one of the run's other rules (default: the one it recommended)"
+        "--rule",
+        help="one of the run's other rules (default: the one it proposed: the rule its tune "
+        "asked for, else the recommended one)",
     )
     parser.add_argument("--no-verify", action="store_true", help="apply without verifying")
     parser.add_argument(
@@ -77,7 +79,7 @@ def choose(run: dict[str, Any], rule: str | None) -> tuple[str, PidGains, float 
     or the run when they may not be applied."""
     if run.get("status") not in APPLICABLE_STATUSES:
         raise ConfigError(f"run {run.get('run_id')}: {run.get('status')}, no gains to apply")
-    rule = rule or run.get("recommended") or run.get("rule")
+    rule = rule or proposed_rule(run)
     gains = run.get("gains") or {}
     if rule not in gains or not gains[rule]:
         raise ConfigError(f"--rule {rule}: the run has no gains for it ({', '.join(gains)})")

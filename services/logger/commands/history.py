@@ -17,7 +17,7 @@ from typing import Any
 
 from shared.cli import check_ids
 from shared.errors import ConfigError
-from shared.history_file import HISTORY_FILE, of_loop, read_history
+from shared.history_file import HISTORY_FILE, of_loop, proposed_rule, read_history
 from shared.keys import DEFAULT_PREFIX
 from shared.messages import APPLICABLE_STATUSES
 
@@ -57,6 +57,15 @@ def entries(
         elif r.get("record") == "tune" and r.get("run_id") not in changed:
             out.append(r)
     return out
+
+
+def _proposed(tune: dict[str, Any]) -> str:
+    """What a run that did not apply its gains proposed: its rule, and the recommended one
+    where the tune asked for another (``autotune apply`` applies the proposed one)."""
+    rule, recommended = proposed_rule(tune), tune.get("recommended")
+    if recommended and rule != recommended:
+        return f"proposed {rule} (recommended {recommended})"
+    return f"recommended {rule}"
 
 
 def _num(x: Any, unit: str = "") -> str:
@@ -122,7 +131,7 @@ def format_entries(
     for r in items:
         when = f"{r.get('utc', '?')}  t = {_num(r.get('t'), ' s')}"
         if r.get("record") == "tune":
-            rule = r.get("recommended") or r.get("rule")
+            rule = proposed_rule(r)
             source = r.get("applied_from")  # an `autotune apply` run: another run's gains
             kind = f"apply of run {source}" if source else r.get("method")
             head = f"  {when}  run {r.get('run_id')} ({kind}): {r.get('status')}, "
@@ -130,7 +139,7 @@ def format_entries(
                 lines.append(f"{head}not applied (the gains of run {source}, {rule})")
             elif r.get("status") in APPLICABLE_STATUSES and r.get("gains"):
                 lines.append(
-                    f"{head}not applied; recommended {rule}: `autotune apply {r.get('run_id')}`"
+                    f"{head}not applied; {_proposed(r)}: `autotune apply {r.get('run_id')}`"
                 )
             else:  # an aborted or failed run: nothing `autotune apply` would take
                 lines.append(f"{head}no gains to apply")
