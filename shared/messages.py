@@ -552,7 +552,7 @@ class Verification(Message):
     decay_ratio: float | None = Field(description="second peak over first (ZN aim: 0.25)")
     rise_time: float | None
     settling_time: float | None = Field(description="s to stay within 2 % of the step")
-    iae_sp: float
+    iae_sp: float | None = Field(description="PV units·s; None: no setpoint step was measured")
     load_step: float | None = Field(description="% of output, None when the model has no load")
     iae_load: float | None
     max_deviation_load: float | None
@@ -565,6 +565,15 @@ class Verification(Message):
     )
     op_noise: float | None = Field(
         default=None, description="σ of the output at rest with these gains, % of output"
+    )
+    op_limited: float | None = Field(
+        default=None,
+        description="s of the setpoint step's response the output spent at a limit (then the "
+        "response is not the linear loop's); None: no step measured",
+    )
+    op_rest: float | None = Field(default=None, description="% of output at rest before the test")
+    kick: float | None = Field(
+        default=None, description="% of output: the setpoint step's proportional kick, |Kc·step|"
     )
 
 

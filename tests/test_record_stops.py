@@ -159,3 +159,38 @@ def test_a_calm_stop_carries_at_most_its_window() -> None:
         CalmStop.model_validate_json(
             '{"fed": 1, "start": 2, "window": 10, "limit": 0.1, "history": [NaN]}'
         )
+
+
+# the guard's verdict on deviations of closed form, over windows of N samples
+N = 50
+T = np.arange(4 * N, dtype=float)  # four whole windows, in samples
+OP = np.full(T.size, 50.0)  # the output well inside its limits
+
+
+def test_the_guard_stops_an_oscillation_that_grows():
+    dev = 0.1 * np.exp(T / 60.0) * np.sin(2 * np.pi * T / 20.0)  # ×2.3 a window
+    assert "the oscillation grows" in Guard((0.0, 100.0), N).check(dev, OP)
+
+
+def test_the_guard_stops_a_deviation_that_runs_away_without_swinging():
+    dev = 0.01 * (np.exp(T / 40.0) - 1.0)  # a real closed-loop pole in the right half-plane
+    assert "runs away without swinging" in Guard((0.0, 100.0), N).check(dev, OP)
+
+
+@pytest.mark.parametrize("tau", [0.8 * N, 1.5 * N, 4.0 * N])
+def test_the_guard_lets_a_loop_settle_to_an_offset(tau):
+    """P-only control of an integrating process under a load step settles to the offset
+    load/Kc along 1 − e^{−t/τ}: its largest deviation grows from window to window (by more
+    than 10 % each where τ is over a window), ever more slowly, and never swings. It was
+    stopped as "the oscillation grows" (seen: 1.36 → 2.04 → 2.32 on a level loop whose
+    previous gains were P-only)."""
+    dev = 2.5 * (1.0 - np.exp(-T / tau)) + 0.01 * np.sin(T)  # a little ripple on it
+    for m in (3 * N, 4 * N):  # asked as each whole window comes in
+        assert Guard((0.0, 100.0), N).check(dev[:m], OP[:m]) is None
+        assert Guard((0.0, 100.0), N).check(-dev[:m], OP[:m]) is None
+
+
+def test_the_guard_lets_a_decaying_oscillation_be():
+    dev = 3.0 * np.exp(-T / 60.0) * np.sin(2 * np.pi * T / 20.0)
+    for m in (3 * N, 4 * N):
+        assert Guard((0.0, 100.0), N).check(dev[:m], OP[:m]) is None

@@ -78,6 +78,13 @@ VERIFY_KICK = 20.0  # % of output: the setpoint step's proportional kick at most
 VERIFY_NOISE = 20.0  # … unless that leaves the step below this many σ of the PV noise…
 VERIFY_MAX_KICK = 50.0  # … which a kick up to this % of output may buy…
 VERIFY_MIN_NOISE = 8.0  # … and this many σ in any case
+# … and every kick within this fraction of the output's room, from where it rests to the limit
+# it moves toward: the integral adds to the kick as the PV lags (a 45-53 % output kicked by
+# 3.8 % from 49 % sat at 53 %, and the overshoot read was the limited loop's, not the linear)
+VERIFY_ROOM = 0.5
+# spans a verification waits in all for a loop creeping toward its setpoint (not swinging
+# about it) to settle there before the step: slow gains, not unstable ones
+VERIFY_SETTLE_SPANS = 3
 MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
 # samples per lockstep round trip of an experiment at most: each ends its batches exactly
 # where its next decision may fall (``horizon``, ``band``), so any cap gives the same run
@@ -908,6 +915,9 @@ class TuningRun:
                 "slow: the setpoint step was not yet within its band at the end of the "
                 "verification (no sustained swing)"
             )
+        limited = limited_step_note(after_v, self.info.op_limits, predicted)
+        if limited is not None:
+            notes.append(limited)
         noisy = noisy_step_note(problems, after_v.sp_step, ident.noise)
         if noisy is not None:
             notes.append(noisy)
@@ -1059,14 +1069,19 @@ class TuningRun:
         c = self.client
         scale = max(ident.timescale, 20 * self.ts)
         lo, hi = self.info.pv_range
+        sign = 1 if sp0 < 0.5 * (lo + hi) else -1  # toward the middle of the range
+        room = self._op_room(sign)
+        kick, noise_kick = VERIFY_KICK, VERIFY_MAX_KICK
+        if room is not None:
+            kick, noise_kick = min(kick, VERIFY_ROOM * room), min(noise_kick, VERIFY_ROOM * room)
         size = VERIFY_SP_FRACTION * (hi - lo)
         if gains.kc > 0:
-            size = min(size, VERIFY_KICK / gains.kc)
+            size = min(size, kick / gains.kc)
         # a step clear of the noise (its overshoot is read to a few per cent), as long as the
         # kick stays moderate; never less than VERIFY_MIN_NOISE σ
-        size = max(size, min(VERIFY_NOISE * ident.noise, VERIFY_MAX_KICK / max(gains.kc, 1e-12)))
+        size = max(size, min(VERIFY_NOISE * ident.noise, noise_kick / max(gains.kc, 1e-12)))
         size = max(size, VERIFY_MIN_NOISE * ident.noise)
-        step = size * (1 if sp0 < 0.5 * (lo + hi) else -1)
+        step = size * sign
         # a step is watched for 15 time scales, and at least 8 integral times: a robust PI's
         # slow integral removes the last per cent late, which is not instability
         span = max(15 * scale, 8 * gains.ti if gains.ti else 0.0)
@@ -1086,18 +1101,29 @@ class TuningRun:
             return SettleRule(k, target, band, 2 * band, after)
 
         _, y_pre, u_pre, why = self._record(span, at(sp0), sp0, guard)
+        waited = span
+        # slow, not unstable: a loop that creeps toward its setpoint is given more time
+        while (
+            why is None
+            and not at(sp0).done(np.array([]), y_pre)
+            and waited < VERIFY_SETTLE_SPANS * span
+            and creeping(y_pre, sp0, k, band)
+        ):
+            _, y_more, u_more, why = self._record(span, at(sp0), sp0, guard)
+            y_pre, u_pre = np.concatenate((y_pre, y_more)), np.concatenate((u_pre, u_more))
+            waited += span
         # the output's noise at rest: what the gains make of the PV's noise (σ of the sample
         # to sample change over √2, so that a slow drift does not count)
         tail = u_pre[-k:]
         op_noise = float(np.std(np.diff(tail)) / math.sqrt(2.0)) if tail.size > 2 else None
         stopped = why
         if why is None and not at(sp0).done(np.array([]), y_pre):
-            stopped = f"the loop did not settle at its setpoint within {span:.4g} s"
+            stopped = unsettled(y_pre, sp0, k, band, waited, self.info.pv_units)
         # the step starts from the setpoint where the loop has settled on it, else from where
         # the PV is (on average over the last time scale)
         t0 = self._t
         y0 = sp0 if y_pre.size and at(sp0).done(np.array([]), y_pre) else float(np.mean(y_pre[-k:]))
-        sp_m, saturated, load_size, load_m = None, False, None, None
+        sp_m, saturated, load_m = None, False, None
         u = np.array([])
         if stopped is None:
             c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
@@ -1107,6 +1133,8 @@ class TuningRun:
                 t, y, t0, y0, sp0 + step, noise=ident.noise, width=width
             )
         op_lo, op_hi = self.info.op_limits
+        # the setpoint step's response with the output at a limit is not the linear loop's
+        limited = float(np.count_nonzero((u <= op_lo) | (u >= op_hi))) * self.ts if u.size else 0.0
         saturated = bool(np.mean((u <= op_lo) | (u >= op_hi)) > 1 / 3) if u.size else False
         # not yet within the band at the end is slow, not unstable, unless it still swings
         stable = stopped is None and sp_m is not None
@@ -1114,8 +1142,10 @@ class TuningRun:
         stable = stable and (sp_m["decay_ratio"] or 0) < 1
         before = c.sync()
         back: list[Command] = []  # the load step taken off again, with the setpoint's return
-        if stable and "load" in before.disturbances:
-            load_size = self.req.amplitude or experiments.DEFAULT_RELAY_AMPLITUDE
+        load_size = load_step_size(
+            self.req.amplitude or experiments.DEFAULT_RELAY_AMPLITUDE, before.op, (op_lo, op_hi)
+        )
+        if stable and "load" in before.disturbances and load_size is not None:
             base = before.disturbances["load"]
             t1 = self._t
             c.command(
@@ -1149,8 +1179,8 @@ class TuningRun:
                 # ended 9 % of span off its setpoint after 5 time scales (800 s)
                 slow = max(_seconds_of(sp_m, "settling_time"), _seconds_of(load_m, "recovery_time"))
                 self._record(max(5 * scale, min(1.5 * slow, span)), at(sp0))
-        iae_sp = sp_m["iae"] if sp_m else 0.0
-        score = iae_sp / abs(step) + (load_m["iae"] / load_size if load_m else 0.0)
+        iae_sp = sp_m["iae"] if sp_m else None  # None: no step measured (not a perfect 0)
+        score = (iae_sp or 0.0) / abs(step) + (load_m["iae"] / abs(load_size) if load_m else 0.0)
         return Verification(
             gains=gains,
             sp_step=step,
@@ -1158,8 +1188,8 @@ class TuningRun:
             decay_ratio=sp_m["decay_ratio"] if sp_m else None,
             rise_time=sp_m["rise_time"] if sp_m else None,
             settling_time=sp_m["settling_time"] if sp_m else None,
-            iae_sp=finite(iae_sp) or 0.0,
-            load_step=load_size,
+            iae_sp=None if iae_sp is None else finite(iae_sp) or 0.0,
+            load_step=load_size if load_m is not None else None,
             iae_load=load_m["iae"] if load_m else None,
             max_deviation_load=load_m["max_deviation"] if load_m else None,
             recovery_time=load_m["recovery_time"] if load_m else None,
@@ -1168,7 +1198,21 @@ class TuningRun:
             score=finite(score) if math.isfinite(score) else 1e300,
             stopped=stopped,
             op_noise=op_noise,
+            op_limited=limited if sp_m is not None else None,
+            op_rest=self.before.op if self.before is not None else None,
+            kick=abs(gains.kc * step),
         )
+
+    def _op_room(self, sign: int) -> float | None:
+        """% of output from where the output rests (before the test: the loop goes back to
+        it at the setpoint) to the limit a setpoint step of ``sign`` drives it toward (a
+        reverse-acting loop's output rises with its setpoint); None if not known."""
+        b = self.before
+        if b is None or not math.isfinite(b.op):
+            return None
+        lo, hi = self.info.op_limits
+        up = sign > 0 if b.action == "reverse" else sign < 0
+        return max(0.0, hi - b.op if up else b.op - lo)
 
 
 class _LivePort:
@@ -1220,6 +1264,31 @@ class _LivePort:
         return self._hold
 
 
+def creeping(y: np.ndarray, target: float, k: int, band: float) -> bool:
+    """The record's PV still comes toward ``target``: its mean over the last ``k`` samples
+    nearer it than over the ``k`` before, by more than a tenth of ``band``, and not swinging
+    about it (``swinging``). A loop settling to an offset (P-only control) comes no nearer."""
+    if y.size < 2 * k:
+        return False
+    last, before = (
+        abs(float(np.mean(y[-k:])) - target),
+        abs(float(np.mean(y[-2 * k : -k])) - target),
+    )
+    return last < before - 0.1 * band and not swinging(y, target, k, band)
+
+
+def unsettled(y: np.ndarray, target: float, k: int, band: float, waited: float, units: str) -> str:
+    """Why a verification's wait for the loop to settle at its setpoint ``target`` ended
+    without it: the PV swings about it, creeps toward it (slow), or rests off it."""
+    off = float(np.mean(y[-k:])) - target if y.size else math.nan
+    head = f"the loop did not settle at its setpoint within {waited:.4g} s"
+    if y.size and swinging(y, target, k, band):
+        return f"{head} (it still swings about it)"
+    if y.size >= 2 * k and creeping(y, target, k, band):
+        return f"{head} (still {off:+.3g} {units} off, creeping toward it: slow, not swinging)"
+    return f"{head} (it rests {off:+.3g} {units} off it)"
+
+
 def judged_batch_end(k: int, n_max: int, judge: int, window: int | None, windows: int) -> int:
     """The sample count at which ``TuningRun._record``, holding ``k`` of ``n_max`` samples,
     next judges its record: the next multiple of ``8·judge`` (``done``), the first multiple
@@ -1248,6 +1317,41 @@ def swinging(y: np.ndarray, target: float, k: int, band: float) -> bool:
         crossings = int(np.sum(np.diff(np.sign(big)) != 0)) if big.size > 1 else 0
         swings.append((crossings, float(np.ptp(h)) if h.size else 0.0))
     return all(c >= 2 for c, _ in swings) and swings[1][1] > 0.5 * swings[0][1]
+
+
+def load_step_size(size: float, op: float, op_limits: tuple[float, float]) -> float | None:
+    """The verification's load step (% of output, added to the process input): ``size``, or
+    less, within ``VERIFY_ROOM`` of the output's room from ``op`` to the limit the loop drives
+    it toward to take the load (down for a load up); the other way where that side has more
+    room and this one too little; None where neither side has a tenth of a per cent (a load
+    the output cannot take is a saturated loop, not a verification)."""
+    lo, hi = op_limits
+    down, up = max(0.0, op - lo), max(0.0, hi - op)
+    if VERIFY_ROOM * down < size and up > down:
+        out = -min(size, VERIFY_ROOM * up)
+    else:
+        out = min(size, VERIFY_ROOM * down)
+    return out if abs(out) >= 0.1 and math.isfinite(out) else None
+
+
+def limited_step_note(
+    v: Verification, op_limits: tuple[float, float], predicted: float | None
+) -> str | None:
+    """What the verification's figures are worth when the output sat at a limit during the
+    setpoint step's response: those of the limited loop, not of the linear response the
+    model predicts (None: it never did)."""
+    if not v.op_limited:
+        return None
+    lo, hi = op_limits
+    where = f"from {v.op_rest:.4g} %" if v.op_rest is not None else ""
+    kick = f"a kick of {v.kick:.3g} % {where}".rstrip() if v.kick is not None else "the step"
+    shown = f"{v.overshoot:.3g} %" if v.overshoot is not None else "—"
+    pred = f"; {predicted:.3g} % predicted" if predicted is not None else ""
+    return (
+        f"the output sat at a limit of its range [{lo:g}, {hi:g}] % for {v.op_limited:.3g} s of "
+        f"the setpoint step's response ({kick}): the "
+        f"overshoot measured ({shown}{pred}) is the limited loop's, not the linear response"
+    )
 
 
 def noisy_step_note(problems: list[str], sp_step: float, noise: float) -> str | None:

@@ -79,7 +79,11 @@ def settle_point(m: int, judge: int) -> bool:
 class Guard:
     """Stops a record that runs away: the output saturated over two whole windows, or the
     largest deviation from the setpoint growing over two successive windows (by ≥ 10 % each
-    and beyond the first window's): either shows within about three windows."""
+    and beyond the first window's) as an oscillation (it swings about the setpoint) or, not
+    swinging, without slowing (each window's growth at least the last's): either shows
+    within about three windows. A deviation that grows ever more slowly and does not swing
+    is a loop settling to an offset (P-only control of an integrating process under a load),
+    not a runaway."""
 
     def __init__(self, op_limits: tuple[float, float], window_samples: float):
         self.lo, self.hi = op_limits
@@ -97,12 +101,23 @@ class Guard:
         if sat[-1] > 0.5 and sat[-2] > 0.5:
             return f"the output saturated ({100 * sat[-1]:.0f} % of the last window at a limit)"
         peaks = np.abs(dev[: k * n]).reshape(k, n).max(axis=1)
-        if k >= 3 and peaks[-1] > 1.1 * peaks[-2] > 1.21 * peaks[-3] and peaks[-1] > peaks[0]:
-            return (
-                f"the oscillation grows (largest deviation {peaks[-3]:.3g} → {peaks[-2]:.3g} → "
-                f"{peaks[-1]:.3g} over successive windows)"
-            )
+        if not (k >= 3 and peaks[-1] > 1.1 * peaks[-2] > 1.21 * peaks[-3]):
+            return None
+        if not peaks[-1] > peaks[0]:
+            return None
+        grown = f"{peaks[-3]:.3g} → {peaks[-2]:.3g} → {peaks[-1]:.3g} over successive windows"
+        if swings(dev[(k - 3) * n : k * n], 0.25 * peaks[-1]) >= 2:
+            return f"the oscillation grows (largest deviation {grown})"
+        if peaks[-1] - peaks[-2] >= peaks[-2] - peaks[-3]:
+            return f"the deviation runs away without swinging (largest deviation {grown})"
         return None
+
+
+def swings(dev: np.ndarray, level: float) -> int:
+    """Sign changes of ``dev`` counted only among its values beyond ±``level``: the swings of
+    an oscillation about zero, not the noise's about a deviation near zero."""
+    big = dev[np.abs(dev) > level]
+    return int(np.count_nonzero(np.diff(np.sign(big)))) if big.size > 1 else 0
 
 
 def record_test(
