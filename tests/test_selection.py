@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from services.autotuner.design.recommend import assess, recommend
+from services.autotuner.design.recommend import above, assess, recommend
 from services.autotuner.design.rules import UltimatePoint
 from services.autotuner.design.selection import assessments_dict, guidance, select
 from services.autotuner.identify import experiments
@@ -252,3 +252,10 @@ def test_a_candidate_that_cannot_be_judged_has_no_step_and_the_others_theirs(mon
     assert {k: repr(a.step) for k, a in every.items() if k in kept} == {
         k: repr(s) for k, s in alone.items()
     }
+
+
+def test_an_ms_just_above_its_bound_reads_above_it():
+    """Ms 2.0019 against the bound 2 was printed "predicted Ms 2 above the bound 2"."""
+    assert above(2.0019, 2.0) == "2.002"
+    assert above(2.0000004, 2.0) == "2.0000004"
+    assert above(2.71, 2.0) == "2.71"

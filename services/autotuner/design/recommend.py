@@ -131,8 +131,18 @@ def envelope_problem(a: Assessment, ultimate: UltimatePoint | None, ms_bound: fl
             f"{rb.phase_margin_deg:.3g}°)"
         )
     if rb.ms > ms_bound:
-        return f"predicted Ms {rb.ms:.3g} above the bound {ms_bound:g} on {on}"
+        return f"predicted Ms {above(rb.ms, ms_bound)} above the bound {ms_bound:g} on {on}"
     return None
+
+
+def above(x: float, bound: float) -> str:
+    """``x`` to 3 significant digits, or as many more as it takes to read above ``bound``
+    (Ms 2.0019 was printed "2 above the bound 2")."""
+    for digits in range(3, 10):
+        text = f"{x:.{digits}g}"
+        if float(text) > bound:
+            return text
+    return repr(x)
 
 
 def judge_all(
