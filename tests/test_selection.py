@@ -11,6 +11,10 @@ from services.autotuner.design.selection import assessments_dict, guidance, sele
 from services.autotuner.identify import experiments
 from services.autotuner.identify.model_fit import ProcessFit, StepModel, model_of
 from services.autotuner.identify.reaction_curve import ReactionCurve
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.messages import TuneRequest
 from tests.exact import lag_ultimate, ultimate_point
 from tests.plants import HX, run_relay
 
@@ -259,3 +263,18 @@ def test_an_ms_just_above_its_bound_reads_above_it():
     assert above(2.0019, 2.0) == "2.002"
     assert above(2.0000004, 2.0) == "2.0000004"
     assert above(2.71, 2.0) == "2.71"
+
+
+def test_a_refusal_names_the_rules_left_out_within_the_envelope():
+    """1/(s+1)³ at 0.2 s, relay without bias: TL-PI and TL-PID are outside the envelope on
+    the sampled loop, and the refusal listed only the rules outside it: AMIGO, SIMC and the
+    lambda rules, within it, were left out of the recommendation (a relay without bias does
+    not pin the static gain) without a word."""
+    spec = {"model": "transfer_function", "num": [1.0], "den": [1.0, 3.0, 3.0, 1.0],
+            "sample_time": 0.2, "noise_std": 0.0}  # fmt: skip
+    loop = build_plant({"seed": 1, "loops": {"x": spec}})["x"]
+    r = TuningRun(LocalLoopClient(loop), TuneRequest(loop="x", method="relay"), "unit").run()
+    assert r.status == "rejected" and r.reason.startswith("no rule could be recommended")
+    inside = r.reason.split("within the envelope but not recommended: ")[1]
+    assert "amigo-pi" in inside and "simc-pi" in inside and "tl-pi" not in inside
+    assert "a relay without bias does not pin the static gain" in inside

@@ -220,6 +220,8 @@ def select(
             del table[name]
     assessments = assess(ultimate, model, table, simulate=True, sample_time=ts, parts=parts)
     pool = assessments
+    # why each rule judged but not in the pool is left out of it (a refusal names them)
+    left_out: dict[str, str] = {}
     if model is not None and ultimate is not None and not ident.static_gain_known:
         # the relay's points pin G near ω_u, not its static gain nor its low frequencies:
         # every rule is computed and judged, but the recommendation is Tyreus–Luyben's, made
@@ -228,6 +230,8 @@ def select(
         robust = {k: a for k, a in assessments.items() if k in UNBIASED_RELAY_RULES}
         if robust:
             pool = robust
+            for k in assessments.keys() - robust.keys():
+                left_out[k] = "a relay without bias does not pin the static gain they need"
             warnings.append(
                 "the relay does not measure the static gain (its mean output does not move): "
                 "the model is sure only near the ultimate point, so the recommendation is "
@@ -240,6 +244,8 @@ def select(
         coarse = {k for k, a in pool.items() if 0 < a.gains.td < MIN_TD_SAMPLES * ts}
         if coarse and len(coarse) < len(pool):
             pool = {k: a for k, a in pool.items() if k not in coarse}
+            for k in coarse:
+                left_out[k] = f"a derivative time below {MIN_TD_SAMPLES:g} samples"
             warnings.append(
                 f"derivative times below {MIN_TD_SAMPLES:g} samples ({', '.join(sorted(coarse))}) "
                 "are not recommended: the sampled derivative is then mostly high-frequency gain"
@@ -290,6 +296,15 @@ def select(
             sel.refusal = "no rule could be recommended" + (
                 f" (outside the safety envelope or unavailable: {'; '.join(why)})" if why else ""
             )
+            inside: dict[str, list[str]] = {}
+            for k in sorted(left_out.keys() - unsafe.keys()):
+                inside.setdefault(left_out[k], []).append(k)
+            if inside:
+                told = "; ".join(f"{', '.join(ks)} ({why})" for why, ks in inside.items())
+                sel.refusal += (
+                    f"; within the envelope but not recommended: {told} (--rule takes one, "
+                    "verified as any)"
+                )
         elif name in unavailable:
             sel.refusal = f"rule {name}: unavailable: {unavailable[name]}"
         else:
