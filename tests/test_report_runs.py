@@ -138,3 +138,12 @@ def test_runs_compare_gives_spreads_in_the_percent_its_unit_says(runs):
     assert row["unit"] == "%" and row["a"] == pytest.approx(100.0 * result["ku_spread"])
     line = next(x for x in format_compare(c).splitlines() if x.startswith("K_u spread (%)"))
     assert f"{100.0 * result['ku_spread']:.3g}" in line
+
+
+def test_runs_compare_keeps_its_columns_apart():
+    """A change of +65,184 % filled its column and ran into B's figure ("9.5405+65183.9 %")."""
+    run = {"file": "f", "loop": "x", "method": "relay", "run_id": "r", "started": ""}
+    row = {"key": "ku", "label": "K_u", "unit": "%/%", "a": 0.014634, "b": 9.5405}
+    c = {"runs": [run, run], "rows": [{**row, "change": 9.5405 / 0.014634 - 1}]}
+    line = format_compare(c).splitlines()[-1]
+    assert line.split() == ["K_u", "(%/%)", "0.014634", "9.5405", "+65094.1", "%"]

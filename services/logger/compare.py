@@ -153,13 +153,15 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
         if key in PERCENT_KEYS:  # fractions on the result, in % here as the unit says
             a, b = (100.0 * v if _number(v) is not None else v for v in (a, b))
         base = SAME_IN_PERCENT.get(key)
-        if base is not None and (a, b) == (values[0][base], values[1][base]):
+        if base is not None and _same(a, values[0][base]) and _same(b, values[1][base]):
             continue  # a PV in % over 0–100: the %/% row would repeat the row above it
         na, nb = _number(a), _number(b)
         change = (nb - na) / abs(na) if na is not None and nb is not None and na != 0 else None
         in_pv = "PV" in unit
         if in_pv and mixed:  # 2 %/degC against 3 %/(m3/h) is no change of 50 %
             change = None
+        if base is not None and "%" in units:  # a PV in %: "%/%" would name both rows
+            unit = "%/% of span"
         rows.append(
             {
                 "key": key,
@@ -171,6 +173,14 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
             }
         )
     return {"runs": runs, "rows": rows, "pv_units_differ": mixed}
+
+
+def _same(x: object, y: object) -> bool:
+    """The same figure, to the last few bits (×100/span by a span of 100 may round)."""
+    nx, ny = _number(x), _number(y)
+    if nx is None or ny is None:
+        return x == y
+    return math.isclose(nx, ny, rel_tol=1e-12, abs_tol=0.0)
 
 
 def _unit(unit: str, units: list[str]) -> str:
@@ -208,13 +218,14 @@ def format_compare(c: dict) -> str:
         ]
     head += [
         "",
-        f"{'':<32}{'A':>14}{'B':>14}{'B vs A':>10}",
+        f"{'':<32} {'A':>14} {'B':>14} {'B vs A':>10}",
     ]
     for r in c["rows"]:
         label = f"{r['label']} ({r['unit']})" if r["unit"] else r["label"]
         ch = r["change"]
         change = "" if ch is None else f"{100 * ch:+.1f} %"
         head.append(
-            f"{label:<32.32}{_cell(r['key'], r['a']):>14}{_cell(r['key'], r['b']):>14}{change:>10}"
+            f"{label:<32.32} {_cell(r['key'], r['a']):>14} {_cell(r['key'], r['b']):>14} "
+            f"{change:>10}"
         )
     return "\n".join(head)
