@@ -814,3 +814,25 @@ def test_the_plant_service_stays_up_with_a_faulted_loop(start_plant, monkeypatch
     log = plant.stderr()
     assert "Traceback" not in log
     assert log.count("model fuzz_user_models:StepRaisesAfter failed") == 1, log
+
+
+@pytest.mark.integration
+def test_a_tune_ends_at_its_loops_fault_and_names_it(start_plant, monkeypatch):
+    """The model fails 100 steps into a relay test: the run ended only when its next output
+    command was refused (seen: 14,000 s of sim time later), and blamed "something other than this
+    run" for the loop left in manual at the relay's output. It now aborts on the status that
+    carries the fault, names it, and says why the loop is not as before."""
+    from services.autotuner.loop_client import LoopClient
+    from services.autotuner.tuning import TuningRun
+    from shared.messages import TuneRequest
+    from shared.session import open_session
+
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(DATA), os.environ.get("PYTHONPATH", "")]))
+    plant = start_plant(FAULTY_PLANT.replace("fail_after = 20", "fail_after = 100"), loops=("bad",))
+    with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, "bad") as c:
+        r = TuningRun(c, TuneRequest(loop="bad", method="relay"), "fault-test").run()
+    assert r.status == "aborted", r.reason
+    assert "the plant faulted it at t = " in r.reason and "sensor fault" in r.reason
+    assert "something other than this run" not in r.reason
+    assert "it faulted, and a faulted loop takes no mode or output command" in r.reason
+    assert r.sim_duration < 10.0 + 5.0  # within an advance of the fault, not 14,000 s on

@@ -63,6 +63,11 @@ class CommandRefused(AutotuneError):
     """The loop refused a command; the message is the plant's reason."""
 
 
+class LoopFaulted(AutotuneError):
+    """The loop's model failed (its status carries ``fault``): the plant holds it in manual
+    at its last output and refuses mode and output commands."""
+
+
 class LeaseLost(AutotuneError):
     """The plant no longer lets this client hold the loop (it restored it, or restarted)."""
 
@@ -148,6 +153,7 @@ class LoopClient:
         self._loop_refused = 0
         self.holding = False  # this client holds the loop's lease (confirmed by the plant)
         self.gone = False  # the plant's liveliness token vanished since this client began
+        self.fault: str | None = None  # the loop's fault, once a status carried one
         # Zenoh's receiving thread puts each message straight on the inbox, in order: no
         # reader thread of ours runs per message, and the waiting run is woken once per
         # batch of samples it waits for (``_want``), or at once by anything else
@@ -305,6 +311,16 @@ class LoopClient:
                 raise DecodeError(f"loop: {batch.loop!r} in a batch of loop {self.loop!r}")
             if key == self._status_key:
                 self.last_status = status = wire.decode(LoopStatus, payload, enc)
+                if status.fault is not None and self.fault is None:
+                    # the model failed: the experiment has no process left to act on (told
+                    # once: what follows, the restore, goes on against the faulted loop)
+                    self.fault = status.fault
+                    if self.holding:
+                        raise LoopFaulted(
+                            f"loop {self.loop}: the plant faulted it at t = {status.t:.6g} s "
+                            f"({status.fault}): it holds the loop in manual at the output it "
+                            "last had, and the model is not called again"
+                        )
                 if self.holding and status.leased_by != self.source:
                     self.holding = False
                     raise LeaseLost(self._lost_why(status))

@@ -391,10 +391,16 @@ class TuningRun:
                 result["restored"] = True
                 result["reason"] = f"{result.get('reason')}; the plant restored the loop"
             elif left is not None:
+                who = (
+                    "it faulted, and a faulted loop takes no mode or output command (restart "
+                    "plant_sim to clear the fault)"
+                    if c.fault is not None
+                    else "something other than this run changed it"
+                )
                 result["reason"] = (
                     f"{result.get('reason')}; the loop is NOT as it was before the test "
                     f"(now {left['mode']}, SP {left['sp']:.6g}, OP {left['op']:.4g} %, Kc "
-                    f"{left['gains']['kc']:.4g}): something other than this run changed it"
+                    f"{left['gains']['kc']:.4g}): {who}"
                 )
             elif not result.get("restored"):
                 result["reason"] = f"{result.get('reason')}; {_unknown_state(c)}"
