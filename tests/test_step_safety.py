@@ -24,10 +24,12 @@ from services.autotuner.identify.step_test import (
     StepTestConfig,
 )
 from services.autotuner.step_run import run_step_test
+from services.autotuner.tuning import TuningRun
 from services.offline.local_loop import LocalLoopClient, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.models import FirstOrderPlusDeadTime, IntegratingPlusDeadTime
 from shared.control.signals import at_rest, noise_level, range_end
+from shared.messages import TuneRequest
 from tests.exact import sopdt_tangent
 
 FOPDT_600 = {  # lvl1 linearised at 1.5 m: 0.06 m/%, τ = 600 s, 1 s delay, 1 s samples
@@ -302,3 +304,28 @@ def test_return_watch_gives_up_at_its_timeout():
     while not watch.feed(t, 65.0 - 0.05 * t):  # still ramping: never at rest
         t += 0.25
     assert not watch.at_rest and t == 50.0 and watch.pv_end == pytest.approx(62.5)
+
+
+def test_a_step_stops_before_the_pv_passes_its_limits():
+    """e^{−2s}/(15s+1), a 20 % step with PV limits 45–55: the test aborted once the PV had
+    crossed 55, and the PV, moving on for its dead time and lag, peaked at 57.0. It now
+    stops where the trend would reach a limit within the time the PV keeps moving, as it
+    does for the transmitter's range, and the PV never passes the limit."""
+    spec = {"model": "fopdt", "gain": 1.0, "time_constant": 15.0, "delay": 2.0,
+            "sample_time": 0.1, "noise_std": 0.01}  # fmt: skip
+    loop = sim_loop(spec)
+
+    pvs: list[float] = []
+
+    class Watched(LocalLoopClient):
+        def samples(self, *args, **kw):
+            out = super().samples(*args, **kw)
+            pvs.extend(s.pv for s in out)
+            return out
+
+    client = Watched(loop)
+    req = TuneRequest(loop="x", method="step", step_size=20.0, pv_limits=(45.0, 55.0))
+    r = TuningRun(client, req, "unit").run()
+    assert r.status == "aborted" and "would leave its limits [45, 55]" in r.reason, r.reason
+    assert r.restored
+    assert min(pvs) > 45.0 and max(pvs) < 55.0  # the return included

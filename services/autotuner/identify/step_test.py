@@ -12,7 +12,9 @@ reaction-curve figures. It stops, and the driver restores the output, when:
 * the PV would leave the band of ``max_move`` × its range about its rest before the step
   (the test's allowance: an integrating loop never stops moving, a self-regulating one with a
   large gain may go far);
-* the PV leaves ``pv_limits``, or no rest comes within ``timeout`` seconds of the step.
+* the PV would leave ``pv_limits`` within that time (the experiment stops before the PV
+  passes them, not once it has), leaves them, or no rest comes within ``timeout`` seconds
+  of the step.
 
 An integrating process (a level) never comes to rest: the PV ramps
 (``reaction_curve.steady_ramp``). That is Ziegler and Nichols' original reaction curve: the
@@ -470,8 +472,8 @@ class StepTest:
         return self.op_target
 
     def _heading_out(self, t: np.ndarray, y: np.ndarray, elapsed: float) -> str | None:
-        """Why to stop now if the PV, on its present trend, nears an end of its range or of
-        the test's allowance (``max_move``).
+        """Why to stop now if the PV, on its present trend, nears an end of its range, its
+        limits (``pv_limits``) or the test's allowance (``max_move``).
 
         After the output is restored the PV keeps moving for about its dead time (and lags):
         the horizon is twice the time it took to start moving (an upper bound on the dead
@@ -500,6 +502,14 @@ class StepTest:
                     f"{level:.4g}{u}, moving {slope:.3g}{u}/s): stopped before the measurement "
                     "clips; use a smaller step"
                 )
+        p_lo, p_hi = self.pv_limits
+        if max(level, reach) >= p_hi or min(level, reach) <= p_lo:
+            return (
+                f"the PV would leave its limits [{p_lo:g}, {p_hi:g}]{u} within {horizon:.3g} s "
+                f"(now {level:.4g}{u}, moving {slope:.3g}{u}/s): stopped before it does, as it "
+                "keeps moving for about its dead time once the output is restored; use a "
+                "smaller step"
+            )
         a_lo, a_hi = self.allowance
         if max(level, reach) >= a_hi or min(level, reach) <= a_lo:
             return (
