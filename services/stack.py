@@ -16,7 +16,7 @@ from typing import IO
 from services.autotuner.loop_client import wait_for_token
 from services.launcher import start_service, stop_service
 from shared import keys
-from shared.errors import AutotuneError
+from shared.errors import AutotuneError, ConfigError
 from shared.session import ZenohSettings, open_session
 
 STOP_ORDER = ("tuner", "logger", "plant", "router")
@@ -62,6 +62,10 @@ def service_tokens(prefix: str, loop: str | None) -> list[str]:
 
 
 def runs_dir(path: str) -> Path:
+    """``--runs``, made if it is not there; ConfigError naming the flag if it cannot be."""
     p = Path(path)
-    p.mkdir(parents=True, exist_ok=True)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"--runs {path}: cannot make it ({err.strerror or err})") from None
     return p

@@ -176,6 +176,7 @@ HAND = [
         user("ResetRaises"),
         ["loops.u1.model", "reset() raised ZeroDivisionError: no rest state at op0"],
     ),
+    ("reset-exits", user("ResetExits"), ["loops.u1.model", "reset() raised SystemExit: 3"]),
     ("reset-nan", user("ResetNaN"), ["loops.u1.model", "reset() returned PV nan"]),
     (
         "reset-string",
@@ -613,6 +614,7 @@ HEALTHY = {
     [
         ("StepRaisesAfter", "RuntimeError: sensor fault after 12 steps"),
         ("StepNaNAfter", "returned PV nan"),
+        ("StepExitsAfter", "step() raised SystemExit: 4"),
         ("StepInfAfter", "returned PV inf"),
         ("StepOverflows", "OverflowError"),
         ("StepReturnsList", "not a number"),
@@ -725,6 +727,11 @@ SUBPROCESS = [
         f'[loops.u1]\nmodel = "{USER}:RaisesInInit"\nsample_time = 1.0\n'.encode(),
         "vmap.csv is missing",
     ),
+    (  # it held the plant at its load for good, silently
+        "user-class-blocks",
+        f'[loops.u1]\nmodel = "{USER}:ResetSleeps"\nsample_time = 1.0\n'.encode(),
+        "reset() raised LoadTimeout: still loading after 2 s (--load-timeout)",
+    ),
 ]
 
 
@@ -745,6 +752,8 @@ def test_autotune_plant_refuses_each_category_with_exit_2_and_one_line(tmp_path)
             "--plant",
             str(path),
             "--no-multicast-scouting",
+            "--load-timeout",
+            "2",
         ]
         procs.append(
             (

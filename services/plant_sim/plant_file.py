@@ -308,7 +308,7 @@ def build_loop(
         loop = SimLoop(settings, process)
     except ModelFailure as err:
         raise fail("model", f"{cfg.model}: {err.reason}") from None
-    except Exception as err:  # the user's attributes, read again by the loop
+    except (Exception, SystemExit) as err:  # the user's attributes, read again by the loop
         raise fail("model", f"{cfg.model}: {type(err).__name__}: {brief(err)}") from None
     try:  # what the service will publish: any field that could not be is named now
         loop.status("check", "lockstep", "start")

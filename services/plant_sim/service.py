@@ -30,6 +30,7 @@ from functools import partial
 
 import zenoh
 
+from services.plant_sim.load_bound import LOAD_TIMEOUT, load_bound
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from services.plant_sim.publishers import Publishers
 from services.plant_sim.realtime import RealtimeSteppers
@@ -657,6 +658,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--seed", type=int, help="seed for every loop's noise (overrides the plant file's)"
     )
     parser.add_argument(
+        "--load-timeout",
+        type=float,
+        default=LOAD_TIMEOUT,
+        metavar="S",
+        help="wall s the plant file's models may take to load; a model that blocks longer is "
+        "refused, one line, exit 2 (default: %(default)s)",
+    )
+    parser.add_argument(
         "--noise-std",
         type=float,
         metavar="SIGMA",
@@ -705,12 +714,15 @@ def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     if args.noise_std is not None and not 0 <= args.noise_std < float("inf"):
         raise ConfigError(f"--noise-std {args.noise_std}: must be a finite number ≥ 0")
-    loops = load_plant_file(
-        args.plant or default_plant_path(),
-        seed=args.seed,
-        noise_std=args.noise_std,
-        select=lambda ids: select_loops(ids, args.loops, args.shard),
-    )
+    if not 0 < args.load_timeout < float("inf"):
+        raise ConfigError(f"--load-timeout {args.load_timeout}: must be a finite number of s > 0")
+    with load_bound(args.load_timeout):
+        loops = load_plant_file(
+            args.plant or default_plant_path(),
+            seed=args.seed,
+            noise_std=args.noise_std,
+            select=lambda ids: select_loops(ids, args.loops, args.shard),
+        )
     run_until_stopped(
         settings_from_args(args), lambda session: PlantService(session, loops, options)
     )

@@ -93,6 +93,8 @@ def _line(g: PidGains) -> str:
 
 def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix, loop=args.loop)
+    if args.steps < 1:  # before anything waits on the bus
+        raise ConfigError(f"--steps {args.steps}: must be ≥ 1")
     runs = Path(args.runs)
     if not runs.is_dir():
         raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")

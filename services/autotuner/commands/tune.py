@@ -915,7 +915,8 @@ def run_and_report(
                 session,
                 args.prefix,
                 req.loop,
-                lambda: submit(session, args.prefix, args.node, req),
+                # the tuner's discovery within --wait too (it took 10 s with --wait 3)
+                lambda: submit(session, args.prefix, args.node, req, min(10.0, args.wait)),
                 args.wait,
                 None if args.json else progress_line,
             )

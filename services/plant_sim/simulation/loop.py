@@ -64,11 +64,11 @@ def call_model(what: str, fn: Callable[..., Any], *args: Any) -> Any:
     try:
         with np.errstate(all="ignore"):  # overflow is judged from the value, not printed
             return fn(*args)
-    except Exception as err:
+    except (Exception, SystemExit) as err:  # a user's sys.exit() must not end the plant
         raise ModelFailure(_raised(what, err)) from None
 
 
-def _raised(what: str, err: Exception) -> str:
+def _raised(what: str, err: BaseException) -> str:
     msg = brief(err)
     return f"the model's {what} raised {type(err).__name__}{': ' + msg if msg else ''}"
 
@@ -262,7 +262,7 @@ class SimLoop:
                 pv_true = _pv_of("step()", self.process.step(op))
             except ModelFailure as err:
                 self._set_fault(err.reason, op, self.t + self.sample_time)
-            except Exception as err:
+            except (Exception, SystemExit) as err:  # a user's sys.exit() faults its loop
                 self._set_fault(_raised("step()", err), op, self.t + self.sample_time)
         self.seq += 1
         if self.fault is not None:
@@ -469,7 +469,7 @@ class SimLoop:
                         self.process.set_disturbance(name, value)
                 except (KeyError, ValueError) as err:
                     raise CommandRejected("range", f"disturbance {name}: {brief(err)}") from None
-                except Exception as err:  # a user's model: refused, with its own words
+                except (Exception, SystemExit) as err:  # a user's model: refused, its own words
                     raise CommandRejected(
                         "model",
                         f"disturbance {name}: the model raised {type(err).__name__}: {brief(err)}",

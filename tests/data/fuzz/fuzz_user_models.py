@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 
 
 class Good:
@@ -55,6 +56,19 @@ class ResetRaises(Good):
         raise ZeroDivisionError("no rest state at op0")
 
 
+class ResetExits(Good):
+    def reset(self) -> float:
+        sys.exit(3)
+
+
+class ResetSleeps(Good):
+    """A reset() that blocks (waits on a device that never answers)."""
+
+    def reset(self) -> float:
+        time.sleep(600.0)
+        return self.pv
+
+
 class ResetNaN(Good):
     def reset(self) -> float:
         return math.nan
@@ -74,6 +88,15 @@ class StepRaisesAfter(Good):
     def step(self, op: float) -> float:
         if self.steps >= self.fail_after:
             raise RuntimeError(f"sensor fault after {self.steps} steps")
+        return super().step(op)
+
+
+class StepExitsAfter(Good):
+    """A user's sys.exit() in step(): the loop faults, the plant runs on."""
+
+    def step(self, op: float) -> float:
+        if self.steps >= self.fail_after:
+            sys.exit(4)
         return super().step(op)
 
 

@@ -1,0 +1,48 @@
+"""A bound on the time a plant file's models take to load.
+
+A user's model class runs its ``__init__`` and ``reset()`` as the plant file is read, before
+the plant is on the bus: one that blocks (waits on a device, sleeps, loops) would hold
+plant_sim there for good, silently. ``load_bound`` interrupts the load after ``seconds`` of
+wall time (SIGALRM, in the main thread, where plant_sim loads its file) with ``LoadTimeout``,
+a ConfigError: the model's call is named by the loader (``the model's reset() raised
+LoadTimeout: …``), one line, exit 2. Elsewhere (another thread, no SIGALRM) it bounds nothing.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+from shared.errors import ConfigError
+
+LOAD_TIMEOUT = 60.0  # s of wall time: an FMU's or a Python model's start takes seconds at most
+
+
+class LoadTimeout(ConfigError):
+    """The plant file's models did not load within the bound."""
+
+
+@contextmanager
+def load_bound(seconds: float, flag: str = "--load-timeout") -> Iterator[None]:
+    """Raise LoadTimeout in the main thread if the block runs longer than ``seconds``."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(
+        signal, "setitimer"
+    ):
+        yield
+        return
+
+    def expired(signum: int, frame: object) -> None:
+        raise LoadTimeout(
+            f"still loading after {seconds:g} s ({flag}): a model's __init__ or reset() that "
+            "blocks?"
+        )
+
+    before = signal.signal(signal.SIGALRM, expired)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        signal.signal(signal.SIGALRM, before)
