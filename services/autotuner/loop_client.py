@@ -18,7 +18,7 @@ import queue
 import secrets
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 
 import zenoh
 
@@ -66,6 +66,17 @@ class CommandRefused(AutotuneError):
 class LoopFaulted(AutotuneError):
     """The loop's model failed (its status carries ``fault``): the plant holds it in manual
     at its last output and refuses mode and output commands."""
+
+
+class ForgedCommand(AutotuneError):
+    """The plant applied a command in this client's name that this client did not send:
+    another client on the bus writes as it (a bus without credentials cannot tell them
+    apart)."""
+
+
+# command kinds whose status names the sender (``by_source``): each of ours is answered by
+# one, so one more than this client sent came from elsewhere
+MOVING_KINDS = ("output", "mode", "gains", "setpoint", "disturbance")
 
 
 class LeaseLost(AutotuneError):
@@ -154,6 +165,8 @@ class LoopClient:
         self.holding = False  # this client holds the loop's lease (confirmed by the plant)
         self.gone = False  # the plant's liveliness token vanished since this client began
         self.fault: str | None = None  # the loop's fault, once a status carried one
+        # commands of MOVING_KINDS sent and not yet answered by a status in this client's name
+        self._unanswered: Counter[str] = Counter()
         # Zenoh's receiving thread puts each message straight on the inbox, in order: no
         # reader thread of ours runs per message, and the waiting run is woken once per
         # batch of samples it waits for (``_want``), or at once by anything else
@@ -324,6 +337,18 @@ class LoopClient:
                 if self.holding and status.leased_by != self.source:
                     self.holding = False
                     raise LeaseLost(self._lost_why(status))
+                if status.by_source == self.source and status.reason in MOVING_KINDS:
+                    if self._unanswered[status.reason] > 0:
+                        self._unanswered[status.reason] -= 1
+                    elif self.holding:
+                        raise ForgedCommand(
+                            f"loop {self.loop}: at t = {status.t:.6g} s the plant applied "
+                            f"{'an' if status.reason[0] in 'aeiou' else 'a'} {status.reason} "
+                            "command in this run's name that it did not send "
+                            f"(now {status.mode}, OP {status.op:.4g} %, SP {status.sp:.6g}): "
+                            "another client on the bus writes as this run (a bus without "
+                            "credentials cannot tell them apart: see Security)"
+                        )
                 return status
 
     def _lost_why(self, status: LoopStatus) -> str:
@@ -362,6 +387,8 @@ class LoopClient:
             update["t"] = now  # every message carries sim time: the last this client saw
         if update:
             cmd = cmd.model_copy(update=update)
+        if cmd.kind in MOVING_KINDS:  # counted before it can be answered
+            self._unanswered[cmd.kind] += 1
         wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind, self.user), cmd)
         self._last_sent = time.monotonic()
 

@@ -22,13 +22,16 @@ import pytest
 
 from services.autotuner.commands.tune import Interrupted, follow, submit
 from services.autotuner.loop_client import LoopClient, wait_for_token
+from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
 from shared.messages import (
     GainsCommand,
     LeaseCommand,
     LoopStatus,
+    OutputCommand,
     PidGains,
     ReleaseCommand,
+    TuneProgress,
     TuneRequest,
     TuneResult,
 )
@@ -436,7 +439,8 @@ def test_a_lease_lost_to_a_forger_is_not_called_restored(start_plant, start_tune
     """On a bus without credentials a client can put commands in the run's name (the
     README's Security section): it set Kc 50 and released the lease mid-relay, and the run
     said `restored: true`. Restored is now what the plant shows: as before the test, or not,
-    and the reason says so. On the realtime clock (×50): the relay is still under way when
+    and the reason says so; and the run aborts at the first command in its name it did not
+    send (the gains), naming it. On the realtime clock (×50): the relay is still under way when
     the forged commands land."""
     p = start_plant(plant_toml("x1", HX), "--clock", "realtime", "--speed", "50", loops=("x1",))
     start_tuner(p)
@@ -464,5 +468,36 @@ def test_a_lease_lost_to_a_forger_is_not_called_restored(start_plant, start_tune
             progress.undeclare()
     r = json.loads(out)
     assert r["status"] == "aborted" and r["restored"] is False, (r["reason"], err)
+    # the forged gains named first: the run saw a command in its name it had not sent
+    assert "applied a gains command in this run's name that it did not send" in r["reason"]
     assert "the loop is NOT as it was before the test" in r["reason"]
     assert r["left"]["gains"]["kc"] == 50.0
+
+
+def test_a_forged_output_in_the_runs_name_aborts_the_run_and_the_loop_is_restored(start_plant):
+    """A client put an output of 100 % in the holder's name mid-relay: the plant took it as
+    the run's, the valve went to 100 %, and the run, none the wiser, ended blaming its own
+    --amplitude for the PV at the top of its range. It now aborts at the status of that
+    command and restores the loop (its lease still held)."""
+    p = start_plant(plant_toml("x1", HX), loops=("x1",))
+    with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1") as c:
+        before = c.sync()
+        forged = []
+
+        def forge(progress: TuneProgress) -> None:
+            if progress.phase == "relay" and not forged:  # the relay under way
+                forged.append(OutputCommand(loop="x1", op=100.0, source=c.source))
+                wire.put(s, keys.command(p.prefix, "x1", "output"), forged[0])
+
+        hooks = RunHooks(progress=forge)
+        r = TuningRun(c, TuneRequest(loop="x1", method="relay"), "forge-test", hooks).run()
+        after = c.sync()
+    assert forged and r.status == "aborted"
+    assert "applied an output command in this run's name that it did not send" in r.reason
+    assert r.restored is True
+    assert (after.mode, after.op, after.gains, after.leased_by) == (
+        before.mode,
+        before.op,
+        before.gains,
+        None,
+    )
