@@ -92,7 +92,7 @@ CASES = {
     "clipped": lambda: fast(),
     # a small allowance: stopped before the PV leaves it
     "allowance": lambda: lag(10.0, max_move=0.05),
-    # PV limits inside the range: aborted where it leaves them
+    # PV limits inside the range: stopped before the PV would leave them
     "pv-limits": lambda: lag(10.0, pv_limits=(0.0, 55.0)),
     "timeout": lambda: lag(timeout=31.3),  # between two checks
     "integrating-late": lambda: integrator(LATE),
@@ -113,7 +113,7 @@ REACHES = {
     "range-end": lambda t: "would reach the top of its range" in t.reason,
     "clipped": lambda t: "reached the top of its range" in t.reason,
     "allowance": lambda t: "allowance" in t.reason,
-    "pv-limits": lambda t: "left its limits" in t.reason,
+    "pv-limits": lambda t: "would leave its limits" in t.reason,
     "timeout": lambda t: "no steady state" in t.reason,
     "integrating-late": lambda t: t.phase == "done" and t.ramp is not None,
     "timeout-late": lambda t: "no steady state" in t.reason,

@@ -109,14 +109,18 @@ def test_the_output_returns_to_where_it_was_when_done():
     assert kinds[0] == "step" and kinds[-1] == "done" and "step_started" in kinds
 
 
-def test_leaving_the_pv_limits_aborts_with_the_output_back():
-    """Limits inside a wider transmitter range: K·Δu = 10 from 30, the PV crosses 35 at
-    L + T·ln 2 after the step."""
+def test_heading_out_of_the_pv_limits_stops_before_them_with_the_output_back():
+    """Limits inside a wider transmitter range: K·Δu = 10 from 30 would cross 35 at
+    L + T·ln 2 after the step. The test stopped there, and the PV went on past the limit
+    for its dead time; it stops where the trend, extended as for the range's ends, would
+    reach the limit, so the PV never passes it."""
     test = run_step(5.0, pv_limits=(0.0, 35.0), pv_range=(0.0, 100.0))
     assert test.phase == "aborted" and test.result is None
-    assert test.reason.startswith("PV 35.") and "left its limits [0, 35]" in test.reason
+    horizon = 2 * (L + TS) + 4 * TS
+    assert f"the PV would leave its limits [0, 35] within {horizon:g} s" in test.reason
     assert test.demand.op == OP0 and test.events[-1][1] == "aborted"
-    assert test.t[-1] - test.t_step == pytest.approx(L + T * math.log(2.0), abs=TS)
+    assert max(test.pv) < 35.0
+    assert test.t[-1] - test.t_step < L + T * math.log(2.0)
 
 
 def test_heading_for_the_end_of_the_range_stops_before_it():

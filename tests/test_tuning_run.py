@@ -13,6 +13,7 @@ import threading
 import pytest
 
 from services.autotuner.commands.tune import format_result
+from services.autotuner.loop_client import PlantLost
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
@@ -262,3 +263,22 @@ def test_a_slow_step_on_a_realtime_loop_in_process_is_watched_without_failing(mo
     assert client.hold_arrived() == []
     result = run(client, RunHooks())
     assert result.status == "ok", result.reason
+
+
+def test_an_ok_run_whose_release_the_plant_did_not_confirm_says_so():
+    """The plant paused (SIGSTOP, 20 s) as an ok run ended: its release and last sync went
+    unanswered, and the run said ok with no word, though a lease that lapses before the
+    plant reads the release has its watchdog restore the state before the test, undoing
+    the gains. Still ok (the gains were verified), with a warning that says so."""
+
+    class Paused(LocalLoopClient):
+        def command(self, cmd):
+            if isinstance(cmd, ReleaseCommand):
+                raise PlantLost("loop 'x': no message from the plant for 5 s")
+            return super().command(cmd)
+
+    r = run(Paused(third_order_loop()))
+    assert r.status == "ok", r.reason
+    (note,) = [w for w in r.warnings if w.startswith("the plant did not confirm the run's end")]
+    assert "the lease's release: loop 'x': no message from the plant for 5 s" in note
+    assert "undoing these gains" in note

@@ -258,6 +258,7 @@ class TuningRun:
         req, c = self.req, self.client
         first = c.sync()
         self._t = t0 = first.t
+        unreleased: str | None = None  # why the lease's release was not confirmed
         result: dict = {
             "run_id": self.run_id,
             "loop": c.loop,
@@ -379,8 +380,10 @@ class TuningRun:
                 raise
         finally:
             if c.holding:
-                with contextlib.suppress(AutotuneError):  # if the plant is gone, so is the lease
+                try:
                     c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
+                except AutotuneError as err:  # if the plant is gone, so is the lease
+                    unreleased = str(err)
         scale = ident.timescale if ident is not None and ident.timescale > 0 else None
         cancelled = self.hooks.cancelled is not None and self.hooks.cancelled.is_set()
         if result.get("status") not in APPLIED_STATUSES and (c.gone or not result.get("restored")):
@@ -412,6 +415,17 @@ class TuningRun:
             scale=scale,
             model=ident.model if ident is not None else None,
         )
+        if result.get("status") in APPLIED_STATUSES and (unreleased or left is None):
+            # the gains went on and were confirmed, but not the end: a plant paused meanwhile
+            # may take the loop back when its lease lapses, undoing them
+            result["warnings"] = [
+                *result.get("warnings", []),
+                "the plant did not confirm the run's end ("
+                + (f"the lease's release: {unreleased}" if unreleased else "its last sync")
+                + "): should its watchdog take the loop back first (a lease lapses after "
+                f"{c.lease_timeout:g} s without a command), it restores the state before the "
+                "test, undoing these gains: check the loop (`autotune loops`)",
+            ]
         return self._result(result, t0, wall0, left)
 
     def _compute(self, fn: Callable[..., Any], *args: Any, here: bool = False) -> Any:

@@ -340,6 +340,11 @@ def _tunes(
     samples = sum(watch.results[lp].sim_duration / HX_SAMPLE_TIME for lp in loops)
     wall = max(watch.ended[lp] for lp in loops) - min(watch.started[lp] for lp in loops)
     statuses = [watch.results[lp].status for lp in loops]
+    if not (samples > 0 and wall > 0):  # a tune that ran no sample measures nothing
+        why = "; ".join(
+            f"{lp}: {watch.results[lp].status}, {watch.results[lp].reason}" for lp in loops
+        )
+        raise AutotuneError(f"perf: the tune(s) ran {samples:g} samples in {wall:.3g} s ({why})")
     return Lockstep(len(loops), statuses, samples, wall, samples / wall, submit_wall)
 
 

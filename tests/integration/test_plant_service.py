@@ -348,7 +348,7 @@ def test_step_test_aborts_at_the_pv_limit_and_restores_the_loop(start_plant):
     plant = start_plant(None, loops=("hx1",))
     run = autotune("step", "hx1", "--size", "5", "--pv-limits", "50", "62", *plant.cli_args())
     assert run.returncode == 2
-    assert "left its limits [50, 62]" in run.stderr and "loop restored" in run.stderr
+    assert "would leave its limits [50, 62]" in run.stderr and "loop restored" in run.stderr
     assert "Traceback" not in run.stderr
     status = loop_status(plant, "hx1")
     assert status.op == 40.0 and status.mode == "manual"
