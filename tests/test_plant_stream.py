@@ -10,11 +10,19 @@ at its publishers."""
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 
 from services.plant_sim import service as plant_service
 from services.plant_sim.plant_file import build_plant
-from services.plant_sim.service import FIRST_CHUNK, STREAM_CHUNK, PlantService, ServiceOptions
+from services.plant_sim.service import (
+    FIRST_CHUNK,
+    MODEL_STALL,
+    STREAM_CHUNK,
+    PlantService,
+    ServiceOptions,
+)
 from shared import keys, wire
 from shared.messages import (
     AdvanceCommand,
@@ -170,3 +178,24 @@ def test_a_long_advance_keeps_its_holders_lease(service, monkeypatch) -> None:
     clock[0] += 1.5
     service._check_leases(clock[0], 0.05)
     assert "x" not in service.leases
+
+
+def test_a_model_step_that_hangs_is_named_once(service, caplog) -> None:
+    """A user's step() that blocks holds the plant's lock: every loop of the process waits
+    on it, and nothing said why. The watchdog reads each loop's ``stepping_since`` (set
+    around the model's step()) without the lock, and says which loop, once a hang."""
+    loop = service.loops["x"]
+    with caplog.at_level(logging.ERROR, logger="plant_sim"):
+        loop.stepping_since = 100.0
+        service._watch_models(100.0 + MODEL_STALL - 1.0)  # not yet
+        service._watch_models(100.0 + MODEL_STALL + 1.0)
+        service._watch_models(100.0 + MODEL_STALL + 2.0)  # the same hang: said once
+        loop.stepping_since = None
+        service._watch_models(200.0)  # it returned
+        loop.stepping_since = 300.0
+        service._watch_models(300.0 + MODEL_STALL + 1.0)  # a new hang: said again
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2
+    assert all(m.startswith("loop x: its model's step() has not returned") for m in lines)
+    assert "every loop of this plant process waits on it" in lines[0]
+    assert loop.advance().seq > 0 and loop.stepping_since is None  # set only during a step

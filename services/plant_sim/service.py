@@ -67,6 +67,7 @@ log = logging.getLogger("plant_sim")
 
 SERVICE = "plant_sim"
 CHANNEL_CAPACITY = 65536
+MODEL_STALL = 10.0  # s of wall time in one model step() before the plant says it hangs
 
 
 @dataclass(frozen=True)
@@ -159,6 +160,7 @@ class PlantService:
         self._remote_loops: set[str] = set()
         self._log_reject = RejectLog()
         self.leases: dict[str, Lease] = {}
+        self._stalled: set[str] = set()  # loops whose model step() hangs, said once each
         # loop → {source: why}: supervisors whose lease the plant ended (it restored the loop);
         # their commands are refused until they lease again, so a tuner that missed the news
         # (paused, cut off) cannot drive a loop it no longer holds
@@ -522,7 +524,26 @@ class PlantService:
         while not stop.wait(0.05):
             now = time.monotonic()
             paused, last = now - last, now
+            self._watch_models(now)
             self._check_leases(now, paused)
+
+    def _watch_models(self, now: float) -> None:
+        """Say (once a hang) which loop's model has not returned from its step() for
+        MODEL_STALL s: it holds the plant's lock, so every loop of this process waits on it
+        (the watchdog below too), and no other line would tell why. Read without the lock."""
+        for lid, loop in self.loops.items():
+            since = loop.stepping_since
+            if since is None or now - since < MODEL_STALL:
+                self._stalled.discard(lid)
+            elif lid not in self._stalled:
+                self._stalled.add(lid)
+                log.error(
+                    "loop %s: its model's step() has not returned for %.0f s: every loop of "
+                    "this plant process waits on it (a model that may block is best served by "
+                    "a plant process of its own: --loops)",
+                    lid,
+                    now - since,
+                )
 
     def _check_leases(self, now: float, paused: float) -> None:
         """One watchdog tick at monotonic time ``now``, ``paused`` s after the last: expire

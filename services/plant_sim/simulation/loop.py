@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import numbers
+import time
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -173,6 +174,8 @@ class SimLoop:
         self.rejected = 0
         self.last_reject: str | None = None
         self.fault: str | None = None  # why the model failed mid-run (loop held in manual)
+        # monotonic s at which the model's step() was called, until it returns (None: idle)
+        self.stepping_since: float | None = None
         self.fault_t: float | None = None  # sim time of the failure
         self._refusals: dict[str, tuple[int, str]] = {}  # by sender: count, last reason
         self._disturbances: dict[str, float] = {}
@@ -258,12 +261,15 @@ class SimLoop:
     def _advance(self, held_op: float | None) -> ProcessSample:
         op = self.pid.op if held_op is None else held_op
         if self.fault is None:
+            self.stepping_since = time.monotonic()  # for the plant's watch on a model that hangs
             try:
                 pv_true = _pv_of("step()", self.process.step(op))
             except ModelFailure as err:
                 self._set_fault(err.reason, op, self.t + self.sample_time)
             except (Exception, SystemExit) as err:  # a user's sys.exit() faults its loop
                 self._set_fault(_raised("step()", err), op, self.t + self.sample_time)
+            finally:
+                self.stepping_since = None
         self.seq += 1
         if self.fault is not None:
             return self.sample()
