@@ -502,23 +502,25 @@ class StepTest:
                     f"{level:.4g}{u}, moving {slope:.3g}{u}/s): stopped before the measurement "
                     "clips; use a smaller step"
                 )
+        trend = f"within {horizon:.3g} s (now {level:.4g}{u}, moving {slope:.3g}{u}/s)"
         p_lo, p_hi = self.pv_limits
-        if max(level, reach) >= p_hi or min(level, reach) <= p_lo:
-            return (
-                f"the PV would leave its limits [{p_lo:g}, {p_hi:g}]{u} within {horizon:.3g} s "
-                f"(now {level:.4g}{u}, moving {slope:.3g}{u}/s): stopped before it does, as it "
-                "keeps moving for about its dead time once the output is restored; use a "
-                "smaller step"
-            )
         a_lo, a_hi = self.allowance
-        if max(level, reach) >= a_hi or min(level, reach) <= a_lo:
-            return (
-                f"the PV would leave the test's allowance, {a_lo:.4g}–{a_hi:.4g}{u} "
-                f"({100 * self.config.max_move:.3g} % of its range either way from its rest), "
-                "within "
-                f"{horizon:.3g} s (now {level:.4g}{u}, moving {slope:.3g}{u}/s); use a smaller "
-                "step or a larger allowance"
-            )
+        for (b_lo, b_hi), what, advice in (
+            (
+                (p_lo, p_hi),
+                f"its limits [{p_lo:g}, {p_hi:g}]{u}",
+                ": stopped before it does, as it keeps moving for about its dead time once the "
+                "output is restored; use a smaller step",
+            ),
+            (
+                (a_lo, a_hi),
+                f"the test's allowance, {a_lo:.4g}–{a_hi:.4g}{u} ("
+                f"{100 * self.config.max_move:.3g} % of its range either way from its rest),",
+                "; use a smaller step or a larger allowance",
+            ),
+        ):
+            if max(level, reach) >= b_hi or min(level, reach) <= b_lo:
+                return f"the PV would leave {what} {trend}{advice}"
         return None
 
     def _integrating(self, s: Sample, ramp: SteadyRamp, stopped_by: str) -> float:
