@@ -44,3 +44,16 @@ def test_a_rejection_for_overshoot_on_a_step_within_the_noise_says_what_one_read
     assert noisy_step_note(over, 15.0 * 0.00228, 0.00228) is None  # 15σ: clear of the noise
     assert noisy_step_note(["decay ratio 0.876 above the limit 0.35"], 0.02, 0.00228) is None
     assert noisy_step_note(over, 0.02, 0.0) is None  # no noise at all
+
+
+def test_a_response_held_back_by_the_output_is_judged_by_the_predicted_overshoot():
+    """The output at a limit during the setpoint step holds the response back: 1.4 % read
+    where the linear loop overshoots 15.5 %. Its overshoot is judged as the model predicts it
+    where that is more than the reading: gains predicted at 40 % are not passed on 10 %."""
+    held = verification(10.0).model_copy(update={"overshoot": 10.0, "op_limited": 2.0})
+    limits = {**LIMITS, "predicted_overshoot": 40.0}
+    (problem,) = acceptance_problems(held, None, limits)
+    assert problem.startswith("overshoot 40 % predicted (the 10 % measured was held back")
+    assert acceptance_problems(held, None, {**limits, "predicted_overshoot": 20.0}) == []
+    free = held.model_copy(update={"op_limited": 0.0})  # not held back: the reading stands
+    assert acceptance_problems(free, None, limits) == []

@@ -732,6 +732,11 @@ SUBPROCESS = [
         f'[loops.u1]\nmodel = "{USER}:ResetSleeps"\nsample_time = 1.0\n'.encode(),
         "reset() raised LoadTimeout: still loading after 2 s (--load-timeout)",
     ),
+    (  # one that swallows the first stroke (except Exception) is struck again
+        "user-class-retries",
+        f'[loops.u1]\nmodel = "{USER}:ResetRetries"\nsample_time = 1.0\n'.encode(),
+        "still loading after 2 s (--load-timeout)",
+    ),
 ]
 
 
@@ -838,10 +843,17 @@ def test_a_tune_ends_at_its_loops_fault_and_names_it(start_plant, monkeypatch):
 
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(DATA), os.environ.get("PYTHONPATH", "")]))
     plant = start_plant(FAULTY_PLANT.replace("fail_after = 20", "fail_after = 100"), loops=("bad",))
-    with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, "bad") as c:
-        r = TuningRun(c, TuneRequest(loop="bad", method="relay"), "fault-test").run()
+    with open_session(plant.client_settings()) as s:
+        with LoopClient(s, plant.prefix, "bad") as c:
+            r = TuningRun(c, TuneRequest(loop="bad", method="relay"), "fault-test").run()
+        with LoopClient(s, plant.prefix, "bad") as c:  # a held PV looks at rest: not started
+            again = TuningRun(c, TuneRequest(loop="bad", method="relay"), "again").run()
+    assert again.status == "aborted" and again.reason.startswith("not started: the loop is faulted")
     assert r.status == "aborted", r.reason
     assert "the plant faulted it at t = " in r.reason and "sensor fault" in r.reason
     assert "something other than this run" not in r.reason
-    assert "it faulted, and a faulted loop takes no mode or output command" in r.reason
+    assert (
+        "it faulted: a faulted loop stays in manual at its output; its setpoint and gains are "
+        "as before (restart plant_sim to clear the fault)" in r.reason
+    )
     assert r.sim_duration < 10.0 + 5.0  # within an advance of the fault, not 14,000 s on

@@ -11,6 +11,8 @@ at its publishers."""
 from __future__ import annotations
 
 import logging
+import threading
+import time
 
 import pytest
 
@@ -199,3 +201,27 @@ def test_a_model_step_that_hangs_is_named_once(service, caplog) -> None:
     assert all(m.startswith("loop x: its model's step() has not returned") for m in lines)
     assert "every loop of this plant process waits on it" in lines[0]
     assert loop.advance().seq > 0 and loop.stepping_since is None  # set only during a step
+
+
+def test_the_model_watch_speaks_while_the_hung_model_holds_the_lock(service) -> None:
+    """The watch ran on the lease watchdog's thread, which waits on the lock a hung model
+    holds: it never spoke. Its own thread reads without the lock."""
+    said = threading.Event()
+
+    class Heard(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if "has not returned" in record.getMessage():
+                said.set()
+
+    handler = Heard()
+    logging.getLogger("plant_sim").addHandler(handler)
+    stop = threading.Event()
+    try:
+        with service.lock:  # as a model's step() holds it while it hangs
+            service.loops["x"].stepping_since = time.monotonic() - MODEL_STALL - 1.0
+            threading.Thread(target=service._model_watch, args=(stop,), daemon=True).start()
+            assert said.wait(10.0)
+    finally:
+        stop.set()
+        service.loops["x"].stepping_since = None
+        logging.getLogger("plant_sim").removeHandler(handler)

@@ -279,6 +279,6 @@ def test_an_ok_run_whose_release_the_plant_did_not_confirm_says_so():
 
     r = run(Paused(third_order_loop()))
     assert r.status == "ok", r.reason
-    (note,) = [w for w in r.warnings if w.startswith("the plant did not confirm the run's end")]
-    assert "the lease's release: loop 'x': no message from the plant for 5 s" in note
+    (note,) = [w for w in r.warnings if w.startswith("the plant did not confirm the lease's")]
+    assert "release (loop 'x': no message from the plant for 5 s)" in note
     assert "undoing these gains" in note

@@ -121,3 +121,19 @@ def test_a_loop_swinging_about_its_setpoint_is_not_creeping():
     y = 50.0 + 1.0 * np.sin(2 * np.pi * TIME / 30.0)
     assert not creeping(y, 50.0, K, BAND)
     assert "it still swings about it" in unsettled(y, 50.0, K, BAND, 40.0, "m")
+
+
+def test_an_output_resting_at_its_limit_steps_the_other_way():
+    """Noise-free, the output resting at 100 % and the setpoint in the lower half of the PV's
+    range (the step would go up, and the output with it): the kick's room was 0, the step 0,
+    and the verification divided by it (ZeroDivisionError, the run failed). The step now
+    goes the way the output has room."""
+    spec = {"model": "fopdt", "gain": 0.5, "time_constant": 5.0, "delay": 1.0,
+            "sample_time": 0.1, "noise_std": 0.0, "op0": 100.0,
+            "pv_range": [0.0, 200.0]}  # fmt: skip
+    client = LocalLoopClient(build_plant({"seed": 1, "loops": {"x": spec}})["x"])
+    assert client.sync().op == 100.0
+    r = TuningRun(client, TuneRequest(loop="x", method="step", step_size=-5.0), "unit").run()
+    assert r.status == "ok", r.reason
+    assert r.after.sp_step < 0 and r.after.op_rest == 100.0
+    assert 0 < r.after.kick <= VERIFY_ROOM * 100.0 and r.after.op_limited == 0.0

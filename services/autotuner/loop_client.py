@@ -476,6 +476,10 @@ class LoopClient:
             if isinstance(msg, LoopStatus) and msg.sync_token in tokens:
                 self._refused = msg.sync_rejected or 0
                 self._loop_refused = msg.rejected
+                # the plant takes a sender's commands in order and answers each (applied or
+                # refused) before this: what is still counted was refused or lost, and must
+                # not stand for a command in this client's name that comes later
+                self._unanswered.clear()
                 return msg
 
     def command(self, cmd: Command) -> LoopStatus:

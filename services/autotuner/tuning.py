@@ -82,6 +82,7 @@ VERIFY_MIN_NOISE = 8.0  # … and this many σ in any case
 # it moves toward: the integral adds to the kick as the PV lags (a 45-53 % output kicked by
 # 3.8 % from 49 % sat at 53 %, and the overshoot read was the limited loop's, not the linear)
 VERIFY_ROOM = 0.5
+VERIFY_MIN_ROOM = 1.0  # % of output: less room toward the PV's side, the step goes the other way
 # spans a verification waits in all for a loop creeping toward its setpoint (not swinging
 # about it) to settle there before the step: slow gains, not unstable ones
 VERIFY_SETTLE_SPANS = 3
@@ -295,8 +296,12 @@ class TuningRun:
                 if req.apply_from
                 else f"{req.method} test, rule {req.rule}",
             )
+            if first.fault is not None or c.fault is not None:  # its PV is held: no process
+                raise TuneAborted(f"not started: the loop is faulted ({first.fault or c.fault})")
             rest = self._wait_for_rest(first)
             result["rest"] = rest
+            if c.fault is not None:  # faulted while the run waited: a held PV looks at rest
+                raise TuneAborted(f"not started: the loop faulted ({c.fault})")
             if not rest["at_rest"]:
                 raise TuneAborted(f"not started: {rest['reason']}")
         except (TuneAborted, AutotuneError) as err:  # nothing was changed: nothing to restore
@@ -394,12 +399,14 @@ class TuningRun:
                 result["restored"] = True
                 result["reason"] = f"{result.get('reason')}; the plant restored the loop"
             elif left is not None:
-                who = (
-                    "it faulted, and a faulted loop takes no mode or output command (restart "
-                    "plant_sim to clear the fault)"
-                    if c.fault is not None
-                    else "something other than this run changed it"
-                )
+                who = "something other than this run changed it"
+                if c.fault is not None:
+                    back = (left["sp"], left["gains"]) == (before.sp, before.gains.model_dump())
+                    who = (
+                        "it faulted: a faulted loop stays in manual at its output"
+                        + ("; its setpoint and gains are as before" if back else "")
+                        + " (restart plant_sim to clear the fault)"
+                    )
                 result["reason"] = (
                     f"{result.get('reason')}; the loop is NOT as it was before the test "
                     f"(now {left['mode']}, SP {left['sp']:.6g}, OP {left['op']:.4g} %, Kc "
@@ -415,16 +422,21 @@ class TuningRun:
             scale=scale,
             model=ident.model if ident is not None else None,
         )
-        if result.get("status") in APPLIED_STATUSES and (unreleased or left is None):
-            # the gains went on and were confirmed, but not the end: a plant paused meanwhile
-            # may take the loop back when its lease lapses, undoing them
+        if result.get("status") in APPLIED_STATUSES and unreleased:
+            # the gains went on and were confirmed, but not the release: a plant paused
+            # meanwhile may take the loop back when its lease lapses, undoing them
             result["warnings"] = [
                 *result.get("warnings", []),
-                "the plant did not confirm the run's end ("
-                + (f"the lease's release: {unreleased}" if unreleased else "its last sync")
-                + "): should its watchdog take the loop back first (a lease lapses after "
-                f"{c.lease_timeout:g} s without a command), it restores the state before the "
-                "test, undoing these gains: check the loop (`autotune loops`)",
+                f"the plant did not confirm the lease's release ({unreleased}): should its "
+                f"watchdog take the loop back first (a lease lapses after {c.lease_timeout:g} s "
+                "without a command), it restores the state before the test, undoing these "
+                "gains: check the loop (`autotune loops`)",
+            ]
+        elif result.get("status") in APPLIED_STATUSES and left is None:
+            result["warnings"] = [
+                *result.get("warnings", []),
+                "the plant did not answer the run's last sync: the loop's state at the end "
+                "was not read (`autotune loops` shows it)",
             ]
         return self._result(result, t0, wall0, left)
 
@@ -768,6 +780,14 @@ class TuningRun:
             return False
         try:
             now = c.sync()
+            if c.fault is not None:
+                # a faulted loop stays in manual at its output and refuses a disturbance, an
+                # output and auto: what it takes back are its gains and setpoint (then False:
+                # it is not as it was)
+                if now.gains != b.gains:
+                    c.command(GainsCommand(loop=c.loop, gains=b.gains, source=c.source))
+                c.command(SetpointCommand(loop=c.loop, sp=b.sp, source=c.source))
+                return False
             for name, value in b.disturbances.items():
                 if now.disturbances.get(name) != value:
                     c.command(
@@ -1090,7 +1110,9 @@ class TuningRun:
         scale = max(ident.timescale, 20 * self.ts)
         lo, hi = self.info.pv_range
         sign = 1 if sp0 < 0.5 * (lo + hi) else -1  # toward the middle of the range
-        room = self._op_room(sign)
+        room, other = self._op_room(sign), self._op_room(-sign)
+        if room is not None and other is not None and room < VERIFY_MIN_ROOM < other:
+            sign, room = -sign, other  # the output at (or by) that limit: the other way
         kick, noise_kick = VERIFY_KICK, VERIFY_MAX_KICK
         if room is not None:
             kick, noise_kick = min(kick, VERIFY_ROOM * room), min(noise_kick, VERIFY_ROOM * room)
@@ -1101,6 +1123,8 @@ class TuningRun:
         # kick stays moderate; never less than VERIFY_MIN_NOISE σ
         size = max(size, min(VERIFY_NOISE * ident.noise, noise_kick / max(gains.kc, 1e-12)))
         size = max(size, VERIFY_MIN_NOISE * ident.noise)
+        # never none: a noise-free loop whose output has no room either way still steps
+        size = max(size, 1e-6 * (hi - lo))
         step = size * sign
         # a step is watched for 15 time scales, and at least 8 integral times: a robust PI's
         # slow integral removes the last per cent late, which is not instability
@@ -1219,7 +1243,7 @@ class TuningRun:
             stopped=stopped,
             op_noise=op_noise,
             op_limited=limited if sp_m is not None else None,
-            op_rest=self.before.op if self.before is not None else None,
+            op_rest=self._op_at_rest(),
             kick=abs(gains.kc * step),
         )
 
@@ -1227,12 +1251,20 @@ class TuningRun:
         """% of output from where the output rests (before the test: the loop goes back to
         it at the setpoint) to the limit a setpoint step of ``sign`` drives it toward (a
         reverse-acting loop's output rises with its setpoint); None if not known."""
-        b = self.before
-        if b is None or not math.isfinite(b.op):
+        b, op = self.before, self._op_at_rest()
+        if b is None or op is None or not math.isfinite(op):
             return None
         lo, hi = self.info.op_limits
         up = sign > 0 if b.action == "reverse" else sign < 0
-        return max(0.0, hi - b.op if up else b.op - lo)
+        return max(0.0, hi - op if up else op - lo)
+
+    def _op_at_rest(self) -> float | None:
+        """% of output the loop rests at before the test: a loop in auto's mean over the rest
+        window (not its last noisy sample), a manual loop's held output (as ``_restore``)."""
+        b = self.before
+        if b is None:
+            return None
+        return b.op if b.mode == "manual" or self._rest is None else self._rest["op"]
 
 
 class _LivePort:
@@ -1404,12 +1436,20 @@ def acceptance_problems(
     if after.saturated:
         out.append("the output saturated for a third of the verification or more")
     os_ = after.overshoot
-    if os_ is not None and os_ > limits["max_overshoot"]:
+    pred = limits.get("predicted_overshoot")
+    if os_ is not None and after.op_limited and pred is not None and pred > os_:
+        # the output at a limit held the response back: it reads low, so the linear loop's
+        # overshoot is judged as the model predicts it
+        if pred > limits["max_overshoot"]:
+            out.append(
+                f"overshoot {pred:.3g} % predicted (the {os_:.3g} % measured was held back by "
+                f"the output at a limit) above the limit {limits['max_overshoot']:g} %"
+            )
+    elif os_ is not None and os_ > limits["max_overshoot"]:
         out.append(f"overshoot {os_:.3g} % above the limit {limits['max_overshoot']:g} %")
     dr = after.decay_ratio
     if dr is not None and dr > limits["max_decay_ratio"]:
         out.append(f"decay ratio {dr:.3g} above the limit {limits['max_decay_ratio']:g}")
-    pred = limits.get("predicted_overshoot")
     if os_ is not None and pred is not None and os_ - pred > limits["overshoot_miss"]:
         out.append(
             f"overshoot {os_:.3g} % against {pred:.3g} % predicted: the model is wrong for "

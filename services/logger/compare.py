@@ -160,7 +160,7 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
         in_pv = "PV" in unit
         if in_pv and mixed:  # 2 %/degC against 3 %/(m3/h) is no change of 50 %
             change = None
-        if base is not None and "%" in units:  # a PV in %: "%/%" would name both rows
+        if base is not None and units == ["%", "%"]:  # PVs in %: "%/%" would name both rows
             unit = "%/% of span"
         rows.append(
             {

@@ -62,6 +62,11 @@ class LocalLoopClient:
         """This client holds the loop's lease (in process, nobody can take it back)."""
         return self.lease is not None
 
+    @property
+    def fault(self) -> str | None:
+        """The loop's fault, if its model failed (``LoopClient.fault``, read in process)."""
+        return self.sim.fault
+
     def __enter__(self) -> LocalLoopClient:
         return self
 

@@ -5,7 +5,9 @@ the plant is on the bus: one that blocks (waits on a device, sleeps, loops) woul
 plant_sim there for good, silently. ``load_bound`` interrupts the load after ``seconds`` of
 wall time (SIGALRM, in the main thread, where plant_sim loads its file) with ``LoadTimeout``,
 a ConfigError: the model's call is named by the loader (``the model's reset() raised
-LoadTimeout: …``), one line, exit 2. Elsewhere (another thread, no SIGALRM) it bounds nothing.
+LoadTimeout: …``), one line, exit 2; a model that catches it is interrupted again every
+second by an exception no ``except Exception`` takes. A call blocked in native code (no
+Python runs) is not interrupted. Elsewhere (another thread, no SIGALRM) it bounds nothing.
 """
 
 from __future__ import annotations
@@ -24,25 +26,37 @@ class LoadTimeout(ConfigError):
     """The plant file's models did not load within the bound."""
 
 
+class _StillLoading(BaseException):
+    """The bound's next strokes, a second apart, should the model have caught the first
+    (``except Exception``): past any handler of the model's, turned into a ConfigError."""
+
+
 @contextmanager
-def load_bound(seconds: float, flag: str = "--load-timeout") -> Iterator[None]:
-    """Raise LoadTimeout in the main thread if the block runs longer than ``seconds``."""
+def load_bound(
+    seconds: float, what: str = "plant file", flag: str = "--load-timeout"
+) -> Iterator[None]:
+    """Raise LoadTimeout in the main thread if the block runs longer than ``seconds``;
+    ``what``: the file being loaded, named where no loader's message names it."""
     if threading.current_thread() is not threading.main_thread() or not hasattr(
         signal, "setitimer"
     ):
         yield
         return
 
+    why = f"still loading after {seconds:g} s ({flag}): a model's __init__ or reset() that blocks?"
+    strokes = 0
+
     def expired(signum: int, frame: object) -> None:
-        raise LoadTimeout(
-            f"still loading after {seconds:g} s ({flag}): a model's __init__ or reset() that "
-            "blocks?"
-        )
+        nonlocal strokes
+        strokes += 1
+        raise LoadTimeout(why) if strokes == 1 else _StillLoading(why)
 
     before = signal.signal(signal.SIGALRM, expired)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
+    signal.setitimer(signal.ITIMER_REAL, seconds, 1.0)  # again every second until it ends
     try:
         yield
+    except _StillLoading:
+        raise LoadTimeout(f"{what}: {why}") from None
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0.0)
         signal.signal(signal.SIGALRM, before)

@@ -524,8 +524,13 @@ class PlantService:
         while not stop.wait(0.05):
             now = time.monotonic()
             paused, last = now - last, now
-            self._watch_models(now)
             self._check_leases(now, paused)
+
+    def _model_watch(self, stop: threading.Event) -> None:
+        """``_watch_models`` every second, on a thread of its own: the lease watchdog waits
+        on the lock a hung model holds."""
+        while not stop.wait(1.0):
+            self._watch_models(time.monotonic())
 
     def _watch_models(self, now: float) -> None:
         """Say (once a hang) which loop's model has not returned from its step() for
@@ -630,6 +635,7 @@ class PlantService:
             keys.tune_running(prefix, keys.ANY), self._on_run_token, 1024, liveliness=True
         )
         shell.thread(lambda: self._watchdog(stop), name="watchdog")
+        shell.thread(lambda: self._model_watch(stop), name="model-watch")
         if self.opt.clock == "realtime":
             shell.thread(lambda: self._pace(stop), name="clock")
         for lid in self.loops:
@@ -737,9 +743,10 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--noise-std {args.noise_std}: must be a finite number ≥ 0")
     if not 0 < args.load_timeout < float("inf"):
         raise ConfigError(f"--load-timeout {args.load_timeout}: must be a finite number of s > 0")
-    with load_bound(args.load_timeout):
+    path = args.plant or default_plant_path()
+    with load_bound(args.load_timeout, f"plant file {path}"):
         loops = load_plant_file(
-            args.plant or default_plant_path(),
+            path,
             seed=args.seed,
             noise_std=args.noise_std,
             select=lambda ids: select_loops(ids, args.loops, args.shard),

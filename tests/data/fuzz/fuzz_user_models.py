@@ -69,6 +69,17 @@ class ResetSleeps(Good):
         return self.pv
 
 
+class ResetRetries(Good):
+    """A reset() that retries whatever goes wrong (``except Exception``), for good."""
+
+    def reset(self) -> float:
+        while True:
+            try:
+                time.sleep(600.0)
+            except Exception:
+                continue
+
+
 class ResetNaN(Good):
     def reset(self) -> float:
         return math.nan
