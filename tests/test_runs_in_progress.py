@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import pytest
 
+from services.logger.commands import runs
 from services.logger.commands.runs import summarize
 from services.logger.mcap_io import MAGIC, being_written, read_run
 from shared.errors import AutotuneError
+from shared.messages import PidGains
+from tests.recorded_run import record_in_process
 
 
 def test_a_footerless_file_held_open_is_recording_and_unreadable_once_closed(tmp_path: Path):
@@ -38,3 +42,19 @@ def test_a_finished_file_is_never_recording(tmp_path: Path):
         f.write(MAGIC + b"body" + MAGIC)
         f.flush()
         assert not being_written(path)  # ends with the magic: finished, open or not
+
+
+def test_an_apply_run_is_listed_as_apply_not_as_another_test(tmp_path: Path, capsys):
+    """An `autotune apply` run carries the recorded run's method: `runs` listed it as a
+    second step test of the loop. It is listed as "apply", and --json has ``applied_from``."""
+    plant = {"seed": 1, "loops": {"x": {"model": "fopdt", "gain": 1.0, "time_constant": 5.0,
+             "delay": 1.0, "sample_time": 0.1, "noise_std": 0.0}}}  # fmt: skip
+    request = {"apply_from": "0123456789ab", "rule": "simc-pi", "apply_timescale": 10.0,
+               "apply_gains": PidGains(kc=1.0, ti=5.0), "apply_noise": 0.0}  # fmt: skip
+    path, live = record_in_process(tmp_path, "p", plant, "x", "step", **request)
+    assert live.status == "ok", live.reason
+    row = summarize(path)
+    assert row["method"] == "step" and row["applied_from"] == "0123456789ab"
+    runs.run(argparse.Namespace(runs=str(tmp_path), compare=None, json=False))
+    (line,) = [x for x in capsys.readouterr().out.splitlines() if x.endswith(path.name)]
+    assert line.split()[1:3] == ["x", "apply"]

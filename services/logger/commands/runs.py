@@ -128,6 +128,9 @@ def _row(path: Path, meta: dict[str, str]) -> dict:
         "pu": result.get("pu"),
         "gains": isa,
         "status": meta.get("status"),
+        # an `autotune apply` run: the recorded run whose gains it applied (its method is that
+        # run's; listed as "apply", not as a second test of that method)
+        "applied_from": result.get("applied_from"),
         "samples": _count(meta, "samples"),
         "dropped": _count(meta, "dropped"),
     }
@@ -165,7 +168,8 @@ def run(args: argparse.Namespace) -> int:
         g = r.get("gains") or {}
         print(
             f"{(r.get('started') or '')[:19]:<20} {r.get('loop') or '':<8} "
-            f"{r.get('method') or '':<6} {_num(r.get('ku')):>9} {_num(r.get('pu')):>9} "
+            f"{'apply' if r.get('applied_from') else r.get('method') or '':<6} "
+            f"{_num(r.get('ku')):>9} {_num(r.get('pu')):>9} "
             f"{r.get('rule') or '':<14} {_num(g.get('kc')):>8} {_num(g.get('ti')):>8} "
             f"{_num(g.get('td')):>8} {_status(r)}  {r['file']}"
         )
