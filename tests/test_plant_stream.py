@@ -23,6 +23,7 @@ from services.plant_sim.service import (
     MODEL_STALL,
     STREAM_CHUNK,
     PlantService,
+    RejectLog,
     ServiceOptions,
 )
 from shared import keys, wire
@@ -225,3 +226,18 @@ def test_the_model_watch_speaks_while_the_hung_model_holds_the_lock(service) -> 
         stop.set()
         service.loops["x"].stepping_since = None
         logging.getLogger("plant_sim").removeHandler(handler)
+
+
+def test_refusals_left_unlogged_are_counted_once_their_window_has_passed(caplog) -> None:
+    """Past its burst, a kind of refusal is counted, not logged; the count was said only if
+    another refusal of the kind came after the window. ``flush`` says it when it has passed."""
+    refusals = RejectLog(burst=2, window=10.0)
+    with caplog.at_level(logging.WARNING, logger="plant_sim"):
+        for _ in range(5):
+            refusals("schema", "not JSON")
+        refusals.flush(time.monotonic())  # the window still open: nothing yet
+        assert sum("more schema rejects" in r.getMessage() for r in caplog.records) == 0
+        refusals.flush(time.monotonic() + 11.0)
+        refusals.flush(time.monotonic() + 30.0)  # said once
+    said = [r.getMessage() for r in caplog.records if "more schema rejects" in r.getMessage()]
+    assert said == ["3 more schema rejects were not logged"]

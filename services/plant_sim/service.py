@@ -104,20 +104,31 @@ class RejectLog:
     def __init__(self, burst: int = 10, window: float = 10.0):
         self.burst, self.window = burst, window
         self._seen: dict[str, tuple[float, int, int]] = {}
+        self._lock = threading.Lock()  # refusals come on Zenoh's threads, ``flush`` on ours
 
     def __call__(self, category: str, message: str) -> None:
         now = time.monotonic()
-        start, shown, hidden = self._seen.get(category, (now, 0, 0))
-        if now - start > self.window:
-            if hidden:
-                log.warning("%d more %s rejects were not logged", hidden, category)
-            start, shown, hidden = now, 0, 0
-        if shown < self.burst:
-            log.warning("rejected (%s): %s", category, message)
-            shown += 1
-        else:
-            hidden += 1
-        self._seen[category] = (start, shown, hidden)
+        with self._lock:
+            start, shown, hidden = self._seen.get(category, (now, 0, 0))
+            if now - start > self.window:
+                if hidden:
+                    log.warning("%d more %s rejects were not logged", hidden, category)
+                start, shown, hidden = now, 0, 0
+            if shown < self.burst:
+                log.warning("rejected (%s): %s", category, message)
+                shown += 1
+            else:
+                hidden += 1
+            self._seen[category] = (start, shown, hidden)
+
+    def flush(self, now: float) -> None:
+        """Say how many refusals went unlogged in each window that has passed (monotonic
+        ``now``): the count was said only when another refusal of the kind came after it."""
+        with self._lock:
+            for category, (start, _, hidden) in list(self._seen.items()):
+                if hidden and now - start > self.window:
+                    log.warning("%d more %s rejects were not logged", hidden, category)
+                    self._seen[category] = (now, 0, 0)
 
 
 MAX_LAPSED = 64  # lapsed supervisors remembered per loop
@@ -527,10 +538,11 @@ class PlantService:
             self._check_leases(now, paused)
 
     def _model_watch(self, stop: threading.Event) -> None:
-        """``_watch_models`` every second, on a thread of its own: the lease watchdog waits
-        on the lock a hung model holds."""
+        """``_watch_models`` every second, on a thread of its own (the lease watchdog waits
+        on the lock a hung model holds), and the count of refusals left unlogged."""
         while not stop.wait(1.0):
             self._watch_models(time.monotonic())
+            self._log_reject.flush(time.monotonic())
 
     def _watch_models(self, now: float) -> None:
         """Say (once a hang) which loop's model has not returned from its step() for
