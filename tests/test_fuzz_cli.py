@@ -130,6 +130,10 @@ REFUSED = [
     (["up", "--seed", "-1"], ["--seed"]),
     (["up", "--config", "/no/such/up.toml"], ["--config", "cannot read"]),
     (["up", "--runs", "run.mcap"], ["--runs", "not a directory"]),
+    # it said "No such file or directory: /proc/x/runs", not which flag
+    (["up", "--runs", "/proc/x/runs"], ["--runs /proc/x/runs: cannot make it"]),
+    # it waited 10 s for the loop on the bus first
+    (["revert", "hx1", "--steps", "0"], ["--steps 0: must be ≥ 1"]),
     # the plant file is read before anything starts (a stack came up without its plant and
     # blamed the tuner 42 s later)
     (["up", "--plant", "unstable.toml"], ["loops.a.den", "open-loop unstable"]),
