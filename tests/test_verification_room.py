@@ -34,32 +34,41 @@ from shared.messages import PidGains, TuneRequest, Verification
 OP_LIMITS = (45.0, 53.0)
 
 
-def narrow_valve_loop():
-    """e^{−s}/(5s+1) through an output limited to 45-53 % (resting at 50 %)."""
+def narrow_valve_loop(action: str = "reverse"):
+    """±e^{−s}/(5s+1) through an output limited to 45-53 % (resting at 50 %); the gain's sign
+    is the controller's action's (a direct-acting loop's process gain is negative)."""
     spec = {
         "model": "fopdt",
-        "gain": 1.0,
+        "gain": 1.0 if action == "reverse" else -1.0,
         "time_constant": 5.0,
         "delay": 1.0,
         "sample_time": 0.1,
         "noise_std": 0.01,
         "op_limits": list(OP_LIMITS),
+        "action": action,
     }
     return build_plant({"seed": 1, "loops": {"x": spec}})["x"]
 
 
-def test_the_verification_on_a_narrow_output_range_stays_linear():
-    client = LocalLoopClient(narrow_valve_loop())
+@pytest.mark.parametrize("action", ["reverse", "direct"])
+def test_the_verification_on_a_narrow_output_range_stays_linear(action):
+    client = LocalLoopClient(narrow_valve_loop(action))
     rest = client.sync().op
     r = TuningRun(client, TuneRequest(loop="x", method="ramp"), "unit").run()
     assert r.status == "ok", r.reason
     after = r.after
-    room = OP_LIMITS[1] - rest  # a setpoint step up drives a reverse-acting output up
-    assert after.kick <= VERIFY_ROOM * room + 1e-9
+    # a reverse-acting output moves with the setpoint, a direct-acting one against it
+    up = (after.sp_step > 0) == (action == "reverse")
+    room = OP_LIMITS[1] - rest if up else rest - OP_LIMITS[0]
+    assert after.op_rest == pytest.approx(rest, abs=0.05)
+    assert after.kick <= VERIFY_ROOM * room + 0.05
     assert after.op_limited == 0.0
-    # the load step from where the output is after the setpoint step (K = 1 %/%; its noise
-    # at that sample, σ 0.02 %, within the slack)
-    assert 0 < after.load_step <= VERIFY_ROOM * (rest + after.sp_step - OP_LIMITS[0]) + 0.05
+    # the load step within half the room from where the output is after the setpoint step
+    # (|K| = 1 %/%: it moved by the step; its noise at that sample, σ 0.02 %, in the slack),
+    # toward the limit the load drives it to (down for a load up)
+    op = rest + (after.sp_step if action == "reverse" else -after.sp_step)
+    load_room = op - OP_LIMITS[0] if after.load_step > 0 else OP_LIMITS[1] - op
+    assert 0 < abs(after.load_step) <= VERIFY_ROOM * load_room + 0.05
     assert not after.saturated and after.stable
     # the linear loop's overshoot, as predicted: not the limited loop's few per cent
     predicted = r.acceptance["predicted_overshoot"]
