@@ -65,7 +65,8 @@ class CommandRefused(AutotuneError):
 
 class LoopFaulted(AutotuneError):
     """The loop's model failed (its status carries ``fault``): the plant holds it in manual
-    at its last output and refuses mode and output commands."""
+    at its last output and refuses output, auto-mode and disturbance commands (its setpoint
+    and gains it still takes)."""
 
 
 class ForgedCommand(AutotuneError):
