@@ -31,6 +31,22 @@ def proposed_rule(tune: dict[str, Any]) -> str | None:
     return tune.get("rule") or tune.get("recommended")
 
 
+def outside_envelope(tune: dict[str, Any], rule: str | None) -> bool:
+    """The run judged ``rule``'s gains outside its safety envelope (``autotune apply`` refuses
+    them): a ``--rule`` the tune was asked for and refused."""
+    judged = (tune.get("robustness") or {}).get(rule) if rule else None
+    return judged is not None and judged.get("within_envelope") is not True
+
+
+def applicable_rule(tune: dict[str, Any]) -> str | None:
+    """The rule ``autotune apply`` can apply of a run: the proposed one, or the recommended
+    one where the proposed is outside the safety envelope (None: neither has gains in it)."""
+    for rule in (proposed_rule(tune), tune.get("recommended")):
+        if rule and (tune.get("gains") or {}).get(rule) and not outside_envelope(tune, rule):
+            return rule
+    return None
+
+
 def read_history(path: Path, skipped: list[int] | None = None) -> Iterator[dict[str, Any]]:
     """The records of a history file, oldest first; a line that is not a JSON object (a
     line cut short by a crash, an edit) is skipped, its number (from 1) added to ``skipped``

@@ -3,6 +3,7 @@ bus would, the file read back; and the pure parts of `revert` and `apply`."""
 
 from __future__ import annotations
 
+import re
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -309,6 +310,27 @@ def test_apply_takes_the_rule_the_tune_proposed():
     base = {"record": "tune", "utc": "2026-12-04T19:00:00", "t": 1.0, "method": "relay"}
     line = format_entries(LOOP, Path("runs"), [{**base, **proposed}]).splitlines()[1]
     assert line.endswith("not applied; proposed tl-pi (recommended tl-pid): `autotune apply r1`")
+
+
+def test_a_refused_rule_is_not_offered_the_recommended_one_is():
+    """``tune --rule zn-pid`` refused (outside the envelope): the listing offered `autotune
+    apply ID`, which applies the proposed zn-pid and so was refused too (a dead end). It
+    now offers the recommended rule by name, and apply's refusal names it."""
+    refused = {**RUN, "status": "rejected", "rule": "zn-pid", "timescale": 43.6}
+    base = {"record": "tune", "utc": "2026-12-04T19:00:00", "t": 1.0, "method": "relay"}
+    line = format_entries(LOOP, Path("runs"), [{**base, **refused}]).splitlines()[1]
+    assert line.endswith(
+        "not applied; proposed zn-pid, outside the safety envelope; recommended tl-pid: "
+        "`autotune apply r1 --rule tl-pid`"
+    )
+    said = re.escape("Ms 2.3); --rule tl-pid is within it; tune again")
+    with pytest.raises(ConfigError, match=said):
+        choose(refused, None)
+    assert choose(refused, "tl-pid")[0] == "tl-pid"
+    # neither within the envelope: nothing offered
+    worse = {**refused, "recommended": "zn-pid"}
+    line = format_entries(LOOP, Path("runs"), [{**base, **worse}]).splitlines()[1]
+    assert line.endswith("none within the safety envelope: nothing to apply")
 
 
 def test_apply_checks_the_loop_is_the_one_identified():

@@ -103,6 +103,9 @@ def test_a_refusal_restores_an_auto_loop_exactly():
     assert state(client) == before
     assert before[:3] == ("auto", 50.0, PidGains(**OLD_GAINS))
     assert_let_go(client)
+    # the identification is on record all the same: `autotune apply --rule` sizes its
+    # verification on it (a refused run's record had none, and apply could not use it)
+    assert r.timescale is not None and r.timescale > 0 and r.noise is not None
 
 
 def test_an_abort_mid_test_restores_a_manual_loop_exactly():

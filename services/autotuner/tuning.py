@@ -499,6 +499,9 @@ class TuningRun:
         Returns the identification, the chosen gains and their predicted overshoot (%)."""
         req = self.req
         ident = self._experiment()
+        # on record even if no rule may be applied: `autotune apply --rule` sizes its
+        # verification and its wait for the PV's return on them
+        result.update(timescale=ident.timescale or None, noise=ident.noise)
         result.update(
             ku=ident.ku,
             pu=ident.pu,

@@ -17,7 +17,7 @@ from typing import Any
 
 import zenoh
 
-from services.autotuner.commands.apply import choose, recorded_run, same_loop
+from services.autotuner.commands.apply import choose, recorded_run, recorded_timescale, same_loop
 from services.autotuner.commands.revert import CATCH_UP, target
 from services.autotuner.commands.tune import follow, submit
 from services.autotuner.loop_client import CommandRefused, LoopClient, wait_for_loop
@@ -76,8 +76,7 @@ def apply_request(
     rec = _record(runs, run_id)
     loop = str(rec.get("loop"))
     rule, gains, predicted = choose(rec, rule)
-    if not rec.get("timescale"):
-        raise ConfigError(f"run {run_id}: no time scale on record to verify with")
+    scale = recorded_timescale(rec)
     info = wire.query_one(session, keys.info(prefix, loop), LoopInfo, LOOP_WAIT)
     if info is None:
         raise AutotuneError(f"loop {loop}: no plant answers for it")
@@ -91,7 +90,7 @@ def apply_request(
         apply_from=run_id,
         apply_gains=gains,
         apply_predicted_overshoot=predicted,
-        apply_timescale=rec["timescale"],
+        apply_timescale=scale,
         apply_noise=rec.get("noise"),
         source=SOURCE,
     )

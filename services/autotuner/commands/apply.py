@@ -29,7 +29,7 @@ from services.autotuner.commands.tune import add_units_option, figure, run_and_r
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
-from shared.history_file import HISTORY_FILE, proposed_rule, read_history
+from shared.history_file import HISTORY_FILE, applicable_rule, proposed_rule, read_history
 from shared.messages import APPLICABLE_STATUSES, LoopInfo, PidGains, TuneRequest
 from shared.session import settings_from_args
 
@@ -87,14 +87,30 @@ def choose(run: dict[str, Any], rule: str | None) -> tuple[str, PidGains, float 
     judged = (run.get("robustness") or {}).get(rule)
     if judged is not None:
         if judged.get("within_envelope") is not True:
+            usable = applicable_rule(run)
+            other = f"; --rule {usable} is within it" if usable and usable != rule else ""
             raise ConfigError(
                 f"--rule {rule}: outside the safety envelope the run judged it by "
-                f"(predicted Ms {figure(judged.get('ms'))}); tune again with --force if you must"
+                f"(predicted Ms {figure(judged.get('ms'))}){other}; tune again with --force "
+                "if you must"
             )
     elif run.get("ku") is None or not isa["kc"] < run["ku"]:
         raise ConfigError(f"--rule {rule}: not judged by the run, and Kc not below its K_u")
     predicted = judged.get("overshoot_pct") if judged else None
     return rule, PidGains(kc=isa["kc"], ti=isa.get("ti"), td=isa.get("td") or 0.0), predicted
+
+
+def recorded_timescale(run: dict[str, Any]) -> float:
+    """The time scale (s) the run identified, which an apply's verification and its wait for
+    the PV's return are sized on; ConfigError naming the run when it has none."""
+    scale = run.get("timescale")
+    if not scale:
+        raise ConfigError(
+            f"run {run.get('run_id')}: no time scale on record (the run ended before it "
+            "identified one), which the verification and the wait for the PV's return are "
+            "sized on"
+        )
+    return float(scale)
 
 
 def same_loop(recorded: dict[str, Any] | None, info: LoopInfo) -> str | None:
@@ -134,8 +150,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{err}{hint}") from None
     loop = str(rec.get("loop"))
     rule, gains, predicted = choose(rec, args.rule)
-    if not rec.get("timescale"):
-        raise ConfigError(f"run {args.run_id}: no time scale on record to verify with")
     req = TuneRequest(
         loop=loop,
         method=rec.get("method") or "relay",
@@ -144,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         apply_from=args.run_id,
         apply_gains=gains,
         apply_predicted_overshoot=predicted,
-        apply_timescale=rec["timescale"],
+        apply_timescale=recorded_timescale(rec),
         apply_noise=rec.get("noise"),
         source="autotune-apply",
     )

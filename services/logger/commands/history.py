@@ -17,7 +17,13 @@ from typing import Any
 
 from shared.cli import check_ids
 from shared.errors import ConfigError
-from shared.history_file import HISTORY_FILE, of_loop, proposed_rule, read_history
+from shared.history_file import (
+    HISTORY_FILE,
+    applicable_rule,
+    of_loop,
+    proposed_rule,
+    read_history,
+)
 from shared.keys import DEFAULT_PREFIX
 from shared.messages import APPLICABLE_STATUSES
 
@@ -66,6 +72,20 @@ def _proposed(tune: dict[str, Any]) -> str:
     if recommended and rule != recommended:
         return f"proposed {rule} (recommended {recommended})"
     return f"recommended {rule}"
+
+
+def _apply_hint(tune: dict[str, Any]) -> str:
+    """What a run that did not apply its gains proposed, and the ``autotune apply`` command
+    that applies gains of it within its safety envelope (a refused ``--rule``'s are not)."""
+    run_id, rule, usable = tune.get("run_id"), proposed_rule(tune), applicable_rule(tune)
+    if usable is None:
+        return f"{_proposed(tune)}, none within the safety envelope: nothing to apply"
+    if usable == rule:
+        return f"{_proposed(tune)}: `autotune apply {run_id}`"
+    return (
+        f"proposed {rule}, outside the safety envelope; recommended {usable}: "
+        f"`autotune apply {run_id} --rule {usable}`"
+    )
 
 
 def _num(x: Any, unit: str = "") -> str:
@@ -138,9 +158,7 @@ def format_entries(
             if source:  # tried on the loop and not kept: apply would try them again
                 lines.append(f"{head}not applied (the gains of run {source}, {rule})")
             elif r.get("status") in APPLICABLE_STATUSES and r.get("gains"):
-                lines.append(
-                    f"{head}not applied; {_proposed(r)}: `autotune apply {r.get('run_id')}`"
-                )
+                lines.append(f"{head}not applied; {_apply_hint(r)}")
             else:  # an aborted or failed run: nothing `autotune apply` would take
                 lines.append(f"{head}no gains to apply")
             continue
