@@ -108,6 +108,32 @@ def test_a_refusal_restores_an_auto_loop_exactly():
     assert r.timescale is not None and r.timescale > 0 and r.noise is not None
 
 
+def test_a_refused_run_waits_for_the_return_on_the_time_scale_it_identified():
+    """Every rule refused (an Ms bound of 1.01) on e^{−5s}/((10s+1)(60s+1)) from manual: the
+    wait for the PV to come back was sized without the identification (refused, it was
+    dropped): 60 s for a 60 s lag, and the crest of the relay's last swing, flat over a
+    15 s window, was called "at rest off it" 0.45 up (on hx1). Sized on the relay's P_u (5
+    P_u), the PV is seen back where it was."""
+    cfg = {
+        "model": "transfer_function",
+        "num": [1.0],
+        "den": [600.0, 70.0, 1.0],
+        "delay": 5.0,
+        "sample_time": 0.25,
+        "noise_std": 0.0,
+        "pid": dict(OLD_GAINS),
+    }
+    client = LocalLoopClient(build_plant({"seed": 1, "loops": {"x": cfg}})["x"])
+    before = state(client)
+    r = run(client, method="relay", ms_bound=1.01)
+    assert (r.status, r.restored) == ("rejected", True), r.reason
+    assert state(client) == before
+    left = r.left
+    assert left["returned"] is True, left
+    assert abs(left["pv"] - left["pv_target"]) <= left["band"], left
+    assert left["waited"] > 60.0  # longer than the 60 s it was cut to
+
+
 def test_an_abort_mid_test_restores_a_manual_loop_exactly():
     """Cancelled at the relay's first reported cycle: the loop is back in manual at its old
     output, setpoint and gains."""

@@ -211,6 +211,10 @@ class TuningRun:
         self._events_sent = 0
         self._reported = 0
         self._t = 0.0
+        # the experiment's findings, kept when the design then refuses every rule: the wait
+        # for the PV's return is sized on their time scale, a level is given back on their
+        # model (a refused run waited 60 s for hx1's 60 s lag, and called a crest a rest)
+        self._identified: experiments.Identification | None = None
 
     # --- reporting ------------------------------------------------------------------------
 
@@ -389,6 +393,7 @@ class TuningRun:
                     c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
                 except AutotuneError as err:  # if the plant is gone, so is the lease
                     unreleased = str(err)
+        ident = ident or self._identified
         scale = ident.timescale if ident is not None and ident.timescale > 0 else None
         cancelled = self.hooks.cancelled is not None and self.hooks.cancelled.is_set()
         if result.get("status") not in APPLIED_STATUSES and (c.gone or not result.get("restored")):
@@ -498,7 +503,7 @@ class TuningRun:
         none may be applied); the result's identification and design fields filled in.
         Returns the identification, the chosen gains and their predicted overshoot (%)."""
         req = self.req
-        ident = self._experiment()
+        ident = self._identified = self._experiment()
         # on record even if no rule may be applied: `autotune apply --rule` sizes its
         # verification and its wait for the PV's return on them
         result.update(timescale=ident.timescale or None, noise=ident.noise)
@@ -703,10 +708,12 @@ class TuningRun:
         if wait:  # back near the target is not enough: the PV must be at rest there
             slow = rest_window(self.ts, before.gains.ti, self.req.rest_window)
             horizon = max(RETURN_SCALES * (scale or 0.0), slow)
-            check = RestCheck(self.ts, max(10 * self.ts, 0.25 * horizon), (lo, hi), windows=4)
+            window = max(10 * self.ts, 0.25 * horizon)
+            check = RestCheck(self.ts, window, (lo, hi), windows=4)
             t_start = self._t
+            confirming = False
             try:
-                while not check.done and self._t - t_start < horizon:
+                while self._t - t_start < horizon:
                     if self.hooks.cancelled is not None and self.hooks.cancelled.is_set():
                         break
                     for s in c.samples(max(1, min(MAX_CHUNK, check.samples // 4))):
@@ -715,7 +722,13 @@ class TuningRun:
                         pv = s.pv
                     if check.at_rest and abs(check.rest_pv - target) <= band:
                         break
-                    if check.done and not check.at_rest:
+                    if check.done and check.at_rest and not confirming:
+                        # still, but off where it was: the crest of a swing on its way back
+                        # is still over a window too (seen: "at rest off it" 0.45 °C up,
+                        # falling). At rest there only if the next window is still as well
+                        confirming = True
+                        check = RestCheck(self.ts, window, (lo, hi), windows=4)
+                    elif check.done:
                         break
             except AutotuneError:
                 pass
