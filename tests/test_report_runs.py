@@ -147,3 +147,37 @@ def test_runs_compare_keeps_its_columns_apart():
     c = {"runs": [run, run], "rows": [{**row, "change": 9.5405 / 0.014634 - 1}]}
     line = format_compare(c).splitlines()[-1]
     assert line.split() == ["K_u", "(%/%)", "0.014634", "9.5405", "+65094.1", "%"]
+
+
+def test_an_apply_runs_report_says_it_applied_another_runs_gains(runs, tmp_path):
+    """``autotune apply``'s run makes no test: its report was titled "ramp tuning run" and
+    boxed "ramp test" (the method is the identifying run's); it now names the run whose
+    gains it applied."""
+    (result,) = runs["ramp"][0]["result"]
+    isa = result["chosen"]["isa"]
+    path, live = record_in_process(
+        tmp_path,
+        "r",
+        {**PLANT, "seed": 4},
+        LOOP,
+        "ramp",
+        rule=result["rule"],
+        apply_from="ab12cd34ef56",
+        apply_gains={"kc": isa["kc"], "ti": isa["ti"], "td": isa["td"] or 0.0},
+        apply_timescale=result["timescale"],
+        apply_noise=result["noise"],
+    )
+    assert live.applied_from == "ab12cd34ef56", live.reason
+    fig = build_report(load_report(path))
+    title = fig._suptitle.get_text()
+    assert title.startswith(f"{LOOP}: run {live.run_id}, apply of run ab12cd34ef56's gains ("), (
+        title
+    )
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert any(
+        t.startswith(f"apply of run ab12cd34ef56's gains (no test) · rule {result['rule']}")
+        for t in texts
+    ), texts
+    labels = [t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().texts]
+    assert "verification (setpoint step, load step)" in labels, labels
+    assert not any("ramp t" in t for t in [title, *labels, *texts])  # ramp test, trial, tuning

@@ -213,7 +213,7 @@ def _summary(s: RunSeries) -> str:
     if r is None:
         return f"status: {s.meta.get('status', 'incomplete')}"
     span = s.span
-    lines = [f"{r.method} test · rule {r.rule} · {r.status}"]
+    lines = [f"{_what(s)} · rule {r.rule} · {r.status}"]
     if r.ku is not None:
         lines.append(
             f"K_u = {_g(r.ku, '.4g')} %/{r.pv_units}"
@@ -329,8 +329,9 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
             color="tab:orange",
         )
     if s.windows:
-        handles_pv.append(_proxy("verification (setpoint step, load step)", "tab:orange", lw=6))
         loads = [w for w in s.windows if w.load_t is not None]
+        steps = "setpoint step, load step" if loads else "setpoint step"
+        handles_pv.append(_proxy(f"verification ({steps})", "tab:orange", lw=6))
         if loads:
             size = loads[-1].load
             text = f"load step {size:+.3g} %" if size is not None else "load step"
@@ -368,11 +369,25 @@ def _text_panel(ax: Axes, lines: list[str], fontsize: float = 8) -> None:
     )
 
 
+def _what(s: RunSeries) -> str:
+    """What the run did: its test, or (``autotune apply``) another run's gains, no test."""
+    source = s.result.applied_from if s.result is not None else None
+    if source:
+        return f"apply of run {source}'s gains (no test)"
+    return f"{s.meta.get('method', '')} test"
+
+
 def _title(s: RunSeries) -> str:
-    return (
-        f"{s.meta.get('loop', '')}: {s.meta.get('method', '')} tuning run "
-        f"{s.meta.get('run_id', '')} ({s.meta.get('started', '')[:19]} UTC)"
+    loop, run_id, started = (
+        s.meta.get("loop", ""),
+        s.meta.get("run_id", ""),
+        s.meta.get("started", ""),
     )
+    if s.result is not None and s.result.applied_from:
+        what = f"run {run_id}, apply of run {s.result.applied_from}'s gains"
+    else:
+        what = f"{s.meta.get('method', '')} tuning run {run_id}"
+    return f"{loop}: {what} ({started[:19]} UTC)"
 
 
 def keep_clear(fig: Figure) -> None:
