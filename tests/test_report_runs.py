@@ -181,3 +181,25 @@ def test_an_apply_runs_report_says_it_applied_another_runs_gains(runs, tmp_path)
     labels = [t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().texts]
     assert "verification (setpoint step, load step)" in labels, labels
     assert not any("ramp t" in t for t in [title, *labels, *texts])  # ramp test, trial, tuning
+
+
+def test_an_aborted_runs_report_says_why_it_has_no_verification(runs, tmp_path):
+    """A relay aborted at its PV limits, the loop in auto before it: the "before" panel said
+    the loop had not been in auto (the old gains are verified only on the way to applying
+    new ones, which an aborted run never reaches)."""
+    (result,) = runs["relay"][0]["result"]
+    sp = result["left"]["sp"]
+    path, live = record_in_process(
+        tmp_path, "r", PLANT, LOOP, "relay", pv_limits=(sp - 0.05, sp + 0.05)
+    )
+    assert live.status == "aborted" and "left its limits" in live.reason, live.reason
+    fig = build_report(load_report(path))
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert any("the run ended (aborted) before any verification" in t for t in texts), texts
+    assert not any("not in auto" in t for t in texts)
+    # the limits it aborted at are drawn, and named in the legend
+    ax_pv = next(ax for ax in fig.axes if ax.get_ylabel().startswith("PV, setpoint"))
+    flat = {float(ln.get_ydata()[0]) for ln in ax_pv.lines if len(set(ln.get_ydata())) == 1}
+    assert {sp - 0.05, sp + 0.05} <= flat
+    labels = [t.get_text() for t in ax_pv.get_legend().texts]
+    assert "the test's PV limits (--pv-limits)" in labels, labels

@@ -262,6 +262,17 @@ def _proxy(label: str, color: str, ls: str = "-", marker: str = "", lw: float = 
     return Line2D([], [], color=color, ls=ls, marker=marker, lw=lw, label=label)
 
 
+def _pv_limits(setup: dict[str, Any]) -> list[float]:
+    """The PV limits the test was to abort outside, where they were narrower than the
+    transmitter's range (a run's ``--pv-limits``): an abort at one is seen against it."""
+    out = []
+    for limit, end in (("pv_lo", "pv_range_lo"), ("pv_hi", "pv_range_hi")):
+        v = setup.get(limit)
+        if isinstance(v, int | float) and math.isfinite(v) and v != setup.get(end):
+            out.append(float(v))
+    return out
+
+
 def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
     """PV and setpoint over output against sim time, every mark in the legend."""
     ax_op.sharex(ax_pv)
@@ -273,6 +284,11 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
     ax_op.plot(s.t, s.op, lw=1.0, color="tab:green", drawstyle="steps-post", label="output")
     handles_pv: list[Any] = []
     handles_op: list[Any] = []
+    limits = _pv_limits(s.setup)
+    if limits:
+        for v in limits:
+            ax_pv.axhline(v, color="tab:gray", lw=0.8, ls=":")
+        handles_pv.append(_proxy("the test's PV limits (--pv-limits)", "tab:gray", ":"))
     kinds = {m.kind for m in s.events}
     for m in s.events:
         if m.kind in MARK_STYLE:
@@ -695,6 +711,19 @@ def _nyquist_limits(ax: Axes, f: FrequencyFigure) -> None:
     ax.set_aspect("equal", adjustable="box")
 
 
+def _no_verification(r: TuneResult | None, label: str) -> str:
+    """Why the report has no ``label`` ("before"/"after") verification to draw. The old gains
+    are verified only on the way to applying new ones, and only in auto: an aborted or
+    refused run ended first (its report said the loop had not been in auto)."""
+    if r is not None and r.status == "unverified":
+        return "applied without verification (--no-verify)"
+    if r is not None and not r.applied and r.after is None:
+        return f"the run ended ({r.status}) before any verification"
+    if label == "before":
+        return "the loop was not in auto before the run:\nno verification of its old gains"
+    return "no verification recorded"
+
+
 def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
     """The verifications side by side on one scale, and their figures as a table."""
     s, r = rep.series, rep.series.result
@@ -706,12 +735,7 @@ def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
     for ax, label in zip(axes, labels, strict=True):
         tr = by_label.get(label)
         if tr is None:
-            why = (
-                "the loop was not in auto before the run:\nno verification of its old gains"
-                if label == "before"
-                else "no verification recorded"
-            )
-            _unavailable(ax, f"{label}", why)
+            _unavailable(ax, f"{label}", _no_verification(r, label))
             continue
         ax.plot(tr.t, tr.pv, color="tab:blue", lw=0.9, label="PV − SP₀")
         ax.plot(
