@@ -23,6 +23,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from services.cli import main
+from services.logger.report import build_report, load_report
 from shared.messages import ProcessSample, TuneResult
 from tests.recorded_run import record_in_process
 
@@ -1045,3 +1046,23 @@ def test_replay_that_keeps_nothing_says_what_the_file_holds(recorded, capsys):
         assert code == 0 and err == "", err
         assert out.startswith("nothing to replay: no message passes the filters; the file ")
         assert "loop(s) " in out and "pv" in out and "s long" in out
+
+
+def test_analyze_blames_a_long_hole_not_the_end_of_the_recording(recorded, tmp_path, capsys):
+    """A hundred samples cut out of a step test's response: analyze said the samples do not
+    complete it because "the recording ends first", which it does not; it names the gap."""
+    msgs, meta = load(recorded["step"].path)
+    pv = [k for k, m in enumerate(msgs) if m.topic.endswith("/pv")]
+    gone = set(pv[200:300])
+    holed = save(tmp_path / "holed.mcap", [m for k, m in enumerate(msgs) if k not in gone], meta)
+    code, _, err = cli(capsys, "analyze", str(holed))
+    seq = msgs[pv[199]].obj()["seq"]
+    said = f"100 samples are missing from the record (the first gap after seq {seq})"
+    refused(code, err, "analyze", ["do not complete the step test", said])
+    assert "the recording ends first" not in err
+    # the report draws what is there, and says what is not
+    fig = build_report(load_report(holed))
+    texts = [t.get_text() for ax in fig.axes for t in ax.texts]
+    assert any(
+        f"WARNING: 100 samples missing from the record (first after seq {seq})" in t for t in texts
+    )

@@ -271,9 +271,14 @@ def analyze_file(path: str | Path) -> Analysis:
     try:
         ident = drive(machine, record)
         if ident is None:
+            why = machine.reason or (
+                f"{missing} samples are missing from the record (the first gap after seq "
+                f"{first_gap}): the test cannot be followed across them"
+                if missing
+                else "the recording ends first"
+            )
             raise AutotuneError(
-                f"{path}: the recorded samples do not complete the {req.method} "
-                f"test ({machine.reason or 'the recording ends first'})"
+                f"{path}: the recorded samples do not complete the {req.method} test ({why})"
             )
         sel = select(
             ident,

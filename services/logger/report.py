@@ -214,6 +214,12 @@ def _summary(s: RunSeries) -> str:
         return f"status: {s.meta.get('status', 'incomplete')}"
     span = s.span
     lines = [f"{_what(s)} · rule {r.rule} · {r.status}"]
+    steps = np.diff(s.seq)
+    if steps.size and (missing := int(np.sum(steps[steps > 1] - 1))):
+        first = int(s.seq[:-1][steps > 1][0])
+        lines.append(
+            f"WARNING: {missing} samples missing from the record (first after seq {first})"
+        )
     if r.ku is not None:
         lines.append(
             f"K_u = {_g(r.ku, '.4g')} %/{r.pv_units}"
