@@ -23,6 +23,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from services.cli import main
+from services.logger.compare import compare, format_compare
 from services.logger.report import build_report, load_report
 from shared.messages import ProcessSample, TuneResult
 from tests.recorded_run import record_in_process
@@ -1066,3 +1067,26 @@ def test_analyze_blames_a_long_hole_not_the_end_of_the_recording(recorded, tmp_p
     assert any(
         f"WARNING: 100 samples missing from the record (first after seq {seq})" in t for t in texts
     )
+
+
+def test_runs_compare_keeps_unlike_figures_apart(recorded):
+    """A step test's L/T (its reaction curve's tangent) against a relay run's (its model's
+    first-order equivalent) was given a change of +78 %: they are not one figure. Figures in %
+    change by percentage points (a predicted overshoot of 0.0001 % against 10 % read
+    +10,916,844.5 %)."""
+    c = compare(recorded["relay"].path, recorded["step"].path)
+    rows = {r["key"]: r for r in c["rows"]}
+    lt = rows["l_over_t"]
+    assert lt["unit"] == "model FOPDT | step tangent" and lt["change"] is None, lt
+    over = rows["overshoot_pct"]
+    assert over["points"] == pytest.approx(over["b"] - over["a"]), over
+    text = format_compare(c)
+    line = next(x for x in text.splitlines() if x.startswith("overshoot (predicted) (%)"))
+    assert line.endswith(f"{over['points']:+.3g} pt"), line
+    same = compare(recorded["relay"].path, recorded["relay"].path)
+    lt = {r["key"]: r for r in same["rows"]}["l_over_t"]
+    assert lt["unit"] == "model FOPDT" and lt["change"] == 0.0, lt
+    # no label is cut short, however long its units
+    long = {"key": "max_deviation_load", "label": "max deviation, load", "unit": "degC | m3/h"}
+    c["rows"].append({**long, "a": 1.0, "b": 2.0, "change": 1.0})
+    assert "max deviation, load (degC | m3/h) " in format_compare(c)

@@ -49,6 +49,12 @@ ROWS = (
     ("sim_duration", "sim time", "s"),
 )
 PERCENT_KEYS = ("ku_spread", "pu_spread")  # fractions on the result, given in % (JSON too)
+# figures in %: their change is told in percentage points (an overshoot from 0.0001 % to 10 %
+# is not a change of +10,000,000 %)
+POINT_KEYS = (*PERCENT_KEYS, "overshoot_pct", "overshoot")
+# where a run's L/T comes from: a step test's reaction curve (its tangent) or, else, the
+# model's first-order equivalent (``selection.l_over_t``): the two are not the same figure
+L_OVER_T_FROM = {True: "step tangent", False: "model FOPDT"}
 # a gain in %/% and the row of the same gain in %/PV unit (equal when the PV's span is 100 %)
 SAME_IN_PERCENT = {"ku_percent": "ku", "kc_percent": "kc"}
 
@@ -71,7 +77,7 @@ def _result(path: Path) -> tuple[dict[str, str], TuneResult | None, float | None
 
 def figures(meta: dict[str, str], r: TuneResult | None, span: float | None) -> dict:
     """The run's figures by ``ROWS`` key (None where it has none)."""
-    out: dict = {k: None for k, _, _ in ROWS}
+    out: dict = {k: None for k, _, _ in ROWS} | {"l_over_t_from": None}
     out["status"] = meta.get("status")
     if r is None:
         return out
@@ -93,6 +99,7 @@ def figures(meta: dict[str, str], r: TuneResult | None, span: float | None) -> d
         model_lag_2=e.get("model_lag_2"),
         model_delay=e.get("model_delay"),
         l_over_t=r.l_over_t,
+        l_over_t_from=L_OVER_T_FROM[r.step is not None] if r.l_over_t is not None else None,
         rule=r.rule,
         kc=isa.get("kc"),
         kc_percent=kc_pct,
@@ -162,16 +169,22 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
             change = None
         if base is not None and units == ["%", "%"]:  # PVs in %: "%/%" would name both rows
             unit = "%/% of span"
-        rows.append(
-            {
-                "key": key,
-                "label": label,
-                "unit": _unit(unit, units) if in_pv else unit,
-                "a": a,
-                "b": b,
-                "change": change,
-            }
-        )
+        if key == "l_over_t":
+            froms = [v.get("l_over_t_from") for v in values]
+            unit = " | ".join(f for f in froms if f) if froms[0] != froms[1] else froms[0] or ""
+            if froms[0] != froms[1]:
+                change = None  # a tangent's L/T against a model's: not one figure
+        row = {
+            "key": key,
+            "label": label,
+            "unit": _unit(unit, units) if in_pv else unit,
+            "a": a,
+            "b": b,
+            "change": change,
+        }
+        if key in POINT_KEYS and na is not None and nb is not None:
+            row["points"] = nb - na  # percentage points
+        rows.append(row)
     return {"runs": runs, "rows": rows, "pv_units_differ": mixed}
 
 
@@ -216,16 +229,23 @@ def format_compare(c: dict) -> str:
             f"PV units differ (A {a.get('pv_units') or '—'}, B {b.get('pv_units') or '—'}): "
             "figures in PV units are shown, not compared",
         ]
+    labels = [f"{r['label']} ({r['unit']})" if r["unit"] else r["label"] for r in c["rows"]]
+    width = max([32, *map(len, labels)])
     head += [
         "",
-        f"{'':<32} {'A':>14} {'B':>14} {'B vs A':>10}",
+        f"{'':<{width}} {'A':>14} {'B':>14} {'B vs A':>10}",
     ]
-    for r in c["rows"]:
-        label = f"{r['label']} ({r['unit']})" if r["unit"] else r["label"]
+    for label, r in zip(labels, c["rows"], strict=True):
         ch = r["change"]
-        change = "" if ch is None else f"{100 * ch:+.1f} %"
+        change = (
+            f"{r['points']:+.3g} pt"
+            if r.get("points") is not None
+            else ""
+            if ch is None
+            else f"{100 * ch:+.1f} %"
+        )
         head.append(
-            f"{label:<32.32} {_cell(r['key'], r['a']):>14} {_cell(r['key'], r['b']):>14} "
+            f"{label:<{width}} {_cell(r['key'], r['a']):>14} {_cell(r['key'], r['b']):>14} "
             f"{change:>10}"
         )
     return "\n".join(head)

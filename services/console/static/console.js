@@ -400,7 +400,8 @@ $("compare").onclick = async () => {
       $("compare-table").innerHTML = table([["", `A: ${run(ra)}`, `B: ${run(rb)}`, "B vs A"],
         ...(c.pv_units_differ ? [[`PV units differ (A ${ra.pv_units || "—"}, B ${rb.pv_units || "—"}): figures in PV units are shown, not compared`, "", "", ""]] : []),
         ...c.rows.map((r) => [r.unit ? `${r.label} (${r.unit})` : r.label, cell(r, r.a), cell(r, r.b),
-          r.change === null ? "" : `${r.change >= 0 ? "+" : ""}${(100 * r.change).toFixed(1)} %`])]);
+          typeof r.points === "number" ? `${r.points >= 0 ? "+" : ""}${fmt(r.points, 3)} pt`  // figures in %: points
+            : r.change === null ? "" : `${r.change >= 0 ? "+" : ""}${(100 * r.change).toFixed(1)} %`])]);
     }
   } catch (err) { say(`compare: ${err}`, false); }
 };
