@@ -164,3 +164,45 @@ def test_no_gain_crossover_means_no_phase_margin_to_lose():
     r = sampled_loop_robustness(IsaGains(kc), DelayedTF.of([K], [TAU, 1.0], 0.0), T)
     assert r.phase_margin_deg == math.inf and r.omega_c is None
     assert r.gain_margin == pytest.approx(KC_U / kc, rel=1e-9) and r.stable
+
+
+@pytest.mark.parametrize(
+    ("name", "kc", "ti", "td"),
+    [
+        ("zn-pid", 0.6, 0.5, 0.125),
+        ("zn-pid-half", 0.3, 0.5, 0.125),
+        ("tl-pid", 1 / 2.2, 2.2, 1 / 6.3),
+    ],
+)
+def test_the_gain_margin_is_the_least_over_every_phase_crossover(name, kc, ti, td):
+    """e^{−10s}/(2s + 1) with ZN and TL PIDs from its exact K_u, P_u: the filtered derivative
+    keeps the loop gain up while the delay turns the phase past −540°, and that crossing is
+    nearer to −1 than the first (ZN PID: 1.37 was printed at the first, 1.03 at the next;
+    ×1.05 on Kc goes unstable). Expected: the least 1/|L| where L is real and negative, on a
+    fine linear grid (sampled: L(e^{jωT}) from the PID's and the held plant's own responses,
+    up to π/T); and the gain factor at which the Nyquist count first calls the sampled loop
+    unstable (bisection), to the grid's resolution."""
+    plant = DelayedTF.of([1.0], [2.0, 1.0], 10.0)
+    ku, pu = ultimate_point([1.0], [2.0, 1.0], 10.0)
+    gains = IsaGains(kc * ku, ti * pu, td * pu)
+
+    def least(lw: np.ndarray) -> float:
+        real_negative = np.nonzero((np.diff(np.sign(lw.imag)) != 0) & (lw.real[1:] < 0))[0]
+        return float(np.min(1.0 / np.abs(lw[real_negative])))
+
+    ts = 0.25
+    r = sampled_loop_robustness(gains, plant, ts)
+    w = np.linspace(1e-3, math.pi / ts, 2_000_000)
+    lw = pid_response(gains, ts, np.exp(1j * w * ts)) * sampled_plant(plant, ts).at(w)
+    assert r.gain_margin == pytest.approx(least(lw), rel=1e-4)
+    lo, hi = 0.5, 10.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        stable = sampled_loop_robustness(IsaGains(mid * gains.kc, gains.ti, gains.td), plant, ts)
+        lo, hi = (mid, hi) if stable.stable else (lo, mid)
+    assert r.gain_margin == pytest.approx(lo, rel=1e-3)
+    w = np.linspace(1e-3, 200.0, 4_000_000)
+    s = 1j * w
+    lw = gains.kc * (1 + 1 / (gains.ti * s) + gains.td * s / (1 + gains.td * s / 10.0))
+    lw = lw * np.exp(-10.0 * s) / (2.0 * s + 1.0)
+    assert robustness(gains, plant).gain_margin == pytest.approx(least(lw), rel=1e-3)

@@ -40,6 +40,28 @@ class Robustness:
     unstable_poles: int | None = None
 
 
+def nearest_crossing(
+    w: np.ndarray, phase: np.ndarray, mag: np.ndarray, first: float | None, tol: float = 1e-9
+) -> tuple[int, float] | None:
+    """The crossing of −180° + k·360° (any k, either way) on the grid ``w`` where the loop's
+    gain ``mag`` is largest — the nearest to −1, so the least gain margin — other than the
+    ``first`` one (ω, already found): (the grid index it lies after, the crossed phase in
+    rad); None if there is no other. A filtered derivative keeps the gain up at high
+    frequency while a delay's phase turns on, so a later crossing can be the nearer (seen:
+    e^{−10s}/(2s + 1), ZN PID: 1.37 at the first, 1.03 at the next). Only where the grid
+    resolves the phase (steps below π)."""
+    x = (phase + math.pi) / (2.0 * math.pi)
+    turns = np.floor(x + tol)
+    resolved = np.abs(np.diff(phase)) < math.pi
+    idx = np.nonzero((np.diff(turns) != 0) & resolved)[0]
+    if first is not None:
+        idx = idx[~((w[idx] <= first) & (first <= w[idx + 1]))]
+    if idx.size == 0:
+        return None
+    i = int(idx[np.argmax(np.maximum(mag[idx], mag[idx + 1]))])
+    return i, 2.0 * math.pi * max(turns[i], turns[i + 1]) - math.pi
+
+
 def loop_response(gains: IsaGains, plant: DelayedTF, n: float, w: np.ndarray) -> np.ndarray:
     """L(jω) = C(jω)·G(jω) at ω in rad/s; ``n`` the derivative filter (Tf = Td/n)."""
     s = 1j * np.asarray(w, dtype=float)
@@ -88,6 +110,13 @@ def robustness(
     gm = (
         math.inf if w180 is None else 1.0 / abs(loop_response(gains, plant, n, np.array([w180]))[0])
     )
+    other = nearest_crossing(w, phase, np.abs(lw), w180)
+    if other is not None:  # the least margin over every crossing, not the first's alone
+        i, crossed = other
+        wo = brentq(lambda x: np.interp(math.log(x), np.log(w), phase) - crossed, w[i], w[i + 1])
+        go = 1.0 / abs(loop_response(gains, plant, n, np.array([wo]))[0])
+        if go < gm:
+            gm, w180 = go, wo
     wc = interp_root(np.log(np.abs(lw)), 0.0)
     pm = math.inf
     if wc is not None:

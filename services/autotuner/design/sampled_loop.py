@@ -15,8 +15,9 @@ plant's PID block closes:
   changes, not the loop from the PV back to the output, so they do not enter.
 
 L(z) = C(z)·G(z) is evaluated on z = e^{jωT} for 0 < ω ≤ π/T (beyond, the response repeats
-and mirrors). Ms, the gain margin (first phase crossover, which may lie at π/T itself: a
-discrete loop's phase there is a multiple of 180°) and the phase margin follow as in
+and mirrors). Ms, the gain margin (the least over every phase crossover of −180° + k·360°,
+which may lie at π/T itself: a discrete loop's phase there is a multiple of 180°) and the
+phase margin follow as in
 ``robustness``; stability comes from the Nyquist criterion on the unit circle, with an
 indentation around the integrators' poles at z = 1, so it holds even where the margins are
 ambiguous (several crossovers).
@@ -30,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
-from services.autotuner.design.robustness import Robustness
+from services.autotuner.design.robustness import Robustness, nearest_crossing
 from shared.control.forms import IsaGains
 from shared.control.lti import DiscreteDelaySystem, discretize, tf_to_ss
 from shared.control.transfer import DelayedTF
@@ -153,6 +154,18 @@ def sampled_robustness(gains: IsaGains, plant: SampledPlant, n: float = 10.0) ->
 
     w180 = _first_fall(w, phase + math.pi, lambda x: exact_phase(x) + math.pi)
     gm = math.inf if w180 is None else 1.0 / float(abs(loop(w180)[0]))
+    other = nearest_crossing(w, phase, np.abs(lw), w180)
+    if other is not None:  # the least margin over every crossing, not the first's alone
+        i, crossed = other
+        if abs(phase[i + 1] - crossed) <= 1e-9:  # on the grid: at π/T, a multiple of π
+            wo = float(w[i + 1])
+        else:
+            wo = float(
+                brentq(lambda x: exact_phase(x) - crossed, w[i], w[i + 1], xtol=1e-14 * w[i + 1])
+            )
+        go = 1.0 / float(abs(loop(wo)[0]))
+        if go < gm:
+            gm, w180 = go, wo
     log_mag = np.log(np.abs(lw))
     wc = _first_fall(w, log_mag, lambda x: math.log(abs(loop(x)[0])))
     if wc is None:  # |L| < 1 everywhere, or still ≥ 1 at π/T (no crossover: no margin)
