@@ -205,6 +205,11 @@ def assess(
     )
     if not math.isfinite(timescale) or timescale <= 0:
         timescale = 10.0 * model.delay if model else 0.0
+    if sample_time and timescale > 0:
+        # no sampled loop swings faster than two samples a period: a model whose own
+        # continuous P_u is shorter (no −180° crossing but by a delay of a few ms, the relay
+        # measuring none) had its steps simulated over no sample at all, and the run failed
+        timescale = max(timescale, 2.0 * sample_time)
     tf = model.transfer if model is not None else None
     calls: list = [(judge_all, (gains, tf, sample_time))]  # what ``parts`` computes
     simulated = simulate and tf is not None and timescale > 0

@@ -237,6 +237,16 @@ def select(
                 "the model is sure only near the ultimate point, so the recommendation is "
                 "Tyreus–Luyben's, from K_u and P_u; --relay-bias pins the gain for the others"
             )
+    if ident.inverse_response:
+        # a right-half-plane zero raises the gain at high frequencies, where a derivative
+        # acts and where the models (no term for it) are least right: a PID's predicted Ms
+        # is the least sure (seen: TL PID 1.75 predicted, 2.14 on (1 − 4s)/((10s+1)(5s+1));
+        # AMIGO PID 1.45, 2.18 on (1 − 2s)/((s+1)(3s+1))). PIDs are offered, not recommended
+        pids = {k for k, a in pool.items() if a.gains.td > 0}
+        if pids and len(pids) < len(pool):
+            pool = {k: a for k, a in pool.items() if k not in pids}
+            for k in pids:
+                left_out[k] = "an inverse response: derivative action is not recommended"
     if ts:
         # a derivative of a few samples is not the derivative the rule designed: the discrete
         # D term is then mostly gain at high frequency (TL PID at 23 samples per period, Td of

@@ -97,6 +97,10 @@ class Identification:
     # True when K_u lies between two gains tried on the loop (a ramp's bracket): its spread
     # bounds it, and a fitted model's own K_u says nothing more (``stated_spreads``)
     ku_bracketed: bool = False
+    # True when the PV first went the other way after a push (a right-half-plane zero) that
+    # the fitted models have no term for: their Ms is optimistic, most of all a derivative's
+    # (which acts at the high frequencies where such a zero raises the gain)
+    inverse_response: bool = False
 
 
 DIRECT_NOTE = (

@@ -242,6 +242,7 @@ class RelayTest:
         self._aim = 0.0  # rad: stage 2 aims its level at a·sin(_aim)
         self._chatter = 0  # times ε was widened for a relay switching on the noise
         self._switches = 0  # the relay's switches since it started
+        self._push = (math.nan, math.nan)  # s: the relay's first push, from its start to its switch
         self._from_cycle = 0  # stage 1's cycles (and the budget's) count from this one
         self._stage_two_from = 0  # stage 2's cycles count from this many
         self._stage_two_start = math.nan  # s: its patience runs from here
@@ -426,6 +427,7 @@ class RelayTest:
         self._margin = self._eps
         self._cross_margin = self._eps
         self._relay_start = t
+        self._push = (t, math.nan)
         self.phase = "relay"
         self.events.append(
             Event(
@@ -509,6 +511,21 @@ class RelayTest:
         tail = float(np.mean(self.pv[-self._quiet_samples :]))
         return f": {self._against(tail)}" if self._against(tail) else ""
 
+    def _inverse_dip(self, amplitude: float) -> float | None:
+        """How far the PV first went the other way in the relay's first push, from its rest
+        (PV units), when more than 6σ of the noise and 4 % of the cycle's amplitude: an
+        inverse response (a right-half-plane zero), which the relay's cycles alone do not
+        show. None otherwise. The first push is the one step from rest the test makes."""
+        start, end = self._push
+        if not (math.isfinite(start) and math.isfinite(end)):
+            return None
+        t, y = np.asarray(self.t), np.asarray(self.pv)
+        away = (self._r - y[(t > start) & (t <= end)]) * 1.0  # the push raises the PV (+1)
+        if away.size == 0:
+            return None
+        worst = float(np.max(away))
+        return worst if worst > max(6.0 * self._noise, 0.04 * amplitude, 1e-12) else None
+
     def _switched(self) -> bool:
         """The relay has switched since it started."""
         return self._switches > 0
@@ -545,6 +562,8 @@ class RelayTest:
 
     def _switch(self, t: float, pv: float, state: float) -> None:
         self._switches += 1
+        if self._switches == 1:
+            self._push = (self._push[0], t)
         self._state, self._switch_armed = state, False
         self._switched_at, self._extreme = t, pv
         self.events.append(Event(t, "switch", {"op": self._actual(self._out())}))
@@ -916,6 +935,7 @@ class RelayTest:
             cycle_period=s1.pu,
             ku_method=est.ku_method,
             sample_time=self.sample_time,
+            inverse_dip=self._inverse_dip(s1.amplitude),
         )
         self.phase = "done"
         t_done = self.cycles[-1].t_start + self.cycles[-1].period

@@ -44,6 +44,9 @@ class RelayResult:
     cycle_period: float = math.nan  # s, stage 1's mean period
     ku_method: str = MODEL_CROSSING  # which path produced K_u (relay_estimate.KU_METHODS)
     sample_time: float = math.nan  # s (for what is said of a cycle short of −180°)
+    # how far the PV first went the other way in the first push (PV units): an inverse
+    # response (``RelayTest._inverse_dip``); None when it did not
+    inverse_dip: float | None = None
 
     @property
     def measured(self) -> bool:
@@ -71,6 +74,7 @@ class RelayResult:
             **{f"stage2_{k}": v for k, v in frequency_fields(self.second).items()},
             **(self.model.to_dict() if self.model else {}),
             **({"static_gain": self.static_gain} if self.static_gain is not None else {}),
+            **({"inverse_dip": self.inverse_dip} if self.inverse_dip is not None else {}),
         }
 
     def _why_short(self) -> str:
@@ -112,7 +116,17 @@ class RelayResult:
                     else ""
                 )
             )
+        if self.inverse_dip is not None:
+            fitted = f"the {self.model.kind.upper()} model" if self.model else "a low-order model"
+            notes.append(
+                f"inverse response: in the relay's first push the PV first went "
+                f"{self.inverse_dip:.3g} the other way from its rest before it turned: a "
+                f"right-half-plane zero, which {fitted} has no term for, so the robustness it "
+                "predicts for the rules (Ms, margins) is optimistic on this process: "
+                "derivative action is offered, not recommended"
+            )
         return Identification(
+            inverse_response=self.inverse_dip is not None,
             static_gain_known=self.static_gain is not None,
             ku=self.ku if measured else None,
             pu=self.pu if measured else None,

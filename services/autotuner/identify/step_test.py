@@ -311,6 +311,7 @@ class StepTest:
                 step_model=step_model,
                 model=model,
                 notes=[inverse] if inverse else [],
+                inverse_response=inverse is not None,
                 integrating=True,
                 experiment=StepFindings(rc.step_size, rc.method, fitted),
                 # the closed loop's time scale: SIMC's integral time for a level, 8 L
@@ -332,6 +333,7 @@ class StepTest:
             noise=rc.noise_std,
             rest_pv=rc.pv_before,
             notes=[inverse] if inverse else [],
+            inverse_response=inverse is not None,
         )
 
     def inverse_response(self, model: str) -> str | None:
@@ -360,7 +362,8 @@ class StepTest:
             f"other way (most at t = {t[worst]:.4g} s) before its change of {change:+.3g}{u}: "
             f"a right-half-plane zero, which the {model} model has no term for, so the "
             "robustness it predicts for the rules (Ms, margins) is optimistic on this "
-            "process: prefer the most cautious rule, or detune"
+            "process: derivative action is offered, not recommended; prefer the most "
+            "cautious rule, or detune"
         )
 
     # --- the state machine ---------------------------------------------------------------
