@@ -21,6 +21,7 @@ from services.autotuner.identify.reaction_curve import (
 from services.autotuner.identify.step_test import (
     ReturnWatch,
     StepTest,
+    StepTestAborted,
     StepTestConfig,
 )
 from services.autotuner.step_run import run_step_test
@@ -329,3 +330,43 @@ def test_a_step_stops_before_the_pv_passes_its_limits():
     assert r.status == "aborted" and "would leave its limits [45, 55]" in r.reason, r.reason
     assert r.restored
     assert min(pvs) > 45.0 and max(pvs) < 55.0  # the return included
+
+
+def test_the_return_is_watched_past_the_dead_time():
+    """e^{−10s}/(2s+1), noise-free, a 2 % step: the wait for the return ended 10 s after the
+    restore, the PV still in its dead time (flat, bar the last of the step's creep), and
+    said "returned to rest" at 52.0 for a rest of 50.0. The PV must now come at least half
+    of the way back."""
+    spec = {"model": "fopdt", "gain": 1.0, "time_constant": 2.0, "delay": 10.0,
+            "sample_time": 0.25, "noise_std": 0.0}  # fmt: skip
+    loop = sim_loop(spec)
+    d = run_step_test(LocalLoopClient(loop), StepTestConfig(size=2.0)).to_dict()
+    assert d["returned_to_rest"] is True
+    assert d["pv_end"] == pytest.approx(d["pv_before"], abs=0.01), d
+    assert d["t_return"] - d["t_end"] > 10.0 + 3 * 2.0  # past the dead time, and its lag
+
+
+FO5 = {"model": "fopdt", "gain": 1.0, "time_constant": 2.0, "delay": 10.0,
+       "sample_time": 0.25, "noise_std": 0.0}  # fmt: skip
+
+
+def test_a_lag_slowing_down_is_not_extrapolated_past_its_end():
+    """e^{−10s}/(2s+1), the default 5 % step from 50 %: its straight-line trend over twice
+    the dead time (1.06 %/s at 54.89 %, the rise's average) took it past the allowance's
+    75 %, and the test aborted; the PV ends at 55. A PV slowing down as a lag's approach
+    does is extended to where that approach ends; the test completes."""
+    d = run_step_test(LocalLoopClient(sim_loop(FO5)), StepTestConfig()).to_dict()
+    assert d["gain"] == pytest.approx(1.0, rel=1e-3) and d["dead_time"] == pytest.approx(10.0)
+
+
+def test_an_aborted_step_waits_for_the_pv_to_come_back():
+    """A 20 % step with PV limits 45–55 stops early; the loop was restored and the command
+    ended at once, the PV still moving for its dead time: a test started next measured
+    K = −1.43 for +1. The abort now waits for the return, as a completed test does, and says
+    where the PV came to rest."""
+    loop = sim_loop(FO5)
+    with pytest.raises(StepTestAborted, match="the PV back at rest at 50"):
+        run_step_test(LocalLoopClient(loop), StepTestConfig(size=20.0, pv_limits=(45.0, 55.0)))
+    assert loop.pv == pytest.approx(50.0, abs=0.01) and loop.op == 50.0
+    d = run_step_test(LocalLoopClient(loop), StepTestConfig(size=2.0)).to_dict()
+    assert d["gain"] == pytest.approx(1.0, rel=1e-3)

@@ -171,10 +171,35 @@ def run_step_test(
             f"{lost}; the plant restored the loop ({before.mode}, {before.op:g} %)"
         )
     if test.phase == "aborted" or test.result is None:
+        back = ""
+        last = test.done[-1] if isinstance(test, RepeatedSteps) and test.done else test
+        moved = isinstance(last, StepTest) and last.t_step is not None and last.t
+        if wait_return and restored and moved and before.mode == "manual":
+            # the output is back, but the PV answers it only after its dead time and lag: a
+            # test started at once measured a PV still on its way (K = −1.43 for +1, at
+            # rest by a window shorter than the dead time); waited for as after a test
+            pv_before = last.pv_before_step
+            watch = ReturnWatch(
+                last.t[-1] + (0.0 if info.clock == "lockstep" else info.sample_time),
+                last.pv[-1],
+                last.noise_std,
+                # the PV goes on for about as long again as it took to answer (its dead
+                # time) before it turns back: twice the test's time so far
+                return_timeout(config, last.t_step or 0.0, 2 * last.t[-1] - (last.t_step or 0.0)),
+                tuple(info.pv_range),
+                pv_back=pv_before,
+            )
+            _follow_return(client, watch, cap, lambda s: progress(test, s) if progress else None)
+            back = (
+                f"; the PV back at rest at {watch.rest:.4g}"
+                if watch.at_rest
+                else f"; the PV not yet back at rest ({watch.pv_end:.4g} {info.pv_units}, "
+                f"{pv_before:.4g} before the step): let it settle before the next test"
+            )
         raise StepTestAborted(
             f"loop {client.loop}: step test aborted: {test.reason}; "
             f"{'loop restored' if restored else 'LOOP NOT RESTORED'} "
-            f"({before.mode}, {before.op:g} %)"
+            f"({before.mode}, {before.op:g} %){back}"
         )
     last = test.done[-1] if isinstance(test, RepeatedSteps) else test
     first = test.done[0] if isinstance(test, RepeatedSteps) else test
@@ -190,20 +215,9 @@ def run_step_test(
             last.result.noise_std,
             return_timeout(config, last.t_step or 0.0, t_end),
             tuple(info.pv_range),
+            pv_back=last.result.pv_before,
         )
-        try:
-            while not watch.done:  # in batches up to its next check, as the test's
-                batch = client.samples(watch.horizon(cap, info.sample_time))
-                if not batch:
-                    raise AutotuneError(f"loop {client.loop}: no sample came")
-                for s in batch:
-                    done = watch.feed(s.t, s.pv)
-                    if progress:
-                        progress(test, s)
-                    if done:
-                        break
-        except (KeyboardInterrupt, AutotuneError):
-            pass  # the loop is restored and the figures stand: report it as not back at rest
+        _follow_return(client, watch, cap, lambda s: progress(test, s) if progress else None)
         returned = watch.at_rest
         pv_end = watch.pv_end if watch.pv else test.pv[-1]
         t_return = watch.t[-1] if watch.t else t_end
@@ -228,6 +242,25 @@ def run_step_test(
         ),
         tuple(info.pv_range),
     )
+
+
+def _follow_return(
+    client: LoopClient, watch: ReturnWatch, cap: int, seen: Callable[[ProcessSample], None]
+) -> None:
+    """Samples to ``watch`` until it is done (in batches up to its next check); a failure or
+    Ctrl-C meanwhile ends the wait (the loop is restored: it is reported not back at rest)."""
+    try:
+        while not watch.done:
+            batch = client.samples(watch.horizon(cap, client.info.sample_time))
+            if not batch:
+                raise AutotuneError(f"loop {client.loop}: no sample came")
+            for s in batch:
+                done = watch.feed(s.t, s.pv)
+                seen(s)
+                if done:
+                    break
+    except (KeyboardInterrupt, AutotuneError):
+        pass
 
 
 def _restore(client: LoopClient, mode: str, op: float) -> bool:

@@ -203,6 +203,7 @@ class RepeatedSteps:
             rc.noise_std,
             return_timeout(self.config, test.t_step, s.t),
             self.pv_range,
+            pv_back=rc.pv_before,
         )
         self.phase = "return"
         self.events.append(Event(s.t, "return", {"test": len(self.done)}))

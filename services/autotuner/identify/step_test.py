@@ -392,6 +392,16 @@ class StepTest:
             return self.op_target
         return self._after_step(s)
 
+    @property
+    def pv_before_step(self) -> float:
+        """PV units: the rest before the step (NaN before the baseline was measured)."""
+        return self._pv_before
+
+    @property
+    def noise_std(self) -> float:
+        """PV units: the noise σ measured at rest before the step."""
+        return self._noise
+
     def _baseline(self, s: Sample) -> float:
         n = self._baseline_samples
         if len(self.pv) < n:
@@ -492,6 +502,11 @@ class StepTest:
         moved = self._t_moved if self._t_moved is not None else elapsed
         horizon = 2.0 * moved + 4.0 * self.sample_time
         reach = float(level + slope * horizon)
+        left = _approach_left(yw)
+        if left is not None and abs(left) < abs(reach - level):
+            # slowing down as a lag's approach does: it goes no further than its end (a
+            # straight line over 2 L took e^{−10s}/(2s+1)'s 5 % step past 75 %: it ends at 55)
+            reach = float(level + left)
         lo, hi = self.ends
         margin = 4.0 * self._noise
         u = f" {self.pv_units}" if self.pv_units else ""
@@ -703,13 +718,37 @@ class StepTest:
             self._restore_at = t
 
 
+def _approach_left(y: np.ndarray) -> float | None:
+    """How much further a PV slowing down as a lag's exponential approach would go (PV
+    units, signed), from the means of the record's three thirds (m₁, m₂, m₃): their steps
+    shrink by r = (m₂ − m₁)/(m₃ − m₂) a third, so what is left after the last third's middle
+    is (m₃ − m₂)/(r − 1), taken twice over (the noise in the means, a lag not quite
+    exponential) and from the last sample. None unless the PV clearly slows (r > 1.2) in one
+    direction: a response still speeding up (an S-curve before its inflection) keeps the
+    straight line."""
+    n = y.size // 3
+    if n < 4:
+        return None
+    m1, m2, m3 = (float(np.mean(y[i * n : (i + 1) * n])) for i in range(3))
+    d1, d2 = m2 - m1, m3 - m2
+    if d1 == 0.0 or d2 == 0.0 or (d1 > 0) != (d2 > 0):
+        return None
+    r = d1 / d2
+    if r <= 1.2:
+        return None
+    return 2.0 * d2 / (r - 1.0) + (m3 - float(y[-1]))
+
+
 @dataclass
 class ReturnWatch:
     """After the output is restored: is the PV back at rest? ``feed`` each sample.
 
     The restore is a step back from ``pv_from`` (the rest after the step), so the same test
     as after the step applies (``settled``, which also refuses a PV clipped at an end of
-    ``pv_range``). It gives up ``timeout`` seconds after ``t_restore``.
+    ``pv_range``). Given ``pv_back`` (the rest before the step), the PV must also have come
+    half of the way back to it: a noise-free PV still in its dead time, flat bar the last
+    of the step's creep, was taken for at rest where the step had left it (52 for 50). It
+    gives up ``timeout`` seconds after ``t_restore``.
     """
 
     t_restore: float  # s, sim time from which the restored output is held
@@ -717,6 +756,7 @@ class ReturnWatch:
     noise_std: float  # PV units
     timeout: float  # s
     pv_range: tuple[float, float] | None = None
+    pv_back: float | None = None  # PV units, the rest before the step the restore undoes
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
     done: bool = False
@@ -756,7 +796,10 @@ class ReturnWatch:
                 self.noise_std,
                 pv_range=self.pv_range,
             )
-            if ok:
+            back = self.pv_back is None or (
+                abs(rest - self.pv_from) >= 0.5 * abs(self.pv_back - self.pv_from)
+            )
+            if ok and back:
                 self.done, self.at_rest, self.rest = True, True, rest
                 return True
         if t - self.t_restore >= self.timeout:
