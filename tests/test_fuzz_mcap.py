@@ -820,6 +820,13 @@ def test_damaged_containers_and_what_recover_makes_of_them(recorded, tmp_path, c
     assert kept.read_bytes() == b"someone's file"
     code, out, _ = cli(capsys, "recover", str(recorded["relay"].path), "-o", str(kept), "--force")
     assert code == 0 and "recovered" in out and kept.read_bytes()[:8] == b"\x89MCAP0\r\n"
+    # the flag named where it was not: "No such file or directory: /nowhere/o.mcap"
+    nowhere = tmp_path / "nowhere" / "o.mcap"
+    code, _, err = cli(capsys, "recover", str(recorded["relay"].path), "-o", str(nowhere))
+    refused(code, err, "recover -o NOWHERE", [f"-o {nowhere}: no such directory"])
+    # a file given as the runs directory: "no such directory" where it is there, a file
+    code, _, err = cli(capsys, "runs", str(kept))
+    refused(code, err, "runs FILE", [f"{kept}: not a directory (the logger's --runs)"])
 
 
 def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, tmp_path, capsys):

@@ -43,6 +43,8 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
         raise AutotuneError(f"-o {dst}: is a directory (name the new file)")
     if dst.exists() and not force:
         raise AutotuneError(f"-o {dst}: exists already (name a new file, or --force)")
+    if not dst.parent.is_dir():
+        raise AutotuneError(f"-o {dst}: no such directory {dst.parent} to write it in")
     with src.open("rb") as f:
         if f.read(len(MAGIC)) != MAGIC:
             raise AutotuneError(

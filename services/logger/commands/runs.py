@@ -152,7 +152,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(c, indent=2) if args.json else format_compare(c))
         return 0
     if not folder.is_dir():
-        raise AutotuneError(f"{folder}: no such directory (the logger's --runs)")
+        what = "not a directory" if folder.exists() else "no such directory"
+        raise AutotuneError(f"{folder}: {what} (the logger's --runs)")
     rows = [summarize(p) for p in sorted(folder.glob("*.mcap"))]
     if args.json:
         print(json.dumps(rows, indent=2))
