@@ -278,3 +278,19 @@ def test_a_refusal_names_the_rules_left_out_within_the_envelope():
     inside = r.reason.split("within the envelope but not recommended: ")[1]
     assert "amigo-pi" in inside and "simc-pi" in inside and "tl-pi" not in inside
     assert "a relay without bias does not pin the static gain" in inside
+
+
+@pytest.mark.parametrize(("off", "warned"), [(1.15, True), (1.05, False)])
+def test_a_model_far_from_the_bracketed_ultimate_point_is_said_to_be_less_sure(off, warned):
+    """A ramp's K_u is bracketed by gains tried on the loop, and its stated spread is not
+    widened by the model's own K_u; but every rule's Ms is judged on that model: hx2's fitted
+    FOPDT put its own K_u 15 % below the bracket, without a word."""
+    model = ProcessFit("sopdt", 1.5, (20.0, 5.0), 2.0, 0.001)
+    ku, pu = ultimate_point([1.5], [100.0, 25.0, 1.0], 2.0)
+    ident = experiments.Identification(
+        ku=off * ku, pu=pu, ku_spread=0.01, pu_spread=0.01, model=model, ku_bracketed=True
+    )
+    said = [w for w in select(ident, "auto").warnings if "own ultimate point" in w]
+    assert bool(said) is warned, said
+    if warned:
+        assert f"{100 * (1 / off - 1):+.2g} %" in said[0], said

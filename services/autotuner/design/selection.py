@@ -89,6 +89,11 @@ def _finite(x: float | None) -> float | None:
     return x if math.isfinite(x) else None
 
 
+# how far a fitted model's own ultimate point may lie from a measured (bracketed) one before
+# the robustness judged on the model is said to be less sure
+MODEL_POINT_TOLERANCE = 0.1
+
+
 def check_identification(ident: Identification) -> ModelCheck | None:
     """``model_check`` on the identification's model with what was measured beside it (None
     without a model). A step test has no K_u: its reaction curve is checked on physics."""
@@ -140,6 +145,18 @@ def _widened(
             f"{label} ({model:.4g}{unit}) lies that far from the measured one (the "
             f"experiment's own spread: {was}); take the figure as no surer than that"
         )
+    if ident.ku_bracketed and check is not None and check.ku_model and ident.ku and ident.pu:
+        # the bracket states K_u, not the model: but the rules' Ms and margins are judged on
+        # the model, which is as sure there as its own ultimate point is near the measured
+        off_k = check.ku_model / ident.ku - 1.0
+        off_p = (check.pu_model / ident.pu - 1.0) if check.pu_model else 0.0
+        if max(abs(off_k), abs(off_p)) > MODEL_POINT_TOLERANCE:
+            out.append(
+                f"the identified model's own ultimate point (K_u {check.ku_model:.4g}, P_u "
+                f"{check.pu_model or math.nan:.4g} s) is {100 * off_k:+.2g} % / "
+                f"{100 * off_p:+.2g} % from the measured one: the robustness figures (Ms, "
+                "margins) are judged on that model, and are no surer than that"
+            )
     return out
 
 
