@@ -162,6 +162,17 @@ def test_values_the_loop_cannot_take_are_refused_naming_the_flag(asked, st, need
     assert all(n in str(err.value) for n in needles), str(err.value)
 
 
+def test_an_integral_time_shorter_than_a_sample_is_refused_naming_the_flag():
+    """`set hx1 --kc 2 --ti 0.001` was applied: each sample's integral step, Kc·T/Ti of the
+    error, took the output from 40 % to 0 % in three samples."""
+    with pytest.raises(set_loop.ConfigError, match=r"--ti 0\.001: shorter than the loop's"):
+        plan(Asked(kc=2.0, ti=0.001), status(), "degC", sample_time=0.25)
+    (w,) = plan(Asked(ti=0.25), status(), "degC", sample_time=0.25)  # one sample: taken
+    assert w.cmd.gains.ti == 0.25
+    (w,) = plan(Asked(ti="none"), status(), "degC", sample_time=0.25)
+    assert w.cmd.gains.ti is None
+
+
 def test_an_output_with_a_switch_to_auto_from_manual_is_written_before_it():
     writes = plan(Asked(op=30.0, mode="auto"), status(), "degC")
     assert kinds(writes) == ["output:", "mode:auto"]

@@ -115,6 +115,40 @@ def test_manual_auto_switches_and_gain_changes_make_no_jump():
     assert len(checked) == 6
 
 
+@pytest.mark.parametrize(
+    ("before", "after"),
+    [((6.0, 0.0), (6.0, 5.0)), ((6.0, 2.0), (6.0, 5.0)), ((6.0, 5.0), (3.0, 5.0))],
+)
+def test_a_gain_change_does_not_fold_the_d_term_into_i(before, after):
+    """Td 0 → 5 s on a loop at rest, a blip of noise on the sample before: the derivative
+    was that of Td = 0 (the blip's raw difference over one sample), the rebase folded Kc·Td
+    times it into I, and the output settled 12 % away as the new filter forgot it (`set
+    --td` on hx1: up to 11.5 %); any change of Kc or Td folded a part of D in. Expected:
+    where the same loop settles with no gain change but the blip (P, D and I from the blip
+    alone are gone by then; the integral, Ti = 1000 s, barely moves), but for the change of
+    P at the blip, which a bumpless change takes into I."""
+    gains = PidSettings(kc=before[0], ti=1000.0, td=before[1])
+    new = PidSettings(kc=after[0], ti=1000.0, td=after[1])
+
+    def settled(change: bool) -> float:
+        pid = PidBlock(gains, 0.25, (0.0, 100.0), mode="manual", op=40.0)
+        pid.track(50.0, 40.0)
+        pid.set_mode("auto", 50.0, 50.0)
+        for _ in range(40):
+            pid.update(50.0, 50.0)
+        pid.update(50.0, 50.1)  # the noise's blip
+        if change:
+            pid.set_gains(new, 50.0, 50.1)
+        for _ in range(400):  # 100 s: 20 of the new filter's time constants
+            pid.update(50.0, 50.0)
+        return pid.op
+
+    # only the change of P at the blip (error −0.1) is taken into I, as a bumpless change of
+    # Kc must: Kc·(sp − pv) before minus after
+    p_change = -0.1 * (before[0] - after[0])
+    assert settled(True) == pytest.approx(settled(False) + p_change, abs=0.01)
+
+
 def test_p_only_keeps_its_manual_reset_and_direct_action_reverses_sign():
     pid = PidBlock(PidSettings(kc=2.0), TS, (0.0, 100.0), action="reverse", op=30.0)
     pid.track(50.0, 30.0)

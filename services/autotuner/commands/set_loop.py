@@ -13,8 +13,10 @@ exit 2, and nothing moves):
              bangs between its limits on the noise, and it is a slip of the keyboard or of the
              units (% per % for % per PV unit) rather than a tuning. (A check of this
              command's: the plant itself refuses only gains beyond floating-point range)
-  --ti S     integral time, s, > 0; `--ti none` turns integral action off (P or PD with a
-             manual reset). 0 is refused: Ti → 0 is not "off" but infinite integral action
+  --ti S     integral time, s, at least the loop's sample time (shorter, each sample's
+             integral step is more than Kc times the error: the output slams); `--ti none`
+             turns integral action off (P or PD with a manual reset). 0 is refused: Ti → 0 is
+             not "off" but infinite integral action
   --td S     derivative time, s, ≥ 0 (0: no derivative action)
   --beta B   setpoint weight on proportional action, 0–1
   Gains not given are kept from the loop's present ones (its status), so `--kc 3` changes Kc
@@ -244,10 +246,13 @@ def gains_change(asked: Asked, old: PidGains, new: PidGains) -> str:
     return changed + (f" ({kept} kept)" if kept else "")
 
 
-def plan(asked: Asked, status: LoopStatus, pv_units: str) -> list[Write]:
+def plan(
+    asked: Asked, status: LoopStatus, pv_units: str, sample_time: float | None = None
+) -> list[Write]:
     """The writes in the order they are sent (see the module doc), or ConfigError naming the
     flag whose value the loop cannot take: an output outside its limits or while it stays in
-    auto, a setpoint outside its PV range."""
+    auto, a setpoint outside its PV range, an integral time shorter than the loop's
+    ``sample_time`` (s)."""
     asked.check()
     loop, u = status.loop, f" {pv_units}" if pv_units else ""
     if asked.op is not None:
@@ -267,6 +272,15 @@ def plan(asked: Asked, status: LoopStatus, pv_units: str) -> list[Write]:
             raise ConfigError(f"--sp {asked.sp:g}: outside the loop's PV range [{lo:g}, {hi:g}]{u}")
     if asked.kc is not None:
         _check_kc(asked.kc, status.pv_range, u)
+    ti = asked.ti if isinstance(asked.ti, float | int) else None  # not `none`
+    if ti is not None and sample_time and ti < sample_time:
+        # each sample's integral step, Kc·T/Ti of the error, is then more than Kc times it:
+        # `--ti 0.001` took hx1's output from 40 % to 0 % in three samples
+        raise ConfigError(
+            f"--ti {ti:g}: shorter than the loop's sample time ({sample_time:g} s): each "
+            "sample's integral step would be more than Kc times the error and slam the "
+            f"output; at least {sample_time:g} s (or --ti none)"
+        )
     writes: list[Write] = []
     if asked.mode == "manual":
         writes.append(
@@ -431,7 +445,7 @@ def run(args: argparse.Namespace) -> int:
             user=auth_user(settings),
         ) as client:
             units = client.info.pv_units
-            out = execute(client, plan(asked, client.last_status, units))
+            out = execute(client, plan(asked, client.last_status, units, client.info.sample_time))
     print(format_outcome(out, units))
     if out.lost is not None:
         raise PlantLost(out.lost)
