@@ -118,6 +118,29 @@ def test_p_only_near_the_ultimate_gain_is_flagged_oscillating_with_its_period(fr
     assert msg.oscillating and msg.oscillation_period == a.oscillation_period
 
 
+def test_a_watch_shorter_than_the_supervision_time_flags_a_sustained_oscillation():
+    """P-only at K_u watched for 5 T_u: 7 of 9 half-periods detected could never reach the
+    limit of 10 within the 50 T_u the detector supervises, and the watch said "not
+    oscillating". Nearly every half-period detected is a sustained oscillation; the noise
+    alone over as short a watch is not judged, and says why."""
+    loop = plant()
+    auto(loop, PidGains(kc=KU))
+    watcher = Watcher(settings(loop))
+    loop.apply(SetpointCommand(loop="x", sp=loop.sp + BUMP))
+    run(loop, watcher, 5)
+    a = watcher.report()
+    assert "oscillating" in a.flags and a.detections <= DETECTION_LIMIT, (a.flags, a.detections)
+    assert "a sustained oscillation, though the watch is shorter" in a.flags["oscillating"]
+    assert a.oscillation_period == pytest.approx(PU, rel=0.1)
+    quiet = plant()
+    auto(quiet, PidGains(kc=0.3 * KU, ti=PU))
+    watcher = Watcher(settings(quiet))
+    run(quiet, watcher, 5)
+    a = watcher.report()
+    assert "oscillating" not in a.flags
+    assert any(n.startswith("the oscillation detector watched") for n in a.notes), a.notes
+
+
 @pytest.fixture(scope="module")
 def tuned():
     """The product's whole tune in process (relay, the recommended rule, apply, verify): the

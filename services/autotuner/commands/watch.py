@@ -217,6 +217,11 @@ def format_monitor(m: LoopMonitor) -> str:
     if m.flags:
         lines += [f"{flag.upper()}: {why}" for flag, why in m.flags.items()]
     else:
-        lines.append("No flags: not oscillating, sluggish, saturated or degraded.")
+        short = any(n.startswith("the oscillation detector watched") for n in m.notes)
+        lines.append(
+            "No flags: not sluggish, saturated or degraded; oscillation not judged (see the note)"
+            if short
+            else "No flags: not oscillating, sluggish, saturated or degraded."
+        )
     lines += [f"  note: {n}" for n in m.notes]
     return "\n".join(lines)

@@ -38,6 +38,10 @@ from services.autotuner.monitor.oscillation import (
 from services.autotuner.monitor.performance import performance
 
 SATURATION_LIMIT = 10.0  # % of the time in auto at an output limit: flagged saturated
+# a watch shorter than the detector's supervision time: an oscillation detected in this share
+# of the half-periods watched, over this many of them at least, is flagged all the same
+SUSTAINED_SHARE = 0.75
+SUSTAINED_HALVES = 6.0
 DEGRADED_RATIO = 3.0  # × the tune's figure: flagged degraded
 DEFAULT_PERIOD_SAMPLES = 50  # T_u in sample times when nothing better is known
 WINDOW_PERIODS = 10.0  # the tuner's report window, × T_u
@@ -279,21 +283,31 @@ class Watcher:
             flags={},
             baseline=self.baseline,
         )
-        a.flags, a.notes = judge(a, s)
+        a.flags, a.notes = judge(a, s, det.watched())
+        if a.oscillating and a.oscillation_period is None:  # flagged on a short watch
+            a.oscillation_period = det.period_estimate()
         self._rows = []
         det.clear_peak()
         self.idle.reset()
         return a
 
 
-def judge(a: Assessment, s: MonitorSettings) -> tuple[dict[str, str], list[str]]:
-    """The flags with their reasons, and notes (what could not be judged, and why)."""
+def judge(
+    a: Assessment, s: MonitorSettings, watched: float | None = None
+) -> tuple[dict[str, str], list[str]]:
+    """The flags with their reasons, and notes (what could not be judged, and why).
+    ``watched``: the seconds the oscillation detector has watched (None: its whole
+    supervision time). Watched for less, it cannot count n_lim detections of an oscillation
+    it sees in nearly every half-period (7 of 9 in 4.5 T_u was "not oscillating"): that is
+    flagged as a sustained oscillation; fewer detections are a note, not a verdict."""
     f, b = a.figures, a.baseline
     flags: dict[str, str] = {}
     notes: list[str] = []
     if not f["samples"] or f["iae_rate"] is None:
         notes.append("the loop was not in auto: nothing to assess")
         return flags, notes
+    short = watched is not None and watched < 0.999 * a.supervision
+    halves = 2.0 * (watched or 0.0) / a.period
     if a.oscillating:
         period = (
             f", period {a.oscillation_period:.4g} s" if a.oscillation_period is not None else ""
@@ -302,6 +316,20 @@ def judge(a: Assessment, s: MonitorSettings) -> tuple[dict[str, str], list[str]]
             f"{a.detections} half-periods with an IAE above {a.iae_limit:.3g} within "
             f"{SUPERVISION_PERIODS:g} T_u (limit {a.detection_limit}){period}, T_u "
             f"{a.period:.4g} s"
+        )
+    elif short and halves >= SUSTAINED_HALVES and a.detections >= SUSTAINED_SHARE * halves:
+        a.oscillating = True
+        flags["oscillating"] = (
+            f"{a.detections} half-periods with an IAE above {a.iae_limit:.3g} in the "
+            f"{watched:.4g} s watched ({halves:.3g} half-periods of T_u {a.period:.4g} s): a "
+            f"sustained oscillation, though the watch is shorter than the {SUPERVISION_PERIODS:g}"
+            f" T_u ({a.supervision:.4g} s) over which {a.detection_limit} detections are asked"
+        )
+    elif short:
+        notes.append(
+            f"the oscillation detector watched {watched:.4g} s of its {SUPERVISION_PERIODS:g} "
+            f"T_u ({a.supervision:.4g} s): {a.detections} detections, too short a watch to "
+            f"tell an oscillation by its limit of {a.detection_limit} (--duration)"
         )
     if a.idle_index is not None and a.idle_index > SLUGGISH_LIMIT and not a.oscillating:
         flags["sluggish"] = (

@@ -124,6 +124,7 @@ class OscillationDetector:
         self.peak_period: float | None = None  # the period measured while oscillating
         self.pv_noise = NoiseLevel()
         self.now = 0.0  # the last sample's time, s
+        self.first: float | None = None  # the first sample's time, s
         self.interrupt()
 
     # --- state ----------------------------------------------------------------------------
@@ -157,6 +158,11 @@ class OscillationDetector:
 
     def oscillating(self) -> bool:
         return self.count() > self.detection_limit
+
+    def watched(self) -> float:
+        """Seconds of samples behind the count, at most the supervision time: a detector that
+        has watched less cannot reach n_lim on an oscillation slower than T_sup/(2·n_lim)."""
+        return 0.0 if self.first is None else min(self.now - self.first, self.supervision)
 
     def filtered_noise(self, dt: float) -> float:
         """σ of the PV noise after the scaled filter (the low-pass decides it: a discrete
@@ -198,6 +204,8 @@ class OscillationDetector:
             self.interrupt()
         self.pv_noise.feed(pv)
         self.now = t
+        if self.first is None:
+            self.first = t
         if self._t is None:  # the filters start at rest on the first sample
             self._t, self._slow = t, e
             self._y = 0.0 if self.offset else e / self.gain
