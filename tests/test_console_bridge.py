@@ -53,3 +53,19 @@ def test_a_new_page_gets_the_form_s_choices_and_who_is_up(bridge):
     assert services == {"type": "services", "plant_sim": [], "tuner": [], "logger": [],
                         "loops": [], "running": []}  # fmt: skip
     assert bridge.tick() == []  # nothing on this bus
+
+
+def test_a_new_page_gets_the_last_results_as_earlier_ones_not_news(bridge):
+    """Each page load posted every loop's last result to Messages as if just come, stamped
+    with the load's time ("9:01:06 PM result of run … aborted" for a run over minutes
+    before). A result that comes while the page is open is news; those a page finds are not."""
+    from shared.messages import TuneResult
+
+    r = TuneResult(
+        run_id="abc123abc123", loop="hx9", t=1.0, method="relay", rule="auto", status="aborted"
+    )
+    bridge._publish_result(r)
+    news = [m for m in bridge.tick() if m.get("type") == "result"]
+    assert news and not news[-1].get("earlier"), news
+    found = [m for m in bridge.snapshot() if m.get("type") == "result"]
+    assert found and all(m["earlier"] for m in found), found

@@ -160,9 +160,11 @@ class Bridge:
     def _on_result(self, sample: zenoh.Sample) -> None:
         self._pool.submit(self._publish_result, wire.decode_sample(TuneResult, sample))
 
-    def _publish_result(self, r: TuneResult) -> None:
+    def _publish_result(self, r: TuneResult, earlier: bool = False) -> None:
+        """``earlier``: a result from before the console started (the page draws it, and
+        does not post it as news)."""
         result = r.model_dump(mode="json")
-        msg = {"type": "result", "loop": r.loop, "result": result}
+        msg: dict[str, Any] = {"type": "result", "loop": r.loop, "result": result}
         try:
             msg["predicted"] = predicted_curves(result)
         except Exception as err:  # a curve is an extra: the result still goes to the page
@@ -174,7 +176,8 @@ class Bridge:
                 # the apply of a run shown: the run stays, with how its gains went on
                 msg = {**first, "applied_by": result}
             self.results[r.loop] = msg
-            self._outbox.append(msg)  # after the run's last phase, which came before it
+            # after the run's last phase, which came before it
+            self._outbox.append({**msg, "earlier": True} if earlier else msg)
 
     def _last_results(self) -> None:
         """Each loop's last result, kept by the tuner (a console started after a run)."""
@@ -182,7 +185,7 @@ class Bridge:
             key = keys.tune_result(self.prefix, keys.ANY)
             for r in wire.query_all(self.session, key, TuneResult, 2.0):
                 if r.loop not in self.results:
-                    self._publish_result(r)
+                    self._publish_result(r, earlier=True)
         except zenoh.ZError as err:  # the session closing under it
             log.info("last results: %s", err)
 
@@ -264,7 +267,9 @@ class Bridge:
                 if t.rows
             ]
             out += [{"type": "progress", **p} for p in self.progress.values()]
-            out += list(self.results.values())
+            # marked as what the page finds, not news: it draws them, but does not post them
+            # as a result just come (each page load did, stamped with the load's time)
+            out += [{**r, "earlier": True} for r in self.results.values()]
         return out
 
     def tick(self) -> list[dict[str, Any]]:

@@ -97,7 +97,7 @@ const handlers = {
     S.results[m.loop] = m;
     setTimeout(loadRuns, 1500);  // the logger finishes the run's file once the result is out
     if (m.loop === S.selected) { S.chosenRule = null; renderResult(); }
-    say(`result of run ${m.result.run_id} on ${m.loop}: ${m.result.status}` + (m.result.reason ? ` (${m.result.reason})` : ""), ["ok", "proposed"].includes(m.result.status));
+    if (!m.earlier) say(`result of run ${m.result.run_id} on ${m.loop}: ${m.result.status}` + (m.result.reason ? ` (${m.result.reason})` : ""), ["ok", "proposed"].includes(m.result.status));
   },
   action(m) {
     say(m.message, m.ok);
@@ -113,7 +113,7 @@ function select(loop) {
   S.selected = loop; S.chosenRule = null; S.dirty = true;
   $("trend-title").textContent = `Trend of ${loop}`;
   $("tune-loop").textContent = loop;
-  renderLoops(); renderProgress(); renderResult(); renderTuneButtons();
+  renderLoops(true); renderProgress(); renderResult(); renderTuneButtons();
 }
 
 function gainsText(g) {
@@ -121,7 +121,17 @@ function gainsText(g) {
   return `Kc ${fmt(g.kc)} · Ti ${g.ti === null ? "off" : fmt(g.ti) + " s"} · Td ${fmt(g.td)} s`;
 }
 
-function renderLoops() {
+// every loop's status message asked for a redraw of every card: with 600 loops the page
+// took seconds to answer a click; redrawn at most every LOOPS_EVERY ms (at once on a click)
+const LOOPS_EVERY = 250;
+let loopsTimer = null;
+function renderLoops(now = false) {
+  if (now) { clearTimeout(loopsTimer); loopsTimer = null; drawLoops(); return; }
+  if (loopsTimer !== null) return;
+  loopsTimer = setTimeout(() => { loopsTimer = null; drawLoops(); }, LOOPS_EVERY);
+}
+
+function drawLoops() {
   const ids = Object.keys(S.loops).sort();
   if (!ids.length) return;
   $("loops").innerHTML = ids.map((id) => {
@@ -135,9 +145,10 @@ function renderLoops() {
       <div class="muted">${esc(info ? info.description : "")}</div>
       <div class="figs">SP ${st ? fmt(st.sp) : "—"} · PV ${st ? fmt(st.pv) : "—"} ${esc(units)} · OP ${st ? fmt(st.op) : "—"} %</div>
       <div class="figs gains">${gainsText(st && st.gains)}</div>${lease}
+      ${st && id !== S.selected ? `<div class="muted">as of t = ${fmt(st.t)} s (its last status)</div>` : ""}
       ${off ? '<div class="muted">plant not on the bus</div>' : ""}</div>`;
   }).join("");
-  for (const el of document.querySelectorAll(".loop")) el.onclick = () => select(el.dataset.loop);
+  $("loops").onclick ||= (ev) => { const el = ev.target.closest(".loop"); if (el) select(el.dataset.loop); };
 }
 
 // --- drawing -----------------------------------------------------------------------------------
@@ -311,7 +322,7 @@ function renderResult() {
   const model = e.model ? `model ${String(e.model).toUpperCase()}: K = ${fmt(e.model_gain)}${lags ? `, T = ${lags} s` : ""}, L = ${fmt(e.model_delay)} s` : "no model";
   head.innerHTML = `<div>${esc(r.applied_from ? `applying run ${r.applied_from}'s gains` : `${r.method} test, rule ${r.rule}`)}${r.reason ? " — " + esc(r.reason) : ""}</div>
     <div><b>K<sub>u</sub></b> = <span id="result-ku">${fmt(r.ku)}</span> %/${esc(units)} &nbsp; <b>P<sub>u</sub></b> = <span id="result-pu">${fmt(r.pu)}</span> s &nbsp; <span id="result-model">${esc(model)}</span></div>
-    <div>${r.applied ? "new gains applied, loop in auto" : r.restored ? "loop as before the test: the gains wait for Apply" : ""}</div>
+    <div>${r.applied ? "new gains applied, loop in auto" : !r.restored ? "" : ["proposed", "rejected"].includes(r.status) && r.gains && Object.keys(r.gains).length ? "loop as before the test: the gains wait for Apply" : "loop as before the test"}</div>
     ${m.applied_by ? `<div id="result-applied"><b>${esc(m.applied_by.rule)} applied</b> by run ${esc(m.applied_by.run_id)}: ${esc(m.applied_by.status)}${m.applied_by.applied ? ", verified, loop in auto" : ", not applied: the loop restored"}${m.applied_by.reason ? " (" + esc(m.applied_by.reason) + ")" : ""}</div>` : ""}
     ${r.recommended ? `<div class="muted">recommended: ${esc(r.recommended.rule)} (${esc(r.recommended.reason)})</div>` : ""}`;
   thead.innerHTML = "<tr><th>rule</th><th>Kc</th><th>Ti s</th><th>Td s</th><th>Ms</th><th>GM</th><th>PM °</th><th>OS %</th><th>DR</th></tr>";
