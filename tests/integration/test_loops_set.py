@@ -357,3 +357,59 @@ def test_set_while_a_tuning_run_holds_the_loop_is_refused_naming_the_holder(
     run = cli.set(p, "s1", "--kc", "5")  # the loop is free again
     assert run.returncode == 0, run.stderr
     assert cli.loops(p, "s1")["gains"]["kc"] == 5.0
+
+
+def test_loops_names_the_loops_a_paused_plant_announces_but_does_not_answer(cli, tmp_path):
+    """One plant file's loops on two plant processes (--loops), clients of a router, the
+    second paused (SIGSTOP): the router keeps its liveliness tokens up (until Zenoh's lease
+    on its link runs out, 10 s), and `loops` listed a1 alone, exit 0, and `loops b1` said
+    "not found". b1 is named: exit 1 beside the listing, 2 alone."""
+    import os
+    import signal
+
+    from services.launcher import free_tcp_port, start_service, stop_service
+    from tests.running_services import RunningPlant, wait_for_tokens
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    prefix = f"test{os.getpid()}/paused"
+    path = tmp_path / "plant.toml"
+    path.write_text(PLANT)
+    client = ["--prefix", prefix, "-m", "client", "-e", endpoint, "--no-multicast-scouting"]
+    procs = []
+    try:
+        with (tmp_path / "services.log").open("w") as log:
+            procs.append(
+                start_service(
+                    "services.cli",
+                    ["router", "-l", endpoint, "--no-multicast-scouting"],
+                    stderr=log,
+                )
+            )
+            for loop in ("a1", "b1"):
+                procs.append(
+                    start_service(
+                        "services.plant_sim",
+                        [*client, "--plant", str(path), "--loops", loop],
+                        stderr=log,
+                    )
+                )
+        plant = RunningPlant(endpoint, prefix, procs[1], tmp_path / "services.log")
+        alive = [keys.loop_alive(prefix, lp) for lp in ("a1", "b1")]
+        wait_for_tokens(plant.client_settings(), alive, 20.0, plant.log)
+
+        def loops(*args: str) -> subprocess.CompletedProcess:
+            return cli(plant, "loops", *args, "--timeout", "1", "-m", "client")
+
+        assert loops().returncode == 0
+        procs[2].send_signal(signal.SIGSTOP)
+        every, one = loops(), loops("b1")
+        procs[2].send_signal(signal.SIGCONT)
+        assert every.returncode == 1, (every.stdout, every.stderr)
+        said = "b1: announced on the bus (liveliness token up) but did not answer"
+        assert said in one_line(every)
+        assert every.stdout.splitlines()[1].startswith("a1 ")
+        assert one.returncode == 2 and "b1: announced on the bus" in one_line(one)
+    finally:
+        for proc in reversed(procs):
+            proc.send_signal(signal.SIGCONT)
+            stop_service(proc)

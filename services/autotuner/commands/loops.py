@@ -18,7 +18,10 @@ gains {kc, ti, td, n, beta} (ti null: no integral action), gains_percent {kc, ti
 (sim s), leased_by, lease_user, fault. A loop that answered its status but not its info
 within the wait has null description, model and sample_time.
 
-Exit 0; 2 with one line when LOOP is not on the bus, or no loop is.
+Exit 0; 2 with one line when LOOP is not on the bus, or no loop is, or LOOP's plant
+announces it (its liveliness token is up) but it did not answer (a paused or overloaded
+plant); 1 when such loops are left out of the listing of every loop: the others are listed,
+and one line on stderr names those.
 """
 
 from __future__ import annotations
@@ -26,15 +29,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from typing import Any
 
 import zenoh
 
+from services.autotuner.loop_client import live_loops
 from shared import keys, wire
 from shared.cli import MAX_SECONDS, add_common_arguments, check_ids
 from shared.control.forms import IsaGains, pv_span, to_percent
-from shared.errors import ConfigError, DecodeError
+from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.messages import LoopInfo, LoopStatus, Message
 from shared.session import open_session, settings_from_args, unreached
 
@@ -249,6 +254,18 @@ def format_table(objs: list[dict[str, Any]]) -> str:
     return "\n".join([line(heads), *(line(r) for r in cells), *notes])
 
 
+SILENT = 1  # exit status: loops whose plant announces them did not answer
+
+
+def silent_line(loops: list[str], timeout: float) -> str:
+    """The loops whose liveliness tokens are up but that did not answer: their plant is
+    paused or overloaded (it left them out of the table without a word)."""
+    return (
+        f"{', '.join(loops)}: announced on the bus (liveliness token up) but did not answer "
+        f"within {timeout:g} s: their plant is paused or overloaded"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     if args.loop is not None:
         check_ids(args.prefix, loop=args.loop)
@@ -256,11 +273,18 @@ def run(args: argparse.Namespace) -> int:
         check_ids(args.prefix)
     with open_session(settings_from_args(args), args.timeout) as session:
         if args.loop is not None:
-            objs = [loop_object(*read_loop(session, args.prefix, args.loop, args.timeout))]
+            try:
+                objs = [loop_object(*read_loop(session, args.prefix, args.loop, args.timeout))]
+            except ConfigError:
+                if args.loop in live_loops(session, args.prefix):
+                    raise AutotuneError(silent_line([args.loop], args.timeout)) from None
+                raise
+            silent: list[str] = []
         else:
             found = read_loops(session, args.prefix, args.timeout)
             objs = [loop_object(st, info) for st, info in found.values()]
-        if not objs:
+            silent = [lp for lp in live_loops(session, args.prefix) if lp not in found]
+        if not objs and not silent:
             raise ConfigError(
                 f"no loop answered {keys.status(args.prefix, keys.ANY)} within "
                 f"{args.timeout:g} s (is `autotune plant` running and reachable, with this "
@@ -268,6 +292,9 @@ def run(args: argparse.Namespace) -> int:
             )
     if args.json:
         print(json.dumps(objs[0] if args.loop is not None else objs, indent=2))
-    else:
+    elif objs:
         print(format_table(objs))
+    if silent:
+        print(f"autotune loops: {silent_line(silent, args.timeout)}", file=sys.stderr)
+        return SILENT
     return 0
