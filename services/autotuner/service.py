@@ -28,7 +28,12 @@ import zenoh
 from services.autotuner.compute_pool import ComputePool, inline, preload
 from services.autotuner.design.request_check import validate_request
 from services.autotuner.identify.experiments import DEFAULT_STEP_SIZE
-from services.autotuner.loop_client import LEASE_TIMEOUT, LoopClient, wait_for_loop
+from services.autotuner.loop_client import (
+    LEASE_TIMEOUT,
+    LoopClient,
+    wait_for_loop,
+    wait_for_token,
+)
 from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
 from services.autotuner.recorder_watch import RecorderWatch
 from services.autotuner.tuning import RunHooks, TuningRun
@@ -54,6 +59,9 @@ log = logging.getLogger("autotuner")
 
 HELP = "run the autotuner service"
 DEFAULT_WORKERS = min(4, os.cpu_count() or 1)
+# s a request waits for a loop's liveliness token after a query found none (within the
+# request's own timeout, 10 s and more, at the client)
+ANNOUNCE_WAIT = 3.0
 
 
 @dataclass
@@ -135,7 +143,11 @@ class TunerService:
     def _start(self, req: TuneRequest) -> TuneAccepted:
         validate_request(req)
         key = keys.loop_alive(self.prefix, req.loop)
-        if not any(r.ok for r in self.session.liveliness().get(key, timeout=2.0)):
+        # a query first; missed, a subscription with history (a tuner just restarted, busy
+        # meeting its peers, missed the query's answers and refused a loop that was there)
+        if not any(
+            r.ok for r in self.session.liveliness().get(key, timeout=2.0)
+        ) and not wait_for_token(self.session, key, ANNOUNCE_WAIT):
             raise ValueError(f"loop: no plant serves {req.loop!r} (nothing announces {key})")
         status = wire.query_one(self.session, keys.status(self.prefix, req.loop), LoopStatus, 2.0)
         if status is not None and status.leased_by is not None:
