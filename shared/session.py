@@ -119,11 +119,27 @@ def settings_from_args(ns: argparse.Namespace) -> ZenohSettings:
 
 
 def _check_endpoint(flag: str, endpoint: str) -> None:
+    """ConfigError unless ``endpoint`` is PROTOCOL/ADDRESS; for an IP protocol's HOST:PORT, a
+    port within 1–65535 and an IPv4 address's four numbers within 0–255 (tcp/127.0.0.1:99999
+    was taken, and ended in "this client reached no peer or router at all")."""
     proto, sep, addr = endpoint.partition("/")
     if not sep or not proto or not addr:
         raise ConfigError(
             f"{flag} {endpoint!r}: expected PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447"
         )
+    if proto not in ("tcp", "udp", "tls", "quic", "ws"):
+        return
+    address = addr.split("#", 1)[0].split("?", 1)[0]
+    host, colon, port = address.rpartition(":")
+    if not colon or not host:
+        raise ConfigError(f"{flag} {endpoint!r}: expected {proto}/HOST:PORT")
+    low = 0 if flag == "-l" else 1  # listening on port 0: any free port
+    if not port.isdigit() or not low <= int(port) <= 65535:
+        raise ConfigError(f"{flag} {endpoint!r}: port {port!r} is not a number within {low}–65535")
+    numbers = host.split(".")
+    ipv4 = len(numbers) == 4 and all(n.isdigit() for n in numbers)
+    if ipv4 and not all(int(n) <= 255 for n in numbers):
+        raise ConfigError(f"{flag} {endpoint!r}: {host} is not an IPv4 address (0–255 each)")
 
 
 def rendezvous() -> str:

@@ -252,6 +252,16 @@ def test_a_bad_zenoh_flag_names_itself_and_the_file_flags_their_path(no_bus, cap
     one_line_refusal(code, err, ["-c"], str(bad))
     code, err = run_cli(capsys, ["health", "plant", "--cfg", "mode:42"])
     one_line_refusal(code, err, ["--cfg"], "--cfg")
+    # an address no socket takes ended in "this client reached no peer or router at all"
+    for endpoint, said in (
+        ("tcp/127.0.0.1:99999", "port '99999' is not a number within 1–65535"),
+        ("tcp/999.0.0.1:7447", "999.0.0.1 is not an IPv4 address"),
+        ("tcp/127.0.0.1", "expected tcp/HOST:PORT"),
+    ):
+        code, err = run_cli(capsys, ["health", "plant", "-e", endpoint])
+        one_line_refusal(code, err, ["-e"], f"-e {endpoint!r}: {said}")
+    code, err = run_cli(capsys, ["health", "plant", "-l", "tcp/127.0.0.1:0", "--wait", "0.5"])
+    assert "port" not in err, err  # listening on port 0: any free port
 
 
 SUBPROCESS = [
