@@ -196,7 +196,7 @@ REFUSED = [
     (["recover", "/no/such/run.mcap", "-o", "fixed.mcap"], ["no such file"]),
     (["recover", "run.mcap"], ["-o", "required"]),
     (["runs", "/no/such/dir"], ["no such directory"]),
-    (["runs", "run.mcap"], ["no such directory"]),
+    (["runs", "run.mcap"], ["not a directory"]),  # a file there, not a runs directory
     (["benchmark", "--seed", "-1"], ["--seed"]),
     (["benchmark", "--noise", "2"], ["--noise"]),
     (["benchmark", "--noise", "abc"], ["--noise"]),
