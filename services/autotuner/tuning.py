@@ -709,7 +709,11 @@ class TuningRun:
             slow = rest_window(self.ts, before.gains.ti, self.req.rest_window)
             horizon = max(RETURN_SCALES * (scale or 0.0), slow)
             window = max(10 * self.ts, 0.25 * horizon)
-            check = RestCheck(self.ts, window, (lo, hi), windows=4)
+            # a loop in auto with integral action rests only on its setpoint: off it, it is
+            # still settling (49.86 for 50 was called "at rest off it"; 49.96 seconds later)
+            held = st.mode == "auto" and st.gains.ti is not None
+            on = {"target": target, "band": band} if held else {}
+            check = RestCheck(self.ts, window, (lo, hi), windows=4, **on)
             t_start = self._t
             confirming = False
             try:
@@ -727,7 +731,7 @@ class TuningRun:
                         # is still over a window too (seen: "at rest off it" 0.45 °C up,
                         # falling). At rest there only if the next window is still as well
                         confirming = True
-                        check = RestCheck(self.ts, window, (lo, hi), windows=4)
+                        check = RestCheck(self.ts, window, (lo, hi), windows=4, **on)
                     elif check.done:
                         break
             except AutotuneError:
