@@ -482,3 +482,32 @@ def test_a_process_gain_against_the_loops_action_is_warned_of():
         }
     )
     assert not any("the process gain is" in w for w in right.warnings)
+
+
+def test_an_inverse_response_is_warned_of_and_the_lags_are_not_misnamed():
+    """(1 − 10s)/(5s + 1)³: its step first dips 31.8 % of its change the other way (the
+    minimum of its step response, by scipy on a fine grid), and the check said "ok: nothing
+    stands in the way". Its mean residence time less the dead time is 15 + 10 = 25 s (the
+    lags' sum less the zero's −10 s), which was called "sum of lags"; its lags sum to 15 s."""
+    from scipy.signal import step
+
+    loop = build_plant(
+        {
+            "seed": 1,
+            "loops": {
+                "nmp": {
+                    "model": "transfer_function",
+                    "num": [-10.0, 1.0],
+                    "den": [125.0, 75.0, 15.0, 1.0],
+                    "sample_time": 0.5,
+                    "noise_std": 0.0,
+                }
+            },
+        }
+    )["nmp"]
+    r = check_loop("nmp", loop)
+    _, y = step(([-10.0, 1.0], [125.0, 75.0, 15.0, 1.0]), T=np.linspace(0, 60, 60001))
+    dip = float(-np.min(y))
+    said = [w for w in r.warnings if w.startswith("inverse response")]
+    assert said and f"{100 * dip:.3g} % of its change" in said[0], (r.warnings, dip)
+    assert r.lag_sum == pytest.approx(25.0, rel=0.01)

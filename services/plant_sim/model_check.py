@@ -397,6 +397,7 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
                 )
                 break
     _shape(report)
+    _inverse_response(report)
     exact = model_ultimate_point(process) if _has_transfer(process) else None
     if exact is not None:
         report.ku_exact, report.pu_exact = exact
@@ -491,6 +492,24 @@ def _shape(report: ModelReport) -> None:
     else:
         _time_constants(report, s, t, k_gain)
     report.ku_step, report.pu_step = _ultimate_from_step(s, dt, integrating) or (None, None)
+
+
+def _inverse_response(report: ModelReport) -> None:
+    """A warning where the small steps' response first goes the other way from its change by
+    more than 2 % of it: a right-half-plane zero, which the tuner's models have no term for
+    ((1 − 10s)/(5s + 1)³ dips 31.8 %, and the check said "nothing stands in the way")."""
+    got = _linear_response(report)
+    if got is None or report.behaviour != "self-regulating" or not report.gain:
+        return
+    frac = got[0] / report.gain  # the response as a fraction of its change
+    dip = float(-np.min(frac))
+    if dip > 0.02:
+        report.warnings.append(
+            f"inverse response: after a step the PV first goes {100 * dip:.3g} % of its change "
+            "the other way (a right-half-plane zero): the tuner's FOPDT/SOPDT models have no "
+            "term for it, so the robustness they predict is optimistic; it offers PIDs but "
+            "does not recommend them once its test sees the dip"
+        )
 
 
 def _dead_time(s: np.ndarray, dt: float) -> tuple[float | None, float | None]:

@@ -128,8 +128,8 @@ def format_report(r: ModelReport) -> str:
         lines.append(f"  dead time: {_g(r.dead_time)} s (first movement{order})")
     if r.behaviour == "self-regulating":
         lines.append(
-            f"  time constants: T63 {_g(r.t63)} s after the dead time; sum of lags "
-            f"{_g(r.lag_sum)} s (mean residence time − dead time)"
+            f"  time constants: T63 {_g(r.t63)} s after the dead time; mean residence time "
+            f"− dead time {_g(r.lag_sum)} s (the sum of the lags, for a chain of lags alone)"
         )
         lines.append(
             f"  reaction curve (tangent at the inflection): apparent dead time "
