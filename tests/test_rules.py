@@ -200,3 +200,9 @@ def test_simc_for_integrating_processes():
     assert g.kc == pytest.approx(1 / (0.1 * 4.0)) and g.ti == pytest.approx(16.0)
     with pytest.raises(ValueError, match="not an integrating"):
         RULES["simc-pi-int"].compute(ProcessFit("fopdt", 1.0, (10.0,), 2.0, 0.0))
+    # a second-order model is first made first-order by the half rule, as for SIMC PI: its
+    # τ₂ was ignored (θ = 3 s for a τ₂ of 5 s: Kc 1.8 × SIMC PI's, Ms 4.3)
+    k, t1, t2, th = 33695.0, 1.68e6, 5.0, 3.0
+    g = RULES["simc-pi-int"].compute(ProcessFit("sopdt", k, (t1, t2), th, 0.0))
+    theta, k_int = th + t2 / 2, k / (t1 + t2 / 2)
+    assert g.kc == pytest.approx(1 / (k_int * 2 * theta)) and g.ti == pytest.approx(8 * theta)
