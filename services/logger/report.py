@@ -20,6 +20,7 @@ import argparse
 import io
 import json
 import math
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -208,6 +209,9 @@ def _g(value: object, spec: str, unit: str = "") -> str:
     return f"{value:{spec}}{unit}"
 
 
+REASON_WIDTH, REASON_LINES = 70, 3  # the summary box's reason: characters a line, lines
+
+
 def _summary(s: RunSeries) -> str:
     r = s.result
     if r is None:
@@ -245,8 +249,8 @@ def _summary(s: RunSeries) -> str:
             f"after: overshoot {_g(a.overshoot, '.0f', ' %')}, decay ratio "
             f"{_g(a.decay_ratio, '.2f')}, IAE {_g(a.iae_sp, '.3g')}"
         )
-    if r.reason:
-        lines.append(r.reason[:70])
+    if r.reason:  # wrapped, not cut mid-word ("…the gains were computed, not")
+        lines += textwrap.wrap(r.reason, REASON_WIDTH, max_lines=REASON_LINES, placeholder=" …")
     return "\n".join(lines)
 
 
