@@ -12,7 +12,7 @@ from __future__ import annotations
 import pytest
 
 from services.autotuner.design.sampled_loop import sampled_loop_robustness
-from services.autotuner.tuning import TuningRun
+from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.control.forms import IsaGains
@@ -23,10 +23,12 @@ RELAY_PLANT = ([-4.0, 1.0], [50.0, 15.0, 1.0], 0.25)  # (1 − 4s)/((10s+1)(5s+1
 STEP_PLANT = ([-2.0, 1.0], [3.0, 4.0, 1.0], 0.05)  # (1 − 2s)/((s+1)(3s+1))
 
 
-def tune(num: list[float], den: list[float], ts: float, method: str):
+def tune(num: list[float], den: list[float], ts: float, method: str, events=None):
     cfg = {"model": "transfer_function", "num": num, "den": den, "sample_time": ts}
     loop = build_plant({"seed": 1, "loops": {"x": cfg}})["x"]
-    return TuningRun(LocalLoopClient(loop), TuneRequest(loop="x", method=method), "t").run()
+    hooks = RunHooks(event=events.append) if events is not None else None
+    req = TuneRequest(loop="x", method=method)
+    return TuningRun(LocalLoopClient(loop), req, "t", hooks).run()
 
 
 @pytest.mark.parametrize(("plant", "method"), [(RELAY_PLANT, "relay"), (STEP_PLANT, "step")])
@@ -49,9 +51,15 @@ def test_the_relay_calls_no_inverse_response_on_the_zeros_mirror_image():
     model's own P_u (a few ms) put no sample in the predicted steps: the run failed with a
     ValueError. The steps are now simulated over two samples a period at least."""
     _, den, ts = RELAY_PLANT
-    r = tune([4.0, 1.0], den, ts, "relay")
+    events: list = []
+    r = tune([4.0, 1.0], den, ts, "relay", events)
     assert r.status == "ok", r.reason
     assert not any("inverse response" in w for w in r.warnings), r.warnings
+    # not measured (K_u null): the relay's closing event names the model's own figures so,
+    # not as a K_u a plot would put beside measured ones
+    assert r.ku is None
+    (done,) = [e for e in events if e.kind == "done"]
+    assert "ku" not in done.data and done.data["ku_model"] > 0, done.data
     isa = r.chosen["isa"]
     gains = IsaGains(isa["kc"], isa["ti"], isa["td"] or 0.0)
     true = sampled_loop_robustness(gains, DelayedTF.of([4.0, 1.0], den, 0.0), ts)
