@@ -52,6 +52,11 @@ MODEL_MARGIN = 0.9  # recommend only below 0.9 × the bound: the model is an app
 # … and below 0.75 × the bound for PID on a model that fits clearly worse than the noise allows:
 # the derivative acts where such a model is least certain (a zero approximated by a delay)
 APPROXIMATE_PID_MARGIN = 0.75
+# the judging model's source where the test saw an inverse response (a right-half-plane
+# zero none of the models has a term for): every rule's predicted Ms is optimistic there
+# (PIs by up to 1.3×: SIMC PI 1.59 predicted, 2.06 on (1 − 2s)/((s+1)(3s+1)) by ramp), so
+# every rule is held to the approximate model's tighter margin
+INVERSE_SOURCE = "inverse response"
 FALLBACKS = ("tl-pi", "amigo-pi", "simc-pi-int")  # robust by design, in this order
 ROBUST_RULES = ("lambda-pi", "lambda-pid", *FALLBACKS)  # --aim robust, in this order
 AIMS = ("balanced", "robust", "fast")
@@ -292,6 +297,8 @@ def recommend(
         )
 
         def margin(rule: str) -> float:
+            if model.source == INVERSE_SOURCE:  # every rule's Ms is optimistic there
+                return APPROXIMATE_PID_MARGIN
             pid = RULES[rule].controller == "PID"
             return APPROXIMATE_PID_MARGIN if pid and model.approximate else MODEL_MARGIN
 
@@ -346,6 +353,11 @@ def recommend(
 
 def _margins(model: ProcessFit, ms_bound: float) -> str:
     """The Ms margins a model's candidates were held to, as the reason states them."""
+    if model.source == INVERSE_SOURCE:
+        return (
+            f"Ms ≤ {APPROXIMATE_PID_MARGIN * ms_bound:.2g} for every rule on a model with no "
+            "term for the inverse response"
+        )
     text = f"Ms ≤ {MODEL_MARGIN * ms_bound:.2g}"
     if model.approximate:
         text += f", PID ≤ {APPROXIMATE_PID_MARGIN * ms_bound:.2g} on a model this approximate"

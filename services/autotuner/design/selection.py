@@ -22,6 +22,7 @@ import math
 from dataclasses import dataclass, field
 
 from services.autotuner.design.recommend import (
+    INVERSE_SOURCE,
     Assessment,
     Recommendation,
     assess,
@@ -278,7 +279,9 @@ def select(
                 "are not recommended: the sampled derivative is then mostly high-frequency gain"
             )
     judge = model
-    if model is not None and not ident.static_gain_known:
+    if model is not None and ident.inverse_response:
+        judge = dataclasses.replace(model, source=INVERSE_SOURCE)
+    elif model is not None and not ident.static_gain_known:
         # unsure away from ω_u, the model judges a derivative (which acts above it) with the
         # tighter margin of an approximate model (TL PID on a sampled integrator: Ms 1.7
         # predicted on a two-lag fit, 2.6 true)

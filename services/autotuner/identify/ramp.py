@@ -183,6 +183,9 @@ class RampResult:
     # how far (relative) the loop's K_u moves with the trials' growth rates read from the
     # sinusoid fitted alone, where a slow mode fitted beside it was kept (``mode_gap``)
     mode_gap: float | None = None
+    # how far the PV first went the other way from the first trial's bump (PV units): an
+    # inverse response (``RampTest._inverse_dip``); None when it did not
+    inverse_dip: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The run's ``experiment`` object (its keys are part of the JSON interface)."""
@@ -200,6 +203,7 @@ class RampResult:
             "bump_final": self.bump_final,
             "noise_std": self.noise_std,
             "rest_pv": self.rest_pv,
+            **({"inverse_dip": self.inverse_dip} if self.inverse_dip is not None else {}),
         }
 
     @property
@@ -220,8 +224,22 @@ class RampResult:
             noise=self.noise_std,
             rest_pv=self.rest_pv,
             model=self.model,
-            notes=self.hold_notes() + self.mode_notes(),
+            notes=self.hold_notes() + self.mode_notes() + self.inverse_notes(),
+            inverse_response=self.inverse_dip is not None,
         )
+
+    def inverse_notes(self) -> list[str]:
+        """The inverse response the first trial showed, if it did."""
+        if self.inverse_dip is None:
+            return []
+        fitted = f"the {self.model.kind.upper()} model" if self.model else "a low-order model"
+        return [
+            f"inverse response: after the first trial's bump the PV first went "
+            f"{self.inverse_dip:.3g} the other way from its rest: a right-half-plane zero, "
+            f"which {fitted} has no term for, so the robustness it predicts for the rules "
+            "(Ms, margins) is optimistic on this process: derivative action is offered, not "
+            "recommended"
+        ]
 
     def mode_notes(self) -> list[str]:
         """Where the slow mode fitted beside the trials' oscillations moves K_u more than the
@@ -383,6 +401,7 @@ class RampTest:
         self._trial_max = 0.0  # s: the longest trial so far (bump to verdict)
         self._last_len = 0.0  # s: the last trial's length
         self._first_dead: int | None = None  # samples: the first trial's dead time
+        self._dip: float | None = None  # PV units: the first trial's inverse response
         self._trials_from_rest = True  # the trial began from the quiet period's verified rest
         self._silent = False  # the last trial's PV never moved clear of the noise
         self._deadline = math.inf  # s: sim time by which the test must be over
@@ -676,6 +695,16 @@ class RampTest:
             return
         self._begin_settle(t)
 
+    def _inverse_dip(self, end: int | None) -> float | None:
+        """How far the PV first went the other way from the first trial's bump, from its
+        rest (PV units), when more than 6σ of the noise and 4 % of how far it went the bump's
+        way: an inverse response (a right-half-plane zero). None otherwise."""
+        y = (np.asarray(self._y[self._trial_start : end]) - self._r) * self._trial_sign
+        if y.size < 3:
+            return None
+        toward, away = float(np.max(y)), float(-np.min(y))
+        return away if toward > 0 and away > max(6.0 * self._noise, 0.04 * toward) else None
+
     def _died_out(self, n: int) -> bool:
         """The trial's response has come and gone: the PV moved, and it has been flat over
         the last half of the response and over twice the dead time it took to start moving (a
@@ -778,6 +807,8 @@ class RampTest:
         self._trial_max = max(self._trial_max, watched)
         if len(self.trials) == 1:
             self._first_end = t
+            if self._trials_from_rest:
+                self._dip = self._inverse_dip(end)
         self._update_budget()
         if self._positive_feedback():
             self._abort("the loop never oscillated" + self._wrong_way())
@@ -935,6 +966,7 @@ class RampTest:
             other,
             self.sample_time,
             gap,
+            self._dip,
         )
         self.phase = "done"
 
