@@ -415,3 +415,14 @@ def test_the_loop_mode_and_the_zenoh_mode_are_both_there():
     assert (args.loop_mode, args.mode) == ("auto", "client")
     args = build_parser().parse_args(["loops", "--mode", "client"])
     assert args.mode == "client"
+
+
+def test_a_message_names_twenty_loops_at_most():
+    """With 600 loops every "not found" named all of them, in a line of 4,000 characters."""
+    from services.autotuner.loop_client import listed
+
+    ids = [f"f{i:03d}" for i in range(600)]
+    assert listed(ids[:20]) == ", ".join(ids[:20])
+    line = listed(ids)
+    assert line.startswith("f000, f001") and "f020" not in line
+    assert line.endswith("… (600 in all: `autotune loops` lists them)")

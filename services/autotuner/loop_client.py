@@ -105,12 +105,22 @@ def wait_for_token(session: zenoh.Session, key_expr: str, timeout: float) -> boo
         sub.undeclare()
 
 
+LISTED = 20  # loop ids a one-line message names at most (600 made a line of 4,000 characters)
+
+
+def listed(ids: list[str]) -> str:
+    """``ids`` for a one-line message: the first ``LISTED``, and how many there are."""
+    if len(ids) <= LISTED:
+        return ", ".join(ids)
+    return f"{', '.join(ids[:LISTED])}, … ({len(ids)} in all: `autotune loops` lists them)"
+
+
 def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float) -> None:
     """Block until the loop's liveliness token is seen, or raise PlantLost after ``timeout``."""
     if not wait_for_token(session, keys.loop_alive(prefix, loop), timeout):
         present = live_loops(session, prefix)
         there = (
-            f"; the loops on the bus under {prefix!r} are {', '.join(present)}"
+            f"; the loops on the bus under {prefix!r} are {listed(present)}"
             if present
             else " (is `autotune plant` running, reachable and serving that loop?)"
         )
@@ -120,14 +130,34 @@ def wait_for_loop(session: zenoh.Session, prefix: str, loop: str, timeout: float
         )
 
 
+TOKENS_QUIET = 0.2  # s without a new token that ends the gathering of the tokens up
+
+
 def live_loops(session: zenoh.Session, prefix: str, timeout: float = 1.0) -> list[str]:
-    """The ids of the loops whose liveliness tokens are up under ``prefix``, sorted."""
+    """The ids of the loops whose liveliness tokens are up under ``prefix``, sorted: from a
+    liveliness subscriber's history, gathered until ``TOKENS_QUIET`` s bring no new one (at
+    most ``timeout`` s). Not a liveliness query: among 600 loops' tokens a peer's query was
+    seen never to end, and the session's close waited on it (`loops` hung)."""
     found: set[str] = set()
-    for reply in session.liveliness().get(keys.loop_alive(prefix, keys.ANY), timeout=timeout):
-        if reply.ok is not None:
-            parsed = keys.parse_loop_key(prefix, str(reply.ok.key_expr))
-            if parsed is not None and parsed[1] == "alive":
-                found.add(parsed[0])
+    came = threading.Event()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        parsed = keys.parse_loop_key(prefix, str(sample.key_expr))
+        if parsed is not None and parsed[1] == "alive" and sample.kind == zenoh.SampleKind.PUT:
+            found.add(parsed[0])
+            came.set()
+
+    sub = session.liveliness().declare_subscriber(
+        keys.loop_alive(prefix, keys.ANY), on_token, history=True
+    )
+    try:
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            came.clear()
+            if not came.wait(min(TOKENS_QUIET, left)):
+                break
+    finally:
+        sub.undeclare()
     return sorted(found)
 
 

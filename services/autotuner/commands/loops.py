@@ -35,7 +35,7 @@ from typing import Any
 
 import zenoh
 
-from services.autotuner.loop_client import live_loops
+from services.autotuner.loop_client import listed, live_loops
 from shared import keys, wire
 from shared.cli import MAX_SECONDS, add_common_arguments, check_ids
 from shared.control.forms import IsaGains, pv_span, to_percent
@@ -151,7 +151,7 @@ def read_loop(
 def not_found(loop: str, prefix: str, present: list[str], timeout: float) -> str:
     """The one line for a loop that did not answer: the loops that did, or the key asked."""
     if present:
-        return f"loop {loop!r} not found: the loops on the bus are {', '.join(present)}"
+        return f"loop {loop!r} not found: the loops on the bus are {listed(present)}"
     return (
         f"loop {loop!r} not found: nothing answered {keys.status(prefix, loop)} within "
         f"{timeout:g} s (is `autotune plant` running and reachable, with this --prefix?)"
@@ -261,7 +261,7 @@ def silent_line(loops: list[str], timeout: float) -> str:
     """The loops whose liveliness tokens are up but that did not answer: their plant is
     paused or overloaded (it left them out of the table without a word)."""
     return (
-        f"{', '.join(loops)}: announced on the bus (liveliness token up) but did not answer "
+        f"{listed(loops)}: announced on the bus (liveliness token up) but did not answer "
         f"within {timeout:g} s: their plant is paused or overloaded"
     )
 
