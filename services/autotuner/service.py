@@ -59,9 +59,9 @@ log = logging.getLogger("autotuner")
 
 HELP = "run the autotuner service"
 DEFAULT_WORKERS = min(4, os.cpu_count() or 1)
-# s a request waits for a loop's liveliness token after a query found none (within the
-# request's own timeout, 10 s and more, at the client)
-ANNOUNCE_WAIT = 3.0
+# s a request waits for a loop's liveliness token (within the request's own timeout, 10 s
+# and more, at the client)
+ANNOUNCE_WAIT = 4.0
 
 
 @dataclass
@@ -143,11 +143,10 @@ class TunerService:
     def _start(self, req: TuneRequest) -> TuneAccepted:
         validate_request(req)
         key = keys.loop_alive(self.prefix, req.loop)
-        # a query first; missed, a subscription with history (a tuner just restarted, busy
-        # meeting its peers, missed the query's answers and refused a loop that was there)
-        if not any(
-            r.ok for r in self.session.liveliness().get(key, timeout=2.0)
-        ) and not wait_for_token(self.session, key, ANNOUNCE_WAIT):
+        # a liveliness subscriber's history, not a query: a tuner just restarted, busy
+        # meeting its peers, missed a query's answers and refused a loop that was there (and
+        # among 600 loops' tokens a peer's query was seen never to end)
+        if not wait_for_token(self.session, key, ANNOUNCE_WAIT):
             raise ValueError(f"loop: no plant serves {req.loop!r} (nothing announces {key})")
         status = wire.query_one(self.session, keys.status(self.prefix, req.loop), LoopStatus, 2.0)
         if status is not None and status.leased_by is not None:
