@@ -370,3 +370,15 @@ def test_an_aborted_step_waits_for_the_pv_to_come_back():
     assert loop.pv == pytest.approx(50.0, abs=0.01) and loop.op == 50.0
     d = run_step_test(LocalLoopClient(loop), StepTestConfig(size=2.0)).to_dict()
     assert d["gain"] == pytest.approx(1.0, rel=1e-3)
+
+
+def test_an_aborted_steps_crest_is_not_taken_for_its_return():
+    """e^{−5s}/((10s+1)(60s+1)), as hx1: stopped early, the PV carries on past where the
+    test stopped (its lags), and its crest was taken for the PV back at rest ("back at rest
+    at 62.76" for 60). The return must go the way back."""
+    spec = {"model": "transfer_function", "num": [1.0], "den": [600.0, 70.0, 1.0],
+            "delay": 5.0, "sample_time": 0.25, "noise_std": 0.0}  # fmt: skip
+    loop = sim_loop(spec)
+    with pytest.raises(StepTestAborted, match="the PV back at rest at 50"):
+        run_step_test(LocalLoopClient(loop), StepTestConfig(size=20.0, pv_limits=(48.0, 52.0)))
+    assert loop.pv == pytest.approx(50.0, abs=0.05)

@@ -183,9 +183,10 @@ def run_step_test(
                 last.t[-1] + (0.0 if info.clock == "lockstep" else info.sample_time),
                 last.pv[-1],
                 last.noise_std,
-                # the PV goes on for about as long again as it took to answer (its dead
-                # time) before it turns back: twice the test's time so far
-                return_timeout(config, last.t_step or 0.0, 2 * last.t[-1] - (last.t_step or 0.0)),
+                # the PV goes on past where the test stopped for its dead time and lags
+                # before it turns back (hx1: 45 s, and minutes to come back): as long as the
+                # test itself may take, at most; it ends when the PV is back at rest
+                config.timeout,
                 tuple(info.pv_range),
                 pv_back=pv_before,
             )

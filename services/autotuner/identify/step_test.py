@@ -747,7 +747,8 @@ class ReturnWatch:
     as after the step applies (``settled``, which also refuses a PV clipped at an end of
     ``pv_range``). Given ``pv_back`` (the rest before the step), the PV must also have come
     half of the way back to it: a noise-free PV still in its dead time, flat bar the last
-    of the step's creep, was taken for at rest where the step had left it (52 for 50). It
+    of the step's creep, was taken for at rest where the step had left it (52 for 50), and
+    an aborted step's PV, carried on past where it stopped, at its crest (62.8 for 60). It
     gives up ``timeout`` seconds after ``t_restore``.
     """
 
@@ -796,9 +797,10 @@ class ReturnWatch:
                 self.noise_std,
                 pv_range=self.pv_range,
             )
-            back = self.pv_back is None or (
-                abs(rest - self.pv_from) >= 0.5 * abs(self.pv_back - self.pv_from)
-            )
+            # half of the way toward it, not away: an aborted step's PV, carried on by its
+            # lags past where the test stopped, was taken for back at its crest (62.8 for 60)
+            way = self.pv_back - self.pv_from if self.pv_back is not None else 0.0
+            back = (rest - self.pv_from) * way >= 0.5 * way * way
             if ok and back:
                 self.done, self.at_rest, self.rest = True, True, rest
                 return True
