@@ -52,7 +52,7 @@ from services.stack import Stack, runs_dir, service_tokens
 from shared import keys
 from shared.cli import check_ids, install_stop_handlers
 from shared.errors import AutotuneError, ConfigError
-from shared.session import ZenohSettings
+from shared.session import ZenohSettings, check_endpoint
 
 HELP = "start plant_sim, the autotuner and the logger (and a router) until Ctrl-C"
 
@@ -436,6 +436,8 @@ def load_config(args: argparse.Namespace) -> UpConfig:
     proto, sep, addr = cfg.endpoint.partition("/")
     if not sep or not proto or ":" not in addr:
         raise ConfigError(f"endpoint {cfg.endpoint!r}: expected PROTOCOL/HOST:PORT")
+    # before any service starts (a bad port came back from the first of them, as "-e")
+    check_endpoint("--endpoint" if args.endpoint else "endpoint", cfg.endpoint)
     if getattr(args, "configs_only", False) and not cfg.secure:
         raise ConfigError("--configs-only: only with --secure")
     return cfg

@@ -118,7 +118,7 @@ def settings_from_args(ns: argparse.Namespace) -> ZenohSettings:
     )
 
 
-def _check_endpoint(flag: str, endpoint: str) -> None:
+def check_endpoint(flag: str, endpoint: str) -> None:
     """ConfigError unless ``endpoint`` is PROTOCOL/ADDRESS; for an IP protocol's HOST:PORT, a
     port within 1–65535 and an IPv4 address's four numbers within 0–255 (tcp/127.0.0.1:99999
     was taken, and ended in "this client reached no peer or router at all")."""
@@ -145,7 +145,7 @@ def _check_endpoint(flag: str, endpoint: str) -> None:
 def rendezvous() -> str:
     """The well-known loopback endpoint default sessions meet on (``AUTOTUNE_RENDEZVOUS``)."""
     endpoint = os.environ.get(RENDEZVOUS_ENV) or RENDEZVOUS
-    _check_endpoint(RENDEZVOUS_ENV, endpoint)
+    check_endpoint(RENDEZVOUS_ENV, endpoint)
     return endpoint
 
 
@@ -243,7 +243,7 @@ def zenoh_config(settings: ZenohSettings, open_timeout: float | None = None) -> 
     ):
         if endpoints:
             for e in endpoints:
-                _check_endpoint(flag, e)
+                check_endpoint(flag, e)
             insert(flag, key, json.dumps(list(endpoints)))
     if settings.multicast_scouting or settings.no_multicast_scouting:
         flag = "--multicast-scouting" if settings.multicast_scouting else "--no-multicast-scouting"

@@ -130,6 +130,10 @@ REFUSED = [
     (["up", "--seed", "-1"], ["--seed"]),
     (["up", "--config", "/no/such/up.toml"], ["--config", "cannot read"]),
     (["up", "--runs", "run.mcap"], ["--runs", "not a directory"]),
+    (
+        ["up", "--endpoint", "tcp/127.0.0.1:99999"],
+        ["--endpoint", "port '99999'"],
+    ),  # before any start
     # it said "No such file or directory: /proc/x/runs", not which flag
     (["up", "--runs", "/proc/x/runs"], ["--runs /proc/x/runs: cannot make it"]),
     # it waited 10 s for the loop on the bus first
