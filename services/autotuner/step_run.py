@@ -172,9 +172,9 @@ def run_step_test(
         )
     if test.phase == "aborted" or test.result is None:
         back = ""
-        last = test  # a single test's (the repeated tests' own records end where each did)
-        moved = isinstance(last, StepTest) and last.t_step is not None and bool(last.t)
-        if wait_return and restored and moved and before.mode == "manual":
+        # a single test's (the repeated tests' own records end where each did)
+        last = test if isinstance(test, StepTest) and test.t_step is not None else None
+        if wait_return and restored and last is not None and before.mode == "manual":
             # the output is back, but the PV answers it only after its dead time and lag: a
             # test started at once measured a PV still on its way (K = −1.43 for +1, at
             # rest by a window shorter than the dead time); waited for as after a test

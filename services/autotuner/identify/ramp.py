@@ -39,6 +39,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from services.autotuner.identify import inverse_response
 from services.autotuner.identify.experiments import (
     DIRECT_NOTE,
     Band,
@@ -232,14 +233,8 @@ class RampResult:
         """The inverse response the first trial showed, if it did."""
         if self.inverse_dip is None:
             return []
-        fitted = f"the {self.model.kind.upper()} model" if self.model else "a low-order model"
-        return [
-            f"inverse response: after the first trial's bump the PV first went "
-            f"{self.inverse_dip:.3g} the other way from its rest: a right-half-plane zero, "
-            f"which {fitted} has no term for, so the robustness it predicts for the rules "
-            "(Ms, margins) is optimistic on this process: derivative action is offered, not "
-            "recommended"
-        ]
+        where = "after the first trial's bump"
+        return [inverse_response.note(where, self.inverse_dip, self.model)]
 
     def mode_notes(self) -> list[str]:
         """Where the slow mode fitted beside the trials' oscillations moves K_u more than the
@@ -697,13 +692,12 @@ class RampTest:
 
     def _inverse_dip(self, end: int | None) -> float | None:
         """How far the PV first went the other way from the first trial's bump, from its
-        rest (PV units), when more than 6σ of the noise and 4 % of how far it went the bump's
-        way: an inverse response (a right-half-plane zero). None otherwise."""
-        y = (np.asarray(self._y[self._trial_start : end]) - self._r) * self._trial_sign
-        if y.size < 3:
+        rest (PV units; ``inverse_response.dip``, on the scale of how far it went the bump's
+        way)."""
+        along = (np.asarray(self._y[self._trial_start : end]) - self._r) * self._trial_sign
+        if along.size < 3 or not float(np.max(along)) > 0:
             return None
-        toward, away = float(np.max(y)), float(-np.min(y))
-        return away if toward > 0 and away > max(6.0 * self._noise, 0.04 * toward) else None
+        return inverse_response.dip(along, self._noise, float(np.max(along)))
 
     def _died_out(self, n: int) -> bool:
         """The trial's response has come and gone: the PV moved, and it has been flat over

@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from services.autotuner.identify import inverse_response
 from services.autotuner.identify.experiments import (
     DIRECT_NOTE,
     Band,
@@ -513,18 +514,15 @@ class RelayTest:
 
     def _inverse_dip(self, amplitude: float) -> float | None:
         """How far the PV first went the other way in the relay's first push, from its rest
-        (PV units), when more than 6σ of the noise and 4 % of the cycle's amplitude: an
-        inverse response (a right-half-plane zero), which the relay's cycles alone do not
-        show. None otherwise. The first push is the one step from rest the test makes."""
+        (PV units; ``inverse_response.dip``, on the scale of the cycle's amplitude): the
+        relay's cycles alone do not show it. The first push is the one step from rest the
+        test makes."""
         start, end = self._push
         if not (math.isfinite(start) and math.isfinite(end)):
             return None
         t, y = np.asarray(self.t), np.asarray(self.pv)
-        away = (self._r - y[(t > start) & (t <= end)]) * 1.0  # the push raises the PV (+1)
-        if away.size == 0:
-            return None
-        worst = float(np.max(away))
-        return worst if worst > max(6.0 * self._noise, 0.04 * amplitude, 1e-12) else None
+        along = y[(t > start) & (t <= end)] - self._r  # the first push raises the PV (+1)
+        return inverse_response.dip(along, self._noise, amplitude)
 
     def _switched(self) -> bool:
         """The relay has switched since it started."""

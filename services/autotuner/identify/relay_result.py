@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from services.autotuner.identify import inverse_response
 from services.autotuner.identify.experiments import Identification
 from services.autotuner.identify.fourier import FrequencyPoint
 from services.autotuner.identify.model_fit import ProcessFit
@@ -117,13 +118,8 @@ class RelayResult:
                 )
             )
         if self.inverse_dip is not None:
-            fitted = f"the {self.model.kind.upper()} model" if self.model else "a low-order model"
             notes.append(
-                f"inverse response: in the relay's first push the PV first went "
-                f"{self.inverse_dip:.3g} the other way from its rest before it turned: a "
-                f"right-half-plane zero, which {fitted} has no term for, so the robustness it "
-                "predicts for the rules (Ms, margins) is optimistic on this process: "
-                "derivative action is offered, not recommended"
+                inverse_response.note("in the relay's first push", self.inverse_dip, self.model)
             )
         return Identification(
             inverse_response=self.inverse_dip is not None,

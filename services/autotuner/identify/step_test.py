@@ -39,6 +39,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from services.autotuner.identify import inverse_response
 from services.autotuner.identify.experiments import (
     Band,
     Demand,
@@ -338,10 +339,11 @@ class StepTest:
 
     def inverse_response(self, model: str) -> str | None:
         """A warning if the PV first went the other way after the step (by more than 6σ of
-        the noise and 2 % of its change): a right-half-plane zero (a drum level's swell, a
-        column's inverse response) that the fitted models have no term for, so the
-        robustness they predict for every rule is optimistic on this process (seen: Ms 1.45
-        predicted, about 2.2 on the plant). The record up to the return pulse, if any."""
+        the noise and 2 % of its change, ``inverse_response.dip``): a right-half-plane zero
+        (a drum level's swell, a column's inverse response) that the fitted models have no
+        term for, so the robustness they predict for every rule is optimistic on this
+        process (seen: Ms 1.45 predicted, about 2.2 on the plant). The record up to the
+        return pulse, if any."""
         if self.t_step is None or not math.isfinite(self._pv_before):
             return None
         t, y = np.asarray(self.t), np.asarray(self.pv) - self._pv_before
@@ -352,13 +354,15 @@ class StepTest:
         change = float(np.mean(y[-max(1, y.size // 10) :]))  # where it went: the end's mean
         if change == 0.0:
             return None
-        away = -y * math.copysign(1.0, change)  # > 0: the other way from its change
-        worst = int(np.argmax(away))
-        if away[worst] <= max(6.0 * self._noise, 0.02 * abs(change)):
+        along = y * math.copysign(1.0, change)  # > 0: the way of its change
+        # 2 % of the change: the shared test's 4 % of half of it
+        away = inverse_response.dip(along, self._noise, 0.5 * abs(change))
+        if away is None:
             return None
+        worst = int(np.argmin(along))
         u = f" {self.pv_units}" if self.pv_units else ""
         return (
-            f"inverse response: after the step the PV first went {away[worst]:.3g}{u} the "
+            f"inverse response: after the step the PV first went {away:.3g}{u} the "
             f"other way (most at t = {t[worst]:.4g} s) before its change of {change:+.3g}{u}: "
             f"a right-half-plane zero, which the {model} model has no term for, so the "
             "robustness it predicts for the rules (Ms, margins) is optimistic on this "
