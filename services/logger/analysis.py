@@ -14,7 +14,6 @@ Another run's messages in the file are left out; a message recorded twice is rea
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ from services.logger.mcap_io import (
     decode,
     one_result,
     read_run,
+    seq_gaps,
     unique_samples,
     validation_reason,
 )
@@ -266,7 +266,7 @@ def analyze_file(path: str | Path) -> Analysis:
             f"{one_line(err)}"
         ) from None
     fed = [s for s in run.samples if s.seq >= run.first_seq]
-    missing, first_gap = _gaps(fed)
+    missing, first_gap = seq_gaps([s.seq for s in fed])
     record = _Record(str(path), fed, run.step_times)
     try:
         ident = drive(machine, record)
@@ -309,16 +309,6 @@ def analyze_file(path: str | Path) -> Analysis:
         missing,
         first_gap,
     )
-
-
-def _gaps(samples: list[ProcessSample]) -> tuple[int, int | None]:
-    """Samples missing between consecutive ones (by seq), and the seq before the first gap."""
-    missing, first = 0, None
-    for a, b in itertools.pairwise(samples):
-        if b.seq > a.seq + 1:
-            missing += b.seq - a.seq - 1
-            first = a.seq if first is None else first
-    return missing, first
 
 
 def _span(pv_range: tuple[float, float] | None) -> float | None:

@@ -17,9 +17,11 @@ file, the record (topic, index in the file, log time), the field and the reason.
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -326,6 +328,17 @@ def validation_reason(err: pydantic.ValidationError, within: str = "") -> str:
     if isinstance(value, bool | int | float | str) and len(repr(value)) <= 40:
         got = f", got {value!r}"
     return f"{where}: {msg}{got}"
+
+
+def seq_gaps(seqs: Sequence[int]) -> tuple[int, int | None]:
+    """Samples missing between consecutive ones (by their ``seq``, in order), and the seq
+    before the first gap (None: none missing)."""
+    missing, first = 0, None
+    for a, b in itertools.pairwise(seqs):
+        if b > a + 1:
+            missing += b - a - 1
+            first = a if first is None else first
+    return missing, first
 
 
 def unique_samples(path: Path | str, records: list[Record]) -> list[ProcessSample]:

@@ -30,7 +30,14 @@ import numpy as np
 from services.logger.before_after import VerifyTrace, figures_rows, verify_traces
 from services.logger.bode import FrequencyFigure, frequency_figure
 from services.logger.gain_text import gains_text, kc_text, span_of
-from services.logger.mcap_io import bus_of, decode, one_result, read_run, unique_samples
+from services.logger.mcap_io import (
+    bus_of,
+    decode,
+    one_result,
+    read_run,
+    seq_gaps,
+    unique_samples,
+)
 from services.logger.overlay import Overlay, model_overlay
 from services.logger.result_model import result_model
 from services.logger.run_marks import Mark, VerifyWindow, experiment_marks, verify_windows
@@ -218,9 +225,8 @@ def _summary(s: RunSeries) -> str:
         return f"status: {s.meta.get('status', 'incomplete')}"
     span = s.span
     lines = [f"{_what(s)} · rule {r.rule} · {r.status}"]
-    steps = np.diff(s.seq)
-    if steps.size and (missing := int(np.sum(steps[steps > 1] - 1))):
-        first = int(s.seq[:-1][steps > 1][0])
+    missing, first = seq_gaps(s.seq.tolist())
+    if missing:
         lines.append(
             f"WARNING: {missing} samples missing from the record (first after seq {first})"
         )
