@@ -393,9 +393,16 @@ class LeaseCommand(Command):
 
 
 class ReleaseCommand(Command):
-    """The supervisor hands the loop back (it has restored or re-tuned it itself)."""
+    """The supervisor hands the loop back (it has restored or re-tuned it itself).
+
+    ``restore``: the supervisor could not confirm that it put the loop back (its plant fell
+    silent, or refused a write, mid-restore): the plant restores its snapshot of the loop from
+    the lease, as its watchdog would, then lets go. Why: a release queued behind a paused
+    plant reached it before the run token's disappearance, and a plain release let go of a
+    loop left in manual at the relay's output."""
 
     kind: ClassVar[str] = "release"
+    restore: bool = False
 
 
 COMMANDS: dict[str, type[Command]] = {

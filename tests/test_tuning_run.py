@@ -186,6 +186,47 @@ def test_an_abort_mid_test_puts_an_auto_loop_back_at_its_output_too():
     assert (loop.mode, loop.op) == ("auto", snap.op)
 
 
+def test_a_restore_the_plant_did_not_confirm_is_left_to_the_plant_with_the_release():
+    """The plant fell silent mid-relay (paused), so the run's restore went unconfirmed; its
+    release, queued behind the pause, reached the plant before the run token's disappearance
+    and let go of a loop left in manual at the relay's output (helper trial, realtime ×20).
+    The release now asks the plant to restore its snapshot from the lease: the loop is as
+    before, and the run says the plant restored it."""
+
+    class Silent(LocalLoopClient):
+        silent = False
+
+        def sync(self):
+            if self.silent:
+                raise PlantLost("loop 'x': no message from the plant for 5 s")
+            return super().sync()
+
+    loop = third_order_loop("auto", setpoint=50.0)
+    client = Silent(loop)
+    client.advance(2000)  # at rest on its setpoint
+    before = state(client)
+    releases: list[ReleaseCommand] = []
+
+    def progress(p: TuneProgress) -> None:
+        if p.cycles >= 1:
+            client.silent = True  # from here every confirmation fails
+
+    send = client._apply
+
+    def apply(cmd):
+        if isinstance(cmd, ReleaseCommand):
+            releases.append(cmd)
+            client.silent = False  # the plant back: it reads the queued release
+        send(cmd)
+
+    client._apply = apply
+    r = run(client, RunHooks(progress=progress), method="relay")
+    assert r.status == "aborted" and "no message from the plant" in r.reason
+    assert [c.restore for c in releases] == [True]
+    assert r.restored and r.reason.endswith("the plant restored the loop"), r.reason
+    assert state(client) == before
+
+
 def test_leaving_the_pv_limits_aborts_and_restores():
     """The relay drives the PV out of a ±0.05 band around its rest (its swing is 4d/(πK_u)
     ≈ 0.64 for d = 5 %): aborted, restored."""

@@ -162,8 +162,10 @@ def run_step_test(
     finally:
         if client.holding:
             restored = _restore(client, before.mode, before.op)
-            with contextlib.suppress(AutotuneError):
-                client.command(ReleaseCommand(loop=client.loop, source=client.source))
+            with contextlib.suppress(AutotuneError):  # unconfirmed: the plant puts it back
+                client.command(
+                    ReleaseCommand(loop=client.loop, source=client.source, restore=not restored)
+                )
         else:  # the plant took the loop back (and restored it) or is gone
             restored = lost is not None
     if lost is not None:

@@ -350,8 +350,7 @@ class TuningRun:
                 restored = not result["applied"]
                 wait_back = restored
             else:
-                self._restore()
-                restored = True
+                restored = self._restore()
             status = "ok" if result.get("applied") else "rejected"
             if not req.apply:  # computed, not tried on the loop: not ok, not rejected
                 status = "proposed"
@@ -389,8 +388,14 @@ class TuningRun:
                 raise
         finally:
             if c.holding:
+                # a loop this run did not confirm as put back (nor re-tuned): the plant
+                # restores its own snapshot from the lease as it lets go (a plain release
+                # queued behind a paused plant left it in manual at the relay's output)
+                kept = result.get("restored") or result.get("status") in APPLIED_STATUSES
                 try:
-                    c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
+                    c.command(
+                        ReleaseCommand(loop=c.loop, source=c.source, t=self._t, restore=not kept)
+                    )
                 except AutotuneError as err:  # if the plant is gone, so is the lease
                     unreleased = str(err)
         ident = ident or self._identified
@@ -400,11 +405,22 @@ class TuningRun:
             # cut off from the plant, or the restore failed: its watchdog restores the loop
             # when our run token vanishes or our lease lapses; say what it shows
             left = self._seen_after_loss(before)
+            held = left is not None and left.pop("held")
             if left is not None and left.pop("as_before"):
                 result["restored"] = True
                 result["reason"] = f"{result.get('reason')}; the plant restored the loop"
             elif left is not None:
-                who = "something other than this run changed it"
+                # its own writes sent as the plant fell silent may have been read since
+                who = (
+                    "this run's last writes, read by the plant after the run lost it, or "
+                    "another client changed it"
+                )
+                if held:  # the release (with its restore) not read yet
+                    who = (
+                        "the plant still shows it held by this run, and restores it to its "
+                        "state before the test as it reads the run's release (or when the "
+                        "run's lease lapses)"
+                    )
                 if c.fault is not None:
                     back = (left["sp"], left["gains"]) == (before.sp, before.gains.model_dump())
                     who = (
@@ -595,6 +611,7 @@ class TuningRun:
             "returned": None,
             "waited": 0.0,
             "as_before": same and st.leased_by is None,
+            "held": st.leased_by == self.client.source,  # this run's lease, not yet let go
         }
 
     def _result(self, result: dict, t0: float, wall0: float, left: dict | None) -> TuneResult:
@@ -780,12 +797,18 @@ class TuningRun:
             c.command(
                 LeaseCommand(loop=c.loop, source=c.source, timeout=c.lease_timeout, t=self._t)
             )
+            back = False
             try:
                 c.command(OutputCommand(loop=c.loop, op=push, source=c.source, t=self._t))
                 c.samples(max(1, round(seconds / self.ts)))
             finally:
-                c.command(OutputCommand(loop=c.loop, op=st.op, source=c.source, t=self._t))
-                c.command(ReleaseCommand(loop=c.loop, source=c.source, t=self._t))
+                try:
+                    c.command(OutputCommand(loop=c.loop, op=st.op, source=c.source, t=self._t))
+                    back = True
+                finally:  # the output not confirmed back: the plant restores it as it lets go
+                    c.command(
+                        ReleaseCommand(loop=c.loop, source=c.source, t=self._t, restore=not back)
+                    )
             k = max(4, round((2 * model.delay + 20 * self.ts) / self.ts))
             tail = c.samples(k)
             self._take(tail)

@@ -21,7 +21,7 @@ import numpy as np
 from services.autotuner.identify.driver import until_band
 from services.autotuner.identify.experiments import Band, Demand
 from services.autotuner.loop_client import CommandRefused
-from services.plant_sim.simulation.loop import CommandRejected, SimLoop
+from services.plant_sim.simulation.loop import CommandRejected, LoopSnapshot, SimLoop
 from services.plant_sim.simulation.models import ProcessModel
 from shared.messages import (
     AdvanceCommand,
@@ -53,6 +53,7 @@ class LocalLoopClient:
         self.last_sample: ProcessSample | None = None
         self.last_status: LoopStatus = self.sync()
         self.lease: LeaseCommand | None = None
+        self._held_from: LoopSnapshot | None = None  # the loop as the lease found it
         self.gone = False  # an in-process loop never goes away
         self.lease_timeout = 10.0  # s; asked for, never expires in process
         self.commands: list[Command] = []  # every accepted command, in order
@@ -100,9 +101,13 @@ class LocalLoopClient:
     def _apply(self, cmd: Command) -> None:
         sim = self.sim
         if isinstance(cmd, LeaseCommand):
+            if self.lease is None:  # a renewal keeps the snapshot, as the plant's does
+                self._held_from = sim.snapshot()
             self.lease = cmd
         elif isinstance(cmd, ReleaseCommand):
-            self.lease = None
+            if cmd.restore and self._held_from is not None:  # as plant_sim does
+                sim.restore(self._held_from)
+            self.lease, self._held_from = None, None
         elif isinstance(cmd, AdvanceCommand):
             for _ in range(cmd.steps):
                 self.last_sample = sim.advance()

@@ -373,7 +373,18 @@ class PlantService:
             )
         elif isinstance(cmd, ReleaseCommand):
             lapsed.pop(sender, None)
-            if self.leases.pop(loop_id, None) is not None:
+            held = self.leases.pop(loop_id, None)
+            if held is not None and cmd.restore:  # its holder could not confirm its restore
+                loop.restore(held.snapshot)
+                log.warning(
+                    "loop %s released by %s, its restore unconfirmed: restored to its state "
+                    "before the experiment (%s, op %.4g %%)",
+                    loop_id,
+                    _holder(cmd.source, user),
+                    held.snapshot.mode,
+                    held.snapshot.op,
+                )
+            elif held is not None:
                 log.info("loop %s released by %s", loop_id, _holder(cmd.source, user))
             status = self.loop_status(loop, "release", by=(cmd.source, user))
             out.append((keys.status(prefix, loop_id), status))

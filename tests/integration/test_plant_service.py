@@ -215,6 +215,40 @@ def test_leases_are_exclusive_and_only_the_holder_releases(start_plant):
         b.command(ReleaseCommand(loop="tf1", source="tuner:b"))
 
 
+def test_a_release_with_restore_puts_the_loop_back_as_the_lease_found_it(start_plant):
+    """A holder that could not confirm its restore (its plant paused mid-restore, the release
+    queued behind it) asks the plant to restore its snapshot as it lets go: mode, output,
+    setpoint and gains as when the lease began. A plain release leaves the loop as it is."""
+    plant = start_plant(TF_PLANT, loops=("tf1",))
+    with (
+        open_session(plant.client_settings()) as s,
+        LoopClient(s, plant.prefix, "tf1", source="tuner:a") as a,
+    ):
+        a.command(OutputCommand(loop="tf1", op=42.0, source="tuner:a"))
+        before = a.command(SetpointCommand(loop="tf1", sp=3.0, source="tuner:a"))
+        gains = PidGains(kc=0.7, ti=4.0, td=0.1)
+        for restore, expect_op in ((True, 42.0), (False, 70.0)):
+            a.command(LeaseCommand(loop="tf1", source="tuner:a", timeout=60.0))
+            a.command(OutputCommand(loop="tf1", op=70.0, source="tuner:a"))
+            a.command(SetpointCommand(loop="tf1", sp=5.0, source="tuner:a"))
+            a.command(GainsCommand(loop="tf1", gains=gains, source="tuner:a"))
+            st = a.command(ReleaseCommand(loop="tf1", source="tuner:a", restore=restore))
+            assert st.leased_by is None and st.mode == "manual" and st.op == expect_op
+            if restore:
+                assert (st.sp, st.gains) == (before.sp, before.gains)
+            else:
+                assert (st.sp, st.gains) == (5.0, gains)
+        # in auto: back to auto, at the old setpoint and gains
+        a.command(SetpointCommand(loop="tf1", sp=3.0, source="tuner:a"))
+        a.command(GainsCommand(loop="tf1", gains=before.gains, source="tuner:a"))
+        a.command(ModeCommand(loop="tf1", mode="auto", source="tuner:a"))
+        a.command(LeaseCommand(loop="tf1", source="tuner:a", timeout=60.0))
+        a.command(ModeCommand(loop="tf1", mode="manual", source="tuner:a"))
+        a.command(OutputCommand(loop="tf1", op=80.0, source="tuner:a"))
+        st = a.command(ReleaseCommand(loop="tf1", source="tuner:a", restore=True))
+        assert (st.mode, st.sp, st.leased_by) == ("auto", 3.0, None)
+
+
 def test_the_holder_is_its_source_and_its_user(start_plant):
     """A command key naming the sender's Zenoh user (verified by the router's ACL when
     deployed secure) is part of who holds a lease: writing the holder's source from another
