@@ -227,6 +227,28 @@ def test_a_restore_the_plant_did_not_confirm_is_left_to_the_plant_with_the_relea
     assert state(client) == before
 
 
+def test_an_abort_keeps_its_reason_when_the_plant_is_lost_as_the_test_lets_go():
+    """The relay aborted at its PV limits, and the plant was lost as the test put its output
+    back (the tuner paused there, helper trial E): the reason said only "lost the plant",
+    the limits nowhere but in the record's events. Both are said, the abort first."""
+
+    class Lost(LocalLoopClient):
+        def command(self, cmd):
+            moved = any(isinstance(c, OutputCommand) for c in self.commands)
+            if isinstance(cmd, OutputCommand) and moved and cmd.op == self.start_op:
+                raise PlantLost("loop 'x': lost the plant")
+            return super().command(cmd)
+
+    loop = third_order_loop()
+    client = Lost(loop)
+    client.start_op = client.sync().op
+    pv = client.sync().pv
+    r = run(client, method="relay", pv_limits=(pv - 0.05, pv + 0.05))
+    assert r.status == "aborted"
+    assert r.reason.startswith("relay test: PV "), r.reason
+    assert "left its limits" in r.reason and "; then loop 'x': lost the plant" in r.reason
+
+
 def test_leaving_the_pv_limits_aborts_and_restores():
     """The relay drives the PV out of a ±0.05 band around its rest (its swing is 4d/(πK_u)
     ≈ 0.64 for d = 5 %): aborted, restored."""

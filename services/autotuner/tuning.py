@@ -941,7 +941,13 @@ class TuningRun:
             if not machine.finished:
                 self._report(machine)
 
-        ident = drive(machine, _LivePort(self, setup), max_chunk=EXPERIMENT_CHUNK, watch=watch)
+        try:
+            ident = drive(machine, _LivePort(self, setup), max_chunk=EXPERIMENT_CHUNK, watch=watch)
+        except AutotuneError as err:
+            if not (machine.finished and machine.reason):
+                raise
+            # aborted first (its PV limits), the loss came as it let go: both said, in order
+            raise type(err)(f"{req.method} test: {machine.reason}; then {err}") from err
         self._forward_events(machine.events)
         if ident is None:
             raise TuneAborted(f"{req.method} test: {machine.reason}")
