@@ -47,6 +47,21 @@ def test_a_logger_gone_during_the_run_is_said():
     assert "none is back" in said
 
 
+def test_a_logger_out_of_sight_while_this_tuner_stalled_is_not_blamed_on_the_logger():
+    """This tuner's own process paused 10 s (its peers dropped it): the logger went out of
+    its sight with everything else, and the result said "the logger went out of sight
+    (killed, paused or cut off)" of a logger never touched (helper trial E)."""
+    with open_session(ALONE) as s:
+        token = s.liveliness().declare_token(keys.logger_alive("rw5", "logger"))
+        watch = RecorderWatch(s, "rw5")
+        _until(lambda: watch._seen)
+        token.undeclare()
+        _until(lambda: watch._gap)
+        said = watch.verdict(stalled=10.0)
+    assert said is not None and said.startswith("this tuner's own process did not run for 10 s")
+    assert "went out of sight during the run" not in said
+
+
 def test_samples_a_logger_missed_during_the_run_are_said():
     """A logger's ``dropped`` count (process samples missing) grew between the run's start
     and end: its record may have gaps (a logger paused 20 s missed 1,601 samples of a run,

@@ -17,6 +17,7 @@ from shared import keys, wire
 from shared.messages import LoggerStatus
 
 ASK = 2.0  # s: a logger's status, asked at the run's start and end
+STALL = 1.0  # s: a stall of this tuner's own process that can explain a logger out of sight
 
 
 class RecorderWatch:
@@ -55,8 +56,11 @@ class RecorderWatch:
                 self._alive.discard(name)
                 self._gap = self._gap or (self._seen and not self._alive)
 
-    def verdict(self) -> str | None:
-        """A warning for the run's result, or None when a logger was in sight throughout.
+    def verdict(self, stalled: float = 0.0) -> str | None:
+        """A warning for the run's result, or None when a logger was in sight throughout;
+        ``stalled``: s this tuner's own process did not run during the run (paused, starved),
+        long enough for its peers to drop it: then everything went out of its sight, the
+        logger with the rest, and that is said rather than blamed on the logger.
         Stops watching, and waits (at most ``ASK``) for the start's question to end: the
         caller may close the session next, and Zenoh refuses to close one a query is still
         using ("Already borrowed", seen in CI on a run that ended within moments)."""
@@ -71,6 +75,13 @@ class RecorderWatch:
                 f"no logger recorded this run (nothing announced {self.key}): neither the run "
                 "nor its change of the loop's gains is on record (`autotune history` and "
                 "`revert` will not know it)"
+            )
+        if gap and stalled >= STALL:
+            return (
+                f"this tuner's own process did not run for {stalled:.0f} s of the run (paused "
+                "or starved), and the logger went out of its sight with the rest of the bus "
+                "meanwhile: whether the logger recorded the run throughout, `autotune runs` "
+                "shows"
             )
         if gap:
             return (

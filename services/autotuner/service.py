@@ -36,6 +36,7 @@ from services.autotuner.loop_client import (
 )
 from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
 from services.autotuner.recorder_watch import RecorderWatch
+from services.autotuner.stall_watch import stall_watch
 from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
@@ -221,7 +222,8 @@ class TunerService:
             with self.lock:
                 self.active.pop(req.loop, None)
         try:
-            unrecorded = recorders.verdict() if recorders is not None else None
+            stalled = stall_watch().stalled(started)
+            unrecorded = recorders.verdict(stalled) if recorders is not None else None
         except Exception:  # a failure here never withholds the run's result
             log.exception(
                 "run %s on %s: whether a logger recorded it is not known", run_id, req.loop
