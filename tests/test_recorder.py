@@ -1,9 +1,12 @@
 """services/logger/recorder.py in-process, no Zenoh: messages handed to the Recorder as the
 bus would, the files read back. One run one file, the pre-run buffer and its bound, dedupe,
-the run's end statuses, replays."""
+the run's end statuses, replays; and the logger service asking a tuner for the result of a
+run it closed "tuner lost" (one session on loopback, alone)."""
 
 from __future__ import annotations
 
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -487,3 +490,41 @@ def test_a_recorded_replay_is_its_own_stream_and_file(tmp_path: Path, clock: Clo
     assert rec.finished[0].name.endswith("_r1_replay.mcap")
     assert (meta["replay"], meta["status"], meta["samples"]) == ("a.mcap", "ok", "1")
     assert (LOOP, "a.mcap") not in rec.streams  # a replay's stream ends with its run
+
+
+def test_the_logger_asks_the_tuner_for_the_result_of_a_run_it_closed_tuner_lost(
+    rec: Recorder, clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A logger paused past Zenoh's lease as an ok run ended never heard its result: the run
+    was recorded "tuner lost", and its report, history and `runs` said so (helper trial E).
+    The logger now asks the tuner (``<prefix>/tune/<loop>/result``, the last result per loop,
+    on a real session here) and writes the result in, as a late one."""
+    from services.logger import service as logger_service
+    from shared.session import ZenohSettings, open_session
+
+    monkeypatch.setattr(logger_service, "LATE_ASK", 0.05)
+    rec.run_token(LOOP, True)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 3)
+    rec.run_token(LOOP, False)
+    clock.now += RESULT_GRACE
+    rec.tick()
+    assert only_file(rec)[0]["status"] == "tuner lost" and rec.lost_runs() == [("r1", LOOP)]
+    ok = result("r1", 3 * DT)
+    alone = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
+    with open_session(alone) as s:
+        key = keys.tune_result(P, LOOP)
+        answer = s.declare_queryable(key, lambda q: wire.reply(q, key, ok))
+        svc = logger_service.LoggerService(s, rec, "logger")
+        stop = threading.Event()
+        asker = threading.Thread(target=svc._ask_late_results, args=(stop,))
+        asker.start()
+        deadline = time.monotonic() + 10.0  # bounded: the answer comes within moments
+        while rec.lost_runs() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        stop.set()
+        asker.join(5.0)
+        answer.undeclare()
+    meta = only_file(rec)[0]
+    assert (meta["status"], rec.counts["late_results"]) == ("ok", 1)
+    assert "this logger" in meta["late_result"] and rec.lost_runs() == []

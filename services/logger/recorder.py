@@ -271,7 +271,14 @@ class Recorder:
         self._recorded: OrderedDict[str, None] = OrderedDict()  # live run ids with a file
         # live runs closed "tuner lost": their files, should the tuner's result come after all
         self._lost: OrderedDict[str, Path] = OrderedDict()
+        self._lost_loop: dict[str, str] = {}  # their loops (``lost_runs``)
         self._replays_seen: set[str] = set()
+
+    def lost_runs(self) -> list[tuple[str, str]]:
+        """(run id, loop) of the live runs closed "tuner lost" whose result has not come: the
+        service asks their tuners for it (a logger cut off, or paused past Zenoh's lease, as
+        the result was published never hears it: an ok run stayed "tuner lost")."""
+        return list(self._lost_loop.items())
 
     # --- input ------------------------------------------------------------------------------
 
@@ -695,8 +702,9 @@ class Recorder:
                 self._recorded.popitem(last=False)
             if status == "tuner lost":
                 self._lost[run.run_id] = run.writer.path
+                self._lost_loop[run.run_id] = run.loop
                 while len(self._lost) > REMEMBERED_RUNS:
-                    self._lost.popitem(last=False)
+                    self._lost_loop.pop(self._lost.popitem(last=False)[0], None)
         self.counts["dropped"] += run.gaps
         log.info(
             "run %s on %s%s: %s, %d messages, %d samples, %d dropped, %d left out → %s",
@@ -718,9 +726,11 @@ class Recorder:
         off past the grace, then back): the file is rewritten with the result in it and the
         tuner's status, and says that its tuner was lost for a while (``late_result``)."""
         path = self._lost.pop(result.run_id)
+        self._lost_loop.pop(result.run_id, None)
         meta = {
             "status": result.status,
-            "late_result": "the tuner's result came after the file was closed 'tuner lost'",
+            "late_result": "the run's result came after the file was closed 'tuner lost' (its "
+            "tuner, or this logger, paused or cut off meanwhile)",
             "result": result.model_dump_json(),
             "ku": "" if result.ku is None else repr(result.ku),
             "pu": "" if result.pu is None else repr(result.pu),

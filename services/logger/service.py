@@ -27,15 +27,18 @@ from services.logger.monitor_log import MonitorLog
 from services.logger.recorder import Recorder, prepare_runs_dir
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
-from shared.messages import LoggerStatus
+from shared.messages import LoggerStatus, TuneResult
 from shared.service_shell import ServiceShell, run_until_stopped
 from shared.session import settings_from_args, zenoh_config
-from shared.wire import replay_source
+from shared.wire import DecodeError, replay_source
 
 log = logging.getLogger("logger")
 
 HELP = "run the logger service: every tuning run to an MCAP file"
 CHANNEL_CAPACITY = 1 << 20
+# a run closed "tuner lost" has its tuner asked for its result every LATE_ASK s, this many
+# times (about a minute: a logger cut off reconnects within seconds once it runs again)
+LATE_ASK, LATE_TRIES = 2.0, 30
 
 
 class LoggerService:
@@ -131,6 +134,41 @@ class LoggerService:
                 except Exception:
                     log.exception("the change history of %s failed", reply.ok.key_expr)
 
+    def _ask_late_results(self, stop: threading.Event) -> None:
+        """Ask the tuners for the results of runs closed "tuner lost" (``<prefix>/tune/<loop>/
+        result``: the tuner answers with each loop's last): a logger paused past Zenoh's
+        lease, or cut off, as a run ended never hears its result published, and recorded an
+        ok run as lost. A result found goes in as if it had come late on the bus."""
+        tries: dict[str, int] = {}
+        prefix = self.recorder.prefix
+        while not stop.wait(LATE_ASK):
+            with self.lock:
+                lost = [
+                    (r, loop)
+                    for r, loop in self.recorder.lost_runs()
+                    if r not in tries or tries[r] < LATE_TRIES
+                ]
+            for run_id, loop in lost:
+                tries[run_id] = tries.get(run_id, 0) + 1
+                try:
+                    replies = list(
+                        self.session.get(keys.tune_result(prefix, loop), timeout=LATE_ASK)
+                    )
+                except zenoh.ZError:  # the session closing as the logger stops
+                    return
+                for reply in replies:
+                    if reply.ok is None:
+                        continue
+                    payload = reply.ok.payload.to_bytes()
+                    try:
+                        found = wire.decode(TuneResult, payload).run_id == run_id
+                    except DecodeError:
+                        continue
+                    if found:
+                        with self.lock:
+                            self.recorder.handle(str(reply.ok.key_expr), payload, None)
+                        break
+
     def _on_query(self, query: zenoh.Query) -> None:
         with self.lock:
             wire.reply(query, keys.logger_status(self.recorder.prefix, self.node), self.status())
@@ -149,6 +187,7 @@ class LoggerService:
         # a session a query is still using ("Already borrowed", seen in CI for the tuner's
         # like question); the question is bounded by its own timeout (5 s)
         shell.thread(self._learn_loops, name="learn-loops")
+        shell.thread(lambda: self._ask_late_results(stop), name="late-results")
 
         def tick() -> None:
             with self.lock:
