@@ -89,9 +89,18 @@ class RecorderWatch:
                 f"record of the run may be incomplete{'' if alive else ', and none is back'} "
                 "(`autotune runs` shows what was written)"
             )
-        if not self._before:  # no logger answered at the start (busy, paused): nothing to
-            return None  # compare with, and asking again would hold the result up 2 s more
         after = self._dropped()
+        if not self._before:  # no logger answered at the start (busy, paused)
+            if after:
+                return None  # nothing to compare its count with
+            # nor at the end: a logger paused throughout is in sight (its token stays up
+            # until Zenoh's lease drops it) but records nothing (seen: an ok lockstep run with
+            # no file and no word)
+            return (
+                "no logger answered at the start or the end of the run (paused or starved?): "
+                "whether the run is on record is not known (`autotune runs` shows what was "
+                "written)"
+            )
         missed = sum(max(0, after[n] - d) for n, d in self._before.items() if n in after)
         if missed:
             return (
