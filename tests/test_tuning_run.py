@@ -374,3 +374,26 @@ def test_an_ok_run_whose_release_the_plant_did_not_confirm_says_so():
     (note,) = [w for w in r.warnings if w.startswith("the plant did not confirm the lease's")]
     assert "release (loop 'x': no message from the plant for 5 s)" in note
     assert "undoing these gains" in note
+
+
+def test_an_apply_request_with_gains_no_tuning_gives_is_refused_by_the_tuner_itself():
+    """`autotune apply` reads its gains from a run file; the request itself names them, and a
+    hand-made one (an operator's, helper trial G) applied Kc 1e6 and Ti 0.01 s unverified:
+    the valve banged 0↔100 %. The tuner holds them to what `set` allows, writing nothing."""
+    for gains, field in (
+        (PidGains(kc=1e6, ti=10.0), "apply_gains.kc"),
+        (PidGains(kc=1.0, ti=0.001), "apply_gains.ti"),
+    ):
+        client = LocalLoopClient(third_order_loop("auto", setpoint=50.0))
+        before = state(client)
+        r = run(
+            client,
+            apply_from="000000000000",
+            apply_gains=gains,
+            apply_timescale=10.0,
+            verify=False,
+        )
+        assert r.status == "rejected" and r.reason.startswith(field), r.reason
+        assert "nothing was applied" in r.reason and r.applied is not True
+        assert not any(isinstance(c, GainsCommand) for c in client.commands)
+        assert state(client) == before

@@ -40,6 +40,7 @@ from services.autotuner.loop_client import OVERSLEPT, LeaseLost, LoopClient
 from services.autotuner.parts import Calls
 from services.autotuner.stall_watch import stall_watch
 from shared.control.forms import (
+    MAX_KC_PERCENT,
     IsaGains,
     all_forms,
     kc_percent,
@@ -584,6 +585,22 @@ class TuningRun:
         g = req.apply_gains
         if g is None or req.apply_timescale is None:
             raise TuneAborted("apply: the request names no gains or time scale")
+        # checked here, not only by the CLI that read them from a run file: any client may
+        # send this request (an operator's hand-made one applied Kc 1e6, Ti 0.01 s, unverified)
+        pct = kc_percent(g.kc, span) if span else None
+        if g.kc <= 0 or (pct is not None and pct > MAX_KC_PERCENT):
+            raise TuneRefused(
+                f"apply_gains.kc: {g.kc:g}"
+                + (f" ({pct:.4g} % of output per % of span)" if pct is not None else "")
+                + f": a gain must be > 0 and at most {MAX_KC_PERCENT:g} % per % of span (a "
+                "proportional band of 0.1 %); nothing was applied"
+            )
+        if g.ti is not None and g.ti < self.ts:
+            raise TuneRefused(
+                f"apply_gains.ti: {g.ti:g} s is shorter than the loop's sample time "
+                f"({self.ts:g} s): each sample's integral step would exceed Kc times the error; "
+                "nothing was applied"
+            )
         chosen = IsaGains(g.kc, g.ti, g.td)
         ident = experiments.Identification(
             timescale=req.apply_timescale, noise=req.apply_noise or 0.0

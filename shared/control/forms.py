@@ -107,6 +107,11 @@ def pv_span(pv_range: tuple[float, float] | None) -> float | None:
     return float(span)
 
 
+# % of output per % of span: a proportional band of 0.1 %, the most any write of gains may ask
+# (above it a 0.1 % error drives the output across its range: a slip, not a tuning)
+MAX_KC_PERCENT = 1000.0
+
+
 def kc_percent(kc: float | None, span: float) -> float | None:
     """A controller gain or K_u in % per PV unit as % of output per % of span (Kc·span/100)."""
     return None if kc is None else kc * span / 100.0

@@ -64,7 +64,7 @@ from services.autotuner.loop_client import (
     wait_for_loop,
 )
 from shared.cli import add_common_arguments, check_ids
-from shared.control.forms import kc_percent
+from shared.control.forms import MAX_KC_PERCENT, kc_percent
 from shared.errors import ConfigError, one_line
 from shared.identity import auth_user
 from shared.messages import (
@@ -83,7 +83,6 @@ HELP = "write a loop's mode, setpoint, output or gains, bumplessly, confirmed by
 SOURCE = "autotune-set"  # the source label of every command `set` sends
 DEFAULT_TIMEOUT = 5.0  # s: for the loop to appear, and for each write's confirmation
 NO_INTEGRAL = "none"  # `--ti none`: no integral action (PidGains.ti = None)
-MAX_KC_PERCENT = 1000.0  # % of output per % of span: a proportional band of 0.1 % (see above)
 EXIT_REFUSED = 1
 
 
