@@ -22,6 +22,8 @@ LoopId = Annotated[
     str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 ]
 Percent = Annotated[float, Field(ge=0.0, le=100.0)]
+# a run's id: the tuner's are 12 hex digits; any client's goes into file names and log lines
+RunId = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")]
 SimTime = Annotated[float, Field(ge=0.0)]
 
 
@@ -484,9 +486,8 @@ class TuneRequest(Message):
     aim: Literal["balanced", "robust", "fast"] = Field(
         default="balanced", description="what the recommended rule favours (README)"
     )
-    apply_from: str | None = Field(
+    apply_from: RunId | None = Field(
         default=None,
-        max_length=64,
         description="autotune apply: no experiment; apply_gains (a recorded run's) are applied "
         "and verified as a tune's would be",
     )
@@ -520,7 +521,7 @@ class TuneRequest(Message):
 
 
 class TuneAccepted(Message):
-    run_id: str
+    run_id: RunId
     loop: LoopId
     t: SimTime
     method: Method
@@ -530,7 +531,7 @@ class TuneAccepted(Message):
 class TuneProgress(Message):
     """Published on ``<prefix>/tune/<loop>/progress`` while a run goes on."""
 
-    run_id: str
+    run_id: RunId
     loop: LoopId
     t: SimTime
     phase: str
@@ -543,7 +544,7 @@ class TuneProgress(Message):
 class TunerEvent(Message):
     """An experiment's event (relay switch, cycle, trial, phase change) with its sim time."""
 
-    run_id: str
+    run_id: RunId
     loop: LoopId
     t: SimTime
     kind: str
@@ -587,7 +588,7 @@ class Verification(Message):
 class TuneResult(Message):
     """Published on ``<prefix>/tune/<loop>/result`` when a run ends, whatever the outcome."""
 
-    run_id: str
+    run_id: RunId
     loop: LoopId
     t: SimTime
     method: Method
@@ -750,7 +751,7 @@ class LoopMonitor(Message):
     iae_limit: float = Field(ge=0.0, description="IAE_lim, PV units·s")
     idle_index: float | None = Field(ge=-1.0, le=1.0)
     flags: dict[MonitorFlag, str]
-    run_id: str | None = Field(description="the tune compared with, if any")
+    run_id: RunId | None = Field(description="the tune compared with, if any")
     figures: dict[str, float | int | None] = Field(
         default_factory=dict,
         description="more figures: error_mean, reversal_rate, reversal_deadband, op_noise, "

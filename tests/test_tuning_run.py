@@ -312,6 +312,11 @@ def test_a_request_refused_before_any_write_says_nothing_was_sent():
     assert client.commands == [] and state(client) == before
     assert "nothing was sent to the loop" in format_result(r)
     assert "WARNING" not in format_result(r)
+    # a relay hysteresis that cannot be crossed within the limits (1e308 held the relay's
+    # first push for hours of sim time: helper trial G)
+    r = run(client, method="relay", pv_limits=(40.0, 60.0), hysteresis=10.0)
+    assert r.status == "failed" and r.reason.startswith("hysteresis: 10 "), r.reason
+    assert r.untouched and client.commands == [] and state(client) == before
 
 
 class RunningOnClient(LocalLoopClient):

@@ -285,6 +285,18 @@ class TuningRun:
         }
         span = _span(self.info.pv_range)  # None: no % of span figures (a range not lo < hi)
         lo, hi = self.pv_limits
+        eps = req.hysteresis
+        if eps is not None and eps >= 0.5 * (hi - lo):  # refused before anything is sent
+            # a relay that switches only past ±ε of its rest never switches inside limits
+            # this close: it held its first push for hours of sim time (hysteresis 1e308)
+            result.update(
+                status="failed",
+                reason=f"hysteresis: {eps:g} {self.info.pv_units} is at least half the PV "
+                f"limits' width ({hi - lo:g}): the relay could not switch within them",
+                restored=True,
+                untouched=True,
+            )
+            return self._result(result, t0, wall0, None)
         if not lo <= first.pv <= hi:  # refused before anything is sent to the loop
             result.update(
                 status="failed",

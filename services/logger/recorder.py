@@ -82,6 +82,7 @@ BUFFER = 4096  # recent messages kept per loop (pre-run context)
 # the run's start from the tuner's, thousands of them (4,683 seen, lost past BUFFER)
 LEASED_BUFFER = 65536
 RESULT_GRACE = 2.0  # s of wall time a run's result may trail the withdrawal of its token
+FILE_METHODS = ("relay", "ramp", "step", "apply")  # what a run file's name may say
 REMEMBERED_RUNS = 4096  # finished run ids kept, so that a repeated start opens no new file
 
 TUNER_MESSAGES = (TuneProgress, TunerEvent, TuneResult)
@@ -589,7 +590,10 @@ class Recorder:
     def _open(self, stream: Stream, start: TuneProgress) -> None:
         wall_ns = time.time_ns()  # the run's start on the wall clock: its log times' origin
         now = datetime.fromtimestamp(wall_ns / 1e9, UTC)
-        method = start.message.split(" ")[0] if start.message else "run"
+        # the method, as the tuner's start message names it: a known one, else "run" (the
+        # message is any client's text: a forged one put a newline and U+202E in a name)
+        said = start.message.split(" ")[0] if start.message else ""
+        method = said if said in FILE_METHODS else "run"
         tail = "_replay" if stream.replay else ""
         name = f"{now:%Y%m%dT%H%M%SZ}_{stream.loop}_{method}_{start.run_id}{tail}.mcap"
         path = self.runs_dir / name

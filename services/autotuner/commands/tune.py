@@ -36,7 +36,7 @@ from shared.control.forms import (
     pv_span,
     to_percent,
 )
-from shared.errors import AutotuneError, ConfigError
+from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.messages import (
     DONE_STATUSES,
     LoopStatus,
@@ -404,6 +404,22 @@ class TunerGone(AutotuneError):
     """The run's tuner vanished before its result (killed, or cut off from the bus)."""
 
 
+MALFORMED_SAID = 3  # malformed messages on the run's keys said one by one; the rest counted
+_malformed_seen = [0]
+
+
+def _malformed(key: str, err: DecodeError) -> None:
+    """A message on the run's keys that is not valid (not the tuner's: another client on
+    the bus): said on stderr, the first few, and otherwise ignored; the run is followed on
+    (one such message killed the client, the run going on with no one to cancel it)."""
+    _malformed_seen[0] += 1
+    n = _malformed_seen[0]
+    if n <= MALFORMED_SAID:
+        print(f"autotune tune: ignored a malformed message on {key}: {err}", file=sys.stderr)
+    if n == MALFORMED_SAID:
+        print("autotune tune: more malformed messages are ignored unsaid", file=sys.stderr)
+
+
 def follow(
     session: zenoh.Session, prefix: str, loop: str, start, wait: float, on_progress=None
 ) -> TuneResult:
@@ -493,7 +509,11 @@ def follow(
                     elif appeared and gone is None:
                         gone = time.monotonic()
                 elif key == keys.tune_progress(prefix, loop):
-                    p = wire.decode_sample(TuneProgress, sample)
+                    try:
+                        p = wire.decode_sample(TuneProgress, sample)
+                    except DecodeError as err:  # not the tuner's: said, and followed on
+                        _malformed(key, err)
+                        continue
                     if p.run_id == run_id:
                         # the run's token is declared before its first progress: one whose
                         # appearance was missed (this subscriber not yet known to the tuner)
@@ -502,7 +522,11 @@ def follow(
                         if on_progress:
                             on_progress(p)
                 elif key == keys.tune_result(prefix, loop):
-                    r = wire.decode_sample(TuneResult, sample)
+                    try:
+                        r = wire.decode_sample(TuneResult, sample)
+                    except DecodeError as err:
+                        _malformed(key, err)
+                        continue
                     if r.run_id == run_id:
                         if cancelled:
                             raise Interrupted(r, loop_state(session, prefix, loop))
