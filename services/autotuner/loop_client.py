@@ -75,6 +75,11 @@ class ForgedCommand(AutotuneError):
     apart)."""
 
 
+class ForgedSample(AutotuneError):
+    """A sample of the loop numbered as one already received: a second publisher on the
+    loop's key (a bus without credentials cannot tell it from the plant)."""
+
+
 # command kinds whose status names the sender (``by_source``): each of ours is answered by
 # one, so one more than this client sent came from elsewhere
 MOVING_KINDS = ("output", "mode", "gains", "setpoint", "disturbance")
@@ -344,12 +349,23 @@ class LoopClient:
                 self.gone = True
                 self.check_plant()
             if key == self._pv_key:
-                self.last_sample = (
-                    payload
-                    if isinstance(payload, ProcessSample)
-                    else wire.decode(ProcessSample, payload, enc)
-                )
-                return self.last_sample
+                if isinstance(payload, ProcessSample):
+                    self.last_sample = payload
+                    return payload
+                sample = wire.decode(ProcessSample, payload, enc)
+                last = self.last_sample
+                if self.holding and last is not None and sample.seq <= last.seq:
+                    # one plant numbers its samples one after the other: a number again (or
+                    # back) is another publisher's (a forged sample shadowing each real one
+                    # got a realtime tune to `ok` on a K_u 10 % low: helper trial G)
+                    raise ForgedSample(
+                        f"loop {self.loop}: a sample numbered {sample.seq} (t = {sample.t:.6g} "
+                        f"s, PV {sample.pv:.6g}) came after sample {last.seq} (PV "
+                        f"{last.pv:.6g}): another client publishes samples as this loop's "
+                        "plant (a bus without credentials cannot tell them apart: see Security)"
+                    )
+                self.last_sample = sample
+                return sample
             if key == self._batch_key:  # one that could not be taken (see ``_read``)
                 batch = wire.decode(ProcessSamples, payload, enc)
                 raise DecodeError(f"loop: {batch.loop!r} in a batch of loop {self.loop!r}")

@@ -30,6 +30,7 @@ from shared.messages import (
     LoopStatus,
     OutputCommand,
     PidGains,
+    ProcessSample,
     ReleaseCommand,
     TuneProgress,
     TuneRequest,
@@ -494,6 +495,40 @@ def test_a_forged_output_in_the_runs_name_aborts_the_run_and_the_loop_is_restore
         after = c.sync()
     assert forged and r.status == "aborted"
     assert "applied an output command in this run's name that it did not send" in r.reason
+    assert r.restored is True
+    assert (after.mode, after.op, after.gains, after.leased_by) == (
+        before.mode,
+        before.op,
+        before.gains,
+        None,
+    )
+
+
+def test_a_forged_sample_shadowing_the_plants_aborts_the_run_and_the_loop_is_restored(
+    start_plant,
+):
+    """A client published, on the realtime clock, a sample numbered as the plant's last one
+    and a PV 30 % further from the rest (helper trial G shadowed every sample so, and the
+    tune ended ok on a K_u 10 % low): one plant numbers its samples one after the other,
+    so the run aborts at the repeated number, naming it, and restores the loop."""
+    p = start_plant(plant_toml("x1", HX), "--clock", "realtime", "--speed", "50", loops=("x1",))
+    with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1") as c:
+        before = c.sync()
+        forged: list[ProcessSample] = []
+
+        def forge(progress: TuneProgress) -> None:
+            last = c.last_sample
+            if progress.phase == "relay" and not forged and last is not None:
+                fake = last.model_copy(update={"pv": last.pv + 5.0})
+                forged.append(fake)
+                wire.put(s, keys.pv(p.prefix, "x1"), fake)
+
+        hooks = RunHooks(progress=forge)
+        r = TuningRun(c, TuneRequest(loop="x1", method="relay"), "forge-sample", hooks).run()
+        after = c.sync()
+    assert forged and r.status == "aborted", r.reason
+    assert f"a sample numbered {forged[0].seq}" in r.reason, r.reason
+    assert "another client publishes samples as this loop's plant" in r.reason
     assert r.restored is True
     assert (after.mode, after.op, after.gains, after.leased_by) == (
         before.mode,
