@@ -515,7 +515,16 @@ class LoopClient:
             if isinstance(msg, ProcessSample) and self._flight > 0:  # asked for: kept
                 self._flight -= 1
                 self._held.append(msg)
-            elif isinstance(msg, ProcessSample) and self.info.clock != "lockstep":
+            elif isinstance(msg, ProcessSample) and self.info.clock == "lockstep":
+                if self.holding:  # none asked for: the loop was advanced by someone else
+                    raise ForgedSample(
+                        f"loop {self.loop}: sample {msg.seq} (t = {msg.t:.6g} s) came beyond "
+                        "every advance this run asked for: another client advanced the loop "
+                        "in this run's name (a bus without credentials cannot tell them "
+                        "apart: see Security), the plant stepping it without this run's stops "
+                        "or PV limits"
+                    )
+            elif isinstance(msg, ProcessSample):
                 # realtime: the loop went on while the sync waited; its samples are the
                 # run's as much as any (an experiment that missed them would decide on a
                 # record with holes, and a replay of the file, which has them, otherwise)

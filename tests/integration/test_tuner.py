@@ -25,6 +25,7 @@ from services.autotuner.loop_client import LoopClient, wait_for_token
 from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
 from shared.messages import (
+    AdvanceCommand,
     GainsCommand,
     LeaseCommand,
     LoopStatus,
@@ -530,6 +531,35 @@ def test_a_forged_sample_shadowing_the_plants_aborts_the_run_and_the_loop_is_res
     assert f"a sample numbered {forged[0].seq}" in r.reason, r.reason
     assert "another client publishes samples as this loop's plant" in r.reason
     assert r.restored is True
+    assert (after.mode, after.op, after.gains, after.leased_by) == (
+        before.mode,
+        before.op,
+        before.gains,
+        None,
+    )
+
+
+def test_a_forged_advance_in_the_runs_name_aborts_the_run_naming_it(start_plant):
+    """A client sent a lockstep advance of 2,000 periods in the holder's name at the relay's
+    first push (helper trial G: 20,000 drained lvl2 to 0 m, and the run blamed the relay,
+    "no limit cycle"). The plant steps it (the default bus cannot tell the sender), but the
+    samples come beyond every advance the run asked for: it aborts naming that, and the loop
+    is restored."""
+    p = start_plant(plant_toml("x1", HX), loops=("x1",))
+    with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1") as c:
+        before = c.sync()
+        forged: list[AdvanceCommand] = []
+
+        def forge(progress: TuneProgress) -> None:
+            if progress.phase == "relay" and not forged:
+                forged.append(AdvanceCommand(loop="x1", steps=2000, source=c.source))
+                wire.put(s, keys.command(p.prefix, "x1", "advance"), forged[0])
+
+        hooks = RunHooks(progress=forge)
+        r = TuningRun(c, TuneRequest(loop="x1", method="relay"), "forge-advance", hooks).run()
+        after = c.sync()
+    assert forged and r.status == "aborted", r.reason
+    assert "another client advanced the loop in this run's name" in r.reason, r.reason
     assert (after.mode, after.op, after.gains, after.leased_by) == (
         before.mode,
         before.op,
