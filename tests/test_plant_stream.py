@@ -23,7 +23,6 @@ from services.plant_sim.service import (
     MODEL_STALL,
     STREAM_CHUNK,
     PlantService,
-    RejectLog,
     ServiceOptions,
 )
 from shared import keys, wire
@@ -35,6 +34,7 @@ from shared.messages import (
     RecordStops,
     SettleStop,
 )
+from shared.reject_log import RejectLog
 from shared.session import ZenohSettings, open_session
 
 ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
@@ -231,7 +231,7 @@ def test_the_model_watch_speaks_while_the_hung_model_holds_the_lock(service) -> 
 def test_refusals_left_unlogged_are_counted_once_their_window_has_passed(caplog) -> None:
     """Past its burst, a kind of refusal is counted, not logged; the count was said only if
     another refusal of the kind came after the window. ``flush`` says it when it has passed."""
-    refusals = RejectLog(burst=2, window=10.0)
+    refusals = RejectLog(logging.getLogger("plant_sim"), burst=2, window=10.0)
     with caplog.at_level(logging.WARNING, logger="plant_sim"):
         for _ in range(5):
             refusals("schema", "not JSON")

@@ -53,6 +53,7 @@ from shared.messages import (
     TuneRequest,
     TuneResult,
 )
+from shared.reject_log import RejectLog
 from shared.service_shell import ServiceShell, run_until_stopped
 from shared.session import settings_from_args
 
@@ -138,6 +139,8 @@ class TunerService:
         self.active: dict[str, ActiveRun] = {}
         self.results: dict[str, TuneResult] = {}  # the last result per loop (queryable)
         self.rejected = 0
+        self.monitor_rejected = 0  # a watched loop's samples that were not valid
+        self._log_reject = RejectLog(log)  # a flood of them logged 137,000 lines in seconds
         self.monitors: dict[str, Watched] = {}  # the loops left tuned, watched (monitor)
         self.shell: ServiceShell | None = None
 
@@ -291,8 +294,9 @@ class TunerService:
                 samples = [wire.decode_sample(ProcessSample, sample)]
             else:  # a lockstep advance's samples in one message: each in turn
                 samples = wire.decode_sample(ProcessSamples, sample).samples
-        except DecodeError as err:
-            log.warning("monitor of %s: %s", loop, err)
+        except DecodeError as err:  # counted; logged at most 10 lines in 10 s
+            self.monitor_rejected += 1
+            self._log_reject("monitor", f"monitor of {loop}: {err}")
             return
         w = watch.watcher
         for s in samples:

@@ -60,6 +60,7 @@ from shared.messages import (
     ServiceStatus,
     SyncCommand,
 )
+from shared.reject_log import RejectLog
 from shared.service_shell import ServiceShell, run_until_stopped
 from shared.session import settings_from_args
 
@@ -96,39 +97,6 @@ class ServiceOptions:
     node: str = "plant"
     clock: ClockMode = "lockstep"
     speed: float = 1.0
-
-
-class RejectLog:
-    """Log every refusal, but at most ``burst`` lines per reason in any ``window`` seconds."""
-
-    def __init__(self, burst: int = 10, window: float = 10.0):
-        self.burst, self.window = burst, window
-        self._seen: dict[str, tuple[float, int, int]] = {}
-        self._lock = threading.Lock()  # refusals come on Zenoh's threads, ``flush`` on ours
-
-    def __call__(self, category: str, message: str) -> None:
-        now = time.monotonic()
-        with self._lock:
-            start, shown, hidden = self._seen.get(category, (now, 0, 0))
-            if now - start > self.window:
-                if hidden:
-                    log.warning("%d more %s rejects were not logged", hidden, category)
-                start, shown, hidden = now, 0, 0
-            if shown < self.burst:
-                log.warning("rejected (%s): %s", category, message)
-                shown += 1
-            else:
-                hidden += 1
-            self._seen[category] = (start, shown, hidden)
-
-    def flush(self, now: float) -> None:
-        """Say how many refusals went unlogged in each window that has passed (monotonic
-        ``now``): the count was said only when another refusal of the kind came after it."""
-        with self._lock:
-            for category, (start, _, hidden) in list(self._seen.items()):
-                if hidden and now - start > self.window:
-                    log.warning("%d more %s rejects were not logged", hidden, category)
-                    self._seen[category] = (now, 0, 0)
 
 
 MAX_LAPSED = 64  # lapsed supervisors remembered per loop
@@ -169,7 +137,7 @@ class PlantService:
         self.accepted = 0
         self.overruns = 0
         self._remote_loops: set[str] = set()
-        self._log_reject = RejectLog()
+        self._log_reject = RejectLog(log)
         self.leases: dict[str, Lease] = {}
         self._stalled: set[str] = set()  # loops whose model step() hangs, said once each
         # loop → {source: why}: supervisors whose lease the plant ended (it restored the loop);
