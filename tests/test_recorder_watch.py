@@ -131,3 +131,24 @@ def test_a_logger_that_answers_neither_at_the_start_nor_the_end_is_said():
         token.undeclare()
     assert len(asked) == 2
     assert said is not None and said.startswith("no logger answered at the start or the end")
+
+
+def test_a_logger_that_answered_at_the_start_but_not_the_end_is_said():
+    """Paused during a lockstep run (helper trial E): its record lacks the samples of the
+    pause, and the ok run said nothing."""
+    answered: list[int] = []
+
+    def answer(query):
+        if not answered:  # the start's question only
+            answered.append(1)
+            _status("rw7")(query)
+
+    with open_session(ALONE) as s:
+        token = s.liveliness().declare_token(keys.logger_alive("rw7", "logger"))
+        queryable = s.declare_queryable(keys.logger_status("rw7", "logger"), answer)
+        watch = RecorderWatch(s, "rw7")
+        _until(lambda: watch._seen)
+        said = watch.verdict()
+        queryable.undeclare()
+        token.undeclare()
+    assert said is not None and said.startswith("the logger did not answer at the end"), said

@@ -101,6 +101,11 @@ class RecorderWatch:
                 "whether the run is on record is not known (`autotune runs` shows what was "
                 "written)"
             )
+        if not after:  # answered at the start, not at the end (a logger paused meanwhile)
+            return (
+                "the logger did not answer at the end of the run (paused or starved?): its "
+                "record of the run may be incomplete (`autotune runs` shows what was written)"
+            )
         missed = sum(max(0, after[n] - d) for n, d in self._before.items() if n in after)
         if missed:
             return (
