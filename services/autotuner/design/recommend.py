@@ -57,6 +57,9 @@ APPROXIMATE_PID_MARGIN = 0.75
 # (PIs by up to 1.3×: SIMC PI 1.59 predicted, 2.06 on (1 − 2s)/((s+1)(3s+1)) by ramp), so
 # every rule is held to the approximate model's tighter margin
 INVERSE_SOURCE = "inverse response"
+# … and where the model's Ms for some rule lies below what the measured K_u and P_u alone
+# imply (``measured_point``): it misses the plant, and none of its predictions is sure
+MISFIT_SOURCE = "misses the measured point"
 FALLBACKS = ("tl-pi", "amigo-pi", "simc-pi-int")  # robust by design, in this order
 ROBUST_RULES = ("lambda-pi", "lambda-pid", *FALLBACKS)  # --aim robust, in this order
 AIMS = ("balanced", "robust", "fast")
@@ -297,7 +300,7 @@ def recommend(
         )
 
         def margin(rule: str) -> float:
-            if model.source == INVERSE_SOURCE:  # every rule's Ms is optimistic there
+            if model.source in (INVERSE_SOURCE, MISFIT_SOURCE):  # every rule's Ms is unsure
                 return APPROXIMATE_PID_MARGIN
             pid = RULES[rule].controller == "PID"
             return APPROXIMATE_PID_MARGIN if pid and model.approximate else MODEL_MARGIN
@@ -357,6 +360,11 @@ def _margins(model: ProcessFit, ms_bound: float) -> str:
         return (
             f"Ms ≤ {APPROXIMATE_PID_MARGIN * ms_bound:.2g} for every rule on a model with no "
             "term for the inverse response"
+        )
+    if model.source == MISFIT_SOURCE:
+        return (
+            f"Ms ≤ {APPROXIMATE_PID_MARGIN * ms_bound:.2g} for every rule on a model that "
+            "misses the measured ultimate point"
         )
     text = f"Ms ≤ {MODEL_MARGIN * ms_bound:.2g}"
     if model.approximate:

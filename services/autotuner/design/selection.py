@@ -21,8 +21,11 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+from services.autotuner.design.measured_point import ms_floor
 from services.autotuner.design.recommend import (
+    APPROXIMATE_PID_MARGIN,
     INVERSE_SOURCE,
+    MISFIT_SOURCE,
     Assessment,
     Recommendation,
     assess,
@@ -45,6 +48,9 @@ from shared.control.forms import IsaGains
 
 UNBIASED_RELAY_RULES = ("tl-pid", "tl-pi")  # recommended when the static gain is unknown
 MIN_TD_SAMPLES = 5.0  # a derivative time shorter than this many samples is not recommended
+# a model's Ms this far below the measured point's floor (beyond twice the measurement's spread)
+# misses the plant
+MISFIT_TOLERANCE = 0.05
 
 
 @dataclass
@@ -161,6 +167,31 @@ def _widened(
     return out
 
 
+def _off_the_measured_point(
+    assessments: dict[str, Assessment],
+    ultimate: UltimatePoint | None,
+    sample_time: float | None,
+    ident: Identification,
+    check: ModelCheck | None,
+) -> dict[str, float]:
+    """The rules whose Ms on the model lies clearly below the floor the measured ultimate
+    point sets (``measured_point.ms_floor``), with that floor: beyond the measurement's own
+    spread (twice it) and 5 %, the model's loop is not the plant's there."""
+    if ultimate is None:
+        return {}
+    ku_spread, pu_spread = stated_spreads(ident, check)
+    tol = MISFIT_TOLERANCE + 2.0 * max(ku_spread or 0.0, pu_spread or 0.0)
+    out: dict[str, float] = {}
+    for name, a in assessments.items():
+        rb = a.robustness
+        if rb is None or not a.stable or not math.isfinite(rb.ms):
+            continue
+        floor = ms_floor(a.gains, ultimate, sample_time)
+        if floor > rb.ms * (1.0 + tol):
+            out[name] = floor
+    return out
+
+
 def guidance(ratio: float | None, model: ProcessFit | None) -> list[str]:
     """What the seeds and the benchmark say about rules at this L/T."""
     out = []
@@ -237,6 +268,21 @@ def select(
             unavailable[name] = f"non-finite integral time {g.ti}"
             del table[name]
     assessments = assess(ultimate, model, table, simulate=True, sample_time=ts, parts=parts)
+    misfit = _off_the_measured_point(assessments, ultimate, ts, ident, check)
+    for name, floor in misfit.items():  # judged by what the measurement alone implies
+        a = assessments[name]
+        assessments[name] = dataclasses.replace(
+            a, robustness=dataclasses.replace(a.robustness, ms=floor)
+        )
+    if misfit:
+        told = ", ".join(f"{k} {misfit[k]:.3g}" for k in sorted(misfit))
+        warnings.append(
+            f"the identified model misses the plant at its measured ultimate point: for "
+            f"{', '.join(sorted(misfit))} it predicts an Ms below what K_u and P_u alone imply "
+            f"(at least {told}, taken as their Ms), so none of its predictions is sure: every "
+            f"rule is held to Ms ≤ {APPROXIMATE_PID_MARGIN * ms_bound:.2g}, and the "
+            "recommendation is Tyreus–Luyben's, from K_u and P_u alone"
+        )
     pool = assessments
     # why each rule judged but not in the pool is left out of it (a refusal names them)
     left_out: dict[str, str] = {}
@@ -255,6 +301,15 @@ def select(
                 "the model is sure only near the ultimate point, so the recommendation is "
                 "Tyreus–Luyben's, from K_u and P_u; --relay-bias pins the gain for the others"
             )
+    if misfit:
+        # the model rules are designs on a model that misses the plant: the recommendation
+        # is from K_u and P_u alone (on the underdamped plant above, AMIGO PID passed at 1.41
+        # on the model, 2.33 on the plant; TL PI 1.81)
+        robust = {k: a for k, a in pool.items() if k in UNBIASED_RELAY_RULES}
+        if robust:
+            for k in pool.keys() - robust.keys():
+                left_out[k] = "the model misses the measured ultimate point"
+            pool = robust
     if ident.inverse_response:
         # a right-half-plane zero raises the gain at high frequencies, where a derivative
         # acts and where the models (no term for it) are least right: a PID's predicted Ms
@@ -279,7 +334,9 @@ def select(
                 "are not recommended: the sampled derivative is then mostly high-frequency gain"
             )
     judge = model
-    if model is not None and ident.inverse_response:
+    if model is not None and misfit:
+        judge = dataclasses.replace(model, source=MISFIT_SOURCE)
+    elif model is not None and ident.inverse_response:
         judge = dataclasses.replace(model, source=INVERSE_SOURCE)
     elif model is not None and not ident.static_gain_known:
         # unsure away from ω_u, the model judges a derivative (which acts above it) with the
@@ -287,10 +344,14 @@ def select(
         # predicted on a two-lag fit, 2.6 true)
         judge = dataclasses.replace(model, source="relay points")
     rec = recommend(ultimate, judge, ms_bound, pool, without_model, aim)
+    # a model that misses the measured point judges no rule surely: the envelope's bound is
+    # then the approximate model's tighter one (ZN PI at 1.80 from K_u and P_u alone, 3.14 on
+    # the plant, had passed at 2)
+    bound = APPROXIMATE_PID_MARGIN * ms_bound if misfit else ms_bound
     unsafe = {
         name: p
         for name, a in assessments.items()
-        if (p := envelope_problem(a, ultimate, ms_bound)) is not None
+        if (p := envelope_problem(a, ultimate, bound)) is not None
     }
     ratio = l_over_t(ident, model)
     name = (rec.rule if rec else "") if rule == "auto" else rule

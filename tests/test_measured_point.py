@@ -1,0 +1,81 @@
+"""The Ms floor the measured ultimate point sets (``design.measured_point``), and a model that
+misses the plant there: on the underdamped e^{−0.5s}/(s² + 0.4s + 1) the ramp's SOPDT fit had
+four times the dead time and no resonance; ZN PI passed the envelope at 1.71 predicted and ran
+`ok` at 3.14 on the plant, and AMIGO PID was recommended at 1.41 (2.33 on the plant). Expected
+figures from closed forms, and from the exact plant's sampled loop (itself checked against
+closed forms and the Nyquist count in test_sampled_loop.py)."""
+
+from __future__ import annotations
+
+import cmath
+import math
+
+import pytest
+
+from services.autotuner.design.measured_point import ms_floor
+from services.autotuner.design.rules import UltimatePoint
+from services.autotuner.design.sampled_loop import sampled_loop_robustness
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.control.forms import IsaGains
+from shared.control.transfer import DelayedTF
+from shared.messages import TuneRequest
+
+UNDERDAMPED = ([1.0], [1.0, 0.4, 1.0], 0.5)  # e^{−0.5s}/(s² + 0.4s + 1), ζ = 0.2
+TS = 0.02
+
+
+def test_the_floor_of_zn_p_and_zn_pi_in_continuous_time():
+    """At ω_u, L = −C(jω_u)/K_u: ZN P (0.5 K_u) gives |1 + L| = 0.5, Ms ≥ 2; ZN PI (0.45 K_u,
+    P_u/1.2) gives 1 − 0.45(1 − j·1.2/(2π))."""
+    u = UltimatePoint(ku=3.0, pu=7.0)
+    assert ms_floor(IsaGains(1.5), u, None) == pytest.approx(2.0, rel=1e-12)
+    pi = IsaGains(0.45 * 3.0, 7.0 / 1.2)
+    expected = 1.0 / abs(1.0 - 0.45 * (1.0 - 1j * 1.2 / (2.0 * math.pi)))
+    assert ms_floor(pi, u, None) == pytest.approx(expected, rel=1e-12)
+
+
+def test_the_sampled_floor_is_the_pid_blocks_own_response_with_the_holds_half_sample():
+    """The PID block's C(z) (backward-difference integral, filtered derivative on the
+    measurement, N = 10) at z = e^{jω_u T}, and the hold's e^{−jω_u T/2}."""
+    u, t = UltimatePoint(ku=2.0, pu=5.0), 0.1
+    g = IsaGains(0.9, 3.0, 0.4)
+    w = 2.0 * math.pi / 5.0
+    z = cmath.exp(1j * w * t)
+    tf = 0.4 / 10.0
+    c = 0.9 * (1.0 + t / (3.0 * (z - 1.0)) + 0.4 * (z - 1.0) / ((tf + t) * z - tf))
+    expected = 1.0 / abs(1.0 - c * cmath.exp(-0.5j * w * t) / 2.0)
+    assert ms_floor(g, u, t) == pytest.approx(expected, rel=1e-12)
+
+
+def _ramp(rule: str = "auto"):
+    num, den, delay = UNDERDAMPED
+    cfg = {"model": "transfer_function", "num": num, "den": den, "delay": delay}
+    loop = build_plant({"seed": 1, "loops": {"x": {**cfg, "sample_time": TS}}})["x"]
+    return TuningRun(
+        LocalLoopClient(loop), TuneRequest(loop="x", method="ramp", rule=rule), "t"
+    ).run()
+
+
+def test_a_model_that_misses_the_measured_point_recommends_from_k_u_and_p_u_alone():
+    r = _ramp()
+    assert r.status == "ok", r.reason
+    assert any("misses the plant at its measured ultimate point" in w for w in r.warnings)
+    assert r.rule == "tl-pi", r.rule
+    isa = r.chosen["isa"]
+    true = sampled_loop_robustness(
+        IsaGains(isa["kc"], isa["ti"], isa["td"]), DelayedTF.of(*UNDERDAMPED), TS
+    )
+    assert true.stable and true.ms <= 2.0, true.ms
+
+
+def test_a_forced_rule_the_plant_would_not_bear_is_refused():
+    """ZN PI, 3.14 on the plant: refused (it had run `ok`)."""
+    true = sampled_loop_robustness(
+        IsaGains(0.45 * 0.8627, 4.842 / 1.2), DelayedTF.of(*UNDERDAMPED), TS
+    )
+    assert true.ms > 3.0  # the gains the ramp gives, on the plant: far outside the bound
+    r = _ramp("zn-pi")
+    assert r.status == "rejected" and "zn-pi" in r.reason and "bound 1.5" in r.reason, r.reason
+    assert r.applied is not True
