@@ -404,7 +404,10 @@ class ReleaseCommand(Command):
     loop left in manual at the relay's output."""
 
     kind: ClassVar[str] = "release"
-    restore: bool = False
+    # left off the wire when false: a plant of an earlier version (no such field, extra ones
+    # refused) took the tuner's every release for malformed, and an ok run's gains were
+    # undone by its watchdog (helper trial E, a plant and a tuner of two versions)
+    restore: bool = Field(default=False, exclude_if=lambda v: not v)
 
 
 COMMANDS: dict[str, type[Command]] = {

@@ -551,6 +551,14 @@ class LoopClient:
             self.holding = status.leased_by == self.source
             if not self.holding:
                 raise CommandRefused(f"loop {self.loop}: lease not granted")
+        if isinstance(cmd, ReleaseCommand) and status.leased_by == self.source:
+            # not taken, though no refusal was counted as ours (a payload the plant could not
+            # read names no sender: a plant of an earlier version refused the release as
+            # malformed, and an ok run said nothing while its watchdog undid the gains)
+            raise CommandRefused(
+                f"loop {self.loop}: the plant still shows the loop held by this client after "
+                f"its release ({status.last_reject or 'no reason given'})"
+            )
         return status
 
     def _confirmed(self, before: int, loop_before: int) -> LoopStatus:

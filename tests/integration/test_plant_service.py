@@ -249,6 +249,34 @@ def test_a_release_with_restore_puts_the_loop_back_as_the_lease_found_it(start_p
         assert (st.mode, st.sp, st.leased_by) == ("auto", 3.0, None)
 
 
+def test_a_release_the_plant_could_not_read_is_not_taken_for_done(start_plant, monkeypatch):
+    """A plant of an earlier version refused the tuner's release as malformed (a field it did
+    not know): a refusal of a payload it cannot read names no sender, so the release looked
+    confirmed, and an ok run said nothing while the watchdog undid its gains (helper trial E).
+    The client reads the loop still held by it after its release, and says so."""
+    from services.autotuner import loop_client
+
+    plant = start_plant(TF_PLANT, loops=("tf1",))
+    put = wire.put
+
+    def older_plant(session, key, msg):
+        if isinstance(msg, ReleaseCommand):  # as an earlier plant saw it: an unknown field
+            session.put(key, msg.model_dump_json()[:-1] + ', "unknown": true}')
+            return
+        put(session, key, msg)
+
+    with (
+        open_session(plant.client_settings()) as s,
+        LoopClient(s, plant.prefix, "tf1", source="tuner:a") as a,
+    ):
+        a.command(LeaseCommand(loop="tf1", source="tuner:a", timeout=60.0))
+        monkeypatch.setattr(loop_client.wire, "put", older_plant)
+        with pytest.raises(CommandRefused, match="still shows the loop held by this client"):
+            a.command(ReleaseCommand(loop="tf1", source="tuner:a"))
+        monkeypatch.setattr(loop_client.wire, "put", put)
+        assert a.command(ReleaseCommand(loop="tf1", source="tuner:a")).leased_by is None
+
+
 def test_the_holder_is_its_source_and_its_user(start_plant):
     """A command key naming the sender's Zenoh user (verified by the router's ACL when
     deployed secure) is part of who holds a lease: writing the holder's source from another
