@@ -381,6 +381,15 @@ def test_the_left_line_prints_the_mean_at_rest_it_judged_by():
     line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
     assert "PV 48.6 degC at rest (last sample 49.21)" in line
     assert "(the PV is not back where it was, at rest off it: target 50 ± 0.8)" in line
+    # not waited for at all (cancelled, --no-wait): not "on its way back" (a level in manual
+    # never comes back by itself: 1.96 m for 1.79 was so called, helper trial E)
+    left = {**left, "pv_rest": None, "returned": False, "waited": 0.0}
+    line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
+    assert "(the PV is not back where it was, not waited for: target 50 ± 0.8)" in line
+    # seen by a query after the plant was lost: where it is against where it was
+    left = {**left, "pv_target": None, "pv_before": 50.0, "pv": 51.25}
+    line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
+    assert "the PV is +1.25 degC from where it was before the test (50), not waited for" in line
 
 
 def test_the_rules_table_marks_a_rule_unstable_and_keeps_its_columns_apart():

@@ -630,6 +630,10 @@ class TuningRun:
         same = (st.mode, st.sp, st.gains) == (before.mode, before.sp, before.gains) and (
             st.mode == "auto" or st.op == before.op
         )
+        # where the PV rested before the test, beside where it is: a level (integrating) in
+        # manual stays where an interrupted test left it (1.50 → 1.63 m, "the plant restored
+        # the loop", nothing said of the level: helper trial E)
+        rest = self._pv_rest if before.mode == "manual" else before.sp
         return {
             "mode": st.mode,
             "sp": st.sp,
@@ -637,6 +641,8 @@ class TuningRun:
             "gains": st.gains.model_dump(),
             "pv": st.pv,
             "pv_target": None,
+            "pv_before": rest,
+            "band": self._rest_band() if rest is not None else None,
             "returned": None,
             "waited": 0.0,
             "as_before": same and st.leased_by is None,

@@ -865,6 +865,12 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         lf = r.left
         if lf.get("pv_target") is None:  # seen by a query after the plant was lost
             back = "as its plant shows it once back in reach"
+            was, band = lf.get("pv_before"), lf.get("band")
+            if was is not None and band is not None and abs(lf["pv"] - was) > band:
+                back += (
+                    f"; the PV is {lf['pv'] - was:+.3g} {pv_units} from where it was before the "
+                    f"test ({was:.4g}), not waited for: a level in manual stays where it is"
+                )
         else:
             where = (
                 "back where it was"
@@ -873,6 +879,9 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
                 else "not back where it was, at rest off it"
                 if lf.get("pv_rest") is not None
                 else "still on its way back"
+                if lf.get("waited")
+                # cancelled, or --no-wait: a level in manual never comes back by itself
+                else "not back where it was, not waited for"
             )
             within = f" ± {lf['band']:.2g}" if lf.get("band") is not None else ""
             back = f"the PV is {where}: target {lf['pv_target']:.4g}{within}"
