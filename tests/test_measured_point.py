@@ -21,6 +21,7 @@ from services.plant_sim.plant_file import build_plant
 from shared.control.forms import IsaGains
 from shared.control.transfer import DelayedTF
 from shared.messages import TuneRequest
+from tests.exact import ultimate_point
 
 UNDERDAMPED = ([1.0], [1.0, 0.4, 1.0], 0.5)  # e^{−0.5s}/(s² + 0.4s + 1), ζ = 0.2
 TS = 0.02
@@ -79,3 +80,46 @@ def test_a_forced_rule_the_plant_would_not_bear_is_refused():
     r = _ramp("zn-pi")
     assert r.status == "rejected" and "zn-pi" in r.reason and "bound 1.5" in r.reason, r.reason
     assert r.applied is not True
+
+
+@pytest.mark.parametrize(
+    ("num", "den", "delay"),
+    [([1.0], [5.0, 1.0], 1.0), ([3.0, 1.0], [5.0, 15.5, 11.5, 1.0], 1.0)],
+)
+def test_the_point_a_settled_step_response_implies(num, den, delay):
+    """e^{−s}/(5s + 1) and (3s + 1)e^{−s}/((10s + 1)(s + 1)(0.5s + 1)), sampled at 0.05 s from
+    the step until settled: the record's own point within 1 % of the exact one."""
+    import numpy as np
+    from scipy import signal
+
+    from services.autotuner.identify.step_frequency import response_point
+
+    ts = 0.05
+    t = np.arange(0.0, 150.0, ts)
+    _, y = signal.step((num, den), T=t)
+    y = np.interp(t - delay, t, y, left=0.0)
+    ku, pu, unsure = response_point(t[1:], 2.0 * y[1:], 2.0, ts)
+    ku_x, pu_x = ultimate_point(num, den, delay)
+    assert ku == pytest.approx(ku_x, rel=0.01) and pu == pytest.approx(pu_x, rel=0.01)
+    assert unsure < 0.01
+    # cut before it settled: the end value unsure, the point not read
+    cut = t < 25.0
+    assert response_point(t[1:][cut[1:]], 2.0 * y[1:][cut[1:]], 2.0, ts) is None
+
+
+def test_a_step_tests_model_that_misses_its_records_point_holds_every_rule_tighter():
+    """The lead-lag plant above by step test: an FOPDT fit with a 0.45 s dead time (the record
+    first moves at 1 s) recommended SIMC PI at 1.33 × the plant's K_u, 1.64 predicted,
+    unstable on the plant; it ran until the verification saw the output saturate (helper
+    trial F). The gains recommended now are stable on the plant within the bound."""
+    plant = ([3.0, 1.0], [5.0, 15.5, 11.5, 1.0], 1.0)
+    cfg = {"model": "transfer_function", "num": plant[0], "den": plant[1], "delay": plant[2]}
+    loop = build_plant({"seed": 1, "loops": {"x": {**cfg, "sample_time": 0.05}}})["x"]
+    r = TuningRun(LocalLoopClient(loop), TuneRequest(loop="x", method="step"), "t").run()
+    assert r.status == "ok", r.reason
+    assert any("the ultimate point its step response implies by itself" in w for w in r.warnings)
+    isa = r.chosen["isa"]
+    true = sampled_loop_robustness(
+        IsaGains(isa["kc"], isa["ti"], isa["td"]), DelayedTF.of(*plant), 0.05
+    )
+    assert true.stable and true.ms <= 2.0, (r.rule, true.ms)

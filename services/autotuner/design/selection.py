@@ -173,14 +173,16 @@ def _off_the_measured_point(
     sample_time: float | None,
     ident: Identification,
     check: ModelCheck | None,
+    unsure: float = 0.0,
 ) -> dict[str, float]:
     """The rules whose Ms on the model lies clearly below the floor the measured ultimate
     point sets (``measured_point.ms_floor``), with that floor: beyond the measurement's own
-    spread (twice it) and 5 %, the model's loop is not the plant's there."""
+    spread or, for a step test's record point, its uncertainty (twice it) and 5 %, the model's
+    loop is not the plant's there."""
     if ultimate is None:
         return {}
     ku_spread, pu_spread = stated_spreads(ident, check)
-    tol = MISFIT_TOLERANCE + 2.0 * max(ku_spread or 0.0, pu_spread or 0.0)
+    tol = MISFIT_TOLERANCE + 2.0 * max(ku_spread or 0.0, pu_spread or 0.0, unsure)
     out: dict[str, float] = {}
     for name, a in assessments.items():
         rb = a.robustness
@@ -268,7 +270,13 @@ def select(
             unavailable[name] = f"non-finite integral time {g.ti}"
             del table[name]
     assessments = assess(ultimate, model, table, simulate=True, sample_time=ts, parts=parts)
-    misfit = _off_the_measured_point(assessments, ultimate, ts, ident, check)
+    # the point the model is held to: the measured one, else the one a step test's record
+    # implies by itself (no rule uses that one)
+    point, unsure = ultimate, 0.0
+    if point is None and ident.record_point is not None:
+        ku_r, pu_r, unsure = ident.record_point
+        point = UltimatePoint(ku_r, pu_r)
+    misfit = _off_the_measured_point(assessments, point, ts, ident, check, unsure)
     for name, floor in misfit.items():  # judged by what the measurement alone implies
         a = assessments[name]
         assessments[name] = dataclasses.replace(
@@ -276,12 +284,19 @@ def select(
         )
     if misfit:
         told = ", ".join(f"{k} {misfit[k]:.3g}" for k in sorted(misfit))
+        at = (
+            "its measured ultimate point"
+            if ultimate is not None
+            else f"the ultimate point its step response implies by itself (K_u {point.ku:.4g}, "
+            f"P_u {point.pu:.4g} s, read from the record, not from a model)"
+        )
+        tl = any(k in UNBIASED_RELAY_RULES for k in assessments)
         warnings.append(
-            f"the identified model misses the plant at its measured ultimate point: for "
-            f"{', '.join(sorted(misfit))} it predicts an Ms below what K_u and P_u alone imply "
-            f"(at least {told}, taken as their Ms), so none of its predictions is sure: every "
-            f"rule is held to Ms ≤ {APPROXIMATE_PID_MARGIN * ms_bound:.2g}, and the "
-            "recommendation is Tyreus–Luyben's, from K_u and P_u alone"
+            f"the identified model misses the plant at {at}: for {len(misfit)} of the rules it "
+            f"predicts an Ms below what that point alone implies (at least {told}, taken as "
+            "their Ms), so none of its predictions is sure: every rule is held to Ms ≤ "
+            f"{APPROXIMATE_PID_MARGIN * ms_bound:.2g}"
+            + (", and the recommendation is Tyreus–Luyben's, from K_u and P_u alone" if tl else "")
         )
     pool = assessments
     # why each rule judged but not in the pool is left out of it (a refusal names them)

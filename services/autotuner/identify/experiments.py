@@ -101,6 +101,10 @@ class Identification:
     # the fitted models have no term for: their Ms is optimistic, most of all a derivative's
     # (which acts at the high frequencies where such a zero raises the gain)
     inverse_response: bool = False
+    # (K_u, P_u, their relative uncertainty) a step test's record implies by itself
+    # (``step_frequency``): no rule uses it; the model is judged against it as against a
+    # measured ultimate point
+    record_point: tuple[float, float, float] | None = None
 
 
 DIRECT_NOTE = (

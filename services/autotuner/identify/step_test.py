@@ -67,6 +67,7 @@ from services.autotuner.identify.reaction_curve import (
     settled,
     steady_ramp,
 )
+from services.autotuner.identify.step_frequency import response_point
 from shared.control.signals import Sample, at_rest, noise_level, range_end
 from shared.errors import AutotuneError
 
@@ -325,6 +326,7 @@ class StepTest:
         model = fitted or model_of(step_model)
         inverse = self.inverse_response(model.kind.upper())
         return Identification(
+            record_point=self.record_point(),
             step=rc,
             step_model=step_model,
             model=model,
@@ -667,6 +669,20 @@ class StepTest:
             fit_rms=rms,
             drift=drift,
         )
+
+    def record_point(self) -> tuple[float, float, float] | None:
+        """(K_u, P_u, their relative uncertainty) the record implies by itself, from the step
+        on (``step_frequency``)."""
+        rc = self.result
+        if not isinstance(rc, ReactionCurve) or self.t_step is None:
+            return None
+        if not (math.isfinite(rc.gain) and rc.gain != 0):
+            return None
+        sign = 1.0 if rc.gain > 0 else -1.0
+        t = np.asarray(self.t) - self.t_step
+        after = t > 1e-9 * max(1.0, abs(self.t_step))
+        y = sign * (np.asarray(self.pv)[after] - self._pv_before)
+        return response_point(t[after], y, rc.step_size, self.sample_time, self._noise)
 
     def process_model(self) -> ProcessFit | None:
         """The process model for the rules and the robustness figures: FOPDT and SOPDT
