@@ -94,3 +94,12 @@ def test_recorded_before_the_ramp_bracketed_the_runaway_gain_to_the_end(monkeypa
     r, trials = _ramp(RAMP_WRONG, monkeypatch, recorded_before=True)
     assert r.status == "aborted" and "the loop never oscillated" in r.reason
     assert len(trials) > 3
+
+
+def test_a_slow_process_past_the_first_cycles_time_budget_is_told_so():
+    """Lags of hours ran the relay into its 14,400 s budget before two cycles, and the abort
+    said only "no limit cycle that repeats" (helper trial F): it names --max-time now. Here
+    e^{−s}/(10s + 1)'s first cycles (P_u ≈ 3.7 s) cannot come within a 5 s budget."""
+    test = run_relay([1.0], [10.0, 1.0], 1.0, 0.1, max_time=5.0)
+    assert test.phase == "aborted"
+    assert "--max-time 5 s, ran out: a slower process needs a longer one" in test.reason

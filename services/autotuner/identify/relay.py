@@ -498,9 +498,19 @@ class RelayTest:
             return self.op_start if self.finished else self._out()
         budget = self._budget()
         if t - self._relay_start > budget:
+            # which budget ran out: the first cycles' (--max-time: a slow process needs more;
+            # lags of hours were told only "no limit cycle") or the cycles' own
+            first = len(self.cycles[self._from_cycle :]) < cfg.budget_after_cycles
+            why = (
+                f" (the time allowed before the first {cfg.budget_after_cycles} cycles, "
+                f"--max-time {cfg.max_time:g} s, ran out: a slower process needs a longer one)"
+                if first
+                else ""
+            )
             return self._abort(
                 f"no limit cycle that repeats within {cfg.tolerance:.0%} after "
-                f"{len(self.cycles)} cycles and {t - self._relay_start:g} s" + self._wrong_way()
+                f"{len(self.cycles)} cycles and {t - self._relay_start:g} s"
+                + (self._wrong_way() or why)
             )
         return self._out()
 
