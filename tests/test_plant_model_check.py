@@ -322,6 +322,27 @@ class Drifts(_User):
         return 50.0 + self.x
 
 
+class Deadband(_User):
+    """A valve with a ±3 % deadband about op0 before a first-order lag of 5 s, gain 1: steps
+    of 2 % move nothing, steps of 10 % move the PV by 7."""
+
+    def step(self, op: float) -> float:
+        d = op - self.op0
+        u = math.copysign(max(abs(d) - 3.0, 0.0), d)
+        a = math.exp(-self.sample_time / 5.0)
+        self.x = a * self.x + (1.0 - a) * u
+        return 50.0 + self.x
+
+
+def test_a_deadband_is_said_not_called_linear():
+    """A valve with 4 % of backlash was called "linear, spread < 0.001 %, ok": its ±2 % steps
+    moved nothing and were dropped unsaid (helper trial F)."""
+    r = check({"model": f"{HERE}:Deadband", "sample_time": 0.1})
+    assert r.unmoved == ["+2 %", "-2 %"], r.unmoved
+    assert r.nonlinearity == math.inf
+    assert any(w.startswith("no response to the steps of +2 %, -2 %") for w in r.warnings)
+
+
 def test_an_unstable_model_is_said_to_run_away():
     r = check({"model": f"{HERE}:Unstable", "sample_time": 0.5})
     assert r.behaviour == "unstable" and r.refused is None and r.ku is None

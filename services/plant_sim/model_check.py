@@ -86,6 +86,7 @@ class ModelReport:
     gains: dict[str, float] = field(default_factory=dict)
     gain: float | None = None
     nonlinearity: float | None = None
+    unmoved: list[str] = field(default_factory=list)  # steps that moved nothing (a deadband)
     dead_time: float | None = None
     onset_order: float | None = None
     t63: float | None = None
@@ -332,6 +333,17 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
             f"{', '.join(r.label for r in responses)}"
         )
     kinds = {r.behaviour for r in responses} - {"no response"}
+    silent = report.unmoved = [r.label for r in responses if r.behaviour == "no response"]
+    if silent:
+        # some steps moved it and some did not: a deadband, backlash or stiction at op0, no
+        # linear process (a valve with 4 % of backlash was called "linear … ok", its ±2 %
+        # steps dropped unsaid; a relay of ±5 % on 12 % then never switched: helper trial F)
+        report.warnings.append(
+            f"no response to the steps of {', '.join(silent)} while larger ones moved it: a "
+            "deadband, backlash or stiction at op0 (not linear: a relay or step smaller than "
+            "it moves nothing, and the loop's PID limit-cycles through it)"
+        )
+        report.nonlinearity = math.inf
     for r in responses:
         if r.gain is not None:
             report.gains[r.label] = r.gain
@@ -371,7 +383,7 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
             f"not settled after {report.horizon:g} s: oscillating, or slower than the check runs"
         )
     gains = list(report.gains.values())
-    if len(gains) >= 2 and all(g != 0 for g in gains):
+    if not silent and len(gains) >= 2 and all(g != 0 for g in gains):
         mags = [abs(g) for g in gains]
         report.nonlinearity = max(mags) / min(mags) - 1.0
         if any(g * gains[0] < 0 for g in gains):

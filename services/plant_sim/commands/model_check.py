@@ -111,7 +111,9 @@ def format_report(r: ModelReport) -> str:
     if r.gains:
         steps = ", ".join(f"{k}: {_g(v, 6)}" for k, v in r.gains.items())
         spread = (
-            "the steps disagree in sign"
+            f"no response to {', '.join(r.unmoved)}: a deadband"
+            if r.unmoved
+            else "the steps disagree in sign"
             if r.nonlinearity is not None and not math.isfinite(r.nonlinearity)
             else _spread(r.nonlinearity)
             if r.nonlinearity is not None
