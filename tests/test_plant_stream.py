@@ -117,6 +117,32 @@ def test_a_long_advance_comes_in_parts_equal_to_one_stepping(service) -> None:
     assert [s.model_dump() for s in got] == [s.model_dump() for s in want]
 
 
+def test_a_slow_models_parts_are_cut_to_keep_its_asker_hearing_from_it(
+    service, monkeypatch
+) -> None:
+    """A user model whose step() took 20 ms stepped 256 samples (5.1 s) between two messages,
+    and its tuner, which must hear from the plant within 5 s, aborted a healthy run (helper
+    trial F). Once a part takes over twice PART_SECONDS, the next are cut to PART_SECONDS
+    (here 0.05 s, a model of 2 ms a sample), the samples the same."""
+    monkeypatch.setattr(plant_service, "PART_SECONDS", 0.05)
+    loop = service.loops["x"]
+    step = loop.advance_rows
+
+    def slow(n, stops=None):
+        time.sleep(0.002 * n)  # the model's cost, at once for the part
+        return step(n, stops)
+
+    monkeypatch.setattr(loop, "advance_rows", slow)
+    caught = service.publishers = Caught()
+    send(service, advance(200))
+    sizes = [len(wire.decode(ProcessSamples, p).samples) for _, p in caught.sent]
+    assert sizes[0] == FIRST_CHUNK and sum(sizes) == 200
+    assert all(n <= 25 for n in sizes[1:]), sizes  # 0.05 s / 2 ms: 25 (fewer if slower)
+    got, _ = caught.samples()
+    want = plant()["x"].advance_many(200)
+    assert [s.model_dump() for s in got] == [s.model_dump() for s in want]
+
+
 @pytest.mark.parametrize("at", [STREAM_CHUNK + 40, 1])
 def test_it_ends_with_the_sample_its_stops_name(service, at: int) -> None:
     """Also when that sample is the first of all."""

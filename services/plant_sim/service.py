@@ -91,6 +91,21 @@ STREAM_CHUNK = 256
 assert STREAM_CHUNK <= MAX_BATCH  # a part is one ProcessSamples
 
 
+# s of stepping in one part of an advance, once a part took twice as long (a slow user model;
+# a part of a fast one is never so long): parts then keep well inside the 5 s within which the
+# asker must hear from the plant
+PART_SECONDS = 1.0
+
+
+def _part_size(size: int, per_sample: float) -> int:
+    """``size`` samples, or fewer where the loop's ``per_sample`` cost (s), measured on a part
+    that took over twice PART_SECONDS, would make a part take longer than PART_SECONDS (one
+    sample at least)."""
+    if per_sample > 0.0:
+        return max(1, min(size, int(PART_SECONDS / per_sample)))
+    return size
+
+
 @dataclass(frozen=True)
 class ServiceOptions:
     prefix: str = keys.DEFAULT_PREFIX
@@ -134,6 +149,7 @@ class PlantService:
         self.opt = options
         self.lock = threading.Lock()
         self.rejected_by_reason: Counter[str] = Counter()
+        self._per_sample: dict[str, float] = {}  # s a lockstep sample of each loop last took
         self.accepted = 0
         self.overruns = 0
         self._remote_loops: set[str] = set()
@@ -406,7 +422,11 @@ class PlantService:
             return stopped
 
         left = cmd.steps
-        size = FIRST_CHUNK
+        # a part takes PART_SECONDS of stepping at most, by the loop's last cost per sample: a
+        # model whose step() takes 20 ms stepped 256 samples (5.1 s) between two messages, and
+        # its tuner, silent-plant bound 5 s, aborted a healthy run (helper trial F)
+        per = self._per_sample.get(loop_id, 0.0)
+        size = _part_size(FIRST_CHUNK, per)
 
         def part(out: Outbox) -> Rest | None:
             nonlocal left, size
@@ -416,9 +436,13 @@ class PlantService:
                 lease.deadline = max(lease.deadline, time.monotonic() + lease.timeout)
             had = loop.fault
             first = left == cmd.steps
+            began = time.monotonic()
             rows = loop.advance_rows(min(left, size), ends if test else None)
+            took = time.monotonic() - began
+            if rows and took > 2.0 * PART_SECONDS:  # a slow model (not a fast one's hiccup)
+                self._per_sample[loop_id] = took / len(rows)
             left -= len(rows)
-            size = min(2 * size, STREAM_CHUNK)
+            size = _part_size(min(2 * size, STREAM_CHUNK), self._per_sample.get(loop_id, 0.0))
             if first and len(rows) == 1 and (stopped or not left):
                 out.append((keys.pv(prefix, loop_id), ProcessSample(**rows[0])))
             elif rows:  # one message per part: a message's cost on the bus is per message
