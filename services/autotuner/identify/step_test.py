@@ -508,7 +508,11 @@ class StepTest:
         moved = self._t_moved if self._t_moved is not None else elapsed
         horizon = 2.0 * moved + 4.0 * self.sample_time
         reach = float(level + slope * horizon)
-        left = _approach_left(yw)
+        # the approach judged on the samples since the PV started moving: a window that also
+        # holds the flat dead time before it reads a lag's onset as speeding up (the straight
+        # line took e^{−10s}/(2s+1)'s 5 % step, at 53.2 and slowing, past 75: helper trial F)
+        since = y[keep][t[keep] >= self.t_step + moved] if self._t_moved is not None else yw
+        left = _approach_left(since if since.size >= 12 else yw)
         if left is not None and abs(left) < abs(reach - level):
             # slowing down as a lag's approach does: it goes no further than its end (a
             # straight line over 2 L took e^{−10s}/(2s+1)'s 5 % step past 75 %: it ends at 55)
