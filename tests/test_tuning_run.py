@@ -362,6 +362,20 @@ def test_a_slow_step_on_a_realtime_loop_in_process_is_watched_without_failing(mo
     assert result.status == "ok", result.reason
 
 
+def test_a_long_computation_on_a_realtime_loop_is_said(monkeypatch):
+    """Its compute workers stopped 70 s: the realtime loop ran on at a held output, and the
+    ok run said nothing of it (helper trial E). Here every computation counts as long."""
+    import services.autotuner.tuning as tuning
+
+    monkeypatch.setattr(tuning, "SLOW_COMPUTE", 0.0)
+    r = run(RunningOnClient(third_order_loop("auto", setpoint=50.0)), RunHooks())
+    assert r.status == "ok", r.reason
+    assert any(w.startswith("a computation of this run took") for w in r.warnings), r.warnings
+    # in lockstep the plant waits: nothing to say
+    r = run(LocalLoopClient(third_order_loop("auto", setpoint=50.0)), RunHooks())
+    assert not any(w.startswith("a computation of this run took") for w in r.warnings)
+
+
 def test_an_ok_run_whose_release_the_plant_did_not_confirm_says_so():
     """The plant paused (SIGSTOP, 20 s) as an ok run ended: its release and last sync went
     unanswered, and the run said ok with no word, though a lease that lapses before the
