@@ -343,6 +343,17 @@ def test_a_deadband_is_said_not_called_linear():
     assert any(w.startswith("no response to the steps of +2 %, -2 %") for w in r.warnings)
 
 
+def test_a_process_that_settles_within_a_sample_is_said_unresolved():
+    """1/(0.1s + 1) sampled every 5 s: e^{−50} of the step is left after one sample. It was
+    given T63 3.16 s and "ok" (helper trial F); now its lags are said not resolved. 1/(5s + 1)
+    at 0.1 s is resolved: no such warning."""
+    fast = {"model": "transfer_function", "num": [1.0], "den": [0.1, 1.0]}
+    r = check({**fast, "sample_time": 5.0})
+    assert any(w.startswith("settles within one sample (5 s)") for w in r.warnings), r.warnings
+    r = check({"model": "transfer_function", "num": [1.0], "den": [5.0, 1.0], "sample_time": 0.1})
+    assert not any(w.startswith("settles within one sample") for w in r.warnings)
+
+
 def test_an_unstable_model_is_said_to_run_away():
     r = check({"model": f"{HERE}:Unstable", "sample_time": 0.5})
     assert r.behaviour == "unstable" and r.refused is None and r.ku is None

@@ -54,6 +54,7 @@ RUNAWAY = 100.0  # spans of the PV range (or of the rest PV): a response past it
 HELD = "the run held at op0"
 MIN_SAMPLES_PER_PERIOD = 20  # fewer per ultimate period and sampling shapes the loop
 LINEAR = 0.01  # gains spread no more than this: linear
+UNRESOLVED = 0.05  # within this of its end value at the first sample: settled within a sample
 
 
 @dataclass
@@ -503,6 +504,16 @@ def _shape(report: ModelReport) -> None:
         report.apparent_dead_time = float(t[n] - s[n] / k_gain)  # the asymptote's intercept
     else:
         _time_constants(report, s, t, k_gain)
+        if n >= 1 and abs(s[1] - k_gain) <= UNRESOLVED * abs(k_gain):
+            # settled by the first sample after the step: its lags are below the sample
+            # time, and the figures above are the sampling's, not the process's (τ 0.1 s at
+            # 5 s samples was given T63 3.16 s and "ok": helper trial F)
+            report.warnings.append(
+                f"settles within one sample ({dt:g} s): its time constants are shorter than the "
+                "sample time and not resolved (the T63 and lags above are the sampling's); at "
+                "this sample time the loop is a static gain, which integral action alone "
+                "controls: sample faster to see its dynamics"
+            )
     report.ku_step, report.pu_step = _ultimate_from_step(s, dt, integrating) or (None, None)
 
 
