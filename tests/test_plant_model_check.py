@@ -354,6 +354,27 @@ def test_a_process_that_settles_within_a_sample_is_said_unresolved():
     assert not any(w.startswith("settles within one sample") for w in r.warnings)
 
 
+class VaryingLag(_User):
+    """Gain 1 everywhere, but a lag that grows with the PV, τ = 5·e^{x/4} s (x the PV's move
+    from rest): a step of +10 % rises on a lag e^{2.5} times a −10 % step's falls on. Stepped
+    at 0.1 s by 100 Euler steps a sample."""
+
+    def step(self, op: float) -> float:
+        h = self.sample_time / 100.0
+        for _ in range(100):
+            self.x += h * ((op - self.op0) - self.x) / (5.0 * math.exp(self.x / 4.0))
+        return 50.0 + self.x
+
+
+def test_dynamics_that_vary_more_than_the_gain_are_said():
+    """A conical tank's gain varied 22 % over ±10 % of output, its K_u 3.7 times, and only the
+    gain was said (helper trial F): K/T63 per step is compared too."""
+    r = check({"model": f"{HERE}:VaryingLag", "sample_time": 0.1})
+    assert r.nonlinearity is not None and r.nonlinearity < 0.01  # the gains agree
+    (w,) = [w for w in r.warnings if w.startswith("the dynamics vary more than the gain")]
+    assert "K/T63" in w
+
+
 def test_an_unstable_model_is_said_to_run_away():
     r = check({"model": f"{HERE}:Unstable", "sample_time": 0.5})
     assert r.behaviour == "unstable" and r.refused is None and r.ku is None
