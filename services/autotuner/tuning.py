@@ -287,7 +287,7 @@ class TuningRun:
         }
         span = _span(self.info.pv_range)  # None: no % of span figures (a range not lo < hi)
         lo, hi = self.pv_limits
-        eps = req.hysteresis
+        eps = req.hysteresis if req.method == "relay" and not req.apply_from else None
         if eps is not None and eps >= 0.5 * (hi - lo):  # refused before anything is sent
             # a relay that switches only past ±ε of its rest never switches inside limits
             # this close: it held its first push for hours of sim time (hysteresis 1e308)
