@@ -68,3 +68,38 @@ def test_the_relay_calls_no_inverse_response_on_the_zeros_mirror_image():
     gains = IsaGains(isa["kc"], isa["ti"], isa["td"] or 0.0)
     true = sampled_loop_robustness(gains, DelayedTF.of([4.0, 1.0], den, 0.0), ts)
     assert true.stable and true.ms <= 2.0, (r.rule, true.ms)
+
+
+def test_a_ramp_from_a_noisy_pid_calls_no_inverse_response():
+    """hx1 under TL PID (its derivative shakes the output ±2 % on the noise): the ramp took its
+    cautious P gain's reset from the last noisy sample's output, 1.3 % off its mean at rest;
+    the PV drifted 0.13 down through the first trial's dead time and the run warned of an
+    inverse response on e^{−5s}/((10s+1)(60s+1)) (helper trial E). The ramp now starts from the
+    output's mean at rest. Over seeds 1–24, seed 21 (the one the old start warned on) and 1."""
+    spec = {"model": "heat_exchanger", "mode": "auto", "setpoint": 60.0}
+    spec["pid"] = {"kc": 6.973, "ti": 96.09, "td": 6.933}
+    for seed in (21, 1):
+        loop = build_plant({"seed": seed, "loops": {"hx1": spec}})["hx1"]
+        client = LocalLoopClient(loop)
+        client.advance(4000)  # at rest under its PID
+        r = TuningRun(client, TuneRequest(loop="hx1", method="ramp"), "t").run()
+        assert r.status in ("ok", "rejected"), r.reason
+        assert not any(w.startswith("inverse response") for w in r.warnings), (seed, r.warnings)
+
+
+def test_a_swing_below_the_rest_after_the_rise_is_no_dip():
+    """A closed-loop trial's response to its bump can ring below where it rested once it has
+    risen: that is an oscillation, not a response that first went the other way."""
+    import numpy as np
+
+    from services.autotuner.identify.inverse_response import dip
+
+    t = np.linspace(0.0, 30.0, 301)
+    # a growing oscillation about the new level (a trial near K_u), after a 2 s dead time:
+    # from 0 it rises, then swings below 0
+    along = np.where(t < 2.0, 0.0, 1.0 - np.exp(0.05 * (t - 2.0)) * np.cos(0.6 * (t - 2.0)))
+    assert float(np.min(along)) < -0.5  # it does swing below its rest, after its rise
+    assert dip(along, 0.001, float(np.max(along))) is None
+    first = along.copy()
+    first[20:24] = -0.2  # a dip before it rises: still seen
+    assert dip(first, 0.001, float(np.max(first))) == pytest.approx(0.2)

@@ -979,6 +979,13 @@ class TuningRun:
             machine.parts = self._parts
         start = machine.demand
         if start.auto:
+            if self.before is not None and self.before.mode == "auto":
+                # from its output at rest, not the last noisy sample's: the cautious P gain's
+                # reset is the output it starts from (hx1 under TL PID, its output ±2 % on the
+                # noise, started 1.3 % off; the PV drifted 0.13 down through the first trial's
+                # dead time, read as an inverse response: helper trial E)
+                c.command(ModeCommand(loop=c.loop, mode="manual", source=c.source))
+                c.command(OutputCommand(loop=c.loop, op=self._rest_op(), source=c.source))
             c.command(GainsCommand(loop=c.loop, gains=PidGains(kc=start.kc), source=c.source))
             c.command(SetpointCommand(loop=c.loop, sp=start.sp, source=c.source))
             c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))

@@ -21,8 +21,15 @@ def dip(along: np.ndarray, noise: float, scale: float) -> float | None:
     PV went the push's way); None otherwise."""
     if along.size == 0:
         return None
+    clear = max(DIP_SIGMAS * noise, DIP_SHARE * scale, 1e-12)
+    # before the PV first went clearly the push's way: an inverse response comes first; once
+    # it has, a swing below the rest is an oscillation about the new level (a trial near K_u
+    # grows through its rest)
+    ahead = along >= clear
+    if np.any(ahead):
+        along = along[: int(np.argmax(ahead)) + 1]
     away = float(-np.min(along))
-    return away if away > max(DIP_SIGMAS * noise, DIP_SHARE * scale, 1e-12) else None
+    return away if away > clear else None
 
 
 def note(where: str, away: float, model: ProcessFit | None) -> str:
