@@ -390,6 +390,11 @@ def test_the_left_line_prints_the_mean_at_rest_it_judged_by():
     left = {**left, "pv_target": None, "pv_before": 50.0, "pv": 51.25}
     line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
     assert "the PV is +1.25 degC from where it was before the test (50), not waited for" in line
+    # the wait cut short by the plant falling silent: said, the figures the last seen (the
+    # stale PV was printed as "still on its way back": helper trial E)
+    left = {**left, "pv_target": 50.0, "waited": 2.0, "cut": "loop 'hx1': no message for 5 s"}
+    line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
+    assert "the wait for it was cut short, the figures the last seen: loop 'hx1': no" in line
 
 
 def test_the_rules_table_marks_a_rule_unstable_and_keeps_its_columns_apart():

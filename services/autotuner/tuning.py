@@ -49,7 +49,7 @@ from shared.control.forms import (
     step_percent,
 )
 from shared.control.record_stops import Guard, SettleRule, judge_point, settle_point
-from shared.errors import AutotuneError
+from shared.errors import AutotuneError, one_line
 from shared.messages import (
     APPLIED_STATUSES,
     MAX_BATCH,
@@ -771,6 +771,7 @@ class TuningRun:
         returned = abs(pv - target) <= band
         rest_pv: float | None = None  # the mean at rest the judgement used (when waited)
         waited = 0.0
+        cut: str | None = None  # why the wait for the PV's return ended early (the plant lost)
         if wait:  # back near the target is not enough: the PV must be at rest there
             slow = rest_window(self.ts, before.gains.ti, self.req.rest_window)
             horizon = max(RETURN_SCALES * (scale or 0.0), slow)
@@ -800,8 +801,8 @@ class TuningRun:
                         check = RestCheck(self.ts, window, (lo, hi), windows=4, **on)
                     elif check.done:
                         break
-            except AutotuneError:
-                pass
+            except AutotuneError as err:  # the wait cut short: said beside the figures
+                cut = one_line(err)
             rest_pv = check.rest_pv if check.at_rest else None
             returned = abs((pv if rest_pv is None else rest_pv) - target) <= band
             if not returned and rest_pv is not None and st.mode == "manual" and model is not None:
@@ -823,6 +824,7 @@ class TuningRun:
             "band": band,
             "returned": bool(returned),
             "waited": waited,
+            "cut": cut,
         }
 
     def _give_back(

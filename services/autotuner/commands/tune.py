@@ -885,6 +885,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             )
             within = f" ± {lf['band']:.2g}" if lf.get("band") is not None else ""
             back = f"the PV is {where}: target {lf['pv_target']:.4g}{within}"
+            if lf.get("cut"):  # the figures are the last seen before the plant fell silent
+                back += f"; the wait for it was cut short, the figures the last seen: {lf['cut']}"
         # the mean at rest is what was judged; the last sample alone carries the noise
         pv = (
             f"PV {lf['pv_rest']:.4g} {pv_units} at rest (last sample {lf['pv']:.4g})"
