@@ -58,3 +58,20 @@ def test_an_apply_run_is_listed_as_apply_not_as_another_test(tmp_path: Path, cap
     runs.run(argparse.Namespace(runs=str(tmp_path), compare=None, json=False))
     (line,) = [x for x in capsys.readouterr().out.splitlines() if x.endswith(path.name)]
     assert line.split()[1:3] == ["x", "apply"]
+
+
+def test_gains_a_run_did_not_leave_on_the_loop_are_listed_in_parentheses(tmp_path, capsys):
+    """`runs` listed a rejected run's gains as any ok run's (helper trial E misread them as the
+    loop's): they are in ( ), with a line saying what that means."""
+    plant = {"seed": 1, "loops": {"x": {"model": "fopdt", "gain": 1.0, "time_constant": 5.0,
+             "delay": 1.0, "sample_time": 0.1, "noise_std": 0.0}}}  # fmt: skip
+    ok, live = record_in_process(tmp_path, "p", plant, "x", "relay")
+    assert live.status == "ok", live.reason
+    proposed, live = record_in_process(tmp_path, "p", plant, "x", "relay", apply=False)
+    assert live.status == "proposed", live.reason
+    runs.run(argparse.Namespace(runs=str(tmp_path), compare=None, json=False))
+    out = capsys.readouterr().out.splitlines()
+    (applied,) = [x for x in out if x.endswith(ok.name)]
+    (computed,) = [x for x in out if x.endswith(proposed.name)]
+    assert "(" not in applied and computed.count("(") == 3, computed
+    assert out[-1].startswith("gains in ( ): computed by the run, not left on the loop")

@@ -16,6 +16,7 @@ from pathlib import Path
 from services.logger.compare import compare, format_compare
 from services.logger.mcap_io import being_written, read_run
 from shared.errors import AutotuneError, one_line
+from shared.messages import APPLIED_STATUSES
 
 HELP = "list the recorded tuning runs"
 
@@ -165,15 +166,26 @@ def run(args: argparse.Namespace) -> int:
         f"{'started (UTC)':<20} {'loop':<8} {'method':<6} {'K_u':>9} {'P_u (s)':>9} "
         f"{'rule':<14} {'Kc':>8} {'Ti':>8} {'Td':>8} status"
     )
+    unapplied = False
     for r in rows:
         g = r.get("gains") or {}
+        # a run that did not leave its gains on the loop (refused, aborted, proposed): they
+        # are in ( ), not to be read as the loop's (helper trial E misread them so)
+        held = r.get("status") in APPLIED_STATUSES or not g
+        unapplied = unapplied or not held
+
+        def cell(v, held: bool = held) -> str:
+            return _num(v) if held or v is None else f"({_num(v)})"
+
         print(
             f"{(r.get('started') or '')[:19]:<20} {r.get('loop') or '':<8} "
             f"{'apply' if r.get('applied_from') else r.get('method') or '':<6} "
             f"{_num(r.get('ku')):>9} {_num(r.get('pu')):>9} "
-            f"{r.get('rule') or '':<14} {_num(g.get('kc')):>8} {_num(g.get('ti')):>8} "
-            f"{_num(g.get('td')):>8} {_status(r)}  {r['file']}"
+            f"{r.get('rule') or '':<14} {cell(g.get('kc')):>8} {cell(g.get('ti')):>8} "
+            f"{cell(g.get('td')):>8} {_status(r)}  {r['file']}"
         )
+    if unapplied:
+        print("gains in ( ): computed by the run, not left on the loop (see its status)")
     if any("not a readable MCAP file" in (r.get("reason") or "") for r in rows):
         print(
             "a file not readable as MCAP, if a logger was killed while writing it: "
