@@ -865,7 +865,9 @@ def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, 
     code, out, err = cli(capsys, "runs", str(few))
     assert code == 0 and err == ""
     lines = out.splitlines()
-    assert len(lines) == 6 and lines[0].startswith("started")  # a header, a row per file
+    # a header, a row per file, and what ( ) means (the step test's gains, not applied)
+    assert len(lines) == 7 and lines[0].startswith("started")
+    assert lines[5].startswith("gains in ( ): computed by the run, not left on the loop")
     # and once, for the truncated one, what salvages a file a killed logger left
     assert lines[-1].startswith("a file not readable as MCAP") and "autotune recover" in lines[-1]
     assert sum("unreadable: " in ln for ln in lines) == 3
@@ -1097,3 +1099,43 @@ def test_runs_compare_keeps_unlike_figures_apart(recorded):
     long = {"key": "max_deviation_load", "label": "max deviation, load", "unit": "degC | m3/h"}
     c["rows"].append({**long, "a": 1.0, "b": 2.0, "change": 1.0})
     assert "max deviation, load (degC | m3/h) " in format_compare(c)
+
+
+def test_a_recovered_file_is_listed_with_its_loop_and_method(recorded, tmp_path, capsys):
+    """A file whose logger was killed has no 'run' metadata (written as a run ends): the
+    recovered file was listed "unreadable: no 'run' metadata record" (helper trial E). Recover
+    gives it one from the file's name, status ``incomplete``."""
+    good = recorded["relay"].path.read_bytes()
+    broken = tmp_path / "20261204T232357Z_hx1_relay_abcdef012345.mcap"
+    # killed mid-run: its records as the logger wrote them, no 'run' metadata (written as a
+    # run ends), no summary, the file never finished
+    import io
+
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import Writer
+
+    with broken.open("wb") as f:
+        w = Writer(f, chunk_size=4096)  # chunks written as they fill, as the logger flushes
+        w.start(profile="", library="test")
+        ids: dict[int, int] = {}
+        for rec in StreamReader(io.BytesIO(good), skip_magic=False).records:
+            if isinstance(rec, Schema) and rec.id not in ids:
+                ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+            elif isinstance(rec, Channel) and -rec.id not in ids:
+                ids[-rec.id] = w.register_channel(
+                    rec.topic, rec.message_encoding, ids[rec.schema_id]
+                )
+            elif isinstance(rec, Message):
+                w.add_message(ids[-rec.channel_id], rec.log_time, rec.data, rec.publish_time)
+        # not finished: the chunk in progress and the summary never written
+    out_dir = tmp_path / "fixed"
+    out_dir.mkdir()
+    fixed = out_dir / broken.name
+    code, out, err = cli(capsys, "recover", str(broken), "-o", str(fixed))
+    assert code == 0 and "recovered" in out, err
+    code, out, err = cli(capsys, "runs", str(out_dir))
+    assert code == 0, err
+    (line,) = [x for x in out.splitlines() if x.endswith(fixed.name)]
+    assert line.split()[:3] == ["2026-12-04T23:23:57", "hx1", "relay"], line
+    assert "incomplete" in line and "unreadable" not in line
