@@ -411,3 +411,20 @@ def test_the_rules_table_marks_a_rule_unstable_and_keeps_its_columns_apart():
     assert rows["zn-pi"][-5:] == ["1.9", "2.1", "88.2", "16491.6", "0.43"]
     assert "UNSTABLE on the model" in " ".join(rows["tl-pid"])
     assert "1.36" not in rows["tl-pid"] and "8600.6" not in rows["tl-pid"]
+
+
+def test_a_predicted_overshoot_of_next_to_nothing_prints_as_none():
+    """The acceptance line printed "within 20 points of the 5.32e-05 % predicted" (helper
+    trial E): an overshoot of a few 1e-5 % is none."""
+    acceptance = {
+        "max_overshoot": 35.0,
+        "max_decay_ratio": 0.35,
+        "overshoot_miss": 20.0,
+        "predicted_overshoot": 5.32e-05,
+        "passed": True,
+        "problems": "",
+    }
+    text = format_result(hx1_result(acceptance=acceptance))
+    assert "within 20 points of the 0 % predicted: passed" in text
+    text = format_result(hx1_result(acceptance={**acceptance, "predicted_overshoot": 5.43}))
+    assert "within 20 points of the 5.43 % predicted: passed" in text

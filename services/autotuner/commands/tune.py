@@ -838,7 +838,9 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             f"  acceptance: overshoot ≤ {a['max_overshoot']:g} %, decay ratio ≤ "
             f"{a['max_decay_ratio']:g}"
             + (
-                f", within {a['overshoot_miss']:g} points of the {pred:.3g} % predicted"
+                # an overshoot of a few 1e-5 % is none: printed 5.32e-05 % (helper trial E)
+                f", within {a['overshoot_miss']:g} points of the "
+                f"{'0' if abs(pred) < 0.005 else f'{pred:.3g}'} % predicted"
                 if pred is not None
                 else ""
             )
