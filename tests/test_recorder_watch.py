@@ -90,17 +90,7 @@ def test_samples_a_logger_missed_during_the_run_are_said():
     dropped = iter([5, 12])
 
     def answer(query):
-        st = LoggerStatus(
-            node="logger",
-            runs_dir="runs",
-            open_runs=[],
-            finished_runs=0,
-            received=0,
-            written=0,
-            invalid=0,
-            dropped=next(dropped),
-        )
-        wire.reply(query, keys.logger_status("rw4", "logger"), st)
+        _status("rw4", next(dropped))(query)
 
     with open_session(ALONE) as s:
         token = s.liveliness().declare_token(keys.logger_alive("rw4", "logger"))

@@ -674,15 +674,24 @@ class StepTest:
             drift=drift,
         )
 
-    def record_point(self) -> tuple[float, float, float] | None:
-        """(K_u, P_u, their relative uncertainty) the record implies by itself, from the step
-        on (``step_frequency``)."""
+    def _settled_curve(self) -> tuple[ReactionCurve, float] | None:
+        """The settled step's reaction curve and the sign that turns its gain positive (a
+        process whose PV falls as the output rises, a direct-acting loop's, is read turned
+        over); None without one, or with no gain to read."""
         rc = self.result
         if not isinstance(rc, ReactionCurve) or self.t_step is None:
             return None
         if not (math.isfinite(rc.gain) and rc.gain != 0):
             return None
-        sign = 1.0 if rc.gain > 0 else -1.0
+        return rc, (1.0 if rc.gain > 0 else -1.0)
+
+    def record_point(self) -> tuple[float, float, float] | None:
+        """(K_u, P_u, their relative uncertainty) the record implies by itself, from the step
+        on (``step_frequency``)."""
+        settled = self._settled_curve()
+        if settled is None:
+            return None
+        rc, sign = settled
         t = np.asarray(self.t) - self.t_step
         after = t > 1e-9 * max(1.0, abs(self.t_step))
         y = sign * (np.asarray(self.pv)[after] - self._pv_before)
@@ -695,14 +704,10 @@ class StepTest:
         start: it ignores the response's shape, and a PID judged on it can be far less
         robust on the plant than predicted (seen: Ms 2.6 predicted 1.5, on a plant with an
         inverse response)."""
-        rc = self.result
-        if not isinstance(rc, ReactionCurve) or self.t_step is None:
+        settled = self._settled_curve()
+        if settled is None:
             return None
-        if not (math.isfinite(rc.gain) and rc.gain != 0):
-            return None
-        # a process whose PV falls as the output rises (a direct-acting loop's) is fitted
-        # turned over, its gain given back its sign
-        sign = 1.0 if rc.gain > 0 else -1.0
+        rc, sign = settled
         t, y = np.asarray(self.t), sign * (np.asarray(self.pv) - self._pv_before)
         u = np.where(t >= self.t_step - 1e-9 * max(1.0, abs(self.t_step)), rc.step_size, 0.0)
         lag = max(rc.time_constant_63, self.sample_time)
