@@ -143,11 +143,9 @@ class LoggerService:
         prefix = self.recorder.prefix
         while not stop.wait(LATE_ASK):
             with self.lock:
-                lost = [
-                    (r, loop)
-                    for r, loop in self.recorder.lost_runs()
-                    if r not in tries or tries[r] < LATE_TRIES
-                ]
+                open_ = self.recorder.lost_runs()
+            tries = {r: n for r, n in tries.items() if any(r == o for o, _ in open_)}  # bounded
+            lost = [(r, loop) for r, loop in open_ if tries.get(r, 0) < LATE_TRIES]
             for run_id, loop in lost:
                 tries[run_id] = tries.get(run_id, 0) + 1
                 try:
