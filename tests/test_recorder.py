@@ -360,18 +360,24 @@ def test_a_vanished_run_token_ends_the_run_after_the_grace(rec: Recorder, clock:
     assert only_file(rec)[0]["status"] == "tuner lost"
 
 
-def test_a_result_after_the_grace_goes_into_the_file_closed_tuner_lost(
-    rec: Recorder, clock: Clock
-) -> None:
-    """A tuner paused past the grace, then resumed: its file was closed "tuner lost"; its
-    result (an abort: the plant restored the loop meanwhile) is written into it after all,
-    every message before it kept as it was."""
+def _closed_tuner_lost(rec: Recorder, clock: Clock) -> None:
+    """Run r1 of three samples, its token gone and no result within the grace: its file
+    closed "tuner lost"."""
     rec.run_token(LOOP, True)
     send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
     samples(rec, 0, 3)
     rec.run_token(LOOP, False)
     clock.now += RESULT_GRACE
     rec.tick()
+
+
+def test_a_result_after_the_grace_goes_into_the_file_closed_tuner_lost(
+    rec: Recorder, clock: Clock
+) -> None:
+    """A tuner paused past the grace, then resumed: its file was closed "tuner lost"; its
+    result (an abort: the plant restored the loop meanwhile) is written into it after all,
+    every message before it kept as it was."""
+    _closed_tuner_lost(rec, clock)
     assert only_file(rec)[0]["status"] == "tuner lost"
     before = read_run(rec.finished[0])[1]
     clock.now += 30.0
@@ -503,12 +509,7 @@ def test_the_logger_asks_the_tuner_for_the_result_of_a_run_it_closed_tuner_lost(
     from shared.session import ZenohSettings, open_session
 
     monkeypatch.setattr(logger_service, "LATE_ASK", 0.05)
-    rec.run_token(LOOP, True)
-    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
-    samples(rec, 0, 3)
-    rec.run_token(LOOP, False)
-    clock.now += RESULT_GRACE
-    rec.tick()
+    _closed_tuner_lost(rec, clock)
     assert only_file(rec)[0]["status"] == "tuner lost" and rec.lost_runs() == [("r1", LOOP)]
     ok = result("r1", 3 * DT)
     alone = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)

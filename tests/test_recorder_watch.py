@@ -45,15 +45,22 @@ def _status(prefix: str, dropped: int = 0):
     return answer
 
 
-def test_a_logger_throughout_says_nothing():
+def _verdict(prefix: str, answer) -> str | None:
+    """The verdict of a run during which a logger stayed in sight, its status queries
+    answered by ``answer``."""
     with open_session(ALONE) as s:
-        token = s.liveliness().declare_token(keys.logger_alive("rw2", "logger"))
-        answers = s.declare_queryable(keys.logger_status("rw2", "logger"), _status("rw2"))
-        watch = RecorderWatch(s, "rw2")
+        token = s.liveliness().declare_token(keys.logger_alive(prefix, "logger"))
+        queryable = s.declare_queryable(keys.logger_status(prefix, "logger"), answer)
+        watch = RecorderWatch(s, prefix)
         _until(lambda: watch._seen)
-        assert watch.verdict() is None
-        answers.undeclare()
+        said = watch.verdict()
+        queryable.undeclare()
         token.undeclare()
+    return said
+
+
+def test_a_logger_throughout_says_nothing():
+    assert _verdict("rw2", _status("rw2")) is None
 
 
 def test_a_logger_gone_during_the_run_is_said():
@@ -89,17 +96,7 @@ def test_samples_a_logger_missed_during_the_run_are_said():
     and the tune said nothing)."""
     dropped = iter([5, 12])
 
-    def answer(query):
-        _status("rw4", next(dropped))(query)
-
-    with open_session(ALONE) as s:
-        token = s.liveliness().declare_token(keys.logger_alive("rw4", "logger"))
-        queryable = s.declare_queryable(keys.logger_status("rw4", "logger"), answer)
-        watch = RecorderWatch(s, "rw4")
-        _until(lambda: watch._seen)
-        said = watch.verdict()
-        queryable.undeclare()
-        token.undeclare()
+    said = _verdict("rw4", lambda query: _status("rw4", next(dropped))(query))
     assert said is not None and said.startswith("the logger missed 7 process samples"), said
 
 
@@ -109,16 +106,7 @@ def test_a_logger_that_answers_neither_at_the_start_nor_the_end_is_said():
     nothing, helper trial E): not known whether the run is on record, said (the second
     question costs 2 s, only when the first went unanswered)."""
     asked: list[str] = []
-    with open_session(ALONE) as s:
-        token = s.liveliness().declare_token(keys.logger_alive("rw5", "logger"))
-        mute = s.declare_queryable(
-            keys.logger_status("rw5", "logger"), lambda q: asked.append(str(q.key_expr))
-        )
-        watch = RecorderWatch(s, "rw5")
-        _until(lambda: watch._seen)
-        said = watch.verdict()
-        mute.undeclare()
-        token.undeclare()
+    said = _verdict("rw5", lambda q: asked.append(str(q.key_expr)))
     assert len(asked) == 2
     assert said is not None and said.startswith("no logger answered at the start or the end")
 
@@ -133,12 +121,5 @@ def test_a_logger_that_answered_at_the_start_but_not_the_end_is_said():
             answered.append(1)
             _status("rw7")(query)
 
-    with open_session(ALONE) as s:
-        token = s.liveliness().declare_token(keys.logger_alive("rw7", "logger"))
-        queryable = s.declare_queryable(keys.logger_status("rw7", "logger"), answer)
-        watch = RecorderWatch(s, "rw7")
-        _until(lambda: watch._seen)
-        said = watch.verdict()
-        queryable.undeclare()
-        token.undeclare()
+    said = _verdict("rw7", answer)
     assert said is not None and said.startswith("the logger did not answer at the end"), said

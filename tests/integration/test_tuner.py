@@ -476,6 +476,16 @@ def test_a_lease_lost_to_a_forger_is_not_called_restored(start_plant, start_tune
     assert r["left"]["gains"]["kc"] == 50.0
 
 
+def assert_as_before(after: LoopStatus, before: LoopStatus) -> None:
+    """The loop as before the run (mode, output, gains), its lease let go."""
+    assert (after.mode, after.op, after.gains, after.leased_by) == (
+        before.mode,
+        before.op,
+        before.gains,
+        None,
+    )
+
+
 def test_a_forged_output_in_the_runs_name_aborts_the_run_and_the_loop_is_restored(start_plant):
     """A client put an output of 100 % in the holder's name mid-relay: the plant took it as
     the run's, the valve went to 100 %, and the run, none the wiser, ended blaming its own
@@ -497,12 +507,7 @@ def test_a_forged_output_in_the_runs_name_aborts_the_run_and_the_loop_is_restore
     assert forged and r.status == "aborted"
     assert "applied an output command in this run's name that it did not send" in r.reason
     assert r.restored is True
-    assert (after.mode, after.op, after.gains, after.leased_by) == (
-        before.mode,
-        before.op,
-        before.gains,
-        None,
-    )
+    assert_as_before(after, before)
 
 
 def test_a_forged_sample_shadowing_the_plants_aborts_the_run_and_the_loop_is_restored(
@@ -531,12 +536,7 @@ def test_a_forged_sample_shadowing_the_plants_aborts_the_run_and_the_loop_is_res
     assert f"a sample numbered {forged[0].seq}" in r.reason, r.reason
     assert "another client publishes samples as this loop's plant" in r.reason
     assert r.restored is True
-    assert (after.mode, after.op, after.gains, after.leased_by) == (
-        before.mode,
-        before.op,
-        before.gains,
-        None,
-    )
+    assert_as_before(after, before)
 
 
 def test_a_forged_advance_in_the_runs_name_aborts_the_run_naming_it(start_plant):
@@ -560,9 +560,4 @@ def test_a_forged_advance_in_the_runs_name_aborts_the_run_naming_it(start_plant)
         after = c.sync()
     assert forged and r.status == "aborted", r.reason
     assert "another client advanced the loop in this run's name" in r.reason, r.reason
-    assert (after.mode, after.op, after.gains, after.leased_by) == (
-        before.mode,
-        before.op,
-        before.gains,
-        None,
-    )
+    assert_as_before(after, before)

@@ -87,15 +87,16 @@ def response_point(
     if below.size == 0 or below[0] == 0:
         return None
     i = int(below[0])
-    lo, hi, p_lo = float(w[i - 1]), float(w[i]), float(phase[i - 1])
+    lo, hi = float(w[i - 1]), float(w[i])
+    p_lo, g_lo = float(phase[i - 1]), complex(g[i - 1])
     for _ in range(40):  # bisection on the sum itself, the phase followed from the bracket's
         mid = math.sqrt(lo * hi)
         g_mid = complex(response(np.array([mid]))[0])
-        p_mid = p_lo + float(np.angle(g_mid / complex(response(np.array([lo]))[0])))
+        p_mid = p_lo + float(np.angle(g_mid / g_lo))
         if p_mid <= -math.pi:
             hi = mid
         else:
-            lo, p_lo = mid, p_mid
+            lo, p_lo, g_lo = mid, p_mid, g_mid
         if hi / lo - 1.0 < 1e-9:
             break
     wu = math.sqrt(lo * hi)
