@@ -328,10 +328,90 @@ def test_a_new_start_while_the_last_samples_are_awaited_ends_the_run_with_its_re
     assert read_run(rec.finished[1])[0]["status"] == "incomplete"
 
 
-def test_a_new_start_supersedes_the_open_run(rec: Recorder) -> None:
+def _second_start_while_r1_holds_the_loop(rec: Recorder) -> None:
+    """r1 started and holds the loop (the plant says so); r2, a second tuner's run, starts
+    at sample 3 (it waits for the loop's rest before it asks for the lease)."""
     send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    send(rec, keys.status(P, LOOP), status(0, "lease", leased_by="tuner:r1"))
     samples(rec, 0, 2)
-    send(rec, keys.tune_progress(P, LOOP), start("r2", 2 * DT))
+    send(rec, keys.tune_progress(P, LOOP), start("r2", 3 * DT))
+    samples(rec, 3, 5)
+    rest = TuneProgress(run_id="r2", loop=LOOP, t=5 * DT, phase="rest", message="waiting")
+    send(rec, keys.tune_progress(P, LOOP), rest)
+
+
+def test_a_second_run_refused_the_loop_leaves_the_open_runs_file_alone(
+    rec: Recorder, clock: Clock
+) -> None:
+    """Seen with two tuners: the second run's start closed the first one's file
+    "superseded", and the first went on to end ok on no record."""
+    _second_start_while_r1_holds_the_loop(rec)
+    assert rec.open_runs() == ["r1"]
+    refused = result("r2", 5 * DT, status="aborted")
+    send(rec, keys.tune_result(P, LOOP), refused)
+    samples(rec, 6, 8)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 8 * DT))
+    clock.now += RESULT_GRACE
+    rec.tick()
+    meta, _ = only_file(rec)
+    assert (meta["run_id"], meta["status"], meta["last_seq"]) == ("r1", "ok", "8")
+    assert meta["left_out"] == "0"  # r2's messages are not counted against r1
+    assert rec.counts["unrecorded_runs"] == 1 and rec.open_runs() == []
+
+
+def test_a_run_that_waited_behind_the_open_one_is_recorded_from_its_start(
+    rec: Recorder,
+) -> None:
+    """r1 ends while r2 waits for the loop's rest: r2 then holds the loop, and its file has
+    its start and everything since (the samples both runs saw in both files)."""
+    _second_start_while_r1_holds_the_loop(rec)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 5 * DT))  # its samples are all in
+    assert rec.open_runs() == ["r2"]
+    send(rec, keys.status(P, LOOP), status(6, "lease", leased_by="tuner:r2"))
+    samples(rec, 6, 7)
+    send(rec, keys.tune_result(P, LOOP), result("r2", 7 * DT))
+    first, second = (read_run(f) for f in rec.finished)
+    assert (first[0]["run_id"], first[0]["status"], first[0]["last_seq"]) == ("r1", "ok", "5")
+    meta, records = second
+    assert (meta["run_id"], meta["status"], meta["dropped"]) == ("r2", "ok", "0")
+    assert (meta["first_seq"], meta["last_seq"], meta["samples"]) == ("3", "7", "5")
+    progress = [r.key for r in records if r.key == keys.tune_progress(P, LOOP)]
+    assert len(progress) == 2  # its start and its rest
+
+
+def test_the_run_the_plant_shows_holding_the_loop_supersedes_the_open_one(
+    rec: Recorder, clock: Clock
+) -> None:
+    """The open run's result may trail the plant's status that shows the next run holding
+    the loop (another link): it closes the file within RESULT_GRACE; without it the open
+    run was superseded."""
+    _second_start_while_r1_holds_the_loop(rec)
+    send(rec, keys.status(P, LOOP), status(6, "lease", leased_by="tuner:r2"))
+    rec.tick()
+    assert rec.open_runs() == ["r1"]
+    clock.now += RESULT_GRACE
+    rec.tick()
+    assert rec.open_runs() == ["r2"]
+    meta, _ = read_run(rec.finished[0])
+    assert (meta["run_id"], meta["status"], meta["result"]) == ("r1", "superseded", "")
+
+
+def test_a_result_within_the_grace_still_closes_the_superseded_run(
+    rec: Recorder, clock: Clock
+) -> None:
+    _second_start_while_r1_holds_the_loop(rec)
+    send(rec, keys.status(P, LOOP), status(6, "lease", leased_by="tuner:r2"))
+    clock.now += 0.5 * RESULT_GRACE
+    send(rec, keys.tune_result(P, LOOP), result("r1", 5 * DT))
+    assert rec.open_runs() == ["r2"]
+    meta, _ = read_run(rec.finished[0])
+    assert (meta["run_id"], meta["status"]) == ("r1", "ok")
+
+
+def test_a_replayed_new_start_supersedes_the_open_replay(rec: Recorder) -> None:
+    rec.record_replays = True
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0), replay="a.mcap")
+    send(rec, keys.tune_progress(P, LOOP), start("r2", 2 * DT), replay="a.mcap")
     assert rec.open_runs() == ["r2"]
     meta, _ = read_run(rec.finished[0])
     assert (meta["run_id"], meta["status"], meta["result"]) == ("r1", "superseded", "")

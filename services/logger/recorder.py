@@ -13,6 +13,13 @@ result), closes nothing. Should the tuner's result come after all (a tuner pause
 grace, then resumed), the file is rewritten with it (``mcap_io.amend_run``): the tuner's
 status, and ``late_result`` in the metadata.
 
+A run's start while another run on the loop is open (live) waits: a tuner's run starts, and
+waits for the loop's rest, before it asks for the lease, and a second tuner's run is refused
+the lease while the first holds it. The waiting run is recorded from its start once the open
+run ends, or once the plant's status shows the waiting run holding the loop (the open one
+then ends "superseded", unless its result follows within ``RESULT_GRACE`` s); one that ends
+before either has no file (``unrecorded_runs``).
+
 Everything on the loop's keys in between goes into the file: process samples (those a
 lockstep advance sends as one batch on ``pv_batch``, each as its own ``pv`` message, as the
 plant would have sent it), status, every command, the tuner's progress, events and result.
@@ -155,6 +162,9 @@ class OpenRun:
     last_t: float | None = None  # sim time of the last sample written
     ending: TuneResult | None = None  # the result, in the file, while samples catch up to it
     ending_at: float = 0.0  # wall clock (monotonic) the result came
+    # wall clock (monotonic) the plant showed the run that waited behind this one holding
+    # the loop: this one's result, if it comes within RESULT_GRACE, still closes its file
+    superseded_at: float | None = None
 
 
 @dataclass
@@ -174,6 +184,9 @@ class Stream:
     last_t: float | None = None  # of the last sample
     plant_alive: bool | None = None  # the loop's liveliness token (None: not seen yet)
     run_token: bool | None = None  # the run's liveliness token (None: not seen yet)
+    # the start of a run that came while another was open (live only): opened once that one
+    # ends, or once the plant shows this one holding the loop (``_waiting_run``)
+    waiting: Item | None = None
 
 
 def _size_buffer(stream: Stream, status: LoopStatus) -> None:
@@ -410,17 +423,27 @@ class Recorder:
             if run is not None and run.run_id == msg.run_id:
                 self._write(run, item)
                 return
+            if stream.waiting is not None and stream.waiting.msg.run_id == msg.run_id:
+                return  # its start again, still waiting
             if run is not None and run.ending is not None:  # its result is in: it ended
-                self._end(stream)
+                self._end(stream)  # (which opens a run that waited behind it)
                 stream.recent.append(item)
-            elif run is not None:  # a new run on the loop: the old one's tuner let it go
+                run = stream.run
+            if run is not None and not stream.replay:
+                self._wait_behind(stream, run, item)
+                return
+            if run is not None:  # a replay's new run: the old one's file ends here
                 self._close(stream, status="superseded", result=None)
-                stream.recent.append(item)  # the close cleared what came before
+                # (a replay's stream ends with its run: a new one for the new run)
+                stream = self._stream(stream.loop, stream.replay)
+                stream.recent.append(item)
             if not stream.replay and msg.run_id in self._recorded:
                 self.counts["repeated_runs"] += 1
                 log.warning("run %s on %s: already recorded, not again", msg.run_id, loop_id)
                 return
             self._open(stream, msg)
+            return
+        if stream.waiting is not None and self._waiting_run(stream, item):
             return
         if run is None:
             return
@@ -481,7 +504,62 @@ class Recorder:
                     self._end(stream)
             elif run.lost == "token" and now - run.lost_at >= RESULT_GRACE:
                 self._close(stream, status="tuner lost", result=None)
+            elif run.superseded_at is not None and now - run.superseded_at >= RESULT_GRACE:
+                status = "tuner lost" if run.lost else "superseded"
+                self._close(stream, status=status, result=None)
         self.flush_due()
+
+    def _wait_behind(self, stream: Stream, run: OpenRun, start: Item) -> None:
+        """A run's start while ``run`` is open: it is recorded once ``run`` ends, or once the
+        plant shows it holding the loop (``_waiting_run``). Why: a tuner's run starts, and
+        waits for the loop's rest, before it asks for the lease; a second tuner's run on a
+        loop the first one is tuning is then refused, and its start had closed the first
+        run's file "superseded" (it went on to end ok, its result on no record)."""
+        if stream.waiting is not None:
+            log.warning(
+                "run %s on %s: not recorded (run %s started after it, still behind run %s)",
+                stream.waiting.msg.run_id,
+                stream.loop,
+                start.msg.run_id,
+                run.run_id,
+            )
+        stream.waiting = start
+        log.info(
+            "run %s on %s: started while run %s is open; recorded once the plant shows it "
+            "holding the loop, or once run %s ends",
+            start.msg.run_id,
+            stream.loop,
+            run.run_id,
+            run.run_id,
+        )
+
+    def _waiting_run(self, stream: Stream, item: Item) -> bool:
+        """A message about the run that waits behind the open one: its own (kept in the
+        recent messages for its file, if it opens), or the plant's status that shows it
+        holding the loop. True when ``item`` is done with here."""
+        waiting, msg = stream.waiting, item.msg
+        assert waiting is not None
+        run_id = waiting.msg.run_id
+        if isinstance(msg, TUNER_MESSAGES) and msg.run_id == run_id:
+            if isinstance(msg, TuneResult):  # refused, or ended, before it held the loop
+                stream.waiting = None
+                self.counts["unrecorded_runs"] += 1
+                log.warning(
+                    "run %s on %s: ended (%s) without ever holding the loop while run %s did: "
+                    "not recorded",
+                    run_id,
+                    stream.loop,
+                    msg.status,
+                    stream.run.run_id if stream.run is not None else "?",
+                )
+            return True
+        run = stream.run  # (open: a run waits only behind an open one)
+        # the plant shows it holding the loop: the open run let the loop go, and its result,
+        # still on its way, may yet close its file (``tick``); else it was superseded
+        held = isinstance(msg, LoopStatus) and msg.leased_by == f"tuner:{run_id}"
+        if held and run is not None and run.superseded_at is None:
+            run.superseded_at = self.clock()
+        return False
 
     def _end(self, stream: Stream) -> None:
         """Close the stream's run with the result it already wrote."""
@@ -668,8 +746,11 @@ class Recorder:
         if run is None:
             return
         stream.run = None
-        # what came before this close is never a later run's context
-        stream.recent = deque(maxlen=BUFFER)
+        # what came before this close is never a later run's context, but for a run that
+        # waited behind this one: its messages since its start
+        waiting, stream.waiting = stream.waiting, None
+        kept = [i for i in stream.recent if waiting is not None and i.t >= waiting.t]
+        stream.recent = deque(kept, maxlen=BUFFER)
         if stream.replay:  # a replay's stream ends with its run (memory stays bounded)
             self.streams.pop((stream.loop, stream.replay), None)
         meta = {
@@ -722,6 +803,13 @@ class Recorder:
             run.left_out,
             run.writer.path,
         )
+        if waiting is not None:
+            if waiting.msg.run_id in self._recorded:
+                log.warning(
+                    "run %s on %s: already recorded, not again", waiting.msg.run_id, run.loop
+                )
+            else:
+                self._open(stream, waiting.msg)
 
     def _late_result(
         self, key: str, model: type[Message], payload: bytes, result: TuneResult
