@@ -128,7 +128,7 @@ def test_a_slow_models_parts_are_cut_to_keep_its_asker_hearing_from_it(
     loop = service.loops["x"]
     step = loop.advance_rows
 
-    def slow(n, stops=None):
+    def slow(n, stops=None, until=None):
         time.sleep(0.002 * n)  # the model's cost, at once for the part
         return step(n, stops)
 
@@ -140,6 +140,41 @@ def test_a_slow_models_parts_are_cut_to_keep_its_asker_hearing_from_it(
     assert all(n <= 25 for n in sizes[1:]), sizes  # 0.05 s / 2 ms: 25 (fewer if slower)
     got, _ = caught.samples()
     want = plant()["x"].advance_many(200)
+    assert [s.model_dump() for s in got] == [s.model_dump() for s in want]
+
+
+def test_a_slow_models_first_part_ends_part_seconds_into_it(service, monkeypatch) -> None:
+    """The part size is learnt from a slow part: a model of 80 ms a sample stepped its first
+    part of FIRST_CHUNK samples for 5.1 s, past its asker's 5 s silence bound. A model
+    stepped a sample at a time stops at PART_SECONDS into a part, from the first (the clock
+    here is the model's own: 0.125 s a step; PART_SECONDS 1 s, so 8 samples a part)."""
+    from services.plant_sim.simulation import linear_steps
+    from services.plant_sim.simulation import loop as sim_loop
+
+    now = [100.0]
+
+    class Clock:
+        @staticmethod
+        def monotonic() -> float:
+            return now[0]
+
+    monkeypatch.setattr(sim_loop, "time", Clock)
+    monkeypatch.setattr(plant_service.time, "monotonic", Clock.monotonic)
+    monkeypatch.setattr(linear_steps, "steppable", lambda loop: False)  # one sample at a time
+    loop = service.loops["x"]
+    process_step = loop.process.step
+
+    def step(op):
+        now[0] += 0.125
+        return process_step(op)
+
+    monkeypatch.setattr(loop.process, "step", step)
+    caught = service.publishers = Caught()
+    send(service, advance(45))
+    sizes = [len(wire.decode(ProcessSamples, p).samples) for _, p in caught.sent]
+    assert sizes == [8, 8, 8, 8, 8, 5], sizes
+    got, _ = caught.samples()
+    want = plant()["x"].advance_many(45)
     assert [s.model_dump() for s in got] == [s.model_dump() for s in want]
 
 

@@ -236,25 +236,38 @@ class SimLoop:
         return self.advance_slowly(steps, stops_at)
 
     def advance_rows(
-        self, steps: int, stops_at: Callable[[float, float], bool] | None = None
+        self,
+        steps: int,
+        stops_at: Callable[[float, float], bool] | None = None,
+        until: float | None = None,
     ) -> list[dict]:
         """``advance_many``'s samples as the dicts of their fields (what the plant encodes for
-        the bus at once: building ProcessSamples would cost more than the stepping)."""
+        the bus at once: building ProcessSamples would cost more than the stepping).
+        ``until``: a ``time.monotonic()`` deadline past which a model stepped one sample at a
+        time stops early, fewer samples than asked for (see ``advance_slowly``)."""
         if linear_steps.steppable(self):
             with np.errstate(all="ignore"):
                 return linear_steps.advance(self, steps, stops_at)
-        return [s.model_dump() for s in self.advance_slowly(steps, stops_at)]
+        return [s.model_dump() for s in self.advance_slowly(steps, stops_at, until)]
 
     def advance_slowly(
-        self, steps: int, stops_at: Callable[[float, float], bool] | None = None
+        self,
+        steps: int,
+        stops_at: Callable[[float, float], bool] | None = None,
+        until: float | None = None,
     ) -> list[ProcessSample]:
-        """``advance_many`` one ``advance`` at a time: any model, a faulted loop."""
+        """``advance_many`` one ``advance`` at a time: any model, a faulted loop. Past
+        ``until`` (``time.monotonic()``, after one sample at least) it returns what it has:
+        the plant publishes a slow model's samples before its asker's silence bound, however
+        slow the model is from its first sample on."""
         out: list[ProcessSample] = []
         with np.errstate(all="ignore"):
             for _ in range(steps):
                 s = self._advance(None)
                 out.append(s)
                 if stops_at is not None and stops_at(s.pv, s.op):
+                    break
+                if until is not None and time.monotonic() >= until:
                     break
         return out
 
