@@ -327,15 +327,24 @@ class TunerService:
             query.reply_err(str(err).encode())
 
     def _on_results_query(self, query: zenoh.Query) -> None:
-        """The last result per loop, for a client that was cut off when it was published."""
+        """The last result per loop, for a client that was cut off when it was published;
+        and an error reply per loop with a run going, naming it: a client that has a result
+        for that run from the bus was not given it by this tuner (``commands.tune``)."""
+
+        def asked(loop: str) -> bool:
+            return query.key_expr.intersects(zenoh.KeyExpr(keys.tune_result(self.prefix, loop)))
+
         with self.lock:
             found = [
                 (keys.tune_result(self.prefix, loop), r)
                 for loop, r in self.results.items()
-                if query.key_expr.intersects(zenoh.KeyExpr(keys.tune_result(self.prefix, loop)))
+                if asked(loop)
             ]
+            going = [(loop, a.run_id) for loop, a in self.active.items() if asked(loop)]
         for key, r in found:
             wire.reply(query, key, r)
+        for loop, run_id in going:
+            query.reply_err(f"run {run_id} on {loop} is still going".encode())
 
     def _on_cancel(self, sample: zenoh.Sample) -> None:
         parsed = keys.parse_tune_key(self.prefix, str(sample.key_expr))

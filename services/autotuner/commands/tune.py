@@ -273,7 +273,12 @@ def submit(
         )
         for reply in replies:
             if reply.ok is not None:
-                return wire.decode_sample(TuneAccepted, reply.ok)
+                accepted = wire.decode_sample(TuneAccepted, reply.ok)
+                if reply.replier_id is not None:  # whose run it is: ``_confirmed``
+                    _tuner_of[accepted.run_id] = str(reply.replier_id.zid)
+                    while len(_tuner_of) > 64:
+                        _tuner_of.pop(next(iter(_tuner_of)))
+                return accepted
             raise AutotuneError(
                 f"the autotuner refused the request: "
                 f"{reply.err.payload.to_bytes().decode(errors='replace')}"
@@ -420,6 +425,55 @@ def _malformed(key: str, err: DecodeError) -> None:
         print("autotune tune: more malformed messages are ignored unsaid", file=sys.stderr)
 
 
+CONFIRM_WAIT = 2.0  # s: the accepting tuner's own copy of a run's result, asked for
+# run id → the Zenoh id of the tuner that accepted the run (``submit``): whose word its
+# result must be
+_tuner_of: dict[str, str] = {}
+
+
+def _confirmed(
+    session: zenoh.Session, prefix: str, loop: str, r: TuneResult, tuner: str
+) -> tuple[TuneResult | None, str]:
+    """The result to take for ``r``, a result of the followed run that came on the bus, and a
+    note for the user ("" for none): the tuner that accepted the run (Zenoh id ``tuner``) is
+    asked for its own copy. Any client may publish on the run's keys on a bus without access
+    control (README, Security): a forged ``ok`` in the middle of a run was printed as the
+    run's result, the run going on. Its tuner's copy is taken over whatever came; a result
+    its tuner answers against (the run still going, or another run its last) is ignored
+    (None); with no answer from the tuner within CONFIRM_WAIT s, ``r`` is taken, and said
+    to be unconfirmed."""
+    answered, own = False, None
+    for reply in session.get(keys.tune_result(prefix, loop), timeout=CONFIRM_WAIT):
+        if reply.replier_id is None or str(reply.replier_id.zid) != tuner:
+            continue
+        answered = True
+        if reply.ok is not None:
+            try:
+                got = wire.decode_sample(TuneResult, reply.ok)
+            except DecodeError:
+                continue
+            own = got if got.run_id == r.run_id else own
+    if own is not None:
+        differs = (
+            ""
+            if own == r
+            else (
+                f"a result for run {r.run_id} unlike its tuner's came on the bus (not the "
+                "tuner's: forged?): the tuner's own is shown"
+            )
+        )
+        return own, differs
+    if answered:
+        return None, (
+            f"ignored a result for run {r.run_id} ({r.status}) that its tuner does not give "
+            "(the run is still going): not the tuner's (forged?)"
+        )
+    return r, (
+        f"run {r.run_id}'s result is not confirmed: its tuner did not answer within "
+        f"{CONFIRM_WAIT:g} s"
+    )
+
+
 def follow(
     session: zenoh.Session, prefix: str, loop: str, start, wait: float, on_progress=None
 ) -> TuneResult:
@@ -448,6 +502,7 @@ def follow(
     for src in (sub, token, plant):
         threading.Thread(target=lambda src=src: [inbox.put(s) for s in src], daemon=True).start()
     run_id: str | None = None
+    tuner: str | None = None  # the Zenoh id of the tuner that accepted the run, if known
     cancelled = False
     deadline = math.inf
     gone: float | None = None
@@ -460,6 +515,7 @@ def follow(
                 if run_id is None:
                     accepted, interrupted = _held_start(start)
                     run_id = accepted.run_id
+                    tuner = _tuner_of.pop(run_id, None)
                     deadline = time.monotonic() + wait
                     if interrupted:
                         raise KeyboardInterrupt
@@ -527,6 +583,13 @@ def follow(
                     except DecodeError as err:
                         _malformed(key, err)
                         continue
+                    if r.run_id == run_id and tuner is not None:
+                        taken, note = _confirmed(session, prefix, loop, r, tuner)
+                        if note:
+                            print(note, file=sys.stderr)
+                        if taken is None:
+                            continue
+                        r = taken
                     if r.run_id == run_id:
                         if cancelled:
                             raise Interrupted(r, loop_state(session, prefix, loop))

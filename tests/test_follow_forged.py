@@ -1,0 +1,87 @@
+"""`autotune tune` takes a run's result from the tuner that accepted the run: on a bus without
+access control any client may publish on the run's keys, and a forged ``ok`` in the middle of
+a run was printed as its result while the run went on (helper trial G). The client asks that
+tuner (by the Zenoh id of its reply to the request) for its own copy of the result; one it
+does not give is ignored, and one it cannot confirm is said to be unconfirmed.
+
+Two sessions on loopback: the tuner's (the client's too) and a forger's."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from services.autotuner.commands import tune
+from services.launcher import free_tcp_port
+from shared import keys, wire
+from shared.messages import TuneAccepted, TuneRequest, TuneResult
+from shared.session import ZenohSettings, open_session
+
+P, LOOP, NODE = "ff1", "hx1", "tuner"
+
+
+def _result(status: str, reason: str = "") -> TuneResult:
+    return TuneResult(
+        run_id="r1", loop=LOOP, t=2.0, method="relay", rule="zn-pid", status=status, reason=reason
+    )
+
+
+@pytest.mark.parametrize("answers", [True, False])
+def test_a_forged_result_is_not_taken_for_the_runs(capsys, answers: bool) -> None:
+    """``answers``: the tuner answers for its results (the run still going until it ends),
+    or keeps no results to be asked for (then the first result stands, said unconfirmed)."""
+    port = free_tcp_port()
+    tuner_side = ZenohSettings(listen=(f"tcp/127.0.0.1:{port}",), no_multicast_scouting=True)
+    forger_side = ZenohSettings(connect=(f"tcp/127.0.0.1:{port}",), no_multicast_scouting=True)
+    with open_session(tuner_side) as s, open_session(forger_side) as forger:
+        ended = threading.Event()
+        real = _result("aborted", "the PV left its limits")
+
+        publisher = forger.declare_publisher(keys.tune_result(P, LOOP))
+
+        def forge() -> None:
+            """The forger, who read the run id off its progress, says it ended ok, once its
+            session knows the client's subscriber (a put before is routed nowhere)."""
+            matched = threading.Event()
+            listener = publisher.declare_matching_listener(
+                lambda status: matched.set() if status.matching else None
+            )
+            if publisher.matching_status.matching or matched.wait(10.0):
+                publisher.put(wire.encode(_result("ok")))
+            listener.undeclare()
+
+        def on_request(query) -> None:
+            accepted = TuneAccepted(run_id="r1", loop=LOOP, t=0.0, method="relay", rule="zn-pid")
+            wire.reply(query, keys.tuner_request(P, NODE), accepted)
+            threading.Thread(target=forge).start()
+
+        def on_results(query) -> None:
+            if ended.is_set():
+                wire.reply(query, keys.tune_result(P, LOOP), real)
+                return
+            query.reply_err(b"run r1 on hx1 is still going")
+            ended.set()  # the client asked about the forged result: the run now ends
+            threading.Thread(target=wire.put, args=(s, keys.tune_result(P, LOOP), real)).start()
+
+        alive = s.liveliness().declare_token(keys.tuner_alive(P, NODE))
+        running = s.liveliness().declare_token(keys.tune_running(P, LOOP))
+        requests = s.declare_queryable(keys.tuner_request(P, NODE), on_request)
+        results = s.declare_queryable(keys.tune_result(P, LOOP), on_results) if answers else None
+
+        def start() -> TuneAccepted:
+            return tune.submit(s, P, NODE, TuneRequest(loop=LOOP))
+
+        try:
+            r = tune.follow(s, P, LOOP, start, wait=30.0)
+        finally:
+            for q in (requests, results, running, alive, publisher):
+                if q is not None:
+                    q.undeclare()
+    err = capsys.readouterr().err
+    if answers:
+        assert (r.status, r.reason) == ("aborted", "the PV left its limits")
+        assert "ignored a result for run r1 (ok) that its tuner does not give" in err, err
+    else:
+        assert r.status == "ok"
+        assert "run r1's result is not confirmed: its tuner did not answer" in err, err
