@@ -475,7 +475,10 @@ def check_free(endpoint: str) -> None:
         try:
             s.bind((host, port))
         except OSError as err:
-            raise ConfigError(f"--endpoint {endpoint}: {err.strerror}") from None
+            raise ConfigError(
+                f"--endpoint {endpoint}: {err.strerror} (another stack, or another program, "
+                "listens there: stop it or choose another port)"
+            ) from None
 
 
 def wait_listening(stack: Stack, name: str, endpoint: str, timeout: float = 30.0) -> None:
@@ -518,6 +521,10 @@ def start_secure(cfg: UpConfig, deployment: SecureDeployment, logs: IO[str] | No
 
 
 def start(cfg: UpConfig, logs: IO[str] | None = None) -> Stack:
+    if cfg.endpoint.startswith("tcp/"):
+        # the plant (or the router) cannot listen there, and the tuner and logger would join
+        # whatever does: another stack's bus (seen: two tuners of one name, for a second)
+        check_free(cfg.endpoint)
     connect = ["-e", cfg.endpoint, "--no-multicast-scouting", "--cfg", "connect/timeout_ms:30000"]
     client = ZenohSettings(
         mode="client" if cfg.router else "peer",

@@ -130,8 +130,12 @@ FLAG_BOUNDS: dict[str, dict[str, Bound]] = {
 ORDERED_PAIRS = ("pv_limits",)  # LO HI flags: LO must be below HI
 
 
+# flags whose name is not their destination's (``--lambda``, also ``--lambda-s``)
+FLAG_NAMES = {"lambda_s": "--lambda"}
+
+
 def flag_name(dest: str) -> str:
-    return "--" + dest.replace("_", "-")
+    return FLAG_NAMES.get(dest, "--" + dest.replace("_", "-"))
 
 
 def _check_number(flag: str, value: float, bound: Bound | None) -> None:

@@ -364,3 +364,17 @@ def test_a_reader_that_leaves_the_pipe_early_is_no_error(monkeypatch):
     plant = ROOT / "services" / "plant_sim" / "plants" / "default.toml"
     assert main(["model", "check", str(plant), "--loop", "flow1"]) == 141
     assert err.getvalue() == ""
+
+
+def test_up_on_an_endpoint_something_listens_on_is_one_line(no_bus, capsys, tmp_path):
+    """`up --endpoint` on a port another stack held: 8 lines, exit 1, and its tuner and
+    logger joined the other stack's bus for a second (two tuners of one name; helper trial)."""
+    import socket
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        endpoint = f"tcp/127.0.0.1:{held.getsockname()[1]}"
+        argv = ["up", "--endpoint", endpoint, "--runs", str(tmp_path / "runs")]
+        code, err = run_cli(capsys, argv)
+    one_line_refusal(code, err, argv, f"--endpoint {endpoint}", "another stack")

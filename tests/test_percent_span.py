@@ -428,3 +428,17 @@ def test_a_predicted_overshoot_of_next_to_nothing_prints_as_none():
     assert "within 20 points of the 0 % predicted: passed" in text
     text = format_result(hx1_result(acceptance={**acceptance, "predicted_overshoot": 5.43}))
     assert "within 20 points of the 5.43 % predicted: passed" in text
+
+
+def test_analyze_says_when_the_live_run_measured_no_ultimate_point() -> None:
+    """A relay run whose cycle never reached −180° has no K_u or P_u: `analyze` printed
+    "live run: K_u = None, P_u = None" (helper trial)."""
+    from services.autotuner.identify.experiments import Identification
+    from services.logger.analysis import Analysis, format_analysis
+    from shared.messages import TuneResult
+
+    live = TuneResult(run_id="r", loop="x", t=1.0, method="relay", rule="simc-pi", status="ok")
+    a = Analysis("f.mcap", "x", "relay", Identification(), {}, live)
+    text = format_analysis(a, None)
+    assert "live run: no K_u and P_u measured → identical" in text, text
+    assert "None" not in text

@@ -371,6 +371,8 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
         same = "identical" if a.matches_live() else "DIFFERENT"
         if a.live.step is not None:  # a step test's: its reaction curve, not K_u and P_u
             lines.append(f"  live run: its step response's figures → {same}")
+        elif a.live.ku is None or a.live.pu is None:  # none measured (said in its warnings)
+            lines.append(f"  live run: no K_u and P_u measured → {same}")
         else:
             lines.append(f"  live run: K_u = {a.live.ku}, P_u = {a.live.pu} → {same}")
     lines.append(f"  {'rule':<15}{'Kc':>10}{'Ti (s)':>10}{'Td (s)':>10}")

@@ -607,9 +607,13 @@ class RampTest:
                     )
                     self._back_off(t, kc, "the kick Kc·bump would saturate the output")
                 else:
+                    cfg, least = self.config, self._min_bump()
+                    kick = self.kc * (least + cfg.kick_sigmas * self._noise)
                     self._abort(
-                        f"no bump the noise allows (≥ {self._min_bump():.4g}) fits the output's "
-                        f"room ({room:.4g} %) at Kc = {self.kc:.4g}"
+                        f"no bump the noise allows (≥ {least:.4g}) fits the output's room at "
+                        f"Kc = {self.kc:.4g}: its kick with the noise's, Kc·(bump + "
+                        f"{cfg.kick_sigmas:g}σ) = {kick:.4g} %, is over {cfg.headroom:.0%} of "
+                        f"the room to the output's limit ({room:.4g} %)"
                     )
                     return
         n = self._bumps
