@@ -14,7 +14,7 @@ from scipy.integrate import quad
 from scipy.optimize import brentq
 
 from services.autotuner.design.measured_response import load_step, measured_setpoint_step
-from shared.control.record_stops import within_band
+from shared.control.record_stops import settled
 
 ZETA, WN = 0.3, 1.0  # rad/s
 SIGMA, WD = ZETA * WN, WN * math.sqrt(1 - ZETA**2)
@@ -145,14 +145,41 @@ def test_a_load_dip_cut_short_has_not_recovered():
     assert f["recovered"] is False and f["recovery_time"] is None
 
 
+def _loop_noise(k: int, seed: int) -> np.ndarray:
+    """A PV at rest under control: measurement noise (σ 1) on the loop's own correlated
+    wander (AR(1), 0.5 a sample, σ 1.5)."""
+    rng = np.random.default_rng(seed)
+    w = rng.normal(0.0, 1.5 * math.sqrt(1 - 0.25), k)
+    e = np.empty(k)
+    e[0] = w[0]
+    for n in range(1, k):
+        e[n] = 0.5 * e[n - 1] + w[n]
+    return e + rng.normal(0.0, 1.0, k)
+
+
+def test_a_noisy_loop_at_rest_is_settled_though_its_samples_spread_past_flat():
+    """Judged by the spread of its samples, a level loop at rest on its setpoint (the last
+    600 samples past 8σ) was "unsettled, resting +5.4e-06 m off it" and its gains rejected."""
+    y = _loop_noise(600, 3)
+    assert np.ptp(y) > 8.0  # what the samples' own spread said
+    assert settled(y, 600, 0.0, 4.0, 8.0)
+
+
 @pytest.mark.parametrize(
-    ("y", "band", "expected"),
+    "move",
     [
-        ([1.0, 1.5, 0.75], 0.75, True),  # binary-exact: the spread is 0.75 to the bit
-        ([1.0, 1.5, 0.75], 0.7499, False),
-        ([], 1.0, False),
-        ([1.0, math.nan], 1.0, False),
+        lambda n: 12.0 * n / n[-1],  # still drifting: 12 over the window
+        lambda n: 6.0 * np.sin(2 * np.pi * n / 200),  # still swinging, ±6 at 200 samples
     ],
 )
-def test_within_band_is_the_spread(y, band, expected):
-    assert within_band(np.array(y), band) is expected
+def test_a_loop_still_moving_is_not_settled(move):
+    n = np.arange(600.0)
+    assert not settled(_loop_noise(600, 3) + move(n), 600, 0.0, 4.0, 8.0)
+
+
+def test_settled_asks_for_a_number_last_and_a_short_record_its_own_spread():
+    y = _loop_noise(600, 3)
+    y[-1] = math.nan
+    assert not settled(y, 600, 0.0, 4.0, 8.0)
+    assert settled(np.array([1.0, 1.5, 0.75]), 3, 1.0, 0.5, 0.75)  # binary-exact spread
+    assert not settled(np.array([1.0, 1.5, 0.75]), 3, 1.0, 0.5, 0.7499)

@@ -21,19 +21,22 @@ from dataclasses import dataclass
 import numpy as np
 
 
-def within_band(y: np.ndarray, band: float) -> bool:
-    """The record barely moves: its spread is within ``band`` (and its last value a number)."""
-    return y.size > 0 and float(np.ptp(y)) <= band and math.isfinite(float(y[-1]))
-
-
 def settled(y: np.ndarray, k: int, target: float, band: float, flat: float | None) -> bool:
     """Settled at ``target``: the last ``k`` samples' mean within ``band`` of it (the mean, not
-    one noisy sample), and (``flat`` not None) their spread within ``flat``."""
+    one noisy sample), and (``flat`` not None) their spread within ``flat``: that of the means
+    of ten stretches of them (``calm_spread``: the noise averaged in each) from 20 samples on.
+    Why not the samples' own spread: it grows with their number (about 2σ·√(2 ln k)), and a
+    noisy level loop whose last 600 samples spread past 8σ was judged unsettled, "resting
+    +5.4e-06 m off" its setpoint, and its gains rejected (2 of 3 step tunes of lvl1)."""
     if y.size < k:
         return False
     tail = y[-k:]
-    if flat is not None and not within_band(tail, flat):
-        return False
+    if flat is not None:
+        if not math.isfinite(float(tail[-1])):
+            return False
+        spread = calm_spread(tail)[0] if tail.size >= 20 else float(np.ptp(tail))
+        if not spread <= flat:
+            return False
     return abs(float(np.mean(tail)) - target) < band
 
 
