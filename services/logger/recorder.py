@@ -445,18 +445,18 @@ class Recorder:
             return
         if stream.waiting is not None and self._waiting_run(stream, item):
             return
+        run = stream.run
         if run is None:
             return
+        if run.superseded_at is not None and not isinstance(msg, TUNER_MESSAGES):
+            return  # the loop is the waiting run's now: kept for its file (``recent``)
         if self._belongs(run, stream, item):
             self._write(run, item)
         else:
             run.left_out += 1
             return
         if isinstance(msg, TuneResult):
-            if run.last_t is None or run.last_t >= msg.t or run.plant_changed:
-                self._close(stream, status=msg.status, result=msg)
-            else:  # the plant's last samples are still on their way
-                run.ending, run.ending_at = msg, self.clock()
+            self._result_in(stream, run, msg)
         elif run.ending is not None:
             if isinstance(msg, ProcessSample) and msg.t >= run.ending.t:
                 self._end(stream)
@@ -540,8 +540,15 @@ class Recorder:
         waiting, msg = stream.waiting, item.msg
         assert waiting is not None
         run_id = waiting.msg.run_id
+        run = stream.run  # (open: a run waits only behind an open one)
         if isinstance(msg, TUNER_MESSAGES) and msg.run_id == run_id:
-            if isinstance(msg, TuneResult):  # refused, or ended, before it held the loop
+            if isinstance(msg, TuneResult) and run is not None and run.superseded_at is not None:
+                # it held the loop, and it is over: so is the open run (its file ends, this
+                # one opens from its start, this result in it: ``recent``)
+                self._close(stream, status="tuner lost" if run.lost else "superseded", result=None)
+                if stream.run is not None and stream.run.run_id == run_id:
+                    self._result_in(stream, stream.run, msg)
+            elif isinstance(msg, TuneResult):  # refused, or ended, before it held the loop
                 stream.waiting = None
                 self.counts["unrecorded_runs"] += 1
                 log.warning(
@@ -553,13 +560,20 @@ class Recorder:
                     stream.run.run_id if stream.run is not None else "?",
                 )
             return True
-        run = stream.run  # (open: a run waits only behind an open one)
         # the plant shows it holding the loop: the open run let the loop go, and its result,
         # still on its way, may yet close its file (``tick``); else it was superseded
         held = isinstance(msg, LoopStatus) and msg.leased_by == f"tuner:{run_id}"
         if held and run is not None and run.superseded_at is None:
             run.superseded_at = self.clock()
         return False
+
+    def _result_in(self, stream: Stream, run: OpenRun, msg: TuneResult) -> None:
+        """The run's result, written: its file closes now, or once the plant's samples have
+        caught up with it."""
+        if run.last_t is None or run.last_t >= msg.t or run.plant_changed:
+            self._close(stream, status=msg.status, result=msg)
+        else:  # the plant's last samples are still on their way
+            run.ending, run.ending_at = msg, self.clock()
 
     def _end(self, stream: Stream) -> None:
         """Close the stream's run with the result it already wrote."""

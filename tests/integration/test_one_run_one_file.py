@@ -349,16 +349,18 @@ def test_a_watchdog_with_no_token_seen_closes_at_once(tmp_path):
 
 
 def test_a_new_run_on_the_loop_supersedes_an_open_one(tmp_path):
-    """A run whose end never came (its result lost) is closed when the next one starts;
-    each file has its own run only."""
+    """A run whose end never came (its result lost) is closed once the plant shows the next
+    one holding the loop; each file has its own run only, the next one's from its start (the
+    sample at its start's sim time, aaa's last, in both)."""
     rec, _ = recorder(tmp_path)
     feed(rec, [*run_start("aaa", 10), *run_steps("aaa", 11, 50)])
     feed(rec, whole_run("bbb", 50, 90))
     first, second = rec.finished
     meta, records = read_run(first)
     assert meta["status"] == "superseded" and pv_seqs(records) == list(range(11, 51))
-    _, records = check_one_run(second, "bbb", others=("aaa",))
-    assert pv_seqs(records) == list(range(51, 91)) and records[0].topic.endswith("/progress")
+    meta, records = check_one_run(second, "bbb", others=("aaa",))
+    assert pv_seqs(records) == list(range(50, 91)) and meta["status"] == "ok"
+    assert any(r.topic.endswith("/progress") and r.json()["phase"] == "start" for r in records)
 
 
 def test_replays_are_recorded_only_when_asked_each_on_its_own(tmp_path):
