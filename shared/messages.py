@@ -586,6 +586,13 @@ class Verification(Message):
     kick: float | None = Field(
         default=None, description="% of output: the setpoint step's proportional kick, |Kc·step|"
     )
+    ringing: float | None = Field(
+        default=None,
+        description="the loop's oscillatory mode, fitted on the setpoint and load responses: "
+        "its amplitude ratio over one period (the larger of the two); None: no mode stands out "
+        "of the noise",
+    )
+    ringing_period: float | None = Field(default=None, description="s: that mode's period")
 
 
 class TuneResult(Message):

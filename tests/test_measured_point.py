@@ -11,6 +11,7 @@ import cmath
 import math
 
 import pytest
+from scipy.optimize import fsolve
 
 from services.autotuner.design.measured_point import ms_floor
 from services.autotuner.design.rules import UltimatePoint
@@ -60,15 +61,29 @@ def _ramp(rule: str = "auto"):
 
 
 def test_a_model_that_misses_the_measured_point_recommends_from_k_u_and_p_u_alone():
+    """TL PI is recommended, 1.81 on the plant. Its loop still rings: no PI damps the
+    plant's resonance (ζ 0.2) much, and the loop's dominant pole, solved on the exact plant
+    with the hold's half sample, keeps half its amplitude a period. The verification reads
+    that mode (``design.ringing``) and rejects the gains (they had run ok: the setpoint
+    step's first peaks do not show it)."""
     r = _ramp()
-    assert r.status == "ok", r.reason
     assert any("misses the plant at its measured ultimate point" in w for w in r.warnings)
     assert r.rule == "tl-pi", r.rule
     isa = r.chosen["isa"]
-    true = sampled_loop_robustness(
-        IsaGains(isa["kc"], isa["ti"], isa["td"]), DelayedTF.of(*UNDERDAMPED), TS
-    )
+    kc, ti = isa["kc"], isa["ti"]
+    true = sampled_loop_robustness(IsaGains(kc, ti, isa["td"]), DelayedTF.of(*UNDERDAMPED), TS)
     assert true.stable and true.ms <= 2.0, true.ms
+
+    def loop(x):
+        s = complex(*x)
+        v = 1 + kc * (1 + 1 / (ti * s)) * cmath.exp(-s * (0.5 + TS / 2)) / (s * s + 0.4 * s + 1)
+        return [v.real, v.imag]
+
+    sigma, wd = fsolve(loop, [-0.1, 1.0])
+    assert r.status == "rejected" and "ring: an oscillation of" in r.reason, r.reason
+    assert r.after.ringing_period == pytest.approx(2 * math.pi / wd, rel=0.02)
+    assert r.after.ringing == pytest.approx(math.exp(2 * math.pi * sigma / wd), abs=0.03)
+    assert r.restored
 
 
 def test_a_forced_rule_the_plant_would_not_bear_is_refused():

@@ -28,6 +28,7 @@ import pydantic
 
 from services.autotuner.compute_pool import compute_all, inline
 from services.autotuner.design import measured_response as metrics
+from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
@@ -1275,6 +1276,7 @@ class TuningRun:
         t0 = self._t
         y0 = sp0 if y_pre.size and at(sp0).done(np.array([]), y_pre) else float(np.mean(y_pre[-k:]))
         sp_m, saturated, load_m = None, False, None
+        modes: list[Ringing | None] = []  # the loop's oscillatory mode in each response
         u = np.array([])
         if stopped is None:
             c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
@@ -1283,6 +1285,7 @@ class TuningRun:
             sp_m = metrics.measured_setpoint_step(
                 t, y, t0, y0, sp0 + step, noise=ident.noise, width=width
             )
+            modes.append(ringing(t, y, ident.noise))
         op_lo, op_hi = self.info.op_limits
         # the setpoint step's response with the output at a limit is not the linear loop's
         limited = float(np.count_nonzero((u <= op_lo) | (u >= op_hi))) * self.ts if u.size else 0.0
@@ -1307,6 +1310,7 @@ class TuningRun:
             t, y, u2, why = self._record(span, at(sp0 + step, 2 * scale), sp0 + step, guard)
             stopped = why
             load_m = metrics.load_step(t, y, t1, sp0 + step, noise=ident.noise)
+            modes.append(ringing(t, y, ident.noise))
             stable = stable and why is None
             stable = stable and (bool(load_m["recovered"]) or not swinging(y, sp0 + step, k, band))
             saturated = saturated or (
@@ -1331,6 +1335,7 @@ class TuningRun:
                 slow = max(_seconds_of(sp_m, "settling_time"), _seconds_of(load_m, "recovery_time"))
                 self._record(max(5 * scale, min(1.5 * slow, span)), at(sp0))
         iae_sp = sp_m["iae"] if sp_m else None  # None: no step measured (not a perfect 0)
+        mode = max((m for m in modes if m is not None), key=lambda m: m.decay, default=None)
         score = (iae_sp or 0.0) / abs(step) + (load_m["iae"] / abs(load_size) if load_m else 0.0)
         return Verification(
             gains=gains,
@@ -1352,6 +1357,8 @@ class TuningRun:
             op_limited=limited if sp_m is not None else None,
             op_rest=self._op_at_rest(),
             kick=abs(gains.kc * step),
+            ringing=None if mode is None else mode.decay,
+            ringing_period=None if mode is None else mode.period,
         )
 
     def _op_room(self, sign: int) -> float | None:
@@ -1557,6 +1564,13 @@ def acceptance_problems(
     dr = after.decay_ratio
     if dr is not None and dr > limits["max_decay_ratio"]:
         out.append(f"decay ratio {dr:.3g} above the limit {limits['max_decay_ratio']:g}")
+    ring = after.ringing
+    if ring is not None and ring > limits["max_decay_ratio"] and (dr is None or ring > dr):
+        # a lightly damped mode the step's first peaks do not show (``design.ringing``)
+        out.append(
+            f"ring: an oscillation of {after.ringing_period:.3g} s keeps {ring:.2f} of its "
+            f"amplitude each period, above the decay ratio limit {limits['max_decay_ratio']:g}"
+        )
     if os_ is not None and pred is not None and os_ - pred > limits["overshoot_miss"]:
         out.append(
             f"overshoot {os_:.3g} % against {pred:.3g} % predicted: the model is wrong for "

@@ -877,19 +877,22 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         rows = [
             ("overshoot %", "overshoot"),
             ("decay ratio", "decay_ratio"),
+            ("ringing /period", "ringing"),
             ("settling time s", "settling_time"),
             ("IAE setpoint", "iae_sp"),
             ("IAE load", "iae_load"),
             ("stable", "stable"),
         ]
         if span is not None:  # an IAE in PV units·s as % of span·s
-            rows[3:5] = [("IAE setpoint %·s", "iae_sp"), ("IAE load %·s", "iae_load")]
+            rows[4:6] = [("IAE setpoint %·s", "iae_sp"), ("IAE load %·s", "iae_load")]
         lines.append(f"  {'verification':<18}{'before':>12}{'after':>12}")
         for label, field in rows:
             b = getattr(r.before, field) if r.before else None
             a = getattr(r.after, field)
             if span is not None and field.startswith("iae"):
                 b, a = process_gain_percent(b, span), process_gain_percent(a, span)
+            if field == "ringing":  # a mode gone within a period (2.4e-111) rings not at all
+                b, a = (0.0 if v is not None and v < 0.005 else v for v in (b, a))
             lines.append(
                 f"  {label:<18}{figure(b) if not isinstance(b, bool) else str(b):>12}"
                 f"{figure(a) if not isinstance(a, bool) else str(a):>12}"

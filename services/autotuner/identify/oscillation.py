@@ -36,24 +36,12 @@ def fit_oscillation(
     """Fit a growing/decaying sinusoid to (t, y); None if there is no clear oscillation."""
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
-    ext = _turning_points(t, y, noise_std, period_hint)
-    if len(ext) < 3:
+    start = _start(t, y, noise_std, period_hint)
+    if start is None:
         return None
-    te = np.array([e[0] for e in ext])
-    ye = np.array([e[1] for e in ext])
-    swings = np.abs(np.diff(ye))
-    half = float(np.mean(np.diff(te)))
-    w0 = math.pi / half
-    mid = 0.5 * (te[:-1] + te[1:])
-    g0 = float(np.polyfit(mid - t[0], np.log(swings), 1)[0]) if swings.size >= 2 else 0.0
-    c0 = float(np.mean(ye[-2:]))
-    a0 = float(swings[0]) / 2.0 / math.exp(g0 * (mid[0] - t[0]))
-    # phase: the first extremum is a maximum or a minimum at te[0]
-    sign = 1.0 if ye[0] > ye[1] else -1.0
-    phi0 = (math.pi / 2 if sign > 0 else -math.pi / 2) - w0 * (te[0] - t[0])
-    tt = t - t[0]
+    tt, x0, turns = start
     sine = DecayingSine(tt, y)
-    x, fun, success = levenberg_marquardt(sine.resid, sine.jac, [c0, a0, g0, w0, phi0], 2000)
+    x, fun, success = levenberg_marquardt(sine.resid, sine.jac, x0, 2000)
     c, a, g, w, _ = x
     if not success or w <= 0 or not np.all(np.isfinite(x)):
         return None
@@ -69,9 +57,57 @@ def fit_oscillation(
         amplitude=float(abs(a)),
         offset=float(c),
         rms=float(np.sqrt(np.mean(fun**2))),
-        swings=len(ext) - 1,
+        swings=turns - 1,
         growth_alone=alone,
     )
+
+
+def fit_ringing(t: np.ndarray, y: np.ndarray, noise_std: float) -> Oscillation | None:
+    """``fit_oscillation`` with the slow real mode beside the sinusoid from the start: a
+    closed loop's step response is its approach to the setpoint (or its recovery from a load)
+    and its ringing together, and the sinusoid fitted alone first took a slow approach with
+    a small ringing on it for a sinusoid of a period of days. None: no clear oscillation."""
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
+    start = _start(t, y, noise_std, None)
+    if start is None:
+        return None
+    tt, x0, turns = start
+    sol = _with_slow_mode(tt, y, np.asarray(x0), math.inf)
+    if sol is None:
+        return None
+    c, a, g, w = (float(v) for v in sol.x[:4])
+    return Oscillation(
+        growth=g,
+        period=2 * math.pi / w,
+        amplitude=abs(a),
+        offset=c,
+        rms=float(np.sqrt(np.mean(sol.fun**2))),
+        swings=turns - 1,
+    )
+
+
+def _start(
+    t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None
+) -> tuple[np.ndarray, list[float], int] | None:
+    """Where a fit starts: (s from the record's start, the sinusoid's (c, A, g, ω, φ) read
+    off the record's turning points, how many turning points); None for fewer than three."""
+    ext = _turning_points(t, y, noise_std, period_hint)
+    if len(ext) < 3:
+        return None
+    te = np.array([e[0] for e in ext])
+    ye = np.array([e[1] for e in ext])
+    swings = np.abs(np.diff(ye))
+    half = float(np.mean(np.diff(te)))
+    w0 = math.pi / half
+    mid = 0.5 * (te[:-1] + te[1:])
+    g0 = float(np.polyfit(mid - t[0], np.log(swings), 1)[0]) if swings.size >= 2 else 0.0
+    c0 = float(np.mean(ye[-2:]))
+    a0 = float(swings[0]) / 2.0 / math.exp(g0 * (mid[0] - t[0]))
+    # phase: the first extremum is a maximum or a minimum at te[0]
+    sign = 1.0 if ye[0] > ye[1] else -1.0
+    phi0 = (math.pi / 2 if sign > 0 else -math.pi / 2) - w0 * (te[0] - t[0])
+    return t - t[0], [c0, a0, g0, w0, phi0], len(ext)
 
 
 def levenberg_marquardt(
