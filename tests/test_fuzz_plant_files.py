@@ -187,6 +187,16 @@ HAND = [
     ("property-raises", user("PropertyRaises"), ["loops.u1.model", ".pv_units raised KeyError"]),
     ("no-step", user("NoStep"), ["loops.u1.model", "missing: step"]),
     ("step-not-callable", user("StepNotCallable"), ["loops.u1.model", "step must be a method"]),
+    (
+        "names-not-names",
+        user("NamesNotNames"),
+        ["loops.u1.model", "disturbance_names() must return a tuple of names", "got 5"],
+    ),
+    (
+        "names-raise",
+        user("NamesRaise"),
+        ["loops.u1.model", "disturbance_names() raised RuntimeError: no names today"],
+    ),
     ("op0-string", user("Knobs", op0="fifty"), ["loops.u1.op0", "'fifty'"]),
     ("op0-bool", user("Knobs", set_op0=True), ["loops.u1.op0"]),
     ("op0-outside-limits", user("Knobs", op0=150.0), ["loops.u1.op_limits", "op0 = 150.0"]),
@@ -687,8 +697,8 @@ def test_user_disturbance_errors_are_refusals_not_crashes(user_models):
         {
             "loops": {
                 "d1": {"model": f"{USER}:DisturbanceRaises", "sample_time": 1.0},
-                "d2": {"model": f"{USER}:NamesRaise", "sample_time": 1.0},
-                "d3": {"model": f"{USER}:NamesJunk", "sample_time": 1.0},
+                "d2": {"model": f"{USER}:NamesRaiseLater", "sample_time": 1.0},
+                "d3": {"model": f"{USER}:NamesJunkLater", "sample_time": 1.0},
             }
         }
     )

@@ -390,6 +390,10 @@ def test_the_left_line_prints_the_mean_at_rest_it_judged_by():
     left = {**left, "pv_target": None, "pv_before": 50.0, "pv": 51.25}
     line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
     assert "the PV is +1.25 degC from where it was before the test (50), not waited for" in line
+    assert "a level in manual" not in line  # a loop in auto (it was said of a pressure loop)
+    manual = {**left, "mode": "manual"}
+    line = next(x for x in format_result(hx1_result(left=manual)).splitlines() if "left:" in x)
+    assert "not waited for: a level in manual stays where it is" in line
     # the wait cut short by the plant falling silent: said, the figures the last seen (the
     # stale PV was printed as "still on its way back": helper trial E)
     left = {**left, "pv_target": 50.0, "waited": 2.0, "cut": "loop 'hx1': no message for 5 s"}

@@ -349,6 +349,19 @@ def _read_protocol(process: object, cfg: LoopConfig) -> dict[str, Any]:
             f"({', '.join(not_callable)} must be "
             f"{'a method' if len(not_callable) == 1 else 'methods'})",
         )
+    try:  # the disturbances its status shows and a command may set: names, or a refusal
+        names = values["disturbance_names"]()
+    except (Exception, SystemExit) as err:
+        raise ModelParamError(
+            "model", f"{cfg.model}.disturbance_names() raised {type(err).__name__}: {brief(err)}"
+        ) from None
+    if not isinstance(names, tuple | list) or not all(isinstance(n, str) for n in names):
+        # (5 was taken, and the loop's status showed no disturbance: helper trial)
+        raise ModelParamError(
+            "model",
+            f"{cfg.model}.disturbance_names() must return a tuple of names (strings), got "
+            f"{brief(repr(names))}",
+        )
     op0 = values["op0"]
     if isinstance(op0, bool) or not isinstance(op0, numbers.Real) or not math.isfinite(op0):
         raise ModelParamError(

@@ -937,7 +937,9 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             if was is not None and band is not None and abs(lf["pv"] - was) > band:
                 back += (
                     f"; the PV is {lf['pv'] - was:+.3g} {pv_units} from where it was before the "
-                    f"test ({was:.4g}), not waited for: a level in manual stays where it is"
+                    f"test ({was:.4g}), not waited for"
+                    # (an integrating loop in manual never comes back by itself)
+                    + (": a level in manual stays where it is" if lf["mode"] == "manual" else "")
                 )
         else:
             where = (

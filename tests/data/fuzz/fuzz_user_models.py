@@ -164,6 +164,13 @@ class StepNotCallable(Good):
     step = 5.0
 
 
+class NamesNotNames(Good):
+    """disturbance_names() returns a number: it was taken, its status showing no disturbance."""
+
+    def disturbance_names(self):
+        return 5
+
+
 class Knobs(Good):
     """Its protocol attributes come from the plant file, whatever they are (``set_NAME``:
     NAME is a key the plant file keeps for itself)."""
@@ -184,6 +191,21 @@ class NamesRaise(Good):
         raise RuntimeError("no names today")
 
 
-class NamesJunk(Good):
-    def disturbance_names(self) -> tuple:
+class _Later(Good):
+    """Names as it should at load (its first answer), then ``later()``'s."""
+
+    calls = 0
+
+    def disturbance_names(self):
+        self.calls += 1
+        return ("bias",) if self.calls == 1 else self.later()
+
+
+class NamesRaiseLater(_Later):
+    def later(self) -> tuple[str, ...]:
+        raise RuntimeError("no names today")
+
+
+class NamesJunkLater(_Later):
+    def later(self) -> tuple:
         return (1, None, "bias", "ghost")
