@@ -672,6 +672,12 @@ class TuneResult(Message):
         "pv_rest (the mean at rest it was judged by; None when not waited for or not at rest), "
         "pv_target, band (how far from the target counts as back), returned, waited",
     )
+    pv_outside: dict[str, float | int | None] | None = Field(
+        default=None,
+        description="where the PV went past the run's PV limits, over every sample it read "
+        "(the wait for its return included): peak (PV units), samples, seconds, first_t, "
+        "last_t (s); None: it stayed within them",
+    )
     applied_from: str | None = Field(
         default=None,
         description="autotune apply: the run whose recorded gains this run applied and verified",

@@ -37,6 +37,7 @@ from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.ramp import RampTest
 from services.autotuner.identify.relay import RelayTest
 from services.autotuner.identify.rest import RestCheck, rest_window
+from services.autotuner.limit_watch import LimitWatch
 from services.autotuner.loop_client import OVERSLEPT, LeaseLost, LoopClient
 from services.autotuner.parts import Calls
 from services.autotuner.stall_watch import stall_watch
@@ -198,11 +199,40 @@ def _unknown_state(c: LoopClient) -> str:
     )
 
 
+class _Watched:
+    """The run's loop client, every sample it hands the run seen by ``watch`` first (the rest
+    of it as it is)."""
+
+    def __init__(self, client: LoopClient, watch: LimitWatch):
+        self._client, self._watch = client, watch
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._client, name)
+
+    def samples(self, *args: Any, **kwargs: Any) -> list[ProcessSample]:
+        out = self._client.samples(*args, **kwargs)
+        self._watch.see(out)
+        return out
+
+    def next_sample(self) -> ProcessSample:
+        s = self._client.next_sample()
+        self._watch.see([s])
+        return s
+
+    def hold_arrived(self) -> list[ProcessSample]:
+        out = self._client.hold_arrived()
+        self._watch.see(out)
+        return out
+
+
 class TuningRun:
     def __init__(
         self, client: LoopClient, req: TuneRequest, run_id: str, hooks: RunHooks | None = None
     ):
-        self.client = client
+        self.pv_limits = tuple(req.pv_limits or client.info.pv_range)
+        # every sample the run reads, against its PV limits (``limit_watch``)
+        self.outside = LimitWatch(*self.pv_limits)
+        self.client = _Watched(client, self.outside)
         self.req = req
         self.run_id = run_id
         self.hooks = hooks or RunHooks()
@@ -210,7 +240,6 @@ class TuningRun:
         self.ts = client.info.sample_time
         self.before: LoopStatus | None = None
         self._rest: dict | None = None  # the rest check before the test (``_wait_for_rest``)
-        self.pv_limits = tuple(req.pv_limits or client.info.pv_range)
         self._events_sent = 0
         self._reported = 0
         self._t = 0.0
@@ -660,6 +689,10 @@ class TuningRun:
         result.update(
             t=self._t, sim_duration=self._t - t0, wall_time=time.monotonic() - wall0, left=left
         )
+        outside = self.outside.warning(self.ts, self.info.pv_units)
+        if outside is not None:
+            result["pv_outside"] = self.outside.to_dict(self.ts)
+            result["warnings"] = [*result.get("warnings", []), outside]
         if self._held_computing > SLOW_COMPUTE:
             # its compute workers stopped or starved (70 s held, and an ok run said nothing:
             # helper trial E); the PV was watched against its limits meanwhile
