@@ -860,7 +860,8 @@ def test_a_tune_ends_at_its_loops_fault_and_names_it(start_plant, monkeypatch):
             again = TuningRun(c, TuneRequest(loop="bad", method="relay"), "again").run()
     assert again.status == "aborted" and again.reason.startswith("not started: the loop is faulted")
     assert r.status == "aborted", r.reason
-    assert "the plant faulted it at t = " in r.reason and "sensor fault" in r.reason
+    assert "the plant faulted it (" in r.reason and "sensor fault" in r.reason
+    assert "said in its status at t = " in r.reason
     assert "something other than this run" not in r.reason
     assert (
         "it faulted: a faulted loop stays in manual at its output; its setpoint and gains are "

@@ -376,10 +376,13 @@ class LoopClient:
                     # once: what follows, the restore, goes on against the faulted loop)
                     self.fault = status.fault
                     if self.holding:
+                        # the fault says when it came; the status, when it was said (at the end
+                        # of the lockstep part it came in: "faulted at t = 102.8 s (… at t =
+                        # 90.1 s)" read as two faults, helper trial)
                         raise LoopFaulted(
-                            f"loop {self.loop}: the plant faulted it at t = {status.t:.6g} s "
-                            f"({status.fault}): it holds the loop in manual at the output it "
-                            "last had, and the model is not called again"
+                            f"loop {self.loop}: the plant faulted it ({status.fault}; said in its "
+                            f"status at t = {status.t:.6g} s): it holds the loop in manual at the "
+                            "output it last had, and the model is not called again"
                         )
                 if self.holding and status.leased_by != self.source:
                     self.holding = False
