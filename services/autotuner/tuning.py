@@ -1318,7 +1318,7 @@ class TuningRun:
             sp_m = metrics.measured_setpoint_step(
                 t, y, t0, y0, sp0 + step, noise=ident.noise, width=width
             )
-            modes.append(ringing(t, y, ident.noise))
+            modes.append(ringing(t, y, ident.noise, scale))
         op_lo, op_hi = self.info.op_limits
         # the setpoint step's response with the output at a limit is not the linear loop's
         limited = float(np.count_nonzero((u <= op_lo) | (u >= op_hi))) * self.ts if u.size else 0.0
@@ -1343,7 +1343,7 @@ class TuningRun:
             t, y, u2, why = self._record(span, at(sp0 + step, 2 * scale), sp0 + step, guard)
             stopped = why
             load_m = metrics.load_step(t, y, t1, sp0 + step, noise=ident.noise)
-            modes.append(ringing(t, y, ident.noise))
+            modes.append(ringing(t, y, ident.noise, scale))
             stable = stable and why is None
             stable = stable and (bool(load_m["recovered"]) or not swinging(y, sp0 + step, k, band))
             saturated = saturated or (

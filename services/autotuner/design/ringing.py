@@ -30,16 +30,21 @@ class Ringing:
     amplitude: float  # PV units, at the response's start
 
 
-def ringing(t: np.ndarray, y: np.ndarray, noise: float) -> Ringing | None:
+def ringing(
+    t: np.ndarray, y: np.ndarray, noise: float, scale: float | None = None
+) -> Ringing | None:
     """The oscillatory mode in a response (``t`` s, ``y`` PV units, from its step on; ``noise``:
-    σ of the PV's measurement noise); None when none stands out: fewer than MIN_SWINGS
+    σ of the PV's measurement noise; ``scale``: the loop's time scale, s, over a twelfth of
+    which the record is smoothed before its turning points are read: the noise's own are then
+    too few to fit, and a well-damped response costs no fit); None when none stands out:
+    fewer than MIN_SWINGS
     half-cycles, seen for less than 1.5 periods, or its amplitude 1.5 periods on under
     NOISE_SIGMAS σ (a fit to noise alone finds a sinusoid a fraction of σ tall)."""
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
     if t.size < 16 or not np.all(np.isfinite(y)):
         return None
-    osc = fit_ringing(t, y, noise)
+    osc = fit_ringing(t, y, noise, scale)
     if osc is None or osc.swings < MIN_SWINGS or not math.isfinite(osc.growth):
         return None
     watched = float(t[-1] - t[0])

@@ -62,14 +62,16 @@ def fit_oscillation(
     )
 
 
-def fit_ringing(t: np.ndarray, y: np.ndarray, noise_std: float) -> Oscillation | None:
+def fit_ringing(
+    t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None = None
+) -> Oscillation | None:
     """``fit_oscillation`` with the slow real mode beside the sinusoid from the start: a
     closed loop's step response is its approach to the setpoint (or its recovery from a load)
     and its ringing together, and the sinusoid fitted alone first took a slow approach with
     a small ringing on it for a sinusoid of a period of days. None: no clear oscillation."""
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
-    start = _start(t, y, noise_std, None)
+    start = _start(t, y, noise_std, period_hint)
     if start is None:
         return None
     tt, x0, turns = start
