@@ -44,7 +44,8 @@ def ringing(
     y = np.asarray(y, dtype=float)
     if t.size < 16 or not np.all(np.isfinite(y)):
         return None
-    osc = fit_ringing(t, y, noise, scale)
+    with np.errstate(all="ignore"):  # a trial step of e^{g·t} may overflow: judged below
+        osc = fit_ringing(t, y, noise, scale)
     if osc is None or osc.swings < MIN_SWINGS or not math.isfinite(osc.growth):
         return None
     watched = float(t[-1] - t[0])
