@@ -34,12 +34,10 @@ def fit_oscillation(
     t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None = None
 ) -> Oscillation | None:
     """Fit a growing/decaying sinusoid to (t, y); None if there is no clear oscillation."""
-    t = np.asarray(t, dtype=float)
-    y = np.asarray(y, dtype=float)
     start = _start(t, y, noise_std, period_hint)
     if start is None:
         return None
-    tt, x0, turns = start
+    tt, y, x0, turns = start
     sine = DecayingSine(tt, y)
     x, fun, success = levenberg_marquardt(sine.resid, sine.jac, x0, 2000)
     c, a, g, w, _ = x
@@ -69,12 +67,10 @@ def fit_ringing(
     closed loop's step response is its approach to the setpoint (or its recovery from a load)
     and its ringing together, and the sinusoid fitted alone first took a slow approach with
     a small ringing on it for a sinusoid of a period of days. None: no clear oscillation."""
-    t = np.asarray(t, dtype=float)
-    y = np.asarray(y, dtype=float)
     start = _start(t, y, noise_std, period_hint)
     if start is None:
         return None
-    tt, x0, turns = start
+    tt, y, x0, turns = start
     sol = _with_slow_mode(tt, y, np.asarray(x0), math.inf)
     if sol is None:
         return None
@@ -91,9 +87,12 @@ def fit_ringing(
 
 def _start(
     t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None
-) -> tuple[np.ndarray, list[float], int] | None:
-    """Where a fit starts: (s from the record's start, the sinusoid's (c, A, g, ω, φ) read
-    off the record's turning points, how many turning points); None for fewer than three."""
+) -> tuple[np.ndarray, np.ndarray, list[float], int] | None:
+    """Where a fit starts: (s from the record's start, the record's values, the sinusoid's
+    (c, A, g, ω, φ) read off its turning points, how many turning points); None for fewer
+    than three."""
+    t = np.asarray(t, dtype=float)
+    y = np.asarray(y, dtype=float)
     ext = _turning_points(t, y, noise_std, period_hint)
     if len(ext) < 3:
         return None
@@ -109,7 +108,7 @@ def _start(
     # phase: the first extremum is a maximum or a minimum at te[0]
     sign = 1.0 if ye[0] > ye[1] else -1.0
     phi0 = (math.pi / 2 if sign > 0 else -math.pi / 2) - w0 * (te[0] - t[0])
-    return t - t[0], [c0, a0, g0, w0, phi0], len(ext)
+    return t - t[0], y, [c0, a0, g0, w0, phi0], len(ext)
 
 
 def levenberg_marquardt(
