@@ -107,11 +107,22 @@ def query_one(session: zenoh.Session, key: str, model: type[M], timeout: float) 
         time.sleep(0.02)
 
 
-def query_all(session: zenoh.Session, key: str, model: type[M], timeout: float) -> list[M]:
+def query_all(
+    session: zenoh.Session,
+    key: str,
+    model: type[M],
+    timeout: float,
+    target: zenoh.QueryTarget = zenoh.QueryTarget.BEST_MATCHING,
+) -> list[M]:
     """Every valid reply to one query on ``key`` within ``timeout`` s, decoded as ``model``:
-    an error reply or a payload that fails validation is left out (it is no answer)."""
+    an error reply or a payload that fails validation is left out (it is no answer).
+    ``target``: ``ALL`` for every queryable's; and every reply is kept, not only the latest
+    on a key (two tuners' last results of one loop share its key)."""
     out: list[M] = []
-    for reply in session.get(key, timeout=timeout):
+    replies = session.get(
+        key, target=target, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout
+    )
+    for reply in replies:
         if reply.ok is None:
             continue
         try:

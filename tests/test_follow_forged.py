@@ -9,6 +9,7 @@ Two sessions on loopback: the tuner's (the client's too) and a forger's."""
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -85,3 +86,44 @@ def test_a_forged_result_is_not_taken_for_the_runs(capsys, answers: bool) -> Non
     else:
         assert r.status == "ok"
         assert "run r1's result is not confirmed: its tuner did not answer" in err, err
+
+
+def test_the_runs_tuner_is_heard_beside_another_tuners_last_result(capsys) -> None:
+    """Two tuners on the bus, each keeping its last result of the loop on the same key: a
+    query's replies on one key are consolidated to one by default, and the other tuner's took
+    the place of the run's own (3 of 3 runs said "not confirmed" once both had results)."""
+    port = free_tcp_port()
+    tuner_side = ZenohSettings(listen=(f"tcp/127.0.0.1:{port}",), no_multicast_scouting=True)
+    other_side = ZenohSettings(connect=(f"tcp/127.0.0.1:{port}",), no_multicast_scouting=True)
+    with open_session(tuner_side) as s, open_session(other_side) as other:
+        real = _result("ok")
+        earlier = real.model_copy(update={"run_id": "r0", "status": "aborted"})
+
+        def on_request(query) -> None:
+            accepted = TuneAccepted(run_id="r1", loop=LOOP, t=0.0, method="relay", rule="zn-pid")
+            wire.reply(query, keys.tuner_request(P, NODE), accepted)
+            threading.Thread(target=wire.put, args=(s, keys.tune_result(P, LOOP), real)).start()
+
+        alive = s.liveliness().declare_token(keys.tuner_alive(P, NODE))
+        running = s.liveliness().declare_token(keys.tune_running(P, LOOP))
+        requests = s.declare_queryable(keys.tuner_request(P, NODE), on_request)
+        mine = s.declare_queryable(
+            keys.tune_result(P, LOOP), lambda q: wire.reply(q, keys.tune_result(P, LOOP), real)
+        )
+        theirs = other.declare_queryable(
+            keys.tune_result(P, LOOP), lambda q: wire.reply(q, keys.tune_result(P, LOOP), earlier)
+        )
+        # the other tuner's queryable known to the client's session before the run ends
+        # (bounded: both answer one query within 5 s)
+        deadline = time.monotonic() + 5.0
+        while len(wire.query_all(s, keys.tune_result(P, LOOP), TuneResult, 0.5)) < 2:
+            assert time.monotonic() < deadline, "the other tuner's queryable never answered"
+        try:
+            r = tune.follow(
+                s, P, LOOP, lambda: tune.submit(s, P, NODE, TuneRequest(loop=LOOP)), 30.0
+            )
+        finally:
+            for q in (requests, mine, theirs, running, alive):
+                q.undeclare()
+    assert (r.run_id, r.status) == ("r1", "ok")
+    assert "not confirmed" not in capsys.readouterr().err

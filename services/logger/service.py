@@ -149,8 +149,13 @@ class LoggerService:
             for run_id, loop in lost:
                 tries[run_id] = tries.get(run_id, 0) + 1
                 try:
-                    replies = list(
-                        self.session.get(keys.tune_result(prefix, loop), timeout=LATE_ASK)
+                    replies = list(  # every tuner's, each kept (not the latest on the key)
+                        self.session.get(
+                            keys.tune_result(prefix, loop),
+                            target=zenoh.QueryTarget.ALL,
+                            consolidation=zenoh.ConsolidationMode.NONE,
+                            timeout=LATE_ASK,
+                        )
                     )
                 except zenoh.ZError:  # the session closing as the logger stops
                     return

@@ -443,7 +443,16 @@ def _confirmed(
     (None); with no answer from the tuner within CONFIRM_WAIT s, ``r`` is taken, and said
     to be unconfirmed."""
     answered, own = False, None
-    for reply in session.get(keys.tune_result(prefix, loop), timeout=CONFIRM_WAIT):
+    # every tuner's answer, each kept: replies on one key are consolidated to the latest by
+    # default, and with two tuners on the bus the other's last result of the loop took the
+    # place of the run's own (3 of 3 runs "not confirmed" once both had results)
+    replies = session.get(
+        keys.tune_result(prefix, loop),
+        target=zenoh.QueryTarget.ALL,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=CONFIRM_WAIT,
+    )
+    for reply in replies:
         if reply.replier_id is None or str(reply.replier_id.zid) != tuner:
             continue
         answered = True
@@ -655,9 +664,12 @@ def _late_result(
     a client whose router is restarting still saw the tuner's token."""
     until = min(time.monotonic() + RECONNECT_WAIT, deadline)
     while True:
-        late = wire.query_one(session, keys.tune_result(prefix, loop), TuneResult, 0.5)
-        if late is not None and late.run_id == run_id:
-            return late
+        # every tuner's last result of the loop (two tuners: the best-matching one alone may be
+        # the other's)
+        key = keys.tune_result(prefix, loop)
+        for late in wire.query_all(session, key, TuneResult, 0.5, zenoh.QueryTarget.ALL):
+            if late.run_id == run_id:
+                return late
         if wire.query_one(session, keys.status(prefix, loop), LoopStatus, 0.3) is not None:
             until = min(until, time.monotonic() + REJOIN_GRACE)
         if time.monotonic() >= until:
