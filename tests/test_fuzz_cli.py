@@ -158,6 +158,8 @@ REFUSED = [
     (["tune", "hx1", "--amplitude", "-5"], ["--amplitude"]),
     (["tune", "hx1", "--amplitude", "1e9"], ["--amplitude"]),
     (["tune", "hx1", "--hysteresis", "-1"], ["--hysteresis"]),
+    # the flag as the user typed it, not its alias (it named --lambda-s: helper trial)
+    (["tune", "hx1", "--lambda", "-3"], ["--lambda -3: must be > 0 s"]),
     (["tune", "hx1", "--relay-bias", "2"], ["--relay-bias"]),
     (["tune", "hx1", "--cycles", "0"], ["--cycles"]),
     (["tune", "hx1", "--cycles", "100000"], ["--cycles"]),

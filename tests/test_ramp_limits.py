@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -19,7 +20,9 @@ from services.autotuner.identify import methods
 from services.autotuner.identify.driver import drive as drive_experiment
 from services.autotuner.identify.experiments import DEFAULT_BUMP_FRACTION, Settings, Setup
 from services.autotuner.identify.ramp import RampConfig, RampTest
-from services.offline.local_loop import Reading, SimLoopPort
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient, Reading, SimLoopPort
+from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.loop import SimLoop
 from shared.messages import GainsCommand, ModeCommand, PidGains, TuneRequest
 from tests.plants import transfer_function_loop
@@ -262,3 +265,22 @@ def test_output_that_cannot_move_aborts_with_a_reason():
         if test.finished:
             break
     assert test.phase == "aborted" and test.reason
+
+
+def test_the_no_bump_abort_gives_the_kick_it_judged() -> None:
+    """On lvl1 no bump the noise allows fits below K_u. The abort read as a contradiction
+    (Kc × the least bump, 1483 × 0.012, is under half of the 48.7 % room): it now gives the
+    kick it judged, the noise's 3σ with the bump, against half the room."""
+    sim = build_plant({"seed": 1, "loops": {"lvl1": {"model": "tank_level"}}}, "nb")["lvl1"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="lvl1", method="ramp"), "nb").run()
+    assert r.status == "aborted", r.reason
+    m = re.search(
+        r"\(≥ ([0-9.e-]+)\) fits the output's room at Kc = ([0-9.e+]+): its kick with the "
+        r"noise's, Kc·\(bump \+ 3σ\) = ([0-9.]+) %, is over 50% of the room to the output's "
+        r"limit \(([0-9.]+) %\)",
+        r.reason,
+    )
+    assert m, r.reason
+    least, kc, kick, room = (float(g) for g in m.groups())
+    assert kick > 0.5 * room  # what stopped it
+    assert kc * least < kick  # the noise's share counted: the bump's kick alone may fit
