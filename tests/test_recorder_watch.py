@@ -63,14 +63,20 @@ def test_a_logger_throughout_says_nothing():
     assert _verdict("rw2", _status("rw2")) is None
 
 
-def test_a_logger_gone_during_the_run_is_said():
+def _gone_verdict(prefix: str, stalled: float = 0.0) -> str | None:
+    """The verdict of a run during which the one logger went out of sight (``stalled``: s
+    this tuner's own process did not run meanwhile)."""
     with open_session(ALONE) as s:
-        token = s.liveliness().declare_token(keys.logger_alive("rw3", "logger"))
-        watch = RecorderWatch(s, "rw3")
+        token = s.liveliness().declare_token(keys.logger_alive(prefix, "logger"))
+        watch = RecorderWatch(s, prefix)
         _until(lambda: watch._seen)
         token.undeclare()
         _until(lambda: watch._gap)
-        said = watch.verdict()
+        return watch.verdict(stalled=stalled)
+
+
+def test_a_logger_gone_during_the_run_is_said():
+    said = _gone_verdict("rw3")
     assert said is not None and "went out of sight during the run" in said
     assert "none is back" in said
 
@@ -79,13 +85,7 @@ def test_a_logger_out_of_sight_while_this_tuner_stalled_is_not_blamed_on_the_log
     """This tuner's own process paused 10 s (its peers dropped it): the logger went out of
     its sight with everything else, and the result said "the logger went out of sight
     (killed, paused or cut off)" of a logger never touched (helper trial E)."""
-    with open_session(ALONE) as s:
-        token = s.liveliness().declare_token(keys.logger_alive("rw6", "logger"))
-        watch = RecorderWatch(s, "rw6")
-        _until(lambda: watch._seen)
-        token.undeclare()
-        _until(lambda: watch._gap)
-        said = watch.verdict(stalled=10.0)
+    said = _gone_verdict("rw6", stalled=10.0)
     assert said is not None and said.startswith("this tuner's own process did not run for 10 s")
     assert "went out of sight during the run" not in said
 

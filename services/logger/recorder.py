@@ -763,7 +763,7 @@ class Recorder:
         # what came before this close is never a later run's context, but for a run that
         # waited behind this one: its messages since its start
         waiting, stream.waiting = stream.waiting, None
-        kept = [i for i in stream.recent if waiting is not None and i.t >= waiting.t]
+        kept = [i for i in stream.recent if i.t >= waiting.t] if waiting is not None else []
         stream.recent = deque(kept, maxlen=BUFFER)
         if stream.replay:  # a replay's stream ends with its run (memory stays bounded)
             self.streams.pop((stream.loop, stream.replay), None)
