@@ -147,6 +147,13 @@ class LoopStatus(Message):
         description="that command's sender as the bus knows it: the Zenoh user its key names "
         "(verified by the router's access control in a secure deployment), if any",
     )
+    ended: str | None = Field(
+        default=None,
+        max_length=400,
+        exclude_if=lambda v: v is None,
+        description="in the status of a lease the plant ended (reason watchdog): why it ended "
+        "it and restored the loop",
+    )
 
 
 class LoopInfo(Message):
@@ -392,6 +399,19 @@ class LeaseCommand(Command):
 
     kind: ClassVar[str] = "lease"
     timeout: float = Field(default=10.0, gt=0.0, le=3600.0)
+    # the experiment's PV limits (PV units): on the realtime clock the plant restores the
+    # loop, as its watchdog does, at the first sample whose PV is outside them. Why: the loop
+    # runs on between the supervisor's commands, and a supervisor paused or stalled mid-test
+    # (SIGSTOP, a swapping machine) held a relay's output while the PV ran on past its limits
+    # until the lease timed out (80 s outside them). Left off the wire when None: a plant of
+    # an earlier version refuses a field it does not know, and the lease with it.
+    pv_limits: tuple[float, float] | None = Field(default=None, exclude_if=lambda v: v is None)
+
+    @model_validator(mode="after")
+    def _limits_in_order(self) -> LeaseCommand:
+        if self.pv_limits is not None and not self.pv_limits[0] < self.pv_limits[1]:
+            raise ValueError(f"pv_limits: low {self.pv_limits[0]:g} is not below high")
+        return self
 
 
 class ReleaseCommand(Command):

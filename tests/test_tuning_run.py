@@ -13,7 +13,7 @@ import threading
 import pytest
 
 from services.autotuner.commands.tune import format_result
-from services.autotuner.loop_client import PlantLost
+from services.autotuner.loop_client import LeaseLost, PlantLost
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
@@ -360,6 +360,76 @@ def test_a_slow_step_on_a_realtime_loop_in_process_is_watched_without_failing(mo
     assert client.hold_arrived() == []
     result = run(client, RunHooks())
     assert result.status == "ok", result.reason
+
+
+def test_a_plant_lost_before_the_lease_leaves_the_loop_untouched():
+    """The plant was lost (the tuner paused 15 s in its rest check, its session's token
+    gone) at the run's last sync before the lease: the run ended "failed", a traceback in
+    the tuner's log. Nothing was sent to the loop: aborted, untouched."""
+
+    class Lost(LocalLoopClient):
+        lost = False  # from the rest check's first samples on
+
+        def samples(self, *args, **kwargs):
+            self.lost = True
+            return super().samples(*args, **kwargs)
+
+        def sync(self):
+            if self.lost:
+                raise PlantLost("loop 'x': the plant was lost; sync not sent")
+            return super().sync()
+
+    client = Lost(third_order_loop())
+    r = run(client, method="relay")
+    assert (r.status, r.restored, r.untouched) == ("aborted", True, True), r.reason
+    assert r.reason == "loop 'x': the plant was lost; sync not sent"
+    assert client.commands == []
+
+
+class TrippingOnClient(RunningOnClient):
+    """A realtime plant that restores the loop at the first sample outside its lease's PV
+    limits (``PlantService.tick``), as it does for a paused tuner: the lease ends there, and
+    the holder's writes are refused from then on (LeaseLost, as the plant's status says)."""
+
+    tripped: str | None = None
+
+    def advance(self, steps, band=None, record=None):
+        out = []
+        for s in super().advance(steps, band, record):
+            out.append(s)
+            limits = self.lease.pv_limits if self.lease is not None else None
+            if limits is not None and not limits[0] <= s.pv <= limits[1]:
+                self.sim.restore(self._held_from)
+                self.lease, self._held_from = None, None
+                self.tripped = f"the PV left the experiment's limits at t = {s.t:g} s"
+                break
+        return out
+
+    def command(self, cmd):
+        if self.tripped is not None and not isinstance(cmd, LeaseCommand | ReleaseCommand):
+            raise LeaseLost(f"loop 'x': lease lost: the plant's watchdog ({self.tripped})")
+        return super().command(cmd)
+
+
+def test_a_realtime_run_names_its_limits_and_waits_for_the_pv_the_plant_restored():
+    """On the realtime clock the run's lease names its PV limits, and the plant restores the
+    loop at the first sample outside them; the run says so, and waits for the PV's return as
+    after its own restore (it had returned at once: "not waited for")."""
+    client = TrippingOnClient(third_order_loop())
+    before = state(client)
+    pv = client.sync().pv
+    r = run(client, method="relay", pv_limits=(pv - 0.05, pv + 0.05))
+    lease = next(c for c in client.commands if isinstance(c, LeaseCommand))
+    assert lease.pv_limits == (pv - 0.05, pv + 0.05)
+    assert (r.status, r.restored) == ("aborted", True), r.reason
+    assert "the plant's watchdog (the PV left the experiment's limits" in r.reason
+    assert r.reason.endswith("the plant restored the loop"), r.reason
+    assert r.left["pv_target"] == pytest.approx(pv) and r.left["waited"] > 0.0
+    assert state(client) == before
+    # in lockstep the plant steps only as the run asks: the lease names no limits
+    client = LocalLoopClient(third_order_loop())
+    run(client, method="relay", pv_limits=(pv - 0.05, pv + 0.05))
+    assert next(c for c in client.commands if isinstance(c, LeaseCommand)).pv_limits is None
 
 
 def test_a_long_computation_on_a_realtime_loop_is_said(monkeypatch):

@@ -404,6 +404,8 @@ class LoopClient:
     def _lost_why(self, status: LoopStatus) -> str:
         if status.reason == "watchdog":
             why = "the plant's watchdog restored the loop to its state before the test"
+            if status.ended:
+                why += f" ({status.ended})"
         elif status.leased_by is not None:
             why = f"the plant says {status.leased_by!r} holds it"
         elif status.reason == "start":

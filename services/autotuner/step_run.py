@@ -123,7 +123,13 @@ def run_step_test(
     restored = False
     try:  # under a lease: if this client dies, the plant's watchdog puts the loop back
         client.command(
-            LeaseCommand(loop=client.loop, source=client.source, timeout=client.lease_timeout)
+            LeaseCommand(
+                loop=client.loop,
+                source=client.source,
+                timeout=client.lease_timeout,
+                # realtime: the plant restores the loop itself at a PV outside them
+                pv_limits=pv_limits if info.clock == "realtime" else None,
+            )
         )
     except CommandRefused as err:
         raise StepTestAborted(f"not started: {err}") from None

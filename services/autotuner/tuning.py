@@ -41,6 +41,7 @@ from services.autotuner.limit_watch import LimitWatch
 from services.autotuner.loop_client import OVERSLEPT, LeaseLost, LoopClient
 from services.autotuner.parts import Calls
 from services.autotuner.stall_watch import stall_watch
+from shared.control.beyond import beyond
 from shared.control.forms import (
     MAX_KC_PERCENT,
     IsaGains,
@@ -353,15 +354,23 @@ class TuningRun:
                 raise TuneAborted(f"not started: the loop faulted ({c.fault})")
             if not rest["at_rest"]:
                 raise TuneAborted(f"not started: {rest['reason']}")
+            # the loop as the lease will find it (a plant lost here: nothing was changed yet)
+            self.before = before = c.sync()
         except (TuneAborted, AutotuneError) as err:  # nothing was changed: nothing to restore
             result.update(status="aborted", reason=str(err), restored=True, untouched=True)
             return self._result(result, t0, wall0, self._leave(first, first.pv, wait=False))
         self._rest = rest
-        self.before = before = c.sync()
         self._pv_rest = rest["pv"] if before.mode == "manual" else before.sp
         try:
             c.command(
-                LeaseCommand(loop=c.loop, source=c.source, timeout=c.lease_timeout, t=before.t)
+                LeaseCommand(
+                    loop=c.loop,
+                    source=c.source,
+                    timeout=c.lease_timeout,
+                    t=before.t,
+                    # realtime: the plant restores the loop itself at a PV outside them
+                    pv_limits=self.pv_limits if self.info.clock == "realtime" else None,
+                )
             )
         except AutotuneError as err:  # another supervisor holds it: nothing was changed
             result.update(
@@ -454,6 +463,16 @@ class TuningRun:
             if left is not None and left.pop("as_before"):
                 result["restored"] = True
                 result["reason"] = f"{result.get('reason')}; the plant restored the loop"
+                if not c.gone and self.info.clock == "realtime" and not cancelled:
+                    # in reach, the loop as before (the plant ended the lease at the PV's
+                    # limits): the PV's return waited for as after the run's own restore
+                    left = self._leave(
+                        before,
+                        self._pv_rest,
+                        wait=True,
+                        scale=scale,
+                        model=ident.model if ident is not None else None,
+                    )
             elif left is not None:
                 # its own writes sent as the plant fell silent may have been read since
                 who = (
@@ -556,7 +575,7 @@ class TuningRun:
         for s in self.client.hold_arrived():
             if not lo <= s.pv <= hi:
                 raise TuneAborted(
-                    f"PV {s.pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s, "
+                    f"PV {beyond(s.pv, lo, hi)} left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s, "
                     "while the run computed"
                 )
 
@@ -707,8 +726,9 @@ class TuningRun:
             result["warnings"] = [
                 *result.get("warnings", []),
                 f"this tuner's process did not run for {stalled:.0f} s of the run (paused or "
-                "starved): on the realtime clock the loop went unsupervised that long, its PV "
-                "limits unwatched",
+                "starved): on the realtime clock the loop went unsupervised that long but for "
+                "the plant, which restores a leased loop at its first PV outside the run's "
+                "limits",
             ]
         self._progress(
             "done", ku=result.get("ku"), pu=result.get("pu"), message=result.get("reason") or ""

@@ -33,7 +33,7 @@ import zenoh
 from services.plant_sim.load_bound import LOAD_TIMEOUT, load_bound
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from services.plant_sim.publishers import Publishers
-from services.plant_sim.realtime import RealtimeSteppers
+from services.plant_sim.realtime import Group, RealtimeSteppers
 from services.plant_sim.shards import check_not_served, select_loops
 from services.plant_sim.simulation.loop import CommandRejected, LoopSnapshot, SimLoop
 from shared import keys, wire
@@ -44,6 +44,7 @@ from shared.cli import (
     check_ids,
     setup_logging,
 )
+from shared.control.beyond import beyond
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.messages import (
     COMMANDS,
@@ -128,6 +129,7 @@ class Lease:
     deadline: float  # time.monotonic() by which the next command must come
     snapshot: LoopSnapshot
     user: str | None = None  # the Zenoh user its commands' keys name (verified under ACL)
+    pv_limits: tuple[float, float] | None = None  # realtime: restored at a PV outside them
 
 
 def _sender(source: str, user: str | None) -> str:
@@ -166,6 +168,7 @@ class PlantService:
         # realtime: the loops stepped by sample time, linear ones as arrays; a loop is read or
         # changed only checked out of them (``_fresh``), and taken back by ``_settle``
         self.steppers = RealtimeSteppers(loops) if options.clock == "realtime" else None
+        self._pv_keys = {lid: keys.pv(options.prefix, lid) for lid in loops}
 
     def _fresh(self, loop_id: str) -> SimLoop:
         """The loop, exact (realtime: checked out of its batch until ``_settle``)."""
@@ -347,8 +350,11 @@ class PlantService:
                     time.monotonic() + cmd.timeout,
                     loop.snapshot(),
                     user,
+                    cmd.pv_limits,
                 )
                 log.info("loop %s leased by %s", loop_id, _holder(cmd.source, user))
+            else:  # its limits as the holder names them now
+                lease.pv_limits = cmd.pv_limits
             out.append(
                 (
                     keys.status(prefix, loop_id),
@@ -518,7 +524,8 @@ class PlantService:
             lapsed[_sender(lease.source, lease.user)] = ended
             while len(lapsed) > MAX_LAPSED:  # bounded: the oldest are forgotten first
                 lapsed.pop(next(iter(lapsed)))
-            out.append((keys.status(self.opt.prefix, loop_id), self.loop_status(loop, "watchdog")))
+            status = self.loop_status(loop, "watchdog").model_copy(update={"ended": why[:400]})
+            out.append((keys.status(self.opt.prefix, loop_id), status))
             self._settle()
         log.warning(
             "loop %s: %s; restored to its state before the experiment (%s, op %.4g %%)",
@@ -598,25 +605,54 @@ class PlantService:
         start = time.monotonic()
         due = [(period[i], 1, i) for i in range(len(groups))]  # (time, sample k, group)
         heapq.heapify(due)
-        prefix = self.opt.prefix
-        pv_key = {lid: keys.pv(prefix, lid) for lid in self.loops}
         while not stop.is_set():
             at, k, i = due[0]
             wait = start + at - time.monotonic()
             if wait > 0 and stop.wait(wait):
                 break
-            group = groups[i]
-            with self.lock:
-                self.overruns += group.size * int(-wait > period[i])
-                tick = steppers.tick(group)
-                faulted = [
-                    (lp.settings.loop_id, self.loop_status(lp, "fault")) for lp in tick.faulted
-                ]
-            for lid, payload in tick.samples:
-                self.publishers.put_json(pv_key[lid], ProcessSample, payload)
-            for lid, status in faulted:  # the model failed: say so once, on the status
-                self.publishers.put(keys.status(prefix, lid), status)
+            self.tick(groups[i], late=-wait > period[i])
             heapq.heapreplace(due, ((k + 1) * period[i], k + 1, i))
+
+    def tick(self, group: Group, late: bool = False) -> None:
+        """Realtime: one period of ``group``'s loops (``late``: past its due time, counted as
+        overruns), their samples published, then any model failure on its status, then the
+        leases ended at a PV outside their limits (after the sample that crossed them, as
+        their holders read them)."""
+        steppers = self.steppers
+        assert steppers is not None
+        prefix = self.opt.prefix
+        with self.lock:
+            self.overruns += group.size * int(late)
+            tick = steppers.tick(group)
+            faulted = [(lp.settings.loop_id, self.loop_status(lp, "fault")) for lp in tick.faulted]
+            tripped = self._outside_limits() if self.leases else []
+        for lid, payload in tick.samples:
+            self.publishers.put_json(self._pv_keys[lid], ProcessSample, payload)
+        for lid, status in faulted:  # the model failed: say so once, on the status
+            self.publishers.put(keys.status(prefix, lid), status)
+        for lid, why in tripped:
+            self.expire_lease(lid, why)
+
+    def _outside_limits(self) -> list[tuple[str, str]]:
+        """Realtime, under the lock after a tick: the leased loops whose PV is outside their
+        lease's limits, each with why its lease ends (the plant restores them at once: their
+        supervisor would abort there, but may be paused or stalled)."""
+        assert self.steppers is not None
+        out = []
+        for lid, lease in self.leases.items():
+            if lease.pv_limits is None:
+                continue
+            lo, hi = lease.pv_limits
+            pv, t = self.steppers.latest(lid)
+            if not lo <= pv <= hi:
+                out.append(
+                    (
+                        lid,
+                        f"the PV {beyond(pv, lo, hi)} left the experiment's limits "
+                        f"[{lo:g}, {hi:g}] at t = {t:.6g} s",
+                    )
+                )
+        return out
 
     def run(self, stop: threading.Event) -> None:
         """Serve until ``stop`` is set; undeclare everything on the way out."""

@@ -70,6 +70,7 @@ from services.autotuner.identify.model_fit import (
 )
 from services.autotuner.identify.oscillation import Oscillation, fit_oscillation, swings
 from services.autotuner.parts import Parts, in_turn
+from shared.control.beyond import beyond
 from shared.control.record_stops import MAX_WINDOW, CalmCheck, calm_spread
 from shared.control.signals import Sample, at_rest, noise_level
 
@@ -470,7 +471,9 @@ class RampTest:
             self._update_budget()
         lo, hi = self.pv_limits
         if not lo <= pv <= hi:
-            return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")
+            return self._abort(
+                f"PV {beyond(pv, lo, hi)} left its limits [{lo:g}, {hi:g}] at t = {t:g} s"
+            )
         if why := clipped(pv, self.pv_range, t, "--bump"):
             return self._abort(why)
         if t > self._deadline:

@@ -63,6 +63,7 @@ from services.autotuner.identify.relay_estimate import (
 )
 from services.autotuner.identify.relay_model import RelayRecord, corrector, process_model
 from services.autotuner.identify.relay_result import RelayResult
+from shared.control.beyond import beyond
 from shared.control.signals import Sample, at_rest, noise_level
 
 
@@ -401,7 +402,9 @@ class RelayTest:
         self.pv.append(pv)
         lo, hi = self.pv_limits
         if not lo <= pv <= hi:
-            return self._abort(f"PV {pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {t:g} s")
+            return self._abort(
+                f"PV {beyond(pv, lo, hi)} left its limits [{lo:g}, {hi:g}] at t = {t:g} s"
+            )
         if why := clipped(pv, self.pv_range, t, "--amplitude"):
             return self._abort(why)
         out = self._quiet(t) if self.phase == "quiet" else self._relay(t, pv)

@@ -68,6 +68,7 @@ from services.autotuner.identify.reaction_curve import (
     steady_ramp,
 )
 from services.autotuner.identify.step_frequency import response_point
+from shared.control.beyond import beyond
 from shared.control.signals import Sample, at_rest, noise_level, range_end
 from shared.errors import AutotuneError
 
@@ -387,7 +388,9 @@ class StepTest:
         self.pv.append(s.pv)
         lo, hi = self.pv_limits
         if not lo <= s.pv <= hi:
-            return self._abort(f"PV {s.pv:.4g} left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s")
+            return self._abort(
+                f"PV {beyond(s.pv, lo, hi)} left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s"
+            )
         if self.phase == "baseline":  # at rest first: no trend beyond the noise
             return self._baseline(s)
         if self.phase == "return":

@@ -1,0 +1,149 @@
+"""On the realtime clock the plant restores a leased loop at the first sample whose PV is
+outside the limits its lease names: the loop runs on between its supervisor's commands, and a
+supervisor paused mid-test (SIGSTOP) held a relay's output while the PV ran on past its limits
+until the lease timed out. The plant service runs in this process, its clock ticked by the
+test (``PlantService.tick``, one period of the loops of a sample time, as its clock thread
+does on the wall clock)."""
+
+from __future__ import annotations
+
+import pydantic
+import pytest
+
+from services.plant_sim.plant_file import build_plant
+from services.plant_sim.service import PlantService, ServiceOptions
+from shared import keys, wire
+from shared.control.beyond import beyond
+from shared.messages import (
+    LeaseCommand,
+    LoopStatus,
+    ModeCommand,
+    OutputCommand,
+    ProcessSample,
+    SyncCommand,
+)
+from shared.session import ZenohSettings, open_session
+
+ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
+PREFIX = "limits"
+SPEC = {
+    "model": "fopdt",
+    "sample_time": 0.1,
+    "gain": 1.5,
+    "time_constant": 4.0,
+    "delay": 0.35,
+    "mode": "auto",
+    "setpoint": 52.0,
+    "pid": {"kc": 1.2, "ti": 5.0},
+}
+
+
+class Caught:
+    """Stands in for the plant's publishers: keeps what it is given, in order."""
+
+    def __init__(self):
+        self.sent: list[tuple[str, bytes]] = []
+
+    def put_json(self, key, model, payload) -> None:
+        self.sent.append((key, payload))
+
+    def put(self, key, msg) -> None:
+        self.put_json(key, type(msg), wire.encode(msg))
+
+    def held_since(self):
+        return None
+
+    def decoded(self) -> list[ProcessSample | LoopStatus]:
+        out = []
+        for key, payload in self.sent:
+            if key == keys.pv(PREFIX, "x"):
+                out.append(wire.decode(ProcessSample, payload))
+            elif key == keys.status(PREFIX, "x"):
+                out.append(wire.decode(LoopStatus, payload))
+        return out
+
+
+@pytest.fixture()
+def service():
+    with open_session(ALONE) as session:
+        plant = build_plant({"seed": 4, "loops": {"x": SPEC}})
+        yield PlantService(session, plant, ServiceOptions(prefix=PREFIX, clock="realtime"))
+
+
+def send(svc: PlantService, cmd) -> None:
+    svc.handle_command(keys.command(PREFIX, "x", cmd.kind), wire.encode(cmd), None)
+
+
+def push(svc: PlantService, limits: tuple[float, float] | None) -> Caught:
+    """Lease the loop (with ``limits``), put it in manual 20 % above its output (the PV rises
+    by 30 at rest: far past any limit named here), and tick the clock until the lease ends
+    or 200 periods (20 s) have passed."""
+    send(svc, LeaseCommand(loop="x", source="me", timeout=600.0, t=0.0, pv_limits=limits))
+    caught = svc.publishers = Caught()
+    op = svc.loops["x"].op
+    send(svc, ModeCommand(loop="x", mode="manual", source="me"))
+    send(svc, OutputCommand(loop="x", op=op + 20.0, source="me"))
+    group = svc.steppers.groups[0]
+    for _ in range(200):
+        svc.tick(group)
+        if "x" not in svc.leases:
+            break
+    return caught
+
+
+def test_the_first_pv_past_the_limits_restores_the_loop(service) -> None:
+    before = service.loops["x"].snapshot()
+    pv0 = service.loops["x"].pv
+    hi = pv0 + 1.0
+    caught = push(service, (pv0 - 1.0, hi))
+    assert "x" not in service.leases
+    got = [m for m in caught.decoded() if isinstance(m, ProcessSample)]
+    assert all(s.pv <= hi for s in got[:-1]) and got[-1].pv > hi  # ended at the first past
+    watchdog = [m for m in caught.decoded() if isinstance(m, LoopStatus)][-1]
+    assert watchdog.reason == "watchdog"
+    assert watchdog.ended == (
+        f"the PV {beyond(got[-1].pv, pv0 - 1.0, hi)} left the experiment's limits "
+        f"[{pv0 - 1.0:g}, {hi:g}] at t = {got[-1].t:.6g} s"
+    )
+    loop = service.loops["x"].snapshot()
+    assert (loop.mode, loop.op, loop.sp, loop.gains) == (
+        before.mode,
+        before.op,
+        before.sp,
+        before.gains,
+    )
+    # its holder's writes are refused from then on, said with why the lease ended
+    send(service, OutputCommand(loop="x", op=90.0, source="me"))
+    assert service.loops["x"].op == before.op
+    assert "left the experiment's limits" in service.lapsed["x"]["me"]
+
+
+def test_a_lease_without_limits_is_left_to_its_holder(service) -> None:
+    caught = push(service, None)
+    assert service.leases["x"].source == "me"  # 20 s on, 20 % up: still held
+    got = [m for m in caught.decoded() if isinstance(m, ProcessSample)]
+    assert len(got) == 200 and got[-1].pv > got[0].pv + 10.0
+
+
+def test_a_holder_renewing_its_lease_names_its_limits_anew(service) -> None:
+    pv0 = service.loops["x"].pv
+    send(service, LeaseCommand(loop="x", source="me", timeout=600.0, t=0.0))
+    send(service, SyncCommand(loop="x", token=1, source="me"))
+    assert service.leases["x"].pv_limits is None
+    caught = push(service, (pv0 - 1.0, pv0 + 1.0))
+    assert "x" not in service.leases
+    assert caught.decoded()[-1].reason == "watchdog"
+
+
+def test_the_new_fields_are_checked_and_left_off_the_wire_when_none(service) -> None:
+    with pytest.raises(pydantic.ValidationError, match="pv_limits: low 3 is not below high"):
+        LeaseCommand(loop="x", source="me", pv_limits=(3.0, 3.0))
+    # a service of an earlier version refuses a field it does not know, and the message
+    assert b"pv_limits" not in wire.encode(LeaseCommand(loop="x", source="me"))
+    assert b"ended" not in wire.encode(service.loop_status(service.loops["x"], "query"))
+
+
+def test_a_pv_past_its_limits_reads_outside_them() -> None:
+    assert beyond(59.7953, 59.8, 60.2) == "59.795"  # not "59.8", on the limit as printed
+    assert beyond(61.02, 59.0, 61.0) == "61.02"
+    assert beyond(60.2000001, 59.8, 60.2) == "60.2000001"
