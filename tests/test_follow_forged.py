@@ -25,6 +25,24 @@ P, LOOP, NODE = "ff1", "hx1", "tuner"
 ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
 
 
+class Puts:
+    """Results published from threads of their own (as a tuner's come), joined before the
+    session closes: a put still on its way as it closed raised "RuntimeError: Already
+    borrowed" (once in a parallel run)."""
+
+    def __init__(self, session):
+        self.session, self.threads = session, []
+
+    def later(self, msg: TuneResult) -> None:
+        args = (self.session, keys.tune_result(P, LOOP), msg)
+        self.threads.append(threading.Thread(target=wire.put, args=args))
+        self.threads[-1].start()
+
+    def join(self) -> None:
+        for t in self.threads:
+            t.join(10.0)
+
+
 def _result(status: str, reason: str = "") -> TuneResult:
     return TuneResult(
         run_id="r1", loop=LOOP, t=2.0, method="relay", rule="zn-pid", status=status, reason=reason
@@ -38,6 +56,7 @@ def test_a_forged_result_is_not_taken_for_the_runs(capsys, answers: bool) -> Non
     with open_session(ALONE) as s:
         ended = threading.Event()
         real = _result("aborted", "the PV left its limits")
+        puts = Puts(s)
 
         def on_request(query) -> None:
             accepted = TuneAccepted(run_id="r1", loop=LOOP, t=0.0, method="relay", rule="zn-pid")
@@ -45,8 +64,7 @@ def test_a_forged_result_is_not_taken_for_the_runs(capsys, answers: bool) -> Non
             # the forger, who read the run id off its progress, says it ended ok (published
             # here, where the client's subscriber surely hears it: a publisher is not known
             # to its subscribers, so the client cannot tell it from the tuner either way)
-            forged = (s, keys.tune_result(P, LOOP), _result("ok"))
-            threading.Thread(target=wire.put, args=forged).start()
+            puts.later(_result("ok"))
 
         def on_results(query) -> None:
             if ended.is_set():
@@ -54,7 +72,7 @@ def test_a_forged_result_is_not_taken_for_the_runs(capsys, answers: bool) -> Non
                 return
             query.reply_err(b"run r1 on hx1 is still going")
             ended.set()  # the client asked about the forged result: the run now ends
-            threading.Thread(target=wire.put, args=(s, keys.tune_result(P, LOOP), real)).start()
+            puts.later(real)
 
         alive = s.liveliness().declare_token(keys.tuner_alive(P, NODE))
         running = s.liveliness().declare_token(keys.tune_running(P, LOOP))
@@ -67,6 +85,7 @@ def test_a_forged_result_is_not_taken_for_the_runs(capsys, answers: bool) -> Non
         try:
             r = tune.follow(s, P, LOOP, start, wait=30.0)
         finally:
+            puts.join()
             for q in (requests, results, running, alive):
                 if q is not None:
                     q.undeclare()
@@ -89,11 +108,12 @@ def test_the_runs_tuner_is_heard_beside_another_tuners_last_result(capsys) -> No
     with open_session(tuner_side) as s, open_session(other_side) as other:
         real = _result("ok")
         earlier = real.model_copy(update={"run_id": "r0", "status": "aborted"})
+        puts = Puts(s)
 
         def on_request(query) -> None:
             accepted = TuneAccepted(run_id="r1", loop=LOOP, t=0.0, method="relay", rule="zn-pid")
             wire.reply(query, keys.tuner_request(P, NODE), accepted)
-            threading.Thread(target=wire.put, args=(s, keys.tune_result(P, LOOP), real)).start()
+            puts.later(real)
 
         alive = s.liveliness().declare_token(keys.tuner_alive(P, NODE))
         running = s.liveliness().declare_token(keys.tune_running(P, LOOP))
@@ -114,6 +134,7 @@ def test_the_runs_tuner_is_heard_beside_another_tuners_last_result(capsys) -> No
                 s, P, LOOP, lambda: tune.submit(s, P, NODE, TuneRequest(loop=LOOP)), 30.0
             )
         finally:
+            puts.join()
             for q in (requests, mine, theirs, running, alive):
                 q.undeclare()
     assert (r.run_id, r.status) == ("r1", "ok")
