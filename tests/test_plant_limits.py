@@ -22,20 +22,10 @@ from shared.messages import (
     ProcessSample,
     SyncCommand,
 )
-from shared.session import ZenohSettings, open_session
+from shared.session import open_session
+from tests.test_plant_stream import ALONE, SPEC
 
-ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
 PREFIX = "limits"
-SPEC = {
-    "model": "fopdt",
-    "sample_time": 0.1,
-    "gain": 1.5,
-    "time_constant": 4.0,
-    "delay": 0.35,
-    "mode": "auto",
-    "setpoint": 52.0,
-    "pid": {"kc": 1.2, "ti": 5.0},
-}
 
 
 class Caught:
