@@ -39,10 +39,7 @@ def fit_oscillation(
         return None
     tt, y, x0, turns = start
     sine = DecayingSine(tt, y)
-    try:
-        x, fun, success = levenberg_marquardt(sine.resid, _watched(sine, x0), x0, 2000)
-    except _Vanished:
-        return None
+    x, fun, success = levenberg_marquardt(sine.resid, sine.jac, x0, 2000)
     c, a, g, w, _ = x
     if not success or w <= 0 or not np.all(np.isfinite(x)):
         return None
@@ -136,35 +133,6 @@ def levenberg_marquardt(
         maxfev=max_nfev,
     )
     return np.asarray(x, dtype=float), info["fvec"], ier in (1, 2, 3, 4)
-
-
-# the sinusoid at the window's start, against the fit's starting amplitude, below which (and
-# growing over the window by e^GROWN or more) it has vanished: ``_watched``
-VANISHED = 1e-6
-GROWN = 10.0
-
-
-class _Vanished(Exception):
-    """A sinusoid fit that has left the oscillation it started from (``_watched``)."""
-
-
-def _watched(sine: DecayingSine, x0: list[float]) -> Callable[[np.ndarray], np.ndarray]:
-    """``sine.jac``, raising _Vanished at an accepted iterate (MINPACK asks for the Jacobian
-    at each, and only there) whose sinusoid has shrunk at the window's start to a millionth
-    of the amplitude it started from and grows by e^10 or more over the window: a spike at
-    the window's end, not the turning points the fit started from. MINPACK does not come
-    back from there (the steps in g, ω and φ scale with A: the fit of a noisy first ramp
-    trial crept on for its 2000 evaluations, in every case seen, and failed — a fifth of a
-    ramp tune's wall time), so the fit fails there and then."""
-    a0 = abs(float(x0[1]))
-    span = float(sine.tt[-1])
-
-    def jac(p: np.ndarray) -> np.ndarray:
-        if abs(p[1]) < VANISHED * a0 and p[2] * span > GROWN:
-            raise _Vanished
-        return sine.jac(p)
-
-    return jac
 
 
 # scipy's forward-difference step relative to max(1, |x|): √ε (``_numdiff._eps_for_method``)
