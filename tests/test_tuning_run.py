@@ -13,7 +13,9 @@ import threading
 import pytest
 
 from services.autotuner.commands.tune import format_result
-from services.autotuner.loop_client import LeaseLost, PlantLost
+from services.autotuner.identify.step_test import StepTestAborted, StepTestConfig
+from services.autotuner.loop_client import CommandRefused, LeaseLost, PlantLost
+from services.autotuner.step_run import run_step_test
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
@@ -388,8 +390,10 @@ def test_a_plant_lost_before_the_lease_leaves_the_loop_untouched():
 
 class TrippingOnClient(RunningOnClient):
     """A realtime plant that restores the loop at the first sample outside its lease's PV
-    limits (``PlantService.tick``), as it does for a paused tuner: the lease ends there, and
-    the holder's writes are refused from then on (LeaseLost, as the plant's status says)."""
+    limits (``PlantService.tick``), as it does for a paused tuner, and a client that learns
+    of it as ``LoopClient`` does: the next sync or command raises LeaseLost (once: the
+    client no longer holds the loop), and the plant refuses the holder's writes from then on
+    (lapsed)."""
 
     tripped: str | None = None
 
@@ -398,16 +402,25 @@ class TrippingOnClient(RunningOnClient):
         for s in super().advance(steps, band, record):
             out.append(s)
             limits = self.lease.pv_limits if self.lease is not None else None
-            if limits is not None and not limits[0] <= s.pv <= limits[1]:
+            if limits is not None and self.tripped is None and not limits[0] <= s.pv <= limits[1]:
                 self.sim.restore(self._held_from)
-                self.lease, self._held_from = None, None
                 self.tripped = f"the PV left the experiment's limits at t = {s.t:g} s"
                 break
         return out
 
-    def command(self, cmd):
-        if self.tripped is not None and not isinstance(cmd, LeaseCommand | ReleaseCommand):
+    def _told(self) -> None:
+        if self.tripped is not None and self.lease is not None:
+            self.lease, self._held_from = None, None
             raise LeaseLost(f"loop 'x': lease lost: the plant's watchdog ({self.tripped})")
+
+    def sync(self):
+        self._told()
+        return super().sync()
+
+    def command(self, cmd):
+        self._told()
+        if self.tripped is not None and not isinstance(cmd, LeaseCommand | ReleaseCommand):
+            raise CommandRefused(f"loop 'x': {cmd.kind} refused: no longer holds the loop")
         return super().command(cmd)
 
 
@@ -486,3 +499,18 @@ def test_an_apply_request_with_gains_no_tuning_gives_is_refused_by_the_tuner_its
         assert "nothing was applied" in r.reason and r.applied is not True
         assert not any(isinstance(c, GainsCommand) for c in client.commands)
         assert state(client) == before
+
+
+def test_a_step_test_the_plant_restored_at_its_limits_says_so_and_waits():
+    """The plant restored the loop at the step's PV limits (realtime): the step test's own
+    restore then met the lost lease, and it said "LOOP NOT RESTORED" of a restored loop and
+    did not wait for the PV (helper review). Now: restored, by the plant, the PV waited for."""
+    client = TrippingOnClient(third_order_loop())
+    before = state(client)
+    pv = client.sync().pv
+    with pytest.raises(StepTestAborted) as aborted:
+        run_step_test(client, StepTestConfig(size=5.0, pv_limits=(pv - 0.3, pv + 0.3)))
+    said = str(aborted.value)
+    assert "left its limits" in said and "; loop restored (manual, " in said, said
+    assert "by the plant: loop 'x': lease lost" in said and "; the PV back at rest at" in said
+    assert state(client) == before

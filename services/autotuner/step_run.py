@@ -166,18 +166,25 @@ def run_step_test(
     except LeaseLost as err:
         lost = err
     finally:
+        taken: LeaseLost | None = None  # the plant took the loop back as the test let go
         if client.holding:
-            restored = _restore(client, before.mode, before.op)
-            with contextlib.suppress(AutotuneError):  # unconfirmed: the plant puts it back
-                client.command(
-                    ReleaseCommand(loop=client.loop, source=client.source, restore=not restored)
-                )
+            try:
+                restored = _restore(client, before.mode, before.op)
+            except LeaseLost as err:  # realtime: the PV past the lease's limits, say
+                taken, restored = err, True
+            else:
+                with contextlib.suppress(AutotuneError):  # unconfirmed: the plant puts it back
+                    client.command(
+                        ReleaseCommand(loop=client.loop, source=client.source, restore=not restored)
+                    )
         else:  # the plant took the loop back (and restored it) or is gone
             restored = lost is not None
     if lost is not None:
         raise StepTestAborted(
             f"{lost}; the plant restored the loop ({before.mode}, {before.op:g} %)"
         )
+    if taken is not None and info.clock == "lockstep":  # no lease: the loop cannot be stepped
+        wait_return = False
     if test.phase == "aborted" or test.result is None:
         back = ""
         # a single test's (the repeated tests' own records end where each did)
@@ -205,10 +212,11 @@ def run_step_test(
                 else f"; the PV not yet back at rest ({watch.pv_end:.4g} {info.pv_units}, "
                 f"{pv_before:.4g} before the step): let it settle before the next test"
             )
+        by = f", by the plant: {taken}" if taken is not None else ""
         raise StepTestAborted(
             f"loop {client.loop}: step test aborted: {test.reason}; "
             f"{'loop restored' if restored else 'LOOP NOT RESTORED'} "
-            f"({before.mode}, {before.op:g} %){back}"
+            f"({before.mode}, {before.op:g} %{by}){back}"
         )
     last = test.done[-1] if isinstance(test, RepeatedSteps) else test
     first = test.done[0] if isinstance(test, RepeatedSteps) else test
@@ -273,7 +281,8 @@ def _follow_return(
 
 
 def _restore(client: LoopClient, mode: str, op: float) -> bool:
-    """Put the loop back to ``mode`` at output ``op`` (bumpless into auto)."""
+    """Put the loop back to ``mode`` at output ``op`` (bumpless into auto); LeaseLost when
+    the plant has taken the loop back (and restored it itself)."""
     try:
         status = client.sync()
         if status.mode == "manual" and status.op != op:
@@ -281,5 +290,7 @@ def _restore(client: LoopClient, mode: str, op: float) -> bool:
         if mode != status.mode:
             client.command(ModeCommand(loop=client.loop, mode=mode, source=client.source))
         return True
+    except LeaseLost:
+        raise
     except AutotuneError:
         return False
