@@ -20,6 +20,7 @@ from shared.messages import (
     ModeCommand,
     OutputCommand,
     ProcessSample,
+    ReleaseCommand,
     SyncCommand,
 )
 from shared.session import open_session
@@ -64,15 +65,15 @@ def send(svc: PlantService, cmd) -> None:
     svc.handle_command(keys.command(PREFIX, "x", cmd.kind), wire.encode(cmd), None)
 
 
-def push(svc: PlantService, limits: tuple[float, float] | None) -> Caught:
-    """Lease the loop (with ``limits``), put it in manual 20 % above its output (the PV rises
-    by 30 at rest: far past any limit named here), and tick the clock until the lease ends
-    or 200 periods (20 s) have passed."""
+def push(svc: PlantService, limits: tuple[float, float] | None, by: float = 20.0) -> Caught:
+    """Lease the loop (with ``limits``), put it in manual ``by`` % above its output (the PV
+    rises by 1.5 × that at rest: far past any limit named here), and tick the clock until the
+    lease ends or 200 periods (20 s) have passed."""
     send(svc, LeaseCommand(loop="x", source="me", timeout=600.0, t=0.0, pv_limits=limits))
     caught = svc.publishers = Caught()
     op = svc.loops["x"].op
     send(svc, ModeCommand(loop="x", mode="manual", source="me"))
-    send(svc, OutputCommand(loop="x", op=op + 20.0, source="me"))
+    send(svc, OutputCommand(loop="x", op=op + by, source="me"))
     group = svc.steppers.groups[0]
     for _ in range(200):
         svc.tick(group)
@@ -93,8 +94,9 @@ def test_the_first_pv_past_the_limits_restores_the_loop(service) -> None:
     assert watchdog.reason == "watchdog"
     assert watchdog.ended == (
         f"the PV {beyond(got[-1].pv, pv0 - 1.0, hi)} left the experiment's limits "
-        f"[{pv0 - 1.0:g}, {hi:g}] at t = {got[-1].t:.6g} s"
+        f"[{pv0 - 1.0:g}, {hi:g}]"
     )
+    assert watchdog.t == got[-1].t  # said at the sample that crossed them
     loop = service.loops["x"].snapshot()
     assert (loop.mode, loop.op, loop.sp, loop.gains) == (
         before.mode,
@@ -106,6 +108,19 @@ def test_the_first_pv_past_the_limits_restores_the_loop(service) -> None:
     send(service, OutputCommand(loop="x", op=90.0, source="me"))
     assert service.loops["x"].op == before.op
     assert "left the experiment's limits" in service.lapsed["x"]["me"]
+
+
+def test_limits_at_the_range_are_left_where_the_pv_clips_at_its_end(service) -> None:
+    """The default limits are the PV's range, and the transmitter clips the PV at its ends:
+    a PV held there would never be outside them (review: a paused tuner's push sat at the
+    range's end until the lease timed out)."""
+    lo, hi = service.loops["x"].settings.pv_range
+    caught = push(service, (lo, hi), by=40.0)  # 52 + 1.5 × 40 is past the top
+    assert "x" not in service.leases
+    got = [m for m in caught.decoded() if isinstance(m, ProcessSample)]
+    assert got[-1].pv == hi and all(s.pv < hi for s in got[:-1])
+    ended = [m for m in caught.decoded() if isinstance(m, LoopStatus)][-1].ended
+    assert ended.startswith(f"the PV {hi:g} reached an end of its range [{lo:g}, {hi:g}]")
 
 
 def test_a_lease_without_limits_is_left_to_its_holder(service) -> None:
@@ -137,3 +152,32 @@ def test_a_pv_past_its_limits_reads_outside_them() -> None:
     assert beyond(59.7953, 59.8, 60.2) == "59.795"  # not "59.8", on the limit as printed
     assert beyond(61.02, 59.0, 61.0) == "61.02"
     assert beyond(60.2000001, 59.8, 60.2) == "60.2000001"
+    # past limits that print shorter than they are: past them as printed too
+    assert beyond(59.9999997, 40.0, 59.9999996) == "59.9999997"
+
+
+def test_the_lease_ended_is_the_one_whose_pv_crossed(service) -> None:
+    """The plant ended the lease after publishing the crossing sample, outside its lock: a
+    release and another supervisor's lease in between had the newcomer's lease ended in its
+    place (review). It is ended in the same hold of the lock as the look that found it."""
+    pv0 = service.loops["x"].pv
+    caught = Caught()
+
+    def meanwhile(key, model, payload) -> None:
+        caught.sent.append((key, payload))
+        if key == keys.pv(PREFIX, "x") and wire.decode(ProcessSample, payload).pv > pv0 + 1.0:
+            send(service, ReleaseCommand(loop="x", source="me"))
+            send(service, LeaseCommand(loop="x", source="other", timeout=600.0, t=0.0))
+
+    caught.put_json = meanwhile
+    send(service, LeaseCommand(loop="x", source="me", timeout=600.0, t=0.0, pv_limits=(0, pv0 + 1)))
+    service.publishers = caught
+    op = service.loops["x"].op
+    send(service, ModeCommand(loop="x", mode="manual", source="me"))
+    send(service, OutputCommand(loop="x", op=op + 20.0, source="me"))
+    for _ in range(200):
+        service.tick(service.steppers.groups[0])
+        if service.leases.get("x") is not None and service.leases["x"].source == "other":
+            break
+    assert service.leases["x"].source == "other"
+    assert "other" not in service.lapsed.get("x", {})

@@ -464,15 +464,11 @@ class TuningRun:
                 result["restored"] = True
                 result["reason"] = f"{result.get('reason')}; the plant restored the loop"
                 if not c.gone and self.info.clock == "realtime" and not cancelled:
-                    # in reach, the loop as before (the plant ended the lease at the PV's
-                    # limits): the PV's return waited for as after the run's own restore
-                    left = self._leave(
-                        before,
-                        self._pv_rest,
-                        wait=True,
-                        scale=scale,
-                        model=ident.model if ident is not None else None,
-                    )
+                    # in reach, the loop as before (the plant took it back: at the PV's
+                    # limits, or its watchdog): the PV's return waited for as after the run's
+                    # own restore; what the plant showed stands if the wait cannot sync
+                    model = ident.model if ident is not None else None
+                    left = self._leave(before, self._pv_rest, True, scale, model) or left
             elif left is not None:
                 # its own writes sent as the plant fell silent may have been read since
                 who = (
@@ -728,7 +724,7 @@ class TuningRun:
                 f"this tuner's process did not run for {stalled:.0f} s of the run (paused or "
                 "starved): on the realtime clock the loop went unsupervised that long but for "
                 "the plant, which restores a leased loop at its first PV outside the run's "
-                "limits",
+                "limits or at an end of its range",
             ]
         self._progress(
             "done", ku=result.get("ku"), pu=result.get("pu"), message=result.get("reason") or ""

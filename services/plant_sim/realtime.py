@@ -105,14 +105,12 @@ class RealtimeSteppers:
         """Forget the loops checked out only to be read (nothing to take back)."""
         self._out.clear()
 
-    def latest(self, loop_id: str) -> tuple[float, float]:
-        """(PV, sim time s) of the loop's current sample, read where its state is held."""
+    def latest(self, loop_id: str) -> float:
+        """The PV of the loop's current sample, read where its state is held."""
         where = self._where.get(loop_id)
         if where is not None and loop_id not in self._out and where[0].active[where[1]]:
-            b, j = where
-            return float(b.pv[j]), b.time(j)
-        lp = self.loops[loop_id]
-        return lp.pv, lp.t
+            return float(where[0].pv[where[1]])
+        return self.loops[loop_id].pv
 
     def times(self) -> dict[str, float]:
         """Sim time of every loop's current sample, s."""

@@ -514,19 +514,25 @@ class PlantService:
         """Restore a leased loop to its pre-experiment state (the supervisor is gone)."""
         out: Outbox = []
         with self.lock:
-            lease = self.leases.pop(loop_id, None)
-            if lease is None:
-                return
-            loop = self._fresh(loop_id)
-            loop.restore(lease.snapshot)
-            lapsed = self.lapsed.setdefault(loop_id, {})
-            ended = f"its lease ended at t = {loop.t:.6g} s: {why}"
-            lapsed[_sender(lease.source, lease.user)] = ended
-            while len(lapsed) > MAX_LAPSED:  # bounded: the oldest are forgotten first
-                lapsed.pop(next(iter(lapsed)))
-            status = self.loop_status(loop, "watchdog").model_copy(update={"ended": why[:400]})
-            out.append((keys.status(self.opt.prefix, loop_id), status))
-            self._settle()
+            self._end_lease(loop_id, why, out)
+        self._publish(out)
+
+    def _end_lease(self, loop_id: str, why: str, out: Outbox) -> None:
+        """``expire_lease`` under the lock, its status added to ``out`` to publish: ended in
+        the same hold of the lock as the look that found it due (a lease released and taken
+        by another between the two was ended in the newcomer's name, review)."""
+        lease = self.leases.pop(loop_id, None)
+        if lease is None:
+            return
+        loop = self._fresh(loop_id)
+        loop.restore(lease.snapshot)
+        lapsed = self.lapsed.setdefault(loop_id, {})
+        lapsed[_sender(lease.source, lease.user)] = f"its lease ended at t = {loop.t:.6g} s: {why}"
+        while len(lapsed) > MAX_LAPSED:  # bounded: the oldest are forgotten first
+            lapsed.pop(next(iter(lapsed)))
+        status = self.loop_status(loop, "watchdog").model_copy(update={"ended": why[:400]})
+        out.append((keys.status(self.opt.prefix, loop_id), status))
+        self._settle()
         log.warning(
             "loop %s: %s; restored to its state before the experiment (%s, op %.4g %%)",
             loop_id,
@@ -534,7 +540,6 @@ class PlantService:
             lease.snapshot.mode,
             lease.snapshot.op,
         )
-        self._publish(out)
 
     def _watchdog(self, stop: threading.Event) -> None:
         """Expire leases whose holder fell silent. A plant that was itself paused (SIGSTOP, a
@@ -579,13 +584,15 @@ class PlantService:
         behind a subscriber) to every deadline."""
         held = self.publishers.held_since()
         held_up = held is not None and now - held > HELD_UP
+        out: Outbox = []
         with self.lock:
             if paused > PAUSE_GAP or held_up:
                 for ls in self.leases.values():
                     ls.deadline += paused
             late = [lid for lid, ls in self.leases.items() if now > ls.deadline]
-        for lid in late:
-            self.expire_lease(lid, "no command from its supervisor within the lease timeout")
+            for lid in late:
+                self._end_lease(lid, "no command from its supervisor within the lease timeout", out)
+        self._publish(out)
 
     def _on_run_token(self, sample: zenoh.Sample) -> None:
         """A supervisor's run token vanishing (killed, disconnected) expires its lease."""
@@ -621,17 +628,19 @@ class PlantService:
         steppers = self.steppers
         assert steppers is not None
         prefix = self.opt.prefix
+        ended: Outbox = []
         with self.lock:
             self.overruns += group.size * int(late)
             tick = steppers.tick(group)
             faulted = [(lp.settings.loop_id, self.loop_status(lp, "fault")) for lp in tick.faulted]
-            tripped = self._outside_limits() if self.leases else []
+            if self.leases:
+                for lid, why in self._outside_limits():
+                    self._end_lease(lid, why, ended)
         for lid, payload in tick.samples:
             self.publishers.put_json(self._pv_keys[lid], ProcessSample, payload)
         for lid, status in faulted:  # the model failed: say so once, on the status
             self.publishers.put(keys.status(prefix, lid), status)
-        for lid, why in tripped:
-            self.expire_lease(lid, why)
+        self._publish(ended)
 
     def _outside_limits(self) -> list[tuple[str, str]]:
         """Realtime, under the lock after a tick: the leased loops whose PV is outside their
@@ -643,13 +652,26 @@ class PlantService:
             if lease.pv_limits is None:
                 continue
             lo, hi = lease.pv_limits
-            pv, t = self.steppers.latest(lid)
+            pv = self.steppers.latest(lid)
             if not lo <= pv <= hi:
                 out.append(
                     (
                         lid,
                         f"the PV {beyond(pv, lo, hi)} left the experiment's limits "
-                        f"[{lo:g}, {hi:g}] at t = {t:.6g} s",
+                        f"[{lo:g}, {hi:g}]",
+                    )
+                )
+                continue
+            # the transmitter clips the PV at its range's ends: limits at or past an end (the
+            # default, the range itself) are left where the PV sits at that end
+            r_lo, r_hi = self.loops[lid].settings.pv_range
+            if (pv <= r_lo and lo <= r_lo) or (pv >= r_hi and hi >= r_hi):
+                out.append(
+                    (
+                        lid,
+                        f"the PV {pv:g} reached an end of its range [{r_lo:g}, {r_hi:g}]: "
+                        f"clipped there, it may be past the experiment's limits "
+                        f"[{lo:g}, {hi:g}] unseen",
                     )
                 )
         return out
