@@ -514,3 +514,29 @@ def test_a_step_test_the_plant_restored_at_its_limits_says_so_and_waits():
     assert "left its limits" in said and "; loop restored (manual, " in said, said
     assert "by the plant: loop 'x': lease lost" in said and "; the PV back at rest at" in said
     assert state(client) == before
+
+
+def test_gains_the_plant_took_back_before_the_release_are_not_called_ok():
+    """The plant took the loop back between the run's last write and its release (its
+    watchdog, or the PV past the lease's limits in realtime) and restored the state before
+    the test: the release found no lease to end, and the run said ok of gains the loop no
+    longer held (review). The result says what the loop holds."""
+
+    class TakenBack(LocalLoopClient):
+        def _apply(self, cmd):
+            if isinstance(cmd, ReleaseCommand) and self._held_from is not None:
+                self.sim.restore(self._held_from)  # as the plant's watchdog does
+            super()._apply(cmd)
+
+    client = TakenBack(third_order_loop("auto", setpoint=50.0))
+    client.advance(2000)  # at rest on its setpoint
+    before = state(client)
+    r = run(client)
+    assert (r.status, r.applied, r.restored) == ("aborted", False, True), r.reason
+    assert r.reason.startswith(
+        "the new gains were applied and verified, but the loop does not hold them now (auto, "
+        "Kc 2, Ti 2 s, Td 0 s): the plant restored its state before the test"
+    ), r.reason
+    assert state(client) == before
+    # and an ok run's gains, held, stay ok
+    assert run(LocalLoopClient(third_order_loop("auto", setpoint=50.0))).status == "ok"

@@ -503,6 +503,8 @@ class TuningRun:
             scale=scale,
             model=ident.model if ident is not None else None,
         )
+        if result.get("status") in APPLIED_STATUSES and left is not None:
+            self._check_kept(result, before, left)
         if result.get("status") in APPLIED_STATUSES and unreleased:
             # the gains went on and were confirmed, but not the release: a plant paused
             # meanwhile may take the loop back when its lease lapses, undoing them
@@ -520,6 +522,36 @@ class TuningRun:
                 "was not read (`autotune loops` shows it)",
             ]
         return self._result(result, t0, wall0, left)
+
+    def _check_kept(self, result: dict, before: LoopStatus, left: dict) -> None:
+        """An applied run's gains as the loop holds them once the run let go: the plant may
+        have taken the loop back between the run's last write and its release (its watchdog,
+        or the PV past the lease's limits on the realtime clock), restoring the state before
+        the test; a release then finds no lease to end, and the run said ok of gains the
+        loop no longer had (review). The result then says what the loop holds."""
+        isa = (result.get("chosen") or {}).get("isa")
+        if not isa:
+            return
+        sent = (isa["kc"], isa["ti"], isa["td"])
+        held = (left["gains"]["kc"], left["gains"]["ti"], left["gains"]["td"])
+        if held == sent and left["mode"] == "auto":
+            return
+        status = self.client.last_status
+        why = f" ({status.ended})" if status.reason == "watchdog" and status.ended else ""
+        back = (left["mode"], left["gains"]) == (before.mode, before.gains.model_dump())
+        result.update(
+            status="aborted",
+            applied=False,
+            restored=back,
+            reason=f"the new gains were applied and verified, but the loop does not hold them "
+            f"now ({left['mode']}, Kc {held[0]:.4g}, Ti {_seconds(held[1])}, Td {held[2]:.4g} "
+            "s): "
+            + (
+                f"the plant restored its state before the test{why}"
+                if back
+                else "changed by another client or the plant"
+            ),
+        )
 
     def _compute(self, fn: Callable[..., Any], *args: Any, here: bool = False) -> Any:
         """``fn(*args)`` through ``hooks.compute`` (``here``: in a thread of this process, for
@@ -889,6 +921,7 @@ class TuningRun:
         c, d = self.client, experiments.DEFAULT_RELAY_AMPLITUDE
         sign = 1.0 if self.before is not None and self.before.action == "reverse" else -1.0
         lo, hi = self.info.op_limits
+        lo_pv, hi_pv = self.pv_limits
         push = st.op + sign * d * math.copysign(1.0, target - pv)
         seconds = abs(target - pv) / (model.gain * d)
         if not lo <= push <= hi or seconds > horizon:
@@ -896,7 +929,17 @@ class TuningRun:
         self._progress("return", message=f"output {push:.4g} % for {seconds:.4g} s: the level back")
         try:
             c.command(
-                LeaseCommand(loop=c.loop, source=c.source, timeout=c.lease_timeout, t=self._t)
+                LeaseCommand(
+                    loop=c.loop,
+                    source=c.source,
+                    timeout=c.lease_timeout,
+                    t=self._t,
+                    # realtime, the level inside the run's limits: kept there by the plant
+                    # too, should this process stall with the push on
+                    pv_limits=self.pv_limits
+                    if self.info.clock == "realtime" and lo_pv <= pv <= hi_pv
+                    else None,
+                )
             )
             back = False
             try:
