@@ -563,6 +563,9 @@ def _client_args(cfg: UpConfig, deployment: SecureDeployment | None) -> list[str
 
 def run(args: argparse.Namespace) -> int:
     cfg = load_config(args)
+    # every flag judged before the bus is probed (the endpoint's check_free): a bad --runs
+    # was said as "endpoint in use" when another stack held the default port (a parallel run)
+    runs_dir(cfg.runs)
     if args.console:
         console_launch.check_port(args.console_port)
     deployment = None

@@ -16,7 +16,7 @@ from services.autotuner.commands.tune import format_result
 from services.autotuner.identify.step_test import StepTestAborted, StepTestConfig
 from services.autotuner.loop_client import CommandRefused, LeaseLost, PlantLost
 from services.autotuner.step_run import run_step_test
-from services.autotuner.tuning import RunHooks, TuningRun
+from services.autotuner.tuning import RunHooks, TuneRefused, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.control.record_stops import SettleRule
@@ -540,3 +540,19 @@ def test_gains_the_plant_took_back_before_the_release_are_not_called_ok():
     assert state(client) == before
     # and an ok run's gains, held, stay ok
     assert run(LocalLoopClient(third_order_loop("auto", setpoint=50.0))).status == "ok"
+
+
+def test_the_verification_steps_within_the_runs_pv_limits():
+    """The verification's setpoint step was sized on the PV's range alone: told to keep hx1
+    within [59, 61], a run stepped its setpoint to 62.88 and the PV went to 62.79 (helper
+    trial). Here the relay's swing (±0.64) fits in ±1 about the rest, and the old 2.0 step
+    did not; the step now fits with its overshoot up to --max-overshoot."""
+    client = LocalLoopClient(third_order_loop("auto", setpoint=50.0))
+    client.advance(2000)  # at rest on its setpoint
+    r = run(client, method="relay", pv_limits=(49.0, 51.0))
+    assert r.status == "ok", r.reason
+    assert 0 < abs(r.after.sp_step) <= 1.0 / 1.35 and r.pv_outside is None
+    # no room for a step the noise allows reading: refused, nothing stepped
+    tight = TuningRun(client, TuneRequest(loop="x", pv_limits=(49.99, 50.01)), "unit")
+    with pytest.raises(TuneRefused, match=r"verification: the PV limits \[49.99, 50.01\] "):
+        tight._within_limits(50.0, 1, 2.0, 0.01)

@@ -1325,6 +1325,7 @@ class TuningRun:
         size = max(size, VERIFY_MIN_NOISE * ident.noise)
         # never none: a noise-free loop whose output has no room either way still steps
         size = max(size, 1e-6 * (hi - lo))
+        sign, size = self._within_limits(sp0, sign, size, ident.noise)
         step = size * sign
         # a step is watched for 15 time scales, and at least 8 integral times: a robust PI's
         # slow integral removes the last per cent late, which is not instability
@@ -1388,9 +1389,17 @@ class TuningRun:
         stable = stable and (sp_m["decay_ratio"] or 0) < 1
         before = c.sync()
         back: list[Command] = []  # the load step taken off again, with the setpoint's return
+        # within --pv-limits, the load's push on the PV back toward where it rested (away
+        # from the limit the setpoint step went toward), where the output has the room
+        gain_sign = 1 if self.before is None or self.before.action == "reverse" else -1
         load_size = load_step_size(
-            self.req.amplitude or experiments.DEFAULT_RELAY_AMPLITUDE, before.op, (op_lo, op_hi)
+            self.req.amplitude or experiments.DEFAULT_RELAY_AMPLITUDE,
+            before.op,
+            (op_lo, op_hi),
+            prefer=-sign * gain_sign if self.req.pv_limits is not None else 0,
         )
+        if load_size is not None and self.req.pv_limits is not None:
+            load_size = self._load_within_limits(load_size, sp0 + step, gain_sign, ident)
         if stable and "load" in before.disturbances and load_size is not None:
             base = before.disturbances["load"]
             t1 = self._t
@@ -1452,6 +1461,56 @@ class TuningRun:
             ringing=None if mode is None else mode.decay,
             ringing_period=None if mode is None else mode.period,
         )
+
+    def _within_limits(self, sp0: float, sign: int, size: float, noise: float) -> tuple[int, float]:
+        """The verification's setpoint step (direction, size in PV units) kept inside the
+        run's PV limits, its overshoot up to ``--max-overshoot`` and 4σ of noise included:
+        the other way where this one has too little room and that one more (and the output
+        room for it), cut to the room. TuneRefused where the room is below the step the
+        response needs to be read above the noise (VERIFY_MIN_NOISE σ). Why: the step was
+        sized on the PV's range alone, and a run told to keep hx1 within [59, 61] stepped its
+        setpoint to 62.88; the PV went to 62.79 (helper trial)."""
+        lo, hi = self.pv_limits
+        reach = 1.0 + self.req.max_overshoot / 100.0
+
+        def room(s: int) -> float:
+            return ((hi - sp0) if s > 0 else (sp0 - lo)) - 4.0 * noise
+
+        other_op = self._op_room(-sign)
+        roomier = room(-sign) > room(sign) and (other_op is None or other_op >= VERIFY_MIN_ROOM)
+        if room(sign) < size * reach and roomier:
+            sign = -sign
+        least = VERIFY_MIN_NOISE * noise
+        fits = room(sign) / reach
+        if fits < max(least, 1e-12):
+            units = self.info.pv_units
+            raise TuneRefused(
+                f"verification: the PV limits [{lo:g}, {hi:g}] {units} leave room for a setpoint "
+                f"step of {max(fits, 0.0):.3g} {units} at most from {sp0:.6g} (its overshoot up "
+                f"to {self.req.max_overshoot:g} % and 4σ of noise inside them), less than the "
+                f"{least:.3g} {units} its response needs to be read above the noise: the gains "
+                "cannot be verified within them (wider --pv-limits, or --no-verify)"
+            )
+        return sign, min(size, fits)
+
+    def _load_within_limits(
+        self, load: float, sp: float, gain_sign: int, ident: experiments.Identification
+    ) -> float | None:
+        """The verification's load step (% of output) cut so that the PV it moves from ``sp``
+        stays inside ``--pv-limits`` even if the loop took none of it: the model's static
+        gain times the load, 4σ of noise kept (a load of 5 % on a unit-gain loop took it
+        1.74 past its setpoint, out of ±1 limits). None where less than a tenth of a per
+        cent fits; as it is where the model gives no static gain (integrating)."""
+        model = ident.model
+        if model is None or model.kind == "ipdt" or not math.isfinite(model.gain):
+            return load
+        lo, hi = self.pv_limits
+        up = load * gain_sign > 0  # the PV's way under the load
+        room = (hi - sp if up else sp - lo) - 4.0 * ident.noise
+        fits = room / max(abs(model.gain), 1e-12)
+        if fits < 0.1:
+            return None
+        return math.copysign(min(abs(load), fits), load)
 
     def _op_room(self, sign: int) -> float | None:
         """% of output from where the output rests (before the test: the loop goes back to
@@ -1577,14 +1636,21 @@ def swinging(y: np.ndarray, target: float, k: int, band: float) -> bool:
     return all(c >= 2 for c, _ in swings) and swings[1][1] > 0.5 * swings[0][1]
 
 
-def load_step_size(size: float, op: float, op_limits: tuple[float, float]) -> float | None:
+def load_step_size(
+    size: float, op: float, op_limits: tuple[float, float], prefer: int = 0
+) -> float | None:
     """The verification's load step (% of output, added to the process input): ``size``, or
     less, within ``VERIFY_ROOM`` of the output's room from ``op`` to the limit the loop drives
     it toward to take the load (down for a load up); the other way where that side has more
     room and this one too little; None where neither side has a tenth of a per cent (a load
-    the output cannot take is a saturated loop, not a verification)."""
+    the output cannot take is a saturated loop, not a verification). ``prefer`` (±1): that
+    sign wherever the output has a tenth of a per cent of room for it."""
     lo, hi = op_limits
     down, up = max(0.0, op - lo), max(0.0, hi - op)
+    if prefer:
+        out = prefer * min(size, VERIFY_ROOM * (down if prefer > 0 else up))
+        if abs(out) >= 0.1 and math.isfinite(out):
+            return out
     if VERIFY_ROOM * down < size and up > down:
         out = -min(size, VERIFY_ROOM * up)
     else:
