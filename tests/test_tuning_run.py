@@ -411,7 +411,10 @@ class TrippingOnClient(RunningOnClient):
     def _told(self) -> None:
         if self.tripped is not None and self.lease is not None:
             self.lease, self._held_from = None, None
-            raise LeaseLost(f"loop 'x': lease lost: the plant's watchdog ({self.tripped})")
+            raise LeaseLost(
+                "loop 'x': lease lost: the plant restored the loop to its state before the "
+                f"test: {self.tripped}"
+            )
 
     def sync(self):
         self._told()
@@ -435,8 +438,11 @@ def test_a_realtime_run_names_its_limits_and_waits_for_the_pv_the_plant_restored
     lease = next(c for c in client.commands if isinstance(c, LeaseCommand))
     assert lease.pv_limits == (pv - 0.05, pv + 0.05)
     assert (r.status, r.restored) == ("aborted", True), r.reason
-    assert "the plant's watchdog (the PV left the experiment's limits" in r.reason
-    assert r.reason.endswith("the plant restored the loop"), r.reason
+    # said once: the plant restored it, and why
+    assert r.reason.count("the plant restored the loop") == 1, r.reason
+    assert r.reason.endswith(
+        f"before the test: the PV left the experiment's limits at t = {r.pv_outside['first_t']:g} s"
+    ), r.reason
     assert r.left["pv_target"] == pytest.approx(pv) and r.left["waited"] > 0.0
     assert state(client) == before
     # in lockstep the plant steps only as the run asks: the lease names no limits

@@ -403,9 +403,11 @@ class LoopClient:
 
     def _lost_why(self, status: LoopStatus) -> str:
         if status.reason == "watchdog":
-            why = "the plant's watchdog restored the loop to its state before the test"
-            if status.ended:
-                why += f" ({status.ended})"
+            why = (
+                f"the plant restored the loop to its state before the test: {status.ended}"
+                if status.ended
+                else "the plant's watchdog restored the loop to its state before the test"
+            )
         elif status.leased_by is not None:
             why = f"the plant says {status.leased_by!r} holds it"
         elif status.reason == "start":
