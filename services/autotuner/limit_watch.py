@@ -60,8 +60,9 @@ class LimitWatch:
         return (
             f"the PV went past its limits [{self.lo:g}, {self.hi:g}]{u}: to {self.peak:.4g}{u}, "
             f"outside them for {self.outside * sample_time:.3g} s ({self.outside} samples from "
-            f"t = {self.first_t:g} s); a process carries on for about its dead time once the "
-            "output is restored: keep the experiment's push well inside the limits"
+            f"t = {self.first_t:g} s); a process carries on past them for its dead time and "
+            "lags once the output is restored, and a slow one takes as long again to come "
+            "back: keep the experiment's push well inside the limits"
         )
 
 
