@@ -412,8 +412,8 @@ class TrippingOnClient(RunningOnClient):
         if self.tripped is not None and self.lease is not None:
             self.lease, self._held_from = None, None
             raise LeaseLost(
-                "loop 'x': lease lost: the plant restored the loop to its state before the "
-                f"test: {self.tripped}"
+                "loop 'x': lease lost: the plant's watchdog restored the loop to its state "
+                f"before the test: {self.tripped}"
             )
 
     def sync(self):
@@ -439,7 +439,7 @@ def test_a_realtime_run_names_its_limits_and_waits_for_the_pv_the_plant_restored
     assert lease.pv_limits == (pv - 0.05, pv + 0.05)
     assert (r.status, r.restored) == ("aborted", True), r.reason
     # said once: the plant restored it, and why
-    assert r.reason.count("the plant restored the loop") == 1, r.reason
+    assert r.reason.count("restored the loop") == 1, r.reason
     assert r.reason.endswith(
         f"before the test: the PV left the experiment's limits at t = {r.pv_outside['first_t']:g} s"
     ), r.reason

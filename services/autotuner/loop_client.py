@@ -403,11 +403,9 @@ class LoopClient:
 
     def _lost_why(self, status: LoopStatus) -> str:
         if status.reason == "watchdog":
-            why = (
-                f"the plant restored the loop to its state before the test: {status.ended}"
-                if status.ended
-                else "the plant's watchdog restored the loop to its state before the test"
-            )
+            why = "the plant's watchdog restored the loop to its state before the test"
+            if status.ended:  # a lease timeout, a lost run token, the PV past its limits
+                why += f": {status.ended}"
         elif status.leased_by is not None:
             why = f"the plant says {status.leased_by!r} holds it"
         elif status.reason == "start":

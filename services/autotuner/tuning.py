@@ -462,7 +462,7 @@ class TuningRun:
             held = left is not None and left.pop("held")
             if left is not None and left.pop("as_before"):
                 result["restored"] = True
-                if "the plant restored the loop" not in str(result.get("reason")):
+                if "restored the loop to its state before" not in str(result.get("reason")):
                     result["reason"] = f"{result.get('reason')}; the plant restored the loop"
                 if not c.gone and self.info.clock == "realtime" and not cancelled:
                     # in reach, the loop as before (the plant took it back: at the PV's
