@@ -562,3 +562,28 @@ def test_the_verification_steps_within_the_runs_pv_limits():
     tight = TuningRun(client, TuneRequest(loop="x", pv_limits=(49.99, 50.01)), "unit")
     with pytest.raises(TuneRefused, match=r"verification: the PV limits \[49.99, 50.01\] "):
         tight._within_limits(50.0, 1, 2.0, 0.01)
+
+
+def test_rejected_gains_whose_restore_failed_are_left_to_the_plant_to_restore():
+    """Gains the verification rejects are taken off again; a run whose restore then failed
+    (the plant lost as it was sent) still counted the loop as restored, from the rejection
+    alone: its release did not ask the plant to restore its snapshot, and the loop kept the
+    rejected gains. Now the release asks, and the run says what the plant shows."""
+
+    class LostAtRestore(LocalLoopClient):
+        def command(self, cmd):
+            old = isinstance(cmd, GainsCommand) and cmd.gains == PidGains(**OLD_GAINS)
+            sent = [c.gains for c in self.commands if isinstance(c, GainsCommand)]
+            if old and any(g != cmd.gains for g in sent):  # the restore, after the new gains
+                raise PlantLost("loop 'x': the plant was lost; gains not sent")
+            return super().command(cmd)
+
+    client = LostAtRestore(third_order_loop("auto", setpoint=50.0))
+    client.advance(2000)
+    before = state(client)
+    r = run(client, max_overshoot=0.0)  # any overshoot rejects the new gains
+    assert (r.status, r.restored) == ("rejected", True), r.reason
+    assert r.reason.endswith("previous gains restored; the plant restored the loop"), r.reason
+    releases = [c for c in client.commands if isinstance(c, ReleaseCommand)]
+    assert [c.restore for c in releases] == [True]
+    assert state(client) == before

@@ -400,8 +400,9 @@ class TuningRun:
             if req.apply:
                 outcome = self._apply_and_verify(ident, chosen, predicted)
                 result["warnings"] = [*result.get("warnings", []), *outcome.pop("notes", [])]
+                put_back = outcome.pop("put_back", None)  # the rejected gains' restore
                 result.update(outcome)
-                restored = not result["applied"]
+                restored = not result["applied"] if put_back is None else put_back
                 wait_back = restored
             else:
                 restored = self._restore()
@@ -1168,8 +1169,8 @@ class TuningRun:
                 "(σ): the valve works hard; a lower gain or a filtered measurement spares it"
             )
         if problems:
-            self._restore()
             return {
+                "put_back": self._restore(),  # not claimed restored where that failed
                 "applied": False,
                 "before": before_v,
                 "after": after_v,
