@@ -632,7 +632,14 @@ def follow(
                 ) from None
             except Interrupted:
                 raise
-            except KeyboardInterrupt:
+            except (KeyboardInterrupt, RuntimeError) as err:
+                # a signal's KeyboardInterrupt raised inside a lock's release in the wait's
+                # threading internals comes out as "RuntimeError: release unlocked lock"
+                # (SIGTERM, once in CI: exit 70, "internal error"): the signal all the same
+                if isinstance(err, RuntimeError) and not isinstance(
+                    err.__context__, KeyboardInterrupt
+                ):
+                    raise
                 if cancelled or run_id is None:
                     if run_id is None:  # interrupted while submitting: cancel whatever runs
                         session.put(keys.tune_cancel(prefix, loop), b"")
@@ -641,7 +648,7 @@ def follow(
                         f"restored (`autotune loops {loop}` shows it)",
                         file=sys.stderr,
                     )
-                    raise
+                    raise KeyboardInterrupt from None
                 cancelled = True
                 session.put(keys.tune_cancel(prefix, loop), run_id.encode())
                 # the restore is the tuner's, bounded: not the rest of ``wait`` (an hour by
