@@ -85,6 +85,11 @@ class ForgedSample(AutotuneError):
 MOVING_KINDS = ("output", "mode", "gains", "setpoint", "disturbance")
 
 
+# how a lease the plant ended is said (``_lost_why``): a run's reason that says it is not
+# told again that the plant restored the loop
+PLANT_RESTORED = "restored the loop to its state before the test"
+
+
 class LeaseLost(AutotuneError):
     """The plant no longer lets this client hold the loop (it restored it, or restarted)."""
 
@@ -403,7 +408,7 @@ class LoopClient:
 
     def _lost_why(self, status: LoopStatus) -> str:
         if status.reason == "watchdog":
-            why = "the plant's watchdog restored the loop to its state before the test"
+            why = f"the plant's watchdog {PLANT_RESTORED}"
             if status.ended:  # a lease timeout, a lost run token, the PV past its limits
                 why += f": {status.ended}"
         elif status.leased_by is not None:

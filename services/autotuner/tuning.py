@@ -38,7 +38,7 @@ from services.autotuner.identify.ramp import RampTest
 from services.autotuner.identify.relay import RelayTest
 from services.autotuner.identify.rest import RestCheck, rest_window
 from services.autotuner.limit_watch import LimitWatch
-from services.autotuner.loop_client import OVERSLEPT, LeaseLost, LoopClient
+from services.autotuner.loop_client import OVERSLEPT, PLANT_RESTORED, LeaseLost, LoopClient
 from services.autotuner.parts import Calls
 from services.autotuner.stall_watch import stall_watch
 from shared.control.beyond import beyond
@@ -463,7 +463,7 @@ class TuningRun:
             held = left is not None and left.pop("held")
             if left is not None and left.pop("as_before"):
                 result["restored"] = True
-                if "restored the loop to its state before" not in str(result.get("reason")):
+                if PLANT_RESTORED not in str(result.get("reason")):
                     result["reason"] = f"{result.get('reason')}; the plant restored the loop"
                 if not c.gone and self.info.clock == "realtime" and not cancelled:
                     # in reach, the loop as before (the plant took it back: at the PV's
