@@ -1028,6 +1028,7 @@ class TuningRun:
             common["stage_two_steady"] = True
             common["relay_chatter"] = True
             common["relay_wrong_way"] = True
+            common["relay_grow"] = True
         if req.method == "ramp":
             common["ramp_wrong_way"] = True
         if req.method in ("relay", "ramp"):

@@ -198,6 +198,7 @@ class Settings:
     """What the engineer asked of the experiment, plain (the shell converts a request)."""
 
     amplitude: float = 5.0  # relay d, % of output
+    amplitude_given: bool = False  # d was asked for (kept), not the default (it may grow)
     hysteresis: float | None = None  # relay ε, PV units; None: from the noise
     cycles: int = 3  # relay cycles that must agree
     tolerance: float = 0.02  # relative agreement asked of the result
@@ -213,6 +214,7 @@ class Settings:
         its fields), the defaults filled in where it leaves a field unset."""
         return cls(
             amplitude=req.amplitude or DEFAULT_RELAY_AMPLITUDE,
+            amplitude_given=req.amplitude is not None,
             hysteresis=req.hysteresis,
             cycles=req.cycles,
             tolerance=req.tolerance,
@@ -267,6 +269,10 @@ class Setup:
     # True: a relay whose PV comes to rest against its push before any switch aborts there
     # (``RelayConfig.wrong_way``); None: recorded before, it ran to its time budget
     relay_wrong_way: bool | None = None
+    # True: a relay whose stage-1 cycles ride on their hysteresis grows its amplitude, where
+    # the request left it to the default, and counts again (``RelayConfig.grow_times``);
+    # None: recorded before, d kept
+    relay_grow: bool | None = None
     # True: a ramp whose trials went against their bumps, none oscillating, aborts there
     # (``RampConfig.stop_wrong_way``); None: recorded before, it ran on to its limits
     ramp_wrong_way: bool | None = None

@@ -158,6 +158,20 @@ class RelayConfig:
     # saying so, rather than hold the output to its time budget (an inverse response turns
     # back: it is never at rest there)
     wrong_way: bool = True
+    # stage 1's counted cycles whose hysteresis ε is over ``grow_ratio`` of their amplitude
+    # ride on the hysteresis, not on the process: asin(ε/a) of their lag is the hysteresis's,
+    # and an integrating process's own part of the swing (its run past ε, about k·d·θ) is
+    # within the noise (lvl2 at d = 5 %: a = 1.1ε, its model's dead time read 1.5 s against
+    # 2 s, the gains rejected at 46 % overshoot). d then grows toward ε/a = ``grow_target``
+    # (a ∝ d), by ``grow_factor`` at most, within the output's room about the bias and half
+    # the PV's room to its limits less 4σ, and stage 1 counts again, ``grow_times`` at most; by less
+    # than ``grow_least`` it does not (the cycles it costs buy too little). None: never, as a
+    # d the engineer gave (--amplitude) and a run recorded before
+    grow_times: int | None = 2
+    grow_ratio: float = 0.5
+    grow_target: float = 0.25
+    grow_factor: float = 4.0
+    grow_least: float = 1.5
     # the K_u/P_u estimator's thresholds (relay_estimate)
     estimate: EstimateConfig = field(default_factory=EstimateConfig)
 
@@ -243,6 +257,9 @@ class RelayTest:
         self._rearmed = False  # stage 2's lockout was set again from the cycle it got
         self._aim = 0.0  # rad: stage 2 aims its level at a·sin(_aim)
         self._chatter = 0  # times ε was widened for a relay switching on the noise
+        self._d = cfg.amplitude  # %: the relay's amplitude now (``grow_times``)
+        self._grown = 0  # times d grew
+        self._grow_checked = False  # stage 1's cycles were judged for a growth (no room: once)
         self._switches = 0  # the relay's switches since it started
         self._push = (math.nan, math.nan)  # s: the relay's first push, from its start to its switch
         self._from_cycle = 0  # stage 1's cycles (and the budget's) count from this one
@@ -366,7 +383,7 @@ class RelayTest:
     def _out(self) -> float:
         """The relay's output in the loop's own sense (``_actual``: the output to hold)."""
         swing = 1.0 if self._state > 0 else -self._low
-        return self.bias + swing * self.config.amplitude
+        return self.bias + swing * self._d
 
     def _actual(self, v: float) -> float:
         """The output to hold for ``v`` in the loop's own sense: the same for a reverse-acting
@@ -689,6 +706,7 @@ class RelayTest:
             return
         self._chatter += 1
         self._eps *= cfg.chatter_factor
+        self._grow_checked = False  # the cycles against the wider ε judged again
         self._level = self._margin = self._cross_margin = self._eps
         self._from_cycle, self._relay_start = len(self.cycles), t
         self.events.append(
@@ -745,13 +763,15 @@ class RelayTest:
         if cfg.bias_adaptation and steady and self.phase == "relay":
             skew = 2.0 * cycle.high_fraction - 1.0
             if abs(skew) > cfg.bias_skew_samples * self.sample_time / cycle.period:
-                d, (lo, hi) = cfg.amplitude, self._limits()
+                d, (lo, hi) = self._d, self._limits()
                 most = cfg.bias_step * d
                 step = min(max(d * skew, -most), most)
                 self.bias = min(max(self.bias + step, lo + d), hi - d)
                 self.events.append(Event(t1, "bias", {"bias": self._actual(self.bias)}))
         if self.phase == "relay" and self._chattering():
             self._chattered(t1, amplitude)
+            return
+        if self.phase == "relay" and self._grows(t1):
             return
         if self.phase == "stage2":
             assert self._stage1 is not None
@@ -783,10 +803,58 @@ class RelayTest:
                 f"{self._agreement:.0%}"
             )
 
+    def _grows(self, t: float) -> bool:
+        """Stage 1's last ``cycles`` counted cycles ride on the hysteresis (``grow_ratio``):
+        d grows and stage 1 counts again from here (True); False when they do not, d may not
+        grow again, or the room does not let it grow by ``grow_least``."""
+        cfg = self.config
+        if cfg.grow_times is None or self._grown >= cfg.grow_times or self._grow_checked:
+            return False
+        recent = self.cycles[self._from_cycle + 1 :][-cfg.cycles :]
+        if len(recent) < cfg.cycles:
+            return False
+        a = float(np.mean([c.amplitude for c in recent]))
+        ratio = self._eps / a if a > 0 else math.inf
+        if ratio <= cfg.grow_ratio:
+            self._grow_checked = True  # clear of the hysteresis: judged once
+            return False
+        lo, hi = self._limits()
+        pv_lo, pv_hi = self.pv_limits
+        by = min(
+            cfg.grow_factor,
+            ratio / cfg.grow_target,
+            min(self.bias - lo, hi - self.bias) / self._d,  # the output's room about b
+            # the cycle grown (a ∝ d: an integrating one grows less) within half the room
+            # the noise leaves to the PV limits (its peaks, 4σ, come on top of the cycle's)
+            0.5 * (min(pv_hi - self._r, self._r - pv_lo) - 4.0 * self._noise) / a
+            if a > 0
+            else math.inf,
+        )
+        if not by >= cfg.grow_least:
+            self._grow_checked = True  # no room to grow: counted as it is
+            return False
+        before, self._d = self._d, self._d * by
+        self._grown += 1
+        self._from_cycle, self._relay_start = len(self.cycles), t
+        self.events.append(
+            Event(
+                t,
+                "amplitude",
+                {
+                    "relay_amplitude": self._d,
+                    "from": before,
+                    "amplitude": a,
+                    "hysteresis": self._eps,
+                    "reason": f"the cycle rides on the hysteresis (ε/a = {ratio:.2f})",
+                },
+            )
+        )
+        return True
+
     def ku_of(self, amplitude: float) -> float:
         """The describing-function K_u for a PV amplitude ``amplitude``."""
         a2 = amplitude**2 - self._eps**2
-        return 4.0 * self.config.amplitude / (math.pi * math.sqrt(a2)) if a2 > 0 else math.inf
+        return 4.0 * self._d / (math.pi * math.sqrt(a2)) if a2 > 0 else math.inf
 
     def _summarise(self, recent: list[Cycle], pu_spread: float) -> StageOne:
         """Stage 1's describing-function estimate and its exact frequency points."""
@@ -924,7 +992,8 @@ class RelayTest:
             ku=est.ku,
             pu=est.pu,
             amplitude=s1.amplitude,
-            relay_amplitude=self.config.amplitude,
+            relay_amplitude=self._d,
+            relay_amplitude_start=self.config.amplitude if self._grown else None,
             hysteresis=self._eps,
             bias=self._actual(self.bias),
             noise_std=self._noise,
@@ -1003,6 +1072,9 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         wrong_way=bool(setup.relay_wrong_way),
         steady_second=bool(setup.stage_two_steady),
         chatter_widenings=RelayConfig.chatter_widenings if setup.relay_chatter else None,
+        grow_times=RelayConfig.grow_times
+        if setup.relay_grow and not settings.amplitude_given
+        else None,
         **budget,
     )
     return RelayTest(

@@ -19,7 +19,7 @@ class RelayResult:
     ku: float
     pu: float
     amplitude: float  # a, PV units (mean over the agreeing cycles)
-    relay_amplitude: float  # d, %
+    relay_amplitude: float  # d, % (at the end: it may have grown, ``RelayConfig.grow_times``)
     hysteresis: float  # ε, PV units
     bias: float  # b at the end, %
     noise_std: float
@@ -48,6 +48,8 @@ class RelayResult:
     # how far the PV first went the other way in the first push (PV units): an inverse
     # response (``RelayTest._inverse_dip``); None when it did not
     inverse_dip: float | None = None
+    # d at the start where it grew (%; None: it did not)
+    relay_amplitude_start: float | None = None
 
     @property
     def measured(self) -> bool:
@@ -62,6 +64,11 @@ class RelayResult:
             "phase_reached_deg": self.phase_reached_deg,
             **({} if self.measured else {"ku_model": self.ku, "pu_model": self.pu}),
             "relay_amplitude": self.relay_amplitude,
+            **(
+                {"relay_amplitude_start": self.relay_amplitude_start}
+                if self.relay_amplitude_start is not None
+                else {}
+            ),
             "amplitude": self.amplitude,
             "hysteresis": self.hysteresis,
             "bias": self.bias,
@@ -90,7 +97,14 @@ class RelayResult:
             causes.append(
                 f"the hysteresis the noise needs, {self.hysteresis:.3g}, is "
                 f"{self.hysteresis / self.amplitude:.0%} of the cycle's amplitude, "
-                f"{lag:.0f}° of lag (a larger --amplitude lifts the cycle clear of the noise)"
+                f"{lag:.0f}° of lag ("
+                + (
+                    f"d grew from {self.relay_amplitude_start:g} % to "
+                    f"{self.relay_amplitude:.3g} % to lift the cycle clear of the noise"
+                    if self.relay_amplitude_start is not None
+                    else "a larger --amplitude lifts the cycle clear of the noise"
+                )
+                + ")"
             )
         if math.isfinite(per_sample) and per_sample >= 0.25 * short:
             causes.append(
