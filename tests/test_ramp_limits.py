@@ -284,3 +284,4 @@ def test_the_no_bump_abort_gives_the_kick_it_judged() -> None:
     least, kc, kick, room = (float(g) for g in m.groups())
     assert kick > 0.5 * room  # what stopped it
     assert kc * least < kick  # the noise's share counted: the bump's kick alone may fit
+    assert r.reason.endswith("need no gain on the loop (--method relay, --method step)")

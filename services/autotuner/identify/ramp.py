@@ -616,7 +616,8 @@ class RampTest:
                         f"no bump the noise allows (≥ {least:.4g}) fits the output's room at "
                         f"Kc = {self.kc:.4g}: its kick with the noise's, Kc·(bump + "
                         f"{cfg.kick_sigmas:g}σ) = {kick:.4g} %, is over {cfg.headroom:.0%} of "
-                        f"the room to the output's limit ({room:.4g} %)"
+                        f"the room to the output's limit ({room:.4g} %); the relay and the "
+                        "step test need no gain on the loop (--method relay, --method step)"
                     )
                     return
         n = self._bumps
