@@ -32,7 +32,7 @@ from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
-from services.autotuner.identify.experiments import Band, Demand, Experiment, Setup
+from services.autotuner.identify.experiments import Band, Demand, Experiment, Setup, abort_band
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.ramp import RampTest
 from services.autotuner.identify.relay import RelayTest
@@ -230,7 +230,13 @@ class TuningRun:
     def __init__(
         self, client: LoopClient, req: TuneRequest, run_id: str, hooks: RunHooks | None = None
     ):
-        self.pv_limits = tuple(req.pv_limits or client.info.pv_range)
+        # within the transmitter's range: past its ends the PV is not measured (it clips), and
+        # the plant refuses a setpoint there (limits of 0-100 on a range of 49-51: the
+        # verification stepped the setpoint to 51.2 and the run aborted, "sp outside the PV
+        # range")
+        asked = tuple(req.pv_limits) if req.pv_limits else None
+        self.pv_limits = abort_band(asked or client.info.pv_range, client.info.pv_range)
+        self._limits_clipped = asked is not None and asked != self.pv_limits
         # every sample the run reads, against its PV limits (``limit_watch``)
         self.outside = LimitWatch(*self.pv_limits)
         self.client = _Watched(client, self.outside)
@@ -738,6 +744,14 @@ class TuningRun:
         result.update(
             t=self._t, sim_duration=self._t - t0, wall_time=time.monotonic() - wall0, left=left
         )
+        if self._limits_clipped:
+            lo, hi = self.pv_limits
+            result["warnings"] = [
+                *result.get("warnings", []),
+                f"the PV limits {list(self.req.pv_limits or ())} reach past the transmitter's "
+                f"range {list(self.info.pv_range)}, where the PV is not measured: the run kept "
+                f"to [{lo:g}, {hi:g}]",
+            ]
         outside = self.outside.warning(self.ts, self.info.pv_units)
         if outside is not None:
             result["pv_outside"] = self.outside.to_dict(self.ts)

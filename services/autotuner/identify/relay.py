@@ -197,6 +197,7 @@ class Cycle:
     amplitude: float
     high_fraction: float  # of the period with the output high
     bias: float
+    d: float = math.nan  # %: the relay's amplitude through it (it may grow between cycles)
 
 
 @dataclass
@@ -259,7 +260,8 @@ class RelayTest:
         self._chatter = 0  # times ε was widened for a relay switching on the noise
         self._d = cfg.amplitude  # %: the relay's amplitude now (``grow_times``)
         self._grown = 0  # times d grew
-        self._grow_checked = False  # stage 1's cycles were judged for a growth (no room: once)
+        self._grow_checked = False  # stage 1's counted cycles were judged for a growth
+        self._held: str | None = None  # what held d where the cycle still rode on ε
         self._switches = 0  # the relay's switches since it started
         self._push = (math.nan, math.nan)  # s: the relay's first push, from its start to its switch
         self._from_cycle = 0  # stage 1's cycles (and the budget's) count from this one
@@ -366,7 +368,7 @@ class RelayTest:
         if not n:
             return Progress("relay", 0)
         cyc = self.cycles[-1]
-        return Progress("relay", n, cycles=n, ku=self.ku_of(cyc.amplitude), pu=cyc.period)
+        return Progress("relay", n, cycles=n, ku=self.ku_of(cyc.amplitude, cyc.d), pu=cyc.period)
 
     def identification(self) -> Identification | None:
         if self.phase == "concluding":
@@ -422,7 +424,10 @@ class RelayTest:
             return self._abort(
                 f"PV {beyond(pv, lo, hi)} left its limits [{lo:g}, {hi:g}] at t = {t:g} s"
             )
-        if why := clipped(pv, self.pv_range, t, "--amplitude"):
+        smaller = "--amplitude"
+        if self._grown:  # not the engineer's d: the relay's own growth swung it there
+            smaller = f"--amplitude than the {self._d:.3g} % the relay grew to"
+        if why := clipped(pv, self.pv_range, t, smaller):
             return self._abort(why)
         out = self._quiet(t) if self.phase == "quiet" else self._relay(t, pv)
         # in the loop's sense (``_actual`` is its own inverse)
@@ -706,7 +711,7 @@ class RelayTest:
             return
         self._chatter += 1
         self._eps *= cfg.chatter_factor
-        self._grow_checked = False  # the cycles against the wider ε judged again
+        self._grow_checked, self._held = False, None  # judged again against the wider ε
         self._level = self._margin = self._cross_margin = self._eps
         self._from_cycle, self._relay_start = len(self.cycles), t
         self.events.append(
@@ -738,7 +743,8 @@ class RelayTest:
             ys = np.convolve(ys, np.ones(w) / w, mode="valid")
         amplitude = 0.5 * float(ys.max() - ys.min())
         high = u[sel] > self.bias
-        cycle = Cycle(t0, t1 - t0, amplitude, float(high.mean()) if high.size else 0.5, self.bias)
+        high_fraction = float(high.mean()) if high.size else 0.5
+        cycle = Cycle(t0, t1 - t0, amplitude, high_fraction, self.bias, self._d)
         self.cycles.append(cycle)
         self.events.append(
             Event(
@@ -804,37 +810,45 @@ class RelayTest:
             )
 
     def _grows(self, t: float) -> bool:
-        """Stage 1's last ``cycles`` counted cycles ride on the hysteresis (``grow_ratio``):
-        d grows and stage 1 counts again from here (True); False when they do not, d may not
-        grow again, or the room does not let it grow by ``grow_least``."""
+        """Stage 1's last ``cycles`` counted cycles ride on the hysteresis (``grow_ratio``, on
+        their mean amplitude): d grows and stage 1 counts again from here (True); False when
+        they do not, or d may not grow by ``grow_least`` (``_held``: what holds it)."""
         cfg = self.config
-        if cfg.grow_times is None or self._grown >= cfg.grow_times or self._grow_checked:
+        if cfg.grow_times is None or self._grow_checked:
             return False
         recent = self.cycles[self._from_cycle + 1 :][-cfg.cycles :]
         if len(recent) < cfg.cycles:
             return False
+        self._grow_checked = True  # judged once (again after a growth or a widening)
         a = float(np.mean([c.amplitude for c in recent]))
         ratio = self._eps / a if a > 0 else math.inf
         if ratio <= cfg.grow_ratio:
-            self._grow_checked = True  # clear of the hysteresis: judged once
+            return False
+        if self._grown >= cfg.grow_times:
+            self._held = f"it grows {cfg.grow_times} times at most"
             return False
         lo, hi = self._limits()
-        pv_lo, pv_hi = self.pv_limits
-        by = min(
-            cfg.grow_factor,
-            ratio / cfg.grow_target,
-            min(self.bias - lo, hi - self.bias) / self._d,  # the output's room about b
-            # the cycle grown (a ∝ d: an integrating one grows less) within half the room
-            # the noise leaves to the PV limits (its peaks, 4σ, come on top of the cycle's)
-            0.5 * (min(pv_hi - self._r, self._r - pv_lo) - 4.0 * self._noise) / a
-            if a > 0
+        pv_lo, pv_hi = abort_band(self.pv_limits, self.pv_range)  # where the test aborts
+        # the largest of the cycles judged (noise can split one: a smaller mean) grown with
+        # d (a ∝ d: an integrating one grows less) within half the room the noise leaves to
+        # where the test aborts (its peaks, 4σ, come on top of the cycle's)
+        largest = max(c.amplitude for c in recent)
+        pv_room = min(pv_hi - self._r, self._r - pv_lo) - 4.0 * self._noise
+        bounds = {
+            "": min(cfg.grow_factor, ratio / cfg.grow_target),
+            "the output's room about its bias": min(self.bias - lo, hi - self.bias) / self._d,
+            "the room to the PV limits (or the transmitter's range), less the noise's "
+            "peaks (wider --pv-limits let it grow)": 0.5 * pv_room / largest
+            if largest > 0
             else math.inf,
-        )
+        }
+        by = min(bounds.values())
         if not by >= cfg.grow_least:
-            self._grow_checked = True  # no room to grow: counted as it is
+            self._held = min(bounds, key=lambda k: bounds[k])
             return False
         before, self._d = self._d, self._d * by
         self._grown += 1
+        self._grow_checked = False
         self._from_cycle, self._relay_start = len(self.cycles), t
         self.events.append(
             Event(
@@ -851,10 +865,12 @@ class RelayTest:
         )
         return True
 
-    def ku_of(self, amplitude: float) -> float:
-        """The describing-function K_u for a PV amplitude ``amplitude``."""
+    def ku_of(self, amplitude: float, d: float | None = None) -> float:
+        """The describing-function K_u for a PV amplitude ``amplitude`` under a relay of
+        amplitude ``d`` (%; None: the relay's now)."""
         a2 = amplitude**2 - self._eps**2
-        return 4.0 * self._d / (math.pi * math.sqrt(a2)) if a2 > 0 else math.inf
+        d = self._d if d is None else d
+        return 4.0 * d / (math.pi * math.sqrt(a2)) if a2 > 0 else math.inf
 
     def _summarise(self, recent: list[Cycle], pu_spread: float) -> StageOne:
         """Stage 1's describing-function estimate and its exact frequency points."""
@@ -994,6 +1010,7 @@ class RelayTest:
             amplitude=s1.amplitude,
             relay_amplitude=self._d,
             relay_amplitude_start=self.config.amplitude if self._grown else None,
+            relay_growth_held=self._held,
             hysteresis=self._eps,
             bias=self._actual(self.bias),
             noise_std=self._noise,

@@ -312,6 +312,9 @@ def plausible(
     return lo / f <= w <= hi * f and min(kus) / k <= ku <= max(kus) * k
 
 
+_EXP_MAX = 700.0  # math.exp overflows past about 709.78
+
+
 def linear_crossing(p1: FrequencyPoint, p2: FrequencyPoint) -> tuple[float, float]:
     """Phase and log-magnitude linear in log ω through the two points, at −180°."""
     x1, x2 = math.log(p1.omega), math.log(p2.omega)
@@ -319,7 +322,10 @@ def linear_crossing(p1: FrequencyPoint, p2: FrequencyPoint) -> tuple[float, floa
     m1, m2 = math.log(p1.magnitude), math.log(p2.magnitude)
     frac = (-180.0 - f1) / (f2 - f1) if abs(f2 - f1) > 1e-9 else 0.0
     xu, mu = x1 + frac * (x2 - x1), m1 + frac * (m2 - m1)
-    return math.exp(-mu), 2.0 * math.pi / math.exp(xu)
+    # two phases a hair apart carry the line anywhere: past a float's range it is out of
+    # any plausible bound (``plausible``), not an overflow (a relay whose stage 2 measured
+    # its stage-1 cycle again raised "math range error" and the run failed)
+    return math.exp(min(-mu, _EXP_MAX)), 2.0 * math.pi / math.exp(min(max(xu, -_EXP_MAX), _EXP_MAX))
 
 
 def model_crossing(

@@ -50,6 +50,8 @@ class RelayResult:
     inverse_dip: float | None = None
     # d at the start where it grew (%; None: it did not)
     relay_amplitude_start: float | None = None
+    # what held d where the cycle still rode on the hysteresis (None: nothing did)
+    relay_growth_held: str | None = None
 
     @property
     def measured(self) -> bool:
@@ -67,6 +69,11 @@ class RelayResult:
             **(
                 {"relay_amplitude_start": self.relay_amplitude_start}
                 if self.relay_amplitude_start is not None
+                else {}
+            ),
+            **(
+                {"relay_growth_held": self.relay_growth_held}
+                if self.relay_growth_held is not None
                 else {}
             ),
             "amplitude": self.amplitude,
@@ -97,14 +104,7 @@ class RelayResult:
             causes.append(
                 f"the hysteresis the noise needs, {self.hysteresis:.3g}, is "
                 f"{self.hysteresis / self.amplitude:.0%} of the cycle's amplitude, "
-                f"{lag:.0f}° of lag ("
-                + (
-                    f"d grew from {self.relay_amplitude_start:g} % to "
-                    f"{self.relay_amplitude:.3g} % to lift the cycle clear of the noise"
-                    if self.relay_amplitude_start is not None
-                    else "a larger --amplitude lifts the cycle clear of the noise"
-                )
-                + ")"
+                f"{lag:.0f}° of lag ({self._growth()})"
             )
         if math.isfinite(per_sample) and per_sample >= 0.25 * short:
             causes.append(
@@ -115,6 +115,19 @@ class RelayResult:
         return "; ".join(causes) or (
             f"the relay's own lag: its hysteresis gives {lag:.0f}° of the {short:.0f}°"
         )
+
+    def _growth(self) -> str:
+        """What the relay's amplitude did about a cycle riding on the hysteresis."""
+        grew = (
+            f"d grew from {self.relay_amplitude_start:g} % to {self.relay_amplitude:.3g} %"
+            if self.relay_amplitude_start is not None
+            else f"d stayed at {self.relay_amplitude:g} %"
+        )
+        if self.relay_growth_held is not None:
+            return f"{grew}, held there by {self.relay_growth_held}"
+        if self.relay_amplitude_start is not None:
+            return f"{grew} to lift the cycle clear of the noise"
+        return "a larger --amplitude lifts the cycle clear of the noise"
 
     def identification(self) -> Identification:
         measured = self.measured
