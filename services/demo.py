@@ -33,7 +33,7 @@ from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from services.plant_sim.simulation.models import TransferFunctionModel
 from services.plant_sim.simulation.presets import MODELS
 from services.stack import Stack, runs_dir, service_tokens
-from shared import keys, wire
+from shared import json_text, keys, wire
 from shared.control.transfer import model_ultimate_point
 from shared.errors import AutotuneError, ConfigError
 from shared.messages import LoggerStatus, LoopInfo, TuneProgress, TuneResult
@@ -248,6 +248,6 @@ def _print_outcome(
             report=str(report),
             exact={"ku": exact[0], "pu": exact[1]} if exact else None,
         )
-        print(json.dumps(out, indent=2))
+        print(json_text.dumps(out, indent=2))
     else:
         print(format_demo(result, exact, info.model, mcap, report), flush=True)

@@ -20,7 +20,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
 from collections.abc import Callable
 from http import HTTPStatus
 from importlib import resources
@@ -34,6 +33,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.http11 import Request, Response
 
 from services.console import reports
+from shared import json_text
 from shared.errors import AutotuneError, one_line
 
 log = logging.getLogger("console")
@@ -52,17 +52,7 @@ def dumps(msg: Any) -> str:
     try:
         return json.dumps(msg, allow_nan=False, separators=(",", ":"))
     except ValueError:
-        return json.dumps(_finite(msg), separators=(",", ":"))
-
-
-def _finite(x: Any) -> Any:
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_finite(v) for v in x]
-    return x
+        return json_text.dumps(msg, separators=(",", ":"))
 
 
 def asset(name: str) -> bytes | None:

@@ -14,7 +14,6 @@ Another run's messages in the file are left out; a message recorded twice is rea
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +36,7 @@ from services.logger.mcap_io import (
     unique_samples,
     validation_reason,
 )
-from shared import keys
+from shared import json_text, keys
 from shared.control.forms import (
     GainForms,
     all_forms,
@@ -386,4 +385,4 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
 
 
 def dumps(a: Analysis, rule: str | None) -> str:
-    return json.dumps(a.to_dict(rule), indent=2)
+    return json_text.dumps(a.to_dict(rule), indent=2)

@@ -21,9 +21,7 @@ writes the three figures as PNG: the curves, the rules and the measured points.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -32,6 +30,7 @@ import numpy as np
 
 from services.offline import benchmark
 from services.offline import iinoya_hotta as ih
+from shared import json_text
 from shared.cli import check_runs_dir
 
 if TYPE_CHECKING:
@@ -196,17 +195,17 @@ def run(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - started
     stats = summary(outcomes)
     if args.json:
-        json.dump(
-            {
-                "tunes": [o.to_dict() for o in outcomes],
-                "summary_up_to_1pct_noise": stats,
-                "iinoya_hotta": [r.to_dict() for r in rows],
-                "seconds": elapsed,
-            },
-            sys.stdout,
-            indent=1,
+        print(
+            json_text.dumps(
+                {
+                    "tunes": [o.to_dict() for o in outcomes],
+                    "summary_up_to_1pct_noise": stats,
+                    "iinoya_hotta": [r.to_dict() for r in rows],
+                    "seconds": elapsed,
+                },
+                indent=1,
+            )
         )
-        print()
         return 0
     print(
         f"{'plant':22} {'noise':>5} {'method':6} | {'Ku ours':>7} {'Pu ours':>7} | "
@@ -587,8 +586,7 @@ def run_iinoya_hotta(
     elapsed = time.perf_counter() - started
     if as_json:
         doc = figs.to_dict() | {"plots": [str(p) for p in plots], "seconds": elapsed}
-        json.dump(doc, sys.stdout, indent=1, ensure_ascii=False)
-        print()
+        print(json_text.dumps(doc, indent=1, ensure_ascii=False))
         return 0
     print_figures(figs)
     for p in plots:

@@ -14,13 +14,13 @@ machines differ. A benchmark, not a test; --size tiny takes seconds.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 from services.offline import perf, perf_phases
+from shared import json_text
 
 HELP = "measure speed and scale: bus limit, lockstep, CPU per sample, realtime, logger, demo"
 KEEP = 0.99  # fraction of real time a realtime plant must keep
@@ -249,7 +249,7 @@ def run(args: argparse.Namespace) -> int:
     out = measure(parts, perf.SIZES[args.size], args.tunes, sys.stderr, args.tuners, args.source)
     seconds = time.perf_counter() - t0
     if args.json:
-        print(json.dumps({"size": args.size, "seconds": seconds, **out}, indent=1))
+        print(json_text.dumps({"size": args.size, "seconds": seconds, **out}, indent=1))
         return 0
     _print(out, args.size, seconds)
     return 0

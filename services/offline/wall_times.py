@@ -28,7 +28,7 @@ from services.launcher import free_tcp_port
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from services.stack import Stack
-from shared import keys
+from shared import json_text, keys
 from shared.messages import TuneRequest
 from shared.session import ZenohSettings
 
@@ -144,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"wall_times: --what {args.what!r}: choose from {', '.join(MEASURES)}")
     results = measure(what)
     if args.json:
-        print(json.dumps([{**asdict(m), "speed": m.speed} for m in results], indent=2))
+        print(json_text.dumps([{**asdict(m), "speed": m.speed} for m in results], indent=2))
         return 0
     print(f"relay tune of {LOOP} (heat exchanger), wall times:")
     for m in results:

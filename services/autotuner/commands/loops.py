@@ -27,7 +27,6 @@ and one line on stderr names those.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -36,7 +35,7 @@ from typing import Any
 import zenoh
 
 from services.autotuner.loop_client import listed, live_loops
-from shared import keys, wire
+from shared import json_text, keys, wire
 from shared.cli import MAX_SECONDS, add_common_arguments, check_ids
 from shared.control.forms import IsaGains, pv_span, to_percent
 from shared.errors import AutotuneError, ConfigError, DecodeError
@@ -291,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
                 f"--prefix?){unreached(session)}"
             )
     if args.json:
-        print(json.dumps(objs[0] if args.loop is not None else objs, indent=2))
+        print(json_text.dumps(objs[0] if args.loop is not None else objs, indent=2))
     elif objs:
         print(format_table(objs))
     if silent:

@@ -15,7 +15,6 @@ tuning run holds the loop. The logger records the revert as a change like any ot
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -23,6 +22,7 @@ from typing import Any
 
 from services.autotuner.commands.logger_dirs import elsewhere
 from services.autotuner.loop_client import CommandRefused, LoopClient, wait_for_loop
+from shared import json_text
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
 from shared.history_file import HISTORY_FILE, loop_changes
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         "t": status.t,
     }
     if args.json:
-        print(json.dumps(report, indent=2))
+        print(json_text.dumps(report, indent=2))
     else:
         print(
             f"Reverted {args.loop} to the gains before {what} ({undo.get('utc')}):\n"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 from services.autotuner.design.rules import ZN_STEP_RANGE
@@ -17,6 +16,7 @@ from services.autotuner.identify.repeated_steps import (
 from services.autotuner.identify.step_test import StepTest, StepTestConfig
 from services.autotuner.loop_client import LoopClient, wait_for_loop
 from services.autotuner.step_run import StepTestReport, run_step_test
+from shared import json_text
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import ConfigError
 from shared.identity import auth_user
@@ -346,5 +346,5 @@ def run(args: argparse.Namespace) -> int:
     text = format_report(report)
     if args.units == "percent" and not args.json:
         text += "\n" + percent_line(report)
-    print(json.dumps(report.to_dict(), indent=2) if args.json else text)
+    print(json_text.dumps(report.to_dict(), indent=2) if args.json else text)
     return 0

@@ -12,7 +12,6 @@ Ctrl-C cancels the run; the tuner restores the loop before it answers.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import queue
 import signal
@@ -27,7 +26,7 @@ import zenoh
 from services.autotuner.commands.step import parse_repeat
 from services.autotuner.design.rules import RULES
 from services.autotuner.loop_client import wait_for_token
-from shared import keys, wire
+from shared import json_text, keys, wire
 from shared.cli import add_common_arguments, check_ids
 from shared.control.forms import (
     IsaGains,
@@ -1056,7 +1055,7 @@ def _print_result(args: argparse.Namespace, result: TuneResult) -> None:
     if sys.stderr.isatty() and not args.json:
         print("\r" + " " * 100 + "\r", end="", file=sys.stderr)
     print(
-        json.dumps(result.model_dump(mode="json"), indent=2)
+        json_text.dumps(result.model_dump(mode="json"), indent=2)
         if args.json
         else format_result(result, args.units)
     )

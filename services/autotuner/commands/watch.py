@@ -21,7 +21,6 @@ only listens.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 
 import zenoh
@@ -29,7 +28,7 @@ import zenoh
 from services.autotuner.loop_client import LoopClient, PlantLost, wait_for_loop, wait_for_token
 from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
 from services.autotuner.monitor.oscillation import SUPERVISION_PERIODS
-from shared import keys, wire
+from shared import json_text, keys, wire
 from shared.cli import MAX_SECONDS, add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
 from shared.identity import auth_user
@@ -165,7 +164,9 @@ def run(args: argparse.Namespace) -> int:
                 "gains"
             )
     msg = LoopMonitor(loop=args.loop, node="watch", pv_units=info.pv_units, **assessment.to_dict())
-    print(json.dumps(msg.model_dump(mode="json"), indent=2) if args.json else format_monitor(msg))
+    print(
+        json_text.dumps(msg.model_dump(mode="json"), indent=2) if args.json else format_monitor(msg)
+    )
     return 0
 
 

@@ -10,11 +10,11 @@ run's rule and its verification. Runs that recommended gains without applying th
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
+from shared import json_text
 from shared.cli import check_ids
 from shared.errors import ConfigError
 from shared.history_file import (
@@ -190,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     if args.json:
-        print(json.dumps(items, indent=2))
+        print(json_text.dumps(items, indent=2))
     else:
         elsewhere: tuple = ()
         if not items:  # the loop's records under another bus's prefix, if any

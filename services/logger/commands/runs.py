@@ -15,6 +15,7 @@ from pathlib import Path
 
 from services.logger.compare import compare, format_compare
 from services.logger.mcap_io import being_written, read_run
+from shared import json_text
 from shared.errors import AutotuneError, one_line
 from shared.messages import APPLIED_STATUSES
 
@@ -150,14 +151,14 @@ def run(args: argparse.Namespace) -> int:
     if args.compare:
         a, b = (resolve_run(folder, r) for r in args.compare)
         c = compare(a, b)
-        print(json.dumps(c, indent=2) if args.json else format_compare(c))
+        print(json_text.dumps(c, indent=2) if args.json else format_compare(c))
         return 0
     if not folder.is_dir():
         what = "not a directory" if folder.exists() else "no such directory"
         raise AutotuneError(f"{folder}: {what} (the logger's --runs)")
     rows = [summarize(p) for p in sorted(folder.glob("*.mcap"))]
     if args.json:
-        print(json.dumps(rows, indent=2))
+        print(json_text.dumps(rows, indent=2))
         return 0
     if not rows:
         print(f"no runs in {folder}")
