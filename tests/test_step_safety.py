@@ -30,7 +30,7 @@ from services.offline.local_loop import LocalLoopClient, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.models import FirstOrderPlusDeadTime, IntegratingPlusDeadTime
 from shared.control.signals import at_rest, noise_level, range_end
-from shared.messages import TuneRequest
+from shared.messages import GainsCommand, ModeCommand, PidGains, TuneRequest
 from tests.exact import sopdt_tangent
 
 FOPDT_600 = {  # lvl1 linearised at 1.5 m: 0.06 m/%, τ = 600 s, 1 s delay, 1 s samples
@@ -388,3 +388,44 @@ def test_an_aborted_steps_crest_is_not_taken_for_its_return():
     with pytest.raises(StepTestAborted, match="the PV back at rest at 50"):
         run_step_test(LocalLoopClient(loop), StepTestConfig(size=20.0, pv_limits=(48.0, 52.0)))
     assert loop.pv == pytest.approx(50.0, abs=0.05)
+
+
+# --- run_step_test on a loop in auto: held at the controller's mean output ------------------
+
+
+def _in_auto(spec: dict, gains: PidGains, seed: int, settle: int):
+    loop = sim_loop(spec, seed)
+    loop.apply(GainsCommand(loop="x", gains=gains, source="t"))
+    loop.apply(ModeCommand(loop="x", mode="auto", source="t"))
+    for _ in range(settle):
+        loop.advance()
+    return loop
+
+
+@pytest.mark.parametrize("seed", range(1, 7))
+def test_a_loop_in_auto_is_stepped_from_its_mean_output_not_its_last(seed):
+    """hx1 (K = 1 °C/%, at rest at 60 °C on 40 %) under TL PID, whose derivative feeds the
+    noise to the output: held at the last sample's output (38.79 %), the PV drifted from
+    that hold into the step and K read 0.73-1.08 over these seeds; the mean holds it."""
+    gains = PidGains(kc=7.0, ti=96.0, td=6.9)
+    loop = _in_auto({"model": "heat_exchanger"}, gains, seed, 2000)
+    d = run_step_test(LocalLoopClient(loop), StepTestConfig(size=5.0)).to_dict()
+    assert d["op_before"] == pytest.approx(40.0, abs=0.1)  # where hx1 rests at 60 °C
+    assert d["op_step"] == pytest.approx(d["op_before"] + 5.0)
+    assert d["gain"] == pytest.approx(1.0, rel=0.01)
+    g = loop.pid.gains
+    assert loop.mode == "auto" and (g.kc, g.ti, g.td) == (gains.kc, gains.ti, gains.td)
+
+
+@pytest.mark.parametrize("seed", range(1, 5))
+def test_an_integrating_loop_in_auto_is_stepped_from_its_balance(seed):
+    """lvl2 (a pumped tank, R = 1e-4 m/s per %, balanced at 50 %) under tuned PI: held at
+    its last output (up to 4.4 % off the balance), the level drained or filled by 0.25-0.35 m
+    and the test aborted, "not at rest before the step", in two of these four seeds."""
+    gains = PidGains(kc=2100.0, ti=19.0)
+    loop = _in_auto({"model": "tank_level_integrating"}, gains, seed, 500)
+    d = run_step_test(LocalLoopClient(loop), StepTestConfig(size=5.0)).to_dict()
+    assert d["op_before"] == pytest.approx(50.0, abs=0.25)
+    assert d["method"] == "integrating" and d["returned_to_rest"]
+    assert d["reaction_rate"] == pytest.approx(1e-4, rel=0.01)
+    assert loop.mode == "auto" and abs(loop.pv - 1.5) < 0.05

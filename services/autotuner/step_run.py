@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
 from services.autotuner.identify.repeated_steps import RepeatedSteps, Spread
+from services.autotuner.identify.rest import rest_window
 from services.autotuner.identify.step_test import (
     ReturnWatch,
     StepTest,
@@ -111,15 +113,20 @@ def run_step_test(
     before = client.sync()
     info = client.info
     pv_limits = config.pv_limits or tuple(info.pv_range)
-    args = (config, before.op, tuple(info.op_limits), pv_limits, info.sample_time)
     where = {"pv_range": tuple(info.pv_range), "pv_units": info.pv_units}
-    try:
-        if repeat > 1 or auto:
-            test: StepTest | RepeatedSteps = RepeatedSteps(*args, **where, repeat=repeat, auto=auto)
-        else:
-            test = StepTest(*args, **where)
-    except ValueError as err:
-        raise StepTestAborted(f"loop {client.loop}: {err}") from None
+
+    def make(op_start: float) -> StepTest | RepeatedSteps:
+        """The test from the output held at ``op_start`` (StepTestAborted where it cannot)."""
+        args = (config, op_start, tuple(info.op_limits), pv_limits, info.sample_time)
+        try:
+            if repeat > 1 or auto:
+                return RepeatedSteps(*args, **where, repeat=repeat, auto=auto)
+            return StepTest(*args, **where)
+        except ValueError as err:
+            raise StepTestAborted(f"loop {client.loop}: {err}") from None
+
+    test = make(before.op)  # refused before the lease where the settings cannot work
+    hold = before.op  # the output held for the test (a loop in auto: its mean, below)
     restored = False
     try:  # under a lease: if this client dies, the plant's watchdog puts the loop back
         client.command(
@@ -136,13 +143,25 @@ def run_step_test(
     lost: LeaseLost | None = None
     try:
         if before.mode != "manual":
+            # held at the controller's mean output, not at its last sample's, which carries
+            # the noise the gains feed back (hx1 under TL PID held at 38.79 % against a mean
+            # near 40.2: K read 0.76 for 1.0, the PV still drifting from the hold when it was
+            # stepped; lvl2 held at 55.3 % drained 0.43 m before any step)
+            hold = _mean_output(
+                client,
+                before.gains.ti,
+                cap_of(info.clock),
+                lambda s: progress and progress(test, s),
+            )
+            test = make(hold)
             client.command(ModeCommand(loop=client.loop, mode="manual", source=client.source))
-        op = want = before.op
+            client.command(OutputCommand(loop=client.loop, op=hold, source=client.source))
+        op = want = hold
         # lockstep: a batch up to the test's next decision (``horizon``, ``band``), fed one
         # by one, is the test fed a sample at a time, in a round trip instead of one each;
         # realtime: a sample at a time, as they come (a sample lost on the way must not put a
         # timed decision inside a batch counted in samples)
-        cap = MAX_BATCH if info.clock == "lockstep" else 1
+        cap = cap_of(info.clock)
         while not test.finished:
             n = test.horizon(cap)
             batch = client.samples(n, test.band()) if n > 1 else client.samples(1)
@@ -243,7 +262,7 @@ def run_step_test(
         info.model,
         info.pv_units,
         before.mode,
-        before.op,
+        hold,
         t_step,
         t_end,
         sum(len(t.t) for t in test.done) if isinstance(test, RepeatedSteps) else len(test.t),
@@ -259,6 +278,32 @@ def run_step_test(
         ),
         tuple(info.pv_range),
     )
+
+
+def cap_of(clock: str) -> int:
+    """Samples per request: lockstep, a batch up to the test's next decision; realtime, one
+    at a time, as they come."""
+    return MAX_BATCH if clock == "lockstep" else 1
+
+
+def _mean_output(
+    client: LoopClient, ti: float | None, cap: int, seen: Callable[[ProcessSample], object]
+) -> float:
+    """The output a loop in auto holds on average over a rest window (its integral time, 40
+    samples at least, ``rest.rest_window``), within the output's limits: where to hold it in
+    manual for the test."""
+    ts = client.info.sample_time
+    n = math.ceil(rest_window(ts, ti) / ts)
+    ops: list[float] = []
+    while len(ops) < n:
+        batch = client.samples(min(cap, n - len(ops)))
+        if not batch:
+            raise AutotuneError(f"loop {client.loop}: no sample came")
+        for s in batch:
+            ops.append(s.op)
+            seen(s)
+    lo, hi = client.info.op_limits
+    return min(max(math.fsum(ops[:n]) / n, lo), hi)
 
 
 def _follow_return(
