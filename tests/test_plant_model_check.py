@@ -354,6 +354,22 @@ def test_a_process_that_settles_within_a_sample_is_said_unresolved():
     assert not any(w.startswith("settles within one sample") for w in r.warnings)
 
 
+def test_a_process_that_reaches_63_percent_in_its_first_sample_is_said_unresolved():
+    """e^{−2s}/(10s + 1) sampled every 15 s: 1 − e^{−1.3} (73 %) of the change by the first
+    sample that moves, so its onset fit read a dead time near the sample time and T63 came
+    out below zero (the physical heat exchanger at 100 s: dead time 95.3 s, T63 −1.50 s, "ok");
+    now no negative time constant is given and the figures are said to be the sampling's.
+    At 1 s it is resolved: its T63 is 10 s after the dead time, as 1/(10s + 1)'s."""
+    lag = {"model": "transfer_function", "num": [1.0], "den": [10.0, 1.0], "delay": 2.0}
+    r = check({**lag, "sample_time": 15.0})
+    assert any(w.startswith("reaches 63 % of its change by the first sample") for w in r.warnings)
+    assert r.t63 is None or r.t63 >= 0
+    assert r.lag_sum is None or r.lag_sum >= 0
+    r = check({**lag, "sample_time": 1.0})
+    assert not any(w.startswith("reaches 63 %") for w in r.warnings), r.warnings
+    assert r.t63 == pytest.approx(10.0, rel=0.02)
+
+
 class VaryingLag(_User):
     """Gain 1 everywhere, but a lag that grows with the PV, τ = 5·e^{x/4} s (x the PV's move
     from rest): a step of +10 % rises on a lag e^{2.5} times a −10 % step's falls on. Stepped

@@ -535,6 +535,8 @@ def _shape(report: ModelReport) -> None:
         report.apparent_dead_time = float(t[n] - s[n] / k_gain)  # the asymptote's intercept
     else:
         _time_constants(report, s, t, k_gain)
+        moved = np.nonzero(np.abs(s) > 1e-9 * float(np.max(np.abs(s))))[0]
+        first = int(moved[0]) if len(moved) else 1
         if n >= 1 and abs(s[1] - k_gain) <= UNRESOLVED * abs(k_gain):
             # settled by the first sample after the step: its lags are below the sample
             # time, and the figures above are the sampling's, not the process's (τ 0.1 s at
@@ -545,6 +547,19 @@ def _shape(report: ModelReport) -> None:
                 "this sample time the loop is a static gain, which integral action alone "
                 "controls: sample faster to see its dynamics"
             )
+        elif first <= n and s[first] / k_gain >= 1.0 - math.exp(-1.0):
+            # 63 % of the change by the first sample that moved: the dead time read off
+            # that sample's onset and the lags after it are the sampling's (the heat
+            # exchanger at 100 s samples: dead time 95.3 s, T63 −1.50 s, and "ok")
+            report.warnings.append(
+                f"reaches 63 % of its change by the first sample that moves ({dt:g} s): its "
+                "dead time and time constants are not resolved at this sample time (the "
+                "figures above are the sampling's); sample faster to see its dynamics"
+            )
+    for name in ("t63", "lag_sum"):  # a time constant below zero is no time constant
+        value = getattr(report, name)
+        if value is not None and value < 0:
+            setattr(report, name, None)
     report.ku_step, report.pu_step = _ultimate_from_step(s, dt, integrating) or (None, None)
 
 
