@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.autotuner.service import _check_step_size
+from services.autotuner.service import _check_limits, _check_step_size
 from shared.messages import LoopStatus, TuneRequest
 from tests.test_loops_set import status
 
@@ -38,3 +38,29 @@ def test_other_methods_and_the_default_step_pass():
     _check_step_size(TuneRequest(loop="lvl1", method="relay"), _status("manual", 99.0))
     with pytest.raises(ValueError, match=r"step_size \+5 %"):  # the default step, 5 %
         _check_step_size(TuneRequest(loop="lvl1", method="step"), _status("manual", 99.0))
+
+
+# --- the PV limits' settings, judged when the request arrives -------------------------------
+
+
+def test_a_hysteresis_the_limits_cannot_take_is_refused_naming_the_field():
+    """``tune hx1 --hysteresis 1000`` ended a run ``failed`` (exit 1, two lines of result);
+    refused at the request it is bad input: one line, exit 2 at the client."""
+    on_hx1 = status()  # PV 59.5 in a range of 0-150
+    with pytest.raises(ValueError, match=r"^hysteresis: 1000 is at least half the PV limits' wi"):
+        _check_limits(TuneRequest(loop="hx1", method="relay", hysteresis=1000.0), on_hx1)
+    with pytest.raises(ValueError, match=r"half the PV limits' width \(2\)"):
+        req = TuneRequest(loop="hx1", method="relay", hysteresis=1.0, pv_limits=(59.0, 61.0))
+        _check_limits(req, on_hx1)
+    # limits past the range are kept to it (0-150 wide: 75 is half)
+    with pytest.raises(ValueError, match=r"width \(150\)"):
+        req = TuneRequest(loop="hx1", method="relay", hysteresis=75.0, pv_limits=(-500.0, 500.0))
+        _check_limits(req, on_hx1)
+    _check_limits(TuneRequest(loop="hx1", method="relay", hysteresis=74.0), on_hx1)
+    _check_limits(TuneRequest(loop="hx1", method="ramp", hysteresis=1000.0), on_hx1)  # unused
+
+
+def test_limits_the_pv_is_already_outside_are_refused():
+    with pytest.raises(ValueError, match=r"^pv_limits: the PV 59\.5 is already outside \[60, 70\]"):
+        _check_limits(TuneRequest(loop="hx1", pv_limits=(60.0, 70.0)), status())
+    _check_limits(TuneRequest(loop="hx1", pv_limits=(50.0, 70.0)), status())

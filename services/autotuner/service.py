@@ -27,7 +27,7 @@ import zenoh
 
 from services.autotuner.compute_pool import ComputePool, inline, preload
 from services.autotuner.design.request_check import validate_request
-from services.autotuner.identify.experiments import DEFAULT_STEP_SIZE
+from services.autotuner.identify.experiments import DEFAULT_STEP_SIZE, abort_band
 from services.autotuner.loop_client import (
     LEASE_TIMEOUT,
     LoopClient,
@@ -113,6 +113,25 @@ def _check_step_size(req: TuneRequest, status: LoopStatus) -> None:
         )
 
 
+def _check_limits(req: TuneRequest, status: LoopStatus) -> None:
+    """Settings the loop's PV limits cannot take, refused when the request arrives
+    (ValueError naming the field, exit 2 at the client): a relay hysteresis of half their
+    width or more (it could never switch within them), and limits the PV is already outside.
+    The run checks the same (``TuningRun``); here its client hears it as the bad input it is,
+    not as a run that ``failed`` (exit 1, its reason among the result's lines)."""
+    if req.apply_from:
+        return
+    lo, hi = abort_band(req.pv_limits or status.pv_range, status.pv_range)
+    eps = req.hysteresis if req.method == "relay" else None
+    if eps is not None and eps >= 0.5 * (hi - lo):
+        raise ValueError(
+            f"hysteresis: {eps:g} is at least half the PV limits' width ({hi - lo:g}): the "
+            "relay could not switch within them"
+        )
+    if req.pv_limits is not None and not lo <= status.pv <= hi:
+        raise ValueError(f"pv_limits: the PV {status.pv:.4g} is already outside [{lo:g}, {hi:g}]")
+
+
 class TunerService:
     def __init__(
         self,
@@ -160,6 +179,7 @@ class TunerService:
             )
         if status is not None:
             _check_step_size(req, status)
+            _check_limits(req, status)
         with self.lock:
             if req.loop in self.active:
                 raise ValueError(
