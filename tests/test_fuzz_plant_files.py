@@ -859,6 +859,12 @@ def test_a_tune_ends_at_its_loops_fault_and_names_it(start_plant, monkeypatch):
         with LoopClient(s, plant.prefix, "bad") as c:  # a held PV looks at rest: not started
             again = TuningRun(c, TuneRequest(loop="bad", method="relay"), "again").run()
     assert again.status == "aborted" and again.reason.startswith("not started: the loop is faulted")
+    # its PV is held: "back where it was" said nothing of it (helper 52); the fault is said
+    assert again.left is not None and again.left["fault"] is not None
+    from services.autotuner.commands.tune import format_result
+
+    assert "the loop is FAULTED (" in format_result(again)
+    assert "back where it was" not in format_result(again)
     assert r.status == "aborted", r.reason
     assert "the plant faulted it (" in r.reason and "sensor fault" in r.reason
     assert "said in its status at t = " in r.reason

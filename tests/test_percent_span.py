@@ -393,6 +393,10 @@ def test_the_left_line_prints_the_mean_at_rest_it_judged_by():
     assert "a level in manual" not in line  # a loop in auto (it was said of a pressure loop)
     manual = {**left, "mode": "manual"}
     line = next(x for x in format_result(hx1_result(left=manual)).splitlines() if "left:" in x)
+    assert "a level in manual" not in line  # a self-regulating loop comes back (helper 52)
+    ipdt = {"model": "ipdt", "model_gain": 1e-4, "model_delay": 2.0}
+    level = hx1_result(left=manual, experiment=ipdt)  # an integrating one does not
+    line = next(x for x in format_result(level).splitlines() if "left:" in x)
     assert "not waited for: a level in manual stays where it is" in line
     # the wait cut short by the plant falling silent: said, the figures the last seen (the
     # stale PV was printed as "still on its way back": helper trial E)

@@ -923,6 +923,8 @@ class TuningRun:
             "returned": bool(returned),
             "waited": waited,
             "cut": cut,
+            # a faulted loop's PV is held at its last value: "back where it was" says nothing
+            **({"fault": st.fault} if st.fault is not None else {}),
         }
 
     def _give_back(

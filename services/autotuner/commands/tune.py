@@ -957,7 +957,11 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
                     f"; the PV is {lf['pv'] - was:+.3g} {pv_units} from where it was before the "
                     f"test ({was:.4g}), not waited for"
                     # (an integrating loop in manual never comes back by itself)
-                    + (": a level in manual stays where it is" if lf["mode"] == "manual" else "")
+                    + (
+                        ": a level in manual stays where it is"
+                        if lf["mode"] == "manual" and _integrating(r)
+                        else ""
+                    )
                 )
         else:
             where = (
@@ -975,6 +979,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             back = f"the PV is {where}: target {lf['pv_target']:.4g}{within}"
             if lf.get("cut"):  # the figures are the last seen before the plant fell silent
                 back += f"; the wait for it was cut short, the figures the last seen: {lf['cut']}"
+        if lf.get("fault"):  # its PV held at its last value: where it is says nothing
+            back = f"the loop is FAULTED ({lf['fault']}): its PV is held, not measured"
         # the mean at rest is what was judged; the last sample alone carries the noise
         pv = (
             f"PV {lf['pv_rest']:.4g} {pv_units} at rest (last sample {lf['pv']:.4g})"
@@ -1049,6 +1055,13 @@ def run_and_report(
             raise KeyboardInterrupt from None
     _print_result(args, result)
     return 0 if result.status in DONE_STATUSES else 1
+
+
+def _integrating(r: TuneResult) -> bool:
+    """The run found the process integrating (an IPDT model, or an integrating step)."""
+    return (r.experiment or {}).get("model") == "ipdt" or (r.step or {}).get(
+        "method"
+    ) == "integrating"
 
 
 def _print_result(args: argparse.Namespace, result: TuneResult) -> None:
