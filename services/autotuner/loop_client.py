@@ -513,6 +513,15 @@ class LoopClient:
                     if paused > OVERSLEPT
                     else ""
                 )
+                if self.user is not None and not self.gone and not own:
+                    # its token there, its commands unanswered: in a secure deployment the
+                    # router drops, silently, what this user may not write (an operator's
+                    # `autotune set` read as a dead plant: helper 52)
+                    own = (
+                        f" (the plant's token is there: the router may not let user "
+                        f"{self.user!r} write to this loop; in the secure deployment only the "
+                        "tuner's credentials do)"
+                    )
                 raise PlantLost(
                     f"loop {self.loop!r}: no answer to a sync within {self.timeout:g} s" + own
                 )

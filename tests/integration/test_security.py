@@ -21,12 +21,13 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services.autotuner.loop_client import wait_for_token
+from services.autotuner.commands.tune import submit
+from services.autotuner.loop_client import LoopClient, PlantLost, wait_for_token
 from services.launcher import free_tcp_port, start_service, stop_service
 from services.logger.mcap_io import read_run
 from services.up import ROLES, reference_configs, write_secure
 from shared import keys, wire
-from shared.errors import ConfigError
+from shared.errors import AutotuneError, ConfigError
 from shared.messages import (
     LoggerStatus,
     LoopStatus,
@@ -323,6 +324,12 @@ def test_the_operator_tunes_and_cancels_but_cannot_write_to_the_plant(secure):
         assert set(watched["by_key"]) == {"tune/hx2/cancel"}, watched
         assert watched["rogue_delivered"] == report["by_kind"]["cancel"]
         assert counters(watcher, p, "hx2") == before
+        # what the refused hear: not a dead plant, nor "is the tuner running?" (helper 52)
+        refused = pytest.raises(PlantLost, match="the router may not let user 'operator' write")
+        with refused, LoopClient(operator, p, "hx2", source="t", timeout=1.0, user="operator") as c:
+            c.sync()
+        with pytest.raises(AutotuneError, match=r"^an autotuner is there .* or the router does"):
+            submit(watcher, p, "tuner", TuneRequest(loop="hx2"), timeout=1.0)
         results = Results(operator, p, "hx2")
         req = TuneRequest(loop="hx2", cycles=20, tolerance=0.0005, source="operator")
         accepted = request_tune(operator, p, req)

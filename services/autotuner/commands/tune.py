@@ -283,7 +283,15 @@ def submit(
                 f"{reply.err.payload.to_bytes().decode(errors='replace')}"
             )
         time.sleep(0.05)
-    raise missing()
+    # its token seen, its queryable silent: paused or starved, or (a secure deployment) the
+    # router drops this session's requests, which it may not send (a viewer's `autotune
+    # tune` was asked whether the tuner was running: helper 52)
+    raise AutotuneError(
+        f"an autotuner is there ({keys.tuner_alive(prefix, node)}) but did not answer the "
+        f"request at {key} within {timeout:g} s: it is paused or starved, or the router does "
+        "not let this session send requests (in the secure deployment, the operator's "
+        f"credentials do){unreached(session)}"
+    )
 
 
 def loop_state(session: zenoh.Session, prefix: str, loop: str, timeout: float = 2.0) -> str:
