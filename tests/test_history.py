@@ -200,12 +200,22 @@ def test_the_listing_offers_apply_only_for_a_run_with_gains_to_apply():
         {**base, "run_id": "r1", "status": "rejected", "rule": "tl-pid", "gains": gains}
         | {"applied_from": "p1"}
     )
+    # a tune whose verification rejected its gains on the loop: applying them again would run
+    # the same test (it was offered: helper 52); one refused before any try still offers
+    why = "new gains are worse than before on iae_sp: previous gains restored"
+    items.append(
+        {**base, "run_id": "v1", "status": "rejected", "rule": "tl-pid", "gains": gains}
+        | {"reason": why, "verification_after": {"overshoot": 12.0}}
+    )
+    items.append({**base, "run_id": "e1", "status": "rejected", "rule": "tl-pid", "gains": gains})
     lines = format_entries(LOOP, Path("runs"), items).splitlines()[1:]
     assert lines[0].endswith("proposed, not applied; recommended tl-pid: `autotune apply p1`")
     assert lines[1].endswith("run a1 (relay): aborted, no gains to apply")
     assert lines[2].endswith(
         "run r1 (apply of run p1): rejected, not applied (the gains of run p1, tl-pid)"
     )
+    assert lines[3].endswith(f"run v1 (relay): rejected, tried on the loop and rejected ({why})")
+    assert lines[4].endswith("rejected, not applied; recommended tl-pid: `autotune apply e1`")
 
 
 def test_a_torn_last_line_is_skipped(tmp_path):

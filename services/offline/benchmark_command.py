@@ -89,9 +89,11 @@ def _numbers(flag: str, text: str) -> list[float]:
     try:
         values = [float(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise SystemExit(f"autotune benchmark: {flag} {text!r}: not a list of numbers") from None
+        raise SystemExit(
+            f"autotune benchmark: error: {flag} {text!r}: not a list of numbers"
+        ) from None
     if not all(math.isfinite(v) for v in values):
-        raise SystemExit(f"autotune benchmark: {flag} {text!r}: not a list of numbers")
+        raise SystemExit(f"autotune benchmark: error: {flag} {text!r}: not a list of numbers")
     return values
 
 
@@ -100,15 +102,19 @@ def _parse(args: argparse.Namespace) -> tuple[list[float], list[str], list[float
         noise = [float(x) for x in args.noise.split(",") if x.strip()]
     except ValueError:
         raise SystemExit(
-            f"autotune benchmark: --noise {args.noise!r}: not a list of numbers"
+            f"autotune benchmark: error: --noise {args.noise!r}: not a list of numbers"
         ) from None
     if not noise or any(not (0.0 <= n < 0.5) for n in noise):
-        raise SystemExit(f"autotune benchmark: --noise {args.noise!r}: each must be in [0, 0.5)")
+        raise SystemExit(
+            f"autotune benchmark: error: --noise {args.noise!r}: each must be in [0, 0.5)"
+        )
     ratios = _ratios(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     bad = [m for m in methods if m not in ("relay", "ramp")]
     if not methods or bad:
-        raise SystemExit(f"autotune benchmark: --methods {args.methods!r}: use relay and/or ramp")
+        raise SystemExit(
+            f"autotune benchmark: error: --methods {args.methods!r}: use relay and/or ramp"
+        )
     return noise, methods, ratios
 
 
@@ -118,7 +124,7 @@ def _ratios(args: argparse.Namespace) -> list[float]:
     text = _csv(default) if args.ratios is None else args.ratios
     ratios = _numbers("--ratios", text)
     if any(not (0.0 < r <= 1e4) for r in ratios):
-        raise SystemExit(f"autotune benchmark: --ratios {text!r}: each in (0, 1e4]")
+        raise SystemExit(f"autotune benchmark: error: --ratios {text!r}: each in (0, 1e4]")
     return ratios
 
 
@@ -128,22 +134,22 @@ def _parse_iinoya_hotta(args: argparse.Namespace) -> tuple[list[float], list[flo
     if not args.iinoya_hotta:
         for flag, value in (("--measure", args.measure), ("--plot", args.plot)):
             if value is not None:
-                raise SystemExit(f"autotune benchmark: {flag}: only with --iinoya-hotta")
+                raise SystemExit(f"autotune benchmark: error: {flag}: only with --iinoya-hotta")
         return [], [], None
     ratios = _ratios(args)
     measure = ratios if args.measure is None else _numbers("--measure", args.measure)
     lo, hi = MEASURE_RANGE
     if any(not (lo <= r <= hi) for r in measure):
         raise SystemExit(
-            f"autotune benchmark: --measure {args.measure!r}: each in [{lo:g}, {hi:g}] "
+            f"autotune benchmark: error: --measure {args.measure!r}: each in [{lo:g}, {hi:g}] "
             "(use --ratios for closed forms beyond)"
         )
     if not ratios and not measure:
-        raise SystemExit("autotune benchmark: --ratios '': --iinoya-hotta needs a T/L")
+        raise SystemExit("autotune benchmark: error: --ratios '': --iinoya-hotta needs a T/L")
     if args.plot is None:
         return ratios, measure, None
     if not args.plot.strip():
-        raise SystemExit("autotune benchmark: --plot '': name a directory")
+        raise SystemExit("autotune benchmark: error: --plot '': name a directory")
     check_runs_dir("--plot", args.plot)  # a directory, or one that can be made, writable
     return ratios, measure, Path(args.plot)
 
@@ -182,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
     _parse_iinoya_hotta(args)  # its flags are refused without it
     plants = [p for p in benchmark.suite() if args.plants in p.name]
     if not plants:
-        raise SystemExit(f"autotune benchmark: --plants {args.plants!r}: no plant matches")
+        raise SystemExit(f"autotune benchmark: error: --plants {args.plants!r}: no plant matches")
     started = time.perf_counter()
     outcomes = []
     for plant in plants:
@@ -565,14 +571,16 @@ def write_plots(figs: ih.Figures, directory: Path) -> list[Path]:
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise SystemExit(f"autotune benchmark: --plot {directory}: {err.strerror}") from None
+        raise SystemExit(f"autotune benchmark: error: --plot {directory}: {err.strerror}") from None
     out = []
     for n, build in ((1, figure_1), (2, figure_2), (3, figure_3)):
         path = directory / f"iinoya_hotta_fig{n}.png"
         try:
             build(figs, c).savefig(path, dpi=110)
         except OSError as err:
-            raise SystemExit(f"autotune benchmark: --plot {directory}: {err.strerror}") from None
+            raise SystemExit(
+                f"autotune benchmark: error: --plot {directory}: {err.strerror}"
+            ) from None
         out.append(path)
     return out
 

@@ -157,6 +157,11 @@ def format_entries(
             head = f"  {when}  run {r.get('run_id')} ({kind}): {r.get('status')}, "
             if source:  # tried on the loop and not kept: apply would try them again
                 lines.append(f"{head}not applied (the gains of run {source}, {rule})")
+            elif r.get("status") == "rejected" and r.get("verification_after"):
+                # tried on the loop and refused by its verification: applying them again
+                # would run the same test (it was suggested: helper 52)
+                why = r.get("reason") or "its verification failed"
+                lines.append(f"{head}tried on the loop and rejected ({why})")
             elif r.get("status") in APPLICABLE_STATUSES and r.get("gains"):
                 lines.append(f"{head}not applied; {_apply_hint(r)}")
             else:  # an aborted or failed run: nothing `autotune apply` would take
