@@ -338,8 +338,16 @@ def recommend(
                 safest.rule,
                 safest.gains,
                 _number(safest.robustness.ms),
-                f"the most robust candidate on {on} (none within the margin "
-                f"{_margins(model, ms_bound)})",
+                # the candidates named: the table lists every rule, and some outside the
+                # pool may be within the margin (hx1 by relay: lambda-pid at 1.13 beside
+                # "none within the margin": helper 52)
+                (
+                    f"the only candidate on {on}"
+                    if len(judged) == 1
+                    else f"the most robust of the candidates "
+                    f"{', '.join(sorted(judged_names(judged)))} on {on}"
+                )
+                + f" (none within the margin {_margins(model, ms_bound)})",
             )
     fallback = next((safe[r] for r in FALLBACKS if r in safe), None)
     if fallback is None:
@@ -352,6 +360,11 @@ def recommend(
     else:
         reason = "no model to judge the candidates on: the robust default"
     return Recommendation(fallback.rule, fallback.gains, _number(rb.ms) if rb else None, reason)
+
+
+def judged_names(judged: list) -> list[str]:
+    """The rules of the assessments ``judged``."""
+    return [a.rule for a in judged]
 
 
 def _margins(model: ProcessFit, ms_bound: float) -> str:
