@@ -163,9 +163,10 @@ class RelayConfig:
     # and an integrating process's own part of the swing (its run past ε, about k·d·θ) is
     # within the noise (lvl2 at d = 5 %: a = 1.1ε, its model's dead time read 1.5 s against
     # 2 s, the gains rejected at 46 % overshoot). d then grows toward ε/a = ``grow_target``
-    # (a ∝ d), by ``grow_factor`` at most, within the output's room about the bias and half
-    # the PV's room to its limits less 4σ, and stage 1 counts again, ``grow_times`` at most; by less
-    # than ``grow_least`` it does not (the cycles it costs buy too little). None: never, as a
+    # (a ∝ d), by ``grow_factor`` at most, within the output's room about the bias, and the
+    # largest cycle grown with it within half the room (less 4σ) to the PV limits or the
+    # transmitter's range; stage 1 counts again, ``grow_times`` at most; by less than
+    # ``grow_least`` it does not (the cycles it costs buy too little). None: never, as for a
     # d the engineer gave (--amplitude) and a run recorded before
     grow_times: int | None = 2
     grow_ratio: float = 0.5
@@ -825,7 +826,7 @@ class RelayTest:
         if ratio <= cfg.grow_ratio:
             return False
         if self._grown >= cfg.grow_times:
-            self._held = f"it grows {cfg.grow_times} times at most"
+            self._held = f"its limit of {cfg.grow_times} growths"
             return False
         lo, hi = self._limits()
         pv_lo, pv_hi = abort_band(self.pv_limits, self.pv_range)  # where the test aborts
@@ -844,7 +845,7 @@ class RelayTest:
         }
         by = min(bounds.values())
         if not by >= cfg.grow_least:
-            self._held = min(bounds, key=lambda k: bounds[k])
+            self._held = min(bounds, key=lambda k: bounds[k]) or None
             return False
         before, self._d = self._d, self._d * by
         self._grown += 1
