@@ -121,7 +121,8 @@ def _check_limits(req: TuneRequest, status: LoopStatus) -> None:
     not as a run that ``failed`` (exit 1, its reason among the result's lines)."""
     if req.apply_from:
         return
-    lo, hi = abort_band(req.pv_limits or status.pv_range, status.pv_range)
+    ranged = status.pv_range[0] < status.pv_range[1]
+    lo, hi = abort_band(req.pv_limits or status.pv_range, status.pv_range if ranged else None)
     eps = req.hysteresis if req.method == "relay" else None
     if eps is not None and eps >= 0.5 * (hi - lo):
         raise ValueError(

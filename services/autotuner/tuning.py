@@ -235,7 +235,9 @@ class TuningRun:
         # verification stepped the setpoint to 51.2 and the run aborted, "sp outside the PV
         # range")
         asked = tuple(req.pv_limits) if req.pv_limits else None
-        self.pv_limits = abort_band(asked or client.info.pv_range, client.info.pv_range)
+        pv_range = tuple(client.info.pv_range)
+        ranged = pv_range[0] < pv_range[1]  # (a range not lo < hi clips nothing it can say)
+        self.pv_limits = abort_band(asked or pv_range, pv_range if ranged else None)
         self._limits_clipped = asked is not None and asked != self.pv_limits
         # every sample the run reads, against its PV limits (``limit_watch``)
         self.outside = LimitWatch(*self.pv_limits)
