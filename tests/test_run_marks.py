@@ -31,3 +31,16 @@ def test_an_abandoned_stage_two_is_marked_at_its_start_only():
         _event(22.4, stage=2, abandoned=1),
     ]
     assert [m.t for m in experiment_marks(events, "degC")] == [10.0]
+
+
+def test_a_growth_of_the_relays_amplitude_is_marked_from_and_to():
+    """The relay's d grew (its cycle rode on the hysteresis): the output's swing changes
+    there, which the figure shows (helper 51: no mark, as for a widening of ε)."""
+    grew = TunerEvent(
+        run_id="r", loop="lvl2", t=72.0, kind="amplitude",
+        data={"relay_amplitude": 20.0, "from": 5.0, "amplitude": 0.0062, "hysteresis": 0.0068},
+    )  # fmt: skip
+    marks = experiment_marks([grew], "m")
+    assert [(m.t, m.kind, m.label) for m in marks] == [
+        (72.0, "relay amplitude", "relay amplitude 5 → 20 %")
+    ]

@@ -265,6 +265,7 @@ MARK_STYLE = {
     "cycle": ("0.55", ":"),
     "stage 2": ("tab:purple", "-"),
     "stage 2 again": ("tab:pink", "-"),
+    "relay amplitude": ("tab:orange", "-"),
     "trial": ("tab:purple", "--"),
     "load": ("tab:brown", "-."),
     "output step": ("tab:cyan", "-"),
@@ -309,7 +310,7 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
     for m in s.events:
         if m.kind in MARK_STYLE:
             color, ls = MARK_STYLE[m.kind]
-            for ax in (ax_pv, ax_op) if m.kind == "output step" else (ax_pv,):
+            for ax in (ax_pv, ax_op) if m.kind in ("output step", "relay amplitude") else (ax_pv,):
                 ax.axvline(m.t, color=color, lw=0.7, ls=ls)
         if m.kind in ("cycle", "trial"):
             ax_pv.text(
@@ -334,6 +335,13 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
     if "cycle" in kinds:
         n = sum(1 for m in s.events if m.kind == "cycle")
         handles_pv.append(_proxy(f"relay cycle closed (n = 1…{n})", *MARK_STYLE["cycle"]))
+    if "relay amplitude" in kinds:
+        grew = ", ".join(
+            m.label.removeprefix("relay amplitude ")
+            for m in s.events
+            if m.kind == "relay amplitude"
+        )
+        handles_op.append(_proxy(f"relay amplitude grew: {grew}", *MARK_STYLE["relay amplitude"]))
     if "stage 2" in kinds:
         handles_pv.append(_proxy("relay stage 2 starts", *MARK_STYLE["stage 2"]))
     if "stage 2 again" in kinds:

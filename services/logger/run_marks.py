@@ -1,8 +1,8 @@
 """The marks of a recorded run on its sim-time axis, each with the label its legend shows:
-relay switches, relay cycles, the start of the relay's stage 2, ramp trials with their Kc,
-the step test's output steps, and per verification the gains applied, the setpoint step and
-the load step. Pure: from the decoded messages' own sim time ``t`` (never the file's log
-time, which may be wall-clock)."""
+relay switches, relay cycles, the relay's amplitude growing, the start of its stage 2, ramp
+trials with their Kc, the step test's output steps, and per verification the gains applied,
+the setpoint step and the load step. Pure: from the decoded messages' own sim time ``t``
+(never the file's log time, which may be wall-clock)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ LOAD = "load"  # the disturbance input the verification steps (tuning._verify)
 @dataclass(frozen=True)
 class Mark:
     t: float  # s, sim time
-    kind: str  # "switch", "cycle", "stage 2", "stage 2 again", "trial", "output step"
+    # "switch", "cycle", "relay amplitude", "stage 2", "stage 2 again", "trial", "output step"
+    kind: str
     label: str
 
 
@@ -45,6 +46,14 @@ def experiment_marks(events: Sequence[TunerEvent], units: str) -> list[Mark]:
             out.append(Mark(e.t, "stage 2 again", "stage 2 set again"))
         elif e.kind == "stage" and d.get("stage") == 2 and "level" in d:  # its start
             out.append(Mark(e.t, "stage 2", "stage 2"))
+        elif e.kind == "amplitude":  # the relay's d grew (its cycle rode on the hysteresis)
+            old, new = _num(d.get("from")), _num(d.get("relay_amplitude"))
+            text = (
+                f"relay amplitude {old:.3g} → {new:.3g} %"
+                if old is not None and new is not None
+                else "relay amplitude grew"
+            )
+            out.append(Mark(e.t, "relay amplitude", text))
         elif e.kind == "step":
             op = _num(d.get("op"))
             text = f"output step to {op:.4g} %" if op is not None else "output step"
