@@ -156,7 +156,12 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="apply the rule's gains even if predicted unstable or above --ms-bound",
     )
-    parser.add_argument("--amplitude", type=float, help="relay amplitude d, %% (default 5)")
+    parser.add_argument(
+        "--amplitude",
+        type=float,
+        help="relay amplitude d, %% (default 5, grown where the cycle rides on the hysteresis; "
+        "one given is kept)",
+    )
     parser.add_argument(
         "--hysteresis", type=float, help="relay hysteresis, PV units (default: 3σ of the PV noise)"
     )
