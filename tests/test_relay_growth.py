@@ -61,7 +61,7 @@ def test_a_cycle_riding_on_the_hysteresis_grows_the_relay_and_reads_the_process(
     assert all(g["relay_amplitude"] <= RelayConfig.grow_factor * g["from"] for g in grown)
     assert r.hysteresis / r.amplitude <= RelayConfig.grow_ratio
     gain, delay = _model(test)
-    assert gain == pytest.approx(K, rel=0.03)
+    assert gain == pytest.approx(K, rel=0.04)  # (its balance fitted too: one more free figure)
     assert delay == pytest.approx(DEAD, rel=0.06)
 
 

@@ -1047,6 +1047,7 @@ class TuningRun:
             common["relay_chatter"] = True
             common["relay_wrong_way"] = True
             common["relay_grow"] = True
+            common["relay_offset"] = True
         if req.method == "ramp":
             common["ramp_wrong_way"] = True
         if req.method in ("relay", "ramp"):

@@ -273,6 +273,9 @@ class Setup:
     # the request left it to the default, and counts again (``RelayConfig.grow_times``);
     # None: recorded before, d kept
     relay_grow: bool | None = None
+    # True: a relay's whole-record fit of an integrating model also fits the held output's
+    # offset from its balance (``RelayConfig.fit_offset``); None: recorded before, it did not
+    relay_offset: bool | None = None
     # True: a ramp whose trials went against their bumps, none oscillating, aborts there
     # (``RampConfig.stop_wrong_way``); None: recorded before, it ran on to its limits
     ramp_wrong_way: bool | None = None

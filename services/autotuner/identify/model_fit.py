@@ -202,7 +202,7 @@ MAX_RECORD = 4000  # samples a record fit works on (longer records are block-ave
 
 
 def refine_on_record(
-    start: ProcessFit, sample_time: float, u: np.ndarray, y: np.ndarray
+    start: ProcessFit, sample_time: float, u: np.ndarray, y: np.ndarray, offset: bool = False
 ) -> ProcessFit | None:
     """The model of ``start``'s kind that best reproduces a whole record (output error, least
     squares), starting from ``start``. ``u``: output deviations held from each sample; ``y``:
@@ -210,6 +210,13 @@ def refine_on_record(
     what the frequency points cannot: the slow response, and so the static gain. A record
     longer than MAX_RECORD samples is fitted in blocks (the output averaged over each, the PV
     at its start): a model, unlike the ultimate point, does not need every sample.
+
+    With ``offset``, an integrating model (ipdt) also fits the output's offset from its
+    balance (``u`` − u₀): a loop held for the test at an output off the one that balances its
+    flows drifts from the start, and a level re-tuned from auto, held at its controller's
+    mean output (a noisy mean: 0.6 % off), read "IPDT fit misses the record" with its dead
+    time exact (the relay's bias found the balance; the model, without u₀, integrated the
+    bias's move as a ramp the PV never made).
 
     The returned ``rms`` is the residual's rms over the PV's standard deviation."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
@@ -222,23 +229,32 @@ def refine_on_record(
     n_lags = len(start.lags)
     lo = np.array([-60.0] + [math.log(sample_time / 100)] * n_lags + [0.0])
     hi = np.array([60.0] + [math.log(1e6 / w0)] * n_lags + [len(u) * sample_time / 2])
+    x0 = _params(start)
+    free = offset and start.kind == "ipdt"  # u₀, % of output: the last parameter
+    if free:
+        reach = float(np.max(np.abs(u))) + 1.0 if u.size else 1.0
+        lo, hi, x0 = np.append(lo, -reach), np.append(hi, reach), np.append(x0, 0.0)
+
+    def model_of(x: np.ndarray, rms: float) -> ProcessFit:
+        return _from_params(start.kind, x[:-1] if free else x, rms)
 
     def residual(x: np.ndarray) -> np.ndarray:
         try:
-            return (response_to(_from_params(start.kind, x, 0.0), sample_time, u) - y) / scale
+            held = u - x[-1] if free else u
+            return (response_to(model_of(x, 0.0), sample_time, held) - y) / scale
         except (ValueError, np.linalg.LinAlgError, OverflowError):
             return np.full(y.size, 1e3)
 
     from scipy.optimize import least_squares
 
-    x0 = np.clip(_params(start), lo + 1e-9, hi - 1e-9)
+    x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
     try:
         sol = least_squares(residual, x0, bounds=(lo, hi), x_scale="jac", max_nfev=100)
     except (ValueError, FloatingPointError, OverflowError):
         return None
     if not np.all(np.isfinite(sol.x)):
         return None
-    return _from_params(start.kind, sol.x, math.sqrt(2.0 * sol.cost / y.size))
+    return model_of(sol.x, math.sqrt(2.0 * sol.cost / y.size))
 
 
 def choose_on_record(fits: Sequence[ProcessFit], samples: int) -> ProcessFit | None:

@@ -173,6 +173,9 @@ class RelayConfig:
     grow_target: float = 0.25
     grow_factor: float = 4.0
     grow_least: float = 1.5
+    # the whole-record fit of an integrating model also fits the held output's offset from
+    # its balance (``model_fit.refine_on_record``); False: a run recorded before
+    fit_offset: bool = True
     # the K_u/P_u estimator's thresholds (relay_estimate)
     estimate: EstimateConfig = field(default_factory=EstimateConfig)
 
@@ -1003,7 +1006,8 @@ class RelayTest:
         if refined is None and s1.points:  # stage 2 missing: the model from stage 1 alone
             correct = corrector(record, s1.window, None, self._stage_two_harmonics())
             refined = refine(s1, (), correct, est_cfg)
-        model = process_model(record, refined.candidates) if refined else None
+        offset = self.config.fit_offset
+        model = process_model(record, refined.candidates, offset) if refined else None
         est = estimate(s1, refined, model, est_cfg)
         self.result = RelayResult(
             ku=est.ku,
@@ -1093,6 +1097,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         grow_times=RelayConfig.grow_times
         if setup.relay_grow and not settings.amplitude_given
         else None,
+        fit_offset=bool(setup.relay_offset),
         **budget,
     )
     return RelayTest(

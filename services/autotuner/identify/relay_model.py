@@ -112,16 +112,19 @@ def _ramp(t: np.ndarray, window: tuple[float, float, int]) -> np.ndarray:
     return (t - start) / (n * period)
 
 
-def process_model(record: RelayRecord, candidates: tuple[ProcessFit, ...]) -> ProcessFit | None:
+def process_model(
+    record: RelayRecord, candidates: tuple[ProcessFit, ...], offset: bool = False
+) -> ProcessFit | None:
     """The process model for rules and robustness: each model fitted to the frequency
     points, refined on the whole record from rest (which adds the slow response and the
-    static gain), the best by its information criterion."""
+    static gain), the best by its information criterion. ``offset``: an integrating model
+    also fits the held output's offset from its balance (``refine_on_record``)."""
     y = record.pv - record.rest_pv
     u = record.op[: y.size] - record.op_start
     refined = [
         f
         for start in candidates
-        if (f := refine_on_record(start, record.sample_time, u, y)) is not None
+        if (f := refine_on_record(start, record.sample_time, u, y, offset)) is not None
     ]
     best = choose_on_record(refined, y.size)
     if best is None:
