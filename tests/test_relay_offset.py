@@ -43,6 +43,9 @@ def test_a_relay_held_off_the_balance_reads_the_integrator(off, seed):
     assert m is not None and m.kind == "ipdt"
     assert m.gain == pytest.approx(K, rel=0.06)
     assert m.delay == pytest.approx(DEAD, rel=0.03)
+    # the balance is 50 %, `off` below the output held: the offset found, said in the result
+    assert m.offset == pytest.approx(-off, abs=0.05)
+    assert test.result.to_dict()["model_offset"] == m.offset
 
 
 def test_without_the_offset_the_same_records_misread_it():

@@ -16,6 +16,7 @@ robustness (Ms) of candidate gains.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -38,6 +39,9 @@ class ProcessFit:
     rms: float  # weighted rms of the log residual (nepers ≈ radians); on a record: see there
     noise_rms: float = 0.0  # the rms the measurement noise alone would leave (record fits)
     source: str = "fit"  # "fit", or "reaction curve" (a tangent construction, never exact)
+    # %: the held output's offset from the balance, fitted with an integrator on a record
+    # (``refine_on_record`` with ``offset``); None: not fitted
+    offset: float | None = None
 
     @property
     def approximate(self) -> bool:
@@ -96,6 +100,8 @@ class ProcessFit:
         }
         for i, tau in enumerate(self.lags, start=1):
             out[f"model_lag_{i}"] = tau
+        if self.offset is not None:
+            out["model_offset"] = self.offset
         return out
 
 
@@ -236,7 +242,9 @@ def refine_on_record(
         lo, hi, x0 = np.append(lo, -reach), np.append(hi, reach), np.append(x0, 0.0)
 
     def model_of(x: np.ndarray, rms: float) -> ProcessFit:
-        return _from_params(start.kind, x[:-1] if free else x, rms)
+        if not free:
+            return _from_params(start.kind, x, rms)
+        return dataclasses.replace(_from_params(start.kind, x[:-1], rms), offset=float(x[-1]))
 
     def residual(x: np.ndarray) -> np.ndarray:
         try:
@@ -266,7 +274,7 @@ def choose_on_record(fits: Sequence[ProcessFit], samples: int) -> ProcessFit | N
     samples = min(samples, MAX_RECORD)  # what the fits worked on
 
     def bic(f: ProcessFit) -> float:
-        p = 2 + len(f.lags)
+        p = 2 + len(f.lags) + (f.offset is not None)  # a fitted offset is a parameter too
         return samples * math.log(max(f.rms, 1e-12) ** 2) + p * math.log(samples)
 
     return min(fits, key=bic)
