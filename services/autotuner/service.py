@@ -27,7 +27,11 @@ import zenoh
 
 from services.autotuner.compute_pool import ComputePool, inline, preload
 from services.autotuner.design.request_check import validate_request
-from services.autotuner.identify.experiments import DEFAULT_STEP_SIZE, abort_band
+from services.autotuner.identify.experiments import (
+    DEFAULT_STEP_SIZE,
+    limits_problem,
+    run_pv_limits,
+)
 from services.autotuner.loop_client import (
     LEASE_TIMEOUT,
     LoopClient,
@@ -121,16 +125,10 @@ def _check_limits(req: TuneRequest, status: LoopStatus) -> None:
     not as a run that ``failed`` (exit 1, its reason among the result's lines)."""
     if req.apply_from:
         return
-    ranged = status.pv_range[0] < status.pv_range[1]
-    lo, hi = abort_band(req.pv_limits or status.pv_range, status.pv_range if ranged else None)
-    eps = req.hysteresis if req.method == "relay" else None
-    if eps is not None and eps >= 0.5 * (hi - lo):
-        raise ValueError(
-            f"hysteresis: {eps:g} is at least half the PV limits' width ({hi - lo:g}): the "
-            "relay could not switch within them"
-        )
-    if req.pv_limits is not None and not lo <= status.pv <= hi:
-        raise ValueError(f"pv_limits: the PV {status.pv:.4g} is already outside [{lo:g}, {hi:g}]")
+    limits = run_pv_limits(req.pv_limits, status.pv_range)
+    why = limits_problem(req.method, req.hysteresis, status.pv, limits)
+    if why is not None:
+        raise ValueError(why)
 
 
 class TunerService:

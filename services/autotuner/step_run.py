@@ -150,7 +150,7 @@ def run_step_test(
             hold = _mean_output(
                 client,
                 before.gains.ti,
-                cap_of(info.clock),
+                _cap(info.clock),
                 lambda s: progress and progress(test, s),
             )
             test = make(hold)
@@ -161,7 +161,7 @@ def run_step_test(
         # by one, is the test fed a sample at a time, in a round trip instead of one each;
         # realtime: a sample at a time, as they come (a sample lost on the way must not put a
         # timed decision inside a batch counted in samples)
-        cap = cap_of(info.clock)
+        cap = _cap(info.clock)
         while not test.finished:
             n = test.horizon(cap)
             batch = client.samples(n, test.band()) if n > 1 else client.samples(1)
@@ -280,7 +280,7 @@ def run_step_test(
     )
 
 
-def cap_of(clock: str) -> int:
+def _cap(clock: str) -> int:
     """Samples per request: lockstep, a batch up to the test's next decision; realtime, one
     at a time, as they come."""
     return MAX_BATCH if clock == "lockstep" else 1

@@ -32,7 +32,14 @@ from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
-from services.autotuner.identify.experiments import Band, Demand, Experiment, Setup, abort_band
+from services.autotuner.identify.experiments import (
+    Band,
+    Demand,
+    Experiment,
+    Setup,
+    limits_problem,
+    run_pv_limits,
+)
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.ramp import RampTest
 from services.autotuner.identify.relay import RelayTest
@@ -230,15 +237,7 @@ class TuningRun:
     def __init__(
         self, client: LoopClient, req: TuneRequest, run_id: str, hooks: RunHooks | None = None
     ):
-        # within the transmitter's range: past its ends the PV is not measured (it clips), and
-        # the plant refuses a setpoint there (limits of 0-100 on a range of 49-51: the
-        # verification stepped the setpoint to 51.2 and the run aborted, "sp outside the PV
-        # range")
-        asked = tuple(req.pv_limits) if req.pv_limits else None
-        pv_range = tuple(client.info.pv_range)
-        ranged = pv_range[0] < pv_range[1]  # (a range not lo < hi clips nothing it can say)
-        self.pv_limits = abort_band(asked or pv_range, pv_range if ranged else None)
-        self._limits_clipped = asked is not None and asked != self.pv_limits
+        self.pv_limits = run_pv_limits(req.pv_limits, tuple(client.info.pv_range))
         # every sample the run reads, against its PV limits (``limit_watch``)
         self.outside = LimitWatch(*self.pv_limits)
         self.client = _Watched(client, self.outside)
@@ -325,26 +324,10 @@ class TuningRun:
             "applied_from": req.apply_from,
         }
         span = _span(self.info.pv_range)  # None: no % of span figures (a range not lo < hi)
-        lo, hi = self.pv_limits
-        eps = req.hysteresis if req.method == "relay" and not req.apply_from else None
-        if eps is not None and eps >= 0.5 * (hi - lo):  # refused before anything is sent
-            # a relay that switches only past ±ε of its rest never switches inside limits
-            # this close: it held its first push for hours of sim time (hysteresis 1e308)
-            result.update(
-                status="failed",
-                reason=f"hysteresis: {eps:g} {self.info.pv_units} is at least half the PV "
-                f"limits' width ({hi - lo:g}): the relay could not switch within them",
-                restored=True,
-                untouched=True,
-            )
-            return self._result(result, t0, wall0, None)
-        if not lo <= first.pv <= hi:  # refused before anything is sent to the loop
-            result.update(
-                status="failed",
-                reason=f"pv_limits: the PV {first.pv:.4g} is already outside [{lo:g}, {hi:g}]",
-                restored=True,
-                untouched=True,
-            )
+        eps = None if req.apply_from else req.hysteresis
+        why = limits_problem(req.method, eps, first.pv, self.pv_limits, self.info.pv_units)
+        if why is not None:  # refused before anything is sent to the loop
+            result.update(status="failed", reason=why, restored=True, untouched=True)
             return self._result(result, t0, wall0, None)
         restored = False
         try:
@@ -746,7 +729,8 @@ class TuningRun:
         result.update(
             t=self._t, sim_duration=self._t - t0, wall_time=time.monotonic() - wall0, left=left
         )
-        if self._limits_clipped:
+        asked = self.req.pv_limits
+        if asked is not None and tuple(asked) != self.pv_limits:  # kept to the range
             lo, hi = self.pv_limits
             result["warnings"] = [
                 *result.get("warnings", []),

@@ -345,7 +345,7 @@ def recommend(
                     f"the only candidate on {on}"
                     if len(judged) == 1
                     else f"the most robust of the candidates "
-                    f"{', '.join(sorted(judged_names(judged)))} on {on}"
+                    f"{', '.join(sorted(a.rule for a in judged))} on {on}"
                 )
                 + f" (none within the margin {_margins(model, ms_bound)})",
             )
@@ -360,11 +360,6 @@ def recommend(
     else:
         reason = "no model to judge the candidates on: the robust default"
     return Recommendation(fallback.rule, fallback.gains, _number(rb.ms) if rb else None, reason)
-
-
-def judged_names(judged: list) -> list[str]:
-    """The rules of the assessments ``judged``."""
-    return [a.rule for a in judged]
 
 
 def _margins(model: ProcessFit, ms_bound: float) -> str:

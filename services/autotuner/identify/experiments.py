@@ -174,6 +174,34 @@ def abort_band(
     return lo, hi
 
 
+def run_pv_limits(
+    asked: tuple[float, float] | None, pv_range: tuple[float, float]
+) -> tuple[float, float]:
+    """The PV limits a run keeps to: those asked (else the transmitter's range), within that
+    range where it is one (lo < hi): past its ends the PV is not measured (it clips), and
+    the plant refuses a setpoint there (limits of 0-100 on a range of 49-51: the
+    verification stepped the setpoint to 51.2 and the run aborted)."""
+    ranged = pv_range[0] < pv_range[1]  # (a range not lo < hi clips nothing it can say)
+    return abort_band(tuple(asked) if asked else pv_range, pv_range if ranged else None)
+
+
+def limits_problem(
+    method: str, hysteresis: float | None, pv: float, limits: tuple[float, float], units: str = ""
+) -> str | None:
+    """Why a run cannot start within its PV ``limits`` (the field at fault first), None if
+    it can: a relay ``hysteresis`` of half their width or more never switches within them
+    (1e308 held the relay's first push for hours of sim time), and a PV already outside."""
+    lo, hi = limits
+    if method == "relay" and hysteresis is not None and hysteresis >= 0.5 * (hi - lo):
+        return (
+            f"hysteresis: {hysteresis:g}{f' {units}' if units else ''} is at least half the PV "
+            f"limits' width ({hi - lo:g}): the relay could not switch within them"
+        )
+    if not lo <= pv <= hi:
+        return f"pv_limits: the PV {pv:.4g} is already outside [{lo:g}, {hi:g}]"
+    return None
+
+
 def clipped(pv: float, pv_range: tuple[float, float] | None, t: float, smaller: str) -> str:
     """Why a sample ends a test, when its PV sits at an end of the transmitter's range: the
     transmitter clips there, so the swing beyond is not measured (a relay read a cycle with

@@ -838,17 +838,16 @@ class RelayTest:
         # where the test aborts (its peaks, 4σ, come on top of the cycle's)
         largest = max(c.amplitude for c in recent)
         pv_room = min(pv_hi - self._r, self._r - pv_lo) - 4.0 * self._noise
-        bounds = {
-            "": min(cfg.grow_factor, ratio / cfg.grow_target),
+        room = {  # how far each room lets d grow, by what holds it there
             "the output's room about its bias": min(self.bias - lo, hi - self.bias) / self._d,
             "the room to the PV limits (or the transmitter's range), less the noise's "
             "peaks (wider --pv-limits let it grow)": 0.5 * pv_room / largest
             if largest > 0
             else math.inf,
         }
-        by = min(bounds.values())
-        if not by >= cfg.grow_least:
-            self._held = min(bounds, key=lambda k: bounds[k]) or None
+        by = min(cfg.grow_factor, ratio / cfg.grow_target, *room.values())
+        if not by >= cfg.grow_least:  # (the aim alone asks at least 2×: ratio > 0.5)
+            self._held = min(room, key=lambda k: room[k])
             return False
         before, self._d = self._d, self._d * by
         self._grown += 1
