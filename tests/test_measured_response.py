@@ -183,3 +183,15 @@ def test_settled_asks_for_a_number_last_and_a_short_record_its_own_spread():
     assert not settled(y, 600, 0.0, 4.0, 8.0)
     assert settled(np.array([1.0, 1.5, 0.75]), 3, 1.0, 0.5, 0.75)  # binary-exact spread
     assert not settled(np.array([1.0, 1.5, 0.75]), 3, 1.0, 0.5, 0.7499)
+
+
+def test_a_small_crest_ahead_of_the_overshoot_is_not_the_oscillations():
+    """A record through vertices worked by hand, z = 1 + (0.03, −0.01, 0.20, −0.08, 0.06) at
+    crests and troughs: its decay ratio is 0.06/0.20 (the crest after the largest), not
+    0.20/0.03 = 6.7, which called a decaying response growing."""
+    tv = np.array([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 12.0])
+    zv = np.array([0.0, 1.03, 0.99, 1.20, 0.92, 1.06, 1.0, 1.0])
+    t = np.linspace(0.0, 12.0, 1201)
+    f = measured_setpoint_step(T0 + t, Y0 + 10.0 * np.interp(t, tv, zv), T0, Y0, Y0 + 10.0)
+    assert f["decay_ratio"] == pytest.approx(0.06 / 0.20, rel=1e-9)
+    assert f["overshoot"] == pytest.approx(20.0, rel=1e-9)

@@ -8,6 +8,7 @@ import pytest
 
 from shared.control.signals import (
     at_rest,
+    decay_ratio,
     difference_noise,
     extrema,
     first_crossing,
@@ -66,3 +67,29 @@ def test_at_rest_means_no_trend_beyond_the_noise():
     assert at_rest(quiet)
     assert not at_rest(quiet + 0.01 * np.arange(200))  # drifts 2 units, 20σ
     assert not at_rest(np.array([1.0, 1.0]))  # too short to tell
+
+
+def test_decay_ratio_is_the_crest_after_the_largest_over_the_largest():
+    """Turning points of deviations from the final value worked by hand: a small crest of the
+    approach (0.7) ahead of the overshoot (4.65, then 1.6) is not the oscillation's (second
+    over first read 6.6, a growing loop's figure); a trough that stays above the final value
+    (0.37) is not a crest (it read 0.37/14.38 = 0.026 for a response whose next crest is
+    3.15)."""
+    approach = [(1.0, 0.7), (2.0, -0.3), (3.0, 4.65), (4.0, -2.0), (5.0, 1.6), (6.0, -0.5)]
+    assert decay_ratio(approach, 7.0) == pytest.approx(1.6 / 4.65, rel=1e-12)
+    shallow = [(42.0, 14.38), (66.0, 0.37), (86.0, 3.15), (100.0, -0.4)]
+    assert decay_ratio(shallow, 200.0) == pytest.approx(3.15 / 14.38, rel=1e-12)
+    quarter = [(1.0, 8.0), (2.0, -4.0), (3.0, 2.0), (4.0, -1.0), (5.0, 0.5)]
+    assert decay_ratio(quarter, 6.0) == pytest.approx(0.25, rel=1e-12)
+
+
+def test_decay_ratio_where_the_largest_crest_is_the_last():
+    """Growing crests (1, 2, 4) cut by the record's end within 1.5 crest spacings of the last:
+    4/2 (it may grow on); the same crests watched for 1.5 spacings beyond the last with no
+    crest again: it died (None); one crest or none: None."""
+    growing = [(10.0, 1.0), (15.0, -1.5), (20.0, 2.0), (25.0, -3.0), (30.0, 4.0), (35.0, -1.0)]
+    assert decay_ratio(growing, 38.0) == pytest.approx(2.0, rel=1e-12)
+    assert decay_ratio(growing, 45.0) is None
+    assert decay_ratio([(1.0, 3.0), (2.0, -0.5)], 10.0) is None
+    assert decay_ratio([(1.0, -3.0), (2.0, -0.5)], 10.0) is None
+    assert decay_ratio([], 10.0) is None

@@ -2,11 +2,11 @@
 (% of span), and their sample times t in s.
 
 Rest and noise (``noise_level``, ``difference_noise``, ``at_rest``, ``range_end``), the first
-crossing of a level (``first_crossing``), turning points (``extrema``, after ``smooth``) and
-the trapezoid integral (``trapezoid``): what identification and the response figures read off
-a record. The sample type the experiments are fed (``Sample``): anything with ``t`` (s, sim
-time), ``pv`` (PV units) and ``op`` (% of output), as the bus's ``ProcessSample`` and a
-replayed record are.
+crossing of a level (``first_crossing``), turning points (``extrema``, after ``smooth``), a
+step response's decay ratio from them (``decay_ratio``) and the trapezoid integral
+(``trapezoid``): what identification and the response figures read off a record. The sample
+type the experiments are fed (``Sample``): anything with ``t`` (s, sim time), ``pv`` (PV
+units) and ``op`` (% of output), as the bus's ``ProcessSample`` and a replayed record are.
 """
 
 from __future__ import annotations
@@ -148,6 +148,34 @@ def extrema(t: np.ndarray, y: np.ndarray, min_swing: float) -> list[tuple[float,
                 out.append((tv[k], yv[k]))
                 direction, k = 1, i
     return out
+
+
+def decay_ratio(turns: list[tuple[float, float]], end: float) -> float | None:
+    """A step response's decay ratio from its turning points (``extrema`` of the deviation
+    from the final value or the setpoint, in order; ``end``: the record's last time, s or
+    samples as the turns' times): the crest after the largest over the
+    largest (crests: maxima above zero; the quarter-decay aim is 0.25). Not the second crest
+    over the first: a small crest of the approach ahead of the overshoot is not the
+    oscillation's (a stable flow loop's 0.7 % crest before its 4.65 % overshoot read 7.9,
+    a growing loop's figure). Where the largest is the last, the record tells: watched for
+    1.5 crest spacings after it with no crest again, the oscillation has died (None, as for
+    a single crest); else the largest over the one before (≥ 1: it may be growing)."""
+    kinds = [
+        (j + 1 < len(turns) and v > turns[j + 1][1]) or (j > 0 and v > turns[j - 1][1])
+        for j, (_, v) in enumerate(turns)
+    ]
+    crests = [(t, v) for (t, v), top in zip(turns, kinds, strict=True) if top and v > 0]
+    if not crests:
+        return None
+    m = max(range(len(crests)), key=lambda j: crests[j][1])
+    if m + 1 < len(crests):
+        return crests[m + 1][1] / crests[m][1]
+    if m == 0:
+        return None
+    spacing = crests[m][0] - crests[m - 1][0]
+    if end - crests[m][0] >= 1.5 * spacing:
+        return None
+    return crests[m][1] / crests[m - 1][1]
 
 
 def trapezoid(y: np.ndarray, t: np.ndarray) -> float:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.control.signals import extrema, first_crossing, smooth, trapezoid
+from shared.control.signals import decay_ratio, extrema, first_crossing, smooth, trapezoid
 
 
 def measured_setpoint_step(
@@ -32,7 +32,8 @@ def measured_setpoint_step(
 
     ``overshoot`` (%): how far the PV passes the setpoint, 100·(max(z) − 1) with z =
     (y − y₀)/(r − y₀), at least 0 (with noise: the crest's height, ``_crest``);
-    ``decay_ratio``: the second peak above the setpoint over the first (None without two);
+    ``decay_ratio``: the crest above the setpoint after the largest over the largest
+    (``signals.decay_ratio``; None without a second);
     times in s; ``iae`` in PV units·s. ``width``: samples the noise is averaged over (odd; a
     small part of the period, so that the averaging leaves a peak's height alone while it
     takes the noise off it)."""
@@ -46,8 +47,7 @@ def measured_setpoint_step(
     zs = smooth(z, width) if noisy else z
     over = _crest(t, z, zs, width) if noisy else float(np.max(zs) - 1.0)
     ext = extrema(t, zs - 1.0, max(0.02, 8 * rel_noise))
-    peaks = [v for _, v in ext if v > 0]
-    decay = peaks[1] / peaks[0] if len(peaks) >= 2 and peaks[0] > 0 else None
+    decay = decay_ratio(ext, float(t[-1])) if t.size else None
     t10, t90 = first_crossing(t, z, 0.1), first_crossing(t, z, 0.9)
     tol = max(band, 3 * noise / abs(delta))
     outside = np.nonzero(np.abs(z - 1.0) > tol)[0]

@@ -9,9 +9,10 @@ of the loop's time scale (P_u, or the model's delay plus lag).
 Overshoot is read about the simulated loop's final value (the mean of the last tenth), in %
 of that final value: 100·(max(y) − y_∞)/|y_∞| — so P control's offset does not count as
 overshoot, unlike the overshoot ``measured_response`` reads about the setpoint. Decay ratio:
-the second peak's excess over the final value over the first's (turning points that clear
-1 % of the final value; the quarter-decay aim of Ziegler–Nichols is 0.25); 0 when the response
-does not oscillate; ``stable`` False when the response grows.
+the excess over the final value of the crest after the largest over the largest's
+(``signals.decay_ratio``; turning points that clear 1 % of the final value; the quarter-decay
+aim of Ziegler–Nichols is 0.25); 0 when the response does not oscillate; ``stable`` False
+when the response grows.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 from shared.control.forms import IsaGains
 from shared.control.lti import discretize, tf_to_ss
 from shared.control.setpoint_steps import setpoint_steps
-from shared.control.signals import extrema
+from shared.control.signals import decay_ratio, extrema
 from shared.control.transfer import DelayedTF
 
 MAX_SAMPLES = 2000  # the simulation is resampled coarser (≥ 60 samples per time scale)
@@ -95,7 +96,5 @@ def _figures(y: np.ndarray) -> StepFigures:
     # the oscillation's peaks above the final value, each a turning point that clears 1 % of
     # the step (the derivative's small ripple on a crest is not a second peak)
     turns = extrema(np.arange(y.size, dtype=float), dev, 0.01 * max(abs(final), 1e-12))
-    peaks = [v for _, v in turns if v > 0]
-    if len(peaks) < 2 or peaks[0] <= 1e-9:
-        return StepFigures(overshoot, 0.0, stable)
-    return StepFigures(overshoot, float(peaks[1] / peaks[0]), stable)
+    dr = decay_ratio(turns, float(y.size - 1))
+    return StepFigures(overshoot, 0.0 if dr is None else float(dr), stable)
