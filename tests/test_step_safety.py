@@ -29,7 +29,7 @@ from services.autotuner.tuning import TuningRun
 from services.offline.local_loop import LocalLoopClient, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.models import FirstOrderPlusDeadTime, IntegratingPlusDeadTime
-from shared.control.signals import at_rest, noise_level, range_end
+from shared.control.signals import at_rest, no_response_floor, noise_level, range_end
 from shared.messages import GainsCommand, ModeCommand, PidGains, TuneRequest
 from tests.exact import sopdt_tangent
 
@@ -248,6 +248,40 @@ def test_lvl1_dead_time_is_floored_and_its_gains_are_finite(seed):
 def test_noise_free_lvl1_reads_its_one_second_delay():
     test = drive(sim_loop({"model": "tank_level", "noise_std": 0.0}))
     assert test.result.dead_time == pytest.approx(1.0, abs=0.05)
+
+
+def quiet_fopdt(gain: float, time_constant: float) -> dict:
+    """A noise-free FOPDT on a 0–100 range at 50, 2 s delay, 0.1 s samples."""
+    return {
+        "model": "fopdt",
+        "gain": gain,
+        "time_constant": time_constant,
+        "delay": 2.0,
+        "sample_time": 0.1,
+        "noise_std": 0.0,
+        "pv0": 50.0,
+        "pv_range": [0.0, 100.0],
+    }
+
+
+def test_a_step_the_pv_does_not_answer_is_no_response_not_a_tiny_gain():
+    """Noise-free, a 5 % step through a gain of 4e-8 moves the PV 2e-7 (2e-7 % of the range,
+    below the 1e-4 of it a transmitter resolves): no response, not K = 4e-8 (a PI of Kc 1e9
+    was verified on a loop whose valve stuck). Through a 1e6 s lag the PV moves 5e-4 in the
+    100 s the test waits: the timeout says it did not respond."""
+    floor = no_response_floor((0.0, 100.0))  # 0.01: what a live run's set-up gives
+    test = drive(sim_loop(quiet_fopdt(4e-8, 15.0)), response_floor=floor)
+    assert test.phase == "aborted" and test.result is None
+    assert "did not respond to the step" in test.reason and "within 0.01" in test.reason
+    slow = drive(sim_loop(quiet_fopdt(1.0, 1e6)), timeout=100.0, response_floor=floor)
+    assert slow.phase == "aborted" and slow.result is None
+    assert "did not respond to the step within 100 s" in slow.reason
+    # a response just clear of the floor is read: 5 % × 0.01 = 0.05 > 0.01
+    small = drive(sim_loop(quiet_fopdt(0.01, 15.0)), response_floor=floor)
+    assert small.phase == "done" and small.result.gain == pytest.approx(0.01, rel=0.01)
+    # a run recorded before (no floor) read the 2e-7 as a gain, as it did then
+    old = drive(sim_loop(quiet_fopdt(4e-8, 15.0)))
+    assert old.phase == "done" and old.result.gain == pytest.approx(4e-8, rel=0.01)
 
 
 def test_analyze_step_floors_an_unresolved_dead_time():

@@ -3,10 +3,11 @@
 
 Rest and noise (``noise_level``, ``difference_noise``, ``at_rest``, ``range_end``), the first
 crossing of a level (``first_crossing``), turning points (``extrema``, after ``smooth``), a
-step response's decay ratio from them (``decay_ratio``) and the trapezoid integral
-(``trapezoid``): what identification and the response figures read off a record. The sample
-type the experiments are fed (``Sample``): anything with ``t`` (s, sim time), ``pv`` (PV
-units) and ``op`` (% of output), as the bus's ``ProcessSample`` and a replayed record are.
+step response's decay ratio from them (``decay_ratio``), the least move that is a response
+(``no_response_floor``) and the trapezoid integral (``trapezoid``): what identification and
+the response figures read off a record. The sample type the experiments are fed
+(``Sample``): anything with ``t`` (s, sim time), ``pv`` (PV units) and ``op`` (% of output),
+as the bus's ``ProcessSample`` and a replayed record are.
 """
 
 from __future__ import annotations
@@ -176,6 +177,20 @@ def decay_ratio(turns: list[tuple[float, float]], end: float) -> float | None:
     if end - crests[m][0] >= 1.5 * spacing:
         return None
     return crests[m][1] / crests[m - 1][1]
+
+
+# the least PV move, as a fraction of the transmitter's range, that is a response to the
+# output: a noise-free simulation shows any change, and a valve stuck in its deadband gave
+# 2e-7 % of the range for a 5 % step, read as a gain of 4e-8 and a PI Kc of 1.1e9 that the
+# verification put on the loop (helper trial); a transmitter resolves about 1e-5 of its range
+RESPONSE_FRACTION = 1e-4
+
+
+def no_response_floor(pv_range: tuple[float, float]) -> float:
+    """PV units: a move within this of the rest is no response to the output (``RESPONSE_FRACTION``
+    of the range ``pv_range``; 0 for a range that is not finite)."""
+    span = abs(pv_range[1] - pv_range[0])
+    return RESPONSE_FRACTION * span if math.isfinite(span) else 0.0
 
 
 def trapezoid(y: np.ndarray, t: np.ndarray) -> float:

@@ -19,8 +19,9 @@ from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
+from services.autotuner.identify.rest import RESOLUTION as REST_RESOLUTION
 from shared.control.record_stops import CalmCheck
-from shared.control.signals import Sample, end_test, ends_batch
+from shared.control.signals import Sample, end_test, ends_batch, no_response_floor
 
 
 @dataclass(frozen=True)
@@ -313,6 +314,25 @@ class Setup:
     # True: a step test's rest asks the PV's scatter about its trend to be noise (an
     # underdamped response is not at rest mid-swing); None: recorded before
     step_swing: bool | None = None
+    # True: the transmitter's resolution floors what counts as a response to the output (a
+    # relay or step test whose PV moves within ``signals.RESPONSE_FRACTION`` of the range
+    # aborts there) and as a drift before a test (``rest.RESOLUTION`` of it: a noise-free
+    # PV's creep); None: recorded before
+    resolution: bool | None = None
+
+    def response_floor(self) -> float:
+        """PV units: the least move that answers the output, where the set-up asks
+        (``resolution``, with the transmitter's range known); 0 otherwise."""
+        rng = self.pv_range
+        return no_response_floor(rng) if self.resolution and rng is not None else 0.0
+
+    def rest_floor(self) -> float:
+        """PV units: a drift within this is rest, where the set-up asks (``resolution``, with
+        the transmitter's range known); 0 otherwise."""
+        rng = self.pv_range
+        if not (self.resolution and rng is not None and math.isfinite(rng[1] - rng[0])):
+            return 0.0
+        return REST_RESOLUTION * abs(rng[1] - rng[0])
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

@@ -40,7 +40,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from shared.control.signals import first_crossing, range_end
+from shared.control.signals import RESPONSE_FRACTION, first_crossing, range_end
 
 # scipy.optimize is imported where it is used, not here: it is a third of a second of the
 # start of every `autotune` command that loads this module, and most never fit anything
@@ -151,14 +151,15 @@ def analyze_step(
     pv_after: float,
     noise_std: float,
     sample_time: float | None = None,
+    floor: float = 0.0,
 ) -> ReactionCurve:
     """Reaction-curve figures from samples (t, y) taken after a step at ``t_step``.
 
     ``pv_before``/``pv_after`` are the rest values before and after, ``noise_std`` the PV
     noise seen before the step. The dead time is at least half of ``sample_time`` (s; default
     the samples' median spacing): see the module docstring. Raises ValueError when the
-    response is too small or short.
-    """
+    response is too small or short: its change within 5σ of the noise, or within ``floor``
+    (PV units: the least move that is a response, ``no_response_floor``)."""
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
     if step_size == 0:
@@ -172,6 +173,11 @@ def analyze_step(
         raise ValueError(
             f"PV changed by {change:.4g}, not clear of its noise "
             f"(σ = {noise_std:.3g}): use a larger step"
+        )
+    if abs(change) <= floor:
+        raise ValueError(
+            f"the PV did not respond to the step: it changed by {change:.4g}, within "
+            f"{floor:.3g} ({RESPONSE_FRACTION:.0e} of its range; a valve that did not move?)"
         )
     dt = float(np.median(np.diff(t)))
     sign = math.copysign(1.0, change)

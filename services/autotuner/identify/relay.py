@@ -64,7 +64,7 @@ from services.autotuner.identify.relay_estimate import (
 from services.autotuner.identify.relay_model import RelayRecord, corrector, process_model
 from services.autotuner.identify.relay_result import RelayResult
 from shared.control.beyond import beyond
-from shared.control.signals import Sample, at_rest, noise_level
+from shared.control.signals import RESPONSE_FRACTION, Sample, at_rest, noise_level
 
 
 @dataclass(frozen=True)
@@ -176,6 +176,12 @@ class RelayConfig:
     # the whole-record fit of an integrating model also fits the held output's offset from
     # its balance (``model_fit.refine_on_record``); False: a run recorded before
     fit_offset: bool = True
+    # PV units: a cycle within this is no response, and the test aborts (a valve that does
+    # not move read as a K_u of 2.6e8); 0: none (a run recorded before, no range known)
+    response_floor: float = 0.0
+    # PV units the quiet period may drift over and be rest: what no transmitter resolves (a
+    # noise-free PV's creep after a test); 0: the noise alone decides (recorded before)
+    rest_floor: float = 0.0
     # the K_u/P_u estimator's thresholds (relay_estimate)
     estimate: EstimateConfig = field(default_factory=EstimateConfig)
 
@@ -445,7 +451,7 @@ class RelayTest:
         if len(self.pv) < n:
             return self.op_start
         base = np.asarray(self.pv[-n:])
-        if not at_rest(base):
+        if not at_rest(base, allowance=cfg.rest_floor):
             if len(self.pv) >= cfg.quiet_periods * n:
                 return self._abort("the PV is not at rest before the test (it keeps drifting)")
             return self.op_start
@@ -762,6 +768,14 @@ class RelayTest:
                 },
             )
         )
+        floor = cfg.response_floor
+        if amplitude < floor:
+            self._abort(
+                f"the PV did not respond to the relay: its cycle's amplitude {amplitude:.3g} is "
+                f"within {floor:.3g} ({RESPONSE_FRACTION:.0e} of its range; a valve that does not "
+                f"move?), and would read K_u as {self.ku_of(amplitude):.3g}"
+            )
+            return
         previous = self.cycles[-2] if len(self.cycles) >= 2 else None
         lo_ratio, hi_ratio = cfg.steady_ratios
         steady = (
@@ -1097,6 +1111,8 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         if setup.relay_grow and not settings.amplitude_given
         else None,
         fit_offset=bool(setup.relay_offset),
+        response_floor=setup.response_floor(),
+        rest_floor=setup.rest_floor(),
         **budget,
     )
     return RelayTest(

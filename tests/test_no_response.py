@@ -1,0 +1,45 @@
+"""A loop whose PV does not answer its output (a valve stuck in its deadband, a dead
+transmitter) is never tuned: a noise-free PV that moves 2e-7 of its range for a 5 % step
+read as a gain of 4e-8 (step test) or a K_u of 2.6e8 (relay), and the verification put a
+PI of Kc 1e8–1e9 on the loop before rejecting it. Each experiment now ends at no response
+(a move within ``signals.RESPONSE_FRACTION`` of the range), before any gain is designed.
+
+In process, lockstep (``LocalLoopClient``), a noise-free FOPDT of gain 4e-8.
+"""
+
+import pytest
+
+from services.autotuner.tuning import RunHooks, TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.control.signals import no_response_floor
+from shared.messages import TuneRequest
+
+DEAD = {
+    "model": "fopdt",
+    "gain": 4e-8,  # PV units per %: 2e-7 for a 5 % step, within 1e-4 of the 0–100 range
+    "time_constant": 15.0,
+    "delay": 2.0,
+    "sample_time": 0.1,
+    "noise_std": 0.0,
+    "pv0": 50.0,
+    "pv_range": [0.0, 100.0],
+}
+
+
+def test_the_floor_is_a_ten_thousandth_of_the_range():
+    assert no_response_floor((0.0, 100.0)) == pytest.approx(0.01, rel=1e-12)
+    assert no_response_floor((2.0, -2.0)) == pytest.approx(4e-4, rel=1e-12)
+    assert no_response_floor((0.0, float("inf"))) == 0.0
+
+
+@pytest.mark.parametrize("method", ["relay", "step"])
+def test_no_response_aborts_before_any_gain_is_designed_or_applied(method):
+    loop = build_plant({"seed": 1, "loops": {"x": DEAD}})["x"]
+    before = (loop.pid.mode, loop.pid.op, loop.pid.gains.kc)
+    r = TuningRun(
+        LocalLoopClient(loop), TuneRequest(loop="x", method=method), "t", RunHooks()
+    ).run()
+    assert r.status == "aborted" and not r.applied and not r.gains
+    assert "did not respond to the" in r.reason, r.reason
+    assert (loop.pid.mode, loop.pid.op, loop.pid.gains.kc) == before
