@@ -459,6 +459,26 @@ def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
     return code, out.out, out.err
 
 
+def test_a_coarse_loops_step_point_is_read_at_a_finer_sample_time(capsys):
+    """lvl1 and lvl2 at 1 s samples are 4 and 8 samples a period: read from those samples
+    their step-response points were 19 % and 5 % low (the hold divided out of a spectrum
+    that aliases near Nyquist). Read again at 40 samples a period, they are their
+    linearised closed forms: lvl1 0.06·e^{−s}/(600s + 1) m per % (2·level0/op0 over a lag of
+    2·area·level0/q0), lvl2 1e-4·e^{−2s}/s (K_u = π/(2·1e-4·2), P_u = 4·2 s)."""
+    code, out, err = run_cli(capsys, "model", "check", str(default_plant_path()), "--json")
+    assert code == 0, err
+    loops = {x["loop"]: x for x in json.loads(out)["loops"]}
+    lvl1, lvl2 = loops["lvl1"], loops["lvl2"]
+    ku1, pu1 = lag_ultimate(0.06, (600.0,), 1.0)
+    within(lvl1["ku"], ku1, 0.005)
+    within(lvl1["pu"], pu1, 0.005)
+    within(lvl2["ku"], math.pi / (2 * 1e-4 * 2.0), 0.005)
+    within(lvl2["pu"], 8.0, 0.005)
+    assert 0 < lvl1["step_sample_time"] <= pu1 / 40 and lvl2["step_sample_time"] <= 8.0 / 40
+    # a loop sampled finely enough is read at its own samples
+    assert loops["hx2"]["step_sample_time"] == 0.25
+
+
 def test_the_command_prints_json_and_a_plot(fmus, tmp_path, capsys):
     plant = plant_with(tmp_path, fmus)
     png = tmp_path / "check.png"

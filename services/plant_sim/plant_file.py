@@ -104,11 +104,13 @@ def load_plant_file(
     seed: int | None = None,
     noise_std: float | None = None,
     select: Callable[[list[str]], list[str]] | None = None,
+    sample_times: dict[str, float] | None = None,
 ) -> dict[str, SimLoop]:
     """Read a plant file and build its loops; ConfigError names the loop and field at fault.
 
     ``select``: given the file's loop ids in file order, the ids to build (a shard of the
-    file); its ConfigError is raised as it is."""
+    file); its ConfigError is raised as it is. ``sample_times``: loops built with another
+    sample time than the file's (s; ``autotune model check`` reads a coarse loop finer)."""
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -131,6 +133,10 @@ def load_plant_file(
         for table in data["loops"].values():
             if isinstance(table, dict):
                 table["noise_std"] = noise_std
+    for loop_id, sample_time in (sample_times or {}).items():
+        table = data.get("loops", {}).get(loop_id) if isinstance(data.get("loops"), dict) else None
+        if isinstance(table, dict):
+            table["sample_time"] = sample_time
     return build_plant(data, source=str(path), seed=seed, base_dir=path.parent, select=select)
 
 

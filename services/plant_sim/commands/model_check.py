@@ -18,12 +18,14 @@ reported). No bus, no services: it runs the models in this process.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 from pathlib import Path
 
-from services.plant_sim.model_check import ModelReport, check_loop
+from services.plant_sim.model_check import ModelReport, check_loop, refine_step_point
 from services.plant_sim.plant_file import load_plant_file
+from services.plant_sim.simulation.loop import SimLoop
 from shared.errors import ConfigError
 
 HELP = "check a plant file's models open loop before tuning: gain, dead time, K_u, P_u"
@@ -41,6 +43,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def _rebuilt(path: str, loop_id: str, sample_time: float) -> SimLoop | None:
+    """The plant file's loop ``loop_id`` built alone at ``sample_time`` (None: it cannot be,
+    as a model with a fixed step)."""
+    try:
+        loops = load_plant_file(
+            path, select=lambda _: [loop_id], sample_times={loop_id: sample_time}
+        )
+    except ConfigError:
+        return None
+    return loops.get(loop_id)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.plot is not None:
         _check_plot_path(args.plot)
@@ -53,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
             )
         loops = {args.loop: loops[args.loop]}
     reports = [check_loop(loop_id, loop) for loop_id, loop in loops.items()]
+    for r in reports:
+        refine_step_point(r, functools.partial(_rebuilt, args.plant_file, r.loop))
     if args.json:
         print(
             json.dumps(
@@ -154,9 +170,15 @@ def format_report(r: ModelReport) -> str:
                 f"(exact, from the transfer function{step})"
             )
         else:
+            finer = (
+                f", sampled every {_g(r.step_sample_time)} s: the loop's "
+                f"{_g(r.sample_time)} s samples blur it"
+                if r.step_sample_time is not None and r.step_sample_time < r.sample_time
+                else ""
+            )
             lines.append(
                 f"  ultimate point: K_u {_g(r.ku_step)} {ku_u}, P_u {_g(r.pu_step)} s "
-                "(from the step response: the linear part at op0)"
+                f"(from the step response: the linear part at op0{finer})"
             )
         lines.append(f"  sample time: {_g(r.samples_per_period, 4)} samples per ultimate period")
     elif r.behaviour in ("self-regulating", "integrating"):
