@@ -66,3 +66,29 @@ def test_the_relay_reports_the_exact_point_beside_its_estimate():
         assert fields[f"g_{k}_phase_deg"] == pytest.approx(exact_phase, abs=0.5)
     assert fields["g_1_phase_deg"] > fields["g_3_phase_deg"] > fields["g_5_phase_deg"]
     assert -185 < fields["g_1_phase_deg"] < -170
+
+
+def test_the_noise_share_of_a_harmonic_is_its_closed_form():
+    """A relay's square wave of ±d through a gain and a delay, with white noise of σ on the
+    PV: over 400 seeds, each harmonic's reading moves from its noise-free one by
+    kπσ·√(T/W)/(2d·|G|) rms (``harmonic_noise``), to 10 %."""
+    from services.autotuner.identify.relay_result import harmonic_noise
+
+    period, ts, periods, d, gain, sigma = 20.0, 0.1, 3, 5.0, 0.5, 0.05
+    t = np.arange(0.0, periods * period + 10.0, ts)
+    op = np.where(np.sin(2 * math.pi * t / period) >= 0, d, -d)
+    clean = gain * np.roll(op, 20)  # a 2 s delay, periodic over the window
+    base = frequency_points(t, clean, op, 0.0, period, periods)
+    rng = np.random.default_rng(3)
+    moves: dict[int, list[float]] = {1: [], 3: [], 5: []}
+    for _ in range(400):
+        noisy = clean + sigma * rng.standard_normal(t.size)
+        for b, p in zip(base, frequency_points(t, noisy, op, 0.0, period, periods), strict=True):
+            k = round(p.omega / base[0].omega)
+            moves[k].append(abs(p.g - b.g) / abs(b.g))
+    for (k, m), b in zip(moves.items(), base, strict=True):
+        rms = math.sqrt(np.mean(np.square(m)))
+        # |G| as read (the sampled square wave, trapezoid-summed, reads the gain a little
+        # low at the harmonics: 0.49, 0.40, 0.33): the share is of the reading
+        expected = harmonic_noise(k, abs(b.g), sigma, ts, periods * period, d)
+        assert rms == pytest.approx(expected, rel=0.1), (k, rms, expected)

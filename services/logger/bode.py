@@ -2,14 +2,16 @@
 uncertainty, the fitted model's curve and the −180° crossings (Bode and Nyquist data).
 
 What each method measures (``services/autotuner/identify``):
-- relay: stage 1's exact G(jkω₁), k = 1, 3, 5, and stage 2's G(jkω₂), k = 1, (2,) 3, from
+- relay: stage 1's G(jkω₁), k = 1, 3, 5, and stage 2's G(jkω₂), k = 1, (2,) 3, from
   the Fourier components of whole cycles (``fourier``), as the result's ``experiment`` keeps
   them (``omega_k``, ``g_k_magnitude``, ``g_k_phase_deg``, ``stage2_…``);
 - ramp: the ultimate point, G(jω_u) = −1/K_u at ω_u = 2π/P_u;
 - step: no frequency point (the model alone).
 The uncertainty stated with them is the result's ``ku_spread``: K_u = 1/|G(jω_u)| is known
 to that relative amount, and it is read as the radius δ of a disc about each fundamental,
-|ΔG| ≤ δ·|G| (magnitude ± δ, phase ± asin δ). The harmonics carry no stated uncertainty.
+|ΔG| ≤ δ·|G| (magnitude ± δ, phase ± asin δ). A harmonic's disc is the noise's share of it
+(``g_k_noise``, ``relay_result.harmonic_noise``; runs recorded before: none stated): weak
+(1/k of the excitation, through a plant that falls off), a 5th harmonic is often ± 30 %.
 """
 
 from __future__ import annotations
@@ -106,7 +108,11 @@ def relay_points(experiment: dict, delta: float | None) -> list[MeasuredPoint]:
             ph = _num(experiment.get(f"{head}g_{k}_phase_deg"))
             if w is None or m is None or ph is None or w <= 0 or m <= 0:
                 continue
-            out.append(MeasuredPoint(stage, k, w, m, ph, delta if k == 1 else None))
+            noise = _num(experiment.get(f"{head}g_{k}_noise"))
+            if k == 1:  # K_u's spread, which holds the fundamental's noise and more
+                out.append(MeasuredPoint(stage, k, w, m, ph, delta))
+            else:
+                out.append(MeasuredPoint(stage, k, w, m, ph, noise))
     return out
 
 
@@ -168,6 +174,8 @@ def frequency_figure(result: TuneResult | None) -> FrequencyFigure | None:
     if result.method == "relay":
         points = relay_points(e, delta)
         note = "±δ = ku_spread of the result" if delta is not None else "no uncertainty stated"
+        if any(p.harmonic != 1 and p.uncertainty is not None for p in points):
+            note += "; harmonics ± the noise's share"
     ku, pu = _num(result.ku), _num(result.pu)
     if result.method == "ramp" and ku and pu and ku > 0 and pu > 0:
         points = [MeasuredPoint("ultimate point", 1, 2 * math.pi / pu, 1 / ku, -180.0, delta)]

@@ -670,9 +670,22 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
         if harm:
             w = np.array([p.omega for p in harm])
             label = f"{stage}: harmonics k = {', '.join(str(p.harmonic) for p in harm)}"
+            stated = all(p.uncertainty is not None for p in harm)
+            if stated:
+                label += " ± " + ", ".join(f"{100 * (p.uncertainty or 0):.2g} %" for p in harm)
             style = dict(ls="", marker=marker, mfc="none", color=color, ms=5, label=label)
-            ax_mag.loglog(w, [p.magnitude for p in harm], **style)
-            ax_ph.semilogx(w, [p.phase_deg for p in harm], **style)
+            mag = np.array([p.magnitude for p in harm])
+            ph = np.array([p.phase_deg for p in harm])
+            err_mag = err_ph = None
+            if stated:  # the noise's share: a lower bound at 0 where it is over 100 %
+                lo_hi = np.array([p.magnitude_bounds for p in harm]).T
+                err_mag = np.vstack((mag - np.maximum(lo_hi[0], 1e-3 * mag), lo_hi[1] - mag))
+                err_ph = np.array([p.phase_bound_deg for p in harm])
+            ax_mag.errorbar(w, mag, yerr=err_mag, capsize=3, **style)
+            ax_ph.errorbar(w, ph, yerr=err_ph, capsize=3, **style)
+            ax_mag.set_xscale("log")
+            ax_mag.set_yscale("log")
+            ax_ph.set_xscale("log")
             g = np.array([p.g for p in harm])
             ax_ny.plot(g.real, g.imag, **style)
     for c in f.crossings:
