@@ -450,3 +450,26 @@ def test_analyze_says_when_the_live_run_measured_no_ultimate_point() -> None:
     text = format_analysis(a, None)
     assert "live run: no K_u and P_u measured → identical" in text, text
     assert "None" not in text
+
+
+def test_the_model_line_gives_the_models_own_l_over_t_not_the_step_tangents():
+    """A step run's ``l_over_t`` is the tangent's (10.62/85.69 = 0.124 on hx1); the model line
+    beside its SOPDT (T 60, 9.983 s, L 4.982 s) gives the model's own by the half rule,
+    (4.982 + 9.983/2)/(60 + 9.983/2) = 0.1535 (helper trial: it gave 0.124); an FOPDT's is
+    L/T; an IPDT has none."""
+    sopdt = {
+        "model": "sopdt",
+        "model_gain": 0.99,
+        "model_lag_1": 60.0,
+        "model_lag_2": 9.983,
+        "model_delay": 4.982,
+    }
+    r = hx1_result(experiment=sopdt, l_over_t=10.62 / 85.69)
+    (line,) = [x for x in format_result(r).splitlines() if "model SOPDT" in x]
+    assert line.endswith(f"L/T = {(4.982 + 9.983 / 2) / (60 + 9.983 / 2):.3f}"), line
+    fo = {"model": "fopdt", "model_gain": 1.0166, "model_lag_1": 1.782, "model_delay": 1.557}
+    (line,) = [x for x in format_result(hx1_result(experiment=fo)).splitlines() if "FOPDT" in x]
+    assert line.endswith(f"L/T = {1.557 / 1.782:.3f}"), line
+    ip = {"model": "ipdt", "model_gain": 1e-4, "model_delay": 2.0}
+    (line,) = [x for x in format_result(hx1_result(experiment=ip)).splitlines() if "IPDT" in x]
+    assert "L/T" not in line

@@ -24,7 +24,8 @@ import pydantic
 import zenoh
 
 from services.autotuner.commands.step import parse_repeat
-from services.autotuner.design.rules import RULES
+from services.autotuner.design.rules import RULES, fopdt_of
+from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.loop_client import wait_for_token
 from shared import json_text, keys, wire
 from shared.cli import add_common_arguments, check_ids
@@ -778,6 +779,23 @@ _REPEAT_FIGURES = {
 }
 
 
+def _model_l_over_t(model: dict) -> float | None:
+    """The stated model's own L/T, of its first-order equivalent (the half rule,
+    ``fopdt_of``): a step run's ``l_over_t`` is its tangent's, and the model line gave that
+    one (hx1: 0.124 beside a model whose own is 0.153; helper trial). None for an IPDT."""
+    kind, lags = (
+        model.get("model"),
+        [v for k, v in sorted(model.items()) if k.startswith("model_lag")],
+    )
+    if kind not in ("fopdt", "sopdt") or not lags:
+        return None
+    try:
+        fo = fopdt_of(ProcessFit(kind, model["model_gain"], tuple(lags), model["model_delay"], 0.0))
+    except (KeyError, TypeError, ValueError):
+        return None
+    return fo.dead_time / fo.time_constant if fo.time_constant > 0 else None
+
+
 def _repeats_lines(r: TuneResult) -> list[str]:
     """Repeated step tests: every test's figures in one line each, and per figure the mean
     (the figures above), the spread and the mean's precision."""
@@ -879,7 +897,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             f"  model {str(model['model']).upper()}: K = {gain}"
             + (f"  T = {', '.join(lags)} s" if lags else "")
             + f"  L = {model['model_delay']:.4g} s"
-            + (f"  L/T = {r.l_over_t:.3f}" if r.l_over_t is not None else "")
+            + (f"  L/T = {ratio:.3f}" if (ratio := _model_l_over_t(model)) is not None else "")
         )
     if r.gains and span is not None:
         lines.extend(_percent_table(r, span, pv_units))
