@@ -75,3 +75,18 @@ def test_gains_a_run_did_not_leave_on_the_loop_are_listed_in_parentheses(tmp_pat
     (computed,) = [x for x in out if x.endswith(proposed.name)]
     assert "(" not in applied and computed.count("(") == 3, computed
     assert out[-1].startswith("gains in ( ): computed by the run, not left on the loop")
+
+
+def test_a_rule_refused_by_the_safety_envelope_lists_its_gains_in_parentheses(tmp_path, capsys):
+    """`--rule zn-pid` on a loop where ZN's PID is outside the safety envelope: the run is
+    refused before any gains are chosen, and `runs` listed '—' where the refused gains were
+    (the README: refused runs show theirs in ( )); they are the result's own zn-pid ones."""
+    plant = {"seed": 1, "loops": {"x": {"model": "fopdt", "gain": 1.0, "time_constant": 5.0,
+             "delay": 1.0, "sample_time": 0.1, "noise_std": 0.0}}}  # fmt: skip
+    path, live = record_in_process(tmp_path, "p", plant, "x", "relay", rule="zn-pid")
+    assert live.status == "rejected" and not live.applied and live.chosen is None, live.reason
+    isa = PidGains(**live.gains["zn-pid"]["isa"])
+    runs.run(argparse.Namespace(runs=str(tmp_path), compare=None, json=False))
+    (row,) = [x for x in capsys.readouterr().out.splitlines() if x.endswith(path.name)]
+    for v in (isa.kc, isa.ti, isa.td):
+        assert f"({v:.4g})" in row, (v, row)

@@ -117,6 +117,14 @@ def _row(path: Path, meta: dict[str, str]) -> dict:
             )
     chosen = result.get("chosen") if isinstance(result.get("chosen"), dict) else {}
     isa = chosen.get("isa") if isinstance(chosen.get("isa"), dict) else None
+    if isa is None:  # refused before any was chosen (the safety envelope): the rule's own
+        every = result.get("gains") if isinstance(result.get("gains"), dict) else {}
+        ruled = every.get(result.get("rule")) if isinstance(result.get("rule"), str) else None
+        isa = (
+            ruled.get("isa")
+            if isinstance(ruled, dict) and isinstance(ruled.get("isa"), dict)
+            else None
+        )
     return {
         "file": path.name,
         "started": meta.get("started"),
