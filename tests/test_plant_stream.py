@@ -302,3 +302,18 @@ def test_refusals_left_unlogged_are_counted_once_their_window_has_passed(caplog)
         refusals.flush(time.monotonic() + 30.0)  # said once
     said = [r.getMessage() for r in caplog.records if "more schema rejects" in r.getMessage()]
     assert said == ["3 more schema rejects were not logged"]
+
+
+def test_a_lease_ending_on_a_faulted_loop_says_it_stays_in_manual(service, caplog) -> None:
+    """The plant's log said a faulted loop was 'restored to its state before the experiment
+    (auto, op 50.01 %)' where restore keeps a faulted loop in manual at its held output
+    (helper trial): it says so."""
+    send(service, LeaseCommand(loop="x", source="me", timeout=30.0, t=0.0))
+    loop = service.loops["x"]
+    loop.fault = "step() raised RuntimeError: boom"
+    with caplog.at_level(logging.WARNING, logger=plant_service.log.name):
+        service.expire_lease("x", "its holder fell silent")
+    (line,) = [r.getMessage() for r in caplog.records if "its holder fell silent" in r.message]
+    assert "restored to its state before the experiment" not in line
+    assert "faulted (step() raised RuntimeError: boom)" in line and "stays in manual" in line
+    assert loop.mode == "manual"

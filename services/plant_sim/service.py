@@ -533,6 +533,18 @@ class PlantService:
         status = self.loop_status(loop, "watchdog").model_copy(update={"ended": why[:400]})
         out.append((keys.status(self.opt.prefix, loop_id), status))
         self._settle()
+        if loop.fault is not None:  # restore leaves a faulted loop in manual at its output
+            log.warning(
+                "loop %s: %s; its setpoint and gains restored, but it is faulted (%s) and "
+                "stays in manual at op %.4g %% (it was %s at op %.4g %% before the experiment)",
+                loop_id,
+                why,
+                loop.fault,
+                loop.op,
+                lease.snapshot.mode,
+                lease.snapshot.op,
+            )
+            return
         log.warning(
             "loop %s: %s; restored to its state before the experiment (%s, op %.4g %%)",
             loop_id,
