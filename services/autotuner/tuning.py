@@ -1032,6 +1032,7 @@ class TuningRun:
             common["relay_wrong_way"] = True
             common["relay_grow"] = True
             common["relay_offset"] = True
+            common["relay_pattern"] = True
         if req.method == "ramp":
             common["ramp_wrong_way"] = True
         if req.method in ("relay", "ramp"):

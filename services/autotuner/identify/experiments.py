@@ -319,6 +319,9 @@ class Setup:
     # aborts there) and as a drift before a test (``rest.RESOLUTION`` of it: a noise-free
     # PV's creep); None: recorded before
     resolution: bool | None = None
+    # True: a relay's stage-1 cycles that repeat a pattern of a few cycles are steady
+    # (``RelayConfig.pattern_cycles``); None: recorded before, not looked for
+    relay_pattern: bool | None = None
 
     def response_floor(self) -> float:
         """PV units: the least move that answers the output, where the set-up asks

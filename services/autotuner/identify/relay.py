@@ -179,6 +179,13 @@ class RelayConfig:
     # PV units: a cycle within this is no response, and the test aborts (a valve that does
     # not move read as a K_u of 2.6e8); 0: none (a run recorded before, no range known)
     response_floor: float = 0.0
+    # stage 1's cycles repeating a pattern of 2 … this many cycles (each as the one that many
+    # before it, to ``pattern_match`` relative) are steady, where they differ by more than
+    # the tolerance: a noise-free loop whose switches are locked to the sample grid (a square
+    # -root valve ran 7.565, 7.760, 7.776 s to 7 digits for 30 cycles, and was aborted); the
+    # whole patterns are counted. None: not looked for (a run recorded before)
+    pattern_cycles: int | None = 4
+    pattern_match: float = 1e-3
     # PV units the quiet period may drift over and be rest: what no transmitter resolves (a
     # noise-free PV's creep after a test); 0: the noise alone decides (recorded before)
     rest_floor: float = 0.0
@@ -814,7 +821,13 @@ class RelayTest:
                 cfg.tolerance,
                 cfg.noise_agreement * self._noise / np.mean([c.amplitude for c in recent]),
             )
-            if pu_spread <= tol and a_spread <= tol:
+            pattern = None if pu_spread <= tol and a_spread <= tol else self._pattern()
+            if pattern is not None:
+                recent, pu_spread = pattern, spread([c.period for c in pattern])
+                self.events.append(
+                    Event(t1, "pattern", {"cycles": len(pattern), "pu_spread": pu_spread})
+                )
+            if (pu_spread <= tol and a_spread <= tol) or pattern is not None:
                 self._stage1 = self._summarise(recent, pu_spread)
                 if cfg.refine and self._stage1.points:
                     self._start_stage_two(t1)
@@ -826,6 +839,28 @@ class RelayTest:
                 f"the last {n} of {len(self.cycles)} cycles still differ by more than "
                 f"{self._agreement:.0%}"
             )
+
+    def _pattern(self) -> list[Cycle] | None:
+        """Stage 1's last counted cycles, where they repeat a pattern of m = 2 …
+        ``pattern_cycles`` cycles (the last m each as the one m before, period and amplitude
+        to ``pattern_match``): as many whole patterns as cover ``cycles``; else None."""
+        cfg = self.config
+        if not cfg.pattern_cycles:
+            return None
+        counted = self.cycles[self._from_cycle + 1 :]
+        match = cfg.pattern_match
+        for m in range(2, cfg.pattern_cycles + 1):
+            whole = m * math.ceil(cfg.cycles / m)
+            if len(counted) < max(2 * m, whole):
+                continue
+            pairs = zip(counted[-m:], counted[-2 * m : -m], strict=True)
+            if all(
+                abs(a.period - b.period) <= match * b.period
+                and abs(a.amplitude - b.amplitude) <= match * b.amplitude
+                for a, b in pairs
+            ):
+                return counted[-whole:]
+        return None
 
     def _grows(self, t: float) -> bool:
         """Stage 1's last ``cycles`` counted cycles ride on the hysteresis (``grow_ratio``, on
@@ -1113,6 +1148,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         fit_offset=bool(setup.relay_offset),
         response_floor=setup.response_floor(),
         rest_floor=setup.rest_floor(),
+        pattern_cycles=RelayConfig.pattern_cycles if setup.relay_pattern else None,
         **budget,
     )
     return RelayTest(
