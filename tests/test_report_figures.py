@@ -297,6 +297,10 @@ def test_runs_compare_takes_files_names_and_run_ids_and_refuses_others_in_one_li
     assert main(["runs", str(path.parent), "--compare", run_id, "nosuchrun"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--compare nosuchrun" in err
+    (path.parent / "dir.mcap").mkdir()  # a directory is said to be one (not "no such file")
+    assert main(["runs", str(path.parent), "--compare", run_id, "dir.mcap"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "dir.mcap is a directory, not a run file" in err
 
 
 def test_a_damaged_command_record_is_refused_in_one_line(demo, tmp_path, capsys):

@@ -45,6 +45,8 @@ def resolve_run(folder: Path, run: str) -> Path:
     for candidate in (Path(run), folder / run):
         if candidate.is_file():
             return candidate
+        if candidate.is_dir():  # as `autotune analyze` says of one
+            raise AutotuneError(f"--compare {run}: {candidate} is a directory, not a run file")
     hits = sorted(folder.glob(f"*_{run}.mcap")) if folder.is_dir() and "/" not in run else []
     if len(hits) == 1:
         return hits[0]
