@@ -473,3 +473,21 @@ def test_the_model_line_gives_the_models_own_l_over_t_not_the_step_tangents():
     ip = {"model": "ipdt", "model_gain": 1e-4, "model_delay": 2.0}
     (line,) = [x for x in format_result(hx1_result(experiment=ip)).splitlines() if "IPDT" in x]
     assert "L/T" not in line
+
+
+def test_a_quotient_unit_is_bracketed_where_it_is_a_factor():
+    """flow1's m3/h: '%/m3/h' reads as % per m3 per hour; it is %/(m3/h), and its process
+    gain (m3/h)/% (helper trial)."""
+    from shared.control.forms import unit
+
+    assert (unit("m3/h"), unit("degC"), unit(""), unit(None), unit("kg·m-3")) == (
+        "(m3/h)",
+        "degC",
+        "PV unit",
+        "PV unit",
+        "(kg·m-3)",
+    )
+    r = hx1_result(pv_units="m3/h", experiment={"model": "fopdt", "model_gain": 1.0,
+                   "model_lag_1": 1.8, "model_delay": 1.6})  # fmt: skip
+    text = format_result(r)
+    assert "K_u = 15.34 %/(m3/h)" in text and "%/m3/h" not in text

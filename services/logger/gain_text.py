@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from shared.control.forms import kc_percent, proportional_band, pv_span
+from shared.control.forms import kc_percent, proportional_band, pv_span, unit
 
 
 def number(value: object, spec: str = ".4g", unit: str = "") -> str:
@@ -37,7 +37,7 @@ def kc_forms(kc: object, span: float | None) -> tuple[float | None, float | None
 
 def kc_text(kc: object, units: str, span: float | None) -> str:
     """``Kc 6.973 %/degC = 10.46 %/% (PB 9.56 %)``; the % figures only with a span."""
-    text = f"Kc {number(kc)} %/{units or 'PV unit'}"
+    text = f"Kc {number(kc)} %/{unit(units)}"
     pct, pb = kc_forms(kc, span)
     if pct is not None:
         same = span == 100 and units == "%"  # a PV in % of a 0–100 span: Kc is already %/%

@@ -42,6 +42,7 @@ from services.logger.overlay import Overlay, model_overlay
 from services.logger.result_model import result_model
 from services.logger.run_marks import Mark, VerifyWindow, experiment_marks, verify_windows
 from shared import keys
+from shared.control.forms import unit
 from shared.errors import AutotuneError, one_line
 from shared.history_file import HISTORY_FILE, loop_changes, read_history
 from shared.messages import (
@@ -232,7 +233,7 @@ def _summary(s: RunSeries) -> str:
         )
     if r.ku is not None:
         lines.append(
-            f"K_u = {_g(r.ku, '.4g')} %/{r.pv_units}"
+            f"K_u = {_g(r.ku, '.4g')} %/{unit(r.pv_units)}"
             + (
                 f" = {_g(r.ku * span / 100, '.4g')} %/%"
                 if span and span != 100 and isinstance(r.ku, float)
@@ -351,9 +352,7 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
         handles_pv.append(_proxy(f"step test: {first.label}", *MARK_STYLE["output step"]))
         handles_op.append(_proxy(f"step test: {first.label}", *MARK_STYLE["output step"]))
     if "trial" in kinds:
-        handles_pv.append(
-            _proxy(f"ramp trial (its Kc, %/{units or 'PV unit'})", *MARK_STYLE["trial"])
-        )
+        handles_pv.append(_proxy(f"ramp trial (its Kc, %/{unit(units)})", *MARK_STYLE["trial"]))
     for w in s.windows:
         for ax in (ax_pv, ax_op):
             ax.axvspan(w.start, w.end, color="tab:orange", alpha=0.08, lw=0)
@@ -713,7 +712,7 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
         else "Bode",
         fontsize=9,
     )
-    ax_mag.set_ylabel(f"|G| ({units}/%)")
+    ax_mag.set_ylabel(f"|G| ({unit(units)}/%)")
     ax_ph.set_ylabel("phase (deg)")
     ax_ph.set_xlabel("ω (rad/s)")
     ax_ph.sharex(ax_mag)
@@ -726,8 +725,8 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
     ax_ph.xaxis.set_minor_formatter(NullFormatter())
     discs = any(p.uncertainty is not None for p in f.points)
     ax_ny.set_title(f"Nyquist: G(jω){', discs of radius δ·|G|' if discs else ''}", fontsize=9)
-    ax_ny.set_xlabel(f"Re G ({units}/%)")
-    ax_ny.set_ylabel(f"Im G ({units}/%)")
+    ax_ny.set_xlabel(f"Re G ({unit(units)}/%)")
+    ax_ny.set_ylabel(f"Im G ({unit(units)}/%)")
     _nyquist_limits(ax_ny, f)
     for ax in (ax_mag, ax_ph, ax_ny):
         ax.grid(True, which="both", lw=0.3, alpha=0.5)

@@ -10,6 +10,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from shared.control.forms import unit
 from shared.messages import DisturbanceCommand, SetpointCommand, TuneProgress, TunerEvent
 
 LOAD = "load"  # the disturbance input the verification steps (tuning._verify)
@@ -60,7 +61,7 @@ def experiment_marks(events: Sequence[TunerEvent], units: str) -> list[Mark]:
             out.append(Mark(e.t, "output step", text))
         elif e.kind == "trial":
             kc = _num(d.get("kc"))
-            kc_s = f"Kc {kc:.4g} %/{units or 'PV unit'}" if kc is not None else "Kc ?"
+            kc_s = f"Kc {kc:.4g} %/{unit(units)}" if kc is not None else "Kc ?"
             out.append(Mark(e.t, "trial", f"trial {d.get('n')}: {kc_s}"))
     return sorted(out, key=lambda m: m.t)
 

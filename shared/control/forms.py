@@ -112,6 +112,15 @@ def pv_span(pv_range: tuple[float, float] | None) -> float | None:
 MAX_KC_PERCENT = 1000.0
 
 
+def unit(units: str | None) -> str:
+    """A PV's units as a factor of a compound unit: in ( ) where they are a quotient or a
+    product themselves ("%/(m3/h)", not "%/m3/h", which reads as % per m3 per hour); "PV
+    unit" where none are given."""
+    if not units:
+        return "PV unit"
+    return f"({units})" if any(c in units for c in "/·*") else units
+
+
 def kc_percent(kc: float | None, span: float) -> float | None:
     """A controller gain or K_u in % per PV unit as % of output per % of span (Kc·span/100)."""
     return None if kc is None else kc * span / 100.0

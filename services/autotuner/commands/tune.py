@@ -35,6 +35,7 @@ from shared.control.forms import (
     process_gain_percent,
     pv_span,
     to_percent,
+    unit,
 )
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.messages import (
@@ -746,7 +747,7 @@ def _percent_table(r: TuneResult, span: float, pv_units: str) -> list[str]:
     """The rules' gains in % of span: Kc (% of output per % of span), PB = 100/Kc (% of
     span), Ti and Td (s), and the engineering Kc (% per PV unit) beside them."""
     rob = r.robustness
-    eng = f"Kc %/{pv_units}"
+    eng = f"Kc %/{unit(pv_units)}"
     lines = [
         f"  {'rule':<15}{'Kc %/%':>10}{'PB %':>10}{'Ti (s)':>10}{'Td (s)':>10}{eng:>14}"
         + _robust_head(rob)
@@ -841,7 +842,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             "Kc in %/% (dimensionless), PB = 100/Kc in %"
         )
     if r.ku is not None:
-        ku = f"{r.ku:.4g} %/{pv_units}"
+        ku = f"{r.ku:.4g} %/{unit(pv_units)}"
         if span is not None:
             ku = f"{kc_percent(r.ku, span):.4g} %/% ({ku})"
         lines.append(
@@ -854,26 +855,26 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         s = r.step
         lines.append(
             f"  integrating: R = K' = {process_gain_percent(s['reaction_rate'], span):.4g} "
-            f"%/s per % ({s['reaction_rate']:.4g} {pv_units}/s per %) "
+            f"%/s per % ({s['reaction_rate']:.4g} {unit(pv_units)}/s per %) "
             f"(± {100 * s['reaction_rate_precision']:.2g} %)  L = {s['dead_time']:.4g} s  "
             f"a = R·L = {process_gain_percent(s['a'], span):.4g} %/% ({s['a']:.4g} "
-            f"{pv_units}/%)  (level given back to {s['pv_after']:.4g} {pv_units})"
+            f"{unit(pv_units)}/%)  (level given back to {s['pv_after']:.4g} {pv_units})"
         )
     elif r.step and r.step.get("method") == "integrating":
         s = r.step
         lines.append(
-            f"  integrating: R = K' = {s['reaction_rate']:.4g} {pv_units}/s per % "
+            f"  integrating: R = K' = {s['reaction_rate']:.4g} {unit(pv_units)}/s per % "
             f"(± {100 * s['reaction_rate_precision']:.2g} %)  L = {s['dead_time']:.4g} s  "
-            f"a = R·L = {s['a']:.4g} {pv_units}/%  (level given back to {s['pv_after']:.4g})"
+            f"a = R·L = {s['a']:.4g} {unit(pv_units)}/%  (level given back to {s['pv_after']:.4g})"
         )
     elif r.step and span is not None:
         s = r.step
         lines.append(
             f"  K = {process_gain_percent(s['gain'], span):.4g} %/% ({s['gain']:.4g} "
-            f"{pv_units}/%)  L = {s['dead_time']:.4g} s  T = "
+            f"{unit(pv_units)}/%)  L = {s['dead_time']:.4g} s  T = "
             f"{s['time_constant_tangent']:.4g} s  R = "
             f"{process_gain_percent(s['reaction_rate'], span):.4g} %/s per % "
-            f"({s['reaction_rate']:.4g} {pv_units}/s per %)  L/T = {s['l_over_t']:.3f}"
+            f"({s['reaction_rate']:.4g} {unit(pv_units)}/s per %)  L/T = {s['l_over_t']:.3f}"
         )
     elif r.step:
         s = r.step
@@ -891,7 +892,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             per = "/s per %" if model["model"] == "ipdt" else "/%"
             gain = (
                 f"{process_gain_percent(model['model_gain'], span):.4g} %{per} "
-                f"({gain} {pv_units}{per})"
+                f"({gain} {unit(pv_units)}{per})"
             )
         lines.append(
             f"  model {str(model['model']).upper()}: K = {gain}"
