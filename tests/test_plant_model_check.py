@@ -422,6 +422,13 @@ def test_a_model_not_at_rest_is_corrected_for_its_drift_and_said_so():
     assert all(g == pytest.approx(0.01, rel=1e-9) for g in r.gains.values())
     assert r.rest_drift == pytest.approx(0.002, rel=1e-9)
     assert any(w.startswith("not at rest at op0 = 50 %: the PV drifts 0.002") for w in r.warnings)
+    # noise-free, its drift over the tuner's rest window (40 samples, 20 s: 0.04) is beyond
+    # what the tuner takes as rest (1e-5 of the 0–100 span): no tune would start; with a σ
+    # of 0.02 (3σ = 0.06) one would
+    (said,) = [w for w in r.warnings if w.startswith("a tune will not start")]
+    assert "moves 0.04 bar over the 20 s" in said and "beyond the 0.001 it takes" in said
+    noisy = check({"model": f"{HERE}:Drifts", "sample_time": 0.5, "noise_std": 0.02})
+    assert not any(w.startswith("a tune will not start") for w in noisy.warnings)
 
 
 @pytest.mark.parametrize(

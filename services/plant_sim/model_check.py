@@ -40,6 +40,7 @@ import numpy as np
 from scipy.optimize import brentq
 
 from services.plant_sim.simulation.loop import ModelFailure, SimLoop, model_pv
+from shared.control.rest_window import RESOLUTION, rest_allowance, rest_window
 from shared.control.transfer import model_ultimate_point
 
 SMALL_STEP = 2.0  # % of output
@@ -158,6 +159,7 @@ def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
         pv_range=s.pv_range,
         pv_units=s.pv_units,
     )
+    _tune_rest(report, rest_window(s.sample_time, loop.pid.gains.ti), s.noise_std)
     # a reverse-acting PID is for a process whose PV rises with the output, a direct one for
     # one whose PV falls: the other way round, the loop runs away in auto, and a relay or a
     # ramp pushes the PV away from where it would switch
@@ -170,6 +172,27 @@ def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
             f'ramp test pushes the PV the wrong way (action = "{wants}")'
         )
     return report
+
+
+def _tune_rest(report: ModelReport, window: float, noise_std: float) -> None:
+    """A warning where the model drifts at op0 by more than the tuner takes as rest over its
+    window (``shared.control.rest_window``): every tune would end before its test, "the PV
+    did not come to rest", while the check gave the drift as corrected for (0.002 %/s on a
+    noise-free loop: helper trial)."""
+    drift = report.rest_drift
+    if drift is None or report.refused:
+        return
+    span = report.pv_range[1] - report.pv_range[0]
+    moved, allowed = abs(drift) * window, rest_allowance(noise_std, span)
+    if moved <= allowed:
+        return
+    units = report.pv_units or "PV units"
+    report.warnings.append(
+        f"a tune will not start: held at op0 the PV moves {moved:.3g} {units} over the "
+        f"{window:g} s the tuner watches for rest, beyond the {allowed:.3g} it takes as rest "
+        f"(3σ of the loop's noise, and at least {RESOLUTION:g} of the span); give the model "
+        "a balance at op0"
+    )
 
 
 def check_model(

@@ -26,22 +26,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from shared.control.rest_window import MAX_WINDOW, MIN_SAMPLES, RESOLUTION, rest_window
 from shared.control.signals import difference_noise, range_end
 
-MIN_SAMPLES = 40
-MAX_WINDOW = 900.0  # s: the longest window watched (a slow level loop's Ti can be hours)
 WINDOWS = 10  # windows to wait for rest before giving up
-# of the PV's span: a move within it is no move (a 17-bit converter's step; a test's swing is
-# 1–10 % of span, 1,000 times more)
-RESOLUTION = 1e-5
 
-
-def rest_window(sample_time: float, ti: float | None, requested: float | None = None) -> float:
-    """Seconds of PV to watch for a drift (see the module docstring)."""
-    if requested is not None:
-        return max(requested, MIN_SAMPLES * sample_time)
-    slow = ti if ti is not None and math.isfinite(ti) else 0.0
-    return max(MIN_SAMPLES * sample_time, min(slow, MAX_WINDOW))
+__all__ = ["MAX_WINDOW", "MIN_SAMPLES", "RESOLUTION", "RestCheck", "rest_window"]
 
 
 @dataclass
