@@ -341,6 +341,13 @@ def test_a_deadband_is_said_not_called_linear():
     assert r.unmoved == ["+2 %", "-2 %"], r.unmoved
     assert r.nonlinearity == math.inf
     assert any(w.startswith("no response to the steps of +2 %, -2 %") for w in r.warnings)
+    # its gain at op0 is the ±10 % steps' (7/10), and the report says so: it said "small
+    # steps" beside "no response to +2 %, -2 %" (helper trial)
+    assert r.linear_step == 10.0 and r.gain == pytest.approx(0.7, rel=1e-3)
+    from services.plant_sim.commands.model_check import format_report
+
+    (line,) = [x for x in format_report(r).splitlines() if "gain at op0" in x]
+    assert "(the ±10 % steps: the smaller moved nothing, up and down averaged)" in line
 
 
 def test_a_process_that_settles_within_a_sample_is_said_unresolved():

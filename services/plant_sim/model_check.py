@@ -91,6 +91,7 @@ class ModelReport:
     gain: float | None = None
     nonlinearity: float | None = None
     unmoved: list[str] = field(default_factory=list)  # steps that moved nothing (a deadband)
+    linear_step: float | None = None  # %: the size of the steps the linear figures come from
     dead_time: float | None = None
     onset_order: float | None = None
     t63: float | None = None
@@ -554,7 +555,7 @@ def _shape(report: ModelReport) -> None:
     got = _linear_response(report)
     if got is None or report.behaviour not in ("self-regulating", "integrating"):
         return
-    s, _ = got
+    s, report.linear_step = got
     dt = report.sample_time
     t = np.arange(len(s)) * dt
     integrating = report.behaviour == "integrating"

@@ -140,7 +140,10 @@ def format_report(r: ModelReport) -> str:
             verdict = "linear" if r.nonlinearity <= 0.01 else "NONLINEAR"
         lines.append(f"  gain ({per}): {steps}  ({verdict}{', ' if verdict else ''}{spread})")
     if r.gain is not None:
-        lines.append(f"  gain at op0 (small steps, up and down averaged): {_g(r.gain, 6)} {per}")
+        which = "small steps"
+        if r.unmoved and r.linear_step is not None:  # the small ones moved nothing
+            which = f"the ±{_g(r.linear_step)} % steps: the smaller moved nothing"
+        lines.append(f"  gain at op0 ({which}, up and down averaged): {_g(r.gain, 6)} {per}")
     if r.dead_time is not None:
         order = f", onset like t^{r.onset_order:.2g}" if r.onset_order is not None else ""
         lines.append(f"  dead time: {_g(r.dead_time)} s (first movement{order})")
