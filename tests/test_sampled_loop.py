@@ -40,10 +40,13 @@ def test_first_order_p_control_gain_margin_and_ms_closed_form(fraction):
 
 
 def test_first_order_p_control_above_the_discrete_ultimate_gain_is_unstable():
-    """One real closed-loop pole a − g leaves the unit circle through −1."""
+    """One real closed-loop pole a − g leaves the unit circle through −1; the loop has no
+    Ms (1/Ms is a stable loop's distance to −1: |S| at z = −1 is finite, (1 + a)/|1 + a − g|,
+    and was stated beside "unstable")."""
     r = sampled_loop_robustness(IsaGains(1.05 * KC_U), DelayedTF.of([K], [TAU, 1.0], 0.0), T)
     assert not r.stable and r.unstable_poles == 1
     assert r.gain_margin == pytest.approx(1 / 1.05, rel=1e-9)
+    assert r.ms == math.inf
 
 
 @pytest.mark.parametrize("n", [0, 1, 2, 5])
