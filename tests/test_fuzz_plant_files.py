@@ -840,6 +840,27 @@ def test_the_plant_service_stays_up_with_a_faulted_loop(start_plant, monkeypatch
     assert log.count("model fuzz_user_models:StepRaisesAfter failed") == 1, log
 
 
+def test_an_in_process_tune_ends_at_its_loops_fault(user_models):
+    """In process (``LocalLoopClient``), the run heard of the fault only when a command was
+    refused: a relay on a model failing at t = 150.1 s ran its verification's setpoint step
+    on the held PV and ended "disturbance refused" (helper trial; here at 15 s, in the
+    verification of a 22.5 s run). The advance ends at the
+    fault and the client says so, as the bus's status does."""
+    from services.autotuner.tuning import RunHooks, TuningRun
+    from services.offline.local_loop import LocalLoopClient
+    from shared.messages import TuneRequest
+
+    spec = {"model": f"{USER}:StepRaisesAfter", "sample_time": 0.1, "fail_after": 150}
+    loop = build_plant({"seed": 5, "loops": {"bad": spec}})["bad"]
+    req = TuneRequest(loop="bad", method="relay")
+    r = TuningRun(LocalLoopClient(loop), req, "fault", RunHooks()).run()
+    assert r.status == "aborted" and r.reason.startswith("loop bad: the plant faulted it ("), (
+        r.reason
+    )
+    assert "refused" not in r.reason
+    assert loop.t == pytest.approx(loop.fault_t, abs=1e-9)  # not a sample past the fault
+
+
 @pytest.mark.integration
 def test_a_tune_ends_at_its_loops_fault_and_names_it(start_plant, monkeypatch):
     """The model fails 100 steps into a relay test: the run ended only when its next output
@@ -874,3 +895,9 @@ def test_a_tune_ends_at_its_loops_fault_and_names_it(start_plant, monkeypatch):
         "as before (restart plant_sim to clear the fault)" in r.reason
     )
     assert r.sim_duration < 10.0 + 5.0  # within an advance of the fault, not 14,000 s on
+    # said in the status the plant sent at the faulting sample (the advance ends there): a
+    # 16,384-sample record ran 25 s of sim time on past a fault before it was said (helper)
+    import re
+
+    came, said = (float(x) for x in re.findall(r"at t = ([0-9.]+) s", r.reason)[:2])
+    assert said == pytest.approx(came, abs=0.1 + 1e-9), r.reason

@@ -20,7 +20,7 @@ import numpy as np
 
 from services.autotuner.identify.driver import until_band
 from services.autotuner.identify.experiments import Band, Demand
-from services.autotuner.loop_client import CommandRefused
+from services.autotuner.loop_client import CommandRefused, LoopFaulted
 from services.plant_sim.simulation.loop import CommandRejected, LoopSnapshot, SimLoop
 from services.plant_sim.simulation.models import ProcessModel
 from shared.messages import (
@@ -146,9 +146,16 @@ class LocalLoopClient:
         ends = band.end_test() if band is not None else None
         if record is not None:
             ends = record.stop_test(steps, ends or (lambda pv, op=None: False))
+        healthy = self.sim.fault is None
         out = self.sim.advance_many(steps, ends)
         if out:
             self.last_sample = out[-1]
+        if healthy and self.sim.fault is not None and self.holding:
+            # as the bus client hears it in the status the plant sends at the fault
+            raise LoopFaulted(
+                f"loop {self.loop}: the plant faulted it ({self.sim.fault}): it holds the loop "
+                "in manual at the output it last had, and the model is not called again"
+            )
         return out
 
     def samples(
