@@ -43,3 +43,37 @@ def test_no_response_aborts_before_any_gain_is_designed_or_applied(method):
     assert r.status == "aborted" and not r.applied and not r.gains
     assert "did not respond to the" in r.reason, r.reason
     assert (loop.pid.mode, loop.pid.op, loop.pid.gains.kc) == before
+
+
+class Stuck:
+    """A valve stuck shut in its deadband: the PV holds at 50 % whatever the output."""
+
+    pv_units = "%"
+    pv_range = (0.0, 100.0)
+
+    def __init__(self, sample_time: float, op0: float = 50.0):
+        self.sample_time, self.op0 = sample_time, op0
+
+    def reset(self) -> float:
+        return 50.0
+
+    def step(self, op: float) -> float:
+        return 50.0
+
+    def disturbance_names(self) -> tuple[str, ...]:
+        return ()
+
+    def set_disturbance(self, name: str, value: float) -> None:
+        raise KeyError(name)
+
+
+def test_a_relay_whose_push_moves_nothing_says_so_when_its_time_runs_out():
+    """The relay never switches: its time budget ran out with "a slower process needs a
+    longer one" (helper trial, a dead valve); it says the PV did not respond."""
+    spec = {"model": f"{__name__}:Stuck", "sample_time": 0.1, "noise_std": 0.0}
+    loop = build_plant({"seed": 1, "loops": {"s": spec}})["s"]
+    req = TuneRequest(loop="s", method="relay", max_time=60.0)
+    r = TuningRun(LocalLoopClient(loop), req, "t", RunHooks()).run()
+    assert r.status == "aborted" and not r.gains
+    assert "the PV did not respond to the relay's push (it stayed within 0.01 of 50" in r.reason
+    assert "a slower process" not in r.reason

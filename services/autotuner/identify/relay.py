@@ -557,12 +557,22 @@ class RelayTest:
         return self._out()
 
     def _wrong_way(self) -> str:
-        """Why no cycle came, when the PV shows it (``_against``): a suffix for the abort
-        on the time budget; empty otherwise."""
+        """Why no cycle came, when the PV shows it (``_against``, or no response to the
+        push at all): a suffix for the abort on the time budget; empty otherwise."""
         if self._switched() or len(self.pv) < 2:
             return ""
         tail = float(np.mean(self.pv[-self._quiet_samples :]))
-        return f": {self._against(tail)}" if self._against(tail) else ""
+        if self._against(tail):
+            return f": {self._against(tail)}"
+        floor = self.config.response_floor
+        since = np.asarray(self.pv[-round((self.t[-1] - self._relay_start) / self.sample_time) :])
+        if floor > 0 and since.size and float(np.max(np.abs(since - self._r))) <= floor:
+            # a dead valve was told "a slower process needs a longer one" (helper trial)
+            return (
+                f": the PV did not respond to the relay's push (it stayed within {floor:.3g} "
+                f"of {self._r:.6g}: a valve that does not move?)"
+            )
+        return ""
 
     def _inverse_dip(self, amplitude: float) -> float | None:
         """How far the PV first went the other way in the relay's first push, from its rest
