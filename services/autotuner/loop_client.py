@@ -24,7 +24,7 @@ import zenoh
 
 from services.autotuner.identify.driver import until_band
 from services.autotuner.identify.experiments import Band
-from services.autotuner.stall_watch import stall_watch
+from services.autotuner.stall_watch import StallWatch, stall_watch
 from shared import keys, wire
 from shared.errors import AutotuneError, DecodeError
 from shared.messages import (
@@ -53,6 +53,12 @@ OVERSLEPT = 1.0  # s
 RESUMED_WAIT = 2.0  # s: then waited for once more, so the cause is the plant's word
 # s: a stall of this process within this long before the plant's token vanished is why
 CUT_OFF_WINDOW = 30.0
+
+
+def stalled_before(watch: StallWatch, born: float, gone: float) -> float:
+    """Seconds this process did not run within ``CUT_OFF_WINDOW`` before ``gone`` (when the
+    plant's token vanished) and since ``born`` (when the client began), monotonic times."""
+    return watch.stalled(max(gone - CUT_OFF_WINDOW, born)) - watch.stalled(gone)
 
 
 class PlantLost(AutotuneError):
@@ -201,6 +207,8 @@ class LoopClient:
         self._tokens = itertools.count(secrets.randbits(40) + 1)
         self._last_sent = time.monotonic()
         self._stalls = stall_watch()
+        self._born = time.monotonic()  # a stall before this client began is not its loss's
+        self._gone_at: float | None = None  # monotonic: when the plant's token vanished
         self._refused = 0  # our commands the plant refused so far (from its sync answers)
         self._loop_refused = 0
         self.holding = False  # this client holds the loop's lease (confirmed by the plant)
@@ -286,6 +294,8 @@ class LoopClient:
         at once: Zenoh tells in milliseconds what a timeout would in seconds."""
         for s in self._alive:
             if s.kind == zenoh.SampleKind.DELETE:
+                if self._gone_at is None:
+                    self._gone_at = time.monotonic()
                 self.gone = True
                 self._put((_GONE, b"", ""))
 
@@ -454,8 +464,11 @@ class LoopClient:
         a message: a run busy with a long step ends at once."""
         if self.gone:
             self.holding = False
-            # a link's lease (Zenoh: 10 s) outlived by this process's own stall cut it off
-            paused = self._stalls.stalled(time.monotonic() - CUT_OFF_WINDOW)
+            # a link's lease (Zenoh: 10 s) outlived by this process's own stall cut it off:
+            # a stall within the window before the token vanished and since this client
+            # began (one before the run blamed the tuner for a plant killed mid-run: helper)
+            gone = self._gone_at if self._gone_at is not None else time.monotonic()
+            paused = stalled_before(self._stalls, self._born, gone)
             why = (
                 f"this tuner was cut off from it: its own process did not run for "
                 f"{paused:.0f} s (paused or starved)"
