@@ -389,3 +389,43 @@ def test_no_change_under_the_prefix_asked_names_the_buses_that_have_some(tmp_pat
     assert "under prefix 'autotune'" in out and f"it holds hx1's under '{P}'" in out, out
     assert main(["history", LOOP, "--runs", str(tmp_path), "--prefix", P]) == 0
     assert "autotune-set" in capsys.readouterr().out
+
+
+def test_a_late_result_asked_for_is_the_runs_tune_record_and_its_change(tmp_path):
+    """The logger paused past the link's lease as a run ended: it missed the run's release
+    status and its result, asked the tuner for the result, and wrote neither record; the
+    gains were filed later as "unseen", who not known, and `revert --to RUN` found no change
+    by the run (helper trial). The result asked for is the run's tune record and its change
+    (cause release, the run named, from the gains it left); the next status adds nothing."""
+    h = history(tmp_path)
+    feed(h, status(G0))
+    src = "tuner:late1"
+    feed(h, status(G0, "lease", leased_by=src, by_source=src))
+    feed(h, status(G1, "gains", leased_by=src, by_source=src))  # then the logger is paused
+    r = TuneResult(
+        run_id="late1",
+        loop=LOOP,
+        t=300.0,
+        method="relay",
+        rule="tl-pid",
+        status="ok",
+        applied=True,
+        chosen={"isa": {"kc": 6.9, "ti": 96.0, "td": 6.9}},
+        left={"mode": "auto", "gains": G1.model_dump()},
+    )
+    h.late_result(wire.encode(r))
+    (c,) = changes(tmp_path)
+    assert (c["run_id"], c["cause"], c["by_source"]) == ("late1", "release", src)
+    assert c["before"] == G0.model_dump() and c["after"] == G1.model_dump()
+    (tune,) = [x for x in read_history(tmp_path / HISTORY_FILE) if x["record"] == "tune"]
+    assert tune["run_id"] == "late1"
+    assert (
+        target(loop_changes(tmp_path / HISTORY_FILE, LOOP), "late1", 1)["before"] == G0.model_dump()
+    )
+    feed(h, status(G1, "sync"))  # heard once the logger is back: the same gains, no change
+    assert len(changes(tmp_path)) == 1
+    # a rejected run's result leaves the gains as they were: no change
+    h.late_result(
+        wire.encode(r.model_copy(update={"run_id": "late2", "left": {"gains": G1.model_dump()}}))
+    )
+    assert len(changes(tmp_path)) == 1

@@ -609,3 +609,8 @@ def test_the_logger_asks_the_tuner_for_the_result_of_a_run_it_closed_tuner_lost(
     meta = only_file(rec)[0]
     assert (meta["status"], rec.counts["late_results"]) == ("ok", 1)
     assert "this logger" in meta["late_result"] and rec.lost_runs() == []
+    # and the change history has its tune record (it had none: helper trial)
+    from shared.history_file import read_history
+
+    tunes = [x for x in read_history(svc.history.path) if x["record"] == "tune"]
+    assert [(x["run_id"], x["status"]) for x in tunes] == [("r1", "ok")]

@@ -42,7 +42,7 @@ from typing import Any
 import pydantic
 
 from shared import keys
-from shared.history_file import HISTORY_FILE, read_history, run_of
+from shared.history_file import HISTORY_FILE, RUN_SOURCE, read_history, run_of
 from shared.messages import LoopStatus, TuneResult
 
 log = logging.getLogger("logger")
@@ -236,6 +236,44 @@ class ChangeHistory:
                 "noise": r.noise,
             }
         )
+
+    def late_result(self, payload: bytes) -> None:
+        """A run's result this logger missed on the bus and asked its tuner for (it was paused
+        or cut off as the run ended, ``LoggerService._ask_late_results``): its ``tune``
+        record, and the run's net change, which its release status said where this logger
+        could not hear it, from the gains the result says the run left (cause ``release``,
+        the run named). Without it a paused logger filed the run's gains later as ``unseen``,
+        who not known, and ``autotune revert --to RUN`` found no change by the run (helper
+        trial)."""
+        try:
+            r = TuneResult.model_validate_json(payload)
+        except pydantic.ValidationError:
+            self.invalid += 1
+            return
+        self._result(r)
+        left = (r.left or {}).get("gains")
+        known = self.loops.get(r.loop)
+        if known is None or not isinstance(left, dict) or left == known.gains:
+            return  # a later status was seen already, or nothing changed
+        self._append(
+            {
+                "record": "change",
+                "utc": self._utc(),
+                "t": r.t,
+                "prefix": self.bus,
+                "loop": r.loop,
+                "node": known.node,
+                "by_source": f"{RUN_SOURCE}{r.run_id}",
+                "by_user": None,
+                "cause": "release",
+                "run_id": r.run_id,
+                "mode": (r.left or {}).get("mode"),
+                "before": known.gains,
+                "after": left,
+                "late": "from the run's result: its release status was not heard",
+            }
+        )
+        known.gains = left
 
     # --- the file ---------------------------------------------------------------------------
 

@@ -170,6 +170,10 @@ class LoggerService:
                     if found:
                         with self.lock:
                             self.recorder.handle(str(reply.ok.key_expr), payload, None)
+                            try:
+                                self.history.late_result(payload)
+                            except Exception:
+                                log.exception("the change history of run %s failed", run_id)
                         break
 
     def _on_query(self, query: zenoh.Query) -> None:
