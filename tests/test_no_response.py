@@ -17,7 +17,7 @@ from shared.messages import TuneRequest
 
 DEAD = {
     "model": "fopdt",
-    "gain": 4e-8,  # PV units per %: 2e-7 for a 5 % step, within 1e-4 of the 0–100 range
+    "gain": 4e-8,  # PV units per %: 2e-7 for a 5 % step, within 1e-5 of the 0–100 range
     "time_constant": 15.0,
     "delay": 2.0,
     "sample_time": 0.1,
@@ -27,9 +27,9 @@ DEAD = {
 }
 
 
-def test_the_floor_is_a_ten_thousandth_of_the_range():
-    assert no_response_floor((0.0, 100.0)) == pytest.approx(0.01, rel=1e-12)
-    assert no_response_floor((2.0, -2.0)) == pytest.approx(4e-4, rel=1e-12)
+def test_the_floor_is_a_hundred_thousandth_of_the_range():
+    assert no_response_floor((0.0, 100.0)) == pytest.approx(1e-3, rel=1e-12)
+    assert no_response_floor((2.0, -2.0)) == pytest.approx(4e-5, rel=1e-12)
     assert no_response_floor((0.0, float("inf"))) == 0.0
 
 
@@ -75,5 +75,5 @@ def test_a_relay_whose_push_moves_nothing_says_so_when_its_time_runs_out():
     req = TuneRequest(loop="s", method="relay", max_time=60.0)
     r = TuningRun(LocalLoopClient(loop), req, "t", RunHooks()).run()
     assert r.status == "aborted" and not r.gains
-    assert "the PV did not respond to the relay's push (it stayed within 0.01 of 50" in r.reason
+    assert "the PV did not respond to the relay's push (it stayed within 0.001 of 50" in r.reason
     assert "a slower process" not in r.reason

@@ -18,6 +18,8 @@ from typing import Protocol
 
 import numpy as np
 
+from shared.control.rest_window import RESOLUTION
+
 
 class Sample(Protocol):
     """One sample of a loop: sim time t (s), PV (engineering units), output op (%)."""
@@ -180,15 +182,16 @@ def decay_ratio(turns: list[tuple[float, float]], end: float) -> float | None:
 
 
 # the least PV move, as a fraction of the transmitter's range, that is a response to the
-# output: a noise-free simulation shows any change, and a valve stuck in its deadband gave
-# 2e-7 % of the range for a 5 % step, read as a gain of 4e-8 and a PI Kc of 1.1e9 that the
-# verification put on the loop (helper trial); a transmitter resolves about 1e-5 of its range
-RESPONSE_FRACTION = 1e-4
+# output: what no transmitter resolves (a 17-bit converter's step), as for rest
+# (``rest_window.RESOLUTION``). A noise-free simulation shows any change: a valve stuck in its
+# deadband gave 2e-9 of the range for a 5 % step, read as a gain of 4e-8 and a PI Kc of 1.1e9
+# that the verification put on the loop (helper trial); 6/((s+1)(s+2)(s+3)) cycles by 6e-3
+RESPONSE_FRACTION = RESOLUTION
 
 
 def no_response_floor(pv_range: tuple[float, float]) -> float:
-    """PV units: a move within this of the rest is no response to the output (``RESPONSE_FRACTION``
-    of the range ``pv_range``; 0 for a range that is not finite)."""
+    """PV units: a move within this of the rest is no response to the output
+    (``RESPONSE_FRACTION`` of the range ``pv_range``; 0 for a range that is not finite)."""
     span = abs(pv_range[1] - pv_range[0])
     return RESPONSE_FRACTION * span if math.isfinite(span) else 0.0
 
