@@ -424,6 +424,18 @@ def test_a_late_result_asked_for_is_the_runs_tune_record_and_its_change(tmp_path
     )
     feed(h, status(G1, "sync"))  # heard once the logger is back: the same gains, no change
     assert len(changes(tmp_path)) == 1
+    # an operator's change heard after the run (outside any lease): the late result is the
+    # run's tune record only, not a change charged to the run (review)
+    (tmp_path / "b").mkdir()
+    h2 = history(tmp_path / "b")
+    feed(h2, status(G0))
+    feed(h2, status(G0, "lease", leased_by=src, by_source=src))
+    feed(h2, status(G1, "gains", leased_by=src, by_source=src))
+    g2 = PidGains(kc=3.0, ti=50.0)
+    feed(h2, status(g2, "gains", by_source="autotune-set", by_user="op"))
+    h2.late_result(wire.encode(r))
+    (only,) = changes(tmp_path / "b")
+    assert (only["cause"], only["after"]) == ("gains", g2.model_dump()), only
     # a rejected run's result leaves the gains as they were: no change
     h.late_result(
         wire.encode(r.model_copy(update={"run_id": "late2", "left": {"gains": G1.model_dump()}}))

@@ -64,3 +64,21 @@ def test_a_cycle_locked_to_the_sample_grid_is_steady_over_its_pattern():
     assert r.ku == pytest.approx(ku, rel=0.01)
     assert r.pu == pytest.approx(pu, rel=0.005)
     assert r.ku_spread >= abs(r.ku / ku - 1)  # the stated spread covers its error
+
+
+def test_a_pattern_whose_cycles_differ_widely_is_not_one_cycle():
+    """Cycles repeating with period 2 to the digit but alternating in amplitude by 30 % are
+    not one cycle to average (review); by 5 % they are."""
+    from services.autotuner.identify.relay import Cycle, RelayConfig, RelayTest
+
+    def test_with(amplitudes: tuple[float, float]) -> RelayTest:
+        test = RelayTest(RelayConfig(), 50.0, (0.0, 100.0), (0.0, 100.0), TS)
+        start = Cycle(0.0, 3.0, 0.1, 0.5, 50.0)  # the start-up's, not counted
+        test.cycles = [start] + [
+            Cycle(10.0 * k, 10.0, amplitudes[k % 2], 0.5, 50.0) for k in range(1, 7)
+        ]
+        return test
+
+    assert test_with((1.0, 1.3))._pattern() is None
+    found = test_with((1.0, 1.05))._pattern()
+    assert found is not None and [c.amplitude for c in found] == [1.05, 1.0, 1.05, 1.0]

@@ -117,7 +117,11 @@ def test_the_harmonics_are_drawn_with_the_noises_share_and_hold_the_plant(demo):
     x, _ = (np.asarray(v, float) for v in bars.lines[0].get_data())
     seg = np.asarray(bars.lines[2][0].get_segments())
     hi = seg[:, :, 1].max(axis=1)
-    window = e["stage_one_cycles"] * 2 * math.pi / e["omega_1"]
+    # read over the agreeing cycles (RelayConfig.cycles of them), not every cycle run
+    from services.autotuner.identify.relay import RelayConfig
+
+    assert e["stage_one_periods"] == RelayConfig.cycles < e["stage_one_cycles"]
+    window = RelayConfig.cycles * 2 * math.pi / e["omega_1"]
     ts = result["identified_on"]["sample_time"]
     num, den, _ = HX  # |G| needs no delay
     for j, k in enumerate((3, 5)):

@@ -69,6 +69,15 @@ def test_at_rest_means_no_trend_beyond_the_noise():
     assert not at_rest(np.array([1.0, 1.0]))  # too short to tell
 
 
+def _through(turns: list[tuple[float, float]], end: float, after: float = 0.0):
+    """A record through the turning points (straight between them), from 0 at t = 0, then to
+    ``after`` at ``end``: (t, dev) every 0.01."""
+    tv = np.array([0.0, *(tt for tt, _ in turns), end])
+    yv = np.array([0.0, *(v for _, v in turns), after])
+    t = np.arange(0.0, end + 1e-9, 0.01)
+    return t, np.interp(t, tv, yv)
+
+
 def test_decay_ratio_is_the_crest_after_the_largest_over_the_largest():
     """Turning points of deviations from the final value worked by hand: a small crest of the
     approach (0.7) ahead of the overshoot (4.65, then 1.6) is not the oscillation's (second
@@ -76,20 +85,24 @@ def test_decay_ratio_is_the_crest_after_the_largest_over_the_largest():
     (0.37) is not a crest (it read 0.37/14.38 = 0.026 for a response whose next crest is
     3.15)."""
     approach = [(1.0, 0.7), (2.0, -0.3), (3.0, 4.65), (4.0, -2.0), (5.0, 1.6), (6.0, -0.5)]
-    assert decay_ratio(approach, 7.0) == pytest.approx(1.6 / 4.65, rel=1e-12)
+    assert decay_ratio(approach, *_through(approach, 7.0)) == pytest.approx(1.6 / 4.65)
     shallow = [(42.0, 14.38), (66.0, 0.37), (86.0, 3.15), (100.0, -0.4)]
-    assert decay_ratio(shallow, 200.0) == pytest.approx(3.15 / 14.38, rel=1e-12)
+    assert decay_ratio(shallow, *_through(shallow, 200.0)) == pytest.approx(3.15 / 14.38)
     quarter = [(1.0, 8.0), (2.0, -4.0), (3.0, 2.0), (4.0, -1.0), (5.0, 0.5)]
-    assert decay_ratio(quarter, 6.0) == pytest.approx(0.25, rel=1e-12)
+    assert decay_ratio(quarter, *_through(quarter, 6.0)) == pytest.approx(0.25)
 
 
 def test_decay_ratio_where_the_largest_crest_is_the_last():
-    """Growing crests (1, 2, 4) cut by the record's end within 1.5 crest spacings of the last:
-    4/2 (it may grow on); the same crests watched for 1.5 spacings beyond the last with no
-    crest again: it died (None); one crest or none: None."""
+    """Growing crests (1, 2, 4): cut by the record's end within 1.5 crest spacings of the
+    last, 4/2 (it may grow on); watched for 1.5 spacings beyond it and never again as far
+    from zero, it died (None); running on past it without a crest (drifting away to −9),
+    4/2 again, not hidden (review); one crest or none: None."""
     growing = [(10.0, 1.0), (15.0, -1.5), (20.0, 2.0), (25.0, -3.0), (30.0, 4.0), (35.0, -1.0)]
-    assert decay_ratio(growing, 38.0) == pytest.approx(2.0, rel=1e-12)
-    assert decay_ratio(growing, 45.0) is None
-    assert decay_ratio([(1.0, 3.0), (2.0, -0.5)], 10.0) is None
-    assert decay_ratio([(1.0, -3.0), (2.0, -0.5)], 10.0) is None
-    assert decay_ratio([], 10.0) is None
+    assert decay_ratio(growing, *_through(growing, 38.0)) == pytest.approx(2.0)
+    assert decay_ratio(growing, *_through(growing, 45.0)) is None
+    assert decay_ratio(growing, *_through(growing, 45.0, after=-9.0)) == pytest.approx(2.0)
+    one = [(1.0, 3.0), (2.0, -0.5)]
+    assert decay_ratio(one, *_through(one, 10.0)) is None
+    below = [(1.0, -3.0), (2.0, -0.5)]
+    assert decay_ratio(below, *_through(below, 10.0)) is None
+    assert decay_ratio([], np.arange(3.0), np.zeros(3)) is None

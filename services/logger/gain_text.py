@@ -10,11 +10,11 @@ import math
 from shared.control.forms import kc_percent, proportional_band, pv_span, unit
 
 
-def number(value: object, spec: str = ".4g", unit: str = "") -> str:
+def number(value: object, spec: str = ".4g", suffix: str = "") -> str:
     """A recorded number formatted, or "—" where there is none (or not a finite number)."""
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         return "—"
-    return f"{value:{spec}}{unit}"
+    return f"{value:{spec}}{suffix}"
 
 
 def span_of(pv_range: object) -> float | None:

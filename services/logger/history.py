@@ -253,8 +253,13 @@ class ChangeHistory:
         self._result(r)
         left = (r.left or {}).get("gains")
         known = self.loops.get(r.loop)
-        if known is None or not isinstance(left, dict) or left == known.gains:
-            return  # a later status was seen already, or nothing changed
+        # only while the last status heard was under a lease (the run's, or a next run's):
+        # one heard since outside any lease already says the loop's gains, and a change
+        # written then (an operator's after the run) would be charged to the run (review)
+        if known is None or not known.leased or not isinstance(left, dict):
+            return
+        if left == known.gains:
+            return  # nothing changed: a rejected run put the gains back
         self._append(
             {
                 "record": "change",

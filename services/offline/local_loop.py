@@ -57,6 +57,7 @@ class LocalLoopClient:
         self.gone = False  # an in-process loop never goes away
         self.lease_timeout = 10.0  # s; asked for, never expires in process
         self.commands: list[Command] = []  # every accepted command, in order
+        self._fault_note: str | None = None  # a fault the last advance ended at, to tell
 
     @property
     def holding(self) -> bool:
@@ -78,7 +79,11 @@ class LocalLoopClient:
         """Nothing to renew: a loop in this process has no watchdog."""
 
     def check_plant(self) -> None:
-        """Nothing to lose: the loop is in this process."""
+        """Nothing to lose: the loop is in this process. A fault the last advance ended at is
+        told here (once), as the bus client tells it at the status after those samples."""
+        note, self._fault_note = self._fault_note, None
+        if note is not None:
+            raise LoopFaulted(note)
 
     def hold_arrived(self) -> list[ProcessSample]:
         """None: the loop in this process steps only when asked, never while the run
@@ -124,6 +129,7 @@ class LocalLoopClient:
         self.commands.append(cmd)
 
     def command(self, cmd: Command) -> LoopStatus:
+        self.check_plant()
         before = self.sim.rejected
         self._apply(cmd)
         status = self.sync()
@@ -143,6 +149,7 @@ class LocalLoopClient:
         """Step the loop ``steps`` periods, stopping after the first sample that leaves
         ``band`` (or, with ``record``, where that record's judging stops it) as the plant does
         (``AdvanceCommand.stop_test``); their samples (what the plant would publish)."""
+        self.check_plant()
         ends = band.end_test() if band is not None else None
         if record is not None:
             ends = record.stop_test(steps, ends or (lambda pv, op=None: False))
@@ -151,8 +158,9 @@ class LocalLoopClient:
         if out:
             self.last_sample = out[-1]
         if healthy and self.sim.fault is not None and self.holding:
-            # as the bus client hears it in the status the plant sends at the fault
-            raise LoopFaulted(
+            # the samples up to the fault are the run's (its record keeps them); the fault is
+            # told at the next call, as the bus client hears it in the status after them
+            self._fault_note = (
                 f"loop {self.loop}: the plant faulted it ({self.sim.fault}): it holds the loop "
                 "in manual at the output it last had, and the model is not called again"
             )

@@ -160,7 +160,8 @@ def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
         pv_range=s.pv_range,
         pv_units=s.pv_units,
     )
-    _tune_rest(report, rest_window(s.sample_time, loop.pid.gains.ti), s.noise_std)
+    if loop.pid.mode == "manual" or loop.pid.gains.ti is None:  # else its PID holds it
+        _tune_rest(report, rest_window(s.sample_time, loop.pid.gains.ti), s.noise_std)
     # a reverse-acting PID is for a process whose PV rises with the output, a direct one for
     # one whose PV falls: the other way round, the loop runs away in auto, and a relay or a
     # ramp pushes the PV away from where it would switch
@@ -179,7 +180,8 @@ def _tune_rest(report: ModelReport, window: float, noise_std: float) -> None:
     """A warning where the model drifts at op0 by more than the tuner takes as rest over its
     window (``shared.control.rest_window``): every tune would end before its test, "the PV
     did not come to rest", while the check gave the drift as corrected for (0.002 %/s on a
-    noise-free loop: helper trial)."""
+    noise-free loop: helper trial). Only for a loop held in manual (or without integral
+    action): in auto its PID takes the drift out, and the tuner looks for rest as it is."""
     drift = report.rest_drift
     if drift is None or report.refused:
         return

@@ -1,6 +1,8 @@
-"""How long the tuner watches a loop for rest before a test, and what rest allows: shared by
-the tuner's check (``services.autotuner.identify.rest``) and ``autotune model check``, which
-says beforehand whether a model that drifts at op0 will ever let a tune start.
+"""How long the tuner watches a loop for rest before a test, and what rest allows: the window
+and the resolution are the tuner's check's (``services.autotuner.identify.rest``), and
+``autotune model check`` uses them with ``rest_allowance`` (3σ, at least the resolution, as
+that check judges a straight-line trend) to say beforehand whether a model that drifts at
+op0 will ever let a tune start.
 
 The window is at least ``MIN_SAMPLES`` samples and at least the loop's integral time (a tuned
 loop's Ti is of the order of its process lag), capped at ``MAX_WINDOW`` s. A straight-line

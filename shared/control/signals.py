@@ -153,21 +153,21 @@ def extrema(t: np.ndarray, y: np.ndarray, min_swing: float) -> list[tuple[float,
     return out
 
 
-def decay_ratio(turns: list[tuple[float, float]], end: float) -> float | None:
-    """A step response's decay ratio from its turning points (``extrema`` of the deviation
-    from the final value or the setpoint, in order; ``end``: the record's last time, s or
-    samples as the turns' times): the crest after the largest over the
-    largest (crests: maxima above zero; the quarter-decay aim is 0.25). Not the second crest
-    over the first: a small crest of the approach ahead of the overshoot is not the
-    oscillation's (a stable flow loop's 0.7 % crest before its 4.65 % overshoot read 7.9,
-    a growing loop's figure). Where the largest is the last, the record tells: watched for
-    1.5 crest spacings after it with no crest again, the oscillation has died (None, as for
-    a single crest); else the largest over the one before (≥ 1: it may be growing)."""
+def decay_ratio(turns: list[tuple[float, float]], t: np.ndarray, dev: np.ndarray) -> float | None:
+    """A step response's decay ratio from its turning points (``extrema`` of ``dev``, the
+    deviation from the final value or the setpoint, at times ``t``): the crest after the
+    largest over the largest (crests: maxima above zero; the quarter-decay aim is 0.25). Not
+    the second crest over the first: a small crest of the approach ahead of the overshoot is
+    not the oscillation's (a stable flow loop's 0.7 % crest before its 4.65 % overshoot read
+    7.9, a growing loop's figure). Where the largest is the last, the record tells: watched
+    for 1.5 crest spacings after it, never again as far from zero, the oscillation has died
+    (None, as for a single crest); else (cut short, or running on past it: growing, or
+    drifting away without a crest) the largest over the one before, ≥ 1."""
     kinds = [
         (j + 1 < len(turns) and v > turns[j + 1][1]) or (j > 0 and v > turns[j - 1][1])
         for j, (_, v) in enumerate(turns)
     ]
-    crests = [(t, v) for (t, v), top in zip(turns, kinds, strict=True) if top and v > 0]
+    crests = [(tc, v) for (tc, v), top in zip(turns, kinds, strict=True) if top and v > 0]
     if not crests:
         return None
     m = max(range(len(crests)), key=lambda j: crests[j][1])
@@ -175,10 +175,13 @@ def decay_ratio(turns: list[tuple[float, float]], end: float) -> float | None:
         return crests[m + 1][1] / crests[m][1]
     if m == 0:
         return None
-    spacing = crests[m][0] - crests[m - 1][0]
-    if end - crests[m][0] >= 1.5 * spacing:
+    (tm, top), spacing = crests[m], crests[m][0] - crests[m - 1][0]
+    t, dev = np.asarray(t, dtype=float), np.asarray(dev, dtype=float)
+    after = np.abs(dev[t > tm])
+    died = after.size and float(np.max(after)) <= top
+    if died and float(t[-1]) - tm >= 1.5 * spacing:
         return None
-    return crests[m][1] / crests[m - 1][1]
+    return top / crests[m - 1][1]
 
 
 # the least PV move, as a fraction of the transmitter's range, that is a response to the

@@ -47,7 +47,7 @@ def measured_setpoint_step(
     zs = smooth(z, width) if noisy else z
     over = _crest(t, z, zs, width) if noisy else float(np.max(zs) - 1.0)
     ext = extrema(t, zs - 1.0, max(0.02, 8 * rel_noise))
-    decay = decay_ratio(ext, float(t[-1])) if t.size else None
+    decay = decay_ratio(ext, t, zs - 1.0) if t.size else None
     t10, t90 = first_crossing(t, z, 0.1), first_crossing(t, z, 0.9)
     tol = max(band, 3 * noise / abs(delta))
     outside = np.nonzero(np.abs(z - 1.0) > tol)[0]

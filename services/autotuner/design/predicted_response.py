@@ -95,6 +95,7 @@ def _figures(y: np.ndarray) -> StepFigures:
     overshoot = max(0.0, 100.0 * (float(np.max(y)) - final) / abs(final)) if final else 0.0
     # the oscillation's peaks above the final value, each a turning point that clears 1 % of
     # the step (the derivative's small ripple on a crest is not a second peak)
-    turns = extrema(np.arange(y.size, dtype=float), dev, 0.01 * max(abs(final), 1e-12))
-    dr = decay_ratio(turns, float(y.size - 1))
+    k = np.arange(y.size, dtype=float)
+    turns = extrema(k, dev, 0.01 * max(abs(final), 1e-12))
+    dr = decay_ratio(turns, k, dev)
     return StepFigures(overshoot, 0.0 if dr is None else float(dr), stable)

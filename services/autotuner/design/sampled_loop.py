@@ -122,7 +122,8 @@ def sampled_robustness(gains: IsaGains, plant: SampledPlant, n: float = 10.0) ->
     w = plant.omega
     if gains.kc <= 0:  # no feedback: the loop is the plant's own
         stable = plant.unstable_poles == 0 and plant.integrators == 0
-        return Robustness(1.0, math.inf, math.inf, None, None, stable, ts, plant.unstable_poles)
+        ms = 1.0 if stable else math.inf  # |S| = 1 everywhere: but an unstable loop has none
+        return Robustness(ms, math.inf, math.inf, None, None, stable, ts, plant.unstable_poles)
 
     def loop(x: np.ndarray | float) -> np.ndarray:
         x = np.atleast_1d(np.asarray(x, dtype=float))

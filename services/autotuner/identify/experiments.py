@@ -19,7 +19,6 @@ from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
-from services.autotuner.identify.rest import RESOLUTION as REST_RESOLUTION
 from shared.control.record_stops import CalmCheck
 from shared.control.signals import Sample, end_test, ends_batch, no_response_floor
 
@@ -324,18 +323,16 @@ class Setup:
     relay_pattern: bool | None = None
 
     def response_floor(self) -> float:
-        """PV units: the least move that answers the output, where the set-up asks
-        (``resolution``, with the transmitter's range known); 0 otherwise."""
+        """PV units: what the transmitter does not resolve (``signals.no_response_floor``),
+        where the set-up asks (``resolution``, with its range known); 0 otherwise. A move of
+        the PV within it answers no output, and a drift within it over a rest window is rest
+        (the same resolution: ``rest_window.RESOLUTION``)."""
         rng = self.pv_range
         return no_response_floor(rng) if self.resolution and rng is not None else 0.0
 
     def rest_floor(self) -> float:
-        """PV units: a drift within this is rest, where the set-up asks (``resolution``, with
-        the transmitter's range known); 0 otherwise."""
-        rng = self.pv_range
-        if not (self.resolution and rng is not None and math.isfinite(rng[1] - rng[0])):
-            return 0.0
-        return REST_RESOLUTION * abs(rng[1] - rng[0])
+        """PV units: a drift within this over a rest window is rest (``response_floor``)."""
+        return self.response_floor()
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

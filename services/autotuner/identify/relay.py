@@ -186,6 +186,9 @@ class RelayConfig:
     # whole patterns are counted. None: not looked for (a run recorded before)
     pattern_cycles: int | None = 4
     pattern_match: float = 1e-3
+    # … as long as the pattern's cycles differ by no more than this (period and amplitude):
+    # a period-2 cycle whose amplitudes alternate by 30 % is not one cycle to average (review)
+    pattern_spread: float = 0.1
     # PV units the quiet period may drift over and be rest: what no transmitter resolves (a
     # noise-free PV's creep after a test); 0: the noise alone decides (recorded before)
     rest_floor: float = 0.0
@@ -817,7 +820,7 @@ class RelayTest:
         # the first cycle (after a widening too) is the start-up transient
         recent = self.cycles[self._from_cycle + 1 :][-n:]
         largest = max((c.amplitude for c in recent), default=math.inf)
-        if len(recent) == n and largest < cfg.response_floor:
+        if len(recent) == n and largest <= cfg.response_floor:
             # counted cycles, not the start-up's first (a partial one can be any size)
             self._abort(
                 f"the PV did not respond to the relay: its cycles' amplitude {largest:.3g} is "
@@ -854,7 +857,8 @@ class RelayTest:
     def _pattern(self) -> list[Cycle] | None:
         """Stage 1's last counted cycles, where they repeat a pattern of m = 2 …
         ``pattern_cycles`` cycles (the last m each as the one m before, period and amplitude
-        to ``pattern_match``): as many whole patterns as cover ``cycles``; else None."""
+        to ``pattern_match``) whose cycles differ by ``pattern_spread`` at most: as many whole
+        patterns as cover ``cycles``; else None."""
         cfg = self.config
         if not cfg.pattern_cycles:
             return None
@@ -870,7 +874,11 @@ class RelayTest:
                 and abs(a.amplitude - b.amplitude) <= match * b.amplitude
                 for a, b in pairs
             ):
-                return counted[-whole:]
+                cycles = counted[-whole:]
+                wide = max(
+                    spread([c.period for c in cycles]), spread([c.amplitude for c in cycles])
+                )
+                return cycles if wide <= cfg.pattern_spread else None
         return None
 
     def _grows(self, t: float) -> bool:
@@ -1086,6 +1094,7 @@ class RelayTest:
             ku_df=s1.ku,
             pu_df=s1.pu,
             stage_one_cycles=s1.cycles,
+            stage_one_periods=s1.window[2],
             second=refined.points if refined else (),
             static_gain=(
                 model.gain if model is not None and model.kind != "ipdt" and self._low < 1 else None

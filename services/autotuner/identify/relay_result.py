@@ -31,6 +31,9 @@ class RelayResult:
     ku_df: float = math.nan  # the describing-function estimate of stage 1
     pu_df: float = math.nan
     stage_one_cycles: int = 0
+    # the whole periods stage 1's frequency points were read over (its window: the last
+    # agreeing cycles, not every cycle run); 0: not known
+    stage_one_periods: int = 0
     second: tuple[FrequencyPoint, ...] = ()  # stage 2's exact G(jkω₂), k = 1, 2, 3
     # the process gain of the model fitted on a record with stage 2's bias (None: no bias);
     # the bias's step in the mean output is what pins it (the DC ratio of two short stages is
@@ -85,7 +88,8 @@ class RelayResult:
             "ku_describing_function": self.ku_df,
             "pu_describing_function": self.pu_df,
             "stage_one_cycles": self.stage_one_cycles,
-            **frequency_fields(self.frequency, self._noise_share(self.stage_one_cycles)),
+            "stage_one_periods": self.stage_one_periods,
+            **frequency_fields(self.frequency, self._noise_share(self.stage_one_periods)),
             **{
                 f"stage2_{k}": v
                 for k, v in frequency_fields(self.second, self._noise_share(1)).items()
