@@ -90,3 +90,5 @@ def test_a_rule_refused_by_the_safety_envelope_lists_its_gains_in_parentheses(tm
     (row,) = [x for x in capsys.readouterr().out.splitlines() if x.endswith(path.name)]
     for v in (isa.kc, isa.ti, isa.td):
         assert f"({v:.4g})" in row, (v, row)
+    listed = summarize(path)
+    assert listed["gains"]["kc"] == isa.kc and listed["gains_on_loop"] is False

@@ -139,6 +139,8 @@ def _row(path: Path, meta: dict[str, str]) -> dict:
         "ku": result.get("ku"),
         "pu": result.get("pu"),
         "gains": isa,
+        # whether those gains were left on the loop (the table puts the others in ( ))
+        "gains_on_loop": bool(isa) and meta.get("status") in APPLIED_STATUSES,
         "status": meta.get("status"),
         # an `autotune apply` run: the recorded run whose gains it applied (its method is that
         # run's; listed as "apply", not as a second test of that method)
