@@ -12,7 +12,7 @@ from websockets.datastructures import Headers
 from websockets.http11 import Request
 
 from services.cli import main
-from services.console.server import ASSETS, Hub, dumps
+from services.console.server import ASSETS, Hub, console_hosts, dumps
 
 
 def get(hub: Hub, path: str):
@@ -86,3 +86,25 @@ def test_bad_flags_and_a_port_in_use_exit_2_in_one_line(argv, says, taken_port, 
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and says.format(port=taken_port) in err, err
+
+
+@pytest.mark.parametrize(
+    ("host", "allowed"),
+    [("127.0.0.1:8050", True), ("localhost:8050", True), ("[::1]:8050", True),
+     ("10.0.0.5:8050", True), ("evil.example:8050", False), ("evil.example", False),
+     ("console.plant:8050", False), ("", False)],
+)  # fmt: skip
+def test_a_page_reaching_the_console_by_another_sites_name_is_refused(tmp_path, host, allowed):
+    """DNS rebinding: evil.example made to resolve to 127.0.0.1 reached the console from that
+    site's page with Host and Origin both evil.example, and a cancel went through (helper
+    trial). Every request must name the console by an address, localhost or the name it is
+    served on; the websocket as well as the runs' data."""
+    hub = Hub(tmp_path)
+    for path in ("/ws", "/api/runs", "/"):
+        headers = Headers({"Host": host, "Origin": f"http://{host}"})
+        r = asyncio.run(hub.route(None, Request(path, headers)))
+        refused = r is not None and r.status_code == 403
+        assert refused != allowed, (path, host)
+    served = Hub(tmp_path, console_hosts("console.plant"))  # --host console.plant
+    r = asyncio.run(served.route(None, Request("/api/runs", Headers({"Host": "console.plant"}))))
+    assert r.status_code == 200

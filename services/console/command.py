@@ -86,9 +86,9 @@ async def _serve(args: argparse.Namespace) -> None:
     from websockets.asyncio.server import serve
 
     from services.console.bridge import Bridge
-    from services.console.server import MAX_MESSAGE, TICK, Hub
+    from services.console.server import MAX_MESSAGE, TICK, Hub, console_hosts
 
-    hub = Hub(Path(args.runs))
+    hub = Hub(Path(args.runs), console_hosts(args.host))
     try:
         server = await serve(
             hub.page,

@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ipaddress
 import json
 import logging
+import socket
 from collections.abc import Callable
 from http import HTTPStatus
 from importlib import resources
@@ -62,6 +64,35 @@ def asset(name: str) -> bytes | None:
     return resources.files("services.console").joinpath("static", name).read_bytes()
 
 
+def console_hosts(bind: str) -> frozenset[str]:
+    """The names a page may reach this console by, besides an IP address (``host_allowed``):
+    localhost, the address it is bound to, and (bound to every interface) this machine's
+    name."""
+    names = {"localhost", bind.lower()}
+    if bind in ("0.0.0.0", "::", ""):
+        names |= {socket.gethostname().lower(), socket.getfqdn().lower()}
+    return frozenset(names)
+
+
+def host_allowed(headers: Headers, hosts: frozenset[str]) -> bool:
+    """The request's Host names this console: an IP address, or one of ``hosts``. Against DNS
+    rebinding: another site's name made to resolve to 127.0.0.1 reaches the console from that
+    site's page with its own name as Host (and as Origin, which ``same_origin`` then passes:
+    a cancel went through so, helper trial); a browser sends an address as Host only when
+    the page was opened by that address. No Host (not a browser): allowed."""
+    host = headers.get("Host")
+    if host is None:
+        return True
+    name = urlsplit(f"//{host}").hostname
+    if not name:
+        return False
+    try:
+        ipaddress.ip_address(name)
+        return True
+    except ValueError:
+        return name.lower() in hosts
+
+
 def same_origin(headers: Headers) -> bool:
     """The websocket is for the console's own page: a browser names the page's origin, which
     must be this server (another site's script in the same browser would otherwise start
@@ -87,8 +118,9 @@ def _error(status: HTTPStatus, text: str) -> Response:
 class Hub:
     """The pages connected, and what goes to them."""
 
-    def __init__(self, runs: Path):
+    def __init__(self, runs: Path, hosts: frozenset[str] = console_hosts("127.0.0.1")):
         self.runs = runs
+        self.hosts = hosts  # the names a page may reach it by (``host_allowed``)
         self.pages: set[ServerConnection] = set()
         self.loop: asyncio.AbstractEventLoop | None = None
         self.bridge: Any = None  # the Bridge, once on the bus: pages wait for it
@@ -114,6 +146,12 @@ class Hub:
         url = urlsplit(request.path)
         query = {k: v[0] for k, v in parse_qs(url.query).items()}
         path = url.path
+        if not host_allowed(request.headers, self.hosts):
+            return _error(
+                HTTPStatus.FORBIDDEN,
+                f"Host {one_line(request.headers.get('Host'), 80)}: not this console's name "
+                "(open it by its address, localhost or the name it serves on)",
+            )
         if path == "/ws":
             return (
                 None
