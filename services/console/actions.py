@@ -103,11 +103,13 @@ def revert(
     loop: str,
     to: str | None = None,
     user: str | None = None,
+    last_only: bool = False,
 ) -> dict[str, Any]:
     """``autotune revert LOOP [--to RUN_ID]``: the gains before the loop's last change (or
     before run ``to``'s), written bumplessly by one gains command and confirmed by the plant;
-    refused when the loop's gains are not the last on record (a change the history missed).
-    Returns what was done: loop, the change undone, before and after gains."""
+    refused when the loop's gains are not the last on record (a change the history missed),
+    and, ``last_only`` (the page's Reject of run ``to``), when run ``to``'s change is not the
+    last. Returns what was done: loop, the change undone, before and after gains."""
     keys.check_id(loop)
     path = runs / HISTORY_FILE
     wait_for_loop(session, prefix, loop, LOOP_WAIT)
@@ -124,6 +126,17 @@ def revert(
         if not changes:
             raise ConfigError(f"{path}: no change of {loop}'s gains on record")
         undo = target(changes, to, 1)
+        if last_only and undo is not changes[-1]:
+            # the page's Reject of a run: its gains are no longer the loop's, and writing back
+            # the gains before it would undo the later change unsaid (an operator's Kc 3 was
+            # put back to 2 by a Reject pressed again after a reload: helper trial)
+            later = changes[-1]
+            raise AutotuneError(
+                f"loop {loop}: its gains changed after run {to}'s ({later.get('cause')} by "
+                f"{later.get('by_source') or 'an unknown sender'} at {later.get('utc')}): "
+                "rejecting the run would write over that change; nothing written (Revert "
+                "undoes the last change)"
+            )
         if not current:
             raise AutotuneError(
                 f"loop {loop}: its gains are not the last on record (a change the history "

@@ -393,7 +393,9 @@ class Bridge:
             run_id if last.get("applied") else by.get("run_id") if by.get("applied") else None
         )
         if last.get("run_id") == run_id and changed_by:
-            done = actions.revert(self.session, self.prefix, self.runs, loop, changed_by, self.user)
+            done = actions.revert(
+                self.session, self.prefix, self.runs, loop, changed_by, self.user, last_only=True
+            )
             say(
                 True, f"run {run_id} rejected: {loop}'s gains before it written back", reverted=done
             )

@@ -110,6 +110,16 @@ def test_a_day_with_a_loop(start_plant, start_tuner, start_logger, tmp_path):
     g3 = gains(plant)
     assert (g3["kc"], g3["ti"]) == (1.5, 80.0)
     assert changes_seen(runs, 4)[-1]["by_source"] == "autotune-set"
+    # the console's Reject of the applied run, pressed again after the set (a reload left it
+    # enabled): it wrote the run's "before" over the operator's gains (helper trial); refused
+    from services.console import actions
+    from shared.errors import AutotuneError
+    from shared.session import open_session
+
+    refused = r"its gains changed after run \S+ \(gains by autotune-set at .*nothing written"
+    with open_session(plant.client_settings()) as s, pytest.raises(AutotuneError, match=refused):
+        actions.revert(s, plant.prefix, runs, LOOP, applied["run_id"], last_only=True)
+    assert gains(plant) == g3
 
     stop_service(logger)  # a restart: the history is a file, the new logger goes on from it
     start_logger(plant, runs)
