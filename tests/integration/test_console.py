@@ -169,6 +169,11 @@ def test_a_tune_started_watched_and_applied_from_the_page(
         assert bus_gains(plant) == wanted != before
         wait.until(lambda d: f"Kc {float(f'{wanted.kc:.4g}'):g} " in text(d, card) + " ")
         wait.until(lambda d: f"{rule} applied" in text(d, "#result-head"))
+        # applied: no longer "the gains wait for Apply" beside it (helper trial)
+        assert "wait for Apply" not in text(d, "#result-head")
+        # the card's figures are its last sample's, with their time
+        whole = f'.loop[data-loop="{LOOP}"]'
+        assert "(its last sample)" in text(d, whole) or "(its last status)" in text(d, whole)
 
         # the recorded runs: the tune and the apply, each opened as its report, then compared
         wait.until(lambda d: len(d.find_elements(By.CSS_SELECTOR, "#runs tbody tr")) == 2)
@@ -197,6 +202,9 @@ def test_a_tune_started_watched_and_applied_from_the_page(
             lambda d: d.find_element(By.ID, "svc-logger").get_attribute("data-up") == "false"
         )
         assert d.find_element(By.ID, "svc-tuner").get_attribute("data-up") == "true"
+        # the only plant gone: every card says so (none did, the set of live loops empty)
+        stop_service(plant.proc)
+        wait.until(lambda d: "plant not on the bus" in text(d, whole))
     finally:
         d.quit()
         assert stop_service(console) == 0, (tmp_path / "console.log").read_text()

@@ -6,6 +6,7 @@ const S = {
   ws: null, nextId: 1, history: 600, rules: [],
   loops: {},          // loop → {status, info}
   alive: new Set(),   // loops whose plant announces them
+  aliveKnown: false,  // the services' tokens heard (an empty set then means no plant is up)
   running: new Set(), // loops with a run in progress
   trends: {},         // loop → {t, pv, sp, op}
   progress: {},       // loop → last TuneProgress
@@ -65,7 +66,7 @@ const handlers = {
       el.dataset.up = String(m[s].length > 0);
       el.title = m[s].length ? `up: ${m[s].join(", ")}` : "not on the bus";
     }
-    S.alive = new Set(m.loops); S.running = new Set(m.running);
+    S.alive = new Set(m.loops); S.running = new Set(m.running); S.aliveKnown = true;
     renderLoops(); renderTuneButtons();
   },
   loop(m) {
@@ -85,6 +86,7 @@ const handlers = {
     while (cut < tr.t.length && tr.t[cut] < last - S.history) cut++;
     if (cut) for (const k of ["t", "pv", "sp", "op"]) tr[k].splice(0, cut);
     if (m.loop === S.selected) S.dirty = true;
+    renderLoops();  // the card's figures are its last sample's (a status may be long ago)
   },
   progress(m) {
     const seen = S.phases[m.loop];
@@ -137,15 +139,21 @@ function drawLoops() {
   $("loops").innerHTML = ids.map((id) => {
     const { status: st, info } = S.loops[id];
     const units = info ? info.pv_units : "";
-    const off = S.alive.size && !S.alive.has(id) ? " offline" : "";
+    // the only plant gone leaves no loop alive: every card says so (it said nothing)
+    const off = S.aliveKnown && !S.alive.has(id) ? " offline" : "";
+    // SP, PV and OP of its last sample where that is newer than its last status (in realtime
+    // a status comes seldom: a card showed a PV 475 s old as if live); its time always said
+    const tr = S.trends[id], k = tr && tr.t.length ? tr.t.length - 1 : -1;
+    const bySample = k >= 0 && (!st || tr.t[k] >= st.t);
+    const fig = bySample ? { sp: tr.sp[k], pv: tr.pv[k], op: tr.op[k], t: tr.t[k] } : st;
     const lease = st && st.leased_by ? `<div class="muted">held by ${esc(st.leased_by)}</div>` : "";
     const run = S.running.has(id) ? ' <span class="muted">tuning…</span>' : "";
     return `<div class="loop${id === S.selected ? " selected" : ""}${off}" data-loop="${esc(id)}">
       <span class="id">${esc(id)}</span>${run}<span class="mode">${st ? esc(st.mode) : "?"}</span>
       <div class="muted">${esc(info ? info.description : "")}</div>
-      <div class="figs">SP ${st ? fmt(st.sp) : "—"} · PV ${st ? fmt(st.pv) : "—"} ${esc(units)} · OP ${st ? fmt(st.op) : "—"} %</div>
+      <div class="figs">SP ${fig ? fmt(fig.sp) : "—"} · PV ${fig ? fmt(fig.pv) : "—"} ${esc(units)} · OP ${fig ? fmt(fig.op) : "—"} %</div>
       <div class="figs gains">${gainsText(st && st.gains)}</div>${lease}
-      ${st && id !== S.selected ? `<div class="muted">as of t = ${fmt(st.t)} s (its last status)</div>` : ""}
+      ${fig ? `<div class="muted">as of t = ${fmt(fig.t)} s (its last ${bySample ? "sample" : "status"})</div>` : ""}
       ${off ? '<div class="muted">plant not on the bus</div>' : ""}</div>`;
   }).join("");
   $("loops").onclick ||= (ev) => { const el = ev.target.closest(".loop"); if (el) select(el.dataset.loop); };
@@ -317,15 +325,18 @@ function renderResult() {
     drawStep(); return;
   }
   const r = m.result, e = r.experiment || {}, units = r.pv_units || "PV unit";
+  const per = /[/·*]/.test(units) ? `(${units})` : units;  // %/(m3/h), not %/m3/h
+  const v = r.after;  // the verification of the gains the run applied, as measured
+  const verified = v ? `<div id="result-verified">verified: overshoot ${fixed(v.overshoot, 1)} %, decay ratio ${fixed(v.decay_ratio, 2)}, settling ${fmt(v.settling_time, 3)} s, IAE ${fmt(v.iae_sp, 3)}${v.stable === false ? " — not stable" : ""}</div>` : "";
   $("result-status").textContent = `${r.status} · run ${r.run_id}`;
   const lags = Object.keys(e).filter((k) => k.startsWith("model_lag")).sort().map((k) => fmt(e[k])).join(", ");
   const model = e.model ? `model ${String(e.model).toUpperCase()}: K = ${fmt(e.model_gain)}${lags ? `, T = ${lags} s` : ""}, L = ${fmt(e.model_delay)} s` : "no model";
   head.innerHTML = `<div>${esc(r.applied_from ? `applying run ${r.applied_from}'s gains` : `${r.method} test, rule ${r.rule}`)}${r.reason ? " — " + esc(r.reason) : ""}</div>
-    <div><b>K<sub>u</sub></b> = <span id="result-ku">${fmt(r.ku)}</span> %/${esc(units)} &nbsp; <b>P<sub>u</sub></b> = <span id="result-pu">${fmt(r.pu)}</span> s &nbsp; <span id="result-model">${esc(model)}</span></div>
-    <div>${r.applied ? "new gains applied, loop in auto" : !r.restored ? "" : ["proposed", "rejected"].includes(r.status) && r.gains && Object.keys(r.gains).length ? "loop as before the test: the gains wait for Apply" : "loop as before the test"}</div>
+    <div><b>K<sub>u</sub></b> = <span id="result-ku">${fmt(r.ku)}</span> %/${esc(per)} &nbsp; <b>P<sub>u</sub></b> = <span id="result-pu">${fmt(r.pu)}</span> s &nbsp; <span id="result-model">${esc(model)}</span></div>
+    <div>${r.applied ? "new gains applied, loop in auto" : m.applied_by ? "" : !r.restored ? "" : ["proposed", "rejected"].includes(r.status) && r.gains && Object.keys(r.gains).length ? "loop as before the test: the gains wait for Apply" : "loop as before the test"}</div>${verified}
     ${m.applied_by ? `<div id="result-applied"><b>${esc(m.applied_by.rule)} applied</b> by run ${esc(m.applied_by.run_id)}: ${esc(m.applied_by.status)}${m.applied_by.applied ? ", verified, loop in auto" : ", not applied: the loop restored"}${m.applied_by.reason ? " (" + esc(m.applied_by.reason) + ")" : ""}</div>` : ""}
     ${r.recommended ? `<div class="muted">recommended: ${esc(r.recommended.rule)} (${esc(r.recommended.reason)})</div>` : ""}`;
-  thead.innerHTML = "<tr><th>rule</th><th>Kc</th><th>Ti s</th><th>Td s</th><th>Ms</th><th>GM</th><th>PM °</th><th>OS %</th><th>DR</th></tr>";
+  thead.innerHTML = `<tr><th>rule</th><th>Kc %/${esc(per)}</th><th>Ti s</th><th>Td s</th><th>Ms</th><th>GM</th><th>PM °</th><th>OS % (pred.)</th><th>DR (pred.)</th></tr>`;
   const rec = r.recommended ? r.recommended.rule : r.rule;
   const chosen = S.chosenRule || rec;
   tbody.innerHTML = Object.entries(r.gains || {}).map(([name, g]) => {
