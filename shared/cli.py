@@ -7,6 +7,7 @@ import contextlib
 import logging
 import math
 import os
+import re
 import signal
 import sys
 import threading
@@ -18,10 +19,19 @@ from shared import keys
 from shared.errors import ConfigError, one_line
 from shared.session import add_zenoh_arguments
 
+# a value that is a negative number, as argparse should see it: its own pattern takes -5 and
+# -.5 but not -1e3 or -inf, which it then reads as flags ("--amplitude -1e3": "expected one
+# argument", where the bound's own refusal says what is wrong; helper trial)
+NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-inf(inity)?$", re.IGNORECASE)
+
 
 class OneLineParser(argparse.ArgumentParser):
     """argparse whose errors are one line (the usage is what --help is for); its subparsers
-    are of this class too."""
+    are of this class too. A negative number in exponent form (or -inf) is a value."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self._negative_number_matcher = NEGATIVE_NUMBER
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {one_line(message, 500)} (see {self.prog} --help)\n")

@@ -48,7 +48,19 @@ BAD = [
     ({"pv-limits": ["80", "40"]}, ["--pv-limits", "80", "40"]),
     ({"step-size": "0"}, ["--step-size", "0"]),
     ({"max-overshoot": "nan"}, ["--max-overshoot", "nan"]),
+    # negative numbers in exponent form are values, refused by their bound (argparse took
+    # them for flags: "--amplitude: expected one argument"; helper trial)
+    ({"amplitude": "-1e3"}, ["--amplitude", "-1e3"]),
+    ({"max-time": "-1E3"}, ["--max-time", "-1E3"]),
+    ({"amplitude": "-inf"}, ["--amplitude", "-inf"]),
 ]
+
+
+def test_a_negative_exponent_is_the_flags_value_and_its_bound_says_why():
+    with pytest.raises(ConfigError) as refused:
+        tune_request(PREFIX, "hx1", {"amplitude": "-1e3"})
+    assert "expected one argument" not in str(refused.value)
+    assert str(refused.value).startswith("--amplitude")
 
 
 @pytest.mark.parametrize(("fields", "argv"), BAD)

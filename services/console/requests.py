@@ -13,7 +13,7 @@ import math
 from typing import Any, NoReturn
 
 from services.autotuner.commands import tune as tune_command
-from shared.cli import check_flags, check_ids
+from shared.cli import NEGATIVE_NUMBER, check_flags, check_ids
 from shared.errors import ConfigError, one_line
 from shared.messages import TuneRequest
 
@@ -23,7 +23,12 @@ NOT_FROM_PAGE = {"json", "wait", "detach", "node", "units", "prefix", "verbose"}
 
 
 class _Parser(argparse.ArgumentParser):
-    """The tune command's parser, its refusals raised as ConfigError (one line)."""
+    """The tune command's parser, its refusals raised as ConfigError (one line); a negative
+    number in exponent form is a value, as on the CLI (``shared.cli.NEGATIVE_NUMBER``)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = NEGATIVE_NUMBER
 
     def error(self, message: str) -> NoReturn:
         raise ConfigError(one_line(message, 500))  # as the CLI's OneLineParser
