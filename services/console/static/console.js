@@ -381,7 +381,7 @@ async function loadRuns() {
   $("runs").tBodies[0].innerHTML = S.runRows.slice().reverse().map((r) => `<tr data-file="${esc(r.file)}">
     <td><input type="checkbox" ${S.ticked.includes(r.file) ? "checked" : ""}></td><td>${esc((r.started || "").slice(0, 19))}</td>
     <td>${esc(r.loop)}</td><td>${esc(r.method)}</td><td>${fmt(r.ku)}</td><td>${fmt(r.pu)}</td><td>${esc(r.rule)}</td>
-    <td>${esc(r.status)}${r.reason ? ": " + esc(r.reason) : ""}</td><td><button type="button" class="open">report</button></td></tr>`).join("");
+    <td>${esc(r.status)}${r.reason ? ": " + esc(r.reason) : ""}${r.dropped ? ` <b class="warn">(${esc(r.dropped)} samples dropped: the record has gaps)</b>` : ""}</td><td><button type="button" class="open">report</button></td></tr>`).join("");
   for (const tr of $("runs").tBodies[0].rows) {
     tr.querySelector(".open").onclick = () => showReports([tr.dataset.file]);
     tr.querySelector("input").onchange = (ev) => {
