@@ -75,5 +75,6 @@ def test_a_relay_whose_push_moves_nothing_says_so_when_its_time_runs_out():
     req = TuneRequest(loop="s", method="relay", max_time=60.0)
     r = TuningRun(LocalLoopClient(loop), req, "t", RunHooks()).run()
     assert r.status == "aborted" and not r.gains
-    assert "the PV did not respond to the relay's push (it stayed within 0.001 of 50" in r.reason
-    assert "a slower process" not in r.reason
+    assert "the PV did not respond to the relay's push in 60" in r.reason
+    assert "(it stayed within 0.001 of 50: a valve that does not move?)" in r.reason
+    assert "a slower process" not in r.reason and "after 0 cycles" not in r.reason

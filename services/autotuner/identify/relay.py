@@ -552,10 +552,16 @@ class RelayTest:
                 if first
                 else ""
             )
+            wrong = self._wrong_way()
+            if wrong.startswith(": the PV did not respond"):  # no cycle at all: said first
+                return self._abort(
+                    f"the PV did not respond to the relay's push in {t - self._relay_start:g} s"
+                    + wrong.removeprefix(": the PV did not respond to the relay's push")
+                )
             return self._abort(
                 f"no limit cycle that repeats within {cfg.tolerance:.0%} after "
                 f"{len(self.cycles)} cycles and {t - self._relay_start:g} s"
-                + (self._wrong_way() or why)
+                + (wrong or why)
             )
         return self._out()
 
