@@ -13,6 +13,7 @@ from shared.control.signals import (
     extrema,
     first_crossing,
     noise_level,
+    slowest_decay,
     smooth,
     trapezoid,
 )
@@ -106,3 +107,19 @@ def test_decay_ratio_where_the_largest_crest_is_the_last():
     below = [(1.0, -3.0), (2.0, -0.5)]
     assert decay_ratio(below, *_through(below, 10.0)) is None
     assert decay_ratio([], np.arange(3.0), np.zeros(3)) is None
+
+
+def test_the_slowest_decay_after_a_kick_is_the_loops():
+    """Crests 1.49 (the setpoint kick's), then 0.98, 1.01, 1.03, 1.00, 0.94 (lvl2 under ZN
+    PID, Ms 201): the crest after the largest over the largest reads 0.66; the slowest decay
+    among crests of at least a quarter of the largest, from it on, is 1.01/0.98. A geometric
+    decay (8, 2, 0.5) is its own ratio, 0.25; crests below a quarter of the largest (1.9, 2.1
+    after 10) do not count."""
+    crests = [1.49, 0.98, 1.01, 1.03, 1.00, 0.94]
+    turns = [x for j, c in enumerate(crests) for x in ((2.0 * j, c), (2.0 * j + 1, -0.5))]
+    assert slowest_decay(turns) == pytest.approx(1.01 / 0.98)
+    geometric = [(1.0, 8.0), (2.0, -4.0), (3.0, 2.0), (4.0, -1.0), (5.0, 0.5), (6.0, -0.2)]
+    assert slowest_decay(geometric) == pytest.approx(0.25)
+    small = [(1.0, 10.0), (2.0, -2.0), (3.0, 1.9), (4.0, -1.0), (5.0, 2.1), (6.0, -0.5)]
+    assert slowest_decay(small) is None  # only one crest of a quarter of 10 or more
+    assert slowest_decay([(1.0, 3.0), (2.0, -1.0)]) is None

@@ -12,6 +12,7 @@ as the bus's ``ProcessSample`` and a replayed record are.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from typing import Protocol
@@ -153,6 +154,15 @@ def extrema(t: np.ndarray, y: np.ndarray, min_swing: float) -> list[tuple[float,
     return out
 
 
+def _crests(turns: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The maxima among turning points (``extrema``'s, which alternate) that lie above zero."""
+    kinds = [
+        (j + 1 < len(turns) and v > turns[j + 1][1]) or (j > 0 and v > turns[j - 1][1])
+        for j, (_, v) in enumerate(turns)
+    ]
+    return [(tc, v) for (tc, v), top in zip(turns, kinds, strict=True) if top and v > 0]
+
+
 def decay_ratio(turns: list[tuple[float, float]], t: np.ndarray, dev: np.ndarray) -> float | None:
     """A step response's decay ratio from its turning points (``extrema`` of ``dev``, the
     deviation from the final value or the setpoint, at times ``t``): the crest after the
@@ -163,11 +173,7 @@ def decay_ratio(turns: list[tuple[float, float]], t: np.ndarray, dev: np.ndarray
     for 1.5 crest spacings after it, never again as far from zero, the oscillation has died
     (None, as for a single crest); else (cut short, or running on past it: growing, or
     drifting away without a crest) the largest over the one before, ≥ 1."""
-    kinds = [
-        (j + 1 < len(turns) and v > turns[j + 1][1]) or (j > 0 and v > turns[j - 1][1])
-        for j, (_, v) in enumerate(turns)
-    ]
-    crests = [(tc, v) for (tc, v), top in zip(turns, kinds, strict=True) if top and v > 0]
+    crests = _crests(turns)
     if not crests:
         return None
     m = max(range(len(crests)), key=lambda j: crests[j][1])
@@ -182,6 +188,22 @@ def decay_ratio(turns: list[tuple[float, float]], t: np.ndarray, dev: np.ndarray
     if died and float(t[-1]) - tm >= 1.5 * spacing:
         return None
     return top / crests[m - 1][1]
+
+
+def slowest_decay(turns: list[tuple[float, float]], share: float = 0.25) -> float | None:
+    """The largest ratio of a crest to the one before it, from the largest crest on, among
+    crests of at least ``share`` of the largest (``extrema`` of the deviation, crests above
+    zero): where the first swing is the setpoint kick's and the oscillation after it hardly
+    decays, the crest after the largest over the largest says 0.66 of a loop whose crests
+    then run 0.98, 1.01, 1.03, 1.00 (lvl2 under ZN PID, Ms 201: helper trial). None for
+    fewer than two such crests."""
+    crests = [v for _, v in _crests(turns)]
+    if len(crests) < 2:
+        return None
+    m = max(range(len(crests)), key=lambda j: crests[j])
+    big = [v for v in crests[m:] if v >= share * crests[m]]
+    ratios = [b / a for a, b in itertools.pairwise(big)]
+    return max(ratios) if ratios else None
 
 
 # the least PV move, as a fraction of the transmitter's range, that is a response to the

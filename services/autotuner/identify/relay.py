@@ -560,8 +560,7 @@ class RelayTest:
                 )
             return self._abort(
                 f"no limit cycle that repeats within {cfg.tolerance:.0%} after "
-                f"{len(self.cycles)} cycles and {t - self._relay_start:g} s"
-                + (wrong or why)
+                f"{len(self.cycles)} cycles and {t - self._relay_start:g} s" + (wrong or why)
             )
         return self._out()
 
