@@ -7,6 +7,8 @@ PI of Kc 1e8–1e9 on the loop before rejecting it. Each experiment now ends at 
 In process, lockstep (``LocalLoopClient``), a noise-free FOPDT of gain 4e-8.
 """
 
+import math
+
 import pytest
 
 from services.autotuner.tuning import RunHooks, TuningRun
@@ -78,3 +80,29 @@ def test_a_relay_whose_push_moves_nothing_says_so_when_its_time_runs_out():
     assert "the PV did not respond to the relay's push in 60" in r.reason
     assert "(it stayed within 0.001 of 50: a valve that does not move?)" in r.reason
     assert "a slower process" not in r.reason and "after 0 cycles" not in r.reason
+
+
+def test_a_tiny_but_real_gain_grows_the_relay_above_the_resolution():
+    """0.001·6/((s+1)(s+2)(s+3)) on a 0–100 range, noise-free: a relay of 5 % cycles by
+    20/(π·10,000) = 6.4e-4, within the 1e-3 a transmitter resolves, and was aborted as no
+    response where the step test read its gain (helper trial). The cycle rides on the
+    resolution as on a hysteresis: d grows, and the ultimate point is read (K_u = 10,000,
+    P_u = 2π/√11, the closed form of 6/((s+1)(s+2)(s+3)) scaled)."""
+    spec = {
+        "model": "transfer_function",
+        "num": [0.006],
+        "den": [1.0, 6.0, 11.0, 6.0],
+        "delay": 0.0,
+        "sample_time": 0.02,
+        "noise_std": 0.0,
+        "pv_range": [0.0, 100.0],
+    }
+    loop = build_plant({"seed": 1, "loops": {"t": spec}})["t"]
+    events = []
+    req = TuneRequest(loop="t", method="relay")
+    r = TuningRun(LocalLoopClient(loop), req, "t", RunHooks(event=events.append)).run()
+    assert r.status == "ok", r.reason
+    (grown,) = [e.data for e in events if e.kind == "amplitude"]
+    assert "within the transmitter's resolution" in grown["reason"]
+    assert r.ku == pytest.approx(10_000.0, rel=0.01)
+    assert r.pu == pytest.approx(2 * math.pi / math.sqrt(11.0), rel=0.005)
