@@ -2,7 +2,7 @@
 transmitter) is never tuned: a noise-free PV that moves 2e-7 of its range for a 5 % step
 read as a gain of 4e-8 (step test) or a K_u of 2.6e8 (relay), and the verification put a
 PI of Kc 1e8–1e9 on the loop before rejecting it. Each experiment now ends at no response
-(a move within ``signals.RESPONSE_FRACTION`` of the range), before any gain is designed.
+(a move within ``rest_window.RESOLUTION`` of the range), before any gain is designed.
 
 In process, lockstep (``LocalLoopClient``), a noise-free FOPDT of gain 4e-8.
 """

@@ -270,14 +270,14 @@ def test_a_step_the_pv_does_not_answer_is_no_response_not_a_tiny_gain():
     was verified on a loop whose valve stuck). Through a 1e6 s lag the PV moves 5e-4 in the
     100 s the test waits: the timeout says it did not respond."""
     floor = no_response_floor((0.0, 100.0))  # 0.001: what a live run's set-up gives
-    test = drive(sim_loop(quiet_fopdt(4e-8, 15.0)), response_floor=floor)
+    test = drive(sim_loop(quiet_fopdt(4e-8, 15.0)), resolution=floor)
     assert test.phase == "aborted" and test.result is None
     assert "did not respond to the step" in test.reason and "within 0.001" in test.reason
-    slow = drive(sim_loop(quiet_fopdt(1.0, 1e6)), timeout=100.0, response_floor=floor)
+    slow = drive(sim_loop(quiet_fopdt(1.0, 1e6)), timeout=100.0, resolution=floor)
     assert slow.phase == "aborted" and slow.result is None
     assert "did not respond to the step within 100 s" in slow.reason
     # a response just clear of the floor is read: 5 % × 0.001 = 0.005 > 0.001
-    small = drive(sim_loop(quiet_fopdt(0.001, 15.0)), response_floor=floor)
+    small = drive(sim_loop(quiet_fopdt(0.001, 15.0)), resolution=floor)
     assert small.phase == "done" and small.result.gain == pytest.approx(0.001, rel=0.01)
     # a run recorded before (no floor) read the 2e-7 as a gain, as it did then
     old = drive(sim_loop(quiet_fopdt(4e-8, 15.0)))

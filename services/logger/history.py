@@ -129,23 +129,7 @@ class ChangeHistory:
             else:  # missed (this logger paused, or its messages lost): not this sender's
                 run = self._applied_by(st.loop, gains)
                 by, user, cause = None, None, "unseen"
-            self._append(
-                {
-                    "record": "change",
-                    "utc": self._utc(),
-                    "t": st.t,
-                    "prefix": self.bus,
-                    "loop": st.loop,
-                    "node": st.node,
-                    "by_source": by,
-                    "by_user": user,
-                    "cause": cause,
-                    "run_id": run,
-                    "mode": st.mode,
-                    "before": known.gains,
-                    "after": gains,
-                }
-            )
+            self._change(st.loop, st.node, st.t, st.mode, known.gains, gains, cause, by, user, run)
             known.gains = gains
 
     def _applied_by(self, loop: str, gains: dict[str, Any]) -> str | None:
@@ -175,23 +159,7 @@ class ChangeHistory:
         else:
             cause = "unseen"
         if prev is not None and prev != gains and not leased:
-            self._append(
-                {
-                    "record": "change",
-                    "utc": self._utc(),
-                    "t": st.t,
-                    "prefix": self.bus,
-                    "loop": st.loop,
-                    "node": st.node,
-                    "by_source": None,
-                    "by_user": None,
-                    "cause": cause,
-                    "run_id": None,
-                    "mode": st.mode,
-                    "before": prev,
-                    "after": gains,
-                }
-            )
+            self._change(st.loop, st.node, st.t, st.mode, prev, gains, cause)
         baseline = prev if leased and prev is not None else gains
         self.loops[st.loop] = _Loop(st.node, baseline, leased)
 
@@ -260,25 +228,49 @@ class ChangeHistory:
             return
         if left == known.gains:
             return  # nothing changed: a rejected run put the gains back
+        mode = (r.left or {}).get("mode")
+        by = f"{RUN_SOURCE}{r.run_id}"
+        late = "from the run's result: its release status was not heard"
+        self._change(
+            r.loop, known.node, r.t, mode, known.gains, left, "release", by, run=r.run_id, late=late
+        )
+        known.gains = left
+
+    def _change(
+        self,
+        loop: str,
+        node: str,
+        t: float,
+        mode: str | None,
+        before: dict[str, Any],
+        after: dict[str, Any],
+        cause: str,
+        by: str | None = None,
+        user: str | None = None,
+        run: str | None = None,
+        **more: Any,
+    ) -> None:
+        """A ``change`` record of ``loop``'s gains (of plant ``node``) from ``before`` to
+        ``after``, at sim time ``t`` in ``mode``: its ``cause``, sender (``by``, ``user``),
+        run and any ``more`` fields."""
         self._append(
             {
                 "record": "change",
                 "utc": self._utc(),
-                "t": r.t,
+                "t": t,
                 "prefix": self.bus,
-                "loop": r.loop,
-                "node": known.node,
-                "by_source": f"{RUN_SOURCE}{r.run_id}",
-                "by_user": None,
-                "cause": "release",
-                "run_id": r.run_id,
-                "mode": (r.left or {}).get("mode"),
-                "before": known.gains,
-                "after": left,
-                "late": "from the run's result: its release status was not heard",
+                "loop": loop,
+                "node": node,
+                "by_source": by,
+                "by_user": user,
+                "cause": cause,
+                "run_id": run,
+                "mode": mode,
+                "before": before,
+                "after": after,
+                **more,
             }
         )
-        known.gains = left
 
     # --- the file ---------------------------------------------------------------------------
 

@@ -206,19 +206,15 @@ def slowest_decay(turns: list[tuple[float, float]], share: float = 0.25) -> floa
     return max(ratios) if ratios else None
 
 
-# the least PV move, as a fraction of the transmitter's range, that is a response to the
-# output: what no transmitter resolves (a 17-bit converter's step), as for rest
-# (``rest_window.RESOLUTION``). A noise-free simulation shows any change: a valve stuck in its
-# deadband gave 2e-9 of the range for a 5 % step, read as a gain of 4e-8 and a PI Kc of 1.1e9
-# that the verification put on the loop (helper trial); 6/((s+1)(s+2)(s+3)) cycles by 6e-3
-RESPONSE_FRACTION = RESOLUTION
-
-
 def no_response_floor(pv_range: tuple[float, float]) -> float:
-    """PV units: a move within this of the rest is no response to the output
-    (``RESPONSE_FRACTION`` of the range ``pv_range``; 0 for a range that is not finite)."""
+    """PV units: a move within this of the rest is no response to the output: what no
+    transmitter resolves, ``rest_window.RESOLUTION`` of the range ``pv_range`` (0 for a range
+    that is not finite), as for rest. A noise-free simulation shows any change: a valve stuck
+    in its deadband gave 2e-9 of the range for a 5 % step, read as a gain of 4e-8 and a PI Kc
+    of 1.1e9 that the verification put on the loop (helper trial); 6/((s+1)(s+2)(s+3)) cycles
+    by 6e-3."""
     span = abs(pv_range[1] - pv_range[0])
-    return RESPONSE_FRACTION * span if math.isfinite(span) else 0.0
+    return RESOLUTION * span if math.isfinite(span) else 0.0
 
 
 def trapezoid(y: np.ndarray, t: np.ndarray) -> float:

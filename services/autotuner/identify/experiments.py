@@ -313,26 +313,22 @@ class Setup:
     # True: a step test's rest asks the PV's scatter about its trend to be noise (an
     # underdamped response is not at rest mid-swing); None: recorded before
     step_swing: bool | None = None
-    # True: the transmitter's resolution floors what counts as a response to the output (a
-    # relay or step test whose PV moves within ``signals.RESPONSE_FRACTION`` of the range
-    # aborts there) and as a drift before a test (``rest.RESOLUTION`` of it: a noise-free
-    # PV's creep); None: recorded before
+    # True: the transmitter's resolution (``rest_window.RESOLUTION`` of its range) floors what
+    # counts as a response to the output (a relay or step test whose PV moves within it
+    # aborts there) and as a drift before a test (a noise-free PV's creep within it is rest);
+    # None: recorded before
     resolution: bool | None = None
     # True: a relay's stage-1 cycles that repeat a pattern of a few cycles are steady
     # (``RelayConfig.pattern_cycles``); None: recorded before, not looked for
     relay_pattern: bool | None = None
 
-    def response_floor(self) -> float:
+    def resolution_floor(self) -> float:
         """PV units: what the transmitter does not resolve (``signals.no_response_floor``),
         where the set-up asks (``resolution``, with its range known); 0 otherwise. A move of
-        the PV within it answers no output, and a drift within it over a rest window is rest
-        (the same resolution: ``rest_window.RESOLUTION``)."""
+        the PV within it answers no output, and a drift within it over a rest window is
+        rest."""
         rng = self.pv_range
         return no_response_floor(rng) if self.resolution and rng is not None else 0.0
-
-    def rest_floor(self) -> float:
-        """PV units: a drift within this over a rest window is rest (``response_floor``)."""
-        return self.response_floor()
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Setup:

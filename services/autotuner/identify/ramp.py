@@ -132,9 +132,10 @@ class RampConfig:
     # abort as soon as the trials say the feedback is positive (``_wrong_way``) and none has
     # oscillated; False: a run recorded before, which ran on to its trial limit or budget
     stop_wrong_way: bool = False
-    # PV units a quiet window may drift over and be rest: what no transmitter resolves (a
-    # noise-free PV's creep after a test); 0: the noise alone decides (recorded before)
-    rest_floor: float = 0.0
+    # PV units the transmitter does not resolve (``Setup.resolution_floor``): a quiet window
+    # may drift within it and be rest (a noise-free PV's creep after a test); 0: the noise
+    # alone decides (a run recorded before)
+    resolution: float = 0.0
 
     def __post_init__(self) -> None:
         if not (self.kc_start > 0 and math.isfinite(self.kc_start)):
@@ -577,7 +578,7 @@ class RampTest:
             return
         if seen >= n:
             base = np.asarray(self._y[-n:])
-            rest = at_rest(base, allowance=self.config.rest_floor)
+            rest = at_rest(base, allowance=self.config.resolution)
             if saturated == 0 and rest and (not self._backoffs or _white(base)):
                 self._r, self._noise = float(base.mean()), noise_level(base)
                 self._quiet_end = len(self._y)
@@ -1198,7 +1199,7 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         bump=setup.bump,
         tolerance=min(settings.tolerance, 0.02) / 2,
         stop_wrong_way=bool(setup.ramp_wrong_way),
-        rest_floor=setup.rest_floor(),
+        resolution=setup.resolution_floor(),
         **first,
         **budget,
     )

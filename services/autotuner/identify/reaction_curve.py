@@ -40,7 +40,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from shared.control.signals import RESPONSE_FRACTION, first_crossing, range_end
+from shared.control.rest_window import RESOLUTION
+from shared.control.signals import first_crossing, range_end
 
 # scipy.optimize is imported where it is used, not here: it is a third of a second of the
 # start of every `autotune` command that loads this module, and most never fit anything
@@ -177,7 +178,7 @@ def analyze_step(
     if abs(change) <= floor:
         raise ValueError(
             f"the PV did not respond to the step: it changed by {change:.4g}, within "
-            f"{floor:.3g} ({RESPONSE_FRACTION:.0e} of its range; a valve that did not move?)"
+            f"{floor:.3g} ({RESOLUTION:.0e} of its range; a valve that did not move?)"
         )
     dt = float(np.median(np.diff(t)))
     sign = math.copysign(1.0, change)

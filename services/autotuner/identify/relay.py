@@ -64,7 +64,8 @@ from services.autotuner.identify.relay_estimate import (
 from services.autotuner.identify.relay_model import RelayRecord, corrector, process_model
 from services.autotuner.identify.relay_result import RelayResult
 from shared.control.beyond import beyond
-from shared.control.signals import RESPONSE_FRACTION, Sample, at_rest, noise_level
+from shared.control.rest_window import RESOLUTION
+from shared.control.signals import Sample, at_rest, noise_level
 
 
 @dataclass(frozen=True)
@@ -176,9 +177,12 @@ class RelayConfig:
     # the whole-record fit of an integrating model also fits the held output's offset from
     # its balance (``model_fit.refine_on_record``); False: a run recorded before
     fit_offset: bool = True
-    # PV units: a cycle within this is no response, and the test aborts (a valve that does
-    # not move read as a K_u of 2.6e8); 0: none (a run recorded before, no range known)
-    response_floor: float = 0.0
+    # PV units the transmitter does not resolve (``Setup.resolution_floor``; 0: none, a run
+    # recorded before or no range known): counted cycles within it are no response, and the
+    # test aborts (a valve that does not move read as a K_u of 2.6e8), unless d may grow (a
+    # cycle rides on it as on a hysteresis); a drift within it over the quiet period is rest
+    # (a noise-free PV's creep after a test)
+    resolution: float = 0.0
     # stage 1's cycles repeating a pattern of 2 … this many cycles (each as the one that many
     # before it, to ``pattern_match`` relative) are steady, where they differ by more than
     # the tolerance: a noise-free loop whose switches are locked to the sample grid (a square
@@ -189,9 +193,6 @@ class RelayConfig:
     # … as long as the pattern's cycles differ by no more than this (period and amplitude):
     # a period-2 cycle whose amplitudes alternate by 30 % is not one cycle to average (review)
     pattern_spread: float = 0.1
-    # PV units the quiet period may drift over and be rest: what no transmitter resolves (a
-    # noise-free PV's creep after a test); 0: the noise alone decides (recorded before)
-    rest_floor: float = 0.0
     # the K_u/P_u estimator's thresholds (relay_estimate)
     estimate: EstimateConfig = field(default_factory=EstimateConfig)
 
@@ -461,7 +462,7 @@ class RelayTest:
         if len(self.pv) < n:
             return self.op_start
         base = np.asarray(self.pv[-n:])
-        if not at_rest(base, allowance=cfg.rest_floor):
+        if not at_rest(base, allowance=cfg.resolution):
             if len(self.pv) >= cfg.quiet_periods * n:
                 return self._abort("the PV is not at rest before the test (it keeps drifting)")
             return self.op_start
@@ -553,10 +554,12 @@ class RelayTest:
                 else ""
             )
             wrong = self._wrong_way()
-            if wrong.startswith(": the PV did not respond"):  # no cycle at all: said first
+            unmoved = "" if wrong else self._unmoved()
+            if unmoved:  # no cycle at all: said first (a dead valve was told "a slower
+                # process needs a longer one": helper trial)
                 return self._abort(
-                    f"the PV did not respond to the relay's push in {t - self._relay_start:g} s"
-                    + wrong.removeprefix(": the PV did not respond to the relay's push")
+                    f"the PV did not respond to the relay's push in {t - self._relay_start:g} s "
+                    f"({unmoved})"
                 )
             return self._abort(
                 f"no limit cycle that repeats within {cfg.tolerance:.0%} after "
@@ -565,22 +568,23 @@ class RelayTest:
         return self._out()
 
     def _wrong_way(self) -> str:
-        """Why no cycle came, when the PV shows it (``_against``, or no response to the
-        push at all): a suffix for the abort on the time budget; empty otherwise."""
+        """Why no cycle came, when the PV shows it (``_against``): a suffix for the abort
+        on the time budget; empty otherwise."""
         if self._switched() or len(self.pv) < 2:
             return ""
         tail = float(np.mean(self.pv[-self._quiet_samples :]))
-        if self._against(tail):
-            return f": {self._against(tail)}"
-        floor = self.config.response_floor
+        return f": {self._against(tail)}" if self._against(tail) else ""
+
+    def _unmoved(self) -> str:
+        """Where the relay never switched and the PV stayed within the transmitter's
+        resolution of its rest since the relay began: how far (for the abort); else empty."""
+        floor = self.config.resolution
+        if floor <= 0 or self._switched():
+            return ""
         since = np.asarray(self.pv[-round((self.t[-1] - self._relay_start) / self.sample_time) :])
-        if floor > 0 and since.size and float(np.max(np.abs(since - self._r))) <= floor:
-            # a dead valve was told "a slower process needs a longer one" (helper trial)
-            return (
-                f": the PV did not respond to the relay's push (it stayed within {floor:.3g} "
-                f"of {self._r:.6g}: a valve that does not move?)"
-            )
-        return ""
+        if not since.size or float(np.max(np.abs(since - self._r))) > floor:
+            return ""
+        return f"it stayed within {floor:.3g} of {self._r:.6g}: a valve that does not move?"
 
     def _inverse_dip(self, amplitude: float) -> float | None:
         """How far the PV first went the other way in the relay's first push, from its rest
@@ -825,11 +829,11 @@ class RelayTest:
         # the first cycle (after a widening too) is the start-up transient
         recent = self.cycles[self._from_cycle + 1 :][-n:]
         largest = max((c.amplitude for c in recent), default=math.inf)
-        if len(recent) == n and largest <= cfg.response_floor:
+        if len(recent) == n and largest <= cfg.resolution:
             # counted cycles, not the start-up's first (a partial one can be any size)
             self._abort(
                 f"the PV did not respond to the relay: its cycles' amplitude {largest:.3g} is "
-                f"within {cfg.response_floor:.3g} ({RESPONSE_FRACTION:.0e} of its range; a "
+                f"within {cfg.resolution:.3g} ({RESOLUTION:.0e} of its range; a "
                 f"valve that does not move?), and would read K_u as {self.ku_of(largest):.3g}"
             )
             return
@@ -901,7 +905,7 @@ class RelayTest:
         # a cycle within the transmitter's resolution rides on it as on a hysteresis: grown
         # too (a tiny but real gain, 0.001·6/((s+1)(s+2)(s+3)), cycled by 7e-6 of its range
         # and was aborted as "no response" where the step test read its gain: helper trial)
-        eps = max(self._eps, cfg.response_floor)
+        eps = max(self._eps, cfg.resolution)
         ratio = eps / a if a > 0 else math.inf
         if ratio <= cfg.grow_ratio:
             return False
@@ -1178,8 +1182,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         if setup.relay_grow and not settings.amplitude_given
         else None,
         fit_offset=bool(setup.relay_offset),
-        response_floor=setup.response_floor(),
-        rest_floor=setup.rest_floor(),
+        resolution=setup.resolution_floor(),
         pattern_cycles=RelayConfig.pattern_cycles if setup.relay_pattern else None,
         **budget,
     )

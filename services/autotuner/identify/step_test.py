@@ -94,13 +94,12 @@ class StepTestConfig:
     # rest also asks the PV's scatter about its trend to be noise (``reaction_curve.settled``
     # ``swing``); False: a run recorded before, whose rest was its trend's alone
     swing_check: bool = False
-    # PV units: a response within this is none, and the test aborts (a valve stuck in its
-    # deadband read as a gain of 4e-8); 0: none (a run recorded before, no range known)
-    response_floor: float = 0.0
-    # PV units a baseline may drift over its window and be rest: what no transmitter resolves
-    # (a noise-free PV's creep after a test was told "keeps drifting" by the step where the
-    # tuner's own rest check had just found rest); 0: the noise alone decides (recorded before)
-    rest_floor: float = 0.0
+    # PV units the transmitter does not resolve (``Setup.resolution_floor``; 0: none, a run
+    # recorded before or no range known): a response within it is none, and the test aborts
+    # (a valve stuck in its deadband read as a gain of 4e-8); a baseline may drift within it
+    # and be rest (a noise-free PV's creep after a test was told "keeps drifting" where the
+    # tuner's own rest check had just found rest)
+    resolution: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -430,7 +429,7 @@ class StepTest:
                 "transmitter is flat and noise-free whatever the process does, so it cannot "
                 "show rest; bring the PV inside its range first"
             )
-        if not at_rest(base, allowance=max(self.rest_drift, self.config.rest_floor)):
+        if not at_rest(base, allowance=max(self.rest_drift, self.config.resolution)):
             if len(self.pv) >= 20 * n:
                 return self._abort("the PV is not at rest before the step (it keeps drifting)")
             return self.op_start
@@ -449,7 +448,7 @@ class StepTest:
     def _after_step(self, s: Sample) -> float:
         elapsed = s.t - self.t_step
         if elapsed > self.config.timeout:
-            if self._t_moved is None and self.config.response_floor > 0:
+            if self._t_moved is None and self.config.resolution > 0:
                 return self._abort(
                     f"the PV did not respond to the step within {self.config.timeout:g} s: it "
                     f"stayed within {self._moved_level():.3g} of its rest {self._pv_before:.6g} "
@@ -497,7 +496,7 @@ class StepTest:
                     rest,
                     self._noise,
                     self.sample_time,
-                    self.config.response_floor,
+                    self.config.resolution,
                 )
             except ValueError as err:
                 return self._abort(str(err))
@@ -510,10 +509,10 @@ class StepTest:
 
     def _moved_level(self) -> float:
         """PV units from the rest before the step that tell a response: 5σ of the noise, and
-        at least the transmitter's resolution (``StepTestConfig.response_floor``)."""
+        at least the transmitter's resolution (``StepTestConfig.resolution``)."""
         lo, hi = self.ends
         tol = 1e-9 * max(1.0, abs(lo), abs(hi), hi - lo)
-        return max(5.0 * self._noise + tol, self.config.response_floor)
+        return max(5.0 * self._noise + tol, self.config.resolution)
 
     def _heading_out(self, t: np.ndarray, y: np.ndarray, elapsed: float) -> str | None:
         """Why to stop now if the PV, on its present trend, nears an end of its range, its
@@ -886,8 +885,7 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         size=settings.step_size,
         pv_limits=setup.pv_limits,
         swing_check=bool(setup.step_swing),
-        response_floor=setup.response_floor(),
-        rest_floor=setup.rest_floor(),
+        resolution=setup.resolution_floor(),
         **timeout,
     )
     return StepTest(
