@@ -447,6 +447,7 @@ def test_a_lease_lost_to_a_forger_is_not_called_restored(start_plant, start_tune
     p = start_plant(plant_toml("x1", HX), "--clock", "realtime", "--speed", "50", loops=("x1",))
     start_tuner(p)
     with open_session(p.client_settings()) as s:
+        before = wire.query_one(s, keys.status(p.prefix, "x1"), LoopStatus, 10.0)
         inbox: queue.Queue = queue.Queue()
         progress = s.declare_subscriber(keys.tune_progress(p.prefix, "x1"))
         threading.Thread(target=lambda: [inbox.put(x) for x in progress], daemon=True).start()
@@ -468,12 +469,31 @@ def test_a_lease_lost_to_a_forger_is_not_called_restored(start_plant, start_tune
         finally:
             cli.kill()
             progress.undeclare()
+        after = wire.query_one(s, keys.status(p.prefix, "x1"), LoopStatus, 10.0)
     r = json.loads(out)
-    assert r["status"] == "aborted" and r["restored"] is False, (r["reason"], err)
+    assert r["status"] == "aborted", (r["reason"], err)
     # the forged gains named first: the run saw a command in its name it had not sent
     assert "applied a gains command in this run's name that it did not send" in r["reason"]
-    assert "the loop is NOT as it was before the test" in r["reason"]
-    assert r["left"]["gains"]["kc"] == 50.0
+    # what the run says it left is what the plant shows, and `restored` is true only if that
+    # is the loop as before. Which lands first, the run's restore or the forged release, is
+    # a race on a loaded machine: CI saw the run's Kc 1.0 back but the loop released short of
+    # its restore (the test's old assertion of the forged Kc 50 was the test's race, not the
+    # run's); on an idle one the forged release comes first and Kc 50 stays
+    # (the output compared in manual only: in auto it follows the PV, which runs on)
+    left = r["left"]
+    assert (left["mode"], left["sp"], left["gains"]) == (
+        after.mode,
+        after.sp,
+        after.gains.model_dump(),
+    )
+    assert after.mode == "auto" or left["op"] == after.op
+    assert after.leased_by is None
+    as_before = (after.mode, after.sp, after.gains) == (before.mode, before.sp, before.gains) and (
+        after.mode == "auto" or after.op == before.op
+    )
+    assert r["restored"] is as_before, r["reason"]
+    if not as_before:
+        assert "the loop is NOT as it was before the test" in r["reason"]
 
 
 def assert_as_before(after: LoopStatus, before: LoopStatus) -> None:
