@@ -80,6 +80,15 @@ def check_ids(prefix: str, **ids: str) -> None:
         raise ConfigError(str(err)) from None
 
 
+def check_tuner_node(node: str) -> None:
+    """ConfigError naming ``--node`` unless it is a tuner's id, or one with ``*`` wildcards
+    (``*``: any tuner): ``--node ""`` made the key ``tuner//alive`` (exit 70)."""
+    try:
+        keys.check_id(node.replace("*", "x"), "--node: tuner")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+
+
 MAX_SPEED = 1000.0  # realtime speed-up: beyond, the wall clock cannot pace the samples
 MAX_SECONDS = 1e7  # any duration given on the command line (115 days)
 

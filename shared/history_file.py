@@ -12,6 +12,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from shared import json_text
+
 log = logging.getLogger(__name__)
 
 HISTORY_FILE = "history.jsonl"
@@ -61,7 +63,7 @@ def read_history(path: Path, skipped: list[int] | None = None) -> Iterator[dict[
     with f:
         for n, line in enumerate(f, 1):
             try:
-                rec = json.loads(line)
+                rec = json_text.loads(line)
             except json.JSONDecodeError:
                 rec = None
             if isinstance(rec, dict):

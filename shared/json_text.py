@@ -25,6 +25,17 @@ def finite(x: Any) -> Any:
     return x
 
 
+def loads(text: str | bytes) -> Any:
+    """``json.loads`` of text from outside (the bus, a file, a browser): JSONDecodeError (a
+    ValueError) for anything that is not JSON it can read, a nesting too deep included
+    (``json`` raises RecursionError there: an attachment of 100,000 ``[`` put a traceback in
+    the logger's and the tuner's logs for every message, uncounted)."""
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise json.JSONDecodeError("nested too deeply to read", "", 0) from None
+
+
 def dumps(obj: Any, **kw: Any) -> str:
     """``json.dumps`` of ``finite(obj)``: strict JSON whatever the figures."""
     return json.dumps(finite(obj), allow_nan=False, **kw)

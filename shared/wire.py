@@ -11,6 +11,7 @@ import pydantic
 import pydantic_core
 import zenoh
 
+from shared import json_text
 from shared.errors import DecodeError
 from shared.messages import Message
 
@@ -145,7 +146,7 @@ def replay_source(attachment: bytes | None) -> str | None:
     if not attachment:
         return None
     try:
-        mark = json.loads(attachment)
+        mark = json_text.loads(attachment)
     except (ValueError, UnicodeDecodeError):
         return None
     source = mark.get(REPLAY_ATTACHMENT_KEY) if isinstance(mark, dict) else None

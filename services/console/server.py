@@ -204,7 +204,7 @@ class Hub:
 
             async for text in ws:
                 try:
-                    request = json.loads(text)
+                    request = json_text.loads(text)
                     if not isinstance(request, dict):
                         raise ValueError("not a JSON object")
                 except ValueError as err:

@@ -33,7 +33,7 @@ from mcap.writer import CompressionType, Writer
 
 from services.logger import mcap_batch
 from services.logger.record_form import RunRecord, bus_payload, run_record, schema_bytes
-from shared import keys
+from shared import json_text, keys
 from shared.errors import AutotuneError, one_line
 from shared.messages import Message, ProcessSample, TuneResult
 
@@ -233,7 +233,7 @@ def recorded_form(schema: bytes) -> bool:
     rather than the bus's JSON (format 1)? Told by the schema, so a file that lost its
     metadata (a recovered one) reads right too."""
     try:
-        return isinstance(s := json.loads(schema), dict) and "$schema" in s
+        return isinstance(s := json_text.loads(schema), dict) and "$schema" in s
     except (json.JSONDecodeError, UnicodeDecodeError):
         return False
 
@@ -288,7 +288,7 @@ class Record:
         return key_of(self.topic)
 
     def json(self) -> dict:
-        return json.loads(self.data)
+        return json_text.loads(self.data)
 
     def where(self) -> str:
         """The record as an error message names it: topic, index, log time (UTC for a

@@ -28,6 +28,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict
 
+from shared import json_text
 from shared.messages import (
     COMMANDS,
     LoopInfo,
@@ -247,7 +248,7 @@ def bus_payload(schema: str, data: bytes) -> bytes:
     if model is None or not _needs_restoring(model):
         return data
     try:
-        obj = json.loads(data)
+        obj = json_text.loads(data)
     except (json.JSONDecodeError, UnicodeDecodeError):
         return data
     if not isinstance(obj, dict):

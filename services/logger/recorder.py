@@ -67,7 +67,7 @@ import pydantic
 
 from services.logger.mcap_io import RunWriter, amend_run, log_time_zero
 from services.logger.record_form import recorded_payload
-from shared import keys, wire
+from shared import json_text, keys, wire
 from shared.errors import ConfigError, one_line
 from shared.messages import (
     COMMANDS,
@@ -747,7 +747,7 @@ class Recorder:
             run.request = str(msg.data.get("request", ""))
             run.info = str(msg.data.get("info", ""))
             try:
-                request = json.loads(run.request)
+                request = json_text.loads(run.request)
                 run.rule = request.get("rule", "")
                 run.method = request.get("method", run.method)
             except (json.JSONDecodeError, AttributeError):

@@ -20,13 +20,20 @@ from contextlib import contextmanager
 from shared.errors import ConfigError
 
 LOAD_TIMEOUT = 60.0  # s of wall time: an FMU's or a Python model's start takes seconds at most
+MAX_LOAD_TIMEOUT = 86400.0  # s: a day (the interval timer refused 1e10 s: exit 70)
+
+
+def check_load_timeout(seconds: float, flag: str = "--load-timeout") -> None:
+    """ConfigError naming ``flag`` unless ``seconds`` is in (0, MAX_LOAD_TIMEOUT]."""
+    if not 0 < seconds <= MAX_LOAD_TIMEOUT:
+        raise ConfigError(f"{flag} {seconds:g}: must be > 0 and at most {MAX_LOAD_TIMEOUT:g} s")
 
 
 class LoadTimeout(ConfigError):
     """The plant file's models did not load within the bound."""
 
 
-class _StillLoading(BaseException):
+class StillLoading(BaseException):
     """The bound's next strokes, a second apart, should the model have caught the first
     (``except Exception``): past any handler of the model's, turned into a ConfigError."""
 
@@ -49,14 +56,27 @@ def load_bound(
     def expired(signum: int, frame: object) -> None:
         nonlocal strokes
         strokes += 1
-        raise LoadTimeout(why) if strokes == 1 else _StillLoading(why)
+        raise LoadTimeout(why) if strokes == 1 else StillLoading(why)
 
     before = signal.signal(signal.SIGALRM, expired)
     signal.setitimer(signal.ITIMER_REAL, seconds, 1.0)  # again every second until it ends
     try:
         yield
-    except _StillLoading:
+    except StillLoading:
         raise LoadTimeout(f"{what}: {why}") from None
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0.0)
         signal.signal(signal.SIGALRM, before)
+
+
+def models_own(err: BaseException) -> bool:
+    """Whether ``err``, out of a call into a user's model, is the model's own failure, to be
+    said on one line (a loop faulted, a file refused): anything it raised, ``BaseException``
+    subclasses and ``SystemExit`` included (a class of ``BaseException`` passed every ``except
+    Exception`` and left a loop unanswered, its advance never ended), except this bound's
+    strokes and, in the main thread, ``KeyboardInterrupt`` (the user's Ctrl-C, there)."""
+    if isinstance(err, StillLoading):
+        return False
+    return not (
+        isinstance(err, KeyboardInterrupt) and threading.current_thread() is threading.main_thread()
+    )

@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import brentq
 
+from services.plant_sim.load_bound import models_own
 from services.plant_sim.simulation.loop import ModelFailure, SimLoop, model_pv
 from shared.control.rest_window import RESOLUTION, rest_allowance, rest_window
 from shared.control.transfer import model_ultimate_point
@@ -494,7 +495,15 @@ def _dynamic_spread(report: ModelReport) -> None:
 
 
 def _has_transfer(process: Any) -> bool:
-    return getattr(process, "num", None) is not None and getattr(process, "den", None) is not None
+    """The model states a transfer function (``num``, ``den``); a user's class whose attribute
+    look-up raises (its own ``__getattr__``) states none."""
+    try:
+        num, den = getattr(process, "num", None), getattr(process, "den", None)
+    except BaseException as err:
+        if not models_own(err):
+            raise
+        return False
+    return num is not None and den is not None
 
 
 def _pct(x: float) -> str:

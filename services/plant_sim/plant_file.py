@@ -40,6 +40,7 @@ import numpy as np
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field
 
+from services.plant_sim.load_bound import models_own
 from services.plant_sim.simulation.fmu import FmuModel
 from services.plant_sim.simulation.loop import LoopSettings, ModelFailure, SimLoop, gains_problem
 from services.plant_sim.simulation.models import ModelParamError
@@ -190,7 +191,9 @@ def _resolve_model(name: str) -> tuple[type, LoopDefaults]:
     module_name, _, class_name = name.partition(":")
     try:
         module = importlib.import_module(module_name)
-    except (Exception, SystemExit) as err:  # the user's module runs here: anything can happen
+    except BaseException as err:  # the user's module runs here: anything can happen
+        if not models_own(err):
+            raise
         raise ValueError(
             f"cannot import {module_name!r}: {type(err).__name__}: {brief(err)}"
         ) from None
@@ -264,7 +267,9 @@ def build_loop(
         raise fail(err.field, brief(err.reason)) from None
     except (TypeError, ValueError) as err:
         raise fail("model", f"{cfg.model} rejected its parameters: {brief(err)}") from None
-    except (Exception, SystemExit) as err:  # a user's class: its own words, on one line
+    except BaseException as err:  # a user's class: its own words, on one line
+        if not models_own(err):
+            raise
         raise fail("model", f"{cfg.model}() raised {type(err).__name__}: {brief(err)}") from None
     if cls is FmuModel and cfg.pv_range is None and process.pv_range is None:
         raise fail(
@@ -314,7 +319,9 @@ def build_loop(
         loop = SimLoop(settings, process)
     except ModelFailure as err:
         raise fail("model", f"{cfg.model}: {err.reason}") from None
-    except (Exception, SystemExit) as err:  # the user's attributes, read again by the loop
+    except BaseException as err:  # the user's attributes, read again by the loop
+        if not models_own(err):
+            raise
         raise fail("model", f"{cfg.model}: {type(err).__name__}: {brief(err)}") from None
     try:  # what the service will publish: any field that could not be is named now
         loop.status("check", "lockstep", "start")
@@ -357,7 +364,9 @@ def _read_protocol(process: object, cfg: LoopConfig) -> dict[str, Any]:
         )
     try:  # the disturbances its status shows and a command may set: names, or a refusal
         names = values["disturbance_names"]()
-    except (Exception, SystemExit) as err:
+    except BaseException as err:
+        if not models_own(err):
+            raise
         raise ModelParamError(
             "model", f"{cfg.model}.disturbance_names() raised {type(err).__name__}: {brief(err)}"
         ) from None

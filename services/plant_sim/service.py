@@ -30,7 +30,7 @@ from functools import partial
 
 import zenoh
 
-from services.plant_sim.load_bound import LOAD_TIMEOUT, load_bound
+from services.plant_sim.load_bound import LOAD_TIMEOUT, check_load_timeout, load_bound
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from services.plant_sim.publishers import Publishers
 from services.plant_sim.realtime import Group, RealtimeSteppers
@@ -827,8 +827,7 @@ def run(args: argparse.Namespace) -> int:
     options = options_from_args(args)
     if args.noise_std is not None and not 0 <= args.noise_std < float("inf"):
         raise ConfigError(f"--noise-std {args.noise_std}: must be a finite number ≥ 0")
-    if not 0 < args.load_timeout < float("inf"):
-        raise ConfigError(f"--load-timeout {args.load_timeout}: must be a finite number of s > 0")
+    check_load_timeout(args.load_timeout)
     path = args.plant or default_plant_path()
     with load_bound(args.load_timeout, f"plant file {path}"):
         loops = load_plant_file(

@@ -27,7 +27,7 @@ import zenoh
 from services.autotuner.commands.logger_dirs import elsewhere_asked
 from services.autotuner.commands.tune import add_units_option, figure, run_and_report
 from shared import keys, wire
-from shared.cli import add_common_arguments, check_ids
+from shared.cli import add_common_arguments, check_ids, check_tuner_node
 from shared.errors import AutotuneError, ConfigError
 from shared.history_file import HISTORY_FILE, applicable_rule, proposed_rule, read_history
 from shared.messages import APPLICABLE_STATUSES, LoopInfo, PidGains, TuneRequest
@@ -138,6 +138,7 @@ def same_loop(recorded: dict[str, Any] | None, info: LoopInfo) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix)
+    check_tuner_node(args.node)
     runs = Path(args.runs)
     if not runs.is_dir():
         raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")

@@ -28,7 +28,7 @@ from services.autotuner.design.rules import RULES, fopdt_of
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.loop_client import wait_for_token
 from shared import json_text, keys, wire
-from shared.cli import add_common_arguments, check_ids
+from shared.cli import add_common_arguments, check_ids, check_tuner_node
 from shared.control.forms import (
     IsaGains,
     kc_percent,
@@ -1042,6 +1042,7 @@ def cancel_on_stop_signals() -> None:
 
 def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix, loop=args.loop)
+    check_tuner_node(args.node)
     if not (args.wait > 0 and args.wait < float("inf")):
         raise ConfigError(f"--wait {args.wait}: must be a finite number of seconds > 0")
     req = request_from_args(args, source="autotune-tune")

@@ -33,6 +33,11 @@ from shared.wire import replay_attachment
 HELP = "republish a recorded run over Zenoh (like ros2 bag play)"
 
 
+# the pace's bounds: a day of recording in a tenth of a second at most, and no slower than a
+# minute of it in a week (--rate 1e-308 overflowed the wall clock's arithmetic: exit 70)
+MIN_RATE, MAX_RATE = 1e-4, 1e6
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", metavar="RUN.mcap")
     parser.add_argument(
@@ -213,8 +218,11 @@ def read_checked(path: str) -> tuple[str, list[Record], list[tuple[str, bool]]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not (args.rate > 0 and args.rate < float("inf")):
-        raise ConfigError(f"--rate {args.rate}: must be a finite number > 0")
+    if not MIN_RATE <= args.rate <= MAX_RATE:
+        raise ConfigError(
+            f"--rate {args.rate}: must be from {MIN_RATE:g} to {MAX_RATE:g} (the pace against "
+            "the recording's sim time)"
+        )
     if not args.start_offset >= 0:
         raise ConfigError(f"--start-offset {args.start_offset}: must be ≥ 0 s")
     if not args.wait >= 0:

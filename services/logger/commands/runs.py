@@ -10,7 +10,6 @@ process on this machine) is a run in progress, status ``recording``, not a broke
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from services.logger.compare import compare, format_compare
@@ -104,7 +103,7 @@ def _row(path: Path, meta: dict[str, str]) -> dict:
     result: dict = {}
     if meta.get("result"):  # read leniently: a result from an older autotune still lists
         try:
-            result = json.loads(meta["result"])
+            result = json_text.loads(meta["result"])
         except ValueError as err:
             raise AutotuneError(
                 f"metadata 'run', field result: not JSON ({one_line(err)})"

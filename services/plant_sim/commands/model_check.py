@@ -23,6 +23,7 @@ import json
 import math
 from pathlib import Path
 
+from services.plant_sim.load_bound import LOAD_TIMEOUT, check_load_timeout, load_bound
 from services.plant_sim.model_check import ModelReport, check_loop, refine_step_point
 from services.plant_sim.plant_file import load_plant_file
 from services.plant_sim.simulation.loop import SimLoop
@@ -41,15 +42,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--plot", metavar="PNG", help="draw every loop's step responses into this PNG file"
     )
+    parser.add_argument(
+        "--load-timeout",
+        type=float,
+        default=LOAD_TIMEOUT,
+        metavar="S",
+        help="wall s the plant file's models may take to load, as plant_sim's (default: "
+        "%(default)s)",
+    )
 
 
-def _rebuilt(path: str, loop_id: str, sample_time: float) -> SimLoop | None:
+def _rebuilt(path: str, timeout: float, loop_id: str, sample_time: float) -> SimLoop | None:
     """The plant file's loop ``loop_id`` built alone at ``sample_time`` (None: it cannot be,
     as a model with a fixed step)."""
     try:
-        loops = load_plant_file(
-            path, select=lambda _: [loop_id], sample_times={loop_id: sample_time}
-        )
+        with load_bound(timeout, f"plant file {path}"):
+            loops = load_plant_file(
+                path, select=lambda _: [loop_id], sample_times={loop_id: sample_time}
+            )
     except ConfigError:
         return None
     return loops.get(loop_id)
@@ -58,7 +68,11 @@ def _rebuilt(path: str, loop_id: str, sample_time: float) -> SimLoop | None:
 def run(args: argparse.Namespace) -> int:
     if args.plot is not None:
         _check_plot_path(args.plot)
-    loops = load_plant_file(args.plant_file)
+    check_load_timeout(args.load_timeout)
+    # a model whose __init__ or reset() blocks is refused as plant_sim refuses it (one that
+    # slept 1000 s held the check for good)
+    with load_bound(args.load_timeout, f"plant file {args.plant_file}"):
+        loops = load_plant_file(args.plant_file)
     if args.loop is not None:
         if args.loop not in loops:
             raise ConfigError(
@@ -68,7 +82,9 @@ def run(args: argparse.Namespace) -> int:
         loops = {args.loop: loops[args.loop]}
     reports = [check_loop(loop_id, loop) for loop_id, loop in loops.items()]
     for r in reports:
-        refine_step_point(r, functools.partial(_rebuilt, args.plant_file, r.loop))
+        refine_step_point(
+            r, functools.partial(_rebuilt, args.plant_file, args.load_timeout, r.loop)
+        )
     if args.json:
         print(
             json.dumps(

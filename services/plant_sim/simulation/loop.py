@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from services.plant_sim.load_bound import models_own
 from services.plant_sim.simulation import linear_steps
 from services.plant_sim.simulation.models import ProcessModel
 from shared.control.pid import PidBlock, PidSettings
@@ -65,7 +66,9 @@ def call_model(what: str, fn: Callable[..., Any], *args: Any) -> Any:
     try:
         with np.errstate(all="ignore"):  # overflow is judged from the value, not printed
             return fn(*args)
-    except (Exception, SystemExit) as err:  # a user's sys.exit() must not end the plant
+    except BaseException as err:  # a user's sys.exit() must not end the plant
+        if not models_own(err):
+            raise
         raise ModelFailure(_raised(what, err)) from None
 
 
@@ -284,7 +287,9 @@ class SimLoop:
                 pv_true = _pv_of("step()", self.process.step(op))
             except ModelFailure as err:
                 self._set_fault(err.reason, op, self.t + self.sample_time)
-            except (Exception, SystemExit) as err:  # a user's sys.exit() faults its loop
+            except BaseException as err:  # a user's sys.exit() faults its loop
+                if not models_own(err):
+                    raise
                 self._set_fault(_raised("step()", err), op, self.t + self.sample_time)
             finally:
                 self.stepping_since = None
@@ -410,7 +415,9 @@ class SimLoop:
                     for n, v in read.items()
                     if isinstance(v, numbers.Real) and math.isfinite(float(v))
                 }
-        except Exception:  # a user's model: its status is read, never trusted
+        except BaseException as err:  # a user's model: its status is read, never trusted
+            if not models_own(err):
+                raise
             return dict(self._disturbances)
         self._disturbances = out
         return dict(out)
@@ -493,7 +500,9 @@ class SimLoop:
                         self.process.set_disturbance(name, value)
                 except (KeyError, ValueError) as err:
                     raise CommandRejected("range", f"disturbance {name}: {brief(err)}") from None
-                except (Exception, SystemExit) as err:  # a user's model: refused, its own words
+                except BaseException as err:  # a user's model: refused, its own words
+                    if not models_own(err):
+                        raise
                     raise CommandRejected(
                         "model",
                         f"disturbance {name}: the model raised {type(err).__name__}: {brief(err)}",
