@@ -64,3 +64,39 @@ def test_limits_the_pv_is_already_outside_are_refused():
     with pytest.raises(ValueError, match=r"^pv_limits: the PV 59\.5 is already outside \[60, 70\]"):
         _check_limits(TuneRequest(loop="hx1", pv_limits=(60.0, 70.0)), status())
     _check_limits(TuneRequest(loop="hx1", pv_limits=(50.0, 70.0)), status())
+
+
+def test_a_ramp_bump_or_start_gain_no_loop_could_take_is_refused_naming_the_field():
+    """``tune hx1 --method ramp --bump 1e308`` (or ``--kc-start 1e308``) took the lease and
+    ran the drift check before the plant refused the setpoint (or the gains): bad input,
+    refused at the request in one line. A bump of half the PV limits' width cannot be taken
+    within them; a start gain above 1000 % of output per % of span (a proportional band of
+    0.1 %) is what no write of gains may ask."""
+    on_hx1 = status()  # PV 59.5 in a range of 0-150
+    with pytest.raises(ValueError, match=r"^bump: 1e\+308 is at least half the PV limits' width"):
+        _check_limits(TuneRequest(loop="hx1", method="ramp", bump=1e308), on_hx1)
+    with pytest.raises(ValueError, match=r"^bump: 1 is at least half .* width \(2\)"):
+        _check_limits(TuneRequest(loop="hx1", method="ramp", bump=1.0, pv_limits=(59, 61)), on_hx1)
+    _check_limits(TuneRequest(loop="hx1", method="ramp", bump=74.0), on_hx1)
+    # 1000 % per % of a 150 span is 1000·100/150 = 666.67 % per PV unit
+    with pytest.raises(ValueError, match=r"^kc_start: 667 \(1000 % of output per % of span\)"):
+        _check_limits(TuneRequest(loop="hx1", method="ramp", kc_start=667.0), on_hx1)
+    _check_limits(TuneRequest(loop="hx1", method="ramp", kc_start=666.0), on_hx1)
+    # the other methods do not use them
+    _check_limits(TuneRequest(loop="hx1", method="relay", bump=1e308, kc_start=1e308), on_hx1)
+
+
+def test_the_run_refuses_them_too_before_anything_is_sent():
+    """A run given them by another way than the service's request (in process): ``failed``,
+    the loop untouched."""
+    from services.autotuner.tuning import RunHooks, TuningRun
+    from services.offline.local_loop import LocalLoopClient
+    from services.plant_sim.plant_file import build_plant
+
+    for field in ({"bump": 1e308}, {"kc_start": 1e308}):
+        sim = build_plant({"seed": 1, "loops": {"hx1": {"model": "heat_exchanger"}}})["hx1"]
+        req = TuneRequest(loop="hx1", method="ramp", **field)
+        r = TuningRun(LocalLoopClient(sim), req, "x", RunHooks()).run()
+        (name,) = field
+        assert r.status == "failed" and r.reason.startswith(f"{name}: 1e+308"), r.reason
+        assert r.untouched and sim.t == 0.0

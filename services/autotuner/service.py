@@ -31,6 +31,7 @@ from services.autotuner.identify.experiments import (
     DEFAULT_STEP_SIZE,
     limits_problem,
     run_pv_limits,
+    start_gain_problem,
 )
 from services.autotuner.loop_client import (
     LEASE_TIMEOUT,
@@ -44,6 +45,7 @@ from services.autotuner.stall_watch import stall_watch
 from services.autotuner.tuning import RunHooks, TuningRun
 from shared import keys, wire
 from shared.cli import add_common_arguments, check_ids, setup_logging
+from shared.control.forms import span_or_none
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.identity import auth_user
 from shared.messages import (
@@ -126,7 +128,8 @@ def _check_limits(req: TuneRequest, status: LoopStatus) -> None:
     if req.apply_from:
         return
     limits = run_pv_limits(req.pv_limits, status.pv_range)
-    why = limits_problem(req.method, req.hysteresis, status.pv, limits)
+    why = limits_problem(req.method, req.hysteresis, status.pv, limits, bump=req.bump)
+    why = why or start_gain_problem(req.method, req.kc_start, span_or_none(status.pv_range))
     if why is not None:
         raise ValueError(why)
 

@@ -39,6 +39,7 @@ from services.autotuner.identify.experiments import (
     Setup,
     limits_problem,
     run_pv_limits,
+    start_gain_problem,
 )
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.ramp import RampTest
@@ -55,7 +56,7 @@ from shared.control.forms import (
     all_forms,
     kc_percent,
     process_gain_percent,
-    pv_span,
+    span_or_none,
     step_percent,
 )
 from shared.control.record_stops import Guard, SettleRule, judge_point, settle_point
@@ -172,15 +173,6 @@ def finite(v: object) -> object:
 
 def _number(v: float | None) -> float | None:
     return None if v is None or not math.isfinite(v) else float(v)
-
-
-def _span(pv_range: tuple[float, float]) -> float | None:
-    """The PV's span (PV units) for the result's % of span figures; None if the range is
-    not lo < hi, finite (the plant file refuses such a range; a foreign plant may not)."""
-    try:
-        return pv_span(pv_range)
-    except ValueError:
-        return None
 
 
 def _seconds_of(figures: dict | None, key: str) -> float:
@@ -323,9 +315,11 @@ class TuningRun:
             },
             "applied_from": req.apply_from,
         }
-        span = _span(self.info.pv_range)  # None: no % of span figures (a range not lo < hi)
+        span = span_or_none(self.info.pv_range)  # None: no % of span figures (a range not lo < hi)
         eps = None if req.apply_from else req.hysteresis
-        why = limits_problem(req.method, eps, first.pv, self.pv_limits, self.info.pv_units)
+        why = limits_problem(
+            req.method, eps, first.pv, self.pv_limits, self.info.pv_units, bump=req.bump
+        ) or (None if req.apply_from else start_gain_problem(req.method, req.kc_start, span))
         if why is not None:  # refused before anything is sent to the loop
             result.update(status="failed", reason=why, restored=True, untouched=True)
             return self._result(result, t0, wall0, None)

@@ -107,6 +107,15 @@ def pv_span(pv_range: tuple[float, float] | None) -> float | None:
     return float(span)
 
 
+def span_or_none(pv_range: tuple[float, float]) -> float | None:
+    """``pv_span``, or None for a range that has none (not two finite numbers lo < hi): no
+    figure in % of span then."""
+    try:
+        return pv_span(pv_range)
+    except ValueError:
+        return None
+
+
 # % of output per % of span: a proportional band of 0.1 %, the most any write of gains may ask
 # (above it a 0.1 % error drives the output across its range: a slip, not a tuning)
 MAX_KC_PERCENT = 1000.0

@@ -19,6 +19,7 @@ from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
+from shared.control.forms import MAX_KC_PERCENT, kc_percent
 from shared.control.record_stops import CalmCheck
 from shared.control.signals import Sample, end_test, ends_batch, no_response_floor
 
@@ -186,20 +187,48 @@ def run_pv_limits(
 
 
 def limits_problem(
-    method: str, hysteresis: float | None, pv: float, limits: tuple[float, float], units: str = ""
+    method: str,
+    hysteresis: float | None,
+    pv: float,
+    limits: tuple[float, float],
+    units: str = "",
+    bump: float | None = None,
 ) -> str | None:
     """Why a run cannot start within its PV ``limits`` (the field at fault first), None if
     it can: a relay ``hysteresis`` of half their width or more never switches within them
-    (1e308 held the relay's first push for hours of sim time), and a PV already outside."""
+    (1e308 held the relay's first push for hours of sim time), a ramp's setpoint ``bump`` of
+    half their width or more cannot be taken within them (1e308 took the lease and ran the
+    drift check before the plant refused the setpoint), and a PV already outside."""
     lo, hi = limits
+    u = f" {units}" if units else ""
     if method == "relay" and hysteresis is not None and hysteresis >= 0.5 * (hi - lo):
         return (
-            f"hysteresis: {hysteresis:g}{f' {units}' if units else ''} is at least half the PV "
+            f"hysteresis: {hysteresis:g}{u} is at least half the PV "
             f"limits' width ({hi - lo:g}): the relay could not switch within them"
+        )
+    if method == "ramp" and bump is not None and bump >= 0.5 * (hi - lo):
+        return (
+            f"bump: {bump:g}{u} is at least half the PV limits' width ({hi - lo:g}): a trial's "
+            "setpoint and its swing could not stay within them"
         )
     if not lo <= pv <= hi:
         return f"pv_limits: the PV {pv:.4g} is already outside [{lo:g}, {hi:g}]"
     return None
+
+
+def start_gain_problem(method: str, kc_start: float | None, span: float | None) -> str | None:
+    """Why a ramp cannot start at ``kc_start`` (% per PV unit), None if it can: a gain above
+    ``MAX_KC_PERCENT`` % of output per % of span (a proportional band of 0.1 %) is what no
+    write of gains may ask (1e308 was sent to the plant, which refused it mid-run)."""
+    if method != "ramp" or kc_start is None or span is None:
+        return None
+    pct = kc_percent(kc_start, span)
+    if pct is None or pct <= MAX_KC_PERCENT:
+        return None
+    return (
+        f"kc_start: {kc_start:g} ({pct:.4g} % of output per % of span): a gain must be at "
+        f"most {MAX_KC_PERCENT:g} % per % of span (a proportional band of 0.1 %)"
+    )
 
 
 def clipped(pv: float, pv_range: tuple[float, float] | None, t: float, smaller: str) -> str:
