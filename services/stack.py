@@ -9,6 +9,7 @@ finishes its files), then plant_sim, then the router.
 from __future__ import annotations
 
 import subprocess
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
@@ -36,14 +37,25 @@ class Stack:
         )
 
     def wait_ready(self, tokens: list[str], timeout: float = 20.0) -> None:
+        """Wait (``timeout`` s at most) for every service's token; AutotuneError as soon as
+        one of the services has exited (its own error is on stderr above: a bad setting
+        refused by the plant was followed by 40 s of waiting, then the tuner blamed)."""
+        deadline = time.monotonic() + timeout
         with open_session(self.client) as s:
             for key in tokens:
-                if not wait_for_token(s, key, timeout):
-                    dead = [n for n, p in self.procs.items() if p.poll() is not None]
+                left = max(0.0, deadline - time.monotonic())
+                if wait_for_token(s, key, left, abandon=lambda: bool(self._ended())):
+                    continue
+                if ended := self._ended():
                     raise AutotuneError(
-                        f"{key} did not come up within {timeout:g} s"
-                        + (f" ({', '.join(dead)} exited)" if dead else "")
+                        f"{', '.join(ended)} ended as the stack started, before {key} came up "
+                        "(its own error says why)"
                     )
+                raise AutotuneError(f"{key} did not come up within {timeout:g} s")
+
+    def _ended(self) -> list[str]:
+        """The services that have exited, with their exit codes."""
+        return [f"{n} (exit {p.returncode})" for n, p in self.procs.items() if p.poll() is not None]
 
     def stop(self) -> dict[str, int]:
         codes = {}

@@ -50,7 +50,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from services.console import launch as console_launch
 from services.stack import Stack, runs_dir, service_tokens
 from shared import keys
-from shared.cli import check_ids, install_stop_handlers
+from shared.cli import MAX_SPEED, check_ids, install_stop_handlers
 from shared.errors import AutotuneError, ConfigError
 from shared.session import ZenohSettings, check_endpoint
 
@@ -365,8 +365,10 @@ class UpConfig(BaseModel):
     secure_dir: str = DEFAULT_SECURE_DIR
     plant: str | None = None
     clock: Literal["lockstep", "realtime"] = "lockstep"
-    speed: float = Field(default=1.0, gt=0.0)
-    seed: int | None = None
+    # the plant's own bounds on its flags (``seed = -4`` in a config file came back from the
+    # plant as its flag's error, and the stack waited 40 s and blamed the tuner)
+    speed: float = Field(default=1.0, gt=0.0, le=MAX_SPEED, allow_inf_nan=False)
+    seed: int | None = Field(default=None, ge=0)
     runs: str = "runs"
 
 

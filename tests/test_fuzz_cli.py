@@ -68,6 +68,7 @@ POSITIONALS = {
     "loops": [],
     "set": ["hx1"],
     "watch": ["hx1"],
+    "model": ["check", "plant.toml"],
 }
 
 

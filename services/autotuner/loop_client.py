@@ -19,6 +19,7 @@ import secrets
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 
 import zenoh
 
@@ -100,8 +101,17 @@ class LeaseLost(AutotuneError):
     """The plant no longer lets this client hold the loop (it restored it, or restarted)."""
 
 
-def wait_for_token(session: zenoh.Session, key_expr: str, timeout: float) -> bool:
-    """Block until a liveliness token matching ``key_expr`` is seen; False after ``timeout``."""
+ABANDON_POLL = 0.25  # s between a wait's looks at whether it should go on
+
+
+def wait_for_token(
+    session: zenoh.Session,
+    key_expr: str,
+    timeout: float,
+    abandon: Callable[[], bool] | None = None,
+) -> bool:
+    """Block until a liveliness token matching ``key_expr`` is seen; False after ``timeout``,
+    or as soon as ``abandon()`` (asked every ``ABANDON_POLL`` s) says the wait is pointless."""
     events: queue.Queue[zenoh.Sample] = queue.Queue()
     sub = session.liveliness().declare_subscriber(
         key_expr, zenoh.handlers.FifoChannel(16), history=True
@@ -111,10 +121,13 @@ def wait_for_token(session: zenoh.Session, key_expr: str, timeout: float) -> boo
     deadline = time.monotonic() + timeout
     try:
         while True:
+            left = max(0.0, deadline - time.monotonic())
             try:
-                sample = events.get(timeout=max(0.0, deadline - time.monotonic()))
+                sample = events.get(timeout=left if abandon is None else min(left, ABANDON_POLL))
             except queue.Empty:
-                return False
+                if abandon is None or time.monotonic() >= deadline or abandon():
+                    return False
+                continue
             if sample.kind == zenoh.SampleKind.PUT:
                 return True
     finally:
