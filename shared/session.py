@@ -157,8 +157,12 @@ def zenoh_error(err: BaseException) -> str:
         return _invalid_config_reason(invalid.group(1))
     text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", text).strip()
     serde = re.search(r'msg: "(.*)", location: Some\(Location \{ line: (\d+), column: (\d+)', text)
-    if serde:  # a value of the wrong kind
-        return f"line {serde.group(2)}, column {serde.group(3)}: {serde.group(1)}"
+    if serde:  # a value of the wrong kind, or a JSON5 syntax error drawn in the message
+        msg = serde.group(1).replace("\\n", "\n").replace('\\"', '"')
+        drawn = re.search(r"-->\s*(\d+):(\d+).*?=\s*(.+)$", msg, re.S)
+        if drawn:  # `--cfg foo:bar` printed the drawing's escapes: 1:1\n |\n1 | bar…
+            return f"line {drawn.group(1)}, column {drawn.group(2)}: {drawn.group(3).strip()}"
+        return f"line {serde.group(2)}, column {serde.group(3)}: {' '.join(msg.split())}"
     parse = re.search(r"-->\s*(\d+):(\d+).*?=\s*(.+)$", text, re.S)
     if parse:  # a JSON5 syntax error, drawn over several lines
         return f"line {parse.group(1)}, column {parse.group(2)}: {parse.group(3).strip()}"
