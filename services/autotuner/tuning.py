@@ -113,6 +113,7 @@ NOISY_STEP = 15.0
 OP_NOISE_WARN = 5.0  # % of output (σ): more output noise than this is worth a warning
 LOSS_QUERY_TIMEOUT = 2.0  # s of wall time to find a lost plant back in reach (a reconnect)
 RETURN_SCALES = 5.0  # time scales to wait for the PV of a restored loop to come back to rest
+REST_RESTARTS = 3  # the wait for rest started again on changes by others, at most
 # the new gains are worse than the previous ones only beyond this fraction of their IAE per
 # unit step: two verifications of the same gains on a noisy loop differ by a fraction of a
 # per cent (the same gains re-applied were rejected, 17.24 against 17.19)
@@ -143,6 +144,20 @@ class RunHooks:
     # how the run's heavy pure steps are computed, ``compute(fn, *args)``: in its own thread,
     # or by the tuner's worker processes (``compute_pool``)
     compute: Callable[..., Any] = inline
+
+
+def _settings(st: LoopStatus) -> tuple:
+    """What another client may change on a loop that decides where it rests: its mode,
+    setpoint and gains, and its output in manual (in auto the output is the PID's)."""
+    return (st.mode, st.sp, st.gains, st.op if st.mode == "manual" else None)
+
+
+def _describe_settings(st: LoopStatus) -> str:
+    g = st.gains
+    return (
+        f"now {st.mode}, SP {st.sp:.6g}, OP {st.op:.4g} %, Kc {g.kc:.4g}, Ti {_seconds(g.ti)}, "
+        f"Td {g.td:.4g} s"
+    )
 
 
 def _seconds(ti: float | None) -> str:
@@ -361,7 +376,10 @@ class TuningRun:
             result.update(
                 status="aborted", reason=f"not started: {err}", restored=True, untouched=True
             )
-            return self._result(result, t0, wall0, self._leave(before, before.pv, wait=False))
+            # nothing said of the loop: it is the holder's now, mid-experiment (a refused run
+            # printed the other run's relay output as "left: manual, OP 45 %, the PV is back
+            # where it was": helper 60)
+            return self._result(result, t0, wall0, None)
         ident: experiments.Identification | None = None
         wait_back = True
         try:
@@ -785,19 +803,30 @@ class TuningRun:
         lo, hi = self.info.pv_range
         return max(4.0 * max(self.info.noise_std, 0.0), 0.001 * (hi - lo))
 
-    def _wait_for_rest(self, first: LoopStatus) -> dict:
-        """Watch the PV, changing nothing, until it is at rest over a window as long as the
-        loop's slowest known dynamics (``rest``); bounded. Returns what was seen."""
-        c = self.client
-        window = rest_window(self.ts, first.gains.ti, self.req.rest_window)
+    def _rest_check(self, status: LoopStatus) -> tuple[RestCheck, float]:
+        """The rest check of the loop as ``status`` shows it, and its window (s)."""
+        window = rest_window(self.ts, status.gains.ti, self.req.rest_window)
         # a loop in auto with integral action rests on its setpoint (unless its output is at a
         # limit: then the PV rests where the output can hold it)
         lo, hi = self.info.op_limits
-        integrating = first.mode == "auto" and bool(first.gains.ti) and lo < first.op < hi
-        target = first.sp if integrating else None
+        integrating = status.mode == "auto" and bool(status.gains.ti) and lo < status.op < hi
+        target = status.sp if integrating else None
         check = RestCheck(
             self.ts, window, tuple(self.info.pv_range), target=target, band=self._rest_band()
         )
+        return check, window
+
+    def _wait_for_rest(self, first: LoopStatus) -> dict:
+        """Watch the PV, changing nothing, until it is at rest over a window as long as the
+        loop's slowest known dynamics (``rest``); bounded. Returns what was seen. A change
+        another client makes meanwhile (its setpoint, mode, gains, a manual output) starts
+        the wait again on the loop as it now is, ``REST_RESTARTS`` times at most: judged on
+        the setpoint read at the start, a loop an operator moved from 60 to 62 waited 990 s
+        and was called "still settling, +2 off its setpoint" while at rest on 62."""
+        c = self.client
+        check, window = self._rest_check(first)
+        settings = _settings(first)
+        restarts = 0
         ops: list[float] = []
         chunk = max(1, min(MAX_CHUNK, check.samples // 4))
         reported = 0.0
@@ -809,6 +838,24 @@ class TuningRun:
                 self._take([s])
                 if check.done:
                     break
+            now = c.last_status
+            if _settings(now) != settings:
+                if restarts == REST_RESTARTS:
+                    raise TuneAborted(
+                        f"not started: the loop was changed {restarts + 1} times by others while "
+                        f"the run waited for its rest (last by {now.by_source or 'the plant'}: "
+                        f"{_describe_settings(now)}): tune it when they are done"
+                    )
+                restarts += 1
+                self._progress(
+                    "rest",
+                    message=f"the loop was changed by {now.by_source or 'the plant'} as the run "
+                    f"waited for its rest ({_describe_settings(now)}): its rest is judged anew",
+                )
+                check, window = self._rest_check(now)
+                settings, ops, reported = _settings(now), [], 0.0
+                chunk = max(1, min(MAX_CHUNK, check.samples // 4))
+                continue
             if not check.done and check.waited >= window and check.waited - reported >= window:
                 reported = check.waited
                 self._progress("rest", message=check.describe())

@@ -1,0 +1,64 @@
+"""The wait for rest before a tune takes the loop as it is when another client changes it
+meanwhile (helper 60: an operator set hx1's setpoint 60 → 62 a second after `tune`; the run,
+judging rest on the setpoint it read at its start, waited 990 s of sim time and ended "not
+started: … +2 off its setpoint 59.9972: still settling" while the loop rested on 62).
+
+In process (``LocalLoopClient``), the operator's commands applied to the plant's loop as
+another client's reach it, its status seen by the run as the bus would show it."""
+
+from __future__ import annotations
+
+from services.autotuner.tuning import REST_RESTARTS, RunHooks, TuningRun
+from services.offline.local_loop import NODE, LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.messages import ModeCommand, SetpointCommand, TuneProgress, TuneRequest
+
+
+class Operated(LocalLoopClient):
+    """A loop another client writes to while the run waits: a setpoint at each of the run's
+    first ``changes`` reads of samples."""
+
+    def __init__(self, sim, setpoints: list[float]):
+        super().__init__(sim)
+        self.setpoints = list(setpoints)
+
+    def samples(self, steps, band=None, record=None):
+        if self.setpoints and self.lease is None:
+            self.sim.apply(SetpointCommand(loop=self.loop, sp=self.setpoints.pop(0), source="op"))
+            status = self.sim.status(NODE, "lockstep", "setpoint")
+            self.last_status = status.model_copy(update={"by_source": "op"})
+        return super().samples(steps, band, record)
+
+
+def _hx1():
+    """hx1 in auto on its PI, at rest on SP 60 (as after a tune)."""
+    sim = build_plant({"seed": 1, "loops": {"hx1": {"model": "heat_exchanger"}}})["hx1"]
+    sim.apply(ModeCommand(loop="hx1", mode="auto", source="op"))
+    return sim
+
+
+def test_a_setpoint_changed_while_the_run_waits_for_rest_is_waited_for_anew():
+    sim = _hx1()
+    assert sim.mode == "auto" and sim.sp == 60.0
+    said: list[TuneProgress] = []
+    client = Operated(sim, [62.0])
+    req = TuneRequest(loop="hx1", method="relay")
+    r = TuningRun(client, req, "x", RunHooks(progress=said.append)).run()
+    assert r.status == "ok", r.reason
+    rest = [p.message for p in said if p.phase == "rest"]
+    assert any("the loop was changed by op as the run waited for its rest" in m for m in rest)
+    assert any("SP 62" in m for m in rest)
+    # the loop as the run found it after the change: restored to (and verified on) SP 62
+    assert r.left["sp"] == 62.0
+
+
+def test_an_operator_who_keeps_changing_it_is_left_to_finish():
+    sim = _hx1()
+    client = Operated(sim, [60.5 + k for k in range(REST_RESTARTS + 1)])
+    r = TuningRun(client, TuneRequest(loop="hx1", method="relay"), "x", RunHooks()).run()
+    assert r.status == "aborted" and r.untouched
+    assert r.reason.startswith(
+        f"not started: the loop was changed {REST_RESTARTS + 1} times by others while the run "
+        "waited for its rest (last by op: now auto, SP 63.5"
+    ), r.reason
+    assert sim.sp == 63.5 and client.commands == []
