@@ -359,6 +359,39 @@ def test_a_second_run_refused_the_loop_leaves_the_open_runs_file_alone(
     assert rec.counts["unrecorded_runs"] == 1 and rec.open_runs() == []
 
 
+def test_a_run_refused_the_loop_has_no_file_when_it_started_first_too(
+    rec: Recorder, tmp_path: Path
+) -> None:
+    """The other order (helper 60): r1 starts first, r2 starts behind it and takes the loop
+    (the plant shows it holding), r1 is refused the lease. r1 had a file ("aborted") where,
+    started second, it had none: one rule now, none; r2 is recorded from its start."""
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 2)
+    send(rec, keys.tune_progress(P, LOOP), start("r2", 3 * DT))
+    samples(rec, 3, 4)
+    send(rec, keys.status(P, LOOP), status(5, "lease", leased_by="tuner:r2"))
+    refused = result("r1", 4 * DT, status="aborted").model_copy(
+        update={"untouched": True, "reason": "not started: lease refused"}
+    )
+    send(rec, keys.tune_result(P, LOOP), refused)
+    assert rec.open_runs() == ["r2"] and rec.counts["unrecorded_runs"] == 1
+    samples(rec, 6, 8)
+    send(rec, keys.tune_result(P, LOOP), result("r2", 8 * DT))
+    meta, _ = only_file(rec)
+    assert (meta["run_id"], meta["status"]) == ("r2", "ok")
+    assert [p.name for p in tmp_path.iterdir() if p.suffix == ".mcap"] == [rec.finished[0].name]
+
+
+def test_an_untouched_run_that_nobody_else_held_the_loop_for_is_recorded(rec: Recorder) -> None:
+    """Not started for want of rest, no other run about: its file stays (its rest wait)."""
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 4)
+    nope = result("r1", 4 * DT, status="aborted").model_copy(update={"untouched": True})
+    send(rec, keys.tune_result(P, LOOP), nope)
+    meta, _ = only_file(rec)
+    assert (meta["run_id"], meta["status"]) == ("r1", "aborted")
+
+
 def test_a_run_that_waited_behind_the_open_one_is_recorded_from_its_start(
     rec: Recorder,
 ) -> None:

@@ -173,6 +173,15 @@ class RunWriter:
             self._writer.flush()
             self._last_flush = time.monotonic()
 
+    def discard(self) -> None:
+        """Close the file unfinished and remove it: a run the logger does not record after
+        all (nothing of it stays on disk)."""
+        if self.finished:
+            return
+        self._file.close()
+        self.path.unlink(missing_ok=True)
+        self.finished = True
+
     def finish(
         self, metadata: dict[str, str], record_key: str | None = None, t: float = 0.0
     ) -> None:

@@ -165,6 +165,7 @@ class OpenRun:
     # wall clock (monotonic) the plant showed the run that waited behind this one holding
     # the loop: this one's result, if it comes within RESULT_GRACE, still closes its file
     superseded_at: float | None = None
+    held: bool = False  # a plant status showed this run holding the loop
 
 
 @dataclass
@@ -741,6 +742,7 @@ class Recorder:
             run.samples += 1
         elif isinstance(msg, LoopStatus):
             run.plant_node = run.plant_node or msg.node
+            run.held = run.held or msg.leased_by == f"tuner:{run.run_id}"
         elif isinstance(msg, LeaseCommand):
             run.lease_holders.add(msg.source)
         elif isinstance(msg, TunerEvent) and msg.kind == "request":
@@ -767,6 +769,23 @@ class Recorder:
         stream.recent = deque(kept, maxlen=BUFFER)
         if stream.replay:  # a replay's stream ends with its run (memory stays bounded)
             self.streams.pop((stream.loop, stream.replay), None)
+        if _never_held(run, result):
+            # refused the loop another run held: no file, whichever of the two started first
+            # (it had one when it started first, none when it started behind the other: one
+            # rule now, the README's)
+            run.writer.discard()
+            self.counts["unrecorded_runs"] += 1
+            log.warning(
+                "run %s on %s: ended (%s) without ever holding the loop while run %s did: "
+                "not recorded",
+                run.run_id,
+                run.loop,
+                status,
+                waiting.msg.run_id if waiting is not None else "?",
+            )
+            if waiting is not None and waiting.msg.run_id not in self._recorded:
+                self._open(stream, waiting.msg)
+            return
         meta = {
             "run_id": run.run_id,
             "loop": run.loop,
@@ -892,3 +911,15 @@ class Recorder:
 
 def _replay_note(stream: Stream) -> str:
     return f" (replay of {stream.replay})" if stream.replay else ""
+
+
+def _never_held(run: OpenRun, result: TuneResult | None) -> bool:
+    """A run that ended untouched, never holding the loop, while a run that started behind
+    it was seen holding it: refused the lease another supervisor had."""
+    return (
+        result is not None
+        and bool(result.untouched)
+        and not run.held
+        and run.superseded_at is not None
+        and not run.replay
+    )
