@@ -13,6 +13,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from shared.cli import PARENT_ENV
+
 EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
 PORT_SPAN = 12000  # listener ports are drawn from this many just below the ephemeral range
 _given: set[int] = set()  # handed out by this process (never twice)
@@ -62,7 +64,8 @@ def start_service(
     """``python -m <module> <args>`` in its own process group (Ctrl-C reaches it through us);
     with ``source``, run from that source tree (its code first on the path: an older
     checkout's services, for a before/after in one run)."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    # the service stops if this process goes without stopping it (``cli.watch_parent``)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", PARENT_ENV: str(os.getpid())}
     if source is not None:
         env["PYTHONPATH"] = str(source)
     return subprocess.Popen(

@@ -68,6 +68,37 @@ def install_stop_handlers(stop: threading.Event) -> None:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, handler)
+    watch_parent(stop)
+
+
+# set by ``launcher.start_service`` in a service it starts: the pid of the process that
+# started it (``autotune up``, ``demo``, ``perf``, a test), which stops it in order
+PARENT_ENV = "AUTOTUNE_PARENT_PID"
+PARENT_POLL = 1.0  # s between looks at whether that process is still there
+
+
+def watch_parent(stop: threading.Event) -> None:
+    """A service started by another autotune process stops when that process is gone (its
+    parent pid changes: re-parented): ``autotune up`` killed with SIGKILL left plant_sim,
+    the tuner and the logger running, holding the bus's port. A service started by hand (no
+    ``PARENT_ENV``) is not watched: ``nohup autotune plant &`` outlives its shell, as it
+    should. (The launcher starts the service's interpreter itself, no wrapper between: a
+    parent pid other than the launcher's is the launcher gone, even at start-up.)"""
+    expected = os.environ.pop(PARENT_ENV, "")  # not for what this service starts in turn
+    if not expected.isdigit():
+        return
+    parent = int(expected)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            if stop.wait(PARENT_POLL):
+                return
+        logging.getLogger("autotune").warning(
+            "the process that started this service (pid %d) is gone: stopping", parent
+        )
+        stop.set()
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 def check_ids(prefix: str, **ids: str) -> None:
@@ -189,7 +220,10 @@ def check_flags(command: str, args: argparse.Namespace) -> None:
 
 def check_runs_dir(flag: str, path: str) -> None:
     """ConfigError unless ``path`` is a directory we may write into, or one that can be made
-    (its nearest existing ancestor is a writable directory)."""
+    (its nearest existing ancestor is a writable directory); an empty one names none (the
+    logger's ``--runs ""`` recorded into the directory it ran in)."""
+    if not path.strip():
+        raise ConfigError(f"{flag} {path!r}: must name a directory")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{flag} {path}: exists and is not a directory")

@@ -187,6 +187,7 @@ REFUSED = [
     (["health", "nothing"], ["invalid choice"]),
     (["logger", "--runs", "run.mcap"], ["--runs", "not a directory"]),
     (["logger", "--runs", "run.mcap/sub"], ["--runs", "not a directory"]),
+    (["logger", "--runs", ""], ["--runs '': must name a directory"]),
     (["logger", "--prefix", ""], ["prefix"]),
     (["replay", "run.mcap", "--rate", "0"], ["--rate"]),
     (["replay", "run.mcap", "--rate", "-2"], ["--rate"]),
