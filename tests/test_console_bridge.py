@@ -39,6 +39,8 @@ def answer(bridge: Bridge, msg: dict) -> dict:
         ({"type": "apply", "run_id": 7}, "run_id: 7 is not a run id"),
         ({"type": "reject", "run_id": "r1"}, "loop: None is not a loop"),
         ({"type": "revert", "loop": ""}, "loop: '' is not a loop"),
+        ({"type": "revert", "loop": "hx1", "gains": {"kc": -1}},
+         "gains: kc: Input should be greater than or equal to 0"),
     ],
 )  # fmt: skip
 def test_a_request_that_cannot_be_carried_out_is_refused_in_one_line(bridge, msg, says):

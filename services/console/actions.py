@@ -104,17 +104,27 @@ def revert(
     to: str | None = None,
     user: str | None = None,
     last_only: bool = False,
+    shown: PidGains | None = None,
 ) -> dict[str, Any]:
     """``autotune revert LOOP [--to RUN_ID]``: the gains before the loop's last change (or
     before run ``to``'s), written bumplessly by one gains command and confirmed by the plant;
     refused when the loop's gains are not the last on record (a change the history missed),
     and, ``last_only`` (the page's Reject of run ``to``), when run ``to``'s change is not the
-    last. Returns what was done: loop, the change undone, before and after gains."""
+    last; with ``shown`` (the gains the page showed as the loop's when Revert was pressed),
+    when the loop's gains are no longer those: two Reverts pressed at once undid the last
+    change and then the revert itself, the tuned gains back on the loop. Returns what was
+    done: loop, the change undone, before and after gains."""
     keys.check_id(loop)
     path = runs / HISTORY_FILE
     wait_for_loop(session, prefix, loop, LOOP_WAIT)
     with LoopClient(session, prefix, loop, source=SOURCE, user=user) as client:
         now = client.sync()
+        if shown is not None and now.gains != shown:
+            raise AutotuneError(
+                f"loop {loop}: its gains changed since the page showed them (now "
+                f"{_gains_line(now.gains)}, shown {_gains_line(shown)}): nothing written; "
+                "Revert again to undo the change now last"
+            )
         deadline = time.monotonic() + CATCH_UP
         while True:  # the logger writes a change down as it sees it: let it catch up
             changes = loop_changes(path, loop, prefix)
@@ -155,6 +165,10 @@ def revert(
         "before": now.gains.model_dump(),
         "after": status.gains.model_dump(),
     }
+
+
+def _gains_line(g: PidGains) -> str:
+    return f"Kc {g.kc:.4g}, Ti {'off' if g.ti is None else f'{g.ti:.4g} s'}, Td {g.td:.4g} s"
 
 
 def _gains(d: dict[str, Any]) -> PidGains:

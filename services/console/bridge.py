@@ -22,6 +22,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import pydantic
 import zenoh
 
 from services.autotuner.commands.loops import read_loops
@@ -32,7 +33,14 @@ from services.console.requests import tune_request
 from services.console.trends import HISTORY, Trend
 from shared import keys, wire
 from shared.errors import AutotuneError, ConfigError, DecodeError, one_line
-from shared.messages import LoopStatus, ProcessSample, ProcessSamples, TuneProgress, TuneResult
+from shared.messages import (
+    LoopStatus,
+    PidGains,
+    ProcessSample,
+    ProcessSamples,
+    TuneProgress,
+    TuneResult,
+)
 
 log = logging.getLogger("console")
 
@@ -404,7 +412,10 @@ class Bridge:
 
     def _revert(self, msg: dict[str, Any], say: Callable[..., None]) -> None:
         loop = _field(msg, "loop")
-        done = actions.revert(self.session, self.prefix, self.runs, loop, None, self.user)
+        shown = _shown_gains(msg)
+        done = actions.revert(
+            self.session, self.prefix, self.runs, loop, None, self.user, shown=shown
+        )
         g = done["after"]
         ti = "off" if g["ti"] is None else f"{g['ti']:.4g} s"
         say(
@@ -426,6 +437,18 @@ class Bridge:
         for th in self._threads:
             th.join(max(0.0, deadline - time.monotonic()))
         self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _shown_gains(msg: dict[str, Any]) -> PidGains | None:
+    """The gains the page showed as the loop's (``gains``, optional); ConfigError naming the
+    field when they are not gains."""
+    value = msg.get("gains")
+    if value is None:
+        return None
+    try:
+        return PidGains.model_validate(value)
+    except pydantic.ValidationError as err:
+        raise ConfigError(f"gains: {wire.describe_validation_error(err)}") from None
 
 
 def _field(msg: dict[str, Any], name: str) -> str:

@@ -125,6 +125,14 @@ def test_a_day_with_a_loop(start_plant, start_tuner, start_logger, tmp_path):
     start_logger(plant, runs)
     again = json.loads(cli(plant, "revert", LOOP, "--runs", str(runs), "--json").stdout)
     assert again["after"] == g2 and gains(plant) == g2  # the set undone
+    # the console's Revert pressed twice at once: the second, sent with the gains the page
+    # still showed (the set's), undid the first (the tuned gains back); refused
+    from shared.messages import PidGains
+
+    stale = r"its gains changed since the page showed them \(now Kc .*nothing written"
+    with open_session(plant.client_settings()) as s, pytest.raises(AutotuneError, match=stale):
+        actions.revert(s, plant.prefix, runs, LOOP, None, shown=PidGains(**g3))
+    assert gains(plant) == g2
 
     final = changes_seen(runs, 5)
     assert [c["by_source"] for c in final] == [

@@ -368,7 +368,13 @@ $("reject").onclick = () => {
   if (m) send({ type: "reject", loop: S.selected, run_id: m.result.run_id });
   $("apply").disabled = $("reject").disabled = true;
 };
-$("revert").onclick = () => { if (S.selected) send({ type: "revert", loop: S.selected }); };
+// the gains the page shows as the loop's go with the request: a second press that came before
+// the first one's change was shown is refused, not a revert of the revert
+$("revert").onclick = () => {
+  if (!S.selected) return;
+  const st = (S.loops[S.selected] || {}).status;
+  send({ type: "revert", loop: S.selected, gains: st ? st.gains : null });
+};
 
 // --- the recorded runs -------------------------------------------------------------------------
 
