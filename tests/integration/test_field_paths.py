@@ -202,11 +202,25 @@ def test_manual_loops_are_left_at_their_operating_point(field):
 
 
 def test_a_ramp_from_an_absurd_gain_backs_off_or_aborts_within_its_budget(field):
-    """`--kc-start 1e6` on flow1 (K_u ≈ 2.5 %/(m³/h), P_u ≈ 5 s): the output saturates at
+    """`--kc-start 900` on flow1 (K_u ≈ 2.5 %/(m³/h), P_u ≈ 5 s; 900 % of output per % of
+    its 0-100 span, just within what any write of gains may ask): the output saturates at
     once; the ramp backs off or aborts with a reason in a few hundred periods at most, never
-    the 36,000 s of valve at 100 % seen before."""
+    the 36,000 s of valve at 100 % seen before. Past 1000 % per % (1e6) the request is bad
+    input, refused in one line before anything is sent."""
     before = state(field, "flow1")
-    r = result(cli(field, "tune", "flow1", "--method", "ramp", "--kc-start", "1e6", "--json"))
+    refused = cli(field, "tune", "flow1", "--method", "ramp", "--kc-start", "1e6")
+    _, err = refused.communicate(timeout=60)
+    assert refused.returncode == 2 and len(err.strip().splitlines()) == 1, err
+    assert "kc_start: 1e+06 (1e+06 % of output per % of span): a gain must be at most" in err
+    now = state(field, "flow1")
+    assert (now.mode, now.sp, now.op, now.gains, now.leased_by) == (
+        before.mode,
+        before.sp,
+        before.op,
+        before.gains,
+        None,
+    )
+    r = result(cli(field, "tune", "flow1", "--method", "ramp", "--kc-start", "900", "--json"))
     assert r["status"] in ("ok", "rejected", "aborted")
     assert r["status"] == "ok" or r["reason"]
     assert r["sim_duration"] < 200 * 5.3 + 1000  # ramp ≤ 200 P_u, plus its verification
