@@ -43,7 +43,9 @@ class Stack:
         deadline = time.monotonic() + timeout
         with open_session(self.client) as s:
             for key in tokens:
-                left = max(0.0, deadline - time.monotonic())
+                # (a second at least: a token already up is seen a moment after the subscriber
+                # is declared, from its history)
+                left = max(1.0, deadline - time.monotonic())
                 if wait_for_token(s, key, left, abandon=lambda: bool(self._ended())):
                     continue
                 if ended := self._ended():

@@ -58,7 +58,54 @@ def test_an_operator_who_keeps_changing_it_is_left_to_finish():
     r = TuningRun(client, TuneRequest(loop="hx1", method="relay"), "x", RunHooks()).run()
     assert r.status == "aborted" and r.untouched
     assert r.reason.startswith(
-        f"not started: the loop was changed {REST_RESTARTS + 1} times by others while the run "
-        "waited for its rest (last by op: now auto, SP 63.5"
+        f"not started: the loop was changed {REST_RESTARTS + 1} times while the run waited for "
+        "its rest (last by op: now auto, SP 63.5"
     ), r.reason
     assert sim.sp == 63.5 and client.commands == []
+
+
+class Watched(LocalLoopClient):
+    """Another client only reads the loop (its sync's answer seen by the run at every read)."""
+
+    def samples(self, steps, band=None, record=None):
+        if self.lease is None:
+            self.last_status = self.sim.status(NODE, "lockstep", "sync")
+        return super().samples(steps, band, record)
+
+
+def test_statuses_that_change_nothing_do_not_restart_the_wait():
+    """A manual loop whose setpoint tracks its PV (``sp_track``) shows a new setpoint in every
+    status: read by another client at each of the run's reads, it restarted the wait 3 times
+    and aborted the run "changed 4 times" (helper 61's review). In manual the setpoint moves
+    nothing: not a change."""
+    spec = {"model": "heat_exchanger", "sp_track": True, "noise_std": 0.05}
+    sim = build_plant({"seed": 1, "loops": {"hx1": spec}})["hx1"]
+    assert sim.mode == "manual"
+    said: list[TuneProgress] = []
+    r = TuningRun(
+        Watched(sim), TuneRequest(loop="hx1", method="relay"), "x", RunHooks(said.append)
+    ).run()
+    assert r.status == "ok", r.reason
+    assert not any("changed" in (p.message or "") for p in said if p.phase == "rest")
+
+
+def test_the_gains_before_the_run_are_those_the_lease_found():
+    """An operator's gains set while the run waited for rest: the result's previous gains
+    (the history's, the report's "before the run") were those read at the run's start."""
+    from shared.messages import GainsCommand, PidGains
+
+    sim = _hx1()
+    mine = PidGains(kc=1.5, ti=80.0)
+
+    class SetsGains(LocalLoopClient):
+        def samples(self, steps, band=None, record=None):
+            if self.lease is None and self.sim.pid.gains.kc != mine.kc:
+                self.sim.apply(GainsCommand(loop="hx1", gains=mine, source="op"))
+                status = self.sim.status(NODE, "lockstep", "gains")
+                self.last_status = status.model_copy(update={"by_source": "op"})
+            return super().samples(steps, band, record)
+
+    req = TuneRequest(loop="hx1", method="relay", apply=False)
+    r = TuningRun(SetsGains(sim), req, "x", RunHooks()).run()
+    assert r.status == "proposed", r.reason
+    assert r.previous_gains == mine and sim.pid.gains.kc == mine.kc  # restored to them

@@ -50,7 +50,7 @@ def test_a_service_that_ends_as_the_stack_starts_ends_the_wait():
     stack.procs["plant"] = subprocess.Popen([sys.executable, "-c", "raise SystemExit(2)"])
     stack.procs["plant"].wait()
     with pytest.raises(AutotuneError) as err:
-        stack.wait_ready(["startx/plant_sim/plant/alive"], timeout=600.0)
+        stack.wait_ready(["startx/plant_sim/plant/alive"], timeout=60.0)
     assert str(err.value) == (
         "plant (exit 2) ended as the stack started, before startx/plant_sim/plant/alive came "
         "up (its own error says why)"

@@ -79,7 +79,7 @@ def test_a_ramp_bump_or_start_gain_no_loop_could_take_is_refused_naming_the_fiel
         _check_limits(TuneRequest(loop="hx1", method="ramp", bump=1.0, pv_limits=(59, 61)), on_hx1)
     _check_limits(TuneRequest(loop="hx1", method="ramp", bump=74.0), on_hx1)
     # 1000 % per % of a 150 span is 1000·100/150 = 666.67 % per PV unit
-    with pytest.raises(ValueError, match=r"^kc_start: 667 \(1000 % of output per % of span\)"):
+    with pytest.raises(ValueError, match=r"^kc_start: 667 \(1000\.5 % of output per % of span\)"):
         _check_limits(TuneRequest(loop="hx1", method="ramp", kc_start=667.0), on_hx1)
     _check_limits(TuneRequest(loop="hx1", method="ramp", kc_start=666.0), on_hx1)
     # the other methods do not use them

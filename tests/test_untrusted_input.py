@@ -69,6 +69,18 @@ class AttributesRaise(_User):
         raise RuntimeError(f"no {name} here")
 
 
+class UnitsQuit(_User):
+    @property
+    def pv_units(self) -> str:
+        raise Quit("no units today")
+
+
+class UnitsExit(_User):
+    @property
+    def pv_units(self) -> str:
+        raise SystemExit(3)
+
+
 class SlowInit(_User):
     def __init__(self, sample_time: float, op0: float = 50.0):
         time.sleep(30.0)  # a device that never answers
@@ -179,3 +191,14 @@ def test_json_nested_too_deeply_is_not_json_to_the_product():
     # a run file's recorded result: the file is listed as unreadable, with the reason
     with pytest.raises(AutotuneError, match="field result: not JSON"):
         _row(Path("x.mcap"), {"result": DEEP})
+
+
+@pytest.mark.parametrize(("cls", "raised"), [("UnitsQuit", "Quit"), ("UnitsExit", "SystemExit")])
+def test_a_protocol_attribute_raising_anything_is_refused_in_one_line(
+    cls, raised, tmp_path, capsys
+):
+    """``pv_units`` as a property that raised a BaseException subclass printed a traceback
+    (model check, plant_sim); one that raised SystemExit(3) ended them with exit 3, silent."""
+    code, _, err = run_cli(capsys, "model", "check", str(_plant_file(tmp_path, cls)))
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert f".pv_units raised {raised}" in err

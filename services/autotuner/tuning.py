@@ -147,9 +147,16 @@ class RunHooks:
 
 
 def _settings(st: LoopStatus) -> tuple:
-    """What another client may change on a loop that decides where it rests: its mode,
-    setpoint and gains, and its output in manual (in auto the output is the PID's)."""
-    return (st.mode, st.sp, st.gains, st.op if st.mode == "manual" else None)
+    """What another client may change on a loop that decides where it rests: its mode and
+    gains, its setpoint in auto, its output in manual (in auto the output is the PID's; in
+    manual the setpoint moves nothing, and one that tracks the PV changes every sample)."""
+    auto = st.mode == "auto"
+    return (st.mode, st.gains, st.sp if auto else None, None if auto else st.op)
+
+
+def _by(st: LoopStatus) -> str:
+    """ " by <sender>" of the change a status reports, where it names one."""
+    return f" by {st.by_source}" if st.by_source else ""
 
 
 def _describe_settings(st: LoopStatus) -> str:
@@ -356,6 +363,9 @@ class TuningRun:
                 raise TuneAborted(f"not started: {rest['reason']}")
             # the loop as the lease will find it (a plant lost here: nothing was changed yet)
             self.before = before = c.sync()
+            # its gains then, not at the run's start: another client may have changed them
+            # as the run waited for rest (the restore puts these back)
+            result["previous_gains"] = before.gains
         except (TuneAborted, AutotuneError) as err:  # nothing was changed: nothing to restore
             result.update(status="aborted", reason=str(err), restored=True, untouched=True)
             return self._result(result, t0, wall0, self._leave(first, first.pv, wait=False))
@@ -842,15 +852,15 @@ class TuningRun:
             if _settings(now) != settings:
                 if restarts == REST_RESTARTS:
                     raise TuneAborted(
-                        f"not started: the loop was changed {restarts + 1} times by others while "
-                        f"the run waited for its rest (last by {now.by_source or 'the plant'}: "
-                        f"{_describe_settings(now)}): tune it when they are done"
+                        f"not started: the loop was changed {restarts + 1} times while the run "
+                        f"waited for its rest (last{_by(now)}: {_describe_settings(now)}): tune "
+                        "it when the changes are done"
                     )
                 restarts += 1
                 self._progress(
                     "rest",
-                    message=f"the loop was changed by {now.by_source or 'the plant'} as the run "
-                    f"waited for its rest ({_describe_settings(now)}): its rest is judged anew",
+                    message=f"the loop was changed{_by(now)} as the run waited for its rest "
+                    f"({_describe_settings(now)}): its rest is judged anew",
                 )
                 check, window = self._rest_check(now)
                 settings, ops, reported = _settings(now), [], 0.0

@@ -128,8 +128,7 @@ class Bridge:
         th.start()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        mark = sample.attachment
-        if mark is not None and wire.replay_source(mark.to_bytes()) is not None:
+        if _replayed(sample):
             return  # a replay of a recorded run is not the loop's present
         parsed = keys.parse_loop_key(self.prefix, str(sample.key_expr))
         if parsed is None or parsed[1] not in ("pv", "pv_batch"):
@@ -148,8 +147,9 @@ class Bridge:
                 trend.add(s.t, s.pv, s.sp, s.op)
 
     def _on_status(self, sample: zenoh.Sample) -> None:
-        if keys.parse_loop_key(self.prefix, str(sample.key_expr)) is None:
-            return
+        if _replayed(sample) or keys.parse_loop_key(self.prefix, str(sample.key_expr)) is None:
+            return  # a replayed status showed a recorded run's gains as the loop's (and the
+            # page's Revert, sent with them, was refused as stale)
         st = wire.decode_sample(LoopStatus, sample)
         with self._lock:
             self.status[st.loop] = st.model_dump(mode="json")
@@ -437,6 +437,12 @@ class Bridge:
         for th in self._threads:
             th.join(max(0.0, deadline - time.monotonic()))
         self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _replayed(sample: zenoh.Sample) -> bool:
+    """A message ``autotune replay`` republished from a recording (its attachment says so)."""
+    mark = sample.attachment
+    return mark is not None and wire.replay_source(mark.to_bytes()) is not None
 
 
 def _shown_gains(msg: dict[str, Any]) -> PidGains | None:

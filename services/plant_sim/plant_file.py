@@ -343,7 +343,9 @@ def _read_protocol(process: object, cfg: LoopConfig) -> dict[str, Any]:
         except AttributeError:
             if not overridden.get(name, False):  # the plant file gives it: not needed
                 missing.append(name)
-        except Exception as err:  # a property of the user's that raises
+        except BaseException as err:  # a property of the user's that raises
+            if not models_own(err):
+                raise
             raise ModelParamError(
                 "model", f"{cfg.model}: .{name} raised {type(err).__name__}: {brief(err)}"
             ) from None

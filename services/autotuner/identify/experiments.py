@@ -226,7 +226,7 @@ def start_gain_problem(method: str, kc_start: float | None, span: float | None) 
     if pct is None or pct <= MAX_KC_PERCENT:
         return None
     return (
-        f"kc_start: {kc_start:g} ({pct:.4g} % of output per % of span): a gain must be at "
+        f"kc_start: {kc_start:g} ({pct:.6g} % of output per % of span): a gain must be at "
         f"most {MAX_KC_PERCENT:g} % per % of span (a proportional band of 0.1 %)"
     )
 
