@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from services.cli import main
 from services.plant_sim.model_check import check_loop
 from services.plant_sim.plant_file import build_plant, default_plant_path, load_plant_file
+from tests.cli_run import run_cli
 from tests.exact import lag_ultimate, sopdt_tangent, ultimate_point
 from tests.fmus import build_all
 
@@ -472,15 +472,6 @@ def plant_with(tmp_path: Path, fmus: dict[str, Path], extra: str = "") -> Path:
         '[loops.ip]\nmodel = "ipdt"\ngain = 0.02\ndelay = 3.0\nsample_time = 0.1\n' + extra
     )
     return path
-
-
-def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
-    try:
-        code = main(list(argv))
-    except SystemExit as stop:
-        code = stop.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def test_a_coarse_loops_step_point_is_read_at_a_finer_sample_time(capsys):

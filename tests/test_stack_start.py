@@ -10,19 +10,11 @@ import sys
 
 import pytest
 
-from services.cli import main
 from services.launcher import free_tcp_port
 from services.stack import Stack
 from shared.errors import AutotuneError
 from shared.session import ZenohSettings
-
-
-def run_cli(capsys, *argv: str) -> tuple[int, str]:
-    try:
-        code = main(list(argv))
-    except SystemExit as stop:
-        code = stop.code
-    return code, capsys.readouterr().err
+from tests.cli_run import run_cli
 
 
 @pytest.mark.parametrize(
@@ -38,7 +30,7 @@ def test_a_config_setting_the_plant_would_refuse_is_refused_naming_it(
 ):
     cfg = tmp_path / "up.toml"
     cfg.write_text(setting + "\n")
-    code, err = run_cli(capsys, "up", "--config", str(cfg))
+    code, _, err = run_cli(capsys, "up", "--config", str(cfg))
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert f"{cfg}: {says}" in err
 

@@ -14,11 +14,11 @@ from pathlib import Path
 
 import pytest
 
-from services.cli import main
 from services.logger.commands.runs import _row
 from services.plant_sim.plant_file import build_plant
 from shared import json_text, wire
 from shared.errors import AutotuneError
+from tests.cli_run import run_cli
 
 HERE = __name__
 
@@ -91,15 +91,6 @@ def _loop(cls: str):
     return build_plant({"seed": 1, "loops": {"u": {"model": f"{HERE}:{cls}", "sample_time": 1.0}}})[
         "u"
     ]
-
-
-def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
-    try:
-        code = main(list(argv))
-    except SystemExit as stop:
-        code = stop.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def _plant_file(tmp_path: Path, cls: str) -> Path:

@@ -551,15 +551,7 @@ class Recorder:
                     self._result_in(stream, stream.run, msg)
             elif isinstance(msg, TuneResult):  # refused, or ended, before it held the loop
                 stream.waiting = None
-                self.counts["unrecorded_runs"] += 1
-                log.warning(
-                    "run %s on %s: ended (%s) without ever holding the loop while run %s did: "
-                    "not recorded",
-                    run_id,
-                    stream.loop,
-                    msg.status,
-                    stream.run.run_id if stream.run is not None else "?",
-                )
+                self._unrecorded(run_id, stream.loop, msg.status, run.run_id if run else None)
             return True
         # the plant shows it holding the loop: the open run let the loop go, and its result,
         # still on its way, may yet close its file (``tick``); else it was superseded
@@ -774,18 +766,31 @@ class Recorder:
             # (it had one when it started first, none when it started behind the other: one
             # rule now, the README's)
             run.writer.discard()
-            self.counts["unrecorded_runs"] += 1
-            log.warning(
-                "run %s on %s: ended (%s) without ever holding the loop while run %s did: "
-                "not recorded",
-                run.run_id,
-                run.loop,
-                status,
-                waiting.msg.run_id if waiting is not None else "?",
-            )
-            if waiting is not None and waiting.msg.run_id not in self._recorded:
+            self._unrecorded(run.run_id, run.loop, status, waiting.msg.run_id if waiting else None)
+        else:
+            self._finish(stream, run, status, result)
+        if waiting is not None:
+            if waiting.msg.run_id in self._recorded:
+                log.warning(
+                    "run %s on %s: already recorded, not again", waiting.msg.run_id, run.loop
+                )
+            else:
                 self._open(stream, waiting.msg)
-            return
+
+    def _unrecorded(self, run_id: str, loop: str, status: str, holder: str | None) -> None:
+        """A run that ended without ever holding the loop while ``holder``'s run did: counted
+        and said, no file."""
+        self.counts["unrecorded_runs"] += 1
+        log.warning(
+            "run %s on %s: ended (%s) without ever holding the loop while run %s did: not recorded",
+            run_id,
+            loop,
+            status,
+            holder or "?",
+        )
+
+    def _finish(self, stream: Stream, run: OpenRun, status: str, result: TuneResult | None) -> None:
+        """The run's file finished with its metadata, and the run remembered as recorded."""
         meta = {
             "run_id": run.run_id,
             "loop": run.loop,
@@ -836,13 +841,6 @@ class Recorder:
             run.left_out,
             run.writer.path,
         )
-        if waiting is not None:
-            if waiting.msg.run_id in self._recorded:
-                log.warning(
-                    "run %s on %s: already recorded, not again", waiting.msg.run_id, run.loop
-                )
-            else:
-                self._open(stream, waiting.msg)
 
     def _late_result(
         self, key: str, model: type[Message], payload: bytes, result: TuneResult
