@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from services.plant_sim.model_check import check_loop
+from services.plant_sim.model_check import check_loop, refine_step_point
 from services.plant_sim.plant_file import build_plant, default_plant_path, load_plant_file
 from tests.cli_run import run_cli
 from tests.exact import lag_ultimate, sopdt_tangent, ultimate_point
@@ -492,6 +492,25 @@ def test_a_coarse_loops_step_point_is_read_at_a_finer_sample_time(capsys):
     assert 0 < lvl1["step_sample_time"] <= pu1 / 40 and lvl2["step_sample_time"] <= 8.0 / 40
     # a loop sampled finely enough is read at its own samples
     assert loops["hx2"]["step_sample_time"] == 0.25
+
+
+def test_a_coarse_point_that_cannot_be_read_again_is_said_blurred():
+    """Where the loop cannot be stepped at the finer sample time (its model refuses it, or
+    loads too slowly), its step-response point is the one its own samples blur: said so, with
+    the reason, not printed as if sound (lvl1 at 4 samples a period reads 19 % low)."""
+    r = check_loop("lvl1", load_plant_file(default_plant_path())["lvl1"])
+    ku, pu, asked = r.ku_step, r.pu_step, []
+
+    def cannot(t: float) -> str:
+        asked.append(t)
+        return "loops.lvl1.model: takes a fixed step"
+
+    refine_step_point(r, cannot)
+    assert (r.ku_step, r.pu_step, r.step_sample_time) == (ku, pu, r.sample_time)
+    said = [w for w in r.warnings if w.startswith("the step response's K_u and P_u")]
+    assert len(said) == 1, r.warnings
+    assert "1 s samples" in said[0] and "takes a fixed step" in said[0]
+    assert f"again at {asked[0]:.4g} s" in said[0] and asked[0] <= pu / 40
 
 
 def test_the_command_prints_json_and_a_plot(fmus, tmp_path, capsys):

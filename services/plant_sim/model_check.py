@@ -465,6 +465,15 @@ def _coarse(report: ModelReport) -> str:
     )
 
 
+def _blurred(report: ModelReport, fine: float, why: str) -> str:
+    """The warning of a step-response ultimate point left as read at the loop's own samples."""
+    return (
+        f"the step response's K_u and P_u are read at the loop's own {report.sample_time:g} s "
+        f"samples ({report.samples_per_period:.3g} a period), which blur them (G is exact "
+        f"there only far below Nyquist); they could not be read again at {fine:.4g} s: {why}"
+    )
+
+
 def _dynamic_spread(report: ModelReport) -> None:
     """A warning where the steps' K/T63 (their gain over the time to 63 % of their change:
     what sets K_u of a lag-dominant loop, whose gain near ω_u is about K/(T·ω)) spread far
@@ -746,15 +755,16 @@ def _ultimate_from_step(s: np.ndarray, dt: float, integrating: bool) -> tuple[fl
     return 1.0 / abs(g_at(wu)), 2 * math.pi / wu
 
 
-def refine_step_point(report: ModelReport, rebuild: Callable[[float], SimLoop | None]) -> None:
+def refine_step_point(report: ModelReport, rebuild: Callable[[float], SimLoop | str]) -> None:
     """The step-response ultimate point read again from the model sampled faster, where the
     loop's own samples are too few per period to resolve it (below
     ``MIN_SAMPLES_PER_PERIOD``) and no transfer function gives it exactly. A sampled step
     response holds the continuous one only at the samples: dividing the hold out of its
     spectrum is exact at low frequency and blurs G near Nyquist (lvl1 at 4 samples a period
     read K_u 12,736 against the continuous 15,719, its relay 15,660). ``rebuild(T)``: the
-    same loop built with sample time T (None where it cannot be); its point is taken, with
-    the sample time it was read at (``step_sample_time``)."""
+    same loop built with sample time T (or why it cannot be); its point is taken, with
+    the sample time it was read at (``step_sample_time``). Where it cannot be read again, a
+    warning says the point is the blurred one, and why (it was printed as if it were sound)."""
     spp = report.samples_per_period
     if report.ku_exact is not None or report.ku_step is None or spp is None:
         return
@@ -762,7 +772,8 @@ def refine_step_point(report: ModelReport, rebuild: Callable[[float], SimLoop | 
         return
     fine = report.sample_time / math.ceil(FINE_SAMPLES_PER_PERIOD / spp)
     loop = rebuild(fine)
-    if loop is None:
+    if isinstance(loop, str):
+        report.warnings.append(_blurred(report, fine, loop))
         return
     s = loop.settings
     again = check_model(
@@ -773,6 +784,8 @@ def refine_step_point(report: ModelReport, rebuild: Callable[[float], SimLoop | 
         max_samples=MAX_SAMPLES * math.ceil(report.sample_time / fine),
     )
     if again.refused or again.ku_step is None:
+        why = f"refused: {again.refused}" if again.refused else "no ultimate point read there"
+        report.warnings.append(_blurred(report, fine, why))
         return
     report.ku_step, report.pu_step = again.ku_step, again.pu_step
     report.step_sample_time = fine

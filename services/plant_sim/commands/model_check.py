@@ -52,17 +52,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _rebuilt(path: str, timeout: float, loop_id: str, sample_time: float) -> SimLoop | None:
-    """The plant file's loop ``loop_id`` built alone at ``sample_time`` (None: it cannot be,
-    as a model with a fixed step)."""
+def _rebuilt(path: str, timeout: float, loop_id: str, sample_time: float) -> SimLoop | str:
+    """The plant file's loop ``loop_id`` built alone at ``sample_time``, or why it cannot be
+    (a model with a fixed step, one that loads too slowly: the refusal's line)."""
     try:
         with load_bound(timeout, f"plant file {path}"):
             loops = load_plant_file(
                 path, select=lambda _: [loop_id], sample_times={loop_id: sample_time}
             )
-    except ConfigError:
-        return None
-    return loops.get(loop_id)
+    except ConfigError as err:
+        return str(err)
+    return loops.get(loop_id) or f"{loop_id}: not built"
 
 
 def run(args: argparse.Namespace) -> int:
