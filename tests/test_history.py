@@ -194,6 +194,10 @@ def test_the_listing_offers_apply_only_for_a_run_with_gains_to_apply():
         {**base, "run_id": "p1", "status": "proposed", "recommended": "tl-pid", "gains": gains},
         {**base, "run_id": "a1", "status": "aborted", "recommended": None, "gains": {}},
     ]
+    # a run refused the loop another held: it never ran, and the line says why (it showed as
+    # an aborted run whose record `autotune runs` then did not have)
+    held = "hx1 is held by run b2 (autotune-tune): not started"
+    items.append({**base, "run_id": "h1", "status": "aborted", "reason": held, "gains": {}})
     # an apply run whose verification rejected run p1's gains: it offered `autotune apply r1`,
     # which then refused with a confusing flag (noticed last stop)
     items.append(
@@ -211,11 +215,12 @@ def test_the_listing_offers_apply_only_for_a_run_with_gains_to_apply():
     lines = format_entries(LOOP, Path("runs"), items).splitlines()[1:]
     assert lines[0].endswith("proposed, not applied; recommended tl-pid: `autotune apply p1`")
     assert lines[1].endswith("run a1 (relay): aborted, no gains to apply")
-    assert lines[2].endswith(
+    assert lines[2].endswith(f"run h1 (relay): aborted ({held}), no gains to apply")
+    assert lines[3].endswith(
         "run r1 (apply of run p1): rejected, not applied (the gains of run p1, tl-pid)"
     )
-    assert lines[3].endswith(f"run v1 (relay): rejected, tried on the loop and rejected ({why})")
-    assert lines[4].endswith("rejected, not applied; recommended tl-pid: `autotune apply e1`")
+    assert lines[4].endswith(f"run v1 (relay): rejected, tried on the loop and rejected ({why})")
+    assert lines[5].endswith("rejected, not applied; recommended tl-pid: `autotune apply e1`")
 
 
 def test_a_torn_last_line_is_skipped(tmp_path):

@@ -16,7 +16,7 @@ from typing import Any
 
 from shared import json_text
 from shared.cli import check_ids
-from shared.errors import ConfigError
+from shared.errors import ConfigError, one_line
 from shared.history_file import (
     HISTORY_FILE,
     applicable_rule,
@@ -164,8 +164,10 @@ def format_entries(
                 lines.append(f"{head}tried on the loop and rejected ({why})")
             elif r.get("status") in APPLICABLE_STATUSES and r.get("gains"):
                 lines.append(f"{head}not applied; {_apply_hint(r)}")
-            else:  # an aborted or failed run: nothing `autotune apply` would take
-                lines.append(f"{head}no gains to apply")
+            else:  # an aborted or failed run: nothing `autotune apply` would take; why it
+                # ended (a run refused the loop held by another never ran: no record of it)
+                why = f" ({one_line(r['reason'], 200)})" if r.get("reason") else ""
+                lines.append(f"{head.rstrip(', ')}{why}, no gains to apply")
             continue
         tune = r.get("tune")
         what = f"run {r['run_id']}" if r.get("run_id") else r.get("cause", "")
