@@ -7,6 +7,7 @@ the expected numbers are read from the file's raw JSON or computed here in close
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import tomllib
@@ -342,3 +343,22 @@ def test_a_damaged_command_record_is_refused_in_one_line(demo, tmp_path, capsys)
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err
     assert f"message {hit}" in err and "sp:" in err and "/cmd/setpoint" in err
+
+
+def test_the_nyquist_ticks_of_a_small_gain_do_not_run_together(tmp_path):
+    """A level loop's |G| is about 1e-4 m per %: its Nyquist ticks were each written in full
+    (−0.0005 … 0.0002) and ran together along Re G. Each visible tick label stands clear of
+    the next, on both axes."""
+    text = files("services.plant_sim").joinpath("plants/default.toml").read_text()
+    path, live = record_in_process(tmp_path, PREFIX, tomllib.loads(text), "lvl2", "relay")
+    assert live.status == "ok", live.reason
+    fig = build_report(load_report(path))
+    fig.canvas.draw()
+    ax = axes_by_label(fig, "Im G")
+    for labels, along in ((ax.get_xticklabels(), 0), (ax.get_yticklabels(), 1)):
+        boxes = sorted(
+            (b.x0, b.x1) if along == 0 else (b.y0, b.y1)
+            for b in (t.get_window_extent() for t in labels if t.get_visible() and t.get_text())
+        )
+        assert len(boxes) >= 3
+        assert all(a[1] < b[0] for a, b in itertools.pairwise(boxes)), boxes

@@ -717,7 +717,7 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
     ax_ph.set_xlabel("ω (rad/s)")
     ax_ph.sharex(ax_mag)
     ax_mag.tick_params(labelbottom=False)
-    from matplotlib.ticker import LogLocator, NullFormatter, NullLocator
+    from matplotlib.ticker import LogLocator, MaxNLocator, NullFormatter, NullLocator
 
     # few minor ticks: each is an artist, and they are most of the drawing time
     ax_mag.yaxis.set_minor_locator(NullLocator())
@@ -728,6 +728,10 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
     ax_ny.set_xlabel(f"Re G ({unit(units)}/%)")
     ax_ny.set_ylabel(f"Im G ({unit(units)}/%)")
     _nyquist_limits(ax_ny, f)
+    # a small |G| (a level loop's 1e-4 m/%) wrote each tick in full, and they ran together
+    # along Re G: a few ticks, the power of ten said once by the axis
+    ax_ny.xaxis.set_major_locator(MaxNLocator(5))
+    ax_ny.ticklabel_format(style="sci", scilimits=(-2, 3), useMathText=True)
     for ax in (ax_mag, ax_ph, ax_ny):
         ax.grid(True, which="both", lw=0.3, alpha=0.5)
     ax_mag.legend(fontsize=6, loc="lower left")
