@@ -183,3 +183,19 @@ def test_an_inverse_response_is_said_to_make_the_model_optimistic():
     assert dip == pytest.approx(-5.0 * y_min, rel=0.01)  # 3 significant figures printed
     assert note.startswith("inverse response:") and "optimistic" in note
     assert _inverse_step([1.0], [3.0, 4.0, 1.0]).identification().notes == []
+
+
+def test_a_dead_time_below_half_a_sample_is_said_floored(monkeypatch):
+    """A response with no dead time: the record cannot resolve L, which is floored at half a
+    sample (TS/2, the hold's effective delay). The identification says so (lvl1's 1 s dead
+    time under a 640 s lag in noise read as 0.5 s, said as if measured); a resolved L (3 s,
+    30 samples) says nothing of it."""
+    said = "dead time not resolved by the record"
+    resolved = run_step(5.0).identification()
+    assert resolved is not None and not any(said in n for n in resolved.notes)
+    assert resolved.model.delay == pytest.approx(L, rel=0.05)
+    monkeypatch.setitem(run_step.__globals__, "L", 0.0)  # the response run_step feeds
+    floored = run_step(5.0).identification()
+    assert floored is not None and floored.model.delay == pytest.approx(0.5 * TS)
+    note = [n for n in floored.notes if said in n]
+    assert len(note) == 1 and f"half a sample, {0.5 * TS:.3g} s" in note[0], floored.notes

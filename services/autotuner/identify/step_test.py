@@ -319,7 +319,7 @@ class StepTest:
                 step=rc,
                 step_model=step_model,
                 model=model,
-                notes=[inverse] if inverse else [],
+                notes=[n for n in (inverse, self._unresolved_delay(model, rc)) if n],
                 inverse_response=inverse is not None,
                 integrating=True,
                 experiment=StepFindings(rc.step_size, rc.method, fitted),
@@ -342,8 +342,31 @@ class StepTest:
             timescale=4 * rc.dead_time + rc.time_constant_63,
             noise=rc.noise_std,
             rest_pv=rc.pv_before,
-            notes=[inverse] if inverse else [],
+            notes=[n for n in (inverse, self._unresolved_delay(model, rc)) if n],
             inverse_response=inverse is not None,
+        )
+
+    def _unresolved_delay(
+        self, model: ProcessFit, rc: ReactionCurve | IntegratingCurve
+    ) -> str | None:
+        """A warning where the model's dead time is the floor of half a sample, not a figure
+        the record resolved (a slow lag in noise: lvl1's 1 s dead time under a 640 s lag read
+        as 0.5 s, said as if measured, and the rules that rest on L took it). A first-order
+        model's only lag past its time constant is L, so its rules' gains scale with 1/L; a
+        second-order model's second lag carries the phase, and its floored L says little."""
+        floor = 0.5 * self.sample_time
+        if model.kind not in ("fopdt", "ipdt") or model.delay > floor * (1.0 + 1e-9):
+            return None
+        tangent = rc.dead_time_tangent
+        gave = (
+            f" (the tangent gave {tangent:.3g} s)"
+            if tangent is not None and tangent < floor * (1.0 - 1e-9)
+            else ""
+        )
+        return (
+            f"dead time not resolved by the record{gave}: L is floored at half a sample, "
+            f"{floor:.3g} s (the hold's effective delay); the rules that rest on L take that "
+            "floor for it, and only the verification tells how their gains suit the loop"
         )
 
     def inverse_response(self, model: str) -> str | None:
