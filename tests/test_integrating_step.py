@@ -164,3 +164,57 @@ def test_an_output_that_does_not_balance_the_level_is_a_drift_told_apart_from_r(
         assert rc.drift == pytest.approx(KI * -0.2, rel=0.2)
         assert rc.reaction_rate == pytest.approx(KI, rel=0.02)
         assert rc.dead_time == pytest.approx(L, rel=0.05)
+
+
+def test_a_drifting_level_is_not_said_given_back_nor_at_rest():
+    """The pulse gives back the step's area, not the drift the level had before it: at
+    49.8 % where 50 % balances it, the level ends K'·(−0.2)·(the test's length) from where it
+    began, and drifts on. The report said "gave the level back" and "PV back at rest" (lvl2
+    after a tune: 1.5 → 1.466 m); it now says the drift, the balance by R, and what the drift
+    took. At the balance it says nothing of a drift."""
+    from services.autotuner.commands.step import format_integrating
+    from services.autotuner.step_run import run_step_test
+    from services.offline.local_loop import LocalLoopClient
+
+    loop = ipdt(0.03, 1)
+    loop.apply(OutputCommand(loop="x", op=49.8))
+    r = run_step_test(LocalLoopClient(loop), StepTestConfig())
+    c = r.curve
+    moved = KI * -0.2 * (r.t_end - r.t_step)  # the drift's own, over the test
+    assert c.drifted(r.t_end - r.t_step) == pytest.approx(moved, rel=0.2)
+    assert r.pv_end - c.pv_before == pytest.approx(moved, rel=0.2, abs=3 * 0.03)
+    text = format_integrating(r)
+    assert "gave the step back" in text and "gave the level back" not in text
+    assert "is off its balance" in text and "which the pulse does not give back" in text
+    balance = float(text.split("off its balance, ")[1].split(" %")[0])
+    assert balance == pytest.approx(50.0, abs=0.05)
+    assert "not at rest" in text and "PV back at rest" not in text
+
+    still = ipdt(0.03, 1)
+    r = run_step_test(LocalLoopClient(still), StepTestConfig())
+    text = format_integrating(r)
+    assert r.curve.drifted(r.t_end - r.t_step) is None
+    assert "gave the level back" in text and "drift" not in text and "PV back at rest" in text
+
+
+def test_a_step_tune_of_a_drifting_level_says_it_drifts_on():
+    """``autotune tune --method step``'s integrating line: "level given back to …" and, where
+    the level drifted before the step, that it drifts on (it was left at "given back")."""
+    from services.autotuner.commands.tune import format_result
+    from services.autotuner.tuning import RunHooks, TuningRun
+    from services.offline.local_loop import LocalLoopClient
+    from shared.messages import TuneRequest
+
+    def line(op: float) -> str:
+        loop = ipdt(0.03, 1)
+        loop.apply(OutputCommand(loop="x", op=op))
+        req = TuneRequest(loop="x", method="step")
+        r = TuningRun(LocalLoopClient(loop), req, "t", RunHooks()).run()
+        assert r.status == "ok", r.reason
+        return next(x for x in format_result(r).splitlines() if "integrating:" in x)
+
+    drifting = line(49.8)
+    assert "level given back to" in drifting
+    rate = float(drifting.split("it drifts on at ")[1].split(" ")[0])
+    assert rate == pytest.approx(KI * -0.2, rel=0.2) and drifting.endswith("before the step)")
+    assert "drifts on" not in line(50.0)

@@ -203,21 +203,32 @@ def format_integrating(r: StepTestReport) -> str:
         ("PV before → peak → after", f"{c.pv_before:.4g} → {c.pv_peak:.4g} → {c.pv_after:.4g} {u}"),
         ("PV noise σ", f"{c.noise_std:.3g} {u}"),
     ]
+    moved = c.drifted(r.t_end - r.t_step)
     head = (
         f"Step test of {r.loop} ({r.model}): integrating. Output {r.op_before:g} → "
         f"{r.op_before + c.step_size:g} % at t = {r.t_step:g} s, held {c.held:.4g} s ({why}); "
         f"then a pulse of equal and opposite area ({c.pulse_op:g} % for {c.pulse_held:.4g} s) "
-        f"gave the level back by "
+        f"gave {'the step' if moved is not None else 'the level'} back by "
         f"t = {r.t_end:g} s"
     )
     width = max(len(k) for k, _ in rows)
     body = "\n".join(f"  {k:<{width}}  {v}" for k, v in rows)
+    drift = None
+    if moved is not None:
+        # the output before the test does not hold the level: the pulse gives back the
+        # step's area, and the level goes on drifting as it did before the step
+        balance = r.op_before - c.drift / c.reaction_rate
+        drift = (
+            f"The level drifted at {c.drift:.3g} {u}/s before the step (the output "
+            f"{r.op_before:g} % is off its balance, {balance:.4g} % by R), and went on so: "
+            f"{moved:+.3g} {u} over the test, which the pulse does not give back."
+        )
     tail = (
         f"Loop restored: {r.mode_before}, output {r.op_before:g} %."
         if r.restored
         else "WARNING: the loop could not be restored; check it."
     )
-    lines = [head, body, tail, return_line(r)]
+    lines = [head, body, *([drift] if drift else []), tail, return_line(r)]
     return "\n".join(line for line in lines if line)
 
 
@@ -306,6 +317,14 @@ def return_line(r: StepTestReport) -> str:
             "let it settle before another test."
         )
     if r.returned_to_rest:
+        moved = (
+            r.curve.drifted(r.t_end - r.t_step) if isinstance(r.curve, IntegratingCurve) else None
+        )
+        if moved is not None:  # back on the drift it had, which is no rest of the level
+            return (
+                f"PV back on its drift before the test ({r.curve.drift:.3g} {r.pv_units}/s) at "
+                f"{r.pv_end:.4g} {r.pv_units} by t = {r.t_return:g} s: not at rest."
+            )
         return f"PV back at rest at {r.pv_end:.4g} {r.pv_units} by t = {r.t_return:g} s."
     return (
         f"WARNING: the PV was not back at rest by t = {r.t_return:g} s (last {r.pv_end:.4g} "

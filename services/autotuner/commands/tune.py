@@ -697,6 +697,16 @@ def _late_result(
             return None
 
 
+def _drifts_on(step: dict, pv_units: str) -> str:
+    """An integrating step test's level that drifted before the step (the output off its
+    balance) drifts on after it: the pulse gives back the step's area, not the drift."""
+    drift, noise = step.get("drift") or 0.0, step.get("noise_std") or 0.0
+    seconds = (step.get("held") or 0.0) + (step.get("pulse_held") or 0.0)
+    if not abs(drift * seconds) > max(3.0 * noise, 1e-12):
+        return ""
+    return f"; it drifts on at {drift:.3g} {unit(pv_units)}/s, as before the step"
+
+
 def progress_line(p: TuneProgress) -> None:
     if not sys.stderr.isatty():
         return
@@ -858,14 +868,16 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             f"%/s per % ({s['reaction_rate']:.4g} {unit(pv_units)}/s per %) "
             f"(± {100 * s['reaction_rate_precision']:.2g} %)  L = {s['dead_time']:.4g} s  "
             f"a = R·L = {process_gain_percent(s['a'], span):.4g} %/% ({s['a']:.4g} "
-            f"{unit(pv_units)}/%)  (level given back to {s['pv_after']:.4g} {pv_units})"
+            f"{unit(pv_units)}/%)  (level given back to {s['pv_after']:.4g} {pv_units}"
+            f"{_drifts_on(s, pv_units)})"
         )
     elif r.step and r.step.get("method") == "integrating":
         s = r.step
         lines.append(
             f"  integrating: R = K' = {s['reaction_rate']:.4g} {unit(pv_units)}/s per % "
             f"(± {100 * s['reaction_rate_precision']:.2g} %)  L = {s['dead_time']:.4g} s  "
-            f"a = R·L = {s['a']:.4g} {unit(pv_units)}/%  (level given back to {s['pv_after']:.4g})"
+            f"a = R·L = {s['a']:.4g} {unit(pv_units)}/%  (level given back to {s['pv_after']:.4g}"
+            f"{_drifts_on(s, pv_units)})"
         )
     elif r.step and span is not None:
         s = r.step

@@ -118,6 +118,13 @@ class IntegratingCurve:
         """An integrator has no time constant: L/T does not apply."""
         return None
 
+    def drifted(self, seconds: float) -> float | None:
+        """PV units the level's own ``drift`` moved it over ``seconds`` (the test's), where
+        that is more than 3σ of the noise: the pulse gives back the step's area, not that, so
+        the level ends that far from where it started (None: within the noise)."""
+        moved = self.drift * seconds
+        return moved if abs(moved) > max(3.0 * self.noise_std, 1e-12) else None
+
     def to_dict(self) -> dict[str, float | int | str | None]:
         """The result's ``step`` object (JSON): every field by its name, in this order."""
         return asdict(self)
