@@ -63,6 +63,18 @@ def test_guidance_names_the_ranges():
     assert any("simc-pi-int" in g for g in guidance(None, ProcessFit("ipdt", 1.0, (), 1.0, 0.0)))
 
 
+def test_an_integrator_only_fitted_near_the_ultimate_point_is_not_called_integrating():
+    """A relay's cycles fit lvl1's 600 s lag (cycled at 4 s) as an integrator: it was called
+    an "integrating process" beside model check's "self-regulating". Seen to ramp (a step
+    test), it is one; fitted near ω_u only, the warning says what the fit cannot tell."""
+    ipdt = ProcessFit("ipdt", 1.0, (), 1.0, 0.0)
+    (seen,) = guidance(None, ipdt, seen_integrating=True)
+    assert seen.startswith("integrating process:")
+    (fitted,) = guidance(None, ipdt, seen_integrating=False)
+    assert fitted.startswith("integrating near the ultimate point")
+    assert "lag far longer than P_u" in fitted and "simc-pi-int" in fitted
+
+
 # --- issue 10: the sampled loop, model checks, the safety envelope --------------------------
 
 

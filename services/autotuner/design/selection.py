@@ -194,11 +194,23 @@ def _off_the_measured_point(
     return out
 
 
-def guidance(ratio: float | None, model: ProcessFit | None) -> list[str]:
-    """What the seeds and the benchmark say about rules at this L/T."""
+def guidance(
+    ratio: float | None, model: ProcessFit | None, seen_integrating: bool = True
+) -> list[str]:
+    """What the seeds and the benchmark say about rules at this L/T. ``seen_integrating``:
+    the experiment saw the process integrate (a step test's steady ramp), not only a model
+    that fits as an integrator near ω_u (a relay's cycles)."""
     out = []
-    if model is not None and model.kind == "ipdt":
+    if model is not None and model.kind == "ipdt" and seen_integrating:
         out.append("integrating process: simc-pi-int is the rule made for it (a level loop)")
+    elif model is not None and model.kind == "ipdt":
+        # lvl1, a 600 s lag cycled at 4 s, was called integrating beside model check's
+        # "self-regulating" (helper 62)
+        out.append(
+            "integrating near the ultimate point: the test's oscillation fits an integrator, as "
+            "a lag far longer than P_u fits it too (a step test or `autotune model check` "
+            "tells the two apart); simc-pi-int is the rule made for an integrating loop"
+        )
     if ratio is None:
         return out
     lo, hi = ZN_STEP_RANGE
@@ -379,7 +391,7 @@ def select(
         assessments,
         rec,
         ratio,
-        warnings=warnings + guidance(ratio, model),
+        warnings=warnings + guidance(ratio, model, ident.integrating is True),
         unavailable=unavailable,
         unsafe=unsafe,
         model_check=check,
