@@ -132,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
         print("autotune: interrupted", file=sys.stderr)
         return 130
     name = f"autotune {args.command}"
+    if isinstance(getattr(args, "action", None), str):  # `autotune model check`
+        name += f" {args.action}"
     if unknown:  # named by the command they were given to, as its other errors are
         print(
             f"{name}: error: unrecognized arguments: {' '.join(unknown)} (see {name} --help)",

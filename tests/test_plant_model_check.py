@@ -540,6 +540,8 @@ def test_the_command_prints_json_and_a_plot(fmus, tmp_path, capsys):
 def test_bad_flags_are_one_line(fmus, tmp_path, capsys, args, needle):
     code, _, err = run_cli(capsys, "model", "check", str(plant_with(tmp_path, fmus)), *args)
     assert code == 2 and len(err.strip().splitlines()) == 1 and needle in err, err
+    # named by the command given, `model check` (it read "autotune model: error:")
+    assert err.startswith("autotune model check: error: "), err
 
 
 def test_a_refused_model_is_reported_and_exits_2_in_one_line(fmus, tmp_path, capsys):

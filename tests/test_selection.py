@@ -306,3 +306,12 @@ def test_a_model_far_from_the_bracketed_ultimate_point_is_said_to_be_less_sure(o
     assert bool(said) is warned, said
     if warned:
         assert f"{100 * (1 / off - 1):+.2g} %" in said[0], said
+
+
+def test_a_ratio_beside_a_bound_is_printed_on_its_side():
+    """L/T = 0.1497 read "0.15" in "outside 0.15–0.6" (helper 62): as many figures as tell it
+    from the bound, three where they do."""
+    (near,) = guidance(0.1497, None)
+    assert near.startswith("L/T = 0.1497: outside 0.15–0.6")
+    assert guidance(0.60004, None)[0].startswith("L/T = 0.60004: outside")
+    assert guidance(0.0007771, None)[0].startswith("L/T = 0.000777: outside")

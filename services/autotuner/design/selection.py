@@ -194,6 +194,16 @@ def _off_the_measured_point(
     return out
 
 
+def _beside(x: float, bound: float) -> str:
+    """``x`` to three significant figures, or as many more as tell it from ``bound`` (0.1497
+    read "0.15" beside "outside 0.15–0.6")."""
+    for digits in range(3, 10):
+        text = f"{x:.{digits}g}"
+        if (float(text) < bound) == (x < bound) and float(text) != bound:
+            return text
+    return repr(x)
+
+
 def guidance(
     ratio: float | None, model: ProcessFit | None, seen_integrating: bool = True
 ) -> list[str]:
@@ -216,12 +226,12 @@ def guidance(
     lo, hi = ZN_STEP_RANGE
     if not lo <= ratio <= hi:
         out.append(
-            f"L/T = {ratio:.3g}: outside {lo}–{hi}, where the step-response rules (zn-ol-*, "
-            "cc-*) suit (seed 000)"
+            f"L/T = {_beside(ratio, lo if ratio < lo else hi)}: outside {lo}–{hi}, where the "
+            "step-response rules (zn-ol-*, cc-*) suit (seed 000)"
         )
     if ratio > 1.0:
         out.append(
-            f"L/T = {ratio:.3g}: delay-dominated; derivative action helps little and "
+            f"L/T = {_beside(ratio, 1.0)}: delay-dominated; derivative action helps little and "
             "Ziegler–Nichols PID is aggressive here: PI rules (tl-pi, amigo-pi, simc-pi) suit"
         )
     return out
