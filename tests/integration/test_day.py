@@ -124,7 +124,12 @@ def test_a_day_with_a_loop(start_plant, start_tuner, start_logger, tmp_path):
     stop_service(logger)  # a restart: the history is a file, the new logger goes on from it
     start_logger(plant, runs)
     again = json.loads(cli(plant, "revert", LOOP, "--runs", str(runs), "--json").stdout)
-    assert again["after"] == g2 and gains(plant) == g2  # the set undone
+    assert again["after"] == g2 and gains(plant) == g2 and again["changed"]  # the set undone
+    # two steps back from there is the set's own before, which the loop has: nothing sent,
+    # and said so (it read "Reverted … was … now …" with the same gains twice)
+    noop = cli(plant, "revert", LOOP, "--runs", str(runs), "--steps", "2")
+    assert noop.stdout.startswith(f"Nothing to revert: {LOOP} has the gains before the change")
+    assert gains(plant) == g2
     # the console's Revert pressed twice at once: the second, sent with the gains the page
     # still showed (the set's), undid the first (the tuned gains back); refused
     from shared.messages import PidGains

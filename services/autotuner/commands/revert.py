@@ -128,13 +128,18 @@ def run(args: argparse.Namespace) -> int:
                     f"{elsewhere(session, args.prefix, runs)}); --force reverts anyway"
                 )
             back = _gains(undo["before"], "earlier")
-            try:
-                status = client.command(
-                    GainsCommand(loop=args.loop, gains=back, source=SOURCE, t=now.t)
-                )
-            except CommandRefused as err:
-                print(f"autotune revert: refused: {err}", file=sys.stderr)
-                return 1
+            # the loop has them already (--steps 2 right after a revert names the change the
+            # revert undid): nothing is sent, and it is said so (it read "Reverted … was Kc 5
+            # … now Kc 5")
+            status = now
+            if back != now.gains:
+                try:
+                    status = client.command(
+                        GainsCommand(loop=args.loop, gains=back, source=SOURCE, t=now.t)
+                    )
+                except CommandRefused as err:
+                    print(f"autotune revert: refused: {err}", file=sys.stderr)
+                    return 1
     if status.gains != back:  # the plant said yes: it must show them
         raise AutotuneError(f"loop {args.loop}: the plant shows {_line(status.gains)}")
     what = (
@@ -142,15 +147,22 @@ def run(args: argparse.Namespace) -> int:
         if undo.get("run_id")
         else f"the change by {undo.get('by_source') or 'someone unseen'} ({undo.get('cause')})"
     )
+    changed = status is not now
     report = {
         "loop": args.loop,
         "reverted": {k: undo.get(k) for k in ("utc", "t", "run_id", "cause", "by_source")},
         "before": now.gains.model_dump(),
         "after": status.gains.model_dump(),
         "t": status.t,
+        "changed": changed,
     }
     if args.json:
         print(json_text.dumps(report, indent=2))
+    elif not changed:
+        print(
+            f"Nothing to revert: {args.loop} has the gains before {what} "
+            f"({undo.get('utc')}) already: {_line(now.gains)}"
+        )
     else:
         print(
             f"Reverted {args.loop} to the gains before {what} ({undo.get('utc')}):\n"
