@@ -122,6 +122,10 @@ def test_every_write_in_its_order_with_the_source_label():
     assert kinds(writes) == ["mode:manual", "output:", "gains:", "setpoint:"]
     assert isinstance(writes[0].cmd, ModeCommand) and isinstance(writes[1].cmd, OutputCommand)
     assert isinstance(writes[2].cmd, GainsCommand) and isinstance(writes[3].cmd, SetpointCommand)
+    assert writes[0].change == "auto → manual"
+    # the mode the loop is in already is said so (it read "auto → auto applied")
+    (w,) = plan(Asked(mode="auto"), status(mode="auto"), "degC")
+    assert w.change == "auto (already)"
 
 
 def test_a_setpoint_is_written_before_the_switch_to_auto_and_gains_before_a_setpoint():

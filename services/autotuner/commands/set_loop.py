@@ -232,6 +232,12 @@ def new_gains(asked: Asked, present: PidGains) -> PidGains:
     return PidGains(**{**present.model_dump(), **update})
 
 
+def _mode_change(now: str, asked: str) -> str:
+    """``manual → auto``, or ``auto (already)`` where the loop is in that mode (it read
+    "auto → auto applied")."""
+    return f"{now} → {asked}" if now != asked else f"{asked} (already)"
+
+
 def gains_change(asked: Asked, old: PidGains, new: PidGains) -> str:
     """``Kc 6.973 → 3, Ti 96.09 s → none (Td 6.933 s, β 1 kept)``."""
     items = [
@@ -283,7 +289,9 @@ def plan(
     writes: list[Write] = []
     if asked.mode == "manual":
         writes.append(
-            Write("mode", f"{status.mode} → manual", ModeCommand(loop=loop, mode="manual"))
+            Write(
+                "mode", _mode_change(status.mode, "manual"), ModeCommand(loop=loop, mode="manual")
+            )
         )
     if asked.op is not None:
         writes.append(
@@ -311,7 +319,9 @@ def plan(
             )
         )
     if asked.mode == "auto":
-        writes.append(Write("mode", f"{status.mode} → auto", ModeCommand(loop=loop, mode="auto")))
+        writes.append(
+            Write("mode", _mode_change(status.mode, "auto"), ModeCommand(loop=loop, mode="auto"))
+        )
     return [
         Write(w.what, w.change, w.cmd.model_copy(update={"source": SOURCE, "t": status.t}))
         for w in writes
