@@ -155,6 +155,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: error: {one_line(err.strerror or err)}{where}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        if os.environ.get("AUTOTUNE_DEBUG"):  # where the signal landed
+            traceback.print_exc()
         print(f"{name}: interrupted", file=sys.stderr)
         return 130
     except SystemExit as stop:  # a command's own one-line refusal (benchmark's flags)
