@@ -1399,17 +1399,10 @@ class TuningRun:
         k = max(4, round(scale / self.ts))
         width = max(5, round(scale / self.ts / 20)) | 1
 
-        def at(target: float, after: float | None = None, near: float = band) -> SettleRule:
+        def at(target: float, after: float | None = None) -> SettleRule:
             """Settled at ``target``: the last time scale flat within the band, its mean on
-            the target (the mean, not one noisy sample) within ``near``; ``after``: not before
-            that many s."""
-            return SettleRule(k, target, near, 2 * band, after)
-
-        # the setpoint step's record ends where its figures call it settled: its mean within
-        # the band its settling is read against (2 % of the step, or 3σ of the averaged
-        # noise), not 4σ of the raw noise (flow1's TL PI: 20 % of its step; its record ended
-        # there, and the step read 'slow', its settling time "—", its IAE cut short)
-        step_near = max(0.02 * abs(step), 3 * ident.noise / math.sqrt(width))
+            the target (the mean, not one noisy sample); ``after``: not before that many s."""
+            return SettleRule(k, target, band, 2 * band, after)
 
         _, y_pre, u_pre, why = self._record(span, at(sp0), sp0, guard)
         waited = span
@@ -1439,9 +1432,7 @@ class TuningRun:
         u = np.array([])
         if stopped is None:
             c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
-            t, y, u, why = self._record(
-                span, at(sp0 + step, 2 * scale, step_near), sp0 + step, guard
-            )
+            t, y, u, why = self._record(span, at(sp0 + step, 2 * scale), sp0 + step, guard)
             stopped = why
             sp_m = metrics.measured_setpoint_step(
                 t, y, t0, y0, sp0 + step, noise=ident.noise, width=width

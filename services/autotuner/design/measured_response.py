@@ -12,8 +12,6 @@ within a tenth of it (or the noise band).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from shared.control.signals import decay_ratio, extrema, first_crossing, smooth, trapezoid
@@ -51,18 +49,9 @@ def measured_setpoint_step(
     ext = extrema(t, zs - 1.0, max(0.02, 8 * rel_noise))
     decay = decay_ratio(ext, t, zs - 1.0) if t.size else None
     t10, t90 = first_crossing(t, z, 0.1), first_crossing(t, z, 0.9)
-    if noisy:
-        # read on the averaged response against 3σ of its noise (σ/√width), its last
-        # width/2 samples (averaged with the end repeated) left out: read sample by sample,
-        # the band's edge was crossed by the noise alone long after the loop settled, and
-        # a response resting inside the band read "not settled" as its last sample's noise
-        # fell (hx1's AMIGO PID 1 % above its setpoint, σ 0.7 % of the step: 'slow')
-        tol = max(band, 3 * rel_noise / math.sqrt(width | 1))
-        judged = zs[: max(1, zs.size - (width | 1) // 2)]
-    else:
-        tol, judged = max(band, 3 * rel_noise), z
-    outside = np.nonzero(np.abs(judged - 1.0) > tol)[0]
-    settled = outside.size == 0 or int(outside[-1]) < judged.size - 1
+    tol = max(band, 3 * noise / abs(delta))
+    outside = np.nonzero(np.abs(z - 1.0) > tol)[0]
+    settled = outside.size == 0 or int(outside[-1]) < t.size - 1
     t_settle = None
     if settled:
         t_settle = 0.0 if outside.size == 0 else float(t[int(outside[-1]) + 1] - t0)
