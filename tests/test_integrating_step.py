@@ -199,7 +199,8 @@ def test_a_drifting_level_is_not_said_given_back_nor_at_rest():
 
 def test_a_step_tune_of_a_drifting_level_says_it_drifts_on():
     """``autotune tune --method step``'s integrating line: "level given back to …" and, where
-    the level drifted before the step, that it drifts on (it was left at "given back")."""
+    the level drifted before the step, that it ends short of where it began by that drift
+    (it was left at "given back")."""
     from services.autotuner.commands.tune import format_result
     from services.autotuner.tuning import RunHooks, TuningRun
     from services.offline.local_loop import LocalLoopClient
@@ -215,6 +216,7 @@ def test_a_step_tune_of_a_drifting_level_says_it_drifts_on():
 
     drifting = line(49.8)
     assert "level given back to" in drifting
-    rate = float(drifting.split("it drifts on at ")[1].split(" ")[0])
-    assert rate == pytest.approx(KI * -0.2, rel=0.2) and drifting.endswith("before the step)")
-    assert "drifts on" not in line(50.0)
+    rate = float(drifting.split("the drift it had before the step, ")[1].split(" ")[0])
+    assert rate == pytest.approx(KI * -0.2, rel=0.2)
+    assert drifting.endswith("which the pulse does not give back)")
+    assert "drift" not in line(50.0)

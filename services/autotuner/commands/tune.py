@@ -699,12 +699,16 @@ def _late_result(
 
 def _drifts_on(step: dict, pv_units: str) -> str:
     """An integrating step test's level that drifted before the step (the output off its
-    balance) drifts on after it: the pulse gives back the step's area, not the drift."""
+    balance) went on drifting through it: the pulse gives back the step's area, not the
+    drift (after a tune the loop is in auto again, so the level drifts no more)."""
     drift, noise = step.get("drift") or 0.0, step.get("noise_std") or 0.0
     seconds = (step.get("held") or 0.0) + (step.get("pulse_held") or 0.0)
     if not abs(drift * seconds) > max(3.0 * noise, 1e-12):
         return ""
-    return f"; it drifts on at {drift:.3g} {unit(pv_units)}/s, as before the step"
+    return (
+        f"; short of where it began by the drift it had before the step, {drift:.3g} "
+        f"{unit(pv_units)}/s, which the pulse does not give back"
+    )
 
 
 def progress_line(p: TuneProgress) -> None:
