@@ -26,6 +26,7 @@ import zenoh
 from services.autotuner.commands.step import parse_repeat
 from services.autotuner.design.rules import RULES, fopdt_of
 from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.identify.reaction_curve import drift_beyond_noise
 from services.autotuner.loop_client import wait_for_token
 from shared import json_text, keys, wire
 from shared.cli import add_common_arguments, check_ids, check_tuner_node
@@ -701,9 +702,9 @@ def _drifts_on(step: dict, pv_units: str) -> str:
     """An integrating step test's level that drifted before the step (the output off its
     balance) went on drifting through it: the pulse gives back the step's area, not the
     drift (after a tune the loop is in auto again, so the level drifts no more)."""
-    drift, noise = step.get("drift") or 0.0, step.get("noise_std") or 0.0
+    drift = step.get("drift") or 0.0
     seconds = (step.get("held") or 0.0) + (step.get("pulse_held") or 0.0)
-    if not abs(drift * seconds) > max(3.0 * noise, 1e-12):
+    if drift_beyond_noise(drift, seconds, step.get("noise_std") or 0.0) is None:
         return ""
     return (
         f"; short of where it began by the drift it had before the step, {drift:.3g} "

@@ -120,14 +120,20 @@ class IntegratingCurve:
 
     def drifted(self, seconds: float) -> float | None:
         """PV units the level's own ``drift`` moved it over ``seconds`` (the test's), where
-        that is more than 3σ of the noise: the pulse gives back the step's area, not that, so
-        the level ends that far from where it started (None: within the noise)."""
-        moved = self.drift * seconds
-        return moved if abs(moved) > max(3.0 * self.noise_std, 1e-12) else None
+        that is more than 3σ of the noise (``drift_beyond_noise``)."""
+        return drift_beyond_noise(self.drift, seconds, self.noise_std)
 
     def to_dict(self) -> dict[str, float | int | str | None]:
         """The result's ``step`` object (JSON): every field by its name, in this order."""
         return asdict(self)
+
+
+def drift_beyond_noise(drift: float, seconds: float, noise_std: float) -> float | None:
+    """PV units a level drifting at ``drift`` (PV units/s) moves over ``seconds``, where that
+    is more than 3σ of its noise: an integrating step test's pulse gives back the step's area,
+    not that, so the level ends that far from where it started (None: within the noise)."""
+    moved = drift * seconds
+    return moved if abs(moved) > max(3.0 * noise_std, 1e-12) else None
 
 
 def _reached(t: np.ndarray, z: np.ndarray, level: float) -> float:
