@@ -52,8 +52,13 @@ def test_recorded_before_the_noises_cycles_were_taken_for_the_processs():
     assert test.result is None or test.result.ku != pytest.approx(ku, rel=0.1)
 
 
-def test_a_hysteresis_given_too_small_is_not_widened_the_test_aborts():
-    test = run_relay(*LAG, noise=NOISE, seed=0, hysteresis=3 * NOISE)
+@pytest.mark.parametrize("sigmas", [3, 2, 1, 0])
+def test_a_hysteresis_given_too_small_is_not_widened_the_test_aborts(sigmas):
+    """However small: under a hysteresis of σ or less the noise's cycles are as tall as the
+    noise, not far inside the hysteresis, and are judged against the 3σ the noise needs (a
+    test that judged them against the one given ended done on them, K_u 10 to 14,000 times
+    the process's)."""
+    test = run_relay(*LAG, noise=NOISE, seed=0, hysteresis=sigmas * NOISE)
     assert test.phase == "aborted"
     assert "the relay switches on the noise, not on a limit cycle" in test.reason
     assert "as given (--hysteresis)" in test.reason

@@ -1084,8 +1084,10 @@ class TuningRun:
             common["relay_grow"] = True
             common["relay_offset"] = True
             common["relay_pattern"] = True
+            common["relay_noise_chatter"] = True
         if req.method == "ramp":
             common["ramp_wrong_way"] = True
+            common["ramp_seen_fits"] = True
         if req.method in ("relay", "ramp"):
             common["pv_clip"] = True
         if req.method == "step":

@@ -350,6 +350,13 @@ class Setup:
     # True: a relay's stage-1 cycles that repeat a pattern of a few cycles are steady
     # (``RelayConfig.pattern_cycles``); None: recorded before, not looked for
     relay_pattern: bool | None = None
+    # True: a relay's chatter is judged against the hysteresis the noise needs where the
+    # given one is smaller (``RelayConfig.noise_chatter``); None: recorded before
+    relay_noise_chatter: bool | None = None
+    # True: a ramp trial closes early, and its fit counts, only on an oscillation seen
+    # standing out of the noise for 1.5 periods (``RampConfig.seen_fits``); None: recorded
+    # before
+    ramp_seen_fits: bool | None = None
 
     def resolution_floor(self) -> float:
         """PV units: what the transmitter does not resolve (``signals.no_response_floor``),

@@ -60,6 +60,25 @@ def fit_oscillation(
     )
 
 
+def stands_out(osc: Oscillation, watched: float, level: float, periods: float = 1.5) -> bool:
+    """Whether the fitted oscillation was seen in its window (``watched`` s from the fit's
+    start) for ``periods`` periods standing out of the noise: its envelope A·e^{g·t} at least
+    ``level`` (PV units) over ``periods`` periods of the window, where the envelope is
+    largest (the window's start for a decaying one, its end for a growing one).
+
+    Why: a fit counts the record's turning points, the noise's among them, and can put a
+    sinusoid on a spike of the noise that is gone within a fraction of a period (a ramp
+    trial sampled 1,700 times a period read "growth −3.79/s, period 2.11 s" from its noise,
+    and its next trials were cut to that period); what was not seen for 1.5 periods gives
+    neither a period nor a growth rate worth acting on."""
+    span = periods * osc.period
+    if not (0.0 < span <= watched) or not math.isfinite(osc.growth):
+        return False
+    # the envelope's least over the stretch where it is largest
+    at = span if osc.growth < 0 else watched - span
+    return osc.amplitude * math.exp(min(osc.growth * at, 50.0)) >= level
+
+
 def fit_ringing(
     t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None = None
 ) -> Oscillation | None:

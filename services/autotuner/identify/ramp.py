@@ -68,7 +68,12 @@ from services.autotuner.identify.model_fit import (
     refine_on_record,
     through_ultimate_point,
 )
-from services.autotuner.identify.oscillation import Oscillation, fit_oscillation, swings
+from services.autotuner.identify.oscillation import (
+    Oscillation,
+    fit_oscillation,
+    stands_out,
+    swings,
+)
 from services.autotuner.parts import Parts, in_turn
 from shared.control.beyond import beyond
 from shared.control.record_stops import MAX_WINDOW, CalmCheck, calm_spread
@@ -132,6 +137,11 @@ class RampConfig:
     # abort as soon as the trials say the feedback is positive (``_wrong_way``) and none has
     # oscillated; False: a run recorded before, which ran on to its trial limit or budget
     stop_wrong_way: bool = False
+    # a trial closes early, and its fit counts, only on an oscillation seen standing out of
+    # the noise for 1.5 periods (``oscillation.stands_out``). False: a run recorded before,
+    # whose trials closed early on any fit with enough turning points, and whose fits were
+    # judged by their period against the window and their largest amplitude
+    seen_fits: bool = True
     # PV units the transmitter does not resolve (``Setup.resolution_floor``): a quiet window
     # may drift within it and be rest (a noise-free PV's creep after a test); 0: the noise
     # alone decides (a run recorded before)
@@ -665,11 +675,15 @@ class RampTest:
             if self._died_out(n):
                 self._close_trial(t, cut=False)
                 return
-            # enough swings seen (its verdict is judged at the close): counted first, and the
-            # fit (which counts the same) made only once there are enough to close on
+            # enough swings seen: counted first, and the fit (which counts the same) made only
+            # once there are enough to close on. It closes the trial only on an oscillation
+            # the close will judge by: the noise's own turning points make up the count on a
+            # finely sampled record, and a trial closed on them, a few seconds into a slow
+            # response, was judged "did not oscillate" and the gain raised (to 3.8·K_u on the
+            # heat exchanger sampled at 0.025 s)
             enough = 2 * self.config.trial_periods + 1
             if self._swings() >= enough:
-                osc = self._fit(raw=True)
+                osc = self._fit(raw=not self.config.seen_fits)
                 if osc is not None and osc.swings >= enough:
                     self._close_trial(t, cut=False)
 
@@ -756,10 +770,11 @@ class RampTest:
         return swings(t, y, self._noise, self._period)
 
     def _fit(self, end: int | None = None, raw: bool = False) -> Oscillation | None:
-        """The oscillation in the trial's record (up to sample ``end``), if it is one (or
-        ``raw``, whatever the fit found): seen for 1.5 periods, and standing out of the noise
-        (a fit to noise alone finds a sinusoid of a small fraction of σ, and a period that
-        means nothing: adopted, it would cut the next trials short)."""
+        """The oscillation in the trial's record (up to sample ``end``), if it is one: seen
+        for 1.5 periods standing out of the noise (``stands_out``: a fit to noise alone finds
+        a sinusoid a fraction of σ tall, or one on a spike of it, and a period that means
+        nothing: adopted, it would cut the next trials short); ``raw``: whatever the fit
+        found (a run recorded before closed its trials on it)."""
         t = np.asarray(self._t[self._trial_start : end])
         y = np.asarray(self._y[self._trial_start : end])
         # the same record fitted again (a check that closes the trial, then its close) gives
@@ -773,12 +788,14 @@ class RampTest:
             self._last_fit = (key, osc)
         if raw or osc is None or t.size < 2:
             return osc
-        watched = float(t[-1] - t[0])
+        watched, level = float(t[-1] - t[0]), self.config.fit_sigmas * self._noise
+        if self.config.seen_fits:
+            return osc if stands_out(osc, watched, level) else None
         if osc.period > watched / 1.5:
-            return None  # "swings" of the noise, not an oscillation seen for 1.5 periods
+            return None
         # its amplitude where largest: at the start (decaying) or at the end (growing)
         seen = osc.amplitude * math.exp(min(max(osc.growth * watched, 0.0), 50.0))
-        return osc if seen >= self.config.fit_sigmas * self._noise else None
+        return osc if seen >= level else None
 
     def _close_trial(
         self, t: float, cut: bool, end: int | None = None, capped: bool = False
@@ -1199,6 +1216,7 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         bump=setup.bump,
         tolerance=min(settings.tolerance, 0.02) / 2,
         stop_wrong_way=bool(setup.ramp_wrong_way),
+        seen_fits=bool(setup.ramp_seen_fits),
         resolution=setup.resolution_floor(),
         **first,
         **budget,

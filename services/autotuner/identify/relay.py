@@ -190,6 +190,10 @@ class RelayConfig:
     # whole patterns are counted. None: not looked for (a run recorded before)
     pattern_cycles: int | None = 4
     pattern_match: float = 1e-3
+    # chatter is judged on the counted cycles' mean amplitude against the hysteresis the
+    # noise needs (``hysteresis_sigmas``·σ) where the given one is smaller (``_chattering``).
+    # False: a run recorded before (judged against ε, every cycle inside it)
+    noise_chatter: bool = True
     # … as long as the pattern's cycles differ by no more than this (period and amplitude):
     # a period-2 cycle whose amplitudes alternate by 30 % is not one cycle to average (review)
     pattern_spread: float = 0.1
@@ -724,9 +728,17 @@ class RelayTest:
         if cfg.chatter_widenings is None:
             return False
         counted = self.cycles[self._from_cycle + 1 :][-cfg.chatter_cycles :]
-        return len(counted) == cfg.chatter_cycles and all(
-            c.amplitude < cfg.chatter_fraction * self._eps for c in counted
-        )
+        # against the hysteresis the noise needs (``hysteresis_sigmas``·σ) where one given is
+        # smaller: under a hysteresis of σ or less the noise's "cycles" are as tall as it is,
+        # never far inside it, and a test that counted them ended done with K_u 10 to 14,000
+        # times the process's (e^{−2s}/(3s + 1) at 1 ms, σ 0.05, --hysteresis 0.05 or 0)
+        if len(counted) < cfg.chatter_cycles:
+            return False
+        if not cfg.noise_chatter:
+            return all(c.amplitude < cfg.chatter_fraction * self._eps for c in counted)
+        level = max(self._eps, cfg.hysteresis_sigmas * self._noise)
+        mean = sum(c.amplitude for c in counted) / len(counted)
+        return mean < cfg.chatter_fraction * level
 
     def _chattered(self, t: float, amplitude: float) -> None:
         """A stage-1 cycle of ``amplitude`` far inside the hysteresis ε: the relay switched on
@@ -1184,6 +1196,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         fit_offset=bool(setup.relay_offset),
         resolution=setup.resolution_floor(),
         pattern_cycles=RelayConfig.pattern_cycles if setup.relay_pattern else None,
+        noise_chatter=bool(setup.relay_noise_chatter),
         **budget,
     )
     return RelayTest(
