@@ -102,9 +102,10 @@ def test_relay_aborts_at_the_pv_limit_and_refuses_a_too_wide_swing():
         RelayTest(RelayConfig(amplitude=60.0), 50.0, (0, 100), (0, 100), ts)
 
 
-def run_ramp(num, den, delay, ts, noise=0.0, seed=0, kc_start=1.0, bump=1.0):
+def run_ramp(num, den, delay, ts, noise=0.0, seed=0, kc_start=1.0, bump=1.0, **kw):
+    """A ramp test driven to its end in lockstep; ``kw``: RampConfig fields."""
     loop = transfer_function_loop(num, den, delay, ts, noise, seed, (-1e3, 1e3))
-    test = RampTest(RampConfig(kc_start=kc_start, bump=bump), (-1e3, 1e3), ts)
+    test = RampTest(RampConfig(kc_start=kc_start, bump=bump, **kw), (-1e3, 1e3), ts)
     loop.apply(GainsCommand(loop="x", gains=PidGains(kc=kc_start)))
     loop.apply(ModeCommand(loop="x", mode="auto"))
     port = SimLoopPort(loop, present_first=True)

@@ -1084,10 +1084,11 @@ class TuningRun:
             common["relay_grow"] = True
             common["relay_offset"] = True
             common["relay_pattern"] = True
-            common["relay_noise_chatter"] = True
+            common["relay_noise"] = True
         if req.method == "ramp":
             common["ramp_wrong_way"] = True
             common["ramp_seen_fits"] = True
+            common["ramp_hand_back"] = True
         if req.method in ("relay", "ramp"):
             common["pv_clip"] = True
         if req.method == "step":

@@ -350,13 +350,19 @@ class Setup:
     # True: a relay's stage-1 cycles that repeat a pattern of a few cycles are steady
     # (``RelayConfig.pattern_cycles``); None: recorded before, not looked for
     relay_pattern: bool | None = None
-    # True: a relay's chatter is judged against the hysteresis the noise needs where the
-    # given one is smaller (``RelayConfig.noise_chatter``); None: recorded before
-    relay_noise_chatter: bool | None = None
+    # True: a relay's cycle closes at one crossing of r per switch up, none sooner after it
+    # than a quarter of the time the last took (``RelayConfig.early_crossing``), and its
+    # chatter is judged against the hysteresis the noise needs where the given one is
+    # smaller (``RelayConfig.noise_chatter``); None: recorded before
+    relay_noise: bool | None = None
     # True: a ramp trial closes early, and its fit counts, only on an oscillation seen
     # standing out of the noise for 1.5 periods (``RampConfig.seen_fits``); None: recorded
     # before
     ramp_seen_fits: bool | None = None
+    # True: a ramp that cannot go on between trials puts the setpoint back where it began
+    # and calms the loop there before it aborts (``RampConfig.hand_back``); None: recorded
+    # before, aborted at once
+    ramp_hand_back: bool | None = None
 
     def resolution_floor(self) -> float:
         """PV units: what the transmitter does not resolve (``signals.no_response_floor``),

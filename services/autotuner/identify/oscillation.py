@@ -60,22 +60,25 @@ def fit_oscillation(
     )
 
 
-def stands_out(osc: Oscillation, watched: float, level: float, periods: float = 1.5) -> bool:
+def stands_out(
+    osc: Oscillation, watched: float, level: float, periods: float = 1.5, swing: float = 0.5
+) -> bool:
     """Whether the fitted oscillation was seen in its window (``watched`` s from the fit's
-    start) for ``periods`` periods standing out of the noise: its envelope A·e^{g·t} at least
-    ``level`` (PV units) over ``periods`` periods of the window, where the envelope is
-    largest (the window's start for a decaying one, its end for a growing one).
+    start): the window holds ``periods`` of its periods, and its envelope A·e^{g·t} stands at
+    least ``level`` (PV units) over ``swing`` of a period where it is largest (the window's
+    start for a decaying one, its end for a growing one): one swing seen out of the noise.
 
     Why: a fit counts the record's turning points, the noise's among them, and can put a
     sinusoid on a spike of the noise that is gone within a fraction of a period (a ramp
     trial sampled 1,700 times a period read "growth −3.79/s, period 2.11 s" from its noise,
-    and its next trials were cut to that period); what was not seen for 1.5 periods gives
-    neither a period nor a growth rate worth acting on."""
-    span = periods * osc.period
-    if not (0.0 < span <= watched) or not math.isfinite(osc.growth):
+    7σ at its start and under 2σ a sixth of a period on, and its next trials were cut to
+    that period); what never swung out of the noise gives neither a period nor a growth rate
+    worth acting on. A loop's own oscillation at a low gain decays fast but swings first (a
+    dead-time loop's, 0.34 a period from 10σ, is 1.9σ 1.5 periods on: it counts)."""
+    if not (0.0 < periods * osc.period <= watched) or not math.isfinite(osc.growth):
         return False
-    # the envelope's least over the stretch where it is largest
-    at = span if osc.growth < 0 else watched - span
+    # the envelope's least over the swing where it is largest
+    at = swing * osc.period if osc.growth < 0 else watched - swing * osc.period
     return osc.amplitude * math.exp(min(osc.growth * at, 50.0)) >= level
 
 

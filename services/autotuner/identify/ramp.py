@@ -18,8 +18,11 @@ the same gain with half the bump (event ``bump``), until the bump would drown in
 (< 6σ) — then the gain backs off (while no decaying gain is known) or the test aborts. A start
 gain that saturates the output at rest backs off tenfold (event ``back_off``); a loop that
 will not calm between trials, or saturates while calming, gets half the calming gain (event
-``calm``), a few times at most. A fitted oscillation counts only if it stands out of the
-noise (amplitude ≥ 2σ): a sinusoid fitted to noise alone gives a period that means nothing.
+``calm``), a few times at most. A fitted oscillation counts only if it swings out of the
+noise (its envelope ≥ 2σ for half a period, ``oscillation.stands_out``): a sinusoid fitted to
+noise alone gives a period that means nothing, and a trial closes early only on one that
+counts. A test that cannot go on between trials (no room for the next bump) puts the setpoint
+back where it began and calms the loop there before it aborts (``_hand_back``).
 
 Every phase has a budget in sim time, from what the test has seen: the quiet period 20 quiet
 windows (per back-off); before any period is known, each trial ``first_trial_time`` and 1000
@@ -142,6 +145,10 @@ class RampConfig:
     # whose trials closed early on any fit with enough turning points, and whose fits were
     # judged by their period against the window and their largest amplitude
     seen_fits: bool = True
+    # a test that cannot go on between trials (no room for the next bump) first puts the
+    # setpoint back where it began and calms the loop there (``_hand_back``). False: a run
+    # recorded before, aborted at once, its PV left a bump off (a level stays there)
+    hand_back: bool = True
     # PV units the transmitter does not resolve (``Setup.resolution_floor``): a quiet window
     # may drift within it and be rest (a noise-free PV's creep after a test); 0: the noise
     # alone decides (a run recorded before)
@@ -414,6 +421,7 @@ class RampTest:
         self._dip: float | None = None  # PV units: the first trial's inverse response
         self._trials_from_rest = True  # the trial began from the quiet period's verified rest
         self._silent = False  # the last trial's PV never moved clear of the noise
+        self._handing_back = ""  # why the test ends, once it is putting the setpoint back
         self._deadline = math.inf  # s: sim time by which the test must be over
         self._budget = ""  # which budget that is, for the abort's reason
         # the last fit of a trial's record: (trial start, end, noise, period hint), its result
@@ -610,7 +618,7 @@ class RampTest:
         bump, room = self.bump, self._room()
         if math.isfinite(room):
             if room <= 0:
-                self._abort(f"the output rests at its limit ({self._u[-1]:.4g} %): no room")
+                self._hand_back(t, f"the output rests at its limit ({self._u[-1]:.4g} %): no room")
                 return
             fits = self.config.headroom * room / self.kc - self.config.kick_sigmas * self._noise
             if bump > fits:
@@ -627,12 +635,13 @@ class RampTest:
                 else:
                     cfg, least = self.config, self._min_bump()
                     kick = self.kc * (least + cfg.kick_sigmas * self._noise)
-                    self._abort(
+                    self._hand_back(
+                        t,
                         f"no bump the noise allows (≥ {least:.4g}) fits the output's room at "
                         f"Kc = {self.kc:.4g}: its kick with the noise's, Kc·(bump + "
                         f"{cfg.kick_sigmas:g}σ) = {kick:.4g} %, is over {cfg.headroom:.0%} of "
                         f"the room to the output's limit ({room:.4g} %); the relay and the "
-                        "step test need no gain on the loop (--method relay, --method step)"
+                        "step test need no gain on the loop (--method relay, --method step)",
                     )
                     return
         n = self._bumps
@@ -651,6 +660,21 @@ class RampTest:
                 t, "trial", {"n": len(self.trials) + 1, "kc": self.kc, "sp": self.sp, "bump": bump}
             )
         )
+
+    def _hand_back(self, t: float, reason: str) -> None:
+        """End a test that cannot go on (``reason``) where it began: the setpoint put back to
+        where the test started it and the loop calmed there, at a gain known to decay, then
+        the test aborted. The trials bump the setpoint up and back in turn, so a test stopped
+        after an odd one left the PV a bump off its rest, and the loop, restored to its output
+        before the test, with it: an integrating level stays there (lvl2 was left 0.010 m off
+        with a band of 0.008, "not returned"), a slow one takes its lag to come back."""
+        if not self.config.hand_back or self._handing_back or self.sp == self.sp_start:
+            self._abort(reason)
+            return
+        self._handing_back = reason
+        self.sp = self.sp_start
+        self.events.append(Event(t, "hand_back", {"sp": self.sp, "reason": reason}))
+        self._begin_settle(t)
 
     def _trial_cap(self) -> float:
         """s to watch a trial before any period is known: ``first_trial_time``, and 1000
@@ -1089,6 +1113,9 @@ class RampTest:
         y = np.asarray(self._y[-window:])
         spread, per = calm_spread(y)
         if spread < self._calm_limit(per):
+            if self._handing_back:  # back where the test began: it ends here
+                self._abort(self._handing_back)
+                return
             self._r = float(np.mean(y))
             self._trials_from_rest = False
             self._begin_trial(t)
@@ -1217,6 +1244,7 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         tolerance=min(settings.tolerance, 0.02) / 2,
         stop_wrong_way=bool(setup.ramp_wrong_way),
         seen_fits=bool(setup.ramp_seen_fits),
+        hand_back=bool(setup.ramp_hand_back),
         resolution=setup.resolution_floor(),
         **first,
         **budget,

@@ -190,6 +190,15 @@ class RelayConfig:
     # whole patterns are counted. None: not looked for (a run recorded before)
     pattern_cycles: int | None = 4
     pattern_match: float = 1e-3
+    # a cycle's upward crossing of r counts once per switch up, and not sooner after that
+    # switch than this fraction of the time the last counted one came after its own: after a
+    # switch the PV goes on away from r for the dead time and must climb back from its
+    # trough, so a crossing that much sooner is the noise's (a quarter: a coarsely sampled
+    # loop's crossing moves by a sample either way). Sampled 1,700 times a period, the PV
+    # lingers near r: its noise crossed r again after a counted crossing, and just after a
+    # switch up, half a period early, and of 30 cycles none agreed. None: a run recorded
+    # before (a crossing re-armed whenever the PV dipped below r)
+    early_crossing: float | None = 0.25
     # chatter is judged on the counted cycles' mean amplitude against the hysteresis the
     # noise needs (``hysteresis_sigmas``·σ) where the given one is smaller (``_chattering``).
     # False: a run recorded before (judged against ε, every cycle inside it)
@@ -278,6 +287,9 @@ class RelayTest:
         self._switch_armed = True  # the next switch may happen (stage 2's lead needs a lockout)
         self._margin = 0.0  # how far past the opposite level the PV must go to arm a switch
         self._cross_margin = 0.0  # how far below r the PV must go to arm a cycle's crossing
+        self._crossed = False  # the crossing since the last switch up was counted
+        self._up_at = math.nan  # s: the last switch up
+        self._up_to_cross = math.nan  # s from a switch up to the crossing counted after it
         self._switched_at = math.nan  # s: the last switch
         self._extreme = math.nan  # the PV's farthest since then towards arming the next switch
         self._rearmed = False  # stage 2's lockout was set again from the cycle it got
@@ -513,7 +525,8 @@ class RelayTest:
         self._arm(pv)
         # the PV's trough while high, its peak while low, since the last switch
         self._extreme = (min if self._state > 0 else max)(self._extreme, pv)
-        if self._state > 0 and pv < r - self._cross_margin:
+        once = cfg.early_crossing is not None
+        if self._state > 0 and pv < r - self._cross_margin and not (once and self._crossed):
             # the next upward crossing of r closes a cycle: the relay is high and the PV has
             # been below r by the margin (stage 2 may switch high while still above r, so
             # there the PV must first be part of the way down to its trough)
@@ -523,19 +536,25 @@ class RelayTest:
             t0, y0 = self.t[-2], self.pv[-2]
             tc = t0 + (r - y0) / (pv - y0) * (t - t0)
             self._armed = False
-            self._crossings.append(tc)
             s1 = self._stage1
-            if (
+            if once and tc - self._up_at < cfg.early_crossing * self._up_to_cross:
+                # the PV is still on its way from r after the switch: the noise's crossing
+                self.events.append(Event(t, "spurious_crossing", {"t": tc}))
+            elif (
                 self.phase == "stage2"
                 and s1 is not None
-                and tc - self._crossings[-2] < cfg.spurious_fraction * s1.pu
+                and self._crossings
+                and tc - self._crossings[-1] < cfg.spurious_fraction * s1.pu
             ):
-                self._crossings.pop()  # noise, not a cycle: stage 2 runs near stage 1's period
+                # noise, not a cycle: stage 2 runs near stage 1's period
                 self.events.append(Event(t, "spurious_crossing", {"t": tc}))
-            elif len(self._crossings) >= 2:
-                self._close_cycle(self._crossings[-2], tc)
-                if self.finished:
-                    return self.op_start
+            else:
+                self._crossings.append(tc)
+                self._crossed, self._up_to_cross = True, tc - self._up_at
+                if len(self._crossings) >= 2:
+                    self._close_cycle(self._crossings[-2], tc)
+                    if self.finished:
+                        return self.op_start
         if self.phase == "stage2" and t - self._stage_two_deadline() > 0:
             if self._rearmed and len(self.cycles) - self._stage_two_from >= cfg.stage_two_cycles:
                 # set again, its cycle is still converging: its last cycle is its closest
@@ -641,6 +660,8 @@ class RelayTest:
         if self._switches == 1:
             self._push = (self._push[0], t)
         self._state, self._switch_armed = state, False
+        if state > 0:
+            self._up_at, self._crossed = t, False
         self._switched_at, self._extreme = t, pv
         self.events.append(Event(t, "switch", {"op": self._actual(self._out())}))
 
@@ -1196,7 +1217,8 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         fit_offset=bool(setup.relay_offset),
         resolution=setup.resolution_floor(),
         pattern_cycles=RelayConfig.pattern_cycles if setup.relay_pattern else None,
-        noise_chatter=bool(setup.relay_noise_chatter),
+        noise_chatter=bool(setup.relay_noise),
+        early_crossing=RelayConfig.early_crossing if setup.relay_noise else None,
         **budget,
     )
     return RelayTest(
