@@ -72,4 +72,10 @@ def test_a_hysteresis_given_too_small_is_not_widened_the_test_aborts(sigmas):
     assert test.phase == "aborted"
     assert "the relay switches on the noise, not on a limit cycle" in test.reason
     assert "as given (--hysteresis)" in test.reason
+    # judged against the 3σ the noise needs, and said so, with the least that would do
+    r = test.result
+    needs = 3 * test.events[0].data["noise_std"]
+    assert f"within 3σ of the noise ({needs:.3g};" in test.reason
+    assert f"a --hysteresis of {needs:.3g} or more lets the process answer" in test.reason
+    assert r is None
     assert not _events(test, "hysteresis")

@@ -762,7 +762,8 @@ class RelayTest:
         return mean < cfg.chatter_fraction * level
 
     def _chattered(self, t: float, amplitude: float) -> None:
-        """A stage-1 cycle of ``amplitude`` far inside the hysteresis ε: the relay switched on
+        """Stage-1 cycles of (mean) ``amplitude`` far inside the hysteresis ε, or the 3σ the
+        noise needs where ε is smaller (``_chattering``): the relay switched on
         the noise, not on the process's answer (its "cycles" agree only within an agreement the
         noise has widened past meaning, and K_u, P_u and any model read from them are the
         noise's). ε is widened and stage 1 counted again from here, ``chatter_widenings``
@@ -775,11 +776,24 @@ class RelayTest:
                 if cfg.hysteresis is not None
                 else f"after {self._chatter} widenings"
             )
-            self._abort(
-                f"the relay switches on the noise, not on a limit cycle: a cycle of amplitude "
-                f"{amplitude:.3g} within the hysteresis {self._eps:.3g} {given} (noise σ "
-                f"{self._noise:.3g}); a larger --hysteresis lets the process answer"
+            needs = cfg.hysteresis_sigmas * self._noise
+            if cfg.noise_chatter and self._eps < needs:  # judged against what the noise needs
+                within = (
+                    f"within {cfg.hysteresis_sigmas:g}σ of the noise ({needs:.3g}; σ "
+                    f"{self._noise:.3g}), the hysteresis {self._eps:.3g} {given} being under "
+                    f"it; a --hysteresis of {needs:.3g} or more lets the process answer"
+                )
+            else:
+                within = (
+                    f"within the hysteresis {self._eps:.3g} {given} (noise σ "
+                    f"{self._noise:.3g}); a larger --hysteresis lets the process answer"
+                )
+            cycles = (
+                f"cycles of mean amplitude {amplitude:.3g}"
+                if cfg.noise_chatter
+                else f"a cycle of amplitude {amplitude:.3g}"
             )
+            self._abort(f"the relay switches on the noise, not on a limit cycle: {cycles} {within}")
             return
         self._chatter += 1
         self._eps *= cfg.chatter_factor
@@ -847,7 +861,9 @@ class RelayTest:
                 self.bias = min(max(self.bias + step, lo + d), hi - d)
                 self.events.append(Event(t1, "bias", {"bias": self._actual(self.bias)}))
         if self.phase == "relay" and self._chattering():
-            self._chattered(t1, amplitude)
+            counted = self.cycles[self._from_cycle + 1 :][-self.config.chatter_cycles :]
+            mean = sum(c.amplitude for c in counted) / len(counted)
+            self._chattered(t1, mean if self.config.noise_chatter else amplitude)
             return
         if self.phase == "relay" and self._grows(t1):
             return
