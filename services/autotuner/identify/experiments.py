@@ -355,9 +355,8 @@ class Setup:
     # chatter is judged against the hysteresis the noise needs where the given one is
     # smaller (``RelayConfig.noise_chatter``); None: recorded before
     relay_noise: bool | None = None
-    # True: a ramp trial closes early, and its fit counts, only on an oscillation seen
-    # standing out of the noise for 1.5 periods (``RampConfig.seen_fits``); None: recorded
-    # before
+    # True: a ramp trial closes early, and its fit counts, only on an oscillation that swings
+    # out of the noise (``RampConfig.seen_fits``); None: recorded before
     ramp_seen_fits: bool | None = None
     # True: a ramp that cannot go on between trials puts the setpoint back where it began
     # and calms the loop there before it aborts (``RampConfig.hand_back``); None: recorded

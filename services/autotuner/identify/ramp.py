@@ -140,8 +140,8 @@ class RampConfig:
     # abort as soon as the trials say the feedback is positive (``_wrong_way``) and none has
     # oscillated; False: a run recorded before, which ran on to its trial limit or budget
     stop_wrong_way: bool = False
-    # a trial closes early, and its fit counts, only on an oscillation seen standing out of
-    # the noise for 1.5 periods (``oscillation.stands_out``). False: a run recorded before,
+    # a trial closes early, and its fit counts, only on an oscillation that swings out of
+    # the noise for half a period (``oscillation.stands_out``). False: a run recorded before,
     # whose trials closed early on any fit with enough turning points, and whose fits were
     # judged by their period against the window and their largest amplitude
     seen_fits: bool = True
@@ -794,11 +794,12 @@ class RampTest:
         return swings(t, y, self._noise, self._period)
 
     def _fit(self, end: int | None = None, raw: bool = False) -> Oscillation | None:
-        """The oscillation in the trial's record (up to sample ``end``), if it is one: seen
-        for 1.5 periods standing out of the noise (``stands_out``: a fit to noise alone finds
-        a sinusoid a fraction of σ tall, or one on a spike of it, and a period that means
-        nothing: adopted, it would cut the next trials short); ``raw``: whatever the fit
-        found (a run recorded before closed its trials on it)."""
+        """The oscillation in the trial's record (up to sample ``end``), if it is one: the
+        record 1.5 of its periods long, and its envelope out of the noise for half a period
+        (``stands_out``: a fit to noise alone finds a sinusoid a fraction of σ tall, or one
+        on a spike of it, and a period that means nothing: adopted, it would cut the next
+        trials short); ``raw``: whatever the fit found (a run recorded before closed its
+        trials on it)."""
         t = np.asarray(self._t[self._trial_start : end])
         y = np.asarray(self._y[self._trial_start : end])
         # the same record fitted again (a check that closes the trial, then its close) gives

@@ -758,8 +758,12 @@ class RelayTest:
         if not cfg.noise_chatter:
             return all(c.amplitude < cfg.chatter_fraction * self._eps for c in counted)
         level = max(self._eps, cfg.hysteresis_sigmas * self._noise)
-        mean = sum(c.amplitude for c in counted) / len(counted)
-        return mean < cfg.chatter_fraction * level
+        return self._chatter_amplitude() < cfg.chatter_fraction * level
+
+    def _chatter_amplitude(self) -> float:
+        """The mean amplitude of the last ``chatter_cycles`` counted stage-1 cycles."""
+        counted = self.cycles[self._from_cycle + 1 :][-self.config.chatter_cycles :]
+        return sum(c.amplitude for c in counted) / len(counted)
 
     def _chattered(self, t: float, amplitude: float) -> None:
         """Stage-1 cycles of (mean) ``amplitude`` far inside the hysteresis ε, or the 3σ the
@@ -861,9 +865,8 @@ class RelayTest:
                 self.bias = min(max(self.bias + step, lo + d), hi - d)
                 self.events.append(Event(t1, "bias", {"bias": self._actual(self.bias)}))
         if self.phase == "relay" and self._chattering():
-            counted = self.cycles[self._from_cycle + 1 :][-self.config.chatter_cycles :]
-            mean = sum(c.amplitude for c in counted) / len(counted)
-            self._chattered(t1, mean if self.config.noise_chatter else amplitude)
+            noise = self.config.noise_chatter
+            self._chattered(t1, self._chatter_amplitude() if noise else amplitude)
             return
         if self.phase == "relay" and self._grows(t1):
             return
