@@ -39,11 +39,14 @@ def fit_oscillation(
         return None
     tt, y, x0, turns = start
     sine = DecayingSine(tt, y)
-    x, fun, success = levenberg_marquardt(sine.resid, sine.jac, x0, 2000)
-    c, a, g, w, _ = x
-    if not success or w <= 0 or not np.all(np.isfinite(x)):
-        return None
-    slow = _with_slow_mode(tt, y, x, float(np.sqrt(np.mean(fun**2))))
+    # a trial step of e^{g·t} may overflow (a fit wandering on a record of noise): judged by
+    # the result, not printed on the service's console
+    with np.errstate(over="ignore", invalid="ignore"):
+        x, fun, success = levenberg_marquardt(sine.resid, sine.jac, x0, 2000)
+        c, a, g, w, _ = x
+        if not success or w <= 0 or not np.all(np.isfinite(x)):
+            return None
+        slow = _with_slow_mode(tt, y, x, float(np.sqrt(np.mean(fun**2))))
     alone = None
     if slow is not None:
         alone = float(g)

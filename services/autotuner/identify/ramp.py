@@ -1148,8 +1148,14 @@ class RampTest:
         return CalmCheck(len(self._y), start, CALM_EVERY, window, limit, history)
 
     def _calm_window(self) -> int:
-        """Samples of the last period whose stretches must agree for the loop to be calm."""
-        return max(20, round((self._period or 40 * self.sample_time) / self.sample_time))
+        """Samples of the last period whose stretches must agree for the loop to be calm;
+        handing back, a quarter of the calming's time scale at least: with no period known
+        the window is 40 samples, and a level's PV, a dead time and a lag of 20 s from its
+        setpoint put back, looked calm over them at once (aborted 4 s after, 0.008 m off)."""
+        n = max(20, round((self._period or 40 * self.sample_time) / self.sample_time))
+        if self._handing_back:
+            n = max(n, round(0.25 * self._settle_scale()[0] / self.sample_time))
+        return n
 
     def horizon(self, cap: int) -> int:
         """How many samples (≤ ``cap``, ≥ 1) may pass before the next one at which the test
