@@ -422,6 +422,7 @@ class RampTest:
         self._trials_from_rest = True  # the trial began from the quiet period's verified rest
         self._silent = False  # the last trial's PV never moved clear of the noise
         self._handing_back = ""  # why the test ends, once it is putting the setpoint back
+        self._sp0 = self.sp  # the setpoint the test began with (the first PV when not given)
         self._deadline = math.inf  # s: sim time by which the test must be over
         self._budget = ""  # which budget that is, for the abort's reason
         # the last fit of a trial's record: (trial start, end, noise, period hint), its result
@@ -471,7 +472,11 @@ class RampTest:
         return found
 
     def _abort(self, reason: str) -> Demand:
-        """Every abort: the phase, the reason and an ``aborted`` event."""
+        """Every abort: the phase, the reason and an ``aborted`` event. One that comes as the
+        test hands the setpoint back (a limit, a budget, a loop that will not calm) says why
+        the test was ending first, and then what stopped the hand-back."""
+        if self._handing_back and reason != self._handing_back:
+            reason = f"{self._handing_back}; putting the setpoint back where it began: {reason}"
         self.phase, self.reason = "aborted", reason
         self.events.append(Event(self._t[-1], "aborted", {"reason": reason}))
         return Demand(kc=self.kc, sp=self.sp)
@@ -490,6 +495,7 @@ class RampTest:
             self._start = t
             if math.isnan(self.sp):
                 self.sp = pv
+            self._sp0 = self.sp  # where the test began: the setpoint a hand-back returns to
             self._update_budget()
         lo, hi = self.pv_limits
         if not lo <= pv <= hi:
@@ -668,11 +674,11 @@ class RampTest:
         after an odd one left the PV a bump off its rest, and the loop, restored to its output
         before the test, with it: an integrating level stays there (lvl2 was left 0.010 m off
         with a band of 0.008, "not returned"), a slow one takes its lag to come back."""
-        if not self.config.hand_back or self._handing_back or self.sp == self.sp_start:
+        if not self.config.hand_back or self._handing_back or self.sp == self._sp0:
             self._abort(reason)
             return
         self._handing_back = reason
-        self.sp = self.sp_start
+        self.sp = self._sp0
         self.events.append(Event(t, "hand_back", {"sp": self.sp, "reason": reason}))
         self._begin_settle(t)
 
