@@ -30,7 +30,7 @@ def _events(test, kind: str) -> list[dict]:
     return [e.data for e in test.events if e.kind == kind]
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("widenings", [3, None])
 def test_a_relay_on_a_finely_sampled_noisy_loop_finds_the_ultimate_point(seed, widenings):
     ku, pu = ultimate_point(*LAG[:3])
