@@ -748,7 +748,7 @@ class RelayTest:
         cfg = self.config
         if cfg.chatter_widenings is None:
             return False
-        counted = self.cycles[self._from_cycle + 1 :][-cfg.chatter_cycles :]
+        counted = self._chatter_cycles()
         # against the hysteresis the noise needs (``hysteresis_sigmas``·σ) where one given is
         # smaller: under a hysteresis of σ or less the noise's "cycles" are as tall as it is,
         # never far inside it, and a test that counted them ended done with K_u 10 to 14,000
@@ -760,9 +760,14 @@ class RelayTest:
         level = max(self._eps, cfg.hysteresis_sigmas * self._noise)
         return self._chatter_amplitude() < cfg.chatter_fraction * level
 
+    def _chatter_cycles(self) -> list[Cycle]:
+        """The last ``chatter_cycles`` counted stage-1 cycles (not the first since stage 1's
+        start or its last widening)."""
+        return self.cycles[self._from_cycle + 1 :][-self.config.chatter_cycles :]
+
     def _chatter_amplitude(self) -> float:
-        """The mean amplitude of the last ``chatter_cycles`` counted stage-1 cycles."""
-        counted = self.cycles[self._from_cycle + 1 :][-self.config.chatter_cycles :]
+        """The mean amplitude of ``_chatter_cycles``."""
+        counted = self._chatter_cycles()
         return sum(c.amplitude for c in counted) / len(counted)
 
     def _chattered(self, t: float, amplitude: float) -> None:
