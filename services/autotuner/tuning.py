@@ -1093,6 +1093,7 @@ class TuningRun:
             common["pv_clip"] = True
         if req.method == "step":
             common["step_swing"] = True
+            common["step_delay_bound"] = True
         common["resolution"] = True
         if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
             common["time_scale"] = self._rest["window"]

@@ -342,6 +342,10 @@ class Setup:
     # True: a step test's rest asks the PV's scatter about its trend to be noise (an
     # underdamped response is not at rest mid-swing); None: recorded before
     step_swing: bool | None = None
+    # True: a step test's dead time that the record does not resolve is designed with the
+    # largest the record allows (``StepTestConfig.bound_delay``); None: recorded before, with
+    # the floor of half a sample
+    step_delay_bound: bool | None = None
     # True: the transmitter's resolution (``rest_window.RESOLUTION`` of its range) floors what
     # counts as a response to the output (a relay or step test whose PV moves within it
     # aborts there) and as a drift before a test (a noise-free PV's creep within it is rest);

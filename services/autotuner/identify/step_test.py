@@ -100,6 +100,10 @@ class StepTestConfig:
     # and be rest (a noise-free PV's creep after a test was told "keeps drifting" where the
     # tuner's own rest check had just found rest)
     resolution: float = 0.0
+    # a dead time the record does not resolve (under half a sample) is designed with the
+    # largest the record allows, the time the PV took to clear its noise (``_delay_bound``);
+    # False: a run recorded before, designed with the floor of half a sample
+    bound_delay: bool = False
 
 
 @dataclass(frozen=True)
@@ -315,16 +319,21 @@ class StepTest:
                 )
             model = fitted or model_of(step_model)
             inverse = self.inverse_response(model.kind.upper())
+            unresolved = self._unresolved_delay(model, rc)
+            model, step_model = self._with_delay(model, step_model)
             return Identification(
                 step=rc,
                 step_model=step_model,
                 model=model,
-                notes=[n for n in (inverse, self._unresolved_delay(model, rc)) if n],
+                notes=[n for n in (inverse, unresolved) if n],
                 inverse_response=inverse is not None,
                 integrating=True,
-                experiment=StepFindings(rc.step_size, rc.method, fitted),
+                # the model as the design takes it (its dead time bounded by the record)
+                experiment=StepFindings(
+                    rc.step_size, rc.method, model if fitted is not None else None
+                ),
                 # the closed loop's time scale: SIMC's integral time for a level, 8 L
-                timescale=8.0 * rc.dead_time,
+                timescale=8.0 * step_model.dead_time,
                 noise=rc.noise_std,
                 rest_pv=rc.pv_after,
             )
@@ -332,17 +341,19 @@ class StepTest:
         fitted = self.process_model()
         model = fitted or model_of(step_model)
         inverse = self.inverse_response(model.kind.upper())
+        unresolved = self._unresolved_delay(model, rc)
+        model, step_model = self._with_delay(model, step_model)
         return Identification(
             record_point=self.record_point(),
             step=rc,
             step_model=step_model,
             model=model,
             integrating=False,  # it settled
-            experiment=StepFindings(rc.step_size, rc.method, fitted),
-            timescale=4 * rc.dead_time + rc.time_constant_63,
+            experiment=StepFindings(rc.step_size, rc.method, model if fitted is not None else None),
+            timescale=4 * step_model.dead_time + rc.time_constant_63,
             noise=rc.noise_std,
             rest_pv=rc.pv_before,
-            notes=[n for n in (inverse, self._unresolved_delay(model, rc)) if n],
+            notes=[n for n in (inverse, unresolved) if n],
             inverse_response=inverse is not None,
         )
 
@@ -355,7 +366,7 @@ class StepTest:
         model's only lag past its time constant is L, so its rules' gains scale with 1/L; a
         second-order model's second lag carries the phase, and its floored L says little."""
         floor = 0.5 * self.sample_time
-        if model.kind not in ("fopdt", "ipdt") or model.delay > floor * (1.0 + 1e-9):
+        if not self._floored(model):
             return None
         tangent = rc.dead_time_tangent
         gave = (
@@ -363,10 +374,55 @@ class StepTest:
             if tangent is not None and tangent < floor * (1.0 - 1e-9)
             else ""
         )
+        bound = self._delay_bound()
+        if bound is not None:
+            u = f" {self.pv_units}" if self.pv_units else ""
+            return (
+                f"dead time not resolved by the record{gave}: the PV first cleared its noise "
+                f"({self._moved_level():.3g}{u} from its rest) {self._t_moved:.4g} s after the "
+                f"step, so L lies between 0 and {bound:.4g} s; the model and the rules that "
+                f"rest on L take {bound:.4g} s, the largest dead time the record allows (not "
+                f"half a sample, {floor:.3g} s): their gains are as cautious as the record "
+                "is uncertain; a larger step, or less noise, resolves L"
+            )
         return (
             f"dead time not resolved by the record{gave}: L is floored at half a sample, "
             f"{floor:.3g} s (the hold's effective delay); the rules that rest on L take that "
             "floor for it, and only the verification tells how their gains suit the loop"
+        )
+
+    def _floored(self, model: ProcessFit) -> bool:
+        """A first-order or integrating model whose dead time is the floor of half a sample."""
+        floor = 0.5 * self.sample_time
+        return model.kind in ("fopdt", "ipdt") and model.delay <= floor * (1.0 + 1e-9)
+
+    def _delay_bound(self) -> float | None:
+        """The largest dead time the record allows, where the set-up asks for it
+        (``StepTestConfig.bound_delay``) and it is more than the floor of half a sample: s
+        from the step to the sample before the PV first cleared its noise (``_moved_level``:
+        5σ, a bound no spike of the noise reaches by chance), the last the response can have
+        begun. Why: a slow lag's response starts so gently that its first seconds are lost in
+        the noise (the gravity-drain tank's 1 s under a 640 s lag, at 0.1 s samples, read as
+        0.05 s), and a rule that rests on L scales its gain by 1/L: AMIGO PI at Kc 3.6e4 %/m
+        saturated the output in its verification. The bound is what the record shows, and
+        gains designed on it are safe for any dead time up to it. None: not asked, not
+        moved, or the record resolves its dead time to within a sample (a clean record's
+        PV moves at the first sample after a dead time under one)."""
+        if not self.config.bound_delay or self._t_moved is None:
+            return None
+        bound = self._t_moved - self.sample_time
+        return bound if bound > 0.5 * self.sample_time * (1.0 + 1e-9) else None
+
+    def _with_delay(self, model: ProcessFit, step_model: StepModel) -> tuple[ProcessFit, StepModel]:
+        """The model and the reaction curve's model with the dead time the design takes: the
+        record's bound (``_delay_bound``) where the model's is only the floor; as they are
+        otherwise."""
+        bound = self._delay_bound() if self._floored(model) else None
+        if bound is None:
+            return model, step_model
+        return (
+            dataclasses.replace(model, delay=bound),
+            dataclasses.replace(step_model, dead_time=max(step_model.dead_time, bound)),
         )
 
     def inverse_response(self, model: str) -> str | None:
@@ -908,6 +964,7 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         size=settings.step_size,
         pv_limits=setup.pv_limits,
         swing_check=bool(setup.step_swing),
+        bound_delay=bool(setup.step_delay_bound),
         resolution=setup.resolution_floor(),
         **timeout,
     )
