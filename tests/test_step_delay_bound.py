@@ -109,3 +109,6 @@ def test_the_gravity_drain_tank_at_a_tenth_of_a_second_is_tuned():
     assert result.status == "ok", result.reason
     assert result.experiment["model_delay"] >= 1.0  # the preset's dead time, 1 s
     assert result.chosen["isa"]["kc"] < 1.8e4 / 50
+    # the L/T said is the design's, not the floor's over the tangent's T
+    bound, lag = result.experiment["model_delay"], result.step["time_constant_tangent"]
+    assert result.l_over_t == pytest.approx(bound / lag, rel=1e-12)
