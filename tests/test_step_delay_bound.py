@@ -1,5 +1,6 @@
 """A step test whose record does not resolve the dead time designs with the largest dead time
-the record allows, not with the floor of half a sample.
+the record allows, not with the floor of half a sample (nor with a fitted figure within three
+of its standard errors of that floor).
 
 A lag's response starts with its full slope, K·Δu/T, and the PV first clears its noise (5σ)
 once it has risen about 5σ: the dead time can be anything up to the sample before. The floor
@@ -32,8 +33,10 @@ class Sample:
     op: float  # %
 
 
-def lag_step(seed: int, bound: bool, sigma: float = SIGMA) -> StepTest:
-    """K/(Ts + 1) with no dead time, stepped by SIZE %, its PV with white noise of σ ``sigma``."""
+def lag_step(
+    seed: int, bound: bool, sigma: float = SIGMA, delay: float = 0.0, lag: float = T
+) -> StepTest:
+    """K·e^{−delay·s}/(lag·s + 1), stepped by SIZE %, its PV with white noise of σ ``sigma``."""
     rng = np.random.default_rng(seed)
     test = StepTest(
         StepTestConfig(size=SIZE, bound_delay=bound), OP0, (0.0, 100.0), (0.0, 100.0), TS
@@ -41,7 +44,8 @@ def lag_step(seed: int, bound: bool, sigma: float = SIGMA) -> StepTest:
     op, t_hold = OP0, None
     for k in range(1, 100_000):
         t = k * TS
-        rise = K * (op - OP0) * (1 - math.exp(-(t - t_hold) / T)) if t_hold is not None else 0.0
+        moved = t_hold is not None and t > t_hold + delay
+        rise = K * (op - OP0) * (1 - math.exp(-(t - t_hold - delay) / lag)) if moved else 0.0
         demand = test.feed(Sample(t, PV0 + rise + sigma * float(rng.standard_normal()), op))
         if demand.op != op and t_hold is None:
             t_hold = t
@@ -57,10 +61,12 @@ def rises_by(h: float) -> float:
     return -T * math.log(1.0 - h / (K * SIZE))
 
 
-@pytest.mark.parametrize("seed", [0, 2, 3])
+@pytest.mark.parametrize("seed", [0, 1, 2])
 def test_an_unresolved_dead_time_takes_the_largest_the_record_allows(seed):
-    floored = lag_step(seed, bound=False).identification()
-    assert floored.model.kind == "fopdt" and floored.model.delay == pytest.approx(TS / 2)
+    """Seeds 0 and 2: the fit finds no dead time (the floor); seed 1: 0.115 s, within three
+    of its standard errors (0.07 s) of the floor. Recorded before, the design took the fit."""
+    before = lag_step(seed, bound=False).identification()
+    assert before.model.kind == "fopdt" and before.model.delay < TS / 2 + 3 * 0.07
     test = lag_step(seed, bound=True)
     assert test.phase == "done", test.reason
     ident = test.identification()
@@ -72,18 +78,32 @@ def test_an_unresolved_dead_time_takes_the_largest_the_record_allows(seed):
     assert bound > 10 * TS  # many samples of the floor: the noise, not the sampling, bounds L
     assert ident.step_model.dead_time == bound  # the open-loop rules' L too
     assert ident.experiment.model.delay == bound  # the model reported is the one designed on
-    assert ident.step.dead_time == pytest.approx(TS / 2)  # the reaction curve as measured
+    assert ident.step == before.step  # the reaction curve as measured
     (note,) = [n for n in ident.notes if "dead time not resolved" in n]
     assert f"{bound:.4g} s, the largest dead time the record allows" in note
+    floored = before.model.delay == pytest.approx(TS / 2)
+    assert floored or "within three standard errors" in note
 
 
-def test_a_dead_time_the_fit_resolves_is_kept():
-    """Seed 1's fit puts L at 0.115 s, over the floor: the record's bound does not apply, and
-    the model is the same with or without it (what the tangent and the fit resolve stands;
-    only the floor, which says the record resolved nothing, gives way to the bound)."""
-    kept = lag_step(1, bound=False).identification().model
-    assert kept.delay > TS / 2
-    assert lag_step(1, bound=True).identification().model == kept
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_dead_time_the_record_resolves_is_kept(seed):
+    """A 1 s dead time under a 20 s lag, the same noise: the fit reads it (to about 0.03 s),
+    and the model is the same with the bound asked for or not."""
+    kept = lag_step(seed, bound=False, delay=1.0, lag=20.0).identification().model
+    assert kept.delay == pytest.approx(1.0, abs=0.15)
+    assert lag_step(seed, bound=True, delay=1.0, lag=20.0).identification().model == kept
+
+
+def test_the_dead_times_standard_error_is_near_its_scatter():
+    """``delay_spread`` against the scatter of the fitted dead time over 12 noise seeds (1 s
+    under a 20 s lag): the linearised error understates it somewhat (hence three of them in
+    the test of resolution), but it is the scatter's size, not a figure off by an order."""
+    fits = [lag_step(s, bound=True, delay=1.0, lag=20.0)._record_fit() for s in range(12)]
+    delays = np.array([m.delay for m, _ in fits])
+    spreads = np.array([se for _, se in fits])
+    assert np.all(spreads > 0)
+    assert 0.7 <= float(np.std(delays, ddof=1) / np.mean(spreads)) <= 2.5
+    assert abs(float(np.mean(delays)) - 1.0) <= 3 * float(np.mean(spreads))
 
 
 def test_a_clean_record_keeps_the_floor():

@@ -265,6 +265,48 @@ def refine_on_record(
     return model_of(sol.x, math.sqrt(2.0 * sol.cost / y.size))
 
 
+def delay_spread(fit: ProcessFit, sample_time: float, u: np.ndarray, y: np.ndarray) -> float | None:
+    """The standard error (s) of ``fit``'s dead time as ``refine_on_record`` fitted it to the
+    record (``u``, ``y`` as there): the linearised least-squares one, σ²·(JᵀJ)⁻¹ with σ the
+    fit's residual rms and J the residual's derivatives in its parameters (central
+    differences, on the record as the fit worked on it). What tells a dead time the record
+    resolves from one it only does not rule out: a lag's response in noise fits any dead
+    time up to seconds about as well, and the fit's own figure there is noise (the
+    gravity-drain tank's 1 s read as 0.025 s). None: no such figure (an offset fitted,
+    a singular J)."""
+    if fit.offset is not None:
+        return None
+    u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    k = math.ceil(y.size / MAX_RECORD)
+    if k > 1:  # the blocks refine_on_record fitted
+        n = (y.size // k) * k
+        u, y, sample_time = u[:n].reshape(-1, k).mean(axis=1), y[:n:k], sample_time * k
+    x = _params(fit)
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        return response_to(_from_params(fit.kind, p, 0.0), sample_time, u) - y
+
+    try:
+        r0 = residual(x)
+        cols = []
+        for i in range(x.size):
+            h = 1e-6 * max(1.0, abs(x[i])) if i < x.size - 1 else 1e-3 * sample_time
+            lo, hi = x.copy(), x.copy()
+            lo[i], hi[i] = x[i] - h, x[i] + h
+            if i == x.size - 1 and lo[i] < 0.0:  # a dead time near 0: one-sided
+                lo[i], h2 = x[i], h
+                cols.append((residual(hi) - residual(lo)) / h2)
+                continue
+            cols.append((residual(hi) - residual(lo)) / (2.0 * h))
+        jac = np.column_stack(cols)
+        dof = max(y.size - x.size, 1)
+        cov = float(np.sum(r0**2)) / dof * np.linalg.inv(jac.T @ jac)
+    except (ValueError, np.linalg.LinAlgError, OverflowError):
+        return None
+    var = float(cov[-1, -1])
+    return math.sqrt(var) if math.isfinite(var) and var >= 0.0 else None
+
+
 def choose_on_record(fits: Sequence[ProcessFit], samples: int) -> ProcessFit | None:
     """The fit with the least Bayesian information criterion N·ln(rms²) + p·ln N: more
     parameters must earn their place."""

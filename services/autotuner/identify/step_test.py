@@ -55,6 +55,7 @@ from services.autotuner.identify.model_fit import (
     ProcessFit,
     StepModel,
     choose_on_record,
+    delay_spread,
     model_of,
     refine_on_record,
 )
@@ -74,6 +75,10 @@ from shared.errors import AutotuneError
 
 HOLD_EVENTS = ("step_started", "pulse_started", "output_held")  # the driver's hold times
 SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over a window)
+# standard errors a fitted dead time must stand above the floor to count as resolved: the
+# linearised error (``model_fit.delay_spread``) understates the scatter of fitted dead times
+# on noisy first-order records (1.4-1.9x over 12 seeds), so three, not the usual two
+SPREADS = 3.0
 RETURN_WAIT_FACTOR = 3.0  # the return to rest may take this many times the step's own settling
 
 
@@ -319,8 +324,8 @@ class StepTest:
                 )
             model = fitted or model_of(step_model)
             inverse = self.inverse_response(model.kind.upper())
-            unresolved = self._unresolved_delay(model, rc)
-            model, step_model = self._with_delay(model, step_model)
+            unresolved = self._unresolved_delay(model, rc, None)
+            model, step_model = self._with_delay(model, step_model, None)
             return Identification(
                 step=rc,
                 step_model=step_model,
@@ -338,11 +343,11 @@ class StepTest:
                 rest_pv=rc.pv_after,
             )
         step_model = StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)
-        fitted = self.process_model()
+        fitted, spread = self._record_fit()
         model = fitted or model_of(step_model)
         inverse = self.inverse_response(model.kind.upper())
-        unresolved = self._unresolved_delay(model, rc)
-        model, step_model = self._with_delay(model, step_model)
+        unresolved = self._unresolved_delay(model, rc, spread)
+        model, step_model = self._with_delay(model, step_model, spread)
         return Identification(
             record_point=self.record_point(),
             step=rc,
@@ -358,22 +363,28 @@ class StepTest:
         )
 
     def _unresolved_delay(
-        self, model: ProcessFit, rc: ReactionCurve | IntegratingCurve
+        self, model: ProcessFit, rc: ReactionCurve | IntegratingCurve, spread: float | None
     ) -> str | None:
-        """A warning where the model's dead time is the floor of half a sample, not a figure
-        the record resolved (a slow lag in noise: lvl1's 1 s dead time under a 640 s lag read
-        as 0.5 s, said as if measured, and the rules that rest on L took it). A first-order
-        model's only lag past its time constant is L, so its rules' gains scale with 1/L; a
-        second-order model's second lag carries the phase, and its floored L says little."""
+        """A warning where the model's dead time is not a figure the record resolved: the
+        floor of half a sample (a slow lag in noise: lvl1's 1 s dead time under a 640 s lag
+        read as 0.5 s, said as if measured, and the rules that rest on L took it), or, where
+        the set-up bounds it, a fitted figure within three of its standard errors (``spread``,
+        s) of that floor. A first-order model's only lag past its time constant is L, so its
+        rules' gains scale with 1/L; a second-order model's second lag carries the phase, and
+        its L says little."""
         floor = 0.5 * self.sample_time
-        if not self._floored(model):
+        if not self._unresolved(model, spread):
             return None
         tangent = rc.dead_time_tangent
-        gave = (
-            f" (the tangent gave {tangent:.3g} s)"
-            if tangent is not None and tangent < floor * (1.0 - 1e-9)
-            else ""
-        )
+        if not self._floored(model):
+            gave = (
+                f" (the fit gave {model.delay:.3g} s, within three standard errors, "
+                f"{SPREADS * spread:.3g} s, of half a sample)"
+            )
+        elif tangent is not None and tangent < floor * (1.0 - 1e-9):
+            gave = f" (the tangent gave {tangent:.3g} s)"
+        else:
+            gave = ""
         bound = self._delay_bound()
         if bound is not None:
             u = f" {self.pv_units}" if self.pv_units else ""
@@ -396,6 +407,23 @@ class StepTest:
         floor = 0.5 * self.sample_time
         return model.kind in ("fopdt", "ipdt") and model.delay <= floor * (1.0 + 1e-9)
 
+    def _unresolved(self, model: ProcessFit, spread: float | None) -> bool:
+        """A first-order or integrating model whose dead time the record did not resolve: the
+        floor, or (where the set-up bounds it) a fitted figure not above the floor by
+        ``SPREADS`` of its standard errors (``spread``, s: ``model_fit.delay_spread``). Why
+        the second: a lag's response in noise fits any dead time up to seconds about as well,
+        and the fit lands anywhere there; the square-root tank at 0.05 s read 0.0254 s (1.5 %
+        over the floor of 0.025, its standard error 0.12 s) and 0.316 s for its 1 s."""
+        if self._floored(model):
+            return True
+        floor = 0.5 * self.sample_time
+        return (
+            self.config.bound_delay
+            and spread is not None
+            and model.kind in ("fopdt", "ipdt")
+            and model.delay - SPREADS * spread <= floor
+        )
+
     def _delay_bound(self) -> float | None:
         """The largest dead time the record allows, where the set-up asks for it
         (``StepTestConfig.bound_delay``) and it is more than the floor of half a sample: s
@@ -413,12 +441,14 @@ class StepTest:
         bound = self._t_moved - self.sample_time
         return bound if bound > 0.5 * self.sample_time * (1.0 + 1e-9) else None
 
-    def _with_delay(self, model: ProcessFit, step_model: StepModel) -> tuple[ProcessFit, StepModel]:
+    def _with_delay(
+        self, model: ProcessFit, step_model: StepModel, spread: float | None
+    ) -> tuple[ProcessFit, StepModel]:
         """The model and the reaction curve's model with the dead time the design takes: the
-        record's bound (``_delay_bound``) where the model's is only the floor; as they are
-        otherwise."""
-        bound = self._delay_bound() if self._floored(model) else None
-        if bound is None:
+        record's bound (``_delay_bound``) where the model's is not resolved (``_unresolved``)
+        and the bound is larger; as they are otherwise."""
+        bound = self._delay_bound() if self._unresolved(model, spread) else None
+        if bound is None or bound <= model.delay:
             return model, step_model
         return (
             dataclasses.replace(model, delay=bound),
@@ -807,9 +837,14 @@ class StepTest:
         start: it ignores the response's shape, and a PID judged on it can be far less
         robust on the plant than predicted (seen: Ms 2.6 predicted 1.5, on a plant with an
         inverse response)."""
+        return self._record_fit()[0]
+
+    def _record_fit(self) -> tuple[ProcessFit | None, float | None]:
+        """``process_model`` and the standard error of its dead time (s; None: not asked by
+        the set-up, ``StepTestConfig.bound_delay``, or no figure: ``model_fit.delay_spread``)."""
         settled = self._settled_curve()
         if settled is None:
-            return None
+            return None, None
         rc, sign = settled
         t, y = np.asarray(self.t), sign * (np.asarray(self.pv) - self._pv_before)
         u = np.where(t >= self.t_step - 1e-9 * max(1.0, abs(self.t_step)), rc.step_size, 0.0)
@@ -827,14 +862,18 @@ class StepTest:
         ]
         best = choose_on_record(fits, y.size)
         if best is None:
-            return None
+            return None, None
+        spread = None
+        if self.config.bound_delay and best.kind == "fopdt":
+            spread = delay_spread(best, self.sample_time, u, y)
         # a dead time below half a sample is not resolved by the record (as for the tangent)
-        return dataclasses.replace(
+        model = dataclasses.replace(
             best,
             gain=sign * best.gain,
             delay=max(best.delay, 0.5 * self.sample_time),
             noise_rms=self._noise / (float(np.std(y)) or 1.0),
         )
+        return model, spread
 
     def step_started(self, t: float) -> None:
         """The driver reports the sim time from which the changed output is held: the step's,
