@@ -132,3 +132,27 @@ def test_the_gravity_drain_tank_at_a_tenth_of_a_second_is_tuned():
     # the L/T said is the design's, not the floor's over the tangent's T
     bound, lag = result.experiment["model_delay"], result.step["time_constant_tangent"]
     assert result.l_over_t == pytest.approx(bound / lag, rel=1e-12)
+
+
+def test_an_integrating_loop_takes_the_bound_too():
+    """A pure integrator (0.01 %/s per %, no dead time, σ 0.05 %) sampled at 0.1 s: the ramp's
+    line meets the rest at the step, L floored at 0.05 s, and SIMC's integrating PI there was
+    Kc 500 (25 % of output noise from the PV's); on the bound, under a tenth of that."""
+    spec = {
+        "model": "ipdt",
+        "gain": 0.01,
+        "delay": 0.0,
+        "sample_time": 0.1,
+        "noise_std": 0.05,
+        "pv0": 50.0,
+        "op0": 50.0,
+        "pv_range": [0.0, 100.0],
+    }
+    sim = build_plant({"seed": 1, "loops": {"x": spec}}, "x")["x"]
+    result = TuningRun(
+        LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "x", RunHooks()
+    ).run()
+    assert result.status == "ok", result.reason
+    (note,) = [w for w in result.warnings if "dead time not resolved" in w]
+    assert "the largest dead time the record allows" in note
+    assert result.chosen["isa"]["kc"] < 50.0
