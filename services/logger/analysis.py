@@ -361,6 +361,9 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
             f"  K = {s.gain:.4g}  L = {s.dead_time:.4g} s  "
             f"T = {s.time_constant_tangent:.4g} s  L/T = {s.l_over_t:.3f}"
         )
+    # the dead time the design took where the curve's is not resolved (the rules above rest
+    # on it, not on the curve's L)
+    lines += [f"  warning: {n}" for n in a.ident.notes if n.startswith("dead time not resolved")]
     if a.missing:
         lines.append(
             f"  WARNING: {a.missing} samples missing from the record (the first gap after seq "

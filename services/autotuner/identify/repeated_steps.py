@@ -261,6 +261,20 @@ class RepeatedSteps:
             step_model = StepModel.integrating(rc.reaction_rate, rc.dead_time)
         else:
             step_model = StepModel(rc.gain, rc.dead_time, rc.time_constant_tangent)
+        # where the steps' models took a dead time the record did not resolve (``StepTest.
+        # _design_delay``), the open-loop rules take the mean model's too, and it is said
+        unresolved = [
+            n
+            for i in idents
+            if i is not None
+            for n in i.notes
+            if n.startswith("dead time not resolved")
+        ]
+        if unresolved and model is not None and model.kind in ("fopdt", "ipdt"):
+            step_model = dataclasses.replace(
+                step_model, dead_time=max(step_model.dead_time, model.delay)
+            )
+        said = [f"{len(unresolved)} of {len(idents)} steps: {unresolved[-1]}"] if unresolved else []
         findings = RepeatFindings(
             self.done[0].config.size, len(self.done), spreads, self.tolerance, model, integrating
         )
@@ -273,7 +287,7 @@ class RepeatedSteps:
             timescale=statistics.fmean(i.timescale for i in idents),
             noise=statistics.fmean(i.noise for i in idents),
             rest_pv=idents[0].rest_pv,
-            notes=self.notes(spreads),
+            notes=self.notes(spreads) + said,
             repeats=self.curves(),
         )
 

@@ -75,9 +75,9 @@ from shared.errors import AutotuneError
 
 HOLD_EVENTS = ("step_started", "pulse_started", "output_held")  # the driver's hold times
 SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over a window)
-# standard errors a fitted dead time must stand above the floor to count as resolved: the
-# linearised error (``model_fit.delay_spread``) understates the scatter of fitted dead times
-# on noisy first-order records (1.4-1.9x over 12 seeds), so three, not the usual two
+# standard errors of a fitted dead time (``model_fit.delay_spread``) within which it is not
+# told from none, and by which a design on an unresolved one exceeds it: three, as the fitted
+# figure scatters more than the linearised error says (1.4-1.9x over 12 noisy seeds)
 SPREADS = 3.0
 RETURN_WAIT_FACTOR = 3.0  # the return to rest may take this many times the step's own settling
 
@@ -105,9 +105,9 @@ class StepTestConfig:
     # and be rest (a noise-free PV's creep after a test was told "keeps drifting" where the
     # tuner's own rest check had just found rest)
     resolution: float = 0.0
-    # a dead time the record does not resolve (under half a sample) is designed with the
-    # largest the record allows, the time the PV took to clear its noise (``_delay_bound``);
-    # False: a run recorded before, designed with the floor of half a sample
+    # a dead time the record does not resolve is designed with the most the record allows
+    # (``StepTest._design_delay``); False: a run recorded before, designed with the fit's, or
+    # the floor of half a sample
     bound_delay: bool = False
 
 
@@ -324,8 +324,9 @@ class StepTest:
                 )
             model = fitted or model_of(step_model)
             inverse = self.inverse_response(model.kind.upper())
-            unresolved = self._unresolved_delay(model, rc, None)
-            model, step_model = self._with_delay(model, step_model, None)
+            design = self._design_delay(model, None)
+            unresolved = self._unresolved_delay(model, rc, None, design)
+            model, step_model = self._with_delay(model, step_model, design)
             return Identification(
                 step=rc,
                 step_model=step_model,
@@ -346,8 +347,9 @@ class StepTest:
         fitted, spread = self._record_fit()
         model = fitted or model_of(step_model)
         inverse = self.inverse_response(model.kind.upper())
-        unresolved = self._unresolved_delay(model, rc, spread)
-        model, step_model = self._with_delay(model, step_model, spread)
+        design = self._design_delay(model, spread)
+        unresolved = self._unresolved_delay(model, rc, spread, design)
+        model, step_model = self._with_delay(model, step_model, design)
         return Identification(
             record_point=self.record_point(),
             step=rc,
@@ -363,43 +365,61 @@ class StepTest:
         )
 
     def _unresolved_delay(
-        self, model: ProcessFit, rc: ReactionCurve | IntegratingCurve, spread: float | None
+        self,
+        model: ProcessFit,
+        rc: ReactionCurve | IntegratingCurve,
+        spread: float | None,
+        design: tuple[float, str] | None,
     ) -> str | None:
         """A warning where the model's dead time is not a figure the record resolved: the
         floor of half a sample (a slow lag in noise: lvl1's 1 s dead time under a 640 s lag
-        read as 0.5 s, said as if measured, and the rules that rest on L took it), or, where
-        the set-up bounds it, a fitted figure within three of its standard errors (``spread``,
-        s) of that floor. A first-order model's only lag past its time constant is L, so its
-        rules' gains scale with 1/L; a second-order model's second lag carries the phase, and
-        its L says little."""
+        read as 0.5 s, said as if measured, and the rules that rest on L took it), and what
+        the design takes instead (``design``: ``_design_delay``). A first-order model's only
+        lag past its time constant is L, so its rules' gains scale with 1/L; a second-order
+        model's second lag carries the phase, and its L says little."""
         floor = 0.5 * self.sample_time
-        if not self._unresolved(model, spread):
-            return None
         tangent = rc.dead_time_tangent
-        if not self._floored(model):
-            gave = (
-                f" (the fit gave {model.delay:.3g} s, within three standard errors, "
-                f"{SPREADS * spread:.3g} s, of half a sample)"
-            )
-        elif tangent is not None and tangent < floor * (1.0 - 1e-9):
-            gave = f" (the tangent gave {tangent:.3g} s)"
-        else:
-            gave = ""
-        bound = self._delay_bound()
-        if bound is not None:
-            u = f" {self.pv_units}" if self.pv_units else ""
+        gave = (
+            f" (the tangent gave {tangent:.3g} s)"
+            if tangent is not None and tangent < floor * (1.0 - 1e-9)
+            else ""
+        )
+        if design is None:
+            if not self._floored(model):
+                return None
             return (
-                f"dead time not resolved by the record{gave}: the PV first cleared its noise "
-                f"({self._moved_level():.3g}{u} from its rest) {self._t_moved:.4g} s after the "
-                f"step, so L lies between 0 and {bound:.4g} s; the model and the rules that "
-                f"rest on L take {bound:.4g} s, the largest dead time the record allows (not "
-                f"half a sample, {floor:.3g} s): their gains are as cautious as the record "
-                "is uncertain; a larger step, or less noise, resolves L"
+                f"dead time not resolved by the record{gave}: L is floored at half a sample, "
+                f"{floor:.3g} s (the hold's effective delay); the rules that rest on L take "
+                "that floor for it, and only the verification tells how their gains suit the "
+                "loop"
+            )
+        taken, why = design
+        u = f" {self.pv_units}" if self.pv_units else ""
+        cleared = (
+            f"the PV first cleared its noise ({self._moved_level():.3g}{u} from its rest) "
+            f"{self._t_moved:.4g} s after the step"
+        )
+        if self._floored(model):
+            tangent_too = f"; the tangent {tangent:.3g} s" if gave else ""
+            fit = f"none (L floored at half a sample, {floor:.3g} s{tangent_too})"
+        else:
+            fit = f"{model.delay:.3g} s"
+        found = f"the fit gave {fit}"
+        if spread is not None:
+            found += f", within three of its standard errors ({SPREADS * spread:.3g} s) of none"
+        if why == "cleared":
+            took = (
+                f"{cleared}, so the response began before: the model and the rules that rest "
+                f"on L take {taken:.4g} s, the most dead time the record allows"
+            )
+        else:
+            took = (
+                f"the model and the rules that rest on L take {taken:.4g} s, three standard "
+                f"errors, the most the record cannot tell from none ({cleared})"
             )
         return (
-            f"dead time not resolved by the record{gave}: L is floored at half a sample, "
-            f"{floor:.3g} s (the hold's effective delay); the rules that rest on L take that "
-            "floor for it, and only the verification tells how their gains suit the loop"
+            f"dead time not resolved by the record: {found}; {took}: their gains are as "
+            "cautious as the record is uncertain; a larger step, or less noise, resolves L"
         )
 
     def _floored(self, model: ProcessFit) -> bool:
@@ -407,52 +427,53 @@ class StepTest:
         floor = 0.5 * self.sample_time
         return model.kind in ("fopdt", "ipdt") and model.delay <= floor * (1.0 + 1e-9)
 
-    def _unresolved(self, model: ProcessFit, spread: float | None) -> bool:
-        """A first-order or integrating model whose dead time the record did not resolve: the
-        floor, or (where the set-up bounds it) a fitted figure not above the floor by
-        ``SPREADS`` of its standard errors (``spread``, s: ``model_fit.delay_spread``). Why
-        the second: a lag's response in noise fits any dead time up to seconds about as well,
-        and the fit lands anywhere there; the square-root tank at 0.05 s read 0.0254 s (1.5 %
-        over the floor of 0.025, its standard error 0.12 s) and 0.316 s for its 1 s."""
-        if self._floored(model):
-            return True
-        floor = 0.5 * self.sample_time
-        return (
-            self.config.bound_delay
-            and spread is not None
-            and model.kind in ("fopdt", "ipdt")
-            and model.delay - SPREADS * spread <= floor
-        )
+    def _design_delay(self, model: ProcessFit, spread: float | None) -> tuple[float, str] | None:
+        """The dead time (s) the design takes where the record does not resolve the model's,
+        and what sets it ("fit" or "cleared"); None: the model's stands. Asked by the set-up
+        only (``StepTestConfig.bound_delay``), for a first-order or integrating model (a
+        second-order model's second lag carries the phase).
 
-    def _delay_bound(self) -> float | None:
-        """The largest dead time the record allows, where the set-up asks for it
-        (``StepTestConfig.bound_delay``) and it is more than the floor of half a sample: s
-        from the step to the sample before the PV first cleared its noise (``_moved_level``:
-        5σ, a bound no spike of the noise reaches by chance), the last the response can have
-        begun. Why: a slow lag's response starts so gently that its first seconds are lost in
-        the noise (the gravity-drain tank's 1 s under a 640 s lag, at 0.1 s samples, read as
-        0.05 s), and a rule that rests on L scales its gain by 1/L: AMIGO PI at Kc 3.6e4 %/m
-        saturated the output in its verification. The bound is what the record shows, and
-        gains designed on it are safe for any dead time up to it. None: not asked, not
-        moved, or the record resolves its dead time to within a sample (a clean record's
-        PV moves at the first sample after a dead time under one)."""
-        if not self.config.bound_delay or self._t_moved is None:
+        Not resolved: a fitted L within ``SPREADS`` of its standard errors (``spread``, s:
+        ``model_fit.delay_spread``) of none, or the floor of half a sample where no error is
+        known. The design then takes ``SPREADS``·spread, the most the record cannot tell from
+        none (so an L that the fit resolves just clear of it is designed on as fitted: no
+        jump in the gains at the threshold), but no more than the record allows without any
+        model: the time from the step to the first sample at which the PV cleared its noise
+        (``_moved_level``: 5σ), before which the response began (``_t_moved``); the floor
+        with no error known takes that time.
+
+        Why: a rule that rests on L scales its gain by 1/L, and a lag's response in noise
+        fits any dead time up to its noise's worth about as well: the gravity-drain tank (1 s
+        under a 190-640 s lag) read 0 (the floor), 0.025, 0.16 or 0.23 s, and AMIGO PI
+        designed on those saturated its output or rang in the verification (rejected); on
+        3 standard errors (0.35-0.65 s) all were verified. A resolved L stands as fitted (a
+        1 s dead time under a 20 s lag reads to 0.03 s)."""
+        if not self.config.bound_delay or model.kind not in ("fopdt", "ipdt"):
             return None
-        bound = self._t_moved - self.sample_time
-        return bound if bound > 0.5 * self.sample_time * (1.0 + 1e-9) else None
+        cleared = self._t_moved if self._t_moved is not None else math.inf
+        if spread is not None:
+            if model.delay >= SPREADS * spread and not self._floored(model):
+                return None
+            most, why = SPREADS * spread, "fit"
+            if cleared < most:
+                most, why = cleared, "cleared"
+        elif self._floored(model) and math.isfinite(cleared):
+            most, why = cleared, "cleared"
+        else:
+            return None
+        return (most, why) if most > model.delay * (1.0 + 1e-9) else None
 
     def _with_delay(
-        self, model: ProcessFit, step_model: StepModel, spread: float | None
+        self, model: ProcessFit, step_model: StepModel, design: tuple[float, str] | None
     ) -> tuple[ProcessFit, StepModel]:
-        """The model and the reaction curve's model with the dead time the design takes: the
-        record's bound (``_delay_bound``) where the model's is not resolved (``_unresolved``)
-        and the bound is larger; as they are otherwise."""
-        bound = self._delay_bound() if self._unresolved(model, spread) else None
-        if bound is None or bound <= model.delay:
+        """The model and the reaction curve's model with the dead time the design takes
+        (``_design_delay``); as they are where the model's stands."""
+        if design is None:
             return model, step_model
+        taken = design[0]
         return (
-            dataclasses.replace(model, delay=bound),
-            dataclasses.replace(step_model, dead_time=max(step_model.dead_time, bound)),
+            dataclasses.replace(model, delay=taken),
+            dataclasses.replace(step_model, dead_time=max(step_model.dead_time, taken)),
         )
 
     def inverse_response(self, model: str) -> str | None:
