@@ -363,7 +363,7 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
         )
     # the dead time the design took where the curve's is not resolved (the rules above rest
     # on it, not on the curve's L)
-    lines += [f"  warning: {n}" for n in a.ident.notes if n.startswith("dead time not resolved")]
+    lines += [f"  warning: {n}" for n in a.ident.notes if "dead time not resolved" in n]
     if a.missing:
         lines.append(
             f"  WARNING: {a.missing} samples missing from the record (the first gap after seq "
