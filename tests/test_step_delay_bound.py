@@ -166,3 +166,29 @@ def test_an_integrating_loop_takes_the_time_the_pv_cleared_its_noise():
     (note,) = [w for w in result.warnings if "dead time not resolved" in w]
     assert "the most dead time the record allows" in note
     assert result.chosen["isa"]["kc"] < 50.0
+
+
+def test_repeated_steps_design_on_their_mean_model_and_say_so():
+    """``--repeat 2`` on the lag without dead time: each step's model takes three standard
+    errors; the mean model is designed on, the open-loop rules' L is that too (the L/T said),
+    and the warning says in how many steps (it was dropped, the step model left at the
+    floor)."""
+    spec = {
+        "model": "fopdt",
+        "gain": K,
+        "time_constant": T,
+        "delay": 0.0,
+        "sample_time": TS,
+        "noise_std": SIGMA,
+        "pv0": PV0,
+        "op0": OP0,
+    }
+    sim = build_plant({"seed": 1, "loops": {"x": spec}}, "x")["x"]
+    request = TuneRequest(loop="x", method="step", repeat=2)
+    result = TuningRun(LocalLoopClient(sim), request, "x", RunHooks()).run()
+    assert result.status == "ok", result.reason
+    (note,) = [w for w in result.warnings if "dead time not resolved" in w]
+    assert note.startswith("2 of 2 steps: ")
+    taken = result.experiment["model_delay"]
+    assert taken > TS / 2 * 1.5  # over the floor: three standard errors (0.09 s)
+    assert result.l_over_t == pytest.approx(taken / result.step["time_constant_tangent"])
