@@ -143,11 +143,12 @@ def test_the_gravity_drain_tank_at_a_tenth_of_a_second_is_tuned():
     assert result.l_over_t == pytest.approx(taken / lag, rel=1e-12)
 
 
-def test_an_integrating_loop_takes_the_time_the_pv_cleared_its_noise():
+def test_an_integrating_loop_is_designed_on_three_standard_errors_too():
     """A pure integrator (0.01 %/s per %, no dead time, σ 0.05 %) sampled at 0.1 s: the ramp's
-    line meets the rest at the step, L floored at 0.05 s (no standard error is known for
-    its reading), and SIMC's integrating PI there was Kc 500 (25 % of output noise from the
-    PV's); on the time the PV took to clear its noise, under a tenth of that."""
+    line meets the rest at the step, L floored at 0.05 s, and SIMC's integrating PI there was
+    Kc 500 (30 % of output noise from the PV's). The kink's own standard error (the curve's
+    ``dead_time_se``, about 0.045 s) puts three of them at 0.13 s: the design's L, and the gain
+    under 0.6 of the floor's. Without noise the error is nil and the floor stands."""
     spec = {
         "model": "ipdt",
         "gain": 0.01,
@@ -158,14 +159,21 @@ def test_an_integrating_loop_takes_the_time_the_pv_cleared_its_noise():
         "op0": 50.0,
         "pv_range": [0.0, 100.0],
     }
-    sim = build_plant({"seed": 1, "loops": {"x": spec}}, "x")["x"]
-    result = TuningRun(
-        LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "x", RunHooks()
-    ).run()
-    assert result.status == "ok", result.reason
-    (note,) = [w for w in result.warnings if "dead time not resolved" in w]
-    assert "the most dead time the record allows" in note
-    assert result.chosen["isa"]["kc"] < 50.0
+    for noise in (0.05, 0.0):
+        sim = build_plant({"seed": 1, "loops": {"x": {**spec, "noise_std": noise}}}, "x")["x"]
+        result = TuningRun(
+            LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "x", RunHooks()
+        ).run()
+        assert result.status == "ok", result.reason
+        (note,) = [w for w in result.warnings if "dead time not resolved" in w]
+        taken = result.experiment.get("model_delay", result.step["dead_time"])
+        if noise:
+            assert "three standard errors" in note
+            assert taken == pytest.approx(3 * result.step["dead_time_se"], rel=1e-9)
+            assert result.chosen["isa"]["kc"] < 0.6 * 500
+        else:
+            assert "floored at half a sample" in note and "standard errors" not in note
+            assert result.step["dead_time"] == pytest.approx(0.05)
 
 
 def test_repeated_steps_design_on_their_mean_model_and_say_so():
@@ -188,7 +196,7 @@ def test_repeated_steps_design_on_their_mean_model_and_say_so():
     result = TuningRun(LocalLoopClient(sim), request, "x", RunHooks()).run()
     assert result.status == "ok", result.reason
     (note,) = [w for w in result.warnings if "dead time not resolved" in w]
-    assert note.startswith("2 of 2 steps: ")
+    assert note.startswith("dead time not resolved by the record in 2 of 2 steps; ")
     taken = result.experiment["model_delay"]
     assert taken > TS / 2 * 1.5  # over the floor: three standard errors (0.09 s)
     assert result.l_over_t == pytest.approx(taken / result.step["time_constant_tangent"])

@@ -79,6 +79,7 @@ SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over
 # told from none, and by which a design on an unresolved one exceeds it: three, as the fitted
 # figure scatters more than the linearised error says (1.4-1.9x over 12 noisy seeds)
 SPREADS = 3.0
+CLEAR_RUN = 5  # samples running clear of the noise that say the response has begun
 RETURN_WAIT_FACTOR = 3.0  # the return to rest may take this many times the step's own settling
 
 
@@ -324,8 +325,11 @@ class StepTest:
                 )
             model = fitted or model_of(step_model)
             inverse = self.inverse_response(model.kind.upper())
-            design = self._design_delay(model, None)
-            unresolved = self._unresolved_delay(model, rc, None, design)
+            # the kink's standard error, where the ramps' lines were fitted (``fit_integrator``)
+            se = rc.dead_time_se if rc.read_by == "fit" else None
+            spread = se if se is not None and math.isfinite(se) and se >= 0.0 else None
+            design = self._design_delay(model, spread)
+            unresolved = self._unresolved_delay(model, rc, spread, design)
             model, step_model = self._with_delay(model, step_model, design)
             return Identification(
                 step=rc,
@@ -395,9 +399,12 @@ class StepTest:
             )
         taken, why = design
         u = f" {self.pv_units}" if self.pv_units else ""
+        at = self._cleared()
         cleared = (
-            f"the PV first cleared its noise ({self._moved_level():.3g}{u} from its rest) "
-            f"{self._t_moved:.4g} s after the step"
+            f"the PV cleared its noise ({self._moved_level():.3g}{u} from its rest, "
+            f"{CLEAR_RUN} samples running) {at:.4g} s after the step"
+            if at is not None
+            else "the PV never cleared its noise for long"
         )
         if self._floored(model):
             tangent_too = f"; the tangent {tangent:.3g} s" if gave else ""
@@ -411,6 +418,11 @@ class StepTest:
             took = (
                 f"{cleared}, so the response began before: the model and the rules that rest "
                 f"on L take {taken:.4g} s, the most dead time the record allows"
+            )
+        elif why == "fit-stands":
+            took = (
+                f"{cleared}, before three standard errors: the model and the rules that rest "
+                f"on L take the fit's {taken:.4g} s"
             )
         else:
             took = (
@@ -438,9 +450,9 @@ class StepTest:
         known. The design then takes ``SPREADS``·spread, the most the record cannot tell from
         none (so an L that the fit resolves just clear of it is designed on as fitted: no
         jump in the gains at the threshold), but no more than the record allows without any
-        model: the time from the step to the first sample at which the PV cleared its noise
-        (``_moved_level``: 5σ), before which the response began (``_t_moved``); the floor
-        with no error known takes that time.
+        model: the time from the step to the sample from which the PV stayed clear of its
+        noise (``_cleared``), before which the response began; the floor with no error known
+        takes that time. A fitted L past that time stands as fitted ("fit-stands": said).
 
         Why: a rule that rests on L scales its gain by 1/L, and a lag's response in noise
         fits any dead time up to its noise's worth about as well: the gravity-drain tank (1 s
@@ -450,7 +462,8 @@ class StepTest:
         1 s dead time under a 20 s lag reads to 0.03 s)."""
         if not self.config.bound_delay or model.kind not in ("fopdt", "ipdt"):
             return None
-        cleared = self._t_moved if self._t_moved is not None else math.inf
+        at = self._cleared()
+        cleared = at if at is not None else math.inf
         if spread is not None:
             if model.delay >= SPREADS * spread and not self._floored(model):
                 return None
@@ -461,7 +474,29 @@ class StepTest:
             most, why = cleared, "cleared"
         else:
             return None
-        return (most, why) if most > model.delay * (1.0 + 1e-9) else None
+        if most > model.delay * (1.0 + 1e-9):
+            return most, why
+        if why == "cleared" and not self._floored(model):  # unresolved, yet past the record's
+            return model.delay, "fit-stands"
+        return None
+
+    def _cleared(self) -> float | None:
+        """s from the step to the first of ``CLEAR_RUN`` samples running at which the PV is
+        clear of its noise (``_moved_level``: 5σ) on the side it went to (None: never): the
+        response began before it. A run, not one sample: a spike of the noise (5.5σ once, a
+        tenth of a second after the step) took a design's dead time from 2 s to 0.3 s."""
+        if self.t_step is None or not math.isfinite(self._pv_before) or not self.pv:
+            return None
+        t = np.asarray(self.t)
+        keep = t >= self.t_step
+        y = np.asarray(self.pv)[keep] - self._pv_before
+        if y.size < CLEAR_RUN:
+            return None
+        side = math.copysign(1.0, float(y[int(np.argmax(np.abs(y)))]))  # where it went most
+        clear = (side * y > self._moved_level()).astype(int)
+        runs = np.convolve(clear, np.ones(CLEAR_RUN, dtype=int), mode="valid")
+        first = np.nonzero(runs == CLEAR_RUN)[0]
+        return float(t[keep][first[0]] - self.t_step) if first.size else None
 
     def _with_delay(
         self, model: ProcessFit, step_model: StepModel, design: tuple[float, str] | None
