@@ -77,12 +77,12 @@ class Selection:
 
 
 def l_over_t(ident: Identification, model: ProcessFit | None = None) -> float | None:
-    """L/T of the step test (of its model as the rules take it: a dead time the record did
-    not resolve is the largest it allows there, not the measured curve's floor), else of the
+    """L/T of the step test (of its model as the rules take it: where the record did not
+    resolve the dead time, the one the design takes, not the measured curve's), else of the
     (usable) model's first-order equivalent; None when unknown or not finite."""
     sm = ident.step_model
     if ident.step is not None and sm is not None and not sm.is_integrating and sm.time_constant:
-        return _finite(sm.dead_time / sm.time_constant)  # the curve's own, L unbounded
+        return _finite(sm.dead_time / sm.time_constant)  # the design's L, the curve's T
     if ident.step is not None:
         return _finite(ident.step.l_over_t)
     if model is None or model.kind == "ipdt":

@@ -343,8 +343,8 @@ class Setup:
     # underdamped response is not at rest mid-swing); None: recorded before
     step_swing: bool | None = None
     # True: a step test's dead time that the record does not resolve is designed with the
-    # largest the record allows (``StepTestConfig.bound_delay``); None: recorded before, with
-    # the floor of half a sample
+    # most the record cannot tell from none (``StepTestConfig.bound_delay``); None: recorded
+    # before, with the fit's or the floor of half a sample
     step_delay_bound: bool | None = None
     # True: the transmitter's resolution (``rest_window.RESOLUTION`` of its range) floors what
     # counts as a response to the output (a relay or step test whose PV moves within it

@@ -338,7 +338,7 @@ class StepTest:
                 notes=[n for n in (inverse, unresolved) if n],
                 inverse_response=inverse is not None,
                 integrating=True,
-                # the model as the design takes it (its dead time bounded by the record)
+                # the model as the design takes it (``_design_delay``)
                 experiment=StepFindings(
                     rc.step_size, rc.method, model if fitted is not None else None
                 ),
@@ -441,9 +441,9 @@ class StepTest:
 
     def _design_delay(self, model: ProcessFit, spread: float | None) -> tuple[float, str] | None:
         """The dead time (s) the design takes where the record does not resolve the model's,
-        and what sets it ("fit" or "cleared"); None: the model's stands. Asked by the set-up
-        only (``StepTestConfig.bound_delay``), for a first-order or integrating model (a
-        second-order model's second lag carries the phase).
+        and what sets it ("fit", "cleared" or "fit-stands"); None: the model's stands. Asked
+        by the set-up only (``StepTestConfig.bound_delay``), for a first-order or integrating
+        model (a second-order model's second lag carries the phase).
 
         Not resolved: a fitted L within ``SPREADS`` of its standard errors (``spread``, s:
         ``model_fit.delay_spread``) of none, or the floor of half a sample where no error is
