@@ -27,7 +27,7 @@ from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Band, Demand
 from services.autotuner.identify.reaction_curve import IntegratingCurve
-from services.autotuner.identify.step_test import HOLD_EVENTS
+from services.autotuner.identify.step_test import HOLD_EVENTS, UNRESOLVED
 from services.logger.mcap_io import (
     decode,
     one_result,
@@ -363,7 +363,7 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
         )
     # the dead time the design took where the curve's is not resolved (the rules above rest
     # on it, not on the curve's L)
-    lines += [f"  warning: {n}" for n in a.ident.notes if "dead time not resolved" in n]
+    lines += [f"  warning: {n}" for n in a.ident.notes if UNRESOLVED in n]
     if a.missing:
         lines.append(
             f"  WARNING: {a.missing} samples missing from the record (the first gap after seq "

@@ -207,6 +207,18 @@ def response_to(fit: ProcessFit, sample_time: float, u: np.ndarray) -> np.ndarra
 MAX_RECORD = 4000  # samples a record fit works on (longer records are block-averaged)
 
 
+def _blocks(
+    u: np.ndarray, y: np.ndarray, sample_time: float
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The record a fit works on: a record longer than MAX_RECORD samples in blocks of k
+    samples (the output averaged over each, the PV at its start), and their sample time."""
+    k = math.ceil(y.size / MAX_RECORD)
+    if k <= 1:
+        return u, y, sample_time
+    n = (y.size // k) * k
+    return u[:n].reshape(-1, k).mean(axis=1), y[:n:k], sample_time * k
+
+
 def refine_on_record(
     start: ProcessFit, sample_time: float, u: np.ndarray, y: np.ndarray, offset: bool = False
 ) -> ProcessFit | None:
@@ -226,10 +238,7 @@ def refine_on_record(
 
     The returned ``rms`` is the residual's rms over the PV's standard deviation."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
-    k = math.ceil(y.size / MAX_RECORD)
-    if k > 1:  # a long record: blocks of k samples, the output averaged over each
-        n = (y.size // k) * k
-        u, y, sample_time = u[:n].reshape(-1, k).mean(axis=1), y[:n:k], sample_time * k
+    u, y, sample_time = _blocks(u, y, sample_time)
     scale = float(np.std(y)) or 1.0
     w0 = 1.0 / max(start.delay + start.lag if start.lags else start.delay, sample_time)
     n_lags = len(start.lags)
@@ -277,10 +286,7 @@ def delay_spread(fit: ProcessFit, sample_time: float, u: np.ndarray, y: np.ndarr
     if fit.offset is not None:
         return None
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
-    k = math.ceil(y.size / MAX_RECORD)
-    if k > 1:  # the blocks refine_on_record fitted
-        n = (y.size // k) * k
-        u, y, sample_time = u[:n].reshape(-1, k).mean(axis=1), y[:n:k], sample_time * k
+    u, y, sample_time = _blocks(u, y, sample_time)  # as refine_on_record fitted it
     x = _params(fit)
 
     def residual(p: np.ndarray) -> np.ndarray:
@@ -292,12 +298,9 @@ def delay_spread(fit: ProcessFit, sample_time: float, u: np.ndarray, y: np.ndarr
         for i in range(x.size):
             h = 1e-6 * max(1.0, abs(x[i])) if i < x.size - 1 else 1e-3 * sample_time
             lo, hi = x.copy(), x.copy()
-            lo[i], hi[i] = x[i] - h, x[i] + h
-            if i == x.size - 1 and lo[i] < 0.0:  # a dead time near 0: one-sided
-                lo[i], h2 = x[i], h
-                cols.append((residual(hi) - residual(lo)) / h2)
-                continue
-            cols.append((residual(hi) - residual(lo)) / (2.0 * h))
+            central = i < x.size - 1 or x[i] - h >= 0.0  # a dead time near 0: one-sided
+            hi[i], lo[i] = x[i] + h, (x[i] - h if central else x[i])
+            cols.append((residual(hi) - residual(lo)) / (2.0 * h if central else h))
         jac = np.column_stack(cols)
         dof = max(y.size - x.size, 1)
         cov = float(np.sum(r0**2)) / dof * np.linalg.inv(jac.T @ jac)

@@ -264,13 +264,13 @@ class RepeatedSteps:
         # where the steps' models took a dead time the record did not resolve (``StepTest.
         # _design_delay``, asked by the set-up: a run recorded before replays as it was), the
         # open-loop rules take the mean model's too, and it is said with the L designed on
-        took = "the model and the rules that rest on L take"
+        bounded = self.done[0].config.bound_delay
         unresolved = [
             n
             for i in idents
-            if i is not None and self.done[0].config.bound_delay
+            if i is not None and bounded
             for n in i.notes
-            if n.startswith("dead time not resolved") and took in n
+            if n.startswith(step_test.UNRESOLVED) and step_test.DESIGN_TAKES in n
         ]
         said: list[str] = []
         if unresolved and model is not None and model.kind in ("fopdt", "ipdt"):
@@ -278,9 +278,9 @@ class RepeatedSteps:
                 step_model, dead_time=max(step_model.dead_time, model.delay)
             )
             said = [
-                f"dead time not resolved by the record in {len(unresolved)} of {len(idents)} "
-                f"steps; {took} {model.delay:.4g} s, the mean of the steps' models (the last "
-                f"such step: {unresolved[-1].split(': ', 1)[1]})"
+                f"{step_test.UNRESOLVED} in {len(unresolved)} of {len(idents)} steps; "
+                f"{step_test.DESIGN_TAKES} {model.delay:.4g} s, the mean of the steps' models "
+                f"(the last such step: {unresolved[-1].split(': ', 1)[1]})"
             ]
         findings = RepeatFindings(
             self.done[0].config.size, len(self.done), spreads, self.tolerance, model, integrating

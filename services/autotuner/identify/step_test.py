@@ -80,6 +80,10 @@ SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over
 # figure scatters more than the linearised error says (1.4-1.9x over 12 noisy seeds)
 SPREADS = 3.0
 CLEAR_RUN = 5  # samples running clear of the noise that say the response has begun
+# the words that open the step test's dead-time warning, and those that say what the design
+# took instead (repeated steps and ``autotune analyze`` find the warning by them)
+UNRESOLVED = "dead time not resolved by the record"
+DESIGN_TAKES = "the model and the rules that rest on L take"
 RETURN_WAIT_FACTOR = 3.0  # the return to rest may take this many times the step's own settling
 
 
@@ -328,8 +332,9 @@ class StepTest:
             # the kink's standard error, where the ramps' lines were fitted (``fit_integrator``)
             se = rc.dead_time_se if rc.read_by == "fit" else None
             spread = se if se is not None and math.isfinite(se) and se >= 0.0 else None
-            design = self._design_delay(model, spread)
-            unresolved = self._unresolved_delay(model, rc, spread, design)
+            at = self._cleared()
+            design = self._design_delay(model, spread, at)
+            unresolved = self._unresolved_delay(model, rc, spread, design, at)
             model, step_model = self._with_delay(model, step_model, design)
             return Identification(
                 step=rc,
@@ -351,8 +356,9 @@ class StepTest:
         fitted, spread = self._record_fit()
         model = fitted or model_of(step_model)
         inverse = self.inverse_response(model.kind.upper())
-        design = self._design_delay(model, spread)
-        unresolved = self._unresolved_delay(model, rc, spread, design)
+        at = self._cleared()
+        design = self._design_delay(model, spread, at)
+        unresolved = self._unresolved_delay(model, rc, spread, design, at)
         model, step_model = self._with_delay(model, step_model, design)
         return Identification(
             record_point=self.record_point(),
@@ -374,13 +380,15 @@ class StepTest:
         rc: ReactionCurve | IntegratingCurve,
         spread: float | None,
         design: tuple[float, str] | None,
+        at: float | None,
     ) -> str | None:
         """A warning where the model's dead time is not a figure the record resolved: the
         floor of half a sample (a slow lag in noise: lvl1's 1 s dead time under a 640 s lag
         read as 0.5 s, said as if measured, and the rules that rest on L took it), and what
-        the design takes instead (``design``: ``_design_delay``). A first-order model's only
-        lag past its time constant is L, so its rules' gains scale with 1/L; a second-order
-        model's second lag carries the phase, and its L says little."""
+        the design takes instead (``design``: ``_design_delay``; ``at``: ``_cleared``). A
+        first-order model's only lag past its time constant is L, so its rules' gains scale
+        with 1/L; a second-order model's second lag carries the phase, and its L says
+        little."""
         floor = 0.5 * self.sample_time
         tangent = rc.dead_time_tangent
         gave = (
@@ -392,14 +400,13 @@ class StepTest:
             if not self._floored(model):
                 return None
             return (
-                f"dead time not resolved by the record{gave}: L is floored at half a sample, "
+                f"{UNRESOLVED}{gave}: L is floored at half a sample, "
                 f"{floor:.3g} s (the hold's effective delay); the rules that rest on L take "
                 "that floor for it, and only the verification tells how their gains suit the "
                 "loop"
             )
         taken, why = design
         u = f" {self.pv_units}" if self.pv_units else ""
-        at = self._cleared()
         cleared = (
             f"the PV cleared its noise ({self._moved_level():.3g}{u} from its rest, "
             f"{CLEAR_RUN} samples running) {at:.4g} s after the step"
@@ -416,21 +423,20 @@ class StepTest:
             found += f", within three of its standard errors ({SPREADS * spread:.3g} s) of none"
         if why == "cleared":
             took = (
-                f"{cleared}, so the response began before: the model and the rules that rest "
-                f"on L take {taken:.4g} s, the most dead time the record allows"
+                f"{cleared}, so the response began before: {DESIGN_TAKES} {taken:.4g} s, the "
+                "most dead time the record allows"
             )
         elif why == "fit-stands":
             took = (
-                f"{cleared}, before three standard errors: the model and the rules that rest "
-                f"on L take the fit's {taken:.4g} s"
+                f"{cleared}, before three standard errors: {DESIGN_TAKES} the fit's {taken:.4g} s"
             )
         else:
             took = (
-                f"the model and the rules that rest on L take {taken:.4g} s, three standard "
-                f"errors, the most the record cannot tell from none ({cleared})"
+                f"{DESIGN_TAKES} {taken:.4g} s, three standard errors, the most the record "
+                f"cannot tell from none ({cleared})"
             )
         return (
-            f"dead time not resolved by the record: {found}; {took}: their gains are as "
+            f"{UNRESOLVED}: {found}; {took}: their gains are as "
             "cautious as the record is uncertain; a larger step, or less noise, resolves L"
         )
 
@@ -439,7 +445,9 @@ class StepTest:
         floor = 0.5 * self.sample_time
         return model.kind in ("fopdt", "ipdt") and model.delay <= floor * (1.0 + 1e-9)
 
-    def _design_delay(self, model: ProcessFit, spread: float | None) -> tuple[float, str] | None:
+    def _design_delay(
+        self, model: ProcessFit, spread: float | None, at: float | None
+    ) -> tuple[float, str] | None:
         """The dead time (s) the design takes where the record does not resolve the model's,
         and what sets it ("fit", "cleared" or "fit-stands"); None: the model's stands. Asked
         by the set-up only (``StepTestConfig.bound_delay``), for a first-order or integrating
@@ -451,7 +459,7 @@ class StepTest:
         none (so an L that the fit resolves just clear of it is designed on as fitted: no
         jump in the gains at the threshold), but no more than the record allows without any
         model: the time from the step to the sample from which the PV stayed clear of its
-        noise (``_cleared``), before which the response began; the floor with no error known
+        noise (``at``: ``_cleared``), before which the response began; the floor with no error known
         takes that time. A fitted L past that time stands as fitted ("fit-stands": said).
 
         Why: a rule that rests on L scales its gain by 1/L, and a lag's response in noise
@@ -462,7 +470,6 @@ class StepTest:
         1 s dead time under a 20 s lag reads to 0.03 s)."""
         if not self.config.bound_delay or model.kind not in ("fopdt", "ipdt"):
             return None
-        at = self._cleared()
         cleared = at if at is not None else math.inf
         if spread is not None:
             if model.delay >= SPREADS * spread and not self._floored(model):
