@@ -109,6 +109,37 @@ def test_a_phase_runs_from_its_first_opening_mark_to_the_next_closing_one():
     assert set(perf_phases._phases(marks[:4], 0.25)) == {"trials"}
 
 
+def test_a_phase_while_its_samples_flow_leaves_out_the_work_after_its_last_sample():
+    # the same marks; the plant's messages (sim time of the last sample each carried, wall s):
+    # the trials' first message after t 10 carries up to t 12.5 and arrives at 1.05, the one
+    # carrying t 35 at 1.30, so 90 samples flowed in 0.25 s (the 0.2 s to "identified" is the
+    # run's work after its last sample); the verification's from t 45 (2.05) to t 65 (2.15)
+    marks = [
+        ("start", 0.0, 0.0),
+        ("quiet", 10.0, 1.0),
+        ("identified", 35.0, 1.5),
+        ("verify", 40.0, 2.0),
+        ("done", 65.0, 2.25),
+    ]
+    arrivals = [(10.0, 0.99), (12.5, 1.05), (20.0, 1.1), (35.0, 1.3), (45.0, 2.05), (65.0, 2.15)]
+    got = perf_phases._phases(marks, 0.25, arrivals)
+    trials, verify = got["trials"], got["verify"]
+    assert trials.flow_samples == 90 and math.isclose(trials.flow_wall, 0.25)
+    assert math.isclose(trials.flow_us_per_sample, 1e6 * 0.25 / 90)
+    assert trials.samples == 100 and math.isclose(trials.wall, 0.5)  # the whole window as before
+    assert verify.flow_samples == 80 and math.isclose(verify.flow_wall, 0.1)
+    # no arrivals watched, or the last sample's never came: no flow figure
+    assert perf_phases._phases(marks, 0.25)["trials"].flow_us_per_sample is None
+    assert perf_phases._phases(marks, 0.25, arrivals[:3])["trials"].flow_us_per_sample is None
+
+
+def test_the_last_sample_time_is_read_from_a_sample_or_a_batch():
+    assert perf_phases._last_t(b'{"t": 2.5, "pv": 1}') == 2.5
+    assert perf_phases._last_t(b'{"loop": "x", "samples": [{"t": 1.0}, {"t": 1.25}]}') == 1.25
+    for bad in (b"", b"[]", b'{"samples": []}', b'{"pv": 1}', b"not json"):
+        assert perf_phases._last_t(bad) is None
+
+
 def test_bad_flags_are_refused_in_one_line_naming_the_flag(capsys):
     for argv, flag in (
         (["perf", "--skip", "pingpong,nope"], "--skip"),

@@ -153,6 +153,12 @@ def ratios(out: dict) -> dict[str, float]:
         if ph and name in (ph.get("bus_warm") or {}) and name in ph["inprocess"]:
             bus, local = ph["bus_warm"][name], ph["inprocess"][name]
             r[f"{name}_bus_warm_over_inprocess"] = bus["rate"] / local["rate"]
+        for where in ("bus", "bus_warm") if ph else ():  # the same, while the samples flow
+            bus, local = (ph.get(where) or {}).get(name), ph["inprocess"].get(name)
+            if bus and local and bus.get("flow_us_per_sample") and local.get("flow_us_per_sample"):
+                r[f"{name}_{where}_over_inprocess_flowing"] = (
+                    local["flow_us_per_sample"] / bus["flow_us_per_sample"]
+                )
     lg = out.get("logger")
     if lg and lg["raw_writer"] > 0:
         r["logger_over_raw_writer"] = lg["capacity"] / lg["raw_writer"]
@@ -198,9 +204,11 @@ def _print(out: dict, size: str, seconds: float) -> None:
                 y = (x.get(where) or {}).get(name)
                 if y:
                     first = " (a fresh tuner's first tune)" if where == "bus" else ""
+                    flow = y.get("flow_us_per_sample")
                     p(
                         f"  {what + ', ' + label:<27}{y['rate']:9.0f} samples/s      "
                         f"({y['us_per_sample']:.1f} µs per sample, {y['samples']:.0f} samples"
+                        + (f"; {flow:.1f} µs while they flow" if flow else "")
                         + (
                             f"; services from {x['source']}, {x['status']}{first})"
                             if where != "inprocess"

@@ -5,7 +5,13 @@ Two ramp tunes of the heat-exchanger preset, one after the other on two loops, g
 plant_sim, the autotuner and the logger as processes on loopback; the progress messages on the
 bus mark the phases (the experiment from ``quiet`` to ``identified``; the verification from the
 first ``verify`` to ``done``) and carry their sim time, so each phase's samples are its sim
-time over the sample time and its wall time is read where the messages arrive. The first tune
+time over the sample time and its wall time is read where the messages arrive. That window
+ends with the run's one-off work after the phase's last sample (the process model's fits
+after the trials, the verification's figures after its last step): the phase's wall time
+per sample while its samples flow (``flow_us_per_sample``) is read where the plant's samples
+arrive, from the first message that carries one of the phase's samples to the one that
+carries its last, and counts the samples between those arrivals (for services that send
+a lockstep advance's samples as batches: ``_batches``). The first tune
 of a fresh tuner (``bus``) also pays for the tuner's start-up meanwhile (its compute workers
 start with its first run, and compete for the cores); the second (``bus_warm``) is the
 steady state, the per-sample cost alone. The same tune in this process (no bus) is the
@@ -17,6 +23,7 @@ measurement of an older version of the code, on the same machine, in the same ru
 
 from __future__ import annotations
 
+import json
 import subprocess
 import tempfile
 import threading
@@ -50,6 +57,11 @@ class Phase:
     wall: float  # s
     rate: float  # samples/s
     us_per_sample: float  # wall µs per sample
+    # wall µs per sample while the phase's samples flow (its one-off analysis left out), and
+    # the samples and wall s that figure is read over (None: no arrivals watched)
+    flow_us_per_sample: float | None = None
+    flow_samples: float | None = None
+    flow_wall: float | None = None
 
 
 @dataclass
@@ -61,9 +73,14 @@ class PhasesReport:
     bus_warm: dict[str, Phase] | None = None  # the same tune next, the tuner warm
 
 
-def _phases(marks: list[tuple[str, float, float]], ts: float) -> dict[str, Phase]:
+def _phases(
+    marks: list[tuple[str, float, float]],
+    ts: float,
+    arrivals: list[tuple[float, float]] | None = None,
+) -> dict[str, Phase]:
     """Each phase from its first opening mark to the first closing mark after it; ``marks``:
-    (progress phase, sim time s, wall s) in order of arrival."""
+    (progress phase, sim time s, wall s) in order of arrival; ``arrivals``: (sim time s of
+    the last sample a message of the plant carried, wall s it arrived), in order."""
     out: dict[str, Phase] = {}
     for name, (opens, closes) in PHASES.items():
         start = next((i for i, m in enumerate(marks) if m[0] == opens), None)
@@ -75,13 +92,68 @@ def _phases(marks: list[tuple[str, float, float]], ts: float) -> dict[str, Phase
         _, t0, w0 = marks[start]
         samples, wall = (end[1] - t0) / ts, end[2] - w0
         if samples > 0 and wall > 0:
-            out[name] = Phase(samples, wall, samples / wall, 1e6 * wall / samples)
+            phase = Phase(samples, wall, samples / wall, 1e6 * wall / samples)
+            if flow := _flow(arrivals or [], t0, end[1], ts):
+                phase.flow_samples, phase.flow_wall = flow
+                phase.flow_us_per_sample = 1e6 * flow[1] / flow[0]
+            out[name] = phase
     return out
+
+
+def _flow(
+    arrivals: list[tuple[float, float]], t0: float, t1: float, ts: float
+) -> tuple[float, float] | None:
+    """(samples, wall s) from the arrival of the first message carrying a sample after sim
+    time ``t0`` to that of the one carrying the sample at ``t1``: the samples counted are
+    those after the first message's last (what arrived in the window). None if either end is
+    not among the arrivals."""
+    first = next(((t, w) for t, w in arrivals if t > t0 + 0.5 * ts), None)
+    last = next(((t, w) for t, w in arrivals if t >= t1 - 0.5 * ts), None)
+    if first is None or last is None:
+        return None
+    samples, wall = round((last[0] - first[0]) / ts), last[1] - first[1]
+    return (float(samples), wall) if samples > 0 and wall > 0 else None
+
+
+def _batches(source: Path) -> bool:
+    """Whether the services of ``source`` send a lockstep advance's samples as batches: only
+    then are the plant's messages watched for the flow figure. Why: an older tree's plant
+    sends a message a sample, and a fourth subscriber to each slowed its phases by 7–20 %
+    (measured side by side), which would flatter any comparison with it."""
+    try:
+        return "pv_batch" in (source / "shared" / "keys.py").read_text()
+    except OSError:
+        return False
+
+
+def _last_t(payload: bytes) -> float | None:
+    """Sim time of the last sample in a plant's ``pv`` or ``pv_batch`` message (the JSON read
+    leniently: an older tree's services publish ``pv`` alone)."""
+    try:
+        msg = json.loads(payload)
+        return float(msg["samples"][-1]["t"] if "samples" in msg else msg["t"])
+    except (ValueError, KeyError, IndexError, TypeError):
+        return None
+
+
+class _TimedClient(LocalLoopClient):
+    """The in-process loop client, each advance's last sample timed as it is handed over."""
+
+    def __init__(self, sim, arrivals: list[tuple[float, float]]):
+        super().__init__(sim)
+        self.arrivals = arrivals
+
+    def advance(self, steps, band=None, record=None):
+        out = super().advance(steps, band, record)
+        if out:
+            self.arrivals.append((out[-1].t, time.perf_counter()))
+        return out
 
 
 def in_process() -> dict[str, Phase]:
     """The ramp tune against the plant in this process, its phases timed by its progress."""
     marks: list[tuple[str, float, float]] = []
+    arrivals: list[tuple[float, float]] = []
 
     def note(p: TuneProgress) -> None:
         marks.append((p.phase, p.t, time.perf_counter()))
@@ -90,8 +162,9 @@ def in_process() -> dict[str, Phase]:
         {"seed": 1, "loops": {LOOP: {"model": perf.HX, "sample_time": perf.HX_SAMPLE_TIME}}}, "perf"
     )[LOOP]
     hooks = RunHooks(progress=note)
-    TuningRun(LocalLoopClient(sim), TuneRequest(loop=LOOP, method=METHOD), "perf", hooks).run()
-    return _phases(marks, sim.sample_time)
+    client = _TimedClient(sim, arrivals)
+    TuningRun(client, TuneRequest(loop=LOOP, method=METHOD), "perf", hooks).run()
+    return _phases(marks, sim.sample_time, arrivals)
 
 
 def _start(module: str, args: list[str], source: Path, logs) -> subprocess.Popen:
@@ -108,6 +181,9 @@ def over_bus(
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     prefix = perf._prefix("ph")
     marks: dict[str, list[tuple[str, float, float]]] = {LOOP: [], WARM: []}
+    # the plant's messages as they arrive (key, wall s, payload): read after the run, so the
+    # watching costs this process little while the services work
+    raw: list[tuple[str, float, bytes]] = []
     status: dict[str, str] = {}
     done = {LOOP: threading.Event(), WARM: threading.Event()}
 
@@ -115,6 +191,9 @@ def over_bus(
         p = wire.decode_sample(TuneProgress, sample)
         if p.loop in marks:
             marks[p.loop].append((p.phase, p.t, time.perf_counter()))
+
+    def on_samples(sample: zenoh.Sample) -> None:
+        raw.append((str(sample.key_expr), time.perf_counter(), sample.payload.to_bytes()))
 
     def on_result(sample: zenoh.Sample) -> None:
         r = wire.decode_sample(TuneResult, sample)
@@ -151,6 +230,11 @@ def over_bus(
                     s.declare_subscriber(keys.tune_progress(prefix, "*"), on_progress),
                     s.declare_subscriber(keys.tune_result(prefix, "*"), on_result),
                 ]
+                if _batches(source):
+                    subs += [
+                        s.declare_subscriber(keys.pv(prefix, "*"), on_samples),
+                        s.declare_subscriber(keys.pv_batch(prefix, "*"), on_samples),
+                    ]
                 try:
                     for loop in (LOOP, WARM):
                         cli = _start(
@@ -175,8 +259,18 @@ def over_bus(
             for p in reversed(procs):
                 stop_service(p, timeout=30.0)
     statuses = status[LOOP] if status[WARM] == status[LOOP] else f"{status[LOOP]}, {status[WARM]}"
+    arrivals: dict[str, list[tuple[float, float]]] = {LOOP: [], WARM: []}
+    for key, wall, payload in raw:
+        parsed = keys.parse_loop_key(prefix, key)
+        t = _last_t(payload)
+        if parsed is not None and parsed[0] in arrivals and t is not None:
+            arrivals[parsed[0]].append((t, wall))
     ts = perf.HX_SAMPLE_TIME
-    return statuses, _phases(marks[LOOP], ts), _phases(marks[WARM], ts)
+    return (
+        statuses,
+        _phases(marks[LOOP], ts, arrivals[LOOP]),
+        _phases(marks[WARM], ts, arrivals[WARM]),
+    )
 
 
 def phases(source: Path | None = None) -> PhasesReport:
