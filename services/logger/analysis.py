@@ -358,7 +358,7 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
     elif a.ident.step is not None:
         s = a.ident.step
         lines.append(
-            f"  K = {s.gain:.4g}  L = {s.dead_time:.4g} s  "
+            f"  step curve: K = {s.gain:.4g}  L = {s.dead_time:.4g} s  "
             f"T = {s.time_constant_tangent:.4g} s  L/T = {s.l_over_t:.3f}"
         )
     # the dead time the design took where the curve's is not resolved (the rules above rest

@@ -886,8 +886,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         )
     elif r.step and span is not None:
         s = r.step
-        lines.append(
-            f"  K = {process_gain_percent(s['gain'], span):.4g} %/% ({s['gain']:.4g} "
+        lines.append(  # the curve as read; the model below is what the rules rest on
+            f"  step curve: K = {process_gain_percent(s['gain'], span):.4g} %/% ({s['gain']:.4g} "
             f"{unit(pv_units)}/%)  L = {s['dead_time']:.4g} s  T = "
             f"{s['time_constant_tangent']:.4g} s  R = "
             f"{process_gain_percent(s['reaction_rate'], span):.4g} %/s per % "
@@ -896,7 +896,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
     elif r.step:
         s = r.step
         lines.append(
-            f"  K = {s['gain']:.4g}  L = {s['dead_time']:.4g} s  T = "
+            f"  step curve: K = {s['gain']:.4g}  L = {s['dead_time']:.4g} s  T = "
             f"{s['time_constant_tangent']:.4g} s  R = {s['reaction_rate']:.4g}  "
             f"L/T = {s['l_over_t']:.3f}"
         )
