@@ -18,11 +18,13 @@ import argparse
 import contextlib
 import importlib
 import os
+import signal
 import sys
 import traceback
 import warnings
 from types import ModuleType
 
+from services.entry import quit_while_loading
 from shared.cli import OneLineParser, check_flags, check_runs_dir, exit_now
 from shared.errors import AutotuneError, one_line
 
@@ -131,6 +133,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:  # while the command's modules load
         print("autotune: interrupted", file=sys.stderr)
         return 130
+    finally:  # loaded: from here a Ctrl-C is the command's to handle (``entry``'s handler off)
+        if signal.getsignal(signal.SIGINT) is quit_while_loading:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
     name = f"autotune {args.command}"
     if isinstance(getattr(args, "action", None), str):  # `autotune model check`
         name += f" {args.action}"

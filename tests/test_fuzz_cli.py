@@ -359,6 +359,40 @@ def test_ctrl_c_early_in_python_m_services_cli_is_one_line(delay):
     assert err.strip().endswith("interrupted"), err
 
 
+# a Ctrl-C as pydantic builds the first validator after ``entry`` starts, its
+# KeyboardInterrupt coming out as another exception (pydantic-core's SchemaError "… literal
+# validator: KeyboardInterrupt" did, through ``except KeyboardInterrupt``: a CI run's
+# traceback, exit 1)
+_WRAPPED_CTRL_C = """
+import os, signal, sys, time
+from pydantic._internal import _model_construction as mc
+
+real = mc.create_schema_validator
+
+def interrupted(*args, **kwargs):
+    mc.create_schema_validator = real
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.5)
+    except KeyboardInterrupt:
+        raise RuntimeError("Error building 'literal' validator: KeyboardInterrupt") from None
+    return real(*args, **kwargs)
+
+mc.create_schema_validator = interrupted
+sys.argv = ["autotune", "loops", "--prefix", "early"]
+from services.entry import entry
+entry()
+"""
+
+
+def test_ctrl_c_that_a_library_wraps_while_the_modules_load_is_one_line():
+    proc = subprocess.run(
+        [sys.executable, "-c", _WRAPPED_CTRL_C], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 130 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr == "autotune: interrupted\n", proc.stderr
+
+
 def test_a_reader_that_leaves_the_pipe_early_is_no_error(monkeypatch):
     """``autotune … | head -1``: it printed "error: Broken pipe" (noticed last stop); now
     silent, exit 141 as a shell reports for any writer whose reader left."""
