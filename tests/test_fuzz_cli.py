@@ -359,6 +359,27 @@ def test_ctrl_c_early_in_python_m_services_cli_is_one_line(delay):
     assert err.strip().endswith("interrupted"), err
 
 
+@pytest.mark.parametrize("delay", [0.2, 0.6])
+def test_ctrl_c_early_in_python_m_services_plant_sim_is_one_line(delay):
+    """``python -m services.plant_sim`` imports scipy and loads its plant file before it
+    serves: a Ctrl-C then printed a traceback through the imports and died by SIGINT (-2);
+    now one line and exit 130, or, once it serves, its clean stop (exit 0)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.plant_sim", "--prefix", f"early{os.getpid()}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(delay)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert "Traceback" not in err, err
+    if proc.returncode == 130:
+        assert err == "autotune: interrupted\n", err
+    else:
+        assert proc.returncode == 0 and "stopped" in err, (proc.returncode, err)
+
+
 # a Ctrl-C as pydantic builds the first validator after ``entry`` starts, its
 # KeyboardInterrupt coming out as another exception (pydantic-core's SchemaError "… literal
 # validator: KeyboardInterrupt" did, through ``except KeyboardInterrupt``: a CI run's
