@@ -181,7 +181,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def entry(argv: list[str] | None = None) -> None:
-    """The ``autotune`` console script and ``python -m`` entry: ``main`` then ``exit_now``."""
+    """The ``autotune`` console script and ``python -m`` entry: ``main`` then ``exit_now``.
+    Until the command line is parsed (its command's modules loaded) a Ctrl-C is one line and
+    exit 130 at once (``quit_while_loading``), as from the console script's start."""
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # a service's __main__
+        signal.signal(signal.SIGINT, quit_while_loading)
     try:
         code = main(argv)
     except SystemExit as stop:
