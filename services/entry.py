@@ -13,7 +13,7 @@ def quit_while_loading(signum: int, frame: object) -> None:
     """SIGINT while the modules load and the command line is parsed: one line, exit 130 at
     once. Why a handler, not ``except KeyboardInterrupt``: a Ctrl-C that lands while
     pydantic builds a model's validator comes out as its SchemaError ("… KeyboardInterrupt"),
-    and ran past that clause as a traceback, exit 1 (a CI run's Ctrl-C test, 1 in ~50).
+    and ran past that clause as a traceback, exit 1 (a fresh-clone CI run's Ctrl-C test).
     Nothing is open or sent before a command runs, so there is nothing to undo.
     ``services.cli.main`` puts Python's own handler back before the command runs."""
     os.write(sys.stderr.fileno(), b"autotune: interrupted\n")

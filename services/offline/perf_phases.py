@@ -33,15 +33,17 @@ from pathlib import Path
 
 import zenoh
 
+from services.autotuner.identify.experiments import Band
 from services.autotuner.loop_client import wait_for_token
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.launcher import free_tcp_port, start_service, stop_service
 from services.offline import perf
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
+from services.plant_sim.simulation.loop import SimLoop
 from shared import keys, wire
 from shared.errors import AutotuneError
-from shared.messages import TuneProgress, TuneRequest, TuneResult
+from shared.messages import ProcessSample, RecordStops, TuneProgress, TuneRequest, TuneResult
 from shared.session import open_session
 
 LOOP = "ph1"
@@ -139,11 +141,13 @@ def _last_t(payload: bytes) -> float | None:
 class _TimedClient(LocalLoopClient):
     """The in-process loop client, each advance's last sample timed as it is handed over."""
 
-    def __init__(self, sim, arrivals: list[tuple[float, float]]):
+    def __init__(self, sim: SimLoop, arrivals: list[tuple[float, float]]):
         super().__init__(sim)
         self.arrivals = arrivals
 
-    def advance(self, steps, band=None, record=None):
+    def advance(
+        self, steps: int, band: Band | None = None, record: RecordStops | None = None
+    ) -> list[ProcessSample]:
         out = super().advance(steps, band, record)
         if out:
             self.arrivals.append((out[-1].t, time.perf_counter()))
