@@ -14,6 +14,7 @@ The output is in % already; the PV is in engineering units over its transmitter'
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import pytest
@@ -491,3 +492,31 @@ def test_a_quotient_unit_is_bracketed_where_it_is_a_factor():
                    "model_lag_1": 1.8, "model_delay": 1.6})  # fmt: skip
     text = format_result(r)
     assert "K_u = 15.34 %/(m3/h)" in text and "%/m3/h" not in text
+
+
+def test_analyze_says_a_live_run_ended_before_its_figures_and_compares_nothing() -> None:
+    """An hx1 relay cancelled at the sample that closed its last cycle: the record completes
+    the test offline, and `analyze` printed "live run: no K_u and P_u measured → DIFFERENT",
+    nowhere that the run had been cancelled (helper review). It says how the run ended."""
+    from services.autotuner.identify.experiments import Identification
+    from services.logger.analysis import Analysis, dumps, format_analysis
+    from shared.messages import TuneResult
+
+    live = TuneResult(
+        run_id="r", loop="x", t=1.0, method="relay", rule="auto", status="aborted",
+        reason="cancelled",
+    )  # fmt: skip
+    a = Analysis("f.mcap", "x", "relay", Identification(ku=15.2, pu=43.7), {}, live)
+    text = format_analysis(a, None)
+    assert "live run: aborted (cancelled) before it reported its figures" in text, text
+    assert "DIFFERENT" not in text and "None" not in text, text
+    assert json.loads(dumps(a, None))["live"]["status"] == "aborted"
+    # nothing identified offline either: said as before, with how the run ended
+    a = Analysis("f.mcap", "x", "relay", Identification(), {}, live)
+    assert "live run: aborted (cancelled); no K_u and P_u measured" in format_analysis(a, None)
+    # a run that ended with figures and was rejected: its status, then the comparison
+    rejected = live.model_copy(update={"status": "rejected", "reason": "worse", "ku": 15.2})
+    rejected = rejected.model_copy(update={"pu": 43.7})
+    a = Analysis("f.mcap", "x", "relay", Identification(ku=15.2, pu=43.7), {}, rejected)
+    text = format_analysis(a, None)
+    assert "live run: rejected (worse)\n  live run: K_u = 15.2, P_u = 43.7 → identical" in text

@@ -111,6 +111,8 @@ class Analysis:
             out["chosen"] = self.gains[rule].to_dict() if rule in self.gains else None
         if self.live is not None:
             out["live"] = {
+                "status": self.live.status,
+                "reason": self.live.reason,
                 "ku": self.live.ku,
                 "pu": self.live.pu,
                 "rule": self.live.rule,
@@ -370,13 +372,7 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
             f"{a.first_gap}): re-identified on a record with holes, not the live run's"
         )
     if a.live is not None:
-        same = "identical" if a.matches_live() else "DIFFERENT"
-        if a.live.step is not None:  # a step test's: its reaction curve, not K_u and P_u
-            lines.append(f"  live run: its step response's figures → {same}")
-        elif a.live.ku is None or a.live.pu is None:  # none measured (said in its warnings)
-            lines.append(f"  live run: no K_u and P_u measured → {same}")
-        else:
-            lines.append(f"  live run: K_u = {a.live.ku}, P_u = {a.live.pu} → {same}")
+        lines += _live_lines(a)
     lines.append(f"  {'rule':<15}{'Kc':>10}{'Ti (s)':>10}{'Td (s)':>10}")
     for name, g in a.gains.items():
         if rule and name != rule:
@@ -385,6 +381,33 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
         ti = "—" if isa.ti is None else f"{isa.ti:.4g}"
         lines.append(f"  {name:<15}{isa.kc:>10.4g}{ti:>10}{isa.td:>10.4g}")
     return "\n".join(lines)
+
+
+def _live_lines(a: Analysis) -> list[str]:
+    """The live run against this analysis. A run that ended before it reported its figures
+    (aborted: cancelled, a lost peer, a budget; failed) has nothing to compare: said so, with
+    its status and reason, not "DIFFERENT" (an hx1 relay cancelled at the sample that closed
+    its last cycle read "live run: no K_u and P_u measured → DIFFERENT", and nowhere that it
+    had been cancelled)."""
+    live = a.live
+    assert live is not None
+    how = live.status + (f" ({live.reason})" if live.reason else "")
+    same = "identical" if a.matches_live() else "DIFFERENT"
+    if live.step is None and live.ku is None and live.status in ("aborted", "failed"):
+        if a.ident.ku is not None or a.ident.step is not None:
+            return [
+                f"  live run: {how} before it reported its figures; the record completes the "
+                "test offline (figures the live run never gave)"
+            ]
+        return [f"  live run: {how}; no K_u and P_u measured → {same}"]
+    out = [] if live.status in ("ok", "unverified", "proposed") else [f"  live run: {how}"]
+    if live.step is not None:  # a step test's: its reaction curve, not K_u and P_u
+        out.append(f"  live run: its step response's figures → {same}")
+    elif live.ku is None or live.pu is None:  # none measured (said in its warnings)
+        out.append(f"  live run: no K_u and P_u measured → {same}")
+    else:
+        out.append(f"  live run: K_u = {live.ku}, P_u = {live.pu} → {same}")
+    return out
 
 
 def dumps(a: Analysis, rule: str | None) -> str:
