@@ -520,3 +520,15 @@ def test_analyze_says_a_live_run_ended_before_its_figures_and_compares_nothing()
     a = Analysis("f.mcap", "x", "relay", Identification(ku=15.2, pu=43.7), {}, rejected)
     text = format_analysis(a, None)
     assert "live run: rejected (worse)\n  live run: K_u = 15.2, P_u = 43.7 → identical" in text
+
+
+def test_analyze_gives_its_figures_in_the_pv_units_the_run_recorded() -> None:
+    """`analyze` printed K_u without a unit and an integrating loop's R = K' "per s per %"
+    where the tune prints "m/s per %" (helper review): the run's PV units, as the tune's."""
+    from services.autotuner.identify.experiments import Identification
+    from services.logger.analysis import Analysis, format_analysis
+
+    a = Analysis("f.mcap", "x", "relay", Identification(ku=15.2, pu=43.7), {}, None)
+    assert "K_u = 15.2 %/PV unit   P_u = 43.7 s" in format_analysis(a, None)
+    a.pv_units = "m3/h"
+    assert "K_u = 15.2 %/(m3/h)   P_u = 43.7 s" in format_analysis(a, None)

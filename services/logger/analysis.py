@@ -44,6 +44,7 @@ from shared.control.forms import (
     process_gain_percent,
     pv_span,
     step_percent,
+    unit,
 )
 from shared.errors import AutotuneError, one_line
 from shared.messages import ProcessSample, TuneRequest, TuneResult, TunerEvent
@@ -63,6 +64,7 @@ class Analysis:
     # gap: the experiment then decided on a record with holes, not the live run's
     missing: int = 0
     first_gap: int | None = None
+    pv_units: str | None = None  # the transmitter's, as the run recorded them
 
     @property
     def spreads(self) -> tuple[float | None, float | None]:
@@ -309,6 +311,7 @@ def analyze_file(path: str | Path) -> Analysis:
         pv_range,
         missing,
         first_gap,
+        data.get("pv_units") if isinstance(data.get("pv_units"), str) else None,
     )
 
 
@@ -349,18 +352,19 @@ class _Record:
 
 def format_analysis(a: Analysis, rule: str | None) -> str:
     lines = [f"{a.path}: {a.method} test of {a.loop}, re-identified offline"]
+    pv = unit(a.pv_units)  # the figures' units as the tune prints them
     if a.ident.ku is not None:
-        lines.append(f"  K_u = {a.ident.ku:.6g}   P_u = {a.ident.pu:.6g} s")
+        lines.append(f"  K_u = {a.ident.ku:.6g} %/{pv}   P_u = {a.ident.pu:.6g} s")
     if isinstance(a.ident.step, IntegratingCurve):
         s = a.ident.step
         lines.append(
-            f"  integrating: R = K' = {s.reaction_rate:.4g} per s per %  L = {s.dead_time:.4g} s"
-            f"  a = R·L = {s.a:.4g}"
+            f"  integrating: R = K' = {s.reaction_rate:.4g} {pv}/s per %  "
+            f"L = {s.dead_time:.4g} s  a = R·L = {s.a:.4g} {pv}/%"
         )
     elif a.ident.step is not None:
         s = a.ident.step
         lines.append(
-            f"  step curve: K = {s.gain:.4g}  L = {s.dead_time:.4g} s  "
+            f"  step curve: K = {s.gain:.4g} {pv}/%  L = {s.dead_time:.4g} s  "
             f"T = {s.time_constant_tangent:.4g} s  L/T = {s.l_over_t:.3f}"
         )
     # the dead time the design took where the curve's is not resolved (the rules above rest
