@@ -362,3 +362,31 @@ def test_the_nyquist_ticks_of_a_small_gain_do_not_run_together(tmp_path):
         )
         assert len(boxes) >= 3
         assert all(a[1] < b[0] for a, b in itertools.pairwise(boxes)), boxes
+
+
+def test_a_harmonic_open_below_leaves_the_magnitude_axis_to_the_data_and_no_disc_is_promised():
+    """lvl2's relay: the fundamentals stated no uncertainty, a harmonic ± 130 %. Its lower
+    bar was drawn to a thousandth of the point and took the |G| axis down to 1e-7, and the
+    Nyquist title promised discs that were not drawn (helper review)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from services.logger.bode import Crossing, FrequencyFigure, MeasuredPoint
+    from services.logger.report import Report, RunSeries, draw_bode
+
+    points = (
+        MeasuredPoint("stage 1", 1, 0.4, 2.5e-4, -135.0, None),
+        MeasuredPoint("stage 1", 3, 1.2, 1.2e-4, -210.0, 0.26),
+        MeasuredPoint("stage 1", 5, 2.0, 4.0e-5, -390.0, 1.3),
+    )
+    f = FrequencyFigure(points, None, (Crossing("model", 0.78, 1.28e-4),), "no uncertainty")
+    s = RunSeries(*(np.zeros(2),) * 4, [], [], None, {})
+    fig = Figure()
+    FigureCanvasAgg(fig)
+    mag, ph, ny = fig.add_subplot(311), fig.add_subplot(312), fig.add_subplot(313)
+    draw_bode(mag, ph, ny, Report("f.mcap", s, f, None, []))
+    assert "disc" not in ny.get_title(), ny.get_title()
+    lo, hi = mag.get_ylim()
+    # the lowest point (k = 5's; its bar's lower bound is below 0) and the highest (the
+    # fundamental, over every bar's upper bound), a factor 2 beyond each
+    assert (lo, hi) == pytest.approx((4.0e-5 / 2, 2.5e-4 * 2)), (lo, hi)

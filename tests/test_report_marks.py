@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from services.logger.before_after import figures_rows, verify_traces
-from services.logger.run_marks import experiment_marks, verify_windows
+from services.logger.run_marks import experiment_marks, gains_marks, verify_windows
 from shared.messages import (
     DisturbanceCommand,
+    GainsCommand,
     PidGains,
     SetpointCommand,
     TuneProgress,
@@ -100,3 +101,65 @@ def test_every_kind_of_experiment_mark_is_labelled():
         (4.0, "trial", "trial 3: Kc 2.25 %/degC"),
         (6.0, "output step", "output step to 45 %"),
     ]
+
+
+def test_a_window_ends_where_its_gains_were_replaced_and_the_restore_is_marked():
+    """A rejected run gives the old gains back before its phase ends: the "after" window ran
+    on past the restore (hx1's by 144 s), the old gains' response drawn as the new ones', and
+    nothing marked the restore (helper review). Gains commands at a window's start are its
+    own; the one after ends it and is marked "gains restored"."""
+    old, new = PidGains(kc=1.0, ti=10.0), PidGains(kc=2.0, ti=8.0, td=1.0)
+    gains = [
+        GainsCommand(loop="x1", t=100, gains=old),  # the "before" verification's own
+        GainsCommand(loop="x1", t=300, gains=new),  # the "after" one's
+        GainsCommand(loop="x1", t=460, gains=old),  # the restore, before "done" at 500
+        GainsCommand(loop="x1", t=500, gains=old),  # the same again as the run ends
+    ]
+    trials = [GainsCommand(loop="x1", t=t, gains=PidGains(kc=t)) for t in (20.0, 40.0)]
+    before, after = verify_windows(PROGRESS, SETPOINTS, LOADS, 600.0, True, trials + gains)
+    assert (before.start, before.end, after.start, after.end) == (100, 300, 300, 460)
+    # a ramp's trial gains come before the verifications: their marks are the trials'
+    (mark,) = gains_marks(trials + gains, [before, after], old, "degC")
+    assert (mark.t, mark.kind) == (460, "gains")
+    assert mark.label == "gains restored: Kc 1 %/degC, Ti 10 s, Td 0 s", mark.label
+    # an ok run sets its chosen gains again as it ends: no change, no mark, no end
+    twice = [gains[1], gains[1].model_copy(update={"t": 500.0})]
+    (after,) = verify_windows(PROGRESS[2:], SETPOINTS, LOADS, 600.0, False, twice)
+    assert after.end == 500 and gains_marks(twice, [after], old, "degC") == []
+    # gains that are not the loop's own before the run: set, not restored
+    (mark,) = gains_marks(gains, [before, after], new, "m3/h")
+    assert mark.label == "gains set: Kc 1 %/(m3/h), Ti 10 s, Td 0 s", mark.label
+
+
+def test_a_mark_label_under_the_summary_box_hangs_below_it_and_window_labels_stack():
+    """The first trials' Kc hung from the top of the plot under the summary box, hidden
+    (hx1's ramp), and two verification labels 25 s apart overprinted each other (flow1's):
+    each now reads clear of the box and of the other labels."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from services.logger.report import MARK_LABEL, WINDOW_LABEL, place_labels
+
+    fig = Figure(figsize=(10, 4))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.plot([0, 700], [0, 1])
+    ax.set_xlim(0, 700)
+    box = ax.text(0.01, 0.98, "summary\n" * 5, transform=ax.transAxes, va="top", bbox={})
+    at = ax.get_xaxis_transform()
+    marks = [
+        ax.text(x, 1.0, f"Kc {x}", transform=at, rotation=90, va="top", gid=MARK_LABEL)
+        for x in (20, 60, 600)
+    ]
+    windows = [
+        ax.text(x, 0.02, f" verification {w}", transform=at, va="bottom", gid=WINDOW_LABEL)
+        for x, w in ((610, "before"), (635, "after"))
+    ]
+    fig.draw_without_rendering()
+    r = fig.canvas.get_renderer()
+    assert marks[0].get_window_extent(r).overlaps(box.get_window_extent(r))  # as it was drawn
+    place_labels(fig)
+    extents = [t.get_window_extent(r) for t in (*marks, *windows)]
+    assert not any(e.overlaps(box.get_window_extent(r)) for e in extents)
+    assert not extents[3].overlaps(extents[4])
+    assert marks[2].get_position()[1] == 1.0  # clear of the box: where it was

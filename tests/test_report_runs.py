@@ -197,9 +197,34 @@ def test_an_aborted_runs_report_says_why_it_has_no_verification(runs, tmp_path):
     texts = [t.get_text() for ax in fig.axes for t in ax.texts]
     assert any("the run ended (aborted) before any verification" in t for t in texts), texts
     assert not any("not in auto" in t for t in texts)
+    # its figures' table says why it is empty, not a header over nothing (helper review)
+    assert "none: the run ended (aborted) before any verification" in texts, texts
     # the limits it aborted at are drawn, and named in the legend
     ax_pv = next(ax for ax in fig.axes if ax.get_ylabel().startswith("PV, setpoint"))
     flat = {float(ln.get_ydata()[0]) for ln in ax_pv.lines if len(set(ln.get_ydata())) == 1}
     assert {sp - 0.05, sp + 0.05} <= flat
     labels = [t.get_text() for t in ax_pv.get_legend().texts]
     assert "the test's PV limits (--pv-limits)" in labels, labels
+
+
+def test_a_refused_runs_report_shows_the_refused_gains_and_an_integrating_curve_its_rate():
+    """The refused zn-pid run's report showed no gains, while `autotune runs` listed them;
+    an integrating step test's summary read "K = −  T = −" (helper review). The summary and
+    the gains lines give the refused rule's gains, and R = K', L and a in the PV's units."""
+    from services.logger.report import RunSeries, _gains_lines, _summary
+    from shared.messages import TuneResult
+
+    isa = {"kc": 9.182, "ti": 21.78, "td": 5.445}
+    refused = TuneResult(
+        run_id="r", loop="hx1", t=1.0, method="relay", rule="zn-pid", status="rejected",
+        reason="refused: zn-pid: predicted Ms 2.28 above the bound 2", pv_units="degC",
+        gains={"zn-pid": {"isa": isa}}, ku=15.3, pu=43.56,
+    )  # fmt: skip
+    s = RunSeries(*(np.zeros(2),) * 4, [], [], refused, {})
+    assert "refused: Kc 9.182 %/degC" in _summary(s), _summary(s)
+    assert any(line.startswith("refused (zn-pid): Kc 9.182") for line in _gains_lines(s))
+    step = {"method": "integrating", "reaction_rate": 1.001e-4, "dead_time": 2.281, "a": 2.283e-4}
+    level = refused.model_copy(update={"status": "ok", "pv_units": "m", "step": step})
+    text = _summary(RunSeries(*(np.zeros(2),) * 4, [], [], level, {}))
+    assert "R = K' = 0.0001001 m/s per %  L = 2.28 s  a = R·L = 0.0002283 m/%" in text, text
+    assert "K = " not in text and "refused:" not in text.split("\n")[2]  # ok: chosen, bare

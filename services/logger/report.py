@@ -40,13 +40,20 @@ from services.logger.mcap_io import (
 )
 from services.logger.overlay import Overlay, model_overlay
 from services.logger.result_model import result_model
-from services.logger.run_marks import Mark, VerifyWindow, experiment_marks, verify_windows
+from services.logger.run_marks import (
+    Mark,
+    VerifyWindow,
+    experiment_marks,
+    gains_marks,
+    verify_windows,
+)
 from shared import keys
 from shared.control.forms import unit
 from shared.errors import AutotuneError, one_line
 from shared.history_file import HISTORY_FILE, loop_changes, read_history
 from shared.messages import (
     DisturbanceCommand,
+    GainsCommand,
     SetpointCommand,
     TuneProgress,
     TuneResult,
@@ -116,13 +123,20 @@ def load_series(path: str | Path) -> RunSeries:
     result = one_result(path, results)
     setpoints = _by_schema(path, records, SetpointCommand)
     loads = _by_schema(path, records, DisturbanceCommand)
+    gains = _by_schema(path, records, GainsCommand)
     marks = [(e.t, f"cycle {e.data.get('n')}") for e in events if e.kind == "cycle"]
     marks += [(e.t, f"trial {e.data.get('n')}") for e in events if e.kind == "trial"]
     windows = verify_windows(
-        progress, setpoints, loads, samples[-1].t, result is not None and result.before is not None
+        progress,
+        setpoints,
+        loads,
+        samples[-1].t,
+        result is not None and result.before is not None,
+        gains,
     )
     setup = next((dict(e.data) for e in events if e.kind == "experiment"), {})
     units = result.pv_units if result else str(setup.get("pv_units") or "")
+    previous = result.previous_gains if result else None
     return RunSeries(
         np.array([s.t for s in samples]),
         np.array([s.pv for s in samples]),
@@ -134,7 +148,10 @@ def load_series(path: str | Path) -> RunSeries:
         meta,
         history_lines(Path(path).parent, meta.get("loop", ""), run_id or "", bus_of(meta))
         + watch_lines(Path(path).parent, meta.get("loop", ""), run_id or ""),
-        experiment_marks(events, units),
+        sorted(
+            experiment_marks(events, units) + gains_marks(gains, windows, previous, units),
+            key=lambda m: m.t,
+        ),
         windows,
         setup,
         np.array([s.seq for s in samples]),
@@ -242,14 +259,25 @@ def _summary(s: RunSeries) -> str:
             + f"   P_u = {_g(r.pu, '.4g', ' s')}"
         )
     step = r.step if isinstance(r.step, dict) else {}
-    if step:
+    pv = unit(r.pv_units)
+    if step.get("method") == "integrating":  # no K nor T: its rate and dead time
         lines.append(
-            f"K = {_g(step.get('gain'), '.3g')}  L = {_g(step.get('dead_time'), '.3g', ' s')}  "
+            f"R = K' = {_g(step.get('reaction_rate'), '.4g', f' {pv}/s per %')}  "
+            f"L = {_g(step.get('dead_time'), '.3g', ' s')}  "
+            f"a = R·L = {_g(step.get('a'), '.4g', f' {pv}/%')}"
+        )
+    elif step:
+        lines.append(
+            f"K = {_g(step.get('gain'), '.3g', f' {pv}/%')}  "
+            f"L = {_g(step.get('dead_time'), '.3g', ' s')}  "
             f"T = {_g(step.get('time_constant_tangent'), '.3g', ' s')}"
         )
-    isa = (r.chosen or {}).get("isa") if isinstance(r.chosen, dict) else None
-    if isinstance(isa, dict):
-        lines.append(gains_text(isa, r.pv_units, span))
+    shown = _shown_gains(r)
+    if shown is not None:
+        label, isa = shown
+        lines.append(
+            ("" if label == "chosen" else f"{label}: ") + gains_text(isa, r.pv_units, span)
+        )
     if r.after is not None:
         a = r.after
         lines.append(
@@ -270,6 +298,7 @@ MARK_STYLE = {
     "trial": ("tab:purple", "--"),
     "load": ("tab:brown", "-."),
     "output step": ("tab:cyan", "-"),
+    "gains": ("black", (0, (1, 1))),
 }
 
 
@@ -311,7 +340,8 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
     for m in s.events:
         if m.kind in MARK_STYLE:
             color, ls = MARK_STYLE[m.kind]
-            for ax in (ax_pv, ax_op) if m.kind in ("output step", "relay amplitude") else (ax_pv,):
+            both = m.kind in ("output step", "relay amplitude", "gains")
+            for ax in (ax_pv, ax_op) if both else (ax_pv,):
                 ax.axvline(m.t, color=color, lw=0.7, ls=ls)
         if m.kind in ("cycle", "trial"):
             ax_pv.text(
@@ -324,6 +354,7 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
                 ha="right",
                 fontsize=6,
                 color=MARK_STYLE[m.kind][0],
+                gid=MARK_LABEL,
             )
     if not s.events and s.marks:  # a file whose events only the old marks list holds
         for t, _ in s.marks:
@@ -351,6 +382,9 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
         first = next(m for m in s.events if m.kind == "output step")
         handles_pv.append(_proxy(f"step test: {first.label}", *MARK_STYLE["output step"]))
         handles_op.append(_proxy(f"step test: {first.label}", *MARK_STYLE["output step"]))
+    for m in (m for m in s.events if m.kind == "gains"):  # each its own: its gains differ
+        handles_pv.append(_proxy(f"{m.label} (t = {m.t:g} s)", *MARK_STYLE["gains"]))
+        handles_op.append(_proxy(m.label.split(":")[0], *MARK_STYLE["gains"]))
     if "trial" in kinds:
         handles_pv.append(_proxy(f"ramp trial (its Kc, %/{unit(units)})", *MARK_STYLE["trial"]))
     for w in s.windows:
@@ -366,6 +400,7 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
             va="bottom",
             fontsize=7,
             color="tab:orange",
+            gid=WINDOW_LABEL,
         )
     if s.windows:
         loads = [w for w in s.windows if w.load_t is not None]
@@ -427,6 +462,38 @@ def _title(s: RunSeries) -> str:
     else:
         what = f"{s.meta.get('method', '')} tuning run {run_id}"
     return f"{loop}: {what} ({started[:19]} UTC)"
+
+
+MARK_LABEL, WINDOW_LABEL = "mark label", "window label"  # the trends' labels (``place_labels``)
+
+
+def place_labels(fig: Figure) -> None:
+    """Keep the trends' labels readable (the layout final: they are measured as drawn). A
+    mark's label (a relay cycle's number, a trial's Kc) hangs from the top of the plot; one
+    that falls under the summary box hangs from the box's foot instead, on a white ground
+    (the first six trials' Kc of an hx1 ramp were hidden under it). A verification's label
+    that would overprint the one before it (flow1's two windows 25 s apart read "verification
+    bevfecification after") goes up a line."""
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        boxes = [t.get_window_extent(renderer) for t in ax.texts if t.get_bbox_patch()]
+        to_axes = ax.transAxes.inverted()
+        for t in (t for t in ax.texts if t.get_gid() == MARK_LABEL):
+            e = t.get_window_extent(renderer)
+            for b in boxes:
+                if e.x1 > b.x0 and e.x0 < b.x1 and e.y1 > b.y0 and e.y0 < b.y1:
+                    t.set_y(to_axes.transform((0.0, b.y0))[1] - 0.01)
+                    t.set_bbox({"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5})
+        placed: list[Any] = []
+        for t in sorted(
+            (t for t in ax.texts if t.get_gid() == WINDOW_LABEL), key=lambda t: t.get_position()[0]
+        ):
+            for _ in range(len(placed)):
+                e = t.get_window_extent(renderer)
+                if not any(e.overlaps(p) for p in placed):
+                    break
+                t.set_y(to_axes.transform((0.0, e.y1))[1] + 0.005)
+            placed.append(t.get_window_extent(renderer))
 
 
 def keep_clear(fig: Figure) -> None:
@@ -494,6 +561,7 @@ def build_figure(s: RunSeries) -> Figure:
         _text_panel(axes[2], s.history)
     fig.suptitle(_title(s))
     fig.draw_without_rendering()  # the constrained layout made, the boxes where they will be
+    place_labels(fig)
     keep_clear(fig)
     return fig
 
@@ -629,6 +697,7 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
         ax_mag.loglog(c.omega, c.magnitude, color="black", lw=1.1, label=c.label)
         ax_ph.semilogx(c.omega, c.phase_deg, color="black", lw=1.1, label=c.label)
         ax_ny.plot(c.g.real, c.g.imag, color="black", lw=1.1, label=c.label)
+    open_below = False  # a harmonic's bar that reaches 0 (drawn to the axis' foot)
     for stage in dict.fromkeys(p.stage for p in f.points):
         color, marker = STAGE_STYLE.get(stage, ("tab:green", "o"))
         pts = [p for p in f.points if p.stage == stage]
@@ -680,6 +749,7 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
                 lo_hi = np.array([p.magnitude_bounds for p in harm]).T
                 err_mag = np.vstack((mag - np.maximum(lo_hi[0], 1e-3 * mag), lo_hi[1] - mag))
                 err_ph = np.array([p.phase_bound_deg for p in harm])
+                open_below |= bool(np.any(lo_hi[0] <= 0))
             ax_mag.errorbar(w, mag, yerr=err_mag, capsize=3, **style)
             ax_ph.errorbar(w, ph, yerr=err_ph, capsize=3, **style)
             ax_mag.set_xscale("log")
@@ -703,6 +773,8 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
         ax_ny.plot(
             [-c.magnitude], [0.0], ls="", marker=marker, ms=9, mew=1.5, color=color, label=label
         )
+    if open_below:
+        _magnitude_range(ax_mag, f)
     ax_ph.axhline(-180.0, color="0.4", lw=0.7, ls="--")
     ax_ny.axhline(0.0, color="0.6", lw=0.5)
     ax_ny.axvline(0.0, color="0.6", lw=0.5)
@@ -723,7 +795,9 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
     ax_mag.yaxis.set_minor_locator(NullLocator())
     ax_mag.xaxis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
     ax_ph.xaxis.set_minor_formatter(NullFormatter())
-    discs = any(p.uncertainty is not None for p in f.points)
+    # drawn around the fundamentals alone (a harmonic's uncertainty is a bar): a title that
+    # promised discs over a relay whose fundamentals stated none (lvl2) showed none
+    discs = any(p.uncertainty is not None for p in f.fundamentals)
     ax_ny.set_title(f"Nyquist: G(jω){', discs of radius δ·|G|' if discs else ''}", fontsize=9)
     ax_ny.set_xlabel(f"Re G ({unit(units)}/%)")
     ax_ny.set_ylabel(f"Im G ({unit(units)}/%)")
@@ -736,6 +810,25 @@ def draw_bode(ax_mag: Axes, ax_ph: Axes, ax_ny: Axes, rep: Report) -> None:
         ax.grid(True, which="both", lw=0.3, alpha=0.5)
     ax_mag.legend(fontsize=6, loc="lower left")
     ax_ny.legend(fontsize=6, loc="lower right")
+
+
+def _magnitude_range(ax: Axes, f: FrequencyFigure) -> None:
+    """|G|'s range from the model over the plotted band, the points and their bars' finite
+    bounds, a factor 2 beyond: a harmonic's bar whose lower bound is 0 (its noise's share
+    over 100 %) runs off the foot, open below, instead of stretching the axis down to a
+    thousandth of the point (lvl2's k = 5 at ± 130 %: the axis went to 1e-7 and the model
+    and the points filled its top third)."""
+    values = [p.magnitude for p in f.points]
+    values += [p.magnitude_bounds[0] for p in f.points if p.uncertainty is not None]
+    values += [p.magnitude_bounds[1] for p in f.points if p.uncertainty is not None]
+    values += [c.magnitude for c in f.crossings]
+    if f.model is not None:
+        lo_w, hi_w = ax.get_xlim()
+        inside = (f.model.omega >= lo_w) & (f.model.omega <= hi_w)
+        values += [float(v) for v in np.asarray(f.model.magnitude)[inside]]
+    finite = [v for v in values if math.isfinite(v) and v > 0]
+    if finite:
+        ax.set_ylim(min(finite) / 2, max(finite) * 2)
 
 
 def _nyquist_limits(ax: Axes, f: FrequencyFigure) -> None:
@@ -801,8 +894,11 @@ def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
         ax.grid(True, lw=0.4, alpha=0.5)
         ax.legend(fontsize=6, loc="upper right")
     rows = figures_rows(r.before if r else None, r.after if r else None, units)
-    lines = [f"{'':<28}{'before':>10}{'after':>10}"]
-    lines += [f"{a:<28.28}{b:>10}{c:>10}" for a, b, c in rows]
+    if rows:
+        lines = [f"{'':<28}{'before':>10}{'after':>10}"]
+        lines += [f"{a:<28.28}{b:>10}{c:>10}" for a, b, c in rows]
+    else:  # a header over nothing read as figures lost (an aborted or refused run)
+        lines = ["none: " + _no_verification(r, "after").replace("\n", " ")]
     if r is not None and isinstance(r.acceptance, dict):
         lines.append("")
         lines.append(f"acceptance: {'passed' if r.acceptance.get('passed') else 'not passed'}")
@@ -813,6 +909,21 @@ def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
     ax_table.set_title("verification figures", fontsize=9, loc="left")
 
 
+def _shown_gains(r: TuneResult) -> tuple[str, dict] | None:
+    """("chosen", the chosen gains' ISA dict), or for a run refused before any was chosen (the
+    safety envelope: `chosen` empty) ("refused", its rule's own), as `autotune runs` lists
+    them; None without either (the refused zn-pid's report showed no gains at all, while
+    `runs` listed them)."""
+    isa = (r.chosen or {}).get("isa") if isinstance(r.chosen, dict) else None
+    if isinstance(isa, dict):
+        return "chosen", isa
+    ruled = r.gains.get(r.rule) if isinstance(r.gains, dict) else None
+    isa = ruled.get("isa") if isinstance(ruled, dict) else None
+    if isinstance(isa, dict) and r.status == "rejected":
+        return "refused", isa
+    return None
+
+
 def _gains_lines(s: RunSeries) -> list[str]:
     """The chosen gains in every unit, and the loop's gains before (what revert gives back)."""
     r = s.result
@@ -820,9 +931,10 @@ def _gains_lines(s: RunSeries) -> list[str]:
         return []
     span = s.span
     lines = []
-    isa = (r.chosen or {}).get("isa") if isinstance(r.chosen, dict) else None
-    if isinstance(isa, dict):
-        lines.append(f"chosen ({r.rule}): {gains_text(isa, r.pv_units, span)}")
+    shown = _shown_gains(r)
+    if shown is not None:
+        label, isa = shown
+        lines.append(f"{label} ({r.rule}): {gains_text(isa, r.pv_units, span)}")
     if r.previous_gains is not None:
         g = r.previous_gains
         lines.append(
@@ -880,6 +992,7 @@ def build_report(rep: Report) -> Figure:
     draw_before_after([ax_b, ax_a], ax_t, rep)
     _text_panel(fig.add_subplot(grid[10, :]), text)
     fig.suptitle(_title(s), y=1 - 0.15 / total)
+    place_labels(fig)
     keep_clear(fig)
     return fig
 

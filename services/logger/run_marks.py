@@ -11,7 +11,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from shared.control.forms import unit
-from shared.messages import DisturbanceCommand, SetpointCommand, TuneProgress, TunerEvent
+from shared.messages import (
+    DisturbanceCommand,
+    GainsCommand,
+    PidGains,
+    SetpointCommand,
+    TuneProgress,
+    TunerEvent,
+)
 
 LOAD = "load"  # the disturbance input the verification steps (tuning._verify)
 
@@ -89,13 +96,18 @@ def verify_windows(
     disturbances: Sequence[DisturbanceCommand],
     t_end: float,
     with_before: bool,
+    gains: Sequence[GainsCommand] = (),
 ) -> list[VerifyWindow]:
     """Each ``verify`` phase of the run as a window; the last is "after", one before it
-    "before" when the result has a before-verification."""
+    "before" when the result has a before-verification. A window ends where the gains it
+    verified were replaced (``gains``: the run's gains commands; one at its start is its
+    own): a rejected run's restore comes before its phase ends, and the old gains' response
+    after it was drawn as the new gains' (hx1's "after" ran 144 s past the restore)."""
     starts = [p for p in progress if p.phase == "verify"]
     out = []
     for i, p in enumerate(starts):
         later = [q.t for q in progress if q.t > p.t and q.phase not in ("verify",)]
+        later += [c.t for c in gains_changes(gains) if c.t is not None and c.t > p.t]
         end = min([*later, *(q.t for q in starts[i + 1 :]), t_end])
         sps = [c for c in setpoints if c.t is not None and p.t <= c.t < end]
         sp0 = sps[0].sp if sps else None
@@ -121,4 +133,49 @@ def verify_windows(
                 loads[1].t if len(loads) >= 2 else None,
             )
         )
+    return out
+
+
+def _isa(g: PidGains) -> tuple[float, float | None, float]:
+    return (g.kc, g.ti, g.td)
+
+
+def gains_changes(gains: Sequence[GainsCommand]) -> list[GainsCommand]:
+    """The gains commands at a sim time that change the gains the one before set (a run
+    sets its chosen gains again as it ends: no change)."""
+    out: list[GainsCommand] = []
+    last = None
+    for c in sorted((c for c in gains if c.t is not None), key=lambda c: c.t or 0.0):
+        if last is None or _isa(c.gains) != _isa(last.gains):
+            out.append(c)
+        last = c
+    return out
+
+
+def _gains_text(g: PidGains, units: str) -> str:
+    ti = "off" if g.ti is None else f"{g.ti:.4g} s"
+    return f"Kc {g.kc:.4g} %/{unit(units)}, Ti {ti}, Td {g.td:.4g} s"
+
+
+def gains_marks(
+    gains: Sequence[GainsCommand],
+    windows: Sequence[VerifyWindow],
+    previous: PidGains | None,
+    units: str,
+) -> list[Mark]:
+    """The run's gains changes from its first verification on that no verification window
+    begins with: the loop's own gains given back (``previous``: "gains restored"), or others
+    set ("gains set"). A window's start already says its gains (and a ramp's trials, before
+    the verifications, their Kc); a restore, mid-window or after, was unmarked."""
+    if not windows:
+        return []
+    starts = {w.start for w in windows}
+    out = []
+    for c in gains_changes(gains):
+        if c.t is None or c.t < windows[0].start or c.t in starts:
+            continue
+        g = c.gains
+        same = previous is not None and _isa(g) == _isa(previous)
+        what = "gains restored" if same else "gains set"
+        out.append(Mark(c.t, "gains", f"{what}: {_gains_text(g, units)}"))
     return out
