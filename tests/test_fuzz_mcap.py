@@ -1144,3 +1144,19 @@ def test_a_recovered_file_is_listed_with_its_loop_and_method(recorded, tmp_path,
     (line,) = [x for x in out.splitlines() if x.endswith(fixed.name)]
     assert line.split()[:3] == ["2026-12-04T23:23:57", "hx1", "relay"], line
     assert "incomplete" in line and "unreadable" not in line
+
+
+def test_analyze_gives_the_designs_warnings_as_the_live_result_does(recorded, capsys):
+    """`analyze` printed none of the design's warnings while its gains matched the live run's
+    (an inverse response's "robustness … optimistic" left out: helper review). Every warning
+    of the live result that the design gives (the run's own, of its verification, aside) is
+    printed, once."""
+    from services.logger.analysis import analyze_file
+
+    rec = recorded["relay"]
+    a = analyze_file(rec.path)
+    assert a.selection is not None and a.selection.warnings  # the relay's, at least one
+    code, out, _ = cli(capsys, "analyze", str(rec.path))
+    assert code == 0
+    for w in a.selection.warnings:
+        assert w in rec.live.warnings and out.count(f"warning: {w}") == 1, (w, out)

@@ -369,7 +369,11 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
         )
     # the dead time the design took where the curve's is not resolved (the rules above rest
     # on it, not on the curve's L)
-    lines += [f"  warning: {n}" for n in a.ident.notes if UNRESOLVED in n]
+    said = [n for n in a.ident.notes if UNRESOLVED in n]
+    # and the design's own warnings, as the live result gives them (an inverse response's
+    # "robustness … optimistic" was left out while the gains matched the live run's)
+    said += [w for w in (a.selection.warnings if a.selection else []) if w not in said]
+    lines += [f"  warning: {w}" for w in said]
     if a.missing:
         lines.append(
             f"  WARNING: {a.missing} samples missing from the record (the first gap after seq "
