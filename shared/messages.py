@@ -613,6 +613,13 @@ class Verification(Message):
         "of the noise",
     )
     ringing_period: float | None = Field(default=None, description="s: that mode's period")
+    unmodelled_ringing: float | None = Field(
+        default=None,
+        description="a fast oscillatory mode of the setpoint step's response that the process "
+        "model's response to it does not have: its amplitude ratio over one period; None: "
+        "none stands out of the noise (or no model)",
+    )
+    unmodelled_period: float | None = Field(default=None, description="s: that mode's period")
 
 
 class TuneResult(Message):

@@ -636,3 +636,30 @@ def test_an_inverse_response_is_warned_of_and_the_lags_are_not_misnamed():
     said = [w for w in r.warnings if w.startswith("inverse response")]
     assert said and f"{100 * dip:.3g} % of its change" in said[0], (r.warnings, dip)
     assert r.lag_sum == pytest.approx(25.0, rel=0.01)
+
+
+def test_a_lightly_damped_mode_above_the_ultimate_frequency_is_named():
+    """100·e^{−s}/((5s + 1)(s² + 0.2s + 100)): "nothing stands in the way", then AMIGO PID at
+    a gain margin of 1.05 on its resonance (helper review, den 5s³ + 2s² + 501s + 100). Its
+    poles: −0.2 and −0.1 ± j√99.99, ω_n 10 rad/s, ζ 0.01. A well-damped pair (ζ 0.5) or a
+    lightly damped one near ω_u (the tuner's relay and models see it) is not named."""
+    table = {"model": "transfer_function", "num": [100.0], "delay": 1.0, "sample_time": 0.01}
+    r = check({**table, "den": [5.0, 2.0, 500.2, 100.0]})
+    (said,) = [w for w in r.warnings if w.startswith("a lightly damped mode")]
+    assert "at 10 rad/s (ζ 0.01, period 0.628 s)" in said, said
+    # (5s + 1)(s² + 10s + 100): ζ 0.5
+    assert not any(
+        "lightly damped" in w for w in check({**table, "den": [5.0, 51.0, 510.0, 100.0]}).warnings
+    )
+    # e^{−0.5s}/(s² + 0.3s + 1): ζ 0.15 at ω_n 1, below 2·ω_u
+    near = check(
+        {
+            "model": "transfer_function",
+            "num": [1.0],
+            "den": [1.0, 0.3, 1.0],
+            "delay": 0.5,
+            "sample_time": 0.05,
+        }
+    )
+    assert near.pu is not None and 2 * (2 * math.pi / near.pu) > 1.0
+    assert not any("lightly damped" in w for w in near.warnings)

@@ -30,6 +30,7 @@ from services.autotuner.compute_pool import compute_all, inline
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
+from services.autotuner.design.unmodelled_mode import unmodelled_mode
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import (
@@ -1433,6 +1434,7 @@ class TuningRun:
         y0 = sp0 if y_pre.size and at(sp0).done(np.array([]), y_pre) else float(np.mean(y_pre[-k:]))
         sp_m, saturated, load_m = None, False, None
         modes: list[Ringing | None] = []  # the loop's oscillatory mode in each response
+        fast: Ringing | None = None  # a fast mode the model lacks (``unmodelled_mode``)
         u = np.array([])
         if stopped is None:
             c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
@@ -1442,6 +1444,9 @@ class TuningRun:
                 t, y, t0, y0, sp0 + step, noise=ident.noise, width=width
             )
             modes.append(ringing(t, y, ident.noise, scale))
+            model = ident.model.transfer if ident.model is not None else None
+            isa = IsaGains(gains.kc, gains.ti, gains.td)
+            fast = unmodelled_mode(t, y, y0, step, isa, model, self.ts, ident.noise, scale, gains.n)
         op_lo, op_hi = self.info.op_limits
         # the setpoint step's response with the output at a limit is not the linear loop's
         limited = float(np.count_nonzero((u <= op_lo) | (u >= op_hi))) * self.ts if u.size else 0.0
@@ -1523,6 +1528,8 @@ class TuningRun:
             kick=abs(gains.kc * step),
             ringing=None if mode is None else mode.decay,
             ringing_period=None if mode is None else mode.period,
+            unmodelled_ringing=None if fast is None else fast.decay,
+            unmodelled_period=None if fast is None else fast.period,
         )
 
     def _within_limits(self, sp0: float, sign: int, size: float, noise: float) -> tuple[int, float]:
@@ -1791,6 +1798,14 @@ def acceptance_problems(
         out.append(
             f"ring: an oscillation of {after.ringing_period:.3g} s keeps {ring:.2f} of its "
             f"amplitude each period, above the decay ratio limit {limits['max_decay_ratio']:g}"
+        )
+    fast = after.unmodelled_ringing
+    if fast is not None and fast > limits["max_decay_ratio"]:
+        out.append(
+            f"ring: an oscillation of {after.unmodelled_period:.3g} s that the process model "
+            f"does not have keeps {fast:.2f} of its amplitude each period, above the decay "
+            f"ratio limit {limits['max_decay_ratio']:g}: a lightly damped mode beyond the "
+            "model, whose margins there are unknown (the predicted Ms does not hold)"
         )
     if os_ is not None and pred is not None and os_ - pred > limits["overshoot_miss"]:
         out.append(

@@ -55,6 +55,8 @@ ROWS = (  # (field of Verification, label, unit; "PV" stands for the PV's units)
     ("sp_step", "setpoint step", "PV"),
     ("overshoot", "overshoot", "%"),
     ("decay_ratio", "decay ratio", ""),
+    ("ringing", "ringing a period", ""),
+    ("unmodelled_ringing", "fast ring a period, no model", ""),
     ("rise_time", "rise time", "s"),
     # within 2 % of the step, or 3σ of the PV's noise where that is wider (measured_response)
     ("settling_time", "settling (2 % or 3σ)", "s"),

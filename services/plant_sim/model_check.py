@@ -447,6 +447,7 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
     exact = model_ultimate_point(process) if _has_transfer(process) else None
     if exact is not None:
         report.ku_exact, report.pu_exact = exact
+        _resonance(report, process)
     if report.pu is not None:
         report.samples_per_period = report.pu / dt
         if report.samples_per_period < MIN_SAMPLES_PER_PERIOD:
@@ -637,6 +638,37 @@ def _inverse_response(report: ModelReport) -> None:
             "term for it, so the robustness they predict is optimistic; it offers PIDs but "
             "does not recommend them once its test sees the dip"
         )
+
+
+RESONANT_ZETA = 0.2  # a pair of poles damped less than this is a resonance worth a word
+ABOVE_BANDWIDTH = 2.0  # times ω_u: where the tuner's slow models have nothing
+
+
+def _resonance(report: ModelReport, process: Any) -> None:
+    """A warning where the transfer function has a lightly damped pair of poles well above
+    the ultimate frequency: the tuner's FOPDT/SOPDT models, fitted to the loop's slow
+    response, have nothing there, and a derivative's gain can take the mode's damping away
+    (100·e^{−s}/(5s³ + 2s² + 501s + 100), ζ 0.01 at 10 rad/s: "nothing stands in the way",
+    then AMIGO PID at a gain margin of 1.05 on it)."""
+    if report.pu is None or report.pu <= 0:
+        return
+    try:
+        poles = np.roots(np.trim_zeros(np.asarray(process.den, dtype=float), "f"))
+    except (TypeError, ValueError, np.linalg.LinAlgError):
+        return
+    w_u = 2 * math.pi / report.pu
+    for p in sorted((p for p in poles if p.imag > 0), key=abs):
+        w_n = float(abs(p))
+        zeta = float(-p.real / w_n)
+        if zeta < RESONANT_ZETA and w_n > ABOVE_BANDWIDTH * w_u:
+            report.warnings.append(
+                f"a lightly damped mode at {w_n:.4g} rad/s (ζ {zeta:.2g}, period "
+                f"{2 * math.pi / w_n:.3g} s), {w_n / w_u:.3g} times the ultimate frequency: "
+                "the tuner's models have nothing there and its predicted margins leave it "
+                "out; a derivative's gain there can take its damping away (the verification "
+                "rejects gains under which it rings); PI, or a filter for the mode, is safer"
+            )
+            return
 
 
 def _dead_time(s: np.ndarray, dt: float) -> tuple[float | None, float | None]:

@@ -952,13 +952,15 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         ]
         if span is not None:  # an IAE in PV units·s as % of span·s
             rows[4:6] = [("IAE setpoint %·s", "iae_sp"), ("IAE load %·s", "iae_load")]
+        if any(v is not None and v.unmodelled_ringing is not None for v in (r.before, r.after)):
+            rows.insert(3, ("fast ring /period", "unmodelled_ringing"))  # beyond the model
         lines.append(f"  {'verification':<18}{'before':>12}{'after':>12}")
         for label, field in rows:
             b = getattr(r.before, field) if r.before else None
             a = getattr(r.after, field)
             if span is not None and field.startswith("iae"):
                 b, a = process_gain_percent(b, span), process_gain_percent(a, span)
-            if field == "ringing":  # a mode gone within a period (2.4e-111) rings not at all
+            if field in ("ringing", "unmodelled_ringing"):  # gone within a period: none
                 b, a = (0.0 if v is not None and v < 0.005 else v for v in (b, a))
             lines.append(
                 f"  {label:<18}{figure(b) if not isinstance(b, bool) else str(b):>12}"

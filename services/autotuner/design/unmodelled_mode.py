@@ -1,0 +1,88 @@
+"""A fast oscillation in a verification that the process model does not have.
+
+The rules' margins (Ms, gain margin) are the identified model's. A model fitted to the loop's
+slow response leaves out a lightly damped mode well above its bandwidth, and a derivative's
+gain there can take that mode's damping away. Seen: 100·e^{−s}/((5s + 1)(s² + 0.2s + 100)),
+a 5 s lag with a resonance at 10 rad/s (ζ 0.01), tuned from a step test's FOPDT. AMIGO PID
+was predicted at Ms 1.45, gain margin 3.3; on the plant it is Ms 26, gain margin 1.05. Its
+setpoint step rang at 0.72 s, 0.96 of its amplitude kept each period, but `ringing` smooths a
+response over a twelfth of the loop's time scale (9 s), so it could not see that mode, and the
+run ended `ok`.
+
+Here the verification's setpoint step is compared with the model's own response to it: the
+same gains, the loop's sample time, the PID block's equations (``setpoint_steps``). The
+residual holds what the model does not: its slow misfit, the noise, and any unmodelled mode.
+An oscillation in it that stands out of the noise (``ringing``, not smoothed) counts only if
+it is fast, its period under ``1/FAST`` of the loop's time scale. A slower one is the loop's
+own mode, read off the response itself by ``ringing``; in a residual it is mostly the model's
+misfit (seen: a SOPDT on a third-order lag, an IPDT on an inverse response).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from services.autotuner.design.ringing import Ringing, ringing
+from shared.control.forms import IsaGains
+from shared.control.lti import discretize, tf_to_ss
+from shared.control.setpoint_steps import setpoint_steps
+from shared.control.transfer import DelayedTF
+
+FAST = 3.0  # a mode counts if its period is under 1/FAST of the loop's time scale
+# the residual's first samples fitted at most: a mode the step excites rings from its start,
+# and an unsmoothed fit of 30,000 samples took over a second
+MAX_SAMPLES = 8192
+BLOWN = 1e6  # the model's loop past this many steps: unstable on the model, judged elsewhere
+
+
+def model_step(
+    gains: IsaGains, model: DelayedTF, sample_time: float, samples: int, n: float = 10.0
+) -> np.ndarray | None:
+    """The model's closed-loop response to a unit setpoint step under ``gains``, one value a
+    sample as the loop reports them after the step: the first is still 0 (that sample's PV is
+    measured before its PID execution sees the new setpoint), the PID block at
+    ``sample_time``, its derivative filter Td/``n``. None where the model's loop is
+    unstable or cannot be simulated. The model's gain is taken positive: the loop's action
+    makes the feedback negative either way."""
+    num = np.trim_zeros(np.asarray(model.num, dtype=float), "f")
+    den = np.trim_zeros(np.asarray(model.den, dtype=float), "f")
+    if num.size == 0 or den.size == 0:
+        return None
+    last = den[np.nonzero(den)[0][-1]]  # an integrator's den ends in 0: its gain's sign
+    if num[-1] * last < 0:
+        num = -num
+    try:
+        system = discretize(*tf_to_ss(list(num), list(den)), sample_time, model.delay)
+        y, blown = setpoint_steps([gains], system, max(samples - 1, 0), [1.0], BLOWN, n=n)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return None
+    return None if blown[0] else np.concatenate(([0.0], y[0]))[:samples]
+
+
+def unmodelled_mode(
+    t: np.ndarray,
+    y: np.ndarray,
+    y0: float,
+    step: float,
+    gains: IsaGains,
+    model: DelayedTF | None,
+    sample_time: float,
+    noise: float,
+    timescale: float,
+    n: float = 10.0,
+) -> Ringing | None:
+    """The fast mode in a setpoint step's response (``t`` s and ``y`` PV units, a sample each
+    from the step on; ``y0`` where it started, ``step`` its size, PV units) that the model's
+    response to the same step lacks (``gains`` with the derivative filter Td/``n``); None
+    without a model, or none that stands out."""
+    if model is None or y.size < 16 or not (timescale > 0 and math.isfinite(timescale)):
+        return None
+    t, y = np.asarray(t, dtype=float)[:MAX_SAMPLES], np.asarray(y, dtype=float)[:MAX_SAMPLES]
+    predicted = model_step(gains, model, sample_time, y.size, n)
+    if predicted is None:
+        return None
+    residual = y - (y0 + step * predicted)
+    mode = ringing(t, residual, noise, None)
+    return mode if mode is not None and mode.period < timescale / FAST else None
