@@ -18,7 +18,7 @@ from typing import Any
 import zenoh
 
 from services.autotuner.commands.apply import choose, recorded_run, recorded_timescale, same_loop
-from services.autotuner.commands.revert import CATCH_UP, target
+from services.autotuner.commands.revert import CATCH_UP, reverted_gains, target
 from services.autotuner.commands.tune import follow, submit
 from services.autotuner.loop_client import CommandRefused, LoopClient, wait_for_loop
 from shared import keys, wire
@@ -152,7 +152,7 @@ def revert(
                 f"loop {loop}: its gains are not the last on record (a change the history "
                 "did not see; is the logger running on this runs directory?): not reverted"
             )
-        back = _gains(undo["before"])
+        back = reverted_gains(undo, now, client.info.pv_units, path)
         try:
             status = client.command(GainsCommand(loop=loop, gains=back, source=SOURCE, t=now.t))
         except CommandRefused as err:

@@ -157,3 +157,18 @@ def test_a_day_with_a_loop(start_plant, start_tuner, start_logger, tmp_path):
     assert shown[3]["tune"]["applied_from"] == pending["run_id"]
     text = local("history", LOOP, "--runs", str(runs), "--prefix", plant.prefix).stdout
     assert f"run {tuned['run_id']}" in text and "autotune-set" in text
+
+    # the history is a file anyone may edit: a gain on record that `set` would refuse is not
+    # written back (a Kc of 1e+250 put there by hand was put on the loop in auto, exit 0:
+    # helper review); the one line names the file and the bound, and nothing moves
+    path = runs / HISTORY_FILE
+    lines = path.read_text().splitlines()
+    last = max(i for i, line in enumerate(lines) if '"change"' in line)
+    record = json.loads(lines[last])
+    record["before"]["kc"] = 1e250
+    lines[last] = json.dumps(record)
+    path.write_text("\n".join(lines) + "\n")
+    wild = cli(plant, "revert", LOOP, "--runs", str(runs), check=False)
+    assert wild.returncode == 2 and len(wild.stderr.strip().splitlines()) == 1, wild.stderr
+    assert "the gains on record before that change have Kc 1e+250" in wild.stderr, wild.stderr
+    assert gains(plant) == g2

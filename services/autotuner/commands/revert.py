@@ -21,13 +21,14 @@ from pathlib import Path
 from typing import Any
 
 from services.autotuner.commands.logger_dirs import elsewhere
+from services.autotuner.commands.set_loop import check_kc
 from services.autotuner.loop_client import CommandRefused, LoopClient, wait_for_loop
 from shared import json_text
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
 from shared.history_file import HISTORY_FILE, loop_changes
 from shared.identity import auth_user
-from shared.messages import GainsCommand, PidGains
+from shared.messages import GainsCommand, LoopStatus, PidGains
 from shared.session import open_session, settings_from_args
 
 HELP = "write back a loop's gains from before its last change (or a given run's)"
@@ -86,6 +87,21 @@ def _gains(d: dict[str, Any], what: str) -> PidGains:
         raise AutotuneError(f"the history's {what} gains are not valid gains: {d!r}") from None
 
 
+def reverted_gains(undo: dict[str, Any], now: LoopStatus, units: str, path: Path) -> PidGains:
+    """The gains before the change ``undo`` (a record of ``path``), as a revert writes them:
+    valid gains, and none that `set` would refuse, whatever the file says (a Kc of 1e+250
+    written into it by hand was put on a loop in auto, exit 0: helper review); ConfigError
+    names the file and the bound."""
+    back = _gains(undo["before"], "earlier")
+    check_kc(
+        back.kc,
+        now.pv_range,
+        f" {units}" if units else "",
+        f"{path}: the gains on record before that change have Kc",
+    )
+    return back
+
+
 def _line(g: PidGains) -> str:
     ti = "off" if g.ti is None else f"{g.ti:.4g} s"
     return f"Kc {g.kc:.4g}, Ti {ti}, Td {g.td:.4g} s, N {g.n:g}, β {g.beta:g}"
@@ -127,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
                     f"did not see (is the logger running on this runs directory?"
                     f"{elsewhere(session, args.prefix, runs)}); --force reverts anyway"
                 )
-            back = _gains(undo["before"], "earlier")
+            back = reverted_gains(undo, now, client.info.pv_units, path)
             # the loop has them already (--steps 2 right after a revert names the change the
             # revert undid): nothing is sent, and it is said so (it read "Reverted … was Kc 5
             # … now Kc 5")

@@ -276,7 +276,7 @@ def plan(
         if not lo <= asked.sp <= hi:
             raise ConfigError(f"--sp {asked.sp:g}: outside the loop's PV range [{lo:g}, {hi:g}]{u}")
     if asked.kc is not None:
-        _check_kc(asked.kc, status.pv_range, u)
+        check_kc(asked.kc, status.pv_range, u)
     ti = asked.ti if isinstance(asked.ti, float | int) else None  # not `none`
     if ti is not None and sample_time and ti < sample_time:
         # each sample's integral step, Kc·T/Ti of the error, is then more than Kc times it:
@@ -328,13 +328,14 @@ def plan(
     ]
 
 
-def _check_kc(kc: float, pv_range: tuple[float, float], units: str) -> None:
-    """ConfigError for a gain above ``MAX_KC_PERCENT`` % per % of the loop's span."""
+def check_kc(kc: float, pv_range: tuple[float, float], units: str, what: str = "--kc") -> None:
+    """ConfigError for a gain above ``MAX_KC_PERCENT`` % per % of the loop's span (``what``:
+    where the gain comes from, as the message names it)."""
     span = pv_range[1] - pv_range[0]
     pct = kc_percent(kc, span)
     if pct is not None and pct > MAX_KC_PERCENT:
         raise ConfigError(
-            f"--kc {kc:g}: {pct:.5g} % of output per % of span (a proportional band of "
+            f"{what} {kc:g}: {pct:.5g} % of output per % of span (a proportional band of "
             f"{100.0 / pct:.2g} % of the {span:g}{units} span), above the {MAX_KC_PERCENT:g} "
             f"% per % `set` takes: Kc is in % of output per PV unit, at most "
             f"{100.0 * MAX_KC_PERCENT / span:.4g} here"
