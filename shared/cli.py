@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from shared import keys
+from shared.control.forms import MIN_STEP
 from shared.errors import ConfigError, one_line
 from shared.session import add_zenoh_arguments
 
@@ -127,12 +128,14 @@ MAX_SECONDS = 1e7  # any duration given on the command line (115 days)
 @dataclass(frozen=True)
 class Bound:
     """What a numeric flag accepts: ``low`` (refused itself when ``low_open``) to ``high``;
-    ``nonzero`` refuses 0; ``why`` says why ``high`` is the limit."""
+    ``nonzero`` refuses 0, and ``least`` any value smaller in size; ``why`` says why ``high``
+    is the limit."""
 
     low: float | None = None
     high: float | None = None
     low_open: bool = False
     nonzero: bool = False
+    least: float | None = None
     unit: str = ""
     why: str = ""
 
@@ -147,7 +150,7 @@ _SPEED = Bound(
     "runs as fast as the loop allows",
 )
 _TUNE = {
-    "step_size": Bound(-100.0, 100.0, nonzero=True, unit="%"),
+    "step_size": Bound(-100.0, 100.0, nonzero=True, least=MIN_STEP, unit="%"),
     "max_time": _SECONDS,
     "rest_window": _SECONDS,
     "hysteresis": Bound(0.0),
@@ -162,7 +165,7 @@ FLAG_BOUNDS: dict[str, dict[str, Bound]] = {
     "demo": {**_TUNE, "seed": _SEED, "noise": Bound(0.0), "speed": _SPEED},
     "up": {"seed": _SEED, "speed": _SPEED},
     "step": {
-        "size": Bound(-100.0, 100.0, nonzero=True, unit="%"),
+        "size": Bound(-100.0, 100.0, nonzero=True, least=MIN_STEP, unit="%"),
         "baseline": Bound(0.0, MAX_SECONDS, unit="s"),
         "timeout": _SECONDS,
         "wait": _SECONDS,
@@ -202,6 +205,8 @@ def _check_number(flag: str, value: float, bound: Bound | None) -> None:
         raise ConfigError(f"{flag} {value:g}: must be at most {bound.high:g}{unit}{why}")
     if bound.nonzero and value == 0:
         raise ConfigError(f"{flag} 0: must not be zero")
+    if bound.least is not None and abs(value) < bound.least:
+        raise ConfigError(f"{flag} {value:g}: must be at least {bound.least:g}{unit} in size")
 
 
 def check_flags(command: str, args: argparse.Namespace) -> None:

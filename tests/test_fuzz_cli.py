@@ -143,6 +143,13 @@ REFUSED = [
     # blamed the tuner 42 s later)
     (["up", "--plant", "unstable.toml"], ["loops.a.den", "open-loop unstable"]),
     (["step", "hx1", "--size", "0"], ["--size", "zero"]),
+    # 1e-9 % read K −26 %/% off a noise-free PV's rounding, 1e-300 % waited past its timeout
+    # with the loop held (helper review)
+    (["step", "hx1", "--size", "1e-9"], ["--size 1e-09: must be at least 0.01 % in size"]),
+    (["step", "hx1", "--size", "-1e-300"], ["--size -1e-300: must be at least 0.01 %"]),
+    (["tune", "hx1", "--method", "step", "--step-size", "0.005"], ["--step-size 0.005"]),
+    # what the tuner would refuse is refused before anything is sent
+    (["tune", "hx1", "--rule", "zn-ol-pi"], ["--rule: zn-ol-pi needs a step test"]),
     (["step", "hx1", "--size", "1e9"], ["--size", "at most"]),
     (["step", "hx1", "--size", "-101"], ["--size"]),
     (["step", "hx1", "--baseline", "-1"], ["--baseline"]),

@@ -67,11 +67,15 @@ def test_ordered_pv_limits_are_accepted():
     assert validate_request(TuneRequest(loop="x", pv_limits=(40.0, 60.0))) is None
 
 
-@pytest.mark.parametrize("size", [0.0, -0.0])
-def test_a_step_size_must_be_non_zero(size):
+@pytest.mark.parametrize("size", [0.0, -0.0, 1e-9, -0.00999, 1e-300])
+def test_a_step_size_must_be_at_least_a_hundredth_of_a_percent(size):
+    """1e-9 % on a noise-free loop read K −26 %/% off the PV's rounding and 1e-300 % waited
+    past its timeout with the loop held (helper review): below 0.01 % is refused, and the CLI
+    refuses it before anything is sent."""
     with pytest.raises(ValueError) as err:
         validate_request(TuneRequest(loop="x", method="step", step_size=size))
-    assert str(err.value) == "step_size: must be a non-zero number of %"
+    assert str(err.value) == "step_size: must be a number of % at least 0.01 in size"
+    assert validate_request(TuneRequest(loop="x", method="step", step_size=0.01)) is None
 
 
 @pytest.mark.parametrize("size", [math.inf, -math.inf, math.nan])

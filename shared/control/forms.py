@@ -119,6 +119,10 @@ def span_or_none(pv_range: tuple[float, float]) -> float | None:
 # % of output per % of span: a proportional band of 0.1 %, the most any write of gains may ask
 # (above it a 0.1 % error drives the output across its range: a slip, not a tuning)
 MAX_KC_PERCENT = 1000.0
+# % of output: the smallest output step a test takes (1e-9 % on a noise-free loop read K
+# −26 %/% off the PV's rounding; 1e-300 % left the output where it was and waited past its
+# timeout, the loop held: helper review)
+MIN_STEP = 0.01
 
 
 def unit(units: str | None) -> str:

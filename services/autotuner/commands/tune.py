@@ -24,6 +24,7 @@ import pydantic
 import zenoh
 
 from services.autotuner.commands.step import parse_repeat
+from services.autotuner.design.request_check import validate_request
 from services.autotuner.design.rules import RULES, fopdt_of
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.reaction_curve import drift_beyond_noise
@@ -219,7 +220,7 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
 
 def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
     try:
-        return TuneRequest(
+        req = TuneRequest(
             loop=args.loop,
             method=args.method,
             rule=args.rule,
@@ -250,6 +251,12 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
         e = err.errors()[0]
         flag = "--" + str(e["loc"][0]).replace("_", "-") if e["loc"] else "request"
         raise ConfigError(f"{flag}: {e['msg']}") from None
+    try:  # what the tuner would refuse, refused here before anything is sent
+        validate_request(req)
+    except ValueError as err:
+        field, _, why = str(err).partition(": ")
+        raise ConfigError(f"--{field.replace('_', '-')}: {why}") from None
+    return req
 
 
 def submit(

@@ -12,6 +12,7 @@ from typing import Protocol
 from services.autotuner.design.rules import check_rule
 from services.autotuner.identify.methods import METHODS
 from services.autotuner.identify.repeated_steps import MAX_REPEAT
+from shared.control.forms import MIN_STEP
 
 
 class Request(Protocol):
@@ -45,8 +46,10 @@ def validate_request(req: Request) -> None:
             raise ValueError(f"rule: {req.rule} needs {need}, not method {req.method}")
     if req.pv_limits and not req.pv_limits[0] < req.pv_limits[1]:
         raise ValueError(f"pv_limits: low must be below high, got {list(req.pv_limits)}")
-    if req.step_size is not None and not (math.isfinite(req.step_size) and req.step_size != 0):
-        raise ValueError("step_size: must be a non-zero number of %")
+    if req.step_size is not None and not (
+        math.isfinite(req.step_size) and abs(req.step_size) >= MIN_STEP
+    ):
+        raise ValueError(f"step_size: must be a number of % at least {MIN_STEP:g} in size")
     repeat = req.repeat
     if repeat is not None:
         if req.method != "step":

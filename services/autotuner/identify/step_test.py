@@ -70,6 +70,7 @@ from services.autotuner.identify.reaction_curve import (
 )
 from services.autotuner.identify.step_frequency import response_point
 from shared.control.beyond import beyond
+from shared.control.forms import MIN_STEP
 from shared.control.signals import Sample, at_rest, noise_level, range_end
 from shared.errors import AutotuneError
 
@@ -180,8 +181,10 @@ class StepTest:
 
     def __post_init__(self) -> None:
         cfg = self.config
-        if not math.isfinite(cfg.size) or cfg.size == 0:
-            raise ValueError(f"size {cfg.size}: must be a non-zero number of %")
+        if not math.isfinite(cfg.size) or abs(cfg.size) < MIN_STEP:
+            raise ValueError(
+                f"size {cfg.size:g}: must be a number of % at least {MIN_STEP:g} in size"
+            )
         target = self.op_start + cfg.size
         lo, hi = self.op_limits
         if not lo <= target <= hi:
