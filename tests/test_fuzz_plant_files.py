@@ -628,6 +628,7 @@ HEALTHY = {
         ("StepInfAfter", "returned PV inf"),
         ("StepOverflows", "OverflowError"),
         ("StepReturnsList", "not a number"),
+        ("StepHugeInt", "not a finite number"),
     ],
 )
 def test_a_model_failing_mid_run_faults_its_loop_only(user_models, caplog, cls, needle):
@@ -901,3 +902,17 @@ def test_a_tune_ends_at_its_loops_fault_and_names_it(start_plant, monkeypatch):
 
     came, said = (float(x) for x in re.findall(r"at t = ([0-9.]+) s", r.reason)[:2])
     assert said == pytest.approx(came, abs=0.1 + 1e-9), r.reason
+
+
+def test_model_check_of_a_class_with_its_own_num_and_den_and_a_huge_int(user_models):
+    """`model check` ended "internal error", exit 70, on a class whose own ``num`` and
+    ``den`` are not a transfer function, and on a step() that returned 10**400 (helper
+    review): the first is checked from its steps, the second refused naming the model."""
+    from services.plant_sim.model_check import check_loop
+
+    loop = build_plant(user("OwnNumDen"))["u1"]
+    r = check_loop("u1", loop)
+    assert r.refused is None and r.ku_exact is None and r.behaviour == "self-regulating"
+    loop = build_plant(user("StepHugeInt", fail_after=5))["u1"]
+    r = check_loop("u1", loop)
+    assert r.refused is not None and "not a finite number" in r.refused, r.refused

@@ -111,12 +111,17 @@ def ultimate_point(
 
 def model_transfer(model: object) -> DelayedTF | None:
     """The transfer function of a plant_sim linear model, its sensor lag included (None for a
-    model without ``num`` and ``den``: physical and user models)."""
+    model without ``num`` and ``den`` as coefficient sequences: physical and user models)."""
     num, den = getattr(model, "num", None), getattr(model, "den", None)
     if num is None or den is None:
         return None
-    tf = DelayedTF.of(num, den, getattr(model, "delay", 0.0))
-    return tf.with_lag(getattr(model, "sensor_lag", 0.0))
+    try:
+        tf = DelayedTF.of(num, den, getattr(model, "delay", 0.0))
+        return tf.with_lag(getattr(model, "sensor_lag", 0.0))
+    except (TypeError, ValueError, OverflowError):
+        # a user's class whose own ``num`` and ``den`` are something else (a tube count and a
+        # density: "'int' object is not iterable", exit 70 from `model check`: helper review)
+        return None
 
 
 def model_ultimate_point(model: object) -> tuple[float, float] | None:

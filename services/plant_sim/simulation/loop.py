@@ -87,7 +87,12 @@ def _pv_of(what: str, value: Any) -> float:
     if value.__class__ is not float:  # the usual answer, told from the rest at once
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise ModelFailure(f"the model's {what} returned {brief(repr(value))}, not a number")
-        value = float(value)
+        try:  # an int past a float's range (10**400) overflows: no PV either
+            value = float(value)
+        except (OverflowError, ValueError, TypeError):
+            raise ModelFailure(
+                f"the model's {what} returned {brief(repr(value))}, not a finite number"
+            ) from None
     if not math.isfinite(value):
         raise ModelFailure(f"the model's {what} returned PV {value}")
     return value

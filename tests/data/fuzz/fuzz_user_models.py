@@ -209,3 +209,20 @@ class NamesRaiseLater(_Later):
 class NamesJunkLater(_Later):
     def later(self) -> tuple:
         return (1, None, "bias", "ghost")
+
+
+class StepHugeInt(Good):
+    """An int past a float's range: ``float()`` of it overflows (`model check` exit 70)."""
+
+    def step(self, op: float) -> float:
+        self.steps += 1
+        return 10**400 if self.steps >= self.fail_after else super().step(op)
+
+
+class OwnNumDen(Good):
+    """Attributes of its own named ``num`` and ``den`` (a tube count, a density): no transfer
+    function (`model check`: "'int' object is not iterable", exit 70)."""
+
+    def __init__(self, sample_time: float, op0: float = 50.0, fail_after: int = 10**9):
+        super().__init__(sample_time, op0, fail_after)
+        self.num, self.den = 4, 998.2
