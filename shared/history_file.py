@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from shared import json_text
+from shared.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,12 @@ def applicable_rule(tune: dict[str, Any]) -> str | None:
 def read_history(path: Path, skipped: list[int] | None = None) -> Iterator[dict[str, Any]]:
     """The records of a history file, oldest first; a line that is not a JSON object (a
     line cut short by a crash, an edit) is skipped, its number (from 1) added to ``skipped``
-    when given. Nothing if there is no file."""
+    when given. Nothing if there is no file; ConfigError if it is not a regular file (a
+    FIFO there: `autotune history`, `apply` waited on it for ever: helper review)."""
+    if path.exists() and not path.is_file():
+        raise ConfigError(
+            f"{path}: not a regular file (a directory, a FIFO or a device), not a change history"
+        )
     try:
         f = path.open(encoding="utf-8", errors="replace")  # bad bytes: a skipped line
     except FileNotFoundError:

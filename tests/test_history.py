@@ -446,3 +446,25 @@ def test_a_late_result_asked_for_is_the_runs_tune_record_and_its_change(tmp_path
         wire.encode(r.model_copy(update={"run_id": "late2", "left": {"gains": G1.model_dump()}}))
     )
     assert len(changes(tmp_path)) == 1
+
+
+def test_a_fifo_where_a_file_is_expected_is_refused_not_waited_on(tmp_path):
+    """`autotune runs` on a FIFO named x.mcap and `autotune history` on a FIFO named
+    history.jsonl waited for a writer for ever (helper review): each says what it is, one
+    line, at once. Run as processes with a timeout, so that a wait fails the test."""
+    import os
+    import subprocess
+    import sys
+
+    os.mkfifo(tmp_path / "x.mcap")
+    os.mkfifo(tmp_path / HISTORY_FILE)
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    cli = [sys.executable, "-m", "services.cli"]
+    runs = subprocess.run([*cli, "runs", str(tmp_path)], capture_output=True, text=True,
+                          timeout=60, env=env)  # fmt: skip
+    assert runs.returncode == 0 and "not a regular file (a FIFO or a device)" in runs.stdout
+    hist = subprocess.run([*cli, "history", "hx1", "--runs", str(tmp_path)],
+                          capture_output=True, text=True, timeout=60, env=env)  # fmt: skip
+    assert hist.returncode == 2 and len(hist.stderr.strip().splitlines()) == 1, hist.stderr
+    assert "not a regular file" in hist.stderr and "Traceback" not in hist.stderr

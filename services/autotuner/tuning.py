@@ -1150,9 +1150,26 @@ class TuningRun:
             c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))
         self._progress("quiet", message="measuring the PV's rest value and noise")
 
+        # a relay on the realtime clock switches only while this process runs: paused or
+        # starved, the output stayed where it was while the loop ran on, and the cycle that
+        # spans the stall is no limit cycle of the process (6 s paused at ×20: a 197 s cycle
+        # among 50 s ones, every crossing after it taken for a spurious one, 6,308 s of relay
+        # before "no limit cycle that repeats": helper review)
+        switching = isinstance(machine, RelayTest) and self.info.clock == "realtime"
+        wall0 = time.monotonic()
+
         def watch(last: ProcessSample) -> None:
             self._take([last])
             self._forward_events(machine.events)
+            if switching and machine.phase in ("relay", "stage2"):
+                stalled = stall_watch().stalled(wall0)
+                if stalled > OVERSLEPT:
+                    raise TuneAborted(
+                        f"relay test: this tuner's process did not run for {stalled:.1f} s "
+                        "(paused or starved): on the realtime clock the relay could not "
+                        "switch meanwhile, so the cycles it measured are not the process's; "
+                        "run it again"
+                    )
             if not machine.finished:
                 self._report(machine)
 

@@ -263,7 +263,11 @@ def not_readable(path: Path | str, why: str) -> AutotuneError:
 
 def being_written(path: Path, proc: Path = Path("/proc")) -> bool:
     """No MCAP footer yet, and the file open in a process of this machine (a logger's run in
-    progress); a footerless file nobody has open is a broken one (``autotune recover``)."""
+    progress); a footerless file nobody has open is a broken one (``autotune recover``).
+    Never a FIFO or a device: opening one waits for a writer (`autotune runs` hung on a
+    FIFO named x.mcap: helper review)."""
+    if not path.is_file():
+        return False
     try:
         with path.open("rb") as f:
             f.seek(max(0, path.stat().st_size - len(MAGIC)))
@@ -408,6 +412,8 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
     path = Path(path)
     if path.is_dir():
         raise AutotuneError(f"{path}: is a directory, not a run file")
+    if path.exists() and not path.is_file():  # said "no such file"
+        raise AutotuneError(f"{path}: not a regular file (a FIFO or a device), not a run file")
     if not path.is_file():
         raise AutotuneError(f"{path}: no such file")
     try:

@@ -88,6 +88,9 @@ CASES = [
     Case("pause", "tuner", "relay2", "lockstep", "aborted", 3.0, pause=2 * LEASE),
     Case("pause", "tuner", "trial", "x10", "aborted", 3.0, method="ramp", pause=2 * LEASE),
     Case("pause", "tuner", "relay1", "x1", "aborted", 3.0, pause=2 * LEASE),
+    # shorter than the lease: the relay could not switch while paused, and its cycles then
+    # are not the process's (6 s at ×20 ran 6,308 s of relay before its abort: helper review)
+    Case("pause", "tuner", "relay2", "x10", "aborted", 5.0, pause=0.5 * LEASE),
     # noticed at once; the run then asks the plant's status for 2 s (is it back in reach?)
     Case("kill", "plant", "relay2", "lockstep", "aborted", 4.0),
     Case("kill", "plant", "trial", "x10", "aborted", 4.0, method="ramp"),
