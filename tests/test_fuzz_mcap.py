@@ -1160,3 +1160,16 @@ def test_analyze_gives_the_designs_warnings_as_the_live_result_does(recorded, ca
     assert code == 0
     for w in a.selection.warnings:
         assert w in rec.live.warnings and out.count(f"warning: {w}") == 1, (w, out)
+
+
+def test_a_second_run_metadata_record_is_refused_by_every_reader(recorded, tmp_path, capsys):
+    """A second ``run`` metadata record naming another run: `report` drew that run ("status:
+    ok", every panel "not available") while `analyze` refused it (helper review). The logger
+    writes one; with two, which run the file holds is not known: every reader says so."""
+    msgs, meta = load(recorded["relay"].path)
+    run = next(m for name, m in meta if name == "run")
+    bad = save(tmp_path / "two.mcap", msgs, [*meta, ("run", {**run, "run_id": "aaaaaaaaaaaa"})])
+    for argv in (["analyze", str(bad)], ["report", str(bad), "-o", str(tmp_path / "r.png")]):
+        code, _, err = cli(capsys, *argv)
+        refused(code, err, argv[0], ["metadata 'run': 2 records, a run file has one"])
+    assert not (tmp_path / "r.png").exists()

@@ -435,10 +435,15 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
             summary = reader.get_summary()
             if summary is None:
                 raise not_readable(path, "no summary: the file was not finished")
-            meta: dict[str, str] = {}
-            for m in reader.iter_metadata():
-                if m.name == "run":
-                    meta = dict(m.metadata)
+            runs = [dict(m.metadata) for m in reader.iter_metadata() if m.name == "run"]
+            if len(runs) > 1:  # the logger writes one: which run this file is, is not known
+                # (a second one named another run id: `report` drew that run, "status: ok",
+                # every panel "not available", while `analyze` refused it: helper review)
+                raise AutotuneError(
+                    f"{path}: metadata 'run': {len(runs)} records, a run file has one (which "
+                    "run it holds is not known)"
+                )
+            meta: dict[str, str] = runs[0] if runs else {}
             f.seek(0)
             records = []
             for i, (sc, ch, msg) in enumerate(make_reader(f).iter_messages(log_time_order=False)):
