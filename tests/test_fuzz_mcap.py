@@ -1173,3 +1173,14 @@ def test_a_second_run_metadata_record_is_refused_by_every_reader(recorded, tmp_p
         code, _, err = cli(capsys, *argv)
         refused(code, err, argv[0], ["metadata 'run': 2 records, a run file has one"])
     assert not (tmp_path / "r.png").exists()
+
+
+def test_runs_prints_no_control_character_of_a_file(recorded, tmp_path, capsys):
+    """A status of "x\\n\\x1b[31mRED" in a file's metadata broke the table and passed a
+    terminal escape straight through (helper review): written as its escapes, one row."""
+    msgs, meta = load(recorded["relay"].path)
+    meta = [(n, {**m, "status": "x\n\x1b[31mRED"} if n == "run" else m) for n, m in meta]
+    save(tmp_path / "20260101T000000Z_x1_relay_abc.mcap", msgs, meta)
+    code, out, _ = cli(capsys, "runs", str(tmp_path))
+    assert code == 0 and "\x1b" not in out and "x\\n\\x1b[31mRED" in out, out
+    assert out.splitlines()[1].endswith("x\\n\\x1b[31mRED  20260101T000000Z_x1_relay_abc.mcap")
