@@ -916,3 +916,17 @@ def test_model_check_of_a_class_with_its_own_num_and_den_and_a_huge_int(user_mod
     loop = build_plant(user("StepHugeInt", fail_after=5))["u1"]
     r = check_loop("u1", loop)
     assert r.refused is not None and "not a finite number" in r.refused, r.refused
+
+
+def test_model_check_json_stays_json_when_a_model_prints(user_models, tmp_path, capsys):
+    """A model that prints in its __init__ and step() made `model check --json` start with
+    its lines, and json.load failed (helper review): its prints go to stderr."""
+    import json
+
+    from tests.cli_run import run_cli
+
+    path = tmp_path / "p.toml"
+    path.write_text(toml_text(user("Chatty")))
+    code, out, err = run_cli(capsys, "model", "check", str(path), "--json")
+    assert code == 0 and json.loads(out)["loops"][0]["behaviour"] == "self-regulating"
+    assert "hello from step" in err

@@ -18,9 +18,11 @@ reported). No bus, no services: it runs the models in this process.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import math
+import sys
 from pathlib import Path
 
 from services.plant_sim.load_bound import LOAD_TIMEOUT, check_load_timeout, load_bound
@@ -69,22 +71,10 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None:
         _check_plot_path(args.plot)
     check_load_timeout(args.load_timeout)
-    # a model whose __init__ or reset() blocks is refused as plant_sim refuses it (one that
-    # slept 1000 s held the check for good)
-    with load_bound(args.load_timeout, f"plant file {args.plant_file}"):
-        loops = load_plant_file(args.plant_file)
-    if args.loop is not None:
-        if args.loop not in loops:
-            raise ConfigError(
-                f"--loop {args.loop}: no such loop in {args.plant_file} "
-                f"(it has: {', '.join(loops)})"
-            )
-        loops = {args.loop: loops[args.loop]}
-    reports = [check_loop(loop_id, loop) for loop_id, loop in loops.items()]
-    for r in reports:
-        refine_step_point(
-            r, functools.partial(_rebuilt, args.plant_file, args.load_timeout, r.loop)
-        )
+    # what the models print goes to stderr: stdout is the report's (a model that printed in
+    # its step() made `--json` unreadable: helper review)
+    with contextlib.redirect_stdout(sys.stderr):
+        reports = _reports(args)
     if args.json:
         print(
             json.dumps(
@@ -103,6 +93,27 @@ def run(args: argparse.Namespace) -> int:
             f"plant file {args.plant_file}: loops.{r.loop}.model: refused: {r.refused}{more}"
         )
     return 0
+
+
+def _reports(args: argparse.Namespace) -> list:
+    """Every loop's report (``--loop``: one)."""
+    # a model whose __init__ or reset() blocks is refused as plant_sim refuses it (one that
+    # slept 1000 s held the check for good)
+    with load_bound(args.load_timeout, f"plant file {args.plant_file}"):
+        loops = load_plant_file(args.plant_file)
+    if args.loop is not None:
+        if args.loop not in loops:
+            raise ConfigError(
+                f"--loop {args.loop}: no such loop in {args.plant_file} "
+                f"(it has: {', '.join(loops)})"
+            )
+        loops = {args.loop: loops[args.loop]}
+    reports = [check_loop(loop_id, loop) for loop_id, loop in loops.items()]
+    for r in reports:
+        refine_step_point(
+            r, functools.partial(_rebuilt, args.plant_file, args.load_timeout, r.loop)
+        )
+    return reports
 
 
 def _check_plot_path(path: str) -> None:

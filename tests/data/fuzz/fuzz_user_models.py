@@ -226,3 +226,15 @@ class OwnNumDen(Good):
     def __init__(self, sample_time: float, op0: float = 50.0, fail_after: int = 10**9):
         super().__init__(sample_time, op0, fail_after)
         self.num, self.den = 4, 998.2
+
+
+class Chatty(Good):
+    """Prints in its __init__ and step(): `model check --json` began with its lines."""
+
+    def __init__(self, sample_time: float, op0: float = 50.0, fail_after: int = 10**9):
+        super().__init__(sample_time, op0, fail_after)
+        print("hello from __init__")
+
+    def step(self, op: float) -> float:
+        print("hello from step", op)
+        return super().step(op)
