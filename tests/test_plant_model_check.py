@@ -663,3 +663,17 @@ def test_a_lightly_damped_mode_above_the_ultimate_frequency_is_named():
     )
     assert near.pu is not None and 2 * (2 * math.pi / near.pu) > 1.0
     assert not any("lightly damped" in w for w in near.warnings)
+
+
+def test_a_lag_sampled_too_finely_to_see_it_settle_is_not_called_integrating_unsaid():
+    """10/(10s + 1) sampled at 1e-4 s: its first 64 samples rise as a ramp, and the check
+    said "integrating … nothing stands in the way" (helper review). Its transfer function
+    has no pole at 0: a warning says so, with its 10 s lag; an integrator is not warned of."""
+    r = check({"model": "fopdt", "gain": 1.0, "time_constant": 10.0, "delay": 0.0,
+               "sample_time": 1e-4})  # fmt: skip
+    (said,) = [w for w in r.warnings if w.startswith("read as integrating")]
+    assert "has no integrator and a slowest time constant of 10 s" in said, said
+    ipdt = check({"model": "transfer_function", "num": [0.1], "den": [1.0, 0.0], "delay": 2.0,
+                  "sample_time": 0.1})  # fmt: skip
+    assert ipdt.behaviour == "integrating"
+    assert not any(w.startswith("read as integrating") for w in ipdt.warnings)

@@ -448,6 +448,8 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
     if exact is not None:
         report.ku_exact, report.pu_exact = exact
         _resonance(report, process)
+    if _has_transfer(process):
+        _short_horizon(report, process)
     if report.pu is not None:
         report.samples_per_period = report.pu / dt
         if report.samples_per_period < MIN_SAMPLES_PER_PERIOD:
@@ -638,6 +640,31 @@ def _inverse_response(report: ModelReport) -> None:
             "term for it, so the robustness they predict is optimistic; it offers PIDs but "
             "does not recommend them once its test sees the dip"
         )
+
+
+def _short_horizon(report: ModelReport, process: Any) -> None:
+    """A warning where the steps were read as a ramp but the transfer function has no pole
+    at 0: the first moments of a lag's response, sampled finely, look like one (a 10 s lag at
+    1e-4 s samples was called integrating after 6.4 ms, and "nothing stands in the way":
+    helper review)."""
+    if report.behaviour != "integrating":
+        return
+    try:
+        den = np.trim_zeros(np.asarray(process.den, dtype=float), "f")
+    except (TypeError, ValueError):
+        return
+    if den.size and den[-1] == 0.0:  # an integrator: s divides den
+        return
+    poles = np.roots(den) if den.size > 1 else np.array([])
+    slowest = max((1.0 / -p.real for p in poles if p.real < 0), default=None)
+    samples = round((report.horizon or 0.0) / report.sample_time)
+    report.warnings.append(
+        f"read as integrating from steps of {report.horizon:g} s ({samples} samples at "
+        f"{report.sample_time:g} s), but its transfer function has no integrator"
+        + (f" and a slowest time constant of {slowest:.4g} s" if slowest else "")
+        + ": a lag's first moments look like a ramp, and the step figures here are not its "
+        "own; check it at a coarser sample_time"
+    )
 
 
 RESONANT_ZETA = 0.2  # a pair of poles damped less than this is a resonance worth a word
