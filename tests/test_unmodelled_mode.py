@@ -1,6 +1,6 @@
 """A fast, lightly damped mode the process model lacks fails the verification.
 
-100·e^{−s}/((5s + 1)(s² + 0.2s + 100)) (a 5 s lag and a resonance at 10 rad/s, ζ 0.01)
+100·e^{−s}/(5s³ + 2s² + 501s + 100) (a 5 s lag and a resonance at 10 rad/s, ζ 0.01)
 tuned from a step test's FOPDT: AMIGO PID was applied with status ok at a predicted Ms of
 1.45, while on the plant its gain margin is 1.05 (a helper's review: Kc 7 % higher grows
 without bound). The verification compares its setpoint step with the model's response to it

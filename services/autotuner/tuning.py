@@ -1822,7 +1822,9 @@ def acceptance_problems(
             f"ring: an oscillation of {after.unmodelled_period:.3g} s that the process model "
             f"does not have keeps {fast:.2f} of its amplitude each period, above the decay "
             f"ratio limit {limits['max_decay_ratio']:g}: a lightly damped mode beyond the "
-            "model, whose margins there are unknown (the predicted Ms does not hold)"
+            "model (a resonance?), where the gains' margins are not known (the predicted Ms "
+            "leaves it out); filter it from the loop, or, if it is the process's own and these "
+            "gains leave it as they found it, a --max-decay-ratio above it accepts it"
         )
     if os_ is not None and pred is not None and os_ - pred > limits["overshoot_miss"]:
         out.append(

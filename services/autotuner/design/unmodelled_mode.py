@@ -2,8 +2,8 @@
 
 The rules' margins (Ms, gain margin) are the identified model's. A model fitted to the loop's
 slow response leaves out a lightly damped mode well above its bandwidth, and a derivative's
-gain there can take that mode's damping away. Seen: 100·e^{−s}/((5s + 1)(s² + 0.2s + 100)),
-a 5 s lag with a resonance at 10 rad/s (ζ 0.01), tuned from a step test's FOPDT. AMIGO PID
+gain there can take that mode's damping away. Seen: 100·e^{−s}/(5s³ + 2s² + 501s + 100),
+about a 5 s lag with a resonance at 10 rad/s (ζ 0.01), tuned from a step test's FOPDT. AMIGO PID
 was predicted at Ms 1.45, gain margin 3.3; on the plant it is Ms 26, gain margin 1.05. Its
 setpoint step rang at 0.72 s, 0.96 of its amplitude kept each period, but `ringing` smooths a
 response over a twelfth of the loop's time scale (9 s), so it could not see that mode, and the
@@ -12,10 +12,14 @@ run ended `ok`.
 Here the verification's setpoint step is compared with the model's own response to it: the
 same gains, the loop's sample time, the PID block's equations (``setpoint_steps``). The
 residual holds what the model does not: its slow misfit, the noise, and any unmodelled mode.
-An oscillation in it that stands out of the noise (``ringing``, not smoothed) counts only if
-it is fast, its period under ``1/FAST`` of the loop's time scale. A slower one is the loop's
-own mode, read off the response itself by ``ringing``; in a residual it is mostly the model's
-misfit (seen: a SOPDT on a third-order lag, an IPDT on an inverse response).
+An oscillation in it that stands out of the noise (``ringing``, the residual smoothed over a
+twelfth of a third of the time scale: unsmoothed, the noise's own turning points made every
+verification fit a sinusoid to noise, 0.2 s a verification) counts only if it is fast, its
+period under ``1/FAST`` of the loop's time scale. A slower one is the loop's own mode, read
+off the response itself by ``ringing``; in a residual it is mostly the model's misfit (seen:
+a SOPDT on a third-order lag, an IPDT on an inverse response). It cannot tell a mode the
+gains took damping from from the process's own, which any gains leave ringing (TL PI from a
+relay on the plant above: 0.94 a period, as open loop): both fail the verification.
 """
 
 from __future__ import annotations
@@ -31,9 +35,11 @@ from shared.control.setpoint_steps import setpoint_steps
 from shared.control.transfer import DelayedTF
 
 FAST = 3.0  # a mode counts if its period is under 1/FAST of the loop's time scale
-# the residual's first samples fitted at most: a mode the step excites rings from its start,
-# and an unsmoothed fit of 30,000 samples took over a second
-MAX_SAMPLES = 8192
+# the residual is read over its first WINDOW time scales: a mode that counts (a period under
+# a third of one) shows six periods there, and one that decays by less than the decay ratio
+# limit is at its clearest; the model's simulation is most of the check's cost (a verification
+# of hx1 read over its whole 260 s step took 4 times the time of the rest of the verification)
+WINDOW = 2.0
 BLOWN = 1e6  # the model's loop past this many steps: unstable on the model, judged elsewhere
 
 
@@ -79,10 +85,11 @@ def unmodelled_mode(
     without a model, or none that stands out."""
     if model is None or y.size < 16 or not (timescale > 0 and math.isfinite(timescale)):
         return None
-    t, y = np.asarray(t, dtype=float)[:MAX_SAMPLES], np.asarray(y, dtype=float)[:MAX_SAMPLES]
+    read = max(64, math.ceil(WINDOW * timescale / sample_time))  # samples
+    t, y = np.asarray(t, dtype=float)[:read], np.asarray(y, dtype=float)[:read]
     predicted = model_step(gains, model, sample_time, y.size, n)
     if predicted is None:
         return None
     residual = y - (y0 + step * predicted)
-    mode = ringing(t, residual, noise, None)
+    mode = ringing(t, residual, noise, timescale / FAST)
     return mode if mode is not None and mode.period < timescale / FAST else None
