@@ -18,7 +18,7 @@ from services.autotuner.design.rules import UltimatePoint, apply_rules
 from shared.control.forms import IsaGains
 from shared.control.lti import DelayedLinearSystem, discretize, tf_to_ss
 from shared.control.pid import PidBlock, PidSettings
-from shared.control.setpoint_steps import setpoint_steps
+from shared.control.setpoint_steps import setpoint_step, setpoint_steps
 from shared.control.transfer import ultimate_point
 
 LIMIT = 1e6
@@ -73,6 +73,11 @@ def test_every_rule_and_an_unstable_gain_equal_their_loops_alone(name):
         stopped = ref.size < samples
         assert bool(blown[j]) == stopped, (name, g)
         assert np.array_equal(y[j, : ref.size], ref), (name, g)
+        # one candidate alone in float arithmetic (the verification's model response): the
+        # same samples to the bit, None where the loop left ±LIMIT
+        one = setpoint_step(g, sys, samples, steps[j], LIMIT)
+        assert (one is None) == stopped, (name, g)
+        assert one is None or np.array_equal(one, ref), (name, g)
 
 
 def test_saturating_steps_wind_up_as_the_block_does():

@@ -10,7 +10,7 @@ response over a twelfth of the loop's time scale (9 s), so it could not see that
 run ended `ok`.
 
 Here the verification's setpoint step is compared with the model's own response to it: the
-same gains, the loop's sample time, the PID block's equations (``setpoint_steps``). The
+same gains, the loop's sample time, the PID block's equations (``setpoint_step``). The
 residual holds what the model does not: its slow misfit, the noise, and any unmodelled mode.
 An oscillation in it that stands out of the noise (``ringing``, the residual smoothed over a
 twelfth of a third of the time scale: unsmoothed, the noise's own turning points made every
@@ -31,7 +31,7 @@ import numpy as np
 from services.autotuner.design.ringing import Ringing, ringing
 from shared.control.forms import IsaGains
 from shared.control.lti import discretize, tf_to_ss
-from shared.control.setpoint_steps import setpoint_steps
+from shared.control.setpoint_steps import setpoint_step
 from shared.control.transfer import DelayedTF
 
 FAST = 3.0  # a mode counts if its period is under 1/FAST of the loop's time scale
@@ -44,14 +44,21 @@ BLOWN = 1e6  # the model's loop past this many steps: unstable on the model, jud
 
 
 def model_step(
-    gains: IsaGains, model: DelayedTF, sample_time: float, samples: int, n: float = 10.0
+    gains: IsaGains,
+    model: DelayedTF,
+    sample_time: float,
+    samples: int,
+    n: float = 10.0,
+    step: float = 1.0,
 ) -> np.ndarray | None:
     """The model's closed-loop response to a unit setpoint step under ``gains``, one value a
     sample as the loop reports them after the step: the first is still 0 (that sample's PV is
     measured before its PID execution sees the new setpoint), the PID block at
     ``sample_time``, its derivative filter Td/``n``. None where the model's loop is
     unstable or cannot be simulated. The model's gain is taken positive: the loop's action
-    makes the feedback negative either way."""
+    makes the feedback negative either way. ``step``: the step's size, PV units, the response
+    still given per unit of it (the PID block's output limits, 0–100 % about a 50 % rest,
+    bound a unit step of a level loop's Kc of 1,800 %/m, not its verification's 0.018 m)."""
     num = np.trim_zeros(np.asarray(model.num, dtype=float), "f")
     den = np.trim_zeros(np.asarray(model.den, dtype=float), "f")
     if num.size == 0 or den.size == 0:
@@ -61,10 +68,10 @@ def model_step(
         num = -num
     try:
         system = discretize(*tf_to_ss(list(num), list(den)), sample_time, model.delay)
-        y, blown = setpoint_steps([gains], system, max(samples - 1, 0), [1.0], BLOWN, n=n)
+        y = setpoint_step(gains, system, max(samples - 1, 0), step, BLOWN, n=n)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError):
         return None
-    return None if blown[0] else np.concatenate(([0.0], y[0]))[:samples]
+    return None if y is None else np.concatenate(([0.0], y))[:samples]
 
 
 def unmodelled_mode(
@@ -87,7 +94,7 @@ def unmodelled_mode(
         return None
     read = max(64, math.ceil(WINDOW * timescale / sample_time))  # samples
     t, y = np.asarray(t, dtype=float)[:read], np.asarray(y, dtype=float)[:read]
-    predicted = model_step(gains, model, sample_time, y.size, n)
+    predicted = model_step(gains, model, sample_time, y.size, n, step)
     if predicted is None:
         return None
     residual = y - (y0 + step * predicted)
