@@ -58,8 +58,10 @@ from services.autotuner.identify.relay_estimate import (
     StageOne,
     estimate,
     g_scatter,
+    order_contradiction,
     refine,
     spread,
+    stage_one_spreads,
 )
 from services.autotuner.identify.relay_model import RelayRecord, corrector, process_model
 from services.autotuner.identify.relay_result import RelayResult
@@ -1149,6 +1151,14 @@ class RelayTest:
         offset = self.config.fit_offset
         model = process_model(record, refined.candidates, offset) if refined else None
         est = estimate(s1, refined, model, est_cfg)
+        ku_spread = refined.ku_uncertainty if refined else s1.ku_spread
+        pu_spread = refined.pu_uncertainty if refined else s1.pu_spread
+        order = None
+        if refined and refined.points and s1.points and est.crossing != "not reached":
+            order = order_contradiction(s1.points[0], refined.points[0])
+            if order is not None:  # stage 2's point is not the plant's: as sure as stage 1
+                wide = stage_one_spreads(est.ku, est.pu, s1.points[0])
+                ku_spread, pu_spread = max(ku_spread, wide[0]), max(pu_spread, wide[1])
         self.result = RelayResult(
             ku=est.ku,
             pu=est.pu,
@@ -1160,8 +1170,9 @@ class RelayTest:
             bias=self._actual(self.bias),
             noise_std=self._noise,
             cycles=len(self.cycles),
-            ku_spread=refined.ku_uncertainty if refined else s1.ku_spread,
-            pu_spread=refined.pu_uncertainty if refined else s1.pu_spread,
+            ku_spread=ku_spread,
+            pu_spread=pu_spread,
+            order_contradiction=order,
             rest_pv=self._r,
             frequency=s1.points,
             ku_df=s1.ku,

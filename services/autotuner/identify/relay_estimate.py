@@ -258,6 +258,36 @@ def extrapolated(
     )
 
 
+# degrees: a point at the lower frequency that lags the other by more than this contradicts a
+# phase that falls with frequency (``order_contradiction``)
+ORDER_DEG = 10.0
+
+
+def order_contradiction(p1: FrequencyPoint, p2: FrequencyPoint) -> float | None:
+    """Degrees by which the lower-frequency point of the two lags the higher one, where that
+    is over ``ORDER_DEG``: no plant whose phase falls with frequency gives it, so one of the
+    points is not the plant's (noise, σ 1 on e^{−4s}/(20s + 1): stage 2 at 0.2775 rad/s read
+    −222° where the plant has −143°, beside stage 1's −158° at 0.333 rad/s, and the
+    "bracketed" P_u was 35 % off against a stated ±5.3 %); None otherwise."""
+    lo, hi = sorted((p1, p2), key=lambda p: p.omega)
+    if lo.omega == hi.omega:
+        return None
+    lag = hi.phase_deg - lo.phase_deg  # > 0: the lower frequency lags more
+    return lag if lag > ORDER_DEG else None
+
+
+def stage_one_spreads(ku: float, pu: float, p1: FrequencyPoint) -> tuple[float, float]:
+    """How far (relative) K_u and P_u may lie from what stage 1's point alone says, where
+    stage 2's point cannot be trusted: the estimate's distance from the point's 1/|G| and
+    2π/ω plus what the way from its phase to −180° may cost (``KU_PER_RADIAN``,
+    ``PU_PER_RADIAN``)."""
+    way = math.radians(abs(p1.phase_deg + 180.0))
+    return (
+        abs(ku * p1.magnitude - 1.0) + KU_PER_RADIAN * way,
+        abs(pu * p1.omega / (2.0 * math.pi) - 1.0) + PU_PER_RADIAN * way,
+    )
+
+
 # the most K_u and P_u change (relative) per radian of phase near −180° on the plants a
 # relay meets: d ln|G|/dφ = ω_u and d ln P/dφ = (1 + ω_u²)/(n·ω_u) for 1/(s+1)^n, at most
 # √3 = 1.73 and 0.77 there (n = 3), less for longer chains and for dead time

@@ -55,6 +55,10 @@ class RelayResult:
     relay_amplitude_start: float | None = None
     # what held d where the cycle still rode on the hysteresis (None: nothing did)
     relay_growth_held: str | None = None
+    # degrees by which stage 2's and stage 1's points contradict a phase falling with
+    # frequency (``relay_estimate.order_contradiction``; None: they agree); the spreads are
+    # then stage 1's alone
+    order_contradiction: float | None = None
 
     @property
     def measured(self) -> bool:
@@ -162,6 +166,15 @@ class RelayResult:
         if self.inverse_dip is not None:
             notes.append(
                 inverse_response.note("in the relay's first push", self.inverse_dip, self.model)
+            )
+        if measured and self.order_contradiction is not None and self.second and self.frequency:
+            p1, p2 = self.frequency[0], self.second[0]
+            notes.append(
+                f"the relay's two points contradict each other: at {min(p1.omega, p2.omega):.4g} "
+                f"rad/s the phase lags {self.order_contradiction:.0f}° more than at "
+                f"{max(p1.omega, p2.omega):.4g} rad/s, which no phase falling with frequency "
+                "gives (the noise's?): K_u and P_u are as sure as stage 1's point alone, "
+                f"spreads {100 * self.ku_spread:.2g} % and {100 * self.pu_spread:.2g} %"
             )
         return Identification(
             inverse_response=self.inverse_dip is not None,
