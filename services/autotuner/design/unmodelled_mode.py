@@ -37,8 +37,9 @@ from shared.control.transfer import DelayedTF
 FAST = 3.0  # a mode counts if its period is under 1/FAST of the loop's time scale
 # the residual is read over its first WINDOW time scales: a mode that counts (a period under
 # a third of one) shows six periods there, and one that decays by less than the decay ratio
-# limit is at its clearest; the model's simulation is most of the check's cost (a verification
-# of hx1 read over its whole 260 s step took 4 times the time of the rest of the verification)
+# limit is at its clearest; the model's simulation is most of the check's cost (read over the
+# whole step, unsmoothed, the heat exchanger's verification in process took 66 µs a sample,
+# against 9.5 without the check)
 WINDOW = 2.0
 BLOWN = 1e6  # the model's loop past this many steps: unstable on the model, judged elsewhere
 
