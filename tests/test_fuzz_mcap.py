@@ -1111,7 +1111,8 @@ def test_a_recovered_file_is_listed_with_its_loop_and_method(recorded, tmp_path,
     recovered file was listed "unreadable: no 'run' metadata record" (helper trial E). Recover
     gives it one from the file's name, status ``incomplete``."""
     good = recorded["relay"].path.read_bytes()
-    broken = tmp_path / "20261204T232357Z_hx1_relay_abcdef012345.mcap"
+    # named as the logger names it, for the loop its samples are of (x1)
+    broken = tmp_path / "20261204T232357Z_x1_relay_abcdef012345.mcap"
     # killed mid-run: its records as the logger wrote them, no 'run' metadata (written as a
     # run ends), no summary, the file never finished
     import io
@@ -1142,7 +1143,7 @@ def test_a_recovered_file_is_listed_with_its_loop_and_method(recorded, tmp_path,
     code, out, err = cli(capsys, "runs", str(out_dir))
     assert code == 0, err
     (line,) = [x for x in out.splitlines() if x.endswith(fixed.name)]
-    assert line.split()[:3] == ["2026-12-04T23:23:57", "hx1", "relay"], line
+    assert line.split()[:3] == ["2026-12-04T23:23:57", "x1", "relay"], line
     assert "incomplete" in line and "unreadable" not in line
 
 
@@ -1184,3 +1185,15 @@ def test_runs_prints_no_control_character_of_a_file(recorded, tmp_path, capsys):
     code, out, _ = cli(capsys, "runs", str(tmp_path))
     assert code == 0 and "\x1b" not in out and "x\\n\\x1b[31mRED" in out, out
     assert out.splitlines()[1].endswith("x\\n\\x1b[31mRED  20260101T000000Z_x1_relay_abc.mcap")
+
+
+def test_a_metadata_loop_that_none_of_the_samples_are_of_is_refused(recorded, tmp_path, capsys):
+    """An hx1 run's metadata edited to say loop "f1": `analyze` said "relay test of f1" and the
+    report was titled f1 (helper review). The samples' keys name the loop: a metadata loop
+    none of them is of is refused by every reader, in one line."""
+    msgs, meta = load(recorded["relay"].path)
+    meta = [(n, {**m, "loop": "f1"} if n == "run" else m) for n, m in meta]
+    bad = save(tmp_path / "loop.mcap", msgs, meta)
+    for argv in (["analyze", str(bad)], ["report", str(bad), "-o", str(tmp_path / "r.png")]):
+        code, _, err = cli(capsys, *argv)
+        refused(code, err, argv[0], ["metadata 'run', field loop: 'f1', but its samples are of"])

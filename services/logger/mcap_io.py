@@ -458,4 +458,22 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
     except Exception as err:  # the mcap library on damaged bytes: any of a dozen kinds
         raise not_readable(path, f"{type(err).__name__}: {one_line(err)}") from None
     check_format(path, meta)
+    _check_loop(path, meta, records)
     return meta, records
+
+
+def _check_loop(path: Path, meta: dict[str, str], records: list[Record]) -> None:
+    """AutotuneError where the metadata names a loop that none of the file's samples are of
+    (``…/plant/<loop>/pv``): an edited ``loop = "f1"`` titled an hx1 run's report and
+    analysis f1 (helper review). A file without samples, or without the field, is left to
+    its readers."""
+    loop = meta.get("loop")
+    if not loop:
+        return
+    loops = {r.topic.rsplit("/", 2)[-2] for r in records if r.topic.endswith("/pv")}
+    loops.discard("")
+    if loops and loop not in loops:
+        raise AutotuneError(
+            f"{path}: metadata 'run', field loop: {one_line(repr(loop))}, but its samples are "
+            f"of {', '.join(sorted(loops))}"
+        )
