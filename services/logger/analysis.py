@@ -311,7 +311,7 @@ def analyze_file(path: str | Path) -> Analysis:
         pv_range,
         missing,
         first_gap,
-        data.get("pv_units") if isinstance(data.get("pv_units"), str) else None,
+        data.get("pv_units"),  # a string or None: the set-up is checked (``Setup``)
     )
 
 

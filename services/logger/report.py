@@ -480,10 +480,10 @@ def place_labels(fig: Figure) -> None:
         to_axes = ax.transAxes.inverted()
         for t in (t for t in ax.texts if t.get_gid() == MARK_LABEL):
             e = t.get_window_extent(renderer)
-            for b in boxes:
-                if e.x1 > b.x0 and e.x0 < b.x1 and e.y1 > b.y0 and e.y0 < b.y1:
-                    t.set_y(to_axes.transform((0.0, b.y0))[1] - 0.01)
-                    t.set_bbox({"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5})
+            under = next((b for b in boxes if e.overlaps(b)), None)
+            if under is not None:
+                t.set_y(to_axes.transform((0.0, under.y0))[1] - 0.01)
+                t.set_bbox({"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5})
         placed: list[Any] = []
         for t in sorted(
             (t for t in ax.texts if t.get_gid() == WINDOW_LABEL), key=lambda t: t.get_position()[0]

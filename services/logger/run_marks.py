@@ -104,10 +104,11 @@ def verify_windows(
     own): a rejected run's restore comes before its phase ends, and the old gains' response
     after it was drawn as the new gains' (hx1's "after" ran 144 s past the restore)."""
     starts = [p for p in progress if p.phase == "verify"]
+    changed = [c.t for c in gains_changes(gains) if c.t is not None]
     out = []
     for i, p in enumerate(starts):
         later = [q.t for q in progress if q.t > p.t and q.phase not in ("verify",)]
-        later += [c.t for c in gains_changes(gains) if c.t is not None and c.t > p.t]
+        later += [t for t in changed if t > p.t]
         end = min([*later, *(q.t for q in starts[i + 1 :]), t_end])
         sps = [c for c in setpoints if c.t is not None and p.t <= c.t < end]
         sp0 = sps[0].sp if sps else None

@@ -42,7 +42,7 @@ from scipy.optimize import brentq
 from services.plant_sim.load_bound import models_own
 from services.plant_sim.simulation.loop import ModelFailure, SimLoop, model_pv
 from shared.control.rest_window import RESOLUTION, rest_allowance, rest_window
-from shared.control.transfer import model_ultimate_point
+from shared.control.transfer import model_transfer, model_ultimate_point
 
 SMALL_STEP = 2.0  # % of output
 LARGE_STEP = 10.0  # % of output
@@ -447,9 +447,12 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
     exact = model_ultimate_point(process) if _has_transfer(process) else None
     if exact is not None:
         report.ku_exact, report.pu_exact = exact
-        _resonance(report, process)
-    if _has_transfer(process):
-        _short_horizon(report, process)
+    tf = model_transfer(process) if _has_transfer(process) else None
+    if tf is not None:  # what its transfer function says that its steps may not
+        poles = np.roots(np.trim_zeros(np.asarray(tf.den, dtype=float), "f"))
+        if exact is not None:
+            _resonance(report, poles)
+        _short_horizon(report, poles)
     if report.pu is not None:
         report.samples_per_period = report.pu / dt
         if report.samples_per_period < MIN_SAMPLES_PER_PERIOD:
@@ -642,20 +645,13 @@ def _inverse_response(report: ModelReport) -> None:
         )
 
 
-def _short_horizon(report: ModelReport, process: Any) -> None:
+def _short_horizon(report: ModelReport, poles: np.ndarray) -> None:
     """A warning where the steps were read as a ramp but the transfer function has no pole
     at 0: the first moments of a lag's response, sampled finely, look like one (a 10 s lag at
     1e-4 s samples was called integrating after 6.4 ms, and "nothing stands in the way":
     helper review)."""
-    if report.behaviour != "integrating":
+    if report.behaviour != "integrating" or np.any(poles == 0):  # an integrator: s divides den
         return
-    try:
-        den = np.trim_zeros(np.asarray(process.den, dtype=float), "f")
-    except (TypeError, ValueError):
-        return
-    if den.size and den[-1] == 0.0:  # an integrator: s divides den
-        return
-    poles = np.roots(den) if den.size > 1 else np.array([])
     slowest = max((1.0 / -p.real for p in poles if p.real < 0), default=None)
     samples = round((report.horizon or 0.0) / report.sample_time)
     report.warnings.append(
@@ -671,17 +667,13 @@ RESONANT_ZETA = 0.2  # a pair of poles damped less than this is a resonance wort
 ABOVE_BANDWIDTH = 2.0  # times ω_u: where the tuner's slow models have nothing
 
 
-def _resonance(report: ModelReport, process: Any) -> None:
+def _resonance(report: ModelReport, poles: np.ndarray) -> None:
     """A warning where the transfer function has a lightly damped pair of poles well above
     the ultimate frequency: the tuner's FOPDT/SOPDT models, fitted to the loop's slow
     response, have nothing there, and a derivative's gain can take the mode's damping away
     (100·e^{−s}/(5s³ + 2s² + 501s + 100), ζ 0.01 at 10 rad/s: "nothing stands in the way",
     then AMIGO PID at a gain margin of 1.05 on it)."""
     if report.pu is None or report.pu <= 0:
-        return
-    try:
-        poles = np.roots(np.trim_zeros(np.asarray(process.den, dtype=float), "f"))
-    except (TypeError, ValueError, np.linalg.LinAlgError):
         return
     w_u = 2 * math.pi / report.pu
     for p in sorted((p for p in poles if p.imag > 0), key=abs):
