@@ -10,7 +10,9 @@ import json
 import logging
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
+
+import pydantic
 
 from shared import json_text
 from shared.errors import ConfigError
@@ -19,6 +21,81 @@ log = logging.getLogger(__name__)
 
 HISTORY_FILE = "history.jsonl"
 RUN_SOURCE = "tuner:"  # a tuning run's command source: tuner:<run id>
+
+
+class _Shape(pydantic.BaseModel):
+    """What a record's readers rely on, checked as the file is read: the types they format
+    and compare (strict: a number is a number, a name a string), any other field as it is."""
+
+    model_config = pydantic.ConfigDict(strict=True, extra="allow")
+
+
+class _Gains(_Shape):
+    kc: float | None = None
+    ti: float | None = None
+    td: float | None = None
+    beta: float | None = None
+    n: float | None = None
+
+
+class _Common(_Shape):
+    loop: str
+    prefix: str | None = None
+    utc: str | None = None
+    t: float | None = None
+    run_id: str | None = None
+
+
+class _Change(_Common):
+    record: Literal["change"]
+    node: str | None = None
+    mode: str | None = None
+    cause: str | None = None
+    by_source: str | None = None
+    by_user: str | None = None
+    before: _Gains | None = None
+    after: _Gains | None = None
+
+
+class _Tune(_Common):
+    record: Literal["tune"]
+    status: str | None = None
+    reason: str | None = None
+    method: str | None = None
+    rule: str | None = None
+    recommended: str | None = None
+    applied: bool | None = None
+    applied_from: str | None = None
+    previous_gains: _Gains | None = None
+    chosen: _Gains | None = None
+    verification_before: dict[str, Any] | None = None
+    verification_after: dict[str, Any] | None = None
+    gains: dict[str, _Gains | None] | None = None
+    robustness: dict[str, dict[str, Any] | None] | None = None
+    identified_on: dict[str, Any] | None = None
+    ku: float | None = None
+    timescale: float | None = None
+    noise: float | None = None
+
+
+_SHAPES: dict[str, type[_Shape]] = {"change": _Change, "tune": _Tune}
+
+
+def malformed(rec: dict[str, Any]) -> str | None:
+    """Why a ``change`` or ``tune`` record cannot be read as one (its first bad field), None
+    if it can (or is of another kind, left to its readers). Why: a record edited to hold
+    ``"before": "x"`` stopped `autotune history` with an internal error (review)."""
+    shape = _SHAPES.get(rec.get("record"))  # type: ignore[arg-type]
+    if shape is None:
+        return None
+    try:
+        shape.model_validate(rec)
+    except pydantic.ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(x) for x in first["loc"]) or "record"
+        said = "not a JSON object" if first["type"] in ("model_type", "dict_type") else None
+        return f"{where}: {said or first['msg']}"
+    return None
 
 
 def run_of(source: str | None) -> str | None:
@@ -50,10 +127,13 @@ def applicable_rule(tune: dict[str, Any]) -> str | None:
     return None
 
 
-def read_history(path: Path, skipped: list[int] | None = None) -> Iterator[dict[str, Any]]:
+def read_history(
+    path: Path, skipped: list[tuple[int, str]] | None = None
+) -> Iterator[dict[str, Any]]:
     """The records of a history file, oldest first; a line that is not a JSON object (a
-    line cut short by a crash, an edit) is skipped, its number (from 1) added to ``skipped``
-    when given. Nothing if there is no file; ConfigError if it is not a regular file (a
+    line cut short by a crash, an edit), or a ``change`` or ``tune`` record whose fields are
+    not of their types (``malformed``), is skipped, its number (from 1) and why added to
+    ``skipped`` when given. Nothing if there is no file; ConfigError if it is not a regular file (a
     FIFO there: `autotune history`, `apply` waited on it for ever: helper review)."""
     if path.exists() and not path.is_file():
         raise ConfigError(
@@ -72,10 +152,11 @@ def read_history(path: Path, skipped: list[int] | None = None) -> Iterator[dict[
                 rec = json_text.loads(line)
             except json.JSONDecodeError:
                 rec = None
-            if isinstance(rec, dict):
-                yield rec
+            why = malformed(rec) if isinstance(rec, dict) else "not a JSON object"
+            if why is None:
+                yield rec  # type: ignore[misc]
             elif line.strip() and skipped is not None:
-                skipped.append(n)
+                skipped.append((n, why))
 
 
 def of_loop(rec: dict[str, Any], loop: str, prefix: str | None) -> bool:

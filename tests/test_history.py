@@ -13,7 +13,7 @@ from services.autotuner.commands.apply import choose, same_loop
 from services.autotuner.commands.revert import target
 from services.logger.commands.history import entries, format_entries
 from services.logger.history import ChangeHistory
-from shared import keys, wire
+from shared import json_text, keys, wire
 from shared.errors import ConfigError
 from shared.history_file import HISTORY_FILE, loop_changes, read_history
 from shared.messages import LoopInfo, LoopStatus, PidGains, TuneResult
@@ -242,13 +242,52 @@ def test_unreadable_lines_are_counted_and_the_history_command_says_so(tmp_path, 
     with (tmp_path / HISTORY_FILE).open("ab") as f:
         f.write(b'{"record": "change", "loop": "hx1", "bef\n[1, 2]\n\xff\xfe{\n\n')
     feed(h, status(G1, "gains", by_source="autotune-set"))
-    skipped: list[int] = []
+    skipped: list[tuple[int, str]] = []
     assert len(list(read_history(tmp_path / HISTORY_FILE, skipped))) == 1  # the change
-    assert skipped == [1, 2, 3]  # the blank line is no record, and no damage either
+    assert [n for n, _ in skipped] == [1, 2, 3]  # the blank line is no record, nor damage
     code = main(["history", LOOP, "--runs", str(tmp_path), "--prefix", P])
     err = capsys.readouterr().err
     assert code == 0
     assert "3 line(s) not readable as a record (line 1, 2, 3): skipped" in err
+
+
+def test_a_record_whose_fields_are_not_of_their_types_is_skipped_and_named(tmp_path, capsys):
+    """A record edited to hold ``"before": "x"`` stopped `autotune history` with an internal
+    error (exit 70); one with a number as text would be formatted as a number. Such records
+    are skipped like a torn line, the first one's field and reason said; a file's text that
+    is printed shows its control characters as escapes."""
+    from services.cli import main
+
+    h = history(tmp_path)
+    feed(h, status(G0))
+    feed(h, status(G1, "gains", by_source="autotune-set"))
+    good = changes(tmp_path)[-1]
+    bad = [
+        {**good, "before": "notadict"},
+        {**good, "after": {**good["after"], "kc": "2.5"}},
+        {**good, "t": [1]},
+        {"record": "tune", "loop": LOOP, "prefix": P, "gains": {"zn-pid": {"kc": True}}},
+        {"record": "tune", "loop": LOOP, "prefix": P, "verification_after": 3},
+        {"record": "change", "prefix": P},  # no loop
+    ]
+    shown = {**good, "by_source": "set\x1b[31mRED\nX"}
+    with (tmp_path / HISTORY_FILE).open("a") as f:
+        for rec in [*bad, shown]:
+            f.write(json_text.dumps(rec) + "\n")
+    skipped: list[tuple[int, str]] = []
+    read = list(read_history(tmp_path / HISTORY_FILE, skipped))
+    assert len(read) == 2  # the start is no change: the set, and the one shown
+    assert [n for n, _ in skipped] == [2, 3, 4, 5, 6, 7]
+    assert skipped[0][1].startswith("before: ") and skipped[1][1].startswith("after.kc: ")
+    assert skipped[3][1].startswith("gains.zn-pid.kc: ")
+    assert skipped[5][1].startswith("loop: ")
+    code = main(["history", LOOP, "--runs", str(tmp_path), "--prefix", P])
+    out, err = capsys.readouterr()
+    assert code == 0
+    said = "6 line(s) not readable as a record (line 2, 3, 4, 5, 6, …): skipped; line 2: "
+    assert said + "before: not a JSON object" in err
+    assert "set\\x1b[31mRED\\nX" in out and "\x1b" not in out
+    assert len(out.splitlines()) == 1 + 2 * 2  # the heading, two changes of two lines each
 
 
 def test_one_runs_directory_two_buses_a_loop_id_is_a_loop_within_its_prefix(tmp_path):

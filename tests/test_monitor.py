@@ -400,3 +400,26 @@ def test_watch_refuses_bad_flags_in_one_line(argv, needle, capsys, monkeypatch):
         code = stop.code
     err = capsys.readouterr().err
     assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_the_report_passes_over_an_assessment_line_that_is_not_one(tmp_path):
+    """``monitor.jsonl`` read for a run's report: a window edited so that its ``flags`` are a
+    list (or a figure is text) is passed over, the valid ones still shown."""
+    from services.logger.monitor_log import FILE_NAME
+    from services.logger.report import watch_lines
+
+    loop = plant()
+    auto(loop, PidGains(kc=KU))
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 3)
+    msg = LoopMonitor(loop="x", node="tuner", **watcher.report().to_dict())
+    good = json.loads(msg.model_dump_json()) | {"run_id": "r1"}
+    bad = [good | {"flags": ["oscillating"]}, good | {"iae_rate": "0.5"}, good | {"t": None}]
+    with (tmp_path / FILE_NAME).open("w") as f:
+        for rec in [good, *bad]:
+            f.write(json.dumps(rec) + "\n")
+    lines = watch_lines(tmp_path, "x", "r1")
+    assert lines[0].startswith("watched after the change: 1 window(s)")
+    with (tmp_path / FILE_NAME).open("w") as f:
+        f.write(json.dumps(bad[0]) + "\n")
+    assert watch_lines(tmp_path, "x", "r1") == []

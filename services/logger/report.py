@@ -21,11 +21,13 @@ import io
 import json
 import math
 import textwrap
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import pydantic
 
 from services.logger.before_after import VerifyTrace, figures_rows, verify_traces
 from services.logger.bode import FrequencyFigure, frequency_figure
@@ -54,6 +56,7 @@ from shared.history_file import HISTORY_FILE, loop_changes, read_history
 from shared.messages import (
     DisturbanceCommand,
     GainsCommand,
+    LoopMonitor,
     SetpointCommand,
     TuneProgress,
     TuneResult,
@@ -162,6 +165,16 @@ HISTORY_SHOWN = 8  # the last changes the report lists
 MONITOR_FILE = "monitor.jsonl"  # the tuner's watch of the loops it tuned, kept by the logger
 
 
+def _monitor_records(path: Path) -> Iterator[LoopMonitor]:
+    """The file's assessments that are ``LoopMonitor``s (a line edited or cut short is passed
+    over: a window's ``flags`` edited to a list stopped the report with an internal error)."""
+    for rec in read_history(path):
+        try:
+            yield LoopMonitor.model_validate(rec)
+        except pydantic.ValidationError:
+            continue
+
+
 def watch_lines(runs: Path, loop: str, run_id: str) -> list[str]:
     """The performance after this run's change, where the tuner watched the loop (its
     assessments compared with this run, from ``monitor.jsonl`` beside the file): the windows,
@@ -169,9 +182,9 @@ def watch_lines(runs: Path, loop: str, run_id: str) -> list[str]:
     if not run_id:
         return []
     windows = [
-        m
-        for m in read_history(runs / MONITOR_FILE)
-        if m.get("loop") == loop and m.get("run_id") == run_id
+        m.model_dump()
+        for m in _monitor_records(runs / MONITOR_FILE)
+        if m.loop == loop and m.run_id == run_id
     ]
     if not windows:
         return []

@@ -16,7 +16,7 @@ from typing import Any
 
 from shared import json_text
 from shared.cli import check_ids
-from shared.errors import ConfigError, one_line
+from shared.errors import ConfigError, one_line, printable
 from shared.history_file import (
     HISTORY_FILE,
     applicable_rule,
@@ -47,11 +47,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def entries(
-    runs: Path, loop: str, prefix: str | None = None, skipped: list[int] | None = None
+    runs: Path,
+    loop: str,
+    prefix: str | None = None,
+    skipped: list[tuple[int, str]] | None = None,
 ) -> list[dict[str, Any]]:
     """The loop's changes (on the bus ``prefix``; None: any), each with its run's ``tune``
     record (None for changes not made by a run), and the runs that changed nothing
-    (``record`` ``tune``), in file order; the numbers of unreadable lines into ``skipped``."""
+    (``record`` ``tune``), in file order; the unreadable lines (number, why) into ``skipped``."""
     history = read_history(runs / HISTORY_FILE, skipped)
     records = [r for r in history if of_loop(r, loop, prefix)]
     tunes = {r.get("run_id"): r for r in records if r.get("record") == "tune"}
@@ -179,7 +182,7 @@ def format_entries(
         lines.append(f"      {_gains_line(r.get('before'), r.get('after'))}")
         if tune and tune.get("verification_after"):
             lines.append(f"      verified: {_verification(tune['verification_after'])}")
-    return "\n".join(lines)
+    return "\n".join(printable(line) for line in lines)  # a file's text shown, not obeyed
 
 
 def run(args: argparse.Namespace) -> int:
@@ -187,13 +190,15 @@ def run(args: argparse.Namespace) -> int:
     runs = Path(args.runs)
     if not runs.is_dir():
         raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")
-    skipped: list[int] = []
+    skipped: list[tuple[int, str]] = []
     items = entries(runs, args.loop, args.prefix, skipped)
     if skipped:  # a line cut short by a crash, or edited: said, not silently passed over
-        shown = ", ".join(map(str, skipped[:5])) + (", …" if len(skipped) > 5 else "")
+        shown = ", ".join(str(n) for n, _ in skipped[:5]) + (", …" if len(skipped) > 5 else "")
+        first, why = skipped[0]
         print(
             f"autotune history: warning: {runs / HISTORY_FILE}: {len(skipped)} line(s) not "
-            f"readable as a record (line {shown}): skipped",
+            f"readable as a record (line {shown}): skipped; line {first}: "
+            f"{printable(one_line(why, 160))}",
             file=sys.stderr,
         )
     if args.json:

@@ -15,7 +15,7 @@ from pathlib import Path
 from services.logger.compare import compare, format_compare
 from services.logger.mcap_io import being_written, read_run
 from shared import json_text
-from shared.errors import AutotuneError, one_line
+from shared.errors import AutotuneError, one_line, printable
 from shared.messages import APPLIED_STATUSES
 
 HELP = "list the recorded tuning runs"
@@ -190,11 +190,11 @@ def run(args: argparse.Namespace) -> int:
             return _num(v) if held or v is None else f"({_num(v)})"
 
         print(
-            f"{_shown((r.get('started') or '')[:19]):<20} {_shown(r.get('loop') or ''):<8} "
-            f"{'apply' if r.get('applied_from') else _shown(r.get('method') or ''):<6} "
+            f"{printable((r.get('started') or '')[:19]):<20} {printable(r.get('loop') or ''):<8} "
+            f"{'apply' if r.get('applied_from') else printable(r.get('method') or ''):<6} "
             f"{_num(r.get('ku')):>9} {_num(r.get('pu')):>9} "
-            f"{_shown(r.get('rule') or ''):<14} {cell(g.get('kc')):>8} {cell(g.get('ti')):>8} "
-            f"{cell(g.get('td')):>8} {_shown(_status(r))}  {_shown(r['file'])}"
+            f"{printable(r.get('rule') or ''):<14} {cell(g.get('kc')):>8} {cell(g.get('ti')):>8} "
+            f"{cell(g.get('td')):>8} {printable(_status(r))}  {printable(r['file'])}"
         )
     if unapplied:
         print("gains in ( ): computed by the run, not left on the loop (see its status)")
@@ -204,13 +204,6 @@ def run(args: argparse.Namespace) -> int:
             f"autotune recover {folder}/FILE -o FIXED.mcap salvages its messages"
         )
     return 0
-
-
-def _shown(text: object) -> str:
-    """A file's text as the table prints it: a character that is not printable (a newline, a
-    terminal's escape) written as its escape, so no file breaks the table or drives the
-    terminal (a status of "x\\n\\x1b[31mRED" did both: helper review)."""
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
 
 
 def _status(row: dict) -> str:
