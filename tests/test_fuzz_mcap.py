@@ -829,6 +829,56 @@ def test_damaged_containers_and_what_recover_makes_of_them(recorded, tmp_path, c
     refused(code, err, "runs FILE", [f"{kept}: not a directory (the logger's --runs)"])
 
 
+def test_a_chunk_altered_after_it_was_written_is_refused_and_recover_leaves_it_out(
+    recorded, tmp_path, capsys
+):
+    """One digit of a PV changed inside an uncompressed chunk is still valid JSON: every
+    command read the altered sample without a word (a helper's flipped bit moved a PV by
+    0.04 °C; another an output by 20 points for 168 samples), and `recover` copied it with
+    new CRCs that hid the damage. The CRC the writer gave each chunk is checked: the readers
+    refuse the file naming the chunk's sim times; `recover` copies the chunks that pass,
+    says what it left out, and marks the run's metadata; `runs` lists it so."""
+    msgs, meta = load(recorded["relay"].path)
+    path = tmp_path / "altered.mcap"
+    with path.open("wb") as f:  # the run in chunks of 16 kB, uncompressed
+        w = Writer(f, compression=CompressionType.NONE, chunk_size=16 * 1024)
+        w.start(profile="", library="test")
+        ids: dict[tuple[str, str], int] = {}
+        for m in msgs:
+            if (m.topic, m.schema) not in ids:
+                sid = w.register_schema(m.schema, "jsonschema", m.schema_data)
+                ids[(m.topic, m.schema)] = w.register_channel(m.topic, m.encoding, sid)
+            w.add_message(ids[(m.topic, m.schema)], m.log_time, m.data, m.log_time)
+        for name, data in meta:
+            w.add_metadata(name, data)
+        w.finish()
+    good = path.read_bytes()
+    assert cli(capsys, "analyze", str(path))[0] == 0  # the rewritten file reads as the run
+    at = good.index(b'"pv":', len(good) // 3) + len(b'"pv":')  # a PV a third of the way in
+    digit = next(i for i in range(at, at + 30) if good[i : i + 1].isdigit() and good[i] != 57)
+    path.write_bytes(good[:digit] + bytes([good[digit] + 1]) + good[digit + 1 :])
+    for argv in (["analyze", str(path)], ["report", str(path), "-o", str(tmp_path / "r.png")],
+                 ["replay", str(path), "--wait", "0"]):  # fmt: skip
+        code, _, err = cli(capsys, *argv)
+        refused(code, err, argv[0], [str(path), "fails its CRC check", "sim time"])
+    fixed = tmp_path / "fixed.mcap"
+    code, out, err = cli(capsys, "recover", str(path), "-o", str(fixed))
+    assert code == 0 and err == "", err
+    assert "1 chunk(s) left out" in out and "fails its CRC check" in out
+    assert "the file's summary counts" in out
+    kept = load(fixed)[0]
+    assert 0 < len(kept) < len(msgs)  # the other chunks' messages, not the altered one's
+    altered = {(m.topic, m.log_time, m.data) for m in kept} - {
+        (m.topic, m.log_time, m.data) for m in msgs
+    }
+    assert altered == set()  # nothing that was changed was copied
+    code, out, err = cli(capsys, "runs", str(tmp_path), "--json")
+    row = next(r for r in json.loads(out) if r["file"] == "fixed.mcap")
+    assert row["status"] == recorded["relay"].live.status and "left out" in row["lost"]
+    code, out, err = cli(capsys, "runs", str(tmp_path))
+    assert "(recovered, data lost)  fixed.mcap" in out
+
+
 def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, tmp_path, capsys):
     folder = tmp_path / "runs"
     folder.mkdir()

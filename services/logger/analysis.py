@@ -214,6 +214,11 @@ def _read(path: str | Path) -> tuple[dict[str, str], _Run]:
                 "has no experiment to re-identify; analyse that run's file"
             )
     if request is None or setup is None:
+        if meta.get("lost"):  # a file `autotune recover` copied without what it lost
+            raise AutotuneError(
+                f"{path}: the run's experiment is not in this file: it was recovered, and "
+                f"{one_line(meta['lost'], 300)}"
+            )
         raise AutotuneError(
             f"{path}: no experiment recorded in this run (it ended before the experiment started)"
         )

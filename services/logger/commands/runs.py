@@ -144,6 +144,9 @@ def _row(path: Path, meta: dict[str, str]) -> dict:
         # an `autotune apply` run: the recorded run whose gains it applied (its method is that
         # run's; listed as "apply", not as a second test of that method)
         "applied_from": result.get("applied_from"),
+        # a file `autotune recover` wrote: what it read, and what it knows it lost
+        "recovered": meta.get("recovered"),
+        "lost": meta.get("lost"),
         "samples": _count(meta, "samples"),
         "dropped": _count(meta, "dropped"),
     }
@@ -209,4 +212,5 @@ def run(args: argparse.Namespace) -> int:
 def _status(row: dict) -> str:
     if row.get("status") == "unreadable":
         return f"unreadable: {row.get('reason')}"
-    return str(row.get("status") or "—")
+    status = str(row.get("status") or "—")
+    return f"{status} (recovered, data lost)" if row.get("lost") else status
