@@ -1211,6 +1211,25 @@ def test_analyze_gives_the_designs_warnings_as_the_live_result_does(recorded, ca
     assert code == 0
     for w in a.selection.warnings:
         assert w in rec.live.warnings and out.count(f"warning: {w}") == 1, (w, out)
+    # the identification's notes too, in the order the live result gives them
+    assert a.warnings == rec.live.warnings[: len(a.warnings)]
+    assert set(a.ident.notes) <= set(a.warnings)
+
+
+def test_analyze_gives_the_identifications_notes_as_the_live_result_does(tmp_path, capsys):
+    """A step test of a lag with no dead time: the live result says the record did not
+    resolve a dead time (a note of the identification, which the design's rules rest on);
+    `analyze --json` left the identification's notes out (a relay's "cycle ran at −136°: K_u
+    and P_u were not measured", a ramp's hold correction: helper review). Its warnings are
+    the live result's, in order (no verification: the run proposed its gains)."""
+    plant = {"seed": 3, "loops": {LOOP: {"model": "transfer_function", "num": [1.0],
+             "den": [5.0, 1.0], "sample_time": 0.1, "noise_std": 0.002}}}  # fmt: skip
+    path, live = record_in_process(tmp_path, PREFIX, plant, LOOP, "step", apply=False)
+    assert live.status == "proposed" and "dead time not resolved" in live.warnings[0]
+    code, out, _ = cli(capsys, "analyze", str(path), "--json")
+    assert code == 0 and json.loads(out)["warnings"] == live.warnings
+    code, out, _ = cli(capsys, "analyze", str(path))
+    assert code == 0 and all(out.count(f"warning: {w}") == 1 for w in live.warnings), out
 
 
 def test_a_second_run_metadata_record_is_refused_by_every_reader(recorded, tmp_path, capsys):

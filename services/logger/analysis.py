@@ -27,7 +27,7 @@ from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Band, Demand
 from services.autotuner.identify.reaction_curve import IntegratingCurve
-from services.autotuner.identify.step_test import HOLD_EVENTS, UNRESOLVED
+from services.autotuner.identify.step_test import HOLD_EVENTS
 from services.logger.mcap_io import (
     decode,
     one_result,
@@ -107,7 +107,7 @@ class Analysis:
             out["recommended"] = (
                 {"rule": rec.rule, "reason": rec.reason, "ms": rec.predicted_ms} if rec else None
             )
-            out["warnings"] = self.selection.warnings
+            out["warnings"] = self.warnings
         if rule:
             out["rule"] = rule
             out["chosen"] = self.gains[rule].to_dict() if rule in self.gains else None
@@ -123,6 +123,16 @@ class Analysis:
             out["matches_live"] = self.matches_live()
         out["missing_samples"] = self.missing
         return out
+
+    @property
+    def warnings(self) -> list[str]:
+        """The identification's notes and the design's warnings, as the live result gives
+        them before its verification (``analyze`` left out the notes: a relay's "cycle ran
+        at −136°, K_u and P_u were not measured" and a ramp's hold correction among them)."""
+        said = list(self.ident.notes)
+        return said + [
+            w for w in (self.selection.warnings if self.selection else []) if w not in said
+        ]
 
     def _step(self) -> dict | None:
         """The reaction curve as the result's ``step`` object (None: not a step test)."""
@@ -372,13 +382,7 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
             f"  step curve: K = {s.gain:.4g} {pv}/%  L = {s.dead_time:.4g} s  "
             f"T = {s.time_constant_tangent:.4g} s  L/T = {s.l_over_t:.3f}"
         )
-    # the dead time the design took where the curve's is not resolved (the rules above rest
-    # on it, not on the curve's L)
-    said = [n for n in a.ident.notes if UNRESOLVED in n]
-    # and the design's own warnings, as the live result gives them (an inverse response's
-    # "robustness … optimistic" was left out while the gains matched the live run's)
-    said += [w for w in (a.selection.warnings if a.selection else []) if w not in said]
-    lines += [f"  warning: {w}" for w in said]
+    lines += [f"  warning: {w}" for w in a.warnings]
     if a.missing:
         lines.append(
             f"  WARNING: {a.missing} samples missing from the record (the first gap after seq "
