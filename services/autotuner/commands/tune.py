@@ -400,6 +400,16 @@ def _held_start(start: Callable[[], TuneAccepted]) -> tuple[TuneAccepted, bool]:
     return accepted, bool(held)
 
 
+class TimedOut(AutotuneError):
+    """``--wait`` ran out, the run was cancelled and its result came: the one line of why,
+    and the ``result`` (``--json`` printed nothing: a script read no object, though the
+    tuner had sent one)."""
+
+    def __init__(self, message: str, result: TuneResult):
+        super().__init__(message)
+        self.result = result
+
+
 class Interrupted(KeyboardInterrupt):
     """A signal ended the wait and the cancelled run's ``result`` came: what it did, and the
     loop's ``state`` as the client leaves it. A run can end ok just before its cancel
@@ -625,9 +635,10 @@ def follow(
                         if cancelled:
                             raise Interrupted(r, loop_state(session, prefix, loop))
                         if timed_out is not None and r.status != "ok":
-                            raise AutotuneError(
+                            raise TimedOut(
                                 f"no result for run {run_id} within {wait:g} s: cancelled, "
-                                f"{r.status}: {r.reason}; {loop_state(session, prefix, loop)}"
+                                f"{r.status}: {r.reason}; {loop_state(session, prefix, loop)}",
+                                r,
                             )
                         return r  # done (ok) before the cancel reached it
             except queue.Empty:
@@ -1112,6 +1123,9 @@ def run_and_report(
             _print_result(args, stop.result)
             print(stop.summary(), file=sys.stderr)
             raise KeyboardInterrupt from None
+        except TimedOut as late:  # cancelled by --wait: the result all the same, then why
+            _print_result(args, late.result)
+            raise
     _print_result(args, result)
     return 0 if result.status in DONE_STATUSES else 1
 
