@@ -564,6 +564,13 @@ class TuneProgress(Message):
     message: str = ""
 
 
+def verify_message(gains: PidGains) -> str:
+    """A ``verify`` progress's ``message``: the gains that verification verifies (the report
+    tells a run's two verifications apart by it where the run ended in one)."""
+    ti = "off" if gains.ti is None else f"{gains.ti:.4g} s"
+    return f"Kc {gains.kc:.4g}, Ti {ti}, Td {gains.td:.4g}"
+
+
 class TunerEvent(Message):
     """An experiment's event (relay switch, cycle, trial, phase change) with its sim time."""
 

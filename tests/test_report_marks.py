@@ -15,6 +15,7 @@ from shared.messages import (
     TuneProgress,
     TunerEvent,
     Verification,
+    verify_message,
 )
 
 
@@ -65,6 +66,26 @@ def test_the_last_verification_is_after_and_the_one_before_it_before():
     assert (after.load_t, after.load, after.load_off_t) == (400, 5.0, 440)
     (only,) = verify_windows(PROGRESS[:2], SETPOINTS[:3], LOADS[:2], 280.0, with_before=False)
     assert (only.label, only.end, only.load) == ("after", 280.0, 5.0)
+
+
+def test_a_run_that_ended_within_its_verifications_has_them_named_by_their_gains():
+    """A run cancelled in its verification of the loop's own gains: its one window was
+    drawn as "after", titled with the old gains (helper review). With the gains the loop had
+    before the run (``cut_short``), a first window of those is "before"; one of other gains
+    (the loop was in manual: no "before") is "after"."""
+    old, new = PidGains(kc=6.879, ti=94.83, td=6.842), PidGains(kc=6.91, ti=95.95, td=6.922)
+    own = [progress(0, "relay"), progress(100, "verify", verify_message(old))]
+    (only,) = verify_windows(own, SETPOINTS, LOADS, 120.0, False, cut_short=old)
+    assert (only.label, only.gains) == ("before", "Kc 6.879, Ti 94.83 s, Td 6.842")
+    both = [*own, progress(300, "verify", verify_message(new))]
+    first, second = verify_windows(both, SETPOINTS, LOADS, 320.0, False, cut_short=old)
+    assert (first.label, second.label) == ("before", "after")
+    theirs = [progress(0, "relay"), progress(100, "verify", verify_message(new))]
+    (only,) = verify_windows(theirs, SETPOINTS, LOADS, 120.0, False, cut_short=old)
+    assert only.label == "after"
+    # without it (the run's result has its verifications) the last is "after", as before
+    (only,) = verify_windows(own, SETPOINTS, LOADS, 120.0, False)
+    assert only.label == "after"
 
 
 def test_traces_start_at_their_setpoint_step_as_deviations_and_rows_sit_side_by_side():

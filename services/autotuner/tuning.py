@@ -84,6 +84,7 @@ from shared.messages import (
     TuneResult,
     TunerEvent,
     Verification,
+    verify_message,
 )
 
 VERIFY_SP_FRACTION = 0.02  # of the PV range, verification setpoint step
@@ -1414,9 +1415,7 @@ class TuningRun:
         band = max(0.02 * abs(step), 4 * ident.noise)
         guard = GUARD_WINDOW * scale
         self._set_auto(gains, sp0)
-        self._progress(  # after: stamped with the sim time the gains went on at
-            "verify", message=f"Kc {gains.kc:.4g}, Ti {_seconds(gains.ti)}, Td {gains.td:.4g}"
-        )
+        self._progress("verify", message=verify_message(gains))  # stamped as they went on
 
         k = max(4, round(scale / self.ts))
         width = max(5, round(scale / self.ts / 20)) | 1

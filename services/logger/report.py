@@ -129,6 +129,7 @@ def load_series(path: str | Path) -> RunSeries:
     gains = _by_schema(path, records, GainsCommand)
     marks = [(e.t, f"cycle {e.data.get('n')}") for e in events if e.kind == "cycle"]
     marks += [(e.t, f"trial {e.data.get('n')}") for e in events if e.kind == "trial"]
+    ended_within = result is not None and result.before is None and result.after is None
     windows = verify_windows(
         progress,
         setpoints,
@@ -136,6 +137,7 @@ def load_series(path: str | Path) -> RunSeries:
         samples[-1].t,
         result is not None and result.before is not None,
         gains,
+        result.previous_gains if ended_within and result is not None else None,
     )
     setup = next((dict(e.data) for e in events if e.kind == "experiment"), {})
     units = result.pv_units if result else str(setup.get("pv_units") or "")
@@ -498,9 +500,14 @@ def place_labels(fig: Figure) -> None:
                 t.set_y(to_axes.transform((0.0, under.y0))[1] - 0.01)
                 t.set_bbox({"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5})
         placed: list[Any] = []
+        right = ax.get_window_extent(renderer).x1
         for t in sorted(
             (t for t in ax.texts if t.get_gid() == WINDOW_LABEL), key=lambda t: t.get_position()[0]
         ):
+            if t.get_window_extent(renderer).x1 > right:  # a window near the end: cut at the
+                # plot's edge ("verification aft" of a run cancelled there), so set inside it
+                t.set_x(ax.get_xlim()[1])
+                t.set_horizontalalignment("right")
             for _ in range(len(placed)):
                 e = t.get_window_extent(renderer)
                 if not any(e.overlaps(p) for p in placed):
@@ -638,16 +645,10 @@ def _unavailable(ax: Axes, title: str, why: str) -> None:
     # the ticks hidden on this axes alone: emptying its tick locations would empty those of
     # the axes it shares a scale with too (the "after" panel lost its PV scale so)
     ax.tick_params(left=False, labelleft=False, bottom=False, labelbottom=False)
-    ax.text(
-        0.5,
-        0.5,
-        f"not available: {why}",
-        ha="center",
-        va="center",
-        fontsize=8,
-        transform=ax.transAxes,
-        wrap=True,
-    )
+    # wrapped here: matplotlib wraps at the figure's edge, not the panel's (the reason ran
+    # across the next panel)
+    text = "\n".join(textwrap.fill(part, 40) for part in f"not available: {why}".split("\n"))
+    ax.text(0.5, 0.5, text, ha="center", va="center", fontsize=8, transform=ax.transAxes)
 
 
 def draw_overlay(ax: Axes, rep: Report) -> None:
@@ -857,6 +858,11 @@ def _nyquist_limits(ax: Axes, f: FrequencyFigure) -> None:
     ax.set_aspect("equal", adjustable="box")
 
 
+def verified(r: TuneResult | None, label: str) -> object:
+    """The result's ``before`` or ``after`` verification (None: none, or no result)."""
+    return None if r is None else (r.before if label == "before" else r.after)
+
+
 def _no_verification(r: TuneResult | None, label: str) -> str:
     """Why the report has no ``label`` ("before"/"after") verification to draw. The old gains
     are verified only on the way to applying new ones, and only in auto: an aborted or
@@ -864,7 +870,8 @@ def _no_verification(r: TuneResult | None, label: str) -> str:
     if r is not None and r.status == "unverified":
         return "applied without verification (--no-verify)"
     if r is not None and not r.applied and r.after is None:
-        return f"the run ended ({r.status}) before any verification"
+        what = "any verification" if label == "before" else "the new gains' verification"
+        return f"the run ended ({r.status}) before {what} was complete"
     if label == "before":
         return "the loop was not in auto before the run:\nno verification of its old gains"
     return "no verification recorded"
@@ -880,6 +887,10 @@ def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
     lim = (min(float(np.min(y)) for y in ys), max(float(np.max(y)) for y in ys)) if ys else None
     for ax, label in zip(axes, labels, strict=True):
         tr = by_label.get(label)
+        if tr is not None and tr.t.size < 3:  # a run cancelled as the verification began
+            why = f"the run ended ({r.status if r else 'not known'}) as this verification began"
+            _unavailable(ax, f"{label}: {tr.gains}", why)
+            continue
         if tr is None:
             _unavailable(ax, f"{label}", _no_verification(r, label))
             continue
@@ -898,7 +909,10 @@ def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
             ax.axvline(
                 tr.load_t, color=MARK_STYLE["load"][0], ls=MARK_STYLE["load"][1], lw=0.9, label=text
             )
-        ax.set_title(f"{label}: {tr.gains}", fontsize=8)
+        cut = verified(r, label) is None and r is not None  # the run ended within it
+        ax.set_title(
+            f"{label}: {tr.gains}" + (f" (cut short: {r.status})" if cut else ""), fontsize=8
+        )
         ax.set_xlabel("s since the setpoint step")
         ax.set_ylabel(f"deviation ({units})" if units else "deviation")
         if lim is not None and lim[1] > lim[0]:
@@ -911,7 +925,8 @@ def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
         lines = [f"{'':<28}{'before':>10}{'after':>10}"]
         lines += [f"{a:<28.28}{b:>10}{c:>10}" for a, b, c in rows]
     else:  # a header over nothing read as figures lost (an aborted or refused run)
-        lines = ["none: " + _no_verification(r, "after").replace("\n", " ")]
+        why = "none: " + _no_verification(r, "after").replace("\n", " ")
+        lines = textwrap.wrap(why, 44)  # the panel's width (it ran off the page's edge)
     if r is not None and isinstance(r.acceptance, dict):
         lines.append("")
         lines.append(f"acceptance: {'passed' if r.acceptance.get('passed') else 'not passed'}")

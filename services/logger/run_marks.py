@@ -18,6 +18,7 @@ from shared.messages import (
     SetpointCommand,
     TuneProgress,
     TunerEvent,
+    verify_message,
 )
 
 LOAD = "load"  # the disturbance input the verification steps (tuning._verify)
@@ -97,12 +98,17 @@ def verify_windows(
     t_end: float,
     with_before: bool,
     gains: Sequence[GainsCommand] = (),
+    cut_short: PidGains | None = None,
 ) -> list[VerifyWindow]:
     """Each ``verify`` phase of the run as a window; the last is "after", one before it
     "before" when the result has a before-verification. A window ends where the gains it
     verified were replaced (``gains``: the run's gains commands; one at its start is its
     own): a rejected run's restore comes before its phase ends, and the old gains' response
-    after it was drawn as the new gains' (hx1's "after" ran 144 s past the restore)."""
+    after it was drawn as the new gains' (hx1's "after" ran 144 s past the restore).
+
+    ``cut_short``: the loop's gains before a run that ended within its verifications (its
+    result has neither): a first window of those gains is "before", however many followed
+    (a run cancelled in it had its one window drawn as "after", titled with the old gains)."""
     starts = [p for p in progress if p.phase == "verify"]
     changed = [c.t for c in gains_changes(gains) if c.t is not None]
     out = []
@@ -120,6 +126,9 @@ def verify_windows(
         load = loads[0].value - loads[1].value if len(loads) >= 2 else None
         last = i == len(starts) - 1
         label = "after" if last else ("before" if with_before and i == len(starts) - 2 else "")
+        if cut_short is not None and i == 0:
+            own = p.message == verify_message(cut_short)
+            label = "before" if own else ("after" if last else "")
         out.append(
             VerifyWindow(
                 label or f"verification {i + 1}",
