@@ -184,3 +184,17 @@ def test_a_mark_label_under_the_summary_box_hangs_below_it_and_window_labels_sta
     assert not any(e.overlaps(box.get_window_extent(r)) for e in extents)
     assert not extents[3].overlaps(extents[4])
     assert marks[2].get_position()[1] == 1.0  # clear of the box: where it was
+
+
+def test_the_legend_names_every_output_a_repeated_step_test_went_to():
+    """Six steps of a repeated test, up to 54.05 % and back down to 44.05 %: the legend said
+    "output step to 54.05 %" for all six (helper review)."""
+    from services.logger.report import _steps_text
+
+    events = [
+        TunerEvent(run_id="r", loop="x1", t=100.0 * i, kind="step", data={"op": op})
+        for i, op in enumerate([54.05, 44.05] * 3)
+    ]
+    steps = [m for m in experiment_marks(events, "m") if m.kind == "output step"]
+    assert _steps_text(steps) == "step test: 6 output steps, to 54.05 / 44.05 %"
+    assert _steps_text(steps[:1]) == "step test: output step to 54.05 %"

@@ -394,9 +394,9 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
     if "stage 2 again" in kinds:
         handles_pv.append(_proxy("relay stage 2 set again (stuck)", *MARK_STYLE["stage 2 again"]))
     if "output step" in kinds:
-        first = next(m for m in s.events if m.kind == "output step")
-        handles_pv.append(_proxy(f"step test: {first.label}", *MARK_STYLE["output step"]))
-        handles_op.append(_proxy(f"step test: {first.label}", *MARK_STYLE["output step"]))
+        text = _steps_text([m for m in s.events if m.kind == "output step"])
+        handles_pv.append(_proxy(text, *MARK_STYLE["output step"]))
+        handles_op.append(_proxy(text, *MARK_STYLE["output step"]))
     for m in (m for m in s.events if m.kind == "gains"):  # each its own: its gains differ
         handles_pv.append(_proxy(f"{m.label} (t = {m.t:g} s)", *MARK_STYLE["gains"]))
         handles_op.append(_proxy(m.label.split(":")[0], *MARK_STYLE["gains"]))
@@ -443,6 +443,20 @@ def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
         family="monospace",
         bbox={"boxstyle": "round", "fc": "white", "alpha": 0.85},
     )
+
+
+def _steps_text(steps: list[Mark]) -> str:
+    """The legend's entry for a step test's output steps: one step's own label; of repeated
+    steps, how many and each output they went to (the first step's "to 54.05 %" stood for
+    all six, three of which went down to 44.05 %: helper review)."""
+    if len(steps) == 1:
+        return f"step test: {steps[0].label}"
+    prefix = "output step to "
+    targets = dict.fromkeys(
+        m.label.removeprefix(prefix).removesuffix(" %") for m in steps if m.label.startswith(prefix)
+    )
+    to = f", to {' / '.join(targets)} %" if targets else ""
+    return f"step test: {len(steps)} output steps{to}"
 
 
 def _text_panel(ax: Axes, lines: list[str], fontsize: float = 8) -> None:
@@ -867,9 +881,11 @@ def _no_verification(r: TuneResult | None, label: str) -> str:
     """Why the report has no ``label`` ("before"/"after") verification to draw. The old gains
     are verified only on the way to applying new ones, and only in auto: an aborted or
     refused run ended first (its report said the loop had not been in auto)."""
-    if r is not None and r.status == "unverified":
+    if r is None:  # a file cut off before the run's end (a recovered one)
+        return "the run's result is not in the file (it was cut off before the run ended)"
+    if r.status == "unverified":
         return "applied without verification (--no-verify)"
-    if r is not None and not r.applied and r.after is None:
+    if not r.applied and r.after is None:
         what = "any verification" if label == "before" else "the new gains' verification"
         return f"the run ended ({r.status}) before {what} was complete"
     if label == "before":
@@ -883,7 +899,12 @@ def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
     units = s.units
     by_label = {tr.label: tr for tr in rep.traces}
     labels = ["before", "after"]
-    ys = [tr.pv for tr in rep.traces] + [tr.sp for tr in rep.traces]
+    # the scale of the steps' responses, from a quarter of each response's length before its
+    # step: a window opens as the gains go on, where the PV may still be coming back from the
+    # test, and its tail set the scale (lvl1's 0.016 m step drawn in a twentieth of it)
+    shown = {tr.label: tr.t >= -0.25 * max(float(tr.t[-1]), 0.0) for tr in rep.traces}
+    ys = [y[shown[tr.label]] for tr in rep.traces for y in (tr.pv, tr.sp)]
+    ys = [y for y in ys if y.size]
     lim = (min(float(np.min(y)) for y in ys), max(float(np.max(y)) for y in ys)) if ys else None
     for ax, label in zip(axes, labels, strict=True):
         tr = by_label.get(label)
@@ -914,6 +935,8 @@ def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
             f"{label}: {tr.gains}" + (f" (cut short: {r.status})" if cut else ""), fontsize=8
         )
         ax.set_xlabel("s since the setpoint step")
+        if np.any(shown[label]) and not np.all(shown[label]):  # from where the scale is read
+            ax.set_xlim(float(tr.t[shown[label]][0]), float(tr.t[-1]))
         ax.set_ylabel(f"deviation ({units})" if units else "deviation")
         if lim is not None and lim[1] > lim[0]:
             pad = 0.05 * (lim[1] - lim[0])
