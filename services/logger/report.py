@@ -499,13 +499,15 @@ MARK_LABEL, WINDOW_LABEL = "mark label", "window label"  # the trends' labels (`
 def place_labels(fig: Figure) -> None:
     """Keep the trends' labels readable (the layout final: they are measured as drawn). A
     mark's label (a relay cycle's number, a trial's Kc) hangs from the top of the plot; one
-    that falls under the summary box hangs from the box's foot instead, on a white ground
+    that falls under the summary box or the legend hangs from its foot instead, on a white ground
     (the first six trials' Kc of an hx1 ramp were hidden under it). A verification's label
     that would overprint the one before it (flow1's two windows 25 s apart read "verification
     bevfecification after") goes up a line."""
     renderer = fig.canvas.get_renderer()
     for ax in fig.axes:
         boxes = [t.get_window_extent(renderer) for t in ax.texts if t.get_bbox_patch()]
+        if ax.get_legend() is not None:  # lvl2's cycle numbers 9–16 hid under the legend
+            boxes.append(ax.get_legend().get_window_extent(renderer))
         to_axes = ax.transAxes.inverted()
         for t in (t for t in ax.texts if t.get_gid() == MARK_LABEL):
             e = t.get_window_extent(renderer)
