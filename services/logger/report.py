@@ -297,7 +297,7 @@ def _summary(s: RunSeries) -> str:
         a = r.after
         lines.append(
             f"after: overshoot {_g(a.overshoot, '.0f', ' %')}, decay ratio "
-            f"{_g(a.decay_ratio, '.2f')}, IAE {_g(a.iae_sp, '.3g')}"
+            f"{_g(a.decay_ratio, '.2f')}, IAE {_g(a.iae_sp, '.3g', f' {unit(s.units)}·s')}"
         )
     if r.reason:  # wrapped, not cut mid-word ("…the gains were computed, not")
         lines += textwrap.wrap(r.reason, REASON_WIDTH, max_lines=REASON_LINES, placeholder=" …")
@@ -685,7 +685,7 @@ def draw_overlay(ax: Axes, rep: Report) -> None:
         label="model, driven by the recorded output",
     )
     m = s.result and result_model(s.result.experiment, s.result.step)
-    desc = _model_text(m) if m else "model"
+    desc = _model_text(m, units) if m else "model"
     ax.set_title(
         f"{title}: {desc}; fit {o.fit_percent:.1f} % (100·(1 − ‖y − ŷ‖/‖y − ȳ‖)), "
         f"rms {o.rms:.3g} {units}",
@@ -700,9 +700,12 @@ def draw_overlay(ax: Axes, rep: Report) -> None:
     ax.legend(loc="upper right", fontsize=7)
 
 
-def _model_text(m: Any) -> str:
+def _model_text(m: Any, units: str) -> str:
+    """The model in its units: K in PV units per % of output (an IPDT's per s: the PV's
+    rate; its "K 0.0001003" was given without any: helper review), T and L in s."""
     lags = ", ".join(f"{x:.4g}" for x in m.lags)
-    body = f"K {m.gain:.4g}" + (f", T {lags} s" if lags else "") + f", L {m.delay:.4g} s"
+    per = f"{unit(units)}/s per %" if m.kind == "ipdt" else f"{unit(units)}/%"
+    body = f"K {m.gain:.4g} {per}" + (f", T {lags} s" if lags else "") + f", L {m.delay:.4g} s"
     return f"{m.kind.upper()} ({body})"
 
 
