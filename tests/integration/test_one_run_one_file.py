@@ -695,3 +695,9 @@ def test_plant_restarted_between_runs_and_a_replay_on_the_live_bus(bus, tmp_path
     meta, records = check_one_run(replayed[0], first.run_id)
     assert meta["replay"] == f1.name
     assert [(r.topic, r.data) for r in records] == [(r.topic, r.data) for r in sent]
+    # `runs` tells the replay from a live run (it listed it as one of the day it was replayed)
+    listing = autotune("runs", str(kept), "--json")
+    rows = {r["file"]: r for r in json.loads(listing.stdout)}
+    assert rows[replayed[0].name]["replay"] == f1.name
+    assert {r["replay"] for n, r in rows.items() if n != replayed[0].name} == {None}
+    assert "(replay)  " + replayed[0].name in autotune("runs", str(kept)).stdout

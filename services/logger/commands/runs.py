@@ -144,6 +144,9 @@ def _row(path: Path, meta: dict[str, str]) -> dict:
         # an `autotune apply` run: the recorded run whose gains it applied (its method is that
         # run's; listed as "apply", not as a second test of that method)
         "applied_from": result.get("applied_from"),
+        # a replay recorded by a logger with --record-replays: the file replayed (None: a
+        # live run; `runs` listed replays as live runs of the day they were replayed)
+        "replay": meta.get("replay") or None,
         # a file `autotune recover` wrote: what it read, and what it knows it lost
         "recovered": meta.get("recovered"),
         "lost": meta.get("lost"),
@@ -213,4 +216,6 @@ def _status(row: dict) -> str:
     if row.get("status") == "unreadable":
         return f"unreadable: {row.get('reason')}"
     status = str(row.get("status") or "—")
+    if row.get("replay"):
+        status += " (replay)"
     return f"{status} (recovered, data lost)" if row.get("lost") else status
