@@ -31,7 +31,8 @@ def test_a_footerless_file_held_open_is_recording_and_unreadable_once_closed(tmp
     finally:
         f.close()
     assert not being_written(path)  # nobody has it open: a logger killed mid-run
-    assert summarize(path)["status"] == "unreadable"
+    row = summarize(path)
+    assert row["status"] == "unreadable" and (row["loop"], row["method"]) == ("hx1", "relay")
     with pytest.raises(AutotuneError, match="try: autotune recover"):
         read_run(path)
 

@@ -61,22 +61,23 @@ def summarize(path: Path) -> dict:
         return _row(path, meta)
     except AutotuneError as err:
         if being_written(path):
-            return _recording_row(path)
-        return {"file": path.name, "status": "unreadable", "reason": _reason(path, err)}
+            return _named_row(path, "recording", "in progress: a logger is writing it")
+        # what its name tells, beside why it is not read (its row was blank but for that)
+        return _named_row(path, "unreadable", _reason(path, err))
 
 
-def _recording_row(path: Path) -> dict:
-    """What the file's name tells of a run in progress: ``<UTC>_<loop>_<method>_<id>.mcap``."""
+def _named_row(path: Path, status: str, reason: str) -> dict:
+    """A row from what the file's name tells (``<UTC>_<loop>_<method>_<id>.mcap``, as the
+    logger names it): a run in progress, or a file that cannot be read."""
     parts = path.stem.removesuffix("_replay").split("_")
-    loop = "_".join(parts[1:-2]) if len(parts) >= 4 else None
-    method = parts[-2] if len(parts) >= 4 else None
+    named = len(parts) >= 4
     return {
         "file": path.name,
-        "started": parts[0] if len(parts) >= 4 else None,
-        "loop": loop,
-        "method": method,
-        "status": "recording",
-        "reason": "in progress: a logger is writing it",
+        "started": parts[0] if named else None,
+        "loop": "_".join(parts[1:-2]) if named else None,
+        "method": parts[-2] if named else None,
+        "status": status,
+        "reason": reason,
     }
 
 
