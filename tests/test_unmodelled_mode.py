@@ -112,3 +112,46 @@ def test_the_resonant_plant_is_rejected_and_restored_not_ok():
     # the loop's mode near the plant's resonance (10 rad/s, pulled down by the loop)
     assert 2 * math.pi / 10.5 < r.after.unmodelled_period < 2 * math.pi / 8.0
     assert r.after.unmodelled_ringing > 0.35 and r.restored
+
+
+# 1.067·e^{−0.76 s}/((2.39 s + 1)(s²/14.9² + 2·0.063·s/14.9 + 1)): a 2.4 s lag and a mode at
+# 14.9 rad/s, ζ 0.063, 6.5 ω_u, under noise σ 0.15 (a helper's random plant, c197)
+C197 = {
+    "model": "transfer_function",
+    "num": [1.0668609883993008],
+    "den": [0.010715750212001171, 0.02477607750957485, 2.3945981912816645, 1.0],
+    "delay": 0.7593703813316826,
+    "sample_time": 0.03258647859225524,
+    "noise_std": 0.150737149443995,
+}
+
+
+def test_gains_that_leave_the_loop_in_a_limit_cycle_after_the_setpoints_return_are_refused():
+    """A step test's ZN-half PID on c197: the setpoint step's figures passed, the mode grew
+    once the setpoint went back, and the run ended ok with the output swinging 0–100 % and
+    the PV ±7.7 about its setpoint (helper review). The return is judged: rejected, the
+    previous gains restored, and the loop then steady (the output never at both limits)."""
+    sim = build_plant({"seed": 1, "loops": {"x": C197}}, "h1")["x"]  # the helper's noise
+    before = sim.pid.gains
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "h1").run()
+    assert r.status == "rejected" and "output swung between its limits" in r.reason, r.reason
+    assert r.restored and sim.pid.gains == before
+    op = np.array([sim.advance().op for _ in range(round(60 / C197["sample_time"]))])
+    assert not ((op <= 0.0).any() and (op >= 100.0).any()), (op.min(), op.max())
+
+
+def test_a_return_is_unsteady_when_it_swings_or_its_output_hits_both_limits():
+    from services.autotuner.tuning import unsteady_return
+
+    k, t = 100, np.arange(400) * 0.01
+    rest = 50.0 + 0.01 * np.random.default_rng(1).standard_normal(t.size)
+    op = 40.0 + 0.5 * np.sin(2 * math.pi * t)
+    assert unsteady_return(rest, op, 50.0, k, 0.05, (0.0, 100.0)) is None
+    slow = 50.0 + 0.5 * np.exp(-t)  # creeping back: slow, not unsteady
+    assert unsteady_return(slow, op, 50.0, k, 0.05, (0.0, 100.0)) is None
+    swing = 50.0 + 2.0 * np.sin(2 * math.pi * t / 0.3)
+    assert "kept swinging" in unsteady_return(swing, op, 50.0, k, 0.05, (0.0, 100.0))
+    cycle = np.clip(50.0 + 80.0 * np.sin(2 * math.pi * t / 0.4), 0.0, 100.0)
+    assert "between its limits" in unsteady_return(rest, cycle, 50.0, k, 0.05, (0.0, 100.0))
+    stuck = np.full(t.size, 100.0)
+    assert "sat at a limit" in unsteady_return(rest, stuck, 50.0, k, 0.05, (0.0, 100.0))

@@ -1518,7 +1518,13 @@ class TuningRun:
                 # integrating loop took 2,050 s to remove the load step's offset, and the run
                 # ended 9 % of span off its setpoint after 5 time scales (800 s)
                 slow = max(_seconds_of(sp_m, "settling_time"), _seconds_of(load_m, "recovery_time"))
-                self._record(max(5 * scale, min(1.5 * slow, span)), at(sp0))
+                _, y_back, u_back, why = self._record(
+                    max(5 * scale, min(1.5 * slow, span)), at(sp0)
+                )
+                # and judged: gains that left a loop in a limit cycle after the setpoint's
+                # return (output 0–100 %, PV ±7.7 on c197) were reported ok (helper review)
+                stopped = why or unsteady_return(y_back, u_back, sp0, k, band, (op_lo, op_hi))
+                stable = stopped is None
         iae_sp = sp_m["iae"] if sp_m else None  # None: no step measured (not a perfect 0)
         mode = max((m for m in modes if m is not None), key=lambda m: m.decay, default=None)
         score = (iae_sp or 0.0) / abs(step) + (load_m["iae"] / abs(load_size) if load_m else 0.0)
@@ -1703,6 +1709,38 @@ def judged_batch_end(k: int, n_max: int, judge: int, window: int | None, windows
         due = (windows + 1) * window
         end = min(end, max(k + 1, -(-due // judge) * judge))
     return end
+
+
+def unsteady_return(
+    y: np.ndarray,
+    u: np.ndarray,
+    target: float,
+    k: int,
+    band: float,
+    op_limits: tuple[float, float],
+) -> str | None:
+    """Why the loop is not steady after the verification's setpoint went back to ``target``
+    (None: it is): the PV still swinging about it (``swinging``), or the output in its last
+    two time scales (``k`` samples each) at both of its limits, or at one for a third of
+    them. A slow return is not unsteady. Why: an oscillation the steps' figures did not show
+    (a lightly damped mode beyond the model, 0.4 s on a 3 s loop, under σ 0.15 of noise) grew
+    once the setpoint went back, and the run ended ok with the loop in a limit cycle."""
+    lo, hi = op_limits
+    tail = u[-2 * k :]
+    at_lo, at_hi = (tail <= lo), (tail >= hi)
+    if tail.size and at_lo.any() and at_hi.any():
+        return (
+            f"after the setpoint's return the output swung between its limits ({lo:g} and "
+            f"{hi:g} %): the loop oscillates with these gains"
+        )
+    if tail.size and np.mean(at_lo | at_hi) > 1 / 3:
+        return "after the setpoint's return the output sat at a limit: the loop is not steady"
+    if swinging(y, target, k, band):
+        return (
+            "after the setpoint's return the PV kept swinging about it: the loop oscillates "
+            "with these gains"
+        )
+    return None
 
 
 def swinging(y: np.ndarray, target: float, k: int, band: float) -> bool:
