@@ -153,5 +153,5 @@ def test_a_return_is_unsteady_when_it_swings_or_its_output_hits_both_limits():
     assert "kept swinging" in unsteady_return(swing, op, 50.0, k, 0.05, (0.0, 100.0))
     cycle = np.clip(50.0 + 80.0 * np.sin(2 * math.pi * t / 0.4), 0.0, 100.0)
     assert "between its limits" in unsteady_return(rest, cycle, 50.0, k, 0.05, (0.0, 100.0))
-    stuck = np.full(t.size, 100.0)
-    assert "sat at a limit" in unsteady_return(rest, stuck, 50.0, k, 0.05, (0.0, 100.0))
+    at_rest_there = np.full(t.size, 100.0)  # a loop whose rest is at the output's limit
+    assert unsteady_return(rest, at_rest_there, 50.0, k, 0.05, (0.0, 100.0)) is None
