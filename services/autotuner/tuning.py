@@ -1722,9 +1722,10 @@ def unsteady_return(
     """Why the loop is not steady after the verification's setpoint went back to ``target``
     (None: it is): the PV still swinging about it (``swinging``), or the output in its last
     two time scales (``k`` samples each) at both of its limits. A slow return is not
-    unsteady, nor an output resting at one limit (a loop's rest may be there). Why: an oscillation the steps' figures did not show
-    (a lightly damped mode beyond the model, 0.4 s on a 3 s loop, under σ 0.15 of noise) grew
-    once the setpoint went back, and the run ended ok with the loop in a limit cycle."""
+    unsteady, nor an output resting at one limit (a loop's rest may be there). Why: an
+    oscillation the steps' figures did not show (a lightly damped mode beyond the model,
+    0.4 s on a 3 s loop, under σ 0.15 of noise) grew once the setpoint went back, and the
+    run ended ok with the loop in a limit cycle."""
     lo, hi = op_limits
     tail = u[-2 * k :]
     at_lo, at_hi = (tail <= lo), (tail >= hi)
