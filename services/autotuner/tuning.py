@@ -1720,26 +1720,28 @@ def unsteady_return(
     op_limits: tuple[float, float],
 ) -> str | None:
     """Why the loop is not steady after the verification's setpoint went back to ``target``
-    (None: it is): the PV still swinging about it (``swinging``), or the output in its last
-    two time scales (``k`` samples each) at both of its limits. A slow return is not
-    unsteady, nor an output resting at one limit (a loop's rest may be there). Why: an
-    oscillation the steps' figures did not show (a lightly damped mode beyond the model,
-    0.4 s on a 3 s loop, under σ 0.15 of noise) grew once the setpoint went back, and the
-    run ended ok with the loop in a limit cycle."""
-    lo, hi = op_limits
+    (None: it is): the PV still swinging about it (``swinging``: its last two time scales,
+    ``k`` samples each), said with the output's range there. A slow return is not unsteady,
+    nor an output that the PV's noise alone drives between its limits (a level loop's high
+    gain does: its PV is steady). Why: an oscillation the steps' figures did not show (a
+    lightly damped mode beyond the model, 0.4 s on a 3 s loop, under σ 0.15 of noise) grew
+    once the setpoint went back, and the run ended ok with the loop in a limit cycle."""
+    if not swinging(y, target, k, band):
+        return None
     tail = u[-2 * k :]
-    at_lo, at_hi = (tail <= lo), (tail >= hi)
-    if tail.size and at_lo.any() and at_hi.any():
-        return (
-            f"after the setpoint's return the output swung between its limits ({lo:g} and "
-            f"{hi:g} %): the loop oscillates with these gains"
-        )
-    if swinging(y, target, k, band):
-        return (
-            "after the setpoint's return the PV kept swinging about it: the loop oscillates "
-            "with these gains"
-        )
-    return None
+    lo, hi = op_limits
+    both = bool(tail.size and (tail <= lo).any() and (tail >= hi).any())
+    output = (
+        f"the output between its limits ({lo:g} and {hi:g} %)"
+        if both
+        else f"the output {float(np.min(tail)):.3g}–{float(np.max(tail)):.3g} %"
+        if tail.size
+        else "the output"
+    )
+    return (
+        f"after the setpoint's return the PV kept swinging about it, {output}: the loop "
+        "oscillates with these gains"
+    )
 
 
 def swinging(y: np.ndarray, target: float, k: int, band: float) -> bool:
