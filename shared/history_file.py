@@ -53,8 +53,8 @@ class _Change(_Common):
     cause: str | None = None
     by_source: str | None = None
     by_user: str | None = None
-    before: _Gains | None = None
-    after: _Gains | None = None
+    before: _Gains  # the logger writes both: `revert` takes them as they are
+    after: _Gains
 
 
 class _Tune(_Common):

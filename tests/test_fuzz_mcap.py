@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from services.cli import main
@@ -877,6 +879,43 @@ def test_a_chunk_altered_after_it_was_written_is_refused_and_recover_leaves_it_o
     assert row["status"] == recorded["relay"].live.status and "left out" in row["lost"]
     code, out, err = cli(capsys, "runs", str(tmp_path))
     assert "(recovered, data lost)  fixed.mcap" in out
+
+
+def test_recover_keeps_every_intact_chunk_whatever_the_damaged_one(recorded, tmp_path, capsys):
+    """The first chunk damaged (it holds the schemas and channels, the logger writes each
+    where it is first used): every message of the intact chunks after it was left out for
+    want of its channel, 19 of 9,983 kept; a chunk whose compressed bytes no longer
+    decompress ended the reading there, called "truncated" (review). Both lose that one
+    chunk alone: the channels come from the summary, and the chunk is left out and said."""
+    msgs, meta = load(recorded["relay"].path)
+    path = tmp_path / "run.mcap"
+    with path.open("wb") as f:  # zstd chunks of 16 kB, as the logger's are compressed
+        w = Writer(f, compression=CompressionType.ZSTD, chunk_size=16 * 1024)
+        w.start(profile="", library="test")
+        ids: dict[tuple[str, str], int] = {}
+        for m in msgs:
+            if (m.topic, m.schema) not in ids:
+                sid = w.register_schema(m.schema, "jsonschema", m.schema_data)
+                ids[(m.topic, m.schema)] = w.register_channel(m.topic, m.encoding, sid)
+            w.add_message(ids[(m.topic, m.schema)], m.log_time, m.data, m.log_time)
+        for name, data in meta:
+            w.add_metadata(name, data)
+        w.finish()
+    good = path.read_bytes()
+    with path.open("rb") as f:  # where the chunks' compressed bytes are
+        chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
+    assert len(chunks) >= 4
+    first = good.index(chunks[0].data)
+    third = good.index(chunks[2].data)
+    for name, at, what in (("first", first + len(chunks[0].data) // 2, "fails its CRC check"),
+                           ("third", third, "cannot be decompressed")):  # fmt: skip
+        bad = tmp_path / f"{name}.mcap"
+        bad.write_bytes(good[:at] + bytes([good[at] ^ 0xFF]) + good[at + 1 :])
+        fixed = tmp_path / f"{name}.fixed.mcap"
+        code, out, err = cli(capsys, "recover", str(bad), "-o", str(fixed))
+        assert code == 0 and "1 chunk(s) left out" in out and what in out, (name, out, err)
+        kept = load(fixed)[0]  # all but one chunk's share, give or take
+        assert len(msgs) - len(kept) < 2 * len(msgs) / len(chunks), (name, len(kept))
 
 
 def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, tmp_path, capsys):

@@ -477,11 +477,12 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
     return meta, records
 
 
-def damaged_chunk(chunk: object, meta: dict[str, str]) -> str:
-    """Why a chunk that fails its CRC is not read, one line: the sim times of its messages
-    where the run's ``log_time_zero`` gives them. Why refused: a flipped bit in a chunk read
-    as a PV 0.04 °C off, or an output 20 points off for 168 samples, and was analysed and
-    drawn without a word (helper review); the CRC the logger wrote says which chunk."""
+def damaged_chunk(chunk: object, meta: dict[str, str], crc: bool = True) -> str:
+    """Why a chunk that fails its CRC (``crc``; else: that cannot be decompressed) is not
+    read, one line: the sim times of its messages where the run's ``log_time_zero`` gives
+    them. Why refused: a flipped bit in a chunk read as a PV 0.04 °C off, or an output 20
+    points off for 168 samples, and was analysed and drawn without a word (helper review);
+    the CRC the logger wrote says which chunk."""
     where = ""
     if isinstance(chunk, Chunk):
         zero = meta.get("log_time_zero")
@@ -490,9 +491,10 @@ def damaged_chunk(chunk: object, meta: dict[str, str]) -> str:
             where = f" (sim time {a / 1e9:.6g}–{b / 1e9:.6g} s)"
         else:
             where = f" (log times {chunk.message_start_time}–{chunk.message_end_time} ns)"
+    what = "fails its CRC check" if crc else "cannot be decompressed"
     return (
-        f"a chunk of its messages{where} fails its CRC check: its bytes changed after they "
-        "were written (a damaged disk or copy, an edit)"
+        f"a chunk of its messages{where} {what}: its bytes changed after they were written "
+        "(a damaged disk or copy, an edit)"
     )
 
 

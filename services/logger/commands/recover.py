@@ -59,7 +59,8 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
     counts = {"schemas": 0, "channels": 0, "messages": 0, "metadata": 0}
     stopped = "end of file"
     run: dict[str, str] | None = None  # the run's metadata record, where it was read
-    damaged: list[Chunk] = []  # chunks that failed their CRC: their messages left out
+    # chunks that failed their CRC (True) or to decompress (False): their messages left out
+    damaged: list[tuple[Chunk, bool]] = []
     schemas: dict[int, int] = {}
     channels: dict[int, int] = {}
     with src.open("rb") as f, dst.open("wb") as out:
@@ -85,13 +86,18 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
                     channels[rec.channel_id], rec.log_time, rec.data, rec.publish_time, rec.sequence
                 )
                 counts["messages"] += 1
-            elif isinstance(rec, Metadata) and not (rec.name == "run" and run is not None):
-                if rec.name == "run":  # written with what is known once the chunks are read
-                    run = dict(rec.metadata)
+            elif isinstance(rec, Metadata):
+                if rec.name == "run" and run is None:  # written once the chunks are read,
+                    run = dict(rec.metadata)  # with what is known of their loss
                     return
-                writer.add_metadata(rec.name, rec.metadata)
+                writer.add_metadata(rec.name, rec.metadata)  # a second one too: as it was
                 counts["metadata"] += 1
 
+        # the summary's schemas and channels first, where it can be read: a damaged first
+        # chunk holds them (the logger writes each where first used), and every message of
+        # the intact chunks after it was left out for want of its channel (review)
+        for rec in _summary_records(src):
+            copy(rec)
         try:
             for rec in StreamReader(f, skip_magic=False, emit_chunks=True).records:
                 if not isinstance(rec, Chunk):
@@ -100,7 +106,10 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
                 try:
                     inner = breakup_chunk(rec, validate_crc=True)
                 except CRCValidationError:
-                    damaged.append(rec)
+                    damaged.append((rec, True))
+                    continue
+                except Exception:  # its compressed bytes damaged: it, not the rest, is lost
+                    damaged.append((rec, False))
                     continue
                 for r in inner:
                     copy(r)
@@ -140,13 +149,29 @@ def _summary_count(src: Path) -> int | None:
         return None
 
 
-def _lost(damaged: list[Chunk], run: dict[str, str], summary: int | None, read: int) -> str:
+def _summary_records(src: Path) -> list[Schema | Channel]:
+    """The schemas and channels the file's summary lists (none where it cannot be read)."""
+    try:
+        with src.open("rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # a damaged or missing summary: the chunks' own records serve
+        return []
+    if summary is None:
+        return []
+    schemas = [summary.schemas[i] for i in sorted(summary.schemas)]
+    return [*schemas, *(summary.channels[i] for i in sorted(summary.channels))]
+
+
+def _lost(
+    damaged: list[tuple[Chunk, bool]], run: dict[str, str], summary: int | None, read: int
+) -> str:
     """What a recovery left out, one phrase (empty: nothing known lost): the chunks that
     failed their CRC, and the messages the file's summary counts beyond those read (a copy
     said "recovered 2222 messages … stopped at: end of file" of a file of 8761: review)."""
     parts = []
     if damaged:
-        parts.append(f"{len(damaged)} chunk(s) left out: {damaged_chunk(damaged[0], run)}")
+        first, crc = damaged[0]
+        parts.append(f"{len(damaged)} chunk(s) left out: {damaged_chunk(first, run, crc)}")
     if summary is not None and summary > read:
         parts.append(f"the file's summary counts {summary} messages, {summary - read} not read")
     return "; ".join(parts)
