@@ -10,6 +10,8 @@ process on this machine) is a run in progress, status ``recording``, not a broke
 from __future__ import annotations
 
 import argparse
+import contextlib
+from datetime import UTC, datetime
 from pathlib import Path
 
 from services.logger.compare import compare, format_compare
@@ -71,9 +73,13 @@ def _named_row(path: Path, status: str, reason: str) -> dict:
     logger names it): a run in progress, or a file that cannot be read."""
     parts = path.stem.removesuffix("_replay").split("_")
     named = len(parts) >= 4
+    started = parts[0] if named else None
+    with contextlib.suppress(ValueError):  # ISO, as a readable row's, where it is a stamp
+        stamp = datetime.strptime(started or "", "%Y%m%dT%H%M%SZ")
+        started = stamp.replace(tzinfo=UTC).isoformat()
     return {
         "file": path.name,
-        "started": parts[0] if named else None,
+        "started": started,
         "loop": "_".join(parts[1:-2]) if named else None,
         "method": parts[-2] if named else None,
         "status": status,
