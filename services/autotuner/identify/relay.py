@@ -161,6 +161,14 @@ class RelayConfig:
     # saying so, rather than hold the output to its time budget (an inverse response turns
     # back: it is never at rest there)
     wrong_way: bool = True
+    # stage 1's relay held at one output for ``held_windows`` quiet periods (and 3 of its
+    # longest cycles so far) since its last switch, the PV moved since and now at rest (as
+    # ``wrong_way`` reads rest) short of the level that would switch it: it never will (a
+    # load beyond the relay's amplitude, or the loop's action the other way); the test
+    # aborts, saying so, rather than hold the loop off its rest to its time budget (a −8 %
+    # load against ±5 % held e^{−2s}/((5s+1)(s+1)) 3 % below its rest for 14,400 s: helper
+    # review). None: not checked
+    held_windows: int | None = 10
     # stage 1's counted cycles whose hysteresis ε is over ``grow_ratio`` of their amplitude
     # ride on the hysteresis, not on the process: asin(ε/a) of their lag is the hysteresis's,
     # and an integrating process's own part of the swing (its run past ε, about k·d·θ) is
@@ -293,6 +301,7 @@ class RelayTest:
         self._up_at = math.nan  # s: the last switch up
         self._up_to_cross = math.nan  # s from a switch up to the crossing counted after it
         self._switched_at = math.nan  # s: the last switch
+        self._responded_at = math.nan  # s: the PV first moved ε the first push's way
         self._extreme = math.nan  # the PV's farthest since then towards arming the next switch
         self._rearmed = False  # stage 2's lockout was set again from the cycle it got
         self._aim = 0.0  # rad: stage 2 aims its level at a·sin(_aim)
@@ -357,8 +366,12 @@ class RelayTest:
         # the first sample past a deadline must be a batch's last: stop one short of it (past
         # the stuck one, each sample may show the PV turned back: one at a time)
         room = math.floor((min(deadlines) - t) / self.sample_time) - 1
-        if self._watching_wrong_way():  # the check of a PV at rest against the push
-            q = self._quiet_samples
+        held = self._held_from()
+        if held is not None:  # the held relay's check: from its time on, at each window's end
+            deadlines.append(held)
+            room = math.floor((min(deadlines) - t) / self.sample_time) - 1
+        if self._watching_wrong_way() or (held is not None and t >= held):
+            q = self._quiet_samples  # the checks of a PV at rest: at each quiet window's end
             room = min(room, q - len(self.pv) % q)
         return max(1, min(cap, room))
 
@@ -505,6 +518,12 @@ class RelayTest:
         return self._out()
 
     def _relay(self, t: float, pv: float) -> float:
+        if math.isnan(self._responded_at) and not self._switches:
+            # the PV's mean over a quiet window, ε the push's way (a 3σ spike of the noise
+            # alone is not an answer: it read a dead time of 100 s as a few samples)
+            recent = self.pv[-self._quiet_samples :]
+            if (sum(recent) / len(recent) - self._r) * self._state > self._eps:
+                self._responded_at = t
         self._arm(pv)
         stuck = self._stuck_at()
         if self._turned(pv):  # short of arming the switch: set again once, or arm it
@@ -517,6 +536,11 @@ class RelayTest:
             self._rearm(t)  # overdue, and the PV turned back from short of arming the switch
         if self._watching_wrong_way() and len(self.pv) % self._quiet_samples == 0:
             why = self._at_rest_against_the_push()
+            if why:
+                return self._abort(f"no limit cycle: {why}")
+        held = self._held_from()
+        if held is not None and t >= held and len(self.pv) % self._quiet_samples == 0:
+            why = self._held_short(t)
             if why:
                 return self._abort(f"no limit cycle: {why}")
         cfg, r, h = self.config, self._r, self._level
@@ -645,6 +669,56 @@ class RelayTest:
             return ""
         return self._against(float(np.mean(y)), rest=True)
 
+    def _held_from(self) -> float | None:
+        """When (s) stage 1's relay, held since its last switch (or its start), is checked
+        for a PV at rest short of its switching level (``held_windows``); None: not now."""
+        cfg = self.config
+        if cfg.held_windows is None or self.phase != "relay" or math.isnan(self._relay_start):
+            return None
+        if math.isnan(self._responded_at):  # no push answered yet: not a held relay's case
+            return None
+        since = self._switched_at if self._switches else self._relay_start
+        need = cfg.held_windows * self._quiet_samples * self.sample_time
+        # ten times the time the PV took to answer the first push (its dead time and some):
+        # a PV flat through a half-cycle's dead time is not at rest short of the level
+        need = max(need, 10.0 * (self._responded_at - self._relay_start))
+        if self._switches:  # and three times its first half-cycle
+            need = max(need, 3.0 * (self._push[1] - self._push[0]))
+        if self.cycles:
+            need = max(need, 3.0 * max(c.period for c in self.cycles))
+        return since + need
+
+    def _held_short(self, t: float) -> str:
+        """The PV, over the last half of the time since the relay's last switch (or its
+        start), at rest (ten stretches' means agree, as ``_at_rest_against_the_push`` reads
+        rest) short of the level that would switch the relay (r + h while high, r − h while
+        low): why, one line. Empty otherwise (still moving, or past the level)."""
+        since = self._switched_at if self._switches else self._relay_start
+        n = round((t - since) / self.sample_time)
+        seg = np.asarray(self.pv[-n:]) if n > 0 else np.array([])
+        q = self._quiet_samples
+        if seg.size < 2 * max(q, 10):
+            return ""
+        y = seg[-(seg.size // 2) :]
+        stretches = y[-(y.size // 10) * 10 :].reshape(10, -1)
+        means = stretches.mean(axis=1)
+        rest = float(np.mean(y))
+        level = self._r + self._state * self._level
+        short = (level - rest) * self._state
+        if short <= 0:
+            return ""
+        limit = max(0.02 * short, 6.0 * self._noise / math.sqrt(stretches.shape[1]))
+        if float(np.ptp(means)) > limit:
+            return ""
+        output = self._actual(self._out())
+        return (
+            f"the relay held the output at {output:.4g} % for {t - since:.4g} s and the PV came "
+            f"to rest at {rest:.4g}, {short:.3g} short of the level that switches it "
+            f"({level:.4g}): it never will — a load beyond the relay's amplitude (±{self._d:g} "
+            f"%) holds the PV there (a larger --amplitude, or a test once the load has passed);"
+            f" if no load moved it, {action_question(self.direction)}"
+        )
+
     def _against(self, pv: float, rest: bool = False) -> str:
         """The PV at ``pv`` went the other way from the relay's push by more than twice the
         hysteresis: what that says of the loop's action. Empty otherwise."""
@@ -661,6 +735,8 @@ class RelayTest:
         self._switches += 1
         if self._switches == 1:
             self._push = (self._push[0], t)
+            if math.isnan(self._responded_at):  # the switch is the answer, its mean later
+                self._responded_at = t
         self._state, self._switch_armed = state, False
         if state > 0:
             self._up_at, self._crossed = t, False
