@@ -161,9 +161,9 @@ class RelayConfig:
     # saying so, rather than hold the output to its time budget (an inverse response turns
     # back: it is never at rest there)
     wrong_way: bool = True
-    # stage 1's relay held at one output for ``held_windows`` quiet periods (and 3 of its
-    # longest cycles so far) since its last switch, the PV moved since and now at rest (as
-    # ``wrong_way`` reads rest) short of the level that would switch it: it never will (a
+    # stage 1's relay held at one output for ``held_windows`` quiet periods (and longer: see
+    # ``RelayTest._held_from``) since its last switch, the PV at rest (as ``wrong_way``
+    # reads rest) short of the level that would switch it: it never will (a
     # load beyond the relay's amplitude, or the loop's action the other way); the test
     # aborts, saying so, rather than hold the loop off its rest to its time budget (a −8 %
     # load against ±5 % held e^{−2s}/((5s+1)(s+1)) 3 % below its rest for 14,400 s: helper
@@ -367,7 +367,7 @@ class RelayTest:
         # the stuck one, each sample may show the PV turned back: one at a time)
         room = math.floor((min(deadlines) - t) / self.sample_time) - 1
         held = self._held_from()
-        if held is not None:  # the held relay's check: from its time on, at each window's end
+        if held is not None and t < held:  # the held relay's check: a batch ends before it
             deadlines.append(held)
             room = math.floor((min(deadlines) - t) / self.sample_time) - 1
         if self._watching_wrong_way() or (held is not None and t >= held):
