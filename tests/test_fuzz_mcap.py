@@ -108,10 +108,15 @@ def load(path: Path) -> tuple[list[Msg], list[tuple[str, dict[str, str]]]]:
 
 
 def save(
-    path: Path, msgs: list[Msg], meta: list[tuple[str, dict[str, str]]], compress: bool = True
+    path: Path,
+    msgs: list[Msg],
+    meta: list[tuple[str, dict[str, str]]],
+    compress: bool = True,
+    chunk_size: int = 1024 * 1024,  # the mcap Writer's own default
 ) -> Path:
     with path.open("wb") as f:
-        w = Writer(f, compression=CompressionType.ZSTD if compress else CompressionType.NONE)
+        compression = CompressionType.ZSTD if compress else CompressionType.NONE
+        w = Writer(f, compression=compression, chunk_size=chunk_size)
         w.start(profile="", library="fuzz")
         schemas: dict[str, int] = {"": 0}
         channels: dict[tuple[str, str, str], int] = {}
@@ -841,19 +846,8 @@ def test_a_chunk_altered_after_it_was_written_is_refused_and_recover_leaves_it_o
     refuse the file naming the chunk's sim times; `recover` copies the chunks that pass,
     says what it left out, and marks the run's metadata; `runs` lists it so."""
     msgs, meta = load(recorded["relay"].path)
-    path = tmp_path / "altered.mcap"
-    with path.open("wb") as f:  # the run in chunks of 16 kB, uncompressed
-        w = Writer(f, compression=CompressionType.NONE, chunk_size=16 * 1024)
-        w.start(profile="", library="test")
-        ids: dict[tuple[str, str], int] = {}
-        for m in msgs:
-            if (m.topic, m.schema) not in ids:
-                sid = w.register_schema(m.schema, "jsonschema", m.schema_data)
-                ids[(m.topic, m.schema)] = w.register_channel(m.topic, m.encoding, sid)
-            w.add_message(ids[(m.topic, m.schema)], m.log_time, m.data, m.log_time)
-        for name, data in meta:
-            w.add_metadata(name, data)
-        w.finish()
+    # the run in chunks of 16 kB, uncompressed
+    path = save(tmp_path / "altered.mcap", msgs, meta, compress=False, chunk_size=16 * 1024)
     good = path.read_bytes()
     assert cli(capsys, "analyze", str(path))[0] == 0  # the rewritten file reads as the run
     at = good.index(b'"pv":', len(good) // 3) + len(b'"pv":')  # a PV a third of the way in
@@ -888,19 +882,8 @@ def test_recover_keeps_every_intact_chunk_whatever_the_damaged_one(recorded, tmp
     decompress ended the reading there, called "truncated" (review). Both lose that one
     chunk alone: the channels come from the summary, and the chunk is left out and said."""
     msgs, meta = load(recorded["relay"].path)
-    path = tmp_path / "run.mcap"
-    with path.open("wb") as f:  # zstd chunks of 16 kB, as the logger's are compressed
-        w = Writer(f, compression=CompressionType.ZSTD, chunk_size=16 * 1024)
-        w.start(profile="", library="test")
-        ids: dict[tuple[str, str], int] = {}
-        for m in msgs:
-            if (m.topic, m.schema) not in ids:
-                sid = w.register_schema(m.schema, "jsonschema", m.schema_data)
-                ids[(m.topic, m.schema)] = w.register_channel(m.topic, m.encoding, sid)
-            w.add_message(ids[(m.topic, m.schema)], m.log_time, m.data, m.log_time)
-        for name, data in meta:
-            w.add_metadata(name, data)
-        w.finish()
+    # zstd chunks of 16 kB, as the logger's are compressed
+    path = save(tmp_path / "run.mcap", msgs, meta, chunk_size=16 * 1024)
     good = path.read_bytes()
     with path.open("rb") as f:  # where the chunks' compressed bytes are
         chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]

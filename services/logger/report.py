@@ -877,11 +877,6 @@ def _nyquist_limits(ax: Axes, f: FrequencyFigure) -> None:
     ax.set_aspect("equal", adjustable="box")
 
 
-def verified(r: TuneResult | None, label: str) -> object:
-    """The result's ``before`` or ``after`` verification (None: none, or no result)."""
-    return None if r is None else (r.before if label == "before" else r.after)
-
-
 def _no_verification(r: TuneResult | None, label: str) -> str:
     """Why the report has no ``label`` ("before"/"after") verification to draw. The old gains
     are verified only on the way to applying new ones, and only in auto: an aborted or
@@ -935,7 +930,8 @@ def draw_before_after(axes: list[Axes], ax_table: Axes, rep: Report) -> None:
             ax.axvline(
                 tr.load_t, color=MARK_STYLE["load"][0], ls=MARK_STYLE["load"][1], lw=0.9, label=text
             )
-        cut = verified(r, label) is None and r is not None  # the run ended within it
+        # the run ended within it: the result has no such verification
+        cut = r is not None and (r.before if label == "before" else r.after) is None
         ax.set_title(
             f"{label}: {tr.gains}" + (f" (cut short: {r.status})" if cut else ""), fontsize=8
         )

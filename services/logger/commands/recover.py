@@ -18,6 +18,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
+from mcap.summary import Summary
 from mcap.writer import CompressionType, Writer
 
 from services.logger.mcap_io import LIBRARY, MAGIC, PROFILE, damaged_chunk
@@ -96,8 +97,12 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
         # the summary's schemas and channels first, where it can be read: a damaged first
         # chunk holds them (the logger writes each where first used), and every message of
         # the intact chunks after it was left out for want of its channel (review)
-        for rec in _summary_records(src):
-            copy(rec)
+        summary = _summary(src)
+        if summary is not None:
+            for sid in sorted(summary.schemas):
+                copy(summary.schemas[sid])
+            for cid in sorted(summary.channels):
+                copy(summary.channels[cid])
         try:
             for rec in StreamReader(f, skip_magic=False, emit_chunks=True).records:
                 if not isinstance(rec, Chunk):
@@ -115,7 +120,8 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
                     copy(r)
         except Exception as err:  # the mcap library on damaged bytes: any of a dozen kinds
             stopped = f"truncated: {one_line(err) or type(err).__name__}"
-        lost = _lost(damaged, run or {}, _summary_count(src), counts["messages"])
+        held = summary.statistics.message_count if summary and summary.statistics else None
+        lost = _lost(damaged, run or {}, held, counts["messages"])
         if run is None:  # written only as the logger finished a run: what the name tells
             run = run_of_name(src, counts["messages"], stopped, lost)
         elif lost:  # the run's conclusion stands, on less data than it had: said
@@ -135,31 +141,14 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
     return {**counts, "stopped": stopped}
 
 
-def _summary_count(src: Path) -> int | None:
-    """The messages the file's summary counts, where its footer and summary can be read."""
+def _summary(src: Path) -> Summary | None:
+    """The file's summary, where its footer and summary can be read (else None): its
+    schemas and channels, and how many messages the file held."""
     try:
         with src.open("rb") as f:
-            summary = make_reader(f).get_summary()
-        return (
-            None
-            if summary is None or summary.statistics is None
-            else (summary.statistics.message_count)
-        )
+            return make_reader(f).get_summary()
     except Exception:  # a damaged or missing summary: not known
         return None
-
-
-def _summary_records(src: Path) -> list[Schema | Channel]:
-    """The schemas and channels the file's summary lists (none where it cannot be read)."""
-    try:
-        with src.open("rb") as f:
-            summary = make_reader(f).get_summary()
-    except Exception:  # a damaged or missing summary: the chunks' own records serve
-        return []
-    if summary is None:
-        return []
-    schemas = [summary.schemas[i] for i in sorted(summary.schemas)]
-    return [*schemas, *(summary.channels[i] for i in sorted(summary.channels))]
 
 
 def _lost(
