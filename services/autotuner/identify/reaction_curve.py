@@ -353,15 +353,35 @@ def fit_sopdt(
     return SopdtFit(float(k), float(max(t1, t2)), float(min(t1, t2)), float(th), rms)
 
 
+# ``settled``'s band: the drift it allows, and twice the standard error (fraction of the
+# change) to which its window's mean must know the rest value
+REST_BAND = 0.005
+# that standard error's band where the noise puts REST_BAND out of reach in the time allowed
+LOOSE_BAND = 0.02
+
+
+def band_reachable(
+    noise_std: float, change: float, sample_time: float, horizon: float, band: float
+) -> bool:
+    """Whether ``settled`` can know the rest value to ``band``/2 of the ``change`` within
+    ``horizon`` s of the step: its window, the last quarter of the record, must hold
+    (σ / (band/2 · |change|))² samples, so the record four times as many."""
+    if change == 0 or not (sample_time > 0):
+        return False
+    needed = (noise_std / (0.5 * band * abs(change))) ** 2  # samples in the window
+    return 4.0 * needed * sample_time <= horizon
+
+
 def settled(
     t: np.ndarray,
     y: np.ndarray,
     t_step: float,
     pv_before: float,
     noise_std: float,
-    band: float = 0.005,
+    band: float = REST_BAND,
     pv_range: tuple[float, float] | None = None,
     swing: bool = False,
+    horizon: float | None = None,
 ) -> tuple[bool, float]:
     """Has the PV come to rest after the step? Returns (settled, rest value estimate).
 
@@ -369,6 +389,10 @@ def settled(
     either be lost in its noise or imply a drift over the next half of that time below
     ``band`` of the change; at least three times the 63 % time must have passed; and the
     window must be long enough for its mean to carry the rest value to within ``band``/2.
+    Given the ``horizon`` (s after the step the caller waits at most) and a noise that puts
+    that precision beyond it (``band_reachable``), within ``LOOSE_BAND``/2 instead: a step
+    of 13σ sampled every 4.4 s needed 16,000 s for it, and a response flat from 600 s on was
+    aborted at 7,200 s as "no steady state".
     Given the transmitter's ``pv_range``, a window at or within noise of one of its ends is
     never at rest (the clipped PV is flat whatever the process does). With ``swing``, the
     window's scatter about its line must be noise too, or within ``band`` of the change: an
@@ -404,7 +428,12 @@ def settled(
     small = abs(slope) * elapsed * 0.5 <= band * abs(change)
     if swing and float(np.std(resid)) > max(3.0 * noise_std, band * abs(change)):
         return False, rest
-    precise = noise_std / math.sqrt(m) <= 0.5 * band * abs(change)  # the rest value is known
+    known = band  # the rest value is known to half of it
+    if horizon is not None:
+        dt = float(tw[-1] - tw[0]) / (m - 1)
+        if not band_reachable(noise_std, change, dt, horizon, band):
+            known = max(band, LOOSE_BAND)
+    precise = noise_std / math.sqrt(m) <= 0.5 * known * abs(change)
     return bool((quiet or small) and precise), rest
 
 

@@ -60,10 +60,13 @@ from services.autotuner.identify.model_fit import (
     refine_on_record,
 )
 from services.autotuner.identify.reaction_curve import (
+    LOOSE_BAND,
+    REST_BAND,
     IntegratingCurve,
     ReactionCurve,
     SteadyRamp,
     analyze_step,
+    band_reachable,
     fit_integrator,
     settled,
     steady_ramp,
@@ -373,8 +376,23 @@ class StepTest:
             timescale=4 * step_model.dead_time + rc.time_constant_63,
             noise=rc.noise_std,
             rest_pv=rc.pv_before,
-            notes=[n for n in (inverse, unresolved) if n],
+            notes=[n for n in (inverse, unresolved, self._loose_rest(rc)) if n],
             inverse_response=inverse is not None,
+        )
+
+    def _loose_rest(self, rc: ReactionCurve) -> str | None:
+        """A note where the noise left the rest value known to ``LOOSE_BAND``/2 of the change
+        rather than ``settled``'s own band (``band_reachable`` within the timeout)."""
+        change = rc.pv_after - rc.pv_before
+        if band_reachable(rc.noise_std, change, self.sample_time, self.config.timeout, REST_BAND):
+            return None
+        se = rc.noise_std / abs(change) if change else math.inf
+        return (
+            f"the step's change ({abs(change):.3g}) is {1 / se:.3g} σ of the noise: its rest "
+            f"value is known to ±{100 * LOOSE_BAND / 2:g} % of it (one standard error), not "
+            f"the {100 * REST_BAND / 2:g} % a step test reads, which needed more than the "
+            f"{self.config.timeout:g} s allowed; the gain K is as uncertain — a larger step "
+            "(--size) reads it closer"
         )
 
     def _unresolved_delay(
@@ -630,7 +648,9 @@ class StepTest:
                     "(its noise and the transmitter's resolution): a valve that does not move, "
                     "or a process slower than the time allowed (--max-time)"
                 )
-            return self._abort(f"no steady state within {self.config.timeout:g} s of the step")
+            return self._abort(
+                f"no steady state within {self.config.timeout:g} s of the step" + self._too_noisy()
+            )
         lo, hi = self.ends
         tol = 1e-9 * max(1.0, abs(lo), abs(hi), hi - lo)
         if s.pv >= hi - tol or s.pv <= lo + tol:
@@ -659,6 +679,7 @@ class StepTest:
             self._noise,
             pv_range=self.ends,
             swing=self.config.swing_check,
+            horizon=self.config.timeout,
         )
         if done:
             try:
@@ -681,6 +702,21 @@ class StepTest:
             )
             return self.op_start
         return self.op_target
+
+    def _too_noisy(self) -> str:
+        """Why no rest came, where the noise says it: the PV's change over the last quarter
+        of the record is too few σ for its mean to know the rest value to ``LOOSE_BAND``/2 of
+        it in the time allowed (``band_reachable``); empty otherwise."""
+        m = max(20, len(self.pv) // 4)
+        change = float(np.mean(self.pv[-m:])) - self._pv_before
+        if band_reachable(self._noise, change, self.sample_time, self.config.timeout, LOOSE_BAND):
+            return ""
+        sigmas = abs(change) / self._noise if self._noise > 0 else math.inf
+        return (
+            f": the PV moved by {abs(change):.3g}, {sigmas:.3g} σ of its noise, too little "
+            f"for its rest value to be read to {100 * LOOSE_BAND / 2:g} % of the change in "
+            "that time — a larger step (--size), or a longer --max-time"
+        )
 
     def _moved_level(self) -> float:
         """PV units from the rest before the step that tell a response: 5σ of the noise, and
@@ -1033,6 +1069,7 @@ class ReturnWatch:
                 self.pv_from,
                 self.noise_std,
                 pv_range=self.pv_range,
+                horizon=self.timeout,
             )
             # half of the way toward it, not away: an aborted step's PV, carried on by its
             # lags past where the test stopped, was taken for back at its crest (62.8 for 60)
