@@ -962,13 +962,31 @@ class RampTest:
         elif periods:
             pu = periods[0]
         else:
-            self._abort("the loop never oscillated" + self._wrong_way())
+            self._abort(self._no_period_at(lo, hi))
             return True
         ku, pu = float(ku), float(pu)  # plain floats for JSON (the fits give numpy scalars)
         self._found = (ku, pu)
         self.phase = "concluding"
         self.events.append(Event(self._t[-1], "done", {"ku": ku, "pu": pu}))
         return True
+
+    def _no_period_at(self, lo: Trial, hi: Trial) -> str:
+        """Why a bracket closed without a period: no trial oscillated, or those that did were
+        not at its ends (said so: a delay-dominated loop, e^{−132s}/(4.4s + 1) in noise,
+        oscillated at 1.07–1.69 K_u in a mode of P_u/3, and the bracket closed near K_u on
+        trials that showed none; "the loop never oscillated" was untrue)."""
+        seen = [tr for tr in self.trials if tr.period]
+        if not seen:
+            return "the loop never oscillated" + self._wrong_way()
+        gains = sorted(tr.kc for tr in seen)
+        periods = sorted(tr.period for tr in seen if tr.period)
+        return (
+            f"no period to report: the bracket closed at Kc {lo.kc:.4g}–{hi.kc:.4g} on trials "
+            f"that showed no oscillation, while {len(seen)} trial(s) at Kc {gains[0]:.4g}–"
+            f"{gains[-1]:.4g} oscillated (period {periods[0]:.4g}–{periods[-1]:.4g} s), too far "
+            "from it to read P_u by; a loop that oscillates in more than one mode (a long dead "
+            "time) or a noisy one is read better by a relay test"
+        )
 
     def _conclude(self) -> None:
         """The findings from the converged bracket: the plant's ultimate point and a process
