@@ -103,6 +103,43 @@ def _finite(x: float | None) -> float | None:
 # how far a fitted model's own ultimate point may lie from a measured (bracketed) one before
 # the robustness judged on the model is said to be less sure
 MODEL_POINT_TOLERANCE = 0.1
+# how many times apart (K_u or P_u, either way) a bracketed ultimate point and its record's
+# model's own may lie before the identification contradicts itself (``contradicted_point``)
+CONTRADICTION = 2.0
+
+
+def contradicted_point(ident: Identification, check: ModelCheck | None) -> str | None:
+    """Why no gains from a ramp test may be applied where the ultimate point its trials
+    bracketed and the one of the process model fitted to their record are ``CONTRADICTION``
+    times apart or more (the model judged sound or not); None where they agree that well.
+
+    Why: one of the two is then not this loop's, and every rule rests on one of them. Seen on
+    loops whose trials oscillate in a faster mode than the ultimate one (near a pure delay
+    the modes at 3ω_u, 5ω_u … go unstable just above K_u too; a process with gain at high
+    frequencies): the fits gave P_u/3, the model's P_u was within 2–3 % of exact, and TL PI
+    from the trials' P_u (Ti = 0.70 s for a P_u of 2.64 s) left the loop in a 0–100 % limit
+    cycle after a verification that ended `ok` before its slow growth showed."""
+    if check is None or not ident.ku_bracketed or not (ident.ku and ident.pu):
+        return None
+    apart = []
+    for label, measured, model, unit in (
+        ("K_u", ident.ku, check.ku_model, ""),
+        ("P_u", ident.pu, check.pu_model, " s"),
+    ):
+        if model is None or not (math.isfinite(model) and model > 0):
+            continue
+        ratio = max(model / measured, measured / model)
+        if ratio >= CONTRADICTION:
+            apart.append(f"{label} {measured:.4g}{unit} against {model:.4g}{unit}")
+    if not apart:
+        return None
+    return (
+        f"the trials' ultimate point and the one of the model fitted to their record are "
+        f"{CONTRADICTION:g} times apart or more ({'; '.join(apart)}): one of them is not this "
+        "loop's, and the rules rest on one of them; trials that oscillate in a faster mode "
+        "than the ultimate one (a long dead time, a resonance, gain at high frequencies) give "
+        "a fraction of P_u — a relay test reads such a loop's ultimate point"
+    )
 
 
 def check_identification(ident: Identification) -> ModelCheck | None:
@@ -460,6 +497,12 @@ def select(
         else:
             better = f"; the recommended rule is {rec.rule}" if rec and rec.rule != name else ""
             sel.refusal = f"refused: {problem} (force to apply anyway{better})"
+    apart = contradicted_point(ident, check)
+    if apart:
+        if force:
+            sel.warnings.append(apart + " — applied because forced")
+        elif sel.refusal is None:
+            sel.refusal = f"refused: {apart} (force to apply anyway)"
     return sel
 
 
