@@ -76,6 +76,7 @@ class _Tune(_Common):
     ku: float | None = None
     timescale: float | None = None
     noise: float | None = None
+    contradiction: str | None = None
 
 
 _SHAPES: dict[str, type[_Shape]] = {"change": _Change, "tune": _Tune}

@@ -661,6 +661,12 @@ class TuneResult(Message):
         default_factory=dict, description="per rule on the identified model"
     )
     warnings: list[str] = Field(default_factory=list)
+    contradiction: str | None = Field(
+        default=None,
+        description="why no gains of this run may be applied: its identification contradicts "
+        "itself (a ramp's bracketed ultimate point and its record's model's own twice apart); "
+        "`autotune apply` refuses the run for it",
+    )
     step: dict[str, bool | float | int | str | None] | None = Field(
         default=None, description="reaction-curve figures"
     )

@@ -13,11 +13,14 @@ import cmath
 import math
 
 import numpy as np
+import pytest
 from scipy.optimize import brentq
 
+from services.autotuner.commands.apply import choose
 from services.autotuner.tuning import TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
+from shared.errors import ConfigError
 from shared.messages import TuneRequest
 
 NUM = [2.4329780886081447, 1.4964384519081175, 2.0874009859212674]
@@ -75,3 +78,28 @@ def test_the_relay_reads_the_same_loop_and_its_gains_are_applied():
     assert abs(r.pu / pu - 1) < 0.05
     # TL's integral time from that period: Ti = 2.2 P_u, not a fraction of it
     assert sim.pid.gains.ti is not None and sim.pid.gains.ti > pu
+
+
+def test_without_applying_the_run_says_its_gains_are_not_to_be_and_apply_refuses_it():
+    sim = build_plant({"seed": 224, "loops": {"x": dict(SPEC)}}, "unit")["x"]
+    req = TuneRequest(loop="x", method="ramp", apply=False)
+    r = TuningRun(LocalLoopClient(sim), req, "unit").run()
+    assert r.status == "proposed"
+    assert "and not to be: the trials' ultimate point" in r.reason
+    assert r.contradiction is not None and "times apart" in r.contradiction
+    # `autotune apply` reads the run's record (history.jsonl: the rule's ISA gains): it
+    # refuses the run, naming why; without the contradiction the same record applies
+    gains = sim.pid.gains  # restored: the gains before the run, not the proposed ones
+    isa = r.gains[r.rule]["isa"]
+    run = {
+        "run_id": r.run_id,
+        "status": r.status,
+        "rule": r.rule,
+        "ku": r.ku,
+        "gains": {r.rule: {"kc": isa["kc"], "ti": isa["ti"], "td": isa["td"]}},
+        "contradiction": r.contradiction,
+    }
+    with pytest.raises(ConfigError, match="times apart"):
+        choose(run, None)
+    assert choose({**run, "contradiction": None}, None)[0] == r.rule
+    assert gains.kc == 1.0 and gains.ti is None

@@ -428,6 +428,11 @@ class TuningRun:
                     "not applied (apply = false, --no-apply): the gains were computed, not "
                     f"tried on the loop; `autotune apply {self.run_id}` applies and verifies them"
                 )
+                if result.get("contradiction"):  # a refusal that --no-apply did not raise
+                    result["reason"] = (
+                        "not applied (apply = false, --no-apply), and not to be: "
+                        f"{result['contradiction']}"
+                    )
             if result.get("applied") and not req.verify:  # not tried on the loop: not ok
                 status = "unverified"
                 result["reason"] = (
@@ -679,6 +684,7 @@ class TuningRun:
                 {"rule": rec.rule, "reason": rec.reason, "ms": rec.predicted_ms} if rec else None
             ),
             warnings=[*ident.notes, *sel.warnings],
+            contradiction=None if req.force else sel.contradiction,
         )
         chosen = sel.chosen
         if chosen is None or (sel.refusal and req.apply):

@@ -202,6 +202,8 @@ class ChangeHistory:
                 "identified_on": r.identified_on,
                 "timescale": r.timescale,
                 "noise": r.noise,
+                # why none of them may be applied (``autotune apply`` refuses the run)
+                "contradiction": r.contradiction,
             }
         )
 

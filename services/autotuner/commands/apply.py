@@ -79,6 +79,11 @@ def choose(run: dict[str, Any], rule: str | None) -> tuple[str, PidGains, float 
     or the run when they may not be applied."""
     if run.get("status") not in APPLICABLE_STATUSES:
         raise ConfigError(f"run {run.get('run_id')}: {run.get('status')}, no gains to apply")
+    if run.get("contradiction"):  # no rule's gains: the identification contradicts itself
+        raise ConfigError(
+            f"run {run.get('run_id')}: {run['contradiction']}; tune again (with --force if "
+            "you must)"
+        )
     rule = rule or proposed_rule(run)
     gains = run.get("gains") or {}
     if rule not in gains or not gains[rule]:

@@ -62,6 +62,7 @@ class Selection:
     recommended: Recommendation | None
     l_over_t: float | None
     refusal: str | None = None  # why the chosen gains must not be applied (None: they may)
+    contradiction: str | None = None  # why no rule's gains may be (``contradicted_point``)
     warnings: list[str] = field(default_factory=list)
     # rules this identification would give but that may not be used, and why (a refused model)
     unavailable: dict[str, str] = field(default_factory=dict)
@@ -497,7 +498,7 @@ def select(
         else:
             better = f"; the recommended rule is {rec.rule}" if rec and rec.rule != name else ""
             sel.refusal = f"refused: {problem} (force to apply anyway{better})"
-    apart = contradicted_point(ident, check)
+    apart = sel.contradiction = contradicted_point(ident, check)
     if apart:
         if force:
             sel.warnings.append(apart + " — applied because forced")
