@@ -100,6 +100,9 @@ VERIFY_MIN_ROOM = 1.0  # % of output: less room toward the PV's side, the step g
 # spans a verification waits in all for a loop creeping toward its setpoint (not swinging
 # about it) to settle there before the step: slow gains, not unstable ones
 VERIFY_SETTLE_SPANS = 3
+# of the PV range: the least band a verification judges the loop at rest at its setpoint by
+# (before its step, and back after it): a 16-bit transmitter resolves 1.5e-5 of its span
+REST_FLOOR = 1e-5
 MAX_CHUNK = 64  # samples per lockstep round trip while the loop runs in auto
 # samples per lockstep round trip of an experiment at most: each ends its batches exactly
 # where its next decision may fall (``horizon``, ``band``), so any cap gives the same run
@@ -1419,6 +1422,10 @@ class TuningRun:
         # slow integral removes the last per cent late, which is not instability
         span = max(15 * scale, 8 * gains.ti if gains.ti else 0.0)
         band = max(0.02 * abs(step), 4 * ident.noise)
+        # at rest at the setpoint: within the band, or what no transmitter resolves. A loop
+        # tuned to Kc 2,800 %/% steps by 0.0018 % (the kick's limit) and its band was 1.7e-4:
+        # its slow lag's creep, 2.7e-4 off after 15 s, failed the gains (a random field case)
+        rest_band = max(band, REST_FLOOR * (hi - lo))
         guard = GUARD_WINDOW * scale
         self._set_auto(gains, sp0)
         self._progress("verify", message=verify_message(gains))  # stamped as they went on
@@ -1426,21 +1433,25 @@ class TuningRun:
         k = max(4, round(scale / self.ts))
         width = max(5, round(scale / self.ts / 20)) | 1
 
-        def at(target: float, after: float | None = None) -> SettleRule:
-            """Settled at ``target``: the last time scale flat within the band, its mean on
+        def at(target: float, after: float | None = None, within: float = band) -> SettleRule:
+            """Settled at ``target``: the last time scale flat ``within`` the band, its mean on
             the target (the mean, not one noisy sample); ``after``: not before that many s."""
-            return SettleRule(k, target, band, 2 * band, after)
+            return SettleRule(k, target, within, 2 * within, after)
 
-        _, y_pre, u_pre, why = self._record(span, at(sp0), sp0, guard)
+        def rest() -> SettleRule:
+            """At rest at the setpoint ``sp0`` (``rest_band``)."""
+            return at(sp0, within=rest_band)
+
+        _, y_pre, u_pre, why = self._record(span, rest(), sp0, guard)
         waited = span
         # slow, not unstable: a loop that creeps toward its setpoint is given more time
         while (
             why is None
-            and not at(sp0).done(np.array([]), y_pre)
+            and not rest().done(np.array([]), y_pre)
             and waited < VERIFY_SETTLE_SPANS * span
-            and creeping(y_pre, sp0, k, band)
+            and creeping(y_pre, sp0, k, rest_band)
         ):
-            _, y_more, u_more, why = self._record(span, at(sp0), sp0, guard)
+            _, y_more, u_more, why = self._record(span, rest(), sp0, guard)
             y_pre, u_pre = np.concatenate((y_pre, y_more)), np.concatenate((u_pre, u_more))
             waited += span
         # the output's noise at rest: what the gains make of the PV's noise (σ of the sample
@@ -1448,11 +1459,13 @@ class TuningRun:
         tail = u_pre[-k:]
         op_noise = float(np.std(np.diff(tail)) / math.sqrt(2.0)) if tail.size > 2 else None
         stopped = why
-        if why is None and not at(sp0).done(np.array([]), y_pre):
-            stopped = unsettled(y_pre, sp0, k, band, waited, self.info.pv_units)
+        if why is None and not rest().done(np.array([]), y_pre):
+            stopped = unsettled(y_pre, sp0, k, rest_band, waited, self.info.pv_units)
         # the step starts from the setpoint where the loop has settled on it, else from where
         # the PV is (on average over the last time scale)
         t0 = self._t
+        # (by the band itself: within ``rest_band`` but off by a good part of a tiny step,
+        # the step's figures are read from where the PV is)
         y0 = sp0 if y_pre.size and at(sp0).done(np.array([]), y_pre) else float(np.mean(y_pre[-k:]))
         sp_m, saturated, load_m = None, False, None
         modes: list[Ringing | None] = []  # the loop's oscillatory mode in each response
@@ -1524,9 +1537,7 @@ class TuningRun:
                 # integrating loop took 2,050 s to remove the load step's offset, and the run
                 # ended 9 % of span off its setpoint after 5 time scales (800 s)
                 slow = max(_seconds_of(sp_m, "settling_time"), _seconds_of(load_m, "recovery_time"))
-                _, y_back, u_back, why = self._record(
-                    max(5 * scale, min(1.5 * slow, span)), at(sp0)
-                )
+                _, y_back, u_back, why = self._record(max(5 * scale, min(1.5 * slow, span)), rest())
                 # and judged: gains that left a loop in a limit cycle after the setpoint's
                 # return (output 0–100 %, PV ±7.7 on c197) were reported ok (helper review)
                 stopped = why or unsteady_return(y_back, u_back, sp0, k, band, (op_lo, op_hi))

@@ -1,0 +1,39 @@
+"""A verification judges the loop at rest at its setpoint within what a transmitter resolves,
+not within a band sized on a tiny setpoint step.
+
+Random field case: 0.36e^{−0.026s}/((83.9s + 1)(0.74s + 1)), sampled every 8.5 ms, noise σ
+4.3e-5 (% of span). TL PI from a ramp has Kc 2,800 %/%, so the verification's setpoint step,
+its kick held to 20 % of output, is 0.0018 % of span and its band 1.7e-4 (4σ). The loop
+started the verification 0.077 off its setpoint and crept in on its slow lag: 2.7e-4 off after
+15 s, and the gains were rejected as "did not settle at its setpoint … (it rests -0.000273 %
+off it)" before any step was taken. They are bad gains (exact Ms 12.6 on the sampled loop),
+but for a reason the verification had not yet seen.
+"""
+
+from services.autotuner.tuning import REST_FLOOR, TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.messages import TuneRequest
+
+SPEC = {
+    "model": "transfer_function",
+    "num": [0.36009612590389933],
+    "den": [61.87277235117792, 84.61184220743901, 1.0],
+    "delay": 0.02645672038382046,
+    "sample_time": 0.008511884988203785,
+    "noise_std": 4.275267248315247e-05,
+}
+
+
+def test_a_creep_below_the_transmitters_resolution_is_at_rest_and_the_step_is_judged():
+    assert REST_FLOOR * 100.0 > 2.73e-4  # the floor on a 0–100 span, against the creep left
+    sim = build_plant({"seed": 109, "loops": {"x": dict(SPEC)}}, "unit")["x"]
+    before = sim.snapshot()
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="ramp"), "unit").run()
+    assert r.status == "rejected"
+    assert "did not settle at its setpoint" not in r.reason
+    # the setpoint step was taken and judged: its response is what fails the gains
+    assert r.after is not None and r.after.overshoot is not None
+    assert r.after.overshoot > 35.0
+    after = sim.snapshot()
+    assert (after.mode, after.gains) == (before.mode, before.gains)
