@@ -10,6 +10,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from services.autotuner.identify.experiments import snapped
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
 from services.autotuner.identify.repeated_steps import RepeatedSteps, Spread
 from services.autotuner.identify.rest import rest_window
@@ -175,7 +176,12 @@ def run_step_test(
                     break
             if want != op and not test.finished:
                 status = client.command(
-                    OutputCommand(loop=client.loop, op=want, t=s.t, source=client.source)
+                    OutputCommand(
+                        loop=client.loop,
+                        op=snapped(want, client.info.op_limits),
+                        t=s.t,
+                        source=client.source,
+                    )
                 )
                 # Lockstep: applied at the present sample. Realtime: latched at the next one.
                 test.step_started(

@@ -1682,7 +1682,8 @@ class _LivePort:
             if cmds:
                 c.command_all(*cmds)
             return
-        st = c.command(OutputCommand(loop=c.loop, op=demand.op, t=r._t, source=c.source))
+        op = experiments.snapped(demand.op, r.info.op_limits)
+        st = c.command(OutputCommand(loop=c.loop, op=op, t=r._t, source=c.source))
         # lockstep: held from the present sample; realtime: from the next one
         self._hold = st.t if r.info.clock == "lockstep" else st.t + r.ts
 

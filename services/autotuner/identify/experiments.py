@@ -147,6 +147,20 @@ def action_question(direction: float) -> str:
     return f"the loop is {action}-acting; is the process one for a {other}-acting PID?"
 
 
+def snapped(op: float, limits: tuple[float, float]) -> float:
+    """An experiment's output (%) at the output limit it passes by rounding alone (1e-9 of
+    the limits' span): a relay's bias less its amplitude, sized to the bottom of its room,
+    came to −7.1e-15 %, which the output command refused, and the run failed (lvl2, seed 2).
+    Further outside, it is left to be refused."""
+    lo, hi = limits
+    tol = 1e-9 * max(hi - lo, 1.0)
+    if lo - tol <= op < lo:
+        return lo
+    if hi < op <= hi + tol:
+        return hi
+    return op
+
+
 def samples_until(seconds: float, sample_time: float, t: float) -> int:
     """Samples after the one at sim time ``t`` up to the first at which ``seconds`` more may
     have passed (≥ 1), for a batch's ``horizon``: that sample may decide, so it is the
