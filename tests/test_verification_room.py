@@ -23,8 +23,10 @@ from services.autotuner.tuning import (
     VERIFY_ROOM,
     TuningRun,
     creeping,
+    crossings,
     limited_step_note,
     load_step_size,
+    swinging,
     unsettled,
 )
 from services.offline.local_loop import LocalLoopClient
@@ -124,6 +126,19 @@ def test_a_loop_resting_off_its_setpoint_is_not_creeping():
     y = 52.5 - 2.5 * np.exp(-TIME / 20.0)
     assert not creeping(y, 50.0, K, BAND)
     assert "it rests +2.5 m off it" in unsettled(y, 50.0, K, BAND, 40.0, "m")
+
+
+def test_a_loop_swinging_slower_than_its_time_scale_is_not_said_to_rest():
+    """A random field case: ±0.08 about the setpoint with a period of 3.5 time scales, read
+    at a trough, was "resting −0.0609 off it"."""
+    time = np.arange(12 * K, dtype=float)
+    y = 50.0 - 0.8 * np.cos(2 * np.pi * (time - 12 * K) / (5 * K))  # ends at a trough
+    assert not swinging(y, 50.0, K, BAND)  # too slow for the last two time scales
+    assert not creeping(y, 50.0, K, BAND)  # the last of them further off than the one before
+    assert crossings(y, 50.0, K // 10, BAND) >= 2
+    why = unsettled(y, 50.0, K, BAND, 400.0, "m")
+    assert "it swings about it, slower than the loop's time scale" in why
+    assert "rests" not in why
 
 
 def test_a_loop_swinging_about_its_setpoint_is_not_creeping():
