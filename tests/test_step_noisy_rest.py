@@ -25,6 +25,20 @@ from shared.messages import TuneRequest
 GAIN, LAG, DELAY, TS, SIGMA = 0.4184, 4.106, 122.2, 4.384, 0.159
 
 
+def step_test(sample_time: float, noise: float):
+    """The product's step test on GAIN·e^{−DELAY·s}/(LAG·s + 1), plant seed 6."""
+    spec = {
+        "model": "transfer_function",
+        "num": [GAIN],
+        "den": [LAG, 1.0],
+        "delay": DELAY,
+        "sample_time": sample_time,
+        "noise_std": noise,
+    }
+    sim = build_plant({"seed": 6, "loops": {"x": spec}}, "unit")["x"]
+    return TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "unit").run()
+
+
 def test_the_reachable_band_follows_the_samples_the_window_needs():
     # (σ / (band/2 · change))² samples in the window, four times as many in the record
     change = 2.0
@@ -51,16 +65,7 @@ def test_a_flat_noisy_rest_is_settled_within_the_time_allowed_only_with_it():
 
 
 def test_the_delay_dominant_noisy_step_is_tuned_and_says_how_well_it_read_the_gain():
-    spec = {
-        "model": "transfer_function",
-        "num": [GAIN],
-        "den": [LAG, 1.0],
-        "delay": DELAY,
-        "sample_time": TS,
-        "noise_std": SIGMA,
-    }
-    sim = build_plant({"seed": 6, "loops": {"x": spec}}, "unit")["x"]
-    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "unit").run()
+    r = step_test(TS, SIGMA)
     assert r.status == "ok", r.reason
     step = r.step
     # the rest value to ±1 % (one standard error) of the change: K within 4 of them, and
@@ -75,16 +80,7 @@ def test_the_delay_dominant_noisy_step_is_tuned_and_says_how_well_it_read_the_ga
 def test_a_step_too_small_for_the_noise_in_the_time_allowed_says_so():
     # sampled every 20 s, 7,200 s allow 90 samples in the last quarter: σ/√90 = 0.026, over
     # 1 % of a 2.1 change (8σ)
-    spec = {
-        "model": "transfer_function",
-        "num": [GAIN],
-        "den": [LAG, 1.0],
-        "delay": DELAY,
-        "sample_time": 20.0,
-        "noise_std": 0.25,
-    }
-    sim = build_plant({"seed": 6, "loops": {"x": spec}}, "unit")["x"]
-    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "unit").run()
+    r = step_test(20.0, 0.25)
     assert r.status == "aborted"
     assert "no steady state within 7200 s" in r.reason
     assert "σ of its noise, too little" in r.reason and "--size" in r.reason

@@ -1731,7 +1731,16 @@ def crossings(y: np.ndarray, target: float, width: int, band: float) -> int:
     from more than ``band`` on one side of ``target`` to more than ``band`` on the other."""
     if y.size < width:
         return 0
-    dev = np.convolve(y - target, np.ones(width) / width, "valid")
+    return _crossings(_deviation(y, target, width), band)
+
+
+def _deviation(y: np.ndarray, target: float, width: int) -> np.ndarray:
+    """The PV's deviation from ``target``, averaged over ``width`` samples (the noise off)."""
+    return np.convolve(y - target, np.ones(width) / width, "valid")
+
+
+def _crossings(dev: np.ndarray, band: float) -> int:
+    """The sign changes of a deviation among its values beyond ``band``."""
     side = np.sign(dev[np.abs(dev) > band])
     return int(np.count_nonzero(side[1:] != side[:-1])) if side.size > 1 else 0
 
@@ -1789,13 +1798,8 @@ def swinging(y: np.ndarray, target: float, k: int, band: float) -> bool:
     response that only creeps toward the target is slow, not unstable."""
     if y.size < 2 * k:
         return False
-    dev = np.convolve(y[-2 * k :] - target, np.ones(max(1, k // 10)) / max(1, k // 10), "valid")
-    halves = np.array_split(dev, 2)
-    swings = []
-    for h in halves:
-        big = h[np.abs(h) > band]
-        crossings = int(np.sum(np.diff(np.sign(big)) != 0)) if big.size > 1 else 0
-        swings.append((crossings, float(np.ptp(h)) if h.size else 0.0))
+    halves = np.array_split(_deviation(y[-2 * k :], target, max(1, k // 10)), 2)
+    swings = [(_crossings(h, band), float(np.ptp(h)) if h.size else 0.0) for h in halves]
     return all(c >= 2 for c, _ in swings) and swings[1][1] > 0.5 * swings[0][1]
 
 
