@@ -627,6 +627,24 @@ class Verification(Message):
         "none stands out of the noise (or no model)",
     )
     unmodelled_period: float | None = Field(default=None, description="s: that mode's period")
+    margin_factor: float | None = Field(
+        default=None,
+        description="the gain-margin check of gains with a derivative: Kc × this (Ti and Td "
+        "kept) after they passed, a setpoint step of half the verification's; None: not made",
+    )
+    margin_swing: float | None = Field(
+        default=None,
+        description="the check's RMS swing about its setpoint over its last time scale, the "
+        "noise taken off, as a fraction of its step",
+    )
+    margin_growth: float | None = Field(
+        default=None,
+        description="that swing over the least of the time scales before it (the first, the "
+        "step's own response, left out); None: not read",
+    )
+    margin_stopped: str | None = Field(
+        default=None, description="why the check was cut short (failed), if it was"
+    )
 
 
 class TuneResult(Message):

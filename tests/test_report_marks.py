@@ -198,3 +198,23 @@ def test_the_legend_names_every_output_a_repeated_step_test_went_to():
     steps = [m for m in experiment_marks(events, "m") if m.kind == "output step"]
     assert _steps_text(steps) == "step test: 6 output steps, to 54.05 / 44.05 %"
     assert _steps_text(steps[:1]) == "step test: output step to 54.05 %"
+
+
+def test_the_gain_margin_check_and_the_gains_back_after_it_are_marked_as_such():
+    """A PID's verification runs it at Kc × 2 for a while (``margin_check``), then sets its
+    gains again: both marked for what they are, not as gains set from elsewhere."""
+    old, new = PidGains(kc=1.0, ti=10.0), PidGains(kc=2.0, ti=8.0, td=1.0)
+    doubled = PidGains(kc=4.0, ti=8.0, td=1.0)
+    gains = [
+        GainsCommand(loop="x1", t=100, gains=old),
+        GainsCommand(loop="x1", t=300, gains=new),
+        GainsCommand(loop="x1", t=420, gains=doubled),  # the check
+        GainsCommand(loop="x1", t=450, gains=new),  # the gains on trial again
+        GainsCommand(loop="x1", t=500, gains=new),
+    ]
+    windows = verify_windows(PROGRESS, SETPOINTS, LOADS, 600.0, True, gains)
+    marks = gains_marks(gains, windows, old, "degC")
+    assert [(m.t, m.label.split(":")[0]) for m in marks] == [
+        (420, "gain-margin check, Kc × 2"),
+        (450, "gains back after the check"),
+    ]

@@ -78,8 +78,13 @@ def test_ramp_trials_carry_their_kc_and_the_ultimate_point_its_bracket(runs):
     (result,) = msgs["result"]
     trials = [e for e in msgs["event"] if e["kind"] == "trial"]
     ax_pv = next(ax for ax in fig.axes if ax.get_ylabel().startswith("PV, setpoint"))
-    dashed = [ln.get_xdata()[0] for ln in ax_pv.lines if ln.get_linestyle() == "--"][1:]
-    assert dashed == [e["t"] for e in trials]  # the first dashed line is the setpoint
+    # the trials' marks: dashed, in their colour (the setpoint is dashed too, in red)
+    dashed = [
+        ln.get_xdata()[0]
+        for ln in ax_pv.lines
+        if ln.get_linestyle() == "--" and ln.get_color() == "tab:purple"
+    ]
+    assert dashed == [e["t"] for e in trials]
     labels = [t.get_text() for t in ax_pv.texts]
     for e in trials:
         assert f"Kc {e['data']['kc']:.4g} %/{result['pv_units']}" in labels

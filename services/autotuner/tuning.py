@@ -27,6 +27,7 @@ import numpy as np
 import pydantic
 
 from services.autotuner.compute_pool import compute_all, inline
+from services.autotuner.design import margin_check
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
@@ -1230,7 +1231,7 @@ class TuningRun:
             self._set_auto(new, sp0)
             return {"applied": True}
         before_v = self._verify(b.gains, sp0, ident) if b.mode == "auto" else None
-        after_v = self._verify(new, sp0, ident)
+        after_v = self._verify(new, sp0, ident, margin=True)
         limits = {
             "max_overshoot": req.max_overshoot,
             "max_decay_ratio": req.max_decay_ratio,
@@ -1299,10 +1300,12 @@ class TuningRun:
         done: SettleRule,
         target: float | None = None,
         window: float | None = None,
+        swing: float | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str | None]:
         """Run the loop (in auto) up to ``seconds``; stop early when it has settled
         (``done``). With a ``target`` setpoint and a guard ``window`` (s), stop within a few
-        windows once the output stays saturated or the oscillation about the target grows.
+        windows once the output stays saturated or the oscillation about the target grows;
+        and (``swing``, PV units) at the first sample that far from it or further.
         Returns (t, pv, op, why it stopped early or None).
 
         The loop's PID is in charge: nothing is decided per sample. ``done`` is asked every
@@ -1323,7 +1326,10 @@ class TuningRun:
         y: list[float] = []
         u: list[float] = []
         lo, hi = self.pv_limits
-        limits = Band(lo, hi)
+        inner = (-math.inf, math.inf)  # the swing's bounds
+        if swing is not None and target is not None:
+            inner = (target - swing, target + swing)
+        limits = Band(max(lo, inner[0]), min(hi, inner[1]))
         guard = (
             Guard(self.info.op_limits, window / self.ts) if window and target is not None else None
         )
@@ -1350,6 +1356,11 @@ class TuningRun:
                 m = len(t)
                 if not lo <= s.pv <= hi:
                     why = f"the PV left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s"
+                elif not inner[0] <= s.pv <= inner[1]:
+                    why = (
+                        f"swung {s.pv - target:+.4g} from its setpoint at t = {s.t:g} s, past "
+                        f"{swing:.4g}"
+                    )
                 elif not judge_point(m, judge, n_max):
                     continue
                 elif guard is not None and m // guard.n > windows:
@@ -1391,12 +1402,48 @@ class TuningRun:
         except pydantic.ValidationError:
             return None
 
+    def _margin_check(
+        self, gains: PidGains, sp0: float, step: float, noise: float, scale: float
+    ) -> margin_check.MarginCheck:
+        """``gains`` with Kc × ``margin_check.FACTOR`` and the setpoint stepped by half the
+        verification's ``step`` from ``sp0`` (the same proportional kick), watched for
+        ``SCALES`` time scales of ``scale`` s, cut short once the PV swings ``SWING_BOUND``
+        times that step from it; then ``gains`` at ``sp0`` again (the caller waits for the
+        rest, or restores the loop where the check fails)."""
+        c = self.client
+        kick = 0.5 * step
+        target = sp0 + kick
+        seconds = margin_check.SCALES * scale
+        doubled = gains.model_copy(update={"kc": gains.kc * margin_check.FACTOR})
+        c.command_all(
+            GainsCommand(loop=c.loop, gains=doubled, source=c.source, t=self._t),
+            SetpointCommand(loop=c.loop, sp=target, source=c.source, t=self._t),
+        )
+        k = max(4, round(scale / self.ts))
+        never = SettleRule(k, target, 0.0, None, seconds)  # watched to its end
+        bound = margin_check.SWING_BOUND * abs(kick)
+        _, y, _, why = self._record(seconds, never, target, swing=bound)
+        check = margin_check.judge(y, target, kick, noise, k)
+        if why is not None:
+            check = margin_check.MarginCheck(check.swing, check.growth, why)
+        if not check.failed:
+            c.command_all(
+                GainsCommand(loop=c.loop, gains=gains, source=c.source, t=self._t),
+                SetpointCommand(loop=c.loop, sp=sp0, source=c.source, t=self._t),
+            )
+        return check
+
     def _verify(
-        self, gains: PidGains, sp0: float, ident: experiments.Identification
+        self,
+        gains: PidGains,
+        sp0: float,
+        ident: experiments.Identification,
+        margin: bool = False,
     ) -> Verification:
         """A setpoint step, then a load step, with ``gains``; the loop ends at ``sp0``. The
         step's proportional kick stays within VERIFY_KICK % of output where the noise allows,
-        so that the response is the linear loop's, as predicted."""
+        so that the response is the linear loop's, as predicted. ``margin``: gains with a
+        derivative that pass are then run at twice their gain (``margin_check``)."""
         c = self.client
         scale = max(ident.timescale, 20 * self.ts)
         lo, hi = self.info.pv_range
@@ -1470,6 +1517,7 @@ class TuningRun:
         sp_m, saturated, load_m = None, False, None
         modes: list[Ringing | None] = []  # the loop's oscillatory mode in each response
         fast: Ringing | None = None  # a fast mode the model lacks (``unmodelled_mode``)
+        check: margin_check.MarginCheck | None = None  # the gain-margin check, if made
         u = np.array([])
         if stopped is None:
             c.command(SetpointCommand(loop=c.loop, sp=sp0 + step, source=c.source, t=t0))
@@ -1537,11 +1585,20 @@ class TuningRun:
                 # integrating loop took 2,050 s to remove the load step's offset, and the run
                 # ended 9 % of span off its setpoint after 5 time scales (800 s)
                 slow = max(_seconds_of(sp_m, "settling_time"), _seconds_of(load_m, "recovery_time"))
-                _, y_back, u_back, why = self._record(max(5 * scale, min(1.5 * slow, span)), rest())
+                back_time = max(5 * scale, min(1.5 * slow, span))
+                _, y_back, u_back, why = self._record(back_time, rest())
                 # and judged: gains that left a loop in a limit cycle after the setpoint's
                 # return (output 0–100 %, PV ±7.7 on c197) were reported ok (helper review)
                 stopped = why or unsteady_return(y_back, u_back, sp0, k, band, (op_lo, op_hi))
                 stable = stopped is None
+                if stable and margin and gains.td > 0:
+                    check = self._margin_check(gains, sp0, step, ident.noise, scale)
+                    if not check.failed:  # back at rest at the setpoint, judged as before
+                        _, y_back, u_back, why = self._record(back_time, rest())
+                        stopped = why or unsteady_return(
+                            y_back, u_back, sp0, k, band, (op_lo, op_hi)
+                        )
+                        stable = stopped is None
         iae_sp = sp_m["iae"] if sp_m else None  # None: no step measured (not a perfect 0)
         mode = max((m for m in modes if m is not None), key=lambda m: m.decay, default=None)
         score = (iae_sp or 0.0) / abs(step) + (load_m["iae"] / abs(load_size) if load_m else 0.0)
@@ -1568,6 +1625,10 @@ class TuningRun:
             ringing=None if mode is None else mode.decay,
             ringing_period=None if mode is None else mode.period,
             unmodelled_ringing=None if fast is None else fast.decay,
+            margin_factor=margin_check.FACTOR if check is not None else None,
+            margin_swing=check.swing if check is not None else None,
+            margin_growth=finite(check.growth) if check is not None else None,
+            margin_stopped=check.stopped if check is not None else None,
             unmodelled_period=None if fast is None else fast.period,
         )
 
@@ -1896,6 +1957,13 @@ def acceptance_problems(
             f"ring: an oscillation of {after.ringing_period:.3g} s keeps {ring:.2f} of its "
             f"amplitude each period, above the decay ratio limit {limits['max_decay_ratio']:g}"
         )
+    if after.margin_factor is not None:
+        check = margin_check.MarginCheck(
+            after.margin_swing, after.margin_growth, after.margin_stopped
+        )
+        why = margin_check.problem(check, after.margin_factor)
+        if why is not None:
+            out.append(why)
     fast = after.unmodelled_ringing
     if fast is not None and fast > limits["max_decay_ratio"]:
         out.append(

@@ -175,17 +175,31 @@ def gains_marks(
 ) -> list[Mark]:
     """The run's gains changes from its first verification on that no verification window
     begins with: the loop's own gains given back (``previous``: "gains restored"), or others
-    set ("gains set"). A window's start already says its gains (and a ramp's trials, before
-    the verifications, their Kc); a restore, mid-window or after, was unmarked."""
+    set ("gains set"), the gain-margin check's Kc × 2 and the window's gains back after it.
+    A window's start already says its gains (and a ramp's trials, before the verifications,
+    their Kc); a restore, mid-window or after, was unmarked."""
     if not windows:
         return []
     starts = {w.start for w in windows}
+    changes = gains_changes(gains)
+    tried = {_isa(c.gains) for c in changes if c.t in starts}  # the gains each window tried
+    doubled = {(2.0 * kc, ti, td) for kc, ti, td in tried}
     out = []
-    for c in gains_changes(gains):
+    checking = False  # the last change was a gain-margin check's
+    for c in changes:
         if c.t is None or c.t < windows[0].start or c.t in starts:
             continue
         g = c.gains
         same = previous is not None and _isa(g) == _isa(previous)
-        what = "gains restored" if same else "gains set"
+        back = checking and _isa(g) in tried
+        checking = _isa(g) in doubled  # the verification's gain-margin check (margin_check)
+        if checking:
+            what = "gain-margin check, Kc × 2"
+        elif back:
+            what = "gains back after the check"
+        elif same:
+            what = "gains restored"
+        else:
+            what = "gains set"
         out.append(Mark(c.t, "gains", f"{what}: {_gains_text(g, units)}"))
     return out

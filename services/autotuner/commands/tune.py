@@ -972,6 +972,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             rows[4:6] = [("IAE setpoint %·s", "iae_sp"), ("IAE load %·s", "iae_load")]
         if any(v is not None and v.unmodelled_ringing is not None for v in (r.before, r.after)):
             rows.insert(3, ("fast ring /period", "unmodelled_ringing"))  # beyond the model
+        if r.after.margin_swing is not None:  # the gain-margin check's (of its step)
+            rows.insert(len(rows) - 1, ("swing at Kc x2", "margin_swing"))
         lines.append(f"  {'verification':<18}{'before':>12}{'after':>12}")
         for label, field in rows:
             b = getattr(r.before, field) if r.before else None
