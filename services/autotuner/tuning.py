@@ -1423,7 +1423,7 @@ class TuningRun:
         never = SettleRule(k, target, 0.0, None, seconds)  # watched to its end
         bound = margin_check.SWING_BOUND * abs(kick)
         _, y, _, why = self._record(seconds, never, target, swing=bound)
-        check = margin_check.judge(y, target, kick, noise, k)
+        check = margin_check.judge(y, kick, noise, k)
         if why is not None:
             check = margin_check.MarginCheck(check.swing, check.growth, why)
         if not check.failed:
