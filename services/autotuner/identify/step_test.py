@@ -79,6 +79,9 @@ from shared.errors import AutotuneError
 
 HOLD_EVENTS = ("step_started", "pulse_started", "output_held")  # the driver's hold times
 SETTLE_CHECK_EVERY = 8  # samples between rest checks (each is a regression over a window)
+# ... up to a record of this many times 2·SETTLE_CHECK_EVERY samples; doubled each time the
+# record doubles past it: about this many checks per doubling (``check_spacing``)
+CHECKS_PER_DOUBLING = 128
 # standard errors of a fitted dead time (``model_fit.delay_spread``) within which it is not
 # told from none, and by which a design on an unresolved one exceeds it: three, as the fitted
 # figure scatters more than the linearised error says (1.4-1.9x over 12 noisy seeds)
@@ -273,7 +276,7 @@ class StepTest:
         so a batch of that many, fed one by one, leaves the test exactly where feeding them
         one at a time would (each count a lower bound). The baseline's rest is checked once
         its window is full, then at every sample; after the step, the rest and the trend
-        every ``SETTLE_CHECK_EVERY`` samples, and the timeout; an integrating loop's pulse
+        at every check (``check_spacing``), and the timeout; an integrating loop's pulse
         and rest window end at their times. (A round trip a sample took a level's lockstep
         step test 3.4 s of wall time.)"""
         if not self.t or self.finished:
@@ -284,7 +287,7 @@ class StepTest:
         if self.phase == "step":
             if self.t_step is None:  # the step not yet held
                 return 1
-            checks = SETTLE_CHECK_EVERY - length % SETTLE_CHECK_EVERY
+            checks = samples_to_check(length)
             timeout = self._until(self.t_step + self.config.timeout - t)
             return max(1, min(cap, checks, timeout))
         if self.phase == "return" and self._pulse_start is not None:
@@ -661,7 +664,7 @@ class StepTest:
             )
         if self._t_moved is None and abs(s.pv - self._pv_before) > self._moved_level():
             self._t_moved = elapsed
-        if (len(self.pv) % SETTLE_CHECK_EVERY) != 0:
+        if not check_due(len(self.pv)):
             return self.op_target
         t, y = np.asarray(self.t), np.asarray(self.pv)
         ramp = steady_ramp(t, y, self.t_step, self._pv_before, self._noise)
@@ -991,6 +994,32 @@ class StepTest:
             self._restore_at = t
 
 
+def check_spacing(n: int) -> int:
+    """Samples between rest checks in a record of ``n`` samples: ``SETTLE_CHECK_EVERY``, and
+    twice that each time the record doubles past ``2·SETTLE_CHECK_EVERY·CHECKS_PER_DOUBLING``
+    (2,048) samples. Why: each check is a regression over a window of the whole record, and
+    one every 8 samples made a long record's checks grow as its square (a step test of
+    1.43·e^{−0.056s}/(866s² + 348s + 1) sampled every 0.02 s ran 65,000 samples and took 490
+    s of wall time). A check comes at most 1/128 of the record late."""
+    spacing = SETTLE_CHECK_EVERY
+    while n >= 2 * spacing * CHECKS_PER_DOUBLING:
+        spacing *= 2
+    return spacing
+
+
+def check_due(n: int) -> bool:
+    """Whether a record of ``n`` samples is checked now (``check_spacing``)."""
+    return n % check_spacing(n) == 0
+
+
+def samples_to_check(n: int) -> int:
+    """Samples from a record of ``n`` to its next check (≥ 1): the next multiple of the
+    spacing there, which is a check whatever spacing it falls in (the spacings double at
+    multiples of every smaller spacing)."""
+    spacing = check_spacing(n + 1)
+    return (n // spacing + 1) * spacing - n
+
+
 def _approach_left(y: np.ndarray) -> float | None:
     """How much further a PV slowing down as a lag's exponential approach would go (PV
     units, signed), from the means of the record's three thirds (m₁, m₂, m₃): their steps
@@ -1046,11 +1075,11 @@ class ReturnWatch:
 
     def horizon(self, cap: int, sample_time: float) -> int:
         """Samples (≤ ``cap``, ≥ 1) up to the next at which the watch may end: its next rest
-        check (every ``SETTLE_CHECK_EVERY`` samples) or its timeout (samples ``sample_time``
+        check (``check_spacing``) or its timeout (samples ``sample_time``
         s apart), whichever may come first; 1 before any sample."""
         if self.done or not self.t:
             return 1
-        checks = SETTLE_CHECK_EVERY - len(self.pv) % SETTLE_CHECK_EVERY
+        checks = samples_to_check(len(self.pv))
         last = self.t[-1]
         timeout = samples_until(self.t_restore + self.timeout - last, sample_time, last)
         return max(1, min(cap, checks, timeout))
@@ -1061,7 +1090,7 @@ class ReturnWatch:
             return True
         self.t.append(t)
         self.pv.append(pv)
-        if len(self.pv) % SETTLE_CHECK_EVERY == 0:
+        if check_due(len(self.pv)):
             ok, rest = settled(
                 np.asarray(self.t),
                 np.asarray(self.pv),
