@@ -1413,13 +1413,13 @@ class TuningRun:
         c = self.client
         kick = 0.5 * step
         target = sp0 + kick
-        seconds = margin_check.SCALES * scale
+        k = max(4, round(scale / self.ts))  # samples a time scale
+        seconds = margin_check.SCALES * k * self.ts  # whole time scales of k samples each
         doubled = gains.model_copy(update={"kc": gains.kc * margin_check.FACTOR})
         c.command_all(
             GainsCommand(loop=c.loop, gains=doubled, source=c.source, t=self._t),
             SetpointCommand(loop=c.loop, sp=target, source=c.source, t=self._t),
         )
-        k = max(4, round(scale / self.ts))
         never = SettleRule(k, target, 0.0, None, seconds)  # watched to its end
         bound = margin_check.SWING_BOUND * abs(kick)
         _, y, _, why = self._record(seconds, never, target, swing=bound)

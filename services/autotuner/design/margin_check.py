@@ -19,10 +19,11 @@ swing over its last time scale (RMS less the noise) is over ``LASTING`` of the s
 ``GROWING`` of it, clear of the noise, and ``GROWTH`` times the least of the time scales
 before it (after the first, the kick's own response). Swings are read about each time scale's
 own straight line: a slow approach to the setpoint is no swing. Re-run on random field loops
-whose PIDs had ended ok: 16 of the 17 with an exact gain margin under 1.6 fail it (the one
-that passes has 1.45), 3 of the 6 between 1.6 and 2, and none of the 133 with 2 or more (the
-most swing one of those kept: 0.15 of the step, 1.28 times the least before), nor any of
-the presets' 14 PID tunes.
+whose PIDs had ended ok: all 17 with an exact gain margin under 1.6 fail it, 3 of the 6
+between 1.6 and 2, and none of the 133 with 2 or more (the most swing one of those kept:
+0.15 of the step, 1.28 times the least before), nor any of the presets' 14 PID tunes. The
+check's record holds ``SCALES`` whole time scales (its length rounded down to a sample lost
+the last one, and the one growing loop it missed had its growth in it).
 """
 
 from __future__ import annotations
