@@ -142,3 +142,17 @@ def test_a_small_swing_that_grows_clear_of_the_noise_fails():
     assert check.growth == pytest.approx(2.25, rel=0.05)
     assert check.failed
     assert "swung more and more" in margin_check.problem(check)
+
+
+def test_a_swing_growing_out_of_the_noise_reads_a_finite_growth_that_fails_alike_from_the_result():
+    """A mode growing from within the noise: its earlier time scales have no swing left once
+    the noise is taken off. Its growth is finite (a message carries no inf), so the check
+    rebuilt from the result's figures fails as the live one did."""
+    rng = np.random.default_rng(5)
+    k = np.arange(400)
+    y = 0.01 * rng.standard_normal(400) + 0.15 * (k >= 300) * np.sin(2 * math.pi * k / 12.5)
+    check = margin_check.judge(y, 1.0, 0.01, 100)
+    assert margin_check.GROWING < check.swing < margin_check.LASTING
+    assert math.isfinite(check.growth) and check.growth > 10
+    again = margin_check.MarginCheck(check.swing, check.growth, check.stopped)
+    assert check.failed and again.failed

@@ -93,8 +93,10 @@ def judge(y: np.ndarray, step: float, noise: float, scale_samples: int) -> Margi
     # read only where the last swing stands clear of the noise (its RMS past σ): a swing that
     # small is the noise's own, less an estimate of it, and its ratios mean nothing
     if before and rms[-1] > noise:
-        least = min(before)
-        growth = math.inf if least <= 0 else rms[-1] / least
+        # over a least one within the noise (none of it left), as over a tenth of σ: finite,
+        # as a message carries it (a mode growing out of the noise reads large, as it is)
+        floor = max(0.1 * noise, 1e-12 * size)
+        growth = rms[-1] / max(min(before), floor)
     return MarginCheck(last, growth)
 
 
