@@ -634,8 +634,9 @@ class Verification(Message):
     )
     margin_swing: float | None = Field(
         default=None,
-        description="the check's RMS swing about its setpoint over its last time scale, the "
-        "noise taken off, as a fraction of its step",
+        description="the check's RMS swing over its last time scale, about that time scale's "
+        "straight line (a slow approach is no swing), the noise taken off, as a fraction of "
+        "its step",
     )
     margin_growth: float | None = Field(
         default=None,
