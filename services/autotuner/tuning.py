@@ -61,7 +61,7 @@ from shared.control.forms import (
     span_or_none,
     step_percent,
 )
-from shared.control.record_stops import Guard, SettleRule, judge_point, settle_point
+from shared.control.record_stops import Guard, SettleRule, judge_point, settle_point, swings
 from shared.errors import AutotuneError, one_line
 from shared.messages import (
     APPLIED_STATUSES,
@@ -1586,19 +1586,21 @@ class TuningRun:
                 # ended 9 % of span off its setpoint after 5 time scales (800 s)
                 slow = max(_seconds_of(sp_m, "settling_time"), _seconds_of(load_m, "recovery_time"))
                 back_time = max(5 * scale, min(1.5 * slow, span))
-                _, y_back, u_back, why = self._record(back_time, rest())
-                # and judged: gains that left a loop in a limit cycle after the setpoint's
-                # return (output 0–100 %, PV ±7.7 on c197) were reported ok (helper review)
-                stopped = why or unsteady_return(y_back, u_back, sp0, k, band, (op_lo, op_hi))
-                stable = stopped is None
-                if stable and margin and gains.td > 0:
+
+                def back_at_rest() -> str | None:
+                    """Why the loop did not come back to rest at ``sp0`` (None: it did),
+                    judged: gains that left a loop in a limit cycle after the setpoint's
+                    return (output 0–100 %, PV ±7.7 on c197) were reported ok (helper
+                    review)."""
+                    _, y_back, u_back, why = self._record(back_time, rest())
+                    return why or unsteady_return(y_back, u_back, sp0, k, band, (op_lo, op_hi))
+
+                stopped = back_at_rest()
+                if stopped is None and margin and gains.td > 0:
                     check = self._margin_check(gains, sp0, step, ident.noise, scale)
                     if not check.failed:  # back at rest at the setpoint, judged as before
-                        _, y_back, u_back, why = self._record(back_time, rest())
-                        stopped = why or unsteady_return(
-                            y_back, u_back, sp0, k, band, (op_lo, op_hi)
-                        )
-                        stable = stopped is None
+                        stopped = back_at_rest()
+                stable = stopped is None
         iae_sp = sp_m["iae"] if sp_m else None  # None: no step measured (not a perfect 0)
         mode = max((m for m in modes if m is not None), key=lambda m: m.decay, default=None)
         score = (iae_sp or 0.0) / abs(step) + (load_m["iae"] / abs(load_size) if load_m else 0.0)
@@ -1792,18 +1794,12 @@ def crossings(y: np.ndarray, target: float, width: int, band: float) -> int:
     from more than ``band`` on one side of ``target`` to more than ``band`` on the other."""
     if y.size < width:
         return 0
-    return _crossings(_deviation(y, target, width), band)
+    return swings(_deviation(y, target, width), band)
 
 
 def _deviation(y: np.ndarray, target: float, width: int) -> np.ndarray:
     """The PV's deviation from ``target``, averaged over ``width`` samples (the noise off)."""
     return np.convolve(y - target, np.ones(width) / width, "valid")
-
-
-def _crossings(dev: np.ndarray, band: float) -> int:
-    """The sign changes of a deviation among its values beyond ``band``."""
-    side = np.sign(dev[np.abs(dev) > band])
-    return int(np.count_nonzero(side[1:] != side[:-1])) if side.size > 1 else 0
 
 
 def judged_batch_end(k: int, n_max: int, judge: int, window: int | None, windows: int) -> int:
@@ -1860,8 +1856,8 @@ def swinging(y: np.ndarray, target: float, k: int, band: float) -> bool:
     if y.size < 2 * k:
         return False
     halves = np.array_split(_deviation(y[-2 * k :], target, max(1, k // 10)), 2)
-    swings = [(_crossings(h, band), float(np.ptp(h)) if h.size else 0.0) for h in halves]
-    return all(c >= 2 for c, _ in swings) and swings[1][1] > 0.5 * swings[0][1]
+    seen = [(swings(h, band), float(np.ptp(h)) if h.size else 0.0) for h in halves]
+    return all(c >= 2 for c, _ in seen) and seen[1][1] > 0.5 * seen[0][1]
 
 
 def load_step_size(
