@@ -37,7 +37,7 @@ SCRIPT = [
     (1, None, [SetpointCommand(loop="g0", sp=52.0)]),
     (250, (40.0, 60.4), [DisturbanceCommand(loop="f1", name="load", value=-8)]),
     (300, None, [ModeCommand(loop="i1", mode="auto")]),  # i1's SP tracked its PV till now
-    (3, None, [GainsCommand(loop="hx1", gains=PidGains(kc=1.2, ti=25.0, td=2.0))]),
+    (3, None, [GainsCommand(loop="hx1", gains=PidGains(kc=1.2, ti=25.0, td=2.0, beta=0.6))]),
     (500, None, [ModeCommand(loop="f1", mode="manual"), ModeCommand(loop="g0", mode="auto")]),
     (64, (0.0, 49.9), [OutputCommand(loop="f1", op=20.0), SetpointCommand(loop="t3", sp=45.0)]),
     (1024, None, [ModeCommand(loop="f1", mode="auto")]),

@@ -196,3 +196,26 @@ def test_bus_gains_convert_to_the_block_and_back_unchanged():
     assert msg.to_core() == PidSettings(kc=1.5, ti=12.0, td=0.75, n=8.0, beta=0.5)
     assert PidGains.from_core(msg.to_core()) == msg
     assert PidGains.from_core(PidSettings(kc=2.0)) == PidGains(kc=2.0)  # the same defaults
+
+
+@pytest.mark.parametrize("sign_action", ["reverse", "direct"])
+def test_a_weighted_setpoint_integrates_to_the_setpoint(sign_action):
+    """With β < 1 the P term at zero error is s·Kc·(β − 1)·sp, and I holds it off: at
+    Kc 6, β 0.4 and a setpoint of 50, I sits at 230 % while the output rests at 50 %. Bounding
+    I alone by the output limits froze the integral there, and the PV stopped at
+    rest + β·step (52 after a step of 5 from 50) instead of the setpoint."""
+    sign = 1.0 if sign_action == "reverse" else -1.0
+
+    def plant():
+        return FirstOrderPlusDeadTime(TS, gain=sign, time_constant=5.0, delay=0.5, op0=50, pv0=50)
+
+    gains = PidSettings(kc=6.0, ti=8.0, beta=0.4)
+    sp = lambda k: 50.0 if k < 10 else 55.0  # noqa: E731
+    pid = PidBlock(gains, TS, (0.0, 100.0), op=50.0, action=sign_action)
+    pv, op, i_term = closed_loop(pid, plant(), sp, 3000)
+    assert abs(i_term[0] - 50.0) > 100.0  # I outside the output's range: β's offset
+    assert pv[-1] == pytest.approx(55.0, abs=1e-6)  # at the setpoint, not 52
+    assert np.all((op > 0.0) & (op < 100.0))
+    # the output at zero error, I + s·Kc·(β − 1)·sp, is within the limits throughout
+    at_zero = i_term + sign * 6.0 * (0.4 - 1.0) * 55.0
+    assert np.all((at_zero[20:] >= 0.0) & (at_zero[20:] <= 100.0))

@@ -13,8 +13,9 @@ Derivative acts on the measurement (no kick on setpoint changes), backward diffe
 for any Td, T). The integral term I is kept in output units, so bumpless transfer sets it
 to u − P − D on a switch to auto or a gain change. Anti-windup is conditional integration:
 the integrator holds while the output sits at a limit and the error would drive it further,
-and I itself stays within the output limits; so the output leaves a limit as soon as the
-error reverses. With Ti = None the I term is a manual reset (bias), still set bumplessly.
+and the output at zero error (I, plus P's setpoint term s·Kc·(β − 1)·sp where β < 1) stays
+within the output limits; so the output leaves a limit as soon as the error reverses. With
+Ti = None the I term is a manual reset (bias), still set bumplessly.
 """
 
 from __future__ import annotations
@@ -134,13 +135,16 @@ class PidBlock:
             lo, hi = self.op_limits
             winding_up = (v >= hi and step > 0) or (v <= lo and step < 0)
             if not winding_up:
-                # I may not grow past a limit, but a bumpless rebase may have left it outside
-                # one: it is never pulled back in a jump.
+                # the output at zero error, I + P(sp = pv), may not grow past a limit, but a
+                # bumpless rebase may have left it outside one: it is never pulled back in a
+                # jump. (With β < 1, P at zero error is s·Kc·(β − 1)·sp, and I holds it off:
+                # bounding I alone by the limits froze the integral of a weighted loop.)
+                off = self.sign * self.gains.kc * (self.gains.beta - 1.0) * sp
                 i_next = i + step
-                if step > 0 and i_next > hi:
-                    i_next = max(i, hi)
-                elif step < 0 and i_next < lo:
-                    i_next = min(i, lo)
+                if step > 0 and i_next > hi - off:
+                    i_next = max(i, hi - off)
+                elif step < 0 and i_next < lo - off:
+                    i_next = min(i, lo - off)
                 self.terms.i = i_next
         return u
 

@@ -99,6 +99,8 @@ def execute(
     step = k.i_gain * (sp - pv)
     winding = ((v >= g.hi) & (step > 0)) | ((v <= g.lo) & (step < 0))
     i_next = i + step
-    i_next = np.where((step > 0) & (i_next > g.hi), np.maximum(i, g.hi), i_next)
-    i_next = np.where((step < 0) & (i_next < g.lo), np.minimum(i, g.lo), i_next)
+    off = k.p_gain * (g.beta - 1.0) * sp  # P at zero error: I's bounds are the limits less it
+    hi, lo = g.hi - off, g.lo - off
+    i_next = np.where((step > 0) & (i_next > hi), np.maximum(i, hi), i_next)
+    i_next = np.where((step < 0) & (i_next < lo), np.minimum(i, lo), i_next)
     return Execution(u, p, d, np.where(g.integral & ~winding, i_next, i))

@@ -122,11 +122,12 @@ def advance(
             if integral:
                 step = i_gain * (sp - pv)
                 if not ((v >= hi and step > 0) or (v <= lo and step < 0)):
+                    off = p_gain * (beta - 1.0) * sp
                     i_next = i + step
-                    if step > 0 and i_next > hi:
-                        i_next = max(i, hi)
-                    elif step < 0 and i_next < lo:
-                        i_next = min(i, lo)
+                    if step > 0 and i_next > hi - off:
+                        i_next = max(i, hi - off)
+                    elif step < 0 and i_next < lo - off:
+                        i_next = min(i, lo - off)
                     i = i_next
             op = u
         else:
