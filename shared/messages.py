@@ -518,6 +518,13 @@ class TuneRequest(Message):
     apply_predicted_overshoot: float | None = Field(
         default=None, description="%: the recorded run's prediction for apply_gains"
     )
+    apply_predicted_ms: float | None = Field(
+        default=None,
+        gt=0.0,
+        description="the recorded run's Ms for apply_gains on its model (None: not judged); "
+        "a setpoint weight against an overshoot over the limit is tried only where it is "
+        "within ms_bound",
+    )
     apply_timescale: float | None = Field(default=None, gt=0.0, le=1e7)
     apply_noise: float | None = Field(default=None, ge=0.0)
     rest_window: float | None = Field(
@@ -568,7 +575,8 @@ def verify_message(gains: PidGains) -> str:
     """A ``verify`` progress's ``message``: the gains that verification verifies (the report
     tells a run's two verifications apart by it where the run ended in one)."""
     ti = "off" if gains.ti is None else f"{gains.ti:.4g} s"
-    return f"Kc {gains.kc:.4g}, Ti {ti}, Td {gains.td:.4g}"
+    weight = "" if gains.beta == 1.0 else f", β {gains.beta:g}"
+    return f"Kc {gains.kc:.4g}, Ti {ti}, Td {gains.td:.4g}{weight}"
 
 
 class TunerEvent(Message):

@@ -27,7 +27,7 @@ import numpy as np
 import pydantic
 
 from services.autotuner.compute_pool import compute_all, inline
-from services.autotuner.design import margin_check
+from services.autotuner.design import margin_check, setpoint_weight
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
@@ -276,6 +276,10 @@ class TuningRun:
         # model (a refused run waited 60 s for hx1's 60 s lag, and called a crest a rest)
         self._identified: experiments.Identification | None = None
         self._held_computing = 0.0  # s of wall time the longest computation held a realtime loop
+        # the chosen gains' Ms on the identified model (None: no model judged them)
+        self._predicted_ms: float | None = None
+        # the last verification's setpoint step: (t, PV, t0, y0, target, width), as measured
+        self._sp_step: tuple[np.ndarray, np.ndarray, float, float, float, int] | None = None
 
     # --- reporting ------------------------------------------------------------------------
 
@@ -696,6 +700,8 @@ class TuningRun:
         result["chosen"] = all_forms(chosen, span).to_dict()
         step = sel.assessments.get(sel.rule)
         predicted = step.step.overshoot if step is not None and step.step else None
+        if step is not None and step.robustness is not None:
+            self._predicted_ms = step.robustness.ms
         return ident, chosen, predicted
 
     def _recorded(
@@ -728,6 +734,7 @@ class TuningRun:
         )
         forms = all_forms(chosen, span).to_dict()
         result.update(rule=req.rule, gains={req.rule: forms}, chosen=forms, warnings=[])
+        self._predicted_ms = req.apply_predicted_ms
         return ident, chosen, req.apply_predicted_overshoot
 
     def _seen_after_loss(self, before: LoopStatus) -> dict | None:
@@ -1239,9 +1246,39 @@ class TuningRun:
             "predicted_overshoot": predicted,
         }
         problems = acceptance_problems(after_v, before_v, limits)
+        notes = []
+        weighted = self._weighted(new, after_v, problems, sp0, ident)
+        if weighted is not None:  # the overshoot alone failed: the step again, weighted
+            w, after_w = weighted
+            judged = {**limits, "predicted_overshoot": None}  # the model's was for β 1
+            again = acceptance_problems(after_w, before_v, judged)
+            limits.update(
+                predicted_overshoot=None,
+                setpoint_weight=w.beta,
+                overshoot_full_weight=w.overshoot,
+                overshoot_weight_predicted=w.predicted,
+            )
+            if again:
+                problems = [
+                    *problems,
+                    f"at setpoint weight β {w.beta:g} ({w.predicted:.3g} % predicted from the "
+                    f"first step): {'; '.join(again)}",
+                ]
+            else:
+                problems = []
+                notes.append(weight_note(w, new.beta, after_w, req.max_overshoot))
+            new, after_v, predicted = after_w.gains, after_w, None
+        elif problems and all(overshoot_alone(p) for p in problems) and new.ti is not None:
+            ms = self._predicted_ms
+            if ms is None or not ms <= req.ms_bound:
+                judged = "no model judged" if ms is None else f"the model put Ms at {ms:.3g} for"
+                notes.append(
+                    "no setpoint weight was tried against the overshoot: "
+                    f"{judged} these gains, and an overshoot this large can be a small "
+                    "phase margin, which a weight would hide"
+                )
         limits.update(passed=not problems, problems="; ".join(problems) or None)
         limits["settled"] = after_v.settling_time is not None
-        notes = []
         if not problems and after_v.settling_time is None:
             notes.append(
                 "slow: the setpoint step was not yet within its band at the end of the "
@@ -1276,6 +1313,45 @@ class TuningRun:
             "acceptance": limits,
             "notes": notes,
         }
+
+    def _weighted(
+        self,
+        gains: PidGains,
+        after: Verification,
+        problems: list[str],
+        sp0: float,
+        ident: experiments.Identification,
+    ) -> tuple[setpoint_weight.Weighting, Verification] | None:
+        """Where ``gains`` failed their verification for the setpoint step's overshoot alone,
+        with the output inside its limits throughout that step: the setpoint weight that
+        the step's own record says brings it within the limit (``design.setpoint_weight``),
+        and the verification made again with it; its gain-margin check is the first one's
+        (the weight leaves the feedback loop as it was). None: not that case, or no weight
+        would do.
+
+        Only for gains whose robustness the identified model judged within ``--ms-bound``:
+        an overshoot over the limit can also be a loop with too little phase margin, which a
+        weight would hide. Measured on integrating loops with two lags whose model was
+        refused (no robustness predicted): their fallback PI overshot 36–56 %, and the
+        weight that brought it to 19–28 % left loops of Ms 2.0–2.6 (phase margins 27–39°)."""
+        if not problems or not all(overshoot_alone(p) for p in problems):
+            return None
+        if after.op_limited or self._sp_step is None or gains.ti is None:
+            return None
+        ms = self._predicted_ms
+        if ms is None or not ms <= self.req.ms_bound:
+            return None
+        t, y, t0, y0, target, width = self._sp_step
+        w = setpoint_weight.weight_for_overshoot(
+            t, y, t0, y0, target, self.ts, gains.ti, self.req.max_overshoot,
+            ident.noise, width, gains.beta,
+        )  # fmt: skip
+        if w is None:
+            return None
+        weighted = gains.model_copy(update={"beta": w.beta})
+        again = self._verify(weighted, sp0, ident)
+        kept = {f: getattr(after, f) for f in MARGIN_FIELDS}
+        return w, again.model_copy(update=kept)
 
     def _set_auto(self, gains: PidGains, sp: float) -> None:
         """``gains`` and setpoint ``sp`` in auto. In realtime stamped with the plant's time
@@ -1474,6 +1550,7 @@ class TuningRun:
         # its slow lag's creep, 2.7e-4 off after 15 s, failed the gains (a random field case)
         rest_band = max(band, REST_FLOOR * (hi - lo))
         guard = GUARD_WINDOW * scale
+        self._sp_step = None  # this verification's, once its setpoint step is measured
         self._set_auto(gains, sp0)
         self._progress("verify", message=verify_message(gains))  # stamped as they went on
 
@@ -1526,6 +1603,7 @@ class TuningRun:
             sp_m = metrics.measured_setpoint_step(
                 t, y, t0, y0, sp0 + step, noise=ident.noise, width=width
             )
+            self._sp_step = (t, y, t0, y0, sp0 + step, width)
             modes.append(ringing(t, y, ident.noise, scale))
             model = ident.model.transfer if ident.model is not None else None
             isa = IsaGains(gains.kc, gains.ti, gains.td)
@@ -1915,6 +1993,33 @@ def noisy_step_note(problems: list[str], sp_step: float, noise: float) -> str | 
         "scatters by several points at that size, more where the gains feed the noise back; "
         "the tune run again may pass (or a larger --max-overshoot, where that overshoot is "
         "acceptable on this loop)"
+    )
+
+
+MARGIN_FIELDS = ("margin_factor", "margin_swing", "margin_growth", "margin_stopped")
+
+
+def overshoot_alone(problem: str) -> bool:
+    """Whether an acceptance problem is the measured setpoint overshoot over its limit (not
+    one predicted where the output held the step back, nor a miss of the model's)."""
+    return (
+        problem.startswith("overshoot ")
+        and "above the limit" in problem
+        and ("predicted" not in problem)
+    )
+
+
+def weight_note(
+    w: setpoint_weight.Weighting, beta0: float, after: Verification, limit: float
+) -> str:
+    """What a weighted setpoint's success says: why, and what was measured at each weight."""
+    return (
+        f"setpoint weight β {w.beta:g}: at β {beta0:g} the setpoint step overshot "
+        f"{w.overshoot:.3g} % (limit {limit:g} %), as the integral must where it gathers much "
+        f"error on the way (an integrating or lag-dominant loop); at β {w.beta:g} it "
+        f"overshot {after.overshoot:.3g} % ({w.predicted:.3g} % predicted from the first "
+        "step). β weighs the setpoint in the proportional action only: the loop's feedback, "
+        "its margins and its response to a load are those verified at full weight"
     )
 
 

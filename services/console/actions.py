@@ -17,7 +17,13 @@ from typing import Any
 
 import zenoh
 
-from services.autotuner.commands.apply import choose, recorded_run, recorded_timescale, same_loop
+from services.autotuner.commands.apply import (
+    choose,
+    predicted_ms,
+    recorded_run,
+    recorded_timescale,
+    same_loop,
+)
 from services.autotuner.commands.revert import CATCH_UP, reverted_gains, target
 from services.autotuner.commands.tune import follow, submit
 from services.autotuner.loop_client import CommandRefused, LoopClient, wait_for_loop
@@ -90,6 +96,7 @@ def apply_request(
         apply_from=run_id,
         apply_gains=gains,
         apply_predicted_overshoot=predicted,
+        apply_predicted_ms=predicted_ms(rec, rule),
         apply_timescale=scale,
         apply_noise=rec.get("noise"),
         source=SOURCE,

@@ -216,10 +216,19 @@ def _gains_text(g: dict | None) -> str:
     if not isinstance(g, dict):
         return "—"
     ti = g.get("ti")
+    beta = g.get("beta")
     return (
         f"Kc {_g(g.get('kc'), '.4g')}  Ti {'off' if ti is None else _g(ti, '.4g', ' s')}  "
         f"Td {_g(g.get('td'), '.3g', ' s')}"
+        + (f"  β {_g(beta, 'g')}" if isinstance(beta, int | float) and beta != 1 else "")
     )
+
+
+def _weight_text(r: TuneResult) -> str:
+    """The setpoint weight the run's verification settled on (``design.setpoint_weight``),
+    after its gains; "" where it kept full weight."""
+    beta = (r.acceptance or {}).get("setpoint_weight")
+    return f"  β {beta:g} (setpoint weight)" if isinstance(beta, int | float) else ""
 
 
 def history_lines(runs: Path, loop: str, run_id: str, prefix: str | None = None) -> list[str]:
@@ -291,7 +300,9 @@ def _summary(s: RunSeries) -> str:
     if shown is not None:
         label, isa = shown
         lines.append(
-            ("" if label == "chosen" else f"{label}: ") + gains_text(isa, r.pv_units, span)
+            ("" if label == "chosen" else f"{label}: ")
+            + gains_text(isa, r.pv_units, span)
+            + _weight_text(r)
         )
     if r.after is not None:
         a = r.after
@@ -986,7 +997,7 @@ def _gains_lines(s: RunSeries) -> list[str]:
     shown = _shown_gains(r)
     if shown is not None:
         label, isa = shown
-        lines.append(f"{label} ({r.rule}): {gains_text(isa, r.pv_units, span)}")
+        lines.append(f"{label} ({r.rule}): {gains_text(isa, r.pv_units, span)}{_weight_text(r)}")
     if r.previous_gains is not None:
         g = r.previous_gains
         lines.append(

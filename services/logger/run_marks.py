@@ -110,6 +110,9 @@ def verify_windows(
     result has neither): a first window of those gains is "before", however many followed
     (a run cancelled in it had its one window drawn as "after", titled with the old gains)."""
     starts = [p for p in progress if p.phase == "verify"]
+    # the last made again with a setpoint weight (its message the gains' and ", β b"): the
+    # one before it is the same gains at full weight, and a before-verification one earlier
+    again = len(starts) >= 2 and starts[-1].message.startswith(starts[-2].message + ", β ")
     changed = [c.t for c in gains_changes(gains) if c.t is not None]
     out = []
     for i, p in enumerate(starts):
@@ -125,7 +128,10 @@ def verify_windows(
         # on: base + size, then off: base (the size is the difference)
         load = loads[0].value - loads[1].value if len(loads) >= 2 else None
         last = i == len(starts) - 1
-        label = "after" if last else ("before" if with_before and i == len(starts) - 2 else "")
+        first_after = len(starts) - (2 if again else 1)
+        label = "after" if last else ("before" if with_before and i == first_after - 1 else "")
+        if again and i == first_after:
+            label = "after, β 1"
         if cut_short is not None and i == 0:
             own = p.message == verify_message(cut_short)
             label = "before" if own else ("after" if last else "")
@@ -146,8 +152,8 @@ def verify_windows(
     return out
 
 
-def _isa(g: PidGains) -> tuple[float, float | None, float]:
-    return (g.kc, g.ti, g.td)
+def _isa(g: PidGains) -> tuple[float, float | None, float, float]:
+    return (g.kc, g.ti, g.td, g.beta)
 
 
 def gains_changes(gains: Sequence[GainsCommand]) -> list[GainsCommand]:
@@ -164,7 +170,8 @@ def gains_changes(gains: Sequence[GainsCommand]) -> list[GainsCommand]:
 
 def _gains_text(g: PidGains, units: str) -> str:
     ti = "off" if g.ti is None else f"{g.ti:.4g} s"
-    return f"Kc {g.kc:.4g} %/{unit(units)}, Ti {ti}, Td {g.td:.4g} s"
+    weight = "" if g.beta == 1.0 else f", β {g.beta:g}"
+    return f"Kc {g.kc:.4g} %/{unit(units)}, Ti {ti}, Td {g.td:.4g} s{weight}"
 
 
 def gains_marks(
@@ -183,7 +190,7 @@ def gains_marks(
     starts = {w.start for w in windows}
     changes = gains_changes(gains)
     tried = {_isa(c.gains) for c in changes if c.t in starts}  # the gains each window tried
-    doubled = {(2.0 * kc, ti, td) for kc, ti, td in tried}
+    doubled = {(2.0 * kc, ti, td, beta) for kc, ti, td, beta in tried}
     out = []
     checking = False  # the last change was a gain-margin check's
     for c in changes:

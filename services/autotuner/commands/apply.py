@@ -105,6 +105,12 @@ def choose(run: dict[str, Any], rule: str | None) -> tuple[str, PidGains, float 
     return rule, PidGains(kc=isa["kc"], ti=isa.get("ti"), td=isa.get("td") or 0.0), predicted
 
 
+def predicted_ms(run: dict[str, Any], rule: str) -> float | None:
+    """The Ms the run's model predicted for ``rule``'s gains (None: not judged by one)."""
+    ms = ((run.get("robustness") or {}).get(rule) or {}).get("ms")
+    return float(ms) if isinstance(ms, int | float) and ms > 0 else None
+
+
 def recorded_timescale(run: dict[str, Any]) -> float:
     """The time scale (s) the run identified, which an apply's verification and its wait for
     the PV's return are sized on; ConfigError naming the run when it has none."""
@@ -164,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
         apply_from=args.run_id,
         apply_gains=gains,
         apply_predicted_overshoot=predicted,
+        apply_predicted_ms=predicted_ms(rec, rule),
         apply_timescale=recorded_timescale(rec),
         apply_noise=rec.get("noise"),
         source="autotune-apply",

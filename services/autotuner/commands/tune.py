@@ -1001,6 +1001,14 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             )
             + (": passed" if a["passed"] else f": failed ({a['problems']})")
         )
+        if a.get("setpoint_weight") is not None:
+            lines.append(
+                f"  setpoint weight: β {a['setpoint_weight']:g} (the step overshot "
+                f"{figure(a.get('overshoot_full_weight'))} % at full weight; "
+                f"{figure(a.get('overshoot_weight_predicted'))} % predicted at β "
+                f"{a['setpoint_weight']:g}, {figure(r.after.overshoot if r.after else None)} % "
+                "measured)"
+            )
     if r.rest and r.rest.get("waited") is not None:
         window = r.rest.get("window") or 0.0
         if r.rest.get("at_rest") and (r.rest.get("waited") or 0.0) > 1.01 * window:

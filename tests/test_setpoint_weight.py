@@ -1,0 +1,203 @@
+"""The setpoint weight read off a measured step (``design.setpoint_weight``).
+
+The reference is the plant itself: the same loop (an integrating process with a lag and a
+dead time, the product's own PID block) stepped once at β = 1 and once at the weight, from
+the same rest. The prediction from the first step must give the second to rounding, noise
+free, and to well within the noise with it; and the weight chosen must bring the overshoot
+measured at it within the aim of the limit. Then the tune: a run rejected for its overshoot
+alone, with gains its model judged, is verified again at the weight and kept; one whose
+gains no model judged is not weighted.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.autotuner.design import setpoint_weight as sw
+from services.autotuner.design.measured_response import measured_setpoint_step
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from services.plant_sim.simulation.loop import SimLoop
+from shared.messages import (
+    GainsCommand,
+    ModeCommand,
+    PidGains,
+    SetpointCommand,
+    TuneRequest,
+    TuneResult,
+)
+
+TS = 0.5  # s
+# 0.02/(s·(4s + 1))·e^{−2s}: an integrating process, PI gains that overshoot ~50 % at β = 1
+LOOP = {"model": "transfer_function", "num": [0.02], "den": [4.0, 1.0, 0.0], "delay": 2.0}
+KC, TI = 6.0, 40.0
+STEP = 5.0
+N = 800
+
+
+def _step(beta: float, noise: float = 0.0, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """(t, PV) of a setpoint step of STEP from rest at 50 with weight ``beta``; the record
+    starts at the sample after the setpoint's change, as the verification's does."""
+    spec = dict(LOOP, sample_time=TS, noise_std=noise)
+    sim = build_plant({"seed": seed, "loops": {"x": spec}}, "sw")["x"]
+    sim.apply(GainsCommand(loop="x", gains=PidGains(kc=KC, ti=TI, beta=beta)))
+    sim.apply(SetpointCommand(loop="x", sp=sim.pv))
+    sim.apply(ModeCommand(loop="x", mode="auto"))
+    sim.advance_many(20)
+    sim.apply(SetpointCommand(loop="x", sp=sim.sp + STEP))
+    rows = sim.advance_many(N)
+    assert all(0.0 < s.op < 100.0 for s in rows)  # the linear loop throughout
+    return np.array([s.t for s in rows]), np.array([s.pv for s in rows])
+
+
+def test_the_response_at_another_weight_is_the_measured_one_filtered():
+    _, y1 = _step(1.0)
+    y0 = y1[0]
+    for beta in (0.0, 0.35, 0.7):
+        _, yb = _step(beta)
+        predicted = y0 + sw.weighted_response(y1 - y0, beta, TS / TI)
+        assert np.max(np.abs(predicted - yb)) < 1e-9 * STEP
+        # and the other way, from a weighted step back to full weight
+        if beta > 0:
+            back = y0 + sw.weighted_response(yb - y0, 1.0, TS / TI, beta0=beta)
+            assert np.max(np.abs(back - y1)) < 1e-7 * STEP
+
+
+def test_the_weight_found_keeps_the_overshoot_measured_at_it_within_the_aim():
+    t, y1 = _step(1.0)
+    y0, target, limit = y1[0], y1[0] + STEP, 35.0
+    full = measured_setpoint_step(t, y1, t[0] - TS, y0, target)["overshoot"]
+    assert full > limit  # the case: rejected at β = 1 for its overshoot alone
+    w = sw.weight_for_overshoot(t, y1, t[0] - TS, y0, target, TS, TI, limit)
+    assert w is not None and 0.0 <= w.beta < 1.0
+    assert w.overshoot == pytest.approx(full)
+    _, yb = _step(w.beta)
+    measured = measured_setpoint_step(t, yb, t[0] - TS, y0, target)["overshoot"]
+    assert measured == pytest.approx(w.predicted, abs=1e-6)
+    assert measured <= sw.AIM * limit
+    # the largest such weight on the grid: one step up misses the aim
+    _, y_up = _step(w.beta + sw.GRID)
+    up = measured_setpoint_step(t, y_up, t[0] - TS, y0, target)["overshoot"]
+    assert up > sw.AIM * limit
+
+
+def test_with_noise_the_prediction_holds_within_the_noise():
+    sigma = 0.02 * STEP
+    t, y1 = _step(1.0, noise=sigma, seed=5)
+    _, yb = _step(0.4, noise=sigma, seed=5)  # the same noise sequence: the same seed
+    y0 = y1[:5].mean()
+    predicted = y0 + sw.weighted_response(y1 - y0, 0.4, TS / TI)
+    # the filtered noise differs from the raw noise of the second step by about σ
+    assert np.sqrt(np.mean((predicted - yb) ** 2)) < 1.5 * sigma
+    w = sw.weight_for_overshoot(t, y1, t[0] - TS, y0, y0 + STEP, TS, TI, 35.0, noise=sigma)
+    assert w is not None and w.beta < 1.0
+
+
+def test_no_weight_without_integral_or_where_none_would_do():
+    t, y1 = _step(1.0)
+    y0 = y1[0]
+    assert sw.weight_for_overshoot(t, y1, t[0] - TS, y0, y0 + STEP, TS, None, 35.0) is None
+    # Ti = Ts: at β = 0 the setpoint's path is the integral alone, one sample late
+    # (F = z⁻¹), so a response that overshoots by 50 % does so at every weight
+    tt = TS * np.arange(1, 400)
+    ring = 1.0 - np.exp(-0.05 * tt) * np.cos(0.25 * tt) * 1.0
+    over = measured_setpoint_step(tt, ring, 0.0, 0.0, 1.0)["overshoot"]
+    assert over > 40.0
+    assert sw.weight_for_overshoot(tt, ring, 0.0, 0.0, 1.0, TS, TS, 35.0) is None
+    assert sw.weight_for_overshoot(tt, ring, 0.0, 0.0, 1.0, TS, TS, 0.95 * over / sw.AIM) is None
+
+
+def test_the_grid():
+    assert sw.weights(1.0)[:3] == [0.95, 0.9, 0.85] and sw.weights(1.0)[-1] == 0.0
+    assert sw.weights(0.5)[0] == 0.45 and len(sw.weights(0.5)) == 10
+    assert sw.weights(0.0) == []
+
+
+def _tune(spec: dict, seed: int, method: str, **req) -> tuple[TuneResult, SimLoop]:
+    sim = build_plant({"seed": seed, "loops": {"x": spec}}, "sw")["x"]
+    run = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method=method, **req), "sw")
+    return run.run(), sim
+
+
+# a lag 30 times its second and 750 times its dead time: the relay's TL-PID (predicted Ms
+# 1.68 on the model) overshoots its setpoint step by 35.4 %, just over the default limit
+TWO_SCALE = {
+    "model": "transfer_function",
+    "num": [2.8],
+    "den": [750.0, 155.0, 1.0],  # (150 s + 1)(5 s + 1)
+    "delay": 0.2,
+    "sample_time": 0.06,
+    "noise_std": 0.001,
+}
+
+
+def test_a_tune_over_the_overshoot_limit_alone_is_weighted_and_verified_again():
+    r, sim = _tune(TWO_SCALE, 1, "relay")
+    a = r.acceptance
+    assert r.status == "ok" and a["passed"], r.reason
+    beta = a["setpoint_weight"]
+    assert 0.0 <= beta < 1.0 and sim.pid.gains.beta == beta == r.after.gains.beta
+    # the full-weight step failed the limit; the weighted one was predicted and measured
+    # within it (the prediction is the first step filtered: the same loop, new noise)
+    assert a["overshoot_full_weight"] > a["max_overshoot"]
+    assert r.after.overshoot <= a["max_overshoot"]
+    assert abs(r.after.overshoot - a["overshoot_weight_predicted"]) < 2.0
+    # the feedback is the rule's: Kc, Ti and Td as designed; the gain-margin check is the
+    # full-weight verification's (a PID), carried over
+    isa = r.gains[r.rule]["isa"]
+    g = sim.pid.gains
+    assert (g.kc, g.ti, g.td) == pytest.approx((isa["kc"], isa["ti"], isa["td"]), rel=1e-12)
+    assert r.robustness[r.rule]["ms"] <= 2.0
+    assert r.after.margin_factor == 2.0 and r.after.margin_swing is not None
+    assert any(w.startswith(f"setpoint weight β {beta:g}") for w in r.warnings)
+
+
+def test_gains_within_the_limit_keep_full_weight():
+    r, sim = _tune(TWO_SCALE, 1, "relay", max_overshoot=50.0)
+    assert r.status == "ok" and sim.pid.gains.beta == 1.0
+    assert r.acceptance.get("setpoint_weight") is None
+
+
+def test_no_weight_where_no_model_judged_the_gains():
+    """An integrating process with two lags, its ramp's models refused: the fallback PI's
+    overshoot may be a small phase margin, so it stays a rejection, and says why."""
+    spec = {
+        "model": "transfer_function",
+        "num": [0.108],
+        "den": [0.27, 1.06, 1.0, 0.0],
+        "delay": 0.39,
+        "sample_time": 0.082,
+        "noise_std": 0.05,
+    }
+    r, sim = _tune(spec, 5, "ramp")
+    assert r.status == "rejected" and "overshoot" in r.reason
+    assert r.robustness.get(r.rule) in (None, {})
+    assert sim.pid.gains.beta == 1.0 and r.acceptance.get("setpoint_weight") is None
+    assert any(w.startswith("no setpoint weight was tried") for w in r.warnings)
+
+
+def test_autotune_apply_weighs_a_recorded_run_s_gains_as_its_tune_did():
+    """``autotune apply`` of the gains a run proposed: verified at full weight, then weighted
+    where the recorded run's model judged them (``apply_predicted_ms``), else rejected."""
+    r, _ = _tune(TWO_SCALE, 1, "relay", apply=False)
+    isa = r.gains[r.rule]["isa"]
+    ms = r.robustness[r.rule]["ms"]
+    gains = PidGains(kc=isa["kc"], ti=isa["ti"], td=isa["td"])
+    for judged in (ms, None):
+        apply = dict(
+            rule=r.rule,
+            apply_from=r.run_id,
+            apply_gains=gains,
+            apply_timescale=r.timescale,
+            apply_noise=r.noise,
+            apply_predicted_ms=judged,
+        )
+        done, sim = _tune(TWO_SCALE, 1, "relay", **apply)
+        if judged is None:
+            assert done.status == "rejected" and sim.pid.gains.beta == 1.0
+            assert any(w.startswith("no setpoint weight was tried") for w in done.warnings)
+        else:
+            assert done.status == "ok", done.reason
+            assert sim.pid.gains.beta == done.acceptance["setpoint_weight"] < 1.0
