@@ -120,7 +120,7 @@ function select(loop) {
 
 function gainsText(g) {
   if (!g) return "";
-  return `Kc ${fmt(g.kc)} · Ti ${g.ti === null ? "off" : fmt(g.ti) + " s"} · Td ${fmt(g.td)} s`;
+  return `Kc ${fmt(g.kc)} · Ti ${g.ti === null ? "off" : fmt(g.ti) + " s"} · Td ${fmt(g.td)} s${g.beta !== undefined && g.beta !== 1 ? ` · β ${fmt(g.beta)}` : ""}`;
 }
 
 // every loop's status message asked for a redraw of every card: with 600 loops the page
@@ -327,7 +327,9 @@ function renderResult() {
   const r = m.result, e = r.experiment || {}, units = r.pv_units || "PV unit";
   const per = /[/·*]/.test(units) ? `(${units})` : units;  // %/(m3/h), not %/m3/h
   const v = r.after;  // the verification of the gains the run applied, as measured
-  const verified = v ? `<div id="result-verified">verified: overshoot ${fixed(v.overshoot, 1)} %, decay ratio ${fixed(v.decay_ratio, 2)}, settling ${fmt(v.settling_time, 3)} s, IAE ${fmt(v.iae_sp, 3)}${v.stable === false ? " — not stable" : ""}</div>` : "";
+  const acc = r.acceptance || {};  // a setpoint weight against the overshoot (README)
+  const weight = acc.setpoint_weight != null ? `, at setpoint weight β ${fmt(acc.setpoint_weight)} (${fixed(acc.overshoot_full_weight, 1)} % at full weight)` : "";
+  const verified = v ? `<div id="result-verified">verified: overshoot ${fixed(v.overshoot, 1)} %, decay ratio ${fixed(v.decay_ratio, 2)}, settling ${fmt(v.settling_time, 3)} s, IAE ${fmt(v.iae_sp, 3)}${v.stable === false ? " — not stable" : ""}${weight}</div>` : "";
   $("result-status").textContent = `${r.status} · run ${r.run_id}`;
   const lags = Object.keys(e).filter((k) => k.startsWith("model_lag")).sort().map((k) => fmt(e[k])).join(", ");
   const model = e.model ? `model ${String(e.model).toUpperCase()}: K = ${fmt(e.model_gain)}${lags ? `, T = ${lags} s` : ""}, L = ${fmt(e.model_delay)} s` : "no model";
