@@ -17,6 +17,8 @@ import pytest
 from services.autotuner.design import setpoint_weight as sw
 from services.autotuner.design.measured_response import measured_setpoint_step
 from services.autotuner.tuning import TuningRun
+from services.logger.compare import compare
+from services.logger.report import _gains_lines, _summary, load_report
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.loop import SimLoop
@@ -28,6 +30,7 @@ from shared.messages import (
     TuneRequest,
     TuneResult,
 )
+from tests.recorded_run import record_in_process
 
 TS = 0.5  # s
 # 0.02/(s·(4s + 1))·e^{−2s}: an integrating process, PI gains that overshoot ~50 % at β = 1
@@ -201,3 +204,21 @@ def test_autotune_apply_weighs_a_recorded_run_s_gains_as_its_tune_did():
         else:
             assert done.status == "ok", done.reason
             assert sim.pid.gains.beta == done.acceptance["setpoint_weight"] < 1.0
+
+
+def test_the_recorded_run_shows_the_weight(tmp_path):
+    """The MCAP of a weighted run: its verification windows are the full-weight one and the
+    weighted one ("after", titled with β), its gains text and summary say β, and
+    ``autotune runs --compare`` has the row."""
+    plant = {"seed": 1, "loops": {"ts1": TWO_SCALE}}
+    path, live = record_in_process(tmp_path, "sw", plant, "ts1", "relay")
+    beta = live.acceptance["setpoint_weight"]
+    assert live.status == "ok" and beta < 1.0
+    series = load_report(path).series
+    assert [w.label for w in series.windows] == ["after, β 1", "after"]
+    assert series.windows[-1].gains.endswith(f", β {beta:g}")
+    assert ", β" not in series.windows[0].gains
+    assert f"β {beta:g} (setpoint weight)" in _summary(series)
+    assert any(f"β {beta:g} (setpoint weight)" in line for line in _gains_lines(series))
+    rows = {r["key"]: r for r in compare(path, path)["rows"]}
+    assert rows["beta"]["a"] == beta and rows["beta"]["label"] == "setpoint weight β"

@@ -33,6 +33,7 @@ ROWS = (
     ("pb", "PB", "% of span"),
     ("ti", "Ti", "s"),
     ("td", "Td", "s"),
+    ("beta", "setpoint weight β", ""),
     ("ms", "Ms (predicted)", ""),
     ("gain_margin", "gain margin", ""),
     ("phase_margin_deg", "phase margin", "deg"),
@@ -112,6 +113,7 @@ def figures(meta: dict[str, str], r: TuneResult | None, span: float | None) -> d
     for k in ("ms", "gain_margin", "phase_margin_deg", "overshoot_pct"):
         out[k] = rob.get(k)
     if r.after is not None:
+        out["beta"] = r.after.gains.beta  # the verified gains' (``design.setpoint_weight``)
         for k in (
             "overshoot",
             "decay_ratio",
