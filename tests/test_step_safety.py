@@ -184,6 +184,21 @@ def test_ipdt_with_a_lag_is_integrating_with_the_lag_in_its_dead_time():
     assert test.ramp.dead_time == pytest.approx(8.0, abs=1.0)  # delay + lag: the asymptote
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_an_integrator_with_a_long_dead_time_is_read_before_it_leaves_the_allowance(seed):
+    """0.02 %/s per % with a 20 s dead time, stepped by 5 %: the PV ramps at 0.1 %/s and
+    leaves the 25 % allowance 270 s after the step, before the usual steady window of 10
+    dead times (20 dead times of travel, 400 s) is there: the step was aborted, its R and L
+    unread. At the edge a ramp steady over 3 dead times is taken: R and L as the plant's."""
+    spec = {"model": "ipdt", "gain": 0.02, "delay": 20.0, "sample_time": 0.5, "noise_std": 0.05}
+    test = drive(sim_loop(spec, seed))
+    assert test.ramp is not None, test.reason
+    assert test.ramp.slope == pytest.approx(0.1, rel=0.03)
+    assert test.ramp.dead_time == pytest.approx(20.0, abs=1.5)
+    assert test.ramp.elapsed < 270.0 and test.ramp.window < 10 * 20.0
+    assert max(test.pv) < 75.0
+
+
 def test_steady_ramp_never_calls_a_600_s_lag_integrating():
     """Noise-free, every check up to 5 time constants: the decay of the slope is always seen."""
     model = FirstOrderPlusDeadTime(1.0, gain=0.06, time_constant=600.0, delay=1.0)

@@ -462,7 +462,12 @@ class SteadyRamp:
 
 
 def steady_ramp(
-    t: np.ndarray, y: np.ndarray, t_step: float, pv_before: float, noise_std: float
+    t: np.ndarray,
+    y: np.ndarray,
+    t_step: float,
+    pv_before: float,
+    noise_std: float,
+    windows_per_dead_time: float = RAMP_WINDOWS_PER_DEAD_TIME,
 ) -> SteadyRamp | None:
     """The steady ramp of an integrating process after a step at ``t_step``, or None.
 
@@ -515,7 +520,7 @@ def steady_ramp(
     dt = float(np.median(np.diff(t)))
     if chord_dead_time < -(3.0 * chord_se + dt):
         return None  # a decaying curve's chord: it meets the baseline before the step
-    if span < RAMP_WINDOWS_PER_DEAD_TIME * max(chord_dead_time, 0.0):
+    if span < windows_per_dead_time * max(chord_dead_time, 0.0):
         return None
     dead_time, dead_time_se = _kink_dead_time(t - t_step, y - pv_before, 0.5 * elapsed)
     return SteadyRamp(

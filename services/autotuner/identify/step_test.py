@@ -87,6 +87,11 @@ CHECKS_PER_DOUBLING = 128
 # figure scatters more than the linearised error says (1.4-1.9x over 12 noisy seeds)
 SPREADS = 3.0
 CLEAR_RUN = 5  # samples running clear of the noise that say the response has begun
+# where the PV is about to leave its allowance: a ramp steady (its slope's change lost in the
+# noise and resolved to 10 %) over this many apparent dead times is taken as integrating (the
+# usual 10 need the PV to travel 20 dead times' worth of ramp, more than an integrator with a
+# long dead time has room for: such steps were aborted, their R and L left unread)
+RAMP_WINDOWS_AT_THE_EDGE = 3.0
 # the words that open the step test's dead-time warning, and those that say what the design
 # took instead (repeated steps and ``autotune analyze`` find the warning by them)
 UNRESOLVED = "dead time not resolved by the record"
@@ -671,6 +676,10 @@ class StepTest:
         if ramp is not None and ramp.precision <= self.config.rate_precision:
             return self._integrating(s, ramp, "precision")
         if reason := self._heading_out(t, y, elapsed):
+            # the last look before giving up: a steady ramp over fewer dead times
+            ramp = ramp or steady_ramp(
+                t, y, self.t_step, self._pv_before, self._noise, RAMP_WINDOWS_AT_THE_EDGE
+            )
             if ramp is not None:  # R is known, if less precisely than asked: say so
                 return self._integrating(s, ramp, "range")
             return self._abort(reason)
