@@ -195,6 +195,10 @@ def test_a_drifting_level_is_not_said_given_back_nor_at_rest():
     text = format_integrating(r)
     assert r.curve.drifted(r.t_end - r.t_step) is None
     assert "gave the level back" in text and "drift" not in text and "PV back at rest" in text
+    # its precision to two figures, as the tune prints it (a ramp known to ± 0.046 % read
+    # "± 0.0%")
+    shown = f"(± {100 * r.curve.reaction_rate_precision:.2g} %, 2σ)"
+    assert shown in text and "± 0.0%" not in text
 
 
 def test_a_step_tune_of_a_drifting_level_says_it_drifts_on():

@@ -183,18 +183,24 @@ def format_report(r: StepTestReport) -> str:
     return "\n".join(line for line in lines if line)
 
 
+def _percent(fraction: float) -> str:
+    """A relative precision in % to two significant figures, as the tune's table prints it
+    (a ramp known to ± 0.046 % printed "± 0.0%")."""
+    return f"{100 * fraction:.2g} %"
+
+
 def format_integrating(r: StepTestReport) -> str:
     """The reaction curve of an integrating loop (Ziegler and Nichols' original method)."""
     c, u = r.curve, r.pv_units
     why = (
-        f"R known to ± {c.reaction_rate_precision:.1%}"
+        f"R known to ± {_percent(c.reaction_rate_precision)}"
         if c.stopped_by == "precision"
-        else f"the PV's allowance reached; R known to ± {c.reaction_rate_precision:.1%}"
+        else f"the PV's allowance reached; R known to ± {_percent(c.reaction_rate_precision)}"
     )
     rows = [
         (
             "reaction rate R = K'",
-            f"{c.reaction_rate:.4g} {u}/s per %  (± {c.reaction_rate_precision:.1%}, 2σ)",
+            f"{c.reaction_rate:.4g} {u}/s per %  (± {_percent(c.reaction_rate_precision)}, 2σ)",
         ),
         ("slope after the step", f"{c.slope:.4g} {u}/s"),
         ("dead time L", f"{c.dead_time:.4g} s  (± {c.dead_time_se:.2g} s)"),
