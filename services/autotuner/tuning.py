@@ -1247,7 +1247,13 @@ class TuningRun:
         }
         problems = acceptance_problems(after_v, before_v, limits)
         notes = []
-        weighted = self._weighted(new, after_v, problems, sp0, ident)
+        weighted = None
+        if problems and all(overshoot_alone(p) for p in problems) and new.ti is not None:
+            untried = unjudged_note(self._predicted_ms, req.ms_bound)
+            if untried is not None:
+                notes.append(untried)
+            else:
+                weighted = self._weighted(new, after_v, sp0, ident)
         if weighted is not None:  # the overshoot alone failed: the step again, weighted
             w, after_w = weighted
             judged = {**limits, "predicted_overshoot": None}  # the model's was for β 1
@@ -1268,15 +1274,6 @@ class TuningRun:
                 problems = []
                 notes.append(weight_note(w, new.beta, after_w, req.max_overshoot))
             new, after_v, predicted = after_w.gains, after_w, None
-        elif problems and all(overshoot_alone(p) for p in problems) and new.ti is not None:
-            ms = self._predicted_ms
-            if ms is None or not ms <= req.ms_bound:
-                judged = "no model judged" if ms is None else f"the model put Ms at {ms:.3g} for"
-                notes.append(
-                    "no setpoint weight was tried against the overshoot: "
-                    f"{judged} these gains, and an overshoot this large can be a small "
-                    "phase margin, which a weight would hide"
-                )
         limits.update(passed=not problems, problems="; ".join(problems) or None)
         limits["settled"] = after_v.settling_time is not None
         if not problems and after_v.settling_time is None:
@@ -1318,28 +1315,17 @@ class TuningRun:
         self,
         gains: PidGains,
         after: Verification,
-        problems: list[str],
         sp0: float,
         ident: experiments.Identification,
     ) -> tuple[setpoint_weight.Weighting, Verification] | None:
-        """Where ``gains`` failed their verification for the setpoint step's overshoot alone,
-        with the output inside its limits throughout that step: the setpoint weight that
-        the step's own record says brings it within the limit (``design.setpoint_weight``),
-        and the verification made again with it; its gain-margin check is the first one's
-        (the weight leaves the feedback loop as it was). None: not that case, or no weight
-        would do.
-
-        Only for gains whose robustness the identified model judged within ``--ms-bound``:
-        an overshoot over the limit can also be a loop with too little phase margin, which a
-        weight would hide. Measured on integrating loops with two lags whose model was
-        refused (no robustness predicted): their fallback PI overshot 36–56 %, and the
-        weight that brought it to 19–28 % left loops of Ms 2.0–2.6 (phase margins 27–39°)."""
-        if not problems or not all(overshoot_alone(p) for p in problems):
-            return None
-        if after.op_limited or self._sp_step is None or gains.ti is None:
-            return None
-        ms = self._predicted_ms
-        if ms is None or not ms <= self.req.ms_bound:
+        """For ``gains`` (with integral action) that failed their verification for the
+        setpoint step's overshoot alone, their robustness judged by the model
+        (``unjudged_note``): where the output stayed inside its limits throughout that step,
+        the setpoint weight that the step's own record says brings it within the limit
+        (``design.setpoint_weight``), and the verification made again with it; its
+        gain-margin check is the first one's (the weight leaves the feedback loop as it was).
+        None: the output was held at a limit, or no weight would do."""
+        if after.op_limited or self._sp_step is None:
             return None
         t, y, t0, y0, target, width = self._sp_step
         w = setpoint_weight.weight_for_overshoot(
@@ -2006,6 +1992,22 @@ def overshoot_alone(problem: str) -> bool:
         problem.startswith("overshoot ")
         and "above the limit" in problem
         and ("predicted" not in problem)
+    )
+
+
+def unjudged_note(ms: float | None, ms_bound: float) -> str | None:
+    """Why no setpoint weight is tried against an overshoot over the limit (None: it may be):
+    the model did not judge the gains within ``--ms-bound`` (``ms``: their predicted Ms,
+    None without a model). An overshoot over the limit can also be a loop with too little
+    phase margin, which a weight would hide: on integrating loops with two lags whose model
+    was refused, the fallback PI overshot 36–56 %, and the weight that brought it to 19–28 %
+    left loops of Ms 2.0–2.6 (phase margins 27–39°)."""
+    if ms is not None and ms <= ms_bound:
+        return None
+    judged = "no model judged" if ms is None else f"the model put Ms at {ms:.3g} for"
+    return (
+        f"no setpoint weight was tried against the overshoot: {judged} these gains, and an "
+        "overshoot this large can be a small phase margin, which a weight would hide"
     )
 
 

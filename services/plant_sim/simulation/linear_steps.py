@@ -79,6 +79,7 @@ def advance(
     p_gain = pid.sign * g.kc
     d_gain = -pid.sign * g.kc * g.td
     beta = g.beta
+    p_off = p_gain * (beta - 1.0)  # × sp: P at zero error, which I's bounds leave room for
     integral = g.ti is not None
     i_gain = pid.sign * g.kc * ts / g.ti if integral else 0.0
     track_sp = settings.sp_track
@@ -122,7 +123,7 @@ def advance(
             if integral:
                 step = i_gain * (sp - pv)
                 if not ((v >= hi and step > 0) or (v <= lo and step < 0)):
-                    off = p_gain * (beta - 1.0) * sp
+                    off = p_off * sp
                     i_next = i + step
                     if step > 0 and i_next > hi - off:
                         i_next = max(i, hi - off)
