@@ -654,6 +654,15 @@ class Verification(Message):
     margin_stopped: str | None = Field(
         default=None, description="why the check was cut short (failed), if it was"
     )
+    margin_ringing: float | None = Field(
+        default=None,
+        description="where the gains rang with a fast mode the model lacks past the decay "
+        "ratio limit (the check is then made for a PI too): a fast mode's amplitude ratio over "
+        "one period in the check (1 or more: it grows at that gain); None: none read",
+    )
+    margin_ringing_period: float | None = Field(
+        default=None, description="s: that mode's period in the check"
+    )
 
 
 class TuneResult(Message):

@@ -35,20 +35,23 @@ SPEC = {
 }
 
 
-def loop_gain(w: np.ndarray, kc: float, ti: float, td: float, n: float = 10.0) -> np.ndarray:
+def loop_gain(
+    w: np.ndarray, kc: float, ti: float, td: float, n: float = 10.0, spec: dict = SPEC
+) -> np.ndarray:
     """C(jω)·G(jω): the ISA PID with its derivative filtered at Td/N, and the plant behind
     the output's hold (half a sample's delay: 16° at the resonance)."""
     s = 1j * w
     c = kc * (1 + 1 / (ti * s) + td * s / (1 + td * s / n))
-    hold = np.exp(-s * SPEC["sample_time"] / 2)
-    return c * np.polyval(NUM, s) / np.polyval(DEN, s) * np.exp(-s * DELAY) * hold
+    hold = np.exp(-s * spec["sample_time"] / 2)
+    g = np.polyval(spec["num"], s) / np.polyval(spec["den"], s) * np.exp(-s * spec["delay"])
+    return c * g * hold
 
 
-def gain_margin(kc: float, ti: float, td: float) -> float:
-    """The least 1/|L| where the phase crosses −180° (mod 360°), up to 40 rad/s: on a grid
-    of 1e-4 rad/s, the margins read at the sample past each crossing."""
-    w = np.linspace(0.01, 40.0, 400_000)
-    lw = loop_gain(w, kc, ti, td)
+def gain_margin(kc: float, ti: float, td: float, spec: dict = SPEC, top: float = 40.0) -> float:
+    """The least 1/|L| where the phase crosses −180° (mod 360°), up to ``top`` rad/s: on a
+    grid of 1e-4 rad/s, the margins read at the sample past each crossing."""
+    w = np.linspace(0.01, top, round(top * 1e4))
+    lw = loop_gain(w, kc, ti, td, spec=spec)
     turns = np.floor((np.unwrap(np.angle(lw)) + math.pi) / (2 * math.pi))
     crossings = np.nonzero(np.diff(turns))[0] + 1
     return float(np.min(1 / np.abs(lw[crossings])))
@@ -156,3 +159,76 @@ def test_a_swing_growing_out_of_the_noise_reads_a_finite_growth_that_fails_alike
     assert math.isfinite(check.growth) and check.growth > 10
     again = margin_check.MarginCheck(check.swing, check.growth, check.stopped)
     assert check.failed and again.failed
+
+
+# 1.55·e^{−0.37 s}/(0.0101 s³ + 0.022 s² + 2.2 s + 1): a 2.2 s lag and a mode at 14.8 rad/s,
+# ζ 0.05, 3.3 ω_u (a random field plant, seed base 13, case 8)
+RESONANT = {
+    "model": "transfer_function",
+    "num": [1.5523703711263837],
+    "den": [0.010063278299190856, 0.02199975751113506, 2.202107957742752, 1.0],
+    "delay": 0.3695768051890075,
+    "sample_time": 0.013354274687829413,
+    "noise_std": 0.0667102234468854,
+}
+# 0.57·e^{−0.64 s}/(0.0059 s³ + 0.0129 s² + 3.85 s + 1): a 3.9 s lag and a mode at 25.6
+# rad/s, ζ 0.043, 5.5 ω_u (seed base 7, case 148)
+RESONANT_FAR = {
+    "model": "transfer_function",
+    "num": [0.5746489131879369],
+    "den": [0.0058995477853211785, 0.01290900728213774, 3.852217400903582, 1.0],
+    "delay": 0.6370624414192602,
+    "sample_time": 0.030577109622525852,
+    "noise_std": 0.0073252598956201785,
+}
+
+
+def resonance(spec: dict) -> float:
+    """The plant's lightly damped mode, rad/s: its complex poles' imaginary part."""
+    return max(abs(p.imag) for p in np.roots(spec["den"]))
+
+
+def test_a_pi_that_leaves_a_resonance_ringing_is_run_at_twice_its_gain_and_refused():
+    """A relay's TL PI on RESONANT ended ok with a gain margin of 1.78 on the plant (Ms 2.4):
+    the resonance rang on after the setpoint step, 0.89 of itself a period, 4σ of the noise
+    tall. Ringing past the decay ratio limit with a mode the model lacks, the PI is run at
+    twice its gain, where that mode grows: refused, the loop restored."""
+    sim = build_plant({"seed": 8, "loops": {"x": RESONANT}}, "unit")["x"]
+    before = sim.snapshot()
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="relay"), "unit").run()
+    assert r.status == "rejected", (r.status, r.reason)
+    assert "gain margin under 2: with Kc × 2" in r.reason and "(growing)" in r.reason
+    g = r.chosen["isa"]
+    assert not g["td"]
+    assert gain_margin(g["kc"], g["ti"], 0.0, RESONANT, 100.0) < 2.0
+    w_r = resonance(RESONANT)
+    assert r.after.unmodelled_period == pytest.approx(2 * math.pi / w_r, rel=0.1)
+    assert r.after.unmodelled_ringing > 0.35
+    assert r.after.margin_ringing >= margin_check.MODE_GROWS
+    assert r.after.margin_ringing_period == pytest.approx(2 * math.pi / w_r, rel=0.1)
+    after = sim.snapshot()
+    assert (after.mode, after.gains) == (before.mode, before.gains)
+
+
+def test_a_pi_that_keeps_its_margin_at_the_processs_own_resonance_is_ok_and_says_so():
+    """TL PI on RESONANT_FAR rings with the resonance (0.86 a period, past the limit 0.35)
+    as the process does on its own; at twice its gain the mode still decays (a gain margin
+    of about 3 on the plant): ok, with a warning that names the ringing."""
+    sim = build_plant({"seed": 148, "loops": {"x": RESONANT_FAR}}, "unit")["x"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="relay"), "unit").run()
+    assert r.status == "ok", r.reason
+    g = r.chosen["isa"]
+    assert gain_margin(g["kc"], g["ti"], 0.0, RESONANT_FAR, 100.0) > 2.0
+    w_r = resonance(RESONANT_FAR)
+    assert r.after.unmodelled_period == pytest.approx(2 * math.pi / w_r, rel=0.1)
+    assert r.after.unmodelled_ringing > 0.35
+    assert r.after.margin_ringing < margin_check.MODE_GROWS
+    assert any("the process's own ringing" in w for w in r.warnings), r.warnings
+
+
+def test_a_mode_that_grows_at_twice_the_gain_fails_the_check_and_says_so():
+    check = margin_check.MarginCheck(0.05, 1.0, None, 1.04, 0.41)
+    assert check.failed and check.mode_grows
+    why = margin_check.problem(check)
+    assert "rang on at 0.41 s, 1.04 of its amplitude kept each period (growing)" in why
+    assert not margin_check.MarginCheck(0.05, 1.0, None, 0.9, 0.41).failed

@@ -13,7 +13,15 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.design.unmodelled_mode import FAST, model_step, unmodelled_mode
+from services.autotuner.design.ringing import Ringing
+from services.autotuner.design.unmodelled_mode import (
+    FAST,
+    LEAST,
+    QUIET,
+    mode_near,
+    model_step,
+    unmodelled_mode,
+)
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
@@ -49,6 +57,70 @@ def test_a_fast_mode_is_found_with_its_period_and_decay_and_the_model_alone_is_n
     assert unmodelled_mode(t, y, 50.0, 2.0, GAINS, MODEL, TS, 0.01, SCALE) is None
     # no model: nothing to compare with
     assert unmodelled_mode(t, y, 50.0, 2.0, GAINS, None, TS, 0.01, SCALE) is None
+
+
+def test_a_small_mode_that_lasts_is_found_beside_the_models_slow_misfit():
+    """A mode 3σ tall (under the 4σ a short ringing needs) that keeps 0.9 of itself a period
+    over 40 periods, in a residual that also holds the model's slow misfit (a 2 % error in
+    its gain): found, with its period and decay. The misfit and the noise alone: none."""
+    n = 3000
+    t = TS * np.arange(1, n + 1)
+    misfit = 1.02 * 2.0 * model_step(GAINS, MODEL, TS, n)  # the plant's gain 2 % above
+    noise = 0.01 * np.random.default_rng(3).standard_normal(n)
+    period = 0.7
+    mode = 0.03 * np.exp(math.log(0.9) / period * t) * np.sin(2 * math.pi * t / period)
+    y = 50.0 + misfit + mode + noise
+    found = unmodelled_mode(t, y, 50.0, 2.0, GAINS, MODEL, TS, 0.01, SCALE)
+    assert found is not None
+    assert found.period == pytest.approx(period, rel=0.02)
+    assert found.decay == pytest.approx(0.9, abs=0.03)
+    for seed in range(5):
+        noise = 0.01 * np.random.default_rng(seed).standard_normal(n)
+        y = 50.0 + misfit + noise
+        assert unmodelled_mode(t, y, 50.0, 2.0, GAINS, MODEL, TS, 0.01, SCALE) is None
+
+
+@pytest.mark.parametrize("decay", [0.9, 0.97, 1.03, 1.1])
+def test_a_known_mode_is_read_again_near_its_period_under_the_noise(decay):
+    """A gain-margin check's record: a slow approach, noise σ 0.01, and the mode 0.41 s
+    long at 0.03 (3σ: the noise's turning points outnumber its own) that keeps ``decay`` a
+    period, sought from 0.45 s: its period and decay read, growing or not."""
+    n, ts, period = 430, 0.0134, 0.41
+    t = ts * np.arange(n)
+    slow = 0.5 * (1 - np.exp(-t / 1.5))
+    g = math.log(decay) / period
+    mode = 0.03 * np.exp(g * t) * np.sin(2 * math.pi * t / period + 0.3)
+    noise = 0.01 * np.random.default_rng(4).standard_normal(n)
+    found = mode_near(t, slow + mode + noise, 0.01, Ringing(0.9, 0.45, 0.03), ts, 1.0)
+    assert found is not None
+    assert found.period == pytest.approx(period, rel=0.02)
+    assert found.decay == pytest.approx(decay, abs=0.03)
+
+
+def test_nothing_at_the_period_reads_a_decay_of_zero():
+    """Where the record holds nothing at the period but the noise and a slow approach, the
+    mode is gone (decay 0, its amplitude there under LEAST of the step), not unknown."""
+    n, ts = 430, 0.0134
+    t = ts * np.arange(n)
+    y = 0.5 * (1 - np.exp(-t / 1.5)) + 0.01 * np.random.default_rng(5).standard_normal(n)
+    found = mode_near(t, y, 0.01, Ringing(0.9, 0.41, 0.03), ts, 1.0)
+    assert found is not None and found.decay == 0.0 and found.amplitude < LEAST
+
+
+def test_a_mode_the_fit_cannot_read_again_is_quiet_only_well_under_its_own_height():
+    """A record whose only ringing is another mode, 0.62 s long (1.5 times the 0.41 s
+    sought, beyond SAME_MODE), decaying fast: the fit near 0.41 s ends at it and reads
+    nothing there. The sinusoid the record holds near 0.41 s (0.025) is under QUIET of a
+    mode that rang 0.6 tall: it rings no more there (decay 0). Of one that rang 0.06 tall,
+    it is not: unknown (None), which the verification takes as unread."""
+    n, ts = 430, 0.0134
+    t = ts * np.arange(n)
+    other = 0.3 * np.exp(-t / 0.8) * np.sin(2 * math.pi * t / 0.62)
+    y = 0.5 * (1 - np.exp(-t / 1.5)) + other
+    y += 0.01 * np.random.default_rng(6).standard_normal(n)
+    quiet = mode_near(t, y, 0.01, Ringing(0.9, 0.41, 0.6), ts, 1.0)
+    assert quiet is not None and quiet.decay == 0.0 and quiet.amplitude < QUIET * 0.6
+    assert mode_near(t, y, 0.01, Ringing(0.9, 0.41, 0.06), ts, 1.0) is None
 
 
 def test_a_slow_mode_is_the_loops_own_and_left_to_the_response_itself():

@@ -31,7 +31,7 @@ from services.autotuner.design import margin_check, setpoint_weight
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
-from services.autotuner.design.unmodelled_mode import unmodelled_mode
+from services.autotuner.design.unmodelled_mode import mode_near, unmodelled_mode
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import (
@@ -1287,6 +1287,9 @@ class TuningRun:
         noisy = noisy_step_note(problems, after_v.sp_step, ident.noise)
         if noisy is not None:
             notes.append(noisy)
+        ringing_note = process_ringing_note(after_v, req.max_decay_ratio)
+        if ringing_note is not None:
+            notes.append(ringing_note)
         if after_v.op_noise is not None and after_v.op_noise > OP_NOISE_WARN:
             notes.append(
                 f"the gains turn the PV's noise into {after_v.op_noise:.3g} % of output noise "
@@ -1465,13 +1468,20 @@ class TuningRun:
             return None
 
     def _margin_check(
-        self, gains: PidGains, sp0: float, step: float, noise: float, scale: float
+        self,
+        gains: PidGains,
+        sp0: float,
+        step: float,
+        noise: float,
+        scale: float,
+        fast: Ringing | None = None,
     ) -> margin_check.MarginCheck:
         """``gains`` with Kc × ``margin_check.FACTOR`` and the setpoint stepped by half the
         verification's ``step`` from ``sp0`` (the same proportional kick), watched for
         ``SCALES`` time scales of ``scale`` s, cut short once the PV swings ``SWING_BOUND``
         times that step from it; then ``gains`` at ``sp0`` again (the caller waits for the
-        rest, or restores the loop where the check fails)."""
+        rest, or restores the loop where the check fails). ``fast``: a fast mode the model
+        lacks that the gains rang with, read again at the doubled gain."""
         c = self.client
         kick = 0.5 * step
         target = sp0 + kick
@@ -1484,10 +1494,19 @@ class TuningRun:
         )
         never = SettleRule(k, target, 0.0, None, seconds)  # watched to its end
         bound = margin_check.SWING_BOUND * abs(kick)
-        _, y, _, why = self._record(seconds, never, target, swing=bound)
+        t, y, _, why = self._record(seconds, never, target, swing=bound)
         check = margin_check.judge(y, kick, noise, k)
-        if why is not None:
-            check = margin_check.MarginCheck(check.swing, check.growth, why)
+        mode = None
+        if fast is not None:
+            mode = mode_near(t, y, noise, fast, self.ts, kick)
+        if why is not None or mode is not None:
+            check = margin_check.MarginCheck(
+                check.swing,
+                check.growth,
+                why,
+                None if mode is None else mode.decay,
+                None if mode is None else mode.period,
+            )
         if not check.failed:
             c.command_all(
                 GainsCommand(loop=c.loop, gains=gains, source=c.source, t=self._t),
@@ -1660,8 +1679,14 @@ class TuningRun:
                     return why or unsteady_return(y_back, u_back, sp0, k, band, (op_lo, op_hi))
 
                 stopped = back_at_rest()
-                if stopped is None and margin and gains.td > 0:
-                    check = self._margin_check(gains, sp0, step, ident.noise, scale)
+                # a PI's gain beyond ω_u stays near Kc, under the K_u measured: checked
+                # where it rang with a fast mode past the limit (a resonance: its gain there
+                # may be the loop's largest)
+                rang = fast is not None and fast.decay > self.req.max_decay_ratio
+                if stopped is None and margin and (gains.td > 0 or rang):
+                    check = self._margin_check(
+                        gains, sp0, step, ident.noise, scale, fast if rang else None
+                    )
                     if not check.failed:  # back at rest at the setpoint, judged as before
                         stopped = back_at_rest()
                 stable = stopped is None
@@ -1695,6 +1720,8 @@ class TuningRun:
             margin_swing=check.swing if check is not None else None,
             margin_growth=finite(check.growth) if check is not None else None,
             margin_stopped=check.stopped if check is not None else None,
+            margin_ringing=check.mode if check is not None else None,
+            margin_ringing_period=check.mode_period if check is not None else None,
             unmodelled_period=None if fast is None else fast.period,
         )
 
@@ -1982,7 +2009,14 @@ def noisy_step_note(problems: list[str], sp_step: float, noise: float) -> str | 
     )
 
 
-MARGIN_FIELDS = ("margin_factor", "margin_swing", "margin_growth", "margin_stopped")
+MARGIN_FIELDS = (
+    "margin_factor",
+    "margin_swing",
+    "margin_growth",
+    "margin_stopped",
+    "margin_ringing",
+    "margin_ringing_period",
+)
 
 
 def overshoot_alone(problem: str) -> bool:
@@ -2025,6 +2059,42 @@ def weight_note(
     )
 
 
+def process_ringing(after: Verification) -> bool:
+    """Whether the fast mode the gains rang with is the process's own: at Kc × 2 the same
+    mode (``unmodelled_mode.mode_near``) still decayed, so the gains keep a margin of 2 at
+    it and took little of its damping (a resonance rings so under any gains). Not where the
+    check failed, nor where it did not see the mode."""
+    if after.margin_ringing is None or after.margin_factor is None:
+        return False
+    check = margin_check.MarginCheck(
+        after.margin_swing,
+        after.margin_growth,
+        after.margin_stopped,
+        after.margin_ringing,
+        after.margin_ringing_period,
+    )
+    return not check.failed
+
+
+def process_ringing_note(after: Verification, limit: float) -> str | None:
+    """What gains that ring with the process's own fast mode leave (None: they do not)."""
+    fast = after.unmodelled_ringing
+    if fast is None or fast <= limit or not process_ringing(after):
+        return None
+    at_twice = (
+        f"it still decayed ({after.margin_ringing:.2f} a period)"
+        if after.margin_ringing > 0
+        else "nothing rang at that period (under 1 % of its step)"
+    )
+    return (
+        f"the loop rings at {after.unmodelled_period:.3g} s, {fast:.2f} of its amplitude kept "
+        f"each period (above the decay ratio limit {limit:g}), a mode the process model does "
+        f"not have; at Kc × {after.margin_factor:g} {at_twice}, so these gains keep a gain "
+        "margin of 2 or more at it: the process's own ringing (a resonance, a dead time's "
+        "echo), which PID gains do not damp; a filter or the process itself can"
+    )
+
+
 def acceptance_problems(
     after: Verification, before: Verification | None, limits: dict
 ) -> list[str]:
@@ -2062,13 +2132,17 @@ def acceptance_problems(
         )
     if after.margin_factor is not None:
         check = margin_check.MarginCheck(
-            after.margin_swing, after.margin_growth, after.margin_stopped
+            after.margin_swing,
+            after.margin_growth,
+            after.margin_stopped,
+            after.margin_ringing,
+            after.margin_ringing_period,
         )
         why = margin_check.problem(check, after.margin_factor)
         if why is not None:
             out.append(why)
     fast = after.unmodelled_ringing
-    if fast is not None and fast > limits["max_decay_ratio"]:
+    if fast is not None and fast > limits["max_decay_ratio"] and not process_ringing(after):
         out.append(
             f"ring: an oscillation of {after.unmodelled_period:.3g} s that the process model "
             f"does not have keeps {fast:.2f} of its amplitude each period, above the decay "

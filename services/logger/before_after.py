@@ -58,6 +58,7 @@ ROWS = (  # (field of Verification, label, unit; "PV" stands for the PV's units)
     ("ringing", "ringing a period", ""),
     ("unmodelled_ringing", "fast ring a period, no model", ""),
     ("margin_swing", "swing at Kc × 2, of its step", ""),
+    ("margin_ringing", "fast ring a period at Kc × 2", ""),
     ("rise_time", "rise time", "s"),
     # within 2 % of the step, or 3σ of the PV's noise where that is wider (measured_response)
     ("settling_time", "settling (2 % or 3σ)", "s"),

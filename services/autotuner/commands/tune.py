@@ -974,6 +974,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             rows.insert(3, ("fast ring /period", "unmodelled_ringing"))  # beyond the model
         if r.after.margin_swing is not None:  # the gain-margin check's (of its step)
             rows.insert(len(rows) - 1, ("swing at Kc x2", "margin_swing"))
+        if r.after.margin_ringing is not None:  # the fast mode's, read in that check
+            rows.insert(len(rows) - 1, ("fast ring Kc x2", "margin_ringing"))
         lines.append(f"  {'verification':<18}{'before':>12}{'after':>12}")
         for label, field in rows:
             b = getattr(r.before, field) if r.before else None

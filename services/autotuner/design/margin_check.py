@@ -39,6 +39,11 @@ SWING_BOUND = 3.0  # × the check's step: a swing past it ends the check, failed
 LASTING = 0.25  # × the step: a swing this large over the last time scale fails
 GROWING = 0.1  # × the step: a swing this large that has grown ...
 GROWTH = 1.5  # ... by this factor from the smallest time scale before it fails
+# a fast mode the model lacks (``unmodelled_mode``) that rang past the decay ratio limit
+# under the gains is watched in the check too: kept this much a period or more at Kc × 2, it
+# grows there, so the gains' margin at that mode is under 2 (they took its damping); less,
+# the ringing is the process's own (a resonance that no PID gains damp)
+MODE_GROWS = 1.0
 
 
 @dataclass(frozen=True)
@@ -52,15 +57,23 @@ class MarginCheck:
     swing: float | None
     growth: float | None
     stopped: str | None = None
+    # the fast mode watched (one the gains rang with): its amplitude ratio a period at
+    # Kc × FACTOR, and its period, s (None: none watched, or it did not stand out)
+    mode: float | None = None
+    mode_period: float | None = None
 
     @property
     def failed(self) -> bool:
-        if self.stopped is not None:
+        if self.stopped is not None or self.mode_grows:
             return True
         if self.swing is None:
             return False
         grown = self.growth is not None and self.growth >= GROWTH
         return self.swing > LASTING or (self.swing > GROWING and grown)
+
+    @property
+    def mode_grows(self) -> bool:
+        return self.mode is not None and self.mode >= MODE_GROWS
 
 
 def swings_of(y: np.ndarray, noise: float, scale_samples: int) -> list[float]:
@@ -107,6 +120,11 @@ def problem(check: MarginCheck, factor: float = FACTOR) -> str | None:
     if check.stopped is not None:
         swung = check.stopped.startswith("swung")
         seen = check.stopped if swung else f"was cut short: {check.stopped}"
+    elif check.mode_grows:
+        seen = (
+            f"rang on at {check.mode_period:.3g} s, {check.mode:.2f} of its amplitude kept "
+            "each period (growing), the fast mode these gains left ringing"
+        )
     elif check.swing is not None and check.swing > LASTING:
         seen = f"kept swinging, {check.swing:.2f} of its step (RMS) over the last time scale"
     else:
