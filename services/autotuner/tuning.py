@@ -2142,7 +2142,14 @@ def acceptance_problems(
         if why is not None:
             out.append(why)
     fast = after.unmodelled_ringing
-    if fast is not None and fast > limits["max_decay_ratio"] and not process_ringing(after):
+    grew = after.margin_ringing is not None and after.margin_ringing >= margin_check.MODE_GROWS
+    # (a mode that grew at Kc × 2 is the check's problem, said above; one that decayed there
+    # is the process's own, a warning)
+    if (
+        fast is not None
+        and fast > limits["max_decay_ratio"]
+        and not (grew or process_ringing(after))
+    ):
         out.append(
             f"ring: an oscillation of {after.unmodelled_period:.3g} s that the process model "
             f"does not have keeps {fast:.2f} of its amplitude each period, above the decay "

@@ -132,9 +132,15 @@ def problem(check: MarginCheck, factor: float = FACTOR) -> str | None:
             f"swung more and more, {check.swing:.2f} of its step (RMS) over the last time "
             f"scale, {check.growth:.2g} times the least before"
         )
+    why = (
+        # a mode the gains rang with, PI or PID: the loop's gain at it is what is too high
+        "a mode of the process beyond the test's frequency (a resonance) where the loop's "
+        "gain is too high for it: a lower Kc, or the mode filtered from the loop"
+        if check.mode_grows and check.stopped is None
+        else "A mode of the process beyond the test's frequency (a resonance?) that the "
+        "derivative's gain reaches: a PI rule (--rule), or the mode filtered from the loop"
+    )
     return (
         f"gain margin under {factor:g}: with Kc × {factor:g} (Ti and Td kept) the loop {seen}; "
-        f"gains within Ms ≤ 2 keep a margin of {factor:g} or more. A mode of the process "
-        "beyond the test's frequency (a resonance?) that the derivative's gain reaches: a PI "
-        "rule (--rule), or the mode filtered from the loop"
+        f"gains within Ms ≤ 2 keep a margin of {factor:g} or more. {why[0].upper()}{why[1:]}"
     )
