@@ -2064,16 +2064,21 @@ def process_ringing(after: Verification) -> bool:
     mode (``unmodelled_mode.mode_near``) still decayed, so the gains keep a margin of 2 at
     it and took little of its damping (a resonance rings so under any gains). Not where the
     check failed, nor where it did not see the mode."""
-    if after.margin_ringing is None or after.margin_factor is None:
-        return False
-    check = margin_check.MarginCheck(
+    check = recorded_check(after)
+    return check is not None and check.mode is not None and not check.failed
+
+
+def recorded_check(after: Verification) -> margin_check.MarginCheck | None:
+    """The gain-margin check as a verification records it (None: not made)."""
+    if after.margin_factor is None:
+        return None
+    return margin_check.MarginCheck(
         after.margin_swing,
         after.margin_growth,
         after.margin_stopped,
         after.margin_ringing,
         after.margin_ringing_period,
     )
-    return not check.failed
 
 
 def process_ringing_note(after: Verification, limit: float) -> str | None:
@@ -2130,19 +2135,13 @@ def acceptance_problems(
             f"ring: an oscillation of {after.ringing_period:.3g} s keeps {ring:.2f} of its "
             f"amplitude each period, above the decay ratio limit {limits['max_decay_ratio']:g}"
         )
-    if after.margin_factor is not None:
-        check = margin_check.MarginCheck(
-            after.margin_swing,
-            after.margin_growth,
-            after.margin_stopped,
-            after.margin_ringing,
-            after.margin_ringing_period,
-        )
+    check = recorded_check(after)
+    if check is not None:
         why = margin_check.problem(check, after.margin_factor)
         if why is not None:
             out.append(why)
     fast = after.unmodelled_ringing
-    grew = after.margin_ringing is not None and after.margin_ringing >= margin_check.MODE_GROWS
+    grew = check is not None and check.mode_grows
     # (a mode that grew at Kc × 2 is the check's problem, said above; one that decayed there
     # is the process's own, a warning)
     if (
