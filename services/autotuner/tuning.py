@@ -2095,8 +2095,9 @@ def process_ringing_note(after: Verification, limit: float) -> str | None:
         f"the loop rings at {after.unmodelled_period:.3g} s, {fast:.2f} of its amplitude kept "
         f"each period (above the decay ratio limit {limit:g}), a mode the process model does "
         f"not have; at Kc × {after.margin_factor:g} {at_twice}, so these gains keep a gain "
-        "margin of 2 or more at it: the process's own ringing (a resonance, a dead time's "
-        "echo), which PID gains do not damp; a filter or the process itself can"
+        "margin of 2 or more at it and leave it about as they found it: the process's own "
+        "ringing (a resonance, a dead time's echo), not theirs; a filter, or the process "
+        "itself, can damp it"
     )
 
 
