@@ -134,7 +134,7 @@ def problem(check: MarginCheck, factor: float = FACTOR) -> str | None:
         )
     why = (
         # a mode the gains rang with, PI or PID: the loop's gain at it is what is too high
-        "a mode of the process beyond the test's frequency (a resonance) where the loop's "
+        "A mode of the process beyond the test's frequency (a resonance) where the loop's "
         "gain is too high for it: a lower Kc, or the mode filtered from the loop"
         if check.mode_grows and check.stopped is None
         else "A mode of the process beyond the test's frequency (a resonance?) that the "
@@ -142,5 +142,5 @@ def problem(check: MarginCheck, factor: float = FACTOR) -> str | None:
     )
     return (
         f"gain margin under {factor:g}: with Kc × {factor:g} (Ti and Td kept) the loop {seen}; "
-        f"gains within Ms ≤ 2 keep a margin of {factor:g} or more. {why[0].upper()}{why[1:]}"
+        f"gains within Ms ≤ 2 keep a margin of {factor:g} or more. {why}"
     )
