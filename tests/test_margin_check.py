@@ -232,3 +232,15 @@ def test_a_mode_that_grows_at_twice_the_gain_fails_the_check_and_says_so():
     why = margin_check.problem(check)
     assert "rang on at 0.41 s, 1.04 of its amplitude kept each period (growing)" in why
     assert not margin_check.MarginCheck(0.05, 1.0, None, 0.9, 0.41).failed
+
+
+def test_a_pis_check_cut_short_blames_the_loops_gain_not_a_derivative():
+    """A PI's check (made for a fast mode it rang with) swung out of its limits: the advice
+    is a lower Kc or a filter, not "a PI rule", which it already is; a PID's names the
+    derivative."""
+    check = margin_check.MarginCheck(None, None, "swung past the PV limits", 1.2, 0.41)
+    pi = margin_check.problem(check, derivative=False)
+    assert "a lower Kc, or the mode filtered from the loop" in pi
+    assert "--rule" not in pi and "derivative" not in pi
+    pid = margin_check.problem(check)
+    assert "that the derivative's gain reaches: a PI rule (--rule)" in pid

@@ -2138,7 +2138,7 @@ def acceptance_problems(
         )
     check = recorded_check(after)
     if check is not None:
-        why = margin_check.problem(check, after.margin_factor)
+        why = margin_check.problem(check, after.margin_factor, derivative=after.gains.td > 0)
         if why is not None:
             out.append(why)
     fast = after.unmodelled_ringing

@@ -113,8 +113,9 @@ def judge(y: np.ndarray, step: float, noise: float, scale_samples: int) -> Margi
     return MarginCheck(last, growth)
 
 
-def problem(check: MarginCheck, factor: float = FACTOR) -> str | None:
-    """Why gains fail the check (None: they pass)."""
+def problem(check: MarginCheck, factor: float = FACTOR, derivative: bool = True) -> str | None:
+    """Why gains fail the check (None: they pass); ``derivative``: the gains have one (a PI's
+    check is made only for a fast mode it rang with, and no derivative reaches that mode)."""
     if not check.failed:
         return None
     if check.stopped is not None:
@@ -133,10 +134,11 @@ def problem(check: MarginCheck, factor: float = FACTOR) -> str | None:
             f"scale, {check.growth:.2g} times the least before"
         )
     why = (
-        # a mode the gains rang with, PI or PID: the loop's gain at it is what is too high
+        # a mode the gains rang with, PI or PID, or a PI's check cut short: the loop's gain at
+        # the mode is what is too high (a PI has no derivative to blame)
         "A mode of the process beyond the test's frequency (a resonance) where the loop's "
         "gain is too high for it: a lower Kc, or the mode filtered from the loop"
-        if check.mode_grows and check.stopped is None
+        if (check.mode_grows and check.stopped is None) or not derivative
         else "A mode of the process beyond the test's frequency (a resonance?) that the "
         "derivative's gain reaches: a PI rule (--rule), or the mode filtered from the loop"
     )
