@@ -224,3 +224,21 @@ def test_the_rules_refuse_what_the_issue_names():
     assert not allowed_in_control("shared.errors") and not allowed_in_control("threading")
     for name in ("numpy.linalg", "scipy.signal", "math", "shared.control.lti.discretize"):
         assert allowed_in_control(name), name
+
+
+def test_the_commands_that_check_a_request_load_no_optimiser():
+    """`autotune tune` and `apply` check their request against the methods' registry before
+    sending it, and fit nothing: scipy (its optimisers, half a second of a command's start)
+    is loaded by the experiments that fit, when one is built."""
+    code = (
+        "import sys\n"
+        "import services.autotuner.commands.tune, services.autotuner.commands.apply\n"
+        "from services.autotuner.identify import methods\n"
+        "assert 'scipy' not in sys.modules, 'scipy loaded'\n"
+        "methods.method('ramp')\n"
+        "assert 'scipy' not in sys.modules, 'scipy loaded by the registry'\n"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert run.returncode == 0, run.stderr

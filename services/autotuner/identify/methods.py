@@ -6,10 +6,10 @@ here, and its name among the CLI's and the request's choices.
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from services.autotuner.identify import ramp, relay, repeated_steps
 from services.autotuner.identify.experiments import Experiment, Settings, Setup
 
 
@@ -27,15 +27,29 @@ class Method:
     gives: frozenset[str]
 
 
+def _built_by(module: str) -> Callable[[Settings, Setup], Experiment]:
+    """The ``build`` of the experiment in ``module`` (of this package), imported when it is
+    first built. Why: the registry is read wherever a request is checked (``autotune tune``
+    and ``apply`` check theirs before sending), and the experiments' fits import scipy's
+    optimisers, half a second of every such command's start."""
+
+    def build(settings: Settings, setup: Setup) -> Experiment:
+        return importlib.import_module(f"{__package__}.{module}").build(settings, setup)
+
+    return build
+
+
 METHODS: dict[str, Method] = {
-    "relay": Method(relay.build, False, ("op_start", "direction"), frozenset({"closed", "model"})),
+    "relay": Method(
+        _built_by("relay"), False, ("op_start", "direction"), frozenset({"closed", "model"})
+    ),
     # the ramp's model (fitted to its whole record, when the fit holds) is what its own
     # recommendation designs model rules from: asked for by name, or approved by
     # `autotune apply`, they are the same rules (refused with the reason where no model fits)
     "ramp": Method(
-        ramp.build, True, ("kc_start", "bump", "sp_start"), frozenset({"closed", "model"})
+        _built_by("ramp"), True, ("kc_start", "bump", "sp_start"), frozenset({"closed", "model"})
     ),
-    "step": Method(repeated_steps.build, False, ("op_start",), frozenset({"open", "model"})),
+    "step": Method(_built_by("repeated_steps"), False, ("op_start",), frozenset({"open", "model"})),
 }
 
 
