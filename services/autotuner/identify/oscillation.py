@@ -39,10 +39,22 @@ def fit_oscillation(
         return None
     tt, y, x0, turns = start
     sine = DecayingSine(tt, y)
+    span = float(tt[-1])
+
+    def jac(p: np.ndarray) -> np.ndarray:
+        # asked where the fit has moved to (a step accepted): a spike at the record's end
+        # there is no oscillation of the record, and the fit is given up (``_spike``)
+        if _spike(p, span):
+            raise _SpikeFit
+        return sine.jac(p)
+
     # a trial step of e^{g·t} may overflow (a fit wandering on a record of noise): judged by
     # the result, not printed on the service's console
     with np.errstate(over="ignore", invalid="ignore"):
-        x, fun, success = levenberg_marquardt(sine.resid, sine.jac, x0, 2000)
+        try:
+            x, fun, success = levenberg_marquardt(sine.resid, jac, x0, 2000)
+        except _SpikeFit:
+            return None
         c, a, g, w, _ = x
         if not success or w <= 0 or not np.all(np.isfinite(x)):
             return None
@@ -61,6 +73,26 @@ def fit_oscillation(
         swings=turns - 1,
         growth_alone=alone,
     )
+
+
+# a fit whose sinusoid has less than one period in its record and grows e^SPIKE_GROWTH
+# (5×10⁸) times over it describes the record's last samples, not an oscillation of it
+SPIKE_GROWTH = 20.0
+
+
+class _SpikeFit(Exception):
+    """The fit has become a spike at the record's end (``_spike``)."""
+
+
+def _spike(p: np.ndarray, span: float) -> bool:
+    """Whether the sinusoid p = (c, A, g, ω, φ) over a record ``span`` s long is a spike at its
+    end: under one period in it, its envelope grown e^SPIKE_GROWTH times across it. Why: a
+    fit that gets there crawls on for its 2,000 evaluations and fails (the heat exchanger's
+    first ramp trial: A at 10⁻¹¹, growth e^26 over the record, 0.12 s of a 0.6 s phase), and
+    its period is past anything a caller takes; of 4,954 fits in 400 random loops' ramp
+    tunes, the 24 that got there all crawled on to the limit and failed."""
+    g, w = float(p[2]), float(p[3])
+    return g * span > SPIKE_GROWTH and abs(w) * span < 2 * math.pi
 
 
 def stands_out(
