@@ -295,3 +295,38 @@ def test_two_close_points_far_short_of_minus_180_are_carried_there_by_the_model(
     assert abs(second - first) < 0.5 < abs(first + 180.0)  # one cycle, short of −180°
     assert r.ku == pytest.approx(ku, rel=0.01) and r.pu == pytest.approx(pu, rel=0.01)
     assert abs(r.ku / ku - 1.0) <= r.ku_spread and abs(r.pu / pu - 1.0) <= r.pu_spread
+
+
+@pytest.mark.parametrize(
+    ("num", "den", "delay", "noise"),
+    [
+        ([0.5, 1.0], [1.0, 1.0], 1.0, 0.0),
+        ([3.0, 1.0], [10.0, 1.0], 2.0, 0.0),
+        ([2.0, 1.0], [1.0, 1.0], 1.0, 0.01),
+    ],
+    ids=["lead-lag-0.5", "lead-lag-3", "lead-lag-2-noisy"],
+)
+def test_a_lead_lag_with_dead_time_measured_twice_past_minus_180_is_carried_by_the_model(
+    num, den, delay, noise
+):
+    """(as + 1)e^{−Ls}/(τs + 1), 20 samples of L: the relay's square wave passes straight
+    through the lead, and both stages measure one cycle 4–13° from −180°, under a tenth of
+    a degree apart. The model's misfit, its slope taken between those two points, carried
+    the crossing to a K_u 20–30 % low (P_u up to 9 % long) that looked plausible; the
+    nearer point's misfit held, the model carries it within 3 %."""
+    ku, pu = ultimate_point(num, den, delay)
+    spec = {
+        "model": "transfer_function",
+        "num": num,
+        "den": den,
+        "delay": delay,
+        "sample_time": delay / 20,
+        "noise_std": noise,
+    }
+    loop = build_plant({"seed": 3, "loops": {"ll": spec}})["ll"]
+    r = TuningRun(LocalLoopClient(loop), TuneRequest(loop="ll", method="relay"), "t").run()
+    assert r.ku is not None and r.experiment["ku_method"] == MODEL_CROSSING
+    first, second = r.experiment["g_1_phase_deg"], r.experiment["stage2_g_1_phase_deg"]
+    assert abs(second - first) < 0.5 < abs(first + 180.0)  # one cycle, off −180°
+    assert r.ku == pytest.approx(ku, rel=0.03) and r.pu == pytest.approx(pu, rel=0.03)
+    assert abs(r.ku / ku - 1.0) <= r.ku_spread and abs(r.pu / pu - 1.0) <= r.pu_spread
