@@ -115,7 +115,7 @@ def judge(y: np.ndarray, step: float, noise: float, scale_samples: int) -> Margi
 
 def problem(check: MarginCheck, factor: float = FACTOR, derivative: bool = True) -> str | None:
     """Why gains fail the check (None: they pass); ``derivative``: the gains have one (a PI's
-    check is made only for a fast mode it rang with, and no derivative reaches that mode)."""
+    check, made only for a fast mode it rang with, has no derivative to blame)."""
     if not check.failed:
         return None
     if check.stopped is not None:

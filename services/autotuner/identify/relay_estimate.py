@@ -166,8 +166,8 @@ def refine(
         # carried to −180° it threw the crossing out, implausibly (an FOPDT at 37 samples a
         # period: P_u +3.6 %) or not (a lead-lag with dead time, both points at −190°, 0.03°
         # apart: K_u −30 %); the straight line through them would carry that same
-        # difference. The nearer point's misfit held, the model gives the way there (P_u
-        # +0.1 %; K_u −1.8 %, P_u +1.4 %)
+        # difference. The nearer point's misfit held, the model gives the way there (the
+        # FOPDT: P_u +0.1 %; the lead-lag: K_u −1.8 %, P_u +1.4 %)
         close = near is not None and abs(p2.phase_deg - p1.phase_deg) < CLOSE * abs(
             near.phase_deg + 180.0
         )
@@ -371,13 +371,6 @@ def linear_crossing(p1: FrequencyPoint, p2: FrequencyPoint) -> tuple[float, floa
     return math.exp(min(-mu, _EXP_MAX)), 2.0 * math.pi / math.exp(min(max(xu, -_EXP_MAX), _EXP_MAX))
 
 
-def _misfit(model: ProcessFit, p: FrequencyPoint) -> complex:
-    """log(G / model) at the point: its real part the log-magnitude's misfit, its imaginary
-    part the phase's (radians, within ±π)."""
-    r = complex(np.log(p.g / model.response(p.omega)))
-    return complex(r.real, math.remainder(r.imag, 2.0 * math.pi))
-
-
 def model_crossing(
     model: ProcessFit,
     p1: FrequencyPoint,
@@ -388,7 +381,11 @@ def model_crossing(
     x1, x2 = math.log(p1.omega), math.log(p2.omega)
     span = x2 - x1 if abs(x2 - x1) > 1e-9 else math.inf  # one point: a constant misfit
 
-    r1, r2 = _misfit(model, p1), _misfit(model, p2)
+    def misfit(p: FrequencyPoint) -> complex:
+        r = complex(np.log(p.g / model.response(p.omega)))
+        return complex(r.real, math.remainder(r.imag, 2.0 * math.pi))
+
+    r1, r2 = misfit(p1), misfit(p2)
 
     def r_at(x: float) -> complex:
         return r1 + (x - x1) / span * (r2 - r1)
