@@ -20,7 +20,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -1495,18 +1495,13 @@ class TuningRun:
         never = SettleRule(k, target, 0.0, None, seconds)  # watched to its end
         bound = margin_check.SWING_BOUND * abs(kick)
         t, y, _, why = self._record(seconds, never, target, swing=bound)
-        check = margin_check.judge(y, kick, noise, k)
-        mode = None
-        if fast is not None:
-            mode = mode_near(t, y, noise, fast, self.ts, kick)
-        if why is not None or mode is not None:
-            check = margin_check.MarginCheck(
-                check.swing,
-                check.growth,
-                why,
-                None if mode is None else mode.decay,
-                None if mode is None else mode.period,
-            )
+        mode = mode_near(t, y, noise, fast, self.ts, kick) if fast is not None else None
+        check = replace(
+            margin_check.judge(y, kick, noise, k),
+            stopped=why,
+            mode=None if mode is None else mode.decay,
+            mode_period=None if mode is None else mode.period,
+        )
         if not check.failed:
             c.command_all(
                 GainsCommand(loop=c.loop, gains=gains, source=c.source, t=self._t),
