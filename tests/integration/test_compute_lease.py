@@ -66,9 +66,12 @@ def test_a_step_slower_than_the_lease_leaves_the_loop_leased(start_plant, clock)
     ):
         r = TuningRun(c, req, "lease-test", RunHooks(compute=slow)).run()
         assert r.status == ends, r.reason
-        # the relay's closing fits, then the design's two parts (at once, each slow)
+        # the relay's closing fits, then the design's two parts (at once, each slow); the
+        # setpoint steps only where a model was fitted to simulate them on (seen in CI: a
+        # realtime run on a loaded machine fitted none, judged the rules and proposed)
         assert steps[0] == "_finished"
-        assert sorted(steps[1:]) == ["judge_all", "predicted_setpoint_steps"]
+        design = ["judge_all", "predicted_setpoint_steps"] if r.robustness else ["judge_all"]
+        assert sorted(steps[1:]) == design, (r.robustness, r.warnings)
         after = c.sync()
     assert after.leased_by is None  # released at the end, not taken back by the watchdog
     assert after.reason != "watchdog"
