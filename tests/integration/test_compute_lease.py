@@ -34,6 +34,9 @@ CUBIC = {"num": [6.0], "den": [1.0, 6.0, 11.0, 6.0], "delay": 0.0, "sample_time"
 # the same on the realtime clock at ×5: a sample every 10 ms of wall time (38 a period)
 REALTIME = ("--clock", "realtime", "--speed", "5")
 CUBIC_RT = {**CUBIC, "sample_time": 0.05}
+# the relay's cycles agree within this in the realtime cases (the default 2 %: a switch held
+# one sample late moves a period 2.6 %): the steps are under test, not the relay's accuracy
+RT_TOLERANCE = 0.05
 
 
 @pytest.mark.parametrize(
@@ -51,7 +54,10 @@ def test_a_step_slower_than_the_lease_leaves_the_loop_leased(start_plant, clock)
         req, ends = TuneRequest(loop="x1", method="relay"), "ok"
     else:  # proposed, not applied: the steps are what is tested, not the verification
         p = start_plant(plant_toml("x1", CUBIC_RT), *REALTIME, loops=("x1",))
-        req, ends = TuneRequest(loop="x1", method="relay", apply=False), "proposed"
+        # cycles agreeing within 5 %: a loaded machine delays a switch by a sample now and
+        # then (at 38 a period, 2.6 % of it), and the relay's convergence is not under test
+        req = TuneRequest(loop="x1", method="relay", apply=False, tolerance=RT_TOLERANCE)
+        ends = "proposed"
     steps: list[str] = []
     lease = LEASE if clock == "lockstep" else LEASE_RT
 
@@ -123,7 +129,7 @@ def test_the_pv_leaving_its_limits_during_a_step_in_realtime_aborts_and_restores
     finished = threading.Event()
     with (
         open_session(p.client_settings()) as s,
-        LoopClient(s, p.prefix, "x1", lease_timeout=LEASE) as c,
+        LoopClient(s, p.prefix, "x1", lease_timeout=LEASE_RT) as c,
     ):
         before = c.sync()
 
@@ -135,7 +141,7 @@ def test_the_pv_leaving_its_limits_during_a_step_in_realtime_aborts_and_restores
             finished.set()
             return fn(*args)
 
-        req = TuneRequest(loop="x1", method="relay", pv_limits=(40.0, 60.0))
+        req = TuneRequest(loop="x1", method="relay", pv_limits=(40.0, 60.0), tolerance=RT_TOLERANCE)
         r = TuningRun(c, req, "limits-test-rt", RunHooks(compute=upset_then_compute)).run()
         after = c.sync()
     # the run, which watches the samples as it computes, or the plant, which restores a
