@@ -25,9 +25,10 @@ from tests.integration.tuning_cli import plant_toml
 pytestmark = pytest.mark.integration
 
 LEASE = 0.5  # s of wall time: the lease this test's client asks for
-# realtime: twice that. The realtime case failed once in CI with 0.5 s (its output was not
-# kept): between the slow steps the run renews its lease as samples come, and on the suite's
-# two loaded cores 0.5 s of wall time leaves little slack. The slow steps still outlast it 3×.
+# realtime (both realtime cases): twice that. The slow-step case failed once in CI with 0.5 s
+# (its output was not kept): between the slow steps the run renews its lease as samples come,
+# and on the suite's two loaded cores 0.5 s of wall time leaves little slack. The slow steps
+# still outlast it 3×.
 LEASE_RT = 2 * LEASE
 # 6/((s+1)(s+2)(s+3)), ~95 samples a period: a relay run of a few thousand samples
 CUBIC = {"num": [6.0], "den": [1.0, 6.0, 11.0, 6.0], "delay": 0.0, "sample_time": 0.02}
@@ -54,8 +55,6 @@ def test_a_step_slower_than_the_lease_leaves_the_loop_leased(start_plant, clock)
         req, ends = TuneRequest(loop="x1", method="relay"), "ok"
     else:  # proposed, not applied: the steps are what is tested, not the verification
         p = start_plant(plant_toml("x1", CUBIC_RT), *REALTIME, loops=("x1",))
-        # cycles agreeing within 5 %: a loaded machine delays a switch by a sample now and
-        # then (at 38 a period, 2.6 % of it), and the relay's convergence is not under test
         req = TuneRequest(loop="x1", method="relay", apply=False, tolerance=RT_TOLERANCE)
         ends = "proposed"
     steps: list[str] = []
