@@ -171,13 +171,15 @@ def refine(
         close = near is not None and abs(p2.phase_deg - p1.phase_deg) < CLOSE * abs(
             near.phase_deg + 180.0
         )
-        crossing = model_crossing(model, *((near, near) if close else (p1, p2)), cfg)
-        if crossing is not None and not plausible(crossing, p1, p2, cfg):
+        # else the slope, and the nearer point held where that crossing is implausible
+        tries = (
+            [(near, near)] if close else [(p1, p2)] + ([(near, near)] if near is not None else [])
+        )
+        for a, b in tries:
+            crossing = model_crossing(model, a, b, cfg)
+            if crossing is not None and plausible(crossing, p1, p2, cfg):
+                break
             crossing = None
-        if crossing is None and near is not None and not close:
-            crossing = model_crossing(model, near, near, cfg)
-            if crossing is not None and not plausible(crossing, p1, p2, cfg):
-                crossing = None
     if not plausible(linear, p1, p2, cfg):
         linear, linear_method = point, FUNDAMENTAL_POINT
     ku, pu = crossing or linear
