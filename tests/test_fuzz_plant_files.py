@@ -263,6 +263,30 @@ HAND = [
     ("num-1e308-den-1e-308", tf([1e308], [1e-308]), ["loops.tf.", "overflow"]),
     ("num-1e308-den-1e-308-lag", tf([1e308], [1e-308, 1.0]), ["loops.tf.", "overflow"]),
     ("gain-1e307", tf([1e307], [1.0, 1.0]), ["loops.tf.num", "overflows"]),
+    # a model with named parameters is told of by their names: its file has no num or den
+    (
+        "fopdt-gain-1e308",
+        {
+            "loops": {
+                "f1": {"model": "fopdt", "gain": 1e308, "time_constant": 5.0, "sample_time": 0.1}
+            }
+        },
+        ["loops.f1.gain:", "overflows"],
+    ),
+    (
+        "fopdt-time-constant-1e-300",
+        {
+            "loops": {
+                "f1": {"model": "fopdt", "gain": 1.0, "time_constant": 1e-300, "sample_time": 0.1}
+            }
+        },
+        ["loops.f1.time_constant:", "floating point"],
+    ),
+    (
+        "heat-exchanger-gain-1e308",
+        {"loops": {"hx1": {"model": "heat_exchanger", "gain": 1e308}}},
+        ["loops.hx1.gain:", "overflows"],
+    ),
     ("unstable-pole", tf([1.0], [1.0, -1.0]), ["loops.tf.den", "unstable", "s = 1"]),
     ("unstable-pair", tf([1.0], [1.0, -0.2, 4.0]), ["loops.tf.den", "unstable"]),
     ("improper", tf([1.0, 2.0, 3.0], [1.0, 1.0]), ["loops.tf.num", "proper"]),

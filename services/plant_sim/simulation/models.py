@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import numbers
 import warnings
+from collections.abc import Mapping
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -160,7 +161,29 @@ class TransferFunctionModel:
         op0: float = 50.0,
         pv0: float = 50.0,
         sensor_lag: float = 0.0,
+        names: Mapping[str, str] | None = None,
     ):
+        """``names``: the fields a model built on this one calls ``num`` and ``den`` (an FOPDT's
+        ``gain`` and ``time_constant``), named in its errors instead: its plant file has no
+        ``num`` to fix."""
+        try:
+            self._build(sample_time, num, den, delay, op0, pv0, sensor_lag)
+        except ModelParamError as err:
+            root = err.field.split("[", 1)[0]
+            if names and root in names:
+                raise ModelParamError(names[root], err.reason) from None
+            raise
+
+    def _build(
+        self,
+        sample_time: float,
+        num: list[float],
+        den: list[float],
+        delay: float,
+        op0: float,
+        pv0: float,
+        sensor_lag: float,
+    ) -> None:
         self.sample_time = finite("sample_time", sample_time, low=0.0, low_open=True)
         self.num = coefficients("num", num)
         self.den = coefficients("den", den)
@@ -217,7 +240,16 @@ class FirstOrderPlusDeadTime(TransferFunctionModel):
     ):
         gain = finite("gain", gain)
         time_constant = finite("time_constant", time_constant, low=0.0, low_open=True)
-        super().__init__(sample_time, [gain], [time_constant, 1.0], delay, op0, pv0, sensor_lag)
+        super().__init__(
+            sample_time,
+            [gain],
+            [time_constant, 1.0],
+            delay,
+            op0,
+            pv0,
+            sensor_lag,
+            names={"num": "gain", "den": "time_constant"},
+        )
 
 
 class IntegratingPlusDeadTime(TransferFunctionModel):
@@ -236,4 +268,13 @@ class IntegratingPlusDeadTime(TransferFunctionModel):
         sensor_lag: float = 0.0,
     ):
         gain = finite("gain", gain)
-        super().__init__(sample_time, [gain], [1.0, 0.0], delay, op0, pv0, sensor_lag)
+        super().__init__(
+            sample_time,
+            [gain],
+            [1.0, 0.0],
+            delay,
+            op0,
+            pv0,
+            sensor_lag,
+            names={"num": "gain", "den": "gain"},
+        )

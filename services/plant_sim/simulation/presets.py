@@ -51,7 +51,8 @@ class HeatExchanger(TransferFunctionModel):
         tau1 = finite("tau1", tau1, low=0.0)
         tau2 = finite("tau2", tau2, low=0.0)
         den = list(np.polymul([tau1, 1.0], [tau2, 1.0]))
-        super().__init__(sample_time, [gain], den, delay, op0, pv0, sensor_lag)
+        names = {"num": "gain", "den": "tau1/tau2"}
+        super().__init__(sample_time, [gain], den, delay, op0, pv0, sensor_lag, names=names)
 
 
 @dataclass(frozen=True)
