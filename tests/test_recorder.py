@@ -16,6 +16,7 @@ from services.logger.recorder import BUFFER, LEASED_BUFFER, RESULT_GRACE, Record
 from shared import keys, wire
 from shared.messages import (
     LeaseCommand,
+    LoopInfo,
     LoopStatus,
     Message,
     OutputCommand,
@@ -23,6 +24,7 @@ from shared.messages import (
     ProcessSample,
     SetpointCommand,
     TuneProgress,
+    TuneRequest,
     TuneResult,
     TunerEvent,
 )
@@ -312,6 +314,57 @@ def test_a_result_whose_samples_never_come_ends_the_run_after_the_grace(
     meta, _ = only_file(rec)
     assert (meta["status"], meta["last_seq"]) == ("aborted", "5")
     assert TuneResult.model_validate_json(meta["result"]).status == "aborted"
+    # the samples to the result's sim time that never came: 6 to 9, not in the file
+    assert meta["dropped"] == "4" and rec.counts["dropped"] == 4
+
+
+def _request(run_id: str, t: float) -> TunerEvent:
+    """The run's request event, the loop's info in it (what the tuner publishes first)."""
+    info = LoopInfo(
+        loop=LOOP,
+        node="plant",
+        t=t,
+        model="transfer_function",
+        description="",
+        model_params={},
+        sample_time=DT,
+        pv_units="%",
+        pv_range=(0.0, 100.0),
+        op_limits=(0.0, 100.0),
+        disturbances=[],
+        noise_std=0.0,
+        clock="lockstep",
+        speed=1.0,
+    )
+    data = {"request": TuneRequest(loop=LOOP).model_dump_json(), "info": info.model_dump_json()}
+    return TunerEvent(run_id=run_id, loop=LOOP, t=t, kind="request", data=data)
+
+
+def test_a_run_whose_samples_never_reached_the_logger_counts_them_dropped(
+    rec: Recorder,
+) -> None:
+    """The tuner's messages came, the plant's did not (a user's trial recorded 131 messages,
+    0 samples and said 0 dropped of a run whose tuner took 7,800): every sample from the
+    run's start to its result's sim time is counted as dropped, the sample time taken from
+    the loop's info."""
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 10 * DT))
+    send(rec, keys.tune_event(P, LOOP), _request("r1", 10 * DT))
+    send(rec, keys.command(P, LOOP, "lease", "tuner"), LeaseCommand(loop=LOOP, source="tuner:r1"))
+    send(rec, keys.command(P, LOOP, "output"), OutputCommand(loop=LOOP, op=45.0))
+    send(rec, keys.tune_result(P, LOOP), result("r1", 30 * DT, "aborted"))
+    meta, _ = only_file(rec)
+    assert (meta["samples"], meta["dropped"], meta["status"]) == ("0", "20", "aborted")
+    assert rec.counts["dropped"] == 20
+
+
+def test_a_run_that_took_no_sample_drops_none(rec: Recorder) -> None:
+    """A run that ended at its start's sim time (refused, say, in lockstep: no sample taken)
+    is missing nothing."""
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 10 * DT))
+    send(rec, keys.tune_event(P, LOOP), _request("r1", 10 * DT))
+    send(rec, keys.tune_result(P, LOOP), result("r1", 10 * DT, "aborted"))
+    meta, _ = only_file(rec)
+    assert (meta["samples"], meta["dropped"]) == ("0", "0")
 
 
 def test_a_new_start_while_the_last_samples_are_awaited_ends_the_run_with_its_result(

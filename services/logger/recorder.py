@@ -72,6 +72,7 @@ from shared.errors import ConfigError, one_line
 from shared.messages import (
     COMMANDS,
     LeaseCommand,
+    LoopInfo,
     LoopStatus,
     Message,
     ProcessSample,
@@ -208,6 +209,35 @@ def _missed_head(t_start: float, first: ProcessSample) -> int:
         return 0
     ts = first.t / first.seq
     return max(0, first.seq - (math.floor(t_start / ts + 1e-6) + 1))
+
+
+def _sample_time(run: OpenRun) -> float | None:
+    """The loop's sample time (s): from the run's samples (a plant's sample ``seq`` is at
+    t = seq·T), else from the loop's info in the run's request; None if neither says."""
+    if run.last_seq and run.last_t:
+        return run.last_t / run.last_seq
+    try:
+        return LoopInfo.model_validate_json(run.info).sample_time
+    except pydantic.ValidationError:
+        return None
+
+
+def _missed_tail(run: OpenRun, result: TuneResult | None) -> int:
+    """Samples of a run up to its result's sim time that never reached its file: those after
+    the last one written (none written: after the sample at the run's start). Why: in a
+    user's trial a lockstep run that a paused plant ended was recorded with its commands and
+    none of the 7,800 samples its tuner took (not reproduced in 15 tries), and the file said
+    0 dropped. Not counted where the plant instance changed under the run (its numbering is
+    another's)."""
+    if result is None or run.plant_changed:
+        return 0
+    ts = _sample_time(run)
+    if ts is None or not math.isfinite(result.t / ts):
+        return 0
+    last = run.last_seq
+    if last is None:
+        last = math.floor(run.t_start / ts + 1e-6)
+    return max(0, round(result.t / ts) - last)
 
 
 def _encoded(sample: ProcessSample) -> bytes:
@@ -791,6 +821,17 @@ class Recorder:
 
     def _finish(self, stream: Stream, run: OpenRun, status: str, result: TuneResult | None) -> None:
         """The run's file finished with its metadata, and the run remembered as recorded."""
+        if tail := _missed_tail(run, result):
+            run.gaps += tail
+            log.warning(
+                "run %s on %s: %d of its samples, up to its result's sim time %g s, did not "
+                "reach the file (%s): counted as dropped",
+                run.run_id,
+                run.loop,
+                tail,
+                result.t if result is not None else math.nan,
+                "none of its samples came" if run.last_seq is None else "its last ones",
+            )
         meta = {
             "run_id": run.run_id,
             "loop": run.loop,
