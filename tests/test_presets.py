@@ -67,3 +67,16 @@ def test_every_preset_by_every_method_ends_safe_or_with_a_reason(loop, method):
             before.gains,
         )
         assert r.left["returned"] is True, r.left
+
+
+def test_a_recommendation_from_a_pool_names_the_pool():
+    """A relay without bias pins no static gain: the recommendation is of Tyreus–Luyben's
+    rules alone (a warning says so), and its reason names them; it read "largest integral gain
+    with Ms ≤ 1.8" as if of every rule in the table (a user's trial of flow1)."""
+    sim = default_plant()["flow1"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="flow1", apply=False), "preset").run()
+    assert r.status == "proposed", r.reason
+    assert any("the recommendation is Tyreus–Luyben's" in w for w in r.warnings), r.warnings
+    reason = r.recommended["reason"]
+    assert r.recommended["rule"].startswith("tl-"), r.recommended
+    assert "largest integral gain of tl-pi, tl-pid with" in reason, reason

@@ -276,11 +276,13 @@ def recommend(
     candidates: dict[str, Assessment] | None = None,
     without_model: str | None = None,
     aim: str = "balanced",
+    pooled: bool = False,
 ) -> Recommendation | None:
     """The rule to apply by default for the ``aim`` (see the module's docstring); ``candidates`` as
     ``assess`` gives them (every ultimate-point rule if not given); ``without_model`` says
-    why there is no model to judge on (a refusal by ``model_check``). None when no candidate
-    is inside the safety envelope."""
+    why there is no model to judge on (a refusal by ``model_check``); ``pooled``: the
+    candidates are fewer than the rules computed (the others left out, said in a warning),
+    so the reason names them. None when no candidate is inside the safety envelope."""
     if aim not in AIMS:
         raise ValueError(f"unknown aim {aim!r}; expected one of {', '.join(AIMS)}")
     candidates = assess(ultimate, model) if candidates is None else candidates
@@ -324,12 +326,15 @@ def recommend(
             best = max(calm or ok, key=lambda a: a.gains.kc / (a.gains.ti or math.inf))
             lead = "aim fast: " if aim == "fast" else ""
             also = f" and a predicted overshoot ≤ {CALM_OVERSHOOT:g} %" if calm else ""
+            # of a pool, named: "largest integral gain" alone read as of every rule in the
+            # table, beside a warning that the recommendation is Tyreus–Luyben's (helper 74)
+            among = f" of {', '.join(sorted(candidates))}" if pooled else ""
             return Recommendation(
                 best.rule,
                 best.gains,
                 _number(best.robustness.ms) if best.robustness else None,
-                f"{lead}largest integral gain with Ms ≤ {margin(best.rule) * ms_bound:.2g}{also} "
-                f"on {on}",
+                f"{lead}largest integral gain{among} with Ms ≤ "
+                f"{margin(best.rule) * ms_bound:.2g}{also} on {on}",
             )
         judged = [a for a in safe.values() if a.robustness is not None]
         safest = min(judged, key=lambda a: a.robustness.ms, default=None)

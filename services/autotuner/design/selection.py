@@ -422,7 +422,7 @@ def select(
         # tighter margin of an approximate model (TL PID on a sampled integrator: Ms 1.7
         # predicted on a two-lag fit, 2.6 true)
         judge = dataclasses.replace(model, source="relay points")
-    rec = recommend(ultimate, judge, ms_bound, pool, without_model, aim)
+    rec = recommend(ultimate, judge, ms_bound, pool, without_model, aim, pooled=bool(left_out))
     # a model that misses the measured point judges no rule surely: the envelope's bound is
     # then the approximate model's tighter one (ZN PI at 1.80 from K_u and P_u alone, 3.14 on
     # the plant, had passed at 2)
