@@ -16,7 +16,6 @@ from services.logger.recorder import BUFFER, LEASED_BUFFER, RESULT_GRACE, Record
 from shared import keys, wire
 from shared.messages import (
     LeaseCommand,
-    LoopInfo,
     LoopStatus,
     Message,
     OutputCommand,
@@ -28,6 +27,7 @@ from shared.messages import (
     TuneResult,
     TunerEvent,
 )
+from tests.test_record_form import INFO  # a loop's info, the loop and time set here
 
 P = "rec"
 LOOP = "hx1"
@@ -320,22 +320,7 @@ def test_a_result_whose_samples_never_come_ends_the_run_after_the_grace(
 
 def _request(run_id: str, t: float) -> TunerEvent:
     """The run's request event, the loop's info in it (what the tuner publishes first)."""
-    info = LoopInfo(
-        loop=LOOP,
-        node="plant",
-        t=t,
-        model="transfer_function",
-        description="",
-        model_params={},
-        sample_time=DT,
-        pv_units="%",
-        pv_range=(0.0, 100.0),
-        op_limits=(0.0, 100.0),
-        disturbances=[],
-        noise_std=0.0,
-        clock="lockstep",
-        speed=1.0,
-    )
+    info = INFO.model_copy(update={"loop": LOOP, "t": t, "sample_time": DT})
     data = {"request": TuneRequest(loop=LOOP).model_dump_json(), "info": info.model_dump_json()}
     return TunerEvent(run_id=run_id, loop=LOOP, t=t, kind="request", data=data)
 
