@@ -222,14 +222,14 @@ def _sample_time(run: OpenRun) -> float | None:
         return None
 
 
-def _missed_tail(run: OpenRun, result: TuneResult | None) -> int:
+def _missed_tail(run: OpenRun, result: TuneResult) -> int:
     """Samples of a run up to its result's sim time that never reached its file: those after
     the last one written (none written: after the sample at the run's start). Why: in a
     user's trial a lockstep run that a paused plant ended was recorded with its commands and
     none of the 7,800 samples its tuner took (not reproduced in 15 tries), and the file said
     0 dropped. Not counted where the plant instance changed under the run (its numbering is
     another's)."""
-    if result is None or run.plant_changed:
+    if run.plant_changed:
         return 0
     ts = _sample_time(run)
     if ts is None or not math.isfinite(result.t / ts):
@@ -821,7 +821,7 @@ class Recorder:
 
     def _finish(self, stream: Stream, run: OpenRun, status: str, result: TuneResult | None) -> None:
         """The run's file finished with its metadata, and the run remembered as recorded."""
-        if tail := _missed_tail(run, result):
+        if result is not None and (tail := _missed_tail(run, result)):
             run.gaps += tail
             log.warning(
                 "run %s on %s: %d of its samples, up to its result's sim time %g s, did not "
@@ -829,7 +829,7 @@ class Recorder:
                 run.run_id,
                 run.loop,
                 tail,
-                result.t if result is not None else math.nan,
+                result.t,
                 "none of its samples came" if run.last_seq is None else "its last ones",
             )
         meta = {
