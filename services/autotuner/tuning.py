@@ -1094,26 +1094,7 @@ class TuningRun:
         }
         if self.info.clock == "realtime":  # a command takes effect at the next sample
             common["outputs_from_samples"] = True
-        if req.method == "relay":
-            common["stage_two_rearm"] = True
-            common["stage_two_turn"] = True
-            common["stage_two_steady"] = True
-            common["relay_chatter"] = True
-            common["relay_wrong_way"] = True
-            common["relay_grow"] = True
-            common["relay_offset"] = True
-            common["relay_pattern"] = True
-            common["relay_noise"] = True
-        if req.method == "ramp":
-            common["ramp_wrong_way"] = True
-            common["ramp_seen_fits"] = True
-            common["ramp_hand_back"] = True
-        if req.method in ("relay", "ramp"):
-            common["pv_clip"] = True
-        if req.method == "step":
-            common["step_swing"] = True
-            common["step_delay_bound"] = True
-        common["resolution"] = True
+        common.update(experiments.live_flags(req.method))
         if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
             common["time_scale"] = self._rest["window"]
         if methods.method(req.method).closed_loop:

@@ -1,8 +1,9 @@
 """The identification benchmark: relay and ramp tunes of a suite of plants, in-process.
 
 Every tune builds its experiment from the registry (``methods.build``) and runs it through
-the one driver (``driver.drive``) — the very state machines the live tuner drives over Zenoh
-— but against a plant model stepped in the same process, so hundreds of tunes take seconds.
+the one driver (``driver.drive``) — the very state machines the live tuner drives over Zenoh,
+with the switches its set-up turns on (``experiments.live_flags``) — but against a plant
+model stepped in the same process, so hundreds of tunes take seconds.
 Each result is compared with the plant's exact ultimate point (the phase crossover of G(jω),
 ``DelayedTF.ultimate_point``).
 
@@ -29,7 +30,7 @@ from services.autotuner.design.sampled_loop import sampled_loop_robustness
 from services.autotuner.design.selection import select
 from services.autotuner.identify import methods
 from services.autotuner.identify.driver import drive
-from services.autotuner.identify.experiments import Settings, Setup
+from services.autotuner.identify.experiments import Settings, Setup, live_flags
 from services.offline.local_loop import ModelPort, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.models import TransferFunctionModel
@@ -133,7 +134,14 @@ def run_relay(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
     model = TransferFunctionModel(ts, num=list(tf.num), den=list(tf.den), delay=tf.delay)
     model.reset()
     setup = Setup(
-        sample_time=ts, op_lo=0.0, op_hi=100.0, pv_lo=-1e9, pv_hi=1e9, op_start=50.0, direction=1.0
+        sample_time=ts,
+        op_lo=0.0,
+        op_hi=100.0,
+        pv_lo=-1e9,
+        pv_hi=1e9,
+        op_start=50.0,
+        direction=1.0,
+        **live_flags("relay"),  # the experiment the live tuner runs
     )
     test = methods.build("relay", Settings(), setup)
     sigma = noise * _swing(ku)
@@ -181,6 +189,7 @@ def run_ramp(plant: Plant, noise: float, seed: int = 0) -> TuneOutcome:
         kc_start=0.5 * kc0,
         bump=a,
         sp_start=loop.sp,
+        **live_flags("ramp"),
     )
     test = methods.build("ramp", Settings(), setup)
     t0 = loop.t
