@@ -380,6 +380,9 @@ class Setup:
     # and calms the loop there before it aborts (``RampConfig.hand_back``); None: recorded
     # before, aborted at once
     ramp_hand_back: bool | None = None
+    # True: a ramp trial's response has died out only once flat against how far it moved
+    # (``RampConfig.settled_by_move``); None: recorded before, flat against the bump alone
+    ramp_settled: bool | None = None
 
     def resolution_floor(self) -> float:
         """PV units: what the transmitter does not resolve (``signals.no_response_floor``),
@@ -430,7 +433,14 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "pv_clip",
         "resolution",
     ),
-    "ramp": ("ramp_wrong_way", "ramp_seen_fits", "ramp_hand_back", "pv_clip", "resolution"),
+    "ramp": (
+        "ramp_wrong_way",
+        "ramp_seen_fits",
+        "ramp_hand_back",
+        "ramp_settled",
+        "pv_clip",
+        "resolution",
+    ),
     "step": ("step_swing", "step_delay_bound", "resolution"),
 }
 

@@ -149,6 +149,10 @@ class RampConfig:
     # setpoint back where it began and calms the loop there (``_hand_back``). False: a run
     # recorded before, aborted at once, its PV left a bump off (a level stays there)
     hand_back: bool = True
+    # a trial's response has died out only once flat against how far it has moved, where
+    # that is less than the bump (``_died_out``). False: a run recorded before, flat against
+    # the bump alone
+    settled_by_move: bool = True
     # PV units the transmitter does not resolve (``Setup.resolution_floor``): a quiet window
     # may drift within it and be rest (a noise-free PV's creep after a test); 0: the noise
     # alone decides (a run recorded before)
@@ -778,10 +782,18 @@ class RampTest:
         window = max(20, (n - dead) // 2, 2 * dead + 2)
         if n - dead < window:
             return False
-        # flat: the means of ten stretches of the tail agree (the noise averaged in each)
+        # flat: the means of ten stretches of the tail agree (the noise averaged in each),
+        # within 5 % of the bump, or of how far the response has moved where that is less:
+        # a low gain's response is a small part of the bump, and 5 % of the bump is most of
+        # it (an inverse response, (1 − s)/(s + 1)³ at 0.15·K_u, turning 0.1 below its rest
+        # and rising slowly, judged over after 2 s; three such trials ended the test as
+        # "the PV went the other way: is the process one for a direct-acting PID?")
         tail = y[-(window // 10) * 10 :].reshape(10, -1)
         spread = float(np.ptp(tail.mean(axis=1)))
-        return spread < max(0.05 * self._trial_bump, 6.0 * self._noise / math.sqrt(tail.shape[1]))
+        scale = self._trial_bump
+        if self.config.settled_by_move:
+            scale = min(scale, float(np.max(np.abs(y - self._r))))
+        return spread < max(0.05 * scale, 6.0 * self._noise / math.sqrt(tail.shape[1]))
 
     def _moving_level(self) -> float:
         """PV units from the rest that tell a response from the dead time before it: at a low
@@ -1276,6 +1288,7 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         stop_wrong_way=bool(setup.ramp_wrong_way),
         seen_fits=bool(setup.ramp_seen_fits),
         hand_back=bool(setup.ramp_hand_back),
+        settled_by_move=bool(setup.ramp_settled),
         resolution=setup.resolution_floor(),
         **first,
         **budget,
