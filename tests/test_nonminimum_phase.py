@@ -118,3 +118,17 @@ def test_a_ramp_from_a_low_gain_waits_out_the_inverse_response(name):
     out = benchmark.run_ramp(plant, 0.0)
     assert out.ok, out.reason
     assert abs(out.ku_error) < 0.01 and abs(out.pu_error) < 0.01
+
+
+def test_a_relay_in_noise_waits_out_the_inverse_response():
+    """(1 − s)/(s + 1)³ at 1 % noise, seed 1: the relay's first push dips the PV 0.65 below
+    its rest, and at the turn, on the noisy PV, the check read it at rest against the push:
+    the test aborted "the PV fell ... and came to rest with the output raised, against the
+    push — is the process one for a direct-acting PID?" (seeds 1-3 of 0-3). The rest must now
+    hold from some time T to 2T: the PV comes back, and the relay reads the point."""
+    from services.offline import benchmark
+
+    plant = next(p for p in benchmark.suite() if p.name == "(1-1s)/(s+1)^3")
+    out = benchmark.run_relay(plant, 0.01, seed=1)
+    assert out.ok, out.reason
+    assert abs(out.ku_error) < 0.02 and abs(out.pu_error) < 0.01

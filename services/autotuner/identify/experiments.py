@@ -340,6 +340,9 @@ class Setup:
     # True: a relay whose PV comes to rest against its push before any switch aborts there
     # (``RelayConfig.wrong_way``); None: recorded before, it ran to its time budget
     relay_wrong_way: bool | None = None
+    # True: that rest must hold from some time T after the relay began to 2T
+    # (``RelayConfig.rest_twice``); None: recorded before, the first reading of it aborted
+    relay_rest_twice: bool | None = None
     # True: a relay whose stage-1 cycles ride on their hysteresis grows its amplitude, where
     # the request left it to the default, and counts again (``RelayConfig.grow_times``);
     # None: recorded before, d kept
@@ -426,6 +429,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "stage_two_steady",
         "relay_chatter",
         "relay_wrong_way",
+        "relay_rest_twice",
         "relay_grow",
         "relay_offset",
         "relay_pattern",

@@ -161,6 +161,12 @@ class RelayConfig:
     # saying so, rather than hold the output to its time budget (an inverse response turns
     # back: it is never at rest there)
     wrong_way: bool = True
+    # ``wrong_way`` only on a PV read at rest at every check from some time T after the relay
+    # began to 2T at least: an inverse response's turn, on a noisy PV, reads at rest for a
+    # check or two before it comes back ((1 − s)/(s + 1)³ at 1 % noise: three seeds of four
+    # aborted "against the push — is the process one for a direct-acting PID?"). False: at
+    # the first check that reads it (a run recorded before)
+    rest_twice: bool = True
     # stage 1's relay held at one output for ``held_windows`` quiet periods (and longer: see
     # ``RelayTest._held_from``) since its last switch, the PV at rest (as ``wrong_way``
     # reads rest) short of the level that would switch it: it never will (a
@@ -311,6 +317,9 @@ class RelayTest:
         self._grow_checked = False  # stage 1's counted cycles were judged for a growth
         self._held: str | None = None  # what held d where the cycle still rode on ε
         self._switches = 0  # the relay's switches since it started
+        # s since the relay began at which the PV was first read at rest against its push, at
+        # every check since (``_rest_held``); None: not at the last check
+        self._against_since: float | None = None
         self._push = (math.nan, math.nan)  # s: the relay's first push, from its start to its switch
         self._from_cycle = 0  # stage 1's cycles (and the budget's) count from this one
         self._stage_two_from = 0  # stage 2's cycles count from this many
@@ -536,7 +545,7 @@ class RelayTest:
             self._rearm(t)  # overdue, and the PV turned back from short of arming the switch
         if self._watching_wrong_way() and len(self.pv) % self._quiet_samples == 0:
             why = self._at_rest_against_the_push()
-            if why:
+            if self._rest_held(t, bool(why)):
                 return self._abort(f"no limit cycle: {why}")
         held = self._held_from()
         if held is not None and t >= held and len(self.pv) % self._quiet_samples == 0:
@@ -668,6 +677,20 @@ class RelayTest:
         if float(np.ptp(means)) > limit:
             return ""
         return self._against(float(np.mean(y)), rest=True)
+
+    def _rest_held(self, t: float, at_rest: bool) -> bool:
+        """Whether the PV, read ``at_rest`` against the push now, has been so at every check
+        from some time T after the relay began to 2T at least (``RelayConfig.rest_twice``; off:
+        at once). A real wrong way stays there; an inverse response's turn does not."""
+        if not at_rest:
+            self._against_since = None
+            return False
+        if not self.config.rest_twice:
+            return True
+        since = t - self._relay_start
+        if self._against_since is None:
+            self._against_since = since
+        return since >= 2.0 * self._against_since
 
     def _held_from(self) -> float | None:
         """When (s) stage 1's relay, held since its last switch (or its start), is checked
@@ -1320,6 +1343,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         stuck_periods=RelayConfig.stuck_periods if setup.stage_two_rearm else None,
         arm_at_turn=bool(setup.stage_two_turn),
         wrong_way=bool(setup.relay_wrong_way),
+        rest_twice=bool(setup.relay_rest_twice),
         steady_second=bool(setup.stage_two_steady),
         chatter_widenings=RelayConfig.chatter_widenings if setup.relay_chatter else None,
         grow_times=RelayConfig.grow_times
