@@ -13,9 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import OptimizeResult, least_squares, leastsq
+from scipy.optimize import least_squares, leastsq
 
-from services.autotuner.parts import Parts, in_turn
 from shared.control.signals import extrema, smooth
 
 
@@ -32,15 +31,9 @@ class Oscillation:
 
 
 def fit_oscillation(
-    t: np.ndarray,
-    y: np.ndarray,
-    noise_std: float,
-    period_hint: float | None = None,
-    parts: Parts = in_turn,
+    t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None = None
 ) -> Oscillation | None:
-    """Fit a growing/decaying sinusoid to (t, y); None if there is no clear oscillation.
-    ``parts``: how the refit's two independent starts are computed (``_with_slow_mode``; the
-    tuner's workers side by side: the same fits to the bit)."""
+    """Fit a growing/decaying sinusoid to (t, y); None if there is no clear oscillation."""
     start = _start(t, y, noise_std, period_hint)
     if start is None:
         return None
@@ -65,7 +58,7 @@ def fit_oscillation(
         c, a, g, w, _ = x
         if not success or w <= 0 or not np.all(np.isfinite(x)):
             return None
-        slow = _with_slow_mode(tt, y, x, float(np.sqrt(np.mean(fun**2))), parts)
+        slow = _with_slow_mode(tt, y, x, float(np.sqrt(np.mean(fun**2))))
     alone = None
     if slow is not None:
         alone = float(g)
@@ -369,44 +362,27 @@ def _turning_points(
     return extrema(t, ys, max(4.0 * noise_std / math.sqrt(width), 0.02 * span, 1e-12))
 
 
-def _with_slow_mode(
-    tt: np.ndarray, y: np.ndarray, p0: np.ndarray, rms0: float, parts: Parts = in_turn
-) -> OptimizeResult | None:
+def _with_slow_mode(tt: np.ndarray, y: np.ndarray, p0: np.ndarray, rms0: float):
     """Refit with a decaying exponential beside the oscillation, c + b·e^{−λt} + A·e^{gt}·
     sin(ωt + φ): a loop with lags far apart (or a large dead time) has a slow real mode whose
-    drift the sinusoid alone would read as damping. Kept only if it clearly fits better. Its
-    two starts (λ of one and of four over the record) are independent fits: ``parts``
-    computes them (why in the tuner's workers side by side: they were a fifth of a ramp
-    trial's wall time, each a few ms of scipy's bounded least squares)."""
+    drift the sinusoid alone would read as damping. Kept only if it clearly fits better."""
     c, a, g, w, phi = p0
     span = float(tt[-1] - tt[0]) or 1.0
-    starts = []
+
+    best = None
     for lam0 in (1.0 / span, 4.0 / span):
         b0 = float(y[0] - c - a * math.sin(phi))
         x0 = [c, a, g, w, phi, b0, lam0]
         lo = [-np.inf, -np.inf, -np.inf, 0.5 * w, -np.inf, -np.inf, 0.1 / span]
         hi = [np.inf, np.inf, np.inf, 2.0 * w, np.inf, np.inf, 0.5 * w]
-        starts.append((_slow_start, (tt, y, x0, lo, hi)))
-    best = None
-    for sol in parts(starts):
-        if sol is None or not np.all(np.isfinite(sol.x)):
+        model = DriftingSine(tt, y, np.array(lo), np.array(hi))
+        try:
+            sol = least_squares(model.resid, x0, jac=model.jac, bounds=(lo, hi), max_nfev=400)
+        except (ValueError, FloatingPointError):
             continue
-        if best is None or sol.cost < best.cost:
+        if np.all(np.isfinite(sol.x)) and (best is None or sol.cost < best.cost):
             best = sol
     if best is None:
         return None
     rms = float(np.sqrt(np.mean(best.fun**2)))
     return best if rms < 0.8 * rms0 else None
-
-
-def _slow_start(
-    tt: np.ndarray, y: np.ndarray, x0: list[float], lo: list[float], hi: list[float]
-) -> OptimizeResult | None:
-    """One start of ``_with_slow_mode``'s fit within its bounds (None: the fit could not be
-    made): a pure function of picklable values, for a worker process."""
-    model = DriftingSine(tt, y, np.array(lo), np.array(hi))
-    with np.errstate(over="ignore", invalid="ignore"):
-        try:
-            return least_squares(model.resid, x0, jac=model.jac, bounds=(lo, hi), max_nfev=400)
-        except (ValueError, FloatingPointError):
-            return None
