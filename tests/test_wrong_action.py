@@ -4,8 +4,9 @@ The relay pushes
 the PV up, and it falls, so the relay never switches. It used to hold the output to its time
 budget (14,400 s) and say only that no cycle came; now, once the PV has come to rest against
 the push beyond twice the hysteresis, it aborts and names the action. An inverse response
-(a right-half-plane zero) also starts the wrong way, but turns back: it is never at rest
-there, and its ultimate point is measured as before (``tests.exact``).
+(a right-half-plane zero) also starts the wrong way, but turns back (on a noisy PV its turn
+may read at rest for a check, so the rest must hold from some time T to 2T: the wrong way
+aborts at 156 s, not 80), and its ultimate point is measured as before (``tests.exact``).
 
 The ramp's closed loop is positive feedback there: no trial oscillates, and its abort says
 why when two trials of three or more went the other way from their setpoint bumps."""

@@ -159,7 +159,7 @@ class RelayConfig:
     # stretches' means agreeing) beyond twice the hysteresis against the relay's push: a
     # process whose gain has the other sign than the loop's action says; the test aborts,
     # saying so, rather than hold the output to its time budget (an inverse response turns
-    # back: it is never at rest there)
+    # back, though on a noisy PV its turn may read at rest for a check: ``rest_twice``)
     wrong_way: bool = True
     # ``wrong_way`` only on a PV read at rest at every check from some time T after the relay
     # began to 2T at least: an inverse response's turn, on a noisy PV, reads at rest for a
