@@ -132,3 +132,33 @@ def test_a_relay_in_noise_waits_out_the_inverse_response():
     out = benchmark.run_relay(plant, 0.01, seed=1)
     assert out.ok, out.reason
     assert abs(out.ku_error) < 0.02 and abs(out.pu_error) < 0.01
+
+
+def _recorded_before(monkeypatch, switch: str) -> None:
+    """The benchmark's set-up without ``switch``: a run recorded before it existed, which a
+    replay must rebuild as it ran."""
+    from services.autotuner.identify import experiments
+    from services.offline import benchmark
+
+    def flags(method: str) -> dict[str, bool]:
+        return {k: v for k, v in experiments.live_flags(method).items() if k != switch}
+
+    monkeypatch.setattr(benchmark, "live_flags", flags)
+
+
+def test_recorded_before_the_ramp_judged_the_dip_over(monkeypatch):
+    from services.offline import benchmark
+
+    _recorded_before(monkeypatch, "ramp_settled")
+    plant = next(p for p in benchmark.suite() if p.name == "(1-1s)/(s+1)^3")
+    out = benchmark.run_ramp(plant, 0.0)
+    assert not out.ok and "went the other way from their setpoint bumps" in out.reason
+
+
+def test_recorded_before_the_relay_took_the_turn_for_rest(monkeypatch):
+    from services.offline import benchmark
+
+    _recorded_before(monkeypatch, "relay_rest_twice")
+    plant = next(p for p in benchmark.suite() if p.name == "(1-1s)/(s+1)^3")
+    out = benchmark.run_relay(plant, 0.01, seed=1)
+    assert not out.ok and "came to rest with the output raised, against the push" in out.reason
