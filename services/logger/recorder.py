@@ -199,6 +199,12 @@ def _size_buffer(stream: Stream, status: LoopStatus) -> None:
         stream.recent = deque(stream.recent, maxlen=size)
 
 
+def _seq_at(t: float, ts: float) -> int:
+    """The number of the plant's sample at sim time ``t`` (s), its sample time ``ts``: sample
+    ``seq`` is at t = seq·T (the small slack: t read back from a float product)."""
+    return math.floor(t / ts + 1e-6)
+
+
 def _missed_head(t_start: float, first: ProcessSample) -> int:
     """Samples of a run's beginning missing before ``first``, the first of its samples
     written: those after the sample at its start's sim time ``t_start`` (a plant's sample
@@ -208,7 +214,7 @@ def _missed_head(t_start: float, first: ProcessSample) -> int:
     if first.seq <= 0 or first.t <= 0:
         return 0
     ts = first.t / first.seq
-    return max(0, first.seq - (math.floor(t_start / ts + 1e-6) + 1))
+    return max(0, first.seq - (_seq_at(t_start, ts) + 1))
 
 
 def _sample_time(run: OpenRun) -> float | None:
@@ -234,9 +240,7 @@ def _missed_tail(run: OpenRun, result: TuneResult) -> int:
     ts = _sample_time(run)
     if ts is None or not math.isfinite(result.t / ts):
         return 0
-    last = run.last_seq
-    if last is None:
-        last = math.floor(run.t_start / ts + 1e-6)
+    last = run.last_seq if run.last_seq is not None else _seq_at(run.t_start, ts)
     return max(0, round(result.t / ts) - last)
 
 

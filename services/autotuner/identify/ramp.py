@@ -768,7 +768,8 @@ class RampTest:
         if n < 40:
             return False
         y = np.asarray(self._y[self._trial_start :])
-        moving = np.nonzero(np.abs(y - self._r) >= self._moving_level())[0]
+        away = np.abs(y - self._r)
+        moving = np.nonzero(away >= self._moving_level())[0]
         if moving.size == 0:
             return False
         dead = int(moving[0])
@@ -792,7 +793,7 @@ class RampTest:
         spread = float(np.ptp(tail.mean(axis=1)))
         scale = self._trial_bump
         if self.config.settled_by_move:
-            scale = min(scale, float(np.max(np.abs(y - self._r))))
+            scale = min(scale, float(np.max(away)))
         return spread < max(0.05 * scale, 6.0 * self._noise / math.sqrt(tail.shape[1]))
 
     def _moving_level(self) -> float:
