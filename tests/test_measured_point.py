@@ -60,14 +60,16 @@ def _ramp(rule: str = "auto"):
     ).run()
 
 
-def test_a_model_that_misses_the_measured_point_recommends_from_k_u_and_p_u_alone():
+def test_a_model_that_misses_the_plant_recommends_from_k_u_and_p_u_alone():
     """TL PI is recommended, 1.81 on the plant. Its loop still rings: no PI damps the
     plant's resonance (ζ 0.2) much, and the loop's dominant pole, solved on the exact plant
     with the hold's half sample, keeps half its amplitude a period. The verification reads
     that mode (``design.ringing``) and rejects the gains (they had run ok: the setpoint
     step's first peaks do not show it)."""
     r = _ramp()
-    assert any("misses the plant at its measured ultimate point" in w for w in r.warnings)
+    # the SOPDT its extra starts give leaves 0.28 of the PV's spread unexplained (no term for
+    # the resonance) and no longer misses the measured point: it misses its record
+    assert any("model misses its record: its fit leaves 0.28" in w for w in r.warnings)
     assert r.rule == "tl-pi", r.rule
     isa = r.chosen["isa"]
     kc, ti = isa["kc"], isa["ti"]
@@ -87,7 +89,8 @@ def test_a_model_that_misses_the_measured_point_recommends_from_k_u_and_p_u_alon
 
 
 def test_a_forced_rule_the_plant_would_not_bear_is_refused():
-    """ZN PI, 3.14 on the plant: refused (it had run `ok`)."""
+    """ZN PI, 3.14 on the plant: refused (it had run `ok`), on the model that misses the
+    plant held to the approximate model's bound."""
     true = sampled_loop_robustness(
         IsaGains(0.45 * 0.8627, 4.842 / 1.2), DelayedTF.of(*UNDERDAMPED), TS
     )

@@ -315,3 +315,32 @@ def test_a_ratio_beside_a_bound_is_printed_on_its_side():
     assert near.startswith("L/T = 0.1497: outside 0.15–0.6")
     assert guidance(0.60004, None)[0].startswith("L/T = 0.60004: outside")
     assert guidance(0.0007771, None)[0].startswith("L/T = 0.000777: outside")
+
+
+@pytest.mark.parametrize(("rms", "missed"), [(0.25, False), (0.26, True)])
+def test_a_model_that_misses_its_record_recommends_from_k_u_and_p_u_alone(rms, missed):
+    """The lag-dominated SOPDT itself, its fit said to leave ``rms`` of the PV's spread with
+    noise 0.05: beyond the noise √(rms² − 0.05²) = 0.245 and 0.255, one each side of 0.25.
+    Past it no prediction of the model is sure: the candidates are Tyreus–Luyben's, every
+    rule is held to 0.75 × the bound, and a warning says why."""
+    model = dataclasses.replace(SOPDT, rms=rms, noise_rms=0.05)
+    ku, pu = lag_ultimate(SOPDT.gain, SOPDT.lags, SOPDT.delay)
+    ident = experiments.Identification(ku=ku, pu=pu, ku_spread=0.01, pu_spread=0.01, model=model)
+    sel = select(ident, "auto", sample_time=pu / 100)
+    told = [w for w in sel.warnings if "misses its record" in w]
+    excess = (rms**2 - 0.05**2) ** 0.5
+    if not missed:
+        assert not told and sel.rule not in ("tl-pi", "tl-pid")
+        return
+    assert told == [
+        f"the identified SOPDT model misses its record: its fit leaves {excess:.2g} of the "
+        "PV's spread beyond the noise (more than 0.25), so none of its predictions is sure: "
+        "every rule is held to Ms ≤ 1.5, and the recommendation is Tyreus–Luyben's, from K_u "
+        "and P_u alone"
+    ]
+    assert sel.rule in ("tl-pi", "tl-pid")
+    assert "on a model that misses its record" in sel.recommended.reason
+    assert sel.recommended.predicted_ms is not None  # judged on the model, at the tighter bound
+    forced = select(ident, "amigo-pid", sample_time=pu / 100)
+    ms = forced.assessments["amigo-pid"].robustness.ms
+    assert (forced.refusal is not None) == (ms > 1.5)

@@ -16,6 +16,7 @@ import pytest
 
 from services.autotuner.design import setpoint_weight as sw
 from services.autotuner.design.measured_response import measured_setpoint_step
+from services.autotuner.identify import experiments
 from services.autotuner.tuning import TuningRun
 from services.logger.compare import compare
 from services.logger.report import _gains_lines, _summary, load_report
@@ -163,9 +164,17 @@ def test_gains_within_the_limit_keep_full_weight():
     assert r.acceptance.get("setpoint_weight") is None
 
 
-def test_no_weight_where_no_model_judged_the_gains():
+def test_no_weight_where_no_model_judged_the_gains(monkeypatch):
     """An integrating process with two lags, its ramp's models refused: the fallback PI's
-    overshoot may be a small phase margin, so it stays a rejection, and says why."""
+    overshoot may be a small phase margin, so it stays a rejection, and says why. (Run as
+    recorded before the ramp's extra starts: today its SOPDT fits this plant, and the tune
+    ends ``ok``; ``tests/test_integrator_behind_lag.py``.)"""
+    live = experiments.live_flags
+    monkeypatch.setattr(
+        experiments,
+        "live_flags",
+        lambda method: {k: v for k, v in live(method).items() if k != "ramp_more_starts"},
+    )
     spec = {
         "model": "transfer_function",
         "num": [0.108],

@@ -60,6 +60,9 @@ INVERSE_SOURCE = "inverse response"
 # … and where the model's Ms for some rule lies below what the measured K_u and P_u alone
 # imply (``measured_point``): it misses the plant, and none of its predictions is sure
 MISFIT_SOURCE = "misses the measured point"
+# … and where its fit leaves much of its record unexplained (``selection.RECORD_MISFIT``)
+RECORD_MISFIT_SOURCE = "misses its record"
+UNSURE_SOURCES = (INVERSE_SOURCE, MISFIT_SOURCE, RECORD_MISFIT_SOURCE)
 FALLBACKS = ("tl-pi", "amigo-pi", "simc-pi-int")  # robust by design, in this order
 ROBUST_RULES = ("lambda-pi", "lambda-pid", *FALLBACKS)  # --aim robust, in this order
 AIMS = ("balanced", "robust", "fast")
@@ -302,7 +305,7 @@ def recommend(
         )
 
         def margin(rule: str) -> float:
-            if model.source in (INVERSE_SOURCE, MISFIT_SOURCE):  # every rule's Ms is unsure
+            if model.source in UNSURE_SOURCES:  # every rule's Ms is unsure
                 return APPROXIMATE_PID_MARGIN
             pid = RULES[rule].controller == "PID"
             return APPROXIMATE_PID_MARGIN if pid and model.approximate else MODEL_MARGIN
@@ -378,6 +381,11 @@ def _margins(model: ProcessFit, ms_bound: float) -> str:
         return (
             f"Ms ≤ {APPROXIMATE_PID_MARGIN * ms_bound:.2g} for every rule on a model that "
             "misses the measured ultimate point"
+        )
+    if model.source == RECORD_MISFIT_SOURCE:
+        return (
+            f"Ms ≤ {APPROXIMATE_PID_MARGIN * ms_bound:.2g} for every rule on a model that "
+            "misses its record"
         )
     text = f"Ms ≤ {MODEL_MARGIN * ms_bound:.2g}"
     if model.approximate:

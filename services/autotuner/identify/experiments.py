@@ -386,6 +386,9 @@ class Setup:
     # True: a ramp trial's response has died out only once flat against how far it moved
     # (``RampConfig.settled_by_move``); None: recorded before, flat against the bump alone
     ramp_settled: bool | None = None
+    # True: the ramp's process model is also fitted from lags far apart and from an
+    # integrator behind a lag (``RampConfig.more_starts``); None: recorded before, without
+    ramp_more_starts: bool | None = None
 
     def resolution_floor(self) -> float:
         """PV units: what the transmitter does not resolve (``signals.no_response_floor``),
@@ -442,6 +445,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "ramp_seen_fits",
         "ramp_hand_back",
         "ramp_settled",
+        "ramp_more_starts",
         "pv_clip",
         "resolution",
     ),

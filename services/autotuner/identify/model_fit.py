@@ -229,12 +229,13 @@ def refine_on_record(
     longer than MAX_RECORD samples is fitted in blocks (the output averaged over each, the PV
     at its start): a model, unlike the ultimate point, does not need every sample.
 
-    With ``offset``, an integrating model (ipdt) also fits the output's offset from its
-    balance (``u`` − u₀): a loop held for the test at an output off the one that balances its
-    flows drifts from the start, and a level re-tuned from auto, held at its controller's
-    mean output (a noisy mean: 0.6 % off), read "IPDT fit misses the record" with its dead
-    time exact (the relay's bias found the balance; the model, without u₀, integrated the
-    bias's move as a ramp the PV never made).
+    With ``offset``, the model also fits the output's offset from its balance (``u`` − u₀),
+    for a model that integrates over the record (an IPDT, or a lag far slower than the
+    record: the callers ask it of those alone): a loop held for the test at an output off the
+    one that balances its flows drifts from the start, and a level re-tuned from auto, held
+    at its controller's mean output (a noisy mean: 0.6 % off), read "IPDT fit misses the
+    record" with its dead time exact (the relay's bias found the balance; the model, without
+    u₀, integrated the bias's move as a ramp the PV never made).
 
     The returned ``rms`` is the residual's rms over the PV's standard deviation."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
@@ -245,7 +246,7 @@ def refine_on_record(
     lo = np.array([-60.0] + [math.log(sample_time / 100)] * n_lags + [0.0])
     hi = np.array([60.0] + [math.log(1e6 / w0)] * n_lags + [len(u) * sample_time / 2])
     x0 = _params(start)
-    free = offset and start.kind == "ipdt"  # u₀, % of output: the last parameter
+    free = offset  # u₀, % of output: the last parameter
     if free:
         reach = float(np.max(np.abs(u))) + 1.0 if u.size else 1.0
         lo, hi, x0 = np.append(lo, -reach), np.append(hi, reach), np.append(x0, 0.0)
@@ -341,6 +342,44 @@ def through_ultimate_point(ku: float, pu: float) -> list[ProcessFit]:
     t = x / w
     out.append(ProcessFit("sopdt", (1.0 + x * x) / ku, (t, t), 0.2 * t, math.inf))
     out.append(ProcessFit("ipdt", w / ku, (), math.pi / (2.0 * w), math.inf))
+    return out
+
+
+# the lags' ratios of ``second_order_starts``: apart (a heat exchanger's are 6 apart), and
+# an integrator behind a lag (the slow lag's phase at ω_u within 0.3° of 90°: over a test's
+# record it integrates)
+LAGS_APART = 10.0
+SLOW_LAG = 100.0
+
+
+def second_order_starts(ku: float, pu: float) -> list[tuple[ProcessFit, bool]]:
+    """More starts through a measured ultimate point for the second-order fit, each with
+    whether ``refine_on_record`` should fit the output's offset beside it: lags ``LAGS_APART``
+    apart, and an integrator behind a lag (lags ``SLOW_LAG`` apart: a level behind its valve,
+    a transmitter's filter; the offset fitted, as an integrator's is); each with a dead time
+    of a fifth of its faster lag.
+
+    Why: from ``through_ultimate_point``'s equal lags the refine ends in the minimum nearest
+    them, and the integrator has no term for a lag. The heat exchanger e^{−5s}/((10s + 1)(60s
+    + 1)) by ramp fitted equal lags of 27 s and a 3.4 s dead time, on which SIMC PID was
+    predicted Ms 2.0 and is 3.3 (from lags 10 apart: 60.1 s, 10.0 s, 5.0 s); 0.05·e^{−s}/(s(2s
+    + 1)) fitted an IPDT 0.27 of the PV's spread off, refused (K·L·K_u 2.5, not π/2), and the
+    tuner fell back to TL PI from K_u and P_u alone (Ms 2.26 on the plant), which its
+    verification rejected for a 48 % overshoot (from behind a lag: 0.05/s, 2.0 s, 1.0 s)."""
+    from scipy.optimize import brentq
+
+    w = 2.0 * math.pi / pu
+    out = []
+    for ratio, offset in ((LAGS_APART, False), (SLOW_LAG, True)):
+        # the slow lag at ratio·x, the fast at x = ωT, the dead time 0.2·x: π in all
+        def phase(x: float, r: float = ratio) -> float:
+            return math.atan(r * x) + math.atan(x) + 0.2 * x - math.pi
+
+        x = brentq(phase, 1e-9, 5.0 * math.pi)
+        gain = math.hypot(1.0, ratio * x) * math.hypot(1.0, x) / ku
+        out.append(
+            (ProcessFit("sopdt", gain, (ratio * x / w, x / w), 0.2 * x / w, math.inf), offset)
+        )
     return out
 
 

@@ -69,6 +69,7 @@ from services.autotuner.identify.model_fit import (
     ProcessFit,
     choose_on_record,
     refine_on_record,
+    second_order_starts,
     through_ultimate_point,
 )
 from services.autotuner.identify.oscillation import (
@@ -153,6 +154,10 @@ class RampConfig:
     # that is less than the bump (``_died_out``). False: a run recorded before, flat against
     # the bump alone
     settled_by_move: bool = True
+    # the process model's fits also start from lags far apart and from an integrator behind
+    # a lag (``model_fit.second_order_starts``), and the integrators fit the output's offset
+    # from its balance. False: a run recorded before, without either
+    more_starts: bool = True
     # PV units the transmitter does not resolve (``Setup.resolution_floor``): a quiet window
     # may drift within it and be rest (a noise-free PV's creep after a test); 0: the noise
     # alone decides (a run recorded before)
@@ -1072,9 +1077,12 @@ class RampTest:
         y0 = float(np.mean(y[:rest]))
         du = u - u0 if self.direction > 0 else u0 - u  # a direct-acting loop's, turned over:
         # the model is of the process as the controller acts on it (−G), as K_u is
+        starts = [(s, False) for s in through_ultimate_point(ku, pu)]
+        if self.config.more_starts:  # and the integrators fit the output's offset
+            starts = [(s, s.kind == "ipdt") for s, _ in starts] + second_order_starts(ku, pu)
         refines = [
-            (refine_on_record, (start, self.sample_time, du, y - y0))
-            for start in through_ultimate_point(ku, pu)
+            (refine_on_record, (start, self.sample_time, du, y - y0, offset))
+            for start, offset in starts
         ]
         fits = [f for f in self.parts(refines) if f is not None]
         best = choose_on_record(fits, y.size)
@@ -1290,6 +1298,7 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         seen_fits=bool(setup.ramp_seen_fits),
         hand_back=bool(setup.ramp_hand_back),
         settled_by_move=bool(setup.ramp_settled),
+        more_starts=bool(setup.ramp_more_starts),
         resolution=setup.resolution_floor(),
         **first,
         **budget,

@@ -124,7 +124,8 @@ def process_model(
     refined = [
         f
         for start in candidates
-        if (f := refine_on_record(start, record.sample_time, u, y, offset)) is not None
+        if (f := refine_on_record(start, record.sample_time, u, y, offset and start.kind == "ipdt"))
+        is not None
     ]
     best = choose_on_record(refined, y.size)
     if best is None:
