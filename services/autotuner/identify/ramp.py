@@ -1080,11 +1080,15 @@ class RampTest:
         starts = [(s, False) for s in through_ultimate_point(ku, pu)]
         if self.config.more_starts:  # and the integrators fit the output's offset
             starts = [(s, s.kind == "ipdt") for s, _ in starts] + second_order_starts(ku, pu)
+        # the fits with an offset (a parameter more, the slowest) handed out first, so that
+        # the workers end together; judged in the starts' order
+        order = sorted(range(len(starts)), key=lambda i: not starts[i][1])
         refines = [
-            (refine_on_record, (start, self.sample_time, du, y - y0, offset))
-            for start, offset in starts
+            (refine_on_record, (starts[i][0], self.sample_time, du, y - y0, starts[i][1]))
+            for i in order
         ]
-        fits = [f for f in self.parts(refines) if f is not None]
+        done = dict(zip(order, self.parts(refines), strict=True))
+        fits = [f for i in range(len(starts)) if (f := done[i]) is not None]
         best = choose_on_record(fits, y.size)
         if best is None:
             return None
