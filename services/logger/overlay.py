@@ -43,15 +43,17 @@ def model_overlay(
 ) -> Overlay | None:
     """The overlay on samples ``start`` … ``end - 1``; ``op[k]`` the output held from sample
     k. The model starts from the rest the experiments measure first: the mean PV and output
-    over the first ``REST_SAMPLES`` samples. None for a window shorter than that or a model
-    that cannot be simulated."""
+    over the first ``REST_SAMPLES`` samples, and is driven, as it was fitted, by the output
+    less its fitted offset from the balance (``ProcessFit.offset``: an integrator's, which
+    a ramp of the PV shows over a long record: without it the line drifted off the data).
+    None for a window shorter than that or a model that cannot be simulated."""
     t, pv, op = (np.asarray(a, dtype=float)[start:end] for a in (t, pv, op))
     if t.size <= REST_SAMPLES or not (math.isfinite(sample_time) and sample_time > 0):
         return None
     r, u0 = float(np.mean(pv[:REST_SAMPLES])), float(np.mean(op[:REST_SAMPLES]))
     try:
         with np.errstate(all="ignore"):
-            y_hat = r + response_to(model, sample_time, op - u0)
+            y_hat = r + response_to(model, sample_time, op - u0 - (model.offset or 0.0))
     except (ValueError, ArithmeticError, np.linalg.LinAlgError):
         return None
     if not np.all(np.isfinite(y_hat)):

@@ -1,6 +1,7 @@
 """The process model a run's result states, rebuilt from its plain numbers: the
 ``experiment`` object's ``model``, ``model_gain``, ``model_lag_i``, ``model_delay`` (relay,
-ramp and step tests alike), else the step's reaction curve (K, L and the tangent's T)."""
+ramp and step tests alike) and ``model_offset`` where the fit had one (the held output's
+offset from its balance, %), else the step's reaction curve (K, L and the tangent's T)."""
 
 from __future__ import annotations
 
@@ -37,7 +38,15 @@ def result_model(experiment: object, step: object = None) -> ProcessFit | None:
             fit_rms = (
                 float(rms) if isinstance(rms, int | float) and not isinstance(rms, bool) else 0.0
             )
-            return ProcessFit(kind, gain, tuple(lags), float(delay), fit_rms)  # type: ignore[arg-type]
+            offset = e.get("model_offset")
+            held = (
+                float(offset)
+                if isinstance(offset, int | float)
+                and not isinstance(offset, bool)
+                and math.isfinite(offset)
+                else None
+            )
+            return ProcessFit(kind, gain, tuple(lags), float(delay), fit_rms, offset=held)  # type: ignore[arg-type]
     s = step if isinstance(step, dict) else {}
     gain, lag = _positive(s.get("gain")), _positive(s.get("time_constant_tangent"))
     dead = s.get("dead_time")
