@@ -39,8 +39,9 @@ class ProcessFit:
     rms: float  # weighted rms of the log residual (nepers ≈ radians); on a record: see there
     noise_rms: float = 0.0  # the rms the measurement noise alone would leave (record fits)
     source: str = "fit"  # "fit", or "reaction curve" (a tangent construction, never exact)
-    # %: the held output's offset from the balance, fitted with an integrator on a record
-    # (``refine_on_record`` with ``offset``); None: not fitted
+    # %: the held output's offset from the balance, fitted beside a model that integrates
+    # over its record (``refine_on_record`` with ``offset``: an IPDT, the ramp's start behind
+    # a lag); None: not fitted
     offset: float | None = None
 
     @property
