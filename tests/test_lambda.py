@@ -82,6 +82,27 @@ def test_the_default_lambda():
     assert g.kc == pytest.approx(T / (K * (9.0 + L)), rel=1e-12)
 
 
+@pytest.mark.parametrize(("t1", "integrating"), [(4.76e6, True), (1900.0, False)])
+@pytest.mark.parametrize("rule", ["lambda-pi", "lambda-pid"])
+def test_a_lag_no_test_can_see_is_taken_as_an_integrator(t1, integrating, rule):
+    """A ramp's SOPDT of 0.05·e^{−s}/(s(2s + 1)): T₁ = 4.76·10⁶ s, T₂ = 2 s, L = 1 s, gain
+    0.05·T₁. Its first-order equivalent (half rule: T₁ + 1 s, L + 1 s = 2 s) lags over 1000
+    dead times: the lambda rules take the integrator 0.05·T₁/(T₁ + 1)·e^{−2s}/s, λ = 3·2 s;
+    at T₁ = 1900 s (950 dead times) λ = T and the self-regulating form, as before."""
+    t2, lag = 2.0, 1.0
+    model = ProcessFit("sopdt", 0.05 * t1, (t1, t2), lag, 0.0)
+    t, dead = t1 + t2 / 2, lag + t2 / 2
+    g = RULES[rule].compute(model, None)
+    if integrating:
+        ki, lam = 0.05 * t1 / t, 3 * dead
+        assert default_lambda(model) == pytest.approx(lam, rel=1e-12)
+        assert g.kc == pytest.approx((2 * lam + dead) / (ki * (lam + dead) ** 2), rel=1e-12)
+        assert g.ti == pytest.approx(2 * lam + dead, rel=1e-12) and g.td == 0.0
+    else:
+        assert default_lambda(model) == pytest.approx(t, rel=1e-12)
+        assert g.ti == pytest.approx(t + (dead / 2 if rule == "lambda-pid" else 0), rel=1e-12)
+
+
 @pytest.mark.parametrize("lam", [0.0, -1.0, math.nan, math.inf])
 def test_a_lambda_that_is_not_positive_and_finite_is_refused(lam):
     with pytest.raises(ValueError, match="λ > 0"):

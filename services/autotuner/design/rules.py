@@ -197,12 +197,32 @@ def _simc_pi_int(m: ProcessFit) -> IsaGains:
     return IsaGains(1.0 / (k_int * 2.0 * th), 8.0 * th)
 
 
+# a first-order equivalent whose lag is over this many dead times is an integrator to the
+# lambda rules: λ = T would ask for a closed loop as slow as a lag no test can see
+INTEGRATING_LAG = 1000.0
+
+
+def integrator_of(m: ProcessFit) -> ProcessFit | None:
+    """The model as the lambda rules take an integrating one: an IPDT as it is; a lag model
+    whose first-order equivalent (half rule) has T over ``INTEGRATING_LAG`` × L as the
+    integrator K/T·e^{−Ls}/s; else None. Why: a ramp's SOPDT of 0.05·e^{−s}/(s(2s + 1)) has
+    T₁ = 4.8·10⁶ s (an integrator behind a lag, fitted from ``second_order_starts``), and
+    λ = T gave lambda PI Kc 4.2·10⁻⁶ and Ti 4.8·10⁶ s, its loop stable but judged unstable
+    on a frequency grid that starts above 1/Ti."""
+    if m.kind == "ipdt":
+        return m
+    f = fopdt_of(m)
+    if f.dead_time > 0 and f.time_constant > INTEGRATING_LAG * f.dead_time:
+        return ProcessFit("ipdt", f.gain / f.time_constant, (), f.dead_time, m.rms)
+    return None
+
+
 def default_lambda(m: ProcessFit) -> float:
     """The default closed-loop time constant λ (s) of the lambda rules: the larger of the
     process lag T and 3 × the dead time L of the model's first-order equivalent (seed 001's
-    robust choice, λ ≥ 3L); an integrating model has no lag: 3 × L."""
-    if m.kind == "ipdt":
-        return 3.0 * m.delay
+    robust choice, λ ≥ 3L); an integrating model (``integrator_of``) has no lag: 3 × L."""
+    if (i := integrator_of(m)) is not None:
+        return 3.0 * i.delay
     f = fopdt_of(m)
     return max(f.time_constant, 3.0 * f.dead_time)
 
@@ -227,8 +247,8 @@ def _lambda_pi(m: ProcessFit, lambda_s: float | None = None) -> IsaGains:
     Kc = T/(K(λ + L)), Ti = T, so that the loop is e^{−Ls}/((λ + L)s); on an integrating
     model, Kc = (2λ + L)/(K'(λ + L)²), Ti = 2λ + L."""
     lam = lambda_used(m, lambda_s)
-    if m.kind == "ipdt":
-        return _lambda_int_pi(m, lam)
+    if (i := integrator_of(m)) is not None:
+        return _lambda_int_pi(i, lam)
     f = fopdt_of(m)
     k, t, lag = f.gain, f.time_constant, f.dead_time
     if t <= 0:
@@ -241,8 +261,8 @@ def _lambda_pid(m: ProcessFit, lambda_s: float | None = None) -> IsaGains:
     Skogestad 1986): Kc = (T + L/2)/(K(λ + L/2)), Ti = T + L/2, Td = TL/(2T + L). On an
     integrating model it is the integrating lambda PI (no derivative)."""
     lam = lambda_used(m, lambda_s)
-    if m.kind == "ipdt":
-        return _lambda_int_pi(m, lam)
+    if (i := integrator_of(m)) is not None:
+        return _lambda_int_pi(i, lam)
     f = fopdt_of(m)
     k, t, lag = f.gain, f.time_constant, f.dead_time
     if t <= 0:
