@@ -368,6 +368,8 @@ def select(
         assessments[name] = dataclasses.replace(
             a, robustness=dataclasses.replace(a.robustness, ms=floor)
         )
+    missed = None if misfit else _misses_the_record(model, ultimate)
+    unsure = None  # what the model misses, for the warning
     if misfit:
         told = ", ".join(f"{k} {misfit[k]:.3g}" for k in sorted(misfit))
         at = (
@@ -376,25 +378,24 @@ def select(
             else f"the ultimate point its step response implies by itself (K_u {point.ku:.4g}, "
             f"P_u {point.pu:.4g} s, read from the record, not from a model)"
         )
-        tl = any(k in UNBIASED_RELAY_RULES for k in assessments)
-        warnings.append(
+        unsure = (
             f"the identified model misses the plant at {at}: for {len(misfit)} of the rules it "
             f"predicts an Ms below what that point alone implies (at least {told}, taken as "
-            "their Ms), so none of its predictions is sure: every rule is held to Ms ≤ "
-            f"{APPROXIMATE_PID_MARGIN * ms_bound:.2g}"
-            + (", and the recommendation is Tyreus–Luyben's, from K_u and P_u alone" if tl else "")
+            "their Ms)"
         )
-    missed = None if misfit else _misses_the_record(model, ultimate)
-    if missed is not None:
+    elif missed is not None:
+        unsure = (
+            f"the identified {model.kind.upper()} model misses its record: its fit leaves "
+            f"{missed:.2g} of the PV's spread beyond the noise (more than {RECORD_MISFIT:g})"
+        )
+    if unsure is not None:
         tl = any(k in UNBIASED_RELAY_RULES for k in assessments)
         warnings.append(
-            f"the identified {model.kind.upper()} model misses its record: its fit leaves "
-            f"{missed:.2g} of the PV's spread beyond the noise (more than {RECORD_MISFIT:g}), "
-            "so none of its predictions is sure: every rule is held to Ms ≤ "
+            f"{unsure}, so none of its predictions is sure: every rule is held to Ms ≤ "
             f"{APPROXIMATE_PID_MARGIN * ms_bound:.2g}"
             + (", and the recommendation is Tyreus–Luyben's, from K_u and P_u alone" if tl else "")
         )
-    unsure_model = bool(misfit) or missed is not None
+    unsure_model = unsure is not None
     pool = assessments
     # why each rule judged but not in the pool is left out of it (a refusal names them)
     left_out: dict[str, str] = {}

@@ -1077,9 +1077,10 @@ class RampTest:
         y0 = float(np.mean(y[:rest]))
         du = u - u0 if self.direction > 0 else u0 - u  # a direct-acting loop's, turned over:
         # the model is of the process as the controller acts on it (−G), as K_u is
-        starts = [(s, False) for s in through_ultimate_point(ku, pu)]
-        if self.config.more_starts:  # and the integrators fit the output's offset
-            starts = [(s, s.kind == "ipdt") for s, _ in starts] + second_order_starts(ku, pu)
+        more = self.config.more_starts  # and the integrators fit the output's offset
+        starts = [(s, more and s.kind == "ipdt") for s in through_ultimate_point(ku, pu)]
+        if more:
+            starts += second_order_starts(ku, pu)
         # the fits with an offset (a parameter more, the slowest) handed out first, so that
         # the workers end together; judged in the starts' order
         order = sorted(range(len(starts)), key=lambda i: not starts[i][1])
