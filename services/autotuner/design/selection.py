@@ -250,11 +250,14 @@ def _off_the_measured_point(
 def _misses_the_record(model: ProcessFit | None, ultimate: UltimatePoint | None) -> float | None:
     """How much of the PV's spread the model's fit of its record leaves beyond the noise,
     where that is more than ``RECORD_MISFIT`` and an ultimate point was measured (the rules
-    then have K_u and P_u to fall back on); None otherwise."""
+    then have K_u and P_u to fall back on); None otherwise. Beyond the noise: the less of
+    what the rest's noise estimate leaves and what the residual's own whiteness does
+    (``ProcessFit.excess_rms``): flow1's exact plant left 0.41 of the PV's spread, all of
+    it its σ 0.2 noise, where a rest that read σ 0.155 left 0.26 beyond it, and a ramp was
+    refused for a model that missed nothing."""
     if model is None or ultimate is None or not math.isfinite(model.rms):
         return None
-    noise = model.noise_rms if math.isfinite(model.noise_rms) else 0.0
-    excess = math.sqrt(max(model.rms**2 - noise**2, 0.0))
+    excess = model.excess_rms
     return excess if excess > RECORD_MISFIT else None
 
 

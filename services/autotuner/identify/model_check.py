@@ -19,8 +19,9 @@ use a model (``ProcessFit``) it must agree with the measurement on three counts:
     integration — without that evidence, only if its gain × delay gives the measured K_u
     (K·L·K_u = π/2 at an integrator's ultimate point);
 (c) its prediction on the record it came from: the fit's residual beyond the measurement
-    noise, √(rms² − noise_rms²) (both relative to the PV's standard deviation), at most
-    RMS_EXCESS_LIMIT — above it the model misses a sixth of what the PV did.
+    noise, √(rms² − noise_rms²) (both relative to the PV's standard deviation), or what of
+    it is not white where that is less (``ProcessFit.excess_rms``), at most RMS_EXCESS_LIMIT
+    — above it the model misses a sixth of what the PV did.
 
 Each failure is one line, for the warnings and the refusal. A step test gives no K_u: its
 reaction-curve model is checked on (b) without the ultimate point, and (c) when its fit
@@ -103,7 +104,7 @@ def check_model(
         reasons.append(f"{name} fit: no residual on the record (rms {model.rms})")
     else:
         noise = model.noise_rms if _finite(model.noise_rms) else 0.0
-        excess = math.sqrt(max(model.rms**2 - noise**2, 0.0))
+        excess = model.excess_rms
         if excess > RMS_EXCESS_LIMIT:
             reasons.append(
                 f"{name} fit misses the record: residual {model.rms:.2g} of the PV's spread "
