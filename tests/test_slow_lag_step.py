@@ -1,0 +1,105 @@
+"""A lag far slower than its step test, read as integrating: the dead time with the ramps'
+slowing (``reaction_curve.fit_integrator``'s leak).
+
+K·e^{−Ls}/(τs + 1) with τ ≫ L ramps after a step like an integrator K/τ, and the step test
+rightly takes it as one (SIMC does, past τ = 8θ); but each ramp slows, K·(1 − e^{−t/τ}), so a
+straight line fitted over the record meets the baseline early. On e^{−10s}/(1000s + 1) the
+step test's record (16 dead times) read L = 7.8 s, and SIMC's PI for a level designed on it
+had Ms 2.05 on the plant, above the default bound 2, where 1.70 was predicted; its run ended
+``ok``. The expected figures here are the plants' own coefficients, records computed from
+their closed-form step responses, and Ms computed with numpy on the exact plant.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.autotuner.identify import reaction_curve
+from services.autotuner.identify.reaction_curve import fit_integrator
+from services.autotuner.tuning import RunHooks, TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.messages import TuneRequest
+
+TS = 1.0  # s
+# the step test's own output changes on the plant below: a step of 5 %, then the pulse of
+# −10 % that gives an integrator its level back, then the return
+CHANGES = [(80.0, 5.0), (224.0, -10.0), (368.0, 5.0)]
+
+
+def _record(tau: float | None, delay: float, gain: float, sigma: float, seed: int = 0):
+    """The PV at the samples for CHANGES, from the closed forms: a lag's K·Δu·(1 − e^{−r/τ}),
+    an integrator's K'·Δu·r (τ None), r the time since the change's effect began."""
+    t = np.arange(0.0, 360.0, TS)
+    y = np.full(t.size, 50.0)
+    for tk, du in CHANGES:
+        run = np.maximum(t - tk - delay, 0.0)
+        y += gain * du * (run if tau is None else 1.0 - np.exp(-run / tau))
+    return t, y + np.random.default_rng(seed).normal(0.0, sigma, t.size)
+
+
+def test_a_slow_lag_is_read_with_its_own_dead_time():
+    t, y = _record(1000.0, 10.0, 1.0, 0.002)
+    fit = fit_integrator(t, y, CHANGES, 144.0)
+    assert fit is not None
+    assert fit.dead_time == pytest.approx(10.0, rel=0.02)
+    assert fit.rate == pytest.approx(1.0 / 1000.0, rel=0.02)  # K/τ: the first slope
+    assert fit.leak == pytest.approx(1.0 / 1000.0, rel=0.15)
+    assert abs(fit.drift) < 3e-5  # at rest before the step: no drift to mimic the slowing
+
+
+def test_without_the_slowing_the_dead_time_comes_out_short(monkeypatch):
+    """The defect itself: the integrator's line alone puts L 20 % early."""
+    monkeypatch.setattr(reaction_curve, "LEAK_F", math.inf)
+    t, y = _record(1000.0, 10.0, 1.0, 0.002)
+    fit = fit_integrator(t, y, CHANGES, 144.0)
+    assert fit is not None and fit.leak == 0.0
+    assert fit.dead_time < 8.5
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_an_integrators_noise_is_not_read_as_a_slowing(seed):
+    """An exact integrator in white noise: no leak kept, L and K' as they were."""
+    t, y = _record(None, 10.0, 1e-3, 0.002, seed)
+    fit = fit_integrator(t, y, CHANGES, 144.0)
+    assert fit is not None and fit.leak == 0.0
+    assert fit.dead_time == pytest.approx(10.0, abs=0.3)
+    assert fit.rate == pytest.approx(1e-3, rel=0.01)
+
+
+def _ms(kc: float, ti: float | None, num, den, delay: float, ts: float) -> float:
+    """Sensitivity peak of a PI on the plant, the zero-order hold as half a sample of delay."""
+    w = np.logspace(-6, math.log10(math.pi / ts), 80000)
+    s = 1j * w
+    g = np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * (delay + ts / 2))
+    c = kc * (1 + (1 / (ti * s) if ti else 0))
+    return float(np.max(1 / np.abs(1 + c * g)))
+
+
+def test_the_step_tests_level_rule_on_a_slow_lag_is_as_safe_as_predicted():
+    plant = {
+        "seed": 0,
+        "loops": {
+            "slow": {
+                "model": "transfer_function",
+                "num": [1.0],
+                "den": [1000.0, 1.0],
+                "delay": 10.0,
+                "sample_time": TS,
+                "noise_std": 0.002,
+            }
+        },
+    }
+    sim = build_plant(plant, "t")["slow"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="slow", method="step"), "t", RunHooks())
+    res = r.run()
+    assert res.status == "ok", res.reason
+    assert res.experiment["model_delay"] == pytest.approx(10.0, rel=0.03)
+    isa = res.chosen["isa"]
+    assert isa["td"] == 0.0
+    ms = _ms(isa["kc"], isa["ti"], [1.0], [1000.0, 1.0], 10.0, TS)
+    assert ms < 2.0
+    assert ms == pytest.approx(res.robustness[res.rule]["ms"], rel=0.05)
