@@ -103,3 +103,41 @@ def test_the_step_tests_level_rule_on_a_slow_lag_is_as_safe_as_predicted():
     ms = _ms(isa["kc"], isa["ti"], [1.0], [1000.0, 1.0], 10.0, TS)
     assert ms < 2.0
     assert ms == pytest.approx(res.robustness[res.rule]["ms"], rel=0.05)
+
+
+def test_a_lag_too_slow_for_the_time_allowed_is_named_with_the_time_it_needs():
+    """A clean e^{−10s}/(1000s + 1) does not come to rest within the step test's 7,200 s, nor
+    does it ramp steadily enough to be read as integrating (its slowing is plain without
+    noise): the abort names the lag the record shows and a --max-time, and that time ends
+    the test with the plant's own FOPDT."""
+
+    def run(max_time: float | None):
+        plant = {
+            "seed": 0,
+            "loops": {
+                "s": {
+                    "model": "transfer_function",
+                    "num": [1.0],
+                    "den": [1000.0, 1.0],
+                    "delay": 10.0,
+                    "sample_time": TS,
+                    "noise_std": 0.0,
+                }
+            },
+        }
+        req = TuneRequest(loop="s", method="step", max_time=max_time)
+        return TuningRun(LocalLoopClient(build_plant(plant, "t")["s"]), req, "t", RunHooks()).run()
+
+    first = run(None)
+    assert first.status == "aborted"
+    assert "no steady state within 7200 s of the step: the PV is still settling" in first.reason
+    tau = float(first.reason.split("a lag of about ")[1].split(" s")[0])
+    assert tau == pytest.approx(1000.0, rel=0.05)
+    asked = float(first.reason.split("--max-time (about ")[1].split(")")[0])
+    assert 5 * tau < asked < 10 * tau
+    second = run(asked)
+    assert second.status == "ok", second.reason
+    e = second.experiment
+    assert e["model"] == "fopdt"
+    assert e["model_lag_1"] == pytest.approx(1000.0, rel=0.01)
+    assert e["model_delay"] == pytest.approx(10.0, rel=0.01)

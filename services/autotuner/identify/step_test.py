@@ -657,7 +657,8 @@ class StepTest:
                     "or a process slower than the time allowed (--max-time)"
                 )
             return self._abort(
-                f"no steady state within {self.config.timeout:g} s of the step" + self._too_noisy()
+                f"no steady state within {self.config.timeout:g} s of the step"
+                + (self._too_noisy() or self._still_settling())
             )
         lo, hi = self.ends
         tol = 1e-9 * max(1.0, abs(lo), abs(hi), hi - lo)
@@ -728,6 +729,30 @@ class StepTest:
             f": the PV moved by {abs(change):.3g}, {sigmas:.3g} σ of its noise, too little "
             f"for its rest value to be read to {100 * LOOSE_BAND / 2:g} % of the change in "
             "that time — a larger step (--size), or a longer --max-time"
+        )
+
+    def _still_settling(self) -> str:
+        """Why no rest came, where the PV is still settling as a lag does: its time constant
+        read from the record's last three sixths (their means' differences fall by e^{−w/τ}
+        from one to the next), and the time to ask for; empty where they do not fall so.
+        A clean e^{−10s}/(1000s + 1) has no rest within 7,200 s; with --max-time 30000 its
+        step test ends with the FOPDT exact."""
+        t, y = np.asarray(self.t), np.asarray(self.pv)
+        after = t > self.t_step
+        t, y = t[after], y[after]
+        m = t.size // 6
+        if m < 3:
+            return ""
+        first, mid, last = (float(np.mean(y[-(k + 1) * m : y.size - k * m])) for k in (2, 1, 0))
+        ratio = (last - mid) / (mid - first) if mid != first else math.nan
+        if not 0.0 < ratio < 1.0:
+            return ""
+        tau = -(t[-1] - t[-1 - m]) / math.log(ratio)
+        need = self.t_step - float(self.t[0]) + 8.0 * tau  # 8 τ: within 0.03 % of its change
+        return (
+            f": the PV is still settling as a lag of about {_about(tau)} s does (by the record's "
+            f"last third), which comes to rest in 5 to 8 of them — a longer --max-time (about "
+            f"{math.ceil(need / 100.0) * 100:.0f}), or the relay test, which needs no rest"
         )
 
     def _moved_level(self) -> float:
@@ -1158,3 +1183,8 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         pv_units=setup.pv_units or "",
         direction=setup.direction or 1.0,
     )
+
+
+def _about(x: float) -> str:
+    """A rough figure in s: whole seconds from 100 on (not 1e+03), three digits below."""
+    return f"{x:.0f}" if x >= 100.0 else f"{x:.3g}"
