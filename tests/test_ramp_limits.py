@@ -285,3 +285,22 @@ def test_the_no_bump_abort_gives_the_kick_it_judged() -> None:
     assert kick > 0.5 * room  # what stopped it
     assert kc * least < kick  # the noise's share counted: the bump's kick alone may fit
     assert r.reason.endswith("need no gain on the loop (--method relay, --method step)")
+
+
+def test_the_saturation_abort_names_the_methods_that_need_no_gain() -> None:
+    """e^{−10s}/(5000s + 1) has K_u near 785: its trials saturate the output even with the
+    least bump the noise allows, and the abort says what to use instead, as the no-bump abort
+    does."""
+    spec = {
+        "model": "transfer_function",
+        "num": [1.0],
+        "den": [5000.0, 1.0],
+        "delay": 10.0,
+        "sample_time": 1.0,
+        "noise_std": 0.002,
+    }
+    sim = build_plant({"seed": 0, "loops": {"s": spec}}, "sat")["s"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="s", method="ramp"), "sat").run()
+    assert r.status == "aborted", r.reason
+    assert "the output saturates at Kc = " in r.reason, r.reason
+    assert r.reason.endswith("need no gain on the loop (--method relay, --method step)")

@@ -751,7 +751,9 @@ class RampTest:
         else:
             self._abort(
                 f"the output saturates at Kc = {self.kc:.4g} even with a bump of "
-                f"{self._trial_bump:.4g} (the noise allows none below {self._min_bump():.4g})"
+                f"{self._trial_bump:.4g} (the noise allows none below {self._min_bump():.4g}); "
+                "the relay and the step test need no gain on the loop (--method relay, "
+                "--method step)"
             )
             return
         self._begin_settle(t)
