@@ -17,7 +17,7 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.identify import reaction_curve
+from services.autotuner.identify import experiments, reaction_curve
 from services.autotuner.identify.reaction_curve import fit_integrator
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
@@ -70,16 +70,19 @@ def test_an_integrators_noise_is_not_read_as_a_slowing(seed):
     assert fit.rate == pytest.approx(1e-3, rel=0.01)
 
 
-def _ms(kc: float, ti: float | None, num, den, delay: float, ts: float) -> float:
-    """Sensitivity peak of a PI on the plant, the zero-order hold as half a sample of delay."""
-    w = np.logspace(-6, math.log10(math.pi / ts), 80000)
-    s = 1j * w
-    g = np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * (delay + ts / 2))
-    c = kc * (1 + (1 / (ti * s) if ti else 0))
-    return float(np.max(1 / np.abs(1 + c * g)))
+def test_a_step_recorded_before_is_read_with_straight_ramps(monkeypatch):
+    """A run recorded before ``step_leak`` replays as it ran: straight ramps, L short."""
+    live = experiments.live_flags
+    monkeypatch.setattr(
+        experiments,
+        "live_flags",
+        lambda method: {k: v for k, v in live(method).items() if k != "step_leak"},
+    )
+    res = _slow_step()
+    assert res.experiment["model_delay"] < 8.5
 
 
-def test_the_step_tests_level_rule_on_a_slow_lag_is_as_safe_as_predicted():
+def _slow_step():
     plant = {
         "seed": 0,
         "loops": {
@@ -94,8 +97,21 @@ def test_the_step_tests_level_rule_on_a_slow_lag_is_as_safe_as_predicted():
         },
     }
     sim = build_plant(plant, "t")["slow"]
-    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="slow", method="step"), "t", RunHooks())
-    res = r.run()
+    req = TuneRequest(loop="slow", method="step")
+    return TuningRun(LocalLoopClient(sim), req, "t", RunHooks()).run()
+
+
+def _ms(kc: float, ti: float | None, num, den, delay: float, ts: float) -> float:
+    """Sensitivity peak of a PI on the plant, the zero-order hold as half a sample of delay."""
+    w = np.logspace(-6, math.log10(math.pi / ts), 80000)
+    s = 1j * w
+    g = np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * (delay + ts / 2))
+    c = kc * (1 + (1 / (ti * s) if ti else 0))
+    return float(np.max(1 / np.abs(1 + c * g)))
+
+
+def test_the_step_tests_level_rule_on_a_slow_lag_is_as_safe_as_predicted():
+    res = _slow_step()
     assert res.status == "ok", res.reason
     assert res.experiment["model_delay"] == pytest.approx(10.0, rel=0.03)
     isa = res.chosen["isa"]

@@ -389,6 +389,10 @@ class Setup:
     # True: the ramp's process model is also fitted from lags far apart and from an
     # integrator behind a lag (``RampConfig.more_starts``); None: recorded before, without
     ramp_more_starts: bool | None = None
+    # True: a step test read as integrating fits its ramps' slowing with its dead time (a lag
+    # far slower than the test: ``reaction_curve.fit_integrator``'s leak); None: recorded
+    # before, straight ramps
+    step_leak: bool | None = None
 
     def resolution_floor(self) -> float:
         """PV units: what the transmitter does not resolve (``signals.no_response_floor``),
@@ -449,7 +453,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "pv_clip",
         "resolution",
     ),
-    "step": ("step_swing", "step_delay_bound", "resolution"),
+    "step": ("step_swing", "step_delay_bound", "step_leak", "resolution"),
 }
 
 

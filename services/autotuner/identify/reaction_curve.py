@@ -591,7 +591,11 @@ LEAK_F = 25.0
 
 
 def fit_integrator(
-    t: np.ndarray, y: np.ndarray, changes: list[tuple[float, float]], longest: float
+    t: np.ndarray,
+    y: np.ndarray,
+    changes: list[tuple[float, float]],
+    longest: float,
+    slowing: bool = True,
 ) -> IntegratorFit | None:
     """Least squares of an integrator with dead time to the record of a known output: the
     output's changes ``(t_k, Δu_k)`` (s, %) each start a ramp L later. Every kink informs L
@@ -606,7 +610,8 @@ def fit_integrator(
     meets the baseline early, and L comes out short (e^{−10s}/(1000s + 1), a step read as
     integrating over 16 dead times: L 7.8 s, and SIMC's PI on it Ms 2.05 on the plant where
     1.70 was predicted). Where the record shows that slowing (``LEAK_F``), each ramp is
-    K'·τ(1 − e^{−t/τ}) (``leak`` = 1/τ, K' still the first slope) and L is read with it."""
+    K'·τ(1 − e^{−t/τ}) (``leak`` = 1/τ, K' still the first slope) and L is read with it
+    (``slowing``; False: straight ramps, as a run recorded before was read)."""
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
     if t.size < 4 or not changes:
@@ -647,7 +652,7 @@ def fit_integrator(
         return float(found.x)
 
     lag = best_lag(0.0)
-    lag, leak = _with_leak(t, sse, best_lag, lag, longest)
+    lag, leak = _with_leak(t, sse, best_lag, lag, longest) if slowing else (lag, 0.0)
     (c, d, k), r = solve(lag, leak)
     if not k or not math.isfinite(k):
         return None

@@ -126,6 +126,9 @@ class StepTestConfig:
     # (``StepTest._design_delay``); False: a run recorded before, designed with the fit's, or
     # the floor of half a sample
     bound_delay: bool = False
+    # an integrating read fits its ramps' slowing with L (``fit_integrator``'s ``slowing``);
+    # False: a run recorded before, straight ramps
+    leak: bool = False
 
 
 @dataclass(frozen=True)
@@ -904,7 +907,11 @@ class StepTest:
             (restore, self.op_start - self._pulse_op),
         ]
         fit = fit_integrator(
-            np.asarray(self.t), np.asarray(self.pv), changes, pulse_start - self.t_step
+            np.asarray(self.t),
+            np.asarray(self.pv),
+            changes,
+            pulse_start - self.t_step,
+            slowing=self.config.leak,
         )
         if fit is not None:
             rate, lag, lag_se = fit.rate, fit.dead_time, fit.dead_time_se
@@ -1170,6 +1177,7 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         pv_limits=setup.pv_limits,
         swing_check=bool(setup.step_swing),
         bound_delay=bool(setup.step_delay_bound),
+        leak=bool(setup.step_leak),
         resolution=setup.resolution_floor(),
         **timeout,
     )
