@@ -80,6 +80,8 @@ def test_a_step_recorded_before_is_read_with_straight_ramps(monkeypatch):
     )
     res = _slow_step()
     assert res.experiment["model_delay"] < 8.5
+    assert res.step["slowing_lag"] is None
+    assert not [w for w in res.warnings if "ramps slowed" in w]
 
 
 def _slow_step():
@@ -114,6 +116,9 @@ def test_the_step_tests_level_rule_on_a_slow_lag_is_as_safe_as_predicted():
     res = _slow_step()
     assert res.status == "ok", res.reason
     assert res.experiment["model_delay"] == pytest.approx(10.0, rel=0.03)
+    assert res.step["slowing_lag"] == pytest.approx(1000.0, rel=0.1)
+    (said,) = [w for w in res.warnings if w.startswith("the ramps slowed as a lag of about")]
+    assert "read as integrating" in said
     isa = res.chosen["isa"]
     assert isa["td"] == 0.0
     ms = _ms(isa["kc"], isa["ti"], [1.0], [1000.0, 1.0], 10.0, TS)

@@ -113,6 +113,9 @@ class IntegratingCurve:
     # PV units per s the level drifted at the output before the step (it does not balance the
     # integrator exactly; "fit" only): the level keeps drifting so after the test
     drift: float = 0.0
+    # s: the lag whose slowing the ramps showed (``IntegratorFit.leak``, 1/τ; read with L),
+    # None: straight ramps
+    slowing_lag: float | None = None
 
     @property
     def l_over_t(self) -> None:

@@ -353,11 +353,19 @@ class StepTest:
             design = self._design_delay(model, spread, at)
             unresolved = self._unresolved_delay(model, rc, spread, design, at)
             model, step_model = self._with_delay(model, step_model, design)
+            slowing = None
+            if rc.slowing_lag is not None:
+                slowing = (
+                    f"the ramps slowed as a lag of about {_about(rc.slowing_lag)} s does, "
+                    f"{rc.slowing_lag / max(rc.dead_time, 1e-9):.3g} dead times: read as "
+                    "integrating (SIMC takes a lag past 8 dead times so), R its first slope "
+                    "and L read with the slowing"
+                )
             return Identification(
                 step=rc,
                 step_model=step_model,
                 model=model,
-                notes=[n for n in (inverse, unresolved) if n],
+                notes=[n for n in (inverse, unresolved, slowing) if n],
                 inverse_response=inverse is not None,
                 integrating=True,
                 # the model as the design takes it (``_design_delay``)
@@ -917,6 +925,7 @@ class StepTest:
             rate, lag, lag_se = fit.rate, fit.dead_time, fit.dead_time_se
             precision, how, rms = 2.0 * fit.rate_se / abs(fit.rate), "fit", fit.rms
             drift = fit.drift
+            slowing = 1.0 / fit.leak if fit.leak > 0.0 else None
         else:
             # the baseline's mean is known to σ/√n, which shifts where the ramp meets it
             base_se = self._noise / math.sqrt(self._baseline_samples) / abs(ramp.slope)
@@ -925,7 +934,7 @@ class StepTest:
                 ramp.dead_time,
                 math.hypot(ramp.dead_time_se, base_se),
             )
-            precision, how, rms, drift = ramp.precision, "ramp", None, 0.0
+            precision, how, rms, drift, slowing = ramp.precision, "ramp", None, 0.0, None
         floor = 0.5 * self.sample_time
         dead_time = max(lag, floor)
         return IntegratingCurve(
@@ -951,6 +960,7 @@ class StepTest:
             read_by=how,
             fit_rms=rms,
             drift=drift,
+            slowing_lag=slowing,
         )
 
     def _settled_curve(self) -> tuple[ReactionCurve, float] | None:
