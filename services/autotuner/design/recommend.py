@@ -122,15 +122,27 @@ def _number(x: float | None) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def envelope_problem(a: Assessment, ultimate: UltimatePoint | None, ms_bound: float) -> str | None:
+def envelope_problem(
+    a: Assessment,
+    ultimate: UltimatePoint | None,
+    ms_bound: float,
+    implied: tuple[float, float] | None = None,
+) -> str | None:
     """Why a candidate is outside the safety envelope (None if inside): Kc at or above the
-    measured K_u (the loop's own proportional gain would sustain or grow an oscillation),
-    predicted unstable, or predicted Ms above the bound."""
+    measured K_u (the loop's own proportional gain would sustain or grow an oscillation), or,
+    with none measured, above the K_u a step test's record implies by itself (``implied``:
+    K_u and its relative uncertainty; Kc past K_u·(1 + it)), predicted unstable, or predicted
+    Ms above the bound."""
     g = a.gains
     if ultimate is not None and g.kc >= ultimate.ku:
         return (
             f"Kc {g.kc:.4g} at or above the measured K_u {ultimate.ku:.4g} "
             f"({g.kc / ultimate.ku:.3g} × K_u)"
+        )
+    if ultimate is None and implied is not None and g.kc >= implied[0] * (1.0 + implied[1]):
+        return (
+            f"Kc {g.kc:.4g} above the K_u {implied[0]:.4g} the step's record implies by itself "
+            f"(± {100 * implied[1]:.2g} %; {g.kc / implied[0]:.3g} × K_u)"
         )
     rb = a.robustness
     if rb is None:
@@ -280,19 +292,22 @@ def recommend(
     without_model: str | None = None,
     aim: str = "balanced",
     pooled: bool = False,
+    implied: tuple[float, float] | None = None,
 ) -> Recommendation | None:
     """The rule to apply by default for the ``aim`` (see the module's docstring); ``candidates`` as
     ``assess`` gives them (every ultimate-point rule if not given); ``without_model`` says
     why there is no model to judge on (a refusal by ``model_check``); ``pooled``: the
     candidates are fewer than the rules computed (the others left out, said in a warning),
-    so the reason names them. None when no candidate is inside the safety envelope."""
+    so the reason names them; ``implied``: a step's record's K_u (``envelope_problem``).
+    None when no candidate is inside the safety envelope."""
     if aim not in AIMS:
         raise ValueError(f"unknown aim {aim!r}; expected one of {', '.join(AIMS)}")
     candidates = assess(ultimate, model) if candidates is None else candidates
     safe = {
         k: a
         for k, a in candidates.items()
-        if RULES[a.rule].controller != "P" and envelope_problem(a, ultimate, ms_bound) is None
+        if RULES[a.rule].controller != "P"
+        and envelope_problem(a, ultimate, ms_bound, implied) is None
     }
     if model is not None:
         sampled = any(

@@ -461,7 +461,15 @@ def select(
         # tighter margin of an approximate model (TL PID on a sampled integrator: Ms 1.7
         # predicted on a two-lag fit, 2.6 true)
         judge = dataclasses.replace(model, source="relay points")
-    rec = recommend(ultimate, judge, ms_bound, pool, without_model, aim, pooled=bool(left_out))
+    # no measured K_u: the one a step's record implies bounds Kc as a measured one would
+    # (a lead-lag's FOPDT fit, its dead time unresolved, gave AMIGO PI Kc 15 against the
+    # record's K_u of 4.4; its verification saturated the output and rejected it)
+    implied = None
+    if ultimate is None and ident.record_point is not None:
+        implied = (ident.record_point[0], ident.record_point[2])
+    rec = recommend(
+        ultimate, judge, ms_bound, pool, without_model, aim, pooled=bool(left_out), implied=implied
+    )
     # a model that misses the measured point judges no rule surely: the envelope's bound is
     # then the approximate model's tighter one (ZN PI at 1.80 from K_u and P_u alone, 3.14 on
     # the plant, had passed at 2)
@@ -469,7 +477,7 @@ def select(
     unsafe = {
         name: p
         for name, a in assessments.items()
-        if (p := envelope_problem(a, ultimate, bound)) is not None
+        if (p := envelope_problem(a, ultimate, bound, implied)) is not None
     }
     ratio = l_over_t(ident, model)
     name = (rec.rule if rec else "") if rule == "auto" else rule

@@ -1,0 +1,65 @@
+"""A step test's gains are held below the K_u its record implies, as a relay's are below the
+one it measures.
+
+(10s + 1)e^{−s}/((20s + 1)(s + 1)) answers a step at once with half its gain, after its dead
+time: an FOPDT fitted to the record starts rising early to follow that jump, its dead time
+unresolved (floored), and AMIGO PI on it was Kc 15 — 3.4 times the K_u of 4.4 that the
+record implies by itself (``step_frequency``). It was recommended at Ms 1.38 predicted, and
+its verification saturated the output for 81 % of its window and rejected it. The expected
+figures are the plant's exact ultimate point (``tests.exact``) and its Ms computed with numpy.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from services.autotuner.design.recommend import Assessment, envelope_problem
+from services.autotuner.design.rules import UltimatePoint
+from services.autotuner.tuning import RunHooks, TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.control.forms import IsaGains
+from shared.messages import TuneRequest
+from tests.exact import ultimate_point
+
+NUM, DEN, DELAY, TS = [10.0, 1.0], [20.0, 21.0, 1.0], 1.0, 0.05
+
+
+def _ms(isa: dict) -> float:
+    w = np.logspace(-4, math.log10(math.pi / TS), 60000)
+    s = 1j * w
+    g = np.polyval(NUM, s) / np.polyval(DEN, s) * np.exp(-s * (DELAY + TS / 2))
+    kc, ti, td = isa["kc"], isa["ti"], isa["td"]
+    c = kc * (1 + (1 / (ti * s) if ti else 0) + td * s / (1 + td * s / 10))
+    return float(np.max(1 / np.abs(1 + c * g)))
+
+
+def test_a_lead_lags_step_tune_keeps_kc_below_the_implied_k_u():
+    ku, _ = ultimate_point(NUM, DEN, DELAY)
+    spec = {
+        "model": "transfer_function",
+        "num": NUM,
+        "den": DEN,
+        "delay": DELAY,
+        "sample_time": TS,
+        "noise_std": 0.005,
+    }
+    for seed in (0, 1):
+        sim = build_plant({"seed": seed, "loops": {"b": spec}}, "t")["b"]
+        req = TuneRequest(loop="b", method="step")
+        r = TuningRun(LocalLoopClient(sim), req, "t", RunHooks()).run()
+        assert r.status == "ok", r.reason
+        assert r.chosen["isa"]["kc"] < ku
+        assert _ms(r.chosen["isa"]) < 2.0
+        assert r.gains["amigo-pi"]["isa"]["kc"] > ku  # still offered, no longer recommended
+        assert r.rule != "amigo-pi"
+
+
+def test_the_envelope_names_the_implied_k_u_only_without_a_measured_one():
+    a = Assessment("amigo-pi", IsaGains(kc=15.0, ti=2.2), None)
+    said = envelope_problem(a, None, 2.0, implied=(4.4, 0.05))
+    assert said is not None and "the K_u 4.4 the step's record implies by itself" in said
+    assert envelope_problem(a, None, 2.0, implied=(15.0, 0.05)) is None  # within its ± 5 %
+    assert "measured K_u" in envelope_problem(a, UltimatePoint(10.0, 3.0), 2.0, (20.0, 0.0))
