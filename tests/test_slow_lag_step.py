@@ -103,6 +103,16 @@ def _slow_step():
     return TuningRun(LocalLoopClient(sim), req, "t", RunHooks()).run()
 
 
+def test_a_noise_free_integrator_keeps_no_slowing():
+    """Without noise the straight fit's residual is rounding alone: no slowing is read from
+    rounding over rounding, and L and K' come out exact."""
+    t, y = _record(None, 10.0, 1e-3, 0.0)
+    fit = fit_integrator(t, y, CHANGES, 144.0)
+    assert fit is not None and fit.leak == 0.0
+    assert fit.dead_time == pytest.approx(10.0, abs=1e-6)
+    assert fit.rate == pytest.approx(1e-3, rel=1e-9)
+
+
 def _ms(kc: float, ti: float | None, num, den, delay: float, ts: float) -> float:
     """Sensitivity peak of a PI on the plant, the zero-order hold as half a sample of delay."""
     w = np.logspace(-6, math.log10(math.pi / ts), 80000)

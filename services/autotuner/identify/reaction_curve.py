@@ -655,7 +655,7 @@ def fit_integrator(
         return float(found.x)
 
     lag = best_lag(0.0)
-    lag, leak = _with_leak(t, sse, best_lag, lag, longest) if slowing else (lag, 0.0)
+    lag, leak = _with_leak(t, y, sse, best_lag, lag, longest) if slowing else (lag, 0.0)
     (c, d, k), r = solve(lag, leak)
     if not k or not math.isfinite(k):
         return None
@@ -676,6 +676,7 @@ def fit_integrator(
 
 def _with_leak(
     t: np.ndarray,
+    y: np.ndarray,
     sse: Callable[[float, float], float],
     best_lag: Callable[[float], float],
     lag: float,
@@ -691,7 +692,9 @@ def _with_leak(
 
     n = t.size
     base = sse(lag, 0.0)
-    if n < 8 or base <= 0.0:
+    # a residual within rounding of none (a noise-free integrator) has no slowing to show:
+    # its F would be rounding over rounding
+    if n < 8 or base <= n * (1e-9 * float(np.ptp(y))) ** 2:
         return lag, 0.0
     span = max(float(t[-1] - t[0]), longest, 1e-9)
     grid = np.linspace(math.log(1e-3 / span), math.log(10.0 / span), 13)
