@@ -414,6 +414,20 @@ def test_a_lag_slowing_down_is_not_extrapolated_past_its_end():
         assert d["dead_time"] == pytest.approx(10.0, abs=ts)
 
 
+@pytest.mark.parametrize(("noise", "seed"), [(0.0, 1), (0.005, 0), (0.005, 1), (0.005, 3)])
+def test_a_pure_delays_jump_is_not_read_as_heading_out(noise, seed):
+    """e^{−3s}/(0.01s + 1): the 5 % step's PV jumps from 50 to 55 in a sample, three seconds
+    on, and stays. The check's straight line through the flat dead time and the jump read it
+    as heading past the allowance's 75 % at 3.8 %/s, and the test aborted on every seed;
+    where the PV's trend since it began to move is the slower, it is that one. The figures
+    expected are the plant's own: K 1, L 3 s."""
+    spec = {"model": "fopdt", "gain": 1.0, "time_constant": 0.01, "delay": 3.0,
+            "sample_time": 0.1, "noise_std": noise}  # fmt: skip
+    d = run_step_test(LocalLoopClient(sim_loop(spec, seed)), StepTestConfig()).to_dict()
+    assert d["gain"] == pytest.approx(1.0, rel=0.01)
+    assert d["dead_time"] == pytest.approx(3.0, abs=0.1)
+
+
 def test_an_aborted_step_waits_for_the_pv_to_come_back():
     """A 20 % step with PV limits 45–55 stops early; the loop was restored and the command
     ended at once, the PV still moving for its dead time: a test started next measured

@@ -789,6 +789,15 @@ class StepTest:
         tw, yw = tw[-m:], yw[-m:]
         slope, level = np.polyfit(tw - tw[-1], yw, 1)
         moved = self._t_moved if self._t_moved is not None else elapsed
+        began = tw >= self.t_step + moved
+        if self._t_moved is not None and 4 <= int(began.sum()) < m:
+            # the PV began to move within the window: where its trend since is the slower one,
+            # it is that one (a line through the flat dead time and the move read a pure
+            # delay's jump, 50 to 55 in a sample and flat since, as heading past 75 at 3.8 %/s,
+            # and aborted it; a lag's onset is steepest at its start, and keeps the window's)
+            after = np.polyfit(tw[began] - tw[-1], yw[began], 1)
+            if abs(after[0]) < abs(slope):
+                slope, level = after
         horizon = 2.0 * moved + 4.0 * self.sample_time
         reach = float(level + slope * horizon)
         # the approach judged on the samples since the PV started moving: a window that also
@@ -1084,6 +1093,13 @@ def _approach_left(y: np.ndarray) -> float | None:
         return None
     m1, m2, m3 = (float(np.mean(y[i * n : (i + 1) * n])) for i in range(3))
     d1, d2 = m2 - m1, m3 - m2
+    # stopped: a clear move over the first third, none beyond the noise of the means over
+    # the last two (a dead time with next to no lag: e^{−3s}/(0.01s + 1)'s 5 % step, flat at
+    # 55 a sample after its jump, read on the straight line through the jump as heading past
+    # 75, and aborted; so was every step of a pure delay)
+    se = 3.0 * float(np.std(y[n : 3 * n])) * math.sqrt(2.0 / n)  # 3 σ of a difference of means
+    if abs(d1) > se and abs(d2) <= se:
+        return 2.0 * d2 + (m3 - float(y[-1]))
     if d1 == 0.0 or d2 == 0.0 or (d1 > 0) != (d2 > 0):
         return None
     r = d1 / d2
