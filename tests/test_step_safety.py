@@ -23,6 +23,7 @@ from services.autotuner.identify.step_test import (
     StepTest,
     StepTestAborted,
     StepTestConfig,
+    _approach_left,
 )
 from services.autotuner.step_run import run_step_test
 from services.autotuner.tuning import TuningRun
@@ -426,6 +427,20 @@ def test_a_pure_delays_jump_is_not_read_as_heading_out(noise, seed):
     d = run_step_test(LocalLoopClient(sim_loop(spec, seed)), StepTestConfig()).to_dict()
     assert d["gain"] == pytest.approx(1.0, rel=0.01)
     assert d["dead_time"] == pytest.approx(3.0, abs=0.1)
+
+
+def test_a_pv_that_moved_and_stopped_goes_no_further():
+    """The thirds' means of a PV that rose over the first third and has been flat (within its
+    noise) since: nothing left to go, where the ratio of their steps is the noise's."""
+    rng = np.random.default_rng(0)
+    y = np.concatenate((np.linspace(50.0, 55.0, 12), np.full(24, 55.0)))
+    y += rng.normal(0.0, 0.005, y.size)
+    left = _approach_left(y)
+    assert left is not None and abs(left) < 0.02
+    # flat to the bit (no noise: the steps' ratio undefined)
+    flat = np.concatenate((np.linspace(50.0, 55.0, 12), np.full(24, 55.0)))
+    assert _approach_left(flat) == 0.0
+    assert _approach_left(np.linspace(50.0, 55.0, 36)) is None  # a ramp keeps its line
 
 
 def test_an_aborted_step_waits_for_the_pv_to_come_back():
