@@ -590,3 +590,29 @@ def test_rejected_gains_whose_restore_failed_are_left_to_the_plant_to_restore():
     releases = [c for c in client.commands if isinstance(c, ReleaseCommand)]
     assert [c.restore for c in releases] == [True]
     assert state(client) == before
+
+
+def test_a_step_whose_model_is_refused_points_to_the_relay():
+    """1/(4s² + 0.8s + 1)·e^{−0.5s} (ζ 0.2): a step's SOPDT cannot follow its ringing, the
+    model is refused and no rule is left; the refusal says which test needs no model, and the
+    relay tunes the loop. The loop is left as it was."""
+    spec = {
+        "model": "transfer_function",
+        "num": [1.0],
+        "den": [4.0, 0.8, 1.0],
+        "delay": 0.5,
+        "sample_time": 0.05,
+        "noise_std": 0.005,
+    }
+
+    def tune(method: str):
+        client = LocalLoopClient(build_plant({"seed": 0, "loops": {"x": spec}}, "t")["x"])
+        before = state(client)
+        return run(client, method=method), before, state(client)
+
+    r, before, after = tune("step")
+    assert (r.status, r.applied, r.restored) == ("rejected", False, True), r.reason
+    assert "fit misses the record" in r.reason
+    assert r.reason.endswith("(--method relay)")
+    assert after[:3] == before[:3]
+    assert tune("relay")[0].status == "ok"

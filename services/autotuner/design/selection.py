@@ -522,6 +522,14 @@ def select(
                     f"; within the envelope but not recommended: {told} (--rule takes one, "
                     "verified as any)"
                 )
+            if ultimate is None and ident.step is not None:
+                # a step's rules all rest on its model or its curve: the relay's on K_u and
+                # P_u, measured (an underdamped loop's SOPDT fit missed its record and no rule
+                # was left; the relay tuned it, TL PID at Ms 1.57)
+                sel.refusal += (
+                    "; the relay test measures K_u and P_u, which its rules need no model for "
+                    "(--method relay)"
+                )
         elif name in unavailable:
             sel.refusal = f"rule {name}: unavailable: {unavailable[name]}"
         else:
