@@ -304,3 +304,40 @@ def test_the_saturation_abort_names_the_methods_that_need_no_gain() -> None:
     assert r.status == "aborted", r.reason
     assert "the output saturates at Kc = " in r.reason, r.reason
     assert r.reason.endswith("need no gain on the loop (--method relay, --method step)")
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_a_pure_delays_trials_are_watched_past_its_dead_time(seed) -> None:
+    """e^{−3s}/(0.01s + 1) (K_u 1, P_u 6 s): the first trial's fit of its staircase and noise
+    gave a period of 0.84 s, and every trial after was watched for 4.5 of those, 3.8 s, closed
+    before its response came back, and judged "did not oscillate" up to 1.7 K_u; the loop,
+    calmed at 0.7 of that, ran from 50 to the end of its range (seed 0). A period shorter than
+    the dead time the first trial showed is not the loop's: the trials run their length, the
+    PV stays within a few bumps of its rest, and K_u is found (the exact K_u is 1/|G| at
+    −180°, computed here)."""
+    spec = {
+        "model": "transfer_function",
+        "num": [1.0],
+        "den": [0.01, 1.0],
+        "delay": 3.0,
+        "sample_time": 0.1,
+        "noise_std": 0.005,
+    }
+    w = brentq(lambda w: math.atan(0.01 * w) + 3.0 * w - math.pi, 1e-6, math.pi / 3.0)
+    ku = math.hypot(1.0, 0.01 * w)
+    sim = build_plant({"seed": seed, "loops": {"puredl": spec}}, "pd")["puredl"]
+    client = LocalLoopClient(sim)
+    seen: list[float] = []
+    advance = client.advance
+
+    def watched(*a, **k):
+        out = advance(*a, **k)
+        seen.extend(s.pv for s in out)
+        return out
+
+    client.advance = watched  # type: ignore[method-assign]
+    req = TuneRequest(loop="puredl", method="ramp", apply=False)
+    r = TuningRun(client, req, "pd").run()
+    assert r.status == "proposed", r.reason
+    assert max(abs(pv - 50.0) for pv in seen) < 5.0
+    assert r.ku == pytest.approx(ku, rel=0.03)

@@ -869,9 +869,18 @@ class RampTest:
                 self._silent = not np.any(np.abs(y - self._r) >= self._moving_level())
         else:
             trial = Trial(self.kc, osc.growth, osc.period, osc.swings, cut, osc.growth_alone)
-            if self._period is None:
-                self._t_period, self._p_first = t, osc.period
-            self._period = osc.period
+            # the loop's time scale (each trial's length, the calming's window): not from a
+            # period shorter than the dead time the first trial showed, which no oscillation
+            # of the loop's own has (its ultimate period is over twice its dead time): a fit
+            # of the noise, or of a higher mode. A pure delay's first trial fitted 0.84 s for
+            # a 3 s dead time; every trial after was watched for 3.8 s, closed before its
+            # response came, judged "did not oscillate" up to 1.7 K_u, and the loop, calmed at
+            # 0.7 of that, ran to the end of its range
+            dead = (self._first_dead or 0) * self.sample_time
+            if osc.period >= dead:
+                if self._period is None:
+                    self._t_period, self._p_first = t, osc.period
+                self._period = osc.period
         self._last_len = watched
         self.trials.append(trial)
         self.events.append(
