@@ -69,3 +69,15 @@ def sopdt_tangent(k: float, t1: float, t2: float, theta: float) -> tuple[float, 
     slope = k * (math.exp(-u / t1) - math.exp(-u / t2)) / (t1 - t2)
     y = k * (1 - (t1 * math.exp(-u / t1) - t2 * math.exp(-u / t2)) / (t1 - t2))
     return theta + u - y / slope, slope
+
+
+def isa_ms(num, den, delay: float, ts: float, isa: dict) -> float:
+    """Sensitivity peak of the ISA PID ``isa`` (kc, ti, td; derivative filter Td/10) on the
+    plant num/den·e^{−delay·s}, the sampling's zero-order hold taken as half a sample of delay
+    (the usual approximation), on a grid up to the Nyquist frequency."""
+    w = np.logspace(-6, math.log10(math.pi / ts), 80000)
+    s = 1j * w
+    g = np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * (delay + ts / 2))
+    kc, ti, td = isa["kc"], isa["ti"], isa["td"]
+    c = kc * (1 + (1 / (ti * s) if ti else 0) + td * s / (1 + td * s / 10))
+    return float(np.max(1 / np.abs(1 + c * g)))

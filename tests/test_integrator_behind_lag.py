@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 
 from services.autotuner.identify import experiments
@@ -21,24 +20,13 @@ from services.autotuner.identify.model_fit import second_order_starts
 from services.autotuner.tuning import TuningRun
 from services.offline.local_loop import LocalLoopClient
 from shared.messages import TuneRequest
-from tests.exact import magnitude, phase, ultimate_point
+from tests.exact import isa_ms, magnitude, phase, ultimate_point
 from tests.plants import transfer_function_loop
 from tests.test_experiments import run_ramp
 
 # 0.05·e^{−s}/(s(2s + 1)): a level behind a 2 s valve, 1 s of dead time, sampled at 0.1 s
 LEVEL = ([0.05], [2.0, 1.0, 0.0], 1.0, 0.1)
 HX = ([1.0], [600.0, 70.0, 1.0], 5.0, 0.25)  # the heat exchanger preset
-
-
-def _ms(num, den, delay, ts, isa: dict) -> float:
-    """Sensitivity peak of the ISA PID (derivative filter Td/10) on the plant, the sampling's
-    zero-order hold taken as half a sample of delay."""
-    w = np.logspace(-4, math.log10(math.pi / ts), 40000)
-    s = 1j * w
-    g = np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * (delay + ts / 2))
-    kc, ti, td = isa["kc"], isa["ti"], isa["td"]
-    c = kc * (1 + (1 / (ti * s) if ti else 0) + td * s / (1 + td * s / 10))
-    return float(np.max(1 / np.abs(1 + c * g)))
 
 
 def _ramp(plant, noise: float, seed: int):
@@ -72,7 +60,7 @@ def test_the_ramp_models_an_integrator_behind_a_lag():
     assert model["model_gain"] / slow == pytest.approx(0.05, rel=0.05)
     assert fast == pytest.approx(2.0, rel=0.1)
     assert model["model_delay"] == pytest.approx(1.0, rel=0.1)
-    assert _ms(*LEVEL, result.chosen["isa"]) < 2.0
+    assert isa_ms(*LEVEL, result.chosen["isa"]) < 2.0
 
 
 def test_the_ramp_models_the_heat_exchanger():
@@ -86,7 +74,7 @@ def test_the_ramp_models_the_heat_exchanger():
     assert model["model_delay"] == pytest.approx(5.0, rel=0.05)
     # the robustness it predicts is the plant's: every PID rule's Ms within 5 %
     for rule in ("amigo-pid", "tl-pid", "simc-pid"):
-        true = _ms(*HX, result.gains[rule]["isa"])
+        true = isa_ms(*HX, result.gains[rule]["isa"])
         assert result.robustness[rule]["ms"] == pytest.approx(true, rel=0.05), rule
 
 

@@ -23,6 +23,7 @@ from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.messages import TuneRequest
+from tests.exact import isa_ms
 
 TS = 1.0  # s
 # the step test's own output changes on the plant below: a step of 5 %, then the pulse of
@@ -113,15 +114,6 @@ def test_a_noise_free_integrator_keeps_no_slowing():
     assert fit.rate == pytest.approx(1e-3, rel=1e-9)
 
 
-def _ms(kc: float, ti: float | None, num, den, delay: float, ts: float) -> float:
-    """Sensitivity peak of a PI on the plant, the zero-order hold as half a sample of delay."""
-    w = np.logspace(-6, math.log10(math.pi / ts), 80000)
-    s = 1j * w
-    g = np.polyval(num, s) / np.polyval(den, s) * np.exp(-s * (delay + ts / 2))
-    c = kc * (1 + (1 / (ti * s) if ti else 0))
-    return float(np.max(1 / np.abs(1 + c * g)))
-
-
 def test_the_step_tests_level_rule_on_a_slow_lag_is_as_safe_as_predicted():
     res = _slow_step()
     assert res.status == "ok", res.reason
@@ -131,7 +123,7 @@ def test_the_step_tests_level_rule_on_a_slow_lag_is_as_safe_as_predicted():
     assert "read as integrating" in said
     isa = res.chosen["isa"]
     assert isa["td"] == 0.0
-    ms = _ms(isa["kc"], isa["ti"], [1.0], [1000.0, 1.0], 10.0, TS)
+    ms = isa_ms([1.0], [1000.0, 1.0], 10.0, TS, isa)
     assert ms < 2.0
     assert ms == pytest.approx(res.robustness[res.rule]["ms"], rel=0.05)
 
