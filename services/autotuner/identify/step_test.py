@@ -746,8 +746,8 @@ class StepTest:
         """Why no rest came, where the PV is still settling as a lag does: its time constant
         read from the record's last three sixths (their means' differences fall by e^{−w/τ}
         from one to the next), and the time to ask for; empty where they do not fall so.
-        A clean e^{−10s}/(1000s + 1) has no rest within 7,200 s; with --max-time 30000 its
-        step test ends with the FOPDT exact."""
+        A clean e^{−10s}/(1000s + 1) has no rest within 7,200 s; with the --max-time named
+        (8100) its step test ends with the FOPDT exact."""
         t, y = np.asarray(self.t), np.asarray(self.pv)
         after = t > self.t_step
         t, y = t[after], y[after]
