@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from services.autotuner.identify import methods
+from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive as drive_experiment
 from services.autotuner.identify.experiments import DEFAULT_BUMP_FRACTION, Settings, Setup
 from services.autotuner.identify.ramp import RampConfig, RampTest
@@ -341,3 +341,26 @@ def test_a_pure_delays_trials_are_watched_past_its_dead_time(seed) -> None:
     assert r.status == "proposed", r.reason
     assert max(abs(pv - 50.0) for pv in seen) < 5.0
     assert r.ku == pytest.approx(ku, rel=0.03)
+
+
+def test_a_pure_delays_ramp_recorded_before_replays_as_it_ran(monkeypatch) -> None:
+    """A ramp recorded before ``ramp_period_floor`` rebuilds the experiment that ran: on the
+    pure delay above (seed 0), every period taken, the PV ran to the end of its range."""
+    live = experiments.live_flags
+    monkeypatch.setattr(
+        experiments,
+        "live_flags",
+        lambda method: {k: v for k, v in live(method).items() if k != "ramp_period_floor"},
+    )
+    spec = {
+        "model": "transfer_function",
+        "num": [1.0],
+        "den": [0.01, 1.0],
+        "delay": 3.0,
+        "sample_time": 0.1,
+        "noise_std": 0.005,
+    }
+    sim = build_plant({"seed": 0, "loops": {"puredl": spec}}, "pd")["puredl"]
+    req = TuneRequest(loop="puredl", method="ramp", apply=False)
+    r = TuningRun(LocalLoopClient(sim), req, "pd").run()
+    assert r.status == "aborted" and "clipped there" in r.reason, r.reason

@@ -389,6 +389,9 @@ class Setup:
     # True: the ramp's process model is also fitted from lags far apart and from an
     # integrator behind a lag (``RampConfig.more_starts``); None: recorded before, without
     ramp_more_starts: bool | None = None
+    # True: a ramp trial's period shorter than the dead time the first trial showed is not the
+    # loop's time scale (``RampConfig.period_floor``); None: recorded before, every period was
+    ramp_period_floor: bool | None = None
     # True: a step test read as integrating fits its ramps' slowing with its dead time (a lag
     # far slower than the test: ``reaction_curve.fit_integrator``'s leak); None: recorded
     # before, straight ramps
@@ -450,6 +453,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "ramp_hand_back",
         "ramp_settled",
         "ramp_more_starts",
+        "ramp_period_floor",
         "pv_clip",
         "resolution",
     ),

@@ -158,6 +158,9 @@ class RampConfig:
     # a lag (``model_fit.second_order_starts``), and the integrators fit the output's offset
     # from its balance. False: a run recorded before, without either
     more_starts: bool = True
+    # a trial's period shorter than the dead time the first trial showed is not taken as the
+    # loop's time scale (``_close_trial``). False: a run recorded before, every period taken
+    period_floor: bool = True
     # PV units the transmitter does not resolve (``Setup.resolution_floor``): a quiet window
     # may drift within it and be rest (a noise-free PV's creep after a test); 0: the noise
     # alone decides (a run recorded before)
@@ -877,7 +880,7 @@ class RampTest:
             # response came, judged "did not oscillate" up to 1.7 K_u, and the loop, calmed at
             # 0.7 of that, ran to the end of its range
             dead = (self._first_dead or 0) * self.sample_time
-            if osc.period >= dead:
+            if osc.period >= dead or not self.config.period_floor:
                 if self._period is None:
                     self._t_period, self._p_first = t, osc.period
                 self._period = osc.period
@@ -1315,6 +1318,7 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         hand_back=bool(setup.ramp_hand_back),
         settled_by_move=bool(setup.ramp_settled),
         more_starts=bool(setup.ramp_more_starts),
+        period_floor=bool(setup.ramp_period_floor),
         resolution=setup.resolution_floor(),
         **first,
         **budget,
