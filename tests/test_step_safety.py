@@ -429,6 +429,15 @@ def test_a_pure_delays_jump_is_not_read_as_heading_out(noise, seed):
     assert d["dead_time"] == pytest.approx(3.0, abs=0.1)
 
 
+def test_a_pure_delays_step_recorded_before_replays_as_it_ran():
+    """A step recorded before ``step_trend_since_move`` rebuilds the check that ran: the
+    pure delay's jump read as heading out, and the test aborted."""
+    spec = {"model": "fopdt", "gain": 1.0, "time_constant": 0.01, "delay": 3.0,
+            "sample_time": 0.1, "noise_std": 0.005}  # fmt: skip
+    with pytest.raises(StepTestAborted, match="would leave the test's allowance"):
+        run_step_test(LocalLoopClient(sim_loop(spec, 0)), StepTestConfig(trend_since_move=False))
+
+
 def test_a_pv_that_moved_and_stopped_goes_no_further():
     """The thirds' means of a PV that rose over the first third and has been flat (within its
     noise) since: nothing left to go, where the ratio of their steps is the noise's."""

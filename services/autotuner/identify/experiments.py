@@ -396,6 +396,9 @@ class Setup:
     # far slower than the test: ``reaction_curve.fit_integrator``'s leak); None: recorded
     # before, straight ramps
     step_leak: bool | None = None
+    # True: a step test's check for a PV heading out reads the trend since the PV began to
+    # move where that is slower (``StepTestConfig.trend_since_move``); None: recorded before
+    step_trend_since_move: bool | None = None
 
     def resolution_floor(self) -> float:
         """PV units: what the transmitter does not resolve (``signals.no_response_floor``),
@@ -457,7 +460,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "pv_clip",
         "resolution",
     ),
-    "step": ("step_swing", "step_delay_bound", "step_leak", "resolution"),
+    "step": ("step_swing", "step_delay_bound", "step_leak", "step_trend_since_move", "resolution"),
 }
 
 

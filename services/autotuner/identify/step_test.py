@@ -129,6 +129,10 @@ class StepTestConfig:
     # an integrating read fits its ramps' slowing with L (``fit_integrator``'s ``slowing``);
     # False: a run recorded before, straight ramps
     leak: bool = False
+    # the check for a PV heading out reads the trend since the PV began to move where that is
+    # the slower one, and a PV that moved then stopped goes no further (``_heading_out``);
+    # False: a run recorded before, the window's straight line alone
+    trend_since_move: bool = True
 
 
 @dataclass(frozen=True)
@@ -790,7 +794,8 @@ class StepTest:
         slope, level = np.polyfit(tw - tw[-1], yw, 1)
         moved = self._t_moved if self._t_moved is not None else elapsed
         began = tw >= self.t_step + moved
-        if self._t_moved is not None and 4 <= int(began.sum()) < m:
+        since_move = self.config.trend_since_move
+        if since_move and self._t_moved is not None and 4 <= int(began.sum()) < m:
             # the PV began to move within the window: where its trend since is the slower one,
             # it is that one (a line through the flat dead time and the move read a pure
             # delay's jump, 50 to 55 in a sample and flat since, as heading past 75 at 3.8 %/s,
@@ -804,7 +809,7 @@ class StepTest:
         # holds the flat dead time before it reads a lag's onset as speeding up (the straight
         # line took e^{−10s}/(2s+1)'s 5 % step, at 53.2 and slowing, past 75: helper trial F)
         since = y[keep][t[keep] >= self.t_step + moved] if self._t_moved is not None else yw
-        left = _approach_left(since if since.size >= 12 else yw)
+        left = _approach_left(since if since.size >= 12 else yw, stopped=since_move)
         if left is not None and abs(left) < abs(reach - level):
             # slowing down as a lag's approach does: it goes no further than its end (a
             # straight line over 2 L took e^{−10s}/(2s+1)'s 5 % step past 75 %: it ends at 55)
@@ -1080,14 +1085,15 @@ def samples_to_check(n: int) -> int:
     return (n // spacing + 1) * spacing - n
 
 
-def _approach_left(y: np.ndarray) -> float | None:
+def _approach_left(y: np.ndarray, stopped: bool = True) -> float | None:
     """How much further a PV slowing down as a lag's exponential approach would go (PV
     units, signed), from the means of the record's three thirds (m₁, m₂, m₃): their steps
     shrink by r = (m₂ − m₁)/(m₃ − m₂) a third, so what is left after the last third's middle
     is (m₃ − m₂)/(r − 1), taken twice over (the noise in the means, a lag not quite
     exponential) and from the last sample. None unless the PV clearly slows (r > 1.2) in one
     direction: a response still speeding up (an S-curve before its inflection) keeps the
-    straight line."""
+    straight line. ``stopped``: a PV that moved over the first third and not beyond the
+    noise since goes no further (False: a run recorded before)."""
     n = y.size // 3
     if n < 4:
         return None
@@ -1098,7 +1104,7 @@ def _approach_left(y: np.ndarray) -> float | None:
     # 55 a sample after its jump, read on the straight line through the jump as heading past
     # 75, and aborted; so was every step of a pure delay)
     se = 3.0 * float(np.std(y[n : 3 * n])) * math.sqrt(2.0 / n)  # 3 σ of a difference of means
-    if abs(d1) > se and abs(d2) <= se:
+    if stopped and abs(d1) > se and abs(d2) <= se:
         return 2.0 * d2 + (m3 - float(y[-1]))
     if d1 == 0.0 or d2 == 0.0 or (d1 > 0) != (d2 > 0):
         return None
@@ -1204,6 +1210,7 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         swing_check=bool(setup.step_swing),
         bound_delay=bool(setup.step_delay_bound),
         leak=bool(setup.step_leak),
+        trend_since_move=bool(setup.step_trend_since_move),
         resolution=setup.resolution_floor(),
         **timeout,
     )
