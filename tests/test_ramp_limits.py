@@ -306,6 +306,17 @@ def test_the_saturation_abort_names_the_methods_that_need_no_gain() -> None:
     assert r.reason.endswith("need no gain on the loop (--method relay, --method step)")
 
 
+# e^{−3s}/(0.01s + 1): a transport delay (K_u 1, P_u 6 s), sampled at 0.1 s, σ 0.005
+PURE_DELAY = {
+    "model": "transfer_function",
+    "num": [1.0],
+    "den": [0.01, 1.0],
+    "delay": 3.0,
+    "sample_time": 0.1,
+    "noise_std": 0.005,
+}
+
+
 @pytest.mark.parametrize("seed", [0, 2])
 def test_a_pure_delays_trials_are_watched_past_its_dead_time(seed) -> None:
     """e^{−3s}/(0.01s + 1) (K_u 1, P_u 6 s): the first trial's fit of its staircase and noise
@@ -315,17 +326,9 @@ def test_a_pure_delays_trials_are_watched_past_its_dead_time(seed) -> None:
     the dead time the first trial showed is not the loop's: the trials run their length, the
     PV stays within a few bumps of its rest, and K_u is found (the exact K_u is 1/|G| at
     −180°, computed here)."""
-    spec = {
-        "model": "transfer_function",
-        "num": [1.0],
-        "den": [0.01, 1.0],
-        "delay": 3.0,
-        "sample_time": 0.1,
-        "noise_std": 0.005,
-    }
     w = brentq(lambda w: math.atan(0.01 * w) + 3.0 * w - math.pi, 1e-6, math.pi / 3.0)
     ku = math.hypot(1.0, 0.01 * w)
-    sim = build_plant({"seed": seed, "loops": {"puredl": spec}}, "pd")["puredl"]
+    sim = build_plant({"seed": seed, "loops": {"puredl": PURE_DELAY}}, "pd")["puredl"]
     client = LocalLoopClient(sim)
     seen: list[float] = []
     advance = client.advance
@@ -352,15 +355,7 @@ def test_a_pure_delays_ramp_recorded_before_replays_as_it_ran(monkeypatch) -> No
         "live_flags",
         lambda method: {k: v for k, v in live(method).items() if k != "ramp_period_floor"},
     )
-    spec = {
-        "model": "transfer_function",
-        "num": [1.0],
-        "den": [0.01, 1.0],
-        "delay": 3.0,
-        "sample_time": 0.1,
-        "noise_std": 0.005,
-    }
-    sim = build_plant({"seed": 0, "loops": {"puredl": spec}}, "pd")["puredl"]
+    sim = build_plant({"seed": 0, "loops": {"puredl": PURE_DELAY}}, "pd")["puredl"]
     req = TuneRequest(loop="puredl", method="ramp", apply=False)
     r = TuningRun(LocalLoopClient(sim), req, "pd").run()
     assert r.status == "aborted" and "clipped there" in r.reason, r.reason
