@@ -34,10 +34,18 @@ def run_relay(num, den, delay, ts, noise=0.0, seed=0, **kw) -> RelayTest:
 
 
 def transfer_function_loop(
-    num, den, delay, ts, noise=0.0, seed=0, pv_range: tuple[float, float] | None = None
+    num,
+    den,
+    delay,
+    ts,
+    noise=0.0,
+    seed=0,
+    pv_range: tuple[float, float] | None = None,
+    name: str = "x",
 ) -> SimLoop:
-    """A plant_sim loop ``x`` of num/den·e^{−delay·s} sampled every ``ts`` s, seeded Gaussian
-    noise of σ ``noise`` on its PV; ``pv_range``: its transmitter's (None: the default)."""
+    """A plant_sim loop ``name`` of num/den·e^{−delay·s} sampled every ``ts`` s, seeded
+    Gaussian noise of σ ``noise`` on its PV (its draws depend on the loop's name as well as
+    the seed); ``pv_range``: its transmitter's (None: the default)."""
     spec = {
         "model": "transfer_function",
         "num": num,
@@ -48,7 +56,7 @@ def transfer_function_loop(
     }
     if pv_range is not None:
         spec["pv_range"] = list(pv_range)
-    return build_plant({"seed": seed, "loops": {"x": spec}})["x"]
+    return build_plant({"seed": seed, "loops": {name: spec}})[name]
 
 
 def live_tune(

@@ -24,10 +24,10 @@ from services.autotuner.design.robustness import Robustness
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
-from services.plant_sim.plant_file import build_plant
 from shared.control.forms import IsaGains
 from shared.messages import TuneRequest
 from tests.exact import isa_ms
+from tests.plants import transfer_function_loop
 
 NUM, DEN, DELAY, TS = [1.0], [100.0, 101.0, 1.0], 0.5, 0.02
 MODEL = ProcessFit("sopdt", 1.0, (100.0, 1.0), 0.5, 0.0)
@@ -62,19 +62,12 @@ def test_a_calm_candidate_within_the_share_is_still_preferred():
 
 
 def test_the_two_time_scale_loop_by_step_is_not_tuned_to_a_crawl():
-    spec = {
-        "model": "transfer_function",
-        "num": NUM,
-        "den": DEN,
-        "delay": DELAY,
-        "sample_time": TS,
-        "noise_std": 0.002,
-    }
-    sim = build_plant({"seed": 1, "loops": {"twosc": spec}}, "t")["twosc"]
+    sim = transfer_function_loop(NUM, DEN, DELAY, TS, 0.002, seed=1, name="twosc")
     r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="twosc", method="step"), "t", RunHooks())
     res = r.run()
     assert res.status == "ok", res.reason
     assert not res.rule.startswith("lambda"), res.recommended
+    assert "lambda-pid, has" in res.recommended["reason"], res.recommended  # the case above
     ms = isa_ms(NUM, DEN, DELAY, TS, res.chosen["isa"])
     assert 1.2 < ms < 1.8, ms  # robust, and not the Ms 1.01 of a loop left to crawl
     isa = res.chosen["isa"]

@@ -281,15 +281,21 @@ CALM_DECAY = 0.25  # predicted decay ratio preferred (verification limit 0.35)
 CALM_KI_SHARE = 0.25
 
 
-def _calm(a: Assessment) -> bool:
-    """The candidate's predicted setpoint step keeps inside the preferred overshoot and decay."""
+def _step_within(a: Assessment, overshoot: float, decay: float) -> bool:
+    """The candidate's predicted setpoint step keeps within ``overshoot`` (%) and the decay
+    ratio ``decay``."""
     st = a.step
     return (
         st is not None
         and st.stable
-        and st.overshoot <= CALM_OVERSHOOT
-        and (st.decay_ratio or 0.0) <= CALM_DECAY
+        and st.overshoot <= overshoot
+        and (st.decay_ratio or 0.0) <= decay
     )
+
+
+def _calm(a: Assessment) -> bool:
+    """The candidate's predicted setpoint step keeps inside the preferred overshoot and decay."""
+    return _step_within(a, CALM_OVERSHOOT, CALM_DECAY)
 
 
 # the verification's default limits (``TuneRequest.max_overshoot``, ``max_decay_ratio``; the
@@ -301,13 +307,7 @@ PASSABLE_DECAY = 0.35
 
 def _passable(a: Assessment) -> bool:
     """The candidate's predicted setpoint step keeps inside the verification's own limits."""
-    st = a.step
-    return (
-        st is not None
-        and st.stable
-        and st.overshoot <= PASSABLE_OVERSHOOT
-        and (st.decay_ratio or 0.0) <= PASSABLE_DECAY
-    )
+    return _step_within(a, PASSABLE_OVERSHOOT, PASSABLE_DECAY)
 
 
 def _integral_gain(a: Assessment) -> float:
