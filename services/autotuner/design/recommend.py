@@ -272,7 +272,7 @@ CALM_OVERSHOOT = 25.0  # %: predicted setpoint overshoot preferred (verification
 # a model's prediction misses the plant's by some 5–10 points)
 CALM_DECAY = 0.25  # predicted decay ratio preferred (verification limit 0.35)
 # the least share of a passable candidate's integral gain (``_passable``) that the calm
-# preference may keep: a load's integrated error is 1/Ki (Åström & Hägglund 2006, §4.4), so
+# preference may keep: a unit load step leaves an integrated error of 1/Ki (Åström & Hägglund), so
 # below it the calm candidate answers a load at least four times worse, where one predicted
 # within the verification's own limits does not. Why: on e^{−0.5s}/((100s + 1)(s + 1)) by
 # step, AMIGO PI predicted 25.001 % of overshoot and only lambda PID (Ti = T, λ = T) was left
