@@ -1,5 +1,6 @@
 """The P-gain ramp's limits: budgets that hold, an output that saturates, a start gain far
-too high, and K_u on a lag-dominated plant whose trials would saturate the output.
+too high, K_u on a lag-dominated plant whose trials would saturate the output, and a process
+that drifts whatever the loop does.
 
 Each test drives ``RampTest`` in-process against a plant stepped in the same process (the
 loop's own P-only PID block), with fixed seeds. Expected ultimate points come from closed
@@ -20,7 +21,7 @@ from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive as drive_experiment
 from services.autotuner.identify.experiments import DEFAULT_BUMP_FRACTION, Settings, Setup
 from services.autotuner.identify.ramp import RampConfig, RampTest
-from services.autotuner.tuning import TuningRun
+from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient, Reading, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.loop import SimLoop
@@ -359,3 +360,18 @@ def test_a_pure_delays_ramp_recorded_before_replays_as_it_ran(monkeypatch) -> No
     req = TuneRequest(loop="puredl", method="ramp", apply=False)
     r = TuningRun(LocalLoopClient(sim), req, "pd").run()
     assert r.status == "aborted" and "clipped there" in r.reason, r.reason
+
+
+def test_a_ramp_on_a_drifting_process_aborts_naming_the_process_and_restores():
+    """A hidden load swinging ±0.5 % every 40 s keeps the PV moving whatever the loop's gain:
+    the calming's gain is halved to 1/16 of its first and the test aborts, saying that at such
+    a gain it is the process that moves the PV (it said only "does not calm"), the loop left
+    as it was."""
+    spec = {"model": "tests.drifting_plant:Drifting", "sample_time": 0.1, "noise_std": 0.02}
+    sim = build_plant({"seed": 0, "loops": {"d": spec}}, "t")["d"]
+    before = (sim.mode, sim.op, sim.sp, sim.pid.gains)
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="d", method="ramp"), "t", RunHooks()).run()
+    assert r.status == "aborted", r.reason
+    assert "does not calm between trials" in r.reason, r.reason
+    assert "the process does: a drift or an upset during the test" in r.reason, r.reason
+    assert (sim.mode, sim.op, sim.sp, sim.pid.gains) == before

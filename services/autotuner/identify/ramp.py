@@ -1161,8 +1161,19 @@ class RampTest:
         )
         if stuck or t - self._settle_t0 > self.config.settle_periods * scale:
             if self._calm_cuts >= self.config.max_calm_cuts:
+                # at a gain cut so far the loop's own action hardly moves the PV: what keeps
+                # it moving is the process (a hidden load swinging ±0.5 % every 40 s on an
+                # FOPDT aborted here at Kc 0.0097, 1/16 of its first calming gain)
+                cause = (
+                    ""
+                    if stuck
+                    else "; at a gain this small the loop hardly moves the PV, so the process "
+                    "does: a drift or an upset during the test, or noise beyond the calm check's "
+                    "allowance — try again when the process is steady"
+                )
                 self._abort(
                     f"the loop does not calm between trials, even at Kc = {self._calm_kc:.4g}"
+                    + cause
                 )
                 return
             self._calm_cuts += 1
