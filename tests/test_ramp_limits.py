@@ -292,30 +292,16 @@ def test_the_saturation_abort_names_the_methods_that_need_no_gain() -> None:
     """e^{−10s}/(5000s + 1) has K_u near 785: its trials saturate the output even with the
     least bump the noise allows, and the abort says what to use instead, as the no-bump abort
     does."""
-    spec = {
-        "model": "transfer_function",
-        "num": [1.0],
-        "den": [5000.0, 1.0],
-        "delay": 10.0,
-        "sample_time": 1.0,
-        "noise_std": 0.002,
-    }
-    sim = build_plant({"seed": 0, "loops": {"s": spec}}, "sat")["s"]
+    sim = transfer_function_loop([1.0], [5000.0, 1.0], 10.0, 1.0, 0.002, name="s")
     r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="s", method="ramp"), "sat").run()
     assert r.status == "aborted", r.reason
     assert "the output saturates at Kc = " in r.reason, r.reason
     assert r.reason.endswith("need no gain on the loop (--method relay, --method step)")
 
 
-# e^{−3s}/(0.01s + 1): a transport delay (K_u 1, P_u 6 s), sampled at 0.1 s, σ 0.005
-PURE_DELAY = {
-    "model": "transfer_function",
-    "num": [1.0],
-    "den": [0.01, 1.0],
-    "delay": 3.0,
-    "sample_time": 0.1,
-    "noise_std": 0.005,
-}
+def _pure_delay(seed: int) -> SimLoop:
+    """e^{−3s}/(0.01s + 1): a transport delay (K_u 1, P_u 6 s), sampled at 0.1 s, σ 0.005."""
+    return transfer_function_loop([1.0], [0.01, 1.0], 3.0, 0.1, 0.005, seed=seed, name="puredl")
 
 
 @pytest.mark.parametrize("seed", [0, 2])
@@ -329,7 +315,7 @@ def test_a_pure_delays_trials_are_watched_past_its_dead_time(seed) -> None:
     −180°, computed here)."""
     w = brentq(lambda w: math.atan(0.01 * w) + 3.0 * w - math.pi, 1e-6, math.pi / 3.0)
     ku = math.hypot(1.0, 0.01 * w)
-    sim = build_plant({"seed": seed, "loops": {"puredl": PURE_DELAY}}, "pd")["puredl"]
+    sim = _pure_delay(seed)
     client = LocalLoopClient(sim)
     seen: list[float] = []
     advance = client.advance
@@ -356,7 +342,7 @@ def test_a_pure_delays_ramp_recorded_before_replays_as_it_ran(monkeypatch) -> No
         "live_flags",
         lambda method: {k: v for k, v in live(method).items() if k != "ramp_period_floor"},
     )
-    sim = build_plant({"seed": 0, "loops": {"puredl": PURE_DELAY}}, "pd")["puredl"]
+    sim = _pure_delay(0)
     req = TuneRequest(loop="puredl", method="ramp", apply=False)
     r = TuningRun(LocalLoopClient(sim), req, "pd").run()
     assert r.status == "aborted" and "clipped there" in r.reason, r.reason

@@ -21,9 +21,9 @@ from services.autotuner.identify import experiments, reaction_curve
 from services.autotuner.identify.reaction_curve import fit_integrator
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
-from services.plant_sim.plant_file import build_plant
 from shared.messages import TuneRequest
 from tests.exact import isa_ms
+from tests.plants import transfer_function_loop
 
 TS = 1.0  # s
 # the step test's own output changes on the plant below: a step of 5 %, then the pulse of
@@ -86,20 +86,7 @@ def test_a_step_recorded_before_is_read_with_straight_ramps(monkeypatch):
 
 
 def _slow_step():
-    plant = {
-        "seed": 0,
-        "loops": {
-            "slow": {
-                "model": "transfer_function",
-                "num": [1.0],
-                "den": [1000.0, 1.0],
-                "delay": 10.0,
-                "sample_time": TS,
-                "noise_std": 0.002,
-            }
-        },
-    }
-    sim = build_plant(plant, "t")["slow"]
+    sim = transfer_function_loop([1.0], [1000.0, 1.0], 10.0, TS, 0.002, name="slow")
     req = TuneRequest(loop="slow", method="step")
     return TuningRun(LocalLoopClient(sim), req, "t", RunHooks()).run()
 
@@ -135,21 +122,9 @@ def test_a_lag_too_slow_for_the_time_allowed_is_named_with_the_time_it_needs():
     the test with the plant's own FOPDT."""
 
     def run(max_time: float | None):
-        plant = {
-            "seed": 0,
-            "loops": {
-                "s": {
-                    "model": "transfer_function",
-                    "num": [1.0],
-                    "den": [1000.0, 1.0],
-                    "delay": 10.0,
-                    "sample_time": TS,
-                    "noise_std": 0.0,
-                }
-            },
-        }
+        sim = transfer_function_loop([1.0], [1000.0, 1.0], 10.0, TS, name="s")
         req = TuneRequest(loop="s", method="step", max_time=max_time)
-        return TuningRun(LocalLoopClient(build_plant(plant, "t")["s"]), req, "t", RunHooks()).run()
+        return TuningRun(LocalLoopClient(sim), req, "t", RunHooks()).run()
 
     first = run(None)
     assert first.status == "aborted"

@@ -15,26 +15,18 @@ from services.autotuner.design.recommend import Assessment, envelope_problem
 from services.autotuner.design.rules import UltimatePoint
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
-from services.plant_sim.plant_file import build_plant
 from shared.control.forms import IsaGains
 from shared.messages import TuneRequest
 from tests.exact import isa_ms, ultimate_point
+from tests.plants import transfer_function_loop
 
 NUM, DEN, DELAY, TS = [10.0, 1.0], [20.0, 21.0, 1.0], 1.0, 0.05
 
 
 def test_a_lead_lags_step_tune_keeps_kc_below_the_implied_k_u():
     ku, _ = ultimate_point(NUM, DEN, DELAY)
-    spec = {
-        "model": "transfer_function",
-        "num": NUM,
-        "den": DEN,
-        "delay": DELAY,
-        "sample_time": TS,
-        "noise_std": 0.005,
-    }
     for seed in (0, 1):
-        sim = build_plant({"seed": seed, "loops": {"b": spec}}, "t")["b"]
+        sim = transfer_function_loop(NUM, DEN, DELAY, TS, 0.005, seed=seed, name="b")
         req = TuneRequest(loop="b", method="step")
         r = TuningRun(LocalLoopClient(sim), req, "t", RunHooks()).run()
         assert r.status == "ok", r.reason

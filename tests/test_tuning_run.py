@@ -31,6 +31,7 @@ from shared.messages import (
     TuneProgress,
     TuneRequest,
 )
+from tests.plants import transfer_function_loop
 
 OLD_GAINS = {"kc": 2.0, "ti": 2.0}
 WRITES = (GainsCommand, ModeCommand, OutputCommand, SetpointCommand)
@@ -596,17 +597,9 @@ def test_a_step_whose_model_is_refused_points_to_the_relay():
     """1/(4s² + 0.8s + 1)·e^{−0.5s} (ζ 0.2): a step's SOPDT cannot follow its ringing, the
     model is refused and no rule is left; the refusal says which test needs no model, and the
     relay tunes the loop. The loop is left as it was."""
-    spec = {
-        "model": "transfer_function",
-        "num": [1.0],
-        "den": [4.0, 0.8, 1.0],
-        "delay": 0.5,
-        "sample_time": 0.05,
-        "noise_std": 0.005,
-    }
 
     def tune(method: str):
-        client = LocalLoopClient(build_plant({"seed": 0, "loops": {"x": spec}}, "t")["x"])
+        client = LocalLoopClient(transfer_function_loop([1.0], [4.0, 0.8, 1.0], 0.5, 0.05, 0.005))
         before = state(client)
         return run(client, method=method), before, state(client)
 
