@@ -13,6 +13,7 @@ the lease lapsed.
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import queue
 import secrets
@@ -43,6 +44,8 @@ from shared.messages import (
     SyncCommand,
 )
 from shared.session import unreached
+
+log = logging.getLogger("autotuner")
 
 LEASE_TIMEOUT = 10.0  # s of wall time without a command before the plant restores the loop
 RENEW_EVERY = 2.0  # s of wall time between lease-keeping syncs in realtime, at most
@@ -227,6 +230,10 @@ class LoopClient:
         self.holding = False  # this client holds the loop's lease (confirmed by the plant)
         self.gone = False  # the plant's liveliness token vanished since this client began
         self.fault: str | None = None  # the loop's fault, once a status carried one
+        # messages on the loop's keys that could not be read (not JSON, not the schema, a
+        # batch of another loop): rejected, counted and logged, never acted on
+        self.rejected = 0
+        self.last_rejected: str | None = None
         # commands of MOVING_KINDS sent and not yet answered by a status in this client's name
         self._unanswered: Counter[str] = Counter()
         # Zenoh's receiving thread puts each message straight on the inbox, in order: no
@@ -302,6 +309,19 @@ class LoopClient:
                 self._others -= 1
             return item
 
+    def _reject(self, key: str, why: str) -> None:
+        """A message on the loop's ``key`` that cannot be read: counted, logged (the first
+        few, then every hundredth) and dropped. Why not an abort: any client on a bus without
+        credentials can put such a payload there, and a malformed message ended a healthy
+        run with pydantic's complaint as its reason (helper trial); a real sample lost this
+        way leaves a lockstep advance short, which its bounded wait reports, naming these."""
+        self.rejected += 1
+        self.last_rejected = f"{key}: {why}"
+        if self.rejected <= 3 or self.rejected % 100 == 0:
+            log.warning(
+                "loop %s: rejected message %d on %s: %s", self.loop, self.rejected, key, why
+            )
+
     def _watch_alive(self) -> None:
         """The plant's token vanishing (killed, or this client cut off from it) ends the wait
         at once: Zenoh tells in milliseconds what a timeout would in seconds."""
@@ -366,6 +386,11 @@ class LoopClient:
                         )
                     else:
                         why = ""
+                    if self.rejected:  # a sample may have been among them
+                        why += (
+                            f"; {self.rejected} message(s) on the loop's keys were rejected "
+                            f"as unreadable during the run (the last: {self.last_rejected})"
+                        )
                     raise PlantLost(
                         f"loop {self.loop!r}: no message from the plant for {self.timeout:g} s"
                         + why
@@ -380,7 +405,11 @@ class LoopClient:
                 if isinstance(payload, ProcessSample):
                     self.last_sample = payload
                     return payload
-                sample = wire.decode(ProcessSample, payload, enc)
+                try:
+                    sample = wire.decode(ProcessSample, payload, enc)
+                except DecodeError as err:
+                    self._reject(key, str(err))
+                    continue
                 last = self.last_sample
                 if self.holding and last is not None and sample.seq <= last.seq:
                     # one plant numbers its samples one after the other: a number again (or
@@ -395,10 +424,20 @@ class LoopClient:
                 self.last_sample = sample
                 return sample
             if key == self._batch_key:  # one that could not be taken (see ``_read``)
-                batch = wire.decode(ProcessSamples, payload, enc)
-                raise DecodeError(f"loop: {batch.loop!r} in a batch of loop {self.loop!r}")
+                try:
+                    batch = wire.decode(ProcessSamples, payload, enc)
+                    why = f"loop: {batch.loop!r} in a batch of loop {self.loop!r}"
+                except DecodeError as err:
+                    why = str(err)
+                self._reject(key, why)
+                continue
             if key == self._status_key:
-                self.last_status = status = wire.decode(LoopStatus, payload, enc)
+                try:
+                    status = wire.decode(LoopStatus, payload, enc)
+                except DecodeError as err:
+                    self._reject(key, str(err))
+                    continue
+                self.last_status = status
                 if status.fault is not None and self.fault is None:
                     # the model failed: the experiment has no process left to act on (told
                     # once: what follows, the restore, goes on against the faulted loop)

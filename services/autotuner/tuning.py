@@ -453,6 +453,14 @@ class TuningRun:
             # commands in this run's name from another client (a bus without credentials)
             wait_back = False
             result.update(status="aborted", reason=str(err), restored=False)
+            if self._retake_and_restore():
+                wait_back = True  # the PV's return waited for, as after any restore
+                result.update(
+                    restored=True,
+                    reason=f"{err}; no one held it then: the run took it again and restored "
+                    "it (a release in this run's name that it did not send: another client "
+                    "on a bus without credentials, see Security)",
+                )
         except TuneRefused as err:
             restored = self._restore()
             result.update(status="rejected", reason=str(err), restored=restored)
@@ -737,6 +745,36 @@ class TuningRun:
         self._predicted_ms = req.apply_predicted_ms
         return ident, chosen, req.apply_predicted_overshoot
 
+    def _retake_and_restore(self) -> bool:
+        """After a lease lost to a release this run did not send, the loop put back as it was
+        before the test where no one holds it now: True if done (the lease taken again, the
+        restore confirmed; the run's release lets go of it). Not where the plant took the
+        loop back itself (its watchdog restores it), restarted (a new instance, never this
+        run's), faulted, or another client holds it: hands off. Why: a release forged in the
+        run's name (helper trial) left a heat exchanger in manual at the relay's output,
+        unleased, while the run that knew its state before the test said so and did
+        nothing."""
+        c = self.client
+        lost = c.last_status  # the status that told of the loss: a release applied
+        if c.gone or c.fault is not None or lost.reason != "release":
+            return False
+        try:
+            now = c.sync()
+            if now.leased_by is not None or now.fault is not None:
+                return False
+            c.command(
+                LeaseCommand(
+                    loop=c.loop,
+                    source=c.source,
+                    timeout=c.lease_timeout,
+                    t=now.t,
+                    pv_limits=self.pv_limits if self.info.clock == "realtime" else None,
+                )
+            )
+        except AutotuneError:
+            return False
+        return self._restore()
+
     def _seen_after_loss(self, before: LoopStatus) -> dict | None:
         """The loop as its plant shows it once back in reach (a query, no command): whether it
         is as before the test, not held by anyone. None if the plant stays out of reach."""
@@ -783,6 +821,14 @@ class TuningRun:
         if outside is not None:
             result["pv_outside"] = self.outside.to_dict(self.ts)
             result["warnings"] = [*result.get("warnings", []), outside]
+        rejected = getattr(self.client, "rejected", 0)
+        if rejected:  # another client's garbage, or a plant that speaks another schema
+            result["warnings"] = [
+                *result.get("warnings", []),
+                f"{rejected} message(s) on the loop's keys could not be read and were "
+                f"rejected (the last: {self.client.last_rejected}): another client publishes "
+                "there, or the plant speaks another version of the schema",
+            ]
         if self._held_computing > SLOW_COMPUTE:
             # its compute workers stopped or starved (70 s held, and an ok run said nothing:
             # helper trial E); the PV was watched against its limits meanwhile
@@ -1375,7 +1421,14 @@ class TuningRun:
         inner = (-math.inf, math.inf)  # the swing's bounds
         if swing is not None and target is not None:
             inner = (target - swing, target + swing)
-        limits = Band(max(lo, inner[0]), min(hi, inner[1]))
+        # the plant's batch ends at the first sample at or past a bound, the record's check
+        # below at the first past it: the bounds a float further out, so that a PV resting
+        # on one (a transmitter pegged at its range's end) does not end every batch at its
+        # first sample (seen: 370 round trips of one sample each)
+        limits = Band(
+            math.nextafter(max(lo, inner[0]), -math.inf),
+            math.nextafter(min(hi, inner[1]), math.inf),
+        )
         guard = (
             Guard(self.info.op_limits, window / self.ts) if window and target is not None else None
         )
@@ -1652,7 +1705,11 @@ class TuningRun:
                     return (output 0–100 %, PV ±7.7 on c197) were reported ok (helper
                     review)."""
                     _, y_back, u_back, why = self._record(back_time, rest())
-                    return why or unsteady_return(y_back, u_back, sp0, k, band, (op_lo, op_hi))
+                    return (
+                        why
+                        or unsteady_return(y_back, u_back, sp0, k, band, (op_lo, op_hi))
+                        or lost_hold(y_back, u_back, sp0, k, band, (op_lo, op_hi), self.ts)
+                    )
 
                 stopped = back_at_rest()
                 # a PI's gain beyond ω_u stays near Kc, under the K_u measured: checked
@@ -1912,6 +1969,45 @@ def unsteady_return(
     return (
         f"after the setpoint's return the PV kept swinging about it, {output}: the loop "
         "oscillates with these gains"
+    )
+
+
+def lost_hold(
+    y: np.ndarray,
+    u: np.ndarray,
+    target: float,
+    k: int,
+    band: float,
+    op_limits: tuple[float, float],
+    sample_time: float,
+) -> str | None:
+    """Why the loop does not hold ``target`` at the end of the verification setpoint's return
+    (None: it does, or it still comes toward it): over the last time scale (``k`` samples)
+    the PV off the target by more than ``band`` on average, with the output at one of its
+    limits throughout (pushing as hard as it can, in vain), or farther from the target than
+    where the return started (going away, not creeping back). Why: a process that failed
+    high as the setpoint went back, its PV pegged at the top of its range and the output at
+    0 % for the last 75 s, ended ok: neither swinging nor slow (helper trial)."""
+    if k < 1 or y.size < k or u.size < k:
+        return None
+    off = float(np.mean(y[-k:])) - target
+    if not abs(off) > band:
+        return None
+    tail = u[-k:]
+    lo, hi = op_limits
+    limit = lo if bool(np.all(tail <= lo)) else hi if bool(np.all(tail >= hi)) else None
+    started = abs(float(y[0]) - target)
+    if limit is None and abs(off) <= started + band:
+        return None
+    how = (
+        f"the output at its limit ({limit:g} %)"
+        if limit is not None
+        else f"farther than the {started:.4g} it started from"
+    )
+    return (
+        f"after the setpoint's return the PV stayed {off:+.4g} from it over the last "
+        f"{k * sample_time:.4g} s, {how}: the loop does not hold its setpoint with these gains "
+        "(or the process changed)"
     )
 
 
