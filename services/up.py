@@ -518,8 +518,22 @@ def start_secure(cfg: UpConfig, deployment: SecureDeployment, logs: IO[str] | No
             stack.stop()
             raise
     for name, args in _service_args(cfg).items():
+        if name == "tuner":
+            _wait_for_logger(stack, cfg.prefix)
         stack.start(name, MODULES[name], args, ["-c", str(deployment.config(name))])
     return stack
+
+
+def _wait_for_logger(stack: Stack, prefix: str) -> None:
+    """The logger's token up before the tuner starts: a run accepted by the tuner is then
+    heard from its start by the logger, which records only the runs it sees start (seen: a
+    tune sent as soon as the tuner answered was never recorded, and the logger, first
+    hearing the loop under the run's lease, filed the rejected run's restore as a change)."""
+    try:
+        stack.wait_ready([keys.logger_alive(prefix, "logger")], timeout=40.0)
+    except AutotuneError:
+        stack.stop()
+        raise
 
 
 def start(cfg: UpConfig, logs: IO[str] | None = None) -> Stack:
@@ -551,6 +565,7 @@ def start(cfg: UpConfig, logs: IO[str] | None = None) -> Stack:
             ["-l", cfg.endpoint, "--no-multicast-scouting"],
         )
     stack.start("logger", "services.logger", services["logger"], mode)
+    _wait_for_logger(stack, cfg.prefix)
     stack.start("tuner", "services.autotuner", services["tuner"], mode)
     return stack
 

@@ -101,6 +101,56 @@ def test_a_rejected_run_restores_and_changes_nothing(tmp_path):
     assert changes(tmp_path) == []
 
 
+def _result(run_id: str, applied: bool, left: PidGains) -> TuneResult:
+    return TuneResult(
+        run_id=run_id,
+        loop=LOOP,
+        t=300.0,
+        method="relay",
+        rule="zn-pi",
+        status="ok" if applied else "rejected",
+        applied=applied,
+        previous_gains=G0,
+        chosen={"isa": {"kc": 6.9, "ti": 96.0, "td": 6.9}},
+        left={"mode": "auto", "gains": left.model_dump()},
+    )
+
+
+@pytest.mark.parametrize("result_first", [False, True])
+def test_a_loop_first_heard_under_a_runs_lease_has_no_baseline_until_its_result(
+    tmp_path, result_first
+):
+    """A logger that came up as a run went on first heard the loop under its lease, the
+    rejected gains under test in force: taken as the baseline, the restore was filed as the
+    run's change (G1 → G0), and `autotune revert` put the rejected gains back, exit 0
+    (helper trial). The gains before such a run are known only from its result: a rejected
+    run changed nothing, an applied one changed its previous gains to those it left, whether
+    its result or its release is heard first."""
+    src = "tuner:r9"
+    h = history(tmp_path)
+    feed(h, status(G1, "gains", leased_by=src, by_source=src))  # the first heard: mid-run
+    msgs = [status(G0, "release", by_source=src), _result("r9", False, G0)]
+    for m in reversed(msgs) if result_first else msgs:
+        feed(h, m)
+    assert changes(tmp_path) == []
+    with pytest.raises(ConfigError, match="no change of the loop's gains by that run"):
+        target(changes(tmp_path), "r9", 1)
+    feed(h, status(G0, "sync"))
+    assert changes(tmp_path) == []
+    # an applied run, first heard under its lease: its change is its result's
+    (tmp_path / "b").mkdir()
+    h2 = history(tmp_path / "b")
+    feed(h2, status(PidGains(kc=1.0), "gains", leased_by=src, by_source=src))  # a trial's
+    msgs = [status(G1, "release", by_source=src), _result("r9", True, G1)]
+    for m in reversed(msgs) if result_first else msgs:
+        feed(h2, m)
+    (c,) = changes(tmp_path / "b")
+    assert (c["run_id"], c["cause"], c["by_source"]) == ("r9", "release", src)
+    assert c["before"] == G0.model_dump() and c["after"] == G1.model_dump()
+    feed(h2, status(G1, "sync"))
+    assert len(changes(tmp_path / "b")) == 1
+
+
 def test_a_plant_restart_with_other_gains_is_recorded_as_start(tmp_path):
     h = history(tmp_path)
     feed(h, status(G1))

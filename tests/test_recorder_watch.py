@@ -26,14 +26,14 @@ def test_no_logger_in_sight_is_said():
     assert said is not None and said.startswith("no logger recorded this run")
 
 
-def _status(prefix: str, dropped: int = 0):
+def _status(prefix: str, dropped: int = 0, open_runs: tuple[str, ...] = ()):
     """A logger's status queryable's answer."""
 
     def answer(query):
         st = LoggerStatus(
             node="logger",
             runs_dir="runs",
-            open_runs=[],
+            open_runs=list(open_runs),
             finished_runs=0,
             received=0,
             written=0,
@@ -45,15 +45,15 @@ def _status(prefix: str, dropped: int = 0):
     return answer
 
 
-def _verdict(prefix: str, answer) -> str | None:
-    """The verdict of a run during which a logger stayed in sight, its status queries
-    answered by ``answer``."""
+def _verdict(prefix: str, answer, run_id: str | None = None) -> str | None:
+    """The verdict of a run (``run_id``) during which a logger stayed in sight, its status
+    queries answered by ``answer``."""
     with open_session(ALONE) as s:
         token = s.liveliness().declare_token(keys.logger_alive(prefix, "logger"))
         queryable = s.declare_queryable(keys.logger_status(prefix, "logger"), answer)
         watch = RecorderWatch(s, prefix)
         _until(lambda: watch._seen)
-        said = watch.verdict()
+        said = watch.verdict(run_id=run_id)
         queryable.undeclare()
         token.undeclare()
     return said
@@ -61,6 +61,14 @@ def _verdict(prefix: str, answer) -> str | None:
 
 def test_a_logger_throughout_says_nothing():
     assert _verdict("rw2", _status("rw2")) is None
+    assert _verdict("rw7", _status("rw7", open_runs=("r1", "r0")), run_id="r1") is None
+
+
+def test_a_logger_in_sight_that_does_not_hold_the_run_open_is_said():
+    """A tune started as `autotune up` brought the stack up: the logger, up a moment after
+    the run's start, never opened it, and the result said nothing (helper trial)."""
+    said = _verdict("rw8", _status("rw8", open_runs=("r0",)), run_id="r1")
+    assert said is not None and said.startswith("no logger has this run open (logger answered)")
 
 
 def _gone_verdict(prefix: str, stalled: float = 0.0) -> str | None:

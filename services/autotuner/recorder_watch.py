@@ -36,15 +36,15 @@ class RecorderWatch:
         self._baseline.start()
 
     def _ask_before(self) -> None:
-        self._before = self._dropped()
+        self._before = {node: st.dropped for node, st in self._statuses().items()}
 
-    def _dropped(self) -> dict[str, int]:
-        """Each logger's count of process samples it missed, by node."""
+    def _statuses(self) -> dict[str, LoggerStatus]:
+        """Each logger's status, by node."""
         try:
             answers = wire.query_all(self.session, self._status_key, LoggerStatus, ASK)
         except zenoh.ZError:  # the session closing as the service stops
             return {}
-        return {st.node: st.dropped for st in answers}
+        return {st.node: st for st in answers}
 
     def _on(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr)
@@ -56,14 +56,16 @@ class RecorderWatch:
                 self._alive.discard(name)
                 self._gap = self._gap or (self._seen and not self._alive)
 
-    def verdict(self, stalled: float = 0.0) -> str | None:
+    def verdict(self, stalled: float = 0.0, run_id: str | None = None) -> str | None:
         """A warning for the run's result, or None when a logger was in sight throughout;
         ``stalled``: s this tuner's own process did not run during the run (paused, starved),
         long enough for its peers to drop it: then everything went out of its sight, the
         logger with the rest, and that is said rather than blamed on the logger.
         Stops watching, and waits (at most ``ASK``) for the start's question to end: the
         caller may close the session next, and Zenoh refuses to close one a query is still
-        using ("Already borrowed", seen in CI on a run that ended within moments)."""
+        using ("Already borrowed", seen in CI on a run that ended within moments). With
+        ``run_id``: whether a logger that answers at the end holds the run open (one that
+        came up after the run's start never opens it)."""
         self._baseline.join(ASK)
         with self._lock:
             seen, gap, alive = self._seen, self._gap, bool(self._alive)
@@ -89,7 +91,22 @@ class RecorderWatch:
                 f"record of the run may be incomplete{'' if alive else ', and none is back'} "
                 "(`autotune runs` shows what was written)"
             )
-        after = self._dropped()
+        statuses = self._statuses()
+        after = {node: st.dropped for node, st in statuses.items()}
+        if (
+            run_id is not None
+            and statuses
+            and not any(run_id in st.open_runs for st in statuses.values())
+        ):
+            # a logger in sight throughout, but not recording this run: it came up after the
+            # run's start (seen: a tune started as `autotune up` brought the stack up, with no
+            # file and no word)
+            return (
+                f"no logger has this run open ({', '.join(sorted(statuses))} answered): one "
+                "that came up after the run started does not record it, so neither the run "
+                "nor its change of the loop's gains is on record (`autotune history` and "
+                "`revert` will not know it)"
+            )
         if not self._before:  # no logger answered at the start (busy, paused)
             if after:
                 return None  # nothing to compare its count with

@@ -248,7 +248,7 @@ class TunerService:
                 self.active.pop(req.loop, None)
         try:
             stalled = stall_watch().stalled(started)
-            unrecorded = recorders.verdict(stalled) if recorders is not None else None
+            unrecorded = recorders.verdict(stalled, run_id) if recorders is not None else None
         except Exception:  # a failure here never withholds the run's result
             log.exception(
                 "run %s on %s: whether a logger recorded it is not known", run_id, req.loop

@@ -55,7 +55,9 @@ GAIN_CAUSES = frozenset({"gains", "release", "watchdog"})
 @dataclass
 class _Loop:
     node: str
-    gains: dict[str, Any]  # in force outside any lease: the baseline of the next change
+    # in force outside any lease: the baseline of the next change (None: first heard under
+    # a run's lease, the gains before it not known to this logger)
+    gains: dict[str, Any] | None
     leased: bool
 
 
@@ -81,6 +83,11 @@ class ChangeHistory:
         self._on_record: dict[str, tuple[str | None, dict[str, Any]]] = {}
         # per loop, the last run whose result says it applied gains, and those gains
         self._applied: dict[str, tuple[str, dict[str, Any]]] = {}
+        # per loop first heard under a lease: the run whose release was heard (its result
+        # not yet), and the last result heard (its release not yet): the run's change is
+        # its result's, whichever comes second
+        self._released: dict[str, str | None] = {}
+        self._results: dict[str, TuneResult] = {}
         for rec in read_history(self.path):  # this bus's (prefix's) loops only
             if (
                 rec.get("record") == "change"
@@ -123,6 +130,15 @@ class ChangeHistory:
             known.leased = True
             return
         known.leased = False
+        if known.gains is None:  # first heard under a lease that has now ended
+            known.gains = gains
+            run = run_of(st.by_source) if st.reason == "release" else None
+            heard = self._results.pop(st.loop, None)
+            if heard is not None and run is not None and heard.run_id == run:
+                self._change_from_result(heard, st.node)
+            else:
+                self._released[st.loop] = run
+            return
         if gains != known.gains:
             if st.reason in GAIN_CAUSES:  # the change this status reports, by its sender
                 by, user, cause, run = st.by_source, st.by_user, st.reason, run_of(st.by_source)
@@ -160,10 +176,20 @@ class ChangeHistory:
             cause = "unseen"
         if prev is not None and prev != gains and not leased:
             self._change(st.loop, st.node, st.t, st.mode, prev, gains, cause)
-        baseline = prev if leased and prev is not None else gains
+        # under a lease with nothing on record, the gains in force are the experiment's, not
+        # the loop's: taken as the baseline, a rejected run's restore was filed as its change
+        # and `autotune revert` put the rejected gains back (helper trial: a logger that came
+        # up as the run went on)
+        baseline = prev if leased else gains
         self.loops[st.loop] = _Loop(st.node, baseline, leased)
 
     def _result(self, r: TuneResult) -> None:
+        known = self.loops.get(r.loop)
+        if known is not None and known.gains is None:  # its release not heard yet
+            self._results[r.loop] = r
+        elif self._released.get(r.loop, "") == r.run_id and known is not None:
+            del self._released[r.loop]
+            self._change_from_result(r, known.node)
         chosen = (r.chosen or {}).get("isa")
         if r.applied and isinstance(chosen, dict):
             self._applied[r.loop] = (r.run_id, chosen)
@@ -228,6 +254,11 @@ class ChangeHistory:
         # written then (an operator's after the run) would be charged to the run (review)
         if known is None or not known.leased or not isinstance(left, dict):
             return
+        if known.gains is None:  # first heard under this run's lease: the result says all
+            self._results.pop(r.loop, None)
+            self._change_from_result(r, known.node)
+            known.gains = left
+            return
         if left == known.gains:
             return  # nothing changed: a rejected run put the gains back
         mode = (r.left or {}).get("mode")
@@ -237,6 +268,29 @@ class ChangeHistory:
             r.loop, known.node, r.t, mode, known.gains, left, "release", by, run=r.run_id, late=late
         )
         known.gains = left
+
+    def _change_from_result(self, r: TuneResult, node: str) -> None:
+        """The change a run that applied its gains made, from its result alone (its previous
+        gains, and those it left): for a loop this logger first heard under the run's lease,
+        whose gains before it were never heard. A run that did not apply its gains changed
+        nothing."""
+        left = (r.left or {}).get("gains")
+        before = r.previous_gains.model_dump() if r.previous_gains is not None else None
+        if not (r.applied and isinstance(left, dict) and before is not None and left != before):
+            return
+        self._change(
+            r.loop,
+            node,
+            r.t,
+            (r.left or {}).get("mode"),
+            before,
+            left,
+            "release",
+            f"{RUN_SOURCE}{r.run_id}",
+            run=r.run_id,
+            late="this logger first heard the loop under the run's lease: the gains before "
+            "it are the run's result's",
+        )
 
     def _change(
         self,

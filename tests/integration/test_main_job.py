@@ -177,13 +177,19 @@ def test_up_with_a_router_tunes_and_stops_cleanly_on_ctrl_c(tmp_path):
         text=True,
         preexec_fn=_sigint_as_a_terminal_sends_it,
     )
+    client = ["--prefix", "upt", "-m", "client", "-e", endpoint, "--no-multicast-scouting"]
+    # the tuner starts once the logger is up: a run it accepts is recorded from its start
+    # (a tune sent as soon as the tuner answered was never recorded: helper trial)
+    deadline = time.monotonic() + 60
+    while cli("health", "tuner", *client).returncode != 0 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert cli("health", "logger", *client).returncode == 0
     pids: list[int] = []
     for line in up.stderr:
         if "Ctrl-C stops them" in line:
             pids = [int(p) for p in re.findall(r"pid (\d+)", line)]
             break
     assert len(pids) == 4, "up did not start router, plant, logger and tuner"
-    client = ["--prefix", "upt", "-m", "client", "-e", endpoint, "--no-multicast-scouting"]
     health = cli("health", "tuner", *client)
     assert health.returncode == 0 and health.stdout.startswith("tuner: up (upt/")
     r = json.loads(cli("tune", "hx1", "--json", "--no-verify", *client).stdout)
