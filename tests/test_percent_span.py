@@ -467,7 +467,9 @@ def test_the_model_line_gives_the_models_own_l_over_t_not_the_step_tangents():
     }
     r = hx1_result(experiment=sopdt, l_over_t=10.62 / 85.69)
     (line,) = [x for x in format_result(r).splitlines() if "model SOPDT" in x]
-    assert line.endswith(f"L/T = {(4.982 + 9.983 / 2) / (60 + 9.983 / 2):.3f}"), line
+    assert line.endswith(
+        f"L/T = {(4.982 + 9.983 / 2) / (60 + 9.983 / 2):.3f} (its FOPDT's, half rule)"
+    ), line
     fo = {"model": "fopdt", "model_gain": 1.0166, "model_lag_1": 1.782, "model_delay": 1.557}
     (line,) = [x for x in format_result(hx1_result(experiment=fo)).splitlines() if "FOPDT" in x]
     assert line.endswith(f"L/T = {1.557 / 1.782:.3f}"), line

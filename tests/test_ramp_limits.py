@@ -361,3 +361,24 @@ def test_a_ramp_on_a_drifting_process_aborts_naming_the_process_and_restores():
     assert "does not calm between trials" in r.reason, r.reason
     assert "the process does: a drift or an upset during the test" in r.reason, r.reason
     assert (sim.mode, sim.op, sim.sp, sim.pid.gains) == before
+
+
+def test_a_ramp_start_gain_too_small_to_move_the_output_is_refused_before_the_test():
+    """--kc-start 1e-300 was taken, and the ramp, doubling its gain toward the ultimate
+    point, ran a day of sim time before it gave up (helper trial): a start below 0.001 % of
+    output per % of span (a proportional band of 100,000 %) is refused before anything is
+    sent, as one above 1000 % per % is."""
+    from services.autotuner.identify.experiments import start_gain_problem
+
+    why = start_gain_problem("ramp", 1e-300, 100.0)
+    assert why is not None and why.startswith("kc_start: 1e-300 (1e-300 % of output per % of")
+    assert "at least 0.001 % per % of span" in why
+    assert start_gain_problem("ramp", 1.1e-3, 100.0) is None  # 0.0011 %/%: taken
+    assert start_gain_problem("relay", 1e-300, 100.0) is None  # no gain to start from
+    sim = build_plant({"seed": 0, "loops": {"hx1": {"model": "heat_exchanger"}}}, "t")["hx1"]
+    before = (sim.mode, sim.op, sim.sp, sim.pid.gains)
+    req = TuneRequest(loop="hx1", method="ramp", kc_start=1e-300)
+    r = TuningRun(LocalLoopClient(sim), req, "t", RunHooks()).run()
+    assert r.status == "failed" and "kc_start: 1e-300" in r.reason, r.reason
+    assert r.sim_duration < 60.0  # refused at the start, not after a day of trials
+    assert (sim.mode, sim.op, sim.sp, sim.pid.gains) == before

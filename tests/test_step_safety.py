@@ -26,7 +26,7 @@ from services.autotuner.identify.step_test import (
     _approach_left,
 )
 from services.autotuner.step_run import run_step_test
-from services.autotuner.tuning import TuningRun
+from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient, SimLoopPort
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.models import FirstOrderPlusDeadTime, IntegratingPlusDeadTime
@@ -516,3 +516,27 @@ def test_an_integrating_loop_in_auto_is_stepped_from_its_balance(seed):
     assert d["method"] == "integrating" and d["returned_to_rest"]
     assert d["reaction_rate"] == pytest.approx(1e-4, rel=0.01)
     assert loop.mode == "auto" and abs(loop.pv - 1.5) < 0.05
+
+
+@pytest.mark.parametrize(
+    ("gain", "action", "moved"), [(-2.0, "reverse", "fell"), (2.0, "direct", "rose")]
+)
+def test_a_step_answered_against_the_loops_action_aborts_asking_about_the_action(
+    gain, action, moved
+):
+    """A reverse-acting loop on a process of gain −2 was refused with its model ("FOPDT
+    gain -2: must be > 0") and sent to the relay test, which cannot tune it either (helper
+    trial): the step's answer says the action is the wrong one, and the run aborts asking
+    about it, as the relay and the ramp do, the loop as before."""
+    spec = {"model": "transfer_function", "num": [gain], "den": [10.0, 1.0], "delay": 1.0}
+    spec |= {"sample_time": 0.05, "noise_std": 0.01, "action": action}
+    sim = build_plant({"seed": 0, "loops": {"x": spec}}, "t")["x"]
+    before = (sim.mode, sim.op, sim.sp, sim.pid.gains)
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "t", RunHooks()).run()
+    assert r.status == "aborted", r.reason
+    assert f"the output stepped up by 5 % and the PV {moved} (its gain " in r.reason, r.reason
+    read = float(r.reason.split("(its gain ")[1].split()[0])
+    assert math.isclose(read, gain, rel_tol=0.01)  # the noise's σ 0.01 on a change of 10
+    other = "direct" if action == "reverse" else "reverse"
+    assert f"is the process one for a {other}-acting PID?" in r.reason, r.reason
+    assert (sim.mode, sim.op, sim.sp, sim.pid.gains) == before

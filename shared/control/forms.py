@@ -119,6 +119,10 @@ def span_or_none(pv_range: tuple[float, float]) -> float | None:
 # % of output per % of span: a proportional band of 0.1 %, the most any write of gains may ask
 # (above it a 0.1 % error drives the output across its range: a slip, not a tuning)
 MAX_KC_PERCENT = 1000.0
+# % of output per % of span: the least gain a ramp test starts from, a proportional band of
+# 100,000 % (below it the loop's output hardly answers the PV, and the ramp, which doubles
+# its gain toward the ultimate point, spent a day of sim time from 1e-300: helper trial)
+MIN_RAMP_KC_PERCENT = 1e-3
 # % of output: the smallest output step a test takes (1e-9 % on a noise-free loop read K
 # −26 %/% off the PV's rounding; 1e-300 % left the output where it was and waited past its
 # timeout, the loop held: helper review)

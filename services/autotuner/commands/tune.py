@@ -730,18 +730,56 @@ def _drifts_on(step: dict, pv_units: str) -> str:
     )
 
 
+# s of wall time between progress lines where stderr is not a terminal (a file, a pipe): a
+# long run said nothing there for ten minutes (a level's step test on the realtime clock)
+QUIET_PROGRESS = 30.0
+
+
+class QuietProgress:
+    """Where stderr is not a terminal, the run's last progress as a line of its own every
+    QUIET_PROGRESS s of wall time (a short run prints none); on a terminal, ``line`` rewrites
+    one line in place. Use as a context manager around the wait for the run."""
+
+    def __init__(self) -> None:
+        self.last: str | None = None
+        self._began = time.monotonic()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def line(self, p: TuneProgress) -> None:
+        ku = f"K_u {p.ku:.4g}" if p.ku else ""
+        pu = f"P_u {p.pu:.4g} s" if p.pu else ""
+        self.last = (
+            f"  {p.phase:<10} t = {p.t:8.1f} s  n = {p.cycles:<3} {ku:<12} {pu:<14} "
+            f"{p.message[:40]:<40}"
+        )
+        if sys.stderr.isatty():
+            print("\r" + self.last, end="", file=sys.stderr, flush=True)
+
+    def say(self) -> None:
+        """The last progress as a line of its own, with the wall time so far."""
+        if self.last is not None:
+            took = time.monotonic() - self._began
+            print(f"{self.last.rstrip()}  ({took:.0f} s)", file=sys.stderr, flush=True)
+
+    def _tick(self) -> None:
+        while not self._stop.wait(QUIET_PROGRESS):
+            self.say()
+
+    def __enter__(self) -> QuietProgress:
+        if not sys.stderr.isatty():
+            self._thread = threading.Thread(target=self._tick, daemon=True, name="progress")
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+
+
 def progress_line(p: TuneProgress) -> None:
-    if not sys.stderr.isatty():
-        return
-    ku = f"K_u {p.ku:.4g}" if p.ku else ""
-    pu = f"P_u {p.pu:.4g} s" if p.pu else ""
-    print(
-        f"\r  {p.phase:<10} t = {p.t:8.1f} s  n = {p.cycles:<3} {ku:<12} {pu:<14} "
-        f"{p.message[:40]:<40}",
-        end="",
-        file=sys.stderr,
-        flush=True,
-    )
+    """The run's progress rewritten in place on a terminal (nothing elsewhere)."""
+    if sys.stderr.isatty():
+        QuietProgress().line(p)
 
 
 def figure(v, unit: str = "", digits: int = 4) -> str:
@@ -933,7 +971,11 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             f"  model {str(model['model']).upper()}: K = {gain}"
             + (f"  T = {', '.join(lags)} s" if lags else "")
             + f"  L = {model['model_delay']:.4g} s"
-            + (f"  L/T = {ratio:.3f}" if (ratio := _model_l_over_t(model)) is not None else "")
+            + (
+                f"  L/T = {ratio:.3f}" + (" (its FOPDT's, half rule)" if lags[1:] else "")
+                if (ratio := _model_l_over_t(model)) is not None
+                else ""
+            )
         )
     if r.gains and span is not None:
         lines.extend(_percent_table(r, span, pv_units))
@@ -1122,15 +1164,16 @@ def run_and_report(
         if check is not None:
             check(session)
         try:
-            result = follow(
-                session,
-                args.prefix,
-                req.loop,
-                # the tuner's discovery within --wait too (it took 10 s with --wait 3)
-                lambda: submit(session, args.prefix, args.node, req, min(10.0, args.wait)),
-                args.wait,
-                None if args.json else progress_line,
-            )
+            with QuietProgress() as shown:
+                result = follow(
+                    session,
+                    args.prefix,
+                    req.loop,
+                    # the tuner's discovery within --wait too (it took 10 s with --wait 3)
+                    lambda: submit(session, args.prefix, args.node, req, min(10.0, args.wait)),
+                    args.wait,
+                    None if args.json else shown.line,
+                )
         except Interrupted as stop:  # cancelled: the result all the same, and what it did
             _print_result(args, stop.result)
             print(stop.summary(), file=sys.stderr)

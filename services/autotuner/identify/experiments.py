@@ -19,7 +19,7 @@ from typing import Any, NamedTuple, Protocol
 
 from services.autotuner.identify.model_fit import ProcessFit, StepModel
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
-from shared.control.forms import MAX_KC_PERCENT, kc_percent
+from shared.control.forms import MAX_KC_PERCENT, MIN_RAMP_KC_PERCENT, kc_percent
 from shared.control.record_stops import CalmCheck
 from shared.control.signals import Sample, end_test, ends_batch, no_response_floor
 
@@ -233,12 +233,19 @@ def limits_problem(
 def start_gain_problem(method: str, kc_start: float | None, span: float | None) -> str | None:
     """Why a ramp cannot start at ``kc_start`` (% per PV unit), None if it can: a gain above
     ``MAX_KC_PERCENT`` % of output per % of span (a proportional band of 0.1 %) is what no
-    write of gains may ask (1e308 was sent to the plant, which refused it mid-run)."""
+    write of gains may ask (1e308 was sent to the plant, which refused it mid-run), and one
+    below ``MIN_RAMP_KC_PERCENT`` leaves the ramp a day of doublings to go."""
     if method != "ramp" or kc_start is None or span is None:
         return None
     pct = kc_percent(kc_start, span)
-    if pct is None or pct <= MAX_KC_PERCENT:
+    if pct is None or MIN_RAMP_KC_PERCENT <= pct <= MAX_KC_PERCENT:
         return None
+    if pct < MIN_RAMP_KC_PERCENT:
+        return (
+            f"kc_start: {kc_start:g} ({pct:.6g} % of output per % of span): a ramp starts "
+            f"from at least {MIN_RAMP_KC_PERCENT:g} % per % of span (a proportional band of "
+            "100,000 %), where its output still answers the PV"
+        )
     return (
         f"kc_start: {kc_start:g} ({pct:.6g} % of output per % of span): a gain must be at "
         f"most {MAX_KC_PERCENT:g} % per % of span (a proportional band of 0.1 %)"

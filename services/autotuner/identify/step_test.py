@@ -48,6 +48,7 @@ from services.autotuner.identify.experiments import (
     Progress,
     Settings,
     Setup,
+    action_question,
     as_controlled,
     samples_until,
 )
@@ -329,7 +330,31 @@ class StepTest:
 
     def identification(self) -> Identification | None:
         found = self._identification()
-        return None if found is None else as_controlled(found, self.direction)
+        if found is None:
+            return None
+        against = self._against_action()
+        if against:
+            raise StepTestAborted(against)
+        return as_controlled(found, self.direction)
+
+    def _against_action(self) -> str:
+        """Why the step's answer says the loop's action is the wrong one for its process (a
+        gain of the other sign than the action's), empty if it does not. Why: a reverse
+        loop on a process of gain −2 was refused with its model ("gain -2: must be > 0")
+        and sent to the relay, which cannot tune it either (helper trial); the relay and the
+        ramp ask about the action."""
+        rc = self.result
+        slope = rc.reaction_rate if isinstance(rc, IntegratingCurve) else getattr(rc, "gain", 0.0)
+        if rc is None or not math.isfinite(slope) or slope * self.direction >= 0:
+            return ""
+        what = "its rate of change" if isinstance(rc, IntegratingCurve) else "its gain"
+        per = " per s" if isinstance(rc, IntegratingCurve) else ""
+        return (
+            f"step test: the output stepped {'up' if rc.step_size > 0 else 'down'} by "
+            f"{abs(rc.step_size):g} % and the PV {'rose' if slope * rc.step_size > 0 else 'fell'}"
+            f" ({what} {slope:.4g} PV units{per} per %): the process answers against the "
+            f"loop's action — {action_question(self.direction)}"
+        )
 
     def _identification(self) -> Identification | None:
         rc = self.result
