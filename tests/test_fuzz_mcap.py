@@ -1219,6 +1219,26 @@ def test_a_recovered_file_is_listed_with_its_loop_and_method(recorded, tmp_path,
     assert "incomplete" in line and "unreadable" not in line
 
 
+def test_a_truncated_file_recovered_is_listed_with_its_loss(recorded, tmp_path, capsys):
+    """The first two thirds of a finished run's file, recovered, were listed `ok` with the
+    whole run's sample count and no word of a loss (helper trial): a file that breaks off
+    lost what came after, and its listing says so."""
+    good = recorded["relay"].path.read_bytes()
+    cut = tmp_path / recorded["relay"].path.name
+    cut.write_bytes(good[: 2 * len(good) // 3])
+    out_dir = tmp_path / "fixed"
+    out_dir.mkdir()
+    fixed = out_dir / cut.name
+    code, out, err = cli(capsys, "recover", str(cut), "-o", str(fixed))
+    assert code == 0 and "recovered" in out and "the file breaks off (truncated" in out, err
+    code, out, err = cli(capsys, "runs", str(out_dir), "--json")
+    assert code == 0, err
+    (row,) = json.loads(out)
+    assert row["lost"] and "the file breaks off (truncated" in row["lost"], row
+    code, out, err = cli(capsys, "runs", str(out_dir))
+    assert f"{row['status']} (recovered, data lost)" in out, out
+
+
 def test_analyze_gives_the_designs_warnings_as_the_live_result_does(recorded, capsys):
     """`analyze` printed none of the design's warnings while its gains matched the live run's
     (an inverse response's "robustness … optimistic" left out: helper review). Every warning

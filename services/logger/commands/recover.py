@@ -122,6 +122,11 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             stopped = f"truncated: {one_line(err) or type(err).__name__}"
         held = summary.statistics.message_count if summary and summary.statistics else None
         lost = _lost(damaged, run or {}, held, counts["messages"])
+        if stopped != "end of file" and run is not None:
+            # the file ends short of its end: whatever came after the break is lost, whether
+            # or not a summary says how much (a truncated copy was listed `ok`, its samples
+            # those of the whole run: helper trial)
+            lost = "; ".join(x for x in (lost, f"the file breaks off ({stopped})") if x)
         if run is None:  # written only as the logger finished a run: what the name tells
             run = run_of_name(src, counts["messages"], stopped, lost)
         elif lost:  # the run's conclusion stands, on less data than it had: said
