@@ -862,6 +862,9 @@ class Recorder:
             "left_out": str(run.left_out),
         }
         end = result.t if result is not None else (run.last_t or run.t_start)
+        # the messages of the bus it holds (the run's record, written with the metadata, is
+        # the file's own: counted apart, so that the runs' counts add up to ``written``)
+        bus_messages = run.writer.messages
         run.writer.finish(meta, keys.tune_run_record(self.prefix, run.loop), max(end, run.t_start))
         self.finished.append(run.writer.path)
         if not run.replay:
@@ -875,12 +878,13 @@ class Recorder:
                     self._lost_loop.pop(self._lost.popitem(last=False)[0], None)
         self.counts["dropped"] += run.gaps
         log.info(
-            "run %s on %s%s: %s, %d messages, %d samples, %d dropped, %d left out → %s",
+            "run %s on %s%s: %s, %d messages and its run record, %d samples, %d dropped, "
+            "%d left out → %s",
             run.run_id,
             run.loop,
             _replay_note(stream),
             status,
-            run.writer.messages,
+            bus_messages,
             run.samples,
             run.gaps,
             run.left_out,
