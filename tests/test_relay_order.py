@@ -51,3 +51,25 @@ def test_points_in_the_plants_own_order_agree():
     one, two = point(0.333), point(0.45)
     assert order_contradiction(one, two) is None and order_contradiction(two, one) is None
     assert order_contradiction(point(0.333), point(0.32, -160.0)) is None
+
+
+def test_a_contradicted_stage_two_is_left_out_of_the_estimate():
+    """e^{−s}/(10s + 1) sampled every 0.5 s (7.7 samples a period), noise-free: stage 2 read
+    −236° at 1.05 rad/s beside stage 1's −157° at 1.25 rad/s (the plant's own: −157.0°), and
+    the crossing "bracketed" between them read K_u 6.61, 60 % under the exact 16.35, and P_u
+    +29 % (helper trial). The estimate now rests on stage 1's point alone, as where stage 2
+    is missing: within its stated spreads of the exact point, K_u far nearer it."""
+    from services.autotuner.tuning import RunHooks, TuningRun
+    from services.offline.local_loop import LocalLoopClient
+    from shared.messages import TuneRequest
+    from tests.exact import ultimate_point
+    from tests.plants import transfer_function_loop
+
+    sim = transfer_function_loop([1.0], [10.0, 1.0], 1.0, 0.5)
+    req = TuneRequest(loop="x", method="relay")
+    r = TuningRun(LocalLoopClient(sim), req, "t", RunHooks()).run()
+    assert any("the relay's two points contradict each other" in w for w in r.warnings)
+    ku, pu = ultimate_point([1.0], [10.0, 1.0], 1.0)
+    assert abs(r.ku / ku - 1.0) <= r.ku_spread and abs(r.pu / pu - 1.0) <= r.pu_spread
+    assert abs(r.ku / ku - 1.0) < 0.3  # (P_u: stage 1's own period, 5.02 s, +30 %)
+    assert r.status == "ok", r.reason

@@ -1555,7 +1555,7 @@ class TuningRun:
         so that the response is the linear loop's, as predicted. ``margin``: gains with a
         derivative that pass are then run at twice their gain (``margin_check``)."""
         c = self.client
-        scale = max(verify_timescale(ident), 20 * self.ts)
+        scale = max(ident.timescale, 20 * self.ts)
         lo, hi = self.info.pv_range
         sign = 1 if sp0 < 0.5 * (lo + hi) else -1  # toward the middle of the range
         room, other = self._op_room(sign), self._op_room(-sign)
@@ -1589,7 +1589,9 @@ class TuningRun:
         self._progress("verify", message=verify_message(gains))  # stamped as they went on
 
         k = max(4, round(scale / self.ts))
-        width = max(5, round(scale / self.ts / 20)) | 1
+        # the peaks read on the closed loop's time scale (``verify_timescale``): the record's
+        # windows and watches stay on the identification's
+        width = max(5, round(max(verify_timescale(ident), 20 * self.ts) / self.ts / 20)) | 1
 
         def at(target: float, after: float | None = None, within: float = band) -> SettleRule:
             """Settled at ``target``: the last time scale flat ``within`` the band, its mean on
@@ -1973,14 +1975,16 @@ def unsteady_return(
 
 
 def verify_timescale(ident: experiments.Identification) -> float:
-    """The time scale (s) the verification's windows and smoothing are sized on: the
-    identification's, or, for a step test's self-regulating model, the model's ultimate
-    period where that is shorter. Why: a step test's scale, 4 L + T63, is the open loop's,
-    and gains tuned to a lag-dominant loop close it many times faster (a tank's level: 647
-    s against a closed-loop swing of a few seconds; smoothed over a twentieth of the open
-    loop's scale, a 24 % overshoot read 0.8 %, and the settling time was the noise's:
-    helper trial). The relay and the ramp measure the ultimate period itself; a level's
-    step scale (8 L) is its own design's."""
+    """The time scale (s) the verification's peaks are read on (the noise averaged over a
+    twentieth of it): the identification's, or, for a step test's self-regulating model,
+    the model's ultimate period where that is shorter. Why: a step test's scale, 4 L + T63,
+    is the open loop's, and gains tuned to a lag-dominant loop close it many times faster (a
+    tank's level: 647 s against a closed-loop swing of a few seconds; averaged over a
+    twentieth of it, a 24 % overshoot read 0.8 %: helper trial). The relay and the ramp
+    measure the ultimate period itself; a level's step scale (8 L) is its own design's.
+    The record's windows stay on the identification's scale: on the closed loop's, the
+    first kick's saturation filled the output guard's window and a level's verification
+    failed (tests)."""
     scale = ident.timescale
     model = ident.model
     if ident.step is None or ident.integrating or model is None or model.kind == "ipdt":
