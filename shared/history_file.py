@@ -167,7 +167,21 @@ def of_loop(rec: dict[str, Any], loop: str, prefix: str | None) -> bool:
 
 
 def loop_changes(path: Path, loop: str, prefix: str | None = None) -> list[dict[str, Any]]:
-    """The ``change`` records of ``loop`` (on the bus ``prefix``; None: any), oldest first."""
-    return [
-        r for r in read_history(path) if r.get("record") == "change" and of_loop(r, loop, prefix)
-    ]
+    """The ``change`` records of ``loop`` (on the bus ``prefix``; None: any), oldest first;
+    a change by an `autotune apply` run carries ``applied_from``, the approved run, from the
+    run's ``tune`` record (written after it: the logger hears the release first), so that
+    ``revert --to`` takes the id ``history`` shows as "from run" (it found no change by it:
+    helper trial)."""
+    records = list(read_history(path))
+    approved = {
+        r.get("run_id"): r["applied_from"]
+        for r in records
+        if r.get("record") == "tune" and r.get("applied_from") and of_loop(r, loop, prefix)
+    }
+    out = []
+    for r in records:
+        if r.get("record") != "change" or not of_loop(r, loop, prefix):
+            continue
+        source = approved.get(r.get("run_id"))
+        out.append({**r, "applied_from": source} if source and not r.get("applied_from") else r)
+    return out

@@ -557,3 +557,22 @@ def test_a_fifo_where_a_file_is_expected_is_refused_not_waited_on(tmp_path):
                           capture_output=True, text=True, timeout=60, env=env)  # fmt: skip
     assert hist.returncode == 2 and len(hist.stderr.strip().splitlines()) == 1, hist.stderr
     assert "not a regular file" in hist.stderr and "Traceback" not in hist.stderr
+
+
+def test_revert_to_the_approved_run_finds_the_change_its_apply_made(tmp_path):
+    """`autotune apply A1` ran as run B2 and `history` showed the change "from run A1", but
+    `revert --to A1` said "no change of the loop's gains by that run on record": the change
+    record names the apply run, its `tune` record (written after it) the approved one
+    (helper trial). The changes as read carry the approved run from the tune record."""
+    h = history(tmp_path)
+    feed(h, status(G0))
+    src = "tuner:B2"
+    feed(h, status(G0, "lease", leased_by=src, by_source=src))
+    feed(h, status(G1, "gains", leased_by=src, by_source=src))
+    feed(h, status(G1, "release", by_source=src))
+    applied = _result("B2", True, G1).model_copy(update={"applied_from": "A1"})
+    feed(h, applied)
+    found = changes(tmp_path)
+    assert target(found, "A1", 1) is found[-1] and found[-1]["run_id"] == "B2"
+    assert target(found, "B2", 1) is found[-1]
+    assert found[-1]["before"] == G0.model_dump()
