@@ -155,7 +155,11 @@ def test_gains_not_given_are_kept_exactly_and_ti_none_turns_integral_off():
         (Asked(sp=150.1), status(), ["--sp 150.1", "PV range [0, 150] degC"]),
         (Asked(sp=-1.0, kc=3.0), status(), ["--sp -1", "PV range"]),
         # hx1's span is 150 degC: 1000 % per % is Kc 666.67 % per degC
-        (Asked(kc=667.0), status(), ["--kc 667", "1000.5 % of output per % of span", "666.7"]),
+        (
+            Asked(kc=667.0),
+            status(),
+            ["--kc 667", "1000.5 % of output per % of span", "at most 666.6 here"],
+        ),
         (Asked(kc=1e9, sp=61.0), status(), ["--kc 1e+09", "proportional band of 6.7e-08 %"]),
         (Asked(), status(), ["nothing to set"]),
     ],
@@ -430,3 +434,18 @@ def test_a_message_names_twenty_loops_at_most():
     line = listed(ids)
     assert line.startswith("f000, f001") and "f020" not in line
     assert line.endswith("… (600 in all: `autotune loops` lists them)")
+
+
+def test_the_most_a_refusal_names_is_a_gain_the_check_takes():
+    """`set hx1 --kc 666.7` was refused "… at most 666.7 here" (1000.05 % per % printed
+    "1000 % … above the 1000 %": helper trial): the figures are printed so that they differ
+    where the check does, and the most is rounded down to one it takes."""
+    from services.autotuner.commands.set_loop import check_kc, rounded_down
+    from shared.errors import ConfigError
+
+    with pytest.raises(ConfigError) as err:
+        check_kc(666.7, (0.0, 150.0), " degC")
+    assert "1000.05 % of output per % of span" in str(err.value)
+    most = str(err.value).split("at most ")[1].split()[0]
+    check_kc(float(most), (0.0, 150.0), " degC")  # taken
+    assert rounded_down(666.6667) == "666.6" and rounded_down(0.0123456) == "0.01234"

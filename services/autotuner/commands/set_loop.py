@@ -335,11 +335,20 @@ def check_kc(kc: float, pv_range: tuple[float, float], units: str, what: str = "
     pct = kc_percent(kc, span)
     if pct is not None and pct > MAX_KC_PERCENT:
         raise ConfigError(
-            f"{what} {kc:g}: {pct:.5g} % of output per % of span (a proportional band of "
+            f"{what} {kc:g}: {pct:.8g} % of output per % of span (a proportional band of "
             f"{100.0 / pct:.2g} % of the {span:g}{units} span), above the {MAX_KC_PERCENT:g} "
             f"% per % `set` takes: Kc is in % of output per PV unit, at most "
-            f"{100.0 * MAX_KC_PERCENT / span:.4g} here"
+            f"{rounded_down(100.0 * MAX_KC_PERCENT / span)} here"
         )
+
+
+def rounded_down(x: float, digits: int = 4) -> str:
+    """``x`` to ``digits`` significant figures, rounded down: a most that the check itself
+    takes (666.67 printed "at most 666.7", which it refused: helper trial)."""
+    if not (x > 0 and math.isfinite(x)):
+        return f"{x:g}"
+    unit = 10.0 ** (math.floor(math.log10(x)) - digits + 1)
+    return f"{math.floor(x / unit) * unit:.{digits}g}"
 
 
 # --- running them -----------------------------------------------------------------------------
