@@ -131,3 +131,20 @@ class RecorderWatch:
                 "gaps (`autotune runs` shows what was written)"
             )
         return None
+
+
+LOOK = 0.5  # s: how long a command looks for a logger's token (one up shows in milliseconds)
+
+
+def unrecorded_change(session: zenoh.Session, prefix: str, loop: str) -> str | None:
+    """A warning for a command that changed ``loop``'s gains while no logger is in sight
+    (None: one is): the change is not on record, and a logger that comes up later files it
+    as ``unseen``, who not known (seen: a revert with the logger stopped said nothing, and
+    the history later blamed no one)."""
+    if wait_for_token(session, keys.logger_alive(prefix, keys.ANY), LOOK):
+        return None
+    return (
+        f"warning: no logger is up on {prefix}/: this change of {loop}'s gains is not on "
+        "record (a logger that comes up files it as unseen, who not known: `autotune "
+        "history`, `revert`)"
+    )

@@ -177,12 +177,17 @@ def test_gains_are_read_back_exactly_and_the_change_is_signed(start_plant, cli):
         run = cli.set(p, "a1", "--kc", "3.3", "--td", "1.7", process=True)
         assert run.returncode == 0, run.stderr
         assert "Kc 2 → 3.3, Td 0 s → 1.7 s (Ti 30 s, β 1 kept)  applied" in run.stdout
+        # no logger on this bus: the change is not on record, and set says so (a revert
+        # with the logger stopped said nothing, and the history blamed no one: helper trial)
+        assert run.stderr.startswith(f"warning: no logger is up on {p.prefix}/: this change")
         st = seen.wait(lambda st: st.reason == "gains")
         assert (st.by_source, st.by_user) == ("autotune-set", None)
     gains = cli.loops(p, "a1")["gains"]
     assert gains == {"kc": 3.3, "ti": TI, "td": 1.7, "n": 10.0, "beta": 1.0}
     run = cli.set(p, "a1", "--ti", "none", "--beta", "0.25")
     assert run.returncode == 0, run.stderr
+    run = cli.set(p, "a1", "--sp", "50")  # no change of gains: nothing to say of a logger
+    assert run.returncode == 0 and run.stderr == "", run.stderr
     assert cli.loops(p, "a1")["gains"] == {
         "kc": 3.3,
         "ti": None,

@@ -23,6 +23,7 @@ from typing import Any
 from services.autotuner.commands.logger_dirs import elsewhere
 from services.autotuner.commands.set_loop import check_kc
 from services.autotuner.loop_client import CommandRefused, LoopClient, wait_for_loop
+from services.autotuner.recorder_watch import unrecorded_change
 from shared import json_text
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
@@ -148,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
             # revert undid): nothing is sent, and it is said so (it read "Reverted … was Kc 5
             # … now Kc 5")
             status = now
+            unrecorded = None
             if back != now.gains:
                 try:
                     status = client.command(
@@ -156,6 +158,7 @@ def run(args: argparse.Namespace) -> int:
                 except CommandRefused as err:
                     print(f"autotune revert: refused: {err}", file=sys.stderr)
                     return 1
+                unrecorded = unrecorded_change(session, args.prefix, args.loop)
     if status.gains != back:  # the plant said yes: it must show them
         raise AutotuneError(f"loop {args.loop}: the plant shows {_line(status.gains)}")
     what = (
@@ -184,4 +187,6 @@ def run(args: argparse.Namespace) -> int:
             f"Reverted {args.loop} to the gains before {what} ({undo.get('utc')}):\n"
             f"  was {_line(now.gains)}\n  now {_line(status.gains)} (confirmed by the plant)"
         )
+    if unrecorded:
+        print(unrecorded, file=sys.stderr)
     return 0

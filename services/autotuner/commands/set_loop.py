@@ -63,6 +63,7 @@ from services.autotuner.loop_client import (
     PlantLost,
     wait_for_loop,
 )
+from services.autotuner.recorder_watch import unrecorded_change
 from shared.cli import add_common_arguments, check_ids
 from shared.control.forms import MAX_KC_PERCENT, kc_percent
 from shared.errors import ConfigError, one_line
@@ -465,7 +466,11 @@ def run(args: argparse.Namespace) -> int:
         ) as client:
             units = client.info.pv_units
             out = execute(client, plan(asked, client.last_status, units, client.info.sample_time))
+            gains = any(isinstance(w.cmd, GainsCommand) for w in out.applied)
+            unrecorded = unrecorded_change(session, args.prefix, args.loop) if gains else None
     print(format_outcome(out, units))
+    if unrecorded:
+        print(unrecorded, file=sys.stderr)
     if out.lost is not None:
         raise PlantLost(out.lost)
     if out.refused is not None:
