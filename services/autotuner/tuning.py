@@ -1685,7 +1685,7 @@ class TuningRun:
             )
             t, y, u2, why = self._record(span, reached(sp0 + step, 2 * scale), sp0 + step, guard)
             stopped = why
-            load_m = metrics.load_step(t, y, t1, sp0 + step, noise=ident.noise)
+            load_m = metrics.load_step(t, y, t1, sp0 + step, noise=ident.noise, width=width)
             modes.append(ringing(t, y, ident.noise, scale))
             stable = stable and why is None
             stable = stable and (bool(load_m["recovered"]) or not swinging(y, sp0 + step, k, band))
