@@ -5,40 +5,20 @@ above the transmitter's range, which reads it at the top of its span."""
 from __future__ import annotations
 
 import math
-from collections import deque
+
+from tests.drifting_plant import Drifting
 
 
-class FailsHigh:
-    """PV = K/(τs + 1)·e^{−Ls} of the output until ``fail_at`` s of sim time, then 1e6."""
-
-    pv_units = "u"
-    pv_range = (0.0, 100.0)
+class FailsHigh(Drifting):
+    """PV = K/(τs + 1)·e^{−Ls} of the output (no hidden load) until ``fail_at`` s of sim
+    time, then 1e6."""
 
     def __init__(self, sample_time, op0=50.0, k=1.0, tau=10.0, delay=2.0, fail_at=math.inf):
-        self.sample_time, self.op0, self.k, self.tau = sample_time, op0, k, tau
-        self.n = round(delay / sample_time)
+        super().__init__(sample_time, op0, k, tau, delay, amp=0.0)
         self.fail_at = fail_at
-        self.disturbances = {"load": 0.0}
-
-    def reset(self) -> float:
-        self.t = 0.0
-        self.y = self.k * self.op0
-        self.ops = deque([self.op0] * (self.n + 1), maxlen=self.n + 1)
-        return self.y
 
     def step(self, op: float) -> float:
-        self.t += self.sample_time
-        if self.t >= self.fail_at:
+        if self.t + self.sample_time >= self.fail_at:
+            self.t += self.sample_time
             return 1e6
-        self.ops.appendleft(op + self.disturbances["load"])
-        a = math.exp(-self.sample_time / self.tau)
-        self.y = a * self.y + (1 - a) * self.k * self.ops[self.n]
-        return self.y
-
-    def disturbance_names(self) -> tuple[str, ...]:
-        return tuple(self.disturbances)
-
-    def set_disturbance(self, name: str, value: float) -> None:
-        if name not in self.disturbances:
-            raise KeyError(name)
-        self.disturbances[name] = float(value)
+        return super().step(op)

@@ -382,16 +382,7 @@ class TuningRun:
         self._rest = rest
         self._pv_rest = rest["pv"] if before.mode == "manual" else before.sp
         try:
-            c.command(
-                LeaseCommand(
-                    loop=c.loop,
-                    source=c.source,
-                    timeout=c.lease_timeout,
-                    t=before.t,
-                    # realtime: the plant restores the loop itself at a PV outside them
-                    pv_limits=self.pv_limits if self.info.clock == "realtime" else None,
-                )
-            )
+            c.command(self._lease(before.t))
         except AutotuneError as err:  # another supervisor holds it: nothing was changed
             result.update(
                 status="aborted", reason=f"not started: {err}", restored=True, untouched=True
@@ -745,6 +736,18 @@ class TuningRun:
         self._predicted_ms = req.apply_predicted_ms
         return ident, chosen, req.apply_predicted_overshoot
 
+    def _lease(self, t: float) -> LeaseCommand:
+        """The run's lease of the loop, asked at sim time ``t``: in realtime with the run's PV
+        limits, at which the plant restores the loop itself (should this process stall)."""
+        c = self.client
+        return LeaseCommand(
+            loop=c.loop,
+            source=c.source,
+            timeout=c.lease_timeout,
+            t=t,
+            pv_limits=self.pv_limits if self.info.clock == "realtime" else None,
+        )
+
     def _retake_and_restore(self) -> bool:
         """After a lease lost to a release this run did not send, the loop put back as it was
         before the test where no one holds it now: True if done (the lease taken again, the
@@ -762,15 +765,7 @@ class TuningRun:
             now = c.sync()
             if now.leased_by is not None or now.fault is not None:
                 return False
-            c.command(
-                LeaseCommand(
-                    loop=c.loop,
-                    source=c.source,
-                    timeout=c.lease_timeout,
-                    t=now.t,
-                    pv_limits=self.pv_limits if self.info.clock == "realtime" else None,
-                )
-            )
+            c.command(self._lease(now.t))
         except AutotuneError:
             return False
         return self._restore()
