@@ -1715,7 +1715,7 @@ class TuningRun:
                     return (
                         why
                         or unsteady_return(y_back, u_back, sp0, k, band, (op_lo, op_hi))
-                        or lost_hold(y_back, u_back, sp0, k, band, (op_lo, op_hi), self.ts)
+                        or lost_hold(y_back, u_back, sp0, k, rest_band, (op_lo, op_hi), self.ts)
                     )
 
                 stopped = back_at_rest()
