@@ -114,6 +114,7 @@ def test_p_only_near_the_ultimate_gain_is_flagged_oscillating_with_its_period(fr
     assert a.detections > DETECTION_LIMIT
     assert a.oscillation_period == pytest.approx(PU, rel=0.05)
     assert "period" in a.flags["oscillating"]
+    assert "within the 50 T_u supervision window" in a.flags["oscillating"]
     msg = LoopMonitor(loop="x", node="test", **a.to_dict())  # what the bus carries
     assert msg.oscillating and msg.oscillation_period == a.oscillation_period
 

@@ -164,6 +164,8 @@ def run(args: argparse.Namespace) -> int:
     what = (
         f"run {undo['run_id']}"
         if undo.get("run_id")
+        else "the plant's restart with its configured gains (start)"
+        if undo.get("cause") == "start"
         else f"the change by {undo.get('by_source') or 'someone unseen'} ({undo.get('cause')})"
     )
     changed = status is not now

@@ -312,10 +312,11 @@ def judge(
         period = (
             f", period {a.oscillation_period:.4g} s" if a.oscillation_period is not None else ""
         )
+        seen = f" (of it, {watched:.4g} s watched)" if short else ""
         flags["oscillating"] = (
-            f"{a.detections} half-periods with an IAE above {a.iae_limit:.3g} within "
-            f"{SUPERVISION_PERIODS:g} T_u (limit {a.detection_limit}){period}, T_u "
-            f"{a.period:.4g} s"
+            f"{a.detections} half-periods with an IAE above {a.iae_limit:.3g} within the "
+            f"{SUPERVISION_PERIODS:g} T_u supervision window{seen} (limit "
+            f"{a.detection_limit}){period}, T_u {a.period:.4g} s"
         )
     elif short and halves >= SUSTAINED_HALVES and a.detections >= SUSTAINED_SHARE * halves:
         a.oscillating = True
