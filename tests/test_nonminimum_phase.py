@@ -162,3 +162,22 @@ def test_recorded_before_the_relay_took_the_turn_for_rest(monkeypatch):
     plant = next(p for p in benchmark.suite() if p.name == "(1-1s)/(s+1)^3")
     out = benchmark.run_relay(plant, 0.01, seed=1)
     assert not out.ok and "came to rest with the output raised, against the push" in out.reason
+
+
+def test_a_pi_on_a_model_the_run_is_unsure_of_has_its_gain_margin_checked():
+    """ZN PI asked for (--rule) on (1 − 2s)/((s + 1)(3s + 1)) by ramp: predicted Ms 1.88 on
+    the SOPDT the run itself called optimistic on an inverse response, Ms 2.2 on the plant,
+    and it was applied `ok` (helper trial): only gains with a derivative, or a ringing mode,
+    had their gain margin checked. Where the design is unsure of its model, a PI's is too:
+    at Kc × 2 this one swings on, and it is rejected, the loop as before."""
+    from tests.exact import isa_ms
+    from tests.plants import transfer_function_loop
+
+    num, den = [-2.0, 1.0], [3.0, 4.0, 1.0]
+    sim = transfer_function_loop(num, den, 0.0, 0.05)
+    before = (sim.mode, sim.op, sim.sp, sim.pid.gains)
+    req = TuneRequest(loop="x", method="ramp", rule="zn-pi")
+    r = TuningRun(LocalLoopClient(sim), req, "t", RunHooks()).run()
+    assert isa_ms(num, den, 0.0, 0.05, r.chosen["isa"]) > 2.1  # what the check guards against
+    assert r.status == "rejected" and "gain margin under 2" in r.reason, r.reason
+    assert (sim.mode, sim.op, sim.sp, sim.pid.gains) == before

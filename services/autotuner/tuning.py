@@ -276,6 +276,9 @@ class TuningRun:
         # model (a refused run waited 60 s for hx1's 60 s lag, and called a crest a rest)
         self._identified: experiments.Identification | None = None
         self._held_computing = 0.0  # s of wall time the longest computation held a realtime loop
+        # the design said its model's predictions are not sure: the verification checks the
+        # gain margin of a PI too (``Selection.model_unsure``)
+        self._model_unsure = False
         # the chosen gains' Ms on the identified model (None: no model judged them)
         self._predicted_ms: float | None = None
         # the last verification's setpoint step: (t, PV, t0, y0, target, width), as measured
@@ -680,6 +683,7 @@ class TuningRun:
             here=True,
         )
         rec = sel.recommended
+        self._model_unsure = sel.model_unsure
         result.update(
             ku_spread=sel.ku_spread,
             pu_spread=sel.pu_spread,
@@ -1723,7 +1727,11 @@ class TuningRun:
                 # where it rang with a fast mode past the limit (a resonance: its gain there
                 # may be the loop's largest)
                 rang = fast is not None and fast.decay > self.req.max_decay_ratio
-                if stopped is None and margin and (gains.td > 0 or rang):
+                # a PI's too where the model's margins are not sure: ZN PI predicted at Ms
+                # 1.88 on an inverse response was 2.20 on the plant, and lambda PI at 1.25 on
+                # a lead-lag's FOPDT that missed its record 2.06 (helper trial)
+                judged = gains.td > 0 or rang or self._model_unsure
+                if stopped is None and margin and judged:
                     check = self._margin_check(
                         gains, sp0, step, ident.noise, scale, fast if rang else None
                     )

@@ -86,6 +86,9 @@ class Selection:
     # the relative spreads of K_u and P_u to state with them (``stated_spreads``)
     ku_spread: float | None = None
     pu_spread: float | None = None
+    # the model's predictions are not sure (it misses the measured point or its record, or
+    # the process answers inversely): the verification checks every rule's gain margin
+    model_unsure: bool = False
 
 
 def l_over_t(ident: Identification, model: ProcessFit | None = None) -> float | None:
@@ -496,6 +499,7 @@ def select(
         model_check=check,
         ku_spread=ku_spread,
         pu_spread=pu_spread,
+        model_unsure=unsure_model or ident.inverse_response,
         sample_time=ts if model is not None else None,
         lambda_s=_lambda_of(
             table,
