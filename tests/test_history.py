@@ -576,3 +576,24 @@ def test_revert_to_the_approved_run_finds_the_change_its_apply_made(tmp_path):
     assert target(found, "A1", 1) is found[-1] and found[-1]["run_id"] == "B2"
     assert target(found, "B2", 1) is found[-1]
     assert found[-1]["before"] == G0.model_dump()
+
+
+def test_the_watch_finds_the_last_applied_tune_in_the_history_when_no_tuner_has_it(tmp_path):
+    """After a tuner restart `autotune watch` had no tune to go by: T_u from Ti (1,000 s
+    against the tune's P_u of 43 s) and "no applied tune to compare with" (helper trial).
+    The history's tune records carry P_u, and the watch reads the last applied one (a
+    rejected run after it changed nothing)."""
+    from services.autotuner.commands.watch import recorded_tune
+    from services.autotuner.monitor.assessment import Baseline
+
+    h = history(tmp_path)
+    feed(h, status(G0))
+    applied = _result("ok1", True, G1).model_copy(update={"pu": 43.4, "noise": 0.02})
+    feed(h, applied)
+    feed(h, _result("rej2", False, G1).model_copy(update={"pu": 40.0}))
+    last = recorded_tune(tmp_path, P, LOOP)
+    assert last is not None and (last["run_id"], last["pu"]) == ("ok1", 43.4)
+    base = Baseline.from_result(last)
+    assert base is not None and base.run_id == "ok1" and base.gains == (6.9, 96.0, 6.9)
+    assert recorded_tune(tmp_path, "another-bus", LOOP) is None
+    assert recorded_tune(tmp_path / "nowhere", P, LOOP) is None

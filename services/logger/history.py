@@ -225,6 +225,8 @@ class ChangeHistory:
                     for k, v in r.robustness.items()
                 },
                 "ku": r.ku,
+                # the watch's T_u where no tuner remembers the run (one restarted since)
+                "pu": r.pu,
                 "identified_on": r.identified_on,
                 "timescale": r.timescale,
                 "noise": r.noise,

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -31,6 +33,7 @@ from services.autotuner.monitor.oscillation import SUPERVISION_PERIODS
 from shared import json_text, keys, wire
 from shared.cli import MAX_SECONDS, add_common_arguments, check_ids
 from shared.errors import AutotuneError, ConfigError
+from shared.history_file import HISTORY_FILE, of_loop, read_history
 from shared.identity import auth_user
 from shared.messages import LoopMonitor, ProcessSample, TuneResult
 from shared.session import open_session, settings_from_args
@@ -73,6 +76,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument(
+        "--runs",
+        default="runs",
+        metavar="DIR",
+        help="the logger's runs directory, read for the loop's last applied tune where no "
+        "tuner has it (restarted since): its P_u and verification (default: %(default)s)",
+    )
+    parser.add_argument(
         "--wait",
         type=seconds,
         default=10.0,
@@ -89,6 +99,36 @@ def last_result(session: zenoh.Session, prefix: str, loop: str) -> TuneResult | 
     if not wait_for_token(session, keys.tuner_alive(prefix, keys.ANY), RESULT_TIMEOUT):
         return None
     return wire.query_one(session, keys.tune_result(prefix, loop), TuneResult, RESULT_TIMEOUT)
+
+
+def recorded_tune(runs: Path, prefix: str, loop: str) -> dict[str, Any] | None:
+    """The loop's last applied tune as the logger's change history holds it (its ``tune``
+    record), as the fields of a TuneResult the watch reads; None where none is on record.
+    Why: a tuner restarted since the tune has no result to give, and the watch fell back to
+    Ti for T_u (1,000 s against a P_u of 43 s: its detector 23 times too slow to see a limit
+    cycle) and said "no applied tune to compare with" (helper trial)."""
+    try:
+        records = list(read_history(runs / HISTORY_FILE))
+    except ConfigError:  # not a regular file there: nothing read
+        return None
+    tunes = [
+        r
+        for r in records
+        if r.get("record") == "tune" and r.get("applied") is True and of_loop(r, loop, prefix)
+    ]
+    if not tunes:
+        return None
+    r = tunes[-1]
+    pu = r.get("pu")
+    return {
+        "run_id": r.get("run_id"),
+        "status": r.get("status"),
+        "applied": True,
+        "after": r.get("verification_after"),
+        "chosen": r.get("chosen"),
+        "noise": r.get("noise"),
+        "pu": pu if isinstance(pu, int | float) and math.isfinite(pu) and pu > 0 else None,
+    }
 
 
 def collect(client: LoopClient, watcher: Watcher, samples: int) -> str | None:
@@ -135,7 +175,11 @@ def run(args: argparse.Namespace) -> int:
                     f"loop {args.loop} is held by {status.leased_by!r} for a test, not in normal "
                     "operation: watch it once it is released"
                 )
-            pu = result.pu if result is not None else None
+            last = result.model_dump() if result is not None else None
+            if last is None or not last.get("applied"):
+                # no tuner remembers an applied tune (restarted since): the logger's record
+                last = recorded_tune(Path(args.runs), args.prefix, args.loop) or last
+            pu = last.get("pu") if last is not None else None
             period, source = choose_period(args.period, pu, status.gains.ti, info.sample_time)
             if source == "given":
                 source = "--period"
@@ -146,7 +190,6 @@ def run(args: argparse.Namespace) -> int:
                     f"--duration {duration:g}: {n} samples at {info.sample_time:g} s; at most "
                     f"{MAX_SAMPLES * info.sample_time:g} s for this loop"
                 )
-            last = result.model_dump() if result is not None else None
             watcher = loop_watcher(period, source, info, status, last)
             baseline = watcher.baseline
             stopped = collect(client, watcher, n)
