@@ -744,17 +744,10 @@ class QuietProgress:
         self.last: str | None = None
         self._began = time.monotonic()
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     def line(self, p: TuneProgress) -> None:
-        ku = f"K_u {p.ku:.4g}" if p.ku else ""
-        pu = f"P_u {p.pu:.4g} s" if p.pu else ""
-        self.last = (
-            f"  {p.phase:<10} t = {p.t:8.1f} s  n = {p.cycles:<3} {ku:<12} {pu:<14} "
-            f"{p.message[:40]:<40}"
-        )
-        if sys.stderr.isatty():
-            print("\r" + self.last, end="", file=sys.stderr, flush=True)
+        self.last = progress_text(p)
+        progress_line(p)
 
     def say(self) -> None:
         """The last progress as a line of its own, with the wall time so far."""
@@ -768,18 +761,27 @@ class QuietProgress:
 
     def __enter__(self) -> QuietProgress:
         if not sys.stderr.isatty():
-            self._thread = threading.Thread(target=self._tick, daemon=True, name="progress")
-            self._thread.start()
+            threading.Thread(target=self._tick, daemon=True, name="progress").start()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
 
 
+def progress_text(p: TuneProgress) -> str:
+    """One line of the run's progress: phase, sim time, count, K_u and P_u so far, message."""
+    ku = f"K_u {p.ku:.4g}" if p.ku else ""
+    pu = f"P_u {p.pu:.4g} s" if p.pu else ""
+    return (
+        f"  {p.phase:<10} t = {p.t:8.1f} s  n = {p.cycles:<3} {ku:<12} {pu:<14} "
+        f"{p.message[:40]:<40}"
+    )
+
+
 def progress_line(p: TuneProgress) -> None:
     """The run's progress rewritten in place on a terminal (nothing elsewhere)."""
     if sys.stderr.isatty():
-        QuietProgress().line(p)
+        print("\r" + progress_text(p), end="", file=sys.stderr, flush=True)
 
 
 def figure(v, unit: str = "", digits: int = 4) -> str:

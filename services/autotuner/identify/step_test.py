@@ -344,11 +344,13 @@ class StepTest:
         and sent to the relay, which cannot tune it either (helper trial); the relay and the
         ramp ask about the action."""
         rc = self.result
-        slope = rc.reaction_rate if isinstance(rc, IntegratingCurve) else getattr(rc, "gain", 0.0)
-        if rc is None or not math.isfinite(slope) or slope * self.direction >= 0:
+        if rc is None:
             return ""
-        what = "its rate of change" if isinstance(rc, IntegratingCurve) else "its gain"
-        per = " per s" if isinstance(rc, IntegratingCurve) else ""
+        ramps = isinstance(rc, IntegratingCurve)
+        slope = rc.reaction_rate if ramps else rc.gain
+        if not math.isfinite(slope) or slope * self.direction >= 0:
+            return ""
+        what, per = ("its rate of change", " per s") if ramps else ("its gain", "")
         return (
             f"step test: the output stepped {'up' if rc.step_size > 0 else 'down'} by "
             f"{abs(rc.step_size):g} % and the PV {'rose' if slope * rc.step_size > 0 else 'fell'}"
