@@ -1352,7 +1352,8 @@ class TuningRun:
         (``unjudged_note``): where the output stayed inside its limits throughout that step,
         the setpoint weight that the step's own record says brings it within the limit
         (``design.setpoint_weight``), and the verification made again with it; its
-        gain-margin check is the first one's (the weight leaves the feedback loop as it was).
+        gain-margin check is the first one's (the weight leaves the feedback loop as it was),
+        or made on this one where the first step's overshoot kept it from being made.
         None: the output was held at a limit, or no weight would do."""
         if after.op_limited or self._sp_step is None:
             return None
@@ -1364,6 +1365,8 @@ class TuningRun:
         if w is None:
             return None
         weighted = gains.model_copy(update={"beta": w.beta})
+        if after.margin_factor is None:  # not made on a step that failed: made on this one
+            return w, self._verify(weighted, sp0, ident, margin=True, margin_beta=gains.beta)
         again = self._verify(weighted, sp0, ident)
         kept = {f: getattr(after, f) for f in MARGIN_FIELDS}
         return w, again.model_copy(update=kept)
@@ -1508,19 +1511,27 @@ class TuningRun:
         noise: float,
         scale: float,
         fast: Ringing | None = None,
+        beta: float | None = None,
     ) -> margin_check.MarginCheck:
         """``gains`` with Kc × ``margin_check.FACTOR`` and the setpoint stepped by half the
         verification's ``step`` from ``sp0`` (the same proportional kick), watched for
         ``SCALES`` time scales of ``scale`` s, cut short once the PV swings ``SWING_BOUND``
         times that step from it; then ``gains`` at ``sp0`` again (the caller waits for the
         rest, or restores the loop where the check fails). ``fast``: a fast mode the model
-        lacks that the gains rang with, read again at the doubled gain."""
+        lacks that the gains rang with, read again at the doubled gain. ``beta``: the
+        setpoint weight of the doubled gains (default ``gains``'): a weighted verification's
+        check is kicked as the full-weight step would have been."""
         c = self.client
         kick = 0.5 * step
         target = sp0 + kick
         k = max(4, round(scale / self.ts))  # samples a time scale
         seconds = margin_check.SCALES * k * self.ts  # whole time scales of k samples each
-        doubled = gains.model_copy(update={"kc": gains.kc * margin_check.FACTOR})
+        doubled = gains.model_copy(
+            update={
+                "kc": gains.kc * margin_check.FACTOR,
+                "beta": gains.beta if beta is None else beta,
+            }
+        )
         c.command_all(
             GainsCommand(loop=c.loop, gains=doubled, source=c.source, t=self._t),
             SetpointCommand(loop=c.loop, sp=target, source=c.source, t=self._t),
@@ -1548,11 +1559,14 @@ class TuningRun:
         sp0: float,
         ident: experiments.Identification,
         margin: bool = False,
+        margin_beta: float | None = None,
     ) -> Verification:
         """A setpoint step, then a load step, with ``gains``; the loop ends at ``sp0``. The
         step's proportional kick stays within VERIFY_KICK % of output where the noise allows,
         so that the response is the linear loop's, as predicted. ``margin``: gains with a
-        derivative that pass are then run at twice their gain (``margin_check``)."""
+        derivative whose steps pass (their overshoot and decay ratio within the limits) are
+        then run at twice their gain (``margin_check``; ``margin_beta``: its setpoint
+        weight)."""
         c = self.client
         scale = max(ident.timescale, 20 * self.ts)
         lo, hi = self.info.pv_range
@@ -1731,9 +1745,16 @@ class TuningRun:
                 # 1.88 on an inverse response was 2.20 on the plant, and lambda PI at 1.25 on
                 # a lead-lag's FOPDT that missed its record 2.06 (helper trial)
                 judged = gains.td > 0 or rang or self._model_unsure
-                if stopped is None and margin and judged:
+                # never on gains their setpoint step has already failed: ZN PID forced on
+                # hx2 overshot 64 % and was then run at Kc × 2, above the K_u measured, the
+                # output swinging 10–70 % for 186 s before the rejection (helper trial)
+                failed = sp_m is not None and (
+                    sp_m["overshoot"] > self.req.max_overshoot
+                    or (sp_m["decay_ratio"] or 0.0) > self.req.max_decay_ratio
+                )
+                if stopped is None and margin and judged and not failed:
                     check = self._margin_check(
-                        gains, sp0, step, ident.noise, scale, fast if rang else None
+                        gains, sp0, step, ident.noise, scale, fast if rang else None, margin_beta
                     )
                     if not check.failed:  # back at rest at the setpoint, judged as before
                         stopped = back_at_rest()

@@ -1,0 +1,52 @@
+"""The gain-margin check (Kc × 2) is never run on gains whose setpoint step has already failed
+the acceptance limits: ZN PID forced on hx2 overshot its step by 64 % and was then run at
+twice its gain, above the K_u the relay had measured, its output swinging 10–70 % for 186 s
+of sim time before the rejection (helper trial). The gains are rejected as before; the loop
+never holds more than the rule's Kc."""
+
+from __future__ import annotations
+
+import tomllib
+
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant, default_plant_path
+from shared.messages import GainsCommand, TuneRequest
+
+
+class Watched(LocalLoopClient):
+    """A local client that keeps every proportional gain the run writes to the loop."""
+
+    def __init__(self, loop, **kw):
+        super().__init__(loop, **kw)
+        self.kcs: list[float] = []
+
+    def _apply(self, cmd):
+        if isinstance(cmd, GainsCommand):
+            self.kcs.append(cmd.gains.kc)
+        super()._apply(cmd)
+
+
+def _hx2(seed: int):
+    with open(default_plant_path(), "rb") as f:
+        doc = tomllib.load(f)
+    doc["seed"] = seed
+    return build_plant(doc, "unit")["hx2"]
+
+
+def test_gains_that_fail_their_step_are_not_run_at_twice_their_gain():
+    sim = _hx2(11)
+    before = sim.snapshot()
+    client = Watched(sim)
+    req = TuneRequest(loop="hx2", method="relay", rule="zn-pid", force=True)
+    r = TuningRun(client, req, "unit").run()
+    assert r.status == "rejected", r.reason
+    assert "overshoot" in r.reason
+    assert r.after.overshoot > r.acceptance["max_overshoot"]
+    assert r.after.margin_factor is None  # not made
+    kc = r.chosen["isa"]["kc"]
+    # the loop held the rule's Kc at most (a doubled gain would be 2 × kc)
+    assert max(client.kcs) <= kc * (1 + 1e-12), (max(client.kcs), kc)
+    assert r.ku is not None and 2 * kc > r.ku  # what the check would have written: past K_u
+    after = sim.snapshot()
+    assert (after.mode, after.gains) == (before.mode, before.gains)
