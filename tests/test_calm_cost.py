@@ -78,3 +78,19 @@ def test_the_passable_limits_are_the_verifications_defaults():
     fields = TuneRequest.model_fields
     assert fields["max_overshoot"].default == PASSABLE_OVERSHOOT
     assert fields["max_decay_ratio"].default == PASSABLE_DECAY
+
+
+def test_equal_integral_gains_go_to_the_lower_ms_whatever_the_last_bits():
+    """lvl2: SIMC PI and lambda PI both at Ki 100.4117916127567x, the pick was the rounding's
+    (helper trial): a tie within SAME_KI is the more robust candidate's, either way round."""
+    ki = 100.41179161275672
+    for bump in (1.0 + 2e-16, 1.0 - 2e-16):
+        stiff = _cand("simc-pi-int", 3422.0, 3422.0 / ki, 1.62, 20.0)
+        soft = _cand("lambda-pi", 1745.0, 1745.0 / (ki * bump), 1.31, 20.0)
+        rec = recommend(None, MODEL, candidates={c.rule: c for c in (stiff, soft)})
+        assert rec is not None and rec.rule == "lambda-pi", (bump, rec)
+    # a real difference in integral gain still wins over Ms
+    stiff = _cand("simc-pi-int", 3422.0, 3422.0 / (ki * 1.001), 1.62, 20.0)
+    soft = _cand("lambda-pi", 1745.0, 1745.0 / ki, 1.31, 20.0)
+    rec = recommend(None, MODEL, candidates={c.rule: c for c in (stiff, soft)})
+    assert rec is not None and rec.rule == "simc-pi-int", rec

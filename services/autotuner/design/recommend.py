@@ -315,6 +315,21 @@ def _integral_gain(a: Assessment) -> float:
     return a.gains.kc / (a.gains.ti or math.inf)
 
 
+# integral gains this close are one: the tie is broken by the lower Ms, not by rounding
+SAME_KI = 1e-9
+
+
+def _largest_integral_gain(pool: list[Assessment]) -> Assessment:
+    """The candidate of ``pool`` with the largest integral gain; of several within SAME_KI
+    of it, the most robust (the least Ms, then the first). Why: on an integrating loop two
+    rules can give the same Kc/Ti with different Kc (SIMC PI and lambda PI on lvl2:
+    100.41179161275672 and …74), and the last bits of the arithmetic picked one (helper
+    trial)."""
+    top = max(_integral_gain(a) for a in pool)
+    ties = [a for a in pool if _integral_gain(a) >= top * (1.0 - SAME_KI)]
+    return min(ties, key=lambda a: a.robustness.ms if a.robustness else math.inf)
+
+
 def recommend(
     ultimate: UltimatePoint | None,
     model: ProcessFit | None,
@@ -374,7 +389,7 @@ def recommend(
         costly = ""  # why the calm candidates were passed over
         passable = [a for a in ok if _passable(a)]
         if calm and passable:
-            quiet, fair = max(calm, key=_integral_gain), max(passable, key=_integral_gain)
+            quiet, fair = _largest_integral_gain(calm), _largest_integral_gain(passable)
             if _integral_gain(quiet) < CALM_KI_SHARE * _integral_gain(fair):
                 costly = (
                     f" (the best with a predicted overshoot ≤ {CALM_OVERSHOOT:g} % and decay "
@@ -383,7 +398,7 @@ def recommend(
                 )
                 calm = [fair]
         if ok:
-            best = max(calm or ok, key=_integral_gain)
+            best = _largest_integral_gain(calm or ok)
             lead = "aim fast: " if aim == "fast" else ""
             also = f" and a predicted overshoot ≤ {CALM_OVERSHOOT:g} %" if calm else ""
             if costly:
