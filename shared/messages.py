@@ -597,7 +597,14 @@ class Verification(Message):
     overshoot: float | None = Field(description="% of the setpoint step")
     decay_ratio: float | None = Field(description="second peak over first (ZN aim: 0.25)")
     rise_time: float | None
-    settling_time: float | None = Field(description="s to stay within 2 % of the step")
+    settling_time: float | None = Field(
+        description="s to stay within settling_band of the step (the noise averaged)"
+    )
+    settling_band: float | None = Field(
+        default=None,
+        description="% of the setpoint step: the band settling_time is read within, 2 % or "
+        "3σ of the PV's noise where that is wider (37.5 % on a step 8σ tall)",
+    )
     iae_sp: float | None = Field(description="PV units·s; None: no setpoint step was measured")
     load_step: float | None = Field(description="% of output, None when the model has no load")
     iae_load: float | None

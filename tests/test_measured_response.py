@@ -217,3 +217,14 @@ def test_settling_and_recovery_times_are_the_responses_not_the_last_noise_spike(
     dev = 1.0 * np.exp(-t / 10.0) + sigma * rng.standard_normal(t.size)  # a load's dip
     r = load_step(t, dev, 0.0, 0.0, noise=sigma, width=5)  # back within 0.1 of its peak
     assert r["recovered"] and abs(r["recovery_time"] - 10.0 * math.log(10.0)) < 5.0, r
+
+
+def test_the_settling_band_is_said_where_the_noise_widens_it():
+    """A level's verification step of 8σ: its settling time is read within 3σ = 37.5 % of
+    the step, not 2 %, and the figures say so (helper trial: "settling 6 s" meant 62.5 %)."""
+    t, y = second_order_record(dt=0.05)  # a step of TARGET − Y0 = 10
+    clean = measured_setpoint_step(t, y, T0, Y0, TARGET)
+    assert clean["settling_band"] == pytest.approx(2.0)
+    sigma = (TARGET - Y0) / 8.0
+    f = measured_setpoint_step(t, y, T0, Y0, TARGET, noise=sigma)
+    assert f["settling_band"] == pytest.approx(37.5)  # 3σ of a step 8σ tall

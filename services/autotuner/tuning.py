@@ -1769,6 +1769,7 @@ class TuningRun:
             decay_ratio=sp_m["decay_ratio"] if sp_m else None,
             rise_time=sp_m["rise_time"] if sp_m else None,
             settling_time=sp_m["settling_time"] if sp_m else None,
+            settling_band=sp_m["settling_band"] if sp_m else None,
             iae_sp=None if iae_sp is None else finite(iae_sp) or 0.0,
             load_step=load_size if load_m is not None else None,
             iae_load=load_m["iae"] if load_m else None,

@@ -60,8 +60,10 @@ ROWS = (  # (field of Verification, label, unit; "PV" stands for the PV's units)
     ("margin_swing", "swing at Kc × 2, of its step", ""),
     ("margin_ringing", "fast ring a period at Kc × 2", ""),
     ("rise_time", "rise time", "s"),
-    # within 2 % of the step, or 3σ of the PV's noise where that is wider (measured_response)
+    # within 2 % of the step, or 3σ of the PV's noise where that is wider (measured_response),
+    # the band said beside it: on a level's step 8σ tall it is 37.5 % of the step
     ("settling_time", "settling (2 % or 3σ)", "s"),
+    ("settling_band", "settling band", "% step"),
     ("iae_sp", "IAE, setpoint", "PV·s"),
     ("load_step", "load step", "%"),
     ("iae_load", "IAE, load", "PV·s"),

@@ -42,6 +42,7 @@ ROWS = (
     ("decay_ratio", "decay ratio", ""),
     ("rise_time", "rise time", "s"),
     ("settling_time", "settling time", "s"),
+    ("settling_band", "settling band", "% of step"),
     ("iae_sp", "IAE, setpoint", "PV·s"),
     ("iae_load", "IAE, load", "PV·s"),
     ("max_deviation_load", "max deviation, load", "PV"),
@@ -52,7 +53,7 @@ ROWS = (
 PERCENT_KEYS = ("ku_spread", "pu_spread")  # fractions on the result, given in % (JSON too)
 # figures in %: their change is told in percentage points (an overshoot from 0.0001 % to 10 %
 # is not a change of +10,000,000 %)
-POINT_KEYS = (*PERCENT_KEYS, "overshoot_pct", "overshoot")
+POINT_KEYS = (*PERCENT_KEYS, "overshoot_pct", "overshoot", "settling_band")
 # where a run's L/T comes from: a step test's reaction curve (its tangent) or, else, the
 # model's first-order equivalent (``selection.l_over_t``): the two are not the same figure
 L_OVER_T_FROM = {True: "step tangent", False: "model FOPDT"}
@@ -119,6 +120,7 @@ def figures(meta: dict[str, str], r: TuneResult | None, span: float | None) -> d
             "decay_ratio",
             "rise_time",
             "settling_time",
+            "settling_band",
             "iae_sp",
             "iae_load",
             "max_deviation_load",

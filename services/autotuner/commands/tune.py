@@ -1014,6 +1014,10 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         ]
         if span is not None:  # an IAE in PV units·s as % of span·s
             rows[4:6] = [("IAE setpoint %·s", "iae_sp"), ("IAE load %·s", "iae_load")]
+        if any(v is not None and (v.settling_band or 0) > 2.0 + 1e-9 for v in (r.before, r.after)):
+            # read within the noise's 3σ, wider than 2 % of the step: said beside it (a
+            # level's step of 8σ settles "in 6 s" to within 37.5 % of itself)
+            rows.insert(4, ("settling band %", "settling_band"))
         if any(v is not None and v.unmodelled_ringing is not None for v in (r.before, r.after)):
             rows.insert(3, ("fast ring /period", "unmodelled_ringing"))  # beyond the model
         if r.after.margin_swing is not None:  # the gain-margin check's (of its step)
