@@ -1178,10 +1178,14 @@ def test_runs_compare_keeps_unlike_figures_apart(recorded):
     assert "max deviation, load (degC | m3/h) " in format_compare(c)
 
 
-def test_a_recovered_file_is_listed_with_its_loop_and_method(recorded, tmp_path, capsys):
+@pytest.mark.parametrize("with_record", [False, True])
+def test_a_recovered_file_is_listed_with_its_loop_and_method(
+    recorded, tmp_path, capsys, with_record
+):
     """A file whose logger was killed has no 'run' metadata (written as a run ends): the
     recovered file was listed "unreadable: no 'run' metadata record" (helper trial E). Recover
-    gives it one from the file's name, status ``incomplete``."""
+    gives it one from the file's name, status ``incomplete``; or, where the run's record
+    (the metadata's copy, written with it as the run ended) was read, from that record."""
     good = recorded["relay"].path.read_bytes()
     # named as the logger names it, for the loop its samples are of (x1)
     broken = tmp_path / "20261204T232357Z_x1_relay_abcdef012345.mcap"
@@ -1197,7 +1201,12 @@ def test_a_recovered_file_is_listed_with_its_loop_and_method(recorded, tmp_path,
         w = Writer(f, chunk_size=4096)  # chunks written as they fill, as the logger flushes
         w.start(profile="", library="test")
         ids: dict[int, int] = {}
+        records: set[int] = set()  # the channel of the run's record
         for rec in StreamReader(io.BytesIO(good), skip_magic=False).records:
+            if isinstance(rec, Channel) and rec.topic.endswith("/run"):
+                records.add(rec.id)
+            if isinstance(rec, Message) and rec.channel_id in records and not with_record:
+                continue  # killed before the run ended: its record never written
             if isinstance(rec, Schema) and rec.id not in ids:
                 ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
             elif isinstance(rec, Channel) and -rec.id not in ids:
@@ -1215,6 +1224,11 @@ def test_a_recovered_file_is_listed_with_its_loop_and_method(recorded, tmp_path,
     code, out, err = cli(capsys, "runs", str(out_dir))
     assert code == 0, err
     (line,) = [x for x in out.splitlines() if x.endswith(fixed.name)]
+    if with_record:  # the run's own start, figures and status, and its loss said
+        meta = dict(load(recorded["relay"].path)[1])["run"]
+        assert line.split()[:3] == [meta["started"][:19], "x1", "relay"], line
+        assert "ok (recovered, data lost)" in line, line
+        return
     assert line.split()[:3] == ["2026-12-04T23:23:57", "x1", "relay"], line
     assert "incomplete" in line and "unreadable" not in line
 
@@ -1223,20 +1237,59 @@ def test_a_truncated_file_recovered_is_listed_with_its_loss(recorded, tmp_path, 
     """The first two thirds of a finished run's file, recovered, were listed `ok` with the
     whole run's sample count and no word of a loss (helper trial): a file that breaks off
     lost what came after, and its listing says so."""
-    good = recorded["relay"].path.read_bytes()
+    msgs, meta = load(recorded["relay"].path)
+    # in chunks of 4 kB, as a long run's are (the run's file is one chunk): two thirds into
+    # its data section, its last chunks and its metadata record cut off
+    good = save(tmp_path / "chunked.mcap", msgs, meta, chunk_size=4096).read_bytes()
     cut = tmp_path / recorded["relay"].path.name
-    cut.write_bytes(good[: 2 * len(good) // 3])
+    cut.write_bytes(good[: 2 * _data_end(good) // 3])
     out_dir = tmp_path / "fixed"
     out_dir.mkdir()
     fixed = out_dir / cut.name
     code, out, err = cli(capsys, "recover", str(cut), "-o", str(fixed))
-    assert code == 0 and "recovered" in out and "the file breaks off (truncated" in out, err
+    assert code == 0 and "recovered" in out and "stopped at: truncated" in out, err
+    assert "the file breaks off before its end" in out, out
     code, out, err = cli(capsys, "runs", str(out_dir), "--json")
     assert code == 0, err
     (row,) = json.loads(out)
-    assert row["lost"] and "the file breaks off (truncated" in row["lost"], row
+    assert row["lost"] and "the file breaks off" in row["lost"], row
     code, out, err = cli(capsys, "runs", str(out_dir))
     assert f"{row['status']} (recovered, data lost)" in out, out
+
+
+def _data_end(data: bytes) -> int:
+    """Where a finished run file's DataEnd record starts (its footer's summary start, less
+    the 13 bytes of that record): the end of its data section."""
+    footer = data[-8 - 29 : -8]
+    return int.from_bytes(footer[9:17], "little") - 13
+
+
+def _messages(path) -> int:
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return sum(1 for _ in make_reader(f).iter_messages())
+
+
+def test_a_file_cut_in_its_summary_lost_nothing_and_says_so(recorded, tmp_path, capsys):
+    """Ten bytes off the end (its footer), or a cut anywhere after its data section: every
+    message is recovered, and it was listed "recovered, data lost", "the file breaks off
+    (truncated: unpack requires a buffer of 4 bytes)" (helper trial)."""
+    good = recorded["relay"].path.read_bytes()
+    end = _data_end(good) + 13  # the data section and its DataEnd record whole
+    for keep in (len(good) - 10, (end + len(good)) // 2):
+        cut = tmp_path / f"cut{keep}" / recorded["relay"].path.name
+        cut.parent.mkdir()
+        cut.write_bytes(good[:keep])
+        out_dir = tmp_path / f"fixed{keep}"
+        out_dir.mkdir()
+        fixed = out_dir / cut.name
+        code, out, err = cli(capsys, "recover", str(cut), "-o", str(fixed))
+        assert code == 0 and "no data lost" in out, (out, err)
+        assert _messages(fixed) == _messages(recorded["relay"].path)
+        code, out, err = cli(capsys, "runs", str(out_dir), "--json")
+        (row,) = json.loads(out)
+        assert not row["lost"] and row["status"] == "ok", row
 
 
 def test_analyze_gives_the_designs_warnings_as_the_live_result_does(recorded, capsys):
@@ -1308,3 +1361,74 @@ def test_a_metadata_loop_that_none_of_the_samples_are_of_is_refused(recorded, tm
     for argv in (["analyze", str(bad)], ["report", str(bad), "-o", str(tmp_path / "r.png")]):
         code, _, err = cli(capsys, *argv)
         refused(code, err, argv[0], ["metadata 'run', field loop: 'f1', but its samples are of"])
+
+
+def test_an_altered_run_metadata_record_fails_the_data_crc_and_recover_restores_it(
+    recorded, tmp_path, capsys
+):
+    """One digit of the run's K_u changed in its metadata record (outside every chunk, so no
+    chunk CRC saw it): `runs` listed K_u 3.544 for 2.544, `ok`, without a word (helper
+    trial). The data section's CRC now refuses it, and `recover` takes the run's figures
+    from its run record, a copy inside a chunk that passes its CRC."""
+    good = recorded["relay"].path.read_bytes()
+    meta = dict(load(recorded["relay"].path)[1])["run"]
+    ku = meta["ku"]
+    assert ku and ku[0] != "9"
+    at = good.index(b"\x02\x00\x00\x00ku" + len(ku).to_bytes(4, "little") + ku.encode())
+    at += 4 + 2 + 4  # the value's first digit
+    bad = bytearray(good)
+    bad[at] = ord(str(int(ku[0]) + 1))
+    folder = tmp_path / "altered"
+    folder.mkdir()
+    path = folder / recorded["relay"].path.name
+    path.write_bytes(bytes(bad))
+    assert dict(load(path)[1])["run"]["ku"] != ku  # what a reader of the metadata sees
+    code, out, err = cli(capsys, "runs", str(folder), "--json")
+    assert code == 0, err
+    (row,) = json.loads(out)
+    assert row["status"] == "unreadable" and "fails the CRC" in row["reason"], row
+    code, out, err = cli(capsys, "analyze", str(path))
+    assert code == 2 and "its data section fails the CRC" in err and len(err.splitlines()) == 1
+    fixed = tmp_path / "fixed" / path.name
+    fixed.parent.mkdir()
+    code, out, err = cli(capsys, "recover", str(path), "-o", str(fixed))
+    assert code == 0 and "taken from its run record" in out, (out, err)
+    code, out, err = cli(capsys, "runs", str(fixed.parent), "--json")
+    (row,) = json.loads(out)
+    assert repr(row["ku"]) == ku and row["lost"], row  # the written figure, the damage said
+    code, out, err = cli(capsys, "analyze", str(fixed))
+    assert code == 0, err
+
+
+def test_a_foreign_mcap_file_is_said_to_be_no_run(tmp_path, capsys):
+    """A valid MCAP file of something else: `runs --compare` printed a header of Nones and
+    exit 0, `analyze` "no experiment recorded", `recover` made a run of it (helper trial)."""
+    foreign = save(
+        tmp_path / "foreign.mcap",
+        [Msg("/foo", "Foo", "json", 1, b'{"x": 1}')],
+        [],
+    )
+    for args in (
+        ["analyze", str(foreign)],
+        ["report", str(foreign), "-o", str(tmp_path / "x.png")],
+    ):
+        code, out, err = cli(capsys, *args)
+        assert code == 2 and "not an autotune run file" in err, (args, err)
+    code, out, err = cli(capsys, "runs", str(tmp_path), "--compare", str(foreign), str(foreign))
+    assert code == 2 and "not an autotune run file" in err, (out, err)
+    code, out, err = cli(capsys, "recover", str(foreign), "-o", str(tmp_path / "r.mcap"))
+    assert code == 2 and "not an autotune run file" in err and not (tmp_path / "r.mcap").exists()
+
+
+def test_compare_names_a_run_without_its_metadata_record_from_its_result(
+    recorded, tmp_path, capsys
+):
+    """A run's messages without its 'run' metadata (a logger killed after the result):
+    `runs --compare` headed it "None None run None ( UTC)" (helper trial)."""
+    msgs, _ = load(recorded["relay"].path)
+    bare = save(tmp_path / "bare.mcap", msgs, [])
+    code, out, err = cli(capsys, "runs", str(tmp_path), "--compare", str(bare), str(bare))
+    assert code == 0, err
+    assert "None" not in out, out
+    run_id = recorded["relay"].path.stem.rsplit("_", 1)[-1]
+    assert f"x1 relay run {run_id}  (start not recorded)" in out, out

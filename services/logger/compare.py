@@ -142,6 +142,10 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
     runs, values, units = [], [], []
     for path in (Path(path_a), Path(path_b)):
         meta, result, span = _result(path)
+        if result is not None:  # a file without its metadata record (a killed logger's):
+            # who and what from its result, as `analyze` reads it (a header of Nones: helper)
+            meta = {"run_id": result.run_id, "loop": result.loop, "method": result.method,
+                    "status": result.status} | {k: v for k, v in meta.items() if v}  # fmt: skip
         runs.append(
             {
                 "file": str(path),
@@ -223,9 +227,11 @@ def format_compare(c: dict) -> str:
     head = []
     for name, run in (("A", a), ("B", b)):
         started = (run.get("started") or "")[:19]
+        when = f"  ({started} UTC)" if started else "  (start not recorded)"
         head += [
             f"{name}  {run['file']}",
-            f"   {run.get('loop')} {run.get('method')} run {run.get('run_id')}  ({started} UTC)",
+            f"   {run.get('loop') or '—'} {run.get('method') or '—'} run "
+            f"{run.get('run_id') or '—'}{when}",
         ]
     if c.get("pv_units_differ"):
         head += [

@@ -23,6 +23,7 @@ import itertools
 import json
 import os
 import time
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -36,7 +37,13 @@ from mcap.stream_reader import CRCValidationError
 from mcap.writer import CompressionType, Writer
 
 from services.logger import mcap_batch
-from services.logger.record_form import RunRecord, bus_payload, run_record, schema_bytes
+from services.logger.record_form import (
+    RECORDED,
+    RunRecord,
+    bus_payload,
+    run_record,
+    schema_bytes,
+)
 from shared import json_text, keys
 from shared.errors import AutotuneError, one_line
 from shared.messages import Message, ProcessSample, TuneResult
@@ -48,6 +55,61 @@ FORMAT_VERSION = 2  # of the run files written here: "format" in the run's metad
 # 1: log time = sim time, the bus's JSON; 2: wall-clock log times, the recorded form
 M = TypeVar("M", bound=Message)
 WALL_CLOCK_NS = 10**18  # 2001-09-09: a log time past it is on the wall clock, not sim time
+# a DataEnd record: opcode 0x0F, its length (8 bytes), the data section's CRC-32 (4 bytes);
+# the Footer after the summary: opcode, length, two offsets and a CRC (29 bytes), then magic
+_DATA_END = 0x0F
+_DATA_END_SIZE = 1 + 8 + 4
+_FOOTER_SIZE = 1 + 8 + 8 + 8 + 4
+
+
+def new_writer(out: IO[bytes]) -> Writer:
+    """A run file's writer: chunks compressed, and the data section's CRC written (MCAP's
+    ``DataEnd``): the chunks' own CRCs leave the run's metadata record out, and an altered
+    digit there (K_u 2.5436 read 3.5436) was listed by ``runs`` as the run's (helper trial)."""
+    return Writer(out, compression=CompressionType.ZSTD, enable_data_crcs=True)
+
+
+def data_section_problem(path: Path) -> str | None:
+    """Why the file's data section fails the CRC its writer put in its DataEnd record (None:
+    it passes, or the file has none: written before run files carried it, or by a writer
+    that does not). Everything before the DataEnd record is read: the chunks, the run's
+    metadata record, the message indexes."""
+    try:
+        with path.open("rb") as f:
+            size = f.seek(0, os.SEEK_END)
+            if size < len(MAGIC) * 2 + _FOOTER_SIZE + _DATA_END_SIZE:
+                return None
+            f.seek(size - len(MAGIC) - _FOOTER_SIZE)
+            footer = f.read(_FOOTER_SIZE)
+            summary_start = int.from_bytes(footer[9:17], "little")
+            end = summary_start if summary_start else size - len(MAGIC) - _FOOTER_SIZE
+            at = end - _DATA_END_SIZE
+            if footer[0] != 0x02 or at < len(MAGIC):
+                return None
+            f.seek(at)
+            record = f.read(_DATA_END_SIZE)
+            if record[0] != _DATA_END or int.from_bytes(record[1:9], "little") != 4:
+                return None
+            written = int.from_bytes(record[9:13], "little")
+            if written == 0:  # not computed (MCAP's convention): nothing to check
+                return None
+            f.seek(0)
+            crc, left = 0, at
+            while left > 0:
+                block = f.read(min(left, 1 << 20))
+                if not block:
+                    return None
+                crc, left = zlib.crc32(block, crc), left - len(block)
+    except OSError:
+        return None
+    if crc == written:
+        return None
+    return (
+        f"its data section fails the CRC its writer gave it (written {written:08x}, read "
+        f"{crc:08x}), though its chunks pass theirs: its 'run' metadata record or its indexes "
+        "changed after they were written (a damaged disk or copy, an edit), so the run's "
+        "figures in them are not trusted"
+    )
 
 
 def topic_of(key: str) -> str:
@@ -90,7 +152,7 @@ class RunWriter:
         self.path = path
         self.log_time_zero = log_time_zero
         self._file: IO[bytes] = path.open("wb")
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self._writer = new_writer(self._file)
         self._writer.start(profile=PROFILE, library=LIBRARY)
         self._writer.flush()  # the header is on disk at once: even a killed writer leaves MCAP
         self._batched = mcap_batch.usable(self._writer)  # write_many's way, else one by one
@@ -472,6 +534,20 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
         raise not_readable(path, "it ends before its MCAP footer: truncated") from None
     except Exception as err:  # the mcap library on damaged bytes: any of a dozen kinds
         raise not_readable(path, f"{type(err).__name__}: {one_line(err)}") from None
+    if not meta and records and not {r.schema for r in records} & set(RECORDED):
+        # an MCAP file of something else: said as such, not "no experiment recorded"
+        topics = sorted({r.topic for r in records})
+        shown = ", ".join(topics[:3]) + (f" and {len(topics) - 3} more" if len(topics) > 3 else "")
+        raise AutotuneError(
+            f"{path}: not an autotune run file: none of its topics ({shown}) carries an "
+            "autotune message, and it has no 'run' metadata record"
+        )
+    altered = data_section_problem(path)
+    if altered is not None:
+        raise AutotuneError(
+            f"{path}: {altered}; `autotune recover {path} -o FIXED.mcap` copies its messages "
+            "and takes the run's figures from its run record among them"
+        )
     check_format(path, meta)
     _check_loop(path, meta, records)
     return meta, records

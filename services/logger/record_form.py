@@ -298,3 +298,30 @@ def run_record(meta: dict[str, str], t: float, log_time_zero: int) -> bytes:
         result=obj("result", TuneResult),
     )
     return record.model_dump_json(exclude_none=True).encode()
+
+
+def metadata_of_record(data: bytes) -> dict[str, str]:
+    """The fields of a run's ``run`` metadata that a RunRecord message (``data``, its recorded
+    form) carries, as the logger writes them (numbers as text, request, info and result as
+    their bus JSON): for ``autotune recover`` of a file whose metadata record fails the CRC,
+    the run's figures from the copy of them inside a CRC-checked chunk. {} if ``data`` is not
+    a RunRecord."""
+    try:
+        rec = RunRecord.model_validate_json(bus_payload(RunRecord.__name__, data))
+    except ValueError:
+        return {}
+    meta = {
+        k: getattr(rec, k)
+        for k in ("run_id", "loop", "method", "rule", "status", "started", "finished", "prefix")
+    }
+    meta.update(replay=rec.replay, plant_node=rec.plant_node, plant_changed=rec.plant_changed)
+    for k in ("samples", "first_seq", "last_seq", "dropped", "messages", "left_out"):
+        meta[k] = str(getattr(rec, k))
+    for k in ("ku", "pu"):
+        v = getattr(rec, k)
+        meta[k] = "" if v is None else repr(v)
+    for k in ("request", "info", "result"):
+        v = getattr(rec, k)
+        meta[k] = "" if v is None else v.model_dump_json()
+    meta["log_time_zero"] = str(rec.log_time_zero)
+    return meta

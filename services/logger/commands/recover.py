@@ -16,12 +16,19 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, Message, Metadata, Schema
+from mcap.records import Channel, Chunk, DataEnd, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 from mcap.summary import Summary
-from mcap.writer import CompressionType, Writer
 
-from services.logger.mcap_io import LIBRARY, MAGIC, PROFILE, damaged_chunk
+from services.logger.mcap_io import (
+    LIBRARY,
+    MAGIC,
+    PROFILE,
+    damaged_chunk,
+    data_section_problem,
+    new_writer,
+)
+from services.logger.record_form import RECORDED, RunRecord, metadata_of_record
 from shared.errors import AutotuneError, one_line
 
 HELP = "salvage a truncated MCAP file (from a killed logger)"
@@ -59,30 +66,43 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             )
     counts = {"schemas": 0, "channels": 0, "messages": 0, "metadata": 0}
     stopped = "end of file"
+    data_end = False  # the data section's end was read: a break after it loses no data
+    names: set[str] = set()  # the schemas' names read
     run: dict[str, str] | None = None  # the run's metadata record, where it was read
     # chunks that failed their CRC (True) or to decompress (False): their messages left out
     damaged: list[tuple[Chunk, bool]] = []
     schemas: dict[int, int] = {}
     channels: dict[int, int] = {}
+    channel_schemas: dict[int, int] = {}  # the file's channel id → its schema id
+    records: set[int] = set()  # the schema ids of the run's RunRecord (its metadata again)
+    record: bytes | None = None  # the last RunRecord read
+    # the file's metadata or indexes changed since they were written (its data section's CRC)
+    altered = data_section_problem(src)
     with src.open("rb") as f, dst.open("wb") as out:
-        writer = Writer(out, compression=CompressionType.ZSTD)
+        writer = new_writer(out)
         writer.start(profile=PROFILE, library=LIBRARY)
 
         def copy(rec: object) -> None:
-            nonlocal run
+            nonlocal run, record
             if isinstance(rec, Schema | Channel) and rec.id in (
                 schemas if isinstance(rec, Schema) else channels
             ):
                 return  # the summary section repeats them
             if isinstance(rec, Schema):
+                names.add(rec.name)
                 schemas[rec.id] = writer.register_schema(rec.name, rec.encoding, rec.data)
                 counts["schemas"] += 1
+                if rec.name == RunRecord.__name__:
+                    records.add(rec.id)
             elif isinstance(rec, Channel):
+                channel_schemas[rec.id] = rec.schema_id
                 channels[rec.id] = writer.register_channel(
                     rec.topic, rec.message_encoding, schemas.get(rec.schema_id, 0), rec.metadata
                 )
                 counts["channels"] += 1
             elif isinstance(rec, Message) and rec.channel_id in channels:
+                if channel_schemas.get(rec.channel_id) in records:
+                    record = rec.data
                 writer.add_message(
                     channels[rec.channel_id], rec.log_time, rec.data, rec.publish_time, rec.sequence
                 )
@@ -105,6 +125,7 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
                 copy(summary.channels[cid])
         try:
             for rec in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+                data_end = data_end or isinstance(rec, DataEnd)
                 if not isinstance(rec, Chunk):
                     copy(rec)
                     continue
@@ -120,13 +141,37 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
                     copy(r)
         except Exception as err:  # the mcap library on damaged bytes: any of a dozen kinds
             stopped = f"truncated: {one_line(err) or type(err).__name__}"
+            if data_end:  # in the summary or footer, after every record of the run
+                stopped = "truncated after its data section (in its summary): no data lost"
+        if names and run is None and not names & set(RECORDED):
+            out.close()
+            dst.unlink()
+            raise AutotuneError(
+                f"{src}: not an autotune run file (its schemas, {', '.join(sorted(names))}, "
+                "are none of autotune's messages): nothing to recover, "
+                f"{dst} not written"
+            )
         held = summary.statistics.message_count if summary and summary.statistics else None
         lost = _lost(damaged, run or {}, held, counts["messages"])
-        if stopped != "end of file" and run is not None:
+        if stopped != "end of file" and not data_end:
             # the file ends short of its end: whatever came after the break is lost, whether
             # or not a summary says how much (a truncated copy was listed `ok`, its samples
             # those of the whole run: helper trial)
-            lost = "; ".join(x for x in (lost, f"the file breaks off ({stopped})") if x)
+            lost = "; ".join(x for x in (lost, "the file breaks off before its end") if x)
+        if altered is not None:
+            # its metadata record is not the one written: the run's figures from its run
+            # record, a copy of them inside a chunk that passed its CRC, where there is one
+            rebuilt = metadata_of_record(record) if record is not None else {}
+            if run is not None and rebuilt:
+                run = {**run, **rebuilt}
+            why = f"{altered}; " + (
+                "the run's figures were taken from its run record among its messages"
+                if rebuilt
+                else "it has no run record among its messages to take them from"
+            )
+            lost = "; ".join(x for x in (lost, why) if x)
+        if run is None and record is not None:  # its metadata record cut off, its copy read
+            run = metadata_of_record(record) or None
         if run is None:  # written only as the logger finished a run: what the name tells
             run = run_of_name(src, counts["messages"], stopped, lost)
         elif lost:  # the run's conclusion stands, on less data than it had: said
