@@ -130,9 +130,15 @@ def _who(r: dict) -> str:
 def _verification(v: dict | None) -> str:
     if not v:
         return ""
+    band = v.get("settling_band")
+    # the band where the noise widened it past 2 % of the step (a level's: 37.5 %)
+    within = (
+        f" (within ±{band:.3g} %)" if isinstance(band, int | float) and band > 2.0 + 1e-9 else ""
+    )
     return (
         f"overshoot {_num(v.get('overshoot'), ' %')}, decay ratio {_num(v.get('decay_ratio'))}, "
-        f"settling {_num(v.get('settling_time'), ' s')}, IAE {_num(v.get('iae_sp'))}"
+        f"settling {_num(v.get('settling_time'), ' s')}{within}, "
+        f"IAE {_num(v.get('iae_sp'), ' PV units·s')}"
     )
 
 
