@@ -1432,3 +1432,25 @@ def test_compare_names_a_run_without_its_metadata_record_from_its_result(
     assert "None" not in out, out
     run_id = recorded["relay"].path.stem.rsplit("_", 1)[-1]
     assert f"x1 relay run {run_id}  (start not recorded)" in out, out
+
+
+def test_a_file_the_library_cannot_read_is_said_cut_short_or_damaged_within(
+    recorded, tmp_path, capsys
+):
+    """The mcap library's own words alone ("HEADER record has length 56673435648 that exceeds
+    limit 4294967296" of a file cut at 100 bytes; "ZstdError: … Data corruption detected" of
+    one byte changed in a chunk) said neither what happened nor what to do (helper trial)."""
+    good = recorded["relay"].path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(good[:100])
+    code, _, err = cli(capsys, "analyze", str(cut))
+    assert code == 2 and "it is cut short (no MCAP footer at its end" in err, err
+    assert "autotune recover" in err and len(err.strip().splitlines()) == 1
+    chunk_start = 8 + 1 + 8  # after the magic and the Header record's opcode and length
+    whole = bytearray(good)
+    body = good.index(b"\x28\xb5\x2f\xfd", chunk_start)  # the chunk's zstd frame
+    whole[body + 200] ^= 0xFF
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(whole))
+    code, _, err = cli(capsys, "analyze", str(damaged))
+    assert code == 2 and ("damaged within" in err or "fails its CRC" in err), err

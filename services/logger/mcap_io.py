@@ -321,10 +321,31 @@ def not_readable(path: Path | str, why: str) -> AutotuneError:
             f"{path}: still being recorded (a logger is writing it, its MCAP footer not "
             "yet written): wait for the run to end"
         )
-    return AutotuneError(
-        f"{path}: not a readable MCAP file ({why}); if a logger was killed "
-        f"while writing it, try: autotune recover {path} -o FIXED.mcap"
+    cut, what = _damage(Path(path))
+    hint = (
+        f"if a logger was killed while writing it, try: autotune recover {path} -o FIXED.mcap"
+        if cut
+        else f"`autotune recover {path} -o FIXED.mcap` copies what can be read"
     )
+    return AutotuneError(f"{path}: not a readable MCAP file: {what} ({why}); {hint}")
+
+
+def _damage(path: Path) -> tuple[bool, str]:
+    """What is wrong with a file the mcap library could not read, as far as its ends tell:
+    cut short (it does not end with the MCAP magic bytes after a footer), or damaged within
+    (it ends as a finished file does). The library's own words ("HEADER record has length
+    56673435648 that exceeds limit …" of a file cut at 100 bytes) said neither. (cut short,
+    the phrase)"""
+    try:
+        with path.open("rb") as f:
+            size = f.seek(0, os.SEEK_END)
+            f.seek(max(0, size - len(MAGIC) - _FOOTER_SIZE))
+            tail = f.read()
+    except OSError:
+        return True, "it cannot be read to its end"
+    if len(tail) < len(MAGIC) + _FOOTER_SIZE or tail[-len(MAGIC) :] != MAGIC or tail[0] != 0x02:
+        return True, "it is cut short (no MCAP footer at its end: truncated, or its writer killed)"
+    return False, "its bytes are damaged within (it ends as a finished file does)"
 
 
 def being_written(path: Path, proc: Path = Path("/proc")) -> bool:
@@ -531,9 +552,11 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
     except OSError as err:
         if err.errno != errno.EINVAL:  # a seek before its start: shorter than a footer
             raise AutotuneError(f"{path}: cannot read it: {err.strerror or err}") from None
-        raise not_readable(path, "it ends before its MCAP footer: truncated") from None
+        raise not_readable(path, "shorter than an MCAP footer") from None
     except Exception as err:  # the mcap library on damaged bytes: any of a dozen kinds
-        raise not_readable(path, f"{type(err).__name__}: {one_line(err)}") from None
+        said = one_line(err)
+        why = f"{type(err).__name__}: {said}" if said else type(err).__name__
+        raise not_readable(path, why) from None
     if not meta and records and not {r.schema for r in records} & set(RECORDED):
         # an MCAP file of something else: said as such, not "no experiment recorded"
         topics = sorted({r.topic for r in records})

@@ -90,7 +90,7 @@ def _named_row(path: Path, status: str, reason: str) -> dict:
 def _reason(path: Path, err: AutotuneError) -> str:
     """The error without the file's name (the row has it) nor the recover hint."""
     text = one_line(err).removeprefix(f"{path}: ")
-    return text.split("; if a logger was killed")[0]
+    return text.split("; if a logger was killed")[0].split("; `autotune recover")[0]
 
 
 def _count(meta: dict[str, str], key: str) -> int:
