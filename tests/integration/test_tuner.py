@@ -132,11 +132,19 @@ def tune_process(p, stdout=subprocess.PIPE) -> subprocess.Popen:
     )
 
 
-def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner):
+@pytest.mark.parametrize("other_run", [False, True])
+def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner, other_run):
+    """``other_run``: another session holds the loop's run token meanwhile (a second tuner's
+    run waiting for the loop's rest declares it): the client watched that token alone and
+    waited its whole --wait after its tuner was killed (helper trial); it watches its
+    tuner's own token too."""
     p = start_plant(plant_toml("x1", HX), loops=("x1",))
     tuner = start_tuner(p)
     before = loop_state(p, "x1")
     with open_session(p.client_settings()) as s:
+        held = (
+            s.liveliness().declare_token(keys.tune_running(p.prefix, "x1")) if other_run else None
+        )
         inbox: queue.Queue = queue.Queue()
         progress = s.declare_subscriber(keys.tune_progress(p.prefix, "x1"))
         status = s.declare_subscriber(keys.status(p.prefix, "x1"))
@@ -152,6 +160,14 @@ def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner):
                     break
             tuner.send_signal(signal.SIGKILL)
             t_kill = time.monotonic()
+            # the client sees its tuner's token vanish (or the run's): it says so and exits,
+            # not after --wait; its exit timed by a thread, the plant's restore meanwhile
+            done: list[float] = []
+            exited = threading.Thread(
+                target=lambda: (cli.wait(timeout=60), done.append(time.monotonic())),
+                daemon=True,
+            )
+            exited.start()
             while True:
                 msg = inbox.get(timeout=30)
                 if str(msg.key_expr).endswith("/status"):
@@ -159,15 +175,22 @@ def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner):
                     if st.reason == "watchdog":
                         break
             restored_after = time.monotonic() - t_kill
-            # the client sees the run's token vanish: it says so and exits, not after --wait
-            _, err = cli.communicate(timeout=30)
-            client_after = time.monotonic() - t_kill
+            exited.join(60)
+            assert done, "the client did not leave within 60 s of its tuner's death"
+            err = cli.stderr.read()
+            client_after = done[0] - t_kill
         finally:
             cli.kill()
             progress.undeclare()
             status.undeclare()
+            if held is not None:
+                held.undeclare()
     assert cli.returncode == 2 and "its tuner is gone" in err, err
-    assert client_after < 10.0
+    assert client_after < 10.0, (client_after, err)
+    if other_run:  # the plant's watchdog then waits for its lease to run out: bounded
+        assert "its tuner tuner's liveliness token vanished" in err, err
+        assert restored_after < 15.0
+        return
     after = loop_state(p, "x1")
     assert (after.mode, after.op, after.sp, after.gains) == (
         before.mode,

@@ -292,6 +292,9 @@ def submit(
                     _tuner_of[accepted.run_id] = str(reply.replier_id.zid)
                     while len(_tuner_of) > 64:
                         _tuner_of.pop(next(iter(_tuner_of)))
+                _node_of[accepted.run_id] = node  # its liveliness watched: ``follow``
+                while len(_node_of) > 64:
+                    _node_of.pop(next(iter(_node_of)))
                 return accepted
             raise AutotuneError(
                 f"the autotuner refused the request: "
@@ -461,6 +464,9 @@ CONFIRM_WAIT = 2.0  # s: the accepting tuner's own copy of a run's result, asked
 # run id → the Zenoh id of the tuner that accepted the run (``submit``): whose word its
 # result must be
 _tuner_of: dict[str, str] = {}
+# the node name of the tuner that accepted each run (``submit``), whose liveliness token
+# ``follow`` watches beside the run's own
+_node_of: dict[str, str] = {}
 
 
 def _confirmed(
@@ -549,6 +555,12 @@ def follow(
     gone: float | None = None
     appeared = False
     plant_lost = False  # the plant's token vanished since the run began
+    # the token of the tuner that accepted the run: the run's token is the loop's, and one
+    # another run holds (a second tuner waiting for the loop's rest) kept a client whose
+    # tuner was killed waiting its whole --wait (helper trial)
+    node: str | None = None
+    alive = None
+    tuner_lost = False
     timed_out: float | None = None  # when ``wait`` ran out (the run was then cancelled)
     try:
         while True:
@@ -557,6 +569,14 @@ def follow(
                     accepted, interrupted = _held_start(start)
                     run_id = accepted.run_id
                     tuner = _tuner_of.pop(run_id, None)
+                    node = _node_of.pop(run_id, None)
+                    if node is not None:
+                        alive = session.liveliness().declare_subscriber(
+                            keys.tuner_alive(prefix, node), zenoh.handlers.FifoChannel(64)
+                        )
+                        threading.Thread(
+                            target=lambda src=alive: [inbox.put(s) for s in src], daemon=True
+                        ).start()
                     deadline = time.monotonic() + wait
                     if interrupted:
                         raise KeyboardInterrupt
@@ -567,6 +587,7 @@ def follow(
                     gone is not None
                     and now > gone + RESULT_GRACE
                     and not plant_lost
+                    and not tuner_lost
                     and wait_for_token(session, keys.tune_running(prefix, loop), 0.3)
                 ):
                     gone = None
@@ -584,8 +605,9 @@ def follow(
                         late = _late_result(session, prefix, loop, run_id, deadline)
                         if late is not None:
                             return late
+                    whose = f"its tuner {node}'s" if tuner_lost else "the run's"
                     raise TunerGone(
-                        f"run {run_id} on {loop}: its tuner is gone or cut off (the run's "
+                        f"run {run_id} on {loop}: its tuner is gone or cut off ({whose} "
                         f"liveliness token vanished and no result followed within "
                         f"{RESULT_GRACE:g} s): the plant's watchdog returns the loop to its "
                         "state before the test (a tuner only paused says how its run ended "
@@ -595,7 +617,10 @@ def follow(
                 limit = min(deadline, gone + RESULT_GRACE if gone is not None else math.inf)
                 sample = inbox.get(timeout=max(0.0, limit - now))
                 key = str(sample.key_expr)
-                if key == keys.loop_alive(prefix, loop):
+                if node is not None and key == keys.tuner_alive(prefix, node):
+                    if sample.kind == zenoh.SampleKind.DELETE and gone is None:
+                        tuner_lost, gone = True, time.monotonic()  # its tuner went
+                elif key == keys.loop_alive(prefix, loop):
                     if sample.kind == zenoh.SampleKind.DELETE and run_id is not None:
                         plant_lost = True
                 elif key == keys.tune_running(prefix, loop):
@@ -692,6 +717,8 @@ def follow(
         sub.undeclare()
         token.undeclare()
         plant.undeclare()
+        if alive is not None:
+            alive.undeclare()
 
 
 def _late_result(
