@@ -2,7 +2,9 @@
 carries a slow sinusoidal disturbance (an upset the tuner cannot see), from a helper's trial.
 
 PV = G(s)·output, G = num/den·e^{−delay·s} held over each sample (exact zero-order hold), plus
-``sin_amp``·sin(2πt/``sin_period``) from t = 0."""
+``sin_amp``·sin(2πt/``sin_period``) from t = 0. ``settling``: the process starts that many %
+of output away from its rest at op0 and ``age`` s into its settling toward it (a change an
+operator made just before the test), as a self-regulating G leaves it."""
 
 from __future__ import annotations
 
@@ -27,19 +29,26 @@ class SineDisturbed:
         sin_period: float = 80.0,
         op0: float = 50.0,
         pv0: float = 50.0,
+        settling: float = 0.0,
+        age: float = 0.0,
     ):
         a, b, c, d = tf2ss(list(num), list(den))
         ad, bd, cd, dd, _ = cont2discrete((a, b, c, d), sample_time, method="zoh")
         self.ad, self.bd, self.cd, self.dd = ad, bd.ravel(), cd.ravel(), float(dd.ravel()[0])
         self.sample_time, self.ts, self.nd = sample_time, sample_time, round(delay / sample_time)
         self.amp, self.period, self.op0, self.pv0 = sin_amp, sin_period, op0, pv0
+        self.settling, self.age = settling, age
         self.disturbances = {"load": 0.0}
 
     def reset(self) -> float:
         self.k = 0
-        self.x = np.zeros(self.ad.shape[0])
+        n = self.ad.shape[0]
+        # at rest with the output ``settling`` % off op0, then op0 held for ``age`` s
+        self.x = np.linalg.solve(np.eye(n) - self.ad, self.bd * self.settling)
         self.line = deque([0.0] * (self.nd + 1), maxlen=self.nd + 1)
-        return self.pv0
+        for _ in range(round(self.age / self.ts)):
+            self.x = self.ad @ self.x
+        return self.pv0 + float(self.cd @ self.x)
 
     def step(self, op: float) -> float:
         self.line.appendleft(op - self.op0 + self.disturbances["load"])
