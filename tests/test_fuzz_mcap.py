@@ -1454,3 +1454,18 @@ def test_a_file_the_library_cannot_read_is_said_cut_short_or_damaged_within(
     damaged.write_bytes(bytes(whole))
     code, _, err = cli(capsys, "analyze", str(damaged))
     assert code == 2 and ("damaged within" in err or "fails its CRC" in err), err
+
+
+def test_analyze_of_an_aborted_run_reports_the_same_abort(tmp_path, capsys):
+    """An aborted run's file re-run offline ends as the live run did: `analyze` gave exit 2
+    and, with --json, nothing, as for a damaged file (helper trial). It reports the abort,
+    exit 0, and whether it is the live run's."""
+    path, live = record_in_process(tmp_path, PREFIX, PLANT, LOOP, "relay", max_time=3.0)
+    assert live.status == "aborted", live.reason
+    code, out, err = cli(capsys, "analyze", str(path), "--json")
+    assert code == 0, err
+    got = json.loads(out)
+    assert got["status"] == "aborted" and got["matches_live"] is True, got
+    assert got["reason"] in live.reason and got["live"]["reason"] == live.reason
+    code, out, err = cli(capsys, "analyze", str(path))
+    assert code == 0 and "ends as the live run did (identical), aborted: " in out, (out, err)

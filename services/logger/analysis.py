@@ -50,6 +50,35 @@ from shared.errors import AutotuneError, one_line
 from shared.messages import ProcessSample, TuneRequest, TuneResult, TunerEvent
 
 
+class EndedEarly(AutotuneError):
+    """The recorded samples re-run end the experiment before it found anything: ``reason``,
+    the state machine's own; ``live``, the run's recorded result (None: none recorded).
+    An aborted run re-run to the same end is no bad input: ``analyze`` reports it."""
+
+    def __init__(self, message: str, path: str, loop: str, method: str, reason: str, live):
+        super().__init__(message)
+        self.path, self.loop, self.method, self.reason, self.live = path, loop, method, reason, live
+
+    def matches_live(self) -> bool:
+        """The live run ended so, for the same reason (its result names the machine's)."""
+        live = self.live
+        return bool(live is not None and live.status == "aborted" and self.reason in live.reason)
+
+    def to_dict(self) -> dict:
+        live = self.live
+        return {
+            "file": self.path,
+            "loop": self.loop,
+            "method": self.method,
+            "status": "aborted",
+            "reason": self.reason,
+            "live": None
+            if live is None
+            else {"status": live.status, "reason": live.reason, "ku": live.ku, "pu": live.pu},
+            "matches_live": self.matches_live(),
+        }
+
+
 @dataclass
 class Analysis:
     path: str
@@ -295,9 +324,11 @@ def analyze_file(path: str | Path) -> Analysis:
                 if missing
                 else "the recording ends first"
             )
-            raise AutotuneError(
-                f"{path}: the recorded samples do not complete the {req.method} test ({why})"
-            )
+            message = f"{path}: the recorded samples do not complete the {req.method} test ({why})"
+            if machine.reason:  # the experiment's own end (an abort), not a short record
+                loop = meta.get("loop", req.loop)
+                raise EndedEarly(message, str(path), loop, req.method, why, run.result)
+            raise AutotuneError(message)
         sel = select(
             ident,
             req.rule,

@@ -6,7 +6,8 @@ from __future__ import annotations
 import argparse
 
 from services.autotuner.design.rules import RULES
-from services.logger.analysis import analyze_file, dumps, format_analysis
+from services.logger.analysis import EndedEarly, analyze_file, dumps, format_analysis
+from shared import json_text
 from shared.errors import AutotuneError
 
 HELP = "re-run identification and tuning rules on a recorded run"
@@ -24,7 +25,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    a = analyze_file(args.file)
+    try:
+        a = analyze_file(args.file)
+    except EndedEarly as ended:
+        if not ended.matches_live():  # not the live run's end: the record is not the run's
+            raise
+        # re-run to the live run's own abort: the file is fine, and that is its analysis (an
+        # aborted run gave exit 2 and, with --json, nothing: helper trial)
+        if args.json:
+            print(json_text.dumps(ended.to_dict(), indent=2))
+        else:
+            print(
+                f"{ended.path}: {ended.method} test of {ended.loop}, re-run offline: it ends "
+                f"as the live run did (identical), aborted: {ended.reason}"
+            )
+        return 0
     if args.rule and args.rule not in a.gains:  # it printed an empty table, exit 0
         given = ", ".join(a.gains) or "none"
         raise AutotuneError(
