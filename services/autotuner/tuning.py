@@ -2349,7 +2349,9 @@ def acceptance_problems(
             f"ratio limit {limits['max_decay_ratio']:g}: a lightly damped mode beyond the "
             "model (a resonance?), where the gains' margins are not known (the predicted Ms "
             "leaves it out); filter it from the loop, or, if it is the process's own and these "
-            "gains leave it as they found it, a --max-decay-ratio above it accepts it"
+            "gains leave it as they found it, a --max-decay-ratio above it accepts it; or an "
+            "upset or a drift of the process during the verification that its noise at rest "
+            "did not show (test again once it has passed)"
         )
     if os_ is not None and pred is not None and os_ - pred > limits["overshoot_miss"]:
         out.append(

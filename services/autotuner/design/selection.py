@@ -153,7 +153,9 @@ def contradicted_point(ident: Identification, check: ModelCheck | None) -> str |
         f"{CONTRADICTION:g} times apart or more ({'; '.join(apart)}): one of them is not this "
         "loop's, and the rules rest on one of them; trials that oscillate in a faster mode "
         "than the ultimate one (a long dead time, a resonance, gain at high frequencies) give "
-        "a fraction of P_u — a relay test reads such a loop's ultimate point"
+        "a fraction of P_u — a relay test reads such a loop's ultimate point; or a load that "
+        "changed during the trials, which the model fitted to their record does not have — "
+        "the test again once it has passed"
     )
 
 
