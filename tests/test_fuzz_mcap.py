@@ -767,7 +767,13 @@ CONTAINER = [
         "truncated-half",
         lambda b: b[: len(b) // 2],
         ["not a readable MCAP file", "autotune recover"],
-        2,  # the fixture's run is one chunk: half of it decompresses to nothing
+        0,  # in its summary (its schemas again), past its one chunk: nothing lost
+    ),
+    (
+        "truncated-in-its-chunk",
+        lambda b: b[:3000],
+        ["not a readable MCAP file", "autotune recover"],
+        2,  # the fixture's run is one chunk: a part of it decompresses to nothing
     ),
     # it said "not a readable MCAP file (OSError: [Errno 22] Invalid argument)"
     ("truncated-to-magic", lambda b: b[:8], ["MCAP magic bytes and nothing after"], 2),
@@ -784,7 +790,7 @@ CONTAINER = [
     (
         "chunk-bytes-flipped",
         lambda b: b[:2000] + bytes(x ^ 0xFF for x in b[2000:2050]) + b[2050:],
-        ["not a readable MCAP file"],
+        ["fails its CRC check", "autotune recover"],
         2,
     ),
 ]
@@ -912,9 +918,9 @@ def test_runs_lists_the_good_files_and_marks_the_bad_ones(recorded, case_files, 
         expected[f"{cid}.mcap"] = expect.get("runs", OK)
         run_of[f"{cid}.mcap"] = run
     good = recorded["relay"].path.read_bytes()
-    for cid, make, _, _ in CONTAINER:
+    for cid, make, needles, _ in CONTAINER:
         (folder / f"{cid}.mcap").write_bytes(make(good))
-        expected[f"{cid}.mcap"] = ["MCAP"]
+        expected[f"{cid}.mcap"] = ["MCAP"] if "MCAP" in " ".join(needles) else needles[:1]
     (folder / "zz-a-folder.mcap").mkdir()
     expected["zz-a-folder.mcap"] = ["is a directory"]
     code, out, err = cli(capsys, "runs", str(folder), "--json")
@@ -1469,3 +1475,42 @@ def test_analyze_of_an_aborted_run_reports_the_same_abort(tmp_path, capsys):
     assert got["reason"] in live.reason and got["live"]["reason"] == live.reason
     code, out, err = cli(capsys, "analyze", str(path))
     assert code == 0 and "ends as the live run did (identical), aborted: " in out, (out, err)
+
+
+def test_a_file_cut_within_its_metadata_record_keeps_the_runs_figures(recorded, tmp_path, capsys):
+    """The run's record (its metadata as a message) is written in a chunk closed before the
+    metadata record, so a file cut within that record still has the run's figures: recover
+    takes them from it (review: the library wrote the record's chunk after the metadata)."""
+    good = recorded["relay"].path.read_bytes()
+    at = good.index(b"\x03\x00\x00\x00run") - 9  # the Metadata record: opcode, length
+    assert good[at] == 0x0C
+    cut = tmp_path / "cut" / recorded["relay"].path.name
+    cut.parent.mkdir()
+    cut.write_bytes(good[: at + 40])
+    fixed = tmp_path / "fixed" / cut.name
+    fixed.parent.mkdir()
+    code, out, err = cli(capsys, "recover", str(cut), "-o", str(fixed))
+    assert code == 0, err
+    code, out, err = cli(capsys, "runs", str(fixed.parent), "--json")
+    (row,) = json.loads(out)
+    live = recorded["relay"].live
+    assert (row["status"], row["ku"], row["pu"]) == (live.status, live.ku, live.pu), row
+    assert row["lost"], row  # its metadata record was cut off: said
+    code, _, err = cli(capsys, "analyze", str(fixed))
+    assert code == 0, err
+
+
+def test_a_footer_pointing_past_the_end_is_recovered_not_an_internal_error(
+    recorded, tmp_path, capsys
+):
+    """A footer whose summary offset points past the file's end: recover raised IndexError
+    (exit 70) checking the data section's CRC (review)."""
+    bad = bytearray(recorded["relay"].path.read_bytes())
+    footer = len(bad) - 8 - 29
+    bad[footer + 9 : footer + 17] = (10**12).to_bytes(8, "little")
+    path = tmp_path / "footer.mcap"
+    path.write_bytes(bytes(bad))
+    code, out, err = cli(capsys, "recover", str(path), "-o", str(tmp_path / "fixed.mcap"))
+    assert code in (0, 2) and "internal error" not in err, (out, err)
+    code, out, err = cli(capsys, "analyze", str(path))
+    assert code in (0, 2) and "internal error" not in err, (out, err)

@@ -52,3 +52,28 @@ def test_a_process_still_settling_when_the_test_began_is_said(method):
     sim = build_plant({"seed": 1, "loops": {"x": spec}}, "t")["x"]
     r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method=method), "t").run()
     assert not [w for w in r.warnings if "still drifting" in w], r.warnings
+
+
+def test_analyze_gives_the_drift_note_as_the_live_result_does(tmp_path):
+    """`analyze` gives the live result's warnings, in order: the drift note too, from the
+    rest the result recorded and the test's own samples (review)."""
+    from services.logger.analysis import analyze_file
+    from tests.recorded_run import record_in_process
+
+    spec = {
+        "model": "tests.disturbed_plant:SineDisturbed",
+        "sample_time": 0.2,
+        "noise_std": 0.02,
+        "den": [500.0, 105.0, 1.0],
+        "delay": 5.0,
+        "sin_amp": 0.0,
+        "settling": 1.5,
+        "age": 30.0,
+    }
+    path, live = record_in_process(
+        tmp_path, "drift", {"seed": 1, "loops": {"x": spec}}, "x", "step", apply=False
+    )
+    said = [w for w in live.warnings if "still drifting" in w]
+    assert said, live.warnings
+    a = analyze_file(path)
+    assert a.warnings == live.warnings[: len(a.warnings)] and said[0] in a.warnings

@@ -45,11 +45,9 @@ from services.autotuner.identify.experiments import (
 )
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.ramp import RampTest
-from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
 from services.autotuner.identify.relay import RelayTest
-from services.autotuner.identify.relay_result import RelayResult
 from services.autotuner.identify.rest import RestCheck, rest_window
-from services.autotuner.identify.rest_drift import drift_note
+from services.autotuner.identify.rest_drift import drift_notes
 from services.autotuner.limit_watch import LimitWatch
 from services.autotuner.loop_client import OVERSLEPT, PLANT_RESTORED, LeaseLost, LoopClient
 from services.autotuner.parts import Calls
@@ -271,7 +269,8 @@ class TuningRun:
         self.ts = client.info.sample_time
         self.before: LoopStatus | None = None
         self._rest: dict | None = None  # the rest check before the test (``_wait_for_rest``)
-        self._test_t0: float | None = None  # sim time s the experiment began (its quiet)
+        self._test_t0: float | None = None  # sim time s of the experiment's first sample
+        self._test_t1: float | None = None  # … and of its last (the one it finished on)
         self._events_sent = 0
         self._reported = 0
         self._t = 0.0
@@ -1197,7 +1196,6 @@ class TuningRun:
             c.command(SetpointCommand(loop=c.loop, sp=start.sp, source=c.source))
             c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))
         self._progress("quiet", message="measuring the PV's rest value and noise")
-        self._test_t0 = self._t  # the test's start: its length for ``rest_drift``
 
         # a relay on the realtime clock switches only while this process runs: paused or
         # starved, the output stayed where it was while the loop ran on, and the cycle that
@@ -1224,6 +1222,7 @@ class TuningRun:
 
         try:
             ident = drive(machine, _LivePort(self, setup), max_chunk=EXPERIMENT_CHUNK, watch=watch)
+            self._test_t1 = self._t  # its last sample fed: the test's end for ``rest_drift``
         except AutotuneError as err:
             if not (machine.finished and machine.reason):
                 raise
@@ -1246,26 +1245,9 @@ class TuningRun:
         """Where the PV was still drifting as the test began, enough to spoil its figures
         (``rest_drift``): said (an open-loop step or a relay; a ramp's trials hold the loop in
         auto)."""
-        rest, t0 = self._rest or {}, self._test_t0
-        if t0 is None:
-            return []
-        swing = None
-        if isinstance(ident.step, ReactionCurve):
-            swing = ident.step.pv_after - ident.step.pv_before
-        elif isinstance(ident.step, IntegratingCurve):
-            swing = ident.step.pv_peak - ident.step.pv_before
-        elif isinstance(ident.experiment, RelayResult):
-            swing = 2.0 * ident.experiment.amplitude
-        note = drift_note(
-            rest.get("drift"),
-            rest.get("noise_std"),
-            rest.get("window"),
-            self.ts,
-            self._t - t0,
-            swing,
-            self.info.pv_units,
+        return drift_notes(
+            ident, self._rest, self.ts, self._test_t0, self._test_t1, self.info.pv_units
         )
-        return [] if note is None else [note]
 
     def _rest_op(self) -> float:
         """The output the loop rested at before the test (its mean, %), within its limits."""
@@ -1922,6 +1904,7 @@ class _LivePort:
         if self.first and batch:
             s = batch[0]
             r._event("experiment", s.t, {**self.setup.to_dict(), "first_seq": s.seq})
+            r._test_t0 = s.t  # the test's first sample: its length for ``rest_drift``
             self.first = False
         r._take(batch)  # the time of the last sample fed is set by the driver's watch
         return batch

@@ -15,7 +15,7 @@ Another run's messages in the file are left out; a message recorded twice is rea
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pydantic
@@ -27,6 +27,7 @@ from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import Band, Demand
 from services.autotuner.identify.reaction_curve import IntegratingCurve
+from services.autotuner.identify.rest_drift import drift_notes
 from services.autotuner.identify.step_test import HOLD_EVENTS
 from services.logger.mcap_io import (
     decode,
@@ -94,6 +95,9 @@ class Analysis:
     missing: int = 0
     first_gap: int | None = None
     pv_units: str | None = None  # the transmitter's, as the run recorded them
+    # the PV still drifting as the test began, as the live result says it (``rest_drift``,
+    # from the rest the result recorded)
+    drift: list[str] = field(default_factory=list)
 
     @property
     def spreads(self) -> tuple[float | None, float | None]:
@@ -159,9 +163,8 @@ class Analysis:
         them before its verification (``analyze`` left out the notes: a relay's "cycle ran
         at −136°, K_u and P_u were not measured" and a ramp's hold correction among them)."""
         said = list(self.ident.notes)
-        return said + [
-            w for w in (self.selection.warnings if self.selection else []) if w not in said
-        ]
+        said += [w for w in (self.selection.warnings if self.selection else []) if w not in said]
+        return said + [w for w in self.drift if w not in said]
 
     def _step(self) -> dict | None:
         """The reaction curve as the result's ``step`` object (None: not a step test)."""
@@ -316,7 +319,8 @@ def analyze_file(path: str | Path) -> Analysis:
     missing, first_gap = seq_gaps([s.seq for s in fed])
     record = _Record(str(path), fed, run.step_times)
     try:
-        ident = drive(machine, record)
+        last: list[float] = []  # the sample the test finished on (``rest_drift``)
+        ident = drive(machine, record, watch=lambda s: last.append(s.t))
         if ident is None:
             why = machine.reason or (
                 f"{missing} samples are missing from the record (the first gap after seq "
@@ -358,6 +362,14 @@ def analyze_file(path: str | Path) -> Analysis:
         missing,
         first_gap,
         data.get("pv_units"),  # a string or None: the set-up is checked (``Setup``)
+        drift_notes(
+            ident,
+            run.result.rest if run.result is not None else None,
+            float(data.get("sample_time") or 0.0),
+            fed[0].t if fed else None,
+            last[-1] if last else None,
+            data.get("pv_units") or "",
+        ),
     )
 
 

@@ -88,6 +88,8 @@ def data_section_problem(path: Path) -> str | None:
                 return None
             f.seek(at)
             record = f.read(_DATA_END_SIZE)
+            if len(record) < _DATA_END_SIZE or at > size:  # a footer pointing past the end
+                return None
             if record[0] != _DATA_END or int.from_bytes(record[1:9], "little") != 4:
                 return None
             written = int.from_bytes(record[9:13], "little")
@@ -259,6 +261,10 @@ class RunWriter:
         meta.update(metadata)
         if record_key is not None:
             self.write(record_key, RunRecord, run_record(meta, t, self.log_time_zero), t)
+            # its chunk closed before the metadata record: a file cut within that record
+            # keeps the run's figures in its RunRecord (``recover``); the library's
+            # add_metadata leaves the open chunk to be written after it
+            self._writer.flush()
         self._writer.add_metadata("run", meta)
         self._writer.finish()
         self._file.close()
@@ -313,7 +319,7 @@ def recorded_form(schema: bytes) -> bool:
         return False
 
 
-def not_readable(path: Path | str, why: str) -> AutotuneError:
+def not_readable(path: Path | str, why: str, cut: bool | None = None) -> AutotuneError:
     """Why ``path`` cannot be read, one line: a run a logger is still writing says so (it
     said "try recover" on a run in progress); otherwise the hint to ``autotune recover``."""
     if being_written(Path(path)):
@@ -321,7 +327,7 @@ def not_readable(path: Path | str, why: str) -> AutotuneError:
             f"{path}: still being recorded (a logger is writing it, its MCAP footer not "
             "yet written): wait for the run to end"
         )
-    cut, what = _damage(Path(path))
+    cut, what = _damage(Path(path)) if cut is None else (cut, "it was not finished")
     hint = (
         f"if a logger was killed while writing it, try: autotune recover {path} -o FIXED.mcap"
         if cut
@@ -522,7 +528,7 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
             reader = make_reader(f, validate_crcs=True)
             summary = reader.get_summary()
             if summary is None:
-                raise not_readable(path, "no summary: the file was not finished")
+                raise not_readable(path, "no summary section", cut=True)
             runs = [dict(m.metadata) for m in reader.iter_metadata() if m.name == "run"]
             if len(runs) > 1:  # the logger writes one: which run this file is, is not known
                 # (a second one named another run id: `report` drew that run, "status: ok",

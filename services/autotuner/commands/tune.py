@@ -618,8 +618,11 @@ def follow(
                 sample = inbox.get(timeout=max(0.0, limit - now))
                 key = str(sample.key_expr)
                 if node is not None and key == keys.tuner_alive(prefix, node):
-                    if sample.kind == zenoh.SampleKind.DELETE and gone is None:
-                        tuner_lost, gone = True, time.monotonic()  # its tuner went
+                    # its tuner went (whichever token's DELETE came first), or came back (a
+                    # link restored: the run token's presence is then judged again)
+                    tuner_lost = sample.kind == zenoh.SampleKind.DELETE
+                    if tuner_lost and gone is None:
+                        gone = time.monotonic()
                 elif key == keys.loop_alive(prefix, loop):
                     if sample.kind == zenoh.SampleKind.DELETE and run_id is not None:
                         plant_lost = True

@@ -14,6 +14,10 @@ from __future__ import annotations
 
 import math
 
+from services.autotuner.identify.experiments import Identification
+from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
+from services.autotuner.identify.relay_result import RelayResult
+
 # the drift counts where it stands this many standard errors clear of a fit to white noise
 SIGNIFICANT = 4.0
 # … and, carried over the test, is at least this share of the PV's swing in it
@@ -51,3 +55,41 @@ def drift_note(
         "the PV's swing in it, so its figures may carry the drift; a --rest-window about the "
         "process's time scale waits for its rest"
     )
+
+
+def test_swing(ident: Identification) -> float | None:
+    """The PV's swing in the test (PV units): a step test's change (an integrating one's to
+    where the step ended), a relay's cycle peak to peak; None for a ramp (its trials hold
+    the loop in auto, which works against a drift)."""
+    if isinstance(ident.step, ReactionCurve):
+        return ident.step.pv_after - ident.step.pv_before
+    if isinstance(ident.step, IntegratingCurve):
+        return ident.step.pv_peak - ident.step.pv_before
+    if isinstance(ident.experiment, RelayResult):
+        return 2.0 * ident.experiment.amplitude
+    return None
+
+
+def drift_notes(
+    ident: Identification,
+    rest: dict | None,
+    sample_time: float,
+    t_first: float | None,
+    t_end: float | None,
+    units: str = "",
+) -> list[str]:
+    """``drift_note`` of a test whose first sample came at ``t_first`` and whose last fed one
+    at ``t_end`` (s), the rest check's figures ``rest`` (the result's ``rest``): the same
+    words live and offline (``analyze`` reads the rest from the recorded result)."""
+    if not rest or t_first is None or t_end is None:
+        return []
+    note = drift_note(
+        rest.get("drift"),
+        rest.get("noise_std"),
+        rest.get("window"),
+        sample_time,
+        t_end - t_first,
+        test_swing(ident),
+        units,
+    )
+    return [] if note is None else [note]

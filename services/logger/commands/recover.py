@@ -21,6 +21,7 @@ from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 from mcap.summary import Summary
 
 from services.logger.mcap_io import (
+    FORMAT_VERSION,
     LIBRARY,
     MAGIC,
     PROFILE,
@@ -158,7 +159,7 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             # or not a summary says how much (a truncated copy was listed `ok`, its samples
             # those of the whole run: helper trial)
             lost = "; ".join(x for x in (lost, "the file breaks off before its end") if x)
-        if altered is not None:
+        if altered is not None and not damaged:  # (a damaged chunk fails it too: said)
             # its metadata record is not the one written: the run's figures from its run
             # record, a copy of them inside a chunk that passed its CRC, where there is one
             rebuilt = metadata_of_record(record) if record is not None else {}
@@ -172,6 +173,8 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             lost = "; ".join(x for x in (lost, why) if x)
         if run is None and record is not None:  # its metadata record cut off, its copy read
             run = metadata_of_record(record) or None
+            if run is not None:  # written by a RunWriter of this format (its messages' form)
+                run["format"] = str(FORMAT_VERSION)
         if run is None:  # written only as the logger finished a run: what the name tells
             run = run_of_name(src, counts["messages"], stopped, lost)
         elif lost:  # the run's conclusion stands, on less data than it had: said
