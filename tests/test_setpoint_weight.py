@@ -252,3 +252,19 @@ def test_no_weight_where_the_step_overshot_far_past_the_models_prediction():
     assert isa_ms([1.0], [20.0, 12.0, 1.0], 3.0, 0.1, g) > 2.0
     g0 = r.previous_gains
     assert r.restored and (sim.pid.gains.kc, sim.pid.gains.ti) == (g0.kc, g0.ti)
+
+
+def test_a_noisy_small_step_may_miss_the_prediction_by_its_scatter_and_still_be_weighted():
+    """lvl2's verification step is 8σ of its noise: one overshoot reading scatters by several
+    points. Its lambda PI read 45 % against 29.5 % predicted (15.5 points past, over the
+    10-point miss alone), and its weight is tried (2σ of the step: 25 points more allowed);
+    without the allowance it was rejected (helper review of the rule)."""
+    sim = build_plant({"seed": 0, "loops": {"lvl2": {"model": "tank_level_integrating"}}}, "sw")[
+        "lvl2"
+    ]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="lvl2", method="relay"), "sw").run()
+    a = r.acceptance
+    assert r.status == "ok" and a.get("setpoint_weight") is not None, (r.status, r.reason)
+    predicted = r.robustness[r.rule]["overshoot_pct"]
+    assert a["overshoot_full_weight"] - predicted > 10.0  # past the miss alone
+    assert abs(r.after.sp_step) / r.noise < 12.0  # a step a few σ tall: the scatter counts
