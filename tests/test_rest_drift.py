@@ -16,6 +16,19 @@ from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.messages import TuneRequest
 
+# e^{−5s}/((100s + 1)(5s + 1)), 30 s into its settling from an output 1.5 % off (sampled at
+# 0.2 s, σ 0.02): the rest check's 40 samples (8 s) pass it
+SETTLING = {
+    "model": "tests.disturbed_plant:SineDisturbed",
+    "sample_time": 0.2,
+    "noise_std": 0.02,
+    "den": [500.0, 105.0, 1.0],
+    "delay": 5.0,
+    "sin_amp": 0.0,
+    "settling": 1.5,
+    "age": 30.0,
+}
+
 
 def test_a_drift_within_the_fits_noise_or_small_over_the_test_says_nothing():
     se = 0.02 * math.sqrt(12 / 40) / 8.0  # σ 0.02 over 40 samples of 0.2 s
@@ -33,16 +46,7 @@ def test_a_process_still_settling_when_the_test_began_is_said(method):
     """e^{−5s}/((100s + 1)(5s + 1)) 30 s into settling from an output 1.5 % off: the rest
     check's 40 samples (8 s) pass it, and the step test read its static gain 0.83 for 1.0
     (helper trial); the result now says why its figures may be off."""
-    spec = {
-        "model": "tests.disturbed_plant:SineDisturbed",
-        "sample_time": 0.2,
-        "noise_std": 0.02,
-        "den": [500.0, 105.0, 1.0],
-        "delay": 5.0,
-        "sin_amp": 0.0,
-        "settling": 1.5,
-        "age": 30.0,
-    }
+    spec = dict(SETTLING)
     sim = build_plant({"seed": 1, "loops": {"x": spec}}, "t")["x"]
     r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method=method), "t").run()
     said = [w for w in r.warnings if "still drifting" in w]
@@ -60,16 +64,7 @@ def test_analyze_gives_the_drift_note_as_the_live_result_does(tmp_path):
     from services.logger.analysis import analyze_file
     from tests.recorded_run import record_in_process
 
-    spec = {
-        "model": "tests.disturbed_plant:SineDisturbed",
-        "sample_time": 0.2,
-        "noise_std": 0.02,
-        "den": [500.0, 105.0, 1.0],
-        "delay": 5.0,
-        "sin_amp": 0.0,
-        "settling": 1.5,
-        "age": 30.0,
-    }
+    spec = dict(SETTLING)
     path, live = record_in_process(
         tmp_path, "drift", {"seed": 1, "loops": {"x": spec}}, "x", "step", apply=False
     )
