@@ -1393,6 +1393,7 @@ def test_an_altered_run_metadata_record_fails_the_data_crc_and_recover_restores_
     assert code == 0, err
     (row,) = json.loads(out)
     assert row["status"] == "unreadable" and "fails the CRC" in row["reason"], row
+    assert row["reason"].endswith("are not trusted"), row  # whole, the hint aside
     code, out, err = cli(capsys, "analyze", str(path))
     assert code == 2 and "its data section fails the CRC" in err and len(err.splitlines()) == 1
     fixed = tmp_path / "fixed" / path.name
@@ -1401,7 +1402,10 @@ def test_an_altered_run_metadata_record_fails_the_data_crc_and_recover_restores_
     assert code == 0 and "taken from its run record" in out, (out, err)
     code, out, err = cli(capsys, "runs", str(fixed.parent), "--json")
     (row,) = json.loads(out)
-    assert repr(row["ku"]) == ku and row["lost"], row  # the written figure, the damage said
+    # the written figure, the damage said; every message was there: no data lost
+    assert repr(row["ku"]) == ku and row["rebuilt"] and not row["lost"], row
+    code, out, err = cli(capsys, "runs", str(fixed.parent))
+    assert "ok (recovered, metadata rebuilt)" in out, out
     code, out, err = cli(capsys, "analyze", str(fixed))
     assert code == 0, err
 
@@ -1514,3 +1518,19 @@ def test_a_footer_pointing_past_the_end_is_recovered_not_an_internal_error(
     assert code in (0, 2) and "internal error" not in err, (out, err)
     code, out, err = cli(capsys, "analyze", str(path))
     assert code in (0, 2) and "internal error" not in err, (out, err)
+
+
+def test_a_foreign_file_with_a_run_metadata_record_is_no_run(tmp_path, capsys):
+    """A foreign MCAP that happens to have a 'run' metadata record of its own ({"foo":
+    "bar"}): `runs` listed it as a blank run and `recover` copied it (helper trial)."""
+    folder = tmp_path / "f"
+    folder.mkdir()
+    foreign = save(folder / "foreign.mcap", [Msg("/a", "Foo", "json", 1, b'{"x": 1}')],
+                   [("run", {"foo": "bar"})])  # fmt: skip
+    code, out, err = cli(capsys, "runs", str(folder), "--json")
+    (row,) = json.loads(out)
+    assert row["status"] == "unreadable" and "not an autotune run file" in row["reason"], row
+    code, out, err = cli(capsys, "recover", str(foreign), "-o", str(tmp_path / "r.mcap"))
+    assert code == 2 and "not an autotune run file" in err and not (tmp_path / "r.mcap").exists()
+    code, out, err = cli(capsys, "analyze", str(foreign))
+    assert code == 2 and "not an autotune run file" in err, err

@@ -563,13 +563,13 @@ def read_run(path: Path | str) -> tuple[dict[str, str], list[Record]]:
         said = one_line(err)
         why = f"{type(err).__name__}: {said}" if said else type(err).__name__
         raise not_readable(path, why) from None
-    if not meta and records and not {r.schema for r in records} & set(RECORDED):
+    if not meta.get("run_id") and records and not {r.schema for r in records} & set(RECORDED):
         # an MCAP file of something else: said as such, not "no experiment recorded"
         topics = sorted({r.topic for r in records})
         shown = ", ".join(topics[:3]) + (f" and {len(topics) - 3} more" if len(topics) > 3 else "")
         raise AutotuneError(
             f"{path}: not an autotune run file: none of its topics ({shown}) carries an "
-            "autotune message, and it has no 'run' metadata record"
+            "autotune message, and it has no 'run' metadata record of the logger's"
         )
     altered = data_section_problem(path)
     if altered is not None:

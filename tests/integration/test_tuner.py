@@ -188,7 +188,7 @@ def test_killed_tuner_is_caught_by_the_plant_watchdog(start_plant, start_tuner, 
     assert cli.returncode == 2 and "its tuner is gone" in err, err
     assert client_after < 10.0, (client_after, err)
     if other_run:  # the plant's watchdog then waits for its lease to run out: bounded
-        assert "its tuner tuner's liveliness token vanished" in err, err
+        assert "the liveliness token of its tuner, node 'tuner', vanished" in err, err
         assert restored_after < 15.0
         return
     after = loop_state(p, "x1")

@@ -605,10 +605,14 @@ def follow(
                         late = _late_result(session, prefix, loop, run_id, deadline)
                         if late is not None:
                             return late
-                    whose = f"its tuner {node}'s" if tuner_lost else "the run's"
+                    whose = (
+                        f"the liveliness token of its tuner, node {node!r},"
+                        if tuner_lost
+                        else "the run's liveliness token"
+                    )
                     raise TunerGone(
                         f"run {run_id} on {loop}: its tuner is gone or cut off ({whose} "
-                        f"liveliness token vanished and no result followed within "
+                        f"vanished and no result followed within "
                         f"{RESULT_GRACE:g} s): the plant's watchdog returns the loop to its "
                         "state before the test (a tuner only paused says how its run ended "
                         "when it runs again); "

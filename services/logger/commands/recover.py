@@ -144,7 +144,7 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             stopped = f"truncated: {one_line(err) or type(err).__name__}"
             if data_end:  # in the summary or footer, after every record of the run
                 stopped = "truncated after its data section (in its summary): no data lost"
-        if names and run is None and not names & set(RECORDED):
+        if names and not (run or {}).get("run_id") and not names & set(RECORDED):
             out.close()
             dst.unlink()
             raise AutotuneError(
@@ -165,12 +165,14 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             rebuilt = metadata_of_record(record) if record is not None else {}
             if run is not None and rebuilt:
                 run = {**run, **rebuilt}
-            why = f"{altered}; " + (
-                "the run's figures were taken from its run record among its messages"
-                if rebuilt
-                else "it has no run record among its messages to take them from"
-            )
-            lost = "; ".join(x for x in (lost, why) if x)
+            if rebuilt and run is not None:  # no message lost: its metadata rebuilt, said
+                run["rebuilt"] = (
+                    f"{altered}; the run's figures were taken from its run record among its "
+                    "messages"
+                )
+            else:
+                why = f"{altered}; it has no run record among its messages to take them from"
+                lost = "; ".join(x for x in (lost, why) if x)
         if run is None and record is not None:  # its metadata record cut off, its copy read
             run = metadata_of_record(record) or None
             if run is not None:  # written by a RunWriter of this format (its messages' form)
@@ -179,6 +181,8 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             run = run_of_name(src, counts["messages"], stopped, lost)
         elif lost:  # the run's conclusion stands, on less data than it had: said
             run = {**run, "recovered": f"{counts['messages']} messages", "lost": lost}
+        elif run.get("rebuilt"):  # every message, its metadata rebuilt from its record
+            run = {**run, "recovered": f"{counts['messages']} messages"}
         writer.add_metadata("run", run)
         counts["metadata"] += 1
         writer.finish()
@@ -191,6 +195,8 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
         )
     if lost:
         stopped += f"; {lost}"
+    if run.get("rebuilt"):
+        stopped += f"; {run['rebuilt']}"
     return {**counts, "stopped": stopped}
 
 

@@ -89,8 +89,9 @@ def _named_row(path: Path, status: str, reason: str) -> dict:
 
 def _reason(path: Path, err: AutotuneError) -> str:
     """The error without the file's name (the row has it) nor the recover hint."""
-    text = one_line(err).removeprefix(f"{path}: ")
-    return text.split("; if a logger was killed")[0].split("; `autotune recover")[0]
+    text = " ".join(str(err).split()).removeprefix(f"{path}: ")  # whole: the hint goes, not
+    # the reason (cut to 300 characters first, a CRC's reason ended "…; `autot…": helper)
+    return one_line(text.split("; if a logger was killed")[0].split("; `autotune recover")[0], 1000)
 
 
 def _count(meta: dict[str, str], key: str) -> int:
@@ -107,6 +108,10 @@ def _count(meta: dict[str, str], key: str) -> int:
 def _row(path: Path, meta: dict[str, str]) -> dict:
     if not meta:
         raise AutotuneError("no 'run' metadata record (not a run file the logger finished)")
+    if not meta.get("run_id") and not meta.get("loop"):  # a record of someone else's
+        raise AutotuneError(
+            "not an autotune run file: its 'run' metadata record has no run_id nor loop"
+        )
     result: dict = {}
     if meta.get("result"):  # read leniently: a result from an older autotune still lists
         try:
@@ -157,6 +162,8 @@ def _row(path: Path, meta: dict[str, str]) -> dict:
         # a file `autotune recover` wrote: what it read, and what it knows it lost
         "recovered": meta.get("recovered"),
         "lost": meta.get("lost"),
+        # a file whose metadata record failed its CRC, rebuilt from its run record
+        "rebuilt": meta.get("rebuilt"),
         "samples": _count(meta, "samples"),
         "dropped": _count(meta, "dropped"),
     }
@@ -225,4 +232,6 @@ def _status(row: dict) -> str:
     status = str(row.get("status") or "—")
     if row.get("replay"):
         status += " (replay)"
-    return f"{status} (recovered, data lost)" if row.get("lost") else status
+    if row.get("lost"):
+        return f"{status} (recovered, data lost)"
+    return f"{status} (recovered, metadata rebuilt)" if row.get("rebuilt") else status
