@@ -181,7 +181,7 @@ def test_json_nested_too_deeply_is_not_json_to_the_product():
     assert wire.replay_source(wire.replay_attachment("a.mcap")) == "a.mcap"
     # a run file's recorded result: the file is listed as unreadable, with the reason
     with pytest.raises(AutotuneError, match="field result: not JSON"):
-        _row(Path("x.mcap"), {"result": DEEP})
+        _row(Path("x.mcap"), {"run_id": "r1", "loop": "x1", "result": DEEP})
 
 
 @pytest.mark.parametrize(("cls", "raised"), [("UnitsQuit", "Quit"), ("UnitsExit", "SystemExit")])
