@@ -227,10 +227,17 @@ def test_a_result_is_a_tune_record_with_what_apply_needs(tmp_path):
         identified_on={"node": "plant", "instance": "a1", "model": "heat_exchanger"},
         timescale=43.6,
         noise=0.02,
+        pv_units="degC",
     )
     feed(h, r)
     (rec,) = [x for x in read_history(tmp_path / HISTORY_FILE) if x["record"] == "tune"]
     assert rec["gains"] == {"tl-pid": {"kc": 6.9, "ti": 96.0, "td": 6.9}}
+    # the verification's IAE in the PV's units (it read "IAE 88.81", then "PV units·s")
+    assert rec["pv_units"] == "degC"
+    from services.logger.commands.history import _verification
+
+    assert "IAE 53.75 degC·s" in _verification({"iae_sp": 53.75}, rec["pv_units"])
+    assert "IAE 53.75 PV units·s" in _verification({"iae_sp": 53.75})  # an older record
     assert rec["robustness"]["tl-pid"]["within_envelope"] is True
     assert (rec["timescale"], rec["noise"], rec["ku"]) == (43.6, 0.02, 15.2)
 

@@ -227,6 +227,8 @@ class ChangeHistory:
                 "ku": r.ku,
                 # the watch's T_u where no tuner remembers the run (one restarted since)
                 "pu": r.pu,
+                # the PV's units: `history` gives the verification's IAE in them
+                "pv_units": r.pv_units,
                 "identified_on": r.identified_on,
                 "timescale": r.timescale,
                 "noise": r.noise,

@@ -127,9 +127,11 @@ def _who(r: dict) -> str:
     return f"{src or '?'}" + (f" (user {user})" if user else "")
 
 
-def _verification(v: dict | None) -> str:
+def _verification(v: dict | None, units: str | None = None) -> str:
+    """The verification's figures in a phrase; ``units``: the PV's (older records: none)."""
     if not v:
         return ""
+    iae_unit = f" {units or 'PV units'}·s"
     band = v.get("settling_band")
     # the band where the noise widened it past 2 % of the step (a level's: 37.5 %)
     within = (
@@ -138,7 +140,7 @@ def _verification(v: dict | None) -> str:
     return (
         f"overshoot {_num(v.get('overshoot'), ' %')}, decay ratio {_num(v.get('decay_ratio'))}, "
         f"settling {_num(v.get('settling_time'), ' s')}{within}, "
-        f"IAE {_num(v.get('iae_sp'), ' PV units·s')}"
+        f"IAE {_num(v.get('iae_sp'), iae_unit)}"
     )
 
 
@@ -187,7 +189,9 @@ def format_entries(
         lines.append(f"  {when}  {_who(r)}{said}")
         lines.append(f"      {_gains_line(r.get('before'), r.get('after'))}")
         if tune and tune.get("verification_after"):
-            lines.append(f"      verified: {_verification(tune['verification_after'])}")
+            lines.append(
+                "      verified: " + _verification(tune["verification_after"], tune.get("pv_units"))
+            )
     return "\n".join(printable(line) for line in lines)  # a file's text shown, not obeyed
 
 
