@@ -58,6 +58,7 @@ WALL_CLOCK_NS = 10**18  # 2001-09-09: a log time past it is on the wall clock, n
 # a DataEnd record: opcode 0x0F, its length (8 bytes), the data section's CRC-32 (4 bytes);
 # the Footer after the summary: opcode, length, two offsets and a CRC (29 bytes), then magic
 _DATA_END = 0x0F
+_FOOTER = 0x02
 _DATA_END_SIZE = 1 + 8 + 4
 _FOOTER_SIZE = 1 + 8 + 8 + 8 + 4
 
@@ -84,11 +85,11 @@ def data_section_problem(path: Path) -> str | None:
             summary_start = int.from_bytes(footer[9:17], "little")
             end = summary_start if summary_start else size - len(MAGIC) - _FOOTER_SIZE
             at = end - _DATA_END_SIZE
-            if footer[0] != 0x02 or at < len(MAGIC):
+            if footer[0] != _FOOTER or at < len(MAGIC):
                 return None
             f.seek(at)
             record = f.read(_DATA_END_SIZE)
-            if len(record) < _DATA_END_SIZE or at > size:  # a footer pointing past the end
+            if len(record) < _DATA_END_SIZE:  # a footer pointing past the end
                 return None
             if record[0] != _DATA_END or int.from_bytes(record[1:9], "little") != 4:
                 return None
@@ -349,7 +350,7 @@ def _damage(path: Path) -> tuple[bool, str]:
             tail = f.read()
     except OSError:
         return True, "it cannot be read to its end"
-    if len(tail) < len(MAGIC) + _FOOTER_SIZE or tail[-len(MAGIC) :] != MAGIC or tail[0] != 0x02:
+    if len(tail) < len(MAGIC) + _FOOTER_SIZE or tail[-len(MAGIC) :] != MAGIC or tail[0] != _FOOTER:
         return True, "it is cut short (no MCAP footer at its end: truncated, or its writer killed)"
     return False, "its bytes are damaged within (it ends as a finished file does)"
 

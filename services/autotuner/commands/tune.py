@@ -288,13 +288,11 @@ def submit(
         for reply in replies:
             if reply.ok is not None:
                 accepted = wire.decode_sample(TuneAccepted, reply.ok)
-                if reply.replier_id is not None:  # whose run it is: ``_confirmed``
-                    _tuner_of[accepted.run_id] = str(reply.replier_id.zid)
-                    while len(_tuner_of) > 64:
-                        _tuner_of.pop(next(iter(_tuner_of)))
-                _node_of[accepted.run_id] = node  # its liveliness watched: ``follow``
-                while len(_node_of) > 64:
-                    _node_of.pop(next(iter(_node_of)))
+                # whose run it is (``_confirmed``), and whose liveliness ``follow`` watches
+                zid = str(reply.replier_id.zid) if reply.replier_id is not None else None
+                _accepted_by[accepted.run_id] = (zid, node)
+                while len(_accepted_by) > 64:
+                    _accepted_by.pop(next(iter(_accepted_by)))
                 return accepted
             raise AutotuneError(
                 f"the autotuner refused the request: "
@@ -461,12 +459,10 @@ def _malformed(key: str, err: DecodeError) -> None:
 
 
 CONFIRM_WAIT = 2.0  # s: the accepting tuner's own copy of a run's result, asked for
-# run id → the Zenoh id of the tuner that accepted the run (``submit``): whose word its
-# result must be
-_tuner_of: dict[str, str] = {}
-# the node name of the tuner that accepted each run (``submit``), whose liveliness token
-# ``follow`` watches beside the run's own
-_node_of: dict[str, str] = {}
+# run id → the tuner that accepted the run (``submit``): its Zenoh id (None: not known),
+# whose word its result must be, and its node name, whose liveliness token ``follow``
+# watches beside the run's own
+_accepted_by: dict[str, tuple[str | None, str]] = {}
 
 
 def _confirmed(
@@ -568,8 +564,7 @@ def follow(
                 if run_id is None:
                     accepted, interrupted = _held_start(start)
                     run_id = accepted.run_id
-                    tuner = _tuner_of.pop(run_id, None)
-                    node = _node_of.pop(run_id, None)
+                    tuner, node = _accepted_by.pop(run_id, (None, None))
                     if node is not None:
                         alive = session.liveliness().declare_subscriber(
                             keys.tuner_alive(prefix, node), zenoh.handlers.FifoChannel(64)

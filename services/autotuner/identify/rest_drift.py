@@ -57,7 +57,7 @@ def drift_note(
     )
 
 
-def test_swing(ident: Identification) -> float | None:
+def swing_of(ident: Identification) -> float | None:
     """The PV's swing in the test (PV units): a step test's change (an integrating one's to
     where the step ended), a relay's cycle peak to peak; None for a ramp (its trials hold
     the loop in auto, which works against a drift)."""
@@ -89,7 +89,7 @@ def drift_notes(
         rest.get("window"),
         sample_time,
         t_end - t_first,
-        test_swing(ident),
+        swing_of(ident),
         units,
     )
     return [] if note is None else [note]

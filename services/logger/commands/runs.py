@@ -89,9 +89,10 @@ def _named_row(path: Path, status: str, reason: str) -> dict:
 
 def _reason(path: Path, err: AutotuneError) -> str:
     """The error without the file's name (the row has it) nor the recover hint."""
-    text = " ".join(str(err).split()).removeprefix(f"{path}: ")  # whole: the hint goes, not
-    # the reason (cut to 300 characters first, a CRC's reason ended "…; `autot…": helper)
-    return one_line(text.split("; if a logger was killed")[0].split("; `autotune recover")[0], 1000)
+    # whole: the hint goes, not the reason (cut to 300 characters first, a CRC's reason
+    # ended "…; `autot…": helper)
+    text = one_line(err, limit=2000).removeprefix(f"{path}: ")
+    return text.split("; if a logger was killed")[0].split("; `autotune recover")[0]
 
 
 def _count(meta: dict[str, str], key: str) -> int:
