@@ -27,15 +27,15 @@ class Watched(LocalLoopClient):
         super()._apply(cmd)
 
 
-def _hx2(seed: int):
+def _preset(loop: str, seed: int):
     with open(default_plant_path(), "rb") as f:
         doc = tomllib.load(f)
     doc["seed"] = seed
-    return build_plant(doc, "unit")["hx2"]
+    return build_plant(doc, "unit")[loop]
 
 
 def test_gains_that_fail_their_step_are_not_run_at_twice_their_gain():
-    sim = _hx2(11)
+    sim = _preset("hx2", 11)
     before = sim.snapshot()
     client = Watched(sim)
     req = TuneRequest(loop="hx2", method="relay", rule="zn-pid", force=True)
@@ -48,5 +48,26 @@ def test_gains_that_fail_their_step_are_not_run_at_twice_their_gain():
     # the loop held the rule's Kc at most (a doubled gain would be 2 × kc)
     assert max(client.kcs) <= kc * (1 + 1e-12), (max(client.kcs), kc)
     assert r.ku is not None and 2 * kc > r.ku  # what the check would have written: past K_u
+    after = sim.snapshot()
+    assert (after.mode, after.gains) == (before.mode, before.gains)
+
+
+def test_gains_rejected_for_a_model_miss_are_not_run_at_twice_their_gain():
+    """Any reason the acceptance gives from the steps, not only the overshoot and decay
+    limits: AMIGO PID on flow1 told to allow its model no miss (``overshoot_miss`` 0.01
+    points) overshoots a little more than predicted and is rejected for it, the loop never
+    at Kc × 2 first (it was, before the rejection: review)."""
+    sim = _preset("flow1", 0)
+    before = sim.snapshot()
+    client = Watched(sim)
+    req = TuneRequest(loop="flow1", method="relay", rule="amigo-pid", overshoot_miss=0.01)
+    r = TuningRun(client, req, "unit").run()
+    assert r.status == "rejected", r.reason
+    assert "the model is wrong" in r.reason
+    assert r.after.overshoot - r.acceptance["predicted_overshoot"] > 0.01
+    assert r.after.overshoot < r.acceptance["max_overshoot"]  # within the limits otherwise
+    assert r.after.margin_factor is None  # not made
+    kc = r.chosen["isa"]["kc"]
+    assert max(client.kcs) <= kc * (1 + 1e-12), (max(client.kcs), kc)
     after = sim.snapshot()
     assert (after.mode, after.gains) == (before.mode, before.gains)

@@ -1276,13 +1276,13 @@ class TuningRun:
             self._set_auto(new, sp0)
             return {"applied": True}
         before_v = self._verify(b.gains, sp0, ident) if b.mode == "auto" else None
-        after_v = self._verify(new, sp0, ident, margin=True)
         limits = {
             "max_overshoot": req.max_overshoot,
             "max_decay_ratio": req.max_decay_ratio,
             "overshoot_miss": req.overshoot_miss,
             "predicted_overshoot": predicted,
         }
+        after_v = self._verify(new, sp0, ident, margin=True, judge=pre_check(before_v, limits))
         problems = acceptance_problems(after_v, before_v, limits)
         notes = []
         weighted = None
@@ -1293,7 +1293,8 @@ class TuningRun:
             if untried is not None:
                 notes.append(untried)
             else:
-                weighted = self._weighted(new, after_v, sp0, ident)
+                judge = pre_check(before_v, {**limits, "predicted_overshoot": None})
+                weighted = self._weighted(new, after_v, sp0, ident, judge)
         if weighted is not None:  # the overshoot alone failed: the step again, weighted
             w, after_w = weighted
             judged = {**limits, "predicted_overshoot": None}  # the model's was for β 1
@@ -1360,6 +1361,7 @@ class TuningRun:
         after: Verification,
         sp0: float,
         ident: experiments.Identification,
+        judge: Callable[[Verification], list[str]] | None = None,
     ) -> tuple[setpoint_weight.Weighting, Verification] | None:
         """For ``gains`` (with integral action) that failed their verification for the
         setpoint step's overshoot alone, their robustness judged by the model
@@ -1367,7 +1369,8 @@ class TuningRun:
         the setpoint weight that the step's own record says brings it within the limit
         (``design.setpoint_weight``), and the verification made again with it; its
         gain-margin check is the first one's (the weight leaves the feedback loop as it was),
-        or made on this one where the first step's overshoot kept it from being made.
+        or made on this one where the first step's overshoot kept it from being made (unless
+        ``judge``, the acceptance of its steps, rejects them first).
         None: the output was held at a limit, or no weight would do."""
         if after.op_limited or self._sp_step is None:
             return None
@@ -1380,7 +1383,10 @@ class TuningRun:
             return None
         weighted = gains.model_copy(update={"beta": w.beta})
         if after.margin_factor is None:  # not made on a step that failed: made on this one
-            return w, self._verify(weighted, sp0, ident, margin=True, margin_beta=gains.beta)
+            again = self._verify(
+                weighted, sp0, ident, margin=True, margin_beta=gains.beta, judge=judge
+            )
+            return w, again
         again = self._verify(weighted, sp0, ident)
         kept = {f: getattr(after, f) for f in MARGIN_FIELDS}
         return w, again.model_copy(update=kept)
@@ -1574,13 +1580,15 @@ class TuningRun:
         ident: experiments.Identification,
         margin: bool = False,
         margin_beta: float | None = None,
+        judge: Callable[[Verification], list[str]] | None = None,
     ) -> Verification:
         """A setpoint step, then a load step, with ``gains``; the loop ends at ``sp0``. The
         step's proportional kick stays within VERIFY_KICK % of output where the noise allows,
         so that the response is the linear loop's, as predicted. ``margin``: gains with a
         derivative whose steps pass (their overshoot and decay ratio within the limits) are
         then run at twice their gain (``margin_check``; ``margin_beta``: its setpoint
-        weight)."""
+        weight), unless ``judge`` (the acceptance, made on the steps before the check) already
+        rejects them."""
         c = self.client
         scale = max(ident.timescale, 20 * self.ts)
         lo, hi = self.info.pv_range
@@ -1667,6 +1675,47 @@ class TuningRun:
         sp_m, saturated, load_m = None, False, None
         modes: list[Ringing | None] = []  # the loop's oscillatory mode in each response
         fast: Ringing | None = None  # a fast mode the model lacks (``unmodelled_mode``)
+
+        def verification(check: margin_check.MarginCheck | None = None) -> Verification:
+            """The verification as measured so far (``check``: the gain-margin check's)."""
+            iae_sp = sp_m["iae"] if sp_m else None  # None: no step measured (not a perfect 0)
+            mode = max((m for m in modes if m is not None), key=lambda m: m.decay, default=None)
+            score = (iae_sp or 0.0) / abs(step) + (
+                load_m["iae"] / abs(load_size) if load_m else 0.0
+            )
+            return Verification(
+                gains=gains,
+                sp_step=step,
+                overshoot=sp_m["overshoot"] if sp_m else None,
+                decay_ratio=sp_m["decay_ratio"] if sp_m else None,
+                rise_time=sp_m["rise_time"] if sp_m else None,
+                settling_time=sp_m["settling_time"] if sp_m else None,
+                settling_band=sp_m["settling_band"] if sp_m else None,
+                iae_sp=None if iae_sp is None else finite(iae_sp) or 0.0,
+                load_step=load_size if load_m is not None else None,
+                iae_load=load_m["iae"] if load_m else None,
+                max_deviation_load=load_m["max_deviation"] if load_m else None,
+                recovery_time=load_m["recovery_time"] if load_m else None,
+                stable=stable,
+                saturated=saturated,
+                score=finite(score) if math.isfinite(score) else 1e300,
+                stopped=stopped,
+                op_noise=op_noise,
+                op_limited=limited if sp_m is not None else None,
+                op_rest=self._op_at_rest(),
+                kick=abs(gains.kc * step),
+                ringing=None if mode is None else mode.decay,
+                ringing_period=None if mode is None else mode.period,
+                unmodelled_ringing=None if fast is None else fast.decay,
+                margin_factor=margin_check.FACTOR if check is not None else None,
+                margin_swing=check.swing if check is not None else None,
+                margin_growth=finite(check.growth) if check is not None else None,
+                margin_stopped=check.stopped if check is not None else None,
+                margin_ringing=check.mode if check is not None else None,
+                margin_ringing_period=check.mode_period if check is not None else None,
+                unmodelled_period=None if fast is None else fast.period,
+            )
+
         check: margin_check.MarginCheck | None = None  # the gain-margin check, if made
         u = np.array([])
         if stopped is None:
@@ -1766,6 +1815,11 @@ class TuningRun:
                     sp_m["overshoot"] > self.req.max_overshoot
                     or (sp_m["decay_ratio"] or 0.0) > self.req.max_decay_ratio
                 )
+                # nor on gains the acceptance rejects for any other reason its steps give (a
+                # model that missed the overshoot by 20 points, a ring): AMIGO PID on flow1,
+                # rejected for its model's miss, was run at Kc × 2 first (review)
+                if stopped is None and margin and judged and not failed and judge is not None:
+                    failed = bool(judge(verification()))
                 if stopped is None and margin and judged and not failed:
                     check = self._margin_check(
                         gains, sp0, step, ident.noise, scale, fast if rang else None, margin_beta
@@ -1773,41 +1827,7 @@ class TuningRun:
                     if not check.failed:  # back at rest at the setpoint, judged as before
                         stopped = back_at_rest()
                 stable = stopped is None
-        iae_sp = sp_m["iae"] if sp_m else None  # None: no step measured (not a perfect 0)
-        mode = max((m for m in modes if m is not None), key=lambda m: m.decay, default=None)
-        score = (iae_sp or 0.0) / abs(step) + (load_m["iae"] / abs(load_size) if load_m else 0.0)
-        return Verification(
-            gains=gains,
-            sp_step=step,
-            overshoot=sp_m["overshoot"] if sp_m else None,
-            decay_ratio=sp_m["decay_ratio"] if sp_m else None,
-            rise_time=sp_m["rise_time"] if sp_m else None,
-            settling_time=sp_m["settling_time"] if sp_m else None,
-            settling_band=sp_m["settling_band"] if sp_m else None,
-            iae_sp=None if iae_sp is None else finite(iae_sp) or 0.0,
-            load_step=load_size if load_m is not None else None,
-            iae_load=load_m["iae"] if load_m else None,
-            max_deviation_load=load_m["max_deviation"] if load_m else None,
-            recovery_time=load_m["recovery_time"] if load_m else None,
-            stable=stable,
-            saturated=saturated,
-            score=finite(score) if math.isfinite(score) else 1e300,
-            stopped=stopped,
-            op_noise=op_noise,
-            op_limited=limited if sp_m is not None else None,
-            op_rest=self._op_at_rest(),
-            kick=abs(gains.kc * step),
-            ringing=None if mode is None else mode.decay,
-            ringing_period=None if mode is None else mode.period,
-            unmodelled_ringing=None if fast is None else fast.decay,
-            margin_factor=margin_check.FACTOR if check is not None else None,
-            margin_swing=check.swing if check is not None else None,
-            margin_growth=finite(check.growth) if check is not None else None,
-            margin_stopped=check.stopped if check is not None else None,
-            margin_ringing=check.mode if check is not None else None,
-            margin_ringing_period=check.mode_period if check is not None else None,
-            unmodelled_period=None if fast is None else fast.period,
-        )
+        return verification(check)
 
     def _within_limits(self, sp0: float, sign: int, size: float, noise: float) -> tuple[int, float]:
         """The verification's setpoint step (direction, size in PV units) kept inside the
@@ -2244,6 +2264,17 @@ def process_ringing(after: Verification) -> bool:
     return check is not None and check.mode is not None and not check.failed
 
 
+def pre_check(before: Verification | None, limits: dict) -> Callable[[Verification], list[str]]:
+    """The acceptance of a verification's steps before its gain-margin check, which is not
+    made on gains it already rejects (``acceptance_problems``, ``before_check``): gains that
+    failed the overshoot alone have theirs made on the weighted step, if one is tried."""
+
+    def problems(v: Verification) -> list[str]:
+        return acceptance_problems(v, before, limits, before_check=True)
+
+    return problems
+
+
 def recorded_check(after: Verification) -> margin_check.MarginCheck | None:
     """The gain-margin check as a verification records it (None: not made)."""
     if after.margin_factor is None:
@@ -2278,9 +2309,11 @@ def process_ringing_note(after: Verification, limit: float) -> str | None:
 
 
 def acceptance_problems(
-    after: Verification, before: Verification | None, limits: dict
+    after: Verification, before: Verification | None, limits: dict, before_check: bool = False
 ) -> list[str]:
-    """Why verified gains must not stay in the loop (empty: they pass)."""
+    """Why verified gains must not stay in the loop (empty: they pass). ``before_check``:
+    judged before the gain-margin check is made, leaving out what it decides (whether a ring
+    the model lacks is the process's own)."""
     out = []
     if after.stopped:
         out.append(f"stopped: {after.stopped}")
@@ -2322,7 +2355,8 @@ def acceptance_problems(
     # (a mode that grew at Kc × 2 is the check's problem, said above; one that decayed there
     # is the process's own, a warning)
     if (
-        fast is not None
+        not before_check
+        and fast is not None
         and fast > limits["max_decay_ratio"]
         and not (grew or process_ringing(after))
     ):
