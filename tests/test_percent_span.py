@@ -534,3 +534,27 @@ def test_analyze_gives_its_figures_in_the_pv_units_the_run_recorded() -> None:
     assert "K_u = 15.2 %/PV unit   P_u = 43.7 s" in format_analysis(a, None)
     a.pv_units = "m3/h"
     assert "K_u = 15.2 %/(m3/h)   P_u = 43.7 s" in format_analysis(a, None)
+
+
+def test_a_measured_step_without_a_second_crest_says_none_not_a_dash():
+    """The verification table's decay ratio and ring of a measured setpoint step that had
+    none (no crest after its largest, no oscillatory mode) read "none"; a column with no step
+    measured (the loop was in manual before: no "before" verification) keeps "—", as does
+    any figure of it (walkthrough: "decay ratio —" beside a 5.5 % overshoot read as not
+    measured)."""
+    text = format_result(hx1_result())
+    rows = {
+        line.split()[0] + " " + line.split()[1]: line.split()
+        for line in text.splitlines()
+        if line.startswith("  decay ratio")
+        or line.startswith("  ringing /period")
+        or line.startswith("  overshoot %")
+    }
+    assert rows["decay ratio"][2:] == ["—", "none"], rows
+    assert rows["ringing /period"][2:] == ["—", "none"], rows
+    assert rows["overshoot %"][2:] == ["—", "5"], rows
+    # a measured decay ratio is its figure
+    after = verification(54.41, 69.27).model_copy(update={"decay_ratio": 0.12})
+    text = format_result(hx1_result(after=after))
+    line = next(x for x in text.splitlines() if x.startswith("  decay ratio"))
+    assert line.split()[2:] == ["—", "0.12"], line

@@ -47,6 +47,7 @@ from shared.messages import (
     TuneProgress,
     TuneRequest,
     TuneResult,
+    Verification,
 )
 from shared.session import open_session, settings_from_args, unreached
 
@@ -1062,8 +1063,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             if field in ("ringing", "unmodelled_ringing"):  # gone within a period: none
                 b, a = (0.0 if v is not None and v < 0.005 else v for v in (b, a))
             lines.append(
-                f"  {label:<18}{figure(b) if not isinstance(b, bool) else str(b):>12}"
-                f"{figure(a) if not isinstance(a, bool) else str(a):>12}"
+                f"  {label:<18}{_cell(b, field, r.before):>12}{_cell(a, field, r.after):>12}"
             )
     if r.acceptance and r.acceptance.get("passed") is not None:
         a = r.acceptance
@@ -1150,6 +1150,22 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             f"{pv} ({back})"
         )
     return "\n".join(lines)
+
+
+# a measured step's figures that are None where the response has none: no crest after its
+# largest (the decay ratio), no oscillatory mode (a ring); "—" is kept for not measured
+_NONE_SEEN = ("decay_ratio", "ringing", "unmodelled_ringing")
+
+
+def _cell(value: object, field: str, v: Verification | None) -> str:
+    """One figure of the verification table: "none" for a measured setpoint step's decay
+    ratio or ring that it did not have (a 5.5 % overshoot with no second crest printed
+    "decay ratio —", as if not measured: walkthrough), "—" for what was not measured."""
+    if isinstance(value, bool):
+        return str(value)
+    if value is None and field in _NONE_SEEN and v is not None and v.overshoot is not None:
+        return "none"
+    return figure(value)
 
 
 def _interrupt(signum: int, frame: object) -> None:
