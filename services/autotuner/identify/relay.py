@@ -69,6 +69,10 @@ from shared.control.beyond import beyond
 from shared.control.rest_window import RESOLUTION
 from shared.control.signals import Sample, at_rest, noise_level
 
+# the share of the room from rest to the PV limits a relay's swing is suggested to keep to,
+# where one left them (``RelayTest._smaller_relay``)
+SMALLER_ROOM = 0.5
+
 
 @dataclass(frozen=True)
 class RelayConfig:
@@ -297,6 +301,7 @@ class RelayTest:
         self._eps = 0.0
         self._noise = 0.0
         self._relay_start = math.nan
+        self._relay_index = 0  # set with the relay's start (``_quiet``)
         self._crossings: list[float] = []  # upward crossings of r (interpolated)
         self._armed = False  # an upward crossing counts only after the relay went up, below r
         self._level = 0.0  # h: switch down above r + h, up below r − h (stage 1: h = ε)
@@ -484,6 +489,7 @@ class RelayTest:
         if not lo <= pv <= hi:
             return self._abort(
                 f"PV {beyond(pv, lo, hi)} left its limits [{lo:g}, {hi:g}] at t = {t:g} s"
+                + self._smaller_relay(lo, hi)
             )
         smaller = "--amplitude"
         if self._grown:  # not the engineer's d: the relay's own growth swung it there
@@ -494,6 +500,36 @@ class RelayTest:
         # in the loop's sense (``_actual`` is its own inverse)
         self.op.append(self._actual(held) if self.outputs_from_samples else out)
         return self._actual(out)
+
+    def _smaller_relay(self, lo: float, hi: float) -> str:
+        """The relay's amplitude that would keep its swing within half the room from rest to
+        the PV limits (``SMALLER_ROOM``), said where the PV left them: a relay's swing scales
+        with its d (a = 4d·|G(jω_u)|/π), and the swing so far (from rest, to the farthest
+        sample, the one past the limits included) is its start-up's, about the whole
+        cycle's (e^{−3s}/((10s+1)(2s+1)), d 5 %: 0.81 then 1.31 on the way to 1.36). Why: the
+        abort said where the PV went, not what test would fit (helper trial: ±1 limits on a
+        swing of 1.36; --amplitude 2.2 keeps it to 0.6). "" before the relay ran, or where
+        the room is under the cycle the noise needs (said so instead)."""
+        if self.phase not in ("relay", "stage2") or math.isnan(self._r):
+            return ""
+        ys = self.pv[self._relay_index :]
+        swing = max((abs(y - self._r) for y in ys), default=0.0)
+        room = min(hi - self._r, self._r - lo)
+        if not (swing > 0 and room > 0 and math.isfinite(room)):
+            return ""
+        least = 1.0 / self.config.grow_ratio * max(self._eps, self.config.resolution)
+        if SMALLER_ROOM * room < least:
+            return (
+                f"; the limits leave {room:.3g} of room from rest ({self._r:.4g}), too little "
+                f"for a cycle clear of the noise's hysteresis ({self._eps:.3g}): wider "
+                "--pv-limits, or a step test"
+            )
+        d = self._d * SMALLER_ROOM * room / swing
+        return (
+            f"; its swing, {swing:.3g} from rest ({self._r:.4g}) with the relay at ±{self._d:.3g} "
+            f"%, scales with the relay's amplitude: --amplitude {d:.2g} would keep it within "
+            "about half the room to the limits"
+        )
 
     def _quiet(self, t: float) -> float:
         """Wait until the last quiet period shows the PV at rest (no trend beyond its noise);
@@ -514,6 +550,7 @@ class RelayTest:
         self._margin = self._eps
         self._cross_margin = self._eps
         self._relay_start = t
+        self._relay_index = len(self.pv) - 1  # the relay's first sample in ``pv``
         self._push = (t, math.nan)
         self.phase = "relay"
         self.events.append(
