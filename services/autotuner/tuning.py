@@ -1337,13 +1337,20 @@ class TuningRun:
                 "(σ): the valve works hard; a lower gain or a filtered measurement spares it"
             )
         if problems:
+            put_back = self._restore()  # not claimed restored where that failed (review)
+            back = (
+                "previous gains restored"
+                if put_back
+                else "the run could not restore the state before the test itself (its release "
+                "asks the plant to)"
+            )
             return {
-                "put_back": self._restore(),  # not claimed restored where that failed
+                "put_back": put_back,
                 "applied": False,
                 "before": before_v,
                 "after": after_v,
                 "acceptance": limits,
-                "reason": f"new gains {'; '.join(problems)}: previous gains restored",
+                "reason": f"new gains {'; '.join(problems)}: {back}",
                 "notes": notes,
             }
         self._set_auto(new, sp0)
