@@ -609,3 +609,29 @@ def test_a_step_whose_model_is_refused_points_to_the_relay():
     assert r.reason.endswith("(--method relay)")
     assert after[:3] == before[:3]
     assert tune("relay")[0].status == "ok"
+
+
+def test_a_previous_integral_time_far_beyond_the_loop_is_watched_as_none():
+    """hx1 in auto under Kc 2 with Ti 1e4 s, a DCS's "integral off" (228 of its 43.8 s time
+    scales): the verification of those gains (the "before") watched each step for 8·Ti,
+    80,000 s (125,000 s of sim time in all, review), where 15 time scales (657 s) is the
+    bound the README gives; a Ti of 1e9 s never ended. Watched as no integral action, the run
+    takes a few thousand seconds of sim time."""
+    import tomllib
+
+    from services.autotuner.tuning import VERIFY_TI_SCALES
+    from services.plant_sim.plant_file import default_plant_path
+
+    with open(default_plant_path(), "rb") as f:
+        doc = tomllib.load(f)
+    doc["seed"] = 0
+    sim = build_plant(doc, "unit")["hx1"]
+    client = LocalLoopClient(sim)
+    client.command(GainsCommand(loop="hx1", gains=PidGains(kc=2.0, ti=1e4), source="x"))
+    client.command(ModeCommand(loop="hx1", mode="auto", source="x"))
+    client.advance(3000)  # at rest in auto
+    r = run(client, method="relay", rule="amigo-pid")
+    assert r.status == "ok", r.reason
+    assert VERIFY_TI_SCALES * r.timescale < 1e4  # beyond the bound: off
+    # the run from its start, the verifications' steps (15 scales each) and waits included
+    assert r.sim_duration < 20 * 15 * r.timescale, (r.sim_duration, r.timescale)

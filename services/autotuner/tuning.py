@@ -102,6 +102,11 @@ VERIFY_MIN_ROOM = 1.0  # % of output: less room toward the PV's side, the step g
 # spans a verification waits in all for a loop creeping toward its setpoint (not swinging
 # about it) to settle there before the step: slow gains, not unstable ones
 VERIFY_SETTLE_SPANS = 3
+# time scales: an integral time longer is watched for as none (its action within any watch
+# is nil: a DCS turns integral action off so, Ti 9999 s or 1e9 s), not for 8 of it (a Ti of
+# 1e9 s held the verification's setpoint stepped for ever, one of 1e4 s on hx1 watched each
+# step for 80,000 s: review). Rules give up to 60 (lvl1, lambda PI; field cases 2.2)
+VERIFY_TI_SCALES = 200.0
 # of the PV range: the least band a verification judges the loop at rest at its setpoint by
 # (before its step, and back after it): a 16-bit transmitter resolves 1.5e-5 of its span
 REST_FLOOR = 1e-5
@@ -1618,8 +1623,10 @@ class TuningRun:
         sign, size = self._within_limits(sp0, sign, size, ident.noise)
         step = size * sign
         # a step is watched for 15 time scales, and at least 8 integral times: a robust PI's
-        # slow integral removes the last per cent late, which is not instability
-        span = max(15 * scale, 8 * gains.ti if gains.ti else 0.0)
+        # slow integral removes the last per cent late, which is not instability (up to
+        # VERIFY_TI_SCALES: an integral beyond is off)
+        slow_ti = gains.ti if gains.ti and gains.ti <= VERIFY_TI_SCALES * scale else 0.0
+        span = max(15 * scale, 8 * slow_ti)
         band = max(0.02 * abs(step), 4 * ident.noise)
         # at rest at the setpoint: within the band, or what no transmitter resolves. A loop
         # tuned to Kc 2,800 %/% steps by 0.0018 % (the kick's limit) and its band was 1.7e-4:
