@@ -444,6 +444,13 @@ def settled(
 RAMP_PRECISION = 0.1  # the slope's change over the window must be resolved to 10 % of it
 RAMP_WINDOWS_PER_DEAD_TIME = 10  # the steady window spans at least 10 apparent dead times
 RAMP_MIN_SAMPLES = 40
+# a change of the slope over the window below this (relative) is none, however well the fit
+# resolves it: a noise-free integrator's lag leaves its ramp's slope e^{−W/τ} short, which
+# an exact record resolves to 1e-12 (0.05/(s(5s+1))·e^{−s}, stepped 5 %: 8e-5 over its window
+# when it neared the allowance, never steady, the step test aborted and the level left 25 %
+# of span off: helper trial); a time constant past 200 windows (100 times the time since the
+# step) is integration within any record, as the docstring says of 5
+RAMP_STEADY_FLOOR = 0.005
 
 
 @dataclass(frozen=True)
@@ -512,7 +519,7 @@ def steady_ramp(
         return None
     change = 2.0 * float(c2) / float(c1)  # slope(½) − slope(−½), relative to slope(0)
     change_se = 2.0 * math.sqrt(cov[0, 0]) / abs(float(c1))
-    steady = abs(change) <= 3.0 * change_se + 1e-6
+    steady = abs(change) <= 3.0 * change_se + RAMP_STEADY_FLOOR
     if not (steady and 3.0 * change_se <= RAMP_PRECISION):
         return None
     # the ramp's line at the window's middle, back to the baseline

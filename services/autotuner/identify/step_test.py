@@ -715,13 +715,20 @@ class StepTest:
         if not check_due(len(self.pv)):
             return self.op_target
         t, y = np.asarray(self.t), np.asarray(self.pv)
-        ramp = steady_ramp(t, y, self.t_step, self._pv_before, self._noise)
+        # (a ramp within the noise and the transmitter's resolution is no response: a 1e6 s
+        # lag's 5e-4 in 100 s, noise-free, is as steady as any)
+        moved = self._t_moved is not None or self.config.resolution <= 0
+        ramp = steady_ramp(t, y, self.t_step, self._pv_before, self._noise) if moved else None
         if ramp is not None and ramp.precision <= self.config.rate_precision:
             return self._integrating(s, ramp, "precision")
         if reason := self._heading_out(t, y, elapsed):
             # the last look before giving up: a steady ramp over fewer dead times
-            ramp = ramp or steady_ramp(
-                t, y, self.t_step, self._pv_before, self._noise, RAMP_WINDOWS_AT_THE_EDGE
+            ramp = ramp or (
+                steady_ramp(
+                    t, y, self.t_step, self._pv_before, self._noise, RAMP_WINDOWS_AT_THE_EDGE
+                )
+                if moved
+                else None
             )
             if ramp is not None:  # R is known, if less precisely than asked: say so
                 return self._integrating(s, ramp, "range")
