@@ -25,8 +25,9 @@ away. From the responses:
   the even-order nonlinearity cancels), so this is the model's linear part at op0;
 * **sample time** against the dynamics: samples per ultimate period, a warning below 20.
 
-A model whose PV is not a finite number, whose ``step`` raises, or that does not move at all
-for any step, is refused. Pure computation over the model (numpy), no I/O.
+A model whose PV is not a finite number, whose ``step`` raises, that does not move at all
+for any step, or whose ``reset`` does not put it back as it was, is refused. Pure computation
+over the model (numpy), no I/O.
 """
 
 from __future__ import annotations
@@ -358,6 +359,7 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
         report.responses.append(_respond(process, op0, size, dt, scale, max_n))
     responses = report.responses
     report.horizon = max(len(r.pv) - 1 for r in responses) * dt
+    _check_reset(process, report, scale)
     if abs(rest[-1] - rest[0]) > 1e-12 * scale:
         _correct_drift(process, report)
     if all(r.behaviour == "no response" for r in responses):
@@ -535,6 +537,38 @@ def _sizes(up: float, down: float) -> list[float]:
             if size >= MIN_STEP and sign * size not in out:
                 out.append(sign * size)
     return out
+
+
+def _check_reset(process: Any, report: ModelReport, scale: float) -> None:
+    """Refused where ``reset()`` does not put the model back as it was: every run starts
+    from a reset, so the PV it returns must be the same each time, and the first step run
+    again after the others must give the same response. A reset that kept its state was read
+    as a gain of 3 and "NONLINEAR, spread 100 %" where it was 2 (user trial)."""
+    dt, pv0 = report.sample_time, report.pv0
+    for r in report.responses:
+        if abs(r.pv[0] - pv0) > 1e-9 * scale:
+            raise Refused(
+                f"reset() does not reset the model: before the {r.label} step it returned PV "
+                f"{r.pv[0]:.6g}, where the first reset returned {pv0:.6g}; it must leave the "
+                "process at rest at op0 whatever ran before (every run of the check starts "
+                "from a reset)"
+            )
+    first = report.responses[0]
+    label = f"the {first.label} step run again"
+    again = np.asarray(
+        _run(process, report.op0 + first.size, label, dt, len(first.pv) - 1, None, scale)
+    )
+    n = min(len(again), len(first.pv))
+    size = float(np.max(np.abs(first.pv[:n] - first.pv[0])))
+    diff = np.abs(again[:n] - first.pv[:n])
+    worst = int(np.argmax(diff))
+    if len(again) != len(first.pv) or diff[worst] > 1e-6 * size + 1e-12 * scale:
+        raise Refused(
+            f"reset() does not reset the model: the {first.label} step run again after a reset "
+            f"differs from its first run by {diff[worst]:.3g} at t = {worst * dt:g} s (of a "
+            f"change of {size:.3g}); it must leave the process at rest at op0 whatever ran "
+            "before (every run of the check starts from a reset)"
+        )
 
 
 def _correct_drift(process: Any, report: ModelReport) -> None:
