@@ -69,14 +69,46 @@ def load_bound(
         signal.signal(signal.SIGALRM, before)
 
 
+class _CtrlC:
+    """Whether ``watch_ctrl_c`` is on, and whether the user pressed Ctrl-C under it."""
+
+    watching = False
+    pressed = False
+
+
+@contextmanager
+def watch_ctrl_c() -> Iterator[None]:
+    """While the block runs (in the main thread), a ``KeyboardInterrupt`` is the user's only
+    when SIGINT came: any other one was raised by a model, and ``models_own`` takes it as the
+    model's failure (``autotune model check`` ended "interrupted", exit 130, for a model that
+    raised it in its step(): user trial)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def pressed(signum: int, frame: object) -> None:
+        _CtrlC.pressed = True
+        raise KeyboardInterrupt
+
+    before = signal.signal(signal.SIGINT, pressed)
+    was = (_CtrlC.watching, _CtrlC.pressed)
+    _CtrlC.watching, _CtrlC.pressed = True, False
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before if before is not None else signal.default_int_handler)
+        _CtrlC.watching, _CtrlC.pressed = was
+
+
 def models_own(err: BaseException) -> bool:
     """Whether ``err``, out of a call into a user's model, is the model's own failure, to be
     said on one line (a loop faulted, a file refused): anything it raised, ``BaseException``
     subclasses and ``SystemExit`` included (a class of ``BaseException`` passed every ``except
     Exception`` and left a loop unanswered, its advance never ended), except this bound's
-    strokes and, in the main thread, ``KeyboardInterrupt`` (the user's Ctrl-C, there)."""
+    strokes and, in the main thread, ``KeyboardInterrupt`` (the user's Ctrl-C, there) — under
+    ``watch_ctrl_c`` only one that SIGINT raised."""
     if isinstance(err, StillLoading):
         return False
-    return not (
-        isinstance(err, KeyboardInterrupt) and threading.current_thread() is threading.main_thread()
-    )
+    if isinstance(err, KeyboardInterrupt) and threading.current_thread() is threading.main_thread():
+        return _CtrlC.watching and not _CtrlC.pressed
+    return True

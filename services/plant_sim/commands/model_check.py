@@ -25,7 +25,12 @@ import math
 import sys
 from pathlib import Path
 
-from services.plant_sim.load_bound import LOAD_TIMEOUT, check_load_timeout, load_bound
+from services.plant_sim.load_bound import (
+    LOAD_TIMEOUT,
+    check_load_timeout,
+    load_bound,
+    watch_ctrl_c,
+)
 from services.plant_sim.model_check import ModelReport, check_loop, refine_step_point
 from services.plant_sim.plant_file import load_plant_file
 from services.plant_sim.simulation.loop import SimLoop
@@ -72,8 +77,9 @@ def run(args: argparse.Namespace) -> int:
         _check_plot_path(args.plot)
     check_load_timeout(args.load_timeout)
     # what the models print goes to stderr: stdout is the report's (a model that printed in
-    # its step() made `--json` unreadable: helper review)
-    with contextlib.redirect_stdout(sys.stderr):
+    # its step() made `--json` unreadable: helper review); a KeyboardInterrupt a model raises
+    # is its failure, one line and exit 2: only a Ctrl-C is the user's (exit 130)
+    with contextlib.redirect_stdout(sys.stderr), watch_ctrl_c():
         reports = _reports(args)
     if args.json:
         print(

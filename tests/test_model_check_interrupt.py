@@ -1,0 +1,77 @@
+"""``autotune model check`` of a user's class whose step() raises ``KeyboardInterrupt`` (user
+trial): it ended "autotune model check: interrupted", exit 130, as if the user had pressed
+Ctrl-C. README: any BaseException from the model is the model's failure, one line, exit 2
+(plant_sim faults the loop). A Ctrl-C (SIGINT) is still the user's: exit 130."""
+
+from __future__ import annotations
+
+import math
+import signal
+
+from tests.cli_run import run_cli
+
+HERE = "tests.test_model_check_interrupt"
+
+
+class Lag:
+    """A 5 s lag of gain 1 about PV 50."""
+
+    pv_units = "%"
+    pv_range = (0.0, 100.0)
+
+    def __init__(self, sample_time, op0=50.0):
+        self.sample_time, self.op0 = sample_time, op0
+        self.n = 0
+
+    def reset(self):
+        self.x = 50.0
+        return self.x
+
+    def step(self, op):
+        self.n += 1
+        a = math.exp(-self.sample_time / 5.0)
+        self.x = a * self.x + (1 - a) * (50.0 + op - self.op0)
+        return self.x
+
+    def disturbance_names(self):
+        return ()
+
+    def set_disturbance(self, name, value):
+        raise KeyError(name)
+
+
+class RaisesKeyboardInterrupt(Lag):
+    def step(self, op):
+        if self.n >= 200:
+            raise KeyboardInterrupt("the model's own")
+        return super().step(op)
+
+
+class CtrlC(Lag):
+    """The user presses Ctrl-C while its step() runs."""
+
+    def step(self, op):
+        if self.n == 200:
+            signal.raise_signal(signal.SIGINT)
+        return super().step(op)
+
+
+def plant(tmp_path, cls: str):
+    path = tmp_path / "p.toml"
+    path.write_text(f'[loops.u1]\nmodel = "{HERE}:{cls}"\nsample_time = 0.1\n')
+    return str(path)
+
+
+def test_a_keyboard_interrupt_from_the_model_is_its_failure(tmp_path, capsys):
+    code, out, err = run_cli(capsys, "model", "check", plant(tmp_path, "RaisesKeyboardInterrupt"))
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "loops.u1.model: refused: the model's step() raised KeyboardInterrupt" in err, err
+    assert "REFUSED" in out
+    # and Python's own handler is back once the command is done
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_the_users_ctrl_c_is_still_an_interruption(tmp_path, capsys):
+    code, _, err = run_cli(capsys, "model", "check", plant(tmp_path, "CtrlC"))
+    assert code == 130 and err.strip() == "autotune model check: interrupted", err
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
