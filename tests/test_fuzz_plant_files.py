@@ -257,8 +257,13 @@ HAND = [
     ),
     (
         "tiny-sample-time-long-delay",
-        {"loops": {"hx1": {"model": "heat_exchanger", "sample_time": 1e-300}}},
+        {"loops": {"hx1": {"model": "heat_exchanger", "sample_time": 1e-6}}},
         ["loops.hx1.delay"],
+    ),
+    (
+        "sample-time-1e-300",
+        {"loops": {"hx1": {"model": "heat_exchanger", "sample_time": 1e-300}}},
+        ["loops.hx1.sample_time"],
     ),
     ("num-1e308-den-1e-308", tf([1e308], [1e-308]), ["loops.tf.", "overflow"]),
     ("num-1e308-den-1e-308-lag", tf([1e308], [1e-308, 1.0]), ["loops.tf.", "overflow"]),

@@ -338,6 +338,24 @@ def _growth(d: np.ndarray, dt: float) -> float | None:
     return math.log(a[-1] / a[-1 - k]) / (k * dt)
 
 
+def _blows_up(rest: list[float], dt: float, span: float, scale: float) -> None:
+    """Refused where, held at op0 with no step at all, the PV leaves ``RUNAWAY`` times its
+    range without accelerating (an unstable model not balanced at op0 accelerates, and is
+    judged by its steps): a model returning 1e300 × its PV (50 at reset, then 5e301) was told
+    "it ignores its input: the PV did not move in 0.1 s", its steps lost against a drift of
+    5e301 (user trial)."""
+    d = np.asarray(rest) - rest[0]
+    far = np.nonzero(np.abs(d) > RUNAWAY * scale)[0]
+    if len(far) == 0 or _accelerating(d[: far[0] + 1]):
+        return
+    k = int(far[0])
+    raise Refused(
+        f"its PV blows up: held at op0, with no step at all, it went from {rest[0]:.6g} at "
+        f"reset to {rest[k]:.6g} by t = {k * dt:g} s, past {RUNAWAY:g} times its range "
+        f"({span:g}): a PV out of any range a transmitter reads"
+    )
+
+
 # --- the analysis --------------------------------------------------------------------------
 
 
@@ -350,6 +368,7 @@ def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], ma
     rest = _run(process, op0, HELD, dt, REST_SAMPLES, None, math.inf)
     report.pv0 = rest[0]
     scale = max(span, abs(rest[0]), 1.0)
+    _blows_up(rest, dt, span, scale)
     report.rest_drift = (rest[-1] - rest[0]) / (REST_SAMPLES * dt)
     up, down = hi - op0, op0 - lo
     sizes = _sizes(up, down)

@@ -51,6 +51,9 @@ from shared.keys import check_id
 from shared.messages import Action, Mode, PidGains
 
 MAX_SAMPLE_TIME = 86400.0  # s: a day between samples is a loop no PID block runs
+# s: a microsecond; below it no PID block samples, and a model's change in a sample is lost in
+# rounding (1e-300 s was checked as "ignores its input … in 1.31072e-295 s": user trial)
+MIN_SAMPLE_TIME = 1e-6
 PROTOCOL = (
     "sample_time",
     "pv_units",
@@ -253,6 +256,12 @@ def build_loop(
     sample_time = cfg.sample_time if cfg.sample_time is not None else defaults.sample_time
     if sample_time is None:
         raise fail("sample_time", f"required for model {cfg.model!r} (seconds, > 0)")
+    if sample_time < MIN_SAMPLE_TIME:
+        raise fail(
+            "sample_time",
+            f"{sample_time:g} s is under {MIN_SAMPLE_TIME:g} s (a microsecond): no PID block "
+            "samples faster, and a model's change in one sample is lost in rounding",
+        )
     params = dict(cfg.model_extra or {})
     problem = _check_params(cls, params, cfg.model)
     if problem:
