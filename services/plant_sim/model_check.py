@@ -33,6 +33,7 @@ over the model (numpy), no I/O.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -162,6 +163,7 @@ def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
         pv_range=s.pv_range,
         pv_units=s.pv_units,
     )
+    _own_sample_time(report, loop.process)
     if loop.pid.mode == "manual" or loop.pid.gains.ti is None:  # else its PID holds it
         _tune_rest(report, rest_window(s.sample_time, loop.pid.gains.ti), s.noise_std)
     # a reverse-acting PID is for a process whose PV rises with the output, a direct one for
@@ -176,6 +178,32 @@ def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
             f'ramp test pushes the PV the wrong way (action = "{wants}")'
         )
     return report
+
+
+def _own_sample_time(report: ModelReport, process: Any) -> None:
+    """A warning where the model's own ``sample_time`` is not the loop's: the loop steps it
+    once per the plant file's sample time, and a class that advances by its own (0.5 s where
+    the file said 0.1 s) runs that many times too fast, every time figure off by as much; it
+    was checked "ok" without a word (user trial)."""
+    try:
+        own = getattr(process, "sample_time", None)
+    except BaseException as err:  # a user's property: read at load, but read again here
+        if not models_own(err):
+            raise
+        return
+    file = report.sample_time
+    if isinstance(own, numbers.Real) and not isinstance(own, bool):
+        if math.isfinite(own) and abs(own - file) <= 1e-9 * file:
+            return
+        told = f"{float(own):g} s"
+    else:
+        told = f"{own!r}, not a number"
+    report.warnings.append(
+        f"the model's own sample_time is {told}, the plant file's {file:g} s: the loop steps "
+        f"it once every {file:g} s of sim time, so a model that advances by its own sample "
+        "time each step runs at the wrong speed and every time figure here is off; build the "
+        "class to keep the sample_time it is given"
+    )
 
 
 def _tune_rest(report: ModelReport, window: float, noise_std: float) -> None:

@@ -388,6 +388,16 @@ def _read_protocol(process: object, cfg: LoopConfig) -> dict[str, Any]:
             f"{cfg.model}.disturbance_names() must return a tuple of names (strings), got "
             f"{brief(repr(names))}",
         )
+    try:  # optional: the disturbances' present values, read for every status it publishes
+        # (a class's own __getattr__ raising for any name it lacks has none)
+        if inspect.getattr_static(process, "disturbances", None) is not None:
+            getattr(process, "disturbances")  # noqa: B009 (a property of the user's runs here)
+    except BaseException as err:  # a property of the user's that raises (it was accepted, and
+        if not models_own(err):  # the loop's status then showed stale values: user trial)
+            raise
+        raise ModelParamError(
+            "model", f"{cfg.model}: .disturbances raised {type(err).__name__}: {brief(err)}"
+        ) from None
     op0 = values["op0"]
     if isinstance(op0, bool) or not isinstance(op0, numbers.Real) or not math.isfinite(op0):
         raise ModelParamError(
