@@ -99,6 +99,16 @@ class ActiveRun:
     thread: threading.Thread
 
 
+def stale_by(req: TuneRequest, now: float | None = None) -> float | None:
+    """How many seconds past its ``answer_by`` (wall clock) ``req`` is read; None: in time,
+    or no bound asked. The machines' clocks are taken to agree to well under the client's
+    wait (10 s; NTP keeps them to milliseconds)."""
+    if req.answer_by is None:
+        return None
+    late = (time.time() if now is None else now) - req.answer_by
+    return late if late > 0 else None
+
+
 def _check_step_size(req: TuneRequest, status: LoopStatus) -> None:
     """A step test's output step that cannot fit the loop's output limits, refused when the
     request arrives (ValueError naming ``step_size``), not after the wait for rest (600 s on
@@ -334,6 +344,16 @@ class TunerService:
         try:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             req = wire.decode(TuneRequest, payload, str(query.encoding) if query.encoding else None)
+            late = stale_by(req)
+            if late is not None:
+                self.rejected += 1
+                why = (
+                    f"the request for {req.loop} came {late:.3g} s after its client stopped "
+                    "waiting for an answer (this tuner was paused or starved): not started"
+                )
+                log.warning("request refused: %s", why)
+                query.reply_err(why.encode())
+                return
             accepted = self._start(req)
             wire.reply(query, str(query.key_expr), accepted)
             log.info(

@@ -260,6 +260,9 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
     return req
 
 
+ANSWER_WAY = 1.0  # s: of a request's wait, left for the tuner's answer to come back
+
+
 def submit(
     session: zenoh.Session, prefix: str, node: str, req: TuneRequest, timeout: float = 10.0
 ) -> TuneAccepted:
@@ -279,9 +282,13 @@ def submit(
         node = pick_tuner(session, prefix, node, max(0.1, deadline - time.monotonic()))
         key = keys.tuner_request(prefix, node)
     while time.monotonic() < deadline:  # a new peer's queryable may take a moment to route
+        left = deadline - time.monotonic()
+        # answered by then or not at all: the tuner refuses it later (``answer_by``), the
+        # second before the wait ends left for its answer's way back
+        asked = req.model_copy(update={"answer_by": time.time() + max(0.5, left - ANSWER_WAY)})
         replies = session.get(
             key,
-            payload=wire.encode(req),
+            payload=wire.encode(asked),
             encoding=wire.encoding_for(TuneRequest),
             target=zenoh.QueryTarget.BEST_MATCHING,
             timeout=max(0.1, deadline - time.monotonic()),

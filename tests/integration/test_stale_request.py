@@ -1,0 +1,64 @@
+"""A tune request read by a tuner after its client stopped waiting is refused, never started:
+a tuner paused for 55 s (SIGSTOP) read the request of a client that had reported "did not
+answer" and exited 2, and tuned hx1 with no one watching, applying new gains (helper trial).
+The request carries the wall-clock time its client waits until (``answer_by``)."""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+
+from services.autotuner.loop_client import wait_for_token
+from services.autotuner.service import stale_by
+from shared import keys, wire
+from shared.messages import LoopStatus, TuneRequest
+from shared.session import open_session
+from tests.integration.tuning_cli import THIRD, plant_toml
+
+pytestmark = pytest.mark.integration
+
+
+def test_stale_by_the_clock():
+    req = TuneRequest(loop="x1", answer_by=1000.0)
+    assert stale_by(req, now=999.0) is None
+    assert stale_by(req, now=1002.5) == pytest.approx(2.5)
+    assert stale_by(TuneRequest(loop="x1"), now=1e12) is None  # no bound asked: in time
+    assert "answer_by" not in wire.encode(TuneRequest(loop="x1")).decode()  # off the wire
+
+
+def test_a_request_its_client_gave_up_on_is_not_started(start_plant, start_tuner, tmp_path):
+    p = start_plant(plant_toml("x1", THIRD), loops=("x1",))
+    tuner = start_tuner(p)
+    with open_session(p.client_settings()) as s:
+        before = wire.query_one(s, keys.status(p.prefix, "x1"), LoopStatus, 5.0)
+    assert before is not None
+    with open_session(p.client_settings()) as s:
+        # the tuner's declarations known to this session before it stops (as a console's
+        # long-open session knows them)
+        assert wait_for_token(s, keys.tuner_alive(p.prefix, "tuner"), 10.0)
+        tuner.send_signal(signal.SIGSTOP)
+        try:  # what ``submit`` sends, its answer awaited until its ``answer_by``
+            req = TuneRequest(loop="x1", answer_by=time.time() + 1.0)
+            replies = s.get(
+                keys.tuner_request(p.prefix, "tuner"),
+                payload=wire.encode(req),
+                encoding=wire.encoding_for(TuneRequest),
+                timeout=2.0,
+            )
+            assert all(r.ok is None for r in replies)  # paused: no answer, the client gives up
+        finally:
+            tuner.send_signal(signal.SIGCONT)
+    log = tmp_path / "tuner0.log"
+    deadline = time.monotonic() + 30.0
+    while "request refused" not in log.read_text():  # the tuner reads it once resumed
+        assert time.monotonic() < deadline, log.read_text()
+        time.sleep(0.05)
+    text = log.read_text()
+    assert "after its client stopped waiting" in text and "not started" in text, text
+    assert "tuning x1" not in text, text
+    with open_session(p.client_settings()) as s:
+        after = wire.query_one(s, keys.status(p.prefix, "x1"), LoopStatus, 5.0)
+    assert after is not None and after.leased_by is None
+    assert (after.mode, after.gains, after.op) == (before.mode, before.gains, before.op)
