@@ -141,3 +141,26 @@ def test_a_step_tests_model_that_misses_its_records_point_holds_every_rule_tight
         IsaGains(isa["kc"], isa["ti"], isa["td"]), DelayedTF.of(*plant), 0.05
     )
     assert true.stable and true.ms <= 2.0, (r.rule, true.ms)
+
+
+def test_a_model_that_misses_the_plant_is_not_applied_untried():
+    """``--no-verify`` on the model that misses its record: refused, nothing applied (AMIGO
+    PI, Ms 1.45 on such a model of the same plant, 26.6 on it, was left in the loop
+    unverified and oscillating: helper trial); ``--force`` applies it, ``unverified``."""
+    num, den, delay = UNDERDAMPED
+    cfg = {"model": "transfer_function", "num": num, "den": den, "delay": delay}
+
+    def run(**req):
+        loop = build_plant({"seed": 1, "loops": {"x": {**cfg, "sample_time": TS}}})["x"]
+        client = LocalLoopClient(loop)
+        before = (loop.mode, loop.pid.gains)
+        r = TuningRun(client, TuneRequest(loop="x", method="ramp", verify=False, **req), "t").run()
+        return r, before, (loop.mode, loop.pid.gains)
+
+    r, before, after = run()
+    assert any("model misses its record" in w for w in r.warnings)
+    assert r.status == "rejected" and r.applied is not True, r.reason
+    assert "not applied without verification" in r.reason and "--force" in r.reason
+    assert after == before
+    forced, _, _ = run(force=True)
+    assert forced.status == "unverified" and forced.applied is True, forced.reason

@@ -708,6 +708,15 @@ class TuningRun:
         chosen = sel.chosen
         if chosen is None or (sel.refusal and req.apply):
             raise TuneRefused(sel.refusal or "no gains")
+        if sel.model_misses and req.apply and not req.verify and not req.force:
+            # the run's own model says its predictions are not sure: untried gains from it
+            # are not put in the loop (a step test begun on a ring fitted e^{−0.5s}/(s² +
+            # 0.4s + 1) an SOPDT that missed it; AMIGO PI, Ms 1.45 on it, 26.6 on the plant,
+            # was left in the loop unverified and oscillating: helper trial)
+            raise TuneRefused(
+                f"{sel.model_misses}: gains from it are not applied without verification "
+                "(--no-verify); verify them (the default), or --force"
+            )
         result["chosen"] = all_forms(chosen, span).to_dict()
         step = sel.assessments.get(sel.rule)
         predicted = step.step.overshoot if step is not None and step.step else None

@@ -89,6 +89,9 @@ class Selection:
     # the model's predictions are not sure (it misses the measured point or its record, or
     # the process answers inversely): the verification checks every rule's gain margin
     model_unsure: bool = False
+    # what the model misses (the measured point, or its record), where it does: gains from
+    # it are not applied untried (``TuningRun``: --no-verify refused unless forced)
+    model_misses: str | None = None
 
 
 def l_over_t(ident: Identification, model: ProcessFit | None = None) -> float | None:
@@ -502,6 +505,7 @@ def select(
         ku_spread=ku_spread,
         pu_spread=pu_spread,
         model_unsure=unsure_model or ident.inverse_response,
+        model_misses=unsure,
         sample_time=ts if model is not None else None,
         lambda_s=_lambda_of(
             table,
