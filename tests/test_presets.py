@@ -79,4 +79,11 @@ def test_a_recommendation_from_a_pool_names_the_pool():
     assert any("the recommendation is Tyreus–Luyben's" in w for w in r.warnings), r.warnings
     reason = r.recommended["reason"]
     assert r.recommended["rule"].startswith("tl-"), r.recommended
-    assert "largest integral gain of tl-pi, tl-pid with" in reason, reason
+    assert reason.endswith("(of the candidates tl-pi, tl-pid)"), reason
+    # the rules named as meeting the condition meet it, each (a pool's list read as if all
+    # of it did, two rules UNSTABLE on the model among them: helper trial)
+    met = reason.split(": ")[-1].split(" (of")[0].split(", ")
+    assert r.recommended["rule"] in met
+    for name in met:
+        rob = r.robustness[name]
+        assert rob["ms"] <= 1.8 and rob["overshoot_pct"] <= 25.0, (name, rob)

@@ -406,15 +406,20 @@ def recommend(
                     " and a predicted step within the verification's limits (overshoot ≤ "
                     f"{PASSABLE_OVERSHOOT:g} %, decay ratio ≤ {PASSABLE_DECAY:g})"
                 )
-            # of a pool, named: "largest integral gain" alone read as of every rule in the
-            # table, beside a warning that the recommendation is Tyreus–Luyben's (helper 74)
-            among = f" of {', '.join(sorted(candidates))}" if pooled else ""
+            # the rules that met the condition named, and the pool's where it is one:
+            # "largest integral gain" alone read as of every rule in the table, beside a
+            # warning that the recommendation is Tyreus–Luyben's (helper 74), and "of <the
+            # pool> with Ms ≤ 1.8" as if each of them had it, two UNSTABLE on the model
+            # among them (helper trial)
+            met = passable if costly else (calm or ok)
+            among = f" (of the candidates {', '.join(sorted(candidates))})" if pooled else ""
             return Recommendation(
                 best.rule,
                 best.gains,
                 _number(best.robustness.ms) if best.robustness else None,
-                f"{lead}largest integral gain{among} with Ms ≤ "
-                f"{margin(best.rule) * ms_bound:.2g}{also} on {on}{costly}",
+                f"{lead}largest integral gain of the rules with Ms ≤ "
+                f"{margin(best.rule) * ms_bound:.2g}{also} on {on}{costly}: "
+                f"{', '.join(sorted(a.rule for a in met))}{among}",
             )
         judged = [a for a in safe.values() if a.robustness is not None]
         safest = min(judged, key=lambda a: a.robustness.ms, default=None)
