@@ -11,7 +11,7 @@ import tomllib
 from services.autotuner.tuning import TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant, default_plant_path
-from shared.messages import GainsCommand, TuneRequest
+from shared.messages import DisturbanceCommand, GainsCommand, PidGains, TuneRequest
 
 
 class Watched(LocalLoopClient):
@@ -71,3 +71,41 @@ def test_gains_rejected_for_a_model_miss_are_not_run_at_twice_their_gain():
     assert max(client.kcs) <= kc * (1 + 1e-12), (max(client.kcs), kc)
     after = sim.snapshot()
     assert (after.mode, after.gains) == (before.mode, before.gains)
+
+
+def test_gains_that_fail_their_setpoint_step_are_not_load_stepped():
+    """Nor is a load step made, nor the return to the setpoint waited for, under gains their
+    setpoint step already fails: the loop is restored at once. AMIGO PI from a model that
+    missed e^{−0.5s}/(s² + 0.4s + 1) (Kc 0.2003, Ti 0.5989 s: Ms 26.6 on it), applied with
+    ``autotune apply``, rang at a decay ratio of 0.97 through both steps, 124 s of sim time,
+    before its rejection (helper trial)."""
+    cfg = {
+        "model": "transfer_function",
+        "num": [1.0],
+        "den": [1.0, 0.4, 1.0],
+        "delay": 0.5,
+        "sample_time": 0.02,
+        "noise_std": 0.01,
+    }
+    sim = build_plant({"seed": 1, "loops": {"ud1": cfg}}, "unit")["ud1"]
+    before = sim.snapshot()
+    client = Watched(sim)
+    req = TuneRequest(
+        loop="ud1",
+        apply_from="abcdef123456",
+        rule="amigo-pi",
+        apply_gains=PidGains(kc=0.2003, ti=0.5989),
+        apply_timescale=3.0,
+        apply_noise=0.01,
+    )
+    r = TuningRun(client, req, "unit").run()
+    assert r.status == "rejected" and "decay ratio" in r.reason, r.reason
+    assert r.after.load_step is None and r.after.iae_load is None
+    loads = [c for c in client.commands if isinstance(c, DisturbanceCommand)]
+    assert loads == [], loads
+    after = sim.snapshot()
+    assert (after.mode, after.gains, after.disturbances) == (
+        before.mode,
+        before.gains,
+        before.disturbances,
+    )

@@ -1696,6 +1696,7 @@ class TuningRun:
         # the step's figures are read from where the PV is)
         y0 = sp0 if y_pre.size and at(sp0).done(np.array([]), y_pre) else float(np.mean(y_pre[-k:]))
         sp_m, saturated, load_m = None, False, None
+        load_size: float | None = None  # the load step's (% of output; None: not made)
         modes: list[Ringing | None] = []  # the loop's oscillatory mode in each response
         fast: Ringing | None = None  # a fast mode the model lacks (``unmodelled_mode``)
 
@@ -1761,6 +1762,12 @@ class TuningRun:
         stable = stopped is None and sp_m is not None
         stable = stable and (bool(sp_m["settled"]) or not swinging(y, sp0 + step, k, band))
         stable = stable and (sp_m["decay_ratio"] or 0) < 1
+        if stable and judge is not None and judge(verification()):
+            # gains their setpoint step already fails (the acceptance's reasons from it): no
+            # load step, no return to the setpoint under them; the caller restores the loop
+            # at once. AMIGO PI at decay ratio 0.97 on e^{−0.5s}/(s² + 0.4s + 1) rang on
+            # through both for 124 s of sim time before its rejection (helper trial)
+            return verification()
         before = c.sync()
         back: list[Command] = []  # the load step taken off again, with the setpoint's return
         # within --pv-limits, the load's push on the PV back toward where it rested (away
