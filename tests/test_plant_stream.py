@@ -32,6 +32,7 @@ from shared.messages import (
     ProcessSample,
     ProcessSamples,
     RecordStops,
+    ReleaseCommand,
     SettleStop,
 )
 from shared.reject_log import RejectLog
@@ -317,3 +318,22 @@ def test_a_lease_ending_on_a_faulted_loop_says_it_stays_in_manual(service, caplo
     assert "restored to its state before the experiment" not in line
     assert "faulted (step() raised RuntimeError: boom)" in line and "stays in manual" in line
     assert loop.mode == "manual"
+
+
+def test_a_release_that_asks_a_restore_of_a_faulted_loop_says_it_is_faulted(
+    service, caplog
+) -> None:
+    """The plant restores a released loop its holder could not confirm as put back; a loop
+    that faulted meanwhile keeps its held output in manual, and the log said "restored to
+    its state before the experiment (manual, op 50 %)" of one faulted at 49.01 % (helper
+    trial): it says what ``_end_lease`` says, faulted and where it is held."""
+    service.publishers = Caught()
+    send(service, LeaseCommand(loop="x", source="me", timeout=30.0, t=0.0))
+    loop = service.loops["x"]
+    loop._set_fault("step() raised RuntimeError: test", 49.01, loop.t)
+    with caplog.at_level(logging.WARNING, logger="plant_sim"):
+        send(service, ReleaseCommand(loop="x", source="me", t=0.0, restore=True))
+    lines = [r.getMessage() for r in caplog.records if "released by" in r.getMessage()]
+    assert len(lines) == 1, lines
+    assert "but it is faulted" in lines[0] and "restored to its state" not in lines[0]
+    assert loop.mode == "manual" and loop.fault is not None

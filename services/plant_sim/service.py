@@ -366,14 +366,27 @@ class PlantService:
             held = self.leases.pop(loop_id, None)
             if held is not None and cmd.restore:  # its holder could not confirm its restore
                 loop.restore(held.snapshot)
-                log.warning(
-                    "loop %s released by %s, its restore unconfirmed: restored to its state "
-                    "before the experiment (%s, op %.4g %%)",
-                    loop_id,
-                    _holder(cmd.source, user),
-                    held.snapshot.mode,
-                    held.snapshot.op,
-                )
+                if loop.fault is not None:  # as ``_end_lease`` says it: not its state before
+                    log.warning(
+                        "loop %s released by %s, its restore unconfirmed: its setpoint and "
+                        "gains restored, but it is faulted (%s) and stays in manual at op %.4g "
+                        "%% (it was %s at op %.4g %% before the experiment)",
+                        loop_id,
+                        _holder(cmd.source, user),
+                        loop.fault,
+                        loop.op,
+                        held.snapshot.mode,
+                        held.snapshot.op,
+                    )
+                else:
+                    log.warning(
+                        "loop %s released by %s, its restore unconfirmed: restored to its "
+                        "state before the experiment (%s, op %.4g %%)",
+                        loop_id,
+                        _holder(cmd.source, user),
+                        held.snapshot.mode,
+                        held.snapshot.op,
+                    )
             elif held is not None:
                 log.info("loop %s released by %s", loop_id, _holder(cmd.source, user))
             status = self.loop_status(loop, "release", by=(cmd.source, user))
