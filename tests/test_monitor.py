@@ -424,3 +424,20 @@ def test_the_report_passes_over_an_assessment_line_that_is_not_one(tmp_path):
     with (tmp_path / FILE_NAME).open("w") as f:
         f.write(json.dumps(bad[0]) + "\n")
     assert watch_lines(tmp_path, "x", "r1") == []
+
+
+def test_the_noise_figures_are_not_a_setpoint_changes_settling():
+    """White noise of σ 0.18 on the PV and 0.5 % on the output, and a setpoint change of 2
+    met within a few samples (its fast rise and the output's kick, a few large changes): σ
+    of the changes read 0.62 for the PV's 0.18, and the loop was flagged degraded against its
+    tune (helper trial). Read from the median absolute deviation of the changes, each noise
+    is its σ (to a few per cent over 4,000 samples)."""
+    rng = np.random.default_rng(11)
+    t = np.arange(4000) * 0.1
+    rise = np.clip((t - 100.0) / 0.5, 0.0, 1.0)  # 0 → 1 over five samples at t = 100 s
+    pv = 50.0 + 2.0 * rise + 0.18 * rng.standard_normal(t.size)
+    op = 40.0 + 30.0 * (np.abs(t - 100.2) < 0.25) + 0.5 * rng.standard_normal(t.size)
+    sp = 50.0 + 2.0 * (t >= 100.0)
+    f = performance(t, sp, pv, op, np.ones(t.size, bool), (0.0, 100.0), 5)
+    assert f["pv_noise"] == pytest.approx(0.18, rel=0.06)
+    assert f["op_noise"] == pytest.approx(0.5, rel=0.06)
