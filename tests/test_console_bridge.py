@@ -71,3 +71,46 @@ def test_a_new_page_gets_the_last_results_as_earlier_ones_not_news(bridge):
     assert news and not news[-1].get("earlier"), news
     found = [m for m in bridge.snapshot() if m.get("type") == "result"]
     assert found and all(m["earlier"] for m in found), found
+
+
+def test_a_reject_of_a_run_not_on_record_or_of_another_loop_is_refused(bridge):
+    """Reject of run "zzz" on flow1 was answered ok, "run zzz rejected: its gains were not
+    applied, flow1 unchanged", for a run that does not exist (helper trial): it is looked up
+    among the recorded runs as `autotune apply` does, and refused naming the loop and run."""
+    import json
+
+    from shared.history_file import HISTORY_FILE
+
+    got = answer(bridge, {"type": "reject", "loop": "flow1", "run_id": "zzz", "id": 4})
+    assert got["ok"] is False, got
+    assert got["message"].startswith("reject run zzz of flow1: zzz: no run of that id in")
+    path = bridge.runs / HISTORY_FILE
+    rec = {"record": "tune", "loop": "hx1", "prefix": "consoletest", "run_id": "r0a1b2c3d4e5",
+           "status": "proposed", "applied": False}  # fmt: skip
+    path.write_text(json.dumps(rec) + "\n")
+    try:
+        got = answer(bridge, {"type": "reject", "loop": "flow1", "run_id": "r0a1b2c3d4e5"})
+        assert got["ok"] is False and "tuned hx1, not flow1" in got["message"], got
+        got = answer(bridge, {"type": "reject", "loop": "hx1", "run_id": "r0a1b2c3d4e5"})
+        assert got["ok"] is True, got
+        assert (
+            got["message"] == "run r0a1b2c3d4e5 rejected: its gains were not applied, hx1 unchanged"
+        )
+    finally:
+        path.unlink()
+
+
+def test_a_cancel_with_no_run_going_on_the_loop_is_refused(bridge):
+    """Cancel on flow1 with no run going was answered ok, "cancel sent to flow1's run: the
+    tuner restores the loop" (helper trial): the run's token tells whether one is going."""
+    from shared import keys
+
+    got = answer(bridge, {"type": "cancel", "loop": "flow1", "id": 5})
+    assert (got["ok"], got["message"]) == (False, "no run going on flow1: nothing to cancel")
+    token = bridge.session.liveliness().declare_token(keys.tune_running("consoletest", "flow2"))
+    try:
+        got = answer(bridge, {"type": "cancel", "loop": "flow2", "run_id": None})
+        assert got["ok"] is True, got
+        assert got["message"] == "cancel sent to flow2's run: the tuner restores the loop"
+    finally:
+        token.undeclare()

@@ -26,16 +26,22 @@ from services.autotuner.commands.apply import (
 )
 from services.autotuner.commands.revert import CATCH_UP, reverted_gains, target
 from services.autotuner.commands.tune import follow, submit
-from services.autotuner.loop_client import CommandRefused, LoopClient, wait_for_loop
+from services.autotuner.loop_client import (
+    CommandRefused,
+    LoopClient,
+    wait_for_loop,
+    wait_for_token,
+)
 from shared import keys, wire
 from shared.errors import AutotuneError, ConfigError
-from shared.history_file import HISTORY_FILE, loop_changes
+from shared.history_file import HISTORY_FILE, loop_changes, of_loop
 from shared.messages import GainsCommand, LoopInfo, PidGains, TuneAccepted, TuneRequest, TuneResult
 
 SOURCE = "autotune-console"
 RESULT_WAIT = 3600.0  # s of wall time a run may take before the console stops waiting
 RECORD_WAIT = 5.0  # s the logger may take to write a finished run into the change history
 LOOP_WAIT = 5.0  # s to wait for a loop's plant to be seen
+TOKEN_WAIT = 1.0  # s to wait for a run's liveliness token to be seen
 
 
 def run_tune(
@@ -56,9 +62,33 @@ def run_tune(
 
 
 def cancel(session: zenoh.Session, prefix: str, loop: str, run_id: str | None) -> None:
-    """Ask the loop's run to stop (the tuner restores the loop before it answers)."""
+    """Ask the loop's run to stop (the tuner restores the loop before it answers);
+    AutotuneError, nothing sent, when no run is going on the loop (its tuner's token
+    ``tune/<loop>/running`` not on the bus): a cancel of nothing was answered "cancel sent
+    to flow1's run: the tuner restores the loop" (helper trial)."""
     keys.check_id(loop)
+    if not wait_for_token(session, keys.tune_running(prefix, loop), TOKEN_WAIT):
+        raise AutotuneError(f"no run going on {loop}: nothing to cancel")
     session.put(keys.tune_cancel(prefix, loop), (run_id or "").encode())
+
+
+def check_run_of(runs: Path, prefix: str, loop: str, run_id: str) -> None:
+    """ConfigError naming the loop and the run unless run ``run_id`` of ``loop`` is among
+    the recorded runs (its ``tune`` record in the change history, as ``autotune apply``
+    looks it up): the page's Reject of a run id that does not exist was answered "run zzz
+    rejected: its gains were not applied, flow1 unchanged" (helper trial)."""
+    try:
+        rec = recorded_run(runs, run_id)
+    except ConfigError as err:
+        raise ConfigError(f"reject run {run_id} of {loop}: {err}; nothing rejected") from None
+    if not of_loop(rec, loop, prefix):
+        where = str(rec.get("loop"))
+        if rec.get("prefix", prefix) != prefix:
+            where += f" under prefix {rec.get('prefix')}"
+        raise ConfigError(
+            f"reject run {run_id} of {loop}: run {run_id} tuned {where}, not {loop}; "
+            "nothing rejected"
+        )
 
 
 def _record(runs: Path, run_id: str) -> dict[str, Any]:

@@ -400,6 +400,8 @@ class Bridge:
         changed_by = (
             run_id if last.get("applied") else by.get("run_id") if by.get("applied") else None
         )
+        if last.get("run_id") != run_id:  # not the run the page shows: one on record?
+            actions.check_run_of(self.runs, self.prefix, loop, run_id)
         if last.get("run_id") == run_id and changed_by:
             done = actions.revert(
                 self.session, self.prefix, self.runs, loop, changed_by, self.user, last_only=True
