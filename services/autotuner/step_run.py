@@ -34,6 +34,27 @@ from shared.messages import (
 )
 
 
+class StepInterrupted(KeyboardInterrupt):
+    """A signal (Ctrl-C) stopped the test once it held the loop; the loop was then put back
+    as it was (``restored``: confirmed; else not, and the plant asked to on release): what the
+    client says as it leaves (it said only "interrupted", the loop restored: helper trial)."""
+
+    def __init__(self, loop: str, restored: bool, mode: str, op: float, by: str = ""):
+        super().__init__(loop)
+        self.loop, self.restored, self.mode, self.op, self.by = loop, restored, mode, op, by
+
+    def summary(self) -> str:
+        if self.restored:
+            return (
+                f"step test of {self.loop} interrupted; loop restored ({self.mode}, output "
+                f"{self.op:g} %{self.by})"
+            )
+        return (
+            f"step test of {self.loop} interrupted; its restore to {self.mode}, output "
+            f"{self.op:g} % NOT confirmed: check the loop"
+        )
+
+
 @dataclass(frozen=True)
 class StepTestReport:
     loop: str
@@ -142,6 +163,7 @@ def run_step_test(
     except CommandRefused as err:
         raise StepTestAborted(f"not started: {err}") from None
     lost: LeaseLost | None = None
+    interrupted = False
     try:
         if before.mode != "manual":
             # held at the controller's mean output, not at its last sample's, which carries
@@ -190,6 +212,8 @@ def run_step_test(
                 op = want
     except LeaseLost as err:
         lost = err
+    except KeyboardInterrupt:  # restored below, then said so
+        interrupted = True
     finally:
         taken: LeaseLost | None = None  # the plant took the loop back as the test let go
         if client.holding:
@@ -204,6 +228,9 @@ def run_step_test(
                     )
         else:  # the plant took the loop back (and restored it) or is gone
             restored = lost is not None
+    if interrupted:
+        by = f", by the plant: {taken}" if taken is not None else ""
+        raise StepInterrupted(client.loop, restored, before.mode, before.op, by)
     if lost is not None:
         raise StepTestAborted(
             f"{lost}; the plant restored the loop ({before.mode}, {before.op:g} %)"

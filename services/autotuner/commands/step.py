@@ -15,7 +15,7 @@ from services.autotuner.identify.repeated_steps import (
 )
 from services.autotuner.identify.step_test import StepTest, StepTestConfig
 from services.autotuner.loop_client import LoopClient, wait_for_loop
-from services.autotuner.step_run import StepTestReport, run_step_test
+from services.autotuner.step_run import StepInterrupted, StepTestReport, run_step_test
 from shared import json_text
 from shared.cli import add_common_arguments, check_ids
 from shared.errors import ConfigError
@@ -355,17 +355,27 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     with open_session(settings, args.wait) as session:
         wait_for_loop(session, args.prefix, args.loop, args.wait)
-        with LoopClient(
-            session, args.prefix, args.loop, source="autotune-step", user=auth_user(settings)
-        ) as client:
-            report = run_step_test(
-                client,
-                config,
-                None if args.json else progress_line,
-                wait_return=not args.no_wait,
-                repeat=AUTO_LIMIT if args.repeat == "auto" else args.repeat,
-                auto=args.repeat == "auto",
+        try:
+            with LoopClient(
+                session, args.prefix, args.loop, source="autotune-step", user=auth_user(settings)
+            ) as client:
+                report = run_step_test(
+                    client,
+                    config,
+                    None if args.json else progress_line,
+                    wait_return=not args.no_wait,
+                    repeat=AUTO_LIMIT if args.repeat == "auto" else args.repeat,
+                    auto=args.repeat == "auto",
+                )
+        except StepInterrupted as stop:  # what it left, in one line, as `tune` says it
+            from services.autotuner.commands.tune import loop_state  # tune imports this module
+
+            if sys.stderr.isatty() and not args.json:
+                print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
+            print(
+                f"{stop.summary()}; {loop_state(session, args.prefix, args.loop)}", file=sys.stderr
             )
+            raise KeyboardInterrupt from None
     if sys.stderr.isatty() and not args.json:
         print("\r" + " " * 60 + "\r", end="", file=sys.stderr)
     text = format_report(report)
