@@ -41,8 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("loop", metavar="LOOP", help="loop id, e.g. hx1")
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--to", metavar="RUN_ID", help="the gains in force before this run")
+    # default None, 1 said in run(): argparse takes a value equal to the default for the
+    # flag's absence, and let `--to RUN --steps 1` through while it refused `--steps 3`
     which.add_argument(
-        "--steps", type=int, default=1, metavar="N", help="N changes back (default: 1)"
+        "--steps", type=int, default=None, metavar="N", help="N changes back (default: 1)"
     )
     parser.add_argument(
         "--runs",
@@ -110,8 +112,9 @@ def _line(g: PidGains) -> str:
 
 def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix, loop=args.loop)
-    if args.steps < 1:  # before anything waits on the bus
-        raise ConfigError(f"--steps {args.steps}: must be ≥ 1")
+    steps = 1 if args.steps is None else args.steps
+    if steps < 1:  # before anything waits on the bus
+        raise ConfigError(f"--steps {steps}: must be ≥ 1")
     runs = Path(args.runs)
     if not runs.is_dir():
         raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")
@@ -136,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
                     f"{path}: no change of {args.loop}'s gains on record"
                     f"{elsewhere(session, args.prefix, runs)}"
                 )
-            undo = target(changes, args.to, args.steps)
+            undo = target(changes, args.to, steps)
             if not current and not args.force:
                 raise AutotuneError(
                     f"loop {args.loop}: its gains ({_line(now.gains)}) are not the last on "
