@@ -4,8 +4,11 @@ bus would, the file read back; and the pure parts of `revert` and `apply`."""
 from __future__ import annotations
 
 import re
+import threading
+import time
 from datetime import UTC, datetime
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -13,6 +16,7 @@ from services.autotuner.commands.apply import choose, same_loop
 from services.autotuner.commands.revert import target
 from services.logger.commands.history import entries, format_entries
 from services.logger.history import ChangeHistory
+from services.logger.service import LoggerService
 from shared import json_text, keys, wire
 from shared.errors import ConfigError
 from shared.history_file import HISTORY_FILE, loop_changes, read_history
@@ -604,3 +608,104 @@ def test_the_watch_finds_the_last_applied_tune_in_the_history_when_no_tuner_has_
     assert base is not None and base.run_id == "ok1" and base.gains == (6.9, 96.0, 6.9)
     assert recorded_tune(tmp_path, "another-bus", LOOP) is None
     assert recorded_tune(tmp_path / "nowhere", P, LOOP) is None
+
+
+class _Reply:
+    def __init__(self, key: str, payload: bytes):
+        self.ok = SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: payload))
+
+
+class _Session:
+    """What the logger's service asks of its session here: a loop's status (``get``)."""
+
+    def __init__(self):
+        self.answer: LoopStatus | None = None
+        self.asked: list[str] = []
+
+    def get(self, key: str, timeout: float = 0.0) -> list[_Reply]:
+        self.asked.append(key)
+        return [_Reply(key, wire.encode(self.answer))] if self.answer is not None else []
+
+
+def _on_bus(service: LoggerService, key: str, msg) -> None:
+    payload = wire.encode(msg)
+    service._on_sample(
+        SimpleNamespace(
+            key_expr=key, payload=SimpleNamespace(to_bytes=lambda: payload), attachment=None
+        )
+    )
+
+
+def test_a_plant_restart_whose_start_status_was_lost_is_filed_at_its_first_samples(tmp_path):
+    """Helper trial: `set hx1 --kc 2.5`, the plant killed and started again: its ``start``
+    status is put as its session opens and never reached the logger (connecting again to
+    the new plant, which held the rendezvous port), and in realtime no other status comes
+    until a command; `history` still ended on Kc 2 → 2.5. Now the new
+    instance's first samples (their number and sim time gone back) make the logger ask the
+    loop's status, filed as the restart (``start``) with the new instance's gains."""
+    from services.logger.recorder import Recorder
+    from shared.messages import ProcessSample
+
+    session = _Session()
+    service = LoggerService(session, Recorder(tmp_path, P), "logger")  # type: ignore[arg-type]
+    g25 = PidGains(kc=2.5, ti=60.0)
+    _on_bus(service, keys.status(P, LOOP), status(G0, clock="realtime", seq=500, t=50.0))
+    _on_bus(
+        service,
+        keys.status(P, LOOP),
+        status(g25, "gains", by_source="autotune-set", clock="realtime", seq=600, t=60.0),
+    )
+
+    def sample(seq: int) -> ProcessSample:
+        return ProcessSample(
+            loop=LOOP, seq=seq, t=seq * 0.1, pv=60.0, sp=61.0, op=40.0, mode="auto"
+        )
+
+    for seq in range(601, 611):  # the old instance's
+        _on_bus(service, keys.pv(P, LOOP), sample(seq))
+    assert [c["after"]["kc"] for c in changes(tmp_path)] == [2.5]
+    # kill -9, start again: no `start` status heard; the new instance's samples from 1
+    session.answer = status(G0, "query", clock="realtime", seq=3, t=0.3, sp=61.0, mode="manual")
+    for seq in range(1, 4):
+        _on_bus(service, keys.pv(P, LOOP), sample(seq))
+    stop = threading.Event()
+    asker = threading.Thread(target=service._ask_restarted, args=(stop,), daemon=True)
+    asker.start()
+    deadline = time.monotonic() + 5.0
+    while len(changes(tmp_path)) < 2 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    stop.set()
+    asker.join(2.0)
+    assert session.asked == [keys.status(P, LOOP)]
+    *_, c = changes(tmp_path)
+    assert (c["cause"], c["by_source"], c["mode"], c["t"]) == ("start", None, "manual", 0.3)
+    assert c["before"] == g25.model_dump() and c["after"] == G0.model_dump()
+    text = format_entries(LOOP, tmp_path / HISTORY_FILE, entries(tmp_path, LOOP))
+    assert text.splitlines()[-2].endswith("the plant (re)started with its configured gains")
+    # the next status (a command's) is no restart: the set after it is the sender's
+    _on_bus(
+        service,
+        keys.status(P, LOOP),
+        status(g25, "gains", by_source="autotune-set", clock="realtime", seq=9, t=0.9),
+    )
+    assert [(c["cause"], c["after"]["kc"]) for c in changes(tmp_path)] == [
+        ("gains", 2.5),
+        ("start", 2.0),
+        ("gains", 2.5),
+    ]
+
+
+def test_a_restart_heard_by_its_start_status_is_filed_once_and_asks_nothing(tmp_path):
+    """The ``start`` status heard (it reached the logger): one change, no status asked; a
+    status heard live after the evidence of a restart, before the answer, is the start and
+    the answer is dropped (it is not newer)."""
+    h = history(tmp_path)
+    feed(h, status(G1))
+    h.plant_restarted(LOOP)
+    feed(h, status(G0, "start"))
+    assert not h.awaits_restart_status(LOOP)
+    h.restart_status(keys.status(P, LOOP), wire.encode(status(G1, "query")))  # too late
+    (c,) = changes(tmp_path)
+    assert (c["cause"], c["after"]) == ("start", G0.model_dump())
+    h.plant_restarted("never-heard")  # a loop not known: its first status is learned
+    assert not h.awaits_restart_status("never-heard")

@@ -88,6 +88,9 @@ class ChangeHistory:
         # its result's, whichever comes second
         self._released: dict[str, str | None] = {}
         self._results: dict[str, TuneResult] = {}
+        # loops with evidence of a new plant instance whose status has not been heard since:
+        # the next one (the service asks for it) is the new instance's start
+        self._restarted: set[str] = set()
         for rec in read_history(self.path):  # this bus's (prefix's) loops only
             if (
                 rec.get("record") == "change"
@@ -118,13 +121,40 @@ class ChangeHistory:
             return
         self.handle(key, payload)
 
+    def plant_restarted(self, loop: str) -> None:
+        """Evidence of a new plant instance of ``loop`` (the recorder's: its samples' number
+        or sim time went back, another node, a status ``start``): the loop's next status is
+        taken as the new instance's start, its gains against the last known (cause
+        ``start``). Why: the plant puts its ``start`` status as its session opens, and
+        it is lost where this logger is not yet reached (the killed plant held the bus's
+        rendezvous port: the logger connects again a moment later); in realtime no other
+        status comes until a command, so a restart that lost tuned gains was filed late, as
+        ``unseen``, or not at all (helper trial: `history hx1` still showed the set's Kc 2.5
+        while the restarted plant ran Kc 2)."""
+        if loop in self.loops:
+            self._restarted.add(loop)
+
+    def restart_status(self, key: str, payload: bytes) -> None:
+        """The status asked of a loop on evidence of its plant's restart: taken only if no
+        live status has been heard since (it is the newer)."""
+        loop_key = keys.parse_loop_key(self.prefix, key)
+        if loop_key is None or loop_key[1] != "status" or loop_key[0] not in self._restarted:
+            return
+        self.handle(key, payload)
+
+    def awaits_restart_status(self, loop: str) -> bool:
+        """Is the status of ``loop``'s new plant instance still awaited?"""
+        return loop in self._restarted
+
     # --- what changed -----------------------------------------------------------------------
 
     def _status(self, st: LoopStatus) -> None:
         gains = st.gains.model_dump()
         known = self.loops.get(st.loop)
-        if known is None or known.node != st.node or st.reason == "start":
-            self._first_seen(st, gains, known)
+        restarted = st.loop in self._restarted
+        self._restarted.discard(st.loop)
+        if known is None or known.node != st.node or st.reason == "start" or restarted:
+            self._first_seen(st, gains, known, restarted)
             return
         if st.leased_by is not None:  # a supervisor's experiment: its changes are not settings
             known.leased = True
@@ -157,9 +187,12 @@ class ChangeHistory:
         same = all(gains.get(k) == v for k, v in chosen.items() if k in gains)
         return run if same else None
 
-    def _first_seen(self, st: LoopStatus, gains: dict[str, Any], known: _Loop | None) -> None:
-        """Learn a loop, or a new plant instance of it. Gains that differ from the last known
-        are recorded: a plant (re)started with its configured gains (``start``), another
+    def _first_seen(
+        self, st: LoopStatus, gains: dict[str, Any], known: _Loop | None, restarted: bool = False
+    ) -> None:
+        """Learn a loop, or a new plant instance of it (``restarted``: the first status heard
+        since evidence of one). Gains that differ from the last known are recorded: a plant
+        (re)started with its configured gains (``start``), another
         plant node serving the loop (``another plant``), or a change made while this logger
         was not running (``unseen``; the last gains on record are its baseline)."""
         leased = st.leased_by is not None
@@ -172,6 +205,8 @@ class ChangeHistory:
             cause = "start"
         elif known is not None and known.node != st.node:
             cause = "another plant"
+        elif restarted:
+            cause = "start"
         else:
             cause = "unseen"
         if prev is not None and prev != gains and not leased:

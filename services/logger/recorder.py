@@ -322,6 +322,9 @@ class Recorder:
         self._lost: OrderedDict[str, Path] = OrderedDict()
         self._lost_loop: dict[str, str] = {}  # their loops (``lost_runs``)
         self._replays_seen: set[str] = set()
+        # told the loop id of each new live plant instance (evidence of a restart, after the
+        # loop's previous one was heard): the service files its gains in the change history
+        self.on_new_instance: Callable[[str], None] | None = None
 
     def lost_runs(self) -> list[tuple[str, str]]:
         """(run id, loop) of the live runs closed "tuner lost" whose result has not come: the
@@ -663,6 +666,8 @@ class Recorder:
         self.counts["plant_instances"] += 1
         run = stream.run
         log.info("loop %s%s: a new plant instance: %s", stream.loop, _replay_note(stream), why)
+        if self.on_new_instance is not None and not stream.replay:
+            self.on_new_instance(stream.loop)
         if run is not None and not run.plant_changed:
             run.plant_changed = why
             log.warning(

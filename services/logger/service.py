@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import queue
 import threading
 from pathlib import Path
 
@@ -39,6 +40,9 @@ CHANNEL_CAPACITY = 1 << 20
 # a run closed "tuner lost" has its tuner asked for its result every LATE_ASK s, this many
 # times (about a minute: a logger cut off reconnects within seconds once it runs again)
 LATE_ASK, LATE_TRIES = 2.0, 30
+# a restarted plant's loop has its status asked this many times, RESTART_ASK s apart, until
+# one is heard (its queryable may be declared a moment after its first samples come)
+RESTART_ASK, RESTART_TRIES = 1.0, 5
 
 
 class LoggerService:
@@ -62,6 +66,9 @@ class LoggerService:
         )
         # the tuner's assessments of the loops it tuned (``monitor.jsonl``)
         self.monitor_log = MonitorLog(recorder.runs_dir, recorder.prefix)
+        # loops whose plant restarted (the recorder's evidence): their status to ask
+        self._restarts: queue.Queue[str] = queue.Queue()
+        recorder.on_new_instance = self._plant_restarted
 
     def status(self) -> LoggerStatus:
         c = self.recorder.counts
@@ -104,6 +111,48 @@ class LoggerService:
                     self.recorder.run_token(tune[0], alive)
             except Exception:
                 log.exception("liveliness %s failed", key)
+
+    def _plant_restarted(self, loop: str) -> None:
+        """A new plant instance of ``loop`` (on Zenoh's thread, the lock held): the history
+        takes its next status as the start, asked for at once (``_ask_restarted``)."""
+        self.history.plant_restarted(loop)
+        if self.history.awaits_restart_status(loop):
+            self._restarts.put(loop)
+
+    def _ask_restarted(self, stop: threading.Event) -> None:
+        """Ask the status of each loop whose plant restarted: its ``start`` status is put as
+        the plant's session opens, lost where this logger is not yet reached (it connects
+        again a moment later to a plant that held the rendezvous port), and in realtime no other
+        comes until a command; the answer files the restart's change of gains at once."""
+        prefix = self.recorder.prefix
+        while not stop.is_set():
+            try:
+                loop = self._restarts.get(timeout=0.25)
+            except queue.Empty:
+                continue
+            with self.lock:
+                if not self.history.awaits_restart_status(loop):
+                    continue  # its status heard live already (its own ``start``)
+            for _ in range(RESTART_TRIES):
+                try:
+                    replies = list(self.session.get(keys.status(prefix, loop), timeout=2.0))
+                except zenoh.ZError:  # the session closing as the logger stops
+                    return
+                for reply in replies:
+                    if reply.ok is None:
+                        continue
+                    with self.lock:
+                        try:
+                            self.history.restart_status(
+                                str(reply.ok.key_expr), reply.ok.payload.to_bytes()
+                            )
+                        except Exception:
+                            log.exception("the change history of %s failed", reply.ok.key_expr)
+                with self.lock:
+                    if not self.history.awaits_restart_status(loop):
+                        break  # answered, or a live status heard meanwhile
+                if stop.wait(RESTART_ASK):
+                    return
 
     def _on_monitor(self, sample: zenoh.Sample) -> None:
         """A LoopMonitor (``<prefix>/monitor/<loop>``): appended, or counted invalid."""
@@ -195,6 +244,7 @@ class LoggerService:
         # like question); the question is bounded by its own timeout (5 s)
         shell.thread(self._learn_loops, name="learn-loops")
         shell.thread(lambda: self._ask_late_results(stop), name="late-results")
+        shell.thread(lambda: self._ask_restarted(stop), name="restarted-plants")
 
         def tick() -> None:
             with self.lock:
