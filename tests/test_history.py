@@ -284,6 +284,62 @@ def test_the_listing_offers_apply_only_for_a_run_with_gains_to_apply():
     assert lines[5].endswith("rejected, not applied; recommended tl-pid: `autotune apply e1`")
 
 
+def _apply_run(h: ChangeHistory, run_id: str, before: PidGains, status_: str) -> None:
+    """An `autotune apply` run of run r1's gains (G1) as the bus carries it: lease, gains,
+    release, result."""
+    src = f"tuner:{run_id}"
+    feed(h, status(before, "lease", leased_by=src, by_source=src))
+    feed(h, status(G1, "gains", leased_by=src, by_source=src))
+    feed(h, status(G1, "release", by_source=src))
+    feed(
+        h,
+        TuneResult.model_validate(
+            _result(run_id, True, G1).model_dump()
+            | {
+                "status": status_,
+                "previous_gains": before.model_dump(),
+                "applied_from": "r1",
+            }
+        ),
+    )
+
+
+def test_a_second_apply_of_the_same_gains_says_they_were_unchanged_not_not_applied(tmp_path):
+    """Helper trial: `apply RUN --rule simc-pi` a second time said "new gains applied" and
+    exited 0, and `history` said "ok, not applied": the run applied the gains the loop held
+    already, no change, and the listing now says so."""
+    h = history(tmp_path)
+    feed(h, status(G0))
+    _apply_run(h, "a1", G0, "ok")
+    _apply_run(h, "a2", G1, "ok")
+    lines = format_entries(LOOP, tmp_path / HISTORY_FILE, entries(tmp_path, LOOP)).splitlines()
+    assert "run a1 (relay, zn-pi, from run r1)" in lines[1] and "Kc 2 → 6.9" in lines[2]
+    assert lines[3].endswith(
+        "run a2 (apply of run r1): ok, gains unchanged (the gains of run r1, zn-pi: the loop "
+        "held them already)"
+    )
+    assert len(lines) == 4 and "not applied" not in "\n".join(lines)
+    assert "unverified" not in "\n".join(lines)
+
+
+def test_an_unverified_apply_is_marked_so_in_the_history(tmp_path):
+    """`apply --no-verify` (the run ends ``unverified``): its change showed nothing saying
+    the gains were never tried on the loop."""
+    h = history(tmp_path)
+    feed(h, status(G0))
+    _apply_run(h, "u1", G0, "unverified")
+    lines = format_entries(LOOP, tmp_path / HISTORY_FILE, entries(tmp_path, LOOP)).splitlines()
+    assert "run u1 (relay, zn-pi, from run r1)" in lines[1]
+    assert lines[3] == "      unverified (--no-verify): the gains were not tried on the loop"
+    # applied unverified where the loop held them already: the status says it
+    _apply_run(h, "u2", G1, "unverified")
+    last = format_entries(LOOP, tmp_path / HISTORY_FILE, entries(tmp_path, LOOP)).splitlines()[-1]
+    assert last.endswith(
+        "run u2 (apply of run r1): unverified, gains unchanged (the gains of "
+        "run r1, zn-pi: the loop held them already)"
+    )
+
+
 def test_a_torn_last_line_is_skipped(tmp_path):
     h = history(tmp_path)
     feed(h, status(G0))

@@ -10,6 +10,7 @@ run's rule and its verification. Runs that recommended gains without applying th
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -91,6 +92,18 @@ def _apply_hint(tune: dict[str, Any]) -> str:
     )
 
 
+def _held_already(tune: dict[str, Any]) -> bool:
+    """Did the run apply gains the loop held already (its chosen gains its previous ones)?"""
+    chosen, before = tune.get("chosen") or {}, tune.get("previous_gains") or {}
+    return bool(chosen) and all(
+        isinstance(v, int | float)
+        and isinstance(before.get(k), int | float)
+        and math.isclose(v, before[k], rel_tol=1e-9, abs_tol=1e-12)
+        for k, v in chosen.items()
+        if v is not None
+    )
+
+
 def _num(x: Any, unit: str = "") -> str:
     if x is None:
         return "—"
@@ -166,7 +179,13 @@ def format_entries(
             source = r.get("applied_from")  # an `autotune apply` run: another run's gains
             kind = f"apply of run {source}" if source else r.get("method")
             head = f"  {when}  run {r.get('run_id')} ({kind}): {r.get('status')}, "
-            if source:  # tried on the loop and not kept: apply would try them again
+            of = f"the gains of run {source}, {rule}" if source else rule
+            if r.get("applied") and _held_already(r):  # applied, and nothing changed: a
+                # second `apply` of a run said "ok, not applied" while the CLI said "applied"
+                lines.append(f"{head}gains unchanged ({of}: the loop held them already)")
+            elif r.get("applied"):  # its release not heard, nor its change filed from it
+                lines.append(f"{head}applied ({of}); no change of the gains on record for it")
+            elif source:  # tried on the loop and not kept: apply would try them again
                 lines.append(f"{head}not applied (the gains of run {source}, {rule})")
             elif r.get("status") == "rejected" and r.get("verification_after"):
                 # tried on the loop and refused by its verification: applying them again
@@ -192,6 +211,8 @@ def format_entries(
             lines.append(
                 "      verified: " + _verification(tune["verification_after"], tune.get("pv_units"))
             )
+        elif tune and tune.get("status") == "unverified":  # `apply --no-verify`: nothing said
+            lines.append("      unverified (--no-verify): the gains were not tried on the loop")
     return "\n".join(printable(line) for line in lines)  # a file's text shown, not obeyed
 
 
