@@ -1481,6 +1481,20 @@ def test_analyze_of_an_aborted_run_reports_the_same_abort(tmp_path, capsys):
     assert code == 0 and "ends as the live run did (identical), aborted: " in out, (out, err)
 
 
+def test_analyze_of_a_relay_aborted_at_its_limits_finds_its_reason(tmp_path, capsys):
+    """A relay aborted at its PV limits: the live result's reason carries the relay's advice
+    (the --amplitude that would keep to them) after the machine's own, which the re-run
+    finds in it (the advice in the machine's reason made every such run recorded before it
+    "not as the live run", review)."""
+    path, live = record_in_process(tmp_path, PREFIX, PLANT, LOOP, "relay", pv_limits=(49.95, 50.05))
+    assert live.status == "aborted" and "left its limits" in live.reason, live.reason
+    assert "--amplitude" in live.reason or "too little" in live.reason, live.reason
+    code, out, err = cli(capsys, "analyze", str(path), "--json")
+    assert code == 0, err
+    got = json.loads(out)
+    assert got["matches_live"] is True and "--amplitude" not in got["reason"], got
+
+
 def test_a_file_cut_within_its_metadata_record_keeps_the_runs_figures(recorded, tmp_path, capsys):
     """The run's record (its metadata as a message) is written in a chunk closed before the
     metadata record, so a file cut within that record still has the run's figures: recover

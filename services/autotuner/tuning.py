@@ -1244,7 +1244,8 @@ class TuningRun:
             raise type(err)(f"{req.method} test: {machine.reason}; then {err}") from err
         self._forward_events(machine.events)
         if ident is None:
-            raise TuneAborted(f"{req.method} test: {machine.reason}")
+            advice = getattr(machine, "advice", "")  # the relay's, after its reason
+            raise TuneAborted(f"{req.method} test: {machine.reason}{advice}")
         # in manual at the output it rested at while the rules are designed (seconds on a busy
         # machine, the realtime loop running on): a ramp's P-only output would be frozen
         # wherever its last swing left it

@@ -272,6 +272,10 @@ class RelayTest:
     # back at rest, the findings computed on ``identification``
     phase: str = "quiet"
     reason: str = ""
+    # said after the reason where the PV left its limits: the relay that would keep to them
+    # (``_smaller_relay``); not part of the reason, which a replay of a run recorded before
+    # it was said must find in that run's own
+    advice: str = ""
     result: RelayResult | None = None
     cycles: list[Cycle] = field(default_factory=list)
     events: list[Event] = field(default_factory=list)
@@ -487,9 +491,9 @@ class RelayTest:
         self.pv.append(pv)
         lo, hi = self.pv_limits
         if not lo <= pv <= hi:
+            self.advice = self._smaller_relay(lo, hi)
             return self._abort(
                 f"PV {beyond(pv, lo, hi)} left its limits [{lo:g}, {hi:g}] at t = {t:g} s"
-                + self._smaller_relay(lo, hi)
             )
         smaller = "--amplitude"
         if self._grown:  # not the engineer's d: the relay's own growth swung it there
@@ -502,20 +506,22 @@ class RelayTest:
         return self._actual(out)
 
     def _smaller_relay(self, lo: float, hi: float) -> str:
-        """The relay's amplitude that would keep its swing within half the room from rest to
-        the PV limits (``SMALLER_ROOM``), said where the PV left them: a relay's swing scales
-        with its d (a = 4d·|G(jω_u)|/π), and the swing so far (from rest, to the farthest
-        sample, the one past the limits included) is its start-up's, about the whole
-        cycle's (e^{−3s}/((10s+1)(2s+1)), d 5 %: 0.81 then 1.31 on the way to 1.36). Why: the
-        abort said where the PV went, not what test would fit (helper trial: ±1 limits on a
-        swing of 1.36; --amplitude 2.2 keeps it to 0.6). "" before the relay ran, or where
-        the room is under the cycle the noise needs (said so instead)."""
+        """The relay's amplitude that would keep its cycle within half the room from rest to
+        the PV limits (``SMALLER_ROOM``), said where the PV left them: a relay's cycle scales
+        with its d (a = 4d·|G(jω_u)|/π). From the cycles measured, where there are some (each
+        cycle's amplitude per % of its d, and the swing that crossed, the largest); before a
+        whole cycle, the swing that crossed was still growing, so the d it gives is a bound,
+        said as one (e^{−3s}/((10s+1)(2s+1)) at d 5 %: 0.81, then 1.31 on the way to a cycle
+        of 1.36; limits ±0.3 were crossed on the first swing, at 0.3, where d 2.5 still swings
+        1.36·2.5/5 = 0.68). Why: the abort said where the PV went, not what test would fit
+        (helper trial). "" before the relay ran; where the room is under the cycle the noise
+        needs, that instead."""
         if self.phase not in ("relay", "stage2") or math.isnan(self._r):
             return ""
         ys = self.pv[self._relay_index :]
         swing = max((abs(y - self._r) for y in ys), default=0.0)
         room = min(hi - self._r, self._r - lo)
-        if not (swing > 0 and room > 0 and math.isfinite(room)):
+        if not (swing > 0 and room > 0 and math.isfinite(room) and self._d > 0):
             return ""
         least = 1.0 / self.config.grow_ratio * max(self._eps, self.config.resolution)
         if SMALLER_ROOM * room < least:
@@ -524,11 +530,20 @@ class RelayTest:
                 f"for a cycle clear of the noise's hysteresis ({self._eps:.3g}): wider "
                 "--pv-limits, or a step test"
             )
+        per_d = [c.amplitude / c.d for c in self.cycles if c.d > 0 and c.amplitude > 0]
+        if per_d:  # a cycle measured: what it becomes at another d
+            unit = max(*per_d, swing / self._d)
+            d = SMALLER_ROOM * room / unit
+            return (
+                f"; its cycle, {unit * self._d:.3g} from rest ({self._r:.4g}) with the relay at "
+                f"±{self._d:.3g} %, scales with the relay's amplitude: --amplitude {d:.2g} would "
+                "keep it within about half the room to the limits"
+            )
         d = self._d * SMALLER_ROOM * room / swing
         return (
-            f"; its swing, {swing:.3g} from rest ({self._r:.4g}) with the relay at ±{self._d:.3g} "
-            f"%, scales with the relay's amplitude: --amplitude {d:.2g} would keep it within "
-            "about half the room to the limits"
+            f"; it crossed them on its first swings, {swing:.3g} from rest ({self._r:.4g}) with "
+            f"the relay at ±{self._d:.3g} % and still growing: a relay's cycle scales with its "
+            f"amplitude, so --amplitude {d:.2g} at most, less if its cycle is larger"
         )
 
     def _quiet(self, t: float) -> float:
