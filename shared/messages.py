@@ -551,8 +551,8 @@ class TuneRequest(Message):
     # wall clock (Unix s) until which the client waits for the tuner's answer: a tuner that
     # reads the request later refuses it, as its client has given up (a tuner paused for 55 s
     # started a run both its clients had reported failed, and tuned hx1 with no one watching:
-    # helper trial). Left off the wire when None (a tuner of an earlier version refuses a
-    # field it does not know)
+    # helper trial). Left off the wire when None: a tuner of an earlier version refuses a
+    # field it does not know, and the client then asks again without it (``submit``)
     answer_by: float | None = Field(
         default=None, allow_inf_nan=False, exclude_if=lambda v: v is None
     )

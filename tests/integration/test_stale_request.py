@@ -5,6 +5,7 @@ The request carries the wall-clock time its client waits until (``answer_by``)."
 
 from __future__ import annotations
 
+import json
 import signal
 import time
 
@@ -62,3 +63,39 @@ def test_a_request_its_client_gave_up_on_is_not_started(start_plant, start_tuner
         after = wire.query_one(s, keys.status(p.prefix, "x1"), LoopStatus, 5.0)
     assert after is not None and after.leased_by is None
     assert (after.mode, after.gains, after.op) == (before.mode, before.gains, before.op)
+
+
+def test_a_tuner_of_a_version_before_answer_by_is_asked_again_without_it():
+    """A tuner whose TuneRequest has no ``answer_by`` refuses a request carrying it (its
+    models forbid unknown fields): every request of today's clients was refused by it
+    (review). The client asks again without the field."""
+    from services.autotuner.commands.tune import UNKNOWN_ANSWER_BY, submit
+    from services.launcher import free_tcp_port
+    from shared.messages import TuneAccepted
+    from shared.session import ZenohSettings
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    prefix = "oldtuner"
+    asked: list[dict] = []
+
+    def old_tuner(query) -> None:
+        body = query.payload.to_bytes().decode()
+        asked.append(json.loads(body))
+        if "answer_by" in body:  # as pydantic's extra="forbid" words it
+            query.reply_err(f"{UNKNOWN_ANSWER_BY} [type=extra_forbidden]".encode())
+            return
+        ok = TuneAccepted(run_id="abcdef123456", loop="x1", t=0.0, method="relay", rule="auto")
+        wire.reply(query, str(query.key_expr), ok)
+
+    listen = ZenohSettings(listen=(endpoint,), no_multicast_scouting=True)
+    connect = ZenohSettings(connect=(endpoint,), no_multicast_scouting=True)
+    with open_session(listen) as tuner_side, open_session(connect) as client:
+        q = tuner_side.declare_queryable(keys.tuner_request(prefix, "old"), old_tuner)
+        token = tuner_side.liveliness().declare_token(keys.tuner_alive(prefix, "old"))
+        try:
+            accepted = submit(client, prefix, "old", TuneRequest(loop="x1"), timeout=5.0)
+        finally:
+            token.undeclare()
+            q.undeclare()
+    assert accepted.run_id == "abcdef123456"
+    assert "answer_by" in asked[0] and "answer_by" not in asked[-1], asked

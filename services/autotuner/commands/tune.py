@@ -261,6 +261,8 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
 
 
 ANSWER_WAY = 1.0  # s: of a request's wait, left for the tuner's answer to come back
+# what a tuner of a version before ``TuneRequest.answer_by`` answers a request carrying it
+UNKNOWN_ANSWER_BY = "answer_by: Extra inputs are not permitted"
 
 
 def submit(
@@ -281,11 +283,13 @@ def submit(
     if "*" in node:  # "any tuner" is one tuner: asking them all started a run on each
         node = pick_tuner(session, prefix, node, max(0.1, deadline - time.monotonic()))
         key = keys.tuner_request(prefix, node)
+    bounded = True  # sent with ``answer_by`` (not to a tuner of a version before it)
     while time.monotonic() < deadline:  # a new peer's queryable may take a moment to route
         left = deadline - time.monotonic()
         # answered by then or not at all: the tuner refuses it later (``answer_by``), the
         # second before the wait ends left for its answer's way back
-        asked = req.model_copy(update={"answer_by": time.time() + max(0.5, left - ANSWER_WAY)})
+        by = time.time() + max(0.5, left - ANSWER_WAY) if bounded else None
+        asked = req.model_copy(update={"answer_by": by})
         replies = session.get(
             key,
             payload=wire.encode(asked),
@@ -302,11 +306,15 @@ def submit(
                 while len(_accepted_by) > 64:
                     _accepted_by.pop(next(iter(_accepted_by)))
                 return accepted
-            raise AutotuneError(
-                f"the autotuner refused the request: "
-                f"{reply.err.payload.to_bytes().decode(errors='replace')}"
-            )
-        time.sleep(0.05)
+            why = reply.err.payload.to_bytes().decode(errors="replace")
+            if not (bounded and UNKNOWN_ANSWER_BY in why):
+                raise AutotuneError(f"the autotuner refused the request: {why}")
+            # a tuner of a version before ``answer_by`` refuses the field: asked again
+            # without it (that tuner starts a request however late it reads it)
+            bounded = False
+            break
+        else:
+            time.sleep(0.05)
     # its token seen, its queryable silent: paused or starved, or (a secure deployment) the
     # router drops this session's requests, which it may not send (a viewer's `autotune
     # tune` was asked whether the tuner was running: helper 52)
