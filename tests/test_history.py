@@ -765,3 +765,19 @@ def test_a_restart_heard_by_its_start_status_is_filed_once_and_asks_nothing(tmp_
     assert (c["cause"], c["after"]) == ("start", G0.model_dump())
     h.plant_restarted("never-heard")  # a loop not known: its first status is learned
     assert not h.awaits_restart_status("never-heard")
+
+
+def test_gains_unchanged_only_where_every_term_is_the_same():
+    """An integral turned off (Ti None against 10 s), or a setpoint weight changed alone, is
+    a change; the same Kc, Ti, Td and β are not (review: both read "gains unchanged")."""
+    from services.logger.commands.history import _held_already
+
+    before = {"kc": 2.0, "ti": 10.0, "td": 0.0, "beta": 1.0}
+    same = {"previous_gains": before, "chosen": {"kc": 2.0, "ti": 10.0, "td": 0.0}}
+    assert _held_already(same)
+    assert not _held_already({**same, "chosen": {"kc": 2.0, "ti": None, "td": 0.0}})
+    weighted = {**same, "verification_after": {"gains": {**before, "beta": 0.7}}}
+    assert not _held_already(weighted)
+    assert _held_already({**same, "verification_after": {"gains": before}})
+    off = {"kc": 2.0, "ti": None, "td": 0.0, "beta": 1.0}
+    assert _held_already({"previous_gains": off, "chosen": {"kc": 2.0, "ti": None, "td": 0.0}})
