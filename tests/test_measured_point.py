@@ -164,3 +164,43 @@ def test_a_model_that_misses_the_plant_is_not_applied_untried():
     assert after == before
     forced, _, _ = run(force=True)
     assert forced.status == "unverified" and forced.applied is True, forced.reason
+
+
+def test_apply_no_verify_refuses_a_run_whose_model_misses_the_plant(tmp_path, capsys):
+    """``autotune apply RUN --no-verify`` was the way around the refusal above (review): the
+    run's record keeps the warning (``model_misses``), and apply refuses it before anything
+    is sent, exit 2."""
+    import json
+
+    from services.cli import main
+    from services.logger.history import model_misses
+    from shared.history_file import HISTORY_FILE
+
+    num, den, delay = UNDERDAMPED
+    cfg = {"model": "transfer_function", "num": num, "den": den, "delay": delay}
+    loop = build_plant({"seed": 1, "loops": {"x": {**cfg, "sample_time": TS}}})["x"]
+    r = TuningRun(
+        LocalLoopClient(loop), TuneRequest(loop="x", method="ramp", apply=False), "t"
+    ).run()
+    assert r.status == "proposed", r.reason
+    said = model_misses(r.warnings)
+    assert said is not None and "misses its record" in said, r.warnings
+    isa = r.gains[r.rule]["isa"]
+    record = {
+        "record": "tune",
+        "run_id": "abcdef123456",
+        "loop": "x",
+        "status": r.status,
+        "method": "ramp",
+        "rule": r.rule,
+        "ku": r.ku,
+        "gains": {r.rule: isa},
+        "robustness": {r.rule: {"within_envelope": True, "ms": 1.5, "overshoot_pct": 5.0}},
+        "timescale": r.timescale,
+        "model_misses": said,
+    }
+    (tmp_path / HISTORY_FILE).write_text(json.dumps(record) + "\n")
+    code = main(["apply", "abcdef123456", "--no-verify", "--runs", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 2 and "--no-verify" in err and "misses the plant" in err, err
+    assert len(err.strip().splitlines()) == 1

@@ -52,6 +52,16 @@ log = logging.getLogger("logger")
 GAIN_CAUSES = frozenset({"gains", "release", "watchdog"})
 
 
+# the words of the selection's warning that the run's model misses the plant
+# (``design.selection``): its measured ultimate point, or its record
+MODEL_MISSES = ("model misses the plant", "model misses its record")
+
+
+def model_misses(warnings: list[str] | None) -> str | None:
+    """The run's warning that its model misses the plant, if it gave one."""
+    return next((w for w in warnings or [] if any(m in w for m in MODEL_MISSES)), None)
+
+
 @dataclass
 class _Loop:
     node: str
@@ -269,6 +279,9 @@ class ChangeHistory:
                 "noise": r.noise,
                 # why none of them may be applied (``autotune apply`` refuses the run)
                 "contradiction": r.contradiction,
+                # the run's model misses the plant, as its warning says: ``autotune apply
+                # --no-verify`` refuses its gains, as the run itself would have
+                "model_misses": model_misses(r.warnings),
             }
         )
 

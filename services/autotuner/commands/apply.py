@@ -162,6 +162,15 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{err}{hint}") from None
     loop = str(rec.get("loop"))
     rule, gains, predicted = choose(rec, args.rule)
+    if args.no_verify and rec.get("model_misses"):
+        # as the run itself refuses --no-verify on such a model (``TuningRun``): the gains
+        # of a model known wrong are not put in the loop untried (review: apply was the way
+        # around it)
+        raise ConfigError(
+            f"--no-verify: run {args.run_id}'s model misses the plant ({rec['model_misses']}): "
+            "its gains are not applied without verification; apply them verified (without "
+            "--no-verify)"
+        )
     req = TuneRequest(
         loop=loop,
         method=rec.get("method") or "relay",
