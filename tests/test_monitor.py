@@ -441,3 +441,14 @@ def test_the_noise_figures_are_not_a_setpoint_changes_settling():
     f = performance(t, sp, pv, op, np.ones(t.size, bool), (0.0, 100.0), 5)
     assert f["pv_noise"] == pytest.approx(0.18, rel=0.06)
     assert f["op_noise"] == pytest.approx(0.5, rel=0.06)
+
+
+def test_a_noise_mostly_nil_changes_is_still_read():
+    """A quantised PV whose changes are mostly nil: the median absolute deviation is 0,
+    whatever the rest do; the standard deviation of the changes is read there."""
+    from services.autotuner.monitor.performance import white_noise
+
+    y = np.zeros(1000)
+    y[::10] = 1.0  # one sample in ten a step of 1, back the next
+    assert white_noise(y) == pytest.approx(float(np.std(np.diff(y))) / math.sqrt(2.0))
+    assert white_noise(y) > 0

@@ -44,8 +44,11 @@ def white_noise(y: np.ndarray) -> float:
 
 
 def white_noise_of(d: np.ndarray) -> float:
-    """``white_noise`` from the sample-to-sample changes ``d`` themselves."""
-    return float(MAD_SIGMA * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+    """``white_noise`` from the sample-to-sample changes ``d`` themselves; their standard
+    deviation where most of them are nil (a quantised PV, an output held: the median
+    absolute deviation is 0 there whatever the rest do, review)."""
+    mad = float(MAD_SIGMA * np.median(np.abs(d - np.median(d))))
+    return (mad if mad > 0 else float(np.std(d))) / math.sqrt(2.0)
 
 
 def performance(
