@@ -540,3 +540,21 @@ def test_a_step_answered_against_the_loops_action_aborts_asking_about_the_action
     other = "direct" if action == "reverse" else "reverse"
     assert f"is the process one for a {other}-acting PID?" in r.reason, r.reason
     assert (sim.mode, sim.op, sim.sp, sim.pid.gains) == before
+
+
+def test_a_noise_free_integrator_behind_a_lag_reads_steady_and_one_recorded_before_as_it_ran():
+    """0.05/(s(5s + 1))·e^{−s}, noise-free, stepped 5 %: its ramp's slope is e^{−W/5} short
+    of its last across the window, which an exact record resolves to 1e-12; asked to be
+    steady to 1e-6, it never was, and the test aborted at its allowance, the level left 25 %
+    of span off (helper trial). Steady to 0.5 %, it reads R = 0.05 (the kink's dead time is
+    the lag and the delay, 6 s) and gives the level back. A run recorded before the floor
+    (``steady_floor`` off) replays the abort it had."""
+    spec = {"model": "transfer_function", "num": [0.05], "den": [5.0, 1.0, 0.0], "delay": 1.0,
+            "sample_time": 0.1, "noise_std": 0.0}  # fmt: skip
+    d = run_step_test(LocalLoopClient(sim_loop(spec, 1)), StepTestConfig()).to_dict()
+    assert d["method"] == "integrating", d
+    assert d["reaction_rate"] == pytest.approx(0.05, rel=0.02)
+    assert d["dead_time"] == pytest.approx(6.0, rel=0.05)
+    assert abs(d["pv_end"] - d["pv_before"]) < 1.0  # the level given back (25 % off before)
+    with pytest.raises(StepTestAborted, match="would leave the test's allowance"):
+        run_step_test(LocalLoopClient(sim_loop(spec, 1)), StepTestConfig(steady_floor=False))

@@ -406,6 +406,10 @@ class Setup:
     # True: a step test's check for a PV heading out reads the trend since the PV began to
     # move where that is slower (``StepTestConfig.trend_since_move``); None: recorded before
     step_trend_since_move: bool | None = None
+    # True: a step test's ramp is steady once its slope changes by under 0.5 % across its
+    # window, and one within the noise and the resolution is no response
+    # (``StepTestConfig.steady_floor``); None: recorded before, a floor of 1e-6
+    step_steady_floor: bool | None = None
 
     def resolution_floor(self) -> float:
         """PV units: what the transmitter does not resolve (``signals.no_response_floor``),
@@ -467,7 +471,14 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "pv_clip",
         "resolution",
     ),
-    "step": ("step_swing", "step_delay_bound", "step_leak", "step_trend_since_move", "resolution"),
+    "step": (
+        "step_swing",
+        "step_delay_bound",
+        "step_leak",
+        "step_trend_since_move",
+        "step_steady_floor",
+        "resolution",
+    ),
 }
 
 

@@ -451,6 +451,7 @@ RAMP_MIN_SAMPLES = 40
 # of span off: helper trial); a time constant past 200 windows (100 times the time since the
 # step) is integration within any record, as the docstring says of 5
 RAMP_STEADY_FLOOR = 0.005
+RAMP_STEADY_FLOOR_BEFORE = 1e-6  # a run recorded before it (``StepTestConfig.steady_floor``)
 
 
 @dataclass(frozen=True)
@@ -479,6 +480,7 @@ def steady_ramp(
     pv_before: float,
     noise_std: float,
     windows_per_dead_time: float = RAMP_WINDOWS_PER_DEAD_TIME,
+    floor: float = RAMP_STEADY_FLOOR,
 ) -> SteadyRamp | None:
     """The steady ramp of an integrating process after a step at ``t_step``, or None.
 
@@ -519,7 +521,7 @@ def steady_ramp(
         return None
     change = 2.0 * float(c2) / float(c1)  # slope(½) − slope(−½), relative to slope(0)
     change_se = 2.0 * math.sqrt(cov[0, 0]) / abs(float(c1))
-    steady = abs(change) <= 3.0 * change_se + RAMP_STEADY_FLOOR
+    steady = abs(change) <= 3.0 * change_se + floor
     if not (steady and 3.0 * change_se <= RAMP_PRECISION):
         return None
     # the ramp's line at the window's middle, back to the baseline

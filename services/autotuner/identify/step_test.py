@@ -62,6 +62,8 @@ from services.autotuner.identify.model_fit import (
 )
 from services.autotuner.identify.reaction_curve import (
     LOOSE_BAND,
+    RAMP_STEADY_FLOOR,
+    RAMP_STEADY_FLOOR_BEFORE,
     REST_BAND,
     IntegratingCurve,
     ReactionCurve,
@@ -134,6 +136,10 @@ class StepTestConfig:
     # the slower one, and a PV that moved then stopped goes no further (``_heading_out``);
     # False: a run recorded before, the window's straight line alone
     trend_since_move: bool = True
+    # a ramp's slope changing by under ``RAMP_STEADY_FLOOR`` across its window is steady,
+    # and a ramp within the noise and the resolution is no response (``_after_step``);
+    # False: a run recorded before, a change of 1e-6 the floor and no such guard
+    steady_floor: bool = True
 
 
 @dataclass(frozen=True)
@@ -717,15 +723,27 @@ class StepTest:
         t, y = np.asarray(self.t), np.asarray(self.pv)
         # (a ramp within the noise and the transmitter's resolution is no response: a 1e6 s
         # lag's 5e-4 in 100 s, noise-free, is as steady as any)
-        moved = self._t_moved is not None or self.config.resolution <= 0
-        ramp = steady_ramp(t, y, self.t_step, self._pv_before, self._noise) if moved else None
+        cfg = self.config
+        moved = self._t_moved is not None or cfg.resolution <= 0 or not cfg.steady_floor
+        floor = RAMP_STEADY_FLOOR if cfg.steady_floor else RAMP_STEADY_FLOOR_BEFORE
+        ramp = (
+            steady_ramp(t, y, self.t_step, self._pv_before, self._noise, floor=floor)
+            if moved
+            else None
+        )
         if ramp is not None and ramp.precision <= self.config.rate_precision:
             return self._integrating(s, ramp, "precision")
         if reason := self._heading_out(t, y, elapsed):
             # the last look before giving up: a steady ramp over fewer dead times
             ramp = ramp or (
                 steady_ramp(
-                    t, y, self.t_step, self._pv_before, self._noise, RAMP_WINDOWS_AT_THE_EDGE
+                    t,
+                    y,
+                    self.t_step,
+                    self._pv_before,
+                    self._noise,
+                    RAMP_WINDOWS_AT_THE_EDGE,
+                    floor,
                 )
                 if moved
                 else None
@@ -1245,6 +1263,7 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         bound_delay=bool(setup.step_delay_bound),
         leak=bool(setup.step_leak),
         trend_since_move=bool(setup.step_trend_since_move),
+        steady_floor=bool(setup.step_steady_floor),
         resolution=setup.resolution_floor(),
         **timeout,
     )
