@@ -417,9 +417,8 @@ def recommend(
                 best.rule,
                 best.gains,
                 _number(best.robustness.ms) if best.robustness else None,
-                f"{lead}largest integral gain of the rules with Ms ≤ "
-                f"{margin(best.rule) * ms_bound:.2g}{also} on {on}{costly}: "
-                f"{', '.join(sorted(a.rule for a in met))}{among}",
+                f"{lead}largest integral gain of the rules with {_margins(model, ms_bound)}"
+                f"{also} on {on}{costly}: {', '.join(sorted(a.rule for a in met))}{among}",
             )
         judged = [a for a in safe.values() if a.robustness is not None]
         safest = min(judged, key=lambda a: a.robustness.ms, default=None)

@@ -109,6 +109,17 @@ def l_over_t(ident: Identification, model: ProcessFit | None = None) -> float | 
     return _finite(m.dead_time / m.time_constant) if m.time_constant > 0 else None
 
 
+def _ratio_source(ident: Identification) -> str:
+    """Whose L/T ``l_over_t`` gives: the step's reaction curve (its dead time the design's),
+    else the model's first-order equivalent."""
+    sm = ident.step_model
+    if ident.step is not None and sm is not None and not sm.is_integrating and sm.time_constant:
+        return "the step curve's T, the design's L"
+    if ident.step is not None:
+        return "the step curve's"
+    return "the model's first-order equivalent"
+
+
 def _finite(x: float | None) -> float | None:
     """A plain finite float, or None: JSON takes no inf or nan."""
     try:
@@ -280,11 +291,16 @@ def _beside(x: float, bound: float) -> str:
 
 
 def guidance(
-    ratio: float | None, model: ProcessFit | None, seen_integrating: bool = True
+    ratio: float | None,
+    model: ProcessFit | None,
+    seen_integrating: bool = True,
+    source: str | None = None,
 ) -> list[str]:
     """What the seeds and the benchmark say about rules at this L/T. ``seen_integrating``:
     the experiment saw the process integrate (a step test's steady ramp), not only a model
-    that fits as an integrator near ω_u (a relay's cycles)."""
+    that fits as an integrator near ω_u (a relay's cycles). ``source``: whose L/T it is, said
+    beside it (a step's table shows the curve's and the model's: "L/T = 0.123: outside
+    0.15–0.6" read beside "model … L/T = 0.153" as a contradiction, walkthrough)."""
     out = []
     if model is not None and model.kind == "ipdt" and seen_integrating:
         out.append("integrating process: simc-pi-int is the rule made for it (a level loop)")
@@ -299,15 +315,17 @@ def guidance(
     if ratio is None:
         return out
     lo, hi = ZN_STEP_RANGE
+    whose = f" ({source})" if source else ""
     if not lo <= ratio <= hi:
         out.append(
-            f"L/T = {_beside(ratio, lo if ratio < lo else hi)}: outside {lo}–{hi}, where the "
-            "step-response rules (zn-ol-*, cc-*) suit (seed 000)"
+            f"L/T = {_beside(ratio, lo if ratio < lo else hi)}{whose}: outside {lo}–{hi}, "
+            "where the step-response rules (zn-ol-*, cc-*) suit (seed 000)"
         )
     if ratio > 1.0:
         out.append(
-            f"L/T = {_beside(ratio, 1.0)}: delay-dominated; derivative action helps little and "
-            "Ziegler–Nichols PID is aggressive here: PI rules (tl-pi, amigo-pi, simc-pi) suit"
+            f"L/T = {_beside(ratio, 1.0)}{whose}: delay-dominated; derivative action helps "
+            "little and Ziegler–Nichols PID is aggressive here: PI rules (tl-pi, amigo-pi, "
+            "simc-pi) suit"
         )
     return out
 
@@ -498,7 +516,7 @@ def select(
         assessments,
         rec,
         ratio,
-        warnings=warnings + guidance(ratio, model, ident.integrating is True),
+        warnings=warnings + guidance(ratio, model, ident.integrating is True, _ratio_source(ident)),
         unavailable=unavailable,
         unsafe=unsafe,
         model_check=check,
