@@ -781,3 +781,15 @@ def test_gains_unchanged_only_where_every_term_is_the_same():
     assert _held_already({**same, "verification_after": {"gains": before}})
     off = {"kc": 2.0, "ti": None, "td": 0.0, "beta": 1.0}
     assert _held_already({"previous_gains": off, "chosen": {"kc": 2.0, "ti": None, "td": 0.0}})
+
+
+def test_a_measured_step_without_a_second_crest_says_none():
+    """As the tune's table says it: "decay ratio none" where the setpoint step was measured
+    and had no crest after its largest; "—" where nothing was measured (walkthrough: history
+    said "—" beside the table's "none")."""
+    from services.logger.commands.history import _verification
+
+    line = _verification({"overshoot": 5.4, "decay_ratio": None, "settling_time": 65.0})
+    assert "decay ratio none" in line, line
+    assert "decay ratio 0.12" in _verification({"overshoot": 30.0, "decay_ratio": 0.12})
+    assert "decay ratio —" in _verification({"overshoot": None, "decay_ratio": None, "iae_sp": 1})

@@ -165,8 +165,12 @@ def _verification(v: dict | None, units: str | None = None) -> str:
     within = (
         f" (within ±{band:.3g} %)" if isinstance(band, int | float) and band > 2.0 + 1e-9 else ""
     )
+    # a measured step with no crest after its largest: none, as `tune` says it ("—" read as
+    # not measured, beside the table's "none": walkthrough)
+    dr = v.get("decay_ratio")
+    decay = "none" if dr is None and v.get("overshoot") is not None else _num(dr)
     return (
-        f"overshoot {_num(v.get('overshoot'), ' %')}, decay ratio {_num(v.get('decay_ratio'))}, "
+        f"overshoot {_num(v.get('overshoot'), ' %')}, decay ratio {decay}, "
         f"settling {_num(v.get('settling_time'), ' s')}{within}, "
         f"IAE {_num(v.get('iae_sp'), iae_unit)}"
     )
