@@ -38,7 +38,7 @@ from shared.control.forms import (
     step_percent,
     to_percent,
 )
-from shared.messages import TuneRequest, TuneResult, Verification
+from shared.messages import PidGains, TuneRequest, TuneResult, Verification
 
 # (pv_range, Kc in % per PV unit, Kc in % per % by hand, PB in % by hand)
 CONTROLLER = [
@@ -558,3 +558,16 @@ def test_a_measured_step_without_a_second_crest_says_none_not_a_dash():
     text = format_result(hx1_result(after=after))
     line = next(x for x in text.splitlines() if x.startswith("  decay ratio"))
     assert line.split()[2:] == ["—", "0.12"], line
+
+
+def test_an_apply_of_gains_the_loop_held_says_nothing_changed():
+    """`autotune apply` of the same run twice: "new gains applied" where `history` said
+    "gains unchanged" (walkthrough). The same Kc, Ti, Td and β before and after: said so;
+    any term changed: new gains, as before."""
+    after = verification(54.41, 69.27).model_copy(
+        update={"gains": PidGains(kc=6.972, ti=96.09, td=6.933)}
+    )
+    held = hx1_result(after=after, previous_gains=PidGains(kc=6.972, ti=96.09, td=6.933))
+    assert "gains applied (the loop held them already: nothing changed)" in format_result(held)
+    changed = hx1_result(after=after, previous_gains=PidGains(kc=2.0, ti=60.0))
+    assert "new gains applied, loop in auto" in format_result(changed)

@@ -43,6 +43,7 @@ from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.messages import (
     DONE_STATUSES,
     LoopStatus,
+    PidGains,
     TuneAccepted,
     TuneProgress,
     TuneRequest,
@@ -1110,7 +1111,12 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
                 f"  waited {r.rest['waited']:.4g} s for the PV to come to rest before the test"
             )
     state = (
-        "new gains applied, loop in auto"
+        (
+            "new gains applied"
+            if not _held_already(r)
+            else "gains applied (the loop held them already: nothing changed)"
+        )
+        + ", loop in auto"
         + (", NOT verified (--no-verify)" if r.status == "unverified" else "")
         if r.applied
         else "nothing was sent to the loop"
@@ -1165,6 +1171,29 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             f"{pv} ({back})"
         )
     return "\n".join(lines)
+
+
+def _held_already(r: TuneResult) -> bool:
+    """The applied gains are the ones the loop held before the run (an `autotune apply` of
+    the same run twice said "new gains applied" where `history` says "gains unchanged":
+    walkthrough): Kc, Ti, Td and the setpoint weight each the same."""
+    before = r.previous_gains
+    if before is None or not r.applied:
+        return False
+    if r.after is not None:
+        applied = r.after.gains
+    else:
+        isa = (r.chosen or {}).get("isa") or {}
+        if "kc" not in isa:
+            return False
+        applied = PidGains(kc=isa["kc"], ti=isa.get("ti"), td=isa.get("td") or 0.0)
+
+    def same(a: float | None, b: float | None) -> bool:
+        return (a is None and b is None) or (
+            a is not None and b is not None and math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+        )
+
+    return all(same(getattr(applied, k), getattr(before, k)) for k in ("kc", "ti", "td", "beta"))
 
 
 # a measured step's figures that are None where the response has none: no crest after its
