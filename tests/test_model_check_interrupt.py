@@ -5,39 +5,12 @@ Ctrl-C. README: any BaseException from the model is the model's failure, one lin
 
 from __future__ import annotations
 
-import math
 import signal
 
 from tests.cli_run import run_cli
+from tests.lag_model import Lag
 
 HERE = "tests.test_model_check_interrupt"
-
-
-class Lag:
-    """A 5 s lag of gain 1 about PV 50."""
-
-    pv_units = "%"
-    pv_range = (0.0, 100.0)
-
-    def __init__(self, sample_time, op0=50.0):
-        self.sample_time, self.op0 = sample_time, op0
-        self.n = 0
-
-    def reset(self):
-        self.x = 50.0
-        return self.x
-
-    def step(self, op):
-        self.n += 1
-        a = math.exp(-self.sample_time / 5.0)
-        self.x = a * self.x + (1 - a) * (50.0 + op - self.op0)
-        return self.x
-
-    def disturbance_names(self):
-        return ()
-
-    def set_disturbance(self, name, value):
-        raise KeyError(name)
 
 
 class RaisesKeyboardInterrupt(Lag):

@@ -5,41 +5,15 @@ refuses the file), and a class whose own ``sample_time`` (0.5 s) is not the plan
 
 from __future__ import annotations
 
-import math
-
 import pytest
 
 from services.plant_sim.model_check import check_loop
 from services.plant_sim.plant_file import build_plant
 from shared.errors import ConfigError
 from tests.cli_run import run_cli
+from tests.lag_model import Lag
 
 HERE = "tests.test_model_check_own_attributes"
-
-
-class Lag:
-    """A 5 s lag of gain 1 about PV 50, stepped by its own ``sample_time``."""
-
-    pv_units = "%"
-    pv_range = (0.0, 100.0)
-
-    def __init__(self, sample_time, op0=50.0):
-        self.sample_time, self.op0 = sample_time, op0
-
-    def reset(self):
-        self.x = 50.0
-        return self.x
-
-    def step(self, op):
-        a = math.exp(-self.sample_time / 5.0)
-        self.x = a * self.x + (1 - a) * (50.0 + op - self.op0)
-        return self.x
-
-    def disturbance_names(self):
-        return ()
-
-    def set_disturbance(self, name, value):
-        raise KeyError(name)
 
 
 class DisturbancesRaise(Lag):
