@@ -30,6 +30,19 @@ signal.signal(signal.SIGHUP, signal.SIG_DFL)
 preload()
 
 
+@pytest.fixture(autouse=True)
+def _signal_dispositions():
+    """Each test's signal handlers put back after it: a CLI command run in this process
+    (``autotune plant -e nowhere`` refused after its service installed its stop handlers)
+    left them, and a later test that reads SIGINT's handler found a service's."""
+    sigs = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    saved = {s: signal.getsignal(s) for s in sigs}
+    yield
+    for s, handler in saved.items():
+        if signal.getsignal(s) is not handler:
+            signal.signal(s, handler)
+
+
 @pytest.fixture
 def start_plant(tmp_path):
     """start_plant(toml_text or None, *extra_args, loops=(...)) → RunningPlant."""

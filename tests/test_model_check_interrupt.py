@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import signal
 
+import pytest
+
 from tests.cli_run import run_cli
 from tests.lag_model import Lag
 
@@ -27,6 +29,16 @@ class CtrlC(Lag):
         if self.n == 200:
             signal.raise_signal(signal.SIGINT)
         return super().step(op)
+
+
+@pytest.fixture(autouse=True)
+def python_sigint():
+    """Python's own SIGINT handler during each test, whatever a test before left (a CLI
+    command run in process installs a service's stop handlers): the check must put back
+    the handler it found."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
 
 
 def plant(tmp_path, cls: str):
