@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
@@ -126,6 +127,26 @@ def applicable_rule(tune: dict[str, Any]) -> str | None:
         if rule and (tune.get("gains") or {}).get(rule) and not outside_envelope(tune, rule):
             return rule
     return None
+
+
+def same_gains(applied: dict[str, Any], before: dict[str, Any]) -> bool:
+    """Are the gains a run applied (Kc, Ti, Td, β) the ones the loop held before it? Each
+    term the same (to 1e-9), an integral time off on both sides the same and off on one only
+    a change (PI to P read "gains unchanged": review), β 1 where either gives none. Used by
+    `autotune history` ("gains unchanged") and `tune`'s own words ("nothing changed")."""
+
+    def same(a: Any, b: Any) -> bool:
+        if a is None or b is None:
+            return a is None and b is None
+        return (
+            isinstance(a, int | float)
+            and isinstance(b, int | float)
+            and math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+        )
+
+    return all(same(applied.get(k), before.get(k)) for k in ("kc", "ti", "td")) and same(
+        applied.get("beta", 1.0), before.get("beta", 1.0)
+    )
 
 
 def read_history(

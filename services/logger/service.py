@@ -18,6 +18,7 @@ import json
 import logging
 import queue
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import zenoh
@@ -138,16 +139,7 @@ class LoggerService:
                     replies = list(self.session.get(keys.status(prefix, loop), timeout=2.0))
                 except zenoh.ZError:  # the session closing as the logger stops
                     return
-                for reply in replies:
-                    if reply.ok is None:
-                        continue
-                    with self.lock:
-                        try:
-                            self.history.restart_status(
-                                str(reply.ok.key_expr), reply.ok.payload.to_bytes()
-                            )
-                        except Exception:
-                            log.exception("the change history of %s failed", reply.ok.key_expr)
+                self._file_statuses(replies, self.history.restart_status)
                 with self.lock:
                     if not self.history.awaits_restart_status(loop):
                         break  # answered, or a live status heard meanwhile
@@ -174,12 +166,17 @@ class LoggerService:
         except zenoh.ZError as err:  # the session closing as the logger stops
             log.warning("loops' statuses not asked at start: %s", err)
             return
+        self._file_statuses(replies, self.history.learn)
+
+    def _file_statuses(self, replies: list, take: Callable[[str, bytes], None]) -> None:
+        """Each status a query was answered with, given to the change history's ``take``
+        under the lock; one that fails is logged, the others taken."""
         for reply in replies:
             if reply.ok is None:
                 continue
             with self.lock:
                 try:
-                    self.history.learn(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+                    take(str(reply.ok.key_expr), reply.ok.payload.to_bytes())
                 except Exception:
                     log.exception("the change history of %s failed", reply.ok.key_expr)
 

@@ -40,10 +40,10 @@ from shared.control.forms import (
     unit,
 )
 from shared.errors import AutotuneError, ConfigError, DecodeError
+from shared.history_file import same_gains
 from shared.messages import (
     DONE_STATUSES,
     LoopStatus,
-    PidGains,
     TuneAccepted,
     TuneProgress,
     TuneRequest,
@@ -1174,26 +1174,18 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
 
 
 def _held_already(r: TuneResult) -> bool:
-    """The applied gains are the ones the loop held before the run (an `autotune apply` of
-    the same run twice said "new gains applied" where `history` says "gains unchanged":
-    walkthrough): Kc, Ti, Td and the setpoint weight each the same."""
-    before = r.previous_gains
-    if before is None or not r.applied:
+    """The applied gains are the ones the loop held before the run (``same_gains``): an
+    `autotune apply` of the same run twice said "new gains applied" where `history` says
+    "gains unchanged" (walkthrough)."""
+    if r.previous_gains is None or not r.applied:
         return False
     if r.after is not None:
-        applied = r.after.gains
+        applied = r.after.gains.model_dump()
     else:
-        isa = (r.chosen or {}).get("isa") or {}
-        if "kc" not in isa:
+        applied = (r.chosen or {}).get("isa") or {}
+        if "kc" not in applied:
             return False
-        applied = PidGains(kc=isa["kc"], ti=isa.get("ti"), td=isa.get("td") or 0.0)
-
-    def same(a: float | None, b: float | None) -> bool:
-        return (a is None and b is None) or (
-            a is not None and b is not None and math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
-        )
-
-    return all(same(getattr(applied, k), getattr(before, k)) for k in ("kc", "ti", "td", "beta"))
+    return same_gains(applied, r.previous_gains.model_dump())
 
 
 # a measured step's figures that are None where the response has none: no crest after its

@@ -10,7 +10,6 @@ run's rule and its verification. Runs that recommended gains without applying th
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from shared.history_file import (
     of_loop,
     proposed_rule,
     read_history,
+    same_gains,
 )
 from shared.keys import DEFAULT_PREFIX
 from shared.messages import APPLICABLE_STATUSES
@@ -93,30 +93,15 @@ def _apply_hint(tune: dict[str, Any]) -> str:
 
 
 def _held_already(tune: dict[str, Any]) -> bool:
-    """Did the run apply gains the loop held already (its chosen gains its previous ones)?
-    Kc, Ti and Td each the same, an integral time off on both sides counting as the same
-    and off on one only as a change (PI to P read "gains unchanged": review); the setpoint
-    weight verified with them the same too (β 1 where the previous gains give none)."""
+    """Did the run apply gains the loop held already (its chosen gains its previous ones,
+    ``same_gains``), with the setpoint weight it verified and applied them with (the chosen
+    ISA gains carry none: a β-only change is a change)?"""
     chosen, before = tune.get("chosen") or {}, tune.get("previous_gains") or {}
     if not chosen or not before:
         return False
-
-    def same(a: Any, b: Any) -> bool:
-        if a is None or b is None:
-            return a is None and b is None
-        return (
-            isinstance(a, int | float)
-            and isinstance(b, int | float)
-            and math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
-        )
-
-    # the setpoint weight the run verified and applied with them (the chosen ISA gains
-    # carry none): a β-only change is a change
     verified = ((tune.get("verification_after") or {}).get("gains") or {}).get("beta")
     beta = chosen.get("beta", verified)
-    return all(same(chosen.get(k), before.get(k)) for k in ("kc", "ti", "td")) and (
-        beta is None or same(beta, before.get("beta", 1.0))
-    )
+    return same_gains({**chosen, "beta": before.get("beta", 1.0) if beta is None else beta}, before)
 
 
 def _num(x: Any, unit: str = "") -> str:
