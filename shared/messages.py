@@ -620,7 +620,10 @@ class Verification(Message):
     recovery_time: float | None
     stable: bool
     saturated: bool = Field(description="the output sat at a limit for a third of the time")
-    score: float = Field(description="IAE per unit step, setpoint and load together")
+    score: float = Field(
+        description="IAE per unit step, setpoint and load together, s (the load's IAE in % "
+        "of the PV's span per % of output)"
+    )
     stopped: str | None = Field(
         default=None, description="why the verification was cut short (runaway), if it was"
     )

@@ -6,8 +6,15 @@ from __future__ import annotations
 
 import pytest
 
-from services.autotuner.tuning import SCORE_TOLERANCE, acceptance_problems, noisy_step_note
-from shared.messages import Verification
+from services.autotuner.tuning import (
+    SCORE_TOLERANCE,
+    TuningRun,
+    acceptance_problems,
+    noisy_step_note,
+)
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.messages import TuneRequest, Verification
 from tests import test_percent_span as percent_span
 
 LIMITS = {"max_overshoot": 35.0, "max_decay_ratio": 0.35, "overshoot_miss": 20.0}
@@ -57,3 +64,37 @@ def test_a_response_held_back_by_the_output_is_judged_by_the_predicted_overshoot
     assert acceptance_problems(held, None, {**limits, "predicted_overshoot": 20.0}) == []
     free = held.model_copy(update={"op_limited": 0.0})  # not held back: the reading stands
     assert acceptance_problems(free, None, limits) == []
+
+
+def _level_loop(scale: float):
+    """A level e^{−3s}·K'/s in m (``scale`` 1) or in mm (1000), in auto under a PI."""
+    cfg = {
+        "model": "ipdt",
+        "gain": 0.002 * scale,
+        "delay": 3.0,
+        "pv0": 2.0 * scale,
+        "pv_range": [0.0, 4.0 * scale],
+        "pv_units": "m" if scale == 1.0 else "mm",
+        "sample_time": 0.1,
+        "noise_std": 0.0,
+        "mode": "auto",
+        "pid": {"kc": 70.0 / scale, "ti": 21.0},
+    }
+    return build_plant({"seed": 1, "loops": {"x": cfg}})["x"]
+
+
+def test_the_verdict_does_not_depend_on_the_units_the_pv_is_given_in():
+    """The same level in m and in mm, tuned alike, got the same gains (in % of span) and the
+    same responses, but "IAE per unit step" added the setpoint's IAE per unit step (s) to the
+    load's per % of output (PV units·s per %): in m the load's part was 0.3 of 12.2 and the
+    gains passed; in mm 319 of 331 and they were rejected as worse than before (330.5 against
+    308.6). Both parts are now in s, the load's IAE taken in % of the PV's span."""
+    runs = []
+    for scale in (1.0, 1000.0):
+        client = LocalLoopClient(_level_loop(scale))
+        client.advance(500)
+        runs.append(TuningRun(client, TuneRequest(loop="x", method="relay"), "unit").run())
+    m, mm = runs
+    assert (m.status, mm.status) == ("ok", "ok"), (m.reason, mm.reason)
+    assert mm.after.score == pytest.approx(m.after.score, rel=1e-6)
+    assert mm.before.score == pytest.approx(m.before.score, rel=1e-6)

@@ -1615,6 +1615,8 @@ class TuningRun:
         c = self.client
         scale = max(ident.timescale, 20 * self.ts)
         lo, hi = self.info.pv_range
+        span = span_or_none(self.info.pv_range)
+        per_span = 100.0 / span if span else 1.0  # PV units to % of span (none: as they are)
         sign = 1 if sp0 < 0.5 * (lo + hi) else -1  # toward the middle of the range
         room, other = self._op_room(sign), self._op_room(-sign)
         if room is not None and other is not None and room < VERIFY_MIN_ROOM < other:
@@ -1706,8 +1708,11 @@ class TuningRun:
             """The verification as measured so far (``check``: the gain-margin check's)."""
             iae_sp = sp_m["iae"] if sp_m else None  # None: no step measured (not a perfect 0)
             mode = max((m for m in modes if m is not None), key=lambda m: m.decay, default=None)
+            # both parts in s: the setpoint's IAE per unit of its step, the load's in % of the
+            # PV's span per % of output (in PV units per %, a level's load weighed 1000 times
+            # as much in mm as in m, and the same gains passed in m, rejected in mm)
             score = (iae_sp or 0.0) / abs(step) + (
-                load_m["iae"] / abs(load_size) if load_m else 0.0
+                load_m["iae"] * per_span / abs(load_size) if load_m else 0.0
             )
             return Verification(
                 gains=gains,
