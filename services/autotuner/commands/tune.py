@@ -999,10 +999,10 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         )
     elif r.step:
         s = r.step
-        lines.append(
-            f"  step curve: K = {s['gain']:.4g}  L = {s['dead_time']:.4g} s  T = "
-            f"{s['time_constant_tangent']:.4g} s  R = {s['reaction_rate']:.4g}  "
-            f"L/T = {s['l_over_t']:.3f}"
+        lines.append(  # with their units, as the % of span line and `analyze` give them
+            f"  step curve: K = {s['gain']:.4g} {unit(pv_units)}/%  L = {s['dead_time']:.4g} s  "
+            f"T = {s['time_constant_tangent']:.4g} s  R = {s['reaction_rate']:.4g} "
+            f"{unit(pv_units)}/s per %  L/T = {s['l_over_t']:.3f}"
         )
     lines.extend(_repeats_lines(r))
     model = {k: v for k, v in r.experiment.items() if k.startswith("model")}
