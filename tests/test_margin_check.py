@@ -244,3 +244,53 @@ def test_a_pis_check_cut_short_blames_the_loops_gain_not_a_derivative():
     assert "--rule" not in pi and "derivative" not in pi
     pid = margin_check.problem(check)
     assert "that the derivative's gain reaches: a PI rule (--rule)" in pid
+
+
+FOPDT = {"model": "fopdt", "gain": 2.0, "time_constant": 10.0, "delay": 1.0}
+FOPDT.update(sample_time=0.1, noise_std=0.0)
+
+
+def _tl_pid(**request) -> tuple:
+    sim = build_plant({"seed": 1, "loops": {"x": dict(FOPDT)}}, "unit")["x"]
+    req = TuneRequest(loop="x", method="relay", rule="tl-pid", **request)
+    r = TuningRun(LocalLoopClient(sim), req, "unit").run()
+    g = r.chosen["isa"]
+    spec = {"num": [2.0], "den": [10.0, 1.0], "delay": 1.0, "sample_time": 0.1}
+    return r, gain_margin(g["kc"], g["ti"], g["td"], spec=spec, top=31.4)
+
+
+def test_the_check_holds_gains_to_the_margin_the_requested_ms_bound_keeps():
+    """TL PID on 2·e^{−s}/(10s + 1) (Ms 2.5 on the model) asked for with ``--ms-bound 3``,
+    which admits gains down to a gain margin of 3/(3 − 1) = 1.5: its exact margin on the plant
+    (computed here) is between 1.5 and 2, and the check at Kc × 2 rejected it (helper audit:
+    "a mode of the process beyond the test's frequency (a resonance?)" of a first order). It
+    is checked at Kc × 1.5 and kept."""
+    r, exact = _tl_pid(ms_bound=3.0)
+    assert 1.5 < exact < 2.0
+    assert r.status == "ok", r.reason
+    assert r.after.margin_factor == pytest.approx(1.5)
+
+
+def test_a_margin_the_model_predicts_under_the_factor_is_said_so_not_blamed_on_a_resonance():
+    """The same gains forced past the default bound (2): checked at Kc × 2, their swing runs
+    away, as the model's own gain margin (1.67) says it must; no resonance is blamed."""
+    r, exact = _tl_pid(force=True)
+    assert exact < 2.0
+    assert r.status == "rejected", r.reason
+    assert "gain margin under 2" in r.reason
+    assert "As the process model predicts" in r.reason and "gain margin of 1.67" in r.reason
+    assert "resonance" not in r.reason
+
+
+def test_the_model_s_own_margin_under_the_factor_is_the_reason_given():
+    check = margin_check.MarginCheck(0.4, 3.0)
+    said = margin_check.problem(check, 2.0, derivative=True, predicted=1.67)
+    assert "gain margin of 1.67" in said and "resonance" not in said
+    # a model that predicts 2 or more: the mode beyond the test is blamed, as before
+    assert "resonance" in margin_check.problem(check, 2.0, derivative=True, predicted=3.1)
+    assert "resonance" in margin_check.problem(check, 2.0, derivative=True)
+
+
+@pytest.mark.parametrize(("bound", "factor"), [(2.0, 2.0), (1.5, 2.0), (3.0, 1.5), (5.0, 1.25)])
+def test_the_check_s_factor_is_the_margin_of_the_bound_past_two(bound, factor):
+    assert margin_check.factor_for(bound) == pytest.approx(factor)

@@ -290,6 +290,8 @@ class TuningRun:
         self._model_unsure = False
         # the chosen gains' Ms on the identified model (None: no model judged them)
         self._predicted_ms: float | None = None
+        # the chosen gains' gain margin on the model's sampled loop (None: not predicted)
+        self._predicted_gm: float | None = None
         # the last verification's setpoint step: (t, PV, t0, y0, target, width), as measured
         self._sp_step: tuple[np.ndarray, np.ndarray, float, float, float, int] | None = None
 
@@ -723,6 +725,7 @@ class TuningRun:
         predicted = step.step.overshoot if step is not None and step.step else None
         if step is not None and step.robustness is not None:
             self._predicted_ms = step.robustness.ms
+            self._predicted_gm = step.robustness.gain_margin
         return ident, chosen, predicted
 
     def _recorded(
@@ -1297,6 +1300,7 @@ class TuningRun:
             "max_decay_ratio": req.max_decay_ratio,
             "overshoot_miss": req.overshoot_miss,
             "predicted_overshoot": predicted,
+            "predicted_gain_margin": self._predicted_gm,
         }
         after_v = self._verify(new, sp0, ident, margin=True, judge=pre_check(before_v, limits))
         problems = acceptance_problems(after_v, before_v, limits)
@@ -1556,14 +1560,15 @@ class TuningRun:
         fast: Ringing | None = None,
         beta: float | None = None,
     ) -> margin_check.MarginCheck:
-        """``gains`` with Kc × ``margin_check.FACTOR`` and the setpoint stepped by half the
-        verification's ``step`` from ``sp0`` (the same proportional kick), watched for
-        ``SCALES`` time scales of ``scale`` s, cut short once the PV swings ``SWING_BOUND``
-        times that step from it; then ``gains`` at ``sp0`` again (the caller waits for the
-        rest, or restores the loop where the check fails). ``fast``: a fast mode the model
-        lacks that the gains rang with, read again at the doubled gain. ``beta``: the
-        setpoint weight of the doubled gains (default ``gains``'): a weighted verification's
-        check is kicked as the full-weight step would have been."""
+        """``gains`` with Kc × the check's factor (``margin_check.factor_for`` the request's Ms
+        bound) and the setpoint stepped by half the verification's ``step`` from ``sp0`` (the
+        same proportional kick), watched for ``SCALES`` time scales of ``scale`` s, cut short
+        once the PV swings ``SWING_BOUND`` times that step from it; then ``gains`` at ``sp0``
+        again (the caller waits for the rest, or restores the loop where the check fails).
+        ``fast``: a fast mode the model lacks that the gains rang with, read again at the
+        doubled gain. ``beta``: the setpoint weight of the doubled gains (default
+        ``gains``'): a weighted verification's check is kicked as the full-weight step would
+        have been."""
         c = self.client
         kick = 0.5 * step
         target = sp0 + kick
@@ -1571,7 +1576,7 @@ class TuningRun:
         seconds = margin_check.SCALES * k * self.ts  # whole time scales of k samples each
         doubled = gains.model_copy(
             update={
-                "kc": gains.kc * margin_check.FACTOR,
+                "kc": gains.kc * margin_check.factor_for(self.req.ms_bound),
                 "beta": gains.beta if beta is None else beta,
             }
         )
@@ -1738,7 +1743,9 @@ class TuningRun:
                 ringing=None if mode is None else mode.decay,
                 ringing_period=None if mode is None else mode.period,
                 unmodelled_ringing=None if fast is None else fast.decay,
-                margin_factor=margin_check.FACTOR if check is not None else None,
+                margin_factor=(
+                    margin_check.factor_for(self.req.ms_bound) if check is not None else None
+                ),
                 margin_swing=check.swing if check is not None else None,
                 margin_growth=finite(check.growth) if check is not None else None,
                 margin_stopped=check.stopped if check is not None else None,
@@ -2338,10 +2345,10 @@ def process_ringing_note(after: Verification, limit: float) -> str | None:
     return (
         f"the loop rings at {after.unmodelled_period:.3g} s, {fast:.2f} of its amplitude kept "
         f"each period (above the decay ratio limit {limit:g}), a mode the process model does "
-        f"not have; at Kc × {after.margin_factor:g} {at_twice}, so these gains keep a gain "
-        "margin of 2 or more at it and leave it about as they found it: the process's own "
-        "ringing (a resonance, a dead time's echo), not theirs; a filter, or the process "
-        "itself, can damp it"
+        f"not have; at Kc × {after.margin_factor:.3g} {at_twice}, so these gains keep a gain "
+        f"margin of {after.margin_factor:.3g} or more at it and leave it about as they found "
+        "it: the process's own ringing (a resonance, a dead time's echo), not theirs; a "
+        "filter, or the process itself, can damp it"
     )
 
 
@@ -2384,7 +2391,12 @@ def acceptance_problems(
         )
     check = recorded_check(after)
     if check is not None:
-        why = margin_check.problem(check, after.margin_factor, derivative=after.gains.td > 0)
+        why = margin_check.problem(
+            check,
+            after.margin_factor,
+            derivative=after.gains.td > 0,
+            predicted=limits.get("predicted_gain_margin"),
+        )
         if why is not None:
             out.append(why)
     fast = after.unmodelled_ringing

@@ -83,5 +83,8 @@ def figures_rows(
         if a is None and b is None:
             continue
         u = unit.replace("PV", units or "PV")
+        factor = getattr(after, "margin_factor", None)
+        if factor is not None and factor != 2.0:  # under a --ms-bound past 2 (margin_check)
+            label = label.replace("Kc × 2", f"Kc × {factor:.3g}")
         rows.append((f"{label} ({u})" if u else label, number(a), number(b)))
     return rows

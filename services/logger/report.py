@@ -142,6 +142,8 @@ def load_series(path: str | Path) -> RunSeries:
     setup = next((dict(e.data) for e in events if e.kind == "experiment"), {})
     units = result.pv_units if result else str(setup.get("pv_units") or "")
     previous = result.previous_gains if result else None
+    # the gain-margin check's factor (2, less under a --ms-bound past 2: margin_check)
+    factor = (result.after.margin_factor if result and result.after else None) or 2.0
     return RunSeries(
         np.array([s.t for s in samples]),
         np.array([s.pv for s in samples]),
@@ -154,7 +156,7 @@ def load_series(path: str | Path) -> RunSeries:
         history_lines(Path(path).parent, meta.get("loop", ""), run_id or "", bus_of(meta))
         + watch_lines(Path(path).parent, meta.get("loop", ""), run_id or ""),
         sorted(
-            experiment_marks(events, units) + gains_marks(gains, windows, previous, units),
+            experiment_marks(events, units) + gains_marks(gains, windows, previous, units, factor),
             key=lambda m: m.t,
         ),
         windows,

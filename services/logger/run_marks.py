@@ -179,10 +179,12 @@ def gains_marks(
     windows: Sequence[VerifyWindow],
     previous: PidGains | None,
     units: str,
+    factor: float = 2.0,
 ) -> list[Mark]:
     """The run's gains changes from its first verification on that no verification window
     begins with: the loop's own gains given back (``previous``: "gains restored"), or others
-    set ("gains set"), the gain-margin check's Kc × 2 and the window's gains back after it.
+    set ("gains set"), the gain-margin check's Kc × ``factor`` (the run's: 2, or less under a
+    --ms-bound past 2) and the window's gains back after it.
     A window's start already says its gains (and a ramp's trials, before the verifications,
     their Kc); a restore, mid-window or after, was unmarked."""
     if not windows:
@@ -190,7 +192,7 @@ def gains_marks(
     starts = {w.start for w in windows}
     changes = gains_changes(gains)
     tried = {_isa(c.gains) for c in changes if c.t in starts}  # the gains each window tried
-    doubled = {(2.0 * kc, ti, td, beta) for kc, ti, td, beta in tried}
+    doubled = {(factor * kc, ti, td, beta) for kc, ti, td, beta in tried}
     out = []
     checking = False  # the last change was a gain-margin check's
     for c in changes:
@@ -201,7 +203,7 @@ def gains_marks(
         back = checking and _isa(g) in tried
         checking = _isa(g) in doubled  # the verification's gain-margin check (margin_check)
         if checking:
-            what = "gain-margin check, Kc × 2"
+            what = f"gain-margin check, Kc × {factor:.3g}"
         elif back:
             what = "gains back after the check"
         elif same:

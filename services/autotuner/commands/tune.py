@@ -1066,10 +1066,11 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             rows.insert(4, ("settling band %", "settling_band"))
         if any(v is not None and v.unmodelled_ringing is not None for v in (r.before, r.after)):
             rows.insert(3, ("fast ring /period", "unmodelled_ringing"))  # beyond the model
+        x = f"x{r.after.margin_factor or 2:.3g}"  # 2, less under a --ms-bound past 2
         if r.after.margin_swing is not None:  # the gain-margin check's (of its step)
-            rows.insert(len(rows) - 1, ("swing at Kc x2", "margin_swing"))
+            rows.insert(len(rows) - 1, (f"swing at Kc {x}", "margin_swing"))
         if r.after.margin_ringing is not None:  # the fast mode's, read in that check
-            rows.insert(len(rows) - 1, ("fast ring Kc x2", "margin_ringing"))
+            rows.insert(len(rows) - 1, (f"fast ring Kc {x}", "margin_ringing"))
         lines.append(f"  {'verification':<18}{'before':>12}{'after':>12}")
         for label, field in rows:
             b = getattr(r.before, field) if r.before else None
