@@ -708,6 +708,11 @@ class TuneResult(Message):
     pu_spread: float | None = None
     l_over_t: float | None = None
     requested_rule: str | None = None  # "auto" or the rule asked for
+    ms_bound: float | None = Field(
+        default=None,
+        description="the --ms-bound the gains were judged within (an apply of them later "
+        "verifies them within the same, its gain-margin check at the same factor)",
+    )
     recommended: dict[str, Any] | None = Field(
         default=None, description="rule, reason, predicted ms"
     )

@@ -16,11 +16,12 @@ import math
 import numpy as np
 import pytest
 
+from services.autotuner.commands import apply as apply_command
 from services.autotuner.design import margin_check
 from services.autotuner.tuning import TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant, default_plant_path
-from shared.messages import TuneRequest
+from shared.messages import PidGains, TuneRequest
 
 NUM = [2.7393054372333046]
 DEN = [0.17626282921942302, 0.14386461056502364, 9.241494558529572, 1.0]
@@ -269,6 +270,35 @@ def test_the_check_holds_gains_to_the_margin_the_requested_ms_bound_keeps():
     assert 1.5 < exact < 2.0
     assert r.status == "ok", r.reason
     assert r.after.margin_factor == pytest.approx(1.5)
+    assert r.ms_bound == 3.0  # on record, for an apply of the gains later
+
+
+def test_an_apply_of_a_run_s_gains_is_checked_within_the_run_s_bound():
+    """``autotune apply`` of gains a run proposed under ``--ms-bound 3`` asks for the same
+    bound (its record's ``ms_bound``), so the same gains are checked at Kc × 1.5 and kept
+    (without it: at Kc × 2, rejected)."""
+    proposed, _ = _tl_pid(ms_bound=3.0, apply=False)
+    rec = proposed.model_dump(mode="json")
+    assert apply_command.recorded_bound(rec) == {"ms_bound": 3.0}
+    g = rec["chosen"]["isa"]
+    sim = build_plant({"seed": 2, "loops": {"x": dict(FOPDT)}}, "unit")["x"]
+    req = TuneRequest(
+        loop="x",
+        rule="tl-pid",
+        apply_from=proposed.run_id,
+        apply_gains=PidGains(kc=g["kc"], ti=g["ti"], td=g["td"]),
+        apply_timescale=rec["timescale"],
+        apply_noise=rec["noise"],
+        **apply_command.recorded_bound(rec),
+    )
+    r = TuningRun(LocalLoopClient(sim), req, "unit").run()
+    assert r.status == "ok", r.reason
+    assert r.after.margin_factor == pytest.approx(1.5)
+
+
+@pytest.mark.parametrize("bad", [None, True, 1.0, 0.5, 11.0, "3", float("nan")])
+def test_a_bound_no_request_may_carry_is_not_taken_from_a_record(bad):
+    assert apply_command.recorded_bound({"ms_bound": bad}) == {}
 
 
 def test_a_margin_the_model_predicts_under_the_factor_is_said_so_not_blamed_on_a_resonance():

@@ -349,6 +349,7 @@ class TuningRun:
             "method": req.method,
             "rule": req.rule,
             "requested_rule": req.rule,
+            "ms_bound": req.ms_bound,
             "previous_gains": first.gains,
             "pv_units": self.info.pv_units,
             "pv_range": tuple(self.info.pv_range),

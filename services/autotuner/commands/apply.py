@@ -111,6 +111,17 @@ def predicted_ms(run: dict[str, Any], rule: str) -> float | None:
     return float(ms) if isinstance(ms, int | float) and ms > 0 else None
 
 
+def recorded_bound(run: dict[str, Any]) -> dict[str, float]:
+    """The run's ``--ms-bound`` as a request's field (empty: none on record, or not one a
+    request may carry): its gains verified later within the bound they were judged in, the
+    gain-margin check at its factor (a run tuned with --ms-bound 3 and applied later was
+    checked at Kc × 2)."""
+    bound = run.get("ms_bound")
+    if isinstance(bound, int | float) and not isinstance(bound, bool) and 1.0 < bound <= 10.0:
+        return {"ms_bound": float(bound)}
+    return {}
+
+
 def recorded_timescale(run: dict[str, Any]) -> float:
     """The time scale (s) the run identified, which an apply's verification and its wait for
     the PV's return are sized on; ConfigError naming the run when it has none."""
@@ -183,6 +194,7 @@ def run(args: argparse.Namespace) -> int:
         apply_timescale=recorded_timescale(rec),
         apply_noise=rec.get("noise"),
         source="autotune-apply",
+        **recorded_bound(rec),
     )
 
     def same_as_identified(session: zenoh.Session) -> None:
