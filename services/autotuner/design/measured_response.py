@@ -45,7 +45,10 @@ def measured_setpoint_step(
     rel_noise = noise / abs(delta)
     noisy = rel_noise > 0 and z.size >= 2 * width
     zs = smooth(z, width) if noisy else z
-    over = _crest(t, z, zs, width) if noisy else float(np.max(zs) - 1.0)
+    over = float(np.max(zs) - 1.0)
+    if noisy:  # never below the highest sample less 4σ: the crest reaches that at least
+        highest = float(np.max(z)) - 1.0 - CREST_NOISE * rel_noise
+        over = max(_crest(t, z, zs, width), highest)
     ext = extrema(t, zs - 1.0, max(0.02, 8 * rel_noise))
     decay = decay_ratio(ext, t, zs - 1.0) if t.size else None
     t10, t90 = first_crossing(t, z, 0.1), first_crossing(t, z, 0.9)
@@ -70,6 +73,13 @@ def measured_setpoint_step(
         "iae": trapezoid(np.abs(target - y), t),
         "settled": settled,
     }
+
+
+# σ of the noise the highest noisy sample may stand above the crest: the crest is read no lower
+# than that sample less this (a parabola through a sharp or lopsided crest reads it low: AMIGO
+# PID on 2·e^{−s}/(10s + 1), noise 1e-6 of its step, read 19.16 % for 19.76 %, the unsafe
+# side of the limit; a triangle's 20 % read 18.9 % at any noise up to 1 % of the step)
+CREST_NOISE = 4.0
 
 
 def _crest(t: np.ndarray, z: np.ndarray, zs: np.ndarray, width: int) -> float:
