@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from services.autotuner.identify.reaction_curve import analyze_step, settled
+from services.autotuner.identify.reaction_curve import analyze_step, drift_beyond_noise, settled
 from services.plant_sim.simulation.models import FirstOrderPlusDeadTime, TransferFunctionModel
 from services.plant_sim.simulation.presets import HeatExchanger
 from shared.control.signals import noise_level
@@ -98,3 +98,12 @@ def test_too_small_a_step_is_refused():
     y = 50 + 0.5 * rng.standard_normal(200)
     with pytest.raises(ValueError, match="not clear of its noise"):
         analyze_step(np.arange(200) * 0.1, y, 0.0, 1.0, 50.0, 50.1, 0.5)
+
+
+def test_a_noise_free_level_s_rounding_is_no_drift():
+    """A noise-free integrating step's fitted drift of −5.27e-13 %/s was said to leave the
+    level "short of where it began" (helper audit); a drift of 1e-8 %/s over 300 s is told."""
+    assert drift_beyond_noise(-5.27e-13, 300.0, 0.0) is None
+    assert drift_beyond_noise(1e-8, 300.0, 0.0) == pytest.approx(3e-6)
+    assert drift_beyond_noise(1e-3, 300.0, 0.05) == pytest.approx(0.3)
+    assert drift_beyond_noise(1e-4, 300.0, 0.05) is None  # 0.03, within 3σ

@@ -135,9 +135,16 @@ class IntegratingCurve:
 def drift_beyond_noise(drift: float, seconds: float, noise_std: float) -> float | None:
     """PV units a level drifting at ``drift`` (PV units/s) moves over ``seconds``, where that
     is more than 3σ of its noise: an integrating step test's pulse gives back the step's area,
-    not that, so the level ends that far from where it started (None: within the noise)."""
+    not that, so the level ends that far from where it started (None: within the noise, or
+    within ``DRIFT_FLOOR``: a noise-free level's fitted drift of −5.3e-13 %/s was said to leave
+    it short of where it began)."""
     moved = drift * seconds
-    return moved if abs(moved) > max(3.0 * noise_std, 1e-12) else None
+    return moved if abs(moved) > max(3.0 * noise_std, DRIFT_FLOOR) else None
+
+
+# PV units a level's drift must move it by to be told: far below any transmitter's resolution
+# (16 bits of a span of 1), far above a noise-free fit's rounding
+DRIFT_FLOOR = 1e-9
 
 
 def _reached(t: np.ndarray, z: np.ndarray, level: float) -> float:
