@@ -823,6 +823,15 @@ def test_damaged_containers_and_what_recover_makes_of_them(recorded, tmp_path, c
     ):
         code, _, err = cli(capsys, *argv)
         refused(code, err, argv[0], ["is a directory, not a run file"])  # was "no such file"
+    # a FIFO (or a device): recover said "no such file" where the others say what it is
+    fifo = tmp_path / "fifo.mcap"
+    os.mkfifo(fifo)
+    for argv in (
+        ["analyze", str(fifo)],
+        ["recover", str(fifo), "-o", str(tmp_path / "x.mcap")],
+    ):
+        code, _, err = cli(capsys, *argv)
+        refused(code, err, argv[0], ["not a regular file (a FIFO or a device)"])
     code, _, err = cli(capsys, "recover", str(recorded["relay"].path), "-o", str(tmp_path))
     refused(code, err, "recover -o DIR", ["is a directory"])
     # an existing file is not overwritten without --force (it was, without a word)

@@ -49,6 +49,8 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
     recovered file of another run, or a good one, lost to a typo)."""
     if src.is_dir():
         raise AutotuneError(f"{src}: is a directory, not a run file")
+    if src.exists() and not src.is_file():  # said "no such file"
+        raise AutotuneError(f"{src}: not a regular file (a FIFO or a device), not a run file")
     if not src.is_file():
         raise AutotuneError(f"{src}: no such file")
     if src.resolve() == dst.resolve():
