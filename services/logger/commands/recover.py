@@ -156,7 +156,17 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             )
         held = summary.statistics.message_count if summary and summary.statistics else None
         lost = _lost(damaged, run or {}, held, counts["messages"])
-        if stopped != "end of file" and not data_end:
+        # the run's record (written last, in a chunk of its own, as the run ended) read, and
+        # with it every message it counts: a break after it lost none of the run's messages
+        # (a file cut in its metadata record was listed "recovered, data lost": helper trial)
+        counted = metadata_of_record(record).get("messages") if record is not None else None
+        whole = not damaged and counted is not None and counts["messages"] == int(counted) + 1
+        if stopped != "end of file" and not data_end and whole:
+            stopped = (
+                f"truncated after its last message (its run record, read whole, counts the "
+                f"{counted} others): no data lost"
+            )
+        elif stopped != "end of file" and not data_end:
             # the file ends short of its end: whatever came after the break is lost, whether
             # or not a summary says how much (a truncated copy was listed `ok`, its samples
             # those of the whole run: helper trial)
@@ -179,6 +189,11 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             run = metadata_of_record(record) or None
             if run is not None:  # written by a RunWriter of this format (its messages' form)
                 run["format"] = str(FORMAT_VERSION)
+                if not lost:  # no message lost: its metadata rebuilt, said
+                    run["rebuilt"] = (
+                        "its metadata record cut off; the run's figures were taken from its "
+                        "run record among its messages"
+                    )
         if run is None:  # written only as the logger finished a run: what the name tells
             run = run_of_name(src, counts["messages"], stopped, lost)
         elif lost:  # the run's conclusion stands, on less data than it had: said
