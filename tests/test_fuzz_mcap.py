@@ -1193,6 +1193,25 @@ def test_runs_compare_keeps_unlike_figures_apart(recorded):
     assert "max deviation, load (degC | m3/h) " in format_compare(c)
 
 
+def test_runs_compare_gives_an_integrators_gain_as_a_rate(recorded, tmp_path):
+    """An IPDT model's K is a rate (K' of K'·e^{−Ls}/s, PV/s per %): two level loops' IPDT
+    models were compared as "model K (m/%)", and an IPDT's K against a lag model's static
+    gain given a change in % (helper trial)."""
+    msgs, meta = load(recorded["relay"].path)
+
+    def ipdt(o):
+        o["experiment"] = {**o["experiment"], "model": "ipdt"}
+        return o
+
+    msgs, meta, _ = edit_json("/result", 0, ipdt)(msgs, meta)
+    integ = save(tmp_path / recorded["relay"].path.name, msgs, meta)
+    both = {r["key"]: r for r in compare(integ, integ)["rows"]}["model_gain"]
+    pv = recorded["relay"].live.pv_units or "PV unit"
+    assert both["unit"] == f"{pv}/s per %" and both["change"] == 0.0, both
+    mixed = {r["key"]: r for r in compare(recorded["relay"].path, integ)["rows"]}["model_gain"]
+    assert mixed["unit"] == f"{pv}/% | {pv}/s per %" and mixed["change"] is None, mixed
+
+
 @pytest.mark.parametrize("with_record", [False, True])
 def test_a_recovered_file_is_listed_with_its_loop_and_method(
     recorded, tmp_path, capsys, with_record

@@ -182,10 +182,18 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
             unit = " | ".join(f for f in froms if f) if froms[0] != froms[1] else froms[0] or ""
             if froms[0] != froms[1]:
                 change = None  # a tangent's L/T against a model's: not one figure
+        shown = _unit(unit, units) if in_pv else unit
+        if key == "model_gain":  # an integrator's K is a rate, K' of K'·e^{−Ls}/s: PV/s per %
+            per = [_gain_unit(v.get("model")) for v in values if v.get("model")]
+            if len(set(per)) == 2:  # a rate against a static gain: not one figure
+                change = None
+                shown = " | ".join(_unit(u, [pv, pv]) for u, pv in zip(per, units, strict=True))
+            elif per:
+                shown = _unit(per[0], units)
         row = {
             "key": key,
             "label": label,
-            "unit": _unit(unit, units) if in_pv else unit,
+            "unit": shown,
             "a": a,
             "b": b,
             "change": change,
@@ -196,6 +204,11 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
             row["points"] = 0.0 if _same(na, nb) else nb - na
         rows.append(row)
     return {"runs": runs, "rows": rows, "pv_units_differ": mixed}
+
+
+def _gain_unit(model: str | None) -> str:
+    """The unit of a model's gain K: PV/s per % for an integrator (IPDT), else PV/%."""
+    return "PV/s per %" if model == "ipdt" else "PV/%"
 
 
 def _same(x: object, y: object) -> bool:
