@@ -1212,6 +1212,20 @@ def test_runs_compare_gives_an_integrators_gain_as_a_rate(recorded, tmp_path):
     assert mixed["unit"] == f"{pv}/% | {pv}/s per %" and mixed["change"] is None, mixed
 
 
+def test_runs_compare_with_a_run_without_its_result_says_no_units_differ(recorded, tmp_path):
+    """A run without its result (a recovered file of a killed logger) against a finished run
+    of the same loop: "PV units differ (A degC, B —)" was said of a run whose units are not
+    known, and the rows labelled in both (helper trial)."""
+    msgs, meta = load(recorded["relay"].path)
+    msgs, meta, _ = drop("/result")(msgs, meta)
+    cut = save(tmp_path / recorded["relay"].path.name, msgs, meta)
+    c = compare(recorded["relay"].path, cut)
+    assert c["pv_units_differ"] is False, c
+    ku = {r["key"]: r for r in c["rows"]}["ku"]
+    assert " | " not in ku["unit"] and ku["b"] is None, ku
+    assert "PV units differ" not in format_compare(c)
+
+
 @pytest.mark.parametrize("with_record", [False, True])
 def test_a_recovered_file_is_listed_with_its_loop_and_method(
     recorded, tmp_path, capsys, with_record

@@ -158,7 +158,10 @@ def compare(path_a: str | Path, path_b: str | Path) -> dict:
             }
         )
         values.append(figures(meta, result, span))
-        units.append(result.pv_units if result else "")
+        units.append(result.pv_units if result else None)
+    if None in units:  # a run without its result (a recovered one): its units not known,
+        # not "PV units differ (A degC, B —)" (helper trial); it has no figure to compare
+        units = [next((u for u in units if u is not None), "")] * 2
     mixed = units[0] != units[1]  # a figure in PV units then has no change from a to b
     rows = []
     for key, label, unit in ROWS:
