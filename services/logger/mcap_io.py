@@ -328,13 +328,19 @@ def not_readable(path: Path | str, why: str, cut: bool | None = None) -> Autotun
             f"{path}: still being recorded (a logger is writing it, its MCAP footer not "
             "yet written): wait for the run to end"
         )
-    cut, what = _damage(Path(path)) if cut is None else (cut, "it was not finished")
+    if cut is None:
+        cut, what = _damage(Path(path))
+        if cut:  # the library's words on a file with no footer add nothing but noise
+            why = ""  # ("unknown (opcode 0) record has length 10557226335955058688 …": helper)
+    else:
+        what = "it was not finished"
     hint = (
         f"if a logger was killed while writing it, try: autotune recover {path} -o FIXED.mcap"
         if cut
         else f"`autotune recover {path} -o FIXED.mcap` copies what can be read"
     )
-    return AutotuneError(f"{path}: not a readable MCAP file: {what} ({why}); {hint}")
+    detail = f" ({why})" if why else ""
+    return AutotuneError(f"{path}: not a readable MCAP file: {what}{detail}; {hint}")
 
 
 def _damage(path: Path) -> tuple[bool, str]:
