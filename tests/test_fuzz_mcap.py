@@ -1226,6 +1226,21 @@ def test_runs_compare_with_a_run_without_its_result_says_no_units_differ(recorde
     assert "PV units differ" not in format_compare(c)
 
 
+def test_runs_says_a_run_recorded_with_dropped_samples(recorded, tmp_path, capsys):
+    """A logger paused 25 s in a relay run (realtime, ×5) dropped 344 of its samples: `runs`
+    listed it plain "ok", while `analyze` found it "DIFFERENT" for the holes (helper
+    trial). The count of dropped samples is in the listing's status."""
+    msgs, meta = load(recorded["relay"].path)
+    msgs, meta, _ = edit_meta(set_("dropped", "344"))(msgs, meta)
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    save(folder / recorded["relay"].path.name, msgs, meta)
+    code, out, err = cli(capsys, "runs", str(folder))
+    assert code == 0, err
+    (line,) = [x for x in out.splitlines() if x.endswith(recorded["relay"].path.name)]
+    assert "ok (344 samples dropped)" in line, line
+
+
 @pytest.mark.parametrize("with_record", [False, True])
 def test_a_recovered_file_is_listed_with_its_loop_and_method(
     recorded, tmp_path, capsys, with_record

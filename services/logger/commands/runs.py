@@ -234,5 +234,12 @@ def _status(row: dict) -> str:
     if row.get("replay"):
         status += " (replay)"
     if row.get("lost"):
-        return f"{status} (recovered, data lost)"
-    return f"{status} (recovered, metadata rebuilt)" if row.get("rebuilt") else status
+        status += " (recovered, data lost)"
+    elif row.get("rebuilt"):
+        status += " (recovered, metadata rebuilt)"
+    dropped = row.get("dropped")
+    if isinstance(dropped, int) and dropped > 0:  # holes in its record: said where it is
+        # listed (a logger paused 25 s in a relay run listed plain "ok", 344 samples gone
+        # and `analyze` then "DIFFERENT": helper trial)
+        status += f" ({dropped} samples dropped)"
+    return status
