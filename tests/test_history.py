@@ -793,3 +793,35 @@ def test_a_measured_step_without_a_second_crest_says_none():
     assert "decay ratio none" in line, line
     assert "decay ratio 0.12" in _verification({"overshoot": 30.0, "decay_ratio": 0.12})
     assert "decay ratio —" in _verification({"overshoot": None, "decay_ratio": None, "iae_sp": 1})
+
+
+def test_a_record_the_disk_had_no_room_for_leaves_no_cut_line(tmp_path):
+    """A full disk cut a record short: the next record, once there was room again, was
+    joined to the cut one, and both were lost ("1 line(s) not readable as a record": helper
+    trial of a logger on a full tmpfs). The part written is taken back."""
+    import json
+    import resource
+    import signal
+
+    h = history(tmp_path)
+    feed(h, status(G0))
+    feed(h, status(G1, "gains", by_source="autotune-set"))
+    path = tmp_path / HISTORY_FILE
+    size = path.stat().st_size
+    # room for 40 bytes more (a file limit of the process: a write past it fails as a full
+    # disk's does, after what fits)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    before = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (size + 40, hard))
+    try:
+        with pytest.raises(OSError):
+            feed(h, status(G0, "gains", by_source="autotune-set"))
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, before)
+    assert path.stat().st_size == size
+    g2 = PidGains(kc=9.0, ti=50.0)
+    feed(h, status(g2, "gains", by_source="autotune-set"))
+    lines = path.read_text().splitlines()
+    assert all(isinstance(json.loads(x), dict) for x in lines), lines
+    assert changes(tmp_path)[-1]["after"] == g2.model_dump()

@@ -603,6 +603,70 @@ def test_close_all_finishes_every_open_file_incomplete(rec: Recorder) -> None:
 # --- input it does not record -------------------------------------------------------------
 
 
+def test_a_full_disk_cuts_the_runs_file_short_and_the_logger_goes_on(
+    tmp_path: Path, clock: Clock, monkeypatch: pytest.MonkeyPatch, caplog
+) -> None:
+    """A logger whose --runs filled up (a 300 kB tmpfs) exited "autotune logger: error: No
+    space left on device" in the middle of a run, every other run's recording (and the change
+    history) with it (helper trial). The run's file is now left as it stands (what reached
+    the disk, for `autotune recover`), said once, and the logger goes on: the run ends, the
+    next one starts, nothing raises."""
+    import errno
+    import io
+
+    real_open = Path.open
+    room = {"bytes": 2000}  # the header fits, the first chunk (its schemas) does not
+
+    class Full(io.RawIOBase):
+        def __init__(self, f) -> None:
+            self.f = f
+
+        def writable(self) -> bool:
+            return True
+
+        def seekable(self) -> bool:
+            return True
+
+        def seek(self, offset: int, whence: int = 0) -> int:
+            return self.f.seek(offset, whence)
+
+        def write(self, b) -> int:
+            if len(b) > room["bytes"]:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            room["bytes"] -= len(b)
+            return self.f.write(b)
+
+        def close(self) -> None:
+            self.f.close()
+            super().close()
+
+    def full_open(self, mode="r", *args, **kw):
+        f = real_open(self, mode, *args, **kw)
+        return io.BufferedWriter(Full(f)) if mode == "wb" and self.suffix == ".mcap" else f
+
+    monkeypatch.setattr(Path, "open", full_open)
+    rec = Recorder(tmp_path, P, flush_interval=0.0, clock=clock)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 50)
+    rec.tick()  # the flush that finds the disk full: it raised, and the logger exited
+    samples(rec, 51, 60)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 60 * DT))
+    clock.now += RESULT_GRACE
+    rec.tick()
+    assert rec.finished[0].name.endswith("_r1.mcap")
+    said = [r.getMessage() for r in caplog.records if "cannot be written" in r.getMessage()]
+    assert len(said) == 1 and "No space left on device" in said[0], said
+    assert any("is cut short" in r.getMessage() for r in caplog.records)
+    # the next run on a disk still full: no file to speak of, no exception either
+    send(rec, keys.tune_progress(P, LOOP), start("r2", 61 * DT))
+    samples(rec, 61, 70)
+    rec.tick()
+    send(rec, keys.tune_result(P, LOOP), result("r2", 70 * DT))
+    clock.now += RESULT_GRACE
+    rec.tick()
+    assert len(rec.finished) == 2
+
+
 def test_invalid_and_foreign_messages_are_counted_not_recorded(rec: Recorder) -> None:
     rec.handle(keys.pv(P, LOOP), b'{"loop": "hx1"}')
     rec.handle(keys.info(P, LOOP), b"{}")

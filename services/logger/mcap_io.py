@@ -17,10 +17,12 @@ file, the record (topic, index in the file, log time), the field and the reason.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import itertools
 import json
+import logging
 import os
 import time
 import zlib
@@ -47,6 +49,8 @@ from services.logger.record_form import (
 from shared import json_text, keys
 from shared.errors import AutotuneError, one_line
 from shared.messages import Message, ProcessSample, TuneResult
+
+log = logging.getLogger("logger")
 
 PROFILE = ""  # no ROS profile: plain JSON messages
 MAGIC = b"\x89MCAP0\r\n"
@@ -154,10 +158,17 @@ class RunWriter:
     def __init__(self, path: Path, flush_interval: float = 1.0, log_time_zero: int = 0):
         self.path = path
         self.log_time_zero = log_time_zero
+        # why the file could no longer be written (a full disk), None while it can: the file
+        # then stays as it stands, every later write a no-op (the logger died of it, every
+        # other run's recording with it: helper trial of a full disk)
+        self.error: OSError | None = None
         self._file: IO[bytes] = path.open("wb")
         self._writer = new_writer(self._file)
         self._writer.start(profile=PROFILE, library=LIBRARY)
-        self._writer.flush()  # the header is on disk at once: even a killed writer leaves MCAP
+        try:  # the header on disk at once: even a killed writer leaves MCAP
+            self._writer.flush()
+        except OSError as err:
+            self._failed(err)
         self._batched = mcap_batch.usable(self._writer)  # write_many's way, else one by one
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -166,6 +177,24 @@ class RunWriter:
         self.flush_interval = flush_interval
         self._last_flush = time.monotonic()
         self.finished = False
+
+    def _failed(self, err: OSError) -> None:
+        """The file cannot be written: said once, closed as it stands (what reached the disk
+        is kept for ``autotune recover``); the logger goes on with the other runs."""
+        if self.error is not None:
+            return
+        self.error = err
+        with contextlib.suppress(OSError):  # its buffer's bytes have nowhere to go either
+            self._file.close()
+        kept = f"what reached the disk is kept (autotune recover {self.path} -o FIXED.mcap)"
+        with contextlib.suppress(OSError):
+            if self.path.stat().st_size == 0:  # not even its header: no empty file left
+                self.path.unlink()
+                kept = "nothing of it reached the disk"
+        why = err.strerror or one_line(err)
+        log.error(
+            "%s: cannot be written (%s): this run's recording stops here, %s", self.path, why, kept
+        )
 
     def _schema(self, model: type[pydantic.BaseModel]) -> int:
         name = model.__name__
@@ -186,11 +215,19 @@ class RunWriter:
 
     def write(self, key: str, model: type[pydantic.BaseModel], payload: bytes, t: float) -> None:
         """Record ``payload`` (the recorded form of a ``model`` message) at sim time ``t``, s."""
-        channel = self._channel(key, model)
-        seq = self._sequence.get(channel, 0)
-        self._sequence[channel] = seq + 1
-        ns = self.log_time_zero + sim_ns(t)
-        self._writer.add_message(channel, log_time=ns, data=payload, publish_time=ns, sequence=seq)
+        if self.error is not None:
+            return
+        try:
+            channel = self._channel(key, model)
+            seq = self._sequence.get(channel, 0)
+            self._sequence[channel] = seq + 1
+            ns = self.log_time_zero + sim_ns(t)
+            self._writer.add_message(
+                channel, log_time=ns, data=payload, publish_time=ns, sequence=seq
+            )
+        except OSError as err:
+            self._failed(err)
+            return
         self.messages += 1
 
     def write_many(
@@ -202,12 +239,20 @@ class RunWriter:
             for payload, t in items:
                 self.write(key, model, payload, t)
             return
-        channel = self._channel(key, model)
-        seq = self._sequence.get(channel, 0)
-        zero = self.log_time_zero
-        messages = [(zero + sim_ns(t), payload, seq + i) for i, (payload, t) in enumerate(items)]
-        self._sequence[channel] = seq + len(items)
-        mcap_batch.add_messages(self._writer, channel, messages)
+        if self.error is not None:
+            return
+        try:
+            channel = self._channel(key, model)
+            seq = self._sequence.get(channel, 0)
+            zero = self.log_time_zero
+            messages = [
+                (zero + sim_ns(t), payload, seq + i) for i, (payload, t) in enumerate(items)
+            ]
+            self._sequence[channel] = seq + len(items)
+            mcap_batch.add_messages(self._writer, channel, messages)
+        except OSError as err:
+            self._failed(err)
+            return
         self.messages += len(items)
 
     def copy(self, schema, channel, message) -> None:
@@ -238,8 +283,11 @@ class RunWriter:
     def flush_if_due(self) -> None:
         """Close the chunk in progress at most every ``flush_interval`` s (bounds a crash's
         loss to about that much)."""
-        if time.monotonic() - self._last_flush >= self.flush_interval:
-            self._writer.flush()
+        if self.error is None and time.monotonic() - self._last_flush >= self.flush_interval:
+            try:
+                self._writer.flush()
+            except OSError as err:
+                self._failed(err)
             self._last_flush = time.monotonic()
 
     def discard(self) -> None:
@@ -262,14 +310,20 @@ class RunWriter:
         meta.update(metadata)
         if record_key is not None:
             self.write(record_key, RunRecord, run_record(meta, t, self.log_time_zero), t)
-            # its chunk closed before the metadata record: a file cut within that record
-            # keeps the run's figures in its RunRecord (``recover``); the library's
-            # add_metadata leaves the open chunk to be written after it
-            self._writer.flush()
-        self._writer.add_metadata("run", meta)
-        self._writer.finish()
-        self._file.close()
         self.finished = True
+        if self.error is not None:  # left as it stands: said when it failed
+            return
+        try:
+            if record_key is not None:
+                # its chunk closed before the metadata record: a file cut within that record
+                # keeps the run's figures in its RunRecord (``recover``); the library's
+                # add_metadata leaves the open chunk to be written after it
+                self._writer.flush()
+            self._writer.add_metadata("run", meta)
+            self._writer.finish()
+            self._file.close()
+        except OSError as err:
+            self._failed(err)
 
 
 def amend_run(
@@ -302,6 +356,8 @@ def amend_run(
         if "messages" in meta:  # the run's messages, its RunRecord aside
             meta["messages"] = str(writer.messages)
         writer.finish(meta, record_key, t)
+        if writer.error is not None:  # the old file stays, whole, rather than a cut copy
+            raise writer.error
         tmp.replace(path)
     finally:
         if writer is not None and not writer.finished:

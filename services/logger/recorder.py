@@ -882,6 +882,19 @@ class Recorder:
                 while len(self._lost) > REMEMBERED_RUNS:
                     self._lost_loop.pop(self._lost.popitem(last=False)[0], None)
         self.counts["dropped"] += run.gaps
+        if run.writer.error is not None:  # cut short where it could no longer be written
+            log.error(
+                "run %s on %s%s: %s, but its file %s is cut short (%s): its recording "
+                "stopped after %d of its messages, some of them lost with the chunk in progress",
+                run.run_id,
+                run.loop,
+                _replay_note(stream),
+                status,
+                run.writer.path,
+                run.writer.error.strerror or one_line(run.writer.error),
+                bus_messages,
+            )
+            return
         log.info(
             "run %s on %s%s: %s, %d messages and its run record, %d samples, %d dropped, "
             "%d left out → %s",

@@ -95,6 +95,12 @@ class LoggerService:
             if replay is None:  # a replay changes no loop's settings
                 try:
                     self.history.handle(str(sample.key_expr), sample.payload.to_bytes())
+                except OSError as err:  # a full disk: one line, not a traceback a message
+                    log.error(
+                        "the change history of %s not written: %s",
+                        sample.key_expr,
+                        err.strerror or err,
+                    )
                 except Exception:
                     log.exception("the change history of %s failed", sample.key_expr)
 
