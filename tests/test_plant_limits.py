@@ -181,3 +181,30 @@ def test_the_lease_ended_is_the_one_whose_pv_crossed(service) -> None:
             break
     assert service.leases["x"].source == "other"
     assert "other" not in service.lapsed.get("x", {})
+
+
+def test_a_replayed_command_never_reaches_the_loop(service) -> None:
+    """`autotune replay --with-commands` on the live prefix: its lease (under the recorded
+    run's id), mode, output and gains were applied to the live loop: flow1 stepped to 55 %
+    and left with the recorded run's gains, filed in the change history as that run's
+    (helper trial). A command marked as a replay is refused, whatever it is."""
+    from types import SimpleNamespace
+
+    mark = SimpleNamespace(to_bytes=lambda: wire.replay_attachment("run.mcap"))
+    before = service.loops["x"].snapshot()
+    for cmd in (
+        LeaseCommand(loop="x", source="tuner:r1", timeout=600.0, t=0.0),
+        ModeCommand(loop="x", mode="manual", source="tuner:r1"),
+        OutputCommand(loop="x", op=before.op + 15.0, source="tuner:r1"),
+    ):
+        sample = SimpleNamespace(
+            key_expr=keys.command(PREFIX, "x", cmd.kind),
+            payload=SimpleNamespace(to_bytes=lambda cmd=cmd: wire.encode(cmd)),
+            encoding=wire.JSON,
+            attachment=mark,
+        )
+        service._on_command(sample)
+    assert "x" not in service.leases
+    after = service.loops["x"].snapshot()
+    assert (after.mode, after.op) == (before.mode, before.op)
+    assert service.rejected_by_reason["replay"] == 3

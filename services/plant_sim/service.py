@@ -477,6 +477,21 @@ class PlantService:
     # --- threads --------------------------------------------------------------------------
 
     def _on_command(self, sample: zenoh.Sample) -> None:
+        mark = sample.attachment
+        source = wire.replay_source(mark.to_bytes()) if mark is not None else None
+        if source is not None:  # `autotune replay --with-commands`: a recording, no operator
+            # (a replay on the live prefix leased flow1 under the recorded run's id, stepped
+            # its valve to 55 % and left that run's gains on it, filed in the change history
+            # as the run's: helper trial)
+            with self.lock:
+                self._reject(
+                    None,
+                    "replay",
+                    f"{sample.key_expr}: a command replayed from {source} (autotune "
+                    "replay): never applied",
+                    [],
+                )
+            return
         try:
             self.handle_command(
                 str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding)

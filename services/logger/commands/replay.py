@@ -6,10 +6,11 @@ first seconds. Messages go out in the order they were recorded, on their recorde
 with ``--prefix X`` under X instead of the recorded prefix. Every message carries the
 attachment ``{"replay": "<file name>"}``, so a logger does not take a replay for a new run
 (``autotune logger --record-replays`` records it, marked as a replay). Commands to the loop
-are left out unless ``--with-commands``: replayed next to a live plant they would move its
-valve. The whole file is checked before anything is sent: a missing, truncated or altered
-file (a payload that is not JSON, a missing or extra field, a topic autotune does not
-record) gets one line naming the record and the reason, exit 2.
+are left out unless ``--with-commands`` (for a viewer of the bus); a plant refuses every
+command marked as a replay, so none moves a valve. The whole file is checked before anything
+is sent: a missing, truncated or altered file (a payload that is not JSON, a missing or extra
+field, a topic autotune does not record) gets one line naming the record and the reason,
+exit 2.
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--with-commands",
         action="store_true",
-        help="also republish commands to the loop (they act on a live plant)",
+        help="also republish commands to the loop, for a viewer (a plant refuses them)",
     )
     parser.add_argument(
         "--prefix",
