@@ -749,3 +749,24 @@ def test_the_logger_asks_the_tuner_for_the_result_of_a_run_it_closed_tuner_lost(
 
     tunes = [x for x in read_history(svc.history.path) if x["record"] == "tune"]
     assert [(x["run_id"], x["status"]) for x in tunes] == [("r1", "ok")]
+
+
+def test_replay_waits_for_a_subscriber_of_every_key_it_publishes() -> None:
+    """`autotune replay --with-commands` waited for a subscriber of its first key only (a
+    command: the plant's), and the logger, known a moment later, missed the run's start:
+    the replay was not recorded (helper trial). The wait is for every key."""
+    from services.logger.commands.replay import wait_for_subscriber
+    from shared.session import open_session
+    from tests.test_plant_stream import ALONE
+
+    with open_session(ALONE) as session:
+        sub = session.declare_subscriber("waiting/plant/x1/cmd/*", lambda s: None)
+        try:
+            keys_ = ["waiting/plant/x1/cmd/sync", "waiting/tune/x1/progress"]
+            assert wait_for_subscriber(session, keys_, 0.3) is False  # none for the second
+            assert wait_for_subscriber(session, keys_[:1], 0.3) is True
+            everything = session.declare_subscriber("waiting/**", lambda s: None)
+            assert wait_for_subscriber(session, keys_, 0.3) is True
+            everything.undeclare()
+        finally:
+            sub.undeclare()

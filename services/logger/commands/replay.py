@@ -185,19 +185,26 @@ def _held(records: list[Record], checked: list[tuple[str, bool]], commands: bool
     )
 
 
-def wait_for_subscriber(session: zenoh.Session, key: str, seconds: float) -> bool:
+def wait_for_subscriber(session: zenoh.Session, key: str | list[str], seconds: float) -> bool:
     """Give a newly joined session's subscribers time to be known, so that the first
-    messages are not published to nobody; False if none appeared within ``seconds``."""
-    publisher = session.declare_publisher(key)
+    messages are not published to nobody: a subscriber for every one of the keys (one key:
+    that one), within ``seconds``; False if one had none by then. The first subscriber known
+    is not every one: with ``--with-commands`` the plant's, on the first key (a command),
+    ended the wait before the logger's (met through the plant a moment later) was known, and
+    the logger missed the run's start and recorded nothing of the replay (helper trial)."""
+    publishers = [
+        session.declare_publisher(k) for k in dict.fromkeys([key] if isinstance(key, str) else key)
+    ]
     try:
         deadline = time.monotonic() + seconds
-        while not publisher.matching_status.matching:
+        while not all(p.matching_status.matching for p in publishers):
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.01)
         return True
     finally:
-        publisher.undeclare()
+        for p in publishers:
+            p.undeclare()
 
 
 def read_checked(path: str) -> tuple[str, list[Record], list[tuple[str, bool]]]:
@@ -250,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     attachment = replay_attachment(Path(args.file).name)
     with open_session(settings_from_args(args)) as session:
-        wait_for_subscriber(session, chosen[0].key, args.wait)
+        wait_for_subscriber(session, [out.key for out in chosen], args.wait)
         wall0, t0 = time.monotonic(), chosen[0].record.log_time
         for out in chosen:
             r = out.record
