@@ -1148,6 +1148,8 @@ def test_replay_that_keeps_nothing_says_what_the_file_holds(recorded, capsys):
         assert code == 0 and err == "", err
         assert out.startswith("nothing to replay: no message passes the filters; the file ")
         assert "loop(s) " in out and "pv" in out and "s long" in out
+        # its topics as --topics takes them: "/fuzz/plant/x1/pv", not "pv" (which matched none)
+        assert f"/{PREFIX}/plant/{LOOP}/pv" in out, out
 
 
 def test_analyze_blames_a_long_hole_not_the_end_of_the_recording(recorded, tmp_path, capsys):

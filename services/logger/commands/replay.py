@@ -170,12 +170,10 @@ def _held(records: list[Record], checked: list[tuple[str, bool]], commands: bool
     if not records:
         return "the file holds no messages"
     loops = sorted({lp for lp, _ in checked})
+    # the topics as --topics takes them (their leaves, "pv, result", were not: `--topics
+    # result` matched nothing, and said so again: helper trial)
     leaves = sorted(
-        {
-            keys.leaf(r.topic)
-            for r, (_, c) in zip(records, checked, strict=True)
-            if commands or not c
-        }
+        {r.topic for r, (_, c) in zip(records, checked, strict=True) if commands or not c}
     )
     span = (max(r.log_time for r in records) - min(r.log_time for r in records)) / 1e9
     without = "" if commands else " (commands only with --with-commands)"
