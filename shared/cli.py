@@ -177,7 +177,7 @@ FLAG_BOUNDS: dict[str, dict[str, Bound]] = {
         "start_offset": Bound(0.0, unit="s"),
         "wait": Bound(0.0, MAX_SECONDS, unit="s"),
     },
-    "report": {"dpi": Bound(10, 1200, why="the figure is 12 × 7 inches")},
+    "report": {"dpi": Bound(10, 1200, why="the page is about 13 × 23 inches")},
     "benchmark": {"seed": _SEED},
 }
 ORDERED_PAIRS = ("pv_limits",)  # LO HI flags: LO must be below HI
