@@ -1170,6 +1170,13 @@ def test_analyze_blames_a_long_hole_not_the_end_of_the_recording(recorded, tmp_p
     assert any(
         f"WARNING: 100 samples missing from the record (first after seq {seq})" in t for t in texts
     )
+    # and draws no line across the hole: the trend's PV, setpoint and output break there (a
+    # straight line across 344 missing samples of a relay looked like a record: helper trial)
+    lines = [ln for ax in fig.axes for ln in ax.lines if ln.get_label() in ("PV", "output")]
+    assert len(lines) == 2
+    for ln in lines:
+        y = np.asarray(ln.get_ydata(), dtype=float)
+        assert np.isnan(y).sum() == 1, ln.get_label()
 
 
 def test_runs_compare_keeps_unlike_figures_apart(recorded):

@@ -348,15 +348,24 @@ def _pv_limits(setup: dict[str, Any]) -> list[float]:
     return out
 
 
+def _broken_at_holes(seq: np.ndarray, *series: np.ndarray) -> list[np.ndarray]:
+    """The series with a NaN where samples are missing (a gap in ``seq``), so that no line
+    is drawn across the hole: a straight line across 344 samples a paused logger missed, in
+    the middle of a relay, looked like a record (helper trial)."""
+    if seq.size < 2 or any(x.size != seq.size for x in series):
+        return list(series)
+    at = np.flatnonzero(np.diff(seq) > 1) + 1
+    return [np.insert(np.asarray(x, dtype=float), at, np.nan) for x in series]
+
+
 def draw_trends(ax_pv: Axes, ax_op: Axes, s: RunSeries) -> None:
     """PV and setpoint over output against sim time, every mark in the legend."""
     ax_op.sharex(ax_pv)
     units = s.units
-    ax_pv.plot(s.t, s.pv, lw=1.0, color="tab:blue", label="PV")
-    ax_pv.plot(
-        s.t, s.sp, lw=1.0, color="tab:red", ls="--", drawstyle="steps-post", label="setpoint"
-    )
-    ax_op.plot(s.t, s.op, lw=1.0, color="tab:green", drawstyle="steps-post", label="output")
+    t, pv, sp, op = _broken_at_holes(s.seq, s.t, s.pv, s.sp, s.op)
+    ax_pv.plot(t, pv, lw=1.0, color="tab:blue", label="PV")
+    ax_pv.plot(t, sp, lw=1.0, color="tab:red", ls="--", drawstyle="steps-post", label="setpoint")
+    ax_op.plot(t, op, lw=1.0, color="tab:green", drawstyle="steps-post", label="output")
     handles_pv: list[Any] = []
     handles_op: list[Any] = []
     limits = _pv_limits(s.setup)
