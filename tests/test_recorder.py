@@ -657,14 +657,17 @@ def test_a_full_disk_cuts_the_runs_file_short_and_the_logger_goes_on(
     said = [r.getMessage() for r in caplog.records if "cannot be written" in r.getMessage()]
     assert len(said) == 1 and "No space left on device" in said[0], said
     assert any("is cut short" in r.getMessage() for r in caplog.records)
-    # the next run on a disk still full: no file to speak of, no exception either
+    # the next run on a disk still full, not even its header written: no file left behind,
+    # and said so, no exception either
+    room["bytes"] = 0
     send(rec, keys.tune_progress(P, LOOP), start("r2", 61 * DT))
     samples(rec, 61, 70)
     rec.tick()
     send(rec, keys.tune_result(P, LOOP), result("r2", 70 * DT))
     clock.now += RESULT_GRACE
     rec.tick()
-    assert len(rec.finished) == 2
+    assert len(rec.finished) == 2 and not rec.finished[1].exists()
+    assert any("r2 on hx1: ok, but not recorded" in r.getMessage() for r in caplog.records)
 
 
 def test_invalid_and_foreign_messages_are_counted_not_recorded(rec: Recorder) -> None:

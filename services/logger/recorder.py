@@ -883,6 +883,18 @@ class Recorder:
                     self._lost_loop.pop(self._lost.popitem(last=False)[0], None)
         self.counts["dropped"] += run.gaps
         if run.writer.error is not None:  # cut short where it could no longer be written
+            why = run.writer.error.strerror or one_line(run.writer.error)
+            if not run.writer.path.exists():  # not even its header reached the disk
+                log.error(
+                    "run %s on %s%s: %s, but not recorded: its file %s could not be written (%s)",
+                    run.run_id,
+                    run.loop,
+                    _replay_note(stream),
+                    status,
+                    run.writer.path,
+                    why,
+                )
+                return
             log.error(
                 "run %s on %s%s: %s, but its file %s is cut short (%s): its recording "
                 "stopped after %d of its messages, some of them lost with the chunk in progress",
@@ -891,7 +903,7 @@ class Recorder:
                 _replay_note(stream),
                 status,
                 run.writer.path,
-                run.writer.error.strerror or one_line(run.writer.error),
+                why,
                 bus_messages,
             )
             return

@@ -156,8 +156,8 @@ class LoggerService:
         """A LoopMonitor (``<prefix>/monitor/<loop>``): appended, or counted invalid."""
         try:
             self.monitor_log.handle(str(sample.key_expr), sample.payload.to_bytes())
-        except OSError:
-            log.exception("monitor.jsonl: %s not written", sample.key_expr)
+        except OSError as err:  # a full disk: one line, not a traceback a message
+            log.error("monitor.jsonl: %s not written: %s", sample.key_expr, err.strerror or err)
 
     def _learn_loops(self, timeout: float = 5.0) -> None:
         """Every loop's status, asked once at start: a change of gains made while this logger
