@@ -648,7 +648,10 @@ def test_a_full_disk_cuts_the_runs_file_short_and_the_logger_goes_on(
     rec = Recorder(tmp_path, P, flush_interval=0.0, clock=clock)
     send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
     samples(rec, 0, 50)
+    assert rec.open_runs() == ["r1"]
     rec.tick()  # the flush that finds the disk full: it raised, and the logger exited
+    # no longer open to the loggers' status: the tuner says the run is not on record
+    assert rec.open_runs() == []
     samples(rec, 51, 60)
     send(rec, keys.tune_result(P, LOOP), result("r1", 60 * DT))
     clock.now += RESULT_GRACE

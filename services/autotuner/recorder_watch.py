@@ -103,8 +103,9 @@ class RecorderWatch:
             # file and no word)
             return (
                 f"no logger has this run open ({', '.join(sorted(statuses))} answered): one "
-                "that came up after the run started does not record it, so neither the run "
-                "nor its change of the loop's gains is on record (`autotune history` and "
+                "that came up after the run started does not record it, nor one that could "
+                "not write its file (a full disk: its log says so), so neither the run nor "
+                "its change of the loop's gains may be on record (`autotune history` and "
                 "`revert` will not know it)"
             )
         if not self._before:  # no logger answered at the start (busy, paused)

@@ -983,7 +983,13 @@ class Recorder:
                 self._close(stream, status=status, result=None)
 
     def open_runs(self) -> list[str]:
-        return [s.run.run_id for s in self.streams.values() if s.run is not None]
+        """The runs being recorded; not one whose file could no longer be written (a full
+        disk): its tuner then says the run is not on record, rather than nothing."""
+        return [
+            s.run.run_id
+            for s in self.streams.values()
+            if s.run is not None and s.run.writer.error is None
+        ]
 
 
 def _replay_note(stream: Stream) -> str:
