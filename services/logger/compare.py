@@ -48,7 +48,7 @@ ROWS = (
     ("max_deviation_load", "max deviation, load", "PV"),
     ("recovery_time", "recovery time, load", "s"),
     ("status", "status", ""),
-    ("sim_duration", "sim time", "s"),
+    ("sim_duration", "run length, sim time", "s"),
 )
 PERCENT_KEYS = ("ku_spread", "pu_spread")  # fractions on the result, given in % (JSON too)
 # figures in %: their change is told in percentage points (an overshoot from 0.0001 % to 10 %
