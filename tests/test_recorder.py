@@ -12,7 +12,14 @@ from pathlib import Path
 import pytest
 
 from services.logger.mcap_io import FORMAT_VERSION, read_run
-from services.logger.recorder import BUFFER, LEASED_BUFFER, RESULT_GRACE, Recorder, model_for
+from services.logger.recorder import (
+    BUFFER,
+    LEASED_BUFFER,
+    REPLAY_SILENCE,
+    RESULT_GRACE,
+    Recorder,
+    model_for,
+)
 from shared import keys, wire
 from shared.messages import (
     LeaseCommand,
@@ -717,6 +724,36 @@ def test_a_recorded_replay_is_its_own_stream_and_file(tmp_path: Path, clock: Clo
     assert rec.finished[0].name.endswith("_r1_replay.mcap")
     assert (meta["replay"], meta["status"], meta["samples"]) == ("a.mcap", "ok", "1")
     assert (LOOP, "a.mcap") not in rec.streams  # a replay's stream ends with its run
+
+
+def test_an_interrupted_replay_s_file_ends_incomplete_after_its_silence(
+    tmp_path: Path, clock: Clock
+) -> None:
+    """A replay stopped mid-run (Ctrl-C) left its file open, listed "recording", until the
+    logger stopped (helper trial: 5.5 min); a replay has no token to lose. Its file ends
+    ``incomplete`` once nothing of it came for REPLAY_SILENCE s, or ten of its samples' gaps
+    at the pace it came at (a slow --rate is no interruption); a live run is not ended so."""
+    rec = Recorder(tmp_path, P, flush_interval=3600.0, record_replays=True, clock=clock)
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))  # live, its tuner silent
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0), replay="a.mcap")
+    for n in range(5):  # at 10 s of wall time a sample (DT s of sim time each)
+        send(rec, keys.pv(P, LOOP), sample(n), replay="a.mcap")
+        clock.now += 10.0
+    clock.now += 100.0 - 10.0 - 0.01  # 100 s since the last sample: ten gaps less a hair
+    rec.tick()
+    assert rec.finished == []
+    clock.now += 0.02
+    rec.tick()
+    meta, _ = read_run(rec.finished[0])
+    assert (meta["replay"], meta["status"], meta["samples"]) == ("a.mcap", "incomplete", "5")
+    assert rec.open_runs() == ["r1"]  # the live run is not ended by silence
+    # at a quick pace the bound is REPLAY_SILENCE itself
+    send(rec, keys.tune_progress(P, LOOP), start("r2", 0.0), replay="b.mcap")
+    send(rec, keys.pv(P, LOOP), sample(0), replay="b.mcap")
+    send(rec, keys.pv(P, LOOP), sample(1), replay="b.mcap")
+    clock.now += REPLAY_SILENCE
+    rec.tick()
+    assert len(rec.finished) == 2
 
 
 def test_the_logger_asks_the_tuner_for_the_result_of_a_run_it_closed_tuner_lost(

@@ -48,6 +48,8 @@ tuned:
   is its own stream, never mixed with live traffic, and its file says so in its metadata
   (``replay``) and its name (``…_<run id>_replay.mcap``, ``…_replay-2.mcap`` for another
   within the same second). A run id the logger already recorded live opens no second file.
+  A replay has no liveliness token: its file is closed ``incomplete`` once nothing of it has
+  come for ``REPLAY_SILENCE`` s of wall time (a replay cut short by Ctrl-C or a kill).
 """
 
 from __future__ import annotations
@@ -90,6 +92,11 @@ BUFFER = 4096  # recent messages kept per loop (pre-run context)
 # the run's start from the tuner's, thousands of them (4,683 seen, lost past BUFFER)
 LEASED_BUFFER = 65536
 RESULT_GRACE = 2.0  # s of wall time a run's result may trail the withdrawal of its token
+# s of wall time without a message of a recorded replay's run that end its file, incomplete:
+# a replay interrupted (Ctrl-C, a kill) left its file open and listed "recording" until the
+# logger stopped (helper trial: 5.5 min). Beyond any pause of a replay: ``autotune replay``
+# sends a message at least every sample time over its --rate, and waits at most its --wait
+REPLAY_SILENCE = 60.0
 FILE_METHODS = ("relay", "ramp", "step", "apply")  # what a run file's name may say
 REMEMBERED_RUNS = 4096  # finished run ids kept, so that a repeated start opens no new file
 
@@ -167,6 +174,8 @@ class OpenRun:
     # the loop: this one's result, if it comes within RESULT_GRACE, still closes its file
     superseded_at: float | None = None
     held: bool = False  # a plant status showed this run holding the loop
+    heard_at: float | None = None  # wall clock (monotonic) of its last message written
+    opened_at: float | None = None  # wall clock (monotonic) the run's file was opened
 
 
 @dataclass
@@ -226,6 +235,18 @@ def _sample_time(run: OpenRun) -> float | None:
         return LoopInfo.model_validate_json(run.info).sample_time
     except pydantic.ValidationError:
         return None
+
+
+def replay_silence(run: OpenRun) -> float:
+    """Wall s without a message that end a recorded replay's run: ``REPLAY_SILENCE``, or ten
+    of its samples' gaps at the pace it has come at so far (a replay at --rate 1e-3 of a 1 s
+    loop sends a sample every 1,000 s)."""
+    ts = _sample_time(run)
+    sim = (run.last_t or 0.0) - run.t_start
+    wall = (run.heard_at or 0.0) - (run.opened_at or 0.0)
+    if ts is None or sim <= 0 or wall <= 0:
+        return REPLAY_SILENCE
+    return max(REPLAY_SILENCE, 10.0 * ts * wall / sim)
 
 
 def _missed_tail(run: OpenRun, result: TuneResult) -> int:
@@ -545,6 +566,20 @@ class Recorder:
             elif run.superseded_at is not None and now - run.superseded_at >= RESULT_GRACE:
                 status = "tuner lost" if run.lost else "superseded"
                 self._close(stream, status=status, result=None)
+            elif (
+                stream.replay
+                and run.heard_at is not None
+                and now - run.heard_at >= (silence := replay_silence(run))
+            ):
+                log.warning(
+                    "run %s on %s: nothing of its replay of %s for %.3g s: its file ends "
+                    "incomplete (the replay was interrupted)",
+                    run.run_id,
+                    run.loop,
+                    stream.replay,
+                    silence,
+                )
+                self._close(stream, status="incomplete", result=None)
         self.flush_due()
 
     def _wait_behind(self, stream: Stream, run: OpenRun, start: Item) -> None:
@@ -737,6 +772,7 @@ class Recorder:
             replay=stream.replay,
             plant_node=stream.node or "",
         )
+        run.opened_at = self.clock()
         stream.run = run
         if stream.run_token is False and not stream.replay:
             run.lost, run.lost_at = "token", self.clock()  # its token is not there (yet)
@@ -753,6 +789,7 @@ class Recorder:
                 self._write(run, item)
 
     def _write(self, run: OpenRun, item: Item) -> None:
+        run.heard_at = self.clock()
         msg = item.msg
         if isinstance(msg, ProcessSample):
             if run.last_seq is not None and msg.seq != run.last_seq + 1:
