@@ -13,6 +13,7 @@ import math
 import pytest
 from scipy.optimize import fsolve
 
+from services.autotuner.commands.tune import format_result
 from services.autotuner.design.measured_point import ms_floor
 from services.autotuner.design.rules import UltimatePoint
 from services.autotuner.design.sampled_loop import sampled_loop_robustness
@@ -204,3 +205,24 @@ def test_apply_no_verify_refuses_a_run_whose_model_misses_the_plant(tmp_path, ca
     err = capsys.readouterr().err
     assert code == 2 and "--no-verify" in err and "misses the plant" in err, err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_an_ms_the_measured_point_set_is_marked_in_the_table():
+    """A step test on (1 − 2s)/((s + 1)(3s + 1)): the FOPDT misses the point the record
+    implies, and six rules' Ms are taken from it; their GM and PM were printed beside as if
+    the plant's (helper audit: zn-ol-p "Ms 9.02, GM 1.51, PM 57.9", 1.11 and 13.3° on the
+    plant). Each such Ms is marked and the table says whose the figures beside it are; the
+    floor itself is the closed form's at the point (checked above)."""
+    spec = {"model": "transfer_function", "num": [-2.0, 1.0], "den": [3.0, 4.0, 1.0]}
+    spec.update(sample_time=0.05, noise_std=0.0)
+    sim = build_plant({"seed": 1, "loops": {"x": spec}}, "unit")["x"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "unit").run()
+    floored = {k for k, a in r.robustness.items() if a.get("ms_from_point")}
+    assert "zn-ol-p" in floored
+    text = format_result(r)
+    row = next(line for line in text.splitlines() if line.strip().startswith("zn-ol-p "))
+    assert f"{r.robustness['zn-ol-p']['ms']:.3g}*" in row
+    assert "* Ms from the measured ultimate point alone" in text
+    for name in set(r.robustness) - floored:
+        row = next(line for line in text.splitlines() if line.strip().startswith(name + " "))
+        assert "*" not in row

@@ -851,8 +851,11 @@ def _robust_row(a: dict) -> str:
         return ""
     if a.get("stable") is False:  # margins and overshoot of an unstable loop mean nothing
         return f"{'UNSTABLE on the model':>34}"
+    # an Ms the measured point alone set (the model misses the plant there): marked, its
+    # margins and step figures being the model's (``floor_note``)
+    star = "*" if a.get("ms_from_point") else ""
     cells = (
-        (figure(a.get("ms"), digits=3), 7),
+        (figure(a.get("ms"), digits=3) + star, 7),
         (figure(a.get("gain_margin"), digits=3), 7),
         (figure(a.get("phase_margin_deg"), digits=3), 7),
         (_fixed(a.get("overshoot_pct"), 1), 7),
@@ -860,6 +863,14 @@ def _robust_row(a: dict) -> str:
     )
     # a cell wider than its column still gets a space before it (overshoot 16491.6 %)
     return "".join(f" {c:>{w - 1}}" if len(c) < w else f" {c}" for c, w in cells)
+
+
+def floor_note() -> str:
+    """The table's footnote to an Ms marked ``*``."""
+    return (
+        "  * Ms from the measured ultimate point alone: the model misses the plant there, so "
+        "the GM, PM, OS and DR beside it are the model's, not the plant's"
+    )
 
 
 def _percent_table(r: TuneResult, span: float, pv_units: str) -> list[str]:
@@ -1041,6 +1052,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
                 f"{isa['td']:>10.4g}{par['ki']:>10.4g}{par['kd']:>10.4g}"
                 f"{_robust_row(rob.get(name, {}))} {mark}"
             )
+    if any(a.get("ms_from_point") for a in r.robustness.values()):
+        lines.append(floor_note())
     if r.gains:
         lam = next((a["lambda_s"] for a in r.robustness.values() if "lambda_s" in a), None)
         if lam is not None:

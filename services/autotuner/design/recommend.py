@@ -77,6 +77,9 @@ class Assessment:
     robustness: Robustness | None
     step: StepFigures | None = None  # the closed loop's setpoint step on the model
     continuous: Robustness | None = None  # the continuous loop's, beside a sampled judgement
+    # Ms taken from the measured ultimate point alone (the model misses the plant there:
+    # ``selection``); the margins, overshoot and decay ratio beside it are still the model's
+    ms_from_point: bool = False
 
     def to_dict(self) -> dict[str, float | bool | None]:
         rb, st = self.robustness, self.step
@@ -89,6 +92,8 @@ class Assessment:
             "stable": bool(self.stable),
             "sampled": rb.sample_time is not None,
         }
+        if self.ms_from_point:
+            out["ms_from_point"] = True
         if rb.sample_time is not None:
             out["sample_time"] = _number(rb.sample_time)
         if self.continuous is not None:

@@ -395,7 +395,7 @@ def select(
     for name, floor in misfit.items():  # judged by what the measurement alone implies
         a = assessments[name]
         assessments[name] = dataclasses.replace(
-            a, robustness=dataclasses.replace(a.robustness, ms=floor)
+            a, robustness=dataclasses.replace(a.robustness, ms=floor), ms_from_point=True
         )
     missed = None if misfit else _misses_the_record(model, ultimate)
     unsure = None  # what the model misses, for the warning

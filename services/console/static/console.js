@@ -345,7 +345,7 @@ function renderResult() {
     const a = (r.robustness || {})[name] || {}, isa = g.isa || {};
     const cls = [name === rec ? "recommended" : "", name === chosen ? "chosen" : ""].join(" ");
     return `<tr class="${cls}" data-rule="${esc(name)}"><td>${esc(name)}</td><td>${fmt(isa.kc)}</td><td>${isa.ti === null ? "off" : fmt(isa.ti)}</td><td>${fmt(isa.td)}</td>
-      <td>${fmt(a.ms, 3)}</td><td>${fmt(a.gain_margin, 3)}</td><td>${fmt(a.phase_margin_deg, 3)}</td><td>${fixed(a.overshoot_pct, 1)}</td><td>${fixed(a.decay_ratio, 2)}</td></tr>`;
+      <td${a.ms_from_point ? ' title="Ms from the measured ultimate point alone: the model misses the plant there, so GM, PM, OS and DR are the model\'s, not the plant\'s"' : ""}>${fmt(a.ms, 3)}${a.ms_from_point ? "*" : ""}</td><td>${fmt(a.gain_margin, 3)}</td><td>${fmt(a.phase_margin_deg, 3)}</td><td>${fixed(a.overshoot_pct, 1)}</td><td>${fixed(a.decay_ratio, 2)}</td></tr>`;
   }).join("");
   for (const tr of tbody.rows) tr.onclick = () => { S.chosenRule = tr.dataset.rule; renderResult(); };
   const applied = r.applied || (m.applied_by && m.applied_by.applied);
