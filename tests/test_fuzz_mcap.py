@@ -1152,6 +1152,20 @@ def test_replay_that_keeps_nothing_says_what_the_file_holds(recorded, capsys):
         assert f"/{PREFIX}/plant/{LOOP}/pv" in out, out
 
 
+def test_replay_past_the_runs_start_says_a_logger_records_none_of_it(recorded, capsys):
+    """``--start-offset`` past the run's start: a logger with --record-replays opens its file
+    on the run's start, and recorded nothing of the replay, which said nothing (helper
+    trial). It says so, on stderr; from the start, nothing is said."""
+    path = str(recorded["relay"].path)
+    code, out, err = cli(
+        capsys, "replay", path, "--wait", "0", "--rate", "1e6", "--start-offset", "1"
+    )
+    assert code == 0 and out.startswith("replayed "), out
+    assert "skips the run's start" in err and "--record-replays" in err, err
+    code, out, err = cli(capsys, "replay", path, "--wait", "0", "--rate", "1e6", "--loop", LOOP)
+    assert code == 0 and out.startswith("replayed ") and err == "", err
+
+
 def test_analyze_blames_a_long_hole_not_the_end_of_the_recording(recorded, tmp_path, capsys):
     """A hundred samples cut out of a step test's response: analyze said the samples do not
     complete it because "the recording ends first", which it does not; it names the gap."""

@@ -16,6 +16,8 @@ exit 2.
 from __future__ import annotations
 
 import argparse
+import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -164,6 +166,18 @@ def select(
     return keep
 
 
+def _starts(records: list[Record]) -> bool:
+    """Whether ``records`` hold a run's start (its ``start`` progress message)."""
+    for r in records:
+        if r.topic.endswith("/progress"):
+            try:
+                if json.loads(r.data).get("phase") == "start":
+                    return True
+            except (ValueError, AttributeError):
+                continue
+    return False
+
+
 def _held(records: list[Record], checked: list[tuple[str, bool]], commands: bool) -> str:
     """What the file holds, for a selection that kept nothing: its loops, topics and length,
     so that the filter that missed can be set right."""
@@ -253,6 +267,14 @@ def run(args: argparse.Namespace) -> int:
     if not chosen:
         print(f"nothing to replay: {_held(records, checked, args.with_commands)}")
         return 0
+    if args.start_offset > 0 and _starts(records) and not _starts([o.record for o in chosen]):
+        # (a logger records a replay's run from its start: helper trial, nothing recorded and
+        # nothing said)
+        print(
+            f"note: --start-offset {args.start_offset:g} skips the run's start: a logger that "
+            "records replays (--record-replays) opens no file for what follows",
+            file=sys.stderr,
+        )
     attachment = replay_attachment(Path(args.file).name)
     with open_session(settings_from_args(args)) as session:
         wait_for_subscriber(session, [out.key for out in chosen], args.wait)
