@@ -93,6 +93,10 @@ class ForgedSample(AutotuneError):
 # command kinds whose status names the sender (``by_source``): each of ours is answered by
 # one, so one more than this client sent came from elsewhere
 MOVING_KINDS = ("output", "mode", "gains", "setpoint", "disturbance")
+# and a lease: one in this client's name that it did not send names the PV limits at which
+# the plant restores the loop by itself (realtime), so it is counted the same way (a forged
+# lease of limits ±1e300 took away that safety net, and the run went on to `ok`)
+NAMED_KINDS = (*MOVING_KINDS, "lease")
 
 
 # how a lease the plant ended is said (``_lost_why``): a run's reason that says it is not
@@ -234,7 +238,7 @@ class LoopClient:
         # batch of another loop): rejected, counted and logged, never acted on
         self.rejected = 0
         self.last_rejected: str | None = None
-        # commands of MOVING_KINDS sent and not yet answered by a status in this client's name
+        # commands of NAMED_KINDS sent and not yet answered by a status in this client's name
         self._unanswered: Counter[str] = Counter()
         # Zenoh's receiving thread puts each message straight on the inbox, in order: no
         # reader thread of ours runs per message, and the waiting run is woken once per
@@ -454,7 +458,7 @@ class LoopClient:
                 if self.holding and status.leased_by != self.source:
                     self.holding = False
                     raise LeaseLost(self._lost_why(status))
-                if status.by_source == self.source and status.reason in MOVING_KINDS:
+                if status.by_source == self.source and status.reason in NAMED_KINDS:
                     if self._unanswered[status.reason] > 0:
                         self._unanswered[status.reason] -= 1
                     elif self.holding:
@@ -506,7 +510,7 @@ class LoopClient:
             update["t"] = now  # every message carries sim time: the last this client saw
         if update:
             cmd = cmd.model_copy(update=update)
-        if cmd.kind in MOVING_KINDS:  # counted before it can be answered
+        if cmd.kind in NAMED_KINDS:  # counted before it can be answered
             self._unanswered[cmd.kind] += 1
         wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind, self.user), cmd)
         self._last_sent = time.monotonic()

@@ -568,6 +568,31 @@ def test_a_forged_output_in_the_runs_name_aborts_the_run_and_the_loop_is_restore
     assert_as_before(after, before)
 
 
+def test_a_forged_lease_in_the_runs_name_aborts_the_run_and_the_loop_is_restored(start_plant):
+    """A client put a lease in the holder's name mid-relay, its PV limits ±1e300: the plant
+    took it as the holder's renewal and set the limits at which it restores the loop by
+    itself (realtime), and the run, none the wiser, went on to `ok` without that safety net
+    (helper h2). It now aborts at the status of that lease, as at any command in its name
+    that it did not send, and restores the loop."""
+    p = start_plant(plant_toml("x1", HX), loops=("x1",))
+    with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1") as c:
+        before = c.sync()
+        forged = []
+
+        def forge(progress: TuneProgress) -> None:
+            if progress.phase == "relay" and not forged:  # the relay under way
+                forged.append(LeaseCommand(loop="x1", source=c.source, pv_limits=(-1e300, 1e300)))
+                wire.put(s, keys.command(p.prefix, "x1", "lease"), forged[0])
+
+        hooks = RunHooks(progress=forge)
+        r = TuningRun(c, TuneRequest(loop="x1", method="relay"), "forge-lease", hooks).run()
+        after = c.sync()
+    assert forged and r.status == "aborted", r.reason
+    assert "applied a lease command in this run's name that it did not send" in r.reason
+    assert r.restored is True
+    assert_as_before(after, before)
+
+
 def test_a_forged_sample_shadowing_the_plants_aborts_the_run_and_the_loop_is_restored(
     start_plant,
 ):
