@@ -294,6 +294,9 @@ CONTRACT = {
     "leased_by",
     "lease_user",
     "fault",
+    "accepted",
+    "rejected",
+    "last_reject",
 }
 
 
@@ -311,6 +314,15 @@ def test_the_loop_object_keys_and_values():
     assert (o["pv_range"], o["op_limits"]) == ([0.0, 150.0], [5.0, 95.0])
     assert (o["sample_time"], o["pv_units"], o["model"]) == (0.25, "degC", "heat_exchanger")
     assert (o["leased_by"], o["lease_user"], o["fault"]) == ("tuner:abc", "bob", None)
+
+
+def test_the_loop_object_carries_the_plants_counts_of_refused_commands():
+    """The plant counts the commands it refused on each loop (a bad payload, a loop held by a
+    run) and keeps the last reason, but no command showed them: a user could not see that a
+    malformed command had been refused without the plant's log (helper h2)."""
+    why = "output: op: Input should be a finite number"
+    o = loops.loop_object(status(accepted=5, rejected=3, last_reject=why), info())
+    assert (o["accepted"], o["rejected"], o["last_reject"]) == (5, 3, why)
 
 
 def test_a_loop_without_its_info_or_a_usable_span():

@@ -15,8 +15,10 @@ JSON (``--json``: a list of objects; with LOOP, one object), keys: loop, node, d
 model, mode, action, sp, pv, op (%), pv_units, pv_range [lo, hi], op_limits [lo, hi] (%),
 gains {kc, ti, td, n, beta} (ti null: no integral action), gains_percent {kc, ti, td, pb}
 (null without a usable PV range), disturbances {name: value}, clock, sample_time (s), t
-(sim s), leased_by, lease_user, fault. A loop that answered its status but not its info
-within the wait has null description, model and sample_time.
+(sim s), leased_by, lease_user, fault, accepted and rejected (the commands the plant applied
+to the loop and refused since it started) and last_reject (the last refusal's reason). A
+loop that answered its status but not its info within the wait has null description, model
+and sample_time.
 
 Exit 0; 2 with one line when LOOP is not on the bus, or no loop is, or LOOP's plant
 announces it (its liveliness token is up) but it did not answer (a paused or overloaded
@@ -195,6 +197,12 @@ def loop_object(status: LoopStatus, info: LoopInfo | None) -> dict[str, Any]:
         "leased_by": status.leased_by,
         "lease_user": status.lease_user,
         "fault": status.fault,
+        # the commands the plant applied to the loop and refused (bad payloads, a loop held
+        # by a run, values out of range), and the last refusal's reason: the counters the
+        # plant keeps, which no command showed (only its log, or a query by hand)
+        "accepted": status.accepted,
+        "rejected": status.rejected,
+        "last_reject": status.last_reject,
     }
 
 
