@@ -459,14 +459,10 @@ class TuningRun:
             # commands in this run's name from another client (a bus without credentials)
             wait_back = False
             result.update(status="aborted", reason=str(err), restored=False)
-            if self._retake_and_restore():
+            how = self._retake_and_restore()
+            if how is not None:
                 wait_back = True  # the PV's return waited for, as after any restore
-                result.update(
-                    restored=True,
-                    reason=f"{err}; no one held it then: the run took it again and restored "
-                    "it (a release in this run's name that it did not send: another client "
-                    "on a bus without credentials, see Security)",
-                )
+                result.update(restored=True, reason=f"{err}; {how}")
         except TuneRefused as err:
             restored = self._restore()
             result.update(status="rejected", reason=str(err), restored=restored)
@@ -774,27 +770,48 @@ class TuningRun:
             pv_limits=self.pv_limits if self.info.clock == "realtime" else None,
         )
 
-    def _retake_and_restore(self) -> bool:
+    def _retake_and_restore(self) -> str | None:
         """After a lease lost to a release this run did not send, the loop put back as it was
-        before the test where no one holds it now: True if done (the lease taken again, the
-        restore confirmed; the run's release lets go of it). Not where the plant took the
+        before the test where no one holds it now; and where the plant, asked, still holds it
+        for this run (the status that told of the loss was not the plant's), put back under
+        the lease it never lost. What was done, for the run's reason, if done (the restore
+        confirmed; the run's release lets go of it), else None. Not where the plant took the
         loop back itself (its watchdog restores it), restarted (a new instance, never this
         run's), faulted, or another client holds it: hands off. Why: a release forged in the
         run's name (helper trial) left a heat exchanger in manual at the relay's output,
         unleased, while the run that knew its state before the test said so and did
-        nothing."""
+        nothing; a status forged on the loop's key (``leased_by`` none, reason watchdog) left
+        a level in manual at the relay's output until the lease lapsed, the run saying the
+        loop "may not have been restored" (helper h2)."""
         c = self.client
         lost = c.last_status  # the status that told of the loss: a release applied
-        if c.gone or c.fault is not None or lost.reason != "release":
-            return False
+        if c.gone or c.fault is not None:
+            return None
         try:
             now = c.sync()
-            if now.leased_by is not None or now.fault is not None:
-                return False
+            if now.fault is not None:
+                return None
+            if (now.leased_by, now.lease_user) == (c.source, c.user):  # never lost
+                c.holding = True
+                if not self._restore():
+                    return None
+                return (
+                    "but the plant, asked, still held it for this run: that status was not "
+                    "the plant's (another client publishes on the loop's status key: a bus "
+                    "without credentials, see Security); the run restored the loop"
+                )
+            if lost.reason != "release" or now.leased_by is not None:
+                return None
             c.command(self._lease(now.t))
         except AutotuneError:
-            return False
-        return self._restore()
+            return None
+        if not self._restore():
+            return None
+        return (
+            "no one held it then: the run took it again and restored it (a release in this "
+            "run's name that it did not send: another client on a bus without credentials, "
+            "see Security)"
+        )
 
     def _seen_after_loss(self, before: LoopStatus) -> dict | None:
         """The loop as its plant shows it once back in reach (a query, no command): whether it

@@ -49,6 +49,7 @@ class LocalLoopClient:
         self.sim = loop
         self.loop = loop.settings.loop_id
         self.source = source
+        self.user: str | None = None  # no Zenoh user in process (``LoopClient.user``)
         self.info: LoopInfo = loop.info(NODE, "lockstep", 1.0)
         self.last_sample: ProcessSample | None = None
         self.last_status: LoopStatus = self.sync()

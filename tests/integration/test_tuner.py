@@ -593,6 +593,33 @@ def test_a_forged_lease_in_the_runs_name_aborts_the_run_and_the_loop_is_restored
     assert_as_before(after, before)
 
 
+def test_a_status_forged_as_the_watchdogs_leaves_the_loop_restored_by_the_run(start_plant):
+    """A client published, mid-relay, a copy of the loop's status saying no one holds it
+    (reason watchdog): the run took it for its lease lost and wrote nothing more; the plant
+    still held the loop for it, in manual at the relay's output, until the lease lapsed, and
+    the run said it "may not have been restored" (helper h2). Asked, the plant says it still
+    holds the loop for this run: the run restores it under that lease, and says so."""
+    p = start_plant(plant_toml("x1", HX), loops=("x1",))
+    with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1") as c:
+        before = c.sync()
+        forged: list[LoopStatus] = []
+
+        def forge(progress: TuneProgress) -> None:
+            if progress.phase == "relay" and not forged and c.last_status is not None:
+                fake = c.last_status.model_copy(update={"leased_by": None, "reason": "watchdog"})
+                forged.append(fake)
+                wire.put(s, keys.status(p.prefix, "x1"), fake)
+
+        hooks = RunHooks(progress=forge)
+        r = TuningRun(c, TuneRequest(loop="x1", method="relay"), "forge-status", hooks).run()
+        after = c.sync()
+    assert forged and r.status == "aborted", r.reason
+    assert "still held it for this run: that status was not the plant's" in r.reason, r.reason
+    assert r.restored is True
+    assert after.leased_by is None
+    assert_as_before(after, before)
+
+
 def test_a_forged_sample_shadowing_the_plants_aborts_the_run_and_the_loop_is_restored(
     start_plant,
 ):
