@@ -225,6 +225,7 @@ class TunerService:
             cancelled=cancel,
             compute=self.pool.call if self.pool is not None else inline,
         )
+        ran = False  # the run itself began: before it, nothing can have been sent to the loop
         try:
             wait_for_loop(s, p, req.loop, self.loop_timeout)
             with LoopClient(
@@ -235,6 +236,7 @@ class TunerService:
                 lease_timeout=self.lease_timeout,
                 user=self.user,
             ) as client:
+                ran = True
                 result = TuningRun(client, req, run_id, hooks).run()
                 seen = client.info, client.last_status
         except Exception as err:  # whatever happens, the run ends with a result
@@ -252,13 +254,20 @@ class TunerService:
                 status="failed",
                 reason=str(err) if expected else repr(err),
                 wall_time=time.monotonic() - started,
+                # a loop whose plant never answered (its token up, its info not: a paused
+                # plant, a token of another client) was said "may not have been restored"
+                untouched=not ran,
             )
         finally:
             with self.lock:
                 self.active.pop(req.loop, None)
         try:
             stalled = stall_watch().stalled(started)
-            unrecorded = recorders.verdict(stalled, run_id) if recorders is not None else None
+            # a run that sent nothing has nothing for a logger to hold open (one that never
+            # took the loop while another run held it is not recorded, by design): not said as
+            # "no logger has this run open … came up after the run started"
+            mine = None if result.untouched else run_id
+            unrecorded = recorders.verdict(stalled, mine) if recorders is not None else None
         except Exception:  # a failure here never withholds the run's result
             log.exception(
                 "run %s on %s: whether a logger recorded it is not known", run_id, req.loop

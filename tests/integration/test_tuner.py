@@ -593,6 +593,22 @@ def test_a_forged_lease_in_the_runs_name_aborts_the_run_and_the_loop_is_restored
     assert_as_before(after, before)
 
 
+def test_a_loop_announced_but_never_answering_is_said_untouched(start_plant, start_tuner):
+    """A loop whose token is up but whose plant never answers (paused; here a token of
+    another client): the run failed before its first command, and the result said "WARNING:
+    the loop may not have been restored" (helper h2). Nothing was sent to the loop."""
+    p = start_plant(plant_toml("x1", HX), loops=("x1",))
+    start_tuner(p)
+    with open_session(p.client_settings()) as s:
+        token = s.liveliness().declare_token(keys.loop_alive(p.prefix, "zz9"))
+        try:
+            r = tune(p, "zz9")
+        finally:
+            token.undeclare()
+    assert r["status"] == "failed", r["reason"]
+    assert r["untouched"] is True and r["restored"] is False
+
+
 def test_a_status_forged_as_the_watchdogs_leaves_the_loop_restored_by_the_run(start_plant):
     """A client published, mid-relay, a copy of the loop's status saying no one holds it
     (reason watchdog): the run took it for its lease lost and wrote nothing more; the plant
