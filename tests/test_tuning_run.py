@@ -488,24 +488,29 @@ def test_an_ok_run_whose_release_the_plant_did_not_confirm_says_so():
 def test_an_apply_request_with_gains_no_tuning_gives_is_refused_by_the_tuner_itself():
     """`autotune apply` reads its gains from a run file; the request itself names them, and a
     hand-made one (an operator's, helper trial G) applied Kc 1e6 and Ti 0.01 s unverified:
-    the valve banged 0↔100 %. The tuner holds them to what `set` allows, writing nothing."""
-    for gains, field in (
-        (PidGains(kc=1e6, ti=10.0), "apply_gains.kc"),
-        (PidGains(kc=1.0, ti=0.001), "apply_gains.ti"),
+    the valve banged 0↔100 %. The tuner holds them to what `set` allows, writing nothing, and
+    before its wait for rest (a hand-made request without a time scale waited 48 s there
+    for the refusal: helper trial)."""
+    for gains, scale, field in (
+        (PidGains(kc=1e6, ti=10.0), 10.0, "apply_gains.kc"),
+        (PidGains(kc=1.0, ti=0.001), 10.0, "apply_gains.ti"),
+        (PidGains(kc=1.0, ti=10.0), None, "apply: the request names no gains or time scale"),
     ):
         client = LocalLoopClient(third_order_loop("auto", setpoint=50.0))
         before = state(client)
+        t0 = client.sync().t
         r = run(
             client,
             apply_from="000000000000",
             apply_gains=gains,
-            apply_timescale=10.0,
+            apply_timescale=scale,
             verify=False,
         )
         assert r.status == "rejected" and r.reason.startswith(field), r.reason
-        assert "nothing was applied" in r.reason and r.applied is not True
-        assert not any(isinstance(c, GainsCommand) for c in client.commands)
-        assert state(client) == before
+        assert r.applied is not True and r.untouched
+        assert "nothing was applied" in r.reason or scale is None
+        assert not client.commands  # not even a lease
+        assert r.t == t0 and state(client) == before  # no wait for rest
 
 
 def test_a_step_test_the_plant_restored_at_its_limits_says_so_and_waits():

@@ -370,6 +370,11 @@ class TuningRun:
         if why is not None:  # refused before anything is sent to the loop
             result.update(status="failed", reason=why, restored=True, untouched=True)
             return self._result(result, t0, wall0, None)
+        if req.apply_from and (why := apply_problem(req, span, self.ts)):
+            # before the wait for rest, not after it (a hand-made request waited 48 s there
+            # for a refusal it had from the start: helper trial)
+            result.update(status="rejected", reason=why, restored=True, untouched=True)
+            return self._result(result, t0, wall0, None)
         restored = False
         try:
             self._progress(
@@ -730,25 +735,10 @@ class TuningRun:
     ) -> tuple[experiments.Identification, IsaGains, float | None]:
         """``autotune apply``: a recorded run's gains, judged and verified on the time scale
         and noise that run identified (its client checked the loop is the same one)."""
+        why = apply_problem(req, span, self.ts)  # (refused before the run began: ``run``)
         g = req.apply_gains
-        if g is None or req.apply_timescale is None:
-            raise TuneAborted("apply: the request names no gains or time scale")
-        # checked here, not only by the CLI that read them from a run file: any client may
-        # send this request (an operator's hand-made one applied Kc 1e6, Ti 0.01 s, unverified)
-        pct = kc_percent(g.kc, span) if span else None
-        if g.kc <= 0 or (pct is not None and pct > MAX_KC_PERCENT):
-            raise TuneRefused(
-                f"apply_gains.kc: {g.kc:g}"
-                + (f" ({pct:.4g} % of output per % of span)" if pct is not None else "")
-                + f": a gain must be > 0 and at most {MAX_KC_PERCENT:g} % per % of span (a "
-                "proportional band of 0.1 %); nothing was applied"
-            )
-        if g.ti is not None and g.ti < self.ts:
-            raise TuneRefused(
-                f"apply_gains.ti: {g.ti:g} s is shorter than the loop's sample time "
-                f"({self.ts:g} s): each sample's integral step would exceed Kc times the error; "
-                "nothing was applied"
-            )
+        if why is not None or g is None or req.apply_timescale is None:
+            raise TuneRefused(why or "apply: the request names no gains or time scale")
         chosen = IsaGains(g.kc, g.ti, g.td)
         ident = experiments.Identification(
             timescale=req.apply_timescale, noise=req.apply_noise or 0.0
@@ -2254,6 +2244,30 @@ def overshoot_alone(problem: str) -> bool:
         and "above the limit" in problem
         and ("predicted" not in problem)
     )
+
+
+def apply_problem(req: TuneRequest, span: float | None, ts: float) -> str | None:
+    """Why an apply request's gains may not go into the loop (None: they may), checked by the
+    tuner and not only by the CLI that read them from a run file: any client may send this
+    request (an operator's hand-made one applied Kc 1e6, Ti 0.01 s, unverified). ``span``:
+    the PV's (None: no % of span), ``ts``: the loop's sample time (s)."""
+    g = req.apply_gains
+    if g is None or req.apply_timescale is None:
+        return "apply: the request names no gains or time scale (apply_gains, apply_timescale)"
+    pct = kc_percent(g.kc, span) if span else None
+    if g.kc <= 0 or (pct is not None and pct > MAX_KC_PERCENT):
+        return (
+            f"apply_gains.kc: {g.kc:g}"
+            + (f" ({pct:.4g} % of output per % of span)" if pct is not None else "")
+            + f": a gain must be > 0 and at most {MAX_KC_PERCENT:g} % per % of span (a "
+            "proportional band of 0.1 %); nothing was applied"
+        )
+    if g.ti is not None and g.ti < ts:
+        return (
+            f"apply_gains.ti: {g.ti:g} s is shorter than the loop's sample time ({ts:g} s): "
+            "each sample's integral step would exceed Kc times the error; nothing was applied"
+        )
+    return None
 
 
 def unjudged_note(ms: float | None, ms_bound: float) -> str | None:
