@@ -35,6 +35,11 @@ def answer(bridge: Bridge, msg: dict) -> dict:
         ({"type": "tune", "loop": "hx1", "fields": {"amplitude": "-1"}},
          "--amplitude: Input should be greater than 0"),
         ({"type": "tune", "loop": "h x", "fields": {}}, "loop id 'h x' is not valid"),
+        # a form that is not one was taken as no flags at all: a tune that applied its gains
+        ({"type": "tune", "loop": "hx1", "fields": []},
+         "tune: the form's fields must be an object of flag names"),
+        ({"type": "tune", "loop": "hx1", "fields": ""},
+         "tune: the form's fields must be an object of flag names"),
         ({"type": "cancel"}, "loop: None is not a loop"),
         ({"type": "apply", "run_id": 7}, "run_id: 7 is not a run id"),
         ({"type": "reject", "run_id": "r1"}, "loop: None is not a loop"),

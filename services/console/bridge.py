@@ -345,7 +345,9 @@ class Bridge:
         self._pool.submit(job)
 
     def _tune(self, msg: dict[str, Any], say: Callable[..., None]) -> None:
-        req = tune_request(self.prefix, msg.get("loop"), msg.get("fields") or {})
+        # no fields: the CLI's defaults; fields that are not a form ([], "") are refused, not
+        # taken as none (a request with fields [] started a tune that applied its gains)
+        req = tune_request(self.prefix, msg.get("loop"), msg.get("fields", {}))
 
         def accepted(a: Any) -> None:
             say(
