@@ -666,6 +666,26 @@ def test_the_watch_finds_the_last_applied_tune_in_the_history_when_no_tuner_has_
     assert recorded_tune(tmp_path / "nowhere", P, LOOP) is None
 
 
+def test_the_watch_takes_t_u_from_the_run_an_apply_applied(tmp_path):
+    """After the console's Apply (``autotune apply``) the last applied tune is the apply run,
+    which identifies nothing (its P_u None): the watch took Ti for T_u (96 s against the
+    relay's P_u of 43.7 s on hx1, helper trial). Its P_u is that of the run it applied."""
+    from services.autotuner.commands.watch import recorded_tune, tuned_pu
+
+    h = history(tmp_path)
+    feed(h, status(G0))
+    feed(h, _result("prop1", False, G0).model_copy(update={"pu": 43.7, "status": "proposed"}))
+    feed(h, _result("app2", True, G1).model_copy(update={"applied_from": "prop1"}))
+    last = recorded_tune(tmp_path, P, LOOP)
+    assert last is not None and (last["run_id"], last["pu"]) == ("app2", None)
+    assert tuned_pu(tmp_path, P, last) == 43.7
+    # the tuner's own result of the apply run, with no P_u: the same
+    assert tuned_pu(tmp_path, P, {"pu": None, "applied_from": "prop1"}) == 43.7
+    assert tuned_pu(tmp_path, P, {"pu": 40.0, "applied_from": "prop1"}) == 40.0
+    assert tuned_pu(tmp_path, P, {"pu": None, "applied_from": "gone"}) is None
+    assert tuned_pu(tmp_path / "nowhere", P, {"pu": None, "applied_from": "prop1"}) is None
+
+
 class _Reply:
     def __init__(self, key: str, payload: bytes):
         self.ok = SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: payload))

@@ -10,7 +10,8 @@ verification when the tuner has one; and the flags (oscillating, sluggish, satur
 degraded), each with its reason. ``--json``: one object, the ``LoopMonitor`` the tuner
 publishes for the loops it tuned.
 
-T_u is ``--period``, else the P_u of the loop's last tune (asked of the running tuner), else the
+T_u is ``--period``, else the P_u of the loop's last tune (asked of the running tuner; for an
+``autotune apply`` run, the P_u of the run it applied, from the change history), else the
 loop's integral time Ti (Hägglund's stand-in), else 50 sample times; the output says which.
 A lockstep plant only moves when told: with nobody holding the loop's lease, ``watch`` advances
 it itself (advancing is not a test signal: nothing else is written). A loop a test holds is not
@@ -119,16 +120,46 @@ def recorded_tune(runs: Path, prefix: str, loop: str) -> dict[str, Any] | None:
     if not tunes:
         return None
     r = tunes[-1]
-    pu = r.get("pu")
     return {
         "run_id": r.get("run_id"),
         "status": r.get("status"),
         "applied": True,
+        "applied_from": r.get("applied_from"),
         "after": r.get("verification_after"),
         "chosen": r.get("chosen"),
         "noise": r.get("noise"),
-        "pu": pu if isinstance(pu, int | float) and math.isfinite(pu) and pu > 0 else None,
+        "pu": _period(r.get("pu")),
     }
+
+
+def tuned_pu(runs: Path, prefix: str, last: dict[str, Any] | None) -> float | None:
+    """The P_u behind the last tune ``last``: its own, or, for an ``autotune apply`` run
+    (which identifies nothing, its P_u None), that of the run whose gains it applied, from
+    the change history. Why: after the console's Apply (or ``autotune apply``) the watch
+    took Ti for T_u (96 s against the relay's P_u of 43.7 s on hx1: its detector and IAE
+    limit sized on twice the loop's period; helper trial)."""
+    if last is None:
+        return None
+    pu = _period(last.get("pu"))
+    source = last.get("applied_from")
+    if pu is not None or not isinstance(source, str):
+        return pu
+    try:
+        records = list(read_history(runs / HISTORY_FILE))
+    except ConfigError:
+        return None
+    found = [
+        r
+        for r in records
+        if r.get("record") == "tune"
+        and r.get("run_id") == source
+        and r.get("prefix", prefix) == prefix
+    ]
+    return _period(found[-1].get("pu")) if found else None
+
+
+def _period(pu: Any) -> float | None:
+    return float(pu) if isinstance(pu, int | float) and math.isfinite(pu) and pu > 0 else None
 
 
 def collect(client: LoopClient, watcher: Watcher, samples: int) -> str | None:
@@ -179,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
             if last is None or not last.get("applied"):
                 # no tuner remembers an applied tune (restarted since): the logger's record
                 last = recorded_tune(Path(args.runs), args.prefix, args.loop) or last
-            pu = last.get("pu") if last is not None else None
+            pu = tuned_pu(Path(args.runs), args.prefix, last)
             period, source = choose_period(args.period, pu, status.gains.ti, info.sample_time)
             if source == "given":
                 source = "--period"
