@@ -45,3 +45,20 @@ def test_numbers_keep_their_digits_and_lose_only_trailing_decimal_zeros():
         check=True,
     )
     assert json.loads(out.stdout) == EXPECTED
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed")
+def test_an_apply_run_is_listed_as_an_apply_not_as_a_test():
+    """The console's runs table listed an ``autotune apply`` run (the page's Apply) as a relay
+    run with no K_u or P_u; ``autotune runs`` says "apply"."""
+    script = files("services.console").joinpath("static/console.js").read_text()
+    (line,) = re.findall(r"^const runMethod = .*$", script, flags=re.MULTILINE)
+    rows = [{"method": "relay", "applied_from": "04e4a18e25fa"}, {"method": "relay"}]
+    out = subprocess.run(
+        ["node", "-e", f"{line}\nconsole.log(JSON.stringify({json.dumps(rows)}.map(runMethod)))"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+    )
+    assert json.loads(out.stdout) == ["apply of 04e4a18e25fa", "relay"]

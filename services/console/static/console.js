@@ -380,6 +380,10 @@ $("revert").onclick = () => {
 
 // --- the recorded runs -------------------------------------------------------------------------
 
+// an `autotune apply` run tests nothing: "apply of <run>", as `autotune runs` says "apply" (the
+// console listed it as a relay run with no K_u, P_u)
+const runMethod = (r) => (r.applied_from ? `apply of ${r.applied_from}` : r.method);
+
 async function loadRuns() {
   try {
     const res = await fetch("/api/runs");
@@ -388,7 +392,7 @@ async function loadRuns() {
   S.ticked = S.ticked.filter((f) => S.runRows.some((r) => r.file === f));
   $("runs").tBodies[0].innerHTML = S.runRows.slice().reverse().map((r) => `<tr data-file="${esc(r.file)}">
     <td><input type="checkbox" ${S.ticked.includes(r.file) ? "checked" : ""}></td><td>${esc((r.started || "").slice(0, 19))}</td>
-    <td>${esc(r.loop)}</td><td>${esc(r.method)}</td><td>${fmt(r.ku)}</td><td>${fmt(r.pu)}</td><td>${esc(r.rule)}</td>
+    <td>${esc(r.loop)}</td><td>${esc(runMethod(r))}</td><td>${fmt(r.ku)}</td><td>${fmt(r.pu)}</td><td>${esc(r.rule)}</td>
     <td>${esc(r.status)}${r.reason ? ": " + esc(r.reason) : ""}${r.dropped ? ` <b class="warn">(${esc(r.dropped)} samples dropped: the record has gaps)</b>` : ""}</td><td><button type="button" class="open">report</button></td></tr>`).join("");
   for (const tr of $("runs").tBodies[0].rows) {
     tr.querySelector(".open").onclick = () => showReports([tr.dataset.file]);
