@@ -452,3 +452,66 @@ def test_a_noise_mostly_nil_changes_is_still_read():
     y[::10] = 1.0  # one sample in ten a step of 1, back the next
     assert white_noise(y) == pytest.approx(float(np.std(np.diff(y))) / math.sqrt(2.0))
     assert white_noise(y) > 0
+
+
+def test_the_tuner_s_monitor_says_when_the_loop_s_gains_are_no_longer_the_tune_s():
+    """Helper trial: after a tune, `autotune set hx1 --kc 14 --td 0` made hx1 oscillate; the
+    tuner's windows went on under the tune's run id, flagged "degraded" against its
+    verification with no word of the change (the watch CLI says it), and the report put them
+    under the run's change. The windows now carry the watch's note once the loop's status
+    shows other gains."""
+    import threading
+    from types import SimpleNamespace
+
+    from services.autotuner.service import TunerService, Watched
+    from shared import wire
+    from shared.messages import LoopStatus, ProcessSample, ProcessSamples
+
+    tuned = (6.9, 96.0, 6.9)
+    settings = MonitorSettings(10.0, "the last tune's P_u", 0.5, (0.0, 150.0), (0.0, 100.0))
+    watch = Watched(Watcher(settings, Baseline(run_id="r1", gains=tuned)), "degC", gains=tuned)
+    sent: list[bytes] = []
+    svc = SimpleNamespace(
+        lock=threading.Lock(),
+        monitors={"hx1": watch},
+        active={},
+        session=SimpleNamespace(put=lambda key, payload, **kw: sent.append(payload)),
+        prefix="mon",
+        node="tuner",
+        monitor_rejected=0,
+    )
+
+    def deliver(leaf: str, msg) -> None:
+        sample = SimpleNamespace(
+            key_expr=f"mon/plant/hx1/{leaf}",
+            payload=SimpleNamespace(to_bytes=lambda: wire.encode(msg)),
+            encoding=wire.encoding_for(type(msg)),
+            attachment=None,
+        )
+        TunerService._on_loop(svc, "hx1", sample)  # type: ignore[arg-type]
+
+    def window(first: int) -> list[str]:
+        n = 2 * round(settings.window / settings.sample_time)
+        batch = [
+            ProcessSample(loop="hx1", seq=first + i, t=(first + i) * 0.5, pv=60.0, sp=60.0,
+                          op=40.0, mode="auto")
+            for i in range(n)
+        ]  # fmt: skip
+        sent.clear()
+        for k in range(0, n, 1000):
+            deliver("pv_batch", ProcessSamples(loop="hx1", samples=batch[k : k + 1000]))
+        assert sent, "no window reported"
+        return [m.notes for m in (wire.decode(LoopMonitor, p) for p in sent)][-1]
+
+    assert not any("no longer those" in n for n in window(0))
+    g = PidGains(kc=14.0, ti=96.0, td=0.0)
+    deliver("status", LoopStatus(
+        loop="hx1", node="plant", seq=1, t=10.0, pv=60.0, sp=60.0, op=40.0, mode="auto",
+        action="reverse", gains=g, op_limits=(0.0, 100.0), pv_range=(0.0, 150.0),
+        disturbances={}, clock="lockstep", accepted=0, rejected=0, reason="gains",
+    ))  # fmt: skip
+    notes = window(100_000)
+    assert any(
+        n.startswith("the loop's gains (Kc 14, Ti 96 s, Td 0 s) are no longer those of the tune r1")
+        for n in notes
+    ), notes

@@ -39,7 +39,12 @@ from services.autotuner.loop_client import (
     wait_for_loop,
     wait_for_token,
 )
-from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
+from services.autotuner.monitor.assessment import (
+    Watcher,
+    choose_period,
+    gains_note,
+    loop_watcher,
+)
 from services.autotuner.recorder_watch import RecorderWatch
 from services.autotuner.stall_watch import stall_watch
 from services.autotuner.tuning import RunHooks, TuningRun
@@ -79,6 +84,10 @@ class Watched:
     watcher: Watcher
     pv_units: str
     leased: bool = False  # a test holds the loop: its samples are not normal operation
+    # the loop's gains (kc, ti, td) as its last status showed them: changed since the run
+    # (`autotune set`), its windows say so (they went on flagging "degraded" against the tune
+    # for an operator's Kc 14, and the report put them under the run's change: helper trial)
+    gains: tuple[float, float | None, float] | None = None
 
 
 def watched(result: TuneResult, info: LoopInfo, status: LoopStatus) -> Watched | None:
@@ -88,7 +97,12 @@ def watched(result: TuneResult, info: LoopInfo, status: LoopStatus) -> Watched |
     if result.status not in APPLIED_STATUSES or not result.applied:
         return None
     period, source = choose_period(None, result.pu, status.gains.ti, info.sample_time)
-    return Watched(loop_watcher(period, source, info, status, result.model_dump()), info.pv_units)
+    g = status.gains
+    return Watched(
+        loop_watcher(period, source, info, status, result.model_dump()),
+        info.pv_units,
+        gains=(g.kc, g.ti, g.td),
+    )
 
 
 @dataclass
@@ -327,7 +341,10 @@ class TunerService:
             return
         try:
             if leaf == "status":
-                watch.leased = wire.decode_sample(LoopStatus, sample).leased_by is not None
+                status = wire.decode_sample(LoopStatus, sample)
+                watch.leased = status.leased_by is not None
+                g = status.gains
+                watch.gains = (g.kc, g.ti, g.td)
                 return
             if busy or watch.leased:
                 return
@@ -344,7 +361,10 @@ class TunerService:
             w.feed(s.t, s.sp, s.pv, s.op, s.mode == "auto")
             start = w.window_start
             if start is not None and s.t - start >= w.settings.window:
-                report = w.report().to_dict()
+                assessment = w.report()
+                if (note := gains_note(watch.gains, w.baseline)) is not None:
+                    assessment.notes.append(note)
+                report = assessment.to_dict()
                 msg = LoopMonitor(loop=loop, node=self.node, pv_units=watch.pv_units, **report)
                 wire.put(self.session, keys.monitor(self.prefix, loop), msg)
                 log.info("monitor of %s at t = %g s: %s", loop, msg.t, ", ".join(msg.flags) or "ok")

@@ -29,7 +29,12 @@ from typing import Any
 import zenoh
 
 from services.autotuner.loop_client import LoopClient, PlantLost, wait_for_loop, wait_for_token
-from services.autotuner.monitor.assessment import Watcher, choose_period, loop_watcher
+from services.autotuner.monitor.assessment import (
+    Watcher,
+    choose_period,
+    gains_note,
+    loop_watcher,
+)
 from services.autotuner.monitor.oscillation import SUPERVISION_PERIODS
 from shared import json_text, keys, wire
 from shared.cli import MAX_SECONDS, add_common_arguments, check_ids
@@ -228,15 +233,8 @@ def run(args: argparse.Namespace) -> int:
     assessment = watcher.report()
     if stopped:
         assessment.notes.append(stopped)
-    if baseline is not None and baseline.gains is not None:
-        now = (gains.kc, gains.ti, gains.td)
-        if now != baseline.gains:
-            assessment.notes.append(
-                f"the loop's gains (Kc {gains.kc:.4g}, Ti "
-                f"{'off' if gains.ti is None else f'{gains.ti:.4g} s'}, Td {gains.td:.4g} s) are "
-                f"no longer those of the tune {baseline.run_id}: the comparison is with other "
-                "gains"
-            )
+    if (note := gains_note((gains.kc, gains.ti, gains.td), baseline)) is not None:
+        assessment.notes.append(note)
     msg = LoopMonitor(loop=args.loop, node="watch", pv_units=info.pv_units, **assessment.to_dict())
     print(
         json_text.dumps(msg.model_dump(mode="json"), indent=2) if args.json else format_monitor(msg)

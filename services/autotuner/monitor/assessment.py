@@ -65,6 +65,21 @@ def choose_period(
     )
 
 
+def gains_note(
+    gains: tuple[float, float | None, float] | None, baseline: Baseline | None
+) -> str | None:
+    """The note when the loop's gains (kc, ti, td) are no longer those the tune left: the
+    comparison with it is then with other gains (None when they are, or nothing to say)."""
+    if gains is None or baseline is None or baseline.gains is None or gains == baseline.gains:
+        return None
+    kc, ti, td = gains
+    return (
+        f"the loop's gains (Kc {kc:.4g}, Ti {'off' if ti is None else f'{ti:.4g} s'}, Td "
+        f"{td:.4g} s) are no longer those of the tune {baseline.run_id}: the comparison is "
+        "with other gains"
+    )
+
+
 @dataclass(frozen=True)
 class Baseline:
     """What the last tune measured, to compare with: its run id, the output's noise σ at rest
