@@ -515,3 +515,39 @@ def test_the_tuner_s_monitor_says_when_the_loop_s_gains_are_no_longer_the_tune_s
         n.startswith("the loop's gains (Kc 14, Ti 96 s, Td 0 s) are no longer those of the tune r1")
         for n in notes
     ), notes
+
+
+def test_the_report_leaves_out_windows_after_the_loop_s_next_change_of_gains(tmp_path):
+    """Helper trial: the tuner watched hx1 after run r1's change; an operator's `set --kc 14`
+    later made it oscillate, and r1's report said "watched after the change: 28 window(s) …
+    flags: degraded, oscillating, saturated". Windows past the next change of gains (the
+    history's) are another's gains: left out, said so."""
+    from services.logger.monitor_log import FILE_NAME
+    from services.logger.report import watch_lines
+    from shared.history_file import HISTORY_FILE
+
+    loop = plant()
+    auto(loop, PidGains(kc=KU))
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 3)
+    msg = LoopMonitor(loop="x", node="tuner", **watcher.report().to_dict())
+    calm = json.loads(msg.model_dump_json()) | {"run_id": "r1", "flags": {}, "t": 100.0}
+    wild = calm | {"flags": {"oscillating": "…"}, "t_start": 100.0, "t": 200.0}
+    with (tmp_path / FILE_NAME).open("w") as f:
+        for rec in (calm, wild):
+            f.write(json.dumps(rec) + "\n")
+    g0, g1, g2 = ({"kc": k, "ti": 10.0, "td": 0.0, "n": 10.0, "beta": 1.0} for k in (1, 2, 3))
+    changes = [
+        {"record": "change", "loop": "x", "t": 10.0, "run_id": "r1", "before": g0, "after": g1},
+        {"record": "change", "loop": "x", "t": 150.0, "by_source": "autotune-set",
+         "before": g1, "after": g2},
+    ]  # fmt: skip
+    with (tmp_path / HISTORY_FILE).open("w") as f:
+        for rec in changes:
+            f.write(json.dumps(rec) + "\n")
+    lines = watch_lines(tmp_path, "x", "r1")
+    assert lines[0].startswith("watched after the change: 1 window(s)"), lines
+    assert "flags: none" in lines[0]
+    assert lines[-1] == "  1 later window(s) left out: the gains changed again at t = 150 s"
+    (tmp_path / HISTORY_FILE).write_text(json.dumps(changes[0]) + "\n")  # no later change
+    assert "flags: oscillating" in watch_lines(tmp_path, "x", "r1")[0]

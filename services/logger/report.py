@@ -154,7 +154,7 @@ def load_series(path: str | Path) -> RunSeries:
         result,
         meta,
         history_lines(Path(path).parent, meta.get("loop", ""), run_id or "", bus_of(meta))
-        + watch_lines(Path(path).parent, meta.get("loop", ""), run_id or ""),
+        + watch_lines(Path(path).parent, meta.get("loop", ""), run_id or "", bus_of(meta)),
         sorted(
             experiment_marks(events, units) + gains_marks(gains, windows, previous, units, factor),
             key=lambda m: m.t,
@@ -179,10 +179,13 @@ def _monitor_records(path: Path) -> Iterator[LoopMonitor]:
             continue
 
 
-def watch_lines(runs: Path, loop: str, run_id: str) -> list[str]:
+def watch_lines(runs: Path, loop: str, run_id: str, prefix: str | None = None) -> list[str]:
     """The performance after this run's change, where the tuner watched the loop (its
     assessments compared with this run, from ``monitor.jsonl`` beside the file): the windows,
-    their flags, the latest window's figures. Empty where there is none."""
+    their flags, the latest window's figures. Empty where there is none. Windows that end
+    after the loop's next change of gains (the history's) are another's gains: left out, said
+    so (an operator's Kc 14 made the loop oscillate, and the run's report showed it
+    "oscillating, degraded" after the run's change: helper trial)."""
     if not run_id:
         return []
     windows = [
@@ -190,8 +193,13 @@ def watch_lines(runs: Path, loop: str, run_id: str) -> list[str]:
         for m in _monitor_records(runs / MONITOR_FILE)
         if m.loop == loop and m.run_id == run_id
     ]
+    later = _next_change_t(runs, loop, run_id, prefix)
+    after = [m for m in windows if later is not None and m["t"] > later]
+    windows = [m for m in windows if later is None or m["t"] <= later]
     if not windows:
-        return []
+        if not after or later is None:
+            return []
+        return [f"watched after the change: no window before the next change (t = {later:.6g} s)"]
     flagged = sorted({f for m in windows for f in (m.get("flags") or {})})
     last = windows[-1]
     osc = (
@@ -211,7 +219,22 @@ def watch_lines(runs: Path, loop: str, run_id: str) -> list[str]:
     ]
     for flag, why in (last.get("flags") or {}).items():
         lines.append(f"  {flag}: {str(why)[:110]}")
+    if after and later is not None:
+        lines.append(
+            f"  {len(after)} later window(s) left out: the gains changed again at t = {later:.6g} s"
+        )
     return lines
+
+
+def _next_change_t(runs: Path, loop: str, run_id: str, prefix: str | None) -> float | None:
+    """The sim time of the loop's first change of gains after run ``run_id``'s (None: none
+    on record, or the run's change not on record)."""
+    changes = loop_changes(runs / HISTORY_FILE, loop, prefix) if loop else []
+    mine = [i for i, c in enumerate(changes) if c.get("run_id") == run_id]
+    if not mine or mine[-1] + 1 >= len(changes):
+        return None
+    t = changes[mine[-1] + 1].get("t")
+    return float(t) if isinstance(t, int | float) else None
 
 
 def _gains_text(g: dict | None) -> str:
