@@ -62,3 +62,28 @@ def test_an_apply_run_is_listed_as_an_apply_not_as_a_test():
         check=True,
     )
     assert json.loads(out.stdout) == ["apply of 04e4a18e25fa", "relay"]
+
+
+@pytest.mark.skipif(shutil.which("node") is None, reason="node is not installed")
+def test_a_rule_unstable_on_the_model_shows_no_margins_or_overshoot():
+    """The page showed cc-pid on lvl1 (unstable on the sampled model) with GM 0.92, PM -7.57°,
+    an overshoot of 3404.4 % and a decay ratio of 1.22 as if they were figures; `autotune
+    tune` says "UNSTABLE on the model"."""
+    script = files("services.console").joinpath("static/console.js").read_text()
+    lines = [
+        re.findall(rf"^const {name} = .*$", script, flags=re.MULTILINE)[0]
+        for name in ("fmt", "fixed", "robustCells")
+    ]
+    rows = [
+        {"ms": None, "gain_margin": 0.92, "phase_margin_deg": -7.57, "overshoot_pct": 3404.4,
+         "decay_ratio": 1.22, "stable": False},
+        {"ms": 1.39, "gain_margin": 4.72, "phase_margin_deg": 57.8, "overshoot_pct": 16.9,
+         "decay_ratio": 0.0, "stable": True},
+    ]  # fmt: skip
+    code = "\n".join(lines) + f"\nconsole.log(JSON.stringify({json.dumps(rows)}.map(robustCells)))"
+    out = subprocess.run(
+        ["node", "-e", code], capture_output=True, text=True, timeout=30, check=True
+    )
+    unstable, stable = json.loads(out.stdout)
+    assert "UNSTABLE on the model" in unstable and "3404" not in unstable
+    assert stable == "<td>1.39</td><td>4.72</td><td>57.8</td><td>16.9</td><td>0.00</td>"

@@ -316,6 +316,13 @@ $("tune-cancel").onclick = () => {
 
 // --- the result --------------------------------------------------------------------------------
 
+// a rule's predicted Ms, margins, overshoot and decay ratio; on a loop the model says is
+// unstable they mean nothing, said so as `autotune tune` does (the page showed cc-pid on lvl1
+// with GM 0.92, PM -7.57°, an overshoot of 3404.4 % and a decay ratio of 1.22 as figures)
+// an Ms the measured point alone set (the model misses the plant there) is marked, as the CLI marks it
+const FLOOR_NOTE = "Ms from the measured ultimate point alone: the model misses the plant there, so GM, PM, OS and DR are the model's, not the plant's";
+const robustCells = (a) => (a.stable === false ? '<td colspan="5" class="bad">UNSTABLE on the model</td>' : `<td${a.ms_from_point ? ` title="${FLOOR_NOTE}"` : ""}>${fmt(a.ms, 3)}${a.ms_from_point ? "*" : ""}</td><td>${fmt(a.gain_margin, 3)}</td><td>${fmt(a.phase_margin_deg, 3)}</td><td>${fixed(a.overshoot_pct, 1)}</td><td>${fixed(a.decay_ratio, 2)}</td>`);
+
 function renderResult() {
   const m = S.results[S.selected];
   const head = $("result-head"), thead = $("rules").tHead, tbody = $("rules").tBodies[0];
@@ -345,7 +352,7 @@ function renderResult() {
     const a = (r.robustness || {})[name] || {}, isa = g.isa || {};
     const cls = [name === rec ? "recommended" : "", name === chosen ? "chosen" : ""].join(" ");
     return `<tr class="${cls}" data-rule="${esc(name)}"><td>${esc(name)}</td><td>${fmt(isa.kc)}</td><td>${isa.ti === null ? "off" : fmt(isa.ti)}</td><td>${fmt(isa.td)}</td>
-      <td${a.ms_from_point ? ' title="Ms from the measured ultimate point alone: the model misses the plant there, so GM, PM, OS and DR are the model\'s, not the plant\'s"' : ""}>${fmt(a.ms, 3)}${a.ms_from_point ? "*" : ""}</td><td>${fmt(a.gain_margin, 3)}</td><td>${fmt(a.phase_margin_deg, 3)}</td><td>${fixed(a.overshoot_pct, 1)}</td><td>${fixed(a.decay_ratio, 2)}</td></tr>`;
+      ${robustCells(a)}</tr>`;
   }).join("");
   for (const tr of tbody.rows) tr.onclick = () => { S.chosenRule = tr.dataset.rule; renderResult(); };
   const applied = r.applied || (m.applied_by && m.applied_by.applied);
