@@ -30,7 +30,7 @@ from services.autotuner.monitor.assessment import (
 from services.autotuner.monitor.idle_index import SLUGGISH_LIMIT
 from services.autotuner.monitor.oscillation import DETECTION_LIMIT, OscillationDetector
 from services.autotuner.monitor.performance import performance
-from services.autotuner.tuning import TuningRun
+from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.loop import SimLoop
@@ -147,8 +147,14 @@ def tuned():
     """The product's whole tune in process (relay, the recommended rule, apply, verify): the
     loop left in auto with the recommended gains, and the run's result."""
     loop = plant()
-    result = TuningRun(LocalLoopClient(loop), TuneRequest(loop="x"), "unit").run()
+    seen: list = []
+    hooks = RunHooks(progress=seen.append)
+    result = TuningRun(LocalLoopClient(loop), TuneRequest(loop="x"), "unit", hooks=hooks).run()
     assert result.status == "ok" and result.applied, result.reason
+    # the "done" progress keeps the relay's cycles (it said 0, as if none had been measured,
+    # on the console's progress panel after eight: helper trial)
+    counted = max(p.cycles for p in seen)
+    assert counted > 0 and seen[-1].phase == "done" and seen[-1].cycles == counted
     return loop, result
 
 

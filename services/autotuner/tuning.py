@@ -292,6 +292,9 @@ class TuningRun:
         self._predicted_ms: float | None = None
         # the chosen gains' gain margin on the model's sampled loop (None: not predicted)
         self._predicted_gm: float | None = None
+        # the relay cycles the run's progress last counted, for its "done" (which said 0
+        # after eight cycles on the console's progress panel)
+        self._cycles = 0
         # the last verification's setpoint step: (t, PV, t0, y0, target, width), as measured
         self._sp_step: tuple[np.ndarray, np.ndarray, float, float, float, int] | None = None
 
@@ -305,6 +308,8 @@ class TuningRun:
         pu: float | None = None,
         message: str = "",
     ) -> None:
+        if cycles:
+            self._cycles = cycles
         self.hooks.progress(
             TuneProgress(
                 run_id=self.run_id,
@@ -876,7 +881,11 @@ class TuningRun:
                 "limits or at an end of its range",
             ]
         self._progress(
-            "done", ku=result.get("ku"), pu=result.get("pu"), message=result.get("reason") or ""
+            "done",
+            cycles=self._cycles,
+            ku=result.get("ku"),
+            pu=result.get("pu"),
+            message=result.get("reason") or "",
         )
         clean = {
             k: finite(v) if k not in ("before", "after", "previous_gains", "pv_range") else v
