@@ -119,3 +119,34 @@ def test_a_cancel_with_no_run_going_on_the_loop_is_refused(bridge):
         assert got["message"] == "cancel sent to flow2's run: the tuner restores the loop"
     finally:
         token.undeclare()
+
+
+def test_two_reverts_pressed_at_once_write_one_after_the_other(bridge, monkeypatch):
+    """Two Reverts pressed at once ran side by side in the page's workers: both read the loop
+    before either wrote, both passed the check of the gains the page showed, and both said
+    "hx1 reverted" (helper trial). The page's writes of gains go one at a time, so the second
+    reads what the first wrote (and is refused by that check)."""
+    import threading
+    import time
+
+    from services.console import actions
+
+    inside, most = [0], [0]
+    guard = threading.Lock()
+
+    def revert(*args, **kwargs):
+        with guard:
+            inside[0] += 1
+            most[0] = max(most[0], inside[0])
+        time.sleep(0.3)
+        with guard:
+            inside[0] -= 1
+        return {"after": {"kc": 2.0, "ti": 60.0, "td": 0.0}}
+
+    monkeypatch.setattr(actions, "revert", revert)
+    replies: queue.Queue[dict] = queue.Queue()
+    for ident in (1, 2):
+        bridge.act({"type": "revert", "loop": "hx1", "id": ident}, replies.put)
+    got = [replies.get(timeout=10.0) for _ in range(2)]
+    assert all(g["ok"] for g in got), got
+    assert most[0] == 1

@@ -65,6 +65,10 @@ class Bridge:
         self.session, self.prefix, self.runs, self.emit = session, prefix, runs, emit
         self.history, self.user = history, user
         self._lock = threading.Lock()
+        # the page's direct writes of gains (Revert, a Reject that writes back) one at a time:
+        # two Reverts pressed at once both read the loop before either wrote, both passed the
+        # check of the gains the page showed, and both said "reverted" (helper trial)
+        self._writes = threading.Lock()
         self.alive: dict[str, set[str]] = {s: set() for s in SERVICES}
         self.loops_alive: set[str] = set()
         self.running: set[str] = set()
@@ -405,9 +409,16 @@ class Bridge:
         if last.get("run_id") != run_id:  # not the run the page shows: one on record?
             actions.check_run_of(self.runs, self.prefix, loop, run_id)
         if last.get("run_id") == run_id and changed_by:
-            done = actions.revert(
-                self.session, self.prefix, self.runs, loop, changed_by, self.user, last_only=True
-            )
+            with self._writes:
+                done = actions.revert(
+                    self.session,
+                    self.prefix,
+                    self.runs,
+                    loop,
+                    changed_by,
+                    self.user,
+                    last_only=True,
+                )
             say(
                 True, f"run {run_id} rejected: {loop}'s gains before it written back", reverted=done
             )
@@ -417,9 +428,10 @@ class Bridge:
     def _revert(self, msg: dict[str, Any], say: Callable[..., None]) -> None:
         loop = _field(msg, "loop")
         shown = _shown_gains(msg)
-        done = actions.revert(
-            self.session, self.prefix, self.runs, loop, None, self.user, shown=shown
-        )
+        with self._writes:
+            done = actions.revert(
+                self.session, self.prefix, self.runs, loop, None, self.user, shown=shown
+            )
         g = done["after"]
         ti = "off" if g["ti"] is None else f"{g['ti']:.4g} s"
         say(
