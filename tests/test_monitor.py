@@ -557,3 +557,20 @@ def test_the_report_leaves_out_windows_after_the_loop_s_next_change_of_gains(tmp
     assert lines[-1] == "  1 later window(s) left out: the gains changed again at t = 150 s"
     (tmp_path / HISTORY_FILE).write_text(json.dumps(changes[0]) + "\n")  # no later change
     assert "flags: oscillating" in watch_lines(tmp_path, "x", "r1")[0]
+
+
+def test_the_tuner_watches_an_applied_run_on_the_p_u_of_the_run_it_applied():
+    """After the console's Apply (``autotune apply``) the tuner's monitor of hx1 took Ti for
+    T_u (96 s against the relay's P_u of 43.7 s; its 46 s oscillation read as 92 s): an apply
+    run identifies nothing, its P_u None; its time scale is the applied relay run's P_u."""
+    from services.autotuner.service import watched
+    from shared.messages import TuneResult
+    from tests.test_loops_set import info, status
+
+    st = status(mode="auto", gains=PidGains(kc=6.973, ti=96.09, td=6.933))
+    base = dict(run_id="app1", loop="hx1", t=10.0, method="relay", rule="tl-pid", status="ok",
+                applied=True, timescale=43.68)  # fmt: skip
+    applied = TuneResult(**base, applied_from="rel0")
+    assert watched(applied, info(), st).watcher.settings.period == 43.68
+    step = TuneResult(**(base | {"method": "step", "timescale": 646.0}), applied_from="st0")
+    assert watched(step, info(), st).watcher.settings.period == 96.09  # no P_u: Ti

@@ -96,7 +96,13 @@ def watched(result: TuneResult, info: LoopInfo, status: LoopStatus) -> Watched |
     left them (``status``), its verification as the baseline."""
     if result.status not in APPLIED_STATUSES or not result.applied:
         return None
-    period, source = choose_period(None, result.pu, status.gains.ti, info.sample_time)
+    pu = result.pu
+    if pu is None and result.applied_from and result.method in ("relay", "ramp"):
+        # an apply identifies nothing: the P_u of the run it applied, which a relay or ramp
+        # run's time scale is (after the console's Apply the monitor took Ti for T_u, 96 s
+        # against hx1's P_u of 43.7 s, and read its 46 s oscillation as 92 s: helper trial)
+        pu = result.timescale
+    period, source = choose_period(None, pu, status.gains.ti, info.sample_time)
     g = status.gains
     return Watched(
         loop_watcher(period, source, info, status, result.model_dump()),
