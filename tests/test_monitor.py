@@ -574,3 +574,17 @@ def test_the_tuner_watches_an_applied_run_on_the_p_u_of_the_run_it_applied():
     assert watched(applied, info(), st).watcher.settings.period == 43.68
     step = TuneResult(**(base | {"method": "step", "timescale": 646.0}), applied_from="st0")
     assert watched(step, info(), st).watcher.settings.period == 96.09  # no P_u: Ti
+
+
+def test_an_oscillation_detected_on_one_side_only_has_its_own_period():
+    """Helper trial: hx1 with Kc 14 oscillated at 46 s, its upper half-periods larger than its
+    lower (the output at a limit); only those passed the IAE limit, a detection a period, and
+    the detector (2 × the mean time between detections) read the period as 92 s. Detections
+    a whole period apart are whole periods."""
+    det = OscillationDetector(4.0, 1.0, 0.01)
+    for k in range(8000):
+        t = k * 0.01
+        s = math.sin(2 * math.pi * t / 4.0)
+        det.feed(t, 0.0, 2.0 * s if s > 0 else 0.5 * s)  # the upper half detected, not the lower
+    assert det.oscillating(), det.count()
+    assert det.period_estimate() == pytest.approx(4.0, rel=0.02)

@@ -179,16 +179,23 @@ class OscillationDetector:
     def period_estimate(self) -> float | None:
         """2 × the mean time between the ends of successive detections within T_sup (those
         within a factor 1.5 of their median: a half-period missed, or a setpoint step's
-        first, does not count), s; None without three detections."""
+        first, does not count), per half-period between them, s; None without three
+        detections."""
         now = self.now
-        ends = [h.end for h in self.half_periods if h.end > now - self.supervision]
+        recent = [h for h in self.half_periods if h.end > now - self.supervision]
+        ends = [h.end for h in recent]
         gaps = sorted(b - a for a, b in itertools.pairwise(ends))
         if len(gaps) < 2:
             return None
         n = len(gaps)
         med = gaps[n // 2] if n % 2 else 0.5 * (gaps[n // 2 - 1] + gaps[n // 2])
         kept = [g for g in gaps if med / 1.5 <= g <= 1.5 * med]
-        return 2.0 * sum(kept) / len(kept)
+        # the half-periods between two detections, by the detected ones' own length: one
+        # where both halves are detected; two where only one side passes the limit (hx1 with
+        # Kc 14, its upper halves larger: a detection a period, read as twice the period)
+        length = sum(h.end - h.start for h in recent) / len(recent)
+        halves = max(1, round(med / length)) if length > 0 else 1
+        return 2.0 * sum(kept) / len(kept) / halves
 
     # --- input ----------------------------------------------------------------------------
 
