@@ -236,3 +236,10 @@ def test_a_refused_runs_report_shows_the_refused_gains_and_an_integrating_curve_
     text = _summary(RunSeries(*(np.zeros(2),) * 4, [], [], level, {}))
     assert "R = K' = 0.0001001 m/s per %  L = 2.28 s  a = R·L = 0.0002283 m/%" in text, text
     assert "K = " not in text and "refused:" not in text.split("\n")[2]  # ok: chosen, bare
+    # named as the reaction curve's, not read as a second model beside the fit's (lvl1's
+    # report: "K = 0.063 m/%  L = 0.5 s  T = 641 s" in its box, L 1.418 s in the fit's title)
+    assert "reaction curve: R = K' = " in text, text
+    regulating = {"gain": 0.063, "dead_time": 0.5, "time_constant_tangent": 641.0}
+    lvl1 = level.model_copy(update={"step": regulating})
+    text = _summary(RunSeries(*(np.zeros(2),) * 4, [], [], lvl1, {}))
+    assert "reaction curve: K = 0.063 m/%  L = 0.5 s  T = 641 s" in text, text

@@ -309,15 +309,17 @@ def _summary(s: RunSeries) -> str:
         )
     step = r.step if isinstance(r.step, dict) else {}
     pv = unit(r.pv_units)
+    # the reaction curve's figures, named so: beside the model fitted on the record (its own
+    # L, in the fit's title) they read as a second model (lvl1: L 0.5 s here, 1.418 s there)
     if step.get("method") == "integrating":  # no K nor T: its rate and dead time
         lines.append(
-            f"R = K' = {_g(step.get('reaction_rate'), '.4g', f' {pv}/s per %')}  "
+            f"reaction curve: R = K' = {_g(step.get('reaction_rate'), '.4g', f' {pv}/s per %')}  "
             f"L = {_g(step.get('dead_time'), '.3g', ' s')}  "
             f"a = R·L = {_g(step.get('a'), '.4g', f' {pv}/%')}"
         )
     elif step:
         lines.append(
-            f"K = {_g(step.get('gain'), '.3g', f' {pv}/%')}  "
+            f"reaction curve: K = {_g(step.get('gain'), '.3g', f' {pv}/%')}  "
             f"L = {_g(step.get('dead_time'), '.3g', ' s')}  "
             f"T = {_g(step.get('time_constant_tangent'), '.3g', ' s')}"
         )
