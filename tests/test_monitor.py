@@ -588,3 +588,16 @@ def test_an_oscillation_detected_on_one_side_only_has_its_own_period():
         det.feed(t, 0.0, 2.0 * s if s > 0 else 0.5 * s)  # the upper half detected, not the lower
     assert det.oscillating(), det.count()
     assert det.period_estimate() == pytest.approx(4.0, rel=0.02)
+
+
+def test_a_watch_of_a_loop_in_manual_says_nothing_was_assessed():
+    """`autotune watch lvl2` on a loop in manual printed "No flags: not oscillating, sluggish,
+    saturated or degraded." above its note that nothing was assessed (helper trial)."""
+    from services.autotuner.commands.watch import format_monitor
+
+    loop = plant()
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 3)  # in manual: nothing in auto
+    text = format_monitor(LoopMonitor(loop="x", node="watch", **watcher.report().to_dict()))
+    assert "Not assessed: the loop was not in auto" in text, text
+    assert "not oscillating" not in text

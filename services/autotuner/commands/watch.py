@@ -289,6 +289,10 @@ def format_monitor(m: LoopMonitor) -> str:
         )
     if m.flags:
         lines += [f"{flag.upper()}: {why}" for flag, why in m.flags.items()]
+    elif m.auto_fraction == 0:
+        # nothing in auto, nothing judged: it said "No flags: not oscillating, sluggish,
+        # saturated or degraded." of lvl2 in manual (helper trial)
+        lines.append("Not assessed: the loop was not in auto (no flag means nothing here)")
     else:
         short = any(n.startswith("the oscillation detector watched") for n in m.notes)
         lines.append(
