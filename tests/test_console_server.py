@@ -34,7 +34,7 @@ def test_the_page_and_its_assets_come_from_the_package(tmp_path):
 @pytest.mark.parametrize(
     ("origin", "allowed"),
     [(None, True), ("http://127.0.0.1:8050", True), ("http://evil.example", False),
-     ("http://127.0.0.1:9999", False)],
+     ("http://127.0.0.1:9999", False), ("http://[::1", False)],
 )  # fmt: skip
 def test_the_websocket_is_for_the_console_s_own_page(tmp_path, origin, allowed):
     headers = Headers({"Host": "127.0.0.1:8050"})
@@ -92,7 +92,7 @@ def test_bad_flags_and_a_port_in_use_exit_2_in_one_line(argv, says, taken_port, 
     ("host", "allowed"),
     [("127.0.0.1:8050", True), ("localhost:8050", True), ("[::1]:8050", True),
      ("10.0.0.5:8050", True), ("evil.example:8050", False), ("evil.example", False),
-     ("console.plant:8050", False), ("", False)],
+     ("console.plant:8050", False), ("", False), ("[::1", False), ("[x]:80", False)],
 )  # fmt: skip
 def test_a_page_reaching_the_console_by_another_sites_name_is_refused(tmp_path, host, allowed):
     """DNS rebinding: evil.example made to resolve to 127.0.0.1 reached the console from that

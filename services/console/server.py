@@ -83,7 +83,10 @@ def host_allowed(headers: Headers, hosts: frozenset[str]) -> bool:
     host = headers.get("Host")
     if host is None:
         return True
-    name = urlsplit(f"//{host}").hostname
+    try:  # a Host that is no host at all ("[::1") raised here: a 500, traceback in the log
+        name = urlsplit(f"//{host}").hostname
+    except ValueError:
+        return False
     if not name:
         return False
     try:
@@ -100,7 +103,11 @@ def same_origin(headers: Headers) -> bool:
     origin = headers.get("Origin")
     if origin is None:
         return True
-    return urlsplit(origin).netloc.lower() == (headers.get("Host") or "").lower()
+    try:  # an Origin that is no URL ("http://[::1") raised here: a 500
+        netloc = urlsplit(origin).netloc
+    except ValueError:
+        return False
+    return netloc.lower() == (headers.get("Host") or "").lower()
 
 
 def _response(status: HTTPStatus, body: bytes, content_type: str) -> Response:
