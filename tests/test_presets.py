@@ -87,3 +87,17 @@ def test_a_recommendation_from_a_pool_names_the_pool():
     for name in met:
         rob = r.robustness[name]
         assert rob["ms"] <= 1.8 and rob["overshoot_pct"] <= 25.0, (name, rob)
+
+
+def test_the_only_candidate_of_a_pool_is_said_to_be_the_pool_s():
+    """hx1 by relay: Tyreus–Luyben's PID is the only candidate left by the pool and is beyond
+    the margin; the reason read "the only candidate … (none within the margin)" beside a table
+    whose amigo-pi and lambda-pi are within it (console trial): it says the candidate is the
+    pool's, and the warning why."""
+    sim = default_plant()["hx1"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="hx1", apply=False), "preset").run()
+    reason = r.recommended["reason"]
+    assert reason.startswith("the only candidate kept (the warning says why)"), reason
+    assert any("the recommendation is Tyreus–Luyben's" in w for w in r.warnings), r.warnings
+    outside = [k for k, a in r.robustness.items() if k not in ("tl-pi", "tl-pid") and a["ms"] < 1.5]
+    assert outside, r.robustness  # the table's rules within the margin, not candidates

@@ -426,6 +426,7 @@ def recommend(
                 f"{also} on {on}{costly}: {', '.join(sorted(a.rule for a in met))}{among}",
             )
         judged = [a for a in safe.values() if a.robustness is not None]
+        kept = " kept (the warning says why)" if pooled else ""
         safest = min(judged, key=lambda a: a.robustness.ms, default=None)
         if safest is not None:
             return Recommendation(
@@ -435,10 +436,14 @@ def recommend(
                 # the candidates named: the table lists every rule, and some outside the
                 # pool may be within the margin (hx1 by relay: lambda-pid at 1.13 beside
                 # "none within the margin": helper 52)
+                # where the pool is the warning's (the relay's Tyreus–Luyben), the rules of
+                # the table within the margin are not candidates: said so (hx1 by relay's
+                # "the only candidate … none within the margin" read against amigo-pi at
+                # 1.36 in the table: helper trial)
                 (
-                    f"the only candidate on {on}"
+                    f"the only candidate{kept} on {on}"
                     if len(judged) == 1
-                    else f"the most robust of the candidates "
+                    else f"the most robust of the candidates{kept} "
                     f"{', '.join(sorted(a.rule for a in judged))} on {on}"
                 )
                 + f" (none within the margin {_margins(model, ms_bound)})",
