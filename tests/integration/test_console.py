@@ -191,6 +191,10 @@ def test_a_tune_started_watched_and_applied_from_the_page(
         shot = tmp_path / "console.png"
         assert d.save_screenshot(str(shot))
         assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        # a report the server cannot draw is its reason on the page, not a broken image
+        d.execute_script("showReports(['nosuch.mcap'])")
+        wait.until(lambda d: "nosuch.mcap" in text(d, "#reports p.bad"))
+        assert "nosuch.mcap" in text(d, "#messages")
 
         # revert: the gains before the change, written back through the plant's lease path
         click(wait, "#revert")

@@ -417,6 +417,19 @@ function showReports(files) {
   $("reports").innerHTML = files.map((f) => `<figure><figcaption>${esc(f)}</figcaption>
     <img alt="report of ${esc(f)}" src="/api/report.svg?file=${encodeURIComponent(f)}"></figure>`).join("");
   if (files.length < 2) $("compare-table").innerHTML = "";
+  // a report the server cannot draw (a run still being recorded, a damaged file) showed as a
+  // broken image: its one-line reason goes to the messages and the figure's caption instead
+  for (const img of $("reports").querySelectorAll("img")) {
+    img.onerror = async () => {
+      let why = "the report could not be drawn";
+      try {
+        const res = await fetch(img.src);
+        if (!res.ok) why = (await res.text()).trim() || why;
+      } catch (err) { /* the server is gone: the generic line */ }
+      img.replaceWith(Object.assign(document.createElement("p"), { className: "bad", textContent: why }));
+      say(why, false);
+    };
+  }
 }
 
 function table(rows) {
