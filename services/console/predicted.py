@@ -1,8 +1,10 @@
 """Each rule's predicted setpoint step, as a curve for the page's result panel.
 
 The same loop the tuner judged the rules on (``design/predicted_response.py``): the loop's own
-PID block (ISA form, derivative filter N = 10) at the loop's sample time, closing the loop on
-the identified model discretised exactly; a unit setpoint step from rest, small enough that
+PID block (ISA form, derivative filter N = 10) at the loop's sample time, or coarser where the
+curve's span would take more than ``POINTS`` of them (hx1's at 1.09 s for its 0.25 s: a curve
+to look at, not the tuner's figures), closing the loop on the identified model discretised
+exactly; a unit setpoint step from rest, small enough that
 the output limits do not bind, so the curve is the linear loop's, in units of the step.
 """
 
