@@ -349,6 +349,23 @@ def test_a_run_whose_samples_never_reached_the_logger_counts_them_dropped(
     assert rec.counts["dropped"] == 20
 
 
+def test_a_sample_whose_time_is_not_its_number_is_not_the_plants(rec: Recorder) -> None:
+    """A sample with seq 10⁹ published on the loop's key mid-run (a bus without credentials)
+    made the run's file say 999,757,179 samples dropped (helper trial). The plant's samples
+    are at t = seq × the loop's sample time; one that is not is left out and counted, and the
+    run's count of dropped samples is the plant's own."""
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 10 * DT))
+    send(rec, keys.tune_event(P, LOOP), _request("r1", 10 * DT))
+    samples(rec, 10, 14)
+    forged = sample(10**9).model_copy(update={"t": 15 * DT})
+    send(rec, keys.pv(P, LOOP), forged)
+    samples(rec, 15, 20)
+    send(rec, keys.tune_result(P, LOOP), result("r1", 20 * DT))
+    meta, _ = only_file(rec)
+    assert (meta["samples"], meta["dropped"], meta["last_seq"]) == ("11", "0", "20")
+    assert rec.counts["inconsistent"] == 1
+
+
 def test_a_run_that_took_no_sample_drops_none(rec: Recorder) -> None:
     """A run that ended at its start's sim time (refused, say, in lockstep: no sample taken)
     is missing nothing."""

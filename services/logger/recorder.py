@@ -176,6 +176,9 @@ class OpenRun:
     held: bool = False  # a plant status showed this run holding the loop
     heard_at: float | None = None  # wall clock (monotonic) of its last message written
     opened_at: float | None = None  # wall clock (monotonic) the run's file was opened
+    ts: float | None = None  # the loop's sample time, s, from the run's request (its info)
+    # samples left out as not the plant's: their sim time is not their number × ts
+    inconsistent: int = 0
 
 
 @dataclass
@@ -465,6 +468,8 @@ class Recorder:
             self._late_result(key, model, payload, msg)
             return
         if isinstance(msg, ProcessSample):
+            if self._not_the_plants(stream.run, msg):
+                return
             if msg.seq == stream.last_sample_seq and payload == stream.last_sample:
                 self.counts["duplicates"] += 1  # the same sample delivered again
                 return
@@ -724,6 +729,30 @@ class Recorder:
             isinstance(msg, ProcessSample) and run.last_seq is not None and msg.seq <= run.last_seq
         )
 
+    def _not_the_plants(self, run: OpenRun | None, msg: ProcessSample) -> bool:
+        """A sample whose sim time is not its number × the loop's sample time (the plant's
+        always is): a forged or garbled one, left out of the run and of the stream's evidence
+        and counted (one with seq 1e9 made a run's file say 999,757,179 samples dropped, and
+        its loop's next samples read as a new plant instance's: helper trial). Known only
+        once a run's request told the sample time."""
+        if run is None or run.ts is None:
+            return False
+        if abs(msg.t - msg.seq * run.ts) <= 1e-6 * max(1.0, abs(msg.t)):
+            return False
+        run.inconsistent += 1
+        self.counts["inconsistent"] += 1
+        if run.inconsistent == 1:
+            log.warning(
+                "run %s on %s: a sample whose sim time %g s is not its number %d × the loop's "
+                "sample time %g s is not the plant's: left out (others counted)",
+                run.run_id,
+                run.loop,
+                msg.t,
+                msg.seq,
+                run.ts,
+            )
+        return True
+
     def _status(self, stream: Stream, run: OpenRun, msg: LoopStatus) -> None:
         """A status of the run's loop: the watchdog's restore ends a run whose tuner is gone."""
         if msg.reason != "watchdog" or self._lease_held(run, msg):
@@ -816,6 +845,10 @@ class Recorder:
         elif isinstance(msg, TunerEvent) and msg.kind == "request":
             run.request = str(msg.data.get("request", ""))
             run.info = str(msg.data.get("info", ""))
+            try:
+                run.ts = LoopInfo.model_validate_json(run.info).sample_time
+            except pydantic.ValidationError:
+                run.ts = None
             try:
                 request = json_text.loads(run.request)
                 run.rule = request.get("rule", "")
