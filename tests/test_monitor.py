@@ -590,6 +590,22 @@ def test_an_oscillation_detected_on_one_side_only_has_its_own_period():
     assert det.period_estimate() == pytest.approx(4.0, rel=0.02)
 
 
+def test_an_oscillation_whose_halves_differ_more_than_3_to_1_has_a_period():
+    """Both halves detected, one more than 3 times the other (a level whose output rests at a
+    limit, 100 s up and 20 s down, watched on T_u 46 s): with an even count of gaps none was
+    within 1.5 of their median (the mean of one short and one long), and period_estimate,
+    called on each detection, raised ZeroDivisionError in the monitor."""
+    det = OscillationDetector(46.0, 0.5, 1.0)
+    t = 0.0
+    for _ in range(20):
+        for up, n in ((1.0, 100), (-5.0, 20)):
+            for _ in range(n):
+                det.feed(t, 50.0, 50.0 - up)
+                t += 1.0
+    assert det.oscillating(), det.count()
+    assert det.period_estimate() is not None
+
+
 def test_a_watch_of_a_loop_in_manual_says_nothing_was_assessed():
     """`autotune watch lvl2` on a loop in manual printed "No flags: not oscillating, sluggish,
     saturated or degraded." above its note that nothing was assessed (helper trial)."""

@@ -189,7 +189,10 @@ class OscillationDetector:
             return None
         n = len(gaps)
         med = gaps[n // 2] if n % 2 else 0.5 * (gaps[n // 2 - 1] + gaps[n // 2])
-        kept = [g for g in gaps if med / 1.5 <= g <= 1.5 * med]
+        # none within 1.5 of an even count's median (two halves more than 3 to 1, both
+        # detected: the mean of the middle two is near neither): all of them (a ZeroDivisionError
+        # on a level loop's 94 s up, 26 s down oscillation stopped the tuner's monitor)
+        kept = [g for g in gaps if med / 1.5 <= g <= 1.5 * med] or gaps
         # the half-periods between two detections, by the detected ones' own length: one
         # where both halves are detected; two where only one side passes the limit (hx1 with
         # Kc 14, its upper halves larger: a detection a period, read as twice the period)
