@@ -246,6 +246,19 @@ def test_a_result_is_a_tune_record_with_what_apply_needs(tmp_path):
     assert (rec["timescale"], rec["noise"], rec["ku"]) == (43.6, 0.02, 15.2)
 
 
+def test_a_tune_record_keeps_the_ms_bound_apply_verifies_its_gains_within(tmp_path):
+    """`autotune apply` takes the run's --ms-bound from its ``tune`` record (recorded_bound):
+    the record did not carry it, so an apply of a run tuned with --ms-bound 3 was checked at
+    Kc × 2, the default bound's factor, not the 1.5 its own bound admits."""
+    from services.autotuner.commands.apply import recorded_bound
+
+    h = history(tmp_path)
+    r = TuneResult(run_id="r9", loop=LOOP, t=100.0, method="relay", rule="tl-pid", status="ok")
+    feed(h, r.model_copy(update={"ms_bound": 3.0}))
+    (rec,) = [x for x in read_history(tmp_path / HISTORY_FILE) if x["record"] == "tune"]
+    assert recorded_bound(rec) == {"ms_bound": 3.0}
+
+
 def test_the_listing_offers_apply_only_for_a_run_with_gains_to_apply():
     """A proposed (or rejected) run's gains can be applied later; an aborted run has none:
     the listing told the operator to `autotune apply` it, which then refused."""

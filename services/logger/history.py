@@ -279,6 +279,10 @@ class ChangeHistory:
                 "identified_on": r.identified_on,
                 "timescale": r.timescale,
                 "noise": r.noise,
+                # the --ms-bound the gains were judged within: `autotune apply` verifies them
+                # within it (without it here, an apply of a run tuned with --ms-bound 3 had
+                # its gains checked at Kc × 2, not the 1.5 that bound admits)
+                "ms_bound": r.ms_bound,
                 # why none of them may be applied (``autotune apply`` refuses the run)
                 "contradiction": r.contradiction,
                 # the run's model misses the plant, as its warning says: ``autotune apply
