@@ -296,6 +296,24 @@ def test_an_apply_of_a_run_s_gains_is_checked_within_the_run_s_bound():
     assert r.after.margin_factor == pytest.approx(1.5)
 
 
+def test_the_console_s_apply_asks_for_the_run_s_bound_as_autotune_apply_does(monkeypatch, tmp_path):
+    """The console's Apply built its own request, without the run's ``--ms-bound``: a run
+    tuned with --ms-bound 3 and applied from the page had its gains checked at Kc × 2 (and
+    rejected), where ``autotune apply`` checks them at Kc × 1.5. Its record is the change
+    history's, as the logger writes it."""
+    from services.console import actions
+    from services.logger.history import ChangeHistory
+
+    proposed, _ = _tl_pid(ms_bound=3.0, apply=False)
+    ChangeHistory(tmp_path, "p")._result(proposed)
+    info = LocalLoopClient(build_plant({"seed": 2, "loops": {"x": dict(FOPDT)}}, "unit")["x"]).info
+    monkeypatch.setattr(actions.wire, "query_one", lambda *a, **k: info)
+    monkeypatch.setattr(actions, "same_loop", lambda *a: None)
+    req = actions.apply_request(None, "p", tmp_path, proposed.run_id, "tl-pid")
+    assert req.ms_bound == 3.0
+    assert req.apply_gains is not None and req.apply_timescale == proposed.timescale
+
+
 @pytest.mark.parametrize("bad", [None, True, 1.0, 0.5, 11.0, "3", float("nan")])
 def test_a_bound_no_request_may_carry_is_not_taken_from_a_record(bad):
     assert apply_command.recorded_bound({"ms_bound": bad}) == {}

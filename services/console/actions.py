@@ -19,9 +19,8 @@ import zenoh
 
 from services.autotuner.commands.apply import (
     choose,
-    predicted_ms,
+    recorded_request,
     recorded_run,
-    recorded_timescale,
     same_loop,
 )
 from services.autotuner.commands.revert import CATCH_UP, reverted_gains, target
@@ -111,26 +110,13 @@ def apply_request(
     the reason otherwise."""
     rec = _record(runs, run_id)
     loop = str(rec.get("loop"))
-    rule, gains, predicted = choose(rec, rule)
-    scale = recorded_timescale(rec)
+    req = recorded_request(rec, run_id, choose(rec, rule), True, SOURCE)
     info = wire.query_one(session, keys.info(prefix, loop), LoopInfo, LOOP_WAIT)
     if info is None:
         raise AutotuneError(f"loop {loop}: no plant answers for it")
     if (why := same_loop(rec.get("identified_on"), info)) is not None:
         raise AutotuneError(f"loop {loop} is not the loop run {run_id} identified: {why}")
-    return TuneRequest(
-        loop=loop,
-        method=rec.get("method") or "relay",
-        rule=rule,
-        verify=True,
-        apply_from=run_id,
-        apply_gains=gains,
-        apply_predicted_overshoot=predicted,
-        apply_predicted_ms=predicted_ms(rec, rule),
-        apply_timescale=scale,
-        apply_noise=rec.get("noise"),
-        source=SOURCE,
-    )
+    return req
 
 
 def revert(

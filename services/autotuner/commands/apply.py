@@ -122,6 +122,35 @@ def recorded_bound(run: dict[str, Any]) -> dict[str, float]:
     return {}
 
 
+def recorded_request(
+    run: dict[str, Any],
+    run_id: str,
+    choice: tuple[str, PidGains, float | None],
+    verify: bool,
+    source: str,
+) -> TuneRequest:
+    """The request that applies run ``run_id``'s gains (``choice``: ``choose``'s rule, gains
+    and predicted overshoot), judged as that run judged them: one statement for ``autotune
+    apply`` and the console's Apply (the console's left out the run's ``--ms-bound``, so a run
+    tuned with --ms-bound 3 and applied from the page was checked at Kc × 2). ConfigError
+    where the run has no time scale."""
+    rule, gains, predicted = choice
+    return TuneRequest(
+        loop=str(run.get("loop")),
+        method=run.get("method") or "relay",
+        rule=rule,
+        verify=verify,
+        apply_from=run_id,
+        apply_gains=gains,
+        apply_predicted_overshoot=predicted,
+        apply_predicted_ms=predicted_ms(run, rule),
+        apply_timescale=recorded_timescale(run),
+        apply_noise=run.get("noise"),
+        source=source,
+        **recorded_bound(run),
+    )
+
+
 def recorded_timescale(run: dict[str, Any]) -> float:
     """The time scale (s) the run identified, which an apply's verification and its wait for
     the PV's return are sized on; ConfigError naming the run when it has none."""
@@ -172,7 +201,7 @@ def run(args: argparse.Namespace) -> int:
         hint = elsewhere_asked(settings_from_args(args), args.prefix, runs)
         raise ConfigError(f"{err}{hint}") from None
     loop = str(rec.get("loop"))
-    rule, gains, predicted = choose(rec, args.rule)
+    choice = choose(rec, args.rule)
     if args.no_verify and rec.get("model_misses"):
         # as the run itself refuses --no-verify on such a model (``TuningRun``): the gains
         # of a model known wrong are not put in the loop untried (review: apply was the way
@@ -182,20 +211,7 @@ def run(args: argparse.Namespace) -> int:
             "its gains are not applied without verification; apply them verified (without "
             "--no-verify)"
         )
-    req = TuneRequest(
-        loop=loop,
-        method=rec.get("method") or "relay",
-        rule=rule,
-        verify=not args.no_verify,
-        apply_from=args.run_id,
-        apply_gains=gains,
-        apply_predicted_overshoot=predicted,
-        apply_predicted_ms=predicted_ms(rec, rule),
-        apply_timescale=recorded_timescale(rec),
-        apply_noise=rec.get("noise"),
-        source="autotune-apply",
-        **recorded_bound(rec),
-    )
+    req = recorded_request(rec, args.run_id, choice, not args.no_verify, "autotune-apply")
 
     def same_as_identified(session: zenoh.Session) -> None:
         info = wire.query_one(session, keys.info(args.prefix, loop), LoopInfo, 5.0)
