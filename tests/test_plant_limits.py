@@ -208,3 +208,6 @@ def test_a_replayed_command_never_reaches_the_loop(service) -> None:
     after = service.loops["x"].snapshot()
     assert (after.mode, after.op) == (before.mode, before.op)
     assert service.rejected_by_reason["replay"] == 3
+    # and against the loop, as `autotune loops x --json` shows them (it said 0 refusals)
+    assert service.loops["x"].rejected == 3
+    assert "replayed from run.mcap" in service.loops["x"].last_reject

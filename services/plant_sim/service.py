@@ -484,13 +484,21 @@ class PlantService:
             # its valve to 55 % and left that run's gains on it, filed in the change history
             # as the run's: helper trial)
             with self.lock:
-                self._reject(
-                    None,
-                    "replay",
-                    f"{sample.key_expr}: a command replayed from {source} (autotune "
-                    "replay): never applied",
-                    [],
-                )
+                # counted against its loop too (`autotune loops LOOP --json`: rejected,
+                # last_reject), which said 0 refusals after a replay's 200 commands; its
+                # status not published (a replay's commands answered on the live bus)
+                parsed = keys.parse_command(self.opt.prefix, str(sample.key_expr))
+                loop = self._fresh(parsed[0]) if parsed and parsed[0] in self.loops else None
+                try:
+                    self._reject(
+                        loop,
+                        "replay",
+                        f"{sample.key_expr}: a command replayed from {source} (autotune "
+                        "replay): never applied",
+                        [],
+                    )
+                finally:
+                    self._settle()
             return
         try:
             self.handle_command(
