@@ -1640,3 +1640,24 @@ def test_a_foreign_file_with_a_run_metadata_record_is_no_run(tmp_path, capsys):
     assert code == 2 and "not an autotune run file" in err and not (tmp_path / "r.mcap").exists()
     code, out, err = cli(capsys, "analyze", str(foreign))
     assert code == 2 and "not an autotune run file" in err, err
+
+
+def test_a_hole_in_the_recording_is_replayed_as_one_spacing():
+    """A replay paced by log time went silent for a hole's length (samples a paused logger
+    missed: 70 s at --rate 1), and a logger recording the replay ended its file incomplete at
+    60 s of silence (review). A gap over 20 usual spacings (and 1 s) is replayed as one."""
+    from services.logger.commands.replay import paced
+
+    ns = [round(x * 1e9) for x in (0.0, 0.1, 0.1, 0.2, 0.3, 70.3, 70.4, 70.5)]
+    schedule, cut = paced(ns)
+    assert schedule == pytest.approx([0.0, 0.1, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6])
+    assert cut == pytest.approx(69.9)
+    # no hole: the recording's own pace, to the ns
+    schedule, cut = paced(ns[:5])
+    assert schedule == pytest.approx([0.0, 0.1, 0.1, 0.2, 0.3]) and cut == 0.0
+    # in file order, not time order (a lockstep advance's command before its samples): the
+    # timeline's holes, not the file's jumps
+    filed = [ns[0], ns[4], ns[1], ns[2], ns[3], ns[7], ns[5], ns[6]]
+    schedule, cut = paced(filed)
+    assert schedule == pytest.approx([0.0, 0.3, 0.1, 0.1, 0.2, 0.6, 0.4, 0.5])
+    assert cut == pytest.approx(69.9)

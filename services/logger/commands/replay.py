@@ -16,7 +16,9 @@ exit 2.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import statistics
 import sys
 import time
 from dataclasses import dataclass
@@ -166,6 +168,36 @@ def select(
     return keep
 
 
+# a pause in the recording this many times its usual spacing (and over HOLE_MIN s) is a hole,
+# samples the logger missed: replayed as one usual spacing, not as silence (a 70 s hole went
+# silent for 70 s at --rate 1, and a logger recording the replay ended its file incomplete:
+# review). Sim times inside the messages keep the hole.
+HOLE_FACTOR = 20.0
+HOLE_MIN = 1.0  # s of the recording
+
+
+def paced(log_times: list[int]) -> tuple[list[float], float]:
+    """The replay's schedule: each record's offset in s of the recording from the earliest
+    (records in file order, whose log times need not be: a lockstep advance's command is
+    filed before its samples), the holes of the recording's timeline shortened to its usual
+    spacing (the median gap between its distinct log times); and the s taken out.
+    ``log_times`` in ns."""
+    times = sorted(set(log_times))
+    if not times:
+        return [], 0.0
+    gaps = [(b - a) / 1e9 for a, b in itertools.pairwise(times)]
+    usual = statistics.median(gaps) if gaps else 0.0
+    at = {times[0]: 0.0}
+    offset, cut = 0.0, 0.0
+    for t, g in zip(times[1:], gaps, strict=True):
+        if usual > 0 and g > max(HOLE_FACTOR * usual, HOLE_MIN):
+            cut += g - usual
+            g = usual
+        offset += g
+        at[t] = offset
+    return [at[t] for t in log_times], cut
+
+
 def _starts(records: list[Record]) -> bool:
     """Whether ``records`` hold a run's start (its ``start`` progress message)."""
     for r in records:
@@ -278,10 +310,17 @@ def run(args: argparse.Namespace) -> int:
     attachment = replay_attachment(Path(args.file).name)
     with open_session(settings_from_args(args)) as session:
         wait_for_subscriber(session, [out.key for out in chosen], args.wait)
-        wall0, t0 = time.monotonic(), chosen[0].record.log_time
-        for out in chosen:
+        schedule, cut = paced([out.record.log_time for out in chosen])
+        if cut > 0:
+            print(
+                f"note: {cut:.4g} s of holes in the recording (samples its logger missed) are "
+                "replayed as one sample's spacing each",
+                file=sys.stderr,
+            )
+        wall0, first = time.monotonic(), schedule[0] if schedule else 0.0
+        for out, offset in zip(chosen, schedule, strict=True):
             r = out.record
-            due = wall0 + max(0, r.log_time - t0) / 1e9 / args.rate
+            due = wall0 + max(0.0, offset - first) / args.rate
             delay = due - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
