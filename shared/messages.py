@@ -710,8 +710,12 @@ class TuneResult(Message):
     requested_rule: str | None = None  # "auto" or the rule asked for
     ms_bound: float | None = Field(
         default=None,
-        description="the --ms-bound the gains were judged within (an apply of them later "
-        "verifies them within the same, its gain-margin check at the same factor)",
+        # left off the wire at the default bound: a reader of a version before it refuses
+        # the field (as ``lease_user`` and ``answer_by`` are left off)
+        exclude_if=lambda v: v is None,
+        description="the --ms-bound the gains were judged within, where not the default "
+        "(an apply of them later verifies them within the same, its gain-margin check at "
+        "the same factor)",
     )
     recommended: dict[str, Any] | None = Field(
         default=None, description="rule, reason, predicted ms"

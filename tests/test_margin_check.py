@@ -324,6 +324,8 @@ def test_a_margin_the_model_predicts_under_the_factor_is_said_so_not_blamed_on_a
     away, as the model's own gain margin (1.67) says it must; no resonance is blamed."""
     r, exact = _tl_pid(force=True)
     assert exact < 2.0
+    # the default bound is left off the wire (a reader before the field refuses it)
+    assert r.ms_bound is None and "ms_bound" not in r.model_dump_json()
     assert r.status == "rejected", r.reason
     assert "gain margin under 2" in r.reason
     assert "As the process model predicts" in r.reason and "gain margin of 1.67" in r.reason

@@ -108,6 +108,7 @@ VERIFY_SETTLE_SPANS = 3
 # step for 80,000 s: review). Rules give up to 60 (lvl1, lambda PI, seed 0; lvl2 33; field
 # cases 2.2): a watch of 800 time scales at most (it was 1,592 just under a bound of 200)
 VERIFY_TI_SCALES = 100.0
+DEFAULT_MS_BOUND = TuneRequest.model_fields["ms_bound"].default  # 2.0
 # of the PV range: the least band a verification judges the loop at rest at its setpoint by
 # (before its step, and back after it): a 16-bit transmitter resolves 1.5e-5 of its span
 REST_FLOOR = 1e-5
@@ -354,7 +355,8 @@ class TuningRun:
             "method": req.method,
             "rule": req.rule,
             "requested_rule": req.rule,
-            "ms_bound": req.ms_bound,
+            # on record where not the default (``TuneResult.ms_bound``)
+            "ms_bound": None if req.ms_bound == DEFAULT_MS_BOUND else req.ms_bound,
             "previous_gains": first.gains,
             "pv_units": self.info.pv_units,
             "pv_range": tuple(self.info.pv_range),
