@@ -734,7 +734,9 @@ class TuningRun:
         predicted = step.step.overshoot if step is not None and step.step else None
         if step is not None and step.robustness is not None:
             self._predicted_ms = step.robustness.ms
-            self._predicted_gm = step.robustness.gain_margin
+            # (not where the model misses the plant at the measured point: its margin there
+            # is not the plant's, and a check's failure is not "as the model predicts")
+            self._predicted_gm = None if step.ms_from_point else step.robustness.gain_margin
         return ident, chosen, predicted
 
     def _recorded(
