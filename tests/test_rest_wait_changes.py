@@ -109,3 +109,18 @@ def test_the_gains_before_the_run_are_those_the_lease_found():
     r = TuningRun(SetsGains(sim), req, "x", RunHooks()).run()
     assert r.status == "proposed", r.reason
     assert r.previous_gains == mine and sim.pid.gains.kc == mine.kc  # restored to them
+
+
+def test_the_wait_for_rest_says_how_long_it_watches():
+    """A run first watches the PV over a window as long as the loop's Ti, even in manual
+    (helper h6: lvl2 in manual, Ti 4000 s, watched 900 s of sim time — 3 minutes at ×5 —
+    with nothing but "start" on the progress line). The wait says its window and why."""
+    sim = build_plant({"seed": 1, "loops": {"lvl2": {"model": "tank_level_integrating"}}})["lvl2"]
+    assert sim.mode == "manual" and sim.status(NODE, "lockstep", "x").gains.ti == 4000.0
+    said: list[TuneProgress] = []
+    req = TuneRequest(loop="lvl2", method="step")
+    TuningRun(LocalLoopClient(sim), req, "x", RunHooks(progress=said.append)).run()
+    rest = [p.message for p in said if p.phase == "rest"]
+    # in the first 40 characters: what the CLI's progress line shows
+    assert rest and rest[0][:40].startswith("rest window 900 s (Ti 4000 s, capped)"), rest
+    assert "--rest-window" in rest[0], rest[0]

@@ -932,6 +932,24 @@ class TuningRun:
         )
         return check, window
 
+    def _rest_window_said(self, status: LoopStatus, window: float) -> str:
+        """The progress line that opens the wait for rest: how long it watches, and why, in
+        its first 40 characters (what the CLI's progress line shows): a manual loop's window
+        is its block's Ti too, and lvl2's 900 s showed only "start"."""
+        ti = status.gains.ti
+        if self.req.rest_window:
+            why = "--rest-window"
+        elif ti and math.isclose(window, ti):
+            why = "= Ti"
+        elif ti and window < ti:
+            why = f"Ti {ti:.4g} s, capped"
+        else:
+            why = "40 samples"
+        return (
+            f"rest window {window:.4g} s ({why}): watching the PV, changing nothing "
+            "(--rest-window sets it)"
+        )
+
     def _wait_for_rest(self, first: LoopStatus) -> dict:
         """Watch the PV, changing nothing, until it is at rest over a window as long as the
         loop's slowest known dynamics (``rest``); bounded. Returns what was seen. A change
@@ -941,6 +959,7 @@ class TuningRun:
         and was called "still settling, +2 off its setpoint" while at rest on 62."""
         c = self.client
         check, window = self._rest_check(first)
+        self._progress("rest", message=self._rest_window_said(first, window))
         settings = _settings(first)
         restarts = 0
         ops: list[float] = []
