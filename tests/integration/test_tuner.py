@@ -544,11 +544,10 @@ def assert_as_before(after: LoopStatus, before: LoopStatus) -> None:
     )
 
 
-def test_a_forged_output_in_the_runs_name_aborts_the_run_and_the_loop_is_restored(start_plant):
-    """A client put an output of 100 % in the holder's name mid-relay: the plant took it as
-    the run's, the valve went to 100 %, and the run, none the wiser, ended blaming its own
-    --amplitude for the PV at the top of its range. It now aborts at the status of that
-    command and restores the loop (its lease still held)."""
+def _forged_mid_relay(start_plant, kind: str, make) -> tuple[TuneResult, LoopStatus, LoopStatus]:
+    """A relay tune of x1 with ``make(source)``, a command of ``kind`` in the holder's name,
+    put on the bus by another publisher once the relay is under way: (result, the loop
+    before, after)."""
     p = start_plant(plant_toml("x1", HX), loops=("x1",))
     with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1") as c:
         before = c.sync()
@@ -556,13 +555,25 @@ def test_a_forged_output_in_the_runs_name_aborts_the_run_and_the_loop_is_restore
 
         def forge(progress: TuneProgress) -> None:
             if progress.phase == "relay" and not forged:  # the relay under way
-                forged.append(OutputCommand(loop="x1", op=100.0, source=c.source))
-                wire.put(s, keys.command(p.prefix, "x1", "output"), forged[0])
+                forged.append(make(c.source))
+                wire.put(s, keys.command(p.prefix, "x1", kind), forged[0])
 
         hooks = RunHooks(progress=forge)
-        r = TuningRun(c, TuneRequest(loop="x1", method="relay"), "forge-test", hooks).run()
+        r = TuningRun(c, TuneRequest(loop="x1", method="relay"), f"forge-{kind}", hooks).run()
         after = c.sync()
-    assert forged and r.status == "aborted"
+    assert forged
+    return r, before, after
+
+
+def test_a_forged_output_in_the_runs_name_aborts_the_run_and_the_loop_is_restored(start_plant):
+    """A client put an output of 100 % in the holder's name mid-relay: the plant took it as
+    the run's, the valve went to 100 %, and the run, none the wiser, ended blaming its own
+    --amplitude for the PV at the top of its range. It now aborts at the status of that
+    command and restores the loop (its lease still held)."""
+    r, before, after = _forged_mid_relay(
+        start_plant, "output", lambda src: OutputCommand(loop="x1", op=100.0, source=src)
+    )
+    assert r.status == "aborted"
     assert "applied an output command in this run's name that it did not send" in r.reason
     assert r.restored is True
     assert_as_before(after, before)
@@ -574,20 +585,12 @@ def test_a_forged_lease_in_the_runs_name_aborts_the_run_and_the_loop_is_restored
     itself (realtime), and the run, none the wiser, went on to `ok` without that safety net
     (helper h2). It now aborts at the status of that lease, as at any command in its name
     that it did not send, and restores the loop."""
-    p = start_plant(plant_toml("x1", HX), loops=("x1",))
-    with open_session(p.client_settings()) as s, LoopClient(s, p.prefix, "x1") as c:
-        before = c.sync()
-        forged = []
-
-        def forge(progress: TuneProgress) -> None:
-            if progress.phase == "relay" and not forged:  # the relay under way
-                forged.append(LeaseCommand(loop="x1", source=c.source, pv_limits=(-1e300, 1e300)))
-                wire.put(s, keys.command(p.prefix, "x1", "lease"), forged[0])
-
-        hooks = RunHooks(progress=forge)
-        r = TuningRun(c, TuneRequest(loop="x1", method="relay"), "forge-lease", hooks).run()
-        after = c.sync()
-    assert forged and r.status == "aborted", r.reason
+    r, before, after = _forged_mid_relay(
+        start_plant,
+        "lease",
+        lambda src: LeaseCommand(loop="x1", source=src, pv_limits=(-1e300, 1e300)),
+    )
+    assert r.status == "aborted", r.reason
     assert "applied a lease command in this run's name that it did not send" in r.reason
     assert r.restored is True
     assert_as_before(after, before)
