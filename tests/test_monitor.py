@@ -603,7 +603,30 @@ def test_an_oscillation_whose_halves_differ_more_than_3_to_1_has_a_period():
                 det.feed(t, 50.0, 50.0 - up)
                 t += 1.0
     assert det.oscillating(), det.count()
-    assert det.period_estimate() is not None
+    assert det.period_estimate() == pytest.approx(120.0, rel=0.02)
+
+
+@pytest.mark.parametrize("up, down", [(35.0, 11.0), (11.0, 35.0), (23.0, 23.0)])
+def test_a_lopsided_oscillation_detected_on_both_sides_has_its_own_period(up, down):
+    """Helper review: a level's oscillation, 35 s with the error above zero and 11 s below
+    (both halves detected, zero mean as integral action leaves it), watched on its T_u of
+    46 s, read 61.9 s: 2 × the mean time between any two detections, the short gaps dropped
+    by the median. The period is the time between one sign's detections: 46 s."""
+    ts, period = 0.25, up + down
+    det = OscillationDetector(period, 0.5, ts)
+    k = 0
+    while k * ts < 40 * period:
+        t = k * ts
+        ph = t % period
+        # half-sines of equal area (amplitude × length the same on both sides)
+        if ph < up:
+            e = down * math.sin(math.pi * ph / up)
+        else:
+            e = -up * math.sin(math.pi * (ph - up) / down)
+        det.feed(t, 50.0, 50.0 - 2.0 * e / max(up, down))
+        k += 1
+    assert det.oscillating(), det.count()
+    assert det.period_estimate() == pytest.approx(period, rel=0.01)
 
 
 def test_a_watch_of_a_loop_in_manual_says_nothing_was_assessed():

@@ -24,10 +24,12 @@ a half-period's IAE. A loop without integral action keeps an offset, which its o
 need not cross: its error is high-passed too (first order, time constant T_u), the pair then
 scaled to unit gain at ω_u.
 
-The oscillation's period is twice the mean time between the ends of successive detections
-within the supervision time (those within a factor 1.5 of their median, so that a half-period
-missed, or a setpoint step's first, does not bias it). Each end is where the filtered error
-first crosses zero after a half-period's body: noise moves every end alike, not the spacing.
+The oscillation's period is the mean time between the ends of successive detections of the
+same sign within the supervision time (those within a factor 1.5 of their median, so that a
+period missed, or a setpoint step's first half, does not bias it): a whole period whatever
+the halves' lengths (a level's 35 s up and 11 s down) and whether one side or both are
+detected. Each end is where the filtered error first crosses zero after a half-period's body:
+noise moves every end alike, not the spacing.
 """
 
 from __future__ import annotations
@@ -85,12 +87,14 @@ class NoiseLevel:
 @dataclass(frozen=True)
 class HalfPeriod:
     """The error between two successive zero crossings: [start, end] (s), its IAE on the
-    filtered error (PV units·s), and whether it exceeded the limit (a detection)."""
+    filtered error (PV units·s), whether it exceeded the limit (a detection), and its sign
+    (+1: the filtered error above zero, −1 below; 0: not known)."""
 
     start: float
     end: float
     iae: float
     detected: bool
+    sign: int = 0
 
 
 class OscillationDetector:
@@ -177,28 +181,30 @@ class OscillationDetector:
         return a * self.period / math.pi
 
     def period_estimate(self) -> float | None:
-        """2 × the mean time between the ends of successive detections within T_sup (those
-        within a factor 1.5 of their median: a half-period missed, or a setpoint step's
-        first, does not count), per half-period between them, s; None without three
-        detections."""
+        """The mean time between the ends of successive detections of the same sign within
+        T_sup (those within a factor 1.5 of their median: a period missed, or a setpoint
+        step's first half, does not count), s; None without two such intervals.
+
+        One sign's detections a period apart are a period apart however the two halves
+        differ: 2 × the mean time between any two detections read a level's 35 s up, 11 s
+        down oscillation (46 s) as 61.9 s, and one detected only on its upper side (hx1 with
+        Kc 14, the output at a limit) as twice its period."""
         now = self.now
-        recent = [h for h in self.half_periods if h.end > now - self.supervision]
-        ends = [h.end for h in recent]
-        gaps = sorted(b - a for a, b in itertools.pairwise(ends))
+        gaps: list[float] = []
+        for sign in (1, -1, 0):
+            ends = [
+                h.end
+                for h in self.half_periods
+                if h.sign == sign and h.end > now - self.supervision
+            ]
+            gaps += [b - a for a, b in itertools.pairwise(ends)]
         if len(gaps) < 2:
             return None
+        gaps.sort()
         n = len(gaps)
         med = gaps[n // 2] if n % 2 else 0.5 * (gaps[n // 2 - 1] + gaps[n // 2])
-        # none within 1.5 of an even count's median (two halves more than 3 to 1, both
-        # detected: the mean of the middle two is near neither): all of them (a ZeroDivisionError
-        # on a level loop's 94 s up, 26 s down oscillation stopped the tuner's monitor)
         kept = [g for g in gaps if med / 1.5 <= g <= 1.5 * med] or gaps
-        # the half-periods between two detections, by the detected ones' own length: one
-        # where both halves are detected; two where only one side passes the limit (hx1 with
-        # Kc 14, its upper halves larger: a detection a period, read as twice the period)
-        length = sum(h.end - h.start for h in recent) / len(recent)
-        halves = max(1, round(med / length)) if length > 0 else 1
-        return 2.0 * sum(kept) / len(kept) / halves
+        return sum(kept) / len(kept)
 
     # --- input ----------------------------------------------------------------------------
 
@@ -241,7 +247,7 @@ class OscillationDetector:
         if previous is None:  # the first crossing: the half-period before it is not whole
             return None
         iae = at_tc - previous[1]
-        half = HalfPeriod(previous[0], tc, iae, iae > self.limit(dt))
+        half = HalfPeriod(previous[0], tc, iae, iae > self.limit(dt), 1 if y0 >= 0 else -1)
         if half.detected:
             self._detected(half)
         return half
