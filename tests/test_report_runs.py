@@ -243,3 +243,20 @@ def test_a_refused_runs_report_shows_the_refused_gains_and_an_integrating_curve_
     lvl1 = level.model_copy(update={"step": regulating})
     text = _summary(RunSeries(*(np.zeros(2),) * 4, [], [], lvl1, {}))
     assert "reaction curve: K = 0.063 m/%  L = 0.5 s  T = 641 s" in text, text
+
+
+def test_report_says_what_it_wrote_in_words_and_as_json_with_json(runs, tmp_path, capsys):
+    """``autotune report`` printed a JSON object where every other command without --json
+    prints words (helper review); the JSON object is now ``--json``'s."""
+    import json
+
+    from services.cli import main
+
+    path = runs["relay file"]
+    png = tmp_path / "r.png"
+    assert main(["report", str(path), "-o", str(png), "--dpi", "20"]) == 0
+    out = capsys.readouterr().out.strip()
+    samples = load_report(path).series.t.size
+    assert out == f"{png}: the report of {path} ({samples} samples)"
+    assert main(["report", str(path), "-o", str(png), "--dpi", "20", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"report": str(png), "samples": samples}

@@ -1126,6 +1126,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="where to write the report, .png or .svg (default: %(default)s)",
     )
     parser.add_argument("--dpi", type=int, default=110)
+    parser.add_argument(
+        "--json", action="store_true", help="print one JSON object: the report's path, samples"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -1139,5 +1142,9 @@ def run(args: argparse.Namespace) -> int:
         out.write_bytes(data)
     except OSError as err:
         raise AutotuneError(f"-o {out}: cannot write it: {err.strerror}") from None
-    print(json.dumps({"report": str(out), "samples": int(rep.series.t.size)}))
+    samples = int(rep.series.t.size)
+    if args.json:
+        print(json.dumps({"report": str(out), "samples": samples}))
+    else:
+        print(f"{out}: the report of {args.file} ({samples} samples)")
     return 0
