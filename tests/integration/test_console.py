@@ -195,6 +195,15 @@ def test_a_tune_started_watched_and_applied_from_the_page(
         d.execute_script("showReports(['nosuch.mcap'])")
         wait.until(lambda d: "nosuch.mcap" in text(d, "#reports p.bad"))
         assert "nosuch.mcap" in text(d, "#messages")
+        # the last progress of a run that left the bus without a result (its tuner paused or
+        # killed) is said to be that, not shown as a run going on (helper trial: "verify")
+        d.execute_script(
+            "handle({type: 'progress', loop: 'hx1', run_id: 'gone00000001', t: 500, "
+            "phase: 'verify', cycles: 0, ku: null, pu: null, message: 'Kc 7'})"
+        )
+        assert text(d, "#progress-phase") == "verify"  # not yet: its result may be coming
+        wait.until(lambda d: text(d, "#progress-phase") == "verify (ended, no result)")
+        assert "run gone00000001 left the bus without a result" in text(d, "#progress-message")
 
         # revert: the gains before the change, written back through the plant's lease path
         click(wait, "#revert")

@@ -8,6 +8,7 @@ const S = {
   alive: new Set(),   // loops whose plant announces them
   aliveKnown: false,  // the services' tokens heard (an empty set then means no plant is up)
   running: new Set(), // loops with a run in progress
+  leftAt: {},         // loop → Date.now() when its run's token went (its result may follow)
   trends: {},         // loop → {t, pv, sp, op}
   progress: {},       // loop → last TuneProgress
   phases: {},         // loop → {run, list}: the phases its last run went through
@@ -66,8 +67,18 @@ const handlers = {
       el.dataset.up = String(m[s].length > 0);
       el.title = m[s].length ? `up: ${m[s].join(", ")}` : "not on the bus";
     }
-    S.alive = new Set(m.loops); S.running = new Set(m.running); S.aliveKnown = true;
-    renderLoops(); renderTuneButtons();
+    const running = new Set(m.running);
+    for (const loop of S.running) {
+      if (running.has(loop)) continue;
+      // its run's token went: a result normally follows at once; none within ENDED_WAIT and the
+      // last phase shown is said to be a run that ended without one (a paused or killed tuner
+      // left the page showing "verify" as if the run went on)
+      S.leftAt[loop] = Date.now();
+      setTimeout(() => { if (loop === S.selected) renderProgress(); }, ENDED_WAIT + 100);
+    }
+    for (const loop of running) delete S.leftAt[loop];
+    S.alive = new Set(m.loops); S.running = running; S.aliveKnown = true;
+    renderLoops(); renderTuneButtons(); renderProgress();
   },
   loop(m) {
     const cur = S.loops[m.loop] || {};
@@ -93,12 +104,17 @@ const handlers = {
     if (!seen || seen.run !== m.run_id) S.phases[m.loop] = { run: m.run_id, list: [m.phase] };
     else if (seen.list[seen.list.length - 1] !== m.phase) seen.list.push(m.phase);
     S.progress[m.loop] = m;
+    if (S.aliveKnown && !S.running.has(m.loop) && S.leftAt[m.loop] === undefined) {
+      // a run not (or no longer) on the bus, e.g. the last progress a reloaded page is sent
+      S.leftAt[m.loop] = Date.now();
+      setTimeout(() => { if (m.loop === S.selected) renderProgress(); }, ENDED_WAIT + 100);
+    }
     if (m.loop === S.selected) renderProgress();
   },
   result(m) {
     S.results[m.loop] = m;
     setTimeout(loadRuns, 1500);  // the logger finishes the run's file once the result is out
-    if (m.loop === S.selected) { S.chosenRule = null; renderResult(); }
+    if (m.loop === S.selected) { S.chosenRule = null; renderResult(); renderProgress(); }
     if (!m.earlier) say(`result of run ${m.result.run_id} on ${m.loop}: ${m.result.status}` + (m.result.reason ? ` (${m.result.reason})` : ""), ["ok", "proposed"].includes(m.result.status));
   },
   action(m) {
@@ -279,6 +295,17 @@ function renderTuneButtons() {
   $("tune-cancel").disabled = !run;
 }
 
+const ENDED_WAIT = 3000;  // ms after a run's token went before its missing result is told
+
+// the run of progress ``p`` on ``loop`` went from the bus without a result (its token gone for
+// ENDED_WAIT, no result of that run, nor an apply of it, on the page)
+function endedWithoutResult(loop, p) {
+  if (!p || p.phase === "done" || S.running.has(loop)) return false;
+  const r = S.results[loop];
+  if (r && [r.result.run_id, r.applied_by && r.applied_by.run_id].includes(p.run_id)) return false;
+  return S.leftAt[loop] !== undefined && Date.now() - S.leftAt[loop] >= ENDED_WAIT;
+}
+
 function renderProgress() {
   const p = S.progress[S.selected];
   $("progress-phase").textContent = p ? p.phase : "—";
@@ -288,6 +315,10 @@ function renderProgress() {
   $("progress-ku").textContent = p && p.ku ? fmt(p.ku) : "—";
   $("progress-pu").textContent = p && p.pu ? `${fmt(p.pu)} s` : "—";
   $("progress-message").textContent = p ? p.message : "";
+  if (endedWithoutResult(S.selected, p)) {
+    $("progress-phase").textContent = `${p.phase} (ended, no result)`;
+    $("progress-message").textContent = `run ${p.run_id} left the bus without a result: its tuner stopped, paused or lost the bus; the plant returns a loop whose lease lapses to its state before the test`;
+  }
   const seen = S.phases[S.selected];
   $("progress-phases").textContent = seen ? seen.list.join(" → ") : "";
 }
