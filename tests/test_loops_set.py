@@ -461,3 +461,24 @@ def test_the_most_a_refusal_names_is_a_gain_the_check_takes():
     most = str(err.value).split("at most ")[1].split()[0]
     check_kc(float(most), (0.0, 150.0), " degC")  # taken
     assert rounded_down(666.6667) == "666.6" and rounded_down(0.0123456) == "0.01234"
+
+
+def test_a_gain_whose_proportional_band_is_no_number_is_refused():
+    """`set hx1 --kc 1e-320` was taken and shown as a proportional band of inf %."""
+    from services.autotuner.commands.set_loop import check_kc
+    from shared.errors import ConfigError
+
+    for kc in (1e-320, 5e-324):
+        with pytest.raises(ConfigError, match="too wide to be a number"):
+            check_kc(kc, (0.0, 150.0), " degC")
+    check_kc(1e-300, (0.0, 150.0), " degC")  # 100/(1.5e-300) % is a number
+
+
+def test_minus_zero_is_zero():
+    """`set --td -0` was sent and shown as "Td -0"."""
+    import math
+
+    from services.autotuner.commands.set_loop import derivative_time, finite
+
+    for parse in (finite, derivative_time):
+        assert math.copysign(1.0, parse("-0")) == 1.0 and f"{parse('-0.0'):g}" == "0"

@@ -97,7 +97,7 @@ def _number(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{text!r}: not a number") from None
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text}: must be a finite number")
-    return value
+    return value + 0.0  # -0 is 0 (it was sent, and shown, as "-0")
 
 
 def finite(text: str) -> float:
@@ -334,6 +334,12 @@ def check_kc(kc: float, pv_range: tuple[float, float], units: str, what: str = "
     where the gain comes from, as the message names it)."""
     span = pv_range[1] - pv_range[0]
     pct = kc_percent(kc, span)
+    if pct is not None and (pct == 0.0 or not math.isfinite(100.0 / pct)):
+        # 1e-320 was taken, shown as "PB inf %": a gain whose proportional band is no number
+        raise ConfigError(
+            f"{what} {kc:g}: {pct:g} % of output per % of span, a proportional band too wide "
+            "to be a number: no control at all"
+        )
     if pct is not None and pct > MAX_KC_PERCENT:
         raise ConfigError(
             f"{what} {kc:g}: {pct:.8g} % of output per % of span (a proportional band of "
