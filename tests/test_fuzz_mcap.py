@@ -1196,6 +1196,14 @@ def test_analyze_blames_a_long_hole_not_the_end_of_the_recording(recorded, tmp_p
     for ln in lines:
         y = np.asarray(ln.get_ydata(), dtype=float)
         assert np.isnan(y).sum() == 1, ln.get_label()
+    # the model against the data stops at the hole: simulated across it, sample after sample,
+    # the model ran on as if the samples after came straight after those before
+    rep = load_report(holed)
+    first_gone = msgs[pv[200]].obj()["t"]
+    assert rep.overlay is not None and rep.overlay.hole == pytest.approx(first_gone)
+    assert rep.overlay.end < first_gone
+    title = next(ax.get_title() for ax in fig.axes if ax.get_title().startswith("model against"))
+    assert f"up to the hole in the record at {first_gone:.6g} s" in title
 
 
 def test_runs_compare_keeps_unlike_figures_apart(recorded):

@@ -26,6 +26,7 @@ class Overlay:
     op_start: float  # %, the output the deviations are taken from
     fit_percent: float  # 100·(1 − ‖y − ŷ‖/‖y − ȳ‖): 100 a perfect fit, 0 no better than the mean
     rms: float  # of y − ŷ, PV units
+    hole: float | None = None  # s: where the record has a hole, at which the overlay stops
 
     @property
     def end(self) -> float:

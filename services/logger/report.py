@@ -22,7 +22,7 @@ import json
 import math
 import textwrap
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -700,7 +700,15 @@ def _overlay(s: RunSeries) -> Overlay | None:
     # a direct-acting loop's model is of the process as its controller acts on it (−G): it
     # is driven by the output turned over, as the controller turns it
     op = -s.op if s.setup.get("direction") == -1 else s.op
-    return model_overlay(s.t, s.pv, op, model, float(ts), start, end)
+    # the model is simulated sample after sample: across a hole in the record it ran on as
+    # if the samples after it came straight after those before (its time, and every sample
+    # after, shifted by the hole) and its fit took that for a misfit; it stops at the hole
+    holes = np.flatnonzero(np.diff(s.seq[start:end]) != 1) if end > start else []
+    hole = None
+    if len(holes):
+        end, hole = start + int(holes[0]) + 1, float(s.t[start + int(holes[0])] + ts)
+    o = model_overlay(s.t, s.pv, op, model, float(ts), start, end)
+    return o if o is None or hole is None else replace(o, hole=hole)
 
 
 def _unavailable(ax: Axes, title: str, why: str) -> None:
@@ -733,9 +741,10 @@ def draw_overlay(ax: Axes, rep: Report) -> None:
     )
     m = s.result and result_model(s.result.experiment, s.result.step)
     desc = _model_text(m, units) if m else "model"
+    cut = "" if o.hole is None else f", up to the hole in the record at {o.hole:.6g} s"
     ax.set_title(
         f"{title}: {desc}; fit {o.fit_percent:.1f} % (100·(1 − ‖y − ŷ‖/‖y − ȳ‖)), "
-        f"rms {o.rms:.3g} {units}",
+        f"rms {o.rms:.3g} {units}{cut}",
         fontsize=9,
     )
     for w in s.windows:
