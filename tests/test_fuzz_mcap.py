@@ -744,7 +744,7 @@ def test_each_damaged_file_is_refused_in_one_line_or_read_correctly(
             argv = (
                 [command, str(path), "--json"]
                 if command == "analyze"
-                else [command, str(path), "-o", str(tmp_path / "r.png"), "--dpi", "10"]
+                else [command, str(path), "-o", str(tmp_path / "r.png"), "--dpi", "10", "--json"]
             )
             code, out, err = cli(capsys, *argv)
             if needles is OK:

@@ -22,6 +22,7 @@ from services.autotuner.identify.hold_correction import (
     uncertainty,
     unmeasured,
 )
+from services.autotuner.identify.ramp import RampTest
 from shared.control.transfer import DelayedTF
 from shared.messages import TuneResult
 from tests.exact import ultimate_point
@@ -147,9 +148,13 @@ def test_a_correction_the_model_contradicts_is_stated_as_uncertain():
     TypeAdapter(experiment).validate_python(r.to_dict())
 
 
-def test_an_uncorrected_point_is_said_to_be_the_sampled_loops():
+def test_an_uncorrected_point_is_said_to_be_the_sampled_loops(monkeypatch):
     """As recorded before the ramp's extra starts (``more_starts``): no model then fitted
-    this loop well enough to correct its point; today's does (``test_integrator_behind_lag``)."""
+    this loop well enough to correct its point; today's does (``test_integrator_behind_lag``).
+    Whether the fit of those fewer starts is kept depends on the last bits of the CPU's
+    floating point (on an AMD EPYC it was, and the test failed on its premise): the fit is
+    taken as failed here, which is the case under test, a point no model corrects."""
+    monkeypatch.setattr(RampTest, "_process_model", lambda self, ku, pu: None)
     ku, pu = ultimate_point(*INTEGRATING[:3])
     r = run_ramp(
         *INTEGRATING, noise=0.1, seed=0, kc_start=0.2 * ku, bump=1.0, more_starts=False

@@ -264,7 +264,7 @@ def test_render_gives_png_and_svg_and_the_cli_writes_either(demo, tmp_path, caps
 
     path = demo[0]
     assert render(path, "svg")[:5] == b"<?xml"
-    argv = [str(path), "-o", str(tmp_path / "r.png"), "--dpi", "30"]
+    argv = [str(path), "-o", str(tmp_path / "r.png"), "--dpi", "30", "--json"]
     import argparse
 
     parser = argparse.ArgumentParser()

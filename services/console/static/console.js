@@ -103,6 +103,8 @@ const handlers = {
     const seen = S.phases[m.loop];
     if (!seen || seen.run !== m.run_id) S.phases[m.loop] = { run: m.run_id, list: [m.phase] };
     else if (seen.list[seen.list.length - 1] !== m.phase) seen.list.push(m.phase);
+    const prev = S.progress[m.loop];
+    if (prev && prev.run_id !== m.run_id) delete S.leftAt[m.loop];  // a new run: its own clock
     S.progress[m.loop] = m;
     if (S.aliveKnown && !S.running.has(m.loop) && S.leftAt[m.loop] === undefined) {
       // a run not (or no longer) on the bus, e.g. the last progress a reloaded page is sent
