@@ -212,6 +212,13 @@ class TunerService:
         if status is not None:
             _check_step_size(req, status)
             _check_limits(req, status)
+        late = stale_by(req)
+        if late is not None:  # the checks above outlasted the client's wait (this tuner
+            # starved): its client has asked another tuner, whose run is to be the only one
+            raise ValueError(
+                f"the request for {req.loop} was checked {late:.3g} s after its client "
+                "stopped waiting for an answer (this tuner was paused or starved): not started"
+            )
         with self.lock:
             if req.loop in self.active:
                 raise ValueError(

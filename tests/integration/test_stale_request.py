@@ -29,6 +29,25 @@ def test_stale_by_the_clock():
     assert "answer_by" not in wire.encode(TuneRequest(loop="x1")).decode()  # off the wire
 
 
+def test_a_request_whose_checks_outlast_its_client_is_not_started(monkeypatch):
+    """Read in time, but its checks (the loop's token, up to 4 s; its status, up to 2 s)
+    ran past ``answer_by``: its client has asked the next tuner by then (``submit``), whose
+    run is to be the only one on the loop. Refused, not started."""
+    from services.autotuner import service
+
+    def slow_token(session, key, timeout):
+        time.sleep(0.3)  # past the request's answer_by, 0.1 s after it was read
+        return True
+
+    monkeypatch.setattr(service, "wait_for_token", slow_token)
+    monkeypatch.setattr(service.wire, "query_one", lambda *a, **k: None)
+    tuner = service.TunerService(None, "p", "t", workers=0)  # type: ignore[arg-type]
+    req = TuneRequest(loop="x1", answer_by=time.time() + 0.1)
+    with pytest.raises(ValueError, match=r"after its client stopped waiting.*not started"):
+        tuner._start(req)
+    assert tuner.active == {}
+
+
 def test_a_request_its_client_gave_up_on_is_not_started(start_plant, start_tuner, tmp_path):
     p = start_plant(plant_toml("x1", THIRD), loops=("x1",))
     tuner = start_tuner(p)

@@ -264,13 +264,35 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
 ANSWER_WAY = 1.0  # s: of a request's wait, left for the tuner's answer to come back
 # what a tuner of a version before ``TuneRequest.answer_by`` answers a request carrying it
 UNKNOWN_ANSWER_BY = "answer_by: Extra inputs are not permitted"
+# the error reply Zenoh itself gives a query no queryable finalised within its timeout (a
+# tuner's refusals are sentences)
+ZENOH_TIMEOUT = "Timeout"
+
+
+# s: the least share of the wait one of several tuners is given to answer before the next
+# is asked (a healthy tuner answers in milliseconds; a new peer's queryable may take a
+# moment to route)
+TRY_AT_LEAST = 2.0
+
+
+class _Silent(AutotuneError):
+    """The tuner asked did not answer within its share of the wait (``_ask``)."""
 
 
 def submit(
     session: zenoh.Session, prefix: str, node: str, req: TuneRequest, timeout: float = 10.0
 ) -> TuneAccepted:
-    """Send the request to an autotuner; return its acceptance or raise with its reason."""
+    """Send the request to an autotuner; return its acceptance or raise with its reason.
+
+    ``node`` with a ``*`` is one tuner, not all of them (asking them all started a run on
+    each): the live ones, first by name, each asked in turn for its share of ``timeout``
+    until one answers. One chosen tuner only was asked before: a paused one, or a token
+    another client declared with no tuner behind it, failed tune after 10 s with a working
+    tuner on the bus (helper trial). Each request carries its own ``answer_by``, the end of
+    its share: a tuner passed over that reads it later (resumed) refuses it, so the next
+    one's run is the only one. A refusal is an answer, not passed over."""
     key = keys.tuner_request(prefix, node)
+    deadline = time.monotonic() + timeout
 
     def missing() -> AutotuneError:
         return AutotuneError(
@@ -278,15 +300,56 @@ def submit(
             f"`autotune tuner` running and reachable?){unreached(session)}"
         )
 
-    deadline = time.monotonic() + timeout
     if not wait_for_token(session, keys.tuner_alive(prefix, node), timeout):
         raise missing()
-    if "*" in node:  # "any tuner" is one tuner: asking them all started a run on each
-        node = pick_tuner(session, prefix, node, max(0.1, deadline - time.monotonic()))
-        key = keys.tuner_request(prefix, node)
-    bounded = True  # sent with ``answer_by`` (not to a tuner of a version before it)
-    while time.monotonic() < deadline:  # a new peer's queryable may take a moment to route
+    if "*" not in node:
+        return _ask(session, prefix, node, req, deadline, timeout)
+    nodes = tuner_candidates(session, prefix, node, max(0.1, deadline - time.monotonic()))
+    silent: list[str] = []
+    for i, name in enumerate(nodes):
         left = deadline - time.monotonic()
+        if left <= 0:
+            break
+        share = max(min(TRY_AT_LEAST, left), left / (len(nodes) - i))
+        try:
+            return _ask(session, prefix, name, req, time.monotonic() + share, timeout)
+        except _Silent:
+            if len(nodes) == 1:
+                raise
+            silent.append(name)
+            nxt = f": asking {nodes[i + 1]!r}" if i + 1 < len(nodes) else ""
+            print(
+                f"autotune tune: autotuner {name!r} did not answer within {share:.3g} s "
+                f"(paused, starved, or a token with no tuner behind it){nxt}",
+                file=sys.stderr,
+            )
+    untried = [n for n in nodes if n not in silent]
+    raise AutotuneError(
+        f"{len(nodes)} autotuners are there ({', '.join(repr(n) for n in nodes)} at "
+        f"{keys.tuner_alive(prefix, node)}) but "
+        + f"{', '.join(repr(n) for n in silent)} did not answer the request"
+        + (f" ({len(untried)} not asked)" if untried else "")
+        + f" within {timeout:g} s: paused or starved, or the router does not let this "
+        "session send requests (in the secure deployment, the operator's credentials do)"
+        f"{unreached(session)}"
+    )
+
+
+def _ask(
+    session: zenoh.Session,
+    prefix: str,
+    node: str,
+    req: TuneRequest,
+    until: float,
+    timeout: float,
+) -> TuneAccepted:
+    """Ask tuner ``node`` until ``until`` (monotonic); its acceptance, AutotuneError for its
+    refusal, _Silent for no answer. The request it reads after ``until`` it refuses
+    (``answer_by``), the second before it left for its answer's way back."""
+    key = keys.tuner_request(prefix, node)
+    bounded = True  # sent with ``answer_by`` (not to a tuner of a version before it)
+    while time.monotonic() < until:  # a new peer's queryable may take a moment to route
+        left = until - time.monotonic()
         # answered by then or not at all: the tuner refuses it later (``answer_by``), the
         # second before the wait ends left for its answer's way back
         by = time.time() + max(0.5, left - ANSWER_WAY) if bounded else None
@@ -296,7 +359,7 @@ def submit(
             payload=wire.encode(asked),
             encoding=wire.encoding_for(TuneRequest),
             target=zenoh.QueryTarget.BEST_MATCHING,
-            timeout=max(0.1, deadline - time.monotonic()),
+            timeout=max(0.1, until - time.monotonic()),
         )
         for reply in replies:
             if reply.ok is not None:
@@ -308,6 +371,10 @@ def submit(
                     _accepted_by.pop(next(iter(_accepted_by)))
                 return accepted
             why = reply.err.payload.to_bytes().decode(errors="replace")
+            if why == ZENOH_TIMEOUT:  # Zenoh's own, no tuner's word: a paused tuner the
+                # session knows (its queryable routed) was said to have "refused the
+                # request: Timeout"
+                break
             if not (bounded and UNKNOWN_ANSWER_BY in why):
                 raise AutotuneError(f"the autotuner refused the request: {why}")
             # a tuner of a version before ``answer_by`` refuses the field: asked again
@@ -319,7 +386,7 @@ def submit(
     # its token seen, its queryable silent: paused or starved, or (a secure deployment) the
     # router drops this session's requests, which it may not send (a viewer's `autotune
     # tune` was asked whether the tuner was running: helper 52)
-    raise AutotuneError(
+    raise _Silent(
         f"an autotuner is there ({keys.tuner_alive(prefix, node)}) but did not answer the "
         f"request at {key} within {timeout:g} s: it is paused or starved, or the router does "
         "not let this session send requests (in the secure deployment, the operator's "
@@ -340,8 +407,10 @@ def loop_state(session: zenoh.Session, prefix: str, loop: str, timeout: float = 
     )
 
 
-def pick_tuner(session: zenoh.Session, prefix: str, pattern: str, timeout: float) -> str:
-    """One live autotuner matching ``pattern`` (the first by name, so a choice is repeatable).
+def tuner_candidates(
+    session: zenoh.Session, prefix: str, pattern: str, timeout: float
+) -> list[str]:
+    """The live autotuners matching ``pattern``, by name (so a choice is repeatable).
 
     Asked again until ``timeout``: a session just opened in client mode gets an empty answer
     before its router has told it the tokens it knows."""
@@ -349,13 +418,17 @@ def pick_tuner(session: zenoh.Session, prefix: str, pattern: str, timeout: float
     key = keys.tuner_alive(prefix, pattern)
     while True:
         nodes = sorted(
-            n
-            for r in session.liveliness().get(key, timeout=max(0.1, deadline - time.monotonic()))
-            if r.ok is not None
-            and (n := keys.service_node(prefix, "tuner", str(r.ok.key_expr))) is not None
+            {
+                n
+                for r in session.liveliness().get(
+                    key, timeout=max(0.1, deadline - time.monotonic())
+                )
+                if r.ok is not None
+                and (n := keys.service_node(prefix, "tuner", str(r.ok.key_expr))) is not None
+            }
         )
         if nodes:
-            return nodes[0]
+            return nodes
         if time.monotonic() > deadline:
             raise AutotuneError(f"no autotuner announces {key}")
         time.sleep(0.05)
