@@ -16,6 +16,7 @@ import itertools
 import logging
 import math
 import queue
+import re
 import secrets
 import threading
 import time
@@ -30,6 +31,7 @@ from services.autotuner.stall_watch import StallWatch, stall_watch
 from shared import keys, wire
 from shared.errors import AutotuneError, DecodeError
 from shared.messages import (
+    COMMANDS,
     AdvanceCommand,
     CalmStop,
     Command,
@@ -97,6 +99,30 @@ MOVING_KINDS = ("output", "mode", "gains", "setpoint", "disturbance")
 # the plant restores the loop by itself (realtime), so it is counted the same way (a forged
 # lease of limits ±1e300 took away that safety net, and the run went on to `ok`)
 NAMED_KINDS = (*MOVING_KINDS, "lease")
+
+
+def refused_kind(reason: str | None) -> str | None:
+    """The command kind a plant's refusal names first ("setpoint: sp … is outside the PV
+    range", "advance refused: …"); None if it names none."""
+    m = re.match(r"([a-z_]+)(?::| refused)", reason or "")
+    return m.group(1) if m is not None and m.group(1) in COMMANDS else None
+
+
+def split_refusals(new: int, possible: Counter[str], last: str | None) -> tuple[int, int]:
+    """Of ``new`` refusals counted in this client's name since its last sync's answer, how
+    many can be its own and how many it did not send: (own, forged). ``possible``: per kind,
+    its commands since then that could have been refused (sent, and not answered by a status
+    of them applied); ``last``: the plant's reason for the last of them (it names only the
+    last). More than it could have had refused, or a last one of a kind it did not send, is
+    another client's in its name: a setpoint forged outside the PV range was refused in a
+    run's name, and the run, which sent no setpoint, blamed itself (helper trial)."""
+    if new <= 0:
+        return 0, 0
+    forged = max(0, new - sum(possible.values()))
+    kind = refused_kind(last)
+    if kind is not None and possible[kind] <= 0:
+        forged = max(forged, 1)
+    return new - forged, forged
 
 
 # how a lease the plant ended is said (``_lost_why``): a run's reason that says it is not
@@ -229,7 +255,15 @@ class LoopClient:
         self._stalls = stall_watch()
         self._born = time.monotonic()  # a stall before this client began is not its loss's
         self._gone_at: float | None = None  # monotonic: when the plant's token vanished
-        self._refused = 0  # our commands the plant refused so far (from its sync answers)
+        self._refused = 0  # refusals in our name so far (from the plant's sync answers)
+        # of them, the ones that can be this client's own, and the ones it did not send
+        # (``split_refusals``)
+        self._own_refused = 0
+        self._own_reject: str | None = None
+        self.forged_refused = 0
+        # commands sent since the last sync's answer that are not of NAMED_KINDS (whose
+        # applied status names their sender) nor syncs (never refused): an advance, a release
+        self._sent_unnamed: Counter[str] = Counter()
         self._loop_refused = 0
         self.holding = False  # this client holds the loop's lease (confirmed by the plant)
         self.gone = False  # the plant's liveliness token vanished since this client began
@@ -512,6 +546,8 @@ class LoopClient:
             cmd = cmd.model_copy(update=update)
         if cmd.kind in NAMED_KINDS:  # counted before it can be answered
             self._unanswered[cmd.kind] += 1
+        elif not isinstance(cmd, SyncCommand):
+            self._sent_unnamed[cmd.kind] += 1
         wire.put(self.session, keys.command(self.prefix, self.loop, cmd.kind, self.user), cmd)
         self._last_sent = time.monotonic()
 
@@ -618,19 +654,64 @@ class LoopClient:
                 # record with holes, and a replay of the file, which has them, otherwise)
                 self._held.append(msg)
             if isinstance(msg, LoopStatus) and msg.sync_token in tokens:
-                self._refused = msg.sync_rejected or 0
                 self._loop_refused = msg.rejected
+                forged = self._count_refusals(msg)
                 # the plant takes a sender's commands in order and answers each (applied or
                 # refused) before this: what is still counted was refused or lost, and must
                 # not stand for a command in this client's name that comes later
                 self._unanswered.clear()
+                self._sent_unnamed.clear()
+                if forged and self.holding:
+                    raise ForgedCommand(
+                        f"loop {self.loop}: by t = {msg.t:.6g} s the plant refused "
+                        + ("a command" if forged == 1 else f"{forged} commands")
+                        + " in this run's name that it did not send ("
+                        + (
+                            msg.sync_last_reject
+                            if self._own_reject != msg.sync_last_reject
+                            else "the plant names only its last refusal, this run's own"
+                        )
+                        + "): another client on the bus writes as this run (a bus without "
+                        "credentials cannot tell them apart: see Security)"
+                    )
                 return msg
+
+    def _count_refusals(self, answer: LoopStatus) -> int:
+        """A sync's ``answer``: the refusals in this client's name since the last one split
+        into its own and ones it did not send (``split_refusals``); how many of the latter."""
+        if answer.sync_rejected is None:  # a plant that does not count by sender
+            return 0
+        new = answer.sync_rejected - self._refused
+        self._refused = answer.sync_rejected
+        possible = self._unanswered + self._sent_unnamed
+        own, forged = split_refusals(new, possible, answer.sync_last_reject)
+        if own:
+            self._own_refused += own
+            # the plant names its last refusal only: ours if it is of a kind we sent
+            kind = refused_kind(answer.sync_last_reject)
+            self._own_reject = (
+                answer.sync_last_reject
+                if not forged or kind is None or possible[kind] > 0
+                else "its reason not told (the plant names only its last refusal in this "
+                f"client's name, of a command it did not send: {answer.sync_last_reject})"
+            )
+        if forged:
+            self.forged_refused += forged
+            log.warning(
+                "loop %s: %d refusal(s) in this client's name (%s) of commands it did not send "
+                "(the last: %s)",
+                self.loop,
+                forged,
+                self.source,
+                answer.sync_last_reject,
+            )
+        return forged
 
     def command(self, cmd: Command) -> LoopStatus:
         """Send ``cmd`` and confirm it was applied; CommandRefused carries the plant's reason.
         The plant counts refusals per sender (a sync's answer carries ours), so another
         client's refused commands are never taken for ours."""
-        before, loop_before = self._refused, self._loop_refused
+        before, loop_before = self._own_refused, self._loop_refused
         if isinstance(cmd, ReleaseCommand):
             self.holding = False  # its own release's status must not read as a lost lease
         self.send(cmd)
@@ -654,12 +735,11 @@ class LoopClient:
         refusals) and ``loop_before`` (the loop's) were read are applied; CommandRefused with
         the plant's reason if any of them was refused."""
         status = self.sync()
-        mine = status.sync_rejected
-        if mine is None:  # a plant that does not count by sender: the loop's counter
+        if status.sync_rejected is None:  # a plant that does not count by sender: the loop's
             if status.rejected > loop_before:
                 raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
-        elif mine > before:
-            raise CommandRefused(f"loop {self.loop}: {status.sync_last_reject}")
+        elif self._own_refused > before:  # refusals it did not send are not its own
+            raise CommandRefused(f"loop {self.loop}: {self._own_reject}")
         return status
 
     def command_all(self, *cmds: Command) -> LoopStatus:
@@ -679,7 +759,7 @@ class LoopClient:
             return status
         if any(isinstance(cmd, LeaseCommand | ReleaseCommand) for cmd in cmds):
             raise ValueError("command_all: a lease or a release is sent with command()")
-        before, loop_before = self._refused, self._loop_refused
+        before, loop_before = self._own_refused, self._loop_refused
         for cmd in cmds:
             self.send(cmd)
         return self._confirmed(before, loop_before)

@@ -33,6 +33,7 @@ from shared.messages import (
     PidGains,
     ProcessSample,
     ReleaseCommand,
+    SetpointCommand,
     TuneProgress,
     TuneRequest,
     TuneResult,
@@ -592,6 +593,23 @@ def test_a_forged_lease_in_the_runs_name_aborts_the_run_and_the_loop_is_restored
     )
     assert r.status == "aborted", r.reason
     assert "applied a lease command in this run's name that it did not send" in r.reason
+    assert r.restored is True
+    assert_as_before(after, before)
+
+
+def test_a_refused_command_forged_in_the_runs_name_is_not_taken_for_the_runs(start_plant):
+    """A client put a setpoint outside the PV range in the holder's name mid-relay: the plant
+    refused it and counted the refusal against the holder's name, and the run aborted at its
+    next command blaming itself: "setpoint: sp 1000000.0 is outside the PV range" (helper trial).
+    The run never sent a setpoint: the refusal is one more than its own commands could have
+    had, so it is another client's, said so, and aborted on as for any command in its name
+    that it did not send; the loop restored."""
+    r, before, after = _forged_mid_relay(
+        start_plant, "setpoint", lambda src: SetpointCommand(loop="x1", sp=1e6, source=src)
+    )
+    assert r.status == "aborted", r.reason
+    assert "refused a command in this run's name that it did not send" in r.reason, r.reason
+    assert "sp 1000000.0 is outside the PV range" in r.reason, r.reason  # the refusal, named
     assert r.restored is True
     assert_as_before(after, before)
 
