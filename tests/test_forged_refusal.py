@@ -10,6 +10,10 @@ from collections import Counter
 import pytest
 
 from services.autotuner.loop_client import refused_kind, split_refusals
+from services.autotuner.tuning import RunHooks, TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.messages import ReleaseCommand, TuneRequest
 
 SP = "setpoint: sp 1000000.0 is outside the PV range [0.0, 100.0] %"
 
@@ -45,3 +49,28 @@ def test_the_kind_a_refusal_names(reason, kind):
 )
 def test_refusals_split_into_own_and_not_sent(new, possible, last, split):
     assert split_refusals(new, Counter(possible), last) == split
+
+
+class RefusedInItsName(LocalLoopClient):
+    """A client that, at its release, heard of a refusal in its name it did not send."""
+
+    def command(self, cmd):
+        status = super().command(cmd)
+        if isinstance(cmd, ReleaseCommand):
+            self.forged_refused, self.forged_reject = 1, SP
+        return status
+
+
+def test_a_refusal_not_sent_seen_after_the_run_is_a_warning_of_its_result():
+    """Seen at its release (no run left to abort: it came after the run's last command),
+    it was only logged by the tuner, the result silent on it: now a warning of the result."""
+    sim = build_plant({"seed": 1, "loops": {"hx1": {"model": "heat_exchanger"}}})["hx1"]
+    req = TuneRequest(loop="hx1", method="relay", apply=False)
+    r = TuningRun(RefusedInItsName(sim), req, "x", RunHooks()).run()
+    assert r.status == "proposed", r.reason
+    said = [w for w in r.warnings if "in this run's name that it did not send" in w]
+    assert said == [
+        "the plant refused command(s) in this run's name that it did not send (1; the last: "
+        f"{SP}): another client on the bus writes as this run (a bus without credentials "
+        "cannot tell them apart: see Security)"
+    ]

@@ -101,6 +101,11 @@ MOVING_KINDS = ("output", "mode", "gains", "setpoint", "disturbance")
 NAMED_KINDS = (*MOVING_KINDS, "lease")
 
 
+# how a refusal in a run's name of a command it did not send is said (its reason, or a
+# warning of its result)
+NOT_SENT_REFUSED = "refused command(s) in this run's name that it did not send"
+
+
 def refused_kind(reason: str | None) -> str | None:
     """The command kind a plant's refusal names first ("setpoint: sp … is outside the PV
     range", "advance refused: …"); None if it names none."""
@@ -261,6 +266,7 @@ class LoopClient:
         self._own_refused = 0
         self._own_reject: str | None = None
         self.forged_refused = 0
+        self.forged_reject: str | None = None  # the plant's reason for the last, if told
         # commands sent since the last sync's answer that are not of NAMED_KINDS (whose
         # applied status names their sender) nor syncs (never refused): an advance, a release
         self._sent_unnamed: Counter[str] = Counter()
@@ -663,16 +669,10 @@ class LoopClient:
                 self._sent_unnamed.clear()
                 if forged and self.holding:
                     raise ForgedCommand(
-                        f"loop {self.loop}: by t = {msg.t:.6g} s the plant refused "
-                        + ("a command" if forged == 1 else f"{forged} commands")
-                        + " in this run's name that it did not send ("
-                        + (
-                            msg.sync_last_reject
-                            if self._own_reject != msg.sync_last_reject
-                            else "the plant names only its last refusal, this run's own"
-                        )
-                        + "): another client on the bus writes as this run (a bus without "
-                        "credentials cannot tell them apart: see Security)"
+                        f"loop {self.loop}: by t = {msg.t:.6g} s the plant {NOT_SENT_REFUSED} "
+                        f"({forged}; the last: {self.forged_reject}): another client on the "
+                        "bus writes as this run (a bus without credentials cannot tell them "
+                        "apart: see Security)"
                     )
                 return msg
 
@@ -684,26 +684,32 @@ class LoopClient:
         new = answer.sync_rejected - self._refused
         self._refused = answer.sync_rejected
         possible = self._unanswered + self._sent_unnamed
-        own, forged = split_refusals(new, possible, answer.sync_last_reject)
+        last = answer.sync_last_reject
+        own, forged = split_refusals(new, possible, last)
+        # the plant names its last refusal only: another's if none was ours, or of a kind
+        # this client did not send
+        kind = refused_kind(last)
+        theirs = forged > 0 and (own == 0 or (kind is not None and possible[kind] <= 0))
         if own:
             self._own_refused += own
-            # the plant names its last refusal only: ours if it is of a kind we sent
-            kind = refused_kind(answer.sync_last_reject)
             self._own_reject = (
-                answer.sync_last_reject
-                if not forged or kind is None or possible[kind] > 0
+                last
+                if not theirs
                 else "its reason not told (the plant names only its last refusal in this "
-                f"client's name, of a command it did not send: {answer.sync_last_reject})"
+                f"client's name, of a command it did not send: {last})"
             )
         if forged:
             self.forged_refused += forged
+            self.forged_reject = (
+                last if theirs else "not told: the plant names only its last, this client's own"
+            )
             log.warning(
                 "loop %s: %d refusal(s) in this client's name (%s) of commands it did not send "
                 "(the last: %s)",
                 self.loop,
                 forged,
                 self.source,
-                answer.sync_last_reject,
+                self.forged_reject,
             )
         return forged
 

@@ -49,7 +49,13 @@ from services.autotuner.identify.relay import RelayTest
 from services.autotuner.identify.rest import RestCheck, rest_window
 from services.autotuner.identify.rest_drift import drift_notes
 from services.autotuner.limit_watch import LimitWatch
-from services.autotuner.loop_client import OVERSLEPT, PLANT_RESTORED, LeaseLost, LoopClient
+from services.autotuner.loop_client import (
+    NOT_SENT_REFUSED,
+    OVERSLEPT,
+    PLANT_RESTORED,
+    LeaseLost,
+    LoopClient,
+)
 from services.autotuner.parts import Calls
 from services.autotuner.stall_watch import stall_watch
 from shared.control.beyond import beyond
@@ -865,6 +871,16 @@ class TuningRun:
                 f"{rejected} message(s) on the loop's keys could not be read and were "
                 f"rejected (the last: {self.client.last_rejected}): another client publishes "
                 "there, or the plant speaks another version of the schema",
+            ]
+        forged = getattr(self.client, "forged_refused", 0)
+        if forged and NOT_SENT_REFUSED not in str(result.get("reason")):
+            # seen where it could not abort the run (at its release): said all the same, not
+            # taken for the run's own (helper trial: a setpoint forged outside the PV range)
+            result["warnings"] = [
+                *result.get("warnings", []),
+                f"the plant {NOT_SENT_REFUSED} ({forged}; the last: "
+                f"{self.client.forged_reject}): another client on the bus writes as this run "
+                "(a bus without credentials cannot tell them apart: see Security)",
             ]
         if self._held_computing > SLOW_COMPUTE:
             # its compute workers stopped or starved (70 s held, and an ok run said nothing:
