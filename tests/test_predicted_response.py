@@ -11,9 +11,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
+from services.autotuner.commands.tune import _robust_row
 from services.autotuner.design.predicted_response import predicted_setpoint_step
+from services.autotuner.design.recommend import Assessment
+from services.autotuner.design.robustness import Robustness
 from shared.control.forms import IsaGains
 from shared.control.transfer import DelayedTF
 from tests.exact import ultimate_point
@@ -51,6 +55,7 @@ def test_pi_on_a_first_order_plant_is_the_second_order_closed_form(kc, ti):
     assert f.stable is True
     assert f.overshoot == pytest.approx(overshoot, rel=0.01)
     assert f.decay_ratio == pytest.approx(decay, rel=0.02)
+    assert f.overshoot_decay == pytest.approx(decay, rel=0.02)
 
 
 def test_p_control_offset_is_not_overshoot():
@@ -58,6 +63,7 @@ def test_p_control_offset_is_not_overshoot():
     it, so overshoot and decay ratio are 0 although the setpoint is never reached."""
     f = predicted_setpoint_step(IsaGains(2.0), DelayedTF.of([K], [TAU, 1.0]), TAU / 5)
     assert f.overshoot == pytest.approx(0.0, abs=1e-9) and (f.decay_ratio, f.stable) == (0.0, True)
+    assert f.overshoot_decay is None  # no oscillation: no decay ratio to print, not 0.00
 
 
 def test_a_gain_beyond_the_ultimate_one_is_unstable():
@@ -67,3 +73,88 @@ def test_a_gain_beyond_the_ultimate_one_is_unstable():
     ku, pu = ultimate_point([1.0], [5.0, 1.0], 1.0)
     f = predicted_setpoint_step(IsaGains(2 * ku), DelayedTF.of([1.0], [5.0, 1.0], 1.0), pu)
     assert f.stable is False and f.decay_ratio == pytest.approx(1.0, abs=0.01)
+
+
+# --- the printed decay ratio against the exact discretised closed loop (scipy.signal) --------
+
+
+def _closed_loop(num, den, delay, g: IsaGains, ts: float, n: float = 10.0):
+    """(numerator, denominator) in z of the sampled loop the prediction simulates, built
+    independently of it: the plant ZOH-discretised by scipy.signal (``delay`` a whole number
+    of samples), the PID block's difference equations in z — P and I on the error (I from the
+    errors before this sample: Kc·Ts/Ti/(z − 1)), D on the measurement through its filter
+    (Kc·Td·(z − 1)/((Tf + Ts)(z − a)), Tf = Td/N, a = Tf/(Tf + Ts))."""
+    from scipy import signal
+
+    d = round(delay / ts)
+    assert abs(d * ts - delay) < 1e-9
+    numd, dend, _ = signal.cont2discrete((num, den), ts, method="zoh")
+    gn, gd = np.atleast_1d(np.squeeze(numd)), np.polymul(dend, np.r_[1.0, np.zeros(d)])
+    ce_n = np.polyadd(g.kc * np.array([1.0, -1.0]), [g.kc * ts / g.ti])
+    ce_d = np.array([1.0, -1.0])
+    tf = g.td / n
+    cd_n = g.kc * g.td / (tf + ts) * np.array([1.0, -1.0])
+    cd_d = np.array([1.0, -tf / (tf + ts)])
+    num_cl = np.polymul(np.polymul(gn, ce_n), cd_d)
+    den_cl = np.polyadd(
+        np.polymul(np.polymul(gd, ce_d), cd_d),
+        np.polyadd(num_cl, np.polymul(np.polymul(gn, cd_n), ce_d)),
+    )
+    return num_cl, den_cl
+
+
+def _printed(f) -> str:
+    """The DR cell of the rules table for a stable candidate with these step figures."""
+    rb = Robustness(1.5, 3.0, 60.0, None, None, stable=True)
+    a = Assessment("x", IsaGains(1.0), rb, f).to_dict()
+    return _robust_row(a).split()[-1]
+
+
+def test_a_ripple_on_the_tail_is_not_read_as_a_decay_ratio():
+    """Tyreus–Luyben PID on e^{−s}/(10s + 1) (the benchmark's L/T = 0.1): the loop overshoots
+    about 7 % and creeps back to its setpoint from above along its slow real pole, a ripple
+    on the way; the crests of that ripple read a decay ratio of 0.94 where the loop's
+    oscillatory pole pair decays 0.19 a period. The exact sampled loop's step (scipy.signal)
+    never comes back below its final value after its overshoot: there is no second
+    overshoot, and the table says so ("—")."""
+    from scipy import signal
+
+    num, den, delay = [1.0], [10.0, 1.0], 1.0
+    ku, pu = ultimate_point(num, den, delay)
+    g = IsaGains(ku / 2.2, 2.2 * pu, pu / 6.3)
+    ts = delay / round(delay / (pu / 100))
+    num_cl, den_cl = _closed_loop(num, den, delay, g, ts)
+    poles = np.roots(den_cl)
+    assert np.max(np.abs(poles)) < 1.0  # stable
+    samples = int(30 * pu / ts)
+    _, (y,) = signal.dstep((num_cl, den_cl, ts), n=samples)
+    y = y[:, 0]
+    e = y - y[-1]
+    peak = int(np.argmax(e))
+    assert 0.05 < e[peak] < 0.1  # the overshoot, 5–10 %
+    assert np.min(e[peak:]) > -1e-3  # never back through the final value
+    f = predicted_setpoint_step(g, DelayedTF.of(num, den, delay), pu, ts, max_samples=10_000)
+    assert f.stable and f.overshoot == pytest.approx(100 * e[peak], rel=0.01)
+    assert f.overshoot_decay is None
+    assert _printed(f) == "—"
+
+
+def test_a_stable_loop_does_not_read_a_growing_decay_ratio():
+    """Ziegler–Nichols PID on e^{−s}/(0.2s + 1) (the benchmark's L/T = 5): the sampled loop is
+    stable, its slowest oscillatory pole pair z = r·e^{±jθ} (scipy on the exact discretised
+    loop) decaying r^{2π/θ} = 0.98 a period; several pairs of the delay ring together and
+    the crest after the largest read 1.57, a growing loop's figure. The printed decay ratio
+    is the pair's within 1 %, and below 1."""
+    num, den, delay = [1.0], [0.2, 1.0], 1.0
+    ku, pu = ultimate_point(num, den, delay)
+    g = IsaGains(0.6 * ku, pu / 2, pu / 8)
+    ts = delay / round(delay / (pu / 100))
+    poles = np.roots(_closed_loop(num, den, delay, g, ts)[1])
+    assert np.max(np.abs(poles)) < 1.0
+    z = max((p for p in poles if p.imag > 1e-12), key=abs)
+    per_period = abs(z) ** (2 * math.pi / np.angle(z))
+    f = predicted_setpoint_step(g, DelayedTF.of(num, den, delay), pu, ts, max_samples=10_000)
+    assert f.stable
+    assert f.overshoot_decay == pytest.approx(per_period, rel=0.01)
+    assert f.overshoot_decay < 1.0
+    assert float(_printed(f)) == pytest.approx(per_period, abs=0.01)

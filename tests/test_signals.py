@@ -13,6 +13,7 @@ from shared.control.signals import (
     extrema,
     first_crossing,
     noise_level,
+    overshoot_decay,
     slowest_decay,
     smooth,
     trapezoid,
@@ -123,3 +124,56 @@ def test_the_slowest_decay_after_a_kick_is_the_loops():
     small = [(1.0, 10.0), (2.0, -2.0), (3.0, 1.9), (4.0, -1.0), (5.0, 2.1), (6.0, -0.5)]
     assert slowest_decay(small) is None  # only one crest of a quarter of 10 or more
     assert slowest_decay([(1.0, 3.0), (2.0, -1.0)]) is None
+
+
+def _second_order_error(zeta: float, wn: float, t: np.ndarray) -> np.ndarray:
+    """y − 1 of the standard second-order step, ω_n²/(s² + 2ζω_n s + ω_n²), in closed form."""
+    sigma, wd = zeta * wn, wn * math.sqrt(1.0 - zeta**2)
+    return -np.exp(-sigma * t) * (np.cos(wd * t) + sigma / wd * np.sin(wd * t))
+
+
+@pytest.mark.parametrize("zeta", [0.1, 0.215, 0.4, 0.6])
+def test_overshoot_decay_of_a_second_order_step_is_its_pole_pairs(zeta):
+    """Poles −σ ± jω: successive overshoots are a period 2π/ω apart, each e^{−2πσ/ω} of the
+    one before (ζ = 0.6: 0.0090, its second overshoot 8.5e-4 of the step); sampled at 2000
+    a period, the peaks are read within 1e-5 of their value."""
+    wn = 2.0
+    sigma, wd = zeta * wn, wn * math.sqrt(1.0 - zeta**2)
+    t = np.arange(0.0, 40.0 * 2.0 * math.pi / wd, 2.0 * math.pi / wd / 2000.0)
+    expected = math.exp(-2.0 * math.pi * sigma / wd)
+    assert overshoot_decay(_second_order_error(zeta, wn, t), 1e-6) == pytest.approx(
+        expected, rel=1e-4
+    )
+
+
+def test_a_ripple_on_a_slow_tail_is_no_second_overshoot():
+    """−e^{−3t} + 0.06·e^{−t/8}·(1 − e^{−3t}) + 0.02·e^{−0.3t}·sin(2.3t): a rise, a slow tail
+    from above and a ripple on it. The ripple's crests above the final value (0.0469, then
+    0.0316 a period later) read 0.67 as crests (``decay_ratio``), the ripple's own decay being
+    e^{−0.3·2π/2.3} = 0.44 a period; but the response never comes back through its final
+    value: one overshoot, no decay ratio to state."""
+    t = np.arange(0.0, 120.0, 0.01)
+    rise = -np.exp(-3.0 * t)
+    dev = rise + 0.06 * np.exp(-t / 8.0) * (1.0 - np.exp(-3.0 * t))
+    dev = dev + 0.02 * np.exp(-0.3 * t) * np.sin(2.3 * t)
+    crests = extrema(t, dev, 1e-3)
+    assert decay_ratio(crests, t, dev) > 0.5  # the crests' figure: the ripple on the tail
+    assert overshoot_decay(dev, 1e-3) is None
+
+
+def test_overshoot_decay_of_a_kick_then_a_ringing_is_the_ringings():
+    """Overshoots 1.49 (the setpoint kick's), then 0.98, 1.01, 1.03, 1.00, 0.94 (lvl2 under ZN
+    PID, Ms 201): the mean decay a period from the largest, (0.94/1.49)^(1/5) = 0.912, not
+    the 0.66 of the second over the first, and not above 1 (1.03/1.00 read as growth) on a
+    loop whose overshoots shrink. A first overshoot a zero made small (0.2, then 0.5, 0.1):
+    0.1/0.5 = 0.2, not 2.5. No overshoot after the largest, or only one: None."""
+    lobes = [-1.0, 1.49, -0.5, 0.98, -0.5, 1.01, -0.5, 1.03, -0.5, 1.00, -0.5, 0.94, -0.5]
+    dev = np.array([v for x in lobes for v in (0.0, x)] + [0.0])
+    assert overshoot_decay(dev, 1e-3) == pytest.approx((0.94 / 1.49) ** (1 / 5))
+    zero = np.array([-1.0, 0.0, 0.2, 0.0, -0.3, 0.0, 0.5, 0.0, -0.3, 0.0, 0.1, 0.0, 0.0])
+    assert overshoot_decay(zero, 1e-3) == pytest.approx(0.2)
+    assert overshoot_decay(np.array([-1.0, 0.0, 0.3, 0.0, -0.1, 0.0]), 1e-3) is None
+    assert overshoot_decay(np.array([-1.0, 0.0, 0.1, 0.0, -0.1, 0.3, 0.0]), 1e-3) is None
+    assert overshoot_decay(np.array([-1.0, -0.5, 0.0]), 1e-3) is None
+    # a crossing within the band is no crossing: 0.4, a dip to −0.0005, then 0.3 is one lobe
+    assert overshoot_decay(np.array([-1.0, 0.4, -0.0005, 0.3, 0.0]), 1e-3) is None

@@ -206,6 +206,49 @@ def slowest_decay(turns: list[tuple[float, float]], share: float = 0.25) -> floa
     return max(ratios) if ratios else None
 
 
+def overshoot_decay(dev: np.ndarray, band: float, share: float = 0.25) -> float | None:
+    """A stable step response's decay ratio as an engineer reads it (the quarter-decay
+    figure), from ``dev``, its deviation from the final value (positive on the overshoot's
+    side): the peak of the overshoot after the largest over the largest's. An overshoot is a
+    lobe of the response beyond the final value, and lobes are separated by crossings of the
+    final value by more than ``band``: a ripple on a slow tail that never comes back through
+    the final value is one lobe, not a second overshoot (TL PID on e^{−s}/(10s + 1): 7.1 %
+    overshoot, its ripple's crests above the final value 0.90 of each other, its oscillatory
+    pole pair decaying 0.19 a period, and no second overshoot at all). The largest, not the
+    first: a first overshoot made small by a zero is not yet the oscillation's. Where the
+    overshoots of at least ``share`` of the largest go on decaying more slowly than the first
+    two did (a setpoint kick's swing, then an oscillation that hardly decays), their mean
+    decay a period instead, (last / largest)^(1/count). At most 1. None where no overshoot
+    follows the largest (no oscillation about the final value, or one that died below
+    ``band``: nothing to state). For a pure second-order response, e^{2πσ/ω} exactly (σ ± jω
+    its poles).
+
+    It reads the response alone: a growing one is for the caller to tell (it ends with its
+    largest overshoot: None)."""
+    d = np.asarray(dev, dtype=float)
+    idx = np.flatnonzero(np.abs(d) > band)
+    if idx.size == 0:
+        return None
+    side = d[idx] > 0
+    # one lobe per run of one side, the samples within the band between ignored: its side
+    # and its peak's distance from the final value
+    cuts = np.flatnonzero(side[1:] != side[:-1]) + 1
+    lobes = [(bool(d[run[0]] > 0), float(np.max(np.abs(d[run])))) for run in np.split(idx, cuts)]
+    peaks = [v for above, v in lobes if above]  # the overshoots, in order
+    if len(peaks) < 2:
+        return None
+    m = max(range(len(peaks)), key=lambda j: peaks[j])
+    top = peaks[m]
+    if m + 1 == len(peaks):  # no overshoot after the largest
+        return None
+    first = peaks[m + 1] / top
+    n = m + 1
+    while n + 1 < len(peaks) and peaks[n + 1] >= share * top:
+        n += 1
+    mean = (peaks[n] / top) ** (1.0 / (n - m))
+    return max(first, mean)
+
+
 def no_response_floor(pv_range: tuple[float, float]) -> float:
     """PV units: a move within this of the rest is no response to the output: what no
     transmitter resolves, ``rest_window.RESOLUTION`` of the range ``pv_range`` (0 for a range

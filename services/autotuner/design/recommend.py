@@ -102,7 +102,8 @@ class Assessment:
             out["phase_margin_deg_continuous"] = _number(self.continuous.phase_margin_deg)
         if st is not None:
             out["overshoot_pct"] = _number(st.overshoot)
-            out["decay_ratio"] = _number(st.decay_ratio)
+            # the quarter-decay figure (``predicted_response``), None without a second overshoot
+            out["decay_ratio"] = _number(st.overshoot_decay)
         return out
 
     @property
