@@ -156,6 +156,38 @@ def test_flow_preset(presets):
 
 
 @pytest.mark.parametrize(
+    ("den", "delay", "ts"),
+    [
+        ([35.0, 1.0], 10.0, 1.0),  # the power law read 10.046 s
+        ([5.0, 1.0], 10.0, 1.0),  # 10.287 s
+        ([1.0, 1.0], 10.0, 1.0),  # 10.859 s
+        ([5.0, 1.0], 10.37, 1.0),  # within a sample: 10.54 s
+        ([1.0, 3.0, 3.0, 1.0], 2.0, 0.5),  # (s + 1)³: 2.183 s
+    ],
+)
+def test_the_dead_time_of_a_first_order_lag_or_a_chain_of_equal_lags_is_exact(den, delay, ts):
+    """e^{−Ls}/(τs + 1)^n starts as the gamma distribution's P(n, (t − L)/τ): the onset read
+    through the first three samples that moved is exact however few samples the lag spans,
+    where the power law c·(t − L)^r bent over a first-order onset's curvature by moving L
+    late by some 1.6·Ts²/τ (e^{−10s}/(35s + 1) at 1 s samples: 10.046 s, the order 0.95)."""
+    r = check(
+        {"model": "transfer_function", "num": [1.0], "den": den, "delay": delay, "sample_time": ts}
+    )
+    order = len(den) - 1
+    assert r.dead_time == pytest.approx(delay, abs=1e-6 * ts)
+    assert r.onset_order == pytest.approx(order, rel=1e-4)
+
+
+def test_the_dead_time_of_unequal_lags_is_nearer_than_a_power_laws():
+    """e^{−5s}/((10s + 1)(60s + 1)) (hx1) at 1 s samples: its onset is no gamma curve, and
+    the one through its first three samples moves L by 0.021 s (the power law 0.061 s); at
+    the preset's 0.25 s, 0.0012 s (0.004 s)."""
+    table = {"model": "transfer_function", "num": [1.0], "den": [600.0, 70.0, 1.0], "delay": 5.0}
+    assert abs(check({**table, "sample_time": 1.0}).dead_time - 5.0) < 0.025
+    assert abs(check({**table, "sample_time": 0.25}).dead_time - 5.0) < 0.0015
+
+
+@pytest.mark.parametrize(
     ("table", "exact"),
     [
         (
@@ -563,7 +595,9 @@ def test_through_a_real_interpreter(fmus, tmp_path):
     )
     assert run.returncode == 0, run.stderr
     assert "loop fo1: model fmu" in run.stdout and "behaviour: self-regulating" in run.stdout
-    assert "dead time: 2.00" in run.stdout
+    # e^{−2s}·2/(10s + 1): the onset of a first-order lag, read exactly (the power law it
+    # was read with before moved it to 2.0016 s, 1.6·Ts²/τ late)
+    assert "dead time: 2 s (first movement, onset like t^1)" in run.stdout
     bad = subprocess.run(
         [sys.executable, "-m", "services.cli", "model", "chek", str(plant)],
         capture_output=True,

@@ -11,9 +11,11 @@ away. From the responses:
   proportion to it, not an instability);
 * **static gain** (PV units per %; for an integrating model, PV units/s per %) for each step,
   and the **nonlinearity**: the largest over the smallest gain, up vs down and small vs large;
-* **dead time**: when the PV first moves, to a fraction of a sample (the onset fitted as
-  c·(t − L)^r through its first three samples, which is exact for a pure power law and
-  within a few thousandths of a sample for lags that are many samples long);
+* **dead time**: when the PV first moves, to a fraction of a sample (the onset fitted through
+  its first three samples: for a self-regulating response the gamma distribution's
+  P(r, (t − L)/τ), exact for a first-order lag and for a chain of equal lags, and for
+  unequal ones nearer than a power law; else, and where no such curve goes through the
+  three, c·(t − L)^r, exact for a pure power law);
 * **time constants**: T63 (to 63 % of the final change, after the dead time), the sum of the
   lags (mean residence time − dead time: exact for lags and dead time in series), and the
   reaction curve's apparent dead time and lag (the tangent at the inflection);
@@ -39,7 +41,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import brentq
+from scipy.optimize import brentq, least_squares
+from scipy.special import gammainc
 
 from services.plant_sim.load_bound import models_own
 from services.plant_sim.simulation.loop import ModelFailure, SimLoop, model_pv
@@ -682,7 +685,7 @@ def _shape(report: ModelReport) -> None:
     report.gain = k_gain
     if k_gain == 0:
         return
-    report.dead_time, report.onset_order = _dead_time(s, dt)
+    report.dead_time, report.onset_order = _dead_time(s, dt, None if integrating else k_gain)
     if integrating:
         report.apparent_dead_time = float(t[n] - s[n] / k_gain)  # the asymptote's intercept
     else:
@@ -780,8 +783,18 @@ def _resonance(report: ModelReport, poles: np.ndarray) -> None:
             return
 
 
-def _dead_time(s: np.ndarray, dt: float) -> tuple[float | None, float | None]:
-    """(L, r): the onset c·(t − L)^r through the first three samples that moved."""
+def _dead_time(
+    s: np.ndarray, dt: float, k_gain: float | None = None
+) -> tuple[float | None, float | None]:
+    """(L, r): where the PV first moves, and how (like (t − L)^r), from the first three samples
+    that moved. With the end value ``k_gain`` (a self-regulating response), the onset is
+    the gamma distribution's P(r, (t − L)/τ) through them (``_gamma_onset``): exact for a
+    first-order lag (r = 1) and for a chain of equal lags (r their number), and nearer than a
+    power law for unequal ones. Without it, or where no such curve goes through the three,
+    the power law c·(t − L)^r, the gamma curve's limit for lags long against the samples. A
+    power law bends over a first-order onset's curvature by moving L late: e^{−10s}/(35s + 1)
+    at 1 s samples read 10.046 s, e^{−10s}/(5s + 1) 10.287 s and e^{−10s}/(s + 1) 10.859 s;
+    the gamma curve reads 10 s for all three."""
     size = float(np.max(np.abs(s)))
     moved = np.nonzero(np.abs(s) > 1e-9 * size)[0]
     if len(moved) == 0:
@@ -806,7 +819,57 @@ def _dead_time(s: np.ndarray, dt: float) -> tuple[float | None, float | None]:
     else:
         lag = brentq(g, a, b, xtol=1e-12 * max(dt, 1.0))
     order = math.log(d2 / d1) / math.log((t2 - lag) / (t1 - lag))
+    if k_gain:
+        frac = np.array([s[k], s[k + 1], s[k + 2]]) / k_gain
+        onset = _gamma_onset(frac, np.array([t1, t2, t3]), dt, lag, order)
+        if onset is not None:
+            lag, order = onset
     return max(lag, 0.0), order
+
+
+def _gamma_onset(
+    frac: np.ndarray, t: np.ndarray, dt: float, lag: float, order: float
+) -> tuple[float, float] | None:
+    """(L, r) of the gamma distribution's P(r, (t − L)/τ) through the fractions ``frac`` of
+    the end value at the three times ``t`` (s; the first samples that moved), L within the
+    sample before the first; searched from the power law's ``lag`` and ``order`` and from τ
+    long to τ a sample; None where no such curve goes through all three (to 1e-9 of each
+    fraction's logarithm: a response past its end value, an inverse response, a process that
+    is no chain of lags at its start)."""
+    if not np.all((frac > 0) & (frac < 1)):
+        return None
+    # L may not lie before the sample before the first that moved (it did not move), but the
+    # search may: a dead time of whole samples puts L on that bound, and the end value read
+    # off a record that has settled to within its last few parts in 1e5 moves the curve
+    # through the three by as much (e^{−10s}/(5s + 1) at 1 s samples: 9.99991 s)
+    lo = np.array([t[0] - 1.5 * dt, math.log(1e-3), math.log(1e-3 * dt)])
+    hi = np.array([t[0] - 1e-9 * dt, math.log(50.0), math.log(1e9 * dt)])
+    target = np.log(frac)
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        x = np.maximum((t - p[0]) / math.exp(p[2]), 1e-300)
+        return np.log(np.maximum(gammainc(math.exp(p[1]), x), 1e-300)) - target
+
+    start_lag = min(max(lag, lo[0]), hi[0])
+    start_order = math.log(min(max(order, 1.01e-3), 49.0))
+    best = None
+    for tau in (1e3 * dt, 30.0 * dt, 3.0 * dt, dt):
+        try:
+            got = least_squares(
+                residual,
+                [start_lag, start_order, math.log(tau)],
+                bounds=(lo, hi),
+                xtol=1e-15,
+                ftol=1e-15,
+                gtol=1e-15,
+            )
+        except (ValueError, FloatingPointError, OverflowError):  # no finite curve from there
+            continue
+        if best is None or got.cost < best.cost:
+            best = got
+    if best is None or float(np.max(np.abs(best.fun))) > 1e-9:
+        return None
+    return max(float(best.x[0]), float(t[0] - dt)), math.exp(float(best.x[1]))
 
 
 def _time_constants(report: ModelReport, s: np.ndarray, t: np.ndarray, k_gain: float) -> None:
