@@ -29,6 +29,23 @@ def test_integral_action_removes_the_offset():
     assert y[t < L].max() == 0.0  # nothing before the dead time
 
 
+def test_a_slow_lambda_curve_is_drawn_until_it_settles():
+    """Lambda PI (λ = T) on e^{−s}/(100s + 1): the closed loop e^{−Ls}/((λ + L)s + e^{−Ls})
+    is λs + 1 to first order in Ls, its 63 % at t = L + λ = 101 s, while 10 P_u is 39 s: the
+    curve was cut at a third of its rise, and its climb over the last fifth, as steep as over
+    the first, read as an undamped swing (no curve)."""
+    tau, lam, delay = 100.0, 100.0, 1.0
+    _ku, pu = lag_ultimate(1.0, (tau,), delay)
+    assert 10 * pu < 0.5 * (lam + delay)
+    plant = DelayedTF.of([1.0], [tau, 1.0], delay)
+    curve = step_curve(tau / (lam + delay), tau, 0.0, plant, pu, 0.05)
+    assert curve is not None
+    t, y = curve
+    assert y[-1] == pytest.approx(1.0, abs=0.02) and t[-1] > 4 * (lam + delay)
+    t63 = float(t[next(k for k, v in enumerate(y) if v >= 1 - math.exp(-1))])
+    assert t63 == pytest.approx(delay + lam, rel=0.03)
+
+
 def test_beyond_the_ultimate_gain_the_loop_diverges_and_gives_no_curve():
     ku, pu = lag_ultimate(K, (TAU,), L)
     plant = DelayedTF.of([K], [TAU, 1.0], L)

@@ -24,6 +24,9 @@ from shared.control.transfer import DelayedTF
 
 HORIZON = 10.0  # time scales shown (P_u, else the model's delay plus lag)
 POINTS = 400  # samples per curve at most: the simulation's step is coarsened to fit
+SETTLED = 0.02  # a curve whose last fifth moves less than this (× the step) has settled
+SPAN_GROWTH = 4.0  # an unsettled curve is simulated again over this many times its span
+LONGEST = 4  # spans tried at most (HORIZON × 4³ = 640 time scales)
 KINDS = ("fopdt", "sopdt", "ipdt")
 
 
@@ -61,26 +64,41 @@ def timescale_of(model: ProcessFit, pu: float | None) -> float:
 def step_curves(
     gains: Mapping[str, IsaGains], plant: DelayedTF, timescale: float, sample_time: float
 ) -> dict[str, tuple[np.ndarray, np.ndarray] | None]:
-    """Per candidate, (t in s, PV in units of the setpoint step) over HORIZON time scales;
-    None when its loop is unstable (the curve would say nothing but that). All simulated
-    together (``shared.control.setpoint_steps``)."""
-    if not gains:
-        return {}
-    span = HORIZON * timescale
-    ts = max(sample_time, span / POINTS)
-    sys = discretize(*tf_to_ss(plant.num, plant.den), ts, plant.delay)
-    n = int(span / ts)
-    # a proportional kick of 10 % at most
-    steps = [min(1.0, 10.0 / g.kc) if g.kc > 0 else 1.0 for g in gains.values()]
-    y, blown = setpoint_steps(list(gains.values()), sys, n, steps, 1e3)
-    t = ts * np.arange(1, n + 1)
+    """Per candidate, (t in s, PV in units of the setpoint step) over HORIZON time scales, or
+    as many times that as it takes to settle (at most LONGEST: a slow one — lambda PI at
+    λ = T on a lag-dominant loop, hundreds of its P_u — was cut at a tenth of its rise, and
+    its steady climb over the last fifth read as an undamped swing, the curve dropped);
+    None when its loop is unstable (the curve would say nothing but that). Those of one span
+    are simulated together (``shared.control.setpoint_steps``)."""
     out: dict[str, tuple[np.ndarray, np.ndarray] | None] = {}
-    for j, name in enumerate(gains):
-        # still swinging at the end as much as at the start: unstable, held only by the
-        # output limits (the tuner's own judgement of "stable", design/predicted_response.py)
-        swinging = np.ptp(y[j, -(n // 5) :]) > 0.5 * (np.ptp(y[j, : n // 5]) or 1.0)
-        out[name] = None if blown[j] or swinging else (t, y[j])
-    return out
+    left = dict(gains)
+    span = HORIZON * timescale
+    for attempt in range(LONGEST):
+        if not left:
+            break
+        ts = max(sample_time, span / POINTS)
+        sys = discretize(*tf_to_ss(plant.num, plant.den), ts, plant.delay)
+        n = int(span / ts)
+        # a proportional kick of 10 % at most
+        steps = [min(1.0, 10.0 / g.kc) if g.kc > 0 else 1.0 for g in left.values()]
+        y, blown = setpoint_steps(list(left.values()), sys, n, steps, 1e3)
+        t = ts * np.arange(1, n + 1)
+        last = attempt == LONGEST - 1
+        for j, name in enumerate(list(left)):
+            tail, head = np.ptp(y[j, -(n // 5) :]), np.ptp(y[j, : n // 5])
+            if blown[j]:
+                out[name] = None
+            elif tail <= SETTLED:  # settled within the span
+                out[name] = (t, y[j])
+            elif last:
+                # still swinging at the end as much as at the start: unstable, held only by
+                # the output limits (the tuner's own judgement, design/predicted_response.py)
+                out[name] = None if tail > 0.5 * (head or 1.0) else (t, y[j])
+            else:
+                continue
+            del left[name]
+        span *= SPAN_GROWTH
+    return {name: out.get(name) for name in gains}
 
 
 def step_curve(

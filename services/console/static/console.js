@@ -270,10 +270,14 @@ function drawStep() {
   if (!names.length) return;
   const rec = r.result.recommended ? r.result.recommended.rule : r.result.rule;
   const chosen = S.chosenRule || rec;
+  // the span the recommended and chosen curves take (each curve runs until it settles: a slow
+  // rule's, hundreds of time scales long, squeezed the recommended one into the axis' first %)
+  const shown = [rec, chosen].filter((n) => curves[n]);
   let xmax = 0, ymax = 1.2;
-  for (const n of names) { xmax = Math.max(xmax, curves[n].t[curves[n].t.length - 1]); }
+  for (const n of (shown.length ? shown : names)) { xmax = Math.max(xmax, curves[n].t[curves[n].t.length - 1]); }
   for (const n of [rec, chosen]) if (curves[n]) ymax = Math.max(ymax, Math.max(...curves[n].y) * 1.05);
-  const series = names.filter((n) => n !== rec && n !== chosen).map((n) => ({ x: curves[n].t, y: curves[n].y.map((v) => Math.min(v, ymax)), color: "#ccc", width: 1 }));
+  const upTo = (c) => { let k = c.t.length; while (k > 1 && c.t[k - 1] > xmax) k--; return { x: c.t.slice(0, k), y: c.y.slice(0, k) }; };
+  const series = names.filter((n) => n !== rec && n !== chosen).map((n) => { const c = upTo(curves[n]); return { x: c.x, y: c.y.map((v) => Math.min(v, ymax)), color: "#ccc", width: 1 }; });
   series.push({ x: [0, xmax], y: [1, 1], color: "#c62828", dash: [4, 3] });
   if (curves[rec]) series.push({ x: curves[rec].t, y: curves[rec].y, color: "#ef6c00", width: 2.2 });
   if (chosen !== rec && curves[chosen]) series.push({ x: curves[chosen].t, y: curves[chosen].y, color: "#1565c0", width: 2 });
