@@ -158,3 +158,22 @@ def test_a_stable_loop_does_not_read_a_growing_decay_ratio():
     assert f.overshoot_decay == pytest.approx(per_period, rel=0.01)
     assert f.overshoot_decay < 1.0
     assert float(_printed(f)) == pytest.approx(per_period, abs=0.01)
+
+
+def test_a_slow_loop_s_overshoot_is_taken_about_its_own_final_value():
+    """Lambda PI (λ = T = 100 s) on e^{−s}/(100s + 1): the loop e^{−s}/((λ + 1)s + e^{−s}) is
+    λs + 1 to first order in s, no overshoot; its 63 % comes at some 25 P_u, so over the 30
+    P_u simulated it still rises, and the mean of its last tenth taken as its final value
+    read 2.8 % of overshoot. With integral action the final value is the setpoint's."""
+    from tests.exact import lag_ultimate
+
+    tau = 100.0
+    _ku, pu = lag_ultimate(1.0, (tau,), 1.0)
+    f = predicted_setpoint_step(
+        IsaGains(tau / (tau + 1.0), tau, 0.0), DelayedTF.of([1.0], [tau, 1.0], 1.0), pu, 0.1
+    )
+    assert f.overshoot < 0.01, f
+    # P alone settles at Kc·K/(1 + Kc·K): its overshoot about that, settled or not
+    kc = 0.3 * _ku
+    f = predicted_setpoint_step(IsaGains(kc, None, 0.0), DelayedTF.of([1.0], [tau, 1.0], 1.0), pu)
+    assert f.overshoot > 1.0 and f.stable
