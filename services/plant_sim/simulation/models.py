@@ -26,6 +26,10 @@ from shared.control.lti import (
 # The longest dead time a plant model keeps, in sample periods: its delay line holds one
 # float per sample (1e12 s at 0.25 s took all the memory there was).
 MAX_DELAY_SAMPLES = 1_000_000
+# a transfer function's num and den: at most this order. A process model has a few lags; the
+# state-space form is order × order, so a den of 3,000 coefficients took 28 s to be refused
+# (as unstable) and one of 100,000 tried to allocate 75 GiB (user trial)
+MAX_ORDER = 100
 
 
 class ModelParamError(ValueError):
@@ -92,6 +96,12 @@ def finite(
 def coefficients(field: str, values: list[float]) -> list[float]:
     if not isinstance(values, list | tuple) or not values:
         raise ModelParamError(field, f"expected a non-empty list of numbers, got {values!r}")
+    if len(values) > MAX_ORDER + 1:
+        raise ModelParamError(
+            field,
+            f"{len(values)} coefficients (order {len(values) - 1}); at most {MAX_ORDER + 1} "
+            f"(order {MAX_ORDER})",
+        )
     return [finite(f"{field}[{i}]", v) for i, v in enumerate(values)]
 
 
