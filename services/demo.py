@@ -29,6 +29,7 @@ from services.autotuner.commands.tune import (
 from services.console import launch as console_launch
 from services.launcher import free_tcp_port
 from services.logger.report import render
+from services.plant_sim.load_bound import LOAD_TIMEOUT, load_bound
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from services.plant_sim.simulation.models import TransferFunctionModel
 from services.plant_sim.simulation.presets import MODELS
@@ -91,7 +92,10 @@ def check_loop(plant: str | None, loop: str, seed: int | None) -> None:
         ids.extend(file_ids)
         return [loop] if loop in file_ids else []
 
-    load_plant_file(path, seed=seed, select=note)
+    # bounded as plant_sim bounds its own load (a model whose reset() blocked held the demo
+    # silent for good, before any service started: user trial)
+    with load_bound(LOAD_TIMEOUT, f"plant file {path}"):
+        load_plant_file(path, seed=seed, select=note)
     if loop not in ids:
         where = f"--plant {plant}" if plant else "the default plant"
         raise ConfigError(f"--loop {loop}: not a loop of {where}; it has: {', '.join(ids)}")

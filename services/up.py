@@ -432,9 +432,12 @@ def load_config(args: argparse.Namespace) -> UpConfig:
         raise ConfigError(f"plant: {cfg.plant}: no such file")
     if cfg.plant:  # read and built here first: its one line, not a stack that comes up
         # without its plant and blames the tuner 40 s later
+        from services.plant_sim.load_bound import LOAD_TIMEOUT, load_bound
         from services.plant_sim.plant_file import load_plant_file
 
-        load_plant_file(cfg.plant, seed=cfg.seed)
+        # bounded as plant_sim bounds it (a model whose reset() blocked held `up` silent)
+        with load_bound(LOAD_TIMEOUT, f"plant file {cfg.plant}"):
+            load_plant_file(cfg.plant, seed=cfg.seed)
     proto, sep, addr = cfg.endpoint.partition("/")
     if not sep or not proto or ":" not in addr:
         raise ConfigError(f"endpoint {cfg.endpoint!r}: expected PROTOCOL/HOST:PORT")

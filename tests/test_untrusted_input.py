@@ -87,6 +87,12 @@ class SlowInit(_User):
         super().__init__(sample_time, op0)
 
 
+class SlowReset(_User):
+    def reset(self) -> float:
+        time.sleep(5.0)  # a device that does not answer (5 s: the test's cost without a bound)
+        return super().reset()
+
+
 def _loop(cls: str):
     return build_plant({"seed": 1, "loops": {"u": {"model": f"{HERE}:{cls}", "sample_time": 1.0}}})[
         "u"
@@ -193,3 +199,32 @@ def test_a_protocol_attribute_raising_anything_is_refused_in_one_line(
     code, _, err = run_cli(capsys, "model", "check", str(_plant_file(tmp_path, cls)))
     assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert f".pv_units raised {raised}" in err
+
+
+def test_demo_and_up_bound_a_model_that_blocks_as_they_check_the_plant_file(tmp_path, monkeypatch):
+    """``autotune demo --plant`` and ``autotune up --plant`` build the file before anything
+    starts; a model whose reset() blocked held both silent for good (user trial: 100 s and
+    counting, where ``autotune plant`` refuses it after --load-timeout)."""
+    import argparse
+
+    from services import demo, up
+    from services.plant_sim import load_bound
+    from shared.errors import ConfigError
+
+    path = _plant_file(tmp_path, "SlowReset")
+    monkeypatch.setattr(demo, "LOAD_TIMEOUT", 0.5, raising=False)
+    start = time.monotonic()
+    with pytest.raises(ConfigError) as err:
+        demo.check_loop(str(path), "u", None)
+    assert time.monotonic() - start < 3.0
+    assert "loops.u.model" in str(err.value) and "still loading after 0.5 s" in str(err.value)
+
+    parser = argparse.ArgumentParser()
+    up.add_arguments(parser)
+    args = parser.parse_args(["--plant", str(path)])
+    monkeypatch.setattr(load_bound, "LOAD_TIMEOUT", 0.5)
+    start = time.monotonic()
+    with pytest.raises(ConfigError) as err:
+        up.load_config(args)
+    assert time.monotonic() - start < 3.0
+    assert "loops.u.model" in str(err.value) and "still loading after 0.5 s" in str(err.value)
