@@ -94,7 +94,7 @@ def check_loop(plant: str | None, loop: str, seed: int | None) -> None:
 
     # bounded as plant_sim bounds its own load (a model whose reset() blocked held the demo
     # silent for good, before any service started: user trial)
-    with load_bound(LOAD_TIMEOUT, f"plant file {path}"):
+    with load_bound(LOAD_TIMEOUT, f"plant file {path}", flag="as plant_sim bounds it"):
         load_plant_file(path, seed=seed, select=note)
     if loop not in ids:
         where = f"--plant {plant}" if plant else "the default plant"

@@ -436,7 +436,7 @@ def load_config(args: argparse.Namespace) -> UpConfig:
         from services.plant_sim.plant_file import load_plant_file
 
         # bounded as plant_sim bounds it (a model whose reset() blocked held `up` silent)
-        with load_bound(LOAD_TIMEOUT, f"plant file {cfg.plant}"):
+        with load_bound(LOAD_TIMEOUT, f"plant file {cfg.plant}", flag="as plant_sim bounds it"):
             load_plant_file(cfg.plant, seed=cfg.seed)
     proto, sep, addr = cfg.endpoint.partition("/")
     if not sep or not proto or ":" not in addr:
