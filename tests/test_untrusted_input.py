@@ -7,6 +7,7 @@ what they feed (``--load-timeout 1e10``, ``replay --rate 1e-308``, ``tune --node
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 import time
@@ -91,6 +92,22 @@ class SlowReset(_User):
     def reset(self) -> float:
         time.sleep(5.0)  # a device that does not answer (5 s: the test's cost without a bound)
         return super().reset()
+
+
+class StepBlocks(_User):
+    def step(self, op: float) -> float:
+        if self.n == 5:
+            time.sleep(3.0)  # a device that does not answer (3 s: the test's cost without a bound)
+        return super().step(op)
+
+
+class StepBlocksCatching(_User):
+    def step(self, op: float) -> float:
+        if self.n == 5:
+            for _ in range(3):  # swallows what interrupts it, and waits on
+                with contextlib.suppress(Exception):
+                    time.sleep(1.5)
+        return super().step(op)
 
 
 def _loop(cls: str):
@@ -228,3 +245,16 @@ def test_demo_and_up_bound_a_model_that_blocks_as_they_check_the_plant_file(tmp_
         up.load_config(args)
     assert time.monotonic() - start < 3.0
     assert "loops.u.model" in str(err.value) and "still loading after 0.5 s" in str(err.value)
+
+
+@pytest.mark.parametrize("cls", ["StepBlocks", "StepBlocksCatching"])
+def test_model_check_bounds_a_step_that_blocks(tmp_path, capsys, cls):
+    """``model check`` of a model whose step() did not return (a device that never answers)
+    never ended, silent (user trial); each call is now bounded by --load-timeout."""
+    start = time.monotonic()
+    code, _, err = run_cli(
+        capsys, "model", "check", str(_plant_file(tmp_path, cls)), "--load-timeout", "0.5"
+    )
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert "loops.u.model: refused: " in err and "has not returned after 0.5 s" in err, err
+    assert time.monotonic() - start < 2.5

@@ -12,10 +12,12 @@ Python runs) is not interrupted. Elsewhere (another thread, no SIGALRM) it bound
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import Any
 
 from shared.errors import ConfigError
 
@@ -64,6 +66,62 @@ def load_bound(
         yield
     except StillLoading:
         raise LoadTimeout(f"{what}: {why}") from None
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        signal.signal(signal.SIGALRM, before)
+
+
+class CallTimeout(ConfigError):
+    """One call of a model's reset() or step() did not return within the bound."""
+
+
+@contextmanager
+def call_bound(seconds: float, flag: str = "--load-timeout") -> Iterator[Callable[[Any], None]]:
+    """While the block runs (in the main thread), ``guard(process)`` bounds each later call of
+    that model's ``reset()`` and ``step()`` to ``seconds`` of wall time: past it the call is
+    interrupted with ``CallTimeout`` (the caller names it as the model's failure), and again
+    every second should the model catch it. ``autotune model check`` of a model whose
+    step() blocked (a device that never answers) never ended, silent (user trial). A model
+    whose methods cannot be replaced on the instance, and any model elsewhere, is not bound."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(
+        signal, "setitimer"
+    ):
+        yield lambda process: None
+        return
+
+    why = f"has not returned after {seconds:g} s ({flag}): a model that blocks?"
+    strokes = 0
+
+    def expired(signum: int, frame: object) -> None:
+        nonlocal strokes
+        strokes += 1
+        raise CallTimeout(why) if strokes == 1 else StillLoading(why)
+
+    def bounded(fn: Callable[..., Any]) -> Callable[..., Any]:
+        def call(*args: Any) -> Any:
+            nonlocal strokes
+            strokes = 0
+            signal.setitimer(signal.ITIMER_REAL, seconds, 1.0)
+            try:
+                return fn(*args)
+            except StillLoading:  # past the model's own handler: its failure all the same
+                raise CallTimeout(why) from None
+            finally:
+                signal.setitimer(signal.ITIMER_REAL, 0.0)
+
+        return call
+
+    def guard(process: Any) -> None:
+        for name in ("reset", "step"):
+            with contextlib.suppress(Exception):
+                setattr(process, name, bounded(getattr(process, name)))
+
+    # a load_bound within (a loop rebuilt) puts this handler back as it ends
+    before = signal.signal(signal.SIGALRM, expired)
+    try:
+        yield guard
+    except StillLoading:
+        raise CallTimeout(f"a model's call {why}") from None
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0.0)
         signal.signal(signal.SIGALRM, before)

@@ -23,10 +23,13 @@ import functools
 import json
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from services.plant_sim.load_bound import (
     LOAD_TIMEOUT,
+    call_bound,
     check_load_timeout,
     load_bound,
     watch_ctrl_c,
@@ -54,12 +57,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=LOAD_TIMEOUT,
         metavar="S",
-        help="wall s the plant file's models may take to load, as plant_sim's (default: "
+        help="wall s the plant file's models may take to load, as plant_sim's, and a user "
+        "model's reset() or step() may take in any one call of the check (default: "
         "%(default)s)",
     )
 
 
-def _rebuilt(path: str, timeout: float, loop_id: str, sample_time: float) -> SimLoop | str:
+def _rebuilt(
+    path: str, timeout: float, guard: Callable[[SimLoop], None], loop_id: str, sample_time: float
+) -> SimLoop | str:
     """The plant file's loop ``loop_id`` built alone at ``sample_time``, or why it cannot be
     (a model with a fixed step, one that loads too slowly: the refusal's line)."""
     try:
@@ -69,7 +75,22 @@ def _rebuilt(path: str, timeout: float, loop_id: str, sample_time: float) -> Sim
             )
     except ConfigError as err:
         return str(err)
-    return loops.get(loop_id) or f"{loop_id}: not built"
+    loop = loops.get(loop_id)
+    if loop is None:
+        return f"{loop_id}: not built"
+    guard(loop)
+    return loop
+
+
+def _guarded(bound: Callable[[Any], None]) -> Callable[[SimLoop], None]:
+    """Bound each reset() and step() call of a loop's model when it is a user's class (a
+    preset's or an FMU's step does not block in Python)."""
+
+    def guard(loop: SimLoop) -> None:
+        if ":" in loop.settings.model_name:
+            bound(loop.process)
+
+    return guard
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,11 +135,18 @@ def _reports(args: argparse.Namespace) -> list:
                 f"(it has: {', '.join(loops)})"
             )
         loops = {args.loop: loops[args.loop]}
-    reports = [check_loop(loop_id, loop) for loop_id, loop in loops.items()]
-    for r in reports:
-        refine_step_point(
-            r, functools.partial(_rebuilt, args.plant_file, args.load_timeout, r.loop)
-        )
+    # and each call of a model's reset() or step() as it is checked (one whose step() blocked
+    # held the check for good, silent)
+    with call_bound(args.load_timeout) as bound:
+        guard = _guarded(bound)
+        for loop in loops.values():
+            guard(loop)
+        reports = [check_loop(loop_id, loop) for loop_id, loop in loops.items()]
+        for r in reports:
+            refine_step_point(
+                r,
+                functools.partial(_rebuilt, args.plant_file, args.load_timeout, guard, r.loop),
+            )
     return reports
 
 
