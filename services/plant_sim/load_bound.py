@@ -40,27 +40,35 @@ class StillLoading(BaseException):
     (``except Exception``): past any handler of the model's, turned into a ConfigError."""
 
 
+def _bounded_here() -> bool:
+    """SIGALRM bounds a block only in the main thread, where the interval timer exists."""
+    return threading.current_thread() is threading.main_thread() and hasattr(signal, "setitimer")
+
+
+class _Strokes:
+    """The SIGALRM handler: ``first(why)`` at the first stroke, StillLoading at the next ones
+    (a model that caught the first); ``count`` set back to 0 starts again."""
+
+    def __init__(self, first: type[ConfigError], why: str):
+        self.first, self.why, self.count = first, why, 0
+
+    def __call__(self, signum: int, frame: object) -> None:
+        self.count += 1
+        raise self.first(self.why) if self.count == 1 else StillLoading(self.why)
+
+
 @contextmanager
 def load_bound(
     seconds: float, what: str = "plant file", flag: str = "--load-timeout"
 ) -> Iterator[None]:
     """Raise LoadTimeout in the main thread if the block runs longer than ``seconds``;
     ``what``: the file being loaded, named where no loader's message names it."""
-    if threading.current_thread() is not threading.main_thread() or not hasattr(
-        signal, "setitimer"
-    ):
+    if not _bounded_here():
         yield
         return
 
     why = f"still loading after {seconds:g} s ({flag}): a model's __init__ or reset() that blocks?"
-    strokes = 0
-
-    def expired(signum: int, frame: object) -> None:
-        nonlocal strokes
-        strokes += 1
-        raise LoadTimeout(why) if strokes == 1 else StillLoading(why)
-
-    before = signal.signal(signal.SIGALRM, expired)
+    before = signal.signal(signal.SIGALRM, _Strokes(LoadTimeout, why))
     signal.setitimer(signal.ITIMER_REAL, seconds, 1.0)  # again every second until it ends
     try:
         yield
@@ -83,24 +91,16 @@ def call_bound(seconds: float, flag: str = "--load-timeout") -> Iterator[Callabl
     every second should the model catch it. ``autotune model check`` of a model whose
     step() blocked (a device that never answers) never ended, silent (user trial). A model
     whose methods cannot be replaced on the instance, and any model elsewhere, is not bound."""
-    if threading.current_thread() is not threading.main_thread() or not hasattr(
-        signal, "setitimer"
-    ):
+    if not _bounded_here():
         yield lambda process: None
         return
 
     why = f"has not returned after {seconds:g} s ({flag}): a model that blocks?"
-    strokes = 0
-
-    def expired(signum: int, frame: object) -> None:
-        nonlocal strokes
-        strokes += 1
-        raise CallTimeout(why) if strokes == 1 else StillLoading(why)
+    expired = _Strokes(CallTimeout, why)
 
     def bounded(fn: Callable[..., Any]) -> Callable[..., Any]:
         def call(*args: Any) -> Any:
-            nonlocal strokes
-            strokes = 0
+            expired.count = 0
             signal.setitimer(signal.ITIMER_REAL, seconds, 1.0)
             try:
                 return fn(*args)
