@@ -521,6 +521,9 @@ class TuneRequest(Message):
     apply_predicted_ms: float | None = Field(
         default=None,
         gt=0.0,
+        # left out unset: a tuner before it refused every request ("Extra inputs are not
+        # permitted"), a plain tune's too (autotune perf --source b961985)
+        exclude_if=lambda v: v is None,
         description="the recorded run's Ms for apply_gains on its model (None: not judged); "
         "a setpoint weight against an overshoot over the limit is tried only where it is "
         "within ms_bound",

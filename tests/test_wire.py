@@ -415,3 +415,28 @@ def test_samples_encoded_from_their_fields_are_the_bytes_of_the_model() -> None:
     model = ProcessSamples(loop="a.b-c_1", samples=[ProcessSample(**r) for r in rows])
     assert wire.encode_samples("a.b-c_1", rows) == wire.encode(model)
     assert wire.decode(ProcessSamples, wire.encode_samples("a.b-c_1", rows)) == model
+
+
+def test_a_tune_request_carries_no_field_unset_that_an_older_tuner_would_refuse():
+    """A request's fields added after b961985 are left out where unset: the tuner of that
+    version forbids unknown fields, and refused every plain tune of a newer client because
+    of ``apply_predicted_ms: null`` (``autotune perf --source``). ``answer_by`` is retried
+    without (``tune.UNKNOWN_ANSWER_BY``)."""
+    import subprocess
+    from pathlib import Path
+
+    from shared.messages import TuneRequest
+
+    old = subprocess.run(
+        ["git", "show", "b961985:shared/messages.py"],
+        capture_output=True,
+        text=True,
+        cwd=Path(__file__).parent,
+    )
+    if old.returncode != 0:
+        pytest.skip("b961985 is not in this clone's history")
+    body = old.stdout[old.stdout.index("class TuneRequest(") :]
+    body = body[: body.index("\nclass ")]
+    sent = json.loads(TuneRequest(loop="x1").model_dump_json())
+    unknown = [k for k in sent if f"\n    {k}:" not in body]
+    assert unknown == [], unknown
