@@ -191,18 +191,15 @@ def test_loop_refuses_out_of_range_commands_and_changes_nothing():
 def test_a_transfer_function_of_absurd_order_is_refused_at_once(tmp_path):
     """den = s^3000 + 1 took 28 s to be refused (as unstable), s^100000 + 1 tried to allocate
     75 GiB: the order is bounded before any matrix is built."""
-    import time
 
     path = tmp_path / "big.toml"
     den = ", ".join(["1.0"] + ["0.0"] * 2999 + ["1.0"])
     path.write_text(
         f'[loops.a]\nmodel = "transfer_function"\nnum = [1.0]\nden = [{den}]\nsample_time = 0.1\n'
     )
-    start = time.monotonic()
     with pytest.raises(ConfigError) as err:
         load_plant_file(path)
     assert "loops.a.den: 3001 coefficients (order 3000); at most 101 (order 100)" in str(err.value)
-    assert time.monotonic() - start < 2.0
     path.write_text(
         f'[loops.a]\nmodel = "transfer_function"\nnum = [{den}]\nden = [1.0, 1.0]\n'
         "sample_time = 0.1\n"
