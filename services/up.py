@@ -52,7 +52,7 @@ from services.stack import Stack, runs_dir, service_tokens
 from shared import keys
 from shared.cli import MAX_SPEED, check_ids, install_stop_handlers
 from shared.errors import AutotuneError, ConfigError
-from shared.session import ZenohSettings, check_endpoint
+from shared.session import ZenohSettings, check_endpoint, rendezvous
 
 HELP = "start plant_sim, the autotuner and the logger (and a router) until Ctrl-C"
 
@@ -376,7 +376,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="FILE", help="settings file (TOML), see above")
     parser.add_argument("--prefix", help=f"root of every key (default: {keys.DEFAULT_PREFIX})")
     parser.add_argument(
-        "--endpoint", help="where plant_sim (or the router) listens (default: tcp/127.0.0.1:7447)"
+        "--endpoint",
+        help="where plant_sim (or the router) listens (default: the rendezvous, "
+        "tcp/127.0.0.1:7447 or AUTOTUNE_RENDEZVOUS)",
     )
     parser.add_argument(
         "--router",
@@ -421,6 +423,10 @@ def load_config(args: argparse.Namespace) -> UpConfig:
         value = getattr(args, name, None)
         if value is not None:
             data[name] = value
+    # where the processes of this machine meet unless told (AUTOTUNE_RENDEZVOUS moves it): `up`
+    # stayed on 7447 while the commands a user then typed in the same shell met on the
+    # moved point, and found no tuner ("reached no peer or router at all")
+    data.setdefault("endpoint", rendezvous())
     try:
         cfg = UpConfig.model_validate(data)
     except pydantic.ValidationError as err:
