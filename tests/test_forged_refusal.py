@@ -9,11 +9,11 @@ from collections import Counter
 
 import pytest
 
-from services.autotuner.loop_client import refused_kind, split_refusals
+from services.autotuner.loop_client import LoopClient, refused_kind, split_refusals
 from services.autotuner.tuning import RunHooks, TuningRun
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
-from shared.messages import ReleaseCommand, TuneRequest
+from shared.messages import LoopStatus, ReleaseCommand, TuneRequest
 
 SP = "setpoint: sp 1000000.0 is outside the PV range [0.0, 100.0] %"
 
@@ -74,3 +74,30 @@ def test_a_refusal_not_sent_seen_after_the_run_is_a_warning_of_its_result():
         f"{SP}): another client on the bus writes as this run (a bus without credentials "
         "cannot tell them apart: see Security)"
     ]
+
+
+def _client() -> LoopClient:
+    """A client's refusal bookkeeping as its constructor leaves it (no bus)."""
+    c = LoopClient.__new__(LoopClient)
+    c.loop, c.source = "hx1", "autotune-set"
+    c._refused, c._own_refused, c._own_reject = None, 0, None
+    c.forged_refused, c.forged_reject = 0, None
+    c._unanswered, c._sent_unnamed = Counter(), Counter()
+    return c
+
+
+def _answer(rejected: int, last: str | None) -> LoopStatus:
+    """A sync's answer as far as the refusals go."""
+    return LoopStatus.model_construct(sync_rejected=rejected, sync_last_reject=last)
+
+
+def test_refusals_before_the_client_began_are_neither_its_own_nor_forged():
+    """The plant counts by source; `autotune set` and the console use one fixed source, so a
+    new client's first sync carries the refusals of every earlier one (an earlier `set`
+    refused once: the next `set` logged "1 refusal(s) in this client's name of commands it
+    did not send"). The first answer is the baseline; refusals after it are split."""
+    c = _client()
+    assert c._count_refusals(_answer(3, SP)) == 0
+    assert (c.forged_refused, c._own_refused) == (0, 0)
+    assert c._count_refusals(_answer(4, SP)) == 1  # one more, no setpoint sent: not its own
+    assert (c.forged_refused, c._own_refused) == (1, 0)

@@ -260,7 +260,10 @@ class LoopClient:
         self._stalls = stall_watch()
         self._born = time.monotonic()  # a stall before this client began is not its loss's
         self._gone_at: float | None = None  # monotonic: when the plant's token vanished
-        self._refused = 0  # refusals in our name so far (from the plant's sync answers)
+        # refusals in our name so far (from the plant's sync answers); None before the first,
+        # which is the baseline: the plant counts by source, and a fixed one (`autotune set`'s,
+        # the console's) carries every earlier client's refusals, none of them this one's
+        self._refused: int | None = None
         # of them, the ones that can be this client's own, and the ones it did not send
         # (``split_refusals``)
         self._own_refused = 0
@@ -681,8 +684,10 @@ class LoopClient:
         into its own and ones it did not send (``split_refusals``); how many of the latter."""
         if answer.sync_rejected is None:  # a plant that does not count by sender
             return 0
-        new = answer.sync_rejected - self._refused
-        self._refused = answer.sync_rejected
+        before, self._refused = self._refused, answer.sync_rejected
+        if before is None:  # sent before this client began (it sends nothing before it)
+            return 0
+        new = answer.sync_rejected - before
         possible = self._unanswered + self._sent_unnamed
         last = answer.sync_last_reject
         own, forged = split_refusals(new, possible, last)
