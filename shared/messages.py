@@ -561,6 +561,11 @@ class TuneRequest(Message):
     )
 
 
+# how a tuner's refusal of a request it read past its ``answer_by`` says so: its client, still
+# waiting the second it keeps for the answer's way back, takes it for no answer (``submit``)
+ANSWERED_LATE = "after its client stopped waiting for an answer"
+
+
 class TuneAccepted(Message):
     run_id: RunId
     loop: LoopId
@@ -802,6 +807,7 @@ class TuneResult(Message):
 
 
 __all__ = [
+    "ANSWERED_LATE",
     "COMMANDS",
     "Action",
     "AdvanceCommand",

@@ -54,6 +54,7 @@ from shared.control.forms import span_or_none
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.identity import auth_user
 from shared.messages import (
+    ANSWERED_LATE,
     APPLIED_STATUSES,
     LoopInfo,
     LoopMonitor,
@@ -216,8 +217,8 @@ class TunerService:
         if late is not None:  # the checks above outlasted the client's wait (this tuner
             # starved): its client has asked another tuner, whose run is to be the only one
             raise ValueError(
-                f"the request for {req.loop} was checked {late:.3g} s after its client "
-                "stopped waiting for an answer (this tuner was paused or starved): not started"
+                f"the request for {req.loop} was checked {late:.3g} s {ANSWERED_LATE} (this tuner "
+                "was paused or starved): not started"
             )
         with self.lock:
             if req.loop in self.active:
@@ -390,8 +391,8 @@ class TunerService:
             if late is not None:
                 self.rejected += 1
                 why = (
-                    f"the request for {req.loop} came {late:.3g} s after its client stopped "
-                    "waiting for an answer (this tuner was paused or starved): not started"
+                    f"the request for {req.loop} came {late:.3g} s {ANSWERED_LATE} (this tuner was "
+                    "paused or starved): not started"
                 )
                 log.warning("request refused: %s", why)
                 query.reply_err(why.encode())

@@ -42,6 +42,7 @@ from shared.control.forms import (
 from shared.errors import AutotuneError, ConfigError, DecodeError
 from shared.history_file import same_gains
 from shared.messages import (
+    ANSWERED_LATE,
     DONE_STATUSES,
     LoopStatus,
     TuneAccepted,
@@ -348,6 +349,7 @@ def _ask(
     (``answer_by``), the second before it left for its answer's way back."""
     key = keys.tuner_request(prefix, node)
     bounded = True  # sent with ``answer_by`` (not to a tuner of a version before it)
+    late = False  # it said it read the request past its ``answer_by``
     while time.monotonic() < until:  # a new peer's queryable may take a moment to route
         left = until - time.monotonic()
         # answered by then or not at all: the tuner refuses it later (``answer_by``), the
@@ -375,6 +377,11 @@ def _ask(
                 # session knows (its queryable routed) was said to have "refused the
                 # request: Timeout"
                 break
+            if ANSWERED_LATE in why:  # read past its ``answer_by``, in the second kept for
+                # the answer's way back: as good as silent, not asked again, and the next tuner
+                # is (it was taken for a refusal, and tune failed with a live tuner next)
+                late = True
+                break
             if not (bounded and UNKNOWN_ANSWER_BY in why):
                 raise AutotuneError(f"the autotuner refused the request: {why}")
             # a tuner of a version before ``answer_by`` refuses the field: asked again
@@ -383,6 +390,8 @@ def _ask(
             break
         else:
             time.sleep(0.05)
+        if late:
+            break
     # its token seen, its queryable silent: paused or starved, or (a secure deployment) the
     # router drops this session's requests, which it may not send (a viewer's `autotune
     # tune` was asked whether the tuner was running: helper 52)

@@ -1,0 +1,72 @@
+"""`autotune tune` without ``--node``: a tuner that read the request past its ``answer_by``
+refuses it as read late (its client's share of the wait for it nearly over). That refusal
+comes in the second the client keeps for the answer's way back: it is that tuner's silence,
+not a refusal of the request, and the next tuner is asked. It was taken for a refusal, and
+tune failed ("the autotuner refused the request: the request for hx1 came 0.2 s after its
+client stopped waiting …") with a live tuner next in line.
+
+One session on loopback plays both tuners."""
+
+from __future__ import annotations
+
+import pytest
+
+from services.autotuner.commands import tune
+from shared import keys, wire
+from shared.messages import ANSWERED_LATE, TuneAccepted, TuneRequest
+from shared.session import ZenohSettings, open_session
+
+P, LOOP = "al1", "hx1"
+ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
+
+
+def test_a_tuner_that_read_the_request_late_is_passed_over(capsys) -> None:
+    asked: list[str] = []
+    with open_session(ALONE) as s:
+
+        def late(query) -> None:
+            asked.append("a")
+            query.reply_err(
+                f"the request for {LOOP} came 0.2 s {ANSWERED_LATE} (this tuner was paused or "
+                "starved): not started".encode()
+            )
+
+        def accepts(query) -> None:
+            asked.append("b")
+            ok = TuneAccepted(run_id="r1", loop=LOOP, t=0.0, method="relay", rule="zn-pid")
+            wire.reply(query, keys.tuner_request(P, "b"), ok)
+
+        held = [s.liveliness().declare_token(keys.tuner_alive(P, n)) for n in ("a", "b")]
+        held += [
+            s.declare_queryable(keys.tuner_request(P, "a"), late),
+            s.declare_queryable(keys.tuner_request(P, "b"), accepts),
+        ]
+        try:
+            accepted = tune.submit(s, P, "*", TuneRequest(loop=LOOP), timeout=6.0)
+        finally:
+            for h in held:
+                h.undeclare()
+    assert accepted.run_id == "r1"
+    assert asked == ["a", "b"]  # 'a' not asked again: it had read it late once
+    assert "'a' did not answer" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("why", ["loop: hx1 is already being tuned (run r0)"])
+def test_a_refusal_is_still_an_answer(why) -> None:
+    """Any other refusal ends the request with the tuner's reason (the next is not asked)."""
+    asked: list[str] = []
+    with open_session(ALONE) as s:
+
+        def refuses(query) -> None:
+            asked.append("a")
+            query.reply_err(why.encode())
+
+        held = [s.liveliness().declare_token(keys.tuner_alive(P, n)) for n in ("a", "b")]
+        held += [s.declare_queryable(keys.tuner_request(P, "a"), refuses)]
+        try:
+            with pytest.raises(tune.AutotuneError, match="already being tuned"):
+                tune.submit(s, P, "*", TuneRequest(loop=LOOP), timeout=6.0)
+        finally:
+            for h in held:
+                h.undeclare()
+    assert asked == ["a"]
