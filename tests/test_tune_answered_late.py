@@ -9,6 +9,8 @@ One session on loopback plays both tuners."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from services.autotuner.commands import tune
@@ -70,3 +72,29 @@ def test_a_refusal_is_still_an_answer(why) -> None:
             for h in held:
                 h.undeclare()
     assert asked == ["a"]
+
+
+def test_a_request_is_never_to_be_answered_after_its_client_stops_waiting() -> None:
+    """Each request's ``answer_by`` falls within its client's wait (with time left for the
+    answer's way back), however little of the wait is left: with 0.5 s at least, one sent
+    with 0.3 s left could be started by a tuner the client had given up on, and then the
+    next tuner asked started a second run."""
+    got: list[float] = []
+    with open_session(ALONE) as s:
+
+        def silent(query) -> None:  # read, never answered (a starved tuner)
+            got.append(wire.decode(TuneRequest, query.payload.to_bytes()).answer_by)
+
+        held = [
+            s.liveliness().declare_token(keys.tuner_alive(P, "a")),
+            s.declare_queryable(keys.tuner_request(P, "a"), silent),
+        ]
+        try:
+            with pytest.raises(tune.AutotuneError, match="did not answer"):
+                tune.submit(s, P, "a", TuneRequest(loop=LOOP), timeout=0.3)
+            gave_up = time.time()
+        finally:
+            for h in held:
+                h.undeclare()
+    assert got
+    assert max(got) < gave_up

@@ -353,8 +353,10 @@ def _ask(
     while time.monotonic() < until:  # a new peer's queryable may take a moment to route
         left = until - time.monotonic()
         # answered by then or not at all: the tuner refuses it later (``answer_by``), the
-        # second before the wait ends left for its answer's way back
-        by = time.time() + max(0.5, left - ANSWER_WAY) if bounded else None
+        # second before the wait ends (half what is left, if less) left for its answer's way
+        # back. Never past the wait's end: with 0.5 s at least, a request sent with 0.3 s left
+        # was started by a tuner after its client had given up on it and asked the next
+        by = time.time() + left - min(ANSWER_WAY, 0.5 * left) if bounded else None
         asked = req.model_copy(update={"answer_by": by})
         replies = session.get(
             key,
