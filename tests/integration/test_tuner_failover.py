@@ -66,13 +66,15 @@ def test_a_silent_tuner_is_passed_over_for_a_live_one(start_plant, start_tuner, 
     assert result.status == "proposed", result.reason
     assert result.run_id == accepted[0].run_id
     # the two silent ones passed over, each within its share of the 10 s: 10/3 s, then
-    # (10 − 10/3)/2 = 10/3 s
+    # (10 − 10/3)/2 = 10/3 s, each less what the wait had taken before it (the tokens' and
+    # the candidates' look-ups: ms, more on a loaded machine; printed to 3 figures, 3.33
+    # was 10 ms from failing an abs=0.01 bound)
     shares = {
         m[1]: float(m[2])
         for m in re.finditer(r"'([a-z-]+)' did not answer within ([0-9.]+) s", said)
     }
     assert list(shares) == ["a-forged", "b-tuner"], said
-    assert shares["a-forged"] == pytest.approx(10 / 3, abs=0.01), said
+    assert 3.0 < shares["a-forged"] <= 10 / 3 + 0.01, said
     assert 3.0 < shares["b-tuner"] <= 10 / 3 + 0.01, said  # less what the first one's took
     assert "asking 'tuner'" in said, said
     assert accepted[1] < 10.0
