@@ -39,6 +39,7 @@ def test_a_tuner_that_read_the_request_late_is_passed_over(capsys) -> None:
             wire.reply(query, keys.tuner_request(P, "b"), ok)
 
         held = [s.liveliness().declare_token(keys.tuner_alive(P, n)) for n in ("a", "b")]
+        held.append(s.liveliness().declare_token(keys.loop_alive(P, LOOP)))
         held += [
             s.declare_queryable(keys.tuner_request(P, "a"), late),
             s.declare_queryable(keys.tuner_request(P, "b"), accepts),
@@ -64,6 +65,7 @@ def test_a_refusal_is_still_an_answer(why) -> None:
             query.reply_err(why.encode())
 
         held = [s.liveliness().declare_token(keys.tuner_alive(P, n)) for n in ("a", "b")]
+        held.append(s.liveliness().declare_token(keys.loop_alive(P, LOOP)))
         held += [s.declare_queryable(keys.tuner_request(P, "a"), refuses)]
         try:
             with pytest.raises(tune.AutotuneError, match="already being tuned"):
@@ -98,3 +100,23 @@ def test_a_request_is_never_to_be_answered_after_its_client_stops_waiting() -> N
                 h.undeclare()
     assert got
     assert max(got) < gave_up
+
+
+def test_a_loop_no_plant_serves_is_said_so_whatever_the_number_of_tuners() -> None:
+    """Three live tuners, no plant serving the loop: each tuner takes 4 s (its wait for the
+    loop's token) to refuse it, more than its third of the wait, and tune said after the whole
+    wait that all three were "paused or starved". The client tells it itself, asking none."""
+    asked: list[str] = []
+    with open_session(ALONE) as s:
+        held = [s.liveliness().declare_token(keys.tuner_alive(P, n)) for n in "abc"]
+        held += [
+            s.declare_queryable(keys.tuner_request(P, n), lambda q, n=n: asked.append(n))
+            for n in "abc"
+        ]
+        try:
+            with pytest.raises(tune.AutotuneError, match=r"^loop: no plant serves 'nosuch'"):
+                tune.submit(s, P, "*", TuneRequest(loop="nosuch"), timeout=3.0)
+        finally:
+            for h in held:
+                h.undeclare()
+    assert asked == []

@@ -276,6 +276,11 @@ ZENOH_TIMEOUT = "Timeout"
 TRY_AT_LEAST = 2.0
 
 
+# s: how long a loop's token may take to be seen before it is taken not to be there (the
+# tuner's own ``service.ANNOUNCE_WAIT``)
+LOOP_ANNOUNCE_WAIT = 4.0
+
+
 class _Silent(AutotuneError):
     """The tuner asked did not answer within its share of the wait (``_ask``)."""
 
@@ -305,6 +310,14 @@ def submit(
         raise missing()
     if "*" not in node:
         return _ask(session, prefix, node, req, deadline, timeout)
+    # a loop no plant serves, told here: each tuner takes its ANNOUNCE_WAIT (4 s) to say so,
+    # longer than its share of the wait among three, and `autotune tune nosuch` with three
+    # healthy tuners said after 10 s that all three were "paused or starved"
+    loop_key = keys.loop_alive(prefix, req.loop)
+    if not wait_for_token(
+        session, loop_key, max(0.1, min(LOOP_ANNOUNCE_WAIT, deadline - time.monotonic()))
+    ):
+        raise AutotuneError(f"loop: no plant serves {req.loop!r} (nothing announces {loop_key})")
     nodes = tuner_candidates(session, prefix, node, max(0.1, deadline - time.monotonic()))
     silent: list[str] = []
     for i, name in enumerate(nodes):
