@@ -426,7 +426,9 @@ def load_config(args: argparse.Namespace) -> UpConfig:
     # where the processes of this machine meet unless told (AUTOTUNE_RENDEZVOUS moves it): `up`
     # stayed on 7447 while the commands a user then typed in the same shell met on the
     # moved point, and found no tuner ("reached no peer or router at all")
-    data.setdefault("endpoint", rendezvous())
+    # (read only then: a malformed AUTOTUNE_RENDEZVOUS refused `up --endpoint X` too)
+    if data.get("endpoint") is None:
+        data["endpoint"] = rendezvous()
     try:
         cfg = UpConfig.model_validate(data)
     except pydantic.ValidationError as err:

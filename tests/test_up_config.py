@@ -29,3 +29,11 @@ def test_up_listens_on_the_rendezvous_the_commands_meet_on(monkeypatch):
     monkeypatch.setenv(RENDEZVOUS_ENV, "tcp/127.0.0.1:99999")
     with pytest.raises(ConfigError, match=RENDEZVOUS_ENV):
         _config()
+
+
+def test_an_endpoint_given_does_not_read_the_rendezvous(monkeypatch):
+    """`--endpoint` says where: the environment's rendezvous is not read, and a malformed one
+    does not refuse it (it did: the default was worked out, and checked, either way), as every
+    other command with `-e` ignores it."""
+    monkeypatch.setenv(RENDEZVOUS_ENV, "garbage")
+    assert _config("--endpoint", "tcp/127.0.0.1:17000").endpoint == "tcp/127.0.0.1:17000"
