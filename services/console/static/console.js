@@ -9,6 +9,7 @@ const S = {
   aliveKnown: false,  // the services' tokens heard (an empty set then means no plant is up)
   running: new Set(), // loops with a run in progress
   leftAt: {},         // loop → Date.now() when its run's token went (its result may follow)
+  resultRuns: new Set(), // the runs whose result (or an apply's) the page has had
   trends: {},         // loop → {t, pv, sp, op}
   progress: {},       // loop → last TuneProgress
   phases: {},         // loop → {run, list}: the phases its last run went through
@@ -115,6 +116,8 @@ const handlers = {
   },
   result(m) {
     S.results[m.loop] = m;
+    S.resultRuns.add(m.result.run_id);
+    if (m.applied_by) S.resultRuns.add(m.applied_by.run_id);
     setTimeout(loadRuns, 1500);  // the logger finishes the run's file once the result is out
     if (m.loop === S.selected) { S.chosenRule = null; renderResult(); renderProgress(); }
     if (!m.earlier) say(`result of run ${m.result.run_id} on ${m.loop}: ${m.result.status}` + (m.result.reason ? ` (${m.result.reason})` : ""), ["ok", "proposed"].includes(m.result.status));
@@ -304,11 +307,11 @@ function renderTuneButtons() {
 const ENDED_WAIT = 3000;  // ms after a run's token went before its missing result is told
 
 // the run of progress ``p`` on ``loop`` went from the bus without a result (its token gone for
-// ENDED_WAIT, no result of that run, nor an apply of it, on the page)
+// ENDED_WAIT, no result of that run, nor an apply of it, on the page: a run aborted with its
+// result, then another on the loop whose result came without progress, flagged the first)
 function endedWithoutResult(loop, p) {
   if (!p || p.phase === "done" || S.running.has(loop)) return false;
-  const r = S.results[loop];
-  if (r && [r.result.run_id, r.applied_by && r.applied_by.run_id].includes(p.run_id)) return false;
+  if (S.resultRuns.has(p.run_id)) return false;  // any run's, not the loop's last alone
   return S.leftAt[loop] !== undefined && Date.now() - S.leftAt[loop] >= ENDED_WAIT;
 }
 
