@@ -15,6 +15,7 @@ import pytest
 
 from services.autotuner.commands import tune
 from shared import keys, wire
+from shared.errors import AutotuneError
 from shared.messages import ANSWERED_LATE, TuneAccepted, TuneRequest
 from shared.session import ZenohSettings, open_session
 
@@ -120,3 +121,32 @@ def test_a_loop_no_plant_serves_is_said_so_whatever_the_number_of_tuners() -> No
             for h in held:
                 h.undeclare()
     assert asked == []
+
+
+def test_a_run_under_way_after_a_silent_tuner_stops_the_failover(capsys) -> None:
+    """A tuner that accepted but whose answer was lost is silent to the client, and its run
+    goes on: asking the next tuner started a second run, refused the loop's lease, and left
+    the first unfollowed (review). With the loop's run token up after a silence, the next
+    tuner is not asked, and the line says why."""
+    asked: list[str] = []
+    with open_session(ALONE) as s:
+
+        def accepts(query) -> None:
+            asked.append("b")
+            ok = TuneAccepted(run_id="r1", loop=LOOP, t=0.0, method="relay", rule="zn-pid")
+            wire.reply(query, keys.tuner_request(P, "b"), ok)
+
+        # 'a' has no queryable (its answer lost), and its run's token is up
+        held = [s.liveliness().declare_token(keys.tuner_alive(P, n)) for n in ("a", "b")]
+        held.append(s.liveliness().declare_token(keys.loop_alive(P, LOOP)))
+        held.append(s.liveliness().declare_token(keys.tune_running(P, LOOP)))
+        held.append(s.declare_queryable(keys.tuner_request(P, "b"), accepts))
+        try:
+            with pytest.raises(AutotuneError) as err:
+                tune.submit(s, P, "*", TuneRequest(loop=LOOP), timeout=6.0)
+        finally:
+            for h in held:
+                h.undeclare()
+    assert asked == []
+    assert f"a run on {LOOP} is now under way" in str(err.value)
+    assert "no other tuner is asked" in str(err.value)

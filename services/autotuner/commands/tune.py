@@ -274,6 +274,7 @@ ZENOH_TIMEOUT = "Timeout"
 # is asked (a healthy tuner answers in milliseconds; a new peer's queryable may take a
 # moment to route)
 TRY_AT_LEAST = 2.0
+RUN_SEEN_WAIT = 0.3  # s: after a silent tuner, for a run's token on the loop (it accepted)
 
 
 # s: how long a loop's token may take to be seen before it is taken not to be there (the
@@ -331,6 +332,17 @@ def submit(
             if len(nodes) == 1:
                 raise
             silent.append(name)
+            running = keys.tune_running(prefix, req.loop)
+            if i + 1 < len(nodes) and wait_for_token(session, running, RUN_SEEN_WAIT):
+                # the silent one accepted, and its answer was lost or late: another tuner's
+                # run would be refused the loop's lease, and this one left unfollowed
+                raise AutotuneError(
+                    f"autotuner {name!r} did not answer within {share:.3g} s, and a run on "
+                    f"{req.loop} is now under way ({running}): its answer may have been "
+                    "lost, so no other tuner is asked (its run would be refused the loop); "
+                    "`autotune loops` shows who holds the loop, the console's Cancel (or a put "
+                    f"on {keys.tune_cancel(prefix, req.loop)}) stops the run"
+                ) from None
             nxt = f": asking {nodes[i + 1]!r}" if i + 1 < len(nodes) else ""
             print(
                 f"autotune tune: autotuner {name!r} did not answer within {share:.3g} s "
