@@ -98,3 +98,19 @@ def test_equal_integral_gains_go_to_the_lower_ms_whatever_the_last_bits():
     soft = _cand("lambda-pi", 1745.0, 1745.0 / ki, 1.31, 20.0)
     rec = recommend(None, MODEL, candidates={c.rule: c for c in (stiff, soft)})
     assert rec is not None and rec.rule == "simc-pi-int", rec
+
+
+def test_the_calm_test_reads_the_decay_ratio_the_table_prints():
+    """TL PI's predicted step overshoots 7.1 % and creeps back from above with a ripple on the
+    way: no second overshoot, its decay ratio "—" in the table, but its crests read 0.90, and
+    the calm and passable tests, reading the crests, passed it over for a candidate fifty
+    times weaker that the table showed no better."""
+    rb = Robustness(1.5, 5.0, 60.0, 1.0, 0.5, stable=True, sample_time=TS)
+    tl = Assessment("tl-pi", IsaGains(kc=5.0, ti=10.0), rb, StepFigures(7.1, 0.90, True, None))
+    lam = _cand("lambda-pi", 1.0, 100.0, 1.01, 0.0)
+    rec = recommend(None, MODEL, candidates={c.rule: c for c in (tl, lam)})
+    assert rec is not None and rec.rule == "tl-pi", rec
+    # a second overshoot of the table's, past the calm 0.25: passed over, as it was
+    rough = Assessment("tl-pi", tl.gains, rb, StepFigures(7.1, 0.90, True, 0.4))
+    rec = recommend(None, MODEL, candidates={c.rule: c for c in (rough, lam)})
+    assert rec is not None and rec.rule == "lambda-pi", rec

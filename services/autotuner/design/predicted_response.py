@@ -22,9 +22,10 @@ That crest figure counts any two maxima above the final value as successive peak
 riding a slow tail that never comes back through the final value read as a decay: TL PID on
 e^{−s}/(10s + 1) (the benchmark's L/T = 0.1) overshoots 7.1 % and read 0.90 (0.94 at P_u/100),
 its oscillatory pole pair decaying 0.19 a period; ZN PID on e^{−s}/(0.2s + 1) read 1.29 (1.57)
-on a stable loop whose slowest pair decays 0.98 a period. It stays what the recommendation's
-calm and passable tests and ``autotune benchmark`` read (their figures unchanged); what the
-rules table prints is ``overshoot_decay``: the next overshoot about the final value over the
+on a stable loop whose slowest pair decays 0.98 a period. It stays what ``autotune
+benchmark``'s ZN P column reads (its figures unchanged); what the rules table prints, and the
+recommendation's calm and passable tests read (the same figures over the benchmark and the
+presets), is ``overshoot_decay``: the next overshoot about the final value over the
 largest, each the peak of a lobe beyond the final value, the lobes separated by crossings to
 0.1 % of the final value below it (``signals.overshoot_decay``), None ("—") where there is no
 second overshoot.
@@ -52,12 +53,12 @@ UNSETTLED = 1e-3  # a response whose last fifth moves more than this (× the ste
 @dataclass(frozen=True)
 class StepFigures:
     overshoot: float  # % of the final value, about the final value
-    # the crests' figure the recommendation's calm and passable tests and ``autotune
-    # benchmark`` (``benchmark.decay_ratio``) read; NOT the one to print (see the module)
+    # the crests' figure ``autotune benchmark`` (``benchmark.decay_ratio``) reads; NOT the
+    # one to print or to judge by (see the module)
     decay_ratio: float
     stable: bool
-    # the decay ratio the rules table prints (``signals.overshoot_decay``): None without a
-    # second overshoot about the final value
+    # the decay ratio the rules table prints and the recommendation judges by
+    # (``signals.overshoot_decay``): None without a second overshoot about the final value
     overshoot_decay: float | None = None
 
 

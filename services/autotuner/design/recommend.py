@@ -295,7 +295,7 @@ def _step_within(a: Assessment, overshoot: float, decay: float) -> bool:
         st is not None
         and st.stable
         and st.overshoot <= overshoot
-        and (st.decay_ratio or 0.0) <= decay
+        and (st.overshoot_decay or 0.0) <= decay
     )
 
 
