@@ -23,6 +23,17 @@ P, LOOP = "al1", "hx1"
 ALONE = ZenohSettings(listen=("tcp/127.0.0.1:0",), no_multicast_scouting=True)
 
 
+def _accepting(node: str, asked: list[str]):
+    """A tuner ``node``'s queryable that accepts (run r1), noting that it was asked."""
+
+    def accepts(query) -> None:
+        asked.append(node)
+        ok = TuneAccepted(run_id="r1", loop=LOOP, t=0.0, method="relay", rule="zn-pid")
+        wire.reply(query, keys.tuner_request(P, node), ok)
+
+    return accepts
+
+
 def test_a_tuner_that_read_the_request_late_is_passed_over(capsys) -> None:
     asked: list[str] = []
     with open_session(ALONE) as s:
@@ -34,10 +45,7 @@ def test_a_tuner_that_read_the_request_late_is_passed_over(capsys) -> None:
                 "starved): not started".encode()
             )
 
-        def accepts(query) -> None:
-            asked.append("b")
-            ok = TuneAccepted(run_id="r1", loop=LOOP, t=0.0, method="relay", rule="zn-pid")
-            wire.reply(query, keys.tuner_request(P, "b"), ok)
+        accepts = _accepting("b", asked)
 
         held = [s.liveliness().declare_token(keys.tuner_alive(P, n)) for n in ("a", "b")]
         held.append(s.liveliness().declare_token(keys.loop_alive(P, LOOP)))
@@ -130,11 +138,7 @@ def test_a_run_under_way_after_a_silent_tuner_stops_the_failover(capsys) -> None
     tuner is not asked, and the line says why."""
     asked: list[str] = []
     with open_session(ALONE) as s:
-
-        def accepts(query) -> None:
-            asked.append("b")
-            ok = TuneAccepted(run_id="r1", loop=LOOP, t=0.0, method="relay", rule="zn-pid")
-            wire.reply(query, keys.tuner_request(P, "b"), ok)
+        accepts = _accepting("b", asked)
 
         # 'a' has no queryable (its answer lost), and its run's token is up
         held = [s.liveliness().declare_token(keys.tuner_alive(P, n)) for n in ("a", "b")]
