@@ -954,27 +954,20 @@ class Recorder:
         self.counts["dropped"] += run.gaps
         if run.writer.error is not None:  # cut short where it could no longer be written
             why = run.writer.error.strerror or one_line(run.writer.error)
-            if not run.writer.path.exists():  # not even its header reached the disk
-                log.error(
-                    "run %s on %s%s: %s, but not recorded: its file %s could not be written (%s)",
-                    run.run_id,
-                    run.loop,
-                    _replay_note(stream),
-                    status,
-                    run.writer.path,
-                    why,
-                )
-                return
+            path = run.writer.path
+            what = (
+                f"its file {path} is cut short ({why}): its recording stopped after "
+                f"{bus_messages} of its messages, some of them lost with the chunk in progress"
+                if path.exists()
+                else f"not recorded: its file {path} could not be written ({why})"
+            )
             log.error(
-                "run %s on %s%s: %s, but its file %s is cut short (%s): its recording "
-                "stopped after %d of its messages, some of them lost with the chunk in progress",
+                "run %s on %s%s: %s, but %s",
                 run.run_id,
                 run.loop,
                 _replay_note(stream),
                 status,
-                run.writer.path,
-                why,
-                bus_messages,
+                what,
             )
             return
         log.info(
