@@ -49,6 +49,11 @@ def test_a_silent_tuner_is_passed_over_for_a_live_one(start_plant, start_tuner, 
             def start():
                 accepted.append(submit(s, p.prefix, "*", req))
                 accepted.append(time.monotonic() - t0)
+                # passed over: resumed now, not after the run, so that its pause stays under
+                # the session lease (10 s); past it, the tuner's own lease check can close
+                # the link before it reads the request, and the refusal is never logged (a
+                # CI run on a loaded machine)
+                paused.send_signal(signal.SIGCONT)
                 return accepted[0]
 
             result = follow(s, p.prefix, "x1", start, 60.0)
