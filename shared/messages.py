@@ -550,6 +550,17 @@ class TuneRequest(Message):
         description="verification: how far (percentage points) the measured overshoot may "
         "exceed the predicted one before the model is judged wrong",
     )
+    max_op_noise: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=100.0,
+        allow_inf_nan=False,
+        # left out unset, as apply_predicted_ms: a tuner before it refuses unknown fields
+        exclude_if=lambda v: v is None,
+        description="verification: output noise limit, % of output (σ of the sample-to-sample "
+        "change over √2, at rest); the recommendation keeps within it where a rule can "
+        "(None: 10 %)",
+    )
     source: str = Field(default="operator", max_length=64)
     # wall clock (Unix s) until which the client waits for the tuner's answer: a tuner that
     # reads the request later refuses it, as its client has given up (a tuner paused for 55 s

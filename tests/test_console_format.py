@@ -79,11 +79,16 @@ def test_a_rule_unstable_on_the_model_shows_no_margins_or_overshoot():
          "decay_ratio": 1.22, "stable": False},
         {"ms": 1.39, "gain_margin": 4.72, "phase_margin_deg": 57.8, "overshoot_pct": 16.9,
          "decay_ratio": 0.0, "stable": True},
+        {"ms": 1.01, "gain_margin": 83.6, "phase_margin_deg": 89.0, "overshoot_pct": 0.0,
+         "decay_ratio": None, "stable": True, "op_noise_pct": 0.6023},
     ]  # fmt: skip
     code = "\n".join(lines) + f"\nconsole.log(JSON.stringify({json.dumps(rows)}.map(robustCells)))"
     out = subprocess.run(
         ["node", "-e", code], capture_output=True, text=True, timeout=30, check=True
     )
-    unstable, stable = json.loads(out.stdout)
+    unstable, stable, quiet = json.loads(out.stdout)
     assert "UNSTABLE on the model" in unstable and "3404" not in unstable
-    assert stable == "<td>1.39</td><td>4.72</td><td>57.8</td><td>16.9</td><td>0.00</td>"
+    assert 'colspan="6"' in unstable  # across the output noise's column too
+    assert stable == "<td>1.39</td><td>4.72</td><td>57.8</td><td>16.9</td><td>0.00</td><td>—</td>"
+    # the output noise the gains make of the PV's (``design.output_noise``)
+    assert quiet.endswith("<td>0.0</td><td>—</td><td>0.60</td>")

@@ -27,7 +27,7 @@ import numpy as np
 import pydantic
 
 from services.autotuner.compute_pool import compute_all, inline
-from services.autotuner.design import margin_check, setpoint_weight
+from services.autotuner.design import margin_check, output_noise, setpoint_weight
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
@@ -706,6 +706,7 @@ class TuningRun:
             req.lambda_s,
             req.aim,
             parts,
+            output_noise.limit_of(req.max_op_noise),
             here=True,
         )
         rec = sel.recommended
@@ -1355,6 +1356,7 @@ class TuningRun:
             "max_overshoot": req.max_overshoot,
             "max_decay_ratio": req.max_decay_ratio,
             "overshoot_miss": req.overshoot_miss,
+            "max_op_noise": output_noise.limit_of(req.max_op_noise),
             "predicted_overshoot": predicted,
             "predicted_gain_margin": self._predicted_gm,
         }
@@ -1407,7 +1409,8 @@ class TuningRun:
         ringing_note = process_ringing_note(after_v, req.max_decay_ratio)
         if ringing_note is not None:
             notes.append(ringing_note)
-        if after_v.op_noise is not None and after_v.op_noise > OP_NOISE_WARN:
+        loud = after_v.op_noise is not None and after_v.op_noise > limits["max_op_noise"]
+        if after_v.op_noise is not None and after_v.op_noise > OP_NOISE_WARN and not loud:
             notes.append(
                 f"the gains turn the PV's noise into {after_v.op_noise:.3g} % of output noise "
                 "(σ): the valve works hard; a lower gain or a filtered measurement spares it"
@@ -2447,6 +2450,14 @@ def acceptance_problems(
         )
     if after.saturated:
         out.append("the output saturated for a third of the verification or more")
+    loud = limits.get("max_op_noise")
+    if loud is not None and after.op_noise is not None and after.op_noise > loud:
+        # measured at rest, before the step: the PV's noise through the gains, sample to sample
+        out.append(
+            f"output noise {after.op_noise:.3g} % (σ) above the limit {loud:g} %: the PV's "
+            "noise through these gains moves the valve that much from sample to sample (a "
+            "lower gain or a filtered measurement spares it; --max-op-noise sets the limit)"
+        )
     os_ = after.overshoot
     pred = limits.get("predicted_overshoot")
     if os_ is not None and after.op_limited and pred is not None and pred > os_:

@@ -21,6 +21,7 @@ from pathlib import Path
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from services.autotuner.design import output_noise
 from services.autotuner.design.request_check import validate_request
 from services.autotuner.design.selection import Selection, assessments_dict, select
 from services.autotuner.identify import experiments, methods
@@ -341,6 +342,7 @@ def analyze_file(path: str | Path) -> Analysis:
             data.get("sample_time"),
             req.lambda_s,
             req.aim,
+            max_op_noise=output_noise.limit_of(req.max_op_noise),
         )
     except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as err:
         raise AutotuneError(

@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from services.autotuner.design import output_noise
 from services.autotuner.design.predicted_response import predicted_setpoint_step
 from services.autotuner.design.sampled_loop import sampled_loop_robustness
 from services.autotuner.design.selection import select
@@ -230,7 +231,7 @@ def _recommendation(plant: Plant, test) -> dict:
     if ident is None:
         return {}
     ts = plant.exact()[1] / SAMPLES_PER_PERIOD
-    sel = select(ident, "auto", sample_time=ts)
+    sel = select(ident, "auto", sample_time=ts, max_op_noise=output_noise.DEFAULT_LIMIT)
     rec = sel.recommended
     if rec is None or sel.refusal:
         return {}

@@ -153,6 +153,14 @@ def add_tune_options(parser: argparse.ArgumentParser) -> None:
         "more than this many percentage points: the model is wrong (default: %(default)s)",
     )
     parser.add_argument(
+        "--max-op-noise",
+        type=float,
+        metavar="PCT",
+        help="verification: refuse gains that turn the PV's noise into more output noise "
+        "than this, %% of output (σ of the sample-to-sample change over √2, at rest); the "
+        "recommended rule keeps within it where one can (default: 10)",
+    )
+    parser.add_argument(
         "--rest-window",
         type=float,
         help="seconds of PV the drift check before the test watches (default: the loop's "
@@ -247,6 +255,7 @@ def request_from_args(args: argparse.Namespace, source: str) -> TuneRequest:
             max_overshoot=args.max_overshoot,
             max_decay_ratio=args.max_decay_ratio,
             overshoot_miss=args.overshoot_miss,
+            max_op_noise=args.max_op_noise,
             rest_window=args.rest_window,
             source=source,
         )
@@ -950,12 +959,22 @@ def _fixed(v, decimals: int) -> str:
     return "—" if v is None else f"{v:.{decimals}f}"
 
 
+def _noise_column(rob: dict) -> bool:
+    """Whether the rules table has the predicted output noise's column: some rule has one
+    (judged on the sampled loop)."""
+    return any(a.get("op_noise_pct") is not None for a in rob.values())
+
+
 def _robust_head(rob: dict) -> str:
-    return f"{'Ms':>7}{'GM':>7}{'PM °':>7}{'OS %':>7}{'DR':>6}" if rob else ""
+    if not rob:
+        return ""
+    noise = f"{'OP σ %':>8}" if _noise_column(rob) else ""
+    return f"{'Ms':>7}{'GM':>7}{'PM °':>7}{'OS %':>7}{'DR':>6}{noise}"
 
 
-def _robust_row(a: dict) -> str:
-    """A rule's predicted Ms, margins, overshoot and decay ratio (blank without them)."""
+def _robust_row(a: dict, noise: bool = False) -> str:
+    """A rule's predicted Ms, margins, overshoot and decay ratio, and with ``noise`` the
+    output noise its gains make of the PV's (% of output, σ) (blank without them)."""
     if not a:
         return ""
     if a.get("stable") is False:  # margins and overshoot of an unstable loop mean nothing
@@ -970,6 +989,8 @@ def _robust_row(a: dict) -> str:
         (_fixed(a.get("overshoot_pct"), 1), 7),
         (_fixed(a.get("decay_ratio"), 2), 6),
     )
+    if noise:
+        cells += ((_fixed(a.get("op_noise_pct"), 2), 8),)
     # a cell wider than its column still gets a space before it (overshoot 16491.6 %)
     return "".join(f" {c:>{w - 1}}" if len(c) < w else f" {c}" for c, w in cells)
 
@@ -997,7 +1018,8 @@ def _percent_table(r: TuneResult, span: float, pv_units: str) -> list[str]:
         mark = "←" if name == r.rule else ""
         lines.append(
             f"  {name:<15}{pct.kc:>10.4g}{figure(pct.pb):>10}{figure(pct.ti):>10}"
-            f"{pct.td:>10.4g}{isa['kc']:>14.4g}{_robust_row(rob.get(name, {}))} {mark}"
+            f"{pct.td:>10.4g}{isa['kc']:>14.4g}"
+            f"{_robust_row(rob.get(name, {}), _noise_column(rob))} {mark}"
         )
     return lines
 
@@ -1159,7 +1181,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             lines.append(
                 f"  {name:<15}{isa['kc']:>10.4g}{figure(isa['ti']):>10}"
                 f"{isa['td']:>10.4g}{par['ki']:>10.4g}{par['kd']:>10.4g}"
-                f"{_robust_row(rob.get(name, {}))} {mark}"
+                f"{_robust_row(rob.get(name, {}), _noise_column(rob))} {mark}"
             )
     if any(a.get("ms_from_point") for a in r.robustness.values()):
         lines.append(floor_note())
@@ -1178,6 +1200,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
             ("settling time s", "settling_time"),
             ("IAE setpoint", "iae_sp"),
             ("IAE load", "iae_load"),
+            ("output noise σ %", "op_noise"),
             ("stable", "stable"),
         ]
         if span is not None:  # an IAE in PV units·s as % of span·s
@@ -1215,6 +1238,11 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
                 f", within {a['overshoot_miss']:g} points of the "
                 f"{'0' if abs(pred) < 0.005 else f'{pred:.3g}'} % predicted"
                 if pred is not None
+                else ""
+            )
+            + (
+                f", output noise ≤ {a['max_op_noise']:g} %"
+                if a.get("max_op_noise") is not None
                 else ""
             )
             + (": passed" if a["passed"] else f": failed ({a['problems']})")

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.autotuner.design.output_noise import noise_gain
 from services.autotuner.design.predicted_response import StepFigures, predicted_setpoint_steps
 from services.autotuner.design.robustness import Robustness, robustness
 from services.autotuner.design.rules import RULES, UltimatePoint, apply_rules
@@ -80,6 +81,10 @@ class Assessment:
     # Ms taken from the measured ultimate point alone (the model misses the plant there:
     # ``selection``); the margins, overshoot and decay ratio beside it are still the model's
     ms_from_point: bool = False
+    # the output noise the gains make of the PV's measured noise on the sampled loop of the
+    # model (% of output, σ(Δu)/√2 as the verification measures it; ``output_noise``); None
+    # where not predicted (no sampled loop, or not stable on it)
+    op_noise: float | None = None
 
     def to_dict(self) -> dict[str, float | bool | None]:
         rb, st = self.robustness, self.step
@@ -104,7 +109,13 @@ class Assessment:
             out["overshoot_pct"] = _number(st.overshoot)
             # the quarter-decay figure (``predicted_response``), None without a second overshoot
             out["decay_ratio"] = _number(st.overshoot_decay)
+        if self.op_noise is not None:
+            out["op_noise_pct"] = _number(self.op_noise)
         return out
+
+    def noisy(self, limit: float | None) -> bool:
+        """The predicted output noise is above ``limit`` (% of output; None: no limit)."""
+        return limit is not None and self.op_noise is not None and self.op_noise > limit
 
     @property
     def stable(self) -> bool | None:
@@ -176,19 +187,21 @@ def above(x: float, bound: float) -> str:
 
 def judge_all(
     gains: dict[str, IsaGains], tf: DelayedTF | None, sample_time: float | None
-) -> tuple[dict[str, tuple[Robustness | None, Robustness | None]], bool]:
+) -> tuple[dict[str, tuple[Robustness | None, Robustness | None, float | None]], bool]:
     """Every candidate's robustness on ``tf``: (on the sampled loop when ``sample_time`` s is
-    given and the plant samples, else continuous; the continuous figures), and whether the
-    sampled loop was judged. Both None for a candidate whose figures could not be computed."""
+    given and the plant samples, else continuous; the continuous figures; the output's noise
+    per unit of the PV's on the sampled loop, ``output_noise.noise_gain``, where it is judged
+    stable there), and whether the sampled loop was judged. None for a figure that could not
+    be computed."""
     plant: SampledPlant | None = None
     if tf is not None and sample_time is not None and sample_time > 0:
         try:
             plant = sampled_plant(tf, sample_time)
         except (ValueError, ArithmeticError, np.linalg.LinAlgError):
             plant = None
-    judged: dict[str, tuple[Robustness | None, Robustness | None]] = {}
+    judged: dict[str, tuple[Robustness | None, Robustness | None, float | None]] = {}
     for name, g in gains.items():
-        rb, cont = None, None
+        rb, cont, gain = None, None, None
         if tf is not None:
             try:
                 cont = robustness(g, tf)
@@ -198,9 +211,10 @@ def judge_all(
             if plant is not None:
                 try:
                     rb = sampled_robustness(g, plant)
+                    gain = noise_gain(g, plant) if rb.stable else None
                 except (ValueError, ArithmeticError, np.linalg.LinAlgError):
                     rb = None
-        judged[name] = (rb, cont)
+        judged[name] = (rb, cont, gain)
     return judged, plant is not None
 
 
@@ -211,10 +225,12 @@ def assess(
     simulate: bool = False,
     sample_time: float | None = None,
     parts: Parts = in_turn,
+    noise: float = 0.0,
 ) -> dict[str, Assessment]:
     """Every candidate's robustness on the model (rules needing K_u and P_u unless given):
-    on the sampled loop when ``sample_time`` (s) is given, beside the continuous figures;
-    with ``simulate`` also its closed-loop setpoint step at the loop's sample time.
+    on the sampled loop when ``sample_time`` (s) is given, beside the continuous figures and
+    the output noise the gains make of the PV's white noise of σ ``noise`` (PV units); with
+    ``simulate`` also its closed-loop setpoint step at the loop's sample time.
 
     The robustness and the steps are independent (a hundred milliseconds, half each), so
     they are computed as two ``parts``: the steps of every candidate, though only those
@@ -261,6 +277,7 @@ def assess(
             judged[name][0],
             steps.get(name),
             judged[name][1] if sampled else None,
+            op_noise=None if judged[name][2] is None else noise * judged[name][2],
         )
         for name, g in gains.items()
     }
@@ -272,6 +289,9 @@ class Recommendation:
     gains: IsaGains
     predicted_ms: float | None
     reason: str
+    # every candidate within the margin was predicted above the output-noise limit: this one
+    # is the least noisy (``quieter``), not one within it
+    noisy: bool = False
 
 
 CALM_OVERSHOOT = 25.0  # %: predicted setpoint overshoot preferred (verification limit 35 %;
@@ -345,12 +365,15 @@ def recommend(
     aim: str = "balanced",
     pooled: bool = False,
     implied: tuple[float, float] | None = None,
+    max_op_noise: float | None = None,
 ) -> Recommendation | None:
     """The rule to apply by default for the ``aim`` (see the module's docstring); ``candidates`` as
     ``assess`` gives them (every ultimate-point rule if not given); ``without_model`` says
     why there is no model to judge on (a refusal by ``model_check``); ``pooled``: the
     candidates are fewer than the rules computed (the others left out, said in a warning),
-    so the reason names them; ``implied``: a step's record's K_u (``envelope_problem``).
+    so the reason names them; ``implied``: a step's record's K_u (``envelope_problem``);
+    ``max_op_noise``: the output noise (% of output, σ) the verification accepts: candidates
+    predicted above it are passed over where another is within the margin (``quieter``).
     None when no candidate is inside the safety envelope."""
     if aim not in AIMS:
         raise ValueError(f"unknown aim {aim!r}; expected one of {', '.join(AIMS)}")
@@ -378,6 +401,18 @@ def recommend(
             return APPROXIMATE_PID_MARGIN if pid and model.approximate else MODEL_MARGIN
 
         ok = [a for a in safe.values() if a.within(margin(a.rule) * ms_bound)]
+        ok, hushed = quieter(ok, max_op_noise)
+        if ok and all(a.noisy(max_op_noise) for a in ok):
+            least = ok[0]
+            return Recommendation(
+                least.rule,
+                least.gains,
+                _number(least.robustness.ms),
+                f"the least output noise of the rules with {_margins(model, ms_bound)} on {on}: "
+                f"{least.op_noise:.3g} % predicted (σ), above the {max_op_noise:g} % the "
+                f"verification accepts{hushed}",
+                noisy=True,
+            )
         if aim == "robust":
             first = next((a for r in ROBUST_RULES for a in ok if a.rule == r), None)
             if first is not None:
@@ -386,7 +421,7 @@ def recommend(
                     first.gains,
                     _number(first.robustness.ms),
                     f"aim robust: the first of {', '.join(ROBUST_RULES)} with "
-                    f"Ms ≤ {margin(first.rule) * ms_bound:.2g} on {on}",
+                    f"Ms ≤ {margin(first.rule) * ms_bound:.2g} on {on}{hushed}",
                 )
         # the verification will hold the loop to its overshoot and decay limits: prefer the
         # candidates whose predicted step already keeps well inside them (not when the aim
@@ -424,7 +459,8 @@ def recommend(
                 best.gains,
                 _number(best.robustness.ms) if best.robustness else None,
                 f"{lead}largest integral gain of the rules with {_margins(model, ms_bound)}"
-                f"{also} on {on}{costly}: {', '.join(sorted(a.rule for a in met))}{among}",
+                f"{also} on {on}{costly}: {', '.join(sorted(a.rule for a in met))}{among}"
+                f"{hushed}",
             )
         judged = [a for a in safe.values() if a.robustness is not None]
         kept = " kept (the warning says why)" if pooled else ""
@@ -460,6 +496,28 @@ def recommend(
     else:
         reason = "no model to judge the candidates on: the robust default"
     return Recommendation(fallback.rule, fallback.gains, _number(rb.ms) if rb else None, reason)
+
+
+def quieter(pool: list[Assessment], limit: float | None) -> tuple[list[Assessment], str]:
+    """``pool`` less the candidates predicted to make more output noise than ``limit`` (%),
+    and the reason's words for those passed over ("" if none). Where every candidate is
+    above it, the least noisy alone is kept: the verification, which measures the noise,
+    then decides. Why: the recommendation's largest integral gain is the noisiest gain on a
+    lag with little dead time (SIMC PI, Kc 497 %/% on 0.1/(5s + 1) at 0.1 s: 34.5 % of output
+    noise from a PV noise of 0.05, applied as ok, where lambda PI made 0.6 %)."""
+    loud = [a for a in pool if a.noisy(limit)]
+    if not loud:
+        return pool, ""
+    rest = [a for a in pool if not a.noisy(limit)]
+    kept = rest or [min(loud, key=lambda a: a.op_noise or 0.0)]
+    dropped = sorted((a for a in loud if a not in kept), key=lambda a: a.rule)
+    if not dropped:
+        return kept, ""
+    told = ", ".join(f"{a.rule} {a.op_noise:.3g} %" for a in dropped)
+    return kept, (
+        f"; passed over for a predicted output noise above {limit:g} % (σ, the PV's noise "
+        f"through the gains): {told}"
+    )
 
 
 def _margins(model: ProcessFit, ms_bound: float) -> str:

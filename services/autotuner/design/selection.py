@@ -21,7 +21,10 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from services.autotuner.design.measured_point import ms_floor
+from services.autotuner.design.output_noise import QUIET_SHARE, quiet_lambda
 from services.autotuner.design.recommend import (
     APPROXIMATE_PID_MARGIN,
     INVERSE_SOURCE,
@@ -41,6 +44,7 @@ from services.autotuner.design.rules import (
     fopdt_of,
     lambda_used,
 )
+from services.autotuner.design.sampled_loop import sampled_plant
 from services.autotuner.identify.experiments import Identification
 from services.autotuner.identify.model_check import ModelCheck, check_model, stated_spread
 from services.autotuner.identify.model_fit import ProcessFit, model_of
@@ -339,12 +343,15 @@ def select(
     lambda_s: float | None = None,
     aim: str = "balanced",
     parts: Parts = in_turn,
+    max_op_noise: float | None = None,
 ) -> Selection:
     """The gains for ``rule`` ("auto": the recommended rule for the ``aim``, see
     ``recommend``), judged at the loop's ``sample_time`` (s; None: in continuous time),
     refused (``refusal``) outside the safety envelope unless ``force``; the lambda rules with
     ``lambda_s`` (s; None: their default). ``parts``: how the judging's two independent
-    parts are computed (``assess``; the tuner: at once, in its workers)."""
+    parts are computed (``assess``; the tuner: at once, in its workers); ``max_op_noise``:
+    the output noise (% of output, σ) the verification accepts, which the recommendation
+    keeps within where it can (``recommend.quieter``; None: no limit)."""
     ku, pu = _finite(ident.ku), _finite(ident.pu)
     ultimate = UltimatePoint(ku, pu) if ku and pu and ku > 0 and pu > 0 else None
     ts = _finite(sample_time)
@@ -384,7 +391,9 @@ def select(
         if g.ti is not None and not math.isfinite(g.ti):
             unavailable[name] = f"non-finite integral time {g.ti}"
             del table[name]
-    assessments = assess(ultimate, model, table, simulate=True, sample_time=ts, parts=parts)
+    assessments = assess(
+        ultimate, model, table, simulate=True, sample_time=ts, parts=parts, noise=ident.noise
+    )
     # the point the model is held to: the measured one, else the one a step test's record
     # implies by itself (no rule uses that one)
     point, unsure = ultimate, 0.0
@@ -494,8 +503,47 @@ def select(
     if ultimate is None and ident.record_point is not None:
         implied = (ident.record_point[0], ident.record_point[2])
     rec = recommend(
-        ultimate, judge, ms_bound, pool, without_model, aim, pooled=bool(left_out), implied=implied
+        ultimate,
+        judge,
+        ms_bound,
+        pool,
+        without_model,
+        aim,
+        pooled=bool(left_out),
+        implied=implied,
+        max_op_noise=max_op_noise,
     )
+    lambda_quiet = None  # λ raised for the output noise (``_quieter_lambda``)
+    if rec is not None and rec.noisy and lambda_s is None and not misfit and ts:
+        source = (
+            design if design is not None or ident.step_model is None else model_of(ident.step_model)
+        )
+        raised = _quieter_lambda(
+            source, model, ultimate, ts, ident.noise, max_op_noise, pool, parts
+        )
+        if raised is not None:
+            lambda_quiet, again = raised
+            table.update({k: a.gains for k, a in again.items()})
+            assessments.update(again)
+            pool = {**pool, **{k: a for k, a in again.items() if k in pool}}
+            rec = recommend(
+                ultimate,
+                judge,
+                ms_bound,
+                pool,
+                without_model,
+                aim,
+                pooled=bool(left_out),
+                implied=implied,
+                max_op_noise=max_op_noise,
+            )
+            warnings.append(
+                f"every rule within the Ms margin was predicted to make more than "
+                f"{max_op_noise:g} % of output noise (σ) from the PV's noise: the lambda rules "
+                f"are designed at λ = {lambda_quiet:.4g} s, raised from their default "
+                f"{lambda_used(source, None):.4g} s, for {QUIET_SHARE * max_op_noise:.3g} % or "
+                "less (a slower loop; --lambda sets λ, --max-op-noise the limit)"
+            )
     # a model that misses the measured point judges no rule surely: the envelope's bound is
     # then the approximate model's tighter one (ZN PI at 1.80 from K_u and P_u alone, 3.14 on
     # the plant, had passed at 2)
@@ -530,7 +578,7 @@ def select(
             design
             if design is not None or ident.step_model is None
             else model_of(ident.step_model),
-            lambda_s,
+            lambda_s if lambda_quiet is None else lambda_quiet,
         ),
     )
     if sel.chosen is None:
@@ -588,6 +636,45 @@ def select(
         elif sel.refusal is None:
             sel.refusal = f"refused: {apart} (force to apply anyway)"
     return sel
+
+
+def _quieter_lambda(
+    source: ProcessFit | None,
+    model: ProcessFit | None,
+    ultimate: UltimatePoint | None,
+    ts: float,
+    noise: float,
+    limit: float | None,
+    pool: dict[str, Assessment],
+    parts: Parts,
+) -> tuple[float, dict[str, Assessment]] | None:
+    """Where every candidate is above the output-noise ``limit`` (%): the λ at which lambda
+    PI is predicted at ``QUIET_SHARE`` of it (``output_noise.quiet_lambda``), and the lambda
+    rules of ``pool`` designed on ``source`` at it and judged on ``model`` as ``assess`` judges
+    them. None where no lambda rule is a candidate, there is no model, or no λ helps. Why:
+    on an integrator sampled at 0.1 s with a PV noise σ of 0.05 every rule within the margin
+    was predicted at 11–13 % of output noise (lambda PI 11.1 %, 12.9 % measured), and the
+    verification rejected the tune; lambda PI at a longer λ is slower and within the limit."""
+    names = [k for k in pool if RULES[k].tuned_by_lambda]
+    if not names or source is None or model is None or limit is None or noise <= 0:
+        return None
+    try:
+        plant = sampled_plant(model.transfer, ts)
+        lam = quiet_lambda(source, plant, noise, QUIET_SHARE * limit)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+        return None
+    if lam is None:
+        return None
+    gains = {}
+    for k in names:
+        try:
+            gains[k] = RULES[k].compute(source, lam)
+        except ValueError:
+            continue
+    if not gains:
+        return None
+    again = assess(ultimate, model, gains, simulate=True, sample_time=ts, parts=parts, noise=noise)
+    return lam, again
 
 
 def _lambda_of(

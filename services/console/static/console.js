@@ -361,7 +361,7 @@ $("tune-cancel").onclick = () => {
 // with GM 0.92, PM -7.57°, an overshoot of 3404.4 % and a decay ratio of 1.22 as figures)
 // an Ms the measured point alone set (the model misses the plant there) is marked, as the CLI marks it
 const FLOOR_NOTE = "Ms from the measured ultimate point alone: the model misses the plant there, so GM, PM, OS and DR are the model's, not the plant's";
-const robustCells = (a) => (a.stable === false ? '<td colspan="5" class="bad">UNSTABLE on the model</td>' : `<td${a.ms_from_point ? ` title="${FLOOR_NOTE}"` : ""}>${fmt(a.ms, 3)}${a.ms_from_point ? "*" : ""}</td><td>${fmt(a.gain_margin, 3)}</td><td>${fmt(a.phase_margin_deg, 3)}</td><td>${fixed(a.overshoot_pct, 1)}</td><td>${fixed(a.decay_ratio, 2)}</td>`);
+const robustCells = (a) => (a.stable === false ? '<td colspan="6" class="bad">UNSTABLE on the model</td>' : `<td${a.ms_from_point ? ` title="${FLOOR_NOTE}"` : ""}>${fmt(a.ms, 3)}${a.ms_from_point ? "*" : ""}</td><td>${fmt(a.gain_margin, 3)}</td><td>${fmt(a.phase_margin_deg, 3)}</td><td>${fixed(a.overshoot_pct, 1)}</td><td>${fixed(a.decay_ratio, 2)}</td><td>${fixed(a.op_noise_pct, 2)}</td>`);
 
 function renderResult() {
   const m = S.results[S.selected];
@@ -376,7 +376,7 @@ function renderResult() {
   const v = r.after;  // the verification of the gains the run applied, as measured
   const acc = r.acceptance || {};  // a setpoint weight against the overshoot (README)
   const weight = acc.setpoint_weight != null ? `, at setpoint weight β ${fmt(acc.setpoint_weight)} (${fixed(acc.overshoot_full_weight, 1)} % at full weight)` : "";
-  const verified = v ? `<div id="result-verified">verified: overshoot ${fixed(v.overshoot, 1)} %, decay ratio ${fixed(v.decay_ratio, 2)}, settling ${fmt(v.settling_time, 3)} s, IAE ${fmt(v.iae_sp, 3)}${v.stable === false ? " — not stable" : ""}${weight}</div>` : "";
+  const verified = v ? `<div id="result-verified">verified: overshoot ${fixed(v.overshoot, 1)} %, decay ratio ${fixed(v.decay_ratio, 2)}, settling ${fmt(v.settling_time, 3)} s, IAE ${fmt(v.iae_sp, 3)}, output noise ${fixed(v.op_noise, 2)} % (σ)${v.stable === false ? " — not stable" : ""}${weight}</div>` : "";
   $("result-status").textContent = `${r.status} · run ${r.run_id}`;
   const lags = Object.keys(e).filter((k) => k.startsWith("model_lag")).sort().map((k) => fmt(e[k])).join(", ");
   const model = e.model ? `model ${String(e.model).toUpperCase()}: K = ${fmt(e.model_gain)}${lags ? `, T = ${lags} s` : ""}, L = ${fmt(e.model_delay)} s` : "no model";
@@ -385,7 +385,7 @@ function renderResult() {
     <div>${r.applied ? "new gains applied, loop in auto" : m.applied_by ? "" : !r.restored ? "" : ["proposed", "rejected"].includes(r.status) && r.gains && Object.keys(r.gains).length ? "loop as before the test: the gains wait for Apply" : "loop as before the test"}</div>${verified}
     ${m.applied_by ? `<div id="result-applied"><b>${esc(m.applied_by.rule)} applied</b> by run ${esc(m.applied_by.run_id)}: ${esc(m.applied_by.status)}${m.applied_by.applied ? ", verified, loop in auto" : ", not applied: the loop restored"}${m.applied_by.reason ? " (" + esc(m.applied_by.reason) + ")" : ""}</div>` : ""}
     ${r.recommended ? `<div class="muted">recommended: ${esc(r.recommended.rule)} (${esc(r.recommended.reason)})</div>` : ""}`;
-  thead.innerHTML = `<tr><th>rule</th><th>Kc %/${esc(per)}</th><th>Ti s</th><th>Td s</th><th>Ms</th><th>GM</th><th>PM °</th><th>OS % (pred.)</th><th>DR (pred.)</th></tr>`;
+  thead.innerHTML = `<tr><th>rule</th><th>Kc %/${esc(per)}</th><th>Ti s</th><th>Td s</th><th>Ms</th><th>GM</th><th>PM °</th><th>OS % (pred.)</th><th>DR (pred.)</th><th title="the output noise the gains make of the PV's, σ">OP σ % (pred.)</th></tr>`;
   const rec = r.recommended ? r.recommended.rule : r.rule;
   const chosen = S.chosenRule || rec;
   tbody.innerHTML = Object.entries(r.gains || {}).map(([name, g]) => {
