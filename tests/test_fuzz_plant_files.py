@@ -703,6 +703,29 @@ def test_a_model_failing_mid_run_faults_its_loop_only(user_models, caplog, cls, 
     assert bad.info("plant", "lockstep", 1.0).disturbances == ["bias"]
 
 
+def test_gains_that_are_no_control_at_all_are_refused_in_the_file_and_on_the_bus():
+    """Kc 0 (in ideal form the factor of every term: a loop in auto holds its output whatever
+    the PV does) was taken from a plant file's [pid] table and from a GainsCommand, which
+    `autotune set --kc 0` refuses; so was 1e-320, whose proportional band, 100/(Kc·150/100)
+    % of span, is no number. Both paths now refuse them, naming kc, and change nothing."""
+    for kc in (0.0, 1e-320):
+        plant = {"loops": {"hx1": {"model": "heat_exchanger", "pid": {"kc": kc, "ti": 60.0}}}}
+        with pytest.raises(ConfigError) as err:
+            build_plant(plant)
+        refused(err.value, "loops.hx1.pid: kc ", "no control at all")
+    loop = build_plant({"loops": {"hx1": {"model": "heat_exchanger", "mode": "auto"}}})["hx1"]
+    before = loop.snapshot()
+    for kc, said in ((0.0, "kc 0: "), (-0.0, "kc 0: "), (1e-320, ""), (5e-324, "")):
+        with pytest.raises(CommandRejected, match="no control at all") as err:
+            loop.apply(GainsCommand(loop="hx1", gains=PidGains(kc=kc, ti=60.0)))
+        assert err.value.category == "range"
+        assert err.value.reason.startswith("gains refused: " + (said or "kc "))
+    after = loop.snapshot()
+    assert (after.mode, after.op, after.gains) == (before.mode, before.op, before.gains)
+    assert after.gains.kc == 2.0  # the preset's
+    loop.apply(GainsCommand(loop="hx1", gains=PidGains(kc=1e-300, ti=60.0)))  # a number
+
+
 def test_gains_beyond_floating_point_are_refused_and_the_pid_guard_holds():
     plant = {"loops": {"hx1": {"model": "heat_exchanger", "pid": {"kc": 1e308, "td": 5.0}}}}
     with pytest.raises(ConfigError) as err:

@@ -143,6 +143,25 @@ def kc_percent(kc: float | None, span: float) -> float | None:
     return None if kc is None else kc * span / 100.0
 
 
+def kc_problem(kc: float, span: float) -> str | None:
+    """Why a controller gain ``kc`` (% of output per PV unit) is no control at all on a PV
+    ``span`` wide, else None: Kc 0, in ideal (ISA) form the factor of every term, so that a
+    loop in auto holds its output whatever the PV does (an operator's slip, not a tuning), or
+    a gain so small that its proportional band (100/Kc % of span) is not a number."""
+    if not kc > 0:
+        return (
+            "no control at all: in ideal form Kc multiplies every term, and a loop in auto "
+            "would hold its output whatever the PV does (Kc must be > 0 % of output per PV unit)"
+        )
+    pct = kc * span / 100.0
+    if pct == 0.0 or not math.isfinite(100.0 / pct):
+        return (
+            f"{pct:g} % of output per % of span, a proportional band too wide to be a number: "
+            "no control at all"
+        )
+    return None
+
+
 def process_gain_percent(k: float | None, span: float) -> float | None:
     """A process gain in PV units per % (or PV units per s per %: K', R) as % of span per %
     (or % of span per s per %): K·100/span."""

@@ -171,6 +171,40 @@ def test_a_thousand_malformed_payloads_are_refused_and_move_nothing(start_plant)
     assert plant.proc.poll() is None
 
 
+def test_a_raw_gains_command_with_kc_0_is_refused_counted_and_moves_nothing(start_plant):
+    """Kc 0 from the bus was applied (accepted 1, rejected 0; `autotune set --kc 0` was refused
+    on its own side): in ideal form Kc multiplies every term, and the loop in auto held its
+    output whatever the PV did. Now refused like any bad command: counted, its reason logged
+    and naming kc, and the loop as it was (its gains, its output, its mode)."""
+    plant = start_plant(TF_PLANT, loops=("tf1",))
+    with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, "tf1") as tf1:
+        tf1.command(GainsCommand(loop="tf1", gains=PidGains(kc=1.0, ti=1.5)))
+        tf1.command(ModeCommand(loop="tf1", mode="auto"))
+        before = tf1.sync()
+
+        def service() -> ServiceStatus:
+            replies = s.get(keys.service_status(plant.prefix, "plant_sim", "plant"), timeout=5)
+            return wire.decode_sample(ServiceStatus, next(iter(replies)).ok)
+
+        ranged = service().rejected_by_reason.get("range", 0)
+        for kc in ("0", "0.0", "-0.0", "1e-320"):  # a raw message, as any sender may put it
+            s.put(
+                keys.command(plant.prefix, "tf1", "gains"),
+                f'{{"loop": "tf1", "gains": {{"kc": {kc}, "ti": 1.5}}}}'.encode(),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        after = tf1.sync()  # the barrier: every put above has been handled
+        assert after.rejected - before.rejected == 4
+        assert after.accepted == before.accepted
+        assert service().rejected_by_reason.get("range", 0) - ranged == 4
+        assert after.last_reject is not None and "kc 9.99989e-321" in after.last_reject
+        assert "no control at all" in after.last_reject
+        assert after.gains == before.gains == PidGains(kc=1.0, ti=1.5)
+        assert (after.mode, after.op, after.sp) == ("auto", before.op, before.sp)
+    assert plant.proc.poll() is None
+    assert plant.log.read_text().count("tf1: gains: gains refused: kc 0: no control at all") == 3
+
+
 def test_pid_block_over_the_bus_mode_gains_setpoint(start_plant):
     plant = start_plant(TF_PLANT, loops=("tf1",))
     with open_session(plant.client_settings()) as s, LoopClient(s, plant.prefix, "tf1") as tf1:

@@ -12,7 +12,8 @@ exit 2, and nothing moves):
              above that a 0.1 % error drives the output across its whole range, the valve
              bangs between its limits on the noise, and it is a slip of the keyboard or of the
              units (% per % for % per PV unit) rather than a tuning. (A check of this
-             command's: the plant itself refuses only gains beyond floating-point range)
+             command's: the plant itself refuses only a Kc that is no control at all, 0 or
+             one whose proportional band is no number, and gains beyond floating-point range)
   --ti S     integral time, s, at least the loop's sample time (shorter, each sample's
              integral step is more than Kc times the error: the output slams); `--ti none`
              turns integral action off (P or PD with a manual reset). 0 is refused: Ti → 0 is
@@ -38,8 +39,9 @@ Order of the writes, each sent and confirmed (a sync) before the next:
                      setpoint in manual meanwhile, the setpoint is written once more in auto.
 
 The plant refuses any write while a tuning run or step test holds the loop's lease (naming
-the holder), an output or auto on a faulted loop, and gains beyond floating-point range. At
-the first refusal nothing more is sent; what was applied before it stays applied, and the
+the holder), an output or auto on a faulted loop, a Kc of 0 (no control at all) and gains
+beyond floating-point range. At the first refusal nothing more is sent; what was applied
+before it stays applied, and the
 report says which writes were applied, which was refused with the plant's reason, and which
 were not sent. The commands' source label is `autotune-set` (the plant's status names it in
 `by_source`, and the session's Zenoh user, if any, in `by_user`).
@@ -65,7 +67,7 @@ from services.autotuner.loop_client import (
 )
 from services.autotuner.recorder_watch import unrecorded_change
 from shared.cli import add_common_arguments, check_ids
-from shared.control.forms import MAX_KC_PERCENT, kc_percent
+from shared.control.forms import MAX_KC_PERCENT, kc_percent, kc_problem
 from shared.errors import ConfigError, one_line
 from shared.identity import auth_user
 from shared.messages import (
@@ -330,16 +332,16 @@ def plan(
 
 
 def check_kc(kc: float, pv_range: tuple[float, float], units: str, what: str = "--kc") -> None:
-    """ConfigError for a gain above ``MAX_KC_PERCENT`` % per % of the loop's span (``what``:
+    """ConfigError for a gain that is no control at all (``kc_problem``: 0, or a proportional
+    band that is no number) or above ``MAX_KC_PERCENT`` % per % of the loop's span (``what``:
     where the gain comes from, as the message names it)."""
     span = pv_range[1] - pv_range[0]
+    # 1e-320 was taken, shown as "PB inf %": a gain whose proportional band is no number;
+    # the plant refuses these too (and Kc 0), in the same words
+    problem = kc_problem(kc, span)
+    if problem:
+        raise ConfigError(f"{what} {kc:g}: {problem}")
     pct = kc_percent(kc, span)
-    if pct is not None and (pct == 0.0 or not math.isfinite(100.0 / pct)):
-        # 1e-320 was taken, shown as "PB inf %": a gain whose proportional band is no number
-        raise ConfigError(
-            f"{what} {kc:g}: {pct:g} % of output per % of span, a proportional band too wide "
-            "to be a number: no control at all"
-        )
     if pct is not None and pct > MAX_KC_PERCENT:
         raise ConfigError(
             f"{what} {kc:g}: {pct:.8g} % of output per % of span (a proportional band of "

@@ -30,6 +30,7 @@ import numpy as np
 from services.plant_sim.load_bound import models_own
 from services.plant_sim.simulation import linear_steps
 from services.plant_sim.simulation.models import ProcessModel
+from shared.control.forms import kc_problem
 from shared.control.pid import PidBlock, PidSettings
 from shared.errors import one_line as brief
 from shared.messages import (
@@ -108,9 +109,14 @@ class CommandRejected(Exception):
 
 
 def gains_problem(gains: PidGains, sample_time: float, pv_range: tuple[float, float]) -> str | None:
-    """Why ``gains`` would overflow the PID block's arithmetic on this loop (its terms reach
-    Kc·span·(1 + Td/T + T/Ti) % of output), else None."""
+    """Why ``gains`` are no control at all on this loop (Kc 0, or a Kc whose proportional band
+    is not a number: ``kc_problem``; `autotune set` refuses them in the same words), or would
+    overflow the PID block's arithmetic (its terms reach Kc·span·(1 + Td/T + T/Ti) % of
+    output), else None."""
     span = pv_range[1] - pv_range[0]
+    none = kc_problem(gains.kc, span)
+    if none:
+        return f"kc {gains.kc + 0.0:g}: {none}"  # -0 is 0
     reach = 1.0 + gains.td / sample_time + (sample_time / gains.ti if gains.ti else 0.0)
     if gains.kc * span * reach < 1e300:
         return None
