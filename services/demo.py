@@ -26,6 +26,7 @@ from services.autotuner.commands.tune import (
     request_from_args,
     submit,
 )
+from services.autotuner.recorder_watch import incomplete_line
 from services.console import launch as console_launch
 from services.launcher import free_tcp_port
 from services.logger.report import render
@@ -37,7 +38,7 @@ from services.stack import Stack, runs_dir, service_tokens
 from shared import json_text, keys, wire
 from shared.control.transfer import model_ultimate_point
 from shared.errors import AutotuneError, ConfigError
-from shared.messages import LoggerStatus, LoopInfo, TuneProgress, TuneResult
+from shared.messages import IncompleteRun, LoggerStatus, LoopInfo, TuneProgress, TuneResult
 from shared.session import ZenohSettings, open_session
 
 HELP = "the main job: tune a simulated heat exchanger through the three services"
@@ -112,14 +113,22 @@ def exact_point(info: LoopInfo) -> tuple[float, float] | None:
         return None
 
 
-def wait_for_file(session, prefix: str, runs: Path, run_id: str, timeout: float = 30.0) -> Path:
-    """The run's MCAP file, once the logger has finished it."""
+def wait_for_file(
+    session, prefix: str, runs: Path, run_id: str, timeout: float = 30.0
+) -> tuple[Path, IncompleteRun | None]:
+    """The run's MCAP file once the logger has finished it, and the logger's word that it
+    could not write it whole (None: it did). A file the disk filled up under as it was
+    finished was taken for the run's record: its report failed as "cut short … if a logger
+    was killed", and the run's result went unprinted (helper trial)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         st = wire.query_one(session, keys.logger_status(prefix, "logger"), LoggerStatus, 5.0)
+        cut = next((r for r in st.incomplete_runs if r.run_id == run_id), None) if st else None
+        if cut is not None:
+            return Path(cut.path), cut
         files = list(runs.glob(f"*_{run_id}.mcap"))
         if st is not None and files and run_id not in st.open_runs:
-            return files[0]
+            return files[0], None
         time.sleep(0.05)
     raise AutotuneError(f"the logger did not finish the run file for {run_id} in {timeout:g} s")
 
@@ -139,6 +148,7 @@ def format_demo(
     model: str,
     mcap: Path | None,
     report: Path | None,
+    incomplete: IncompleteRun | None = None,
 ) -> str:
     lines = [format_result(r)]
     if exact and r.ku is not None:
@@ -148,7 +158,9 @@ def format_demo(
             f"P_u = {pu:.4g} s (measured: {100 * (r.ku / ku - 1):+.1f} %, "
             f"{100 * (r.pu / pu - 1):+.1f} %)"
         )
-    if mcap:
+    if incomplete is not None:
+        lines.append(f"  {incomplete_line(incomplete)}")
+    elif mcap:
         lines.append(f"  run recorded in {mcap}")
     if report:
         lines.append(f"  report figure   {report}")
@@ -182,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
     plant_args += ["--clock", "realtime", "--speed", str(args.speed)] if args.realtime else []
     zenoh_client = ["-e", endpoint, "--no-multicast-scouting", "--cfg", "connect/timeout_ms:10000"]
     zenoh_client += ["--cfg", namespace]
-    mcap = report = info = None
+    mcap = report = info = incomplete = None
     with tempfile.TemporaryFile("w+") as logs:
         stack = Stack(prefix, client, logs)
         try:
@@ -224,24 +236,32 @@ def run(args: argparse.Namespace) -> int:
                     3600.0,
                     None if args.json else (lambda p: announce(p, last)),
                 )
-                mcap = wait_for_file(session, prefix, runs, result.run_id)
-            report = mcap.with_suffix(".png")
-            report.write_bytes(render(mcap))  # the whole report: trends, model, Bode, before/after
+                mcap, incomplete = wait_for_file(session, prefix, runs, result.run_id)
+            if incomplete is None:  # the whole report: trends, model, Bode, before/after
+                report = mcap.with_suffix(".png")
+                report.write_bytes(render(mcap))
             if args.console:  # the outcome now, then the page stays up until Ctrl-C
-                _print_outcome(args, result, info, mcap, report)
+                _print_outcome(args, result, info, mcap, report, incomplete)
                 console_launch.hold(url)
         finally:
             console_launch.stop(stack)
             stack.stop()
     if not args.console:
-        _print_outcome(args, result, info, mcap, report)
+        _print_outcome(args, result, info, mcap, report, incomplete)
     return 0 if result.status == "ok" else 1
 
 
 def _print_outcome(
-    args: argparse.Namespace, result: TuneResult, info: LoopInfo | None, mcap: Path, report: Path
+    args: argparse.Namespace,
+    result: TuneResult,
+    info: LoopInfo | None,
+    mcap: Path,
+    report: Path | None,
+    incomplete: IncompleteRun | None = None,
 ) -> None:
-    """The run's outcome on stdout: ``--json``'s object, or the demo's text."""
+    """The run's outcome on stdout: ``--json``'s object, or the demo's text; a run file the
+    logger could not write whole (``incomplete``) has no report, and one line says so (on
+    stderr too with ``--json``)."""
     if sys.stderr.isatty() and not args.json:
         print("\r" + " " * 100 + "\r", end="", file=sys.stderr)
     exact = exact_point(info) if info else None
@@ -249,9 +269,12 @@ def _print_outcome(
         out = result.model_dump(mode="json")
         out.update(
             mcap=str(mcap),
-            report=str(report),
+            report=None if report is None else str(report),
+            mcap_incomplete=None if incomplete is None else incomplete.reason,
             exact={"ku": exact[0], "pu": exact[1]} if exact else None,
         )
         print(json_text.dumps(out, indent=2))
+        if incomplete is not None:
+            print(f"autotune demo: {incomplete_line(incomplete)}", file=sys.stderr)
     else:
-        print(format_demo(result, exact, info.model, mcap, report), flush=True)
+        print(format_demo(result, exact, info.model, mcap, report, incomplete), flush=True)

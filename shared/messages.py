@@ -840,6 +840,21 @@ __all__ = [
 ]
 
 
+MAX_INCOMPLETE = 1000  # runs a LoggerStatus lists as incomplete at most
+
+
+class IncompleteRun(Message):
+    """A live run whose file a logger could not write whole (a full disk, at any write up to
+    its last, as the run ends): the file, and why. ``on_disk``: what reached the disk is kept
+    (``autotune recover`` salvages it); False: nothing did, no file is left."""
+
+    run_id: RunId
+    loop: LoopId
+    path: str = Field(description="the run's file, absolute, where the logger writes it")
+    reason: str = Field(description="why it could not be written, e.g. No space left on device")
+    on_disk: bool
+
+
 class LoggerStatus(Message):
     """Health and counters of one logger process (queryable ``<prefix>/logger/<node>/status``)."""
 
@@ -851,6 +866,12 @@ class LoggerStatus(Message):
     written: int = Field(ge=0)
     invalid: int = Field(ge=0, description="payloads that failed validation, left out")
     dropped: int = Field(ge=0, description="process samples missing (gaps in seq)")
+    incomplete_runs: list[IncompleteRun] = Field(
+        default_factory=list,
+        max_length=MAX_INCOMPLETE,
+        description="the latest runs whose file could not be written whole, open or finished: "
+        "a client that ran one says so rather than take its file for the run's record",
+    )
 
 
 MonitorFlag = Literal["oscillating", "sluggish", "saturated", "degraded"]

@@ -23,6 +23,7 @@ from services.logger.recorder import (
 from shared import keys, wire
 from shared.messages import (
     LeaseCommand,
+    LoggerStatus,
     LoopStatus,
     Message,
     OutputCommand,
@@ -627,19 +628,14 @@ def test_close_all_finishes_every_open_file_incomplete(rec: Recorder) -> None:
 # --- input it does not record -------------------------------------------------------------
 
 
-def test_a_full_disk_cuts_the_runs_file_short_and_the_logger_goes_on(
-    tmp_path: Path, clock: Clock, monkeypatch: pytest.MonkeyPatch, caplog
-) -> None:
-    """A logger whose --runs filled up (a 300 kB tmpfs) exited "autotune logger: error: No
-    space left on device" in the middle of a run, every other run's recording (and the change
-    history) with it (helper trial). The run's file is now left as it stands (what reached
-    the disk, for `autotune recover`), said once, and the logger goes on: the run ends, the
-    next one starts, nothing raises."""
+def disk_room(monkeypatch: pytest.MonkeyPatch, room: int) -> dict[str, int]:
+    """Run files (``*.mcap`` opened "wb") on a disk with ``room`` bytes left: a write that
+    does not fit raises ENOSPC. The room left is the dict's ``bytes``, for the test to set."""
     import errno
     import io
 
     real_open = Path.open
-    room = {"bytes": 2000}  # the header fits, the first chunk (its schemas) does not
+    left = {"bytes": room}
 
     class Full(io.RawIOBase):
         def __init__(self, f) -> None:
@@ -655,9 +651,9 @@ def test_a_full_disk_cuts_the_runs_file_short_and_the_logger_goes_on(
             return self.f.seek(offset, whence)
 
         def write(self, b) -> int:
-            if len(b) > room["bytes"]:
+            if len(b) > left["bytes"]:
                 raise OSError(errno.ENOSPC, "No space left on device")
-            room["bytes"] -= len(b)
+            left["bytes"] -= len(b)
             return self.f.write(b)
 
         def close(self) -> None:
@@ -669,6 +665,18 @@ def test_a_full_disk_cuts_the_runs_file_short_and_the_logger_goes_on(
         return io.BufferedWriter(Full(f)) if mode == "wb" and self.suffix == ".mcap" else f
 
     monkeypatch.setattr(Path, "open", full_open)
+    return left
+
+
+def test_a_full_disk_cuts_the_runs_file_short_and_the_logger_goes_on(
+    tmp_path: Path, clock: Clock, monkeypatch: pytest.MonkeyPatch, caplog
+) -> None:
+    """A logger whose --runs filled up (a 300 kB tmpfs) exited "autotune logger: error: No
+    space left on device" in the middle of a run, every other run's recording (and the change
+    history) with it (helper trial). The run's file is now left as it stands (what reached
+    the disk, for `autotune recover`), said once, and the logger goes on: the run ends, the
+    next one starts, nothing raises."""
+    room = disk_room(monkeypatch, 2000)  # the header fits, the first chunk (its schemas) not
     rec = Recorder(tmp_path, P, flush_interval=0.0, clock=clock)
     send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
     samples(rec, 0, 50)
@@ -695,6 +703,52 @@ def test_a_full_disk_cuts_the_runs_file_short_and_the_logger_goes_on(
     rec.tick()
     assert len(rec.finished) == 2 and not rec.finished[1].exists()
     assert any("r2 on hx1: ok, but not recorded" in r.getMessage() for r in caplog.records)
+
+
+def test_a_disk_full_at_the_files_last_write_is_said_in_the_loggers_status(
+    tmp_path: Path, clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A disk that filled as the run's file was finished (its chunk, metadata and summary
+    are written as the run ends, after the tuner's result) was said in the logger's log
+    alone: its status showed the run closed like any other, and `autotune tune` and `demo`
+    took the file for the run's record (the demo failed on it "cut short … if a logger was
+    killed", the run's result unprinted: helper trial, a 420 kB tmpfs). The status now
+    lists the run's file as incomplete, where and why, while open or finished."""
+    from services.logger.service import LoggerService
+    from shared.messages import IncompleteRun
+
+    room = disk_room(monkeypatch, 1 << 30)
+    rec = Recorder(tmp_path, P, flush_interval=3600.0, clock=clock)  # no flush mid-run
+    service = LoggerService(None, rec, "logger")  # its status, no session needed
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 50)
+    rec.tick()
+    assert rec.open_runs() == ["r1"] and service.status().incomplete_runs == []
+    room["bytes"] = 0  # full: the run's end is the next write
+    send(rec, keys.tune_result(P, LOOP), result("r1", 50 * DT))
+    assert rec.open_runs() == [] and len(rec.finished) == 1
+    path = rec.finished[0]
+    cut = IncompleteRun(
+        run_id="r1",
+        loop=LOOP,
+        path=str(path.absolute()),
+        reason="No space left on device",
+        on_disk=True,  # its header reached the disk as the file was opened
+    )
+    assert path.exists() and service.status().incomplete_runs == [cut]
+    # a run written whole is not listed; a run whose file fails mid-run is, while still open
+    room["bytes"] = 1 << 30
+    send(rec, keys.tune_progress(P, LOOP), start("r2", 51 * DT))
+    samples(rec, 51, 60)
+    send(rec, keys.tune_result(P, LOOP), result("r2", 60 * DT))
+    send(rec, keys.tune_progress(P, LOOP), start("r3", 61 * DT))
+    samples(rec, 61, 70)
+    room["bytes"] = 0
+    rec.flush_interval = rec.streams[(LOOP, "")].run.writer.flush_interval = 0.0
+    rec.tick()
+    st = wire.decode(LoggerStatus, wire.encode(service.status()))  # as on the bus
+    assert [(r.run_id, r.on_disk) for r in st.incomplete_runs] == [("r3", True), ("r1", True)]
+    assert st.incomplete_runs[1] == cut
 
 
 def test_invalid_and_foreign_messages_are_counted_not_recorded(rec: Recorder) -> None:

@@ -131,3 +131,60 @@ def test_a_logger_that_answered_at_the_start_but_not_the_end_is_said():
 
     said = _verdict("rw7", answer)
     assert said is not None and said.startswith("the logger did not answer at the end"), said
+
+
+def test_a_runs_file_the_logger_could_not_finish_is_said_in_one_line(tmp_path):
+    """A disk full at a run file's last write, as the run ended, was said in the logger's
+    log alone: `autotune tune` ended ok without a word, `autotune demo` failed on the file
+    with the run's result unprinted. The client asks the loggers' status once the result
+    is in, while the run is still open there, and says what one lists as incomplete."""
+    from pathlib import Path
+
+    from services.autotuner.recorder_watch import incomplete_line, incomplete_record
+    from services.demo import wait_for_file
+    from shared.messages import IncompleteRun
+
+    prefix, path = "rw9", str(tmp_path / "20261207T144337Z_hx1_relay_r1.mcap")
+    cut = IncompleteRun(
+        run_id="r1", loop="hx1", path=path, reason="No space left on device", on_disk=True
+    )
+    asked = []
+
+    def answer(query):  # open at the first question, then finished, its file cut short
+        asked.append(1)
+        st = LoggerStatus(
+            node="logger",
+            runs_dir=str(tmp_path),
+            open_runs=["r1"] if len(asked) == 1 else [],
+            finished_runs=0 if len(asked) == 1 else 1,
+            received=0,
+            written=0,
+            invalid=0,
+            dropped=0,
+            incomplete_runs=[] if len(asked) == 1 else [cut],
+        )
+        wire.reply(query, keys.logger_status(prefix, "logger"), st)
+
+    with open_session(ALONE) as s:
+        queryable = s.declare_queryable(keys.logger_status(prefix, "logger"), answer)
+        try:
+            got = incomplete_record(s, prefix, "r1")
+            assert len(asked) == 2  # waited while the logger held the run open
+            assert incomplete_record(s, prefix, "r0") is None  # another run: nothing said
+            # the demo: the file the logger names, and its word, not the file as the record
+            assert wait_for_file(s, prefix, tmp_path, "r1", timeout=5.0) == (Path(path), cut)
+        finally:
+            queryable.undeclare()
+        assert incomplete_record(s, prefix, "r1", wait=0.5) is None  # no logger: nothing
+    assert got == cut
+    line = incomplete_line(cut)
+    assert "\n" not in line
+    assert line == (
+        f"warning: run r1's record is incomplete: the logger could not finish its file {path} "
+        f"(No space left on device); what reached the disk: autotune recover {path} -o "
+        "FIXED.mcap"
+    )
+    gone = incomplete_line(cut.model_copy(update={"on_disk": False}))
+    assert gone.startswith(
+        f"warning: run r1 is not on record: the logger could not write its file {path}"
+    )

@@ -16,6 +16,7 @@ from shared.messages import (
     DisturbanceCommand,
     GainsCommand,
     GuardStop,
+    IncompleteRun,
     LeaseCommand,
     LoggerStatus,
     LoopInfo,
@@ -173,7 +174,17 @@ EXAMPLES: list[Message] = [
         written=9,
         invalid=1,
         dropped=0,
+        incomplete_runs=[
+            IncompleteRun(
+                run_id="abd",
+                loop="hx1",
+                path="/runs/20261207T144337Z_hx1_relay_abd.mcap",
+                reason="No space left on device",
+                on_disk=True,
+            )
+        ],
     ),
+    IncompleteRun(run_id="abe", loop="hx1", path="/runs/x.mcap", reason="EIO", on_disk=False),
     LoopMonitor(
         loop="hx1",
         node="tuner",

@@ -9,14 +9,19 @@ paused or starved), that its record may have gaps."""
 from __future__ import annotations
 
 import threading
+import time
 
 import zenoh
 
 from services.autotuner.loop_client import wait_for_token
 from shared import keys, wire
-from shared.messages import LoggerStatus
+from shared.messages import IncompleteRun, LoggerStatus
 
 ASK = 2.0  # s: a logger's status, asked at the run's start and end
+# s: how long a client waits for a logger to finish a run's file once the result is in: a
+# logger holds the run open until the plant's last samples catch up with the result, at
+# most its RESULT_GRACE (2 s) and a tick (0.25 s) after it
+FINISH_WAIT = 4.0
 STALL = 1.0  # s: a stall of this tuner's own process that can explain a logger out of sight
 
 
@@ -148,4 +153,41 @@ def unrecorded_change(session: zenoh.Session, prefix: str, loop: str) -> str | N
         f"warning: no logger is up on {prefix}/: this change of {loop}'s gains is not on "
         "record (a logger that comes up files it as unseen, who not known: `autotune "
         "history`, `revert`)"
+    )
+
+
+def incomplete_record(
+    session: zenoh.Session, prefix: str, run_id: str, wait: float = FINISH_WAIT
+) -> IncompleteRun | None:
+    """A logger's word that run ``run_id``'s file could not be written whole (its status's
+    ``incomplete_runs``), asked until no logger that answers holds the run open any more (at
+    most ``wait`` s); None when none says so, or none answers. Why: a disk that filled at
+    the file's last write, as the run ended, came after the tuner's result and its check of
+    the loggers: the client printed the run as recorded, its log alone said otherwise."""
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            statuses = wire.query_all(session, keys.logger_status(prefix, "*"), LoggerStatus, ASK)
+        except zenoh.ZError:  # the session closing
+            return None
+        for st in statuses:
+            for run in st.incomplete_runs:
+                if run.run_id == run_id:
+                    return run
+        if not any(run_id in st.open_runs for st in statuses) or time.monotonic() >= deadline:
+            return None
+        time.sleep(0.05)
+
+
+def incomplete_line(run: IncompleteRun) -> str:
+    """The one line that says run's record is incomplete, and where."""
+    if run.on_disk:
+        return (
+            f"warning: run {run.run_id}'s record is incomplete: the logger could not finish "
+            f"its file {run.path} ({run.reason}); what reached the disk: autotune recover "
+            f"{run.path} -o FIXED.mcap"
+        )
+    return (
+        f"warning: run {run.run_id} is not on record: the logger could not write its file "
+        f"{run.path} ({run.reason}), nothing of it reached the disk"
     )

@@ -73,6 +73,8 @@ from shared import json_text, keys, wire
 from shared.errors import ConfigError, one_line
 from shared.messages import (
     COMMANDS,
+    MAX_INCOMPLETE,
+    IncompleteRun,
     LeaseCommand,
     LoopInfo,
     LoopStatus,
@@ -99,6 +101,9 @@ RESULT_GRACE = 2.0  # s of wall time a run's result may trail the withdrawal of 
 REPLAY_SILENCE = 60.0
 FILE_METHODS = ("relay", "ramp", "step", "apply")  # what a run file's name may say
 REMEMBERED_RUNS = 4096  # finished run ids kept, so that a repeated start opens no new file
+# the latest live runs whose file could not be written whole, said in the logger's status (the
+# client that ran one asks as its run ends: the latest are enough, and the status stays small)
+INCOMPLETE_KEPT = 100
 
 TUNER_MESSAGES = (TuneProgress, TunerEvent, TuneResult)
 PLANT_MESSAGES = (ProcessSample, LoopStatus)
@@ -345,6 +350,8 @@ class Recorder:
         # live runs closed "tuner lost": their files, should the tuner's result come after all
         self._lost: OrderedDict[str, Path] = OrderedDict()
         self._lost_loop: dict[str, str] = {}  # their loops (``lost_runs``)
+        # finished live runs whose file could not be written whole (``incomplete_runs``)
+        self._incomplete: OrderedDict[str, IncompleteRun] = OrderedDict()
         self._replays_seen: set[str] = set()
         # told the loop id of each new live plant instance (evidence of a restart, after the
         # loop's previous one was heard): the service files its gains in the change history
@@ -955,6 +962,10 @@ class Recorder:
         if run.writer.error is not None:  # cut short where it could no longer be written
             why = run.writer.error.strerror or one_line(run.writer.error)
             path = run.writer.path
+            if not run.replay:  # said in the status: the client that ran it asks
+                self._incomplete[run.run_id] = _incomplete(run)
+                while len(self._incomplete) > INCOMPLETE_KEPT:
+                    self._incomplete.popitem(last=False)
             what = (
                 f"its file {path} is cut short ({why}): its recording stopped after "
                 f"{bus_messages} of its messages, some of them lost with the chunk in progress"
@@ -1045,6 +1056,18 @@ class Recorder:
             else:
                 self._close(stream, status=status, result=None)
 
+    def incomplete_runs(self) -> list[IncompleteRun]:
+        """The live runs whose file could not be written whole: those still open whose file
+        failed (the rest of the run is not recorded), then the latest finished ones, the
+        last write of their end among them (a full disk as the file was finished: the tuner
+        had published its result, and its client printed the run as recorded)."""
+        failed = [
+            _incomplete(s.run)
+            for s in self.streams.values()
+            if s.run is not None and not s.run.replay and s.run.writer.error is not None
+        ]
+        return (failed + list(self._incomplete.values()))[:MAX_INCOMPLETE]
+
     def open_runs(self) -> list[str]:
         """The runs being recorded; not one whose file could no longer be written (a full
         disk): its tuner then says the run is not on record, rather than nothing."""
@@ -1053,6 +1076,19 @@ class Recorder:
             for s in self.streams.values()
             if s.run is not None and s.run.writer.error is None
         ]
+
+
+def _incomplete(run: OpenRun) -> IncompleteRun:
+    """What the status says of a run whose file failed (``run.writer.error`` set)."""
+    err = run.writer.error
+    assert err is not None
+    return IncompleteRun(
+        run_id=run.run_id,
+        loop=run.loop,
+        path=str(run.writer.path.absolute()),
+        reason=err.strerror or one_line(err),
+        on_disk=run.writer.path.exists(),
+    )
 
 
 def _replay_note(stream: Stream) -> str:

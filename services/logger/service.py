@@ -82,6 +82,7 @@ class LoggerService:
             written=c["written"],
             invalid=c["invalid"],
             dropped=c["dropped"],
+            incomplete_runs=self.recorder.incomplete_runs(),
         )
 
     def _on_sample(self, sample: zenoh.Sample) -> None:

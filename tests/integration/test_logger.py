@@ -261,6 +261,34 @@ def test_sigterm_finishes_the_file(start_plant, start_tuner, start_logger, tmp_p
     assert int(meta["messages"]) == len(records)
 
 
+def test_a_run_file_the_disk_cannot_take_is_said_by_tune_in_one_line(
+    start_plant, start_tuner, start_logger, tmp_path
+):
+    """A logger whose disk filled as it finished the run's file (a 420 kB tmpfs: the run's
+    6127 messages went out with the file's end, after the tuner's result) said so in its log
+    alone: `autotune tune` ended ok, not a word. Here the logger's files may grow no larger
+    than LIMIT bytes (its own ``ulimit -f``; Python ignores SIGXFSZ, so a write past it fails
+    as on a full disk, EFBIG), and tune says in one line that the run's record is incomplete
+    and where; its result stays the run's (ok, exit 0)."""
+    import resource
+
+    limit = 16384  # the file's header fits (and history.jsonl), the run's samples do not
+    runs = tmp_path / "runs"
+    p, logger = stack(start_plant, start_tuner, start_logger, runs, FAST, noise=0.002)
+    resource.prlimit(logger.pid, resource.RLIMIT_FSIZE, (limit, limit))
+    run = autotune("tune", "x1", *p.cli_args())
+    assert run.returncode == 0, run.stderr
+    (path,) = runs.glob("*.mcap")
+    said = [line for line in run.stderr.splitlines() if "record is incomplete" in line]
+    assert said == [
+        f"autotune tune: warning: run {path.stem.rsplit('_', 1)[1]}'s record is incomplete: "
+        f"the logger could not finish its file {path.absolute()} (File too large); what "
+        f"reached the disk: autotune recover {path.absolute()} -o FIXED.mcap"
+    ], run.stderr
+    assert 0 < path.stat().st_size <= limit
+    assert logger.poll() is None  # the logger goes on
+
+
 def test_replay_delivers_every_message_in_order(start_plant, start_tuner, start_logger, tmp_path):
     runs = tmp_path / "runs"
     p, _ = stack(start_plant, start_tuner, start_logger, runs, FAST)

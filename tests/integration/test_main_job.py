@@ -58,6 +58,40 @@ def test_demo_json_against_the_exact_ultimate_point(tmp_path):
     assert Path(r["report"]).read_bytes()[:4] == b"\x89PNG"
 
 
+def test_demo_says_in_one_line_that_the_runs_record_is_incomplete(tmp_path):
+    """A disk that filled as the logger finished the run's file (a 420 kB tmpfs) failed the
+    demo, exit 2, on the report: "… not a readable MCAP file: it is cut short …; if a logger
+    was killed while writing it, try: autotune recover …", the run's result unprinted (an
+    ok run). Here every file of the demo's may grow no larger than 64 kB (its ``ulimit -f``,
+    which its services inherit: a run file's write past it fails, EFBIG, as on a full
+    disk): the result is printed, with one line for the record in place of the file's."""
+    import resource
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (65536, 65536))
+
+    runs = tmp_path / "runs"
+    run = subprocess.run(
+        [sys.executable, "-m", "services.cli", "demo", "--runs", str(runs)],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        preexec_fn=small_files,
+    )
+    assert run.returncode == 0, run.stderr  # the run was ok: its record is another matter
+    assert "Traceback" not in run.stderr and "error" not in run.stderr
+    (path,) = runs.glob("*.mcap")
+    said = [line for line in run.stdout.splitlines() if "record is incomplete" in line]
+    assert said == [
+        f"  warning: run {path.stem.rsplit('_', 1)[1]}'s record is incomplete: the logger could "
+        f"not finish its file {path.absolute()} (File too large); what reached the disk: "
+        f"autotune recover {path.absolute()} -o FIXED.mcap"
+    ], run.stdout
+    assert "run recorded in" not in run.stdout and "report figure" not in run.stdout
+    assert run.stdout.startswith("Tuning of hx1 by relay test, rule tl-pid: ok")
+    assert not list(runs.glob("*.png"))
+
+
 def test_demo_on_a_plant_file_of_the_users(tmp_path):
     plant = tmp_path / "mine.toml"
     plant.write_text(

@@ -29,6 +29,7 @@ from services.autotuner.design.rules import RULES, fopdt_of
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.identify.reaction_curve import drift_beyond_noise
 from services.autotuner.loop_client import wait_for_token
+from services.autotuner.recorder_watch import incomplete_line, incomplete_record
 from shared import json_text, keys, wire
 from shared.cli import add_common_arguments, check_ids, check_tuner_node
 from shared.control.forms import (
@@ -1419,7 +1420,16 @@ def run_and_report(
         except TimedOut as late:  # cancelled by --wait: the result all the same, then why
             _print_result(args, late.result)
             raise
+        # the run's file is finished after its result: a disk full at its last write is
+        # said by the logger only then (a tune ended ok with no word of it, 6127 messages
+        # lost with the file's end, only the logger's log said so: helper trial)
+        incomplete = (
+            None if result.untouched else incomplete_record(session, args.prefix, result.run_id)
+        )
     _print_result(args, result)
+    if incomplete is not None:
+        command = getattr(args, "command", None) or "tune"  # `apply` reports through here too
+        print(f"autotune {command}: {incomplete_line(incomplete)}", file=sys.stderr)
     return 0 if result.status in DONE_STATUSES else 1
 
 
