@@ -869,6 +869,9 @@ class LoggerStatus(Message):
     incomplete_runs: list[IncompleteRun] = Field(
         default_factory=list,
         max_length=MAX_INCOMPLETE,
+        # left off the wire when empty: a client before it refuses a status with a field it
+        # does not know, and a logger with nothing to say would have been unreadable to it
+        exclude_if=lambda v: not v,
         description="the latest runs whose file could not be written whole, open or finished: "
         "a client that ran one says so rather than take its file for the run's record",
     )

@@ -451,3 +451,23 @@ def test_a_tune_request_carries_no_field_unset_that_an_older_tuner_would_refuse(
     sent = json.loads(TuneRequest(loop="x1").model_dump_json())
     unknown = [k for k in sent if f"\n    {k}:" not in body]
     assert unknown == [], unknown
+
+
+def test_a_logger_status_with_no_incomplete_run_is_what_an_older_client_reads():
+    """An older client's LoggerStatus forbids fields it does not know: with no incomplete run
+    the field is left off the wire, so such a client still reads a newer logger's status."""
+    from shared.messages import LoggerStatus
+
+    quiet = LoggerStatus(
+        node="a",
+        runs_dir="runs",
+        open_runs=[],
+        finished_runs=1,
+        received=5,
+        written=3,
+        invalid=0,
+        dropped=2,
+    )
+    text = wire.encode(quiet).decode()
+    assert "incomplete_runs" not in text
+    assert LoggerStatus.model_validate_json(text) == quiet
