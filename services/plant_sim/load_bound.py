@@ -89,18 +89,26 @@ def call_bound(seconds: float, flag: str = "--load-timeout") -> Iterator[Callabl
     that model's ``reset()`` and ``step()`` to ``seconds`` of wall time: past it the call is
     interrupted with ``CallTimeout`` (the caller names it as the model's failure), and again
     every second should the model catch it. ``autotune model check`` of a model whose
-    step() blocked (a device that never answers) never ended, silent (user trial). A model
-    whose methods cannot be replaced on the instance, and any model elsewhere, is not bound."""
+    step() blocked (a device that never answers) never ended, silent (user trial). A call the
+    model makes within one of its bounded calls (a step() that calls its own reset()) runs
+    under the outer call's bound: it once set its own and cleared it as it returned, and the
+    step() then blocked unbounded (a 30 s sleep past a 0.5 s bound was checked "ok": helper
+    trial). A model whose methods cannot be replaced on the instance, and any model
+    elsewhere, is not bound."""
     if not _bounded_here():
         yield lambda process: None
         return
 
     why = f"has not returned after {seconds:g} s ({flag}): a model that blocks?"
     expired = _Strokes(CallTimeout, why)
+    busy = [False]  # a bounded call is running: a call within it keeps its bound
 
     def bounded(fn: Callable[..., Any]) -> Callable[..., Any]:
         def call(*args: Any) -> Any:
+            if busy[0]:
+                return fn(*args)
             expired.count = 0
+            busy[0] = True
             signal.setitimer(signal.ITIMER_REAL, seconds, 1.0)
             try:
                 return fn(*args)
@@ -108,6 +116,7 @@ def call_bound(seconds: float, flag: str = "--load-timeout") -> Iterator[Callabl
                 raise CallTimeout(why) from None
             finally:
                 signal.setitimer(signal.ITIMER_REAL, 0.0)
+                busy[0] = False
 
         return call
 
