@@ -13,10 +13,13 @@ Python runs) is not interrupted. Elsewhere (another thread, no SIGALRM) it bound
 from __future__ import annotations
 
 import contextlib
+import math
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any
 
 from shared.errors import ConfigError
@@ -83,57 +86,159 @@ class CallTimeout(ConfigError):
     """One call of a model's reset() or step() did not return within the bound."""
 
 
+class ModelTooSlow(ConfigError):
+    """A model's calls in one check would take, or took, longer together than the bound."""
+
+
+MODEL_TIME = 600.0  # s of wall time a check may spend in one loop's model, all its calls
+clock = time.monotonic  # what the bound on all its calls reads (a test's stand-in)
+
+
+@dataclass
+class _Spent:
+    """Wall time spent in one loop's model so far, and over how many calls."""
+
+    seconds: float = 0.0
+    calls: int = 0
+
+
+def _duration(seconds: float) -> str:
+    """``seconds`` as a person reads it: 45 s, 17 min, 2.3 h."""
+    if seconds < 120.0:
+        return f"{seconds:.3g} s"
+    if seconds < 7200.0:
+        return f"{seconds / 60.0:.3g} min"
+    return f"{seconds / 3600.0:.3g} h"
+
+
+def _allow(seconds: float) -> str:
+    """A ``--model-time`` that would allow ``seconds``: rounded up to two figures."""
+    digits = 10.0 ** max(math.floor(math.log10(max(seconds, 1.0))) - 1, 0)
+    return f"{math.ceil(seconds / digits) * digits:g}"
+
+
+class CallBound:
+    """What ``call_bound`` yields: ``guard(process, key, model)`` bounds that model's calls
+    (``key``: its loop, whose budget a model rebuilt for it shares); ``pace(key)``: the
+    check's look ahead for that loop (``calls`` it still needs → a refusal, or None)."""
+
+    def __init__(self, guard: Callable[[Any, str, str], None], pace: Callable[[str], Any]):
+        self.guard, self.pace = guard, pace
+
+
 @contextmanager
-def call_bound(seconds: float, flag: str = "--load-timeout") -> Iterator[Callable[[Any], None]]:
-    """While the block runs (in the main thread), ``guard(process)`` bounds each later call of
-    that model's ``reset()`` and ``step()`` to ``seconds`` of wall time: past it the call is
-    interrupted with ``CallTimeout`` (the caller names it as the model's failure), and again
-    every second should the model catch it. ``autotune model check`` of a model whose
-    step() blocked (a device that never answers) never ended, silent (user trial). A call the
-    model makes within one of its bounded calls (a step() that calls its own reset()) runs
-    under the outer call's bound: it once set its own and cleared it as it returned, and the
-    step() then blocked unbounded (a 30 s sleep past a 0.5 s bound was checked "ok": helper
-    trial). A model whose methods cannot be replaced on the instance, and any model
-    elsewhere, is not bound."""
+def call_bound(
+    seconds: float,
+    flag: str = "--load-timeout",
+    total: float = MODEL_TIME,
+    total_flag: str = "--model-time",
+) -> Iterator[CallBound]:
+    """While the block runs (in the main thread), ``guard(process, key, model)`` bounds each
+    later call of that model's ``reset()`` and ``step()`` to ``seconds`` of wall time, and
+    all its calls together (with any model guarded under the same ``key``) to ``total``:
+    past either the call is interrupted (``CallTimeout``, ``ModelTooSlow``; the caller names
+    it as the model's failure), and again every second should the model catch it.
+    ``autotune model check`` of a model whose step() blocked (a device that never answers)
+    never ended, silent (user trial), and of one whose step() slept 50 ms took 143 s for a
+    5 s lag at 0.1 s samples, 2.3 h for a 300 s one (helper trial). A call the model makes
+    within one of its bounded calls (a step() that calls its own reset()) runs under the
+    outer call's bound: it once set its own and cleared it as it returned, and the step()
+    then blocked unbounded. ``pace(key)(calls)``: a one-line refusal where ``calls`` more
+    at the cost per call measured so far would take the key's calls past ``total``, else
+    None. A model whose methods cannot be replaced on the instance, and any model elsewhere,
+    is not bound."""
     if not _bounded_here():
-        yield lambda process: None
+        yield CallBound(lambda process, key, model: None, lambda key: None)
         return
 
     why = f"has not returned after {seconds:g} s ({flag}): a model that blocks?"
     expired = _Strokes(CallTimeout, why)
+    spent: dict[str, _Spent] = {}
+    names: dict[str, str] = {}
     busy = [False]  # a bounded call is running: a call within it keeps its bound
 
-    def bounded(fn: Callable[..., Any]) -> Callable[..., Any]:
+    def too_slow(key: str, calls: int) -> str:
+        return (
+            f"{names[key]} has taken {total:g} s of wall time in {calls:,} calls of this check "
+            f"({1e3 * total / calls:.3g} ms a call), its bound ({total_flag} {total:g}), and "
+            f"the check is not done: {_HOW}, or allow it with a longer {total_flag}"
+        )
+
+    def bounded(fn: Callable[..., Any], key: str) -> Callable[..., Any]:
         def call(*args: Any) -> Any:
             if busy[0]:
                 return fn(*args)
+            s = spent[key]
+            left = total - s.seconds
+            if left <= 0.0:  # the last call ended past it, before the stroke
+                raise ModelTooSlow(too_slow(key, s.calls))
+            if left < seconds:  # the bound on all its calls comes first: said as of then
+                expired.first, expired.why = ModelTooSlow, too_slow(key, s.calls + 1)
+            else:
+                expired.first, expired.why = CallTimeout, why
             expired.count = 0
             busy[0] = True
-            signal.setitimer(signal.ITIMER_REAL, seconds, 1.0)
+            start = clock()
+            signal.setitimer(signal.ITIMER_REAL, min(seconds, left), 1.0)
             try:
                 return fn(*args)
             except StillLoading:  # past the model's own handler: its failure all the same
-                raise CallTimeout(why) from None
+                raise expired.first(expired.why) from None
             finally:
                 signal.setitimer(signal.ITIMER_REAL, 0.0)
                 busy[0] = False
+                s.seconds += clock() - start
+                s.calls += 1
 
         return call
 
-    def guard(process: Any) -> None:
+    def guard(process: Any, key: str, model: str) -> None:
+        spent.setdefault(key, _Spent())
+        names[key] = model
         for name in ("reset", "step"):
             with contextlib.suppress(Exception):
-                setattr(process, name, bounded(getattr(process, name)))
+                setattr(process, name, bounded(getattr(process, name), key))
+
+    def pace(key: str) -> Callable[[int], str | None] | None:
+        if key not in spent:
+            return None
+
+        def ahead(calls: int) -> str | None:
+            s = spent[key]
+            if s.calls == 0:
+                return None
+            cost = s.seconds / s.calls
+            if s.seconds + calls * cost <= total:
+                return None
+            return (
+                f"{names[key]} takes {_ms(s)} a call (measured over {s.calls:,} calls): the "
+                f"check needs some {calls:,} more at least, {_duration(calls * cost)}, past its "
+                f"bound on the model's time ({total_flag} {total:g}; {s.seconds:.3g} s spent): "
+                f"{_HOW}, or allow it with {total_flag} {_allow(s.seconds + calls * cost)} or "
+                "more"
+            )
+
+        return ahead
 
     # a load_bound within (a loop rebuilt) puts this handler back as it ends
     before = signal.signal(signal.SIGALRM, expired)
     try:
-        yield guard
+        yield CallBound(guard, pace)
     except StillLoading:
-        raise CallTimeout(f"a model's call {why}") from None
+        if expired.first is CallTimeout:
+            raise CallTimeout(f"a model's call {why}") from None
+        raise ModelTooSlow(expired.why) from None
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0.0)
         signal.signal(signal.SIGALRM, before)
+
+
+_HOW = "give the loop a longer sample_time (fewer samples to the same response), a faster model"
+
+
+def _ms(s: _Spent) -> str:
+    """The mean wall time of a call."""
+    return f"{1e3 * s.seconds / s.calls:.3g} ms" if s.calls else "—"
 
 
 class _CtrlC:

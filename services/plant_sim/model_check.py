@@ -154,7 +154,12 @@ class Refused(Exception):
     raises, a model that ignores its input."""
 
 
-def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
+# the calls into the model the check still expects to make → why it cannot afford them, or
+# None (the shell's bound on the time a user's model may take: ``load_bound.call_bound``)
+Pace = Callable[[int], str | None]
+
+
+def check_loop(loop_id: str, loop: SimLoop, pace: Pace | None = None) -> ModelReport:
     """Check a built loop's process model (noise, PID block and transmitter range aside)."""
     s = loop.settings
     report = check_model(
@@ -165,6 +170,7 @@ def check_loop(loop_id: str, loop: SimLoop) -> ModelReport:
         op_limits=s.op_limits,
         pv_range=s.pv_range,
         pv_units=s.pv_units,
+        pace=pace,
     )
     _own_sample_time(report, loop.process)
     if loop.pid.mode == "manual" or loop.pid.gains.ti is None:  # else its PID holds it
@@ -241,12 +247,16 @@ def check_model(
     pv_range: tuple[float, float] = (0.0, 100.0),
     pv_units: str = "",
     max_samples: int = MAX_SAMPLES,
+    pace: Pace | None = None,
 ) -> ModelReport:
-    """Step ``process`` open loop from rest at its ``op0`` and report what it does."""
+    """Step ``process`` open loop from rest at its ``op0`` and report what it does; ``pace``,
+    before each run, with the calls of the model the check expects to make from there:
+    refused with its reason if it gives one (a model whose step() took 50 ms was stepped
+    2816 times in 143 s, silent, for a 5 s lag at 0.1 s samples: helper trial)."""
     op0 = float(process.op0)
     report = ModelReport(loop_id, model, sample_time, op0, None, pv_units, pv_range)
     try:
-        _check(process, report, op_limits, max_samples)
+        _check(process, report, op_limits, max_samples, pace)
     except Refused as err:
         report.refused = str(err)
     return report
@@ -270,6 +280,13 @@ def _run(
         if abs(value - y0) > RUNAWAY * scale:
             break
     return y
+
+
+def _paced(pace: Pace | None, calls: int) -> None:
+    """Refused where ``pace`` says the check cannot afford ``calls`` more calls of the model."""
+    why = pace(calls) if pace is not None else None
+    if why is not None:
+        raise Refused(why)
 
 
 def _pv(process: Any, what: str, fn: Callable[..., Any], label: str, t: float, *args: Any) -> float:
@@ -304,14 +321,23 @@ def _classify(d: np.ndarray, dt: float, final: bool) -> tuple[str, float | None,
 
 
 def _respond(
-    process: Any, op0: float, size: float, dt: float, scale: float, max_samples: int
+    process: Any,
+    op0: float,
+    size: float,
+    dt: float,
+    scale: float,
+    max_samples: int,
+    ahead: Callable[[int, int], None] | None = None,
 ) -> StepResponse:
-    """Step to op0 + size and run until the response is judged (or max_samples)."""
+    """Step to op0 + size and run until the response is judged (or max_samples);
+    ``ahead(n, have)`` before each window of n samples, ``have`` of them in hand."""
     label = f"the {size:+g} % step"
     y: list[float] | None = None
     n = FIRST_WINDOW
     rates: list[float] = []
     while True:
+        if ahead is not None:
+            ahead(n, len(y) if y is not None else 0)
         y = _run(process, op0 + size, label, dt, n, y, scale)
         d = np.asarray(y) - y[0]
         ran_away = len(y) <= n
@@ -332,6 +358,18 @@ def _respond(
             gain = value / size if value is not None else None
             return StepResponse(size, np.asarray(y), kind, gain, rate)
         n *= 2
+
+
+def _ahead(pace: Pace | None, report: ModelReport, later: int) -> Callable[[int, int], None]:
+    """``_respond``'s look ahead: a window of n samples (``have`` in hand: a reset and n steps
+    in all), then ``later`` runs (the steps still to come and the first run again) taken to
+    be as long as this one, or as the longest so far."""
+    done = max((len(r.pv) - 1 for r in report.responses), default=0)
+
+    def ahead(n: int, have: int) -> None:
+        _paced(pace, n + 1 - have + later * (max(n, done) + 1))
+
+    return ahead
 
 
 def _consistent(rates: list[float]) -> bool:
@@ -390,27 +428,40 @@ def _blows_up(rest: list[float], dt: float, span: float, scale: float) -> None:
 # --- the analysis --------------------------------------------------------------------------
 
 
-def _check(process: Any, report: ModelReport, op_limits: tuple[float, float], max_n: int) -> None:
+def _check(
+    process: Any,
+    report: ModelReport,
+    op_limits: tuple[float, float],
+    max_n: int,
+    pace: Pace | None = None,
+) -> None:
     dt = report.sample_time
     op0 = report.op0
     lo, hi = op_limits
     span = report.pv_range[1] - report.pv_range[0]
+    up, down = hi - op0, op0 - lo
+    sizes = _sizes(up, down)
+    # the run at rest, then each step and the first again (its reset checked), a window each
+    _paced(pace, REST_SAMPLES + 1 + (len(sizes) + 1) * (FIRST_WINDOW + 1))
     # at rest?
     rest = _run(process, op0, HELD, dt, REST_SAMPLES, None, math.inf)
     report.pv0 = rest[0]
     scale = max(span, abs(rest[0]), 1.0)
     _blows_up(rest, dt, span, scale)
     report.rest_drift = (rest[-1] - rest[0]) / (REST_SAMPLES * dt)
-    up, down = hi - op0, op0 - lo
-    sizes = _sizes(up, down)
     if not sizes:
         raise Refused(f"op0 = {op0:g} % leaves no room to step within the output limits {[lo, hi]}")
-    for size in sizes:
-        report.responses.append(_respond(process, op0, size, dt, scale, max_n))
+    for i, size in enumerate(sizes):
+        ahead = _ahead(pace, report, len(sizes) - i)
+        report.responses.append(_respond(process, op0, size, dt, scale, max_n, ahead))
     responses = report.responses
     report.horizon = max(len(r.pv) - 1 for r in responses) * dt
+    drifts = abs(rest[-1] - rest[0]) > 1e-12 * scale
+    longest = max(len(r.pv) for r in responses)
+    _paced(pace, len(responses[0].pv) + (longest if drifts else 0))
     _check_reset(process, report, scale)
-    if abs(rest[-1] - rest[0]) > 1e-12 * scale:
+    if drifts:
+        _paced(pace, longest)
         _correct_drift(process, report)
     if all(r.behaviour == "no response" for r in responses):
         raise Refused(
@@ -959,7 +1010,9 @@ def _ultimate_from_step(s: np.ndarray, dt: float, integrating: bool) -> tuple[fl
     return 1.0 / abs(g_at(wu)), 2 * math.pi / wu
 
 
-def refine_step_point(report: ModelReport, rebuild: Callable[[float], SimLoop | str]) -> None:
+def refine_step_point(
+    report: ModelReport, rebuild: Callable[[float], SimLoop | str], pace: Pace | None = None
+) -> None:
     """The step-response ultimate point read again from the model sampled faster, where the
     loop's own samples are too few per period to resolve it (below
     ``MIN_SAMPLES_PER_PERIOD``) and no transfer function gives it exactly. A sampled step
@@ -986,6 +1039,7 @@ def refine_step_point(report: ModelReport, rebuild: Callable[[float], SimLoop | 
         op_limits=s.op_limits,
         pv_range=s.pv_range,
         max_samples=MAX_SAMPLES * math.ceil(report.sample_time / fine),
+        pace=pace,
     )
     if again.refused or again.ku_step is None:
         why = f"refused: {again.refused}" if again.refused else "no ultimate point read there"

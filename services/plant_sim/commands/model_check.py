@@ -12,7 +12,9 @@ step response — its linear part at op0 — for every model), and the sample ti
 
 A model that returns a PV that is not a finite number, raises, or does not move for any
 step is refused: one line on stderr naming the loop, exit 2 (the other loops are still
-reported). No bus, no services: it runs the models in this process.
+reported). So is a user's class whose one call outlasts ``--load-timeout``, or whose calls
+together would outlast ``--model-time`` (said as soon as its first calls tell, with the cost
+per call and the calls needed). No bus, no services: it runs the models in this process.
 """
 
 from __future__ import annotations
@@ -25,10 +27,11 @@ import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 from services.plant_sim.load_bound import (
     LOAD_TIMEOUT,
+    MODEL_TIME,
+    CallBound,
     call_bound,
     check_load_timeout,
     load_bound,
@@ -61,6 +64,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "model's reset() or step() may take in any one call of the check (default: "
         "%(default)s)",
     )
+    parser.add_argument(
+        "--model-time",
+        type=float,
+        default=MODEL_TIME,
+        metavar="S",
+        help="wall s a user model's calls may take in all, per loop, in the check (a slow "
+        "step() times the tens of thousands of calls a check makes); a check that would take "
+        "longer is refused as soon as its first calls tell, naming the cost per call and the "
+        "calls needed (default: %(default)s)",
+    )
 
 
 def _rebuilt(
@@ -82,13 +95,14 @@ def _rebuilt(
     return loop
 
 
-def _guarded(bound: Callable[[Any], None]) -> Callable[[SimLoop], None]:
-    """Bound each reset() and step() call of a loop's model when it is a user's class (a
-    preset's or an FMU's step does not block in Python)."""
+def _guarded(bound: CallBound) -> Callable[[SimLoop], None]:
+    """Bound each reset() and step() call of a loop's model, and all of them together, when
+    it is a user's class (a preset's or an FMU's step does not block in Python)."""
 
     def guard(loop: SimLoop) -> None:
-        if ":" in loop.settings.model_name:
-            bound(loop.process)
+        s = loop.settings
+        if ":" in s.model_name:
+            bound.guard(loop.process, s.loop_id, s.model_name)
 
     return guard
 
@@ -97,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plot is not None:
         _check_plot_path(args.plot)
     check_load_timeout(args.load_timeout)
+    check_load_timeout(args.model_time, "--model-time")
     # what the models print goes to stderr: stdout is the report's (a model that printed in
     # its step() made `--json` unreadable: helper review); a KeyboardInterrupt a model raises
     # is its failure, one line and exit 2: only a Ctrl-C is the user's (exit 130)
@@ -136,16 +151,20 @@ def _reports(args: argparse.Namespace) -> list:
             )
         loops = {args.loop: loops[args.loop]}
     # and each call of a model's reset() or step() as it is checked (one whose step() blocked
-    # held the check for good, silent)
-    with call_bound(args.load_timeout) as bound:
+    # held the check for good, silent), and all its calls (one whose step() slept 50 ms took
+    # 143 s for a 5 s lag at 0.1 s samples, 2.3 h for a 300 s lag, silent: helper trial)
+    with call_bound(args.load_timeout, total=args.model_time) as bound:
         guard = _guarded(bound)
         for loop in loops.values():
             guard(loop)
-        reports = [check_loop(loop_id, loop) for loop_id, loop in loops.items()]
+        reports = [
+            check_loop(loop_id, loop, bound.pace(loop_id)) for loop_id, loop in loops.items()
+        ]
         for r in reports:
             refine_step_point(
                 r,
                 functools.partial(_rebuilt, args.plant_file, args.load_timeout, guard, r.loop),
+                bound.pace(r.loop),
             )
     return reports
 
