@@ -177,3 +177,33 @@ def test_a_slow_loop_s_overshoot_is_taken_about_its_own_final_value():
     kc = 0.3 * _ku
     f = predicted_setpoint_step(IsaGains(kc, None, 0.0), DelayedTF.of([1.0], [tau, 1.0], 1.0), pu)
     assert f.overshoot > 1.0 and f.stable
+
+
+def test_a_fast_loop_on_a_slow_lag_is_simulated_at_its_own_sample_time():
+    """1/(300s + 1) at 0.1 s has no ultimate point: the time scale was the lag, 300 s, and 30
+    of them in 2000 samples ran the PI of Kc 2625, Ti 0.35 s at 4.5 s a sample, which grew:
+    9743.6 % of overshoot, though its sampled loop has Ms 1.6 (helper trial). Simulated at
+    the loop's 0.1 s over its own crossover's time scale, it is the sampled closed loop's
+    step, computed here by scipy from C(z) = Kc(1 + T/(Ti(z − 1))) and the exact
+    zero-order-hold G(z) = (1 − a)z⁻¹/(1 − a z⁻¹), a = e^{−T/τ}."""
+    from scipy import signal
+
+    from services.autotuner.design.recommend import assess
+    from services.autotuner.identify.model_fit import ProcessFit
+
+    tau, ts, g = 300.0, 0.1, IsaGains(2625.0, 0.35, 0.0)
+    model = ProcessFit("fopdt", 1.0, (tau,), 0.0, 0.0)
+    (a,) = assess(None, model, {"lambda-pi": g}, simulate=True, sample_time=ts).values()
+    assert a.robustness.stable and a.robustness.ms < 2.0
+    # the exact sampled loop: L(z) = C(z)G(z), T = L/(1 + L), as polynomials in z
+    q = math.exp(-ts / tau)
+    c_num = np.array([g.kc, g.kc * (ts / g.ti - 1.0)])  # Kc(z − 1 + T/Ti)
+    c_den = np.array([1.0, -1.0])  # z − 1
+    g_num, g_den = np.array([1.0 - q]), np.array([1.0, -q])
+    l_num, l_den = np.polymul(c_num, g_num), np.polymul(c_den, g_den)
+    t_den = np.polyadd(l_den, l_num)
+    _, (y,) = signal.dstep((l_num, t_den, ts), n=400)
+    exact = 100.0 * (float(np.max(y)) - 1.0)
+    assert abs(float(y[-1, 0]) - 1.0) < 1e-6  # settled within the 40 s
+    assert a.step.stable
+    assert a.step.overshoot == pytest.approx(exact, rel=1e-3)

@@ -93,9 +93,8 @@ def predicted_setpoint_steps(
     (``shared.control.setpoint_steps``: each one's samples are those of its loop alone)."""
     if not gains:
         return {}
+    ts = simulation_step(timescale, sample_time, horizon, max_samples)
     horizon *= timescale
-    ts = sample_time or timescale / 100.0
-    ts = max(ts, horizon / max_samples)
     sys = discretize(*tf_to_ss(plant.num, plant.den), ts, plant.delay)
     # a step small enough that the proportional kick is 10 % at most: the 0–100 % limits
     # around the 50 % rest do not bind, and the figures (relative to the step) are the
@@ -108,6 +107,19 @@ def predicted_setpoint_steps(
         else _figures(y[j], _final_value(g, plant))
         for j, (name, g) in enumerate(gains.items())
     }
+
+
+def simulation_step(
+    timescale: float,
+    sample_time: float | None = None,
+    horizon: float = 30.0,
+    max_samples: int = MAX_SAMPLES,
+) -> float:
+    """The step (s) ``predicted_setpoint_steps`` simulates at: the loop's ``sample_time``
+    (a hundredth of ``timescale`` without one), coarser where ``horizon`` time scales would
+    take more than ``max_samples``."""
+    ts = sample_time or timescale / 100.0
+    return max(ts, horizon * timescale / max_samples)
 
 
 def _final_value(g: IsaGains, plant: DelayedTF) -> float | None:
