@@ -32,6 +32,7 @@ def cli_request(*argv: str):
         ),
         ({"method": "step", "repeat": "auto", "step-size": -4}, ["--method", "step",
          "--repeat", "auto", "--step-size", "-4"]),
+        ({"max-op-noise": "4.5"}, ["--max-op-noise", "4.5"]),
     ],
 )  # fmt: skip
 def test_the_form_gives_the_request_the_cli_gives(fields, argv):
@@ -48,6 +49,7 @@ BAD = [
     ({"pv-limits": ["80", "40"]}, ["--pv-limits", "80", "40"]),
     ({"step-size": "0"}, ["--step-size", "0"]),
     ({"max-overshoot": "nan"}, ["--max-overshoot", "nan"]),
+    ({"max-op-noise": "0"}, ["--max-op-noise", "0"]),
     # negative numbers in exponent form are values, refused by their bound (argparse took
     # them for flags: "--amplitude: expected one argument"; helper trial)
     ({"amplitude": "-1e3"}, ["--amplitude", "-1e3"]),

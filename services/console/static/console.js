@@ -337,7 +337,7 @@ function tuneFields() {
   out.method = f.method.value;
   out.rule = f.rule.value;
   out.aim = f.aim.value;
-  for (const n of ["amplitude", "max-time", "max-overshoot"]) if (f[n].value.trim()) out[n] = f[n].value.trim();
+  for (const n of ["amplitude", "max-time", "max-overshoot", "max-op-noise"]) if (f[n].value.trim()) out[n] = f[n].value.trim();
   const lo = f["pv-lo"].value.trim(), hi = f["pv-hi"].value.trim();
   if (lo || hi) out["pv-limits"] = [lo, hi];
   out["no-apply"] = !f["apply-now"].checked;
