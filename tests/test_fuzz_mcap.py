@@ -1674,3 +1674,24 @@ def test_a_hole_in_the_recording_is_replayed_as_one_spacing():
     schedule, cut = paced(filed)
     assert schedule == pytest.approx([0.0, 0.3, 0.1, 0.1, 0.2, 0.6, 0.4, 0.5])
     assert cut == pytest.approx(69.9)
+
+
+def test_a_file_cut_where_its_last_bytes_read_as_a_footer_is_no_internal_error(tmp_path):
+    """A run file cut short ends in the bytes of whatever it was cut in: where the byte a
+    Footer's opcode would be at reads 0x02, its 'summary offset' was any 64-bit number, and
+    ``recover`` (which checks the data section's CRC first) raised "cannot fit 'int' into an
+    offset-sized integer" as an internal error (CI: a relay run cut at 3,000 bytes; one cut
+    in about 400). Such a tail, with the offset past the file and past 2⁶³, is no footer."""
+    from services.logger.mcap_io import MAGIC, data_section_problem
+
+    for offset in (2**64 - 1, 2**63 + 5, 10**9):
+        # MAGIC, some bytes, then what reads as opcode 0x02, length, summary offset, …
+        tail = bytes([0x02]) + (20).to_bytes(8, "little") + offset.to_bytes(8, "little")
+        body = MAGIC + bytes(range(200)) + tail + bytes(12)
+        for ending in (b"", MAGIC):  # cut in a chunk; or as if closed by the magic
+            path = tmp_path / "cut.mcap"
+            path.write_bytes(body + ending)
+            assert data_section_problem(path) is None
+            fixed = tmp_path / "cut.fixed.mcap"
+            code = main(["recover", str(path), "-o", str(fixed)])
+            assert code == 2  # nothing to recover, said in one line, not an internal error

@@ -86,10 +86,17 @@ def data_section_problem(path: Path) -> str | None:
                 return None
             f.seek(size - len(MAGIC) - _FOOTER_SIZE)
             footer = f.read(_FOOTER_SIZE)
+            # a file cut short ends in whatever it was cut in: a byte there that reads as a
+            # Footer's opcode gave a summary offset of up to 2⁶⁴, and seeking to it raised
+            # ("cannot fit 'int' into an offset-sized integer": recover's internal error on
+            # a run file truncated at 3,000 bytes, one cut in 400 or so). A footer is the
+            # file's last record before its closing magic, and points inside the file
+            if f.read(len(MAGIC)) != MAGIC:
+                return None
             summary_start = int.from_bytes(footer[9:17], "little")
             end = summary_start if summary_start else size - len(MAGIC) - _FOOTER_SIZE
             at = end - _DATA_END_SIZE
-            if footer[0] != _FOOTER or at < len(MAGIC):
+            if footer[0] != _FOOTER or at < len(MAGIC) or end > size:
                 return None
             f.seek(at)
             record = f.read(_DATA_END_SIZE)
