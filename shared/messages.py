@@ -736,6 +736,14 @@ class TuneResult(Message):
         "(an apply of them later verifies them within the same, its gain-margin check at "
         "the same factor)",
     )
+    max_op_noise: float | None = Field(
+        default=None,
+        # left off the wire where not asked, as ``ms_bound``: a reader before it refuses it
+        exclude_if=lambda v: v is None,
+        description="the --max-op-noise (% of output) the recommendation and the "
+        "verification held the gains to, where asked (None: the default, 10 %); an apply of "
+        "them later holds them to the same",
+    )
     recommended: dict[str, Any] | None = Field(
         default=None, description="rule, reason, predicted ms"
     )

@@ -227,3 +227,40 @@ def test_a_lambda_asked_for_is_not_raised():
     r = TuningRun(LocalLoopClient(sim), req, "x").run()
     assert not any("lambda rules are designed at" in w for w in r.warnings)
     assert r.status == "rejected" and "output noise" in r.reason
+
+
+def test_an_apply_holds_the_gains_to_the_limit_their_run_was_tuned_with(tmp_path):
+    """A run tuned with --max-op-noise 60 and --no-apply proposed SIMC PI (36 % predicted,
+    within its 60 %); `autotune apply` of it asked no limit, and the verification rejected the
+    same gains at the default 10 % (39.2 % measured), with no flag on `apply` to say
+    otherwise. Its record, as the logger writes it, now carries the limit to the apply."""
+    from services.autotuner.commands import apply as apply_command
+    from services.logger.history import ChangeHistory
+
+    _, proposed = _tune(max_op_noise=60.0, apply=False)
+    assert proposed.status == "proposed", proposed.reason
+    assert proposed.max_op_noise == 60.0
+    ChangeHistory(tmp_path, "p")._result(proposed)
+    rec = apply_command.recorded_run(tmp_path, proposed.run_id)
+    choice = apply_command.choose(rec, None)
+    assert proposed.robustness[choice[0]]["op_noise_pct"] > DEFAULT_LIMIT  # above the default
+    req = apply_command.recorded_request(rec, proposed.run_id, choice, True, "test")
+    assert req.max_op_noise == 60.0
+    r = TuningRun(LocalLoopClient(_lag_loop()), req, "t").run()
+    assert r.status == "ok", r.reason
+    assert r.acceptance["max_op_noise"] == 60.0 and r.after.op_noise > DEFAULT_LIMIT
+
+
+def test_a_run_with_the_default_limit_asks_none_of_its_apply():
+    from services.autotuner.commands import apply as apply_command
+
+    _, r = _tune(apply=False)
+    assert r.max_op_noise is None and "max_op_noise" not in r.model_dump_json()
+    assert apply_command.recorded_limits(r.model_dump(mode="json")) == {}
+
+
+@pytest.mark.parametrize("bad", [None, True, 0.0, -1.0, 101.0, "60", float("nan")])
+def test_a_limit_no_request_may_carry_is_not_taken_from_a_record(bad):
+    from services.autotuner.commands import apply as apply_command
+
+    assert apply_command.recorded_limits({"max_op_noise": bad}) == {}

@@ -363,6 +363,8 @@ class TuningRun:
             "requested_rule": req.rule,
             # on record where not the default (``TuneResult.ms_bound``)
             "ms_bound": None if req.ms_bound == DEFAULT_MS_BOUND else req.ms_bound,
+            # the output-noise limit asked for (``TuneResult.max_op_noise``), None unasked
+            "max_op_noise": req.max_op_noise,
             "previous_gains": first.gains,
             "pv_units": self.info.pv_units,
             "pv_range": tuple(self.info.pv_range),

@@ -283,6 +283,11 @@ class ChangeHistory:
                 # within it (without it here, an apply of a run tuned with --ms-bound 3 had
                 # its gains checked at Kc × 2, not the 1.5 that bound admits)
                 "ms_bound": r.ms_bound,
+                # the --max-op-noise the run's recommendation and verification held its
+                # gains to: `autotune apply` holds them to it too (without it, a run tuned
+                # with --max-op-noise 60 proposed SIMC PI at 36 % predicted, and its apply
+                # rejected it at the default 10 %)
+                "max_op_noise": r.max_op_noise,
                 # why none of them may be applied (``autotune apply`` refuses the run)
                 "contradiction": r.contradiction,
                 # the run's model misses the plant, as its warning says: ``autotune apply

@@ -19,6 +19,7 @@ was sent.
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 from typing import Any
 
@@ -122,6 +123,22 @@ def recorded_bound(run: dict[str, Any]) -> dict[str, float]:
     return {}
 
 
+def recorded_limits(run: dict[str, Any]) -> dict[str, float]:
+    """The run's ``--max-op-noise`` as a request's field (empty: none on record, or not one a
+    request may carry): its gains verified later against the limit its recommendation was
+    made within (a run tuned with --max-op-noise 60 proposed SIMC PI, 36 % predicted, and
+    its apply rejected the same gains at the default 10 %)."""
+    limit = run.get("max_op_noise")
+    if (
+        isinstance(limit, int | float)
+        and not isinstance(limit, bool)
+        and math.isfinite(limit)
+        and 0.0 < limit <= 100.0
+    ):
+        return {"max_op_noise": float(limit)}
+    return {}
+
+
 def recorded_request(
     run: dict[str, Any],
     run_id: str,
@@ -148,6 +165,7 @@ def recorded_request(
         apply_noise=run.get("noise"),
         source=source,
         **recorded_bound(run),
+        **recorded_limits(run),
     )
 
 
