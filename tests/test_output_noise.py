@@ -264,3 +264,25 @@ def test_a_limit_no_request_may_carry_is_not_taken_from_a_record(bad):
     from services.autotuner.commands import apply as apply_command
 
     assert apply_command.recorded_limits({"max_op_noise": bad}) == {}
+
+
+@pytest.mark.parametrize("kw", [{"verify": False}, {"apply": False}])
+def test_a_rule_asked_for_above_the_limit_is_said_so_where_nothing_verifies_it(kw):
+    """SIMC PI asked for with --no-verify was applied unverified (and with --no-apply
+    proposed) at 36 % of output noise predicted, 3.6 times the limit, with no word of it:
+    only the verification, which these skip, held the gains to it."""
+    _, r = _tune(rule="simc-pi", **kw)
+    assert r.status == ("unverified" if "verify" in kw else "proposed"), r.reason
+    predicted = r.robustness["simc-pi"]["op_noise_pct"]
+    assert predicted > DEFAULT_LIMIT
+    (said,) = [w for w in r.warnings if "of output noise" in w]
+    assert said.startswith(f"simc-pi: predicted to make {predicted:.3g} % of output noise")
+    assert "above the 10 % limit (--max-op-noise)" in said
+    rec = r.recommended["rule"]
+    assert f"the recommended {rec}: {r.robustness[rec]['op_noise_pct']:.3g} %" in said
+
+
+def test_a_rule_asked_for_within_the_limit_gets_no_such_word():
+    _, r = _tune(rule="lambda-pi", apply=False)
+    assert r.robustness["lambda-pi"]["op_noise_pct"] <= DEFAULT_LIMIT
+    assert not any("of output noise" in w for w in r.warnings)

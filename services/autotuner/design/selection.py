@@ -629,6 +629,21 @@ def select(
         else:
             better = f"; the recommended rule is {rec.rule}" if rec and rec.rule != name else ""
             sel.refusal = f"refused: {problem} (force to apply anyway{better})"
+    if rule != "auto" and a.noisy(max_op_noise):
+        # a rule asked for is not passed over for its noise (the verification measures it):
+        # said here, for --no-verify and --no-apply have no verification to say it (SIMC PI
+        # at 36 % predicted was applied unverified, or proposed, with no word of it)
+        other = assessments.get(rec.rule) if rec is not None and rec.rule != name else None
+        quiet = (
+            f"; the recommended {other.rule}: {other.op_noise:.3g} %"
+            if other is not None and other.op_noise is not None
+            else ""
+        )
+        sel.warnings.append(
+            f"{name}: predicted to make {a.op_noise:.3g} % of output noise (σ) from the PV's "
+            f"noise, above the {max_op_noise:g} % limit (--max-op-noise): the verification "
+            f"rejects gains measured above it{quiet}"
+        )
     apart = sel.contradiction = contradicted_point(ident, check)
     if apart:
         if force:
