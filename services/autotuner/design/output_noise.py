@@ -31,7 +31,7 @@ from shared.control.forms import IsaGains
 # % of output (σ): the output noise the verification accepts unless told (TuneRequest's
 # ``max_op_noise``). A valve moved by ±10 % (1σ) sample to sample by noise alone is worn out,
 # not controlled; the presets' tunes make at most 7.3 % (a level's PI on a noisy gauge).
-# More than half of it is worth a warning (``OP_NOISE_WARN``)
+# More than half of it, 5 %, is worth a warning whatever the limit (``tuning.OP_NOISE_WARN``)
 DEFAULT_LIMIT = 10.0
 
 
