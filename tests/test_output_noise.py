@@ -286,3 +286,19 @@ def test_a_rule_asked_for_within_the_limit_gets_no_such_word():
     _, r = _tune(rule="lambda-pi", apply=False)
     assert r.robustness["lambda-pi"]["op_noise_pct"] <= DEFAULT_LIMIT
     assert not any("of output noise" in w for w in r.warnings)
+
+
+def test_an_unstable_rule_s_row_spans_the_output_noise_column():
+    """The rules table's row of a rule unstable on the model was as wide as the columns
+    before the output noise's, so the mark after it (←, the rule applied) sat 8 characters
+    left of every other row's."""
+    from services.autotuner.commands.tune import _robust_head, _robust_row
+
+    rob = {
+        "a": {"ms": 1.5, "gain_margin": 3.0, "phase_margin_deg": 60.0, "overshoot_pct": 10.0,
+              "decay_ratio": 0.1, "stable": True, "op_noise_pct": 7.5},
+        "b": {"stable": False},
+    }  # fmt: skip
+    widths = {len(_robust_head(rob))} | {len(_robust_row(a, True)) for a in rob.values()}
+    assert len(widths) == 1
+    assert len(_robust_row(rob["b"])) == len(_robust_row({**rob["a"], "op_noise_pct": None}))

@@ -979,7 +979,8 @@ def _robust_row(a: dict, noise: bool = False) -> str:
     if not a:
         return ""
     if a.get("stable") is False:  # margins and overshoot of an unstable loop mean nothing
-        return f"{'UNSTABLE on the model':>34}"
+        # across the output noise's column too, so the mark after it stays in its column
+        return f"{'UNSTABLE on the model':>{34 + (8 if noise else 0)}}"
     # an Ms the measured point alone set (the model misses the plant there): marked, its
     # margins and step figures being the model's (``floor_note``)
     star = "*" if a.get("ms_from_point") else ""
