@@ -2458,7 +2458,8 @@ def acceptance_problems(
         out.append(
             f"output noise {after.op_noise:.3g} % (σ) above the limit {loud:g} %: the PV's "
             "noise through these gains moves the valve that much from sample to sample (a "
-            "lower gain or a filtered measurement spares it; --max-op-noise sets the limit)"
+            "lower gain or a filtered measurement spares it; the tune's --max-op-noise sets "
+            "the limit, which its apply keeps)"
         )
     os_ = after.overshoot
     pred = limits.get("predicted_overshoot")
