@@ -45,6 +45,11 @@ HELP = "the main job: tune a simulated heat exchanger through the three services
 DEMO_RULES = ("zn-p", "zn-pi", "zn-pid", "tl-pi", "tl-pid")
 
 
+def _say_as_demo(line: str) -> None:
+    """A line of the tune's failover (a tuner passed over), as the demo's own."""
+    print(f"autotune demo: {line}", file=sys.stderr)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plant", metavar="FILE", help="your own plant file (default: presets)")
     parser.add_argument("--loop", default="hx1", help="loop to tune (default: %(default)s)")
@@ -232,7 +237,7 @@ def run(args: argparse.Namespace) -> int:
                     session,
                     prefix,
                     args.loop,
-                    lambda: submit(session, prefix, "*", req),
+                    lambda: submit(session, prefix, "*", req, say=_say_as_demo),
                     3600.0,
                     None if args.json else (lambda p: announce(p, last)),
                 )

@@ -10,6 +10,7 @@ the autotuner's runs and the plant's own command path do, as for any other clien
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -42,6 +43,8 @@ RECORD_WAIT = 5.0  # s the logger may take to write a finished run into the chan
 LOOP_WAIT = 5.0  # s to wait for a loop's plant to be seen
 TOKEN_WAIT = 1.0  # s to wait for a run's liveliness token to be seen
 
+log = logging.getLogger("console")
+
 
 def run_tune(
     session: zenoh.Session,
@@ -53,7 +56,7 @@ def run_tune(
     the tuner gone, or the bus lost, end the wait with the reason)."""
 
     def start() -> TuneAccepted:
-        accepted = submit(session, prefix, "*", req)
+        accepted = submit(session, prefix, "*", req, say=log.warning)
         on_accepted(accepted)
         return accepted
 

@@ -296,8 +296,17 @@ class _Silent(AutotuneError):
     """The tuner asked did not answer within its share of the wait (``_ask``)."""
 
 
+def _say_as_tune(line: str) -> None:
+    print(f"autotune tune: {line}", file=sys.stderr)
+
+
 def submit(
-    session: zenoh.Session, prefix: str, node: str, req: TuneRequest, timeout: float = 10.0
+    session: zenoh.Session,
+    prefix: str,
+    node: str,
+    req: TuneRequest,
+    timeout: float = 10.0,
+    say: Callable[[str], None] = _say_as_tune,
 ) -> TuneAccepted:
     """Send the request to an autotuner; return its acceptance or raise with its reason.
 
@@ -307,7 +316,9 @@ def submit(
     another client declared with no tuner behind it, failed tune after 10 s with a working
     tuner on the bus (helper trial). Each request carries its own ``answer_by``, the end of
     its share: a tuner passed over that reads it later (resumed) refuses it, so the next
-    one's run is the only one. A refusal is an answer, not passed over."""
+    one's run is the only one. A refusal is an answer, not passed over. ``say``: where a
+    tuner passed over is told (the command's own stderr line: the demo's and the console's
+    read "autotune tune:" before)."""
     key = keys.tuner_request(prefix, node)
     deadline = time.monotonic() + timeout
 
@@ -354,10 +365,9 @@ def submit(
                     f"on {keys.tune_cancel(prefix, req.loop)}) stops the run"
                 ) from None
             nxt = f": asking {nodes[i + 1]!r}" if i + 1 < len(nodes) else ""
-            print(
-                f"autotune tune: autotuner {name!r} did not answer within {share:.3g} s "
-                f"(paused, starved, or a token with no tuner behind it){nxt}",
-                file=sys.stderr,
+            say(
+                f"autotuner {name!r} did not answer within {share:.3g} s "
+                f"(paused, starved, or a token with no tuner behind it){nxt}"
             )
     untried = [n for n in nodes if n not in silent]
     raise AutotuneError(
