@@ -640,3 +640,23 @@ def test_a_watch_of_a_loop_in_manual_says_nothing_was_assessed():
     text = format_monitor(LoopMonitor(loop="x", node="watch", **watcher.report().to_dict()))
     assert "Not assessed: the loop was not in auto" in text, text
     assert "not oscillating" not in text
+
+
+def test_an_output_the_noise_works_hard_is_flagged_noisy():
+    """A PI on a PV noise σ of 12 (% of span) and a plant slow beside the 0.02 s sample: the
+    output's noise σ(Δu)/√2 is about Kc·σ_n (S ≈ 1 where the noise's changes are), 12 % at
+    Kc 1 (K_u 2.26), above the 10 % a tune's verification accepts; at Kc 0.5, 6 %, not
+    flagged. Watched without a tune: the flag needs none."""
+    from services.autotuner.design.output_noise import DEFAULT_LIMIT
+    from services.autotuner.monitor.assessment import NOISY_LIMIT
+
+    assert NOISY_LIMIT == DEFAULT_LIMIT
+    sigma = 12.0
+    for kc, flagged in ((1.0, True), (0.5, False)):
+        loop = plant(noise=sigma)
+        auto(loop, PidGains(kc=kc, ti=PU))
+        watcher = Watcher(settings(loop))
+        run(loop, watcher, 10)
+        a = watcher.report()
+        assert ("noisy" in a.flags) is flagged, (kc, a.figures["op_noise"], a.flags)
+        assert a.figures["op_noise"] == pytest.approx(kc * sigma, rel=0.1)

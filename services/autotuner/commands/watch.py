@@ -296,9 +296,10 @@ def format_monitor(m: LoopMonitor) -> str:
     else:
         short = any(n.startswith("the oscillation detector watched") for n in m.notes)
         lines.append(
-            "No flags: not sluggish, saturated or degraded; oscillation not judged (see the note)"
+            "No flags: not sluggish, saturated, noisy or degraded; oscillation not judged "
+            "(see the note)"
             if short
-            else "No flags: not oscillating, sluggish, saturated or degraded."
+            else "No flags: not oscillating, sluggish, saturated, noisy or degraded."
         )
     lines += [f"  note: {n}" for n in m.notes]
     return "\n".join(lines)

@@ -9,6 +9,9 @@ disturbances, and the flags, each with its reason:
 - ``oscillating``: more than n_lim detections within T_sup (``oscillation``), with the period;
 - ``sluggish``: the idle index above SLUGGISH_LIMIT over at least T_u of load disturbances;
 - ``saturated``: the output at a limit SATURATION_LIMIT % of the time in auto or more;
+- ``noisy``: the output's noise (σ of its sample-to-sample change over √2, % of output) above
+  the limit a tune's verification holds gains to (``output_noise.DEFAULT_LIMIT``, 10 %): the
+  PV's noise through the gains works the valve, tuned or not;
 - ``degraded``: worse than the last tune (``Baseline``): an oscillation where its
   verification decayed; the output's noise more than DEGRADED_RATIO times what the
   verification measured with the tuned gains (the measurement got noisier, or the gains
@@ -38,6 +41,10 @@ from services.autotuner.monitor.oscillation import (
 from services.autotuner.monitor.performance import performance
 
 SATURATION_LIMIT = 10.0  # % of the time in auto at an output limit: flagged saturated
+# % of output (σ of the sample-to-sample change over √2): flagged noisy above it; the limit a
+# tune's verification holds gains to (``design.output_noise.DEFAULT_LIMIT``: the monitor core
+# does not load the design's scipy; a test holds them equal)
+NOISY_LIMIT = 10.0
 # a watch shorter than the detector's supervision time: an oscillation detected in this share
 # of the half-periods watched, over this many of them at least, is flagged all the same
 SUSTAINED_SHARE = 0.75
@@ -358,6 +365,13 @@ def judge(
         flags["saturated"] = (
             f"the output sat at a limit {f['saturation']:.3g} % of the time in auto "
             f"(limit {SATURATION_LIMIT:g} %)"
+        )
+    noise = f.get("op_noise")
+    if noise is not None and noise > NOISY_LIMIT:
+        flags["noisy"] = (
+            f"the output's noise σ {noise:.3g} % sample to sample (above {NOISY_LIMIT:g} %, the "
+            "limit a tune's verification holds gains to): the PV's noise through the gains "
+            "works the valve; a lower gain or a filtered measurement spares it"
         )
     if b is None:
         notes.append("no applied tune to compare with")
