@@ -78,3 +78,17 @@ def test_a_process_failing_high_as_the_setpoint_goes_back_is_not_ok_and_the_loop
     assert "after the setpoint's return the PV stayed" in r.reason, r.reason
     assert "the output at its limit (0 %)" in r.reason, r.reason
     assert (sim.mode, sim.op, sim.sp, sim.pid.gains) == before
+
+
+def test_a_pv_coming_back_from_the_load_steps_removal_holds_its_setpoint():
+    # the return takes the load step off too: on a slow loop the PV goes 10 away from 0.84
+    # off at the start, and is still 5 off at the end, coming back (1 − e^{−t/300}); it
+    # holds its setpoint, slowly: not "farther than it started" (2·e^{−20s}/(s + 1), TL PI)
+    t = 0.5 * np.arange(420)
+    y = 50.0 - 0.84 + np.where(t < 20.0, 0.0, -10.0 * np.exp(-(t - 20.0) / 300.0))
+    y = y + 0.01 * np.random.default_rng(1).standard_normal(t.size)
+    assert lost_hold(y, np.full(t.size, 45.0), 50.0, 84, 0.043, LIMITS, 0.5) is None
+    # the same PV stuck 5 off, not coming back, has lost it
+    stuck = np.concatenate((y[:200], np.full(220, 45.0)))
+    why = lost_hold(stuck, np.full(t.size, 45.0), 50.0, 84, 0.043, LIMITS, 0.5)
+    assert why is not None and "farther than the" in why, why

@@ -2183,7 +2183,8 @@ def lost_hold(
     (None: it does, or it still comes toward it): over the last time scale (``k`` samples)
     the PV off the target by more than ``band`` on average, with the output at one of its
     limits throughout (pushing as hard as it can, in vain), or farther from the target than
-    where the return started (going away, not creeping back). Why: a process that failed
+    where the return started and not coming back toward it (``returning``: going away or
+    stuck, not creeping back from the load step's removal). Why: a process that failed
     high as the setpoint went back, its PV pegged at the top of its range and the output at
     0 % for the last 75 s, ended ok: neither swinging nor slow (helper trial)."""
     if k < 1 or y.size < k or u.size < k:
@@ -2195,7 +2196,7 @@ def lost_hold(
     lo, hi = op_limits
     limit = lo if bool(np.all(tail <= lo)) else hi if bool(np.all(tail >= hi)) else None
     started = abs(float(y[0]) - target)
-    if limit is None and abs(off) <= started + band:
+    if limit is None and (abs(off) <= started + band or returning(y[-k:], off, band)):
         return None
     how = (
         f"the output at its limit ({limit:g} %)"
@@ -2207,6 +2208,26 @@ def lost_hold(
         f"{k * sample_time:.4g} s, {how}: the loop does not hold its setpoint with these gains "
         "(or the process changed)"
     )
+
+
+def returning(tail: np.ndarray, off: float, band: float) -> bool:
+    """The PV over ``tail`` (the return's last time scale, ``off`` from its target on
+    average) comes back toward the target: its straight line moves toward it by at least
+    ``band`` over the tail, and by 4 standard errors of its slope. Why: the setpoint's
+    return also takes the load step off, and on a slow loop (a PI on 2·e^{−20s}/(s + 1), Ti
+    92 s) the PV first went 10.2 away and was coming back, 5.2 off over the last time scale
+    from 0.84 at the return's start; "farther than it started" rejected gains whose true Ms
+    is 1.46 as not holding the setpoint (helper trial)."""
+    n = tail.size
+    if n < 3:
+        return False
+    x = np.arange(n, dtype=float) - 0.5 * (n - 1)
+    sxx = float(np.sum(x * x))
+    slope = float(np.sum(x * (tail - np.mean(tail)))) / sxx
+    resid = tail - np.mean(tail) - slope * x
+    se = math.sqrt(float(np.sum(resid * resid)) / (n - 2) / sxx)
+    toward = -math.copysign(slope, off)
+    return toward * (n - 1) >= band and toward > 4.0 * se
 
 
 def swinging(y: np.ndarray, target: float, k: int, band: float) -> bool:
