@@ -84,3 +84,25 @@ def test_a_step_too_small_for_the_noise_in_the_time_allowed_says_so():
     assert r.status == "aborted"
     assert "no steady state within 7200 s" in r.reason
     assert "σ of its noise, too little" in r.reason and "--size" in r.reason
+
+
+def test_a_step_whose_change_is_within_five_sigma_says_so():
+    """0.02·e^{−s}/(10s + 1), σ 0.05, stepped 5 %: the PV moves 0.1, 2σ, and ``settled`` reads
+    no rest of a change within 5σ however long the record; the test ran to its 7,200 s and
+    said only "no steady state". It now says why and the step that would do (10σ: 25 %)."""
+    spec = {
+        "model": "transfer_function",
+        "num": [0.02],
+        "den": [10.0, 1.0],
+        "delay": 1.0,
+        "sample_time": 0.1,
+        "noise_std": 0.05,
+        "pv_range": [0.0, 100.0],
+    }
+    sim = build_plant({"seed": 0, "loops": {"a": spec}}, "t")["a"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="a", method="step"), "t").run()
+    assert r.status == "aborted"
+    assert "no steady state within 7200 s" in r.reason
+    assert "σ of its noise, and a rest is read only from a change of 5 σ" in r.reason, r.reason
+    size = float(r.reason.split("--size about ")[1].split(" %")[0])
+    assert 15.0 <= size <= 40.0  # 5 % × 10σ / 2σ = 25 %, the change read through the noise

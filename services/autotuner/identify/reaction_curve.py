@@ -369,6 +369,8 @@ def fit_sopdt(
 REST_BAND = 0.005
 # that standard error's band where the noise puts REST_BAND out of reach in the time allowed
 LOOSE_BAND = 0.02
+# σ of the noise a step's change must pass for ``settled`` to read a rest at all
+MIN_CHANGE_SIGMAS = 5.0
 
 
 def band_reachable(
@@ -419,7 +421,7 @@ def settled(
     tw, yw = t[-m:], y[-m:]
     rest = float(np.mean(yw))
     change = rest - pv_before
-    if abs(change) <= 5.0 * noise_std or change == 0:
+    if abs(change) <= MIN_CHANGE_SIGMAS * noise_std or change == 0:
         return False, rest
     if pv_range is not None and range_end(yw, pv_range, noise_std) is not None:
         return False, rest

@@ -62,6 +62,7 @@ from services.autotuner.identify.model_fit import (
 )
 from services.autotuner.identify.reaction_curve import (
     LOOSE_BAND,
+    MIN_CHANGE_SIGMAS,
     RAMP_STEADY_FLOOR,
     RAMP_STEADY_FLOOR_BEFORE,
     REST_BAND,
@@ -789,6 +790,16 @@ class StepTest:
         it in the time allowed (``band_reachable``); empty otherwise."""
         m = max(20, len(self.pv) // 4)
         change = float(np.mean(self.pv[-m:])) - self._pv_before
+        if 0 < abs(change) <= MIN_CHANGE_SIGMAS * self._noise:
+            # ``settled`` reads no rest of a change within 5σ, however long the record: a
+            # step of 2σ (0.02·e^{−s}/(10s + 1), σ 0.05, 5 %) waited 7,200 s and ended "no
+            # steady state" without a word of why (helper trial)
+            size = abs(self.config.size) * 2.0 * MIN_CHANGE_SIGMAS * self._noise / abs(change)
+            return (
+                f": the PV moved by {abs(change):.3g}, {abs(change) / self._noise:.3g} σ of its "
+                f"noise, and a rest is read only from a change of {MIN_CHANGE_SIGMAS:g} σ or "
+                f"more — a larger step (--size about {size:.2g} %, for 10 σ)"
+            )
         if band_reachable(self._noise, change, self.sample_time, self.config.timeout, LOOSE_BAND):
             return ""
         sigmas = abs(change) / self._noise if self._noise > 0 else math.inf
