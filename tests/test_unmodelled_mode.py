@@ -205,12 +205,18 @@ def test_gains_that_leave_the_loop_in_a_limit_cycle_after_the_setpoints_return_a
     """A step test's ZN-half PID on c197: the setpoint step's figures passed, the mode grew
     once the setpoint went back, and the run ended ok with the output swinging 0–100 % and
     the PV ±7.7 about its setpoint (helper review). The return is judged: rejected, the
-    previous gains restored, and the loop then steady (the output never at both limits)."""
+    previous gains restored, and the loop then steady (the output never at both limits).
+    Since the setpoint step's record runs until the PV is flat by its mean's noise (not 8σ),
+    the mode's growth is seen on the step itself, before the return: stopped there
+    (``unsteady_return`` is tested on its own below)."""
     sim = build_plant({"seed": 1, "loops": {"x": C197}}, "h1")["x"]  # the helper's noise
     before = sim.pid.gains
     r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="step"), "h1").run()
-    assert r.status == "rejected" and "PV kept swinging" in r.reason, r.reason
-    assert "the output between its limits (0 and 100 %)" in r.reason
+    assert r.status == "rejected", r.reason
+    if "PV kept swinging" in r.reason:
+        assert "the output between its limits (0 and 100 %)" in r.reason
+    else:
+        assert "new gains stopped: the oscillation grows" in r.reason, r.reason
     assert r.restored and sim.pid.gains == before
     op = np.array([sim.advance().op for _ in range(round(60 / C197["sample_time"]))])
     assert not ((op <= 0.0).any() and (op >= 100.0).any()), (op.min(), op.max())
