@@ -57,3 +57,25 @@ def test_a_load_beyond_the_relays_amplitude_aborts_once_the_pv_rests_short_of_it
 def test_without_the_load_the_relay_cycles_as_before():
     _, r = run(load=False)
     assert r.status == "ok", r.reason
+
+
+def test_a_push_too_weak_for_the_switching_level_says_so_not_a_load_or_the_action():
+    """0.02·e^{−s}/(10s + 1), σ 0.05: the relay's +5 % moves the PV 0.1 (2σ), under the
+    switching level its hysteresis against the noise needs. The PV followed the push: the
+    line blamed a load beyond the relay's amplitude and asked whether the loop is
+    direct-acting. It now says the push moved the PV that far and no further, and the
+    amplitude that would reach the level twice over (2 × 5 % × level / 0.1)."""
+    spec = {"model": "transfer_function", "num": [0.02], "den": [10.0, 1.0], "delay": 1.0,
+            "sample_time": 0.1, "noise_std": 0.05, "pv_range": [0.0, 100.0]}  # fmt: skip
+    # seed 1: no noise spike reaches the level, so the relay never switches (on seeds 0 and
+    # 4 one does, and its amplitude grows to 45-48 % and the test goes on)
+    sim = build_plant({"seed": 1, "loops": {"x": spec}}, "t")["x"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="relay"), "t").run()
+    assert r.status == "aborted" and "short of the level" in r.reason, r.reason
+    assert "direct-acting" not in r.reason and "a load beyond" not in r.reason, r.reason
+    moved = float(r.reason.split("the push moved it ")[1].split(" ")[0])
+    assert abs(moved - 0.02 * 5.0) < 0.03, r.reason  # K·d, read through the noise
+    level = float(r.reason.split("under the level's ")[1].split(" ")[0])
+    size = float(r.reason.split("--amplitude (about ")[1].split(" %")[0])
+    assert abs(size - 2.0 * 5.0 * level / moved) <= 0.05 * size
+    assert r.restored

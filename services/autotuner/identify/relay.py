@@ -786,10 +786,25 @@ class RelayTest:
         if float(np.ptp(means)) > limit:
             return ""
         output = self._actual(self._out())
-        return (
+        held = (
             f"the relay held the output at {output:.4g} % for {t - since:.4g} s and the PV came "
             f"to rest at {rest:.4g}, {short:.3g} short of the level that switches it "
-            f"({level:.4g}): it never will — a load beyond the relay's amplitude (±{self._d:g} "
+            f"({level:.4g}): it never will — "
+        )
+        moved = (rest - self._r) * self._state  # toward the level, with the push
+        if moved > limit:
+            # the PV followed the push, too little: the process's own answer to ±d is under
+            # the level (0.02·e^{−s}/(10s + 1), σ 0.05: 0.1 for 0.32), not a load against it
+            # nor the wrong action, as the line said (helper trial)
+            grow = 2.0 * self._d * (level - self._r) * self._state / moved
+            return held + (
+                f"the push moved it {moved:.3g} toward that level and no further: the "
+                f"process's answer to ±{self._d:g} % is under the level's "
+                f"{abs(level - self._r):.3g} from the rest (the hysteresis against the noise), "
+                f"or a load holds it back: a larger --amplitude (about {grow:.2g} %)"
+            )
+        return held + (
+            f"a load beyond the relay's amplitude (±{self._d:g} "
             f"%) holds the PV there (a larger --amplitude, or a test once the load has passed);"
             f" if no load moved it, {action_question(self.direction)}"
         )
