@@ -326,3 +326,17 @@ def test_the_verification_reads_the_output_noise_near_its_limit_over_enough_samp
     assert r.after is not None and r.after.op_noise == pytest.approx(true, rel=0.1)
     assert r.status == "rejected", r.reason
     assert "output noise" in r.reason and "above the limit 4.4 %" in r.reason
+
+
+def test_the_longer_watch_of_a_noise_near_its_limit_is_not_taken_for_a_runaway():
+    """Output noise above half its limit is read over 400 samples at rest. That watch ran
+    under the runaway guard, which at rest reads the PV's noise: three windows' noise maxima
+    rising by chance were "the oscillation grows (largest deviation 0.148 → 0.183 → 0.248)",
+    and AMIGO PI at 22 % of output noise, within a limit of 30 %, was rejected so."""
+    sim, r = _tune(max_op_noise=30.0)
+    assert r.rule == "amigo-pi", r.recommended
+    assert r.status == "ok", r.reason
+    assert 15.0 < r.after.op_noise <= 30.0
+    before = _lag_loop()
+    assert (sim.pid.mode, sim.pid.gains.kc) == ("auto", r.chosen["isa"]["kc"])
+    assert before.pid.gains != sim.pid.gains

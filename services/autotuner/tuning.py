@@ -1780,7 +1780,11 @@ class TuningRun:
             # for OP_NOISE_SAMPLES in all
             more = (OP_NOISE_SAMPLES - u_pre.size) * self.ts
             watch = SettleRule(k, sp0, 0.0, None, more)  # watched to its end
-            _, y_more, u_more, why = self._record(more, watch, sp0, guard)
+            # without the runaway guard: at rest, the PV's deviation is its noise, and the
+            # guard read three windows' noise maxima rising by chance as "the oscillation
+            # grows" (AMIGO PI at 22 % of output noise on 0.1/(5s + 1), limit 30 %: rejected
+            # so); the PV limits still end it, and a loop not at rest after it is unsettled
+            _, y_more, u_more, why = self._record(more, watch, sp0)
             y_pre, u_pre = np.concatenate((y_pre, y_more)), np.concatenate((u_pre, u_more))
             tail = u_pre[-OP_NOISE_SAMPLES:]
             op_noise = float(np.std(np.diff(tail)) / math.sqrt(2.0))
