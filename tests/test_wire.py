@@ -382,16 +382,7 @@ def test_query_all_decodes_every_valid_answer_and_leaves_out_the_rest():
     from shared.messages import LoggerStatus
     from shared.session import ZenohSettings, open_session
 
-    good = LoggerStatus(
-        node="a",
-        runs_dir="runs",
-        open_runs=[],
-        finished_runs=1,
-        received=5,
-        written=3,
-        invalid=0,
-        dropped=2,
-    )
+    good = _quiet_logger_status()
 
     def answer(query):
         query.reply("qa/logger/a/status", wire.encode(good))
@@ -456,9 +447,15 @@ def test_a_tune_request_carries_no_field_unset_that_an_older_tuner_would_refuse(
 def test_a_logger_status_with_no_incomplete_run_is_what_an_older_client_reads():
     """An older client's LoggerStatus forbids fields it does not know: with no incomplete run
     the field is left off the wire, so such a client still reads a newer logger's status."""
-    from shared.messages import LoggerStatus
+    quiet = _quiet_logger_status()
+    text = wire.encode(quiet).decode()
+    assert "incomplete_runs" not in text
+    assert LoggerStatus.model_validate_json(text) == quiet
 
-    quiet = LoggerStatus(
+
+def _quiet_logger_status():
+    """A logger's status with nothing incomplete (an answer the tests query and encode)."""
+    return LoggerStatus(
         node="a",
         runs_dir="runs",
         open_runs=[],
@@ -468,6 +465,3 @@ def test_a_logger_status_with_no_incomplete_run_is_what_an_older_client_reads():
         invalid=0,
         dropped=2,
     )
-    text = wire.encode(quiet).decode()
-    assert "incomplete_runs" not in text
-    assert LoggerStatus.model_validate_json(text) == quiet

@@ -502,17 +502,21 @@ def select(
     implied = None
     if ultimate is None and ident.record_point is not None:
         implied = (ident.record_point[0], ident.record_point[2])
-    rec = recommend(
-        ultimate,
-        judge,
-        ms_bound,
-        pool,
-        without_model,
-        aim,
-        pooled=bool(left_out),
-        implied=implied,
-        max_op_noise=max_op_noise,
-    )
+
+    def recommend_of(candidates: dict[str, Assessment]) -> Recommendation | None:
+        return recommend(
+            ultimate,
+            judge,
+            ms_bound,
+            candidates,
+            without_model,
+            aim,
+            pooled=bool(left_out),
+            implied=implied,
+            max_op_noise=max_op_noise,
+        )
+
+    rec = recommend_of(pool)
     lambda_quiet = None  # λ raised for the output noise (``_quieter_lambda``)
     if rec is not None and rec.noisy and lambda_s is None and not misfit and ts:
         source = (
@@ -526,17 +530,7 @@ def select(
             table.update({k: a.gains for k, a in again.items()})
             assessments.update(again)
             pool = {**pool, **{k: a for k, a in again.items() if k in pool}}
-            rec = recommend(
-                ultimate,
-                judge,
-                ms_bound,
-                pool,
-                without_model,
-                aim,
-                pooled=bool(left_out),
-                implied=implied,
-                max_op_noise=max_op_noise,
-            )
+            rec = recommend_of(pool)
             warnings.append(
                 f"every rule within the Ms margin was predicted to make more than "
                 f"{max_op_noise:g} % of output noise (σ) from the PV's noise: the lambda rules "
