@@ -744,6 +744,17 @@ class TuneResult(Message):
         "verification held the gains to, where asked (None: the default, 10 %); an apply of "
         "them later holds them to the same",
     )
+    # the verification's other limits asked for where not the default (left off the wire
+    # otherwise, as ``ms_bound``): an apply of the gains later verifies them within the same
+    max_overshoot: float | None = Field(
+        default=None, exclude_if=lambda v: v is None, description="%: --max-overshoot asked"
+    )
+    max_decay_ratio: float | None = Field(
+        default=None, exclude_if=lambda v: v is None, description="--max-decay-ratio asked"
+    )
+    overshoot_miss: float | None = Field(
+        default=None, exclude_if=lambda v: v is None, description="--overshoot-miss asked"
+    )
     recommended: dict[str, Any] | None = Field(
         default=None, description="rule, reason, predicted ms"
     )

@@ -340,3 +340,49 @@ def test_the_longer_watch_of_a_noise_near_its_limit_is_not_taken_for_a_runaway()
     before = _lag_loop()
     assert (sim.pid.mode, sim.pid.gains.kc) == ("auto", r.chosen["isa"]["kc"])
     assert before.pid.gains != sim.pid.gains
+
+
+def test_an_apply_holds_the_gains_to_every_acceptance_limit_their_run_asked(tmp_path):
+    """--max-overshoot, --max-decay-ratio and --overshoot-miss were not carried to the apply
+    (review): a run tuned with --max-overshoot 10 and --no-apply had its gains applied later
+    within the default 35 %. They are on record where asked, and the apply asks them."""
+    from services.autotuner.commands import apply as apply_command
+    from services.logger.history import ChangeHistory
+
+    asked = {"max_overshoot": 10.0, "max_decay_ratio": 0.2, "overshoot_miss": 5.0}
+    _, proposed = _tune(apply=False, **asked)
+    assert proposed.status == "proposed", proposed.reason
+    assert {k: getattr(proposed, k) for k in asked} == asked
+    ChangeHistory(tmp_path, "p")._result(proposed)
+    rec = apply_command.recorded_run(tmp_path, proposed.run_id)
+    req = apply_command.recorded_request(
+        rec, proposed.run_id, apply_command.choose(rec, None), True, "test"
+    )
+    assert {k: getattr(req, k) for k in asked} == asked
+
+
+def test_limits_at_their_defaults_are_not_on_record():
+    _, r = _tune(apply=False)
+    text = r.model_dump_json()
+    for name in ("max_overshoot", "max_decay_ratio", "overshoot_miss", "max_op_noise"):
+        assert getattr(r, name) is None and name not in text
+
+
+@pytest.mark.parametrize(
+    ("name", "bad"),
+    [
+        ("max_overshoot", -1.0),
+        ("max_overshoot", 1001.0),
+        ("max_decay_ratio", 0.0),
+        ("max_decay_ratio", 1.5),
+        ("overshoot_miss", 0.0),
+        ("overshoot_miss", "5"),
+        ("max_overshoot", float("inf")),
+        ("max_decay_ratio", True),
+    ],
+)
+def test_a_recorded_limit_no_request_may_carry_is_not_taken(name, bad):
+    from services.autotuner.commands import apply as apply_command
+
+    assert apply_command.recorded_limits({name: bad}) == {}
+    assert apply_command.recorded_limits({"max_overshoot": 0.0}) == {"max_overshoot": 0.0}

@@ -372,6 +372,16 @@ class TuningRun:
             "ms_bound": None if req.ms_bound == DEFAULT_MS_BOUND else req.ms_bound,
             # the output-noise limit asked for (``TuneResult.max_op_noise``), None unasked
             "max_op_noise": req.max_op_noise,
+            # the verification's other limits, where not the request's defaults: an apply of
+            # these gains later is held to them (``apply.recorded_limits``)
+            **{
+                name: None if value == TuneRequest.model_fields[name].default else value
+                for name, value in (
+                    ("max_overshoot", req.max_overshoot),
+                    ("max_decay_ratio", req.max_decay_ratio),
+                    ("overshoot_miss", req.overshoot_miss),
+                )
+            },
             "previous_gains": first.gains,
             "pv_units": self.info.pv_units,
             "pv_range": tuple(self.info.pv_range),

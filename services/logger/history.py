@@ -288,6 +288,10 @@ class ChangeHistory:
                 # with --max-op-noise 60 proposed SIMC PI at 36 % predicted, and its apply
                 # rejected it at the default 10 %)
                 "max_op_noise": r.max_op_noise,
+                # and its other acceptance limits, where asked (``TuneResult``)
+                "max_overshoot": r.max_overshoot,
+                "max_decay_ratio": r.max_decay_ratio,
+                "overshoot_miss": r.overshoot_miss,
                 # why none of them may be applied (``autotune apply`` refuses the run)
                 "contradiction": r.contradiction,
                 # the run's model misses the plant, as its warning says: ``autotune apply

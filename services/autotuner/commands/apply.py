@@ -123,20 +123,35 @@ def recorded_bound(run: dict[str, Any]) -> dict[str, float]:
     return {}
 
 
+# the acceptance limits a run records where asked, and the bounds a request takes them in
+# (``TuneRequest``): (low, low included, high)
+_LIMITS = {
+    "max_op_noise": (0.0, False, 100.0),
+    "max_overshoot": (0.0, True, 1000.0),
+    "max_decay_ratio": (0.0, False, 1.0),
+    "overshoot_miss": (0.0, False, 1000.0),
+}
+
+
 def recorded_limits(run: dict[str, Any]) -> dict[str, float]:
-    """The run's ``--max-op-noise`` as a request's field (empty: none on record, or not one a
-    request may carry): its gains verified later against the limit its recommendation was
-    made within (a run tuned with --max-op-noise 60 proposed SIMC PI, 36 % predicted, and
-    its apply rejected the same gains at the default 10 %)."""
-    limit = run.get("max_op_noise")
-    if (
-        isinstance(limit, int | float)
-        and not isinstance(limit, bool)
-        and math.isfinite(limit)
-        and 0.0 < limit <= 100.0
-    ):
-        return {"max_op_noise": float(limit)}
-    return {}
+    """The run's acceptance limits as a request's fields (``--max-op-noise``,
+    ``--max-overshoot``, ``--max-decay-ratio``, ``--overshoot-miss``; each left out where
+    none is on record, or not one a request may carry): its gains verified later within the
+    limits they were tuned within (a run tuned with --max-op-noise 60 proposed SIMC PI, 36 %
+    predicted, and its apply rejected the same gains at the default 10 %; one tuned with
+    --max-overshoot 10 was applied within the default 35 %)."""
+    out: dict[str, float] = {}
+    for name, (low, closed, high) in _LIMITS.items():
+        limit = run.get(name)
+        if (
+            isinstance(limit, int | float)
+            and not isinstance(limit, bool)
+            and math.isfinite(limit)
+            and (low <= limit if closed else low < limit)
+            and limit <= high
+        ):
+            out[name] = float(limit)
+    return out
 
 
 def recorded_request(
