@@ -19,10 +19,10 @@ was sent.
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 from typing import Any
 
+import pydantic
 import zenoh
 
 from services.autotuner.commands.logger_dirs import elsewhere_asked
@@ -123,34 +123,28 @@ def recorded_bound(run: dict[str, Any]) -> dict[str, float]:
     return {}
 
 
-# the acceptance limits a run records where asked, and the bounds a request takes them in
-# (``TuneRequest``): (low, low included, high)
-_LIMITS = {
-    "max_op_noise": (0.0, False, 100.0),
-    "max_overshoot": (0.0, True, 1000.0),
-    "max_decay_ratio": (0.0, False, 1.0),
-    "overshoot_miss": (0.0, False, 1000.0),
-}
+# the acceptance limits a run records where asked (``TuneResult``)
+RECORDED_LIMITS = ("max_op_noise", "max_overshoot", "max_decay_ratio", "overshoot_miss")
 
 
 def recorded_limits(run: dict[str, Any]) -> dict[str, float]:
     """The run's acceptance limits as a request's fields (``--max-op-noise``,
     ``--max-overshoot``, ``--max-decay-ratio``, ``--overshoot-miss``; each left out where
-    none is on record, or not one a request may carry): its gains verified later within the
-    limits they were tuned within (a run tuned with --max-op-noise 60 proposed SIMC PI, 36 %
-    predicted, and its apply rejected the same gains at the default 10 %; one tuned with
-    --max-overshoot 10 was applied within the default 35 %)."""
+    none is on record, or not one a request may carry: ``TuneRequest``'s own bounds judge
+    it): its gains verified later within the limits they were tuned within (a run tuned with
+    --max-op-noise 60 proposed SIMC PI, 36 % predicted, and its apply rejected the same gains
+    at the default 10 %; one tuned with --max-overshoot 10 was applied within the default
+    35 %)."""
     out: dict[str, float] = {}
-    for name, (low, closed, high) in _LIMITS.items():
+    for name in RECORDED_LIMITS:
         limit = run.get(name)
-        if (
-            isinstance(limit, int | float)
-            and not isinstance(limit, bool)
-            and math.isfinite(limit)
-            and (low <= limit if closed else low < limit)
-            and limit <= high
-        ):
-            out[name] = float(limit)
+        if limit is None:
+            continue
+        try:
+            TuneRequest.model_validate({"loop": "x", name: limit})
+        except pydantic.ValidationError:
+            continue
+        out[name] = float(limit)
     return out
 
 
