@@ -31,7 +31,7 @@ from services.autotuner.design import margin_check, output_noise, setpoint_weigh
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
-from services.autotuner.design.unmodelled_mode import mode_near, unmodelled_mode
+from services.autotuner.design.unmodelled_mode import mode_near, switch_mode, unmodelled_mode
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import (
@@ -1762,7 +1762,17 @@ class TuningRun:
             before the crest, read 17.9 % of overshoot for 30 % (helper trial)."""
             return SettleRule(k, target, on_band, 2 * on_band, after)
 
-        _, y_pre, u_pre, why = self._record(span, rest(), sp0, guard)
+        def calm() -> SettleRule:
+            """Calm at the setpoint ``sp0``: the mean on it to the noise of a mean (``on_band``,
+            or what no transmitter resolves), flat within twice that."""
+            near = max(on_band, REST_FLOOR * (hi - lo))
+            return SettleRule(k, sp0, near, 2 * near)
+
+        # the switch to the new gains is the loop's first response to them: watched until the
+        # loop is calm (the step's figures are its own, not the tail of the switch's), and
+        # read for a fast mode the switch rang (``switch_mode``, below)
+        t_pre, y_pre, u_pre, why = self._record(span, calm(), sp0, guard)
+        switched = (t_pre, y_pre)
         waited = span
         # slow, not unstable: a loop that creeps toward its setpoint is given more time
         while (
@@ -1871,6 +1881,9 @@ class TuningRun:
             model = ident.model.transfer if ident.model is not None else None
             isa = IsaGains(gains.kc, gains.ti, gains.td)
             fast = unmodelled_mode(t, y, y0, step, isa, model, self.ts, ident.noise, scale, gains.n)
+            rung = switch_mode(*switched, ident.noise, scale, self.ts, step) if model else None
+            if rung is not None:  # the same mode in either response: the more lasting kept
+                fast = max((m for m in (fast, rung) if m is not None), key=lambda m: m.decay)
         op_lo, op_hi = self.info.op_limits
         # the setpoint step's response with the output at a limit is not the linear loop's
         limited = float(np.count_nonzero((u <= op_lo) | (u >= op_hi))) * self.ts if u.size else 0.0
