@@ -31,7 +31,7 @@ from services.autotuner.design import margin_check, output_noise, setpoint_weigh
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
-from services.autotuner.design.unmodelled_mode import mode_near, switch_mode, unmodelled_mode
+from services.autotuner.design.unmodelled_mode import fast_mode, mode_near, unmodelled_mode
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import (
@@ -1637,6 +1637,7 @@ class TuningRun:
         scale: float,
         fast: Ringing | None = None,
         beta: float | None = None,
+        search: bool = False,
     ) -> margin_check.MarginCheck:
         """``gains`` with Kc × the check's factor (``margin_check.factor_for`` the request's Ms
         bound) and the setpoint stepped by half the verification's ``step`` from ``sp0`` (the
@@ -1646,7 +1647,8 @@ class TuningRun:
         ``fast``: a fast mode the model lacks that the gains rang with, read again at the
         doubled gain. ``beta``: the setpoint weight of the doubled gains (default
         ``gains``'): a weighted verification's check is kicked as the full-weight step would
-        have been."""
+        have been. ``search`` (no ``fast`` given): the check's record read for a fast mode
+        of its own (``fast_mode``), which fails the check where it grows."""
         c = self.client
         kick = 0.5 * step
         target = sp0 + kick
@@ -1665,7 +1667,10 @@ class TuningRun:
         never = SettleRule(k, target, 0.0, None, seconds)  # watched to its end
         bound = margin_check.SWING_BOUND * abs(kick)
         t, y, _, why = self._record(seconds, never, target, swing=bound)
-        mode = mode_near(t, y, noise, fast, self.ts, kick) if fast is not None else None
+        if fast is not None:
+            mode = mode_near(t, y, noise, fast, self.ts, kick)
+        else:  # the check's own record read for a fast mode that grows at the doubled gain
+            mode = fast_mode(t, y, noise, scale, self.ts, kick) if search else None
         check = replace(
             margin_check.judge(y, kick, noise, k),
             stopped=why,
@@ -1768,12 +1773,8 @@ class TuningRun:
             near = max(on_band, REST_FLOOR * (hi - lo))
             return SettleRule(k, sp0, near, 2 * near)
 
-        # the switch to the new gains is the loop's first response to them: watched until the
-        # loop is calm (the step's figures are its own, not the tail of the switch's), and
-        # read for a fast mode the switch rang (``switch_mode``, below)
-        t_pre, y_pre, u_pre, why = self._record(span, calm(), sp0, guard)
-        switched = (t_pre, y_pre)
-        waited = span
+        _, y_pre, u_pre, why = self._record(span, rest(), sp0, guard)
+        waited, calmed = span, False
         # slow, not unstable: a loop that creeps toward its setpoint is given more time
         while (
             why is None
@@ -1784,6 +1785,20 @@ class TuningRun:
             _, y_more, u_more, why = self._record(span, rest(), sp0, guard)
             y_pre, u_pre = np.concatenate((y_pre, y_more)), np.concatenate((u_pre, u_more))
             waited += span
+        if (
+            why is None
+            and rest().done(np.array([]), y_pre)
+            and not calm().done(np.array([]), y_pre)
+        ):
+            # at rest to a sample's noise, but its mean off the setpoint by more than a mean's:
+            # the tail of the switch to the new gains, which a step made now would carry on
+            # its far side (TL PI on e^{−0.1s}/((100s + 1)(s + 1)), σ 0.02: stepped with the
+            # PV 3σ, a quarter of the step, off; 23.9 % of overshoot read for the loop's 35.8 %
+            # and ok under the 35 % limit). Watched until it is calm, or one span more
+            _, y_more, u_more, why = self._record(span, calm(), sp0, guard)
+            y_pre, u_pre = np.concatenate((y_pre, y_more)), np.concatenate((u_pre, u_more))
+            waited += span
+            calmed = True
         # the output's noise at rest: what the gains make of the PV's noise (σ of the sample
         # to sample change over √2, so that a slow drift does not count)
         tail = u_pre[-k:]
@@ -1881,9 +1896,6 @@ class TuningRun:
             model = ident.model.transfer if ident.model is not None else None
             isa = IsaGains(gains.kc, gains.ti, gains.td)
             fast = unmodelled_mode(t, y, y0, step, isa, model, self.ts, ident.noise, scale, gains.n)
-            rung = switch_mode(*switched, ident.noise, scale, self.ts, step) if model else None
-            if rung is not None:  # the same mode in either response: the more lasting kept
-                fast = max((m for m in (fast, rung) if m is not None), key=lambda m: m.decay)
         op_lo, op_hi = self.info.op_limits
         # the setpoint step's response with the output at a limit is not the linear loop's
         limited = float(np.count_nonzero((u <= op_lo) | (u >= op_hi))) * self.ts if u.size else 0.0
@@ -1967,7 +1979,11 @@ class TuningRun:
                 # a PI's too where the model's margins are not sure: ZN PI predicted at Ms
                 # 1.88 on an inverse response was 2.20 on the plant, and lambda PI at 1.25 on
                 # a lead-lag's FOPDT that missed its record 2.06 (helper trial)
-                judged = gains.td > 0 or rang or self._model_unsure
+                # and where the step waited for a calm loop: the switch's ringing no longer in
+                # it, a mode beyond ω_u rang under the noise (TL PI at Ms 2.4–2.9 on a plant
+                # with a resonance ended ok in 5 of 12 seeds); the check then reads its own
+                # record for a fast mode growing at the doubled gain (``search``)
+                judged = gains.td > 0 or rang or self._model_unsure or calmed
                 # never on gains their setpoint step has already failed: ZN PID forced on
                 # hx2 overshot 64 % and was then run at Kc × 2, above the K_u measured, the
                 # output swinging 10–70 % for 186 s before the rejection (helper trial)
@@ -1982,7 +1998,14 @@ class TuningRun:
                     failed = bool(judge(verification()))
                 if stopped is None and margin and judged and not failed:
                     check = self._margin_check(
-                        gains, sp0, step, ident.noise, scale, fast if rang else None, margin_beta
+                        gains,
+                        sp0,
+                        step,
+                        ident.noise,
+                        scale,
+                        fast if rang else None,
+                        margin_beta,
+                        search=calmed,
                     )
                     if not check.failed:  # back at rest at the setpoint, judged as before
                         stopped = back_at_rest()

@@ -127,21 +127,6 @@ def unmodelled_mode(
     return max(fast, key=lambda m: m.decay, default=None)
 
 
-def switch_mode(
-    t: np.ndarray, y: np.ndarray, noise: float, timescale: float, sample_time: float, step: float
-) -> Ringing | None:
-    """The fast mode the switch to new gains rang (``t`` s and ``y`` PV units from the switch
-    on, the loop left at its setpoint), read as ``fast_mode`` over the window a step's response
-    is read over, at least LEAST of the verification's ``step`` tall. Why: a step from a calm
-    loop may ring a resonance under the noise where the switch's bump rang it clearly (TL PI on
-    a plant with a lightly damped mode beyond ω_u, Ms 2.4–2.8 on it: its calm step showed no
-    mode in 5 of 12 seeds); the mode is the same, whichever response shows it."""
-    if y.size < 16 or not (timescale > 0 and math.isfinite(timescale)):
-        return None
-    read = max(64, math.ceil(WINDOW * timescale / sample_time))
-    return fast_mode(t[:read], y[:read], noise, timescale, sample_time, step)
-
-
 def fast_mode(
     t: np.ndarray,
     y: np.ndarray,
