@@ -244,12 +244,9 @@ def test_no_weight_where_the_step_overshot_far_past_the_models_prediction():
     r, sim = _tune(spec, 0, "step")
     assert r.status == "rejected", r.reason
     assert r.acceptance.get("setpoint_weight") is None
-    # the miss named: as the reason no weight was tried, or (read past the 20-point miss, the
-    # upset's phase at the step as it comes) as the rejection's own
-    missed = "against 18 % predicted: the model is wrong for these gains" in r.reason
-    assert missed or any(
+    assert any(
         "no setpoint weight was tried" in w and "more than the model" in w for w in r.warnings
-    ), (r.reason, r.warnings)
+    )
     # rightly: the gains' true Ms on the plant (its disturbance aside) is past the bound
     g = r.chosen["isa"]
     assert isa_ms([1.0], [20.0, 12.0, 1.0], 3.0, 0.1, g) > 2.0

@@ -215,11 +215,8 @@ def test_gains_that_leave_the_loop_in_a_limit_cycle_after_the_setpoints_return_a
     assert r.status == "rejected", r.reason
     if "PV kept swinging" in r.reason:
         assert "the output between its limits (0 and 100 %)" in r.reason
-    else:  # stopped as it grew on the step, or (stepped from a calm loop) its ring read there
-        assert (
-            "new gains stopped: the oscillation grows" in r.reason
-            or "that the process model does not have keeps 1.0" in r.reason
-        ), r.reason
+    else:
+        assert "new gains stopped: the oscillation grows" in r.reason, r.reason
     assert r.restored and sim.pid.gains == before
     op = np.array([sim.advance().op for _ in range(round(60 / C197["sample_time"]))])
     assert not ((op <= 0.0).any() and (op >= 100.0).any()), (op.min(), op.max())

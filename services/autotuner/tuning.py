@@ -31,7 +31,7 @@ from services.autotuner.design import margin_check, output_noise, setpoint_weigh
 from services.autotuner.design import measured_response as metrics
 from services.autotuner.design.ringing import Ringing, ringing
 from services.autotuner.design.selection import assessments_dict, select
-from services.autotuner.design.unmodelled_mode import fast_mode, mode_near, unmodelled_mode
+from services.autotuner.design.unmodelled_mode import mode_near, unmodelled_mode
 from services.autotuner.identify import experiments, methods
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.experiments import (
@@ -1637,7 +1637,6 @@ class TuningRun:
         scale: float,
         fast: Ringing | None = None,
         beta: float | None = None,
-        search: bool = False,
     ) -> margin_check.MarginCheck:
         """``gains`` with Kc × the check's factor (``margin_check.factor_for`` the request's Ms
         bound) and the setpoint stepped by half the verification's ``step`` from ``sp0`` (the
@@ -1647,8 +1646,7 @@ class TuningRun:
         ``fast``: a fast mode the model lacks that the gains rang with, read again at the
         doubled gain. ``beta``: the setpoint weight of the doubled gains (default
         ``gains``'): a weighted verification's check is kicked as the full-weight step would
-        have been. ``search`` (no ``fast`` given): the check's record read for a fast mode
-        of its own (``fast_mode``), which fails the check where it grows."""
+        have been."""
         c = self.client
         kick = 0.5 * step
         target = sp0 + kick
@@ -1667,10 +1665,7 @@ class TuningRun:
         never = SettleRule(k, target, 0.0, None, seconds)  # watched to its end
         bound = margin_check.SWING_BOUND * abs(kick)
         t, y, _, why = self._record(seconds, never, target, swing=bound)
-        if fast is not None:
-            mode = mode_near(t, y, noise, fast, self.ts, kick)
-        else:  # the check's own record read for a fast mode that grows at the doubled gain
-            mode = fast_mode(t, y, noise, scale, self.ts, kick) if search else None
+        mode = mode_near(t, y, noise, fast, self.ts, kick) if fast is not None else None
         check = replace(
             margin_check.judge(y, kick, noise, k),
             stopped=why,
@@ -1767,14 +1762,8 @@ class TuningRun:
             before the crest, read 17.9 % of overshoot for 30 % (helper trial)."""
             return SettleRule(k, target, on_band, 2 * on_band, after)
 
-        def calm() -> SettleRule:
-            """Calm at the setpoint ``sp0``: the mean on it to the noise of a mean (``on_band``,
-            or what no transmitter resolves), flat within twice that."""
-            near = max(on_band, REST_FLOOR * (hi - lo))
-            return SettleRule(k, sp0, near, 2 * near)
-
         _, y_pre, u_pre, why = self._record(span, rest(), sp0, guard)
-        waited, calmed = span, False
+        waited = span
         # slow, not unstable: a loop that creeps toward its setpoint is given more time
         while (
             why is None
@@ -1785,20 +1774,6 @@ class TuningRun:
             _, y_more, u_more, why = self._record(span, rest(), sp0, guard)
             y_pre, u_pre = np.concatenate((y_pre, y_more)), np.concatenate((u_pre, u_more))
             waited += span
-        if (
-            why is None
-            and rest().done(np.array([]), y_pre)
-            and not calm().done(np.array([]), y_pre)
-        ):
-            # at rest to a sample's noise, but its mean off the setpoint by more than a mean's:
-            # the tail of the switch to the new gains, which a step made now would carry on
-            # its far side (TL PI on e^{−0.1s}/((100s + 1)(s + 1)), σ 0.02: stepped with the
-            # PV 3σ, a quarter of the step, off; 23.9 % of overshoot read for the loop's 35.8 %
-            # and ok under the 35 % limit). Watched until it is calm, or one span more
-            _, y_more, u_more, why = self._record(span, calm(), sp0, guard)
-            y_pre, u_pre = np.concatenate((y_pre, y_more)), np.concatenate((u_pre, u_more))
-            waited += span
-            calmed = True
         # the output's noise at rest: what the gains make of the PV's noise (σ of the sample
         # to sample change over √2, so that a slow drift does not count)
         tail = u_pre[-k:]
@@ -1979,11 +1954,7 @@ class TuningRun:
                 # a PI's too where the model's margins are not sure: ZN PI predicted at Ms
                 # 1.88 on an inverse response was 2.20 on the plant, and lambda PI at 1.25 on
                 # a lead-lag's FOPDT that missed its record 2.06 (helper trial)
-                # and where the step waited for a calm loop: the switch's ringing no longer in
-                # it, a mode beyond ω_u rang under the noise (TL PI at Ms 2.4–2.9 on a plant
-                # with a resonance ended ok in 5 of 12 seeds); the check then reads its own
-                # record for a fast mode growing at the doubled gain (``search``)
-                judged = gains.td > 0 or rang or self._model_unsure or calmed
+                judged = gains.td > 0 or rang or self._model_unsure
                 # never on gains their setpoint step has already failed: ZN PID forced on
                 # hx2 overshot 64 % and was then run at Kc × 2, above the K_u measured, the
                 # output swinging 10–70 % for 186 s before the rejection (helper trial)
@@ -1998,14 +1969,7 @@ class TuningRun:
                     failed = bool(judge(verification()))
                 if stopped is None and margin and judged and not failed:
                     check = self._margin_check(
-                        gains,
-                        sp0,
-                        step,
-                        ident.noise,
-                        scale,
-                        fast if rang else None,
-                        margin_beta,
-                        search=calmed,
+                        gains, sp0, step, ident.noise, scale, fast if rang else None, margin_beta
                     )
                     if not check.failed:  # back at rest at the setpoint, judged as before
                         stopped = back_at_rest()

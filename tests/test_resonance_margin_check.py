@@ -1,12 +1,15 @@
-"""A resonance beyond ω_u is found by the gain-margin check when the setpoint step starts
-from a calm loop. The plant, 1.55·e^{−0.37s}/(0.0101s³ + 0.022s² + 2.2s + 1) sampled at
+"""TL PI with a gain margin under 2 at a resonance beyond ω_u is rejected by the verification's
+gain-margin check. The plant, 1.55·e^{−0.37s}/(0.0101s³ + 0.022s² + 2.2s + 1) sampled at
 0.0134 s with σ 0.067, has a mode at about 0.41 s with ζ near 0.07 that the relay's model
-lacks; TL PI from it is Ms 2.4–2.9 on the plant (tests.exact, half a sample of hold), its gain
-margin under 2. The mode showed in the step only while the switch to the new gains still rang
-it: once the step waited for a calm loop (``test_verify_crest``) it rang under the noise in 5
-of 12 seeds, the check (made on a PI only where a mode was seen) was not made or not told of
-the mode, and those gains ended ok. Where the verification waited for calm, the check is made
-and reads its own record for a fast mode that grows at the doubled gain."""
+lacks; TL PI from it is Ms 2.4–2.9 on the plant (tests.exact, half a sample of hold).
+
+A guard as much as a test: the mode is seen in the setpoint step because the switch to the
+new gains rings it just before (h4's trial). A step made from a calm loop rang it under the
+noise in these 5 seeds of 12, and the check (made on a PI only where a mode was seen; its
+generic swing bounds missed a growth of 1.03–1.09 a period over its four time scales) passed
+them. Reading the check's own record for a fast mode caught them, but also read 1.04 a
+period at Kc × 2 on a stable loop (gain margin 2.46, tests/test_ramp_contradiction): both
+tried, and reverted."""
 
 from __future__ import annotations
 
