@@ -97,3 +97,6 @@ def test_a_step_made_on_the_switchs_tail_is_made_again_from_a_calm_loop(seed: in
     # the step is 12σ tall: its crest is read to a few points
     assert abs(measured - true) <= 3.0, (measured, true)
     assert r.status == ("ok" if measured <= 35.0 else "rejected"), r.reason
+    # and it says so, with what the first step read
+    said = [w for w in r.warnings if "made again from a calm loop" in w]
+    assert len(said) == 1 and f"{measured:.3g} % from calm" in said[0], r.warnings

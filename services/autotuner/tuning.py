@@ -311,6 +311,8 @@ class TuningRun:
         self._cycles = 0
         # the last verification's setpoint step: (t, PV, t0, y0, target, width), as measured
         self._sp_step: tuple[np.ndarray, np.ndarray, float, float, float, int] | None = None
+        # what the last verification said of a setpoint step made on the switch's tail
+        self._step_note: str | None = None
 
     # --- reporting ------------------------------------------------------------------------
 
@@ -1380,6 +1382,7 @@ class TuningRun:
             "predicted_gain_margin": self._predicted_gm,
         }
         after_v = self._verify(new, sp0, ident, margin=True, judge=pre_check(before_v, limits))
+        step_note = self._step_note
         problems = acceptance_problems(after_v, before_v, limits)
         notes = []
         weighted = None
@@ -1412,6 +1415,9 @@ class TuningRun:
                 problems = []
                 notes.append(weight_note(w, new.beta, after_w, req.max_overshoot))
             new, after_v, predicted = after_w.gains, after_w, None
+            step_note = self._step_note
+        if step_note is not None:
+            notes.append(step_note)
         limits.update(passed=not problems, problems="; ".join(problems) or None)
         limits["settled"] = after_v.settling_time is not None
         if not problems and after_v.settling_time is None:
@@ -1730,6 +1736,7 @@ class TuningRun:
         rest_band = max(band, REST_FLOOR * (hi - lo))
         guard = GUARD_WINDOW * scale
         self._sp_step = None  # this verification's, once its setpoint step is measured
+        self._step_note = None
         self._set_auto(gains, sp0)
         self._progress("verify", message=verify_message(gains))  # stamped as they went on
 
@@ -1970,7 +1977,17 @@ class TuningRun:
                     # whose maxima it reads as growing by chance; the PV limits still end it)
                     _, y_calm, _, why = self._record(span, calm(), sp0)
                     stopped = why
+                    first = sp_m["overshoot"]
+                    off = float(np.mean(y_pre[-k:])) - sp0
+                    self._step_note = (
+                        f"the setpoint step was made with the PV's mean {off:+.3g} "
+                        f"{self.info.pv_units} off its setpoint (the tail of the switch to the "
+                        f"new gains; {first:.3g} % of overshoot read on it), and the loop did "
+                        f"not calm within {span:.4g} s for it to be made again: its figures "
+                        "carry that tail"
+                    )
                     if why is None and calm().done(np.array([]), y_calm):
+                        self._step_note = None
                         t1 = self._t
                         target = sp0 + step
                         c.command(SetpointCommand(loop=c.loop, sp=target, source=c.source, t=t1))
@@ -1979,6 +1996,12 @@ class TuningRun:
                         if why is None:
                             sp_m = metrics.measured_setpoint_step(
                                 t, y, t1, sp0, target, noise=ident.noise, width=width
+                            )
+                            self._step_note = (
+                                f"the setpoint step was made again from a calm loop: the first, "
+                                f"made with the PV's mean {off:+.3g} {self.info.pv_units} off "
+                                f"its setpoint (the tail of the switch to the new gains), read "
+                                f"{first:.3g} % of overshoot; {sp_m['overshoot']:.3g} % from calm"
                             )
                             self._sp_step = (t, y, t1, sp0, target, width)
                             modes.append(ringing(t, y, ident.noise, scale))
