@@ -211,6 +211,27 @@ def test_a_pi_that_leaves_a_resonance_ringing_is_run_at_twice_its_gain_and_refus
     assert (after.mode, after.gains) == (before.mode, before.gains)
 
 
+@pytest.mark.parametrize("seed", [0, 2, 7, 9, 11])
+def test_the_resonance_is_caught_from_the_step_that_follows_the_switch(seed: int):
+    """TL PI on RESONANT at other seeds: Ms 2.4–2.9 on the plant, refused as at seed 8. A
+    guard as much as a test: the mode shows in the setpoint step because the switch to the new
+    gains rang it just before (h4's trial). Stepped from a calm loop instead, these five
+    seeds rang it under the noise, the check was not made (or not told of the mode: its
+    generic swing bounds missed a growth of 1.03–1.09 a period over four time scales), and
+    the gains ended ok. Reading the check's own record for a growing fast mode caught them,
+    but read 1.04 a period at Kc × 2 on a stable loop (gain margin 2.46,
+    tests/test_ramp_contradiction): both tried and reverted; a step made on the switch's tail
+    is now made again from calm after it, for its figures alone."""
+    sim = build_plant({"seed": seed, "loops": {"x": RESONANT}}, "unit")["x"]
+    before = sim.snapshot()
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="x", method="relay"), "unit").run()
+    assert r.status == "rejected" and "gain margin under 2" in r.reason, (r.status, r.reason)
+    g = r.chosen["isa"]
+    assert gain_margin(g["kc"], g["ti"], g["td"], RESONANT, 100.0) < 2.0
+    after = sim.snapshot()
+    assert (after.mode, after.gains) == (before.mode, before.gains)
+
+
 def test_a_pi_that_keeps_its_margin_at_the_processs_own_resonance_is_ok_and_says_so():
     """TL PI on RESONANT_FAR rings with the resonance (0.86 a period, past the limit 0.35)
     as the process does on its own; at twice its gain the mode still decays (a gain margin

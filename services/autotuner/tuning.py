@@ -1971,7 +1971,7 @@ class TuningRun:
                     # loop is calm, and the step's figures read there; the first step's are
                     # not thrown away unread: the switch's ringing in it is what shows a
                     # resonance beyond ω_u (a calm step rang one under the noise, and gains
-                    # at Ms 2.4–2.9 passed: tests/test_resonance_margin_check). Before the
+                    # at Ms 2.4–2.9 passed: tests/test_margin_check). Before the
                     # gain-margin check, which is not made on gains a step has failed
                     # (the wait without the runaway guard: at rest its deviation is the noise,
                     # whose maxima it reads as growing by chance; the PV limits still end it)
