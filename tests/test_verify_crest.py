@@ -90,13 +90,25 @@ def test_the_setpoint_steps_record_runs_past_its_crest():
     assert abs(measured - true) <= 6.0, (measured, true)
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, 1, 21])
 def test_a_step_made_on_the_switchs_tail_is_made_again_from_a_calm_loop(seed: int):
-    measured, true, r = _run(seed, relay_bias=None)  # 23.9 and 24.6 % read before
-    assert 33.0 < true < 37.0  # the loop's own overshoot (35.8 and 33.9 %)
+    # read before: 23.9, 24.6 and 29.4 %, all ok; seed 21's loop overshoots 39.2 %
+    measured, true, r = _run(seed, relay_bias=None)
+    assert 33.0 < true < 40.0
     # the step is 12σ tall: its crest is read to a few points
     assert abs(measured - true) <= 3.0, (measured, true)
     assert r.status == ("ok" if measured <= 35.0 else "rejected"), r.reason
     # and it says so, with what the first step read
     said = [w for w in r.warnings if "made again from a calm loop" in w]
     assert len(said) == 1 and f"{measured:.3g} % from calm" in said[0], r.warnings
+
+
+@pytest.mark.parametrize("seed", [27, 30])
+def test_a_step_failed_on_an_overshoot_read_on_the_switchs_tail_is_read_again_from_calm(seed: int):
+    """The tail on the step's own side: 60.5 and 46.3 % read for the loop's 50.1 and 35.9 %.
+    The verdict stood, its figure did not (an engineer weighs a 10-point miss differently)."""
+    measured, true, r = _run(seed, relay_bias=None)
+    assert true > 35.0
+    assert abs(measured - true) <= 4.0, (measured, true)
+    assert r.status == "rejected" and f"overshoot {measured:.3g} %" in r.reason, r.reason
+    assert any("made again from a calm loop" in w for w in r.warnings), r.warnings
