@@ -1910,7 +1910,7 @@ class TuningRun:
             runaway guard: at rest its deviation is the noise, whose maxima it reads as
             growing by chance; the PV limits still end it."""
             nonlocal sp_m
-            first = sp_m["overshoot"] if sp_m else math.nan
+            first = sp_m["overshoot"]  # asked only once a first step is measured
             off = float(np.mean(y_pre[-k:])) - sp0
             units = self.info.pv_units
             _, y_calm, _, why = self._record(span, calm(), sp0)
@@ -2018,7 +2018,7 @@ class TuningRun:
                     )
 
                 stopped = back_at_rest()
-                if stopped is None and sp_m is not None and not calm_start:
+                if stopped is None and not calm_start:
                     # before the gain-margin check, which is not made on gains a step failed
                     made, stopped = again_from_calm()
                     if made:
