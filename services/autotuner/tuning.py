@@ -728,6 +728,7 @@ class TuningRun:
             req.aim,
             parts,
             output_noise.limit_of(req.max_op_noise),
+            span,
             here=True,
         )
         rec = sel.recommended

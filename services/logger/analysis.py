@@ -343,14 +343,14 @@ def analyze_file(path: str | Path) -> Analysis:
             req.lambda_s,
             req.aim,
             max_op_noise=output_noise.limit_of(req.max_op_noise),
+            span=_span(_pv_range(data)),
         )
     except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as err:
         raise AutotuneError(
             f"{path}: the recorded samples cannot be re-identified as a {req.method} test "
             f"({type(err).__name__}: {one_line(err)})"
         ) from None
-    lo, hi = data.get("pv_range_lo"), data.get("pv_range_hi")
-    pv_range = None if lo is None or hi is None else (float(lo), float(hi))
+    pv_range = _pv_range(data)
     span = _span(pv_range)
     return Analysis(
         str(path),
@@ -373,6 +373,12 @@ def analyze_file(path: str | Path) -> Analysis:
             data.get("pv_units") or "",
         ),
     )
+
+
+def _pv_range(data: dict) -> tuple[float, float] | None:
+    """The recorded loop's PV range (None where the record has none)."""
+    lo, hi = data.get("pv_range_lo"), data.get("pv_range_hi")
+    return None if lo is None or hi is None else (float(lo), float(hi))
 
 
 def _span(pv_range: tuple[float, float] | None) -> float | None:

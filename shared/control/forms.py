@@ -143,6 +143,22 @@ def kc_percent(kc: float | None, span: float) -> float | None:
     return None if kc is None else kc * span / 100.0
 
 
+def kc_over_limit(kc: float, span: float | None) -> str | None:
+    """Why a controller gain ``kc`` (% of output per PV unit) is more than any write of gains
+    may ask on a PV ``span`` wide (above ``MAX_KC_PERCENT`` % of output per % of span), else
+    None (None also without a span: no % of span to judge by). `autotune set` and `apply`
+    refuse such a gain, and so does a tune: its rules gave TL PI 4,700 %/% (a proportional
+    band of 0.02 %) on e^{−0.02s}/(200s + 1) at 0.01 s, and a noise-free loop passed it."""
+    pct = kc_percent(kc, span) if span else None
+    if pct is None or not pct > MAX_KC_PERCENT:
+        return None
+    return (
+        f"Kc {kc:.4g} is {pct:.4g} % of output per % of span (a proportional band of "
+        f"{100.0 / pct:.2g} %), above the {MAX_KC_PERCENT:g} % per % any write of gains may ask "
+        "(a 0.1 % error would drive the output across its range)"
+    )
+
+
 def kc_problem(kc: float, span: float) -> str | None:
     """Why a controller gain ``kc`` (% of output per PV unit) is no control at all on a PV
     ``span`` wide, else None: Kc 0, in ideal (ISA) form the factor of every term, so that a

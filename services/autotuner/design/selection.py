@@ -49,7 +49,7 @@ from services.autotuner.identify.experiments import Identification
 from services.autotuner.identify.model_check import ModelCheck, check_model, stated_spread
 from services.autotuner.identify.model_fit import ProcessFit, model_of
 from services.autotuner.parts import Parts, in_turn
-from shared.control.forms import IsaGains
+from shared.control.forms import MAX_KC_PERCENT, IsaGains, kc_over_limit
 
 UNBIASED_RELAY_RULES = ("tl-pid", "tl-pi")  # recommended when the static gain is unknown
 MIN_TD_SAMPLES = 5.0  # a derivative time shorter than this many samples is not recommended
@@ -344,6 +344,7 @@ def select(
     aim: str = "balanced",
     parts: Parts = in_turn,
     max_op_noise: float | None = None,
+    span: float | None = None,
 ) -> Selection:
     """The gains for ``rule`` ("auto": the recommended rule for the ``aim``, see
     ``recommend``), judged at the loop's ``sample_time`` (s; None: in continuous time),
@@ -351,7 +352,9 @@ def select(
     ``lambda_s`` (s; None: their default). ``parts``: how the judging's two independent
     parts are computed (``assess``; the tuner: at once, in its workers); ``max_op_noise``:
     the output noise (% of output, σ) the verification accepts, which the recommendation
-    keeps within where it can (``recommend.quieter``; None: no limit)."""
+    keeps within where it can (``recommend.quieter``; None: no limit); ``span``: the PV's
+    (None: not known), against which a gain above what any write of gains may ask
+    (``kc_over_limit``) is outside the envelope, forced or not."""
     ku, pu = _finite(ident.ku), _finite(ident.pu)
     ultimate = UltimatePoint(ku, pu) if ku and pu and ku > 0 and pu > 0 else None
     ts = _finite(sample_time)
@@ -377,6 +380,10 @@ def select(
     # T adds the hold's T/2 of dead time, which they are given (the usual allowance, e.g.
     # Åström & Hägglund 2006, §3.6); the judgement below is on the exact sampled loop
     design = dataclasses.replace(model, delay=model.delay + 0.5 * ts) if model and ts else model
+    # what the lambda rules are designed on (``apply_rules``): the model, else the curve's
+    lambda_source = (
+        design if design is not None or ident.step_model is None else model_of(ident.step_model)
+    )
     table = {
         name: g
         for name, g in apply_rules(
@@ -508,7 +515,7 @@ def select(
             ultimate,
             judge,
             ms_bound,
-            candidates,
+            {k: a for k, a in candidates.items() if kc_over_limit(a.gains.kc, span) is None},
             without_model,
             aim,
             pooled=bool(left_out),
@@ -519,11 +526,8 @@ def select(
     rec = recommend_of(pool)
     lambda_quiet = None  # λ raised for the output noise (``_quieter_lambda``)
     if rec is not None and rec.noisy and lambda_s is None and not misfit and ts:
-        source = (
-            design if design is not None or ident.step_model is None else model_of(ident.step_model)
-        )
         raised = _quieter_lambda(
-            source, model, ultimate, ts, ident.noise, max_op_noise, pool, parts
+            lambda_source, model, ultimate, ts, ident.noise, max_op_noise, pool, parts
         )
         if raised is not None:
             lambda_quiet, again = raised
@@ -535,8 +539,9 @@ def select(
                 f"every rule within the Ms margin was predicted to make more than "
                 f"{max_op_noise:g} % of output noise (σ) from the PV's noise: the lambda rules "
                 f"are designed at λ = {lambda_quiet:.4g} s, raised from their default "
-                f"{lambda_used(source, None):.4g} s, for {QUIET_SHARE * max_op_noise:.3g} % or "
-                "less (a slower loop; --lambda sets λ, --max-op-noise the limit)"
+                f"{lambda_used(lambda_source, None):.4g} s, for "
+                f"{QUIET_SHARE * max_op_noise:.3g} % or less (a slower loop; --lambda sets λ, "
+                "--max-op-noise the limit)"
             )
     # a model that misses the measured point judges no rule surely: the envelope's bound is
     # then the approximate model's tighter one (ZN PI at 1.80 from K_u and P_u alone, 3.14 on
@@ -547,6 +552,10 @@ def select(
         for name, a in assessments.items()
         if (p := envelope_problem(a, ultimate, bound, implied)) is not None
     }
+    # above the most a write of gains may ask: outside the envelope, and no --force takes it
+    # (`autotune set` and `apply` refuse it, so a run's `ok` would name gains they refuse)
+    over = {name: p for name, a in assessments.items() if (p := kc_over_limit(a.gains.kc, span))}
+    unsafe.update(over)
     ratio = l_over_t(ident, model)
     name = (rec.rule if rec else "") if rule == "auto" else rule
     ku_spread, pu_spread = stated_spreads(ident, check)
@@ -569,15 +578,16 @@ def select(
         sample_time=ts if model is not None else None,
         lambda_s=_lambda_of(
             table,
-            design
-            if design is not None or ident.step_model is None
-            else model_of(ident.step_model),
+            lambda_source,
             lambda_s if lambda_quiet is None else lambda_quiet,
         ),
     )
     if sel.chosen is None:
         if rule == "auto":
-            why = [f"{k}: {v}" for k, v in unsafe.items()]
+            why = [f"{k}: {v}" for k, v in unsafe.items() if k not in over]
+            if over:
+                flag = "--lambda" if "lambda-pi" in pool else "--rule lambda-pi --lambda"
+                why.append(_over_told(over, assessments, span, flag, lambda_source))
             if without_model:
                 why.insert(0, without_model)
             sel.refusal = "no rule could be recommended" + (
@@ -592,7 +602,7 @@ def select(
                     f"; within the envelope but not recommended: {told} (--rule takes one, "
                     "verified as any)"
                 )
-            if ultimate is None and ident.step is not None:
+            if ultimate is None and ident.step is not None and over.keys() != table.keys():
                 # a step's rules all rest on its model or its curve: the relay's on K_u and
                 # P_u, measured (an underdamped loop's SOPDT fit missed its record and no rule
                 # was left; the relay tuned it, TL PID at Ms 1.57)
@@ -616,7 +626,14 @@ def select(
             else "no process model from this method: the gains' robustness is not predicted"
         )
     problem = unsafe.get(name)
-    if problem:
+    if problem and name in over:
+        slower = any(RULES[k].tuned_by_lambda for k in table)
+        sel.refusal = (
+            f"refused: {name}: {problem}; not even with --force: `autotune set` and `apply` "
+            "refuse it too"
+            + ("; the lambda rules at a longer λ (--lambda) ask less" if slower else "")
+        )
+    elif problem:
         problem = f"{name}: {problem}"
         if force:
             sel.warnings.append(problem + " — applied because forced")
@@ -645,6 +662,59 @@ def select(
         elif sel.refusal is None:
             sel.refusal = f"refused: {apart} (force to apply anyway)"
     return sel
+
+
+def _over_told(
+    over: dict[str, str],
+    assessments: dict[str, Assessment],
+    span: float,
+    flag: str,
+    source: ProcessFit | None,
+) -> str:
+    """The rules whose Kc is above what a write of gains may ask, in one line (their Kc in %
+    per % of span), and the λ at which lambda PI would ask at most that, where there is one
+    (``_lambda_within``) on the model they are designed on (``source``), asked for with
+    ``flag``; ``span``: the PV's."""
+    pct = sorted(a.gains.kc * span / 100.0 for k, a in assessments.items() if k in over)
+    told = (
+        f"{', '.join(sorted(over))}: Kc above the {MAX_KC_PERCENT:g} % of output per % of span "
+        f"any write of gains may ask (theirs {pct[0]:.4g}–{pct[-1]:.4g} %/%, proportional bands "
+        f"down to {100.0 / pct[-1]:.2g} %)"
+    )
+    lam = _lambda_within(source, span)
+    if lam is not None:
+        told += f"; lambda PI asks at most that with {flag} {lam:.3g} (s) or more, a slower loop"
+    return told
+
+
+def _lambda_within(source: ProcessFit | None, span: float | None) -> float | None:
+    """The least λ (s, to 3 figures, rounded up) at which lambda PI on ``source`` has Kc
+    within ``MAX_KC_PERCENT`` % per % of ``span`` (Kc falls as λ grows), None without a model
+    or span, or where none up to 10⁷ s does."""
+    if source is None or not span:
+        return None
+    rule = RULES["lambda-pi"]
+
+    def within(lam: float) -> bool:
+        try:
+            g = rule.compute(source, lam)
+        except (ValueError, ArithmeticError):
+            return False
+        return g is not None and kc_over_limit(g.kc, span) is None
+
+    lo, hi = 1e-6, 1e7
+    if within(lo) or not within(hi):
+        return None
+    for _ in range(200):  # on log λ, to a relative 1e-4
+        if hi / lo < 1.0001:
+            break
+        mid = math.sqrt(lo * hi)
+        lo, hi = (lo, mid) if within(mid) else (mid, hi)
+    unit = 10.0 ** (math.floor(math.log10(hi)) - 2)  # 3 significant figures, rounded up
+    for n in range(math.ceil(hi / unit), math.ceil(hi / unit) + 3):
+        if within(up := float(f"{n * unit:.3g}")):
+            return up
+    return None
 
 
 def _quieter_lambda(

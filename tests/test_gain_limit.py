@@ -1,0 +1,86 @@
+"""A tune never applies a gain above what any write of gains may ask (1000 % of output per %
+of span, a proportional band of 0.1 %): `autotune set` and `apply` refuse such a gain, and a
+noise-free loop with a dead time 1/10,000 of its lag was tuned `ok` at TL PI 4,700 %/%."""
+
+import math
+import re
+
+import pytest
+
+from services.autotuner.design.selection import select
+from services.autotuner.identify import experiments
+from services.autotuner.identify.model_fit import ProcessFit
+from services.autotuner.tuning import TuningRun
+from services.offline.local_loop import LocalLoopClient
+from services.plant_sim.plant_file import build_plant
+from shared.control.forms import MAX_KC_PERCENT
+from shared.messages import TuneRequest
+from tests.exact import lag_ultimate
+
+K, T, L, TS = 1.0, 200.0, 0.02, 0.01  # e^{−0.02s}/(200s + 1) sampled at 10 ms
+SPAN = 100.0  # PV units: Kc in % per PV unit is then Kc in % per % of span
+FOPDT = ProcessFit("fopdt", K, (T,), L, 1e-6, noise_rms=0.0)
+
+
+@pytest.fixture(scope="module")
+def ident():
+    ku, pu = lag_ultimate(K, (T,), L)
+    return experiments.Identification(ku=ku, pu=pu, ku_spread=0.01, pu_spread=0.01, model=FOPDT)
+
+
+def test_the_rules_ask_more_than_the_limit_and_without_a_span_one_is_chosen(ident):
+    """The case itself: K_u ≈ πT/(2L) ≈ 15,700, so every rule is far above 1000 %/%; with
+    no span (no % to judge by) the selection is what it was."""
+    assert ident.ku > 10 * MAX_KC_PERCENT
+    sel = select(ident, "auto", sample_time=TS)
+    assert sel.chosen is not None and sel.chosen.kc > MAX_KC_PERCENT
+
+
+def test_no_rule_above_the_limit_is_recommended_and_the_refusal_names_the_way_out(ident):
+    sel = select(ident, "auto", sample_time=TS, span=SPAN)
+    assert sel.chosen is None and sel.refusal.startswith("no rule could be recommended")
+    assert f"above the {MAX_KC_PERCENT:g} % of output per % of span" in sel.refusal
+    assert set(sel.unsafe) == set(sel.table)
+    # the λ it names: a lag this far past its dead time is designed as the integrator
+    # K/T·e^{−L's}/s (L' = L + Ts/2, the hold's), lambda PI Kc = (2λ + L')/(K/T·(λ + L')²),
+    # which falls to Kc_max at λ + L' = (1 + √(1 − Kc_max·K/T·L'))/(Kc_max·K/T); named to 3
+    # figures rounded up
+    lam = float(re.search(r"--lambda ([0-9.e+-]+)", sel.refusal).group(1))
+    ki, lh, cap = K / T, L + TS / 2, MAX_KC_PERCENT * 100.0 / SPAN
+    least = (1 + math.sqrt(1 - cap * ki * lh)) / (cap * ki) - lh
+    assert least <= lam <= least * (1 + 1e-2)
+    took = select(ident, "lambda-pi", sample_time=TS, span=SPAN, lambda_s=lam)
+    assert took.refusal is None and took.chosen.kc <= MAX_KC_PERCENT
+    assert took.chosen.kc == pytest.approx((2 * lam + lh) / (ki * (lam + lh) ** 2))
+
+
+def test_force_does_not_take_a_gain_above_the_limit(ident):
+    sel = select(ident, "tl-pi", sample_time=TS, span=SPAN, force=True)
+    assert sel.refusal and "not even with --force" in sel.refusal
+    # the same gains on a 10 × narrower span are 10 × fewer % per %: within, and taken
+    narrow = select(ident, "tl-pi", sample_time=TS, span=SPAN / 10, force=True)
+    kc = 0.3125 * ident.ku  # Tyreus–Luyben PI: Kc = K_u/3.2
+    assert kc * (SPAN / 10) / 100 < MAX_KC_PERCENT
+    assert narrow.refusal is None and narrow.chosen.kc == pytest.approx(kc)
+
+
+def test_a_tune_of_such_a_loop_is_rejected_and_leaves_the_loop_as_it_was():
+    spec = {
+        "model": "transfer_function",
+        "num": [K],
+        "den": [T, 1.0],
+        "delay": L,
+        "sample_time": TS,
+        "noise_std": 0.0,
+        "pv_range": [0.0, SPAN],
+    }
+    sim = build_plant({"seed": 0, "loops": {"a": spec}}, "t")["a"]
+    before = (sim.pid.gains, sim.mode)
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="a", method="relay"), "t").run()
+    assert r.status == "rejected" and not r.applied and r.restored
+    assert f"{MAX_KC_PERCENT:g} % of output per % of span" in r.reason
+    assert "--rule lambda-pi --lambda" in r.reason  # the relay's pool is Tyreus–Luyben's
+    assert (sim.pid.gains, sim.mode) == before
+    # every rule it computed is above the limit (else one would have been taken)
+    pct = [g["isa_percent"]["kc"] for g in r.gains.values()]
+    assert min(pct) > MAX_KC_PERCENT and all(math.isfinite(p) for p in pct)
