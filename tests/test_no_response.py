@@ -101,7 +101,10 @@ def test_a_tiny_but_real_gain_grows_the_relay_above_the_resolution():
     events = []
     req = TuneRequest(loop="t", method="relay")
     r = TuningRun(LocalLoopClient(loop), req, "t", RunHooks(event=events.append)).run()
-    assert r.status == "ok", r.reason
+    # read, and its gains not applied: every rule asks more than 1000 %/% of this loop,
+    # whose output moves the PV over 0.1 % of its range (test_gain_limit)
+    assert r.status == "rejected" and not r.applied and r.restored, r.reason
+    assert "Kc above the 1000 % of output per % of span" in r.reason
     (grown,) = [e.data for e in events if e.kind == "amplitude"]
     assert "within the transmitter's resolution" in grown["reason"]
     assert r.ku == pytest.approx(10_000.0, rel=0.01)

@@ -602,7 +602,11 @@ def select(
                     f"; within the envelope but not recommended: {told} (--rule takes one, "
                     "verified as any)"
                 )
-            if ultimate is None and ident.step is not None and over.keys() != table.keys():
+            if (
+                ultimate is None
+                and ident.step is not None
+                and not (over and over.keys() == table.keys())
+            ):
                 # a step's rules all rest on its model or its curve: the relay's on K_u and
                 # P_u, measured (an underdamped loop's SOPDT fit missed its record and no rule
                 # was left; the relay tuned it, TL PID at Ms 1.57)
@@ -679,7 +683,8 @@ def _over_told(
     told = (
         f"{', '.join(sorted(over))}: Kc above the {MAX_KC_PERCENT:g} % of output per % of span "
         f"any write of gains may ask (theirs {pct[0]:.4g}–{pct[-1]:.4g} %/%, proportional bands "
-        f"down to {100.0 / pct[-1]:.2g} %)"
+        f"down to {100.0 / pct[-1]:.2g} %: a dead time short against the lag asks so much, "
+        "or a PV range far wider than the output moves the PV over)"
     )
     lam = _lambda_within(source, span)
     if lam is not None:
