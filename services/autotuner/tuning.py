@@ -749,6 +749,8 @@ class TuningRun:
         chosen = sel.chosen
         if chosen is None or (sel.refusal and req.apply):
             raise TuneRefused(sel.refusal or "no gains")
+        if req.apply and not req.verify and (why := untried_ti_problem(chosen, self.ts)):
+            raise TuneRefused(why)
         if sel.model_misses and req.apply and not req.verify and not req.force:
             # the run's own model says its predictions are not sure: untried gains from it
             # are not put in the loop (a step test begun on a ring fitted e^{−0.5s}/(s² +
@@ -2444,7 +2446,8 @@ def apply_problem(req: TuneRequest, span: float | None, ts: float) -> str | None
     """Why an apply request's gains may not go into the loop (None: they may), checked by the
     tuner and not only by the CLI that read them from a run file: any client may send this
     request (an operator's hand-made one applied Kc 1e6, Ti 0.01 s, unverified). ``span``:
-    the PV's (None: no % of span), ``ts``: the loop's sample time (s)."""
+    the PV's (None: no % of span), ``ts``: the loop's sample time (s). An integral time
+    under the sample time is refused only unverified (``untried_ti_problem``)."""
     g = req.apply_gains
     if g is None or req.apply_timescale is None:
         return "apply: the request names no gains or time scale (apply_gains, apply_timescale)"
@@ -2456,12 +2459,30 @@ def apply_problem(req: TuneRequest, span: float | None, ts: float) -> str | None
             + f": a gain must be > 0 and at most {MAX_KC_PERCENT:g} % per % of span (a "
             "proportional band of 0.1 %); nothing was applied"
         )
-    if g.ti is not None and g.ti < ts:
+    if g.ti is not None and g.ti < ts and not req.verify:
         return (
             f"apply_gains.ti: {g.ti:g} s is shorter than the loop's sample time ({ts:g} s): "
-            "each sample's integral step would exceed Kc times the error; nothing was applied"
+            "each sample's integral step would exceed Kc times the error, and unverified "
+            "(verify = false, --no-verify) nothing would judge that; nothing was applied"
         )
     return None
+
+
+def untried_ti_problem(gains: IsaGains, ts: float) -> str | None:
+    """Why gains are not applied without verification (None: they may be): an integral time
+    under the sample time ``ts`` (s), which `autotune set` refuses (``--ti 0.001`` took hx1's
+    output from 40 % to 0 % in three samples). Verified, such gains are the rules' own on a
+    loop whose dead time dominates (SIMC PI with Ti 0.05 Ts, nearly an integral controller,
+    on e^{−0.2s}/(0.01s + 1) at 0.1 s): the verification judges them, and restores the loop
+    if they fail."""
+    if gains.ti is None or gains.ti >= ts:
+        return None
+    return (
+        f"Ti {gains.ti:.4g} s is shorter than the loop's sample time ({ts:g} s): such gains "
+        "(each sample's integral step more than Kc times the error) are not applied without "
+        "verification (--no-verify), as `autotune set` does not take them; verify them (the "
+        "default)"
+    )
 
 
 def unjudged_note(ms: float | None, ms_bound: float) -> str | None:
