@@ -54,6 +54,17 @@ def test_no_rule_above_the_limit_is_recommended_and_the_refusal_names_the_way_ou
     assert took.chosen.kc == pytest.approx((2 * lam + lh) / (ki * (lam + lh) ** 2))
 
 
+def test_rules_above_the_limit_are_passed_over_and_said_to_be(ident):
+    """On a 15-unit span (Kc in %/% = 0.15 Kc): ZN PID at 0.6 K_u is above the limit,
+    TL PI at K_u/3.2 within it."""
+    sel = select(ident, "auto", sample_time=TS, span=15.0)
+    assert 0.6 * ident.ku * 0.15 > MAX_KC_PERCENT > ident.ku / 3.2 * 0.15
+    assert sel.chosen is not None and sel.chosen.kc * 0.15 <= MAX_KC_PERCENT
+    assert "zn-pid" in sel.unsafe and "tl-pi" not in sel.unsafe
+    (said,) = [w for w in sel.warnings if "not offered for applying" in w]
+    assert "zn-pid (" in said and "tl-pi (" not in said and sel.rule not in said
+
+
 def test_force_does_not_take_a_gain_above_the_limit(ident):
     sel = select(ident, "tl-pi", sample_time=TS, span=SPAN, force=True)
     assert sel.refusal and "not even with --force" in sel.refusal

@@ -49,7 +49,7 @@ from services.autotuner.identify.experiments import Identification
 from services.autotuner.identify.model_check import ModelCheck, check_model, stated_spread
 from services.autotuner.identify.model_fit import ProcessFit, model_of
 from services.autotuner.parts import Parts, in_turn
-from shared.control.forms import MAX_KC_PERCENT, IsaGains, kc_over_limit
+from shared.control.forms import MAX_KC_PERCENT, IsaGains, kc_over_limit, kc_percent
 
 UNBIASED_RELAY_RULES = ("tl-pid", "tl-pi")  # recommended when the static gain is unknown
 MIN_TD_SAMPLES = 5.0  # a derivative time shorter than this many samples is not recommended
@@ -658,6 +658,14 @@ def select(
             f"{name}: predicted to make {a.op_noise:.3g} % of output noise (σ) from the PV's "
             f"noise, above the {max_op_noise:g} % limit (--max-op-noise): the verification "
             f"rejects gains measured above it{quiet}"
+        )
+    # rules passed over for the limit: said, as the recommendation's reason does not say it
+    if sel.chosen is not None and over.keys() - {name}:
+        pct = {k: kc_percent(assessments[k].gains.kc, span) for k in over if k != name}
+        sel.warnings.append(
+            f"{', '.join(f'{k} ({pct[k]:.4g} %/%)' for k in sorted(pct))}: Kc above the "
+            f"{MAX_KC_PERCENT:g} % of output per % of span any write of gains may ask, so "
+            "not offered for applying"
         )
     apart = sel.contradiction = contradicted_point(ident, check)
     if apart:
