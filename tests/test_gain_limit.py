@@ -22,6 +22,17 @@ SPAN = 100.0  # PV units: Kc in % per PV unit is then Kc in % per % of span
 FOPDT = ProcessFit("fopdt", K, (T,), L, 1e-6, noise_rms=0.0)
 
 
+def least_lambda_rounded_up() -> float:
+    """The λ the refusals name: a lag this far past its dead time is designed as the
+    integrator K/T·e^{−L's}/s (L' = L + Ts/2, the hold's), lambda PI Kc = (2λ + L')/(K/T·
+    (λ + L')²), which falls to Kc_max at λ + L' = (1 + √(1 − Kc_max·K/T·L'))/(Kc_max·K/T);
+    named to 3 figures rounded up (it lies between 0.1 and 1 s here)."""
+    ki, lh, cap = K / T, L + TS / 2, MAX_KC_PERCENT * 100.0 / SPAN
+    least = (1 + math.sqrt(1 - cap * ki * lh)) / (cap * ki) - lh
+    assert 0.1 < least < 1.0
+    return math.ceil(least * 1000) / 1000
+
+
 @pytest.fixture(scope="module")
 def ident():
     ku, pu = lag_ultimate(K, (T,), L)
@@ -41,16 +52,11 @@ def test_no_rule_above_the_limit_is_recommended_and_the_refusal_names_the_way_ou
     assert sel.chosen is None and sel.refusal.startswith("no rule could be recommended")
     assert f"above the {MAX_KC_PERCENT:g} % of output per % of span" in sel.refusal
     assert set(sel.unsafe) == set(sel.table)
-    # the λ it names: a lag this far past its dead time is designed as the integrator
-    # K/T·e^{−L's}/s (L' = L + Ts/2, the hold's), lambda PI Kc = (2λ + L')/(K/T·(λ + L')²),
-    # which falls to Kc_max at λ + L' = (1 + √(1 − Kc_max·K/T·L'))/(Kc_max·K/T); named to 3
-    # figures rounded up
     lam = float(re.search(r"--lambda ([0-9.e+-]+)", sel.refusal).group(1))
-    ki, lh, cap = K / T, L + TS / 2, MAX_KC_PERCENT * 100.0 / SPAN
-    least = (1 + math.sqrt(1 - cap * ki * lh)) / (cap * ki) - lh
-    assert least <= lam <= least * (1 + 1e-2)
+    assert lam == least_lambda_rounded_up()
     took = select(ident, "lambda-pi", sample_time=TS, span=SPAN, lambda_s=lam)
     assert took.refusal is None and took.chosen.kc <= MAX_KC_PERCENT
+    ki, lh = K / T, L + TS / 2
     assert took.chosen.kc == pytest.approx((2 * lam + lh) / (ki * (lam + lh) ** 2))
 
 
@@ -68,6 +74,7 @@ def test_rules_above_the_limit_are_passed_over_and_said_to_be(ident):
 def test_force_does_not_take_a_gain_above_the_limit(ident):
     sel = select(ident, "tl-pi", sample_time=TS, span=SPAN, force=True)
     assert sel.refusal and "not even with --force" in sel.refusal
+    assert f"--rule lambda-pi --lambda {least_lambda_rounded_up():.3g} " in sel.refusal
     # the same gains on a 10 × narrower span are 10 × fewer % per %: within, and taken
     narrow = select(ident, "tl-pi", sample_time=TS, span=SPAN / 10, force=True)
     kc = 0.3125 * ident.ku  # Tyreus–Luyben PI: Kc = K_u/3.2

@@ -587,7 +587,8 @@ def select(
             why = [f"{k}: {v}" for k, v in unsafe.items() if k not in over]
             if over:
                 flag = "--lambda" if "lambda-pi" in pool else "--rule lambda-pi --lambda"
-                why.append(_over_told(over, assessments, span, flag, lambda_source))
+                source = lambda_source if "lambda-pi" in table else None
+                why.append(_over_told(over, assessments, span, flag, source))
             if without_model:
                 why.insert(0, without_model)
             sel.refusal = "no rule could be recommended" + (
@@ -631,11 +632,16 @@ def select(
         )
     problem = unsafe.get(name)
     if problem and name in over:
-        slower = any(RULES[k].tuned_by_lambda for k in table)
+        lam = _lambda_within(lambda_source, span) if "lambda-pi" in table else None
         sel.refusal = (
             f"refused: {name}: {problem}; not even with --force: `autotune set` and `apply` "
             "refuse it too"
-            + ("; the lambda rules at a longer λ (--lambda) ask less" if slower else "")
+            + (
+                f"; lambda PI asks at most that with --rule lambda-pi --lambda {lam:.3g} (s) or "
+                "more, a slower loop"
+                if lam is not None
+                else ""
+            )
         )
     elif problem:
         problem = f"{name}: {problem}"
@@ -685,8 +691,8 @@ def _over_told(
 ) -> str:
     """The rules whose Kc is above what a write of gains may ask, in one line (their Kc in %
     per % of span), and the λ at which lambda PI would ask at most that, where there is one
-    (``_lambda_within``) on the model they are designed on (``source``), asked for with
-    ``flag``; ``span``: the PV's."""
+    (``_lambda_within``) on the model they are designed on (``source``; None: no lambda PI),
+    asked for with ``flag``; ``span``: the PV's."""
     pct = sorted(a.gains.kc * span / 100.0 for k, a in assessments.items() if k in over)
     told = (
         f"{', '.join(sorted(over))}: Kc above the {MAX_KC_PERCENT:g} % of output per % of span "
