@@ -326,6 +326,20 @@ def test_a_result_whose_samples_never_come_ends_the_run_after_the_grace(
     assert meta["dropped"] == "4" and rec.counts["dropped"] == 4
 
 
+def test_a_result_after_the_plant_is_gone_ends_the_run_at_once(rec: Recorder, clock: Clock) -> None:
+    """The plant killed mid-run: its token vanished before the tuner's result came. The
+    samples to the result's time are not coming, so the file closes with the result, not a
+    grace later (as it did where the token vanished after the result)."""
+    send(rec, keys.tune_progress(P, LOOP), start("r1", 0.0))
+    samples(rec, 0, 5)
+    rec.plant_token(LOOP, False)
+    assert rec.open_runs() == ["r1"]  # the tuner still ends it
+    send(rec, keys.tune_result(P, LOOP), result("r1", 9 * DT, "aborted"))
+    assert rec.open_runs() == []  # no tick, no time passed
+    meta, _ = only_file(rec)
+    assert (meta["status"], meta["last_seq"], meta["dropped"]) == ("aborted", "5", "4")
+
+
 def _request(run_id: str, t: float) -> TunerEvent:
     """The run's request event, the loop's info in it (what the tuner publishes first)."""
     info = INFO.model_copy(update={"loop": LOOP, "t": t, "sample_time": DT})
