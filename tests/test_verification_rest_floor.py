@@ -12,10 +12,10 @@ refuses TL PI at a predicted Ms of 16 and recommends TL PID, verified ok: TL PI 
 here, as an engineer may force it, to reach the verification.)
 
 A tune no longer applies a gain above 1000 %/% (``test_gain_limit``), so the case is run
-with the process gain 3.5 × the field's: TL PI 802 %/%, a step of 0.025 % and a ring before it
-of a few 1e-4 % about the setpoint, under the 1e-3 % a 16-bit transmitter resolves. With the
-floor at half its value (5e-6 of the span) it was still rejected "did not settle at its
-setpoint … (it swings about it …)" before any step: what this test holds the floor to.
+with the process gain 3.5 × the field's: TL PI 802 %/%, a step of 0.025 %, and before it a
+ring about the setpoint that is at rest within the 1e-3 % a 16-bit transmitter resolves. With
+the floor at half its value (5e-6 of the span) the same ring was rejected "did not settle at
+its setpoint … (it swings about it …)" before any step: what this test holds the floor to.
 """
 
 from services.autotuner import tuning
