@@ -82,7 +82,7 @@ def test_force_does_not_take_a_gain_above_the_limit(ident):
     assert narrow.refusal is None and narrow.chosen.kc == pytest.approx(kc)
 
 
-def test_a_tune_of_such_a_loop_is_rejected_and_leaves_the_loop_as_it_was():
+def _loop():
     spec = {
         "model": "transfer_function",
         "num": [K],
@@ -92,7 +92,11 @@ def test_a_tune_of_such_a_loop_is_rejected_and_leaves_the_loop_as_it_was():
         "noise_std": 0.0,
         "pv_range": [0.0, SPAN],
     }
-    sim = build_plant({"seed": 0, "loops": {"a": spec}}, "t")["a"]
+    return build_plant({"seed": 0, "loops": {"a": spec}}, "t")["a"]
+
+
+def test_a_tune_of_such_a_loop_is_rejected_and_leaves_the_loop_as_it_was():
+    sim = _loop()
     before = (sim.pid.gains, sim.mode)
     r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="a", method="relay"), "t").run()
     assert r.status == "rejected" and not r.applied and r.restored
@@ -102,3 +106,14 @@ def test_a_tune_of_such_a_loop_is_rejected_and_leaves_the_loop_as_it_was():
     # every rule it computed is above the limit (else one would have been taken)
     pct = [g["isa_percent"]["kc"] for g in r.gains.values()]
     assert min(pct) > MAX_KC_PERCENT and all(math.isfinite(p) for p in pct)
+
+
+def test_a_rule_above_the_limit_proposed_with_no_apply_is_not_sent_to_apply():
+    """--no-apply proposes a named rule's gains; one above the limit was proposed with
+    "`autotune apply …` applies and verifies them", and apply refuses it."""
+    sim = _loop()
+    req = TuneRequest(loop="a", method="relay", rule="tl-pi", apply=False)
+    r = TuningRun(LocalLoopClient(sim), req, "t").run()
+    assert r.status == "proposed" and not r.applied
+    assert r.reason.startswith("not applied (apply = false, --no-apply), and not to be: refused")
+    assert "not even with --force" in r.reason and "applies and verifies them" not in r.reason

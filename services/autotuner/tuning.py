@@ -304,6 +304,9 @@ class TuningRun:
         self._model_unsure = False
         # the chosen gains' Ms on the identified model (None: no model judged them)
         self._predicted_ms: float | None = None
+        # why the chosen gains may not be applied, where --no-apply let the run go on to
+        # propose them (``Selection.refusal``): its reason says so
+        self._refusal: str | None = None
         # the chosen gains' gain margin on the model's sampled loop (None: not predicted)
         self._predicted_gm: float | None = None
         # the relay cycles the run's progress last counted, for its "done" (which said 0
@@ -481,10 +484,12 @@ class TuningRun:
                     "not applied (apply = false, --no-apply): the gains were computed, not "
                     f"tried on the loop; `autotune apply {self.run_id}` applies and verifies them"
                 )
-                if result.get("contradiction"):  # a refusal that --no-apply did not raise
+                # a refusal that --no-apply did not raise: `autotune apply` would refuse the
+                # gains too (TL PI at 4,700 %/% was proposed with "autotune apply … applies
+                # and verifies them", and apply refuses any gain above 1000 %/%)
+                if why := result.get("contradiction") or self._refusal:
                     result["reason"] = (
-                        "not applied (apply = false, --no-apply), and not to be: "
-                        f"{result['contradiction']}"
+                        f"not applied (apply = false, --no-apply), and not to be: {why}"
                     )
             if result.get("applied") and not req.verify:  # not tried on the loop: not ok
                 status = "unverified"
@@ -749,6 +754,7 @@ class TuningRun:
         chosen = sel.chosen
         if chosen is None or (sel.refusal and req.apply):
             raise TuneRefused(sel.refusal or "no gains")
+        self._refusal = sel.refusal
         if req.apply and not req.verify and (why := untried_ti_problem(chosen, self.ts)):
             raise TuneRefused(why)
         if sel.model_misses and req.apply and not req.verify and not req.force:
