@@ -63,6 +63,7 @@ from shared.control.forms import (
     MAX_KC_PERCENT,
     IsaGains,
     all_forms,
+    kc_over_limit,
     kc_percent,
     process_gain_percent,
     span_or_none,
@@ -755,7 +756,7 @@ class TuningRun:
         if chosen is None or (sel.refusal and req.apply):
             raise TuneRefused(sel.refusal or "no gains")
         self._refusal = sel.refusal
-        if req.apply and not req.verify and (why := untried_ti_problem(chosen, self.ts)):
+        if req.apply and not req.verify and (why := untried_ti_problem(chosen.ti, self.ts)):
             raise TuneRefused(why)
         if sel.model_misses and req.apply and not req.verify and not req.force:
             # the run's own model says its predictions are not sure: untried gains from it
@@ -2458,33 +2459,29 @@ def apply_problem(req: TuneRequest, span: float | None, ts: float) -> str | None
     if g is None or req.apply_timescale is None:
         return "apply: the request names no gains or time scale (apply_gains, apply_timescale)"
     pct = kc_percent(g.kc, span) if span else None
-    if g.kc <= 0 or (pct is not None and pct > MAX_KC_PERCENT):
+    if g.kc <= 0 or kc_over_limit(g.kc, span):
         return (
             f"apply_gains.kc: {g.kc:g}"
             + (f" ({pct:.4g} % of output per % of span)" if pct is not None else "")
             + f": a gain must be > 0 and at most {MAX_KC_PERCENT:g} % per % of span (a "
             "proportional band of 0.1 %); nothing was applied"
         )
-    if g.ti is not None and g.ti < ts and not req.verify:
-        return (
-            f"apply_gains.ti: {g.ti:g} s is shorter than the loop's sample time ({ts:g} s): "
-            "each sample's integral step would exceed Kc times the error, and unverified "
-            "(verify = false, --no-verify) nothing would judge that; nothing was applied"
-        )
+    if not req.verify and (why := untried_ti_problem(g.ti, ts)):
+        return f"apply_gains.ti: {why}; nothing was applied"
     return None
 
 
-def untried_ti_problem(gains: IsaGains, ts: float) -> str | None:
+def untried_ti_problem(ti: float | None, ts: float) -> str | None:
     """Why gains are not applied without verification (None: they may be): an integral time
-    under the sample time ``ts`` (s), which `autotune set` refuses (``--ti 0.001`` took hx1's
-    output from 40 % to 0 % in three samples). Verified, such gains are the rules' own on a
-    loop whose dead time dominates (SIMC PI with Ti 0.05 Ts, nearly an integral controller,
-    on e^{−0.2s}/(0.01s + 1) at 0.1 s): the verification judges them, and restores the loop
-    if they fail."""
-    if gains.ti is None or gains.ti >= ts:
+    ``ti`` (s; None: no integral) under the sample time ``ts`` (s), which `autotune set`
+    refuses (``--ti 0.001`` took hx1's output from 40 % to 0 % in three samples). Verified,
+    such gains are the rules' own on a loop whose dead time dominates (SIMC PI with Ti
+    0.05 Ts, nearly an integral controller, on e^{−0.2s}/(0.01s + 1) at 0.1 s): the
+    verification judges them, and restores the loop if they fail."""
+    if ti is None or ti >= ts:
         return None
     return (
-        f"Ti {gains.ti:.4g} s is shorter than the loop's sample time ({ts:g} s): such gains "
+        f"Ti {ti:.4g} s is shorter than the loop's sample time ({ts:g} s): such gains "
         "(each sample's integral step more than Kc times the error) are not applied without "
         "verification (--no-verify), as `autotune set` does not take them; verify them (the "
         "default)"

@@ -693,7 +693,7 @@ def _over_told(
     per % of span), and the λ at which lambda PI would ask at most that, where there is one
     (``_lambda_within``) on the model they are designed on (``source``; None: no lambda PI),
     asked for with ``flag``; ``span``: the PV's."""
-    pct = sorted(a.gains.kc * span / 100.0 for k, a in assessments.items() if k in over)
+    pct = sorted(kc_percent(a.gains.kc, span) for k, a in assessments.items() if k in over)
     told = (
         f"{', '.join(sorted(over))}: Kc above the {MAX_KC_PERCENT:g} % of output per % of span "
         f"any write of gains may ask (theirs {pct[0]:.4g}–{pct[-1]:.4g} %/%, proportional bands "
