@@ -1899,8 +1899,7 @@ class TuningRun:
             fast = unmodelled_mode(t, y, y0, step, isa, model, self.ts, ident.noise, scale, gains.n)
         op_lo, op_hi = self.info.op_limits
         # the setpoint step's response with the output at a limit is not the linear loop's
-        limited = float(np.count_nonzero((u <= op_lo) | (u >= op_hi))) * self.ts if u.size else 0.0
-        saturated = bool(np.mean((u <= op_lo) | (u >= op_hi)) > 1 / 3) if u.size else False
+        limited, saturated = op_at_limits(u, op_lo, op_hi, self.ts)
         # not yet within the band at the end is slow, not unstable, unless it still swings
         stable = stopped is None and sp_m is not None
         stable = stable and (bool(sp_m["settled"]) or not swinging(y, sp0 + step, k, band))
@@ -1919,7 +1918,7 @@ class TuningRun:
             2.4–2.9 passed: tests/test_margin_check). The wait for calm is made without the
             runaway guard: at rest its deviation is the noise, whose maxima it reads as
             growing by chance; the PV limits still end it."""
-            nonlocal sp_m
+            nonlocal sp_m, limited, saturated
             first = sp_m["overshoot"]  # asked only once a first step is measured
             off = float(np.mean(y_pre[-k:])) - sp0
             units = self.info.pv_units
@@ -1934,12 +1933,15 @@ class TuningRun:
                 return False, why
             t1, target = self._t, sp0 + step
             c.command(SetpointCommand(loop=c.loop, sp=target, source=c.source, t=t1))
-            t, y, _, why = self._record(span, reached(target, 2 * scale), target, guard)
+            t, y, u_again, why = self._record(span, reached(target, 2 * scale), target, guard)
             if why is not None:
                 return True, why
             sp_m = metrics.measured_setpoint_step(
                 t, y, t1, sp0, target, noise=ident.noise, width=width
             )
+            # the output's limits as this step met them: its figures are the ones judged (the
+            # first step's, with the PV off on the far side, asks the output for more)
+            limited, saturated = op_at_limits(u_again, op_lo, op_hi, self.ts)
             self._sp_step = (t, y, t1, sp0, target, width)
             modes.append(ringing(t, y, ident.noise, scale))
             self._step_note = (
@@ -2391,6 +2393,15 @@ def load_step_size(
     else:
         out = min(size, VERIFY_ROOM * down)
     return out if abs(out) >= 0.1 and math.isfinite(out) else None
+
+
+def op_at_limits(u: np.ndarray, lo: float, hi: float, ts: float) -> tuple[float, bool]:
+    """A setpoint step's outputs ``u`` (%) against the output's limits: (s spent at a limit,
+    whether a third of the step or more was: saturated)."""
+    if not u.size:
+        return 0.0, False
+    at = (u <= lo) | (u >= hi)
+    return float(np.count_nonzero(at)) * ts, bool(np.mean(at) > 1 / 3)
 
 
 def limited_step_note(
