@@ -11,11 +11,13 @@ from services.autotuner.design.selection import select
 from services.autotuner.identify import experiments
 from services.autotuner.identify.model_fit import ProcessFit
 from services.autotuner.tuning import TuningRun
+from services.logger.analysis import analyze_file, format_analysis
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.control.forms import MAX_KC_PERCENT
 from shared.messages import TuneRequest
 from tests.exact import lag_ultimate
+from tests.recorded_run import record_in_process
 
 K, T, L, TS = 1.0, 200.0, 0.02, 0.01  # e^{−0.02s}/(200s + 1) sampled at 10 ms
 SPAN = 100.0  # PV units: Kc in % per PV unit is then Kc in % per % of span
@@ -117,3 +119,34 @@ def test_a_rule_above_the_limit_proposed_with_no_apply_is_not_sent_to_apply():
     assert r.status == "proposed" and not r.applied
     assert r.reason.startswith("not applied (apply = false, --no-apply), and not to be: refused")
     assert "not even with --force" in r.reason and "applies and verifies them" not in r.reason
+
+
+def test_the_offline_analysis_of_such_a_run_says_its_own_refusal(tmp_path):
+    """`autotune analyze` printed every rule's gains (4,700 %/% for TL PI) and only the live
+    run's reason: its own selection's refusal is said above the table, and the live reason,
+    the same words, is not printed twice."""
+    plant = {
+        "seed": 0,
+        "loops": {
+            "a": {
+                "model": "transfer_function",
+                "num": [K],
+                "den": [T, 1.0],
+                "delay": L,
+                "sample_time": TS,
+                "noise_std": 0.0,
+                "pv_range": [0.0, SPAN],
+            }
+        },
+    }
+    path, live = record_in_process(tmp_path, "gl", plant, "a", "relay")
+    assert live.status == "rejected"
+    a = analyze_file(str(path))
+    assert a.selection is not None and a.selection.recommended is None
+    own = a.selection.refusal
+    assert own is not None and f"{MAX_KC_PERCENT:g} % of output per % of span" in own
+    text = format_analysis(a, None)
+    assert f"  refused: {own}" in text.splitlines()
+    assert "  live run: rejected (refused as above)" in text.splitlines()
+    assert text.count(own) == 1
+    assert a.to_dict(None)["refusal"] == own

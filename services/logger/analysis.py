@@ -141,6 +141,7 @@ class Analysis:
             out["recommended"] = (
                 {"rule": rec.rule, "reason": rec.reason, "ms": rec.predicted_ms} if rec else None
             )
+            out["refusal"] = self.selection.refusal  # why the chosen gains may not be applied
             out["warnings"] = self.warnings
         if rule:
             out["rule"] = rule
@@ -439,8 +440,14 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
             f"  WARNING: {a.missing} samples missing from the record (the first gap after seq "
             f"{a.first_gap}): re-identified on a record with holes, not the live run's"
         )
+    refusal = a.selection.refusal if a.selection is not None else None
+    if a.selection is not None and a.selection.recommended is not None:
+        rec = a.selection.recommended
+        lines.append(f"  recommended: {rec.rule} ({rec.reason})")
+    if refusal:  # this analysis's own: the table below is not to be applied as it stands
+        lines.append(f"  refused: {refusal}")
     if a.live is not None:
-        lines += _live_lines(a)
+        lines += _live_lines(a, refusal)
     lines.append(f"  {'rule':<15}{'Kc':>10}{'Ti (s)':>10}{'Td (s)':>10}")
     for name, g in a.gains.items():
         if rule and name != rule:
@@ -451,15 +458,19 @@ def format_analysis(a: Analysis, rule: str | None) -> str:
     return "\n".join(lines)
 
 
-def _live_lines(a: Analysis) -> list[str]:
+def _live_lines(a: Analysis, refusal: str | None = None) -> list[str]:
     """The live run against this analysis. A run that ended before it reported its figures
     (aborted: cancelled, a lost peer, a budget; failed) has nothing to compare: said so, with
     its status and reason, not "DIFFERENT" (an hx1 relay cancelled at the sample that closed
     its last cycle read "live run: no K_u and P_u measured → DIFFERENT", and nowhere that it
-    had been cancelled)."""
+    had been cancelled). ``refusal``: this analysis's own, printed above (a live reason that
+    is the same words is not printed twice)."""
     live = a.live
     assert live is not None
-    how = live.status + (f" ({live.reason})" if live.reason else "")
+    if live.reason and live.reason == refusal:
+        how = f"{live.status} (refused as above)"
+    else:
+        how = live.status + (f" ({live.reason})" if live.reason else "")
     same = "identical" if a.matches_live() else "DIFFERENT"
     if live.step is None and live.ku is None and live.status in ("aborted", "failed"):
         if a.ident.ku is not None or a.ident.step is not None:
