@@ -31,6 +31,7 @@ from shared.messages import (
     OutputCommand,
     ProcessSample,
     ReleaseCommand,
+    SetpointCommand,
 )
 
 
@@ -218,7 +219,7 @@ def run_step_test(
         taken: LeaseLost | None = None  # the plant took the loop back as the test let go
         if client.holding:
             try:
-                restored = _restore(client, before.mode, before.op)
+                restored = _restore(client, before.mode, before.op, before.sp)
             except LeaseLost as err:  # realtime: the PV past the lease's limits, say
                 taken, restored = err, True
             else:
@@ -358,16 +359,23 @@ def _follow_return(
         pass
 
 
-def _restore(client: LoopClient, mode: str, op: float) -> bool:
-    """Put the loop back to ``mode`` at output ``op`` (bumpless into auto); LeaseLost when
-    the plant has taken the loop back (and restored it itself)."""
+def _restore(client: LoopClient, mode: str, op: float, sp: float) -> bool:
+    """Put the loop back to ``mode`` at output ``op`` and setpoint ``sp`` (bumpless into
+    auto); LeaseLost when the plant has taken the loop back (and restored it itself). A loop
+    that tracks its PV with its setpoint (``sp_track``) moved its setpoint with the PV while
+    the test held it in manual: it is written back once in auto, where it stays (restored
+    "auto" at the tracked setpoint, the loop held the PV where the step had taken it)."""
     try:
         status = client.sync()
         if status.mode == "manual" and status.op != op:
             client.command(OutputCommand(loop=client.loop, op=op, source=client.source))
+        if status.sp != sp:
+            status = client.command(SetpointCommand(loop=client.loop, sp=sp, source=client.source))
         if mode != status.mode:
-            client.command(ModeCommand(loop=client.loop, mode=mode, source=client.source))
-        return True
+            status = client.command(ModeCommand(loop=client.loop, mode=mode, source=client.source))
+        if status.sp != sp and status.mode == "auto":  # tracked again before the switch
+            status = client.command(SetpointCommand(loop=client.loop, sp=sp, source=client.source))
+        return status.sp == sp or status.mode == "manual"
     except LeaseLost:
         raise
     except AutotuneError:

@@ -1221,7 +1221,10 @@ class TuningRun:
             c.command(OutputCommand(loop=c.loop, op=min(max(op, lo), hi), source=c.source))
             c.command(SetpointCommand(loop=c.loop, sp=b.sp, source=c.source))
             if b.mode == "auto":
-                c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))
+                back = c.command(ModeCommand(loop=c.loop, mode="auto", source=c.source))
+                if back.sp != b.sp:  # tracked to the PV again (``sp_track``): a sample between
+                    back = c.command(SetpointCommand(loop=c.loop, sp=b.sp, source=c.source))
+                return back.sp == b.sp
             return True
         except AutotuneError:
             return False

@@ -13,7 +13,10 @@ import numpy as np
 import pytest
 import zenoh
 
+from services.autotuner.commands.step import step_source
+from services.autotuner.identify.step_test import StepTestConfig
 from services.autotuner.loop_client import CommandRefused, LeaseLost, LoopClient
+from services.autotuner.step_run import run_step_test
 from services.plant_sim.plant_file import build_plant
 from services.plant_sim.simulation.models import TransferFunctionModel
 from shared import keys, wire
@@ -483,3 +486,59 @@ def test_demo_step_method_on_a_user_plant(tmp_path):
     assert g["kc"] == pytest.approx(1.2 / r["step"]["a"]) and g["ti"] == pytest.approx(
         2 * r["step"]["dead_time"]
     )
+
+
+def test_a_second_step_test_of_a_loop_under_test_is_refused_and_the_first_restores_it(
+    start_plant,
+):
+    """Two `autotune step` runs of one loop went under one name: the plant took the second's
+    lease for the first's renewal, each run took the other's commands for a forgery and
+    aborted, and the loop was left in manual at the second test's step. The first test is
+    run here in this process and, at its first sample after the step, the command is run
+    beside it: refused before it writes anything; the first then ends and restores."""
+    plant = start_plant(None, loops=("hx1",))
+    before = loop_status(plant, "hx1")
+    second: list[subprocess.CompletedProcess] = []
+
+    def beside(test, sample) -> None:
+        if not second and getattr(test, "t_step", None) is not None:
+            second.append(autotune("step", "hx1", "--size", "-5", *plant.cli_args()))
+
+    with (
+        open_session(plant.client_settings()) as s,
+        LoopClient(s, plant.prefix, "hx1", source=step_source()) as first,
+    ):
+        report = run_step_test(first, StepTestConfig(size=5.0), beside, wait_return=False)
+    assert second, "the first test never stepped"
+    run = second[0]
+    assert run.returncode == 2 and "not started" in run.stderr, run.stderr
+    assert "autotune-step-" in run.stderr and "Traceback" not in run.stderr
+    assert report.restored and report.curve.gain == pytest.approx(1.0, rel=0.02)
+    after = loop_status(plant, "hx1")
+    assert (after.mode, after.op, after.sp, after.leased_by) == (
+        before.mode,
+        before.op,
+        before.sp,
+        None,
+    )
+
+
+def test_a_step_test_puts_back_the_setpoint_a_tracking_loop_moved(start_plant):
+    """A loop in auto that tracks its PV with its setpoint (``sp_track``) moved its setpoint
+    with the PV while the test held it in manual; the restore put back the mode and the
+    output only, said "Loop restored: auto", and the loop then held the PV where the step had
+    taken it (SP 54.97 for 50)."""
+    toml = (
+        '[loops.trk]\nmodel = "fopdt"\ngain = 1.0\ntime_constant = 10.0\ndelay = 2.0\n'
+        'sample_time = 0.2\nnoise_std = 0.0\nmode = "auto"\nsp_track = true\n'
+        "[loops.trk.pid]\nkc = 0.5\nti = 10.0\n"
+    )
+    plant = start_plant(toml, loops=("trk",))
+    before = loop_status(plant, "trk")
+    assert before.mode == "auto"
+    run = autotune("step", "trk", "--size", "5", "--no-wait", "--json", *plant.cli_args())
+    assert run.returncode == 0, run.stderr
+    r = json.loads(run.stdout)
+    assert r["restored"] is True and r["gain"] == pytest.approx(1.0, rel=0.01)
+    after = loop_status(plant, "trk")
+    assert (after.mode, after.sp) == ("auto", before.sp)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import secrets
 import sys
 
 from services.autotuner.design.rules import ZN_STEP_RANGE
@@ -349,6 +350,15 @@ def progress_line(test: StepTest, s) -> None:
         )
 
 
+def step_source() -> str:
+    """This step test's name on the bus (its lease, its commands): its own, as a tuning run's
+    is. Why: two step tests of one loop under one name were one holder to the plant; the
+    second one's lease was taken for the first's renewal, each then took the other's
+    commands for a forgery and aborted, and the loop was left in manual at the second
+    test's step (helper trial)."""
+    return f"autotune-step-{secrets.token_hex(4)}"
+
+
 def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     check_ids(args.prefix, loop=args.loop)
@@ -357,7 +367,7 @@ def run(args: argparse.Namespace) -> int:
         wait_for_loop(session, args.prefix, args.loop, args.wait)
         try:
             with LoopClient(
-                session, args.prefix, args.loop, source="autotune-step", user=auth_user(settings)
+                session, args.prefix, args.loop, source=step_source(), user=auth_user(settings)
             ) as client:
                 report = run_step_test(
                     client,
