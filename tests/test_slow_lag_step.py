@@ -139,3 +139,29 @@ def test_a_lag_too_slow_for_the_time_allowed_is_named_with_the_time_it_needs():
     assert e["model"] == "fopdt"
     assert e["model_lag_1"] == pytest.approx(1000.0, rel=0.01)
     assert e["model_delay"] == pytest.approx(10.0, rel=0.01)
+
+
+def test_autotune_step_names_its_own_flag_for_the_time_it_needs():
+    """`autotune step` has --timeout where a tune has --max-time: its abort advised "a longer
+    --max-time (about 8100)", a flag it refuses (helper trial). The same lag, stepped by the
+    command's own test: the advice names --timeout, and that time ends the test with the
+    plant's own lag."""
+    from services.autotuner.commands.step import config_from_args
+    from services.autotuner.identify.step_test import StepTestAborted
+    from services.autotuner.step_run import run_step_test
+    from services.cli import build_parser
+
+    def run(*flags: str):
+        sim = transfer_function_loop([1.0], [1000.0, 1.0], 10.0, TS, name="s")
+        args = build_parser().parse_args(["step", "s", *flags])
+        return run_step_test(LocalLoopClient(sim), config_from_args(args), wait_return=False)
+
+    with pytest.raises(StepTestAborted) as stop:
+        run()
+    said = str(stop.value)
+    assert "--max-time" not in said and "a longer --timeout (about " in said
+    asked = float(said.split("--timeout (about ")[1].split(")")[0])
+    assert 5 * 1000.0 < asked < 10 * 1000.0
+    report = run("--timeout", f"{asked:g}")
+    assert report.curve.gain == pytest.approx(1.0, rel=0.01)
+    assert report.curve.time_constant_63 == pytest.approx(1000.0, rel=0.01)  # τ, past L

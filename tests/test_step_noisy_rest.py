@@ -106,3 +106,25 @@ def test_a_step_whose_change_is_within_five_sigma_says_so():
     assert "σ of its noise, and a rest is read only from a change of 5 σ" in r.reason, r.reason
     size = float(r.reason.split("--size about ")[1].split(" %")[0])
     assert 15.0 <= size <= 40.0  # 5 % × 10σ / 2σ = 25 %, the change read through the noise
+
+
+def test_a_step_that_would_need_more_than_the_outputs_room_says_so():
+    """The same loop with a gain of 0.008: the PV moves 0.04, 0.8σ, and 10σ would need a step
+    of about 5 % × 10/0.8 = 62 %, more than the 50 % the output has either way (a gain of 0
+    was advised "--size about 740 %", outside the flag's ±100 %: helper trial). The advice
+    is the output's room, and what a PV that hardly answers the output means."""
+    spec = {
+        "model": "transfer_function",
+        "num": [0.008],
+        "den": [10.0, 1.0],
+        "delay": 1.0,
+        "sample_time": 0.1,
+        "noise_std": 0.05,
+        "pv_range": [0.0, 100.0],
+    }
+    sim = build_plant({"seed": 0, "loops": {"a": spec}}, "t")["a"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="a", method="step"), "t").run()
+    assert r.status == "aborted"
+    assert "--size about" not in r.reason, r.reason
+    assert "more than the output's room (50 % from 50 % within [0, 100] %)" in r.reason
+    assert "the PV hardly answers the output" in r.reason

@@ -128,6 +128,7 @@ def config_from_args(args: argparse.Namespace) -> StepTestConfig:
         size=args.size,
         baseline=args.baseline,
         timeout=args.timeout,
+        timeout_flag="--timeout",
         pv_limits=tuple(args.pv_limits) if args.pv_limits else None,
         max_move=args.max_move / 100.0,
         swing_check=True,

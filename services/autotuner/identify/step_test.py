@@ -112,6 +112,9 @@ class StepTestConfig:
     size: float = 5.0  # % of output; negative steps down
     baseline: float | None = None  # s of quiet before the step; None: 40 samples
     timeout: float = 7200.0  # s after the step to wait for rest (and, at most, to return)
+    # the flag that sets ``timeout``, as the advice names it: `autotune step`'s --timeout,
+    # a tune's --max-time (`step` advised "--max-time", which it does not have: helper trial)
+    timeout_flag: str = "--max-time"
     pv_limits: tuple[float, float] | None = None  # abort outside; None: the loop's PV range
     # the PV may move this fraction of its range either way from its rest (the allowance)
     max_move: float = 0.25
@@ -703,7 +706,7 @@ class StepTest:
                     f"the PV did not respond to the step within {self.config.timeout:g} s: it "
                     f"stayed within {self._moved_level():.3g} of its rest {self._pv_before:.6g} "
                     "(its noise and the transmitter's resolution): a valve that does not move, "
-                    "or a process slower than the time allowed (--max-time)"
+                    f"or a process slower than the time allowed ({self.config.timeout_flag})"
                 )
             return self._abort(
                 f"no steady state within {self.config.timeout:g} s of the step"
@@ -795,18 +798,28 @@ class StepTest:
             # step of 2σ (0.02·e^{−s}/(10s + 1), σ 0.05, 5 %) waited 7,200 s and ended "no
             # steady state" without a word of why (helper trial)
             size = abs(self.config.size) * 2.0 * MIN_CHANGE_SIGMAS * self._noise / abs(change)
-            return (
+            said = (
                 f": the PV moved by {abs(change):.3g}, {abs(change) / self._noise:.3g} σ of its "
                 f"noise, and a rest is read only from a change of {MIN_CHANGE_SIGMAS:g} σ or "
-                f"more — a larger step (--size about {size:.2g} %, for 10 σ)"
+                "more — "
             )
+            lo, hi = self.op_limits
+            room = max(hi - self.op_start, self.op_start - lo)
+            if size > room:  # a gain of 0 asked for --size 740 % (helper trial)
+                return said + (
+                    f"a step of about {size:.2g} % for 10 σ, more than the output's room "
+                    f"({room:.3g} % from {self.op_start:.4g} % within [{lo:g}, {hi:g}] %): the "
+                    "PV hardly answers the output (a valve that does not act, a process gain "
+                    "near zero, or the wrong loop)"
+                )
+            return said + f"a larger step (--size about {size:.2g} %, for 10 σ)"
         if band_reachable(self._noise, change, self.sample_time, self.config.timeout, LOOSE_BAND):
             return ""
         sigmas = abs(change) / self._noise if self._noise > 0 else math.inf
         return (
             f": the PV moved by {abs(change):.3g}, {sigmas:.3g} σ of its noise, too little "
             f"for its rest value to be read to {100 * LOOSE_BAND / 2:g} % of the change in "
-            "that time — a larger step (--size), or a longer --max-time"
+            f"that time — a larger step (--size), or a longer {self.config.timeout_flag}"
         )
 
     def _still_settling(self) -> str:
@@ -829,7 +842,8 @@ class StepTest:
         need = self.t_step - float(self.t[0]) + 8.0 * tau  # 8 τ: within 0.03 % of its change
         return (
             f": the PV is still settling as a lag of about {_about(tau)} s does (by the record's "
-            f"last third), which comes to rest in 5 to 8 of them — a longer --max-time (about "
+            f"last third), which comes to rest in 5 to 8 of them — a longer "
+            f"{self.config.timeout_flag} (about "
             f"{math.ceil(need / 100.0) * 100:.0f}), or the relay test, which needs no rest"
         )
 
