@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from services.autotuner.identify.experiments import snapped
 from services.autotuner.identify.reaction_curve import IntegratingCurve, ReactionCurve
 from services.autotuner.identify.repeated_steps import RepeatedSteps, Spread
-from services.autotuner.identify.rest import rest_window
+from services.autotuner.identify.rest import RestCheck, rest_window
 from services.autotuner.identify.step_test import (
     ReturnWatch,
     StepTest,
@@ -27,6 +27,7 @@ from shared.errors import AutotuneError
 from shared.messages import (
     MAX_BATCH,
     LeaseCommand,
+    LoopStatus,
     ModeCommand,
     OutputCommand,
     ProcessSample,
@@ -173,7 +174,7 @@ def run_step_test(
             # stepped; lvl2 held at 55.3 % drained 0.43 m before any step)
             hold = _mean_output(
                 client,
-                before.gains.ti,
+                before,
                 _cap(info.clock),
                 lambda s: progress and progress(test, s),
             )
@@ -321,23 +322,46 @@ def _cap(clock: str) -> int:
 
 
 def _mean_output(
-    client: LoopClient, ti: float | None, cap: int, seen: Callable[[ProcessSample], object]
+    client: LoopClient, status: LoopStatus, cap: int, seen: Callable[[ProcessSample], object]
 ) -> float:
     """The output a loop in auto holds on average over a rest window (its integral time, 40
     samples at least, ``rest.rest_window``), within the output's limits: where to hold it in
-    manual for the test."""
-    ts = client.info.sample_time
-    n = math.ceil(rest_window(ts, ti) / ts)
+    manual for the test. Only from a loop at rest (``RestCheck``, as a tune waits for it: on
+    its setpoint where it integrates), watched ten windows at most; else StepTestAborted,
+    nothing changed. Why: hx1 stepped while its PV still rose to a new setpoint read K 1.33
+    for 1.0 and L 8.2 s for 10.6, exit 0 (helper trial)."""
+    info = client.info
+    ts = info.sample_time
+    lo, hi = info.op_limits
+    pv_lo, pv_hi = info.pv_range
+    integrating = bool(status.gains.ti) and lo < status.op < hi
+    check = RestCheck(
+        ts,
+        rest_window(ts, status.gains.ti),
+        (pv_lo, pv_hi),
+        target=status.sp if integrating else None,
+        band=max(4.0 * max(info.noise_std, 0.0), 0.001 * (pv_hi - pv_lo)),
+    )
     ops: list[float] = []
-    while len(ops) < n:
-        batch = client.samples(min(cap, n - len(ops)))
+    while not check.done:  # a window first, then a quarter of one at a time (its checks)
+        want = check.samples if not ops else max(1, check.samples // 4)
+        batch = client.samples(min(cap, want))
         if not batch:
             raise AutotuneError(f"loop {client.loop}: no sample came")
         for s in batch:
+            check.feed(s.t, s.pv)
             ops.append(s.op)
             seen(s)
-    lo, hi = client.info.op_limits
-    return min(max(math.fsum(ops[:n]) / n, lo), hi)
+            if check.done:
+                break
+    if not check.at_rest:
+        raise StepTestAborted(
+            f"loop {client.loop}: not started: the loop in auto is not at rest: {check.reason}; "
+            "a step now would read that movement as the process's response (it was left in "
+            "auto as it was: step it once it has settled)"
+        )
+    n = check.samples
+    return min(max(math.fsum(ops[-n:]) / n, lo), hi)
 
 
 def _follow_return(
