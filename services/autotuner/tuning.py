@@ -1078,6 +1078,10 @@ class TuningRun:
         band = self._rest_band()
         returned = abs(pv - target) <= band
         rest_pv: float | None = None  # the mean at rest the judgement used (when waited)
+        # PV units per s over the last window watched, where the PV was not found at rest
+        # (toward the target: on its way back; else not: a level an aborted test left high
+        # was said to be "still on its way back", held at its balance it does not move)
+        drift: tuple[float, float] | None = None
         waited = 0.0
         cut: str | None = None  # why the wait for the PV's return ended early (the plant lost)
         if wait:  # back near the target is not enough: the PV must be at rest there
@@ -1091,6 +1095,8 @@ class TuningRun:
             check = RestCheck(self.ts, window, (lo, hi), windows=4, **on)
             t_start = self._t
             confirming = False
+            seen_t: list[float] = []  # every sample of the wait (a check may start anew)
+            seen_pv: list[float] = []
             try:
                 while self._t - t_start < horizon:
                     if self.hooks.cancelled is not None and self.hooks.cancelled.is_set():
@@ -1099,6 +1105,8 @@ class TuningRun:
                         check.feed(s.t, s.pv)
                         self._take([s])
                         pv = s.pv
+                        seen_t.append(s.t)
+                        seen_pv.append(s.pv)
                     if check.at_rest and abs(check.rest_pv - target) <= band:
                         break
                     if check.done and check.at_rest and not confirming:
@@ -1113,6 +1121,8 @@ class TuningRun:
                 cut = one_line(err)
             rest_pv = check.rest_pv if check.at_rest else None
             returned = abs((pv if rest_pv is None else rest_pv) - target) <= band
+            if rest_pv is None:  # which way it went over the last window watched, if any
+                drift = _trend(seen_t, seen_pv, check.samples)
             if not returned and rest_pv is not None and st.mode == "manual" and model is not None:
                 back = self._give_back(st, target, rest_pv, model, horizon)
                 if back is not None:
@@ -1133,6 +1143,8 @@ class TuningRun:
             "returned": bool(returned),
             "waited": waited,
             "cut": cut,
+            "drift": drift[0] if drift is not None else None,
+            "drift_error": drift[1] if drift is not None else None,  # its standard error
             # a faulted loop's PV is held at its last value: "back where it was" says nothing
             **({"fault": st.fault} if st.fault is not None else {}),
         }
@@ -2396,6 +2408,21 @@ def load_step_size(
     else:
         out = min(size, VERIFY_ROOM * down)
     return out if abs(out) >= 0.1 and math.isfinite(out) else None
+
+
+def _trend(t: list[float], y: list[float], n: int) -> tuple[float, float] | None:
+    """The PV's straight-line trend over its last ``n`` samples (units per s), and its
+    standard error from the scatter about the line; half a window at least (None: fewer)."""
+    k = min(len(y), n)
+    if k < max(4, n // 2):
+        return None
+    x, v = np.asarray(t[-k:]), np.asarray(y[-k:])
+    spread = float(np.sum((x - x.mean()) ** 2))
+    if not spread > 0:
+        return None
+    slope, cut = np.polyfit(x, v, 1)
+    scatter = float(np.sqrt(np.sum((v - (slope * x + cut)) ** 2) / (k - 2)))
+    return float(slope), scatter / math.sqrt(spread)
 
 
 def op_at_limits(u: np.ndarray, lo: float, hi: float, ts: float) -> tuple[float, bool]:

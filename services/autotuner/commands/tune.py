@@ -1312,7 +1312,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
                 # judged at rest (no trend beyond its noise), but off its target
                 else "not back where it was, at rest off it"
                 if lf.get("pv_rest") is not None
-                else "still on its way back"
+                else _on_the_way(lf, pv_units, lf["mode"] == "manual" and _integrating(r))
                 if lf.get("waited")
                 # cancelled, or --no-wait: a level in manual never comes back by itself
                 else "not back where it was, not waited for"
@@ -1442,6 +1442,24 @@ def run_and_report(
         command = getattr(args, "command", None) or "tune"  # `apply` reports through here too
         print(f"autotune {command}: {incomplete_line(incomplete)}", file=sys.stderr)
     return 0 if result.status in DONE_STATUSES else 1
+
+
+def _on_the_way(left: dict, pv_units: str, level: bool) -> str:
+    """A PV not found at rest after the wait: on its way back where its trend heads for the
+    target, beyond 3 standard errors; else said to be moving away or not moving back
+    (``level``: a process the run found integrating, in manual: it stays where it is). A
+    run recorded before (no ``drift``) said "still on its way back"."""
+    drift = left.get("drift")
+    if drift is None:
+        return "still on its way back"
+    off = left["pv"] - left["pv_target"]
+    sure = abs(drift) > 3.0 * (left.get("drift_error") or 0.0)
+    rate = f"{drift:+.3g} {pv_units}/s"
+    if sure and drift * off < 0:
+        return f"still on its way back ({rate})"
+    how = "moving away from it" if sure and drift * off > 0 else "not moving back"
+    stays = ": a level held at a constant output stays where it is" if level else ""
+    return f"not back where it was, and {how} ({rate} over the last window watched){stays}"
 
 
 def _integrating(r: TuneResult) -> bool:
