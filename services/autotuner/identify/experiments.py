@@ -189,6 +189,40 @@ def abort_band(
     return lo, hi
 
 
+# the fraction of the transmitter's range a relay's or a ramp's PV may move either way from
+# the test's rest: the step test's default allowance (``StepTestConfig.max_move``)
+PV_ALLOWANCE = 0.25
+
+
+def allowance_of(setup: Setup) -> float | None:
+    """PV units a relay's or ramp's PV may move from its rest (``PV_ALLOWANCE`` of the
+    transmitter's range); None: not asked (a set-up recorded before), or no finite range."""
+    rng = setup.pv_range
+    if not setup.pv_allowance or rng is None:
+        return None
+    span = rng[1] - rng[0]
+    return PV_ALLOWANCE * span if math.isfinite(span) and span > 0 else None
+
+
+def allowance_band(
+    limits: tuple[float, float], rest: float, allowance: float | None
+) -> tuple[float, float]:
+    """``limits`` narrowed to ``rest`` ± ``allowance`` (unchanged where either is unknown)."""
+    if allowance is None or not math.isfinite(rest):
+        return limits
+    return max(limits[0], rest - allowance), min(limits[1], rest + allowance)
+
+
+def beyond_allowance(pv: float, rest: float, allowance: float, t: float) -> str:
+    """Why a relay or ramp aborts at a PV past its allowance, one line."""
+    return (
+        f"PV {pv:.4g} at t = {t:g} s is {pv - rest:+.3g} from the test's rest {rest:.4g}, past "
+        f"its allowance of ±{allowance:.3g} ({100 * PV_ALLOWANCE:g} % of the transmitter's "
+        "range, as the step test's): the test does not take the process further from where "
+        "it rested"
+    )
+
+
 def run_pv_limits(
     asked: tuple[float, float] | None, pv_range: tuple[float, float]
 ) -> tuple[float, float]:
@@ -363,6 +397,11 @@ class Setup:
     # True: a relay or ramp whose PV reaches an end of the transmitter's range (clipped)
     # aborts there (``experiments.clipped``); None: recorded before, it measured on
     pv_clip: bool | None = None
+    # True: a relay or ramp aborts once its PV moves more than ``PV_ALLOWANCE`` of the
+    # transmitter's range from the test's rest (``allowance_band``), as the step test does;
+    # None: recorded before, its PV limits alone (a relay on an integrating loop whose action
+    # was the wrong one drained its level to 0 %: helper trial)
+    pv_allowance: bool | None = None
     # True: a step test's rest asks the PV's scatter about its trend to be noise (an
     # underdamped response is not at rest mid-swing); None: recorded before
     step_swing: bool | None = None
@@ -459,6 +498,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "relay_pattern",
         "relay_noise",
         "pv_clip",
+        "pv_allowance",
         "resolution",
     ),
     "ramp": (
@@ -469,6 +509,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "ramp_more_starts",
         "ramp_period_floor",
         "pv_clip",
+        "pv_allowance",
         "resolution",
     ),
     "step": (

@@ -47,6 +47,9 @@ from services.autotuner.identify.experiments import (
     Setup,
     abort_band,
     action_question,
+    allowance_band,
+    allowance_of,
+    beyond_allowance,
     clipped,
 )
 from services.autotuner.identify.fourier import FrequencyPoint, frequency_points
@@ -267,6 +270,9 @@ class RelayTest:
     outputs_from_samples: bool = False
     # the transmitter's range: a PV at either end is clipped, and aborts (None: not checked)
     pv_range: tuple[float, float] | None = None
+    # PV units the PV may move from the rest the quiet period measured (``allowance_of``;
+    # None: its limits alone)
+    allowance: float | None = None
 
     # quiet → relay → stage2 → concluding → done | aborted; "concluding": finished, the output
     # back at rest, the findings computed on ``identification``
@@ -402,7 +408,7 @@ class RelayTest:
         is high, the PV below r by its margin; the PV limits abort. Every bound is where such a
         step may happen, so a batch ends on it, or earlier: a batch that ends without a
         decision costs a round trip, never a late switch."""
-        limits = abort_band(self.pv_limits, self.pv_range)
+        limits = self._abort_limits()
         if self.phase == "quiet":  # the limits alone: past them the test aborts
             return Band(*limits)
         if self.phase not in ("relay", "stage2") or not self.pv:
@@ -500,6 +506,11 @@ class RelayTest:
             smaller = f"--amplitude than the {self._d:.3g} % the relay grew to"
         if why := clipped(pv, self.pv_range, t, smaller):
             return self._abort(why)
+        a_lo, a_hi = allowance_band((-math.inf, math.inf), self._r, self.allowance)
+        if not a_lo <= pv <= a_hi:
+            against = self._against(pv) if not self._switched() else ""
+            why = beyond_allowance(pv, self._r, self.allowance or 0.0, t)
+            return self._abort(f"{why}: {against}" if against else f"{why} (a smaller {smaller})")
         out = self._quiet(t) if self.phase == "quiet" else self._relay(t, pv)
         # in the loop's sense (``_actual`` is its own inverse)
         self.op.append(self._actual(held) if self.outputs_from_samples else out)
@@ -707,6 +718,11 @@ class RelayTest:
         t, y = np.asarray(self.t), np.asarray(self.pv)
         along = y[(t > start) & (t <= end)] - self._r  # the first push raises the PV (+1)
         return inverse_response.dip(along, self._noise, amplitude)
+
+    def _abort_limits(self) -> tuple[float, float]:
+        """Where a sample aborts the test: the PV limits, the transmitter's range, and once
+        the rest is known the allowance about it."""
+        return allowance_band(abort_band(self.pv_limits, self.pv_range), self._r, self.allowance)
 
     def _switched(self) -> bool:
         """The relay has switched since it started."""
@@ -1138,7 +1154,7 @@ class RelayTest:
             self._held = f"its limit of {cfg.grow_times} growths"
             return False
         lo, hi = self._limits()
-        pv_lo, pv_hi = abort_band(self.pv_limits, self.pv_range)  # where the test aborts
+        pv_lo, pv_hi = self._abort_limits()  # where the test aborts
         # the largest of the cycles judged (noise can split one: a smaller mean) grown with
         # d (a ∝ d: an integrating one grows less) within half the room the noise leaves to
         # where the test aborts (its peaks, 4σ, come on top of the cycle's)
@@ -1443,4 +1459,5 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         setup.direction,
         outputs_from_samples=bool(setup.outputs_from_samples),
         pv_range=setup.pv_range if setup.pv_clip else None,
+        allowance=allowance_of(setup),
     )
