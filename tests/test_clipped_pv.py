@@ -30,12 +30,23 @@ TIGHT = {
 def _relay(monkeypatch=None, recorded_before: bool = False):
     if recorded_before:  # as a run recorded before the check: the relay measured on
         relay = methods.METHODS["relay"]
-        before = replace(
-            relay, build=lambda st, setup: relay.build(st, replace(setup, pv_clip=None))
-        )
+        old = {"pv_clip": None, "pv_allowance": None}  # neither was in such a run
+        before = replace(relay, build=lambda st, setup: relay.build(st, replace(setup, **old)))
         monkeypatch.setitem(methods.METHODS, "relay", before)
     sim = build_plant({"seed": 11, "loops": {"t": TIGHT}})["t"]
-    return TuningRun(LocalLoopClient(sim), TuneRequest(loop="t", method="relay"), "clip").run()
+    # limits of the whole range, the engineer's: the relay's allowance (a quarter of the
+    # range either way from rest, ``test_pv_allowance``) would stop it first, and this is
+    # the check at the range's ends
+    req = TuneRequest(loop="t", method="relay", pv_limits=(49.0, 51.0))
+    return TuningRun(LocalLoopClient(sim), req, "clip").run()
+
+
+def test_without_limits_of_the_engineers_the_allowance_stops_it_first():
+    sim = build_plant({"seed": 11, "loops": {"t": TIGHT}})["t"]
+    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="t", method="relay"), "clip").run()
+    assert (r.status, r.restored, r.applied) == ("aborted", True, False)
+    assert "past its allowance of ±0.5 (25 % of the transmitter's range" in r.reason
+    assert "--amplitude" in r.reason
 
 
 def test_a_relay_whose_pv_reaches_the_end_of_its_range_aborts_there():

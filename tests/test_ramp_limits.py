@@ -340,7 +340,11 @@ def test_a_pure_delays_ramp_recorded_before_replays_as_it_ran(monkeypatch) -> No
     monkeypatch.setattr(
         experiments,
         "live_flags",
-        lambda method: {k: v for k, v in live(method).items() if k != "ramp_period_floor"},
+        lambda method: {
+            k: v
+            for k, v in live(method).items()
+            if k not in ("ramp_period_floor", "pv_allowance")  # both came after that run
+        },
     )
     sim = _pure_delay(0)
     req = TuneRequest(loop="puredl", method="ramp", apply=False)
