@@ -189,13 +189,13 @@ def abort_band(
     return lo, hi
 
 
-# the fraction of the transmitter's range a relay's or a ramp's PV may move either way from
-# the test's rest: the step test's default allowance (``StepTestConfig.max_move``)
+# the fraction of the transmitter's range a relay's PV may move either way from the test's
+# rest: the step test's default allowance (``StepTestConfig.max_move``)
 PV_ALLOWANCE = 0.25
 
 
 def allowance_of(setup: Setup) -> float | None:
-    """PV units a relay's or ramp's PV may move from its rest (``PV_ALLOWANCE`` of the
+    """PV units a relay's PV may move from its rest (``PV_ALLOWANCE`` of the
     transmitter's range); None: not asked (a set-up recorded before), or no finite range."""
     rng = setup.pv_range
     if not setup.pv_allowance or rng is None:
@@ -214,7 +214,7 @@ def allowance_band(
 
 
 def beyond_allowance(pv: float, rest: float, allowance: float, t: float) -> str:
-    """Why a relay or ramp aborts at a PV past its allowance, one line."""
+    """Why a relay aborts at a PV past its allowance, one line."""
     return (
         f"PV {pv:.4g} at t = {t:g} s is {pv - rest:+.3g} from the test's rest {rest:.4g}, past "
         f"its allowance of ±{allowance:.3g} ({100 * PV_ALLOWANCE:g} % of the transmitter's "
@@ -397,10 +397,11 @@ class Setup:
     # True: a relay or ramp whose PV reaches an end of the transmitter's range (clipped)
     # aborts there (``experiments.clipped``); None: recorded before, it measured on
     pv_clip: bool | None = None
-    # True: a relay or ramp aborts once its PV moves more than ``PV_ALLOWANCE`` of the
-    # transmitter's range from the test's rest (``allowance_band``), as the step test does;
-    # None: recorded before, its PV limits alone (a relay on an integrating loop whose action
-    # was the wrong one drained its level to 0 %: helper trial)
+    # True: a relay aborts once its PV moves more than ``PV_ALLOWANCE`` of the transmitter's
+    # range from the test's rest (``allowance_band``), as the step test does; None: recorded
+    # before, its PV limits alone (a relay on an integrating loop whose action was the wrong
+    # one drained its level to 0 %: helper trial). Not the ramp's: its trials near K_u swing
+    # further on a loop of the presets (flow1), and each trial has its own swing limit
     pv_allowance: bool | None = None
     # True: a step test's rest asks the PV's scatter about its trend to be noise (an
     # underdamped response is not at rest mid-swing); None: recorded before
@@ -509,7 +510,6 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "ramp_more_starts",
         "ramp_period_floor",
         "pv_clip",
-        "pv_allowance",
         "resolution",
     ),
     "step": (

@@ -54,9 +54,6 @@ from services.autotuner.identify.experiments import (
     Setup,
     abort_band,
     action_question,
-    allowance_band,
-    allowance_of,
-    beyond_allowance,
     clipped,
     samples_until,
 )
@@ -379,9 +376,6 @@ class RampTest:
     direction: float = 1.0  # +1 reverse-acting loop, −1 direct (its model fitted as −G)
     # the transmitter's range: a PV at either end is clipped, and aborts (None: not checked)
     pv_range: tuple[float, float] | None = None
-    # PV units the PV may move from the rest the quiet period measured (``allowance_of``;
-    # None: its limits alone)
-    allowance: float | None = None
 
     # quiet → trial ⇄ settle → concluding → done | aborted; "concluding": finished, the loop
     # at a calming gain (``closing``), the findings computed on ``identification``
@@ -522,15 +516,6 @@ class RampTest:
             )
         if why := clipped(pv, self.pv_range, t, "--bump"):
             return self._abort(why)
-        a_lo, a_hi = allowance_band((-math.inf, math.inf), self._r, self.allowance)
-        if not a_lo <= pv <= a_hi:
-            why = beyond_allowance(pv, self._r, self.allowance or 0.0, t)
-            if self.phase in ("trial", "settle") and (pv - self._r) * self._trial_sign < 0:
-                return self._abort(
-                    f"{why}: the PV went against the trial's bump of the setpoint — "
-                    f"{action_question(self.direction)}"
-                )
-            return self._abort(f"{why} (a smaller --bump)")
         if t > self._deadline:
             return self._abort(f"{self._budget} (at t = {t:g} s, in phase {self.phase})")
         self._watch_output(op)
@@ -1298,7 +1283,7 @@ class RampTest:
         """The PV limits and the transmitter's range (and in a trial the swing limit about
         the rest, ±``swing_limit``·bump), and, while the output is off its limits, its
         limits: the first sample at one of them starts the count of a saturated output."""
-        lo, hi = allowance_band(abort_band(self.pv_limits, self.pv_range), self._r, self.allowance)
+        lo, hi = abort_band(self.pv_limits, self.pv_range)
         if self.phase == "trial":
             swing = self.config.swing_limit * self._trial_bump
             lo, hi = max(lo, self._r - swing), min(hi, self._r + swing)
@@ -1357,5 +1342,4 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         op_limits=setup.op_limits,
         direction=setup.direction or 1.0,
         pv_range=setup.pv_range if setup.pv_clip else None,
-        allowance=allowance_of(setup),
     )
