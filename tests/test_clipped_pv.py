@@ -46,7 +46,8 @@ def test_without_limits_of_the_engineers_the_allowance_stops_it_first():
     r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="t", method="relay"), "clip").run()
     assert (r.status, r.restored, r.applied) == ("aborted", True, False)
     assert "past its allowance of ±0.5 (25 % of the transmitter's range" in r.reason
-    assert "--amplitude" in r.reason
+    # the amplitude that keeps the cycle within it, or limits of the engineer's own
+    assert "so --amplitude " in r.reason and "or --pv-limits of your own" in r.reason
 
 
 def test_a_relay_whose_pv_reaches_the_end_of_its_range_aborts_there():

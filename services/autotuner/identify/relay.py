@@ -510,7 +510,14 @@ class RelayTest:
         if not a_lo <= pv <= a_hi:
             against = self._against(pv) if not self._switched() else ""
             why = beyond_allowance(pv, self._r, self.allowance or 0.0, t)
-            return self._abort(f"{why}: {against}" if against else f"{why} (a smaller {smaller})")
+            if against:
+                return self._abort(f"{why}: {against}")
+            # the relay's amplitude that keeps its cycle within it, as at the PV limits; or
+            # limits of the engineer's own (--pv-limits), which replace the allowance
+            self.advice = self._smaller_relay(a_lo, a_hi) + (
+                "; or --pv-limits of your own, which replace the allowance"
+            )
+            return self._abort(why)
         out = self._quiet(t) if self.phase == "quiet" else self._relay(t, pv)
         # in the loop's sense (``_actual`` is its own inverse)
         self.op.append(self._actual(held) if self.outputs_from_samples else out)
