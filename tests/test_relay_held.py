@@ -79,3 +79,20 @@ def test_a_push_too_weak_for_the_switching_level_says_so_not_a_load_or_the_actio
     size = float(r.reason.split("--amplitude (about ")[1].split(" %")[0])
     assert abs(size - 2.0 * 5.0 * level / moved) <= 0.05 * size
     assert r.restored
+
+
+def test_a_hysteresis_beyond_what_the_push_can_move_is_checked_as_a_held_relay():
+    """--hysteresis 8 on 1/(s + 1)⁴ with d = 5 %: the push moves the PV K·d = 5 at most, so
+    the PV's mean never moved ε the push's way, the push was never "answered", the held check
+    never ran, and the output was held 5 % off its rest for 14,400 s (helper trial). An
+    answer is now also a mean 6σ of its own noise the push's way: the relay aborts once the PV
+    rests, K·d = 5 up, 3 short of the level."""
+    spec = {"model": "transfer_function", "num": [K], "den": [1.0, 4.0, 6.0, 4.0, 1.0],
+            "sample_time": 0.1, "noise_std": 0.01}  # fmt: skip
+    sim = build_plant({"seed": 0, "loops": {"a": spec}}, "t")["a"]
+    req = TuneRequest(loop="a", method="relay", hysteresis=8.0)
+    r = TuningRun(LocalLoopClient(sim), req, "t").run()
+    assert r.status == "aborted" and r.restored
+    assert "short of the level that switches it" in r.reason and "it never will" in r.reason
+    assert "the --hysteresis asked" in r.reason and "a smaller --hysteresis" in r.reason
+    assert r.sim_duration < 200.0  # a few of the quiet periods it waits for, not hours

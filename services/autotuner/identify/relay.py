@@ -599,9 +599,13 @@ class RelayTest:
     def _relay(self, t: float, pv: float) -> float:
         if math.isnan(self._responded_at) and not self._switches:
             # the PV's mean over a quiet window, ε the push's way (a 3σ spike of the noise
-            # alone is not an answer: it read a dead time of 100 s as a few samples)
+            # alone is not an answer: it read a dead time of 100 s as a few samples), or 6σ
+            # of such a mean where that is less: a hysteresis asked beyond what the push can
+            # move the PV (--hysteresis 8 on 1/(s + 1)⁴ at d 5 %) was never answered, the held
+            # relay never checked, and the output held 5 % off for 14,400 s (helper trial)
             recent = self.pv[-self._quiet_samples :]
-            if (sum(recent) / len(recent) - self._r) * self._state > self._eps:
+            seen = 6.0 * self._noise / math.sqrt(len(recent))
+            if (sum(recent) / len(recent) - self._r) * self._state > min(self._eps, seen):
                 self._responded_at = t
         self._arm(pv)
         stuck = self._stuck_at()
@@ -820,11 +824,14 @@ class RelayTest:
             # the level (0.02·e^{−s}/(10s + 1), σ 0.05: 0.1 for 0.32), not a load against it
             # nor the wrong action, as the line said (helper trial)
             grow = 2.0 * self._d * (level - self._r) * self._state / moved
+            given = self.config.hysteresis is not None
+            why_level = "the --hysteresis asked" if given else "the hysteresis against the noise"
             return held + (
                 f"the push moved it {moved:.3g} toward that level and no further: the "
                 f"process's answer to ±{self._d:g} % is under the level's "
-                f"{abs(level - self._r):.3g} from the rest (the hysteresis against the noise), "
-                f"or a load holds it back: a larger --amplitude (about {grow:.2g} %)"
+                f"{abs(level - self._r):.3g} from the rest ({why_level}), or a load holds it "
+                f"back: a larger --amplitude (about {grow:.2g} %)"
+                + (", or a smaller --hysteresis" if given else "")
             )
         return held + (
             f"a load beyond the relay's amplitude (±{self._d:g} "
