@@ -204,6 +204,7 @@ class RepeatedSteps:
             return_timeout(self.config, test.t_step, s.t),
             self.pv_range,
             pv_back=rc.pv_before,
+            swing=self.config.swing_check,  # off in a run recorded before (its replay)
         )
         self.phase = "return"
         self.events.append(Event(s.t, "return", {"test": len(self.done)}))

@@ -1210,6 +1210,10 @@ class ReturnWatch:
     timeout: float  # s
     pv_range: tuple[float, float] | None = None
     pv_back: float | None = None  # PV units, the rest before the step the restore undoes
+    # the scatter about the window's line must be noise too (``settled``'s ``swing``): an
+    # underdamped return (1/(100s² + 6s + 1), ζ 0.3) was "back at rest" mid-swing, 0.43 off
+    # and falling, and the next step read K 1.052 for 1 from it (helper trial)
+    swing: bool = True
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
     done: bool = False
@@ -1248,6 +1252,7 @@ class ReturnWatch:
                 self.pv_from,
                 self.noise_std,
                 pv_range=self.pv_range,
+                swing=self.swing,
                 horizon=self.timeout,
             )
             # half of the way toward it, not away: an aborted step's PV, carried on by its
