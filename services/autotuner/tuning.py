@@ -1401,6 +1401,8 @@ class TuningRun:
         if not req.verify:
             self._set_auto(new, sp0)
             return {"applied": True}
+        if (why := p_only_problem(new, ident, self.req.rule)) is not None:
+            raise TuneRefused(why)  # before anything is switched: the loop as it was
         before_v = self._verify(b.gains, sp0, ident) if b.mode == "auto" else None
         limits = {
             "max_overshoot": req.max_overshoot,
@@ -2412,6 +2414,36 @@ def load_step_size(
     else:
         out = min(size, VERIFY_ROOM * down)
     return out if abs(out) >= 0.1 and math.isfinite(out) else None
+
+
+def p_only_problem(gains: PidGains, ident: experiments.Identification, rule: str) -> str | None:
+    """Why P-only gains cannot be verified on this process (None: they can be tried): on a
+    self-regulating one (the identification says it settles) a P controller leaves a steady
+    offset of 1/(1 + Kc·K) of any setpoint change, and the verification judges the loop on
+    its setpoint. ZN P on 1/(s + 1)⁴ (Ms 1.5, stable) was rejected "the loop did not settle at
+    its setpoint … (it rests +0.0707 off it)", its stable flag False (helper trial); on an
+    integrating process (a level) P-only has no offset, and is verified as any."""
+    if gains.ti is not None:
+        return None
+    model = ident.model
+    integrating = bool(ident.integrating) or (model is not None and model.kind == "ipdt")
+    settles = ident.integrating is False or (model is not None and model.kind != "ipdt")
+    if integrating or not settles:
+        return None
+    known = model is not None and ident.static_gain_known and math.isfinite(model.gain)
+    k = model.gain if known else None  # (a relay without bias extrapolates K: not said)
+    share = (
+        f" (about {100.0 / (1.0 + abs(gains.kc * k)):.3g} % of the step here, Kc·K = "
+        f"{abs(gains.kc * k):.3g})"
+        if k is not None
+        else ""
+    )
+    return (
+        f"{rule}: P-only gains leave a steady offset of 1/(1 + Kc·K) of any setpoint change on "
+        f"a self-regulating process{share}, and the verification judges the loop on its "
+        "setpoint: they cannot pass it. A PI rule removes the offset; --no-verify applies "
+        "these untried; nothing was switched"
+    )
 
 
 def _trend(t: list[float], y: list[float], n: int) -> tuple[float, float] | None:
