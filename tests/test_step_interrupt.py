@@ -9,6 +9,9 @@ import contextlib
 import pytest
 
 from services.autotuner.commands import step, tune
+from services.autotuner.identify.step_test import StepTestAborted, StepTestConfig
+from services.autotuner.loop_client import PlantLost
+from services.autotuner.step_run import run_step_test
 from services.offline.local_loop import LocalLoopClient
 from services.plant_sim.plant_file import build_plant
 from shared.messages import ModeCommand
@@ -48,3 +51,33 @@ def test_an_interrupted_step_says_what_it_left(monkeypatch, capsys, mode):
     said = f"step test of x interrupted; loop restored ({mode}, output {op_before:g} %); "
     assert f"{said}loop x now: {mode}\n" in err, err
     assert err.endswith("autotune step: interrupted\n"), err
+
+
+class SilentAfterTheStep(LocalLoopClient):
+    """The plant falls silent (paused, cut off) once the output held in manual is stepped;
+    its loop answers again for the restore (as a plant resumed does)."""
+
+    held: float | None = None
+    silent = True
+
+    def samples(self, *args, **kw):
+        if self.held is None and self.sim.mode == "manual":
+            self.held = self.sim.op
+        if self.silent and self.held is not None and self.sim.op != self.held:
+            self.silent = False
+            raise PlantLost("loop x: no message from the plant for 5 s")
+        return super().samples(*args, **kw)
+
+
+def test_a_plant_silent_mid_step_is_said_with_what_was_left():
+    """A plant paused mid-step ended the command with "no message from the plant for 5 s"
+    alone, nothing of the loop (helper trial): now with its restore."""
+    sim = build_plant({"seed": 1, "loops": {"x": {"model": "heat_exchanger"}}})["x"]
+    op_before = sim.op
+    client = SilentAfterTheStep(sim, source="autotune-step-test")
+    with pytest.raises(StepTestAborted) as stop:
+        run_step_test(client, StepTestConfig(size=5.0))
+    said = str(stop.value)
+    assert said.startswith("loop x: no message from the plant for 5 s; ")
+    assert f"loop restored (manual, {op_before:g} %)" in said
+    assert (sim.mode, sim.op) == ("manual", op_before)

@@ -165,6 +165,7 @@ def run_step_test(
     except CommandRefused as err:
         raise StepTestAborted(f"not started: {err}") from None
     lost: LeaseLost | None = None
+    failed: AutotuneError | None = None
     interrupted = False
     try:
         if before.mode != "manual":
@@ -216,6 +217,10 @@ def run_step_test(
         lost = err
     except KeyboardInterrupt:  # restored below, then said so
         interrupted = True
+    except StepTestAborted:  # its own words say what was left
+        raise
+    except AutotuneError as err:  # the plant silent or gone: said with what was left, below
+        failed = err
     finally:
         taken: LeaseLost | None = None  # the plant took the loop back as the test let go
         if client.holding:
@@ -237,6 +242,15 @@ def run_step_test(
         raise StepTestAborted(
             f"{lost}; the plant restored the loop ({before.mode}, {before.op:g} %)"
         )
+    if failed is not None:  # a plant paused mid-test said nothing of the loop (helper trial)
+        left = (
+            f"loop restored ({before.mode}, {before.op:g} %)"
+            if restored
+            else f"the loop was NOT confirmed restored ({before.mode}, {before.op:g} % before "
+            "the test): the plant puts it back itself once this test's lease lapses (check it "
+            "with autotune loops)"
+        )
+        raise StepTestAborted(f"{failed}; {left}")
     if taken is not None and info.clock == "lockstep":  # no lease: the loop cannot be stepped
         wait_return = False
     if test.phase == "aborted" or test.result is None:
