@@ -272,11 +272,17 @@ def run_step_test(
                 config.timeout,
                 tuple(info.pv_range),
                 pv_back=pv_before,
+                settle_off=True,
             )
             _follow_return(client, watch, cap, lambda s: progress(test, s) if progress else None)
             back = (
                 f"; the PV back at rest at {watch.rest:.4g}"
                 if watch.at_rest
+                else f"; the PV came to rest at {watch.rest_off:.4g} {info.pv_units}, not back "
+                f"where it was ({pv_before:.4g} before the step): held at this output it stays "
+                "there (a level, an integrating process, does), so bring it back in auto or by "
+                "hand before the next test"
+                if math.isfinite(watch.rest_off)
                 else f"; the PV not yet back at rest ({watch.pv_end:.4g} {info.pv_units}, "
                 f"{pv_before:.4g} before the step): let it settle before the next test"
             )

@@ -1214,6 +1214,14 @@ class ReturnWatch:
     # underdamped return (1/(100s² + 6s + 1), ζ 0.3) was "back at rest" mid-swing, 0.43 off
     # and falling, and the next step read K 1.052 for 1 from it (helper trial)
     swing: bool = True
+    # a PV at rest short of half of the way back, at two checks running, ends the watch (not
+    # at rest where it was: ``rest_off``). For an aborted step's return: an integrating
+    # process held at a constant output stays where the test took it, and the watch waited
+    # the whole --timeout (7,200 s; two hours at ×1) for a return it cannot make (helper
+    # trial). False: the watch waits for the return or its timeout
+    settle_off: bool = False
+    rest_off: float = math.nan  # PV units, where it came to rest short of the way back
+    _off_checks: int = 0
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
     done: bool = False
@@ -1261,6 +1269,10 @@ class ReturnWatch:
             back = (rest - self.pv_from) * way >= 0.5 * way * way
             if ok and back:
                 self.done, self.at_rest, self.rest = True, True, rest
+                return True
+            self._off_checks = self._off_checks + 1 if ok and self.settle_off else 0
+            if self._off_checks >= 2:
+                self.done, self.rest_off = True, rest
                 return True
         if t - self.t_restore >= self.timeout:
             self.done = True
