@@ -587,11 +587,13 @@ def test_rejected_gains_whose_restore_failed_are_left_to_the_plant_to_restore():
     client = LostAtRestore(third_order_loop("auto", setpoint=50.0))
     client.advance(2000)
     before = state(client)
-    # P-only gains leave an offset the old PI did not: worse than before, rejected (no
-    # setpoint weight can cure it, as it may an overshoot over the limit)
-    r = run(client, rule="zn-p-half")
+    # the recommended gains pass the noise's through them at a limit asked to be tiny:
+    # rejected (no setpoint weight can cure it, as it may an overshoot over the limit).
+    # (P-only gains, whose offset made them worse than before, were the case here; they are
+    # now refused before they are switched: tests/test_p_only_offset.py)
+    r = run(client, max_op_noise=0.0001)
     assert (r.status, r.restored) == ("rejected", True), r.reason
-    assert "worse than before" in r.reason
+    assert "output noise" in r.reason and "above the limit 0.0001 %" in r.reason
     # not "previous gains restored" (the run's own restore failed): the plant's, said
     assert r.reason.endswith(
         "the run could not restore the state before the test itself (its release asks the "
