@@ -84,17 +84,25 @@ def test_force_does_not_take_a_gain_above_the_limit(ident):
     assert narrow.refusal is None and narrow.chosen.kc == pytest.approx(kc)
 
 
+# the loop as a plant file has it (noise-free)
+PLANT = {
+    "seed": 0,
+    "loops": {
+        "a": {
+            "model": "transfer_function",
+            "num": [K],
+            "den": [T, 1.0],
+            "delay": L,
+            "sample_time": TS,
+            "noise_std": 0.0,
+            "pv_range": [0.0, SPAN],
+        }
+    },
+}
+
+
 def _loop():
-    spec = {
-        "model": "transfer_function",
-        "num": [K],
-        "den": [T, 1.0],
-        "delay": L,
-        "sample_time": TS,
-        "noise_std": 0.0,
-        "pv_range": [0.0, SPAN],
-    }
-    return build_plant({"seed": 0, "loops": {"a": spec}}, "t")["a"]
+    return build_plant(PLANT, "t")["a"]
 
 
 def test_a_tune_of_such_a_loop_is_rejected_and_leaves_the_loop_as_it_was():
@@ -125,21 +133,7 @@ def test_the_offline_analysis_of_such_a_run_says_its_own_refusal(tmp_path):
     """`autotune analyze` printed every rule's gains (4,700 %/% for TL PI) and only the live
     run's reason: its own selection's refusal is said above the table, and the live reason,
     the same words, is not printed twice."""
-    plant = {
-        "seed": 0,
-        "loops": {
-            "a": {
-                "model": "transfer_function",
-                "num": [K],
-                "den": [T, 1.0],
-                "delay": L,
-                "sample_time": TS,
-                "noise_std": 0.0,
-                "pv_range": [0.0, SPAN],
-            }
-        },
-    }
-    path, live = record_in_process(tmp_path, "gl", plant, "a", "relay")
+    path, live = record_in_process(tmp_path, "gl", PLANT, "a", "relay")
     assert live.status == "rejected"
     a = analyze_file(str(path))
     assert a.selection is not None and a.selection.recommended is None

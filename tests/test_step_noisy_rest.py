@@ -86,13 +86,11 @@ def test_a_step_too_small_for_the_noise_in_the_time_allowed_says_so():
     assert "σ of its noise, too little" in r.reason and "--size" in r.reason
 
 
-def test_a_step_whose_change_is_within_five_sigma_says_so():
-    """0.02·e^{−s}/(10s + 1), σ 0.05, stepped 5 %: the PV moves 0.1, 2σ, and ``settled`` reads
-    no rest of a change within 5σ however long the record; the test ran to its 7,200 s and
-    said only "no steady state". It now says why and the step that would do (10σ: 25 %)."""
+def _noisy_small_gain_step(gain: float):
+    """The step test of gain·e^{−s}/(10s + 1), σ 0.05, its default 5 % step."""
     spec = {
         "model": "transfer_function",
-        "num": [0.02],
+        "num": [gain],
         "den": [10.0, 1.0],
         "delay": 1.0,
         "sample_time": 0.1,
@@ -100,7 +98,14 @@ def test_a_step_whose_change_is_within_five_sigma_says_so():
         "pv_range": [0.0, 100.0],
     }
     sim = build_plant({"seed": 0, "loops": {"a": spec}}, "t")["a"]
-    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="a", method="step"), "t").run()
+    return TuningRun(LocalLoopClient(sim), TuneRequest(loop="a", method="step"), "t").run()
+
+
+def test_a_step_whose_change_is_within_five_sigma_says_so():
+    """0.02·e^{−s}/(10s + 1), σ 0.05, stepped 5 %: the PV moves 0.1, 2σ, and ``settled`` reads
+    no rest of a change within 5σ however long the record; the test ran to its 7,200 s and
+    said only "no steady state". It now says why and the step that would do (10σ: 25 %)."""
+    r = _noisy_small_gain_step(0.02)
     assert r.status == "aborted"
     assert "no steady state within 7200 s" in r.reason
     assert "σ of its noise, and a rest is read only from a change of 5 σ" in r.reason, r.reason
@@ -113,17 +118,7 @@ def test_a_step_that_would_need_more_than_the_outputs_room_says_so():
     of about 5 % × 10/0.8 = 62 %, more than the 50 % the output has either way (a gain of 0
     was advised "--size about 740 %", outside the flag's ±100 %: helper trial). The advice
     is the output's room, and what a PV that hardly answers the output means."""
-    spec = {
-        "model": "transfer_function",
-        "num": [0.008],
-        "den": [10.0, 1.0],
-        "delay": 1.0,
-        "sample_time": 0.1,
-        "noise_std": 0.05,
-        "pv_range": [0.0, 100.0],
-    }
-    sim = build_plant({"seed": 0, "loops": {"a": spec}}, "t")["a"]
-    r = TuningRun(LocalLoopClient(sim), TuneRequest(loop="a", method="step"), "t").run()
+    r = _noisy_small_gain_step(0.008)
     assert r.status == "aborted"
     assert "--size about" not in r.reason, r.reason
     assert "more than the output's room (50 % from 50 % within [0, 100] %)" in r.reason
