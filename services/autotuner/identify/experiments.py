@@ -410,6 +410,9 @@ class Setup:
     # most the record cannot tell from none (``StepTestConfig.bound_delay``); None: recorded
     # before, with the fit's or the floor of half a sample
     step_delay_bound: bool | None = None
+    # True: a step test's trend toward a limit is taken at 2 standard errors less
+    # (``StepTestConfig.trend_error``); None: recorded before, the fitted trend as it was
+    step_trend_error: bool | None = None
     # True: the transmitter's resolution (``rest_window.RESOLUTION`` of its range) floors what
     # counts as a response to the output (a relay or step test whose PV moves within it
     # aborts there) and as a drift before a test (a noise-free PV's creep within it is rest);
@@ -518,6 +521,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "step_leak",
         "step_trend_since_move",
         "step_steady_floor",
+        "step_trend_error",
         "resolution",
     ),
 }

@@ -112,6 +112,9 @@ class StepTestConfig:
     size: float = 5.0  # % of output; negative steps down
     baseline: float | None = None  # s of quiet before the step; None: 40 samples
     timeout: float = 7200.0  # s after the step to wait for rest (and, at most, to return)
+    # the trend that stops a step short of a limit is taken at 2 standard errors less
+    # (``_heading_out``); False: a run recorded before, the fitted trend as it was
+    trend_error: bool = True  # (a run's set-up: ``Setup.step_trend_error``)
     # the flag that sets ``timeout``, as the advice names it: `autotune step`'s --timeout,
     # a tune's --max-time (`step` advised "--max-time", which it does not have: helper trial)
     timeout_flag: str = "--max-time"
@@ -868,7 +871,7 @@ class StepTest:
         if tw.size < m:
             return None
         tw, yw = tw[-m:], yw[-m:]
-        slope, level = np.polyfit(tw - tw[-1], yw, 1)
+        slope, level, err = _line(tw - tw[-1], yw)
         moved = self._t_moved if self._t_moved is not None else elapsed
         began = tw >= self.t_step + moved
         since_move = self.config.trend_since_move
@@ -877,10 +880,16 @@ class StepTest:
             # it is that one (a line through the flat dead time and the move read a pure
             # delay's jump, 50 to 55 in a sample and flat since, as heading past 75 at 3.8 %/s,
             # and aborted it; a lag's onset is steepest at its start, and keeps the window's)
-            after = np.polyfit(tw[began] - tw[-1], yw[began], 1)
+            after = _line(tw[began] - tw[-1], yw[began])
             if abs(after[0]) < abs(slope):
-                slope, level = after
+                slope, level, err = after
         horizon = 2.0 * moved + 4.0 * self.sample_time
+        # extended by its least trend the noise allows (2 standard errors toward none): σ 2 on
+        # a 5 % step of e^{−3s}/(10s + 1) read 1.24 %/s over 20 samples, extended it 29.6 s
+        # to 91 and aborted "would leave the allowance" a response that ends at 55 (helper
+        # trial); the PV's own crossing still stops it (``level``)
+        if self.config.trend_error:
+            slope = math.copysign(max(abs(slope) - 2.0 * err, 0.0), slope)
         reach = float(level + slope * horizon)
         # the approach judged on the samples since the PV started moving: a window that also
         # holds the flat dead time before it reads a lag's onset as speeding up (the straight
@@ -1191,6 +1200,18 @@ def _approach_left(y: np.ndarray, stopped: bool = True) -> float | None:
     return 2.0 * d2 / (r - 1.0) + (m3 - float(y[-1]))
 
 
+def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """A straight line through (x, y): (slope, its value at x = 0, the slope's standard
+    error from the scatter about it; 0 for a line through three points or fewer)."""
+    slope, level = np.polyfit(x, y, 1)
+    if x.size <= 3:
+        return float(slope), float(level), 0.0
+    resid = y - (slope * x + level)
+    sxx = float(np.sum((x - x.mean()) ** 2))
+    err = math.sqrt(float(np.sum(resid * resid)) / (x.size - 2) / sxx) if sxx > 0 else 0.0
+    return float(slope), float(level), err
+
+
 @dataclass
 class ReturnWatch:
     """After the output is restored: is the PV back at rest? ``feed`` each sample.
@@ -1306,6 +1327,7 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         leak=bool(setup.step_leak),
         trend_since_move=bool(setup.step_trend_since_move),
         steady_floor=bool(setup.step_steady_floor),
+        trend_error=bool(setup.step_trend_error),
         resolution=setup.resolution_floor(),
         **timeout,
     )
