@@ -70,6 +70,7 @@ from shared.control.forms import (
     step_percent,
 )
 from shared.control.record_stops import Guard, SettleRule, judge_point, settle_point, swings
+from shared.control.signals import line_fit
 from shared.errors import AutotuneError, one_line
 from shared.messages import (
     APPLIED_STATUSES,
@@ -2448,17 +2449,12 @@ def p_only_problem(gains: PidGains, ident: experiments.Identification, rule: str
 
 def _trend(t: list[float], y: list[float], n: int) -> tuple[float, float] | None:
     """The PV's straight-line trend over its last ``n`` samples (units per s), and its
-    standard error from the scatter about the line; half a window at least (None: fewer)."""
+    standard error (``line_fit``); half a window at least (None: fewer, or no time between)."""
     k = min(len(y), n)
-    if k < max(4, n // 2):
+    if k < max(4, n // 2) or not t[-1] > t[-k]:
         return None
-    x, v = np.asarray(t[-k:]), np.asarray(y[-k:])
-    spread = float(np.sum((x - x.mean()) ** 2))
-    if not spread > 0:
-        return None
-    slope, cut = np.polyfit(x, v, 1)
-    scatter = float(np.sqrt(np.sum((v - (slope * x + cut)) ** 2) / (k - 2)))
-    return float(slope), scatter / math.sqrt(spread)
+    slope, _, err = line_fit(np.asarray(t[-k:]), np.asarray(y[-k:]))
+    return slope, err
 
 
 def op_at_limits(u: np.ndarray, lo: float, hi: float, ts: float) -> tuple[float, bool]:

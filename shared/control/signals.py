@@ -49,6 +49,19 @@ def noise_level(y: np.ndarray) -> float:
     return float(np.std(y - np.polyval(coef, x), ddof=2))
 
 
+def line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """The least-squares line through (x, y): (slope, its value at x = 0, the slope's
+    standard error from the scatter about it; 0 for three points or fewer, or no spread in
+    x). Why the error: a trend read over a short, noisy window is judged against it (a step
+    test's approach to a limit, a PV on its way back or not)."""
+    slope, level = np.polyfit(x, y, 1)
+    sxx = float(np.sum((x - x.mean()) ** 2))
+    if x.size <= 3 or not sxx > 0:
+        return float(slope), float(level), 0.0
+    resid = y - (slope * x + level)
+    return float(slope), float(level), math.sqrt(float(np.sum(resid * resid)) / (x.size - 2) / sxx)
+
+
 def difference_noise(y: np.ndarray) -> float:
     """Standard deviation of white noise on ``y`` read from its sample-to-sample changes
     (σ(Δy)/√2), in ``y``'s units: a trend or a slow swing barely counts."""

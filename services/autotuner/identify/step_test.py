@@ -78,7 +78,7 @@ from services.autotuner.identify.reaction_curve import (
 from services.autotuner.identify.step_frequency import response_point
 from shared.control.beyond import beyond
 from shared.control.forms import MIN_STEP
-from shared.control.signals import Sample, at_rest, noise_level, range_end
+from shared.control.signals import Sample, at_rest, line_fit, noise_level, range_end
 from shared.errors import AutotuneError
 
 HOLD_EVENTS = ("step_started", "pulse_started", "output_held")  # the driver's hold times
@@ -871,7 +871,7 @@ class StepTest:
         if tw.size < m:
             return None
         tw, yw = tw[-m:], yw[-m:]
-        slope, level, err = _line(tw - tw[-1], yw)
+        slope, level, err = line_fit(tw - tw[-1], yw)
         moved = self._t_moved if self._t_moved is not None else elapsed
         began = tw >= self.t_step + moved
         since_move = self.config.trend_since_move
@@ -880,7 +880,7 @@ class StepTest:
             # it is that one (a line through the flat dead time and the move read a pure
             # delay's jump, 50 to 55 in a sample and flat since, as heading past 75 at 3.8 %/s,
             # and aborted it; a lag's onset is steepest at its start, and keeps the window's)
-            after = _line(tw[began] - tw[-1], yw[began])
+            after = line_fit(tw[began] - tw[-1], yw[began])
             if abs(after[0]) < abs(slope):
                 slope, level, err = after
         horizon = 2.0 * moved + 4.0 * self.sample_time
@@ -1200,18 +1200,6 @@ def _approach_left(y: np.ndarray, stopped: bool = True) -> float | None:
     return 2.0 * d2 / (r - 1.0) + (m3 - float(y[-1]))
 
 
-def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
-    """A straight line through (x, y): (slope, its value at x = 0, the slope's standard
-    error from the scatter about it; 0 for a line through three points or fewer)."""
-    slope, level = np.polyfit(x, y, 1)
-    if x.size <= 3:
-        return float(slope), float(level), 0.0
-    resid = y - (slope * x + level)
-    sxx = float(np.sum((x - x.mean()) ** 2))
-    err = math.sqrt(float(np.sum(resid * resid)) / (x.size - 2) / sxx) if sxx > 0 else 0.0
-    return float(slope), float(level), err
-
-
 @dataclass
 class ReturnWatch:
     """After the output is restored: is the PV back at rest? ``feed`` each sample.
@@ -1241,8 +1229,8 @@ class ReturnWatch:
     # the whole --timeout (7,200 s; two hours at ×1) for a return it cannot make (helper
     # trial). False: the watch waits for the return or its timeout
     settle_off: bool = False
-    rest_off: float = math.nan  # PV units, where it came to rest short of the way back
-    _off_checks: int = 0
+    rest_off: float = field(default=math.nan, init=False)  # PV units: at rest short of it
+    _off_checks: int = field(default=0, init=False)  # checks running that found it so
     t: list[float] = field(default_factory=list)
     pv: list[float] = field(default_factory=list)
     done: bool = False
