@@ -15,6 +15,7 @@ import pytest
 from services.autotuner.compute_pool import ComputePool, compute_all, inline
 from services.autotuner.design.selection import select
 from services.autotuner.identify.driver import drive
+from services.autotuner.identify.oscillation import SLOW_STARTS
 from services.autotuner.identify.relay import RelayConfig, RelayTest
 from services.offline.local_loop import SimLoopPort
 from services.plant_sim.plant_file import build_plant
@@ -72,8 +73,9 @@ def ramp_run(parts=None):
 
 
 def test_the_ramp_refined_in_parts_at_once_is_the_ramp_refined_in_turn(pool):
-    """The tuner hands the ramp's closing refines (one per starting model) to its workers at
-    once: the identification is the same to the bit."""
+    """The tuner hands the ramp's closing refines (one per starting model), and each trial's
+    slow-mode fits (one per start), to its workers at once: the identification is the same
+    to the bit."""
     asked: list[int] = []
 
     def at_once(calls):
@@ -82,7 +84,8 @@ def test_the_ramp_refined_in_parts_at_once_is_the_ramp_refined_in_turn(pool):
 
     _, here = ramp_run()
     _, there = ramp_run(at_once)
-    assert here.model is not None and asked == [5]
+    assert here.model is not None and asked[-1] == 5
+    assert asked[:-1] and set(asked[:-1]) == {len(SLOW_STARTS)}  # a slow-mode fit a trial
     assert repr(there) == repr(here)
 
 
@@ -153,6 +156,7 @@ FORKED = """
 import os, signal, sys, threading, time
 from services.autotuner.compute_pool import ComputePool
 from services.autotuner.design.selection import select
+from services.autotuner.identify.oscillation import SLOW_STARTS
 if sys.argv[1] == "thread":
     threading.Thread(target=time.sleep, args=(30,), daemon=True).start()
 pool = ComputePool(2)

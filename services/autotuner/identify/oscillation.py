@@ -11,10 +11,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import least_squares, leastsq
 
+from services.autotuner.parts import Parts, in_turn
 from shared.control.signals import extrema, smooth
 
 
@@ -31,9 +33,14 @@ class Oscillation:
 
 
 def fit_oscillation(
-    t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None = None
+    t: np.ndarray,
+    y: np.ndarray,
+    noise_std: float,
+    period_hint: float | None = None,
+    parts: Parts = in_turn,
 ) -> Oscillation | None:
-    """Fit a growing/decaying sinusoid to (t, y); None if there is no clear oscillation."""
+    """Fit a growing/decaying sinusoid to (t, y); None if there is no clear oscillation.
+    ``parts``: how the slow mode's fits are computed (``_with_slow_mode``)."""
     start = _start(t, y, noise_std, period_hint)
     if start is None:
         return None
@@ -58,7 +65,7 @@ def fit_oscillation(
         c, a, g, w, _ = x
         if not success or w <= 0 or not np.all(np.isfinite(x)):
             return None
-        slow = _with_slow_mode(tt, y, x, float(np.sqrt(np.mean(fun**2))))
+        slow = _with_slow_mode(tt, y, x, float(np.sqrt(np.mean(fun**2))), parts)
     alone = None
     if slow is not None:
         alone = float(g)
@@ -362,27 +369,58 @@ def _turning_points(
     return extrema(t, ys, max(4.0 * noise_std / math.sqrt(width), 0.02 * span, 1e-12))
 
 
-def _with_slow_mode(tt: np.ndarray, y: np.ndarray, p0: np.ndarray, rms0: float):
+class SlowFit(NamedTuple):
+    """One start of the slow-mode fit as it ended: its parameters (c, A, g, ω, φ, b, λ), its
+    residuals, and its cost (half their sum of squares, as ``least_squares`` gives it)."""
+
+    x: np.ndarray
+    fun: np.ndarray
+    cost: float
+
+
+# where the slow mode's λ starts, in turn, per second of the record: each start's fit is
+# independent of the other's (computed side by side where ``parts`` allows), the best kept
+SLOW_STARTS = (1.0, 4.0)
+
+
+def _with_slow_mode(
+    tt: np.ndarray, y: np.ndarray, p0: np.ndarray, rms0: float, parts: Parts = in_turn
+) -> SlowFit | None:
     """Refit with a decaying exponential beside the oscillation, c + b·e^{−λt} + A·e^{gt}·
     sin(ωt + φ): a loop with lags far apart (or a large dead time) has a slow real mode whose
-    drift the sinusoid alone would read as damping. Kept only if it clearly fits better."""
-    c, a, g, w, phi = p0
+    drift the sinusoid alone would read as damping. Kept only if it clearly fits better.
+    ``parts``: how the starts' fits are computed (the tuner's workers: side by side; the
+    result is the same to the bit, the best taken in the starts' order)."""
     span = float(tt[-1] - tt[0]) or 1.0
-
+    p = tuple(float(v) for v in p0)
     best = None
-    for lam0 in (1.0 / span, 4.0 / span):
-        b0 = float(y[0] - c - a * math.sin(phi))
-        x0 = [c, a, g, w, phi, b0, lam0]
-        lo = [-np.inf, -np.inf, -np.inf, 0.5 * w, -np.inf, -np.inf, 0.1 / span]
-        hi = [np.inf, np.inf, np.inf, 2.0 * w, np.inf, np.inf, 0.5 * w]
-        model = DriftingSine(tt, y, np.array(lo), np.array(hi))
-        try:
-            sol = least_squares(model.resid, x0, jac=model.jac, bounds=(lo, hi), max_nfev=400)
-        except (ValueError, FloatingPointError):
-            continue
-        if np.all(np.isfinite(sol.x)) and (best is None or sol.cost < best.cost):
+    for sol in parts([(_slow_start, (tt, y, p, k / span)) for k in SLOW_STARTS]):
+        if sol is not None and (best is None or sol.cost < best.cost):
             best = sol
     if best is None:
         return None
     rms = float(np.sqrt(np.mean(best.fun**2)))
     return best if rms < 0.8 * rms0 else None
+
+
+def _slow_start(
+    tt: np.ndarray, y: np.ndarray, p0: tuple[float, ...], lam0: float
+) -> SlowFit | None:
+    """The slow-mode fit from the sinusoid ``p0`` = (c, A, g, ω, φ) and λ = ``lam0`` (1/s);
+    None where it fails or ends off the finite numbers."""
+    c, a, g, w, phi = p0
+    span = float(tt[-1] - tt[0]) or 1.0
+    b0 = float(y[0] - c - a * math.sin(phi))
+    x0 = [c, a, g, w, phi, b0, lam0]
+    lo = [-np.inf, -np.inf, -np.inf, 0.5 * w, -np.inf, -np.inf, 0.1 / span]
+    hi = [np.inf, np.inf, np.inf, 2.0 * w, np.inf, np.inf, 0.5 * w]
+    model = DriftingSine(tt, y, np.array(lo), np.array(hi))
+    # (as in ``fit_oscillation``: a trial step of e^{g·t} may overflow, judged by the result)
+    with np.errstate(over="ignore", invalid="ignore"):
+        try:
+            sol = least_squares(model.resid, x0, jac=model.jac, bounds=(lo, hi), max_nfev=400)
+        except (ValueError, FloatingPointError):
+            return None
+    if not np.all(np.isfinite(sol.x)):
+        return None
+    return SlowFit(sol.x, sol.fun, sol.cost)

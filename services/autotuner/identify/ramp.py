@@ -838,7 +838,7 @@ class RampTest:
         if self._last_fit is not None and self._last_fit[0] == key:
             osc = self._last_fit[1]
         else:
-            osc = fit_oscillation(t, y, self._noise, self._period)
+            osc = fit_oscillation(t, y, self._noise, self._period, self.parts)
             self._last_fit = (key, osc)
         if raw or osc is None or t.size < 2:
             return osc
