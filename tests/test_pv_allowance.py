@@ -4,8 +4,10 @@ loop's action, 0.05·e^{−2s}/(−s) at 0.2 s under a reverse-acting PID, the r
 drained the level to 0 % before the range's end aborted it (helper trial); the step test saw
 the wrong sign at once. It now aborts at the allowance, naming the action, and the level is
 said to be left where the test took it. Figures here follow from the plant: the level falls
-at K'·d = 0.25 %/s under the relay's push. (The ramp has no such allowance: its trials near
-K_u swing further than that on flow1, a preset.)"""
+at K'·d = 0.25 %/s under the relay's push. The ramp's trials have no such allowance (its trials
+near K_u swing further than that on flow1, a preset), but its calming between trials has: on
+the same loop its first trial ran away, and the calming that followed drained the level to
+0 %, the abort blaming the bump."""
 
 from __future__ import annotations
 
@@ -44,6 +46,18 @@ def test_a_wrong_way_integrator_is_stopped_at_the_allowance_not_drained():
     # stopped a sample past the allowance, plus what the level falls over the dead time
     # once the output is put back: far from the range's end the PV limits alone allowed
     assert r.left["pv"] > 50.0 - PV_ALLOWANCE * SPAN - 2.5 * 0.25 - 1.0
+    assert (sim.mode, sim.op, sim.pid.gains) == before
+
+
+def test_a_ramp_calming_that_runs_off_stops_at_the_allowance_naming_the_action():
+    r, sim, before = _wrong_way("ramp")
+    assert r.status == "aborted"
+    assert "calming between trials" in r.reason, r.reason
+    assert f"past ±{PV_ALLOWANCE * SPAN:.3g}" in r.reason
+    assert "is the process one for a direct-acting PID?" in r.reason
+    # stopped a sample past the allowance, plus what the level falls over the dead time
+    # once the output is put back (the calming's output is a few % off the balance)
+    assert r.left["pv"] > 50.0 - PV_ALLOWANCE * SPAN - 1.0
     assert (sim.mode, sim.op, sim.pid.gains) == before
 
 

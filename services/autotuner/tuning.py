@@ -1265,10 +1265,12 @@ class TuningRun:
         if self.info.clock == "realtime":  # a command takes effect at the next sample
             common["outputs_from_samples"] = True
         common.update(experiments.live_flags(req.method))
-        if req.pv_limits is not None and "pv_allowance" in common:
+        if req.pv_limits is not None:
             # the engineer's own limits say how far the test may take the PV: the allowance
             # (the step test's, 25 % of the range) is the default's, not theirs to be cut by
-            common["pv_allowance"] = None
+            for flag in ("pv_allowance", "ramp_calm_guard"):
+                if flag in common:
+                    common[flag] = None
         if self.req.rest_window or b.gains.ti:  # a real hint of the loop's time scale
             common["time_scale"] = self._rest["window"]
         if methods.method(req.method).closed_loop:

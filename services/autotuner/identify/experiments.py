@@ -442,6 +442,13 @@ class Setup:
     # True: a ramp trial's period shorter than the dead time the first trial showed is not the
     # loop's time scale (``RampConfig.period_floor``); None: recorded before, every period was
     ramp_period_floor: bool | None = None
+    # True: a ramp's calming between trials, while every trial went against its bump with
+    # none oscillating or decaying, aborts once its PV runs further from the trial's rest
+    # than the step test's allowance, or twice the trial's swing limit where that is more
+    # (``RampConfig.calm_allowance``); None: recorded before (or the engineer's own PV limits
+    # given), its PV limits alone (a ramp on a level whose action was the wrong one calmed it
+    # to 0 %: helper trial)
+    ramp_calm_guard: bool | None = None
     # True: a step test read as integrating fits its ramps' slowing with its dead time (a lag
     # far slower than the test: ``reaction_curve.fit_integrator``'s leak); None: recorded
     # before, straight ramps
@@ -512,6 +519,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "ramp_settled",
         "ramp_more_starts",
         "ramp_period_floor",
+        "ramp_calm_guard",
         "pv_clip",
         "resolution",
     ),

@@ -45,6 +45,7 @@ import numpy as np
 from services.autotuner.identify import inverse_response
 from services.autotuner.identify.experiments import (
     DIRECT_NOTE,
+    PV_ALLOWANCE,
     Band,
     Demand,
     Event,
@@ -161,6 +162,13 @@ class RampConfig:
     # a trial's period shorter than the dead time the first trial showed is not taken as the
     # loop's time scale (``_close_trial``). False: a run recorded before, every period taken
     period_floor: bool = True
+    # PV units a calming between trials may take the PV from the trial's rest, or twice the
+    # trial's swing limit where that is more, while the trials say the loop's feedback is
+    # positive (``_calm_bound``): a calming at a lower gain then runs off as they did, and is
+    # not held on until the PV reaches the end of its range (a level whose process answered
+    # against the loop's action was calmed to 0 %). None: no bound but the PV limits (a run
+    # recorded before, or limits of the engineer's own)
+    calm_allowance: float | None = None
     # PV units the transmitter does not resolve (``Setup.resolution_floor``): a quiet window
     # may drift within it and be rest (a noise-free PV's creep after a test); 0: the noise
     # alone decides (a run recorded before)
@@ -1153,7 +1161,12 @@ class RampTest:
         the PV has come to rest. A calming whose output sat at a limit for half of the last
         period, or that outlasts ``settle_periods`` periods (before any period is known: trial
         lengths), is at a gain that does not calm: the gain is halved, ``max_calm_cuts`` times
-        at most."""
+        at most. A calming that takes the PV past ``_calm_bound`` from the trial's rest is
+        at a gain that does not calm the loop at all: the test aborts there."""
+        bound = self._calm_bound()
+        if bound is not None and abs(self._y[-1] - self._r) > bound:
+            self._abort(self._ran_off(t, bound))
+            return
         scale, window = self._settle_scale()
         stuck = (
             len(self._y) - self._settle_start >= window
@@ -1195,6 +1208,31 @@ class RampTest:
             self._r = float(np.mean(y))
             self._trials_from_rest = False
             self._begin_trial(t)
+
+    def _calm_bound(self) -> float | None:
+        """PV units the calming may take the PV from the trial's rest, where every trial so
+        far went against its setpoint bump, none oscillated and none decayed (the loop's
+        feedback looks positive, and a calming at a lower gain runs off as the trials did):
+        ``calm_allowance``, or twice the trial's swing limit where that is more (a trial cut
+        at its swing limit swings on past it while the calming gain takes over). None: no
+        bound (not asked, or a trial that says otherwise: a loop whose gain near K_u ran
+        away swings past the allowance while calming, and comes back: flow1)."""
+        allowance = self.config.calm_allowance
+        if allowance is None or self._lo is not None or not self._went:
+            return None
+        if any(w != -1 for w in self._went) or any(t.period for t in self.trials):
+            return None
+        return max(allowance, 2.0 * self.config.swing_limit * self._trial_bump)
+
+    def _ran_off(self, t: float, bound: float) -> str:
+        """Why the test aborts at a calming that ran off (``_watch_settle``), one line."""
+        pv, r = self._y[-1], self._r
+        return (
+            f"calming between trials at Kc = {self._calm_kc:.4g}, the PV ran to {pv:.4g} at "
+            f"t = {t:g} s, {pv - r:+.3g} from the trial's rest {r:.4g}, past ±{bound:.3g}, "
+            "as every trial went against its setpoint bump with none oscillating: the loop's "
+            f"feedback looks positive — {action_question(self.direction)}"
+        )
 
     def _settle_scale(self) -> tuple[float, int]:
         """(s, samples): a calming's time scale — the period, else the longest trial so far
@@ -1287,6 +1325,8 @@ class RampTest:
         if self.phase == "trial":
             swing = self.config.swing_limit * self._trial_bump
             lo, hi = max(lo, self._r - swing), min(hi, self._r + swing)
+        elif self.phase == "settle" and (bound := self._calm_bound()) is not None:
+            lo, hi = max(lo, self._r - bound), min(hi, self._r + bound)
         # calming: the batch ends at the first calming check that passes (the loop checks)
         calm = self._calm_stop() if self.phase == "settle" else None
         if self._sat_run:
@@ -1330,6 +1370,7 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         settled_by_move=bool(setup.ramp_settled),
         more_starts=bool(setup.ramp_more_starts),
         period_floor=bool(setup.ramp_period_floor),
+        calm_allowance=_calm_allowance(setup),
         resolution=setup.resolution_floor(),
         **first,
         **budget,
@@ -1343,3 +1384,13 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         direction=setup.direction or 1.0,
         pv_range=setup.pv_range if setup.pv_clip else None,
     )
+
+
+def _calm_allowance(setup: Setup) -> float | None:
+    """``RampConfig.calm_allowance``: the step test's share of the transmitter's range
+    (``PV_ALLOWANCE``), where the set-up asks (``ramp_calm_guard``) and the range is finite."""
+    rng = setup.pv_range
+    if not setup.ramp_calm_guard or rng is None:
+        return None
+    span = rng[1] - rng[0]
+    return PV_ALLOWANCE * span if math.isfinite(span) and span > 0 else None
