@@ -429,7 +429,7 @@ class LoopClient:
                         why = (
                             "; its liveliness token is still up, so it is silent, not known "
                             "gone: paused or starved, held up publishing to a subscriber "
-                            "that stopped reading (a paused logger), or cut off from this tuner"
+                            "that stopped reading (a paused logger), or cut off from this process"
                         )
                     else:
                         why = ""
