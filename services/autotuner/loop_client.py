@@ -307,6 +307,10 @@ class LoopClient:
         self.info = self._query_info()
         self.last_sample: ProcessSample | None = None
         self.last_status: LoopStatus = self.sync()
+        # the plant's sim time (s) at which the last command this client had confirmed was
+        # applied (the confirming sync's): a sample at or before it ran under what the loop
+        # held before (``TuningRun._record`` leaves such samples out of a record; None: none)
+        self.applied_t: float | None = None
 
     def _read(self, s: zenoh.Sample) -> None:
         mark = s.attachment
@@ -727,6 +731,7 @@ class LoopClient:
             self.holding = False  # its own release's status must not read as a lost lease
         self.send(cmd)
         status = self._confirmed(before, loop_before)
+        self.applied_t = status.t
         if isinstance(cmd, LeaseCommand):
             self.holding = status.leased_by == self.source
             if not self.holding:
@@ -773,7 +778,9 @@ class LoopClient:
         before, loop_before = self._own_refused, self._loop_refused
         for cmd in cmds:
             self.send(cmd)
-        return self._confirmed(before, loop_before)
+        status = self._confirmed(before, loop_before)
+        self.applied_t = status.t
+        return status
 
     # --- lockstep samples: asked for by advances, taken in order ------------------------------
 

@@ -1602,6 +1602,12 @@ class TuningRun:
         windows = 0  # the guard's whole windows already judged
         lockstep = self.info.clock == "lockstep"
         stops = self._record_stops(judge, done, guard, target) if lockstep else None
+        # realtime: the samples that came before the plant applied the last command (held
+        # while the run computed or waited for its confirmation) ran under what the loop held
+        # before: watched against the limits, left out of the record. (A starved tuner's
+        # verification read 93 s of the ramp's P-only calming as its gains' response, and
+        # rejected them as "did not settle": helper trial, flow1 at ×50.)
+        since = None if lockstep else c.applied_t
         while len(t) < n_max:
             self._check_cancel()
             k = len(t)
@@ -1612,6 +1618,13 @@ class TuningRun:
                 if not lockstep:
                     upto = min(upto, k + judge)
                 batch = c.samples(upto - k, limits)
+            if since is not None and batch[0].t <= since:
+                before = [s for s in batch if s.t <= since]
+                if why := _left_limits(before, lo, hi):
+                    return np.array(t), np.array(y), np.array(u), why
+                batch = batch[len(before) :]
+                if not batch:
+                    continue
             self._t = batch[-1].t
             why = None
             ended = False
@@ -2256,6 +2269,15 @@ def crossings(y: np.ndarray, target: float, width: int, band: float) -> int:
 def _deviation(y: np.ndarray, target: float, width: int) -> np.ndarray:
     """The PV's deviation from ``target``, averaged over ``width`` samples (the noise off)."""
     return np.convolve(y - target, np.ones(width) / width, "valid")
+
+
+def _left_limits(samples: list[ProcessSample], lo: float, hi: float) -> str | None:
+    """Why a record ends at the first of ``samples`` outside the PV limits [lo, hi], as
+    ``TuningRun._record`` says it; None if none is."""
+    for s in samples:
+        if not lo <= s.pv <= hi:
+            return f"the PV left its limits [{lo:g}, {hi:g}] at t = {s.t:g} s"
+    return None
 
 
 def judged_batch_end(k: int, n_max: int, judge: int, window: int | None, windows: int) -> int:

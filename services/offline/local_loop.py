@@ -53,6 +53,7 @@ class LocalLoopClient:
         self.info: LoopInfo = loop.info(NODE, "lockstep", 1.0)
         self.last_sample: ProcessSample | None = None
         self.last_status: LoopStatus = self.sync()
+        self.applied_t: float | None = None  # as ``LoopClient.applied_t``
         self.lease: LeaseCommand | None = None
         self._held_from: LoopSnapshot | None = None  # the loop as the lease found it
         self.gone = False  # an in-process loop never goes away
@@ -134,6 +135,7 @@ class LocalLoopClient:
         before = self.sim.rejected
         self._apply(cmd)
         status = self.sync()
+        self.applied_t = status.t
         if status.rejected > before:
             raise CommandRefused(f"loop {self.loop}: {status.last_reject}")
         return status
