@@ -271,13 +271,25 @@ def client_endpoint(listen: str) -> str:
     return f"{proto}/{host}:{port}"
 
 
+def _text(path: Path, what: str) -> str:
+    """The UTF-8 text of ``path``; ConfigError names ``what`` (the file as the user gave it)
+    and why it cannot be read (a file of other bytes was an internal error, exit 70)."""
+    try:
+        raw = path.read_bytes()
+    except OSError as err:
+        raise ConfigError(f"{what}: cannot read it: {err.strerror}") from None
+    try:
+        return raw.decode("utf-8").removeprefix("\ufeff")
+    except UnicodeDecodeError as err:
+        raise ConfigError(
+            f"{what}: not UTF-8 text (byte 0x{raw[err.start]:02x} at offset {err.start})"
+        ) from None
+
+
 def read_users(path: Path) -> dict[str, str]:
     """``user:password`` lines; ConfigError names the file and line of a bad one."""
     users: dict[str, str] = {}
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read it: {err.strerror}") from None
+    text = _text(path, str(path))
     for n, line in enumerate(text.splitlines(), 1):
         if not line.strip():
             continue
@@ -413,10 +425,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def load_config(args: argparse.Namespace) -> UpConfig:
     data: dict = {}
     if args.config:
+        text = _text(Path(args.config), f"--config {args.config}")
         try:
-            data = tomllib.loads(Path(args.config).read_text())
-        except OSError as err:
-            raise ConfigError(f"--config {args.config}: cannot read it: {err.strerror}") from None
+            data = tomllib.loads(text)
         except tomllib.TOMLDecodeError as err:
             raise ConfigError(f"--config {args.config}: not valid TOML: {err}") from None
     for name in UpConfig.model_fields:
@@ -435,7 +446,11 @@ def load_config(args: argparse.Namespace) -> UpConfig:
         e = err.errors()[0]
         where = ".".join(str(p) for p in e["loc"])
         raise ConfigError(f"{args.config or 'settings'}: {where}: {e['msg']}") from None
-    check_ids(cfg.prefix)
+    try:
+        check_ids(cfg.prefix)
+    except ConfigError as err:  # named where it came from: the file, or the flag
+        where = f"--config {args.config}: " if args.prefix is None and args.config else ""
+        raise ConfigError(f"{where}{err}") from None
     if cfg.plant and not Path(cfg.plant).is_file():
         raise ConfigError(f"plant: {cfg.plant}: no such file")
     if cfg.plant:  # read and built here first: its one line, not a stack that comes up

@@ -37,3 +37,22 @@ def test_an_endpoint_given_does_not_read_the_rendezvous(monkeypatch):
     other command with `-e` ignores it."""
     monkeypatch.setenv(RENDEZVOUS_ENV, "garbage")
     assert _config("--endpoint", "tcp/127.0.0.1:17000").endpoint == "tcp/127.0.0.1:17000"
+
+
+@pytest.mark.parametrize(
+    ("content", "says"),
+    [
+        (b"\xff\xfe", "not UTF-8 text (byte 0xff at offset 0)"),
+        (b'prefix = "x"\n\xe9\n', "not UTF-8 text (byte 0xe9 at offset 13)"),
+        (b'prefix = "a/*"\n', "prefix 'a/*' is not valid"),
+        (b"prefix = \n", "not valid TOML"),
+    ],
+)
+def test_a_config_file_that_cannot_be_used_is_named_with_the_reason(tmp_path, content, says):
+    """A file of other bytes than UTF-8 was an internal error (exit 70: helper trial), and a
+    bad prefix in the file was said without naming the file."""
+    path = tmp_path / "up.toml"
+    path.write_bytes(content)
+    with pytest.raises(ConfigError) as err:
+        _config("--config", str(path))
+    assert str(err.value).startswith(f"--config {path}: ") and says in str(err.value)
