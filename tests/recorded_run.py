@@ -5,6 +5,7 @@ Recorder as the bus would. Fast (no processes), the same writer as the logger's.
 from __future__ import annotations
 
 import json
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +21,20 @@ from shared.messages import Command, ProcessSample, RecordStops, TuneRequest, Tu
 
 
 def record_in_process(
-    runs: Path, prefix: str, plant: dict[str, Any], loop_id: str, method: str, **request: Any
+    runs: Path,
+    prefix: str,
+    plant: dict[str, Any],
+    loop_id: str,
+    method: str,
+    cancel_at: float | None = None,
+    **request: Any,
 ) -> tuple[Path, TuneResult]:
-    """(the run's MCAP file, the result the live run returned) of one run of ``method``."""
+    """(the run's MCAP file, the result the live run returned) of one run of ``method``;
+    ``cancel_at``: the run cancelled (as Ctrl-C of `autotune tune` does) once a sample at or
+    after that sim time (s) is stepped."""
     loop = build_plant(plant)[loop_id]
     recorder = Recorder(runs, prefix, flush_interval=3600.0)
+    cancelled = threading.Event()
 
     def put(key: str, msg) -> None:
         recorder.handle(key, wire.encode(msg))
@@ -41,11 +51,14 @@ def record_in_process(
             out = super().advance(steps, band, record)
             for s in out:
                 put(keys.pv(prefix, loop_id), s)
+            if cancel_at is not None and out and out[-1].t >= cancel_at:
+                cancelled.set()
             return out
 
     hooks = RunHooks(
         progress=lambda m: put(keys.tune_progress(prefix, loop_id), m),
         event=lambda m: put(keys.tune_event(prefix, loop_id), m),
+        cancelled=cancelled,
     )
     req = TuneRequest(loop=loop_id, method=method, **request)
     live = TuningRun(Recording(loop), req, f"run{method}", hooks).run()

@@ -1582,6 +1582,21 @@ def test_analyze_of_an_aborted_run_reports_the_same_abort(tmp_path, capsys):
     assert code == 0 and "ends as the live run did (identical), aborted: " in out, (out, err)
 
 
+def test_analyze_of_a_run_cancelled_mid_test_reports_the_runs_stop(tmp_path, capsys):
+    """A run cancelled mid-relay (`tune --wait 2`, Ctrl-C) leaves a record that ends before
+    the test does: `analyze` refused it, exit 2, as a file cut short ("the recording ends
+    first": helper trial). It is the run's own stop, said as such, exit 0."""
+    path, live = record_in_process(tmp_path, PREFIX, PLANT, LOOP, "relay", cancel_at=5.0)
+    assert (live.status, live.reason) == ("aborted", "cancelled")
+    code, out, err = cli(capsys, "analyze", str(path), "--json")
+    assert code == 0, err
+    got = json.loads(out)
+    assert (got["status"], got["reason"], got["stopped_by_run"]) == ("aborted", "cancelled", True)
+    assert got["matches_live"] is True
+    code, out, err = cli(capsys, "analyze", str(path))
+    assert code == 0 and "the live run stopped the test before it found anything" in out, err
+
+
 def test_analyze_of_a_relay_aborted_at_its_limits_finds_its_reason(tmp_path, capsys):
     """A relay aborted at its PV limits: the live result's reason carries the relay's advice
     (the --amplitude that would keep to them) after the machine's own, which the re-run

@@ -57,14 +57,29 @@ class EndedEarly(AutotuneError):
     the state machine's own; ``live``, the run's recorded result (None: none recorded).
     An aborted run re-run to the same end is no bad input: ``analyze`` reports it."""
 
-    def __init__(self, message: str, path: str, loop: str, method: str, reason: str, live):
+    def __init__(
+        self,
+        message: str,
+        path: str,
+        loop: str,
+        method: str,
+        reason: str,
+        live,
+        stopped_by_run: bool = False,
+    ):
         super().__init__(message)
         self.path, self.loop, self.method, self.reason, self.live = path, loop, method, reason, live
+        # the record ends where the live run stopped the test before it ended (``reason``, the
+        # run's: a cancel, a lost plant), not at an end of the test's own
+        self.stopped_by_run = stopped_by_run
 
     def matches_live(self) -> bool:
-        """The live run ended so, for the same reason (its result names the machine's)."""
+        """The live run ended so, for the same reason (its result names the machine's), or
+        it stopped the test itself where the record ends."""
         live = self.live
-        return bool(live is not None and live.status == "aborted" and self.reason in live.reason)
+        if live is None or live.status not in ("aborted", "failed"):
+            return False
+        return self.stopped_by_run or (live.status == "aborted" and self.reason in live.reason)
 
     def to_dict(self) -> dict:
         live = self.live
@@ -78,6 +93,7 @@ class EndedEarly(AutotuneError):
             if live is None
             else {"status": live.status, "reason": live.reason, "ku": live.ku, "pu": live.pu},
             "matches_live": self.matches_live(),
+            "stopped_by_run": self.stopped_by_run,
         }
 
 
@@ -331,9 +347,16 @@ def analyze_file(path: str | Path) -> Analysis:
                 else "the recording ends first"
             )
             message = f"{path}: the recorded samples do not complete the {req.method} test ({why})"
+            loop = meta.get("loop", req.loop)
             if machine.reason:  # the experiment's own end (an abort), not a short record
-                loop = meta.get("loop", req.loop)
                 raise EndedEarly(message, str(path), loop, req.method, why, run.result)
+            live = run.result
+            if not missing and live is not None and live.status in ("aborted", "failed"):
+                # the live run stopped its test where the record ends (a cancel, a plant or a
+                # lease lost: helper trial, `tune --wait 2`): no short record, but that run
+                raise EndedEarly(
+                    message, str(path), loop, req.method, live.reason or live.status, live, True
+                )
             raise AutotuneError(message)
         sel = select(
             ident,

@@ -34,6 +34,12 @@ def run(args: argparse.Namespace) -> int:
         # aborted run gave exit 2 and, with --json, nothing: helper trial)
         if args.json:
             print(json_text.dumps(ended.to_dict(), indent=2))
+        elif ended.stopped_by_run:
+            print(
+                f"{ended.path}: {ended.method} test of {ended.loop}, re-run offline on the "
+                f"record: the live run stopped the test before it found anything "
+                f"({ended.live.status}: {ended.reason}), and the record ends there"
+            )
         else:
             print(
                 f"{ended.path}: {ended.method} test of {ended.loop}, re-run offline: it ends "
