@@ -1334,6 +1334,16 @@ def test_a_recovered_file_is_listed_with_its_loop_and_method(
         return
     assert line.split()[:3] == ["2026-12-04T23:23:57", "x1", "relay"], line
     assert "incomplete" in line and "unreadable" not in line
+    # a copy under another name: the run as its messages name it (it was listed "unreadable:
+    # … has no run_id nor loop": helper trial)
+    renamed = tmp_path / "killed.mcap"
+    renamed.write_bytes(broken.read_bytes())
+    fixed = out_dir / "killed_fixed.mcap"
+    code, out, err = cli(capsys, "recover", str(renamed), "-o", str(fixed))
+    assert code == 0, err
+    code, out, err = cli(capsys, "runs", "--json", str(out_dir))
+    row = next(r for r in json.loads(out) if r["file"] == fixed.name)
+    assert (row["loop"], row["method"], row["status"]) == ("x1", "relay", "incomplete"), row
 
 
 def test_a_truncated_file_recovered_is_listed_with_its_loss(recorded, tmp_path, capsys):

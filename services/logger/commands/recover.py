@@ -12,6 +12,7 @@ what was read; ``lost``: what was not; the run's own status, its conclusion, kep
 from __future__ import annotations
 
 import argparse
+import json
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -79,6 +80,11 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
     channel_schemas: dict[int, int] = {}  # the file's channel id → its schema id
     records: set[int] = set()  # the schema ids of the run's RunRecord (its metadata again)
     record: bytes | None = None  # the last RunRecord read
+    # the run as its messages name it (``run_id``, ``loop``, ``method``: a progress or event
+    # message's, the request event's), for a file without its metadata whose name is not
+    # the logger's
+    named: dict[str, str] = {}
+    topics: dict[int, str] = {}  # the file's channel id → its topic
     # the file's metadata or indexes changed since they were written (its data section's CRC)
     altered = data_section_problem(src)
     with src.open("rb") as f, dst.open("wb") as out:
@@ -99,6 +105,7 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
                     records.add(rec.id)
             elif isinstance(rec, Channel):
                 channel_schemas[rec.id] = rec.schema_id
+                topics[rec.id] = rec.topic
                 channels[rec.id] = writer.register_channel(
                     rec.topic, rec.message_encoding, schemas.get(rec.schema_id, 0), rec.metadata
                 )
@@ -106,6 +113,10 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
             elif isinstance(rec, Message) and rec.channel_id in channels:
                 if channel_schemas.get(rec.channel_id) in records:
                     record = rec.data
+                elif "method" not in named and topics.get(rec.channel_id, "").endswith(
+                    ("/progress", "/event")
+                ):
+                    named.update(_named(rec.data))
                 writer.add_message(
                     channels[rec.channel_id], rec.log_time, rec.data, rec.publish_time, rec.sequence
                 )
@@ -195,7 +206,7 @@ def recover(src: Path, dst: Path, force: bool = False) -> dict[str, int | str]:
                         "run record among its messages"
                     )
         if run is None:  # written only as the logger finished a run: what the name tells
-            run = run_of_name(src, counts["messages"], stopped, lost)
+            run = {**run_of_name(src, counts["messages"], stopped, lost), **named}
         elif lost:  # the run's conclusion stands, on less data than it had: said
             run = {**run, "recovered": f"{counts['messages']} messages", "lost": lost}
         elif run.get("rebuilt"):  # every message, its metadata rebuilt from its record
@@ -240,6 +251,22 @@ def _lost(
     if summary is not None and summary > read:
         parts.append(f"the file's summary counts {summary} messages, {summary - read} not read")
     return "; ".join(parts)
+
+
+def _named(data: bytes) -> dict[str, str]:
+    """The run's id and loop a progress or event message names, and its method where it is
+    the run's request event; empty where it names neither (not JSON, another form)."""
+    try:
+        msg = json.loads(data)
+        out = {k: msg[k] for k in ("run_id", "loop") if isinstance(msg.get(k), str)}
+        if msg.get("kind") == "request":
+            request = msg["data"]["request"]  # an object (a string in older files)
+            method = (json.loads(request) if isinstance(request, str) else request).get("method")
+            if isinstance(method, str):
+                out["method"] = method
+        return out
+    except (ValueError, TypeError, KeyError, AttributeError):
+        return {}
 
 
 def run_of_name(src: Path, messages: int, stopped: str, lost: str = "") -> dict[str, str]:
