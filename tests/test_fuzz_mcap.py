@@ -1146,15 +1146,20 @@ def test_analyze_says_samples_are_missing_from_the_record(recorded, tmp_path, ca
 
 def test_replay_that_keeps_nothing_says_what_the_file_holds(recorded, capsys):
     """A filter that matches nothing printed "nothing to replay" and no more (noticed last
-    stop): the file's loops, topics and length follow, so the filter can be set right."""
+    stop): the file's loops, topics and length follow, so the filter can be set right. It is
+    bad input, exit 2, naming the flag (it was exit 0: helper trial)."""
     path = str(recorded["relay"].path)
-    for extra in (["--loop", "nosuch"], ["--start-offset", "1e9"]):
+    for flag, extra in (
+        ("--loop", ["--loop", "nosuch"]),
+        ("--start-offset", ["--start-offset", "1e9"]),
+        ("--topics", ["--topics", "/nonexistent"]),
+    ):
         code, out, err = cli(capsys, "replay", path, "--wait", "0", *extra)
-        assert code == 0 and err == "", err
-        assert out.startswith("nothing to replay: no message passes the filters; the file ")
-        assert "loop(s) " in out and "pv" in out and "s long" in out
+        assert code == 2 and out == "", out
+        assert f"error: {flag}: nothing to replay: no message passes the filters; the file " in err
+        assert "loop(s) " in err and "pv" in err and "s long" in err
         # its topics as --topics takes them: "/fuzz/plant/x1/pv", not "pv" (which matched none)
-        assert f"/{PREFIX}/plant/{LOOP}/pv" in out, out
+        assert f"/{PREFIX}/plant/{LOOP}/pv" in err, err
 
 
 def test_replay_past_the_runs_start_says_a_logger_records_none_of_it(recorded, capsys):

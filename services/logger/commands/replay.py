@@ -297,7 +297,19 @@ def run(args: argparse.Namespace) -> int:
         args.with_commands,
     )
     if not chosen:
-        print(f"nothing to replay: {_held(records, checked, args.with_commands)}")
+        held = _held(records, checked, args.with_commands)
+        given = [
+            flag
+            for flag, value in (
+                ("--loop", args.loop),
+                ("--topics", args.topics),
+                ("--start-offset", args.start_offset > 0),
+            )
+            if value
+        ]
+        if records and given:  # a filter that fits nothing in the file: bad input, exit 2
+            raise ConfigError(f"{', '.join(given)}: nothing to replay: {held}")
+        print(f"nothing to replay: {held}")
         return 0
     if args.start_offset > 0 and _starts(records) and not _starts([o.record for o in chosen]):
         # (a logger records a replay's run from its start: helper trial, nothing recorded and
