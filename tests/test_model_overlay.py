@@ -50,3 +50,22 @@ def test_an_offset_that_is_not_a_number_is_no_offset(bad):
     stated = {"model": "ipdt", "model_gain": K, "model_delay": L, "model_offset": bad}
     model = result_model(stated)
     assert model is not None and model.offset is None
+
+
+def test_an_integrating_step_tests_drift_is_its_offset():
+    """An integrating step test states no fitted offset, but the PV's drift before its step
+    (PV units/s), which its rate is read net of: the model is driven by the output less
+    −drift/K', the same record as above. Driven by the output alone it climbed off the data
+    by the drift over the record (lvl2: 0.015 m, fit 65.9 %: helper trial)."""
+    t, pv, op = _record()
+    drift = K * (50.0 - 50.0 - OFFSET)  # the PV's rate at 50 % held, before the step
+    stated = {"model": "ipdt", "model_gain": K, "model_delay": L, "model_rms": 0.01}
+    step = {"method": "integrating", "drift": drift, "reaction_rate": K}
+    model = result_model(stated, step)
+    assert model is not None and model.offset == pytest.approx(OFFSET, rel=1e-12)
+    over = model_overlay(t, pv, op, model, TS, 0, t.size)
+    gap = over.pv - over.model_pv
+    assert np.ptp(gap) < 1e-9 * np.ptp(pv)  # a constant gap (the rest's mean), no drift
+    # a self-regulating step's drift is no offset of its output; nor a drift not stated
+    assert result_model(stated, {**step, "method": "self-regulating"}).offset is None
+    assert result_model(stated, {"method": "integrating"}).offset is None
