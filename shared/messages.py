@@ -446,17 +446,19 @@ COMMANDS: dict[str, type[Command]] = {
 }
 
 Method = Literal["relay", "ramp", "step"]
-# ``ok``: the gains were verified on the loop and passed; ``unverified``: applied without
-# verification, as ``verify = false`` asks (not known to be safe); ``proposed``: identified
-# and computed, not applied, as ``apply = false`` asks (`autotune apply` applies and verifies
-# them); the rest: nothing applied
-RunStatus = Literal["ok", "unverified", "proposed", "rejected", "aborted", "failed"]
+# ``ok``: the gains were verified on the loop and passed, within the safety envelope;
+# ``forced``: verified and passed, but applied outside the envelope (a predicted Ms above the
+# bound, a contradicted ultimate point) because ``force`` asked (not known to be safe);
+# ``unverified``: applied without verification, as ``verify = false`` asks (not known to be
+# safe); ``proposed``: identified and computed, not applied, as ``apply = false`` asks
+# (`autotune apply` applies and verifies them); the rest: nothing applied
+RunStatus = Literal["ok", "forced", "unverified", "proposed", "rejected", "aborted", "failed"]
 # the statuses of a run whose gains ``autotune apply`` takes later (all but aborted, failed)
-APPLICABLE_STATUSES: tuple[RunStatus, ...] = ("ok", "unverified", "proposed", "rejected")
+APPLICABLE_STATUSES: tuple[RunStatus, ...] = ("ok", "forced", "unverified", "proposed", "rejected")
 # the statuses of a run that did what it was asked (the CLI's exit 0)
-DONE_STATUSES: tuple[RunStatus, ...] = ("ok", "unverified", "proposed")
+DONE_STATUSES: tuple[RunStatus, ...] = ("ok", "forced", "unverified", "proposed")
 # the statuses of a run that may have left its gains in the loop (``applied`` says whether)
-APPLIED_STATUSES: tuple[RunStatus, ...] = ("ok", "unverified")
+APPLIED_STATUSES: tuple[RunStatus, ...] = ("ok", "forced", "unverified")
 
 
 class TuneRequest(Message):

@@ -309,6 +309,7 @@ class TuningRun:
         # why the chosen gains may not be applied, where --no-apply let the run go on to
         # propose them (``Selection.refusal``): its reason says so
         self._refusal: str | None = None
+        self._forced: str | None = None  # what --force let through (``Selection.forced``)
         # the chosen gains' gain margin on the model's sampled loop (None: not predicted)
         self._predicted_gm: float | None = None
         # the relay cycles the run's progress last counted, for its "done" (which said 0
@@ -493,6 +494,13 @@ class TuningRun:
                     result["reason"] = (
                         f"not applied (apply = false, --no-apply), and not to be: {why}"
                     )
+            if status == "ok" and self._forced:  # passed, but outside the envelope: not ok
+                status = "forced"
+                result["reason"] = (
+                    f"applied because forced (--force), outside the safety envelope: "
+                    f"{self._forced}; the verification passed, but the gains are not known "
+                    "to be safe"
+                )
             if result.get("applied") and not req.verify:  # not tried on the loop: not ok
                 status = "unverified"
                 result["reason"] = (
@@ -757,6 +765,7 @@ class TuningRun:
         if chosen is None or (sel.refusal and req.apply):
             raise TuneRefused(sel.refusal or "no gains")
         self._refusal = sel.refusal
+        self._forced = sel.forced
         if req.apply and not req.verify and (why := untried_ti_problem(chosen.ti, self.ts)):
             raise TuneRefused(why)
         if sel.model_misses and req.apply and not req.verify and not req.force:

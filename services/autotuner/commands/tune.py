@@ -1281,6 +1281,7 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
         )
         + ", loop in auto"
         + (", NOT verified (--no-verify)" if r.status == "unverified" else "")
+        + (", FORCED outside the safety envelope (--force)" if r.status == "forced" else "")
         if r.applied
         else "nothing was sent to the loop"
         if r.untouched

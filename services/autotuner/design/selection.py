@@ -96,6 +96,9 @@ class Selection:
     # what the model misses (the measured point, or its record), where it does: gains from
     # it are not applied untried (``TuningRun``: --no-verify refused unless forced)
     model_misses: str | None = None
+    # what ``force`` let through that would have been refused (the chosen gains outside the
+    # safety envelope, a contradicted point): the run, if its gains pass, ends ``forced``
+    forced: str | None = None
 
 
 def l_over_t(ident: Identification, model: ProcessFit | None = None) -> float | None:
@@ -647,6 +650,7 @@ def select(
         problem = f"{name}: {problem}"
         if force:
             sel.warnings.append(problem + " — applied because forced")
+            sel.forced = problem
         else:
             better = f"; the recommended rule is {rec.rule}" if rec and rec.rule != name else ""
             sel.refusal = f"refused: {problem} (force to apply anyway{better})"
@@ -677,6 +681,7 @@ def select(
     if apart:
         if force:
             sel.warnings.append(apart + " — applied because forced")
+            sel.forced = "; ".join(x for x in (sel.forced, apart) if x)
         elif sel.refusal is None:
             sel.refusal = f"refused: {apart} (force to apply anyway)"
     return sel

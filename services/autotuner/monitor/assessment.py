@@ -107,7 +107,7 @@ class Baseline:
         gains applied (nothing of it is then in the loop): ``ok``, or ``unverified`` (applied
         without verification: no verification figures to compare with)."""
         # ``shared.messages.APPLIED_STATUSES``, written out: the monitor core imports no pydantic
-        if not result or result.get("status") not in ("ok", "unverified"):
+        if not result or result.get("status") not in ("ok", "forced", "unverified"):
             return None
         if not result.get("applied"):
             return None

@@ -217,6 +217,8 @@ def format_entries(
             )
         elif tune and tune.get("status") == "unverified":  # `apply --no-verify`: nothing said
             lines.append("      unverified (--no-verify): the gains were not tried on the loop")
+        if tune and tune.get("status") == "forced":
+            lines.append("      forced (--force): applied outside the safety envelope")
     return "\n".join(printable(line) for line in lines)  # a file's text shown, not obeyed
 
 
