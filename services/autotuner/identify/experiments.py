@@ -413,6 +413,10 @@ class Setup:
     # True: a step test's trend toward a limit is taken at 2 standard errors less
     # (``StepTestConfig.trend_error``); None: recorded before, the fitted trend as it was
     step_trend_error: bool | None = None
+    # True: a step test's horizon for the PV's coast once the output is restored is also
+    # read off the trend's line, where it crosses the rest (``StepTestConfig.coast``); None:
+    # recorded before, twice the time the PV took to start moving
+    step_coast: bool | None = None
     # True: the transmitter's resolution (``rest_window.RESOLUTION`` of its range) floors what
     # counts as a response to the output (a relay or step test whose PV moves within it
     # aborts there) and as a drift before a test (a noise-free PV's creep within it is rest);
@@ -530,6 +534,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "step_trend_since_move",
         "step_steady_floor",
         "step_trend_error",
+        "step_coast",
         "resolution",
     ),
 }

@@ -115,6 +115,11 @@ class StepTestConfig:
     # the trend that stops a step short of a limit is taken at 2 standard errors less
     # (``_heading_out``); False: a run recorded before, the fitted trend as it was
     trend_error: bool = True  # (a run's set-up: ``Setup.step_trend_error``)
+    # the time the PV keeps moving once the output is restored is also read off the trend's
+    # line, where it crosses the rest before the step (``_coast``: an integrator behind a lag
+    # coasts its dead time and lag); False: a run recorded before, twice the time the PV
+    # took to start moving alone
+    coast: bool = True  # (a run's set-up: ``Setup.step_coast``)
     # the flag that sets ``timeout``, as the advice names it: `autotune step`'s --timeout,
     # a tune's --max-time (`step` advised "--max-time", which it does not have: helper trial)
     timeout_flag: str = "--max-time"
@@ -857,6 +862,21 @@ class StepTest:
         tol = 1e-9 * max(1.0, abs(lo), abs(hi), hi - lo)
         return max(5.0 * self._noise + tol, self.config.resolution)
 
+    def _coast(self, slope: float, level: float, err: float, now: float) -> float | None:
+        """s the PV keeps moving once the output is restored, read off its trend (``slope``
+        ± ``err`` PV units/s, at ``level`` at sim time ``now``): from the step to where the
+        trend's line crosses the rest before it. A response that speeds up (an integrator
+        behind a lag) coasts for that long, its dead time and lag, which the time it took to
+        start moving does not show: 0.2·e^{−s}/(s(5s + 1)) stepped 5 % was stopped 2.8 s
+        short of its allowance, moving 1 %/s, and went on 6 s to 78.7 % (helper trial). A
+        response that slows down (a lag's approach) crosses before its dead time is over,
+        and adds nothing. None where the trend is not clearly away from the rest."""
+        away = level - self._pv_before
+        if not (abs(slope) > 3.0 * err and away * slope > 0 and abs(away) > 4.0 * self._noise):
+            return None
+        cross = now - away / slope  # sim time s at which the trend's line meets the rest
+        return cross - self.t_step if cross > self.t_step else None
+
     def _heading_out(self, t: np.ndarray, y: np.ndarray, elapsed: float) -> str | None:
         """Why to stop now if the PV, on its present trend, nears an end of its range, its
         limits (``pv_limits``) or the test's allowance (``max_move``).
@@ -884,6 +904,8 @@ class StepTest:
             if abs(after[0]) < abs(slope):
                 slope, level, err = after
         horizon = 2.0 * moved + 4.0 * self.sample_time
+        if self.config.coast and (coast := self._coast(slope, level, err, float(tw[-1]))):
+            horizon = max(horizon, coast + 4.0 * self.sample_time)
         # extended by its least trend the noise allows (2 standard errors toward none): σ 2 on
         # a 5 % step of e^{−3s}/(10s + 1) read 1.24 %/s over 20 samples, extended it 29.6 s
         # to 91 and aborted "would leave the allowance" a response that ends at 55 (helper
@@ -1316,6 +1338,7 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         trend_since_move=bool(setup.step_trend_since_move),
         steady_floor=bool(setup.step_steady_floor),
         trend_error=bool(setup.step_trend_error),
+        coast=bool(setup.step_coast),
         resolution=setup.resolution_floor(),
         **timeout,
     )
