@@ -152,6 +152,13 @@ def test_gains_not_given_are_kept_exactly_and_ti_none_turns_integral_off():
         (Asked(op=4.9, mode="manual"), status(mode="auto"), ["--op 4.9", "output limits"]),
         (Asked(op=40.0), status(mode="auto"), ["--op 40", "in auto", "--mode manual"]),
         (Asked(op=40.0, mode="auto"), status(mode="auto"), ["--op 40", "--mode manual"]),
+        # held by a run: the lease said first (following "add --mode manual" was refused for
+        # it: helper trial)
+        (
+            Asked(op=70.0),
+            status(mode="auto", leased_by="tuner:5effba391d85"),
+            ["--op 70", "in auto", "'tuner:5effba391d85' holds its lease", "until that ends"],
+        ),
         (Asked(sp=150.1), status(), ["--sp 150.1", "PV range [0, 150] degC"]),
         (Asked(sp=-1.0, kc=3.0), status(), ["--sp -1", "PV range"]),
         # hx1's span is 150 degC: 1000 % per % is Kc 666.67 % per degC

@@ -270,9 +270,17 @@ def plan(
                 f"--op {asked.op:g}: outside the loop's output limits [{lo:g}, {hi:g}] %"
             )
         if status.mode == "auto" and asked.mode != "manual":  # --op is written in manual
+            # a loop a run holds takes neither (following "add --mode manual" was refused
+            # for the lease: helper trial): said first
+            held = (
+                f", and {status.leased_by!r} holds its lease (a run): nothing is written to it "
+                "until that ends; then add --mode manual"
+                if status.leased_by
+                else ": add --mode manual"
+            )
             raise ConfigError(
                 f"--op {asked.op:g}: {loop} is in auto, where the plant takes no manual "
-                "output: add --mode manual"
+                f"output{held}"
             )
     if asked.sp is not None:
         lo, hi = status.pv_range

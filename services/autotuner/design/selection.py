@@ -653,7 +653,7 @@ def select(
             sel.forced = problem
         else:
             better = f"; the recommended rule is {rec.rule}" if rec and rec.rule != name else ""
-            sel.refusal = f"refused: {problem} (force to apply anyway{better})"
+            sel.refusal = f"refused: {problem} (--force to apply anyway{better})"
     if rule != "auto" and a.noisy(max_op_noise):
         # a rule asked for is not passed over for its noise (the verification measures it):
         # said here, for --no-verify and --no-apply have no verification to say it (SIMC PI
@@ -683,7 +683,7 @@ def select(
             sel.warnings.append(apart + " — applied because forced")
             sel.forced = "; ".join(x for x in (sel.forced, apart) if x)
         elif sel.refusal is None:
-            sel.refusal = f"refused: {apart} (force to apply anyway)"
+            sel.refusal = f"refused: {apart} (--force to apply anyway)"
     return sel
 
 
