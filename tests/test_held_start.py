@@ -95,3 +95,11 @@ def test_a_run_that_ended_on_its_own_first_is_not_called_cancelled():
     r = _result(status="proposed", applied=False, restored=True)
     said = Interrupted(r, "loop hx1 now: manual").summary()
     assert said.startswith("run r1 had ended proposed before the cancel reached it; loop restored")
+
+
+def test_a_run_cancelled_before_it_wrote_says_the_loop_untouched():
+    """Ctrl-C in the rest wait: "nothing was sent to the loop", then "loop restored" of a
+    loop the run never wrote to (helper trial)."""
+    r = _result(status="aborted", reason="cancelled", applied=False, restored=True, untouched=True)
+    said = Interrupted(r, "loop lvl2 now: manual").summary()
+    assert "loop untouched (nothing was sent to it)" in said and "restored" not in said

@@ -576,6 +576,9 @@ class Interrupted(KeyboardInterrupt):
             )
         why = f": {r.reason}" if r.reason else ""
         back = "restored" if r.restored else "NOT restored"
+        if r.untouched:  # cancelled before its lease: "loop restored" of a loop it never
+            # wrote to followed "nothing was sent to the loop" (helper trial)
+            back = "untouched (nothing was sent to it)"
         if r.status != "aborted":  # it ended on its own first (proposed, rejected, failed)
             return (
                 f"run {r.run_id} had ended {r.status} before the cancel reached it{why}; loop "
