@@ -103,3 +103,18 @@ def test_a_run_cancelled_before_it_wrote_says_the_loop_untouched():
     r = _result(status="aborted", reason="cancelled", applied=False, restored=True, untouched=True)
     said = Interrupted(r, "loop lvl2 now: manual").summary()
     assert "loop untouched (nothing was sent to it)" in said and "restored" not in said
+
+
+def test_a_cancelled_run_whose_pv_is_not_back_says_so():
+    """A cancelled ramp on a level: restored to manual at its output, its PV stays where the
+    test left it, and the client said only "loop restored" (helper trial, lvl2)."""
+    left = {"mode": "manual", "sp": 1.5, "op": 50.0, "pv": 1.525, "pv_target": 1.5}
+    r = _result(
+        status="aborted",
+        reason="cancelled",
+        applied=False,
+        restored=True,
+        left={**left, "band": 0.008, "returned": False, "gains": {"kc": 1.0}},
+    )
+    said = Interrupted(r, "loop lvl2 now: manual").summary()
+    assert "loop restored, but its PV not back where it was (target 1.5 ± 0.008)" in said

@@ -579,6 +579,12 @@ class Interrupted(KeyboardInterrupt):
         if r.untouched:  # cancelled before its lease: "loop restored" of a loop it never
             # wrote to followed "nothing was sent to the loop" (helper trial)
             back = "untouched (nothing was sent to it)"
+        lf = r.left or {}
+        if r.restored and lf.get("pv_target") is not None and lf.get("returned") is False:
+            # restored, but its PV not back (a level in manual stays where the test left it:
+            # helper trial, lvl2's ramp cancelled, 1.525 m for 1.5, said only "restored")
+            band = f" ± {lf['band']:.2g}" if lf.get("band") is not None else ""
+            back += f", but its PV not back where it was (target {lf['pv_target']:.4g}{band})"
         if r.status != "aborted":  # it ended on its own first (proposed, rejected, failed)
             return (
                 f"run {r.run_id} had ended {r.status} before the cancel reached it{why}; loop "
