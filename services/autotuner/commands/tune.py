@@ -934,10 +934,16 @@ class QuietProgress:
         progress_line(p)
 
     def say(self) -> None:
-        """The last progress as a line of its own, with the wall time so far."""
+        """The last progress as a line of its own, with the wall time so far: said as the
+        last progress still (the same line repeated with only a count in brackets read as
+        the run stuck at its sim time: helper trial)."""
         if self.last is not None:
             took = time.monotonic() - self._began
-            print(f"{self.last.rstrip()}  ({took:.0f} s)", file=sys.stderr, flush=True)
+            print(
+                f"{self.last.rstrip()}  (the last progress; {took:.0f} s of wall time so far)",
+                file=sys.stderr,
+                flush=True,
+            )
 
     def _tick(self) -> None:
         while not self._stop.wait(QUIET_PROGRESS):
@@ -953,9 +959,13 @@ class QuietProgress:
 
 
 def progress_text(p: TuneProgress) -> str:
-    """One line of the run's progress: phase, sim time, count, K_u and P_u so far, message."""
-    ku = f"K_u {p.ku:.4g}" if p.ku else ""
-    pu = f"P_u {p.pu:.4g} s" if p.pu else ""
+    """One line of the run's progress: phase, sim time, count, K_u and P_u so far, message.
+    Before the run has identified them, K_u and P_u are the last cycle's or trial's, marked
+    ≈ (the relay's first cycles on hx1 read K_u 11.61 for 15.29, shown as figures: helper
+    trial)."""
+    so_far = "" if p.phase in ("identified", "verify", "done") else "≈"
+    ku = f"K_u {so_far}{p.ku:.4g}" if p.ku else ""
+    pu = f"P_u {so_far}{p.pu:.4g} s" if p.pu else ""
     return (
         f"  {p.phase:<10} t = {p.t:8.1f} s  n = {p.cycles:<3} {ku:<12} {pu:<14} "
         f"{p.message[:40]:<40}"
