@@ -17,5 +17,8 @@ def test_progress_goes_to_a_file_as_lines_of_their_own(capsys):
     assert capsys.readouterr().err == ""  # a file is not rewritten in place
     shown.say()
     err = capsys.readouterr().err
-    assert err.startswith("  verify     t =    812.5 s") and err.endswith(" s)\n"), err
+    assert err.startswith("  verify     t =    812.5 s") and err.endswith(
+        " s of wall time so far)\n"
+    ), err
+    assert "(the last progress; " in err
     assert "\r" not in err
