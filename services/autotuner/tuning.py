@@ -1363,8 +1363,11 @@ class TuningRun:
         except AutotuneError as err:
             if not (machine.finished and machine.reason):
                 raise
-            # aborted first (its PV limits), the loss came as it let go: both said, in order
-            raise type(err)(f"{req.method} test: {machine.reason}; then {err}") from err
+            # aborted first (its PV limits), the loss came as it let go: both said, in order,
+            # the relay's advice with its reason (on the realtime clock the plant's watchdog
+            # trips at the same limits, and the "--amplitude … at most" was lost: helper trial)
+            advice = getattr(machine, "advice", "")
+            raise type(err)(f"{req.method} test: {machine.reason}{advice}; then {err}") from err
         self._forward_events(machine.events)
         if ident is None:
             advice = getattr(machine, "advice", "")  # the relay's, after its reason
