@@ -666,9 +666,12 @@ def _confirmed(
             f"ignored a result for run {r.run_id} ({r.status}) that its tuner does not give "
             "(the run is still going): not the tuner's (forged?)"
         )
+    # (said as what it is: "not confirmed: its tuner did not answer", then the result
+    # shown as the tuner's, read as a contradiction: helper trial, a tuner stopping)
     return r, (
-        f"run {r.run_id}'s result is not confirmed: its tuner did not answer within "
-        f"{CONFIRM_WAIT:g} s"
+        f"run {r.run_id}'s result is not confirmed: it came on the bus, and its tuner did "
+        f"not answer the check within {CONFIRM_WAIT:g} s (stopping, or out of reach): it is "
+        "shown as it came"
     )
 
 
