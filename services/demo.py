@@ -179,8 +179,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--speed {args.speed}: must be a finite number > 0")
     check_loop(args.plant, args.loop, args.seed)
     req = request_from_args(args, source="autotune-demo")
-    if args.console:
-        console_launch.check_port(args.console_port)
+    console_port = console_launch.port_of(args)
     runs = runs_dir(args.runs)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     # the topics of `autotune up` (a Foxglove layout fits both), isolated by a namespace
@@ -226,7 +225,7 @@ def run(args: argparse.Namespace) -> int:
                 logs.seek(0)
                 raise AutotuneError(f"{err}\n{logs.read().strip()}") from None
             if args.console:  # up before the run: the page shows it live, and after
-                url = console_launch.start(stack, prefix, runs, args.console_port, zenoh_client)
+                url = console_launch.start(stack, prefix, runs, console_port, zenoh_client)
                 print(f"the commissioning console: {url}", file=sys.stderr, flush=True)
             with open_session(client) as session:
                 info = wire.query_one(session, keys.info(prefix, args.loop), LoopInfo, 10.0)

@@ -609,8 +609,7 @@ def run(args: argparse.Namespace) -> int:
     # every flag judged before the bus is probed (the endpoint's check_free): a bad --runs
     # was said as "endpoint in use" when another stack held the default port (a parallel run)
     runs_dir(cfg.runs)
-    if args.console:
-        console_launch.check_port(args.console_port)
+    console_port = console_launch.port_of(args)
     deployment = None
     if cfg.secure:
         deployment = write_secure(Path(cfg.secure_dir), cfg.prefix, cfg.endpoint)
@@ -627,7 +626,7 @@ def run(args: argparse.Namespace) -> int:
                 stack,
                 cfg.prefix,
                 runs_dir(cfg.runs),
-                args.console_port,
+                console_port,
                 _client_args(cfg, deployment),
             )
             print(f"the commissioning console: {url}", file=sys.stderr, flush=True)

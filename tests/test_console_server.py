@@ -79,6 +79,9 @@ def taken_port():
         (["console", "--port", "{port}"], "--port {port}: cannot serve on 127.0.0.1:{port}"),
         (["up", "--console", "--console-port", "{port}"], "--console-port {port}: 127.0.0.1"),
         (["demo", "--console", "--console-port", "0"], "--console-port 0: must be 1 to 65535"),
+        # without --console it meant nothing, and was taken (helper trial)
+        (["demo", "--console-port", "70000"], "--console-port 70000: only with --console"),
+        (["up", "--console-port", "8051"], "--console-port 8051: only with --console"),
     ],
 )
 def test_bad_flags_and_a_port_in_use_exit_2_in_one_line(argv, says, taken_port, capsys):

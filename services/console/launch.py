@@ -31,10 +31,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--console-port",
         type=int,
-        default=DEFAULT_PORT,
+        default=None,
         metavar="PORT",
-        help="with --console: its port (default: %(default)s)",
+        help=f"with --console: its port (default: {DEFAULT_PORT})",
     )
+
+
+def port_of(args: argparse.Namespace) -> int:
+    """The console's port (``--console-port``, default DEFAULT_PORT), checked: ConfigError
+    naming the flag when it is given without ``--console`` (`demo --console-port 70000` was
+    taken, and meant nothing: helper trial) or the console could not serve on it."""
+    if args.console_port is not None and not args.console:
+        raise ConfigError(f"--console-port {args.console_port}: only with --console")
+    port = DEFAULT_PORT if args.console_port is None else args.console_port
+    if args.console:
+        check_port(port)
+    return port
 
 
 def check_port(port: int) -> None:
