@@ -211,6 +211,30 @@ def stated_spreads(
     )
 
 
+# a stated spread beyond this (relative) is said as a warning of its own: the figure is not
+# pinned down, whatever else the run says of it
+LOOSE_SPREAD = 0.25
+
+
+def _loose(ku_spread: float | None, pu_spread: float | None) -> list[str]:
+    """A warning where K_u's or P_u's stated spread is beyond ``LOOSE_SPREAD``: the figure
+    came out with its spread beside it and nothing else said (a biased relay's second stage
+    on an underdamped process, ζ 0.2, read K_u 0.674 for 0.859, spread 81 %: helper trial)."""
+    loose = [
+        f"{label} ±{100 * s:.2g} %"
+        for label, s in (("K_u", ku_spread), ("P_u", pu_spread))
+        if s is not None and s > LOOSE_SPREAD
+    ]
+    if not loose:
+        return []
+    return [
+        f"{' and '.join(loose)}: not pinned down (the experiment's measurements disagree that "
+        "much); every rule's gains are no surer than that, and only the verification on the "
+        "loop judges them: test again (a longer test, another method, or a relay without "
+        "--relay-bias)"
+    ]
+
+
 def _widened(
     ident: Identification,
     check: ModelCheck | None,
@@ -563,6 +587,7 @@ def select(
     name = (rec.rule if rec else "") if rule == "auto" else rule
     ku_spread, pu_spread = stated_spreads(ident, check)
     warnings += _widened(ident, check, ku_spread, pu_spread)
+    warnings += _loose(ku_spread, pu_spread)
     sel = Selection(
         name,
         table.get(name),
