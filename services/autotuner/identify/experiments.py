@@ -194,14 +194,18 @@ def abort_band(
 PV_ALLOWANCE = 0.25
 
 
-def allowance_of(setup: Setup) -> float | None:
-    """PV units a relay's PV may move from its rest (``PV_ALLOWANCE`` of the
-    transmitter's range); None: not asked (a set-up recorded before), or no finite range."""
-    rng = setup.pv_range
-    if not setup.pv_allowance or rng is None:
+def range_allowance(pv_range: tuple[float, float] | None) -> float | None:
+    """``PV_ALLOWANCE`` of the transmitter's range (PV units); None without a finite one."""
+    if pv_range is None:
         return None
-    span = rng[1] - rng[0]
+    span = pv_range[1] - pv_range[0]
     return PV_ALLOWANCE * span if math.isfinite(span) and span > 0 else None
+
+
+def allowance_of(setup: Setup) -> float | None:
+    """PV units a relay's PV may move from its rest (``range_allowance``); None: not asked
+    (a set-up recorded before), or no finite range."""
+    return range_allowance(setup.pv_range) if setup.pv_allowance else None
 
 
 def allowance_band(

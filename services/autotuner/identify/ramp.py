@@ -45,7 +45,6 @@ import numpy as np
 from services.autotuner.identify import inverse_response
 from services.autotuner.identify.experiments import (
     DIRECT_NOTE,
-    PV_ALLOWANCE,
     Band,
     Demand,
     Event,
@@ -56,6 +55,7 @@ from services.autotuner.identify.experiments import (
     abort_band,
     action_question,
     clipped,
+    range_allowance,
     samples_until,
 )
 from services.autotuner.identify.hold_correction import (
@@ -1370,7 +1370,8 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         settled_by_move=bool(setup.ramp_settled),
         more_starts=bool(setup.ramp_more_starts),
         period_floor=bool(setup.ramp_period_floor),
-        calm_allowance=_calm_allowance(setup),
+        # the step test's share of the range, where the set-up asks (``ramp_calm_guard``)
+        calm_allowance=range_allowance(setup.pv_range) if setup.ramp_calm_guard else None,
         resolution=setup.resolution_floor(),
         **first,
         **budget,
@@ -1384,13 +1385,3 @@ def build(settings: Settings, setup: Setup) -> RampTest:
         direction=setup.direction or 1.0,
         pv_range=setup.pv_range if setup.pv_clip else None,
     )
-
-
-def _calm_allowance(setup: Setup) -> float | None:
-    """``RampConfig.calm_allowance``: the step test's share of the transmitter's range
-    (``PV_ALLOWANCE``), where the set-up asks (``ramp_calm_guard``) and the range is finite."""
-    rng = setup.pv_range
-    if not setup.ramp_calm_guard or rng is None:
-        return None
-    span = rng[1] - rng[0]
-    return PV_ALLOWANCE * span if math.isfinite(span) and span > 0 else None
