@@ -4,15 +4,18 @@
 from __future__ import annotations
 
 import functools
+import math
 import multiprocessing
 import os
 import subprocess
 import sys
 import threading
 
+import numpy as np
 import pytest
 
 from services.autotuner.compute_pool import ComputePool, compute_all, inline
+from services.autotuner.design.ringing import ringing
 from services.autotuner.design.selection import select
 from services.autotuner.identify.driver import drive
 from services.autotuner.identify.oscillation import SLOW_STARTS
@@ -87,6 +90,25 @@ def test_the_ramp_refined_in_parts_at_once_is_the_ramp_refined_in_turn(pool):
     assert here.model is not None and asked[-1] == 5
     assert asked[:-1] and set(asked[:-1]) == {len(SLOW_STARTS)}  # a slow-mode fit a trial
     assert repr(there) == repr(here)
+
+
+def test_a_ringing_fitted_in_parts_at_once_is_the_ringing_fitted_in_turn(pool):
+    """The verification hands the ringing fit's slow-mode starts (its steps' modes, the
+    unmodelled mode's) to the workers at once: the same mode to the bit. The response: a
+    slow approach with a ringing on it, 0.4 e^{−0.08t} sin(2πt/5), whose decay over one
+    period is e^{−0.4}."""
+    asked: list[int] = []
+
+    def at_once(calls):
+        asked.append(len(calls))
+        return compute_all(pool.call, calls)
+
+    t = np.arange(0.0, 60.0, 0.05)
+    noise = 0.01 * np.random.default_rng(3).standard_normal(t.size)
+    y = 1 - 0.6 * np.exp(-t / 20) + 0.4 * np.exp(-0.08 * t) * np.sin(2 * np.pi * t / 5) + noise
+    here, there = ringing(t, y, 0.01, 5.0), ringing(t, y, 0.01, 5.0, parts=at_once)
+    assert here is not None and here.decay == pytest.approx(math.exp(-0.4), rel=0.02)
+    assert asked == [len(SLOW_STARTS)] and repr(there) == repr(here)
 
 
 def _direct(fn, *args):

@@ -1942,10 +1942,12 @@ class TuningRun:
                 t, y, t0, y0, sp0 + step, noise=ident.noise, width=width
             )
             self._sp_step = (t, y, t0, y0, sp0 + step, width)
-            modes.append(ringing(t, y, ident.noise, scale))
+            modes.append(ringing(t, y, ident.noise, scale, parts=self._parts))
             model = ident.model.transfer if ident.model is not None else None
             isa = IsaGains(gains.kc, gains.ti, gains.td)
-            fast = unmodelled_mode(t, y, y0, step, isa, model, self.ts, ident.noise, scale, gains.n)
+            fast = unmodelled_mode(
+                t, y, y0, step, isa, model, self.ts, ident.noise, scale, gains.n, self._parts
+            )
         op_lo, op_hi = self.info.op_limits
         # the setpoint step's response with the output at a limit is not the linear loop's
         limited, saturated = op_at_limits(u, op_lo, op_hi, self.ts)
@@ -1992,7 +1994,7 @@ class TuningRun:
             # first step's, with the PV off on the far side, asks the output for more)
             limited, saturated = op_at_limits(u_again, op_lo, op_hi, self.ts)
             self._sp_step = (t, y, t1, sp0, target, width)
-            modes.append(ringing(t, y, ident.noise, scale))
+            modes.append(ringing(t, y, ident.noise, scale, parts=self._parts))
             self._step_note = (
                 f"the setpoint step was made again from a calm loop: the first, made with the "
                 f"PV's mean {off:+.3g} {units} off its setpoint (the tail of the switch to the "
@@ -2041,7 +2043,7 @@ class TuningRun:
             t, y, u2, why = self._record(span, reached(sp0 + step, 2 * scale), sp0 + step, guard)
             stopped = why
             load_m = metrics.load_step(t, y, t1, sp0 + step, noise=ident.noise, width=width)
-            modes.append(ringing(t, y, ident.noise, scale))
+            modes.append(ringing(t, y, ident.noise, scale, parts=self._parts))
             stable = stable and why is None
             stable = stable and (bool(load_m["recovered"]) or not swinging(y, sp0 + step, k, band))
             saturated = saturated or (

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.autotuner.identify.oscillation import Oscillation, fit_ringing
+from services.autotuner.parts import Parts, in_turn
 
 MIN_SWINGS = 3  # half-cycles a mode must show to be judged
 NOISE_SIGMAS = 4.0  # its amplitude where largest must stand this far out of the noise
@@ -44,6 +45,7 @@ def ringing(
     noise: float,
     scale: float | None = None,
     least: float | None = None,
+    parts: Parts = in_turn,
 ) -> Ringing | None:
     """The oscillatory mode in a response (``t`` s, ``y`` PV units, from its step on; ``noise``:
     σ of the PV's measurement noise; ``scale``: the loop's time scale, s, over a twelfth of
@@ -55,13 +57,14 @@ def ringing(
     ``least`` (PV units), the mode must stand that tall 1.5 periods on, and one under the
     noise's height counts too where it lasts: SUSTAINED_SWINGS half-cycles or more, and the
     fit explaining SUSTAINED_ENERGY σ² of the record or more (a small ringing over many
-    periods is as sure as a tall one over a few)."""
+    periods is as sure as a tall one over a few). ``parts``: how the fit's independent
+    starts are computed (``oscillation.fit_ringing``; the same result to the bit)."""
     t = np.asarray(t, dtype=float)
     y = np.asarray(y, dtype=float)
     if t.size < 16 or not np.all(np.isfinite(y)):
         return None
     with np.errstate(all="ignore"):  # a trial step of e^{g·t} may overflow: judged below
-        osc = fit_ringing(t, y, noise, scale)
+        osc = fit_ringing(t, y, noise, scale, parts)
     if osc is None or not stands_out(t, y, osc, noise, least):
         return None
     return Ringing(math.exp(min(osc.growth * osc.period, 50.0)), osc.period, osc.amplitude)

@@ -38,6 +38,7 @@ from scipy.signal import savgol_filter
 
 from services.autotuner.design.ringing import Ringing, ringing, stands_out
 from services.autotuner.identify.oscillation import DecayingSine, Oscillation, levenberg_marquardt
+from services.autotuner.parts import Parts, in_turn
 from shared.control.forms import IsaGains
 from shared.control.lti import discretize, tf_to_ss
 from shared.control.setpoint_steps import setpoint_step
@@ -102,11 +103,13 @@ def unmodelled_mode(
     noise: float,
     timescale: float,
     n: float = 10.0,
+    parts: Parts = in_turn,
 ) -> Ringing | None:
     """The fast mode in a setpoint step's response (``t`` s and ``y`` PV units, a sample each
     from the step on; ``y0`` where it started, ``step`` its size, PV units) that the model's
     response to the same step lacks (``gains`` with the derivative filter Td/``n``); None
-    without a model, or none that stands out."""
+    without a model, or none that stands out. ``parts``: how the residual's ringing fit
+    computes its independent starts (``ringing``)."""
     if model is None or y.size < 16 or not (timescale > 0 and math.isfinite(timescale)):
         return None
     read = max(64, math.ceil(WINDOW * timescale / sample_time))  # samples
@@ -121,7 +124,7 @@ def unmodelled_mode(
     # tallest peak was elsewhere
     modes = (
         fast_mode(t, residual, noise, timescale, sample_time, step),
-        ringing(t, residual, noise, timescale / FAST),
+        ringing(t, residual, noise, timescale / FAST, parts=parts),
     )
     fast = [m for m in modes if m is not None and m.period < timescale / FAST]
     return max(fast, key=lambda m: m.decay, default=None)

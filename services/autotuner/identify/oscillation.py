@@ -125,17 +125,22 @@ def stands_out(
 
 
 def fit_ringing(
-    t: np.ndarray, y: np.ndarray, noise_std: float, period_hint: float | None = None
+    t: np.ndarray,
+    y: np.ndarray,
+    noise_std: float,
+    period_hint: float | None = None,
+    parts: Parts = in_turn,
 ) -> Oscillation | None:
     """``fit_oscillation`` with the slow real mode beside the sinusoid from the start: a
     closed loop's step response is its approach to the setpoint (or its recovery from a load)
     and its ringing together, and the sinusoid fitted alone first took a slow approach with
-    a small ringing on it for a sinusoid of a period of days. None: no clear oscillation."""
+    a small ringing on it for a sinusoid of a period of days. None: no clear oscillation.
+    ``parts``: how the slow mode's starts are computed (``_with_slow_mode``)."""
     start = _start(t, y, noise_std, period_hint)
     if start is None:
         return None
     tt, y, x0, turns = start
-    sol = _with_slow_mode(tt, y, np.asarray(x0), math.inf)
+    sol = _with_slow_mode(tt, y, np.asarray(x0), math.inf, parts)
     if sol is None:
         return None
     c, a, g, w = (float(v) for v in sol.x[:4])
