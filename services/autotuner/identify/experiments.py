@@ -421,6 +421,10 @@ class Setup:
     # read off the trend's line, where it crosses the rest (``StepTestConfig.coast``); None:
     # recorded before, twice the time the PV took to start moving
     step_coast: bool | None = None
+    # True: a step test's PV that began to move only a few samples ago, its steps shrinking
+    # as a lag's do, is judged on where those steps lead (``StepTestConfig.early_approach``);
+    # None: recorded before, the straight line alone until twelve samples since the move
+    step_early_approach: bool | None = None
     # True: the transmitter's resolution (``rest_window.RESOLUTION`` of its range) floors what
     # counts as a response to the output (a relay or step test whose PV moves within it
     # aborts there) and as a drift before a test (a noise-free PV's creep within it is rest);
@@ -539,6 +543,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "step_steady_floor",
         "step_trend_error",
         "step_coast",
+        "step_early_approach",
         "resolution",
     ),
 }

@@ -91,6 +91,9 @@ CHECKS_PER_DOUBLING = 128
 # figure scatters more than the linearised error says (1.4-1.9x over 12 noisy seeds)
 SPREADS = 3.0
 CLEAR_RUN = 5  # samples running clear of the noise that say the response has begun
+# a PV's steps that shrink by this ratio a sample or faster are a lag's approach, judged on
+# where they lead (``_geometric_left``): a first-order lag of T under 4.5 samples (e^{−1/4.5})
+GEOMETRIC_RATIO = 0.8
 # where the PV is about to leave its allowance: a ramp steady (its slope's change lost in the
 # noise and resolved to 10 %) over this many apparent dead times is taken as integrating (the
 # usual 10 need the PV to travel 20 dead times' worth of ramp, more than an integrator with a
@@ -120,6 +123,10 @@ class StepTestConfig:
     # coasts its dead time and lag); False: a run recorded before, twice the time the PV
     # took to start moving alone
     coast: bool = True  # (a run's set-up: ``Setup.step_coast``)
+    # a PV that began to move fewer than twelve samples ago (too few for ``_approach_left``'s
+    # thirds) and whose sample-to-sample steps shrink as a lag's do goes as far as they lead
+    # (``_geometric_left``); False: a run recorded before, the straight line alone
+    early_approach: bool = True  # (a run's set-up: ``Setup.step_early_approach``)
     # the flag that sets ``timeout``, as the advice names it: `autotune step`'s --timeout,
     # a tune's --max-time (`step` advised "--max-time", which it does not have: helper trial)
     timeout_flag: str = "--max-time"
@@ -918,6 +925,13 @@ class StepTest:
         # line took e^{−10s}/(2s+1)'s 5 % step, at 53.2 and slowing, past 75: helper trial F)
         since = y[keep][t[keep] >= self.t_step + moved] if self._t_moved is not None else yw
         left = _approach_left(since if since.size >= 12 else yw, stopped=since_move)
+        if self.config.early_approach and 4 <= since.size < 12:
+            # a dead time's flat stretch in the window hides a fast lag's slowing from the
+            # thirds: 2e^{−20s}/(s + 1)'s 5 % step, at 59.3 and slowing by 0.61 a sample, was
+            # extended 43 s on its straight line to past 75 and aborted (it ends at 60)
+            early = _geometric_left(since, self._noise)
+            if early is not None and (left is None or abs(early) < abs(left)):
+                left = early
         if left is not None and abs(left) < abs(reach - level):
             # slowing down as a lag's approach does: it goes no further than its end (a
             # straight line over 2 L took e^{−10s}/(2s+1)'s 5 % step past 75 %: it ends at 55)
@@ -1191,6 +1205,24 @@ def samples_to_check(n: int) -> int:
     multiples of every smaller spacing)."""
     spacing = check_spacing(n + 1)
     return (n // spacing + 1) * spacing - n
+
+
+def _geometric_left(y: np.ndarray, noise: float) -> float | None:
+    """How much further a PV goes whose last three sample-to-sample steps shrink as a lag's
+    approach does, by a ratio q at most GEOMETRIC_RATIO a sample (PV units, signed): the
+    last step's geometric tail d·q/(1 − q) at the slower of the two ratios, taken twice
+    over. None unless the three steps go one way, each clear of the noise (6σ: a step's
+    noise is σ√2), and each shrinks by that ratio: a response still speeding up, or steady
+    (an integrator), keeps the straight line."""
+    steps = np.diff(np.asarray(y, dtype=float)[-4:])
+    if steps.size < 3 or not np.all(np.isfinite(steps)):
+        return None
+    if not (np.all(steps > 0) or np.all(steps < 0)) or np.min(np.abs(steps)) <= 6.0 * noise:
+        return None
+    q = max(steps[1] / steps[0], steps[2] / steps[1])
+    if not 0.0 < q <= GEOMETRIC_RATIO:
+        return None
+    return float(2.0 * steps[2] * q / (1.0 - q))
 
 
 def _approach_left(y: np.ndarray, stopped: bool = True) -> float | None:
