@@ -89,8 +89,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def check_loop(plant: str | None, loop: str, seed: int | None) -> None:
     """ConfigError, before anything starts, for a plant file or a loop of it the plant would
     refuse (in the plant's words) or a ``--loop`` the file does not have (naming those it
-    has): the services would otherwise start, and the demo wait 20 s for a loop that never
-    comes up."""
+    has, once the file's other loops are known to load): the services would otherwise
+    start, and the demo wait 20 s for a loop that never comes up."""
     path = plant or default_plant_path()
     ids: list[str] = []
 
@@ -103,6 +103,10 @@ def check_loop(plant: str | None, loop: str, seed: int | None) -> None:
     with load_bound(LOAD_TIMEOUT, f"plant file {path}", flag="as plant_sim bounds it"):
         load_plant_file(path, seed=seed, select=note)
     if loop not in ids:
+        # the file's own faults first (the plant would refuse it whatever the loop): an
+        # unstable model said only "--loop hx1: not a loop of --plant" (user trial)
+        with load_bound(LOAD_TIMEOUT, f"plant file {path}", flag="as plant_sim bounds it"):
+            load_plant_file(path, seed=seed)
         where = f"--plant {plant}" if plant else "the default plant"
         raise ConfigError(f"--loop {loop}: not a loop of {where}; it has: {', '.join(ids)}")
 

@@ -126,6 +126,8 @@ REFUSED = [
     # before, the services started and the demo waited 20 s for a loop that never came up
     (["demo", "--loop", "nope"], ["--loop nope", "it has: hx1, hx2, lvl1, lvl2, flow1"]),
     (["demo", "--plant", "unstable.toml", "--loop", "a"], ["loops.a.den", "open-loop unstable"]),
+    # the file's own fault first, whatever the loop: it said "--loop hx1: not a loop of --plant"
+    (["demo", "--plant", "unstable.toml"], ["loops.a.den", "open-loop unstable"]),
     (["up", "--speed", "-1"], ["--speed"]),
     (["up", "--speed", "5000"], ["--speed", "at most"]),
     (["up", "--seed", "-1"], ["--seed"]),
