@@ -18,8 +18,10 @@ from services.autotuner.commands.tune import _robust_row
 from services.autotuner.design.predicted_response import predicted_setpoint_step
 from services.autotuner.design.recommend import Assessment
 from services.autotuner.design.robustness import Robustness
+from services.plant_sim.plant_file import build_plant
 from shared.control.forms import IsaGains
 from shared.control.transfer import DelayedTF
+from shared.messages import GainsCommand, ModeCommand, PidGains, SetpointCommand
 from tests.exact import ultimate_point
 
 K, TAU = 2.0, 10.0
@@ -207,3 +209,29 @@ def test_a_fast_loop_on_a_slow_lag_is_simulated_at_its_own_sample_time():
     assert abs(float(y[-1, 0]) - 1.0) < 1e-6  # settled within the 40 s
     assert a.step.stable
     assert a.step.overshoot == pytest.approx(exact, rel=1e-3)
+
+
+def test_the_predicted_step_is_the_loop_as_it_is_sampled():
+    """ZN PID from hx1's exact ultimate point, e^{−5s}/((10s + 1)(60s + 1)) at its 0.25 s:
+    the prediction's overshoot is the plant simulator's own loop (plant_sim, noise off),
+    stepped at that sample time. Simulated at 0.655 s (2,000 samples over 30 P_u) it read
+    66.1 % where the loop as sampled overshoots 63.4 % (helper audit)."""
+    tf = DelayedTF.of([1.0], [600.0, 70.0, 1.0], 5.0)
+    ku, pu = ultimate_point(tf.num, tf.den, tf.delay)
+    gains = IsaGains(0.6 * ku, pu / 2, pu / 8)
+    f = predicted_setpoint_step(gains, tf, pu, sample_time=0.25)
+    spec = {"model": "heat_exchanger", "noise_std": 0.0}
+    loop = build_plant({"seed": 0, "loops": {"x": spec}}, "t")["x"]
+    assert loop.sample_time == 0.25
+    loop.apply(GainsCommand(loop="x", gains=PidGains(kc=gains.kc, ti=gains.ti, td=gains.td)))
+    loop.apply(ModeCommand(loop="x", mode="auto"))
+    for _ in range(40):  # at rest in auto
+        loop.advance()
+    sp0 = loop.sp
+    step = min(1.0, 10.0 / gains.kc)  # the prediction's: a kick of 10 % at most
+    loop.apply(SetpointCommand(loop="x", sp=sp0 + step))
+    y = np.array([loop.advance().pv for _ in range(round(30 * pu / 0.25))]) - sp0
+    final = float(np.mean(y[-len(y) // 10 :]))
+    overshoot = 100 * (y.max() - final) / final
+    assert f.overshoot == pytest.approx(overshoot, abs=0.05)
+    assert 62.0 < f.overshoot < 65.0
