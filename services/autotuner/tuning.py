@@ -1415,7 +1415,8 @@ class TuningRun:
         sp0 = b.sp if b.mode == "auto" else self._pv_rest
         if not req.verify:
             self._set_auto(new, sp0)
-            return {"applied": True}
+            kept = settings_note(b.gains, new)
+            return {"applied": True, "notes": [kept] if kept else []}
         if (why := p_only_problem(new, ident, self.req.rule)) is not None:
             raise TuneRefused(why)  # before anything is switched: the loop as it was
         before_v = self._verify(b.gains, sp0, ident) if b.mode == "auto" else None
@@ -1504,6 +1505,8 @@ class TuningRun:
                 "notes": notes,
             }
         self._set_auto(new, sp0)
+        if (kept := settings_note(b.gains, new, weighted is not None)) is not None:
+            notes.append(kept)
         return {
             "applied": True,
             "before": before_v,
@@ -2667,6 +2670,28 @@ def process_ringing(after: Verification) -> bool:
     check failed, nor where it did not see the mode."""
     check = recorded_check(after)
     return check is not None and check.mode is not None and not check.failed
+
+
+def settings_note(before: PidGains, applied: PidGains, weighted: bool = False) -> str | None:
+    """What the applied gains changed of the loop's own settings beyond Kc, Ti and Td: its
+    derivative filter N (where they have a derivative) and its setpoint weight β (unless the
+    verification ``weighted`` the step: its own note says why); None: the same. Why: the
+    design, its robustness figures and its predicted steps are for N = 10 and β = 1, so
+    those are applied; a loop set up with N 3 and β 0.5 was left at N 10 and β 1 and nothing
+    said so (helper audit), and ``autotune set`` keeps N: ``autotune revert`` gives back the
+    loop's own."""
+    changed = []
+    if applied.td > 0 and applied.n != before.n:
+        changed.append(f"derivative filter N {before.n:g} → {applied.n:g}")
+    if applied.beta != before.beta and not weighted:
+        changed.append(f"setpoint weight β {before.beta:g} → {applied.beta:g}")
+    if not changed:
+        return None
+    return (
+        f"the loop's {' and '.join(changed)}: the gains were designed, predicted and verified "
+        f"with N {applied.n:g} and β {applied.beta:g}, and are applied so (`autotune revert` "
+        "gives back the loop's own settings with its old gains)"
+    )
 
 
 def pre_check(before: Verification | None, limits: dict) -> Callable[[Verification], list[str]]:
