@@ -571,3 +571,18 @@ def test_an_apply_of_gains_the_loop_held_says_nothing_changed():
     assert "gains applied (the loop held them already: nothing changed)" in format_result(held)
     changed = hx1_result(after=after, previous_gains=PidGains(kc=2.0, ti=60.0))
     assert "new gains applied, loop in auto" in format_result(changed)
+
+
+def test_the_model_line_says_the_rules_design_dead_time():
+    """The model rules are designed with the hold's half sample added to the model's L
+    (``selection``): SIMC PI from a printed K 2, T 20 s, L 4 s read Kc 1.126 where 1.139
+    follows from L alone (helper audit). hx1 at 0.25 s: L + T/2 = 5 + 0.125 s."""
+    on = {"sample_time": 0.25, "node": "n", "model": "heat_exchanger"}
+    lines = format_result(hx1_result(identified_on=on)).splitlines()
+    i = next(i for i, x in enumerate(lines) if "model SOPDT" in x)
+    assert lines[i + 1].strip() == (
+        "the model's rules are designed with L + T/2 = 5.125 s (the hold's half sample at "
+        "T = 0.25 s)"
+    )
+    # not known at what sample time (a result without it): nothing said
+    assert "L + T/2" not in format_result(hx1_result())

@@ -1201,6 +1201,16 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
                 else ""
             )
         )
+        ts = (r.identified_on or {}).get("sample_time")
+        if r.gains and isinstance(ts, int | float) and ts > 0:
+            # the model rules are designed with the hold's half sample added (``selection``):
+            # SIMC PI from K 2, T 20 s, L 4 s read Kc 1.126 where 1.139 follows from the
+            # printed L (helper audit)
+            lines.append(
+                f"  the model's rules are designed with L + T/2 = "
+                f"{model['model_delay'] + 0.5 * ts:.4g} s (the hold's half sample at T = "
+                f"{ts:g} s)"
+            )
     if r.gains and span is not None:
         lines.extend(_percent_table(r, span, pv_units))
     elif r.gains:
