@@ -120,7 +120,7 @@ def acl_rules(prefix: str) -> list[dict[str, Any]]:
             "plant-alive",
             ["liveliness_token"],
             ["ingress"],
-            [f"{p}/plant/*/alive", f"{p}/plant_sim/*/alive"],
+            [f"{p}/plant/*/alive", f"{p}/plant_sim/*/alive", f"{p}/plant_sim/*/instance/*"],
         ),
         # the autotuner: the only one to command loops, each command's key ending in its
         # own user name (the plant reads who commanded from that chunk), and to publish runs

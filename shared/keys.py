@@ -19,6 +19,10 @@ Layout (IDs in their own chunks, most-varying part last)::
     <prefix>/plant/<loop>/alive            liveliness token of a served loop
     <prefix>/plant_sim/<node>/status       ServiceStatus of one plant_sim process (queryable)
     <prefix>/plant_sim/<node>/alive        liveliness token of one plant_sim process
+    <prefix>/plant_sim/<node>/instance/<id>  liveliness token of one plant_sim process's
+                                           run (``ServiceStatus.instance``): two processes
+                                           under one node name hold one ``alive`` between
+                                           them, but each its own of these
     <prefix>/tuner/<node>/tune             TuneRequest → TuneAccepted (queryable)
     <prefix>/tuner/<node>/alive            liveliness token of one autotuner process
     <prefix>/tune/<loop>/progress          TuneProgress while a run goes on
@@ -130,6 +134,21 @@ def service_status(prefix: str, service: str, node: str) -> str:
 
 def service_alive(prefix: str, service: str, node: str) -> str:
     return f"{prefix}/{service}/{node}/alive"
+
+
+def service_instance(prefix: str, service: str, node: str, instance: str) -> str:
+    return f"{prefix}/{service}/{node}/instance/{instance}"
+
+
+def parse_service_instance(prefix: str, service: str, key: str) -> tuple[str, str] | None:
+    """(node, instance) of ``<prefix>/<service>/<node>/instance/<id>``; None if it is not one."""
+    head = f"{prefix}/{service}/"
+    if not key.startswith(head):
+        return None
+    parts = key[len(head) :].split("/")
+    if len(parts) != 3 or parts[1] != "instance" or not parts[0] or not parts[2]:
+        return None
+    return parts[0], parts[2]
 
 
 def split_loop_key(prefix: str, key: str) -> tuple[str, list[str]] | None:

@@ -191,6 +191,11 @@ class ServiceStatus(Message):
     rejected: int = Field(ge=0, description="every command refused, unknown loops included")
     rejected_by_reason: dict[str, int]
     overruns: int = Field(ge=0, description="realtime periods started late")
+    # this process's run among plant processes (``LoopInfo.instance``), and when it started
+    # (wall clock, s since the epoch): of two processes found serving one loop, the later
+    # started stops (``shards``); None: a plant that does not say
+    instance: str | None = Field(default=None, max_length=64)
+    started: float | None = None
 
 
 class Command(Message):

@@ -34,7 +34,7 @@ from services.plant_sim.load_bound import LOAD_TIMEOUT, check_load_timeout, load
 from services.plant_sim.plant_file import default_plant_path, load_plant_file
 from services.plant_sim.publishers import Publishers
 from services.plant_sim.realtime import Group, RealtimeSteppers
-from services.plant_sim.shards import check_not_served, select_loops
+from services.plant_sim.shards import CLAIM_TIMEOUT, check_not_served, select_loops
 from services.plant_sim.simulation.loop import CommandRejected, LoopSnapshot, SimLoop
 from shared import keys, wire
 from shared.cli import (
@@ -164,6 +164,14 @@ class PlantService:
         self.lapsed: dict[str, dict[str, str]] = {}
         # this process's identity among plant instances (LoopInfo.instance)
         self.instance = secrets.token_hex(6)
+        self.started = time.time()  # wall clock: of two processes on one loop, the later stops
+        # why this process stops (another, started before it, serves one of its loops)
+        self.yielded: str | None = None
+        self._stop: threading.Event | None = None
+        # the start's check is over (``_claim_ok``: passed); the watch waits for it, so that
+        # a process the check refuses says it once, in the check's words
+        self._claimed = threading.Event()
+        self._claim_ok = False
         self.publishers = Publishers(session)
         # realtime: the loops stepped by sample time, linear ones as arrays; a loop is read or
         # changed only checked out of them (``_fresh``), and taken back by ``_settle``
@@ -221,6 +229,8 @@ class PlantService:
             rejected=sum(self.rejected_by_reason.values()),
             rejected_by_reason=dict(self.rejected_by_reason),
             overruns=self.overruns,
+            instance=self.instance,
+            started=self.started,
         )
 
     def _publish(self, out: Outbox) -> None:
@@ -729,14 +739,30 @@ class PlantService:
         prefix, shell = self.opt.prefix, ServiceShell(self.session, log)
         # first the claim: what this process serves, answered before any command is taken;
         # another process serving one of its loops makes it refuse to start
+        self._stop = stop
         service_key = keys.service_status(prefix, SERVICE, self.opt.node)
         shell.queryable(service_key, partial(self._on_query, what="service"), 1024)
+        # and watched for as long as it serves: a process whose claim this one's check did
+        # not yet see (two started within milliseconds: both served a loop, 3 tries in 10)
+        # is found when its instance token reaches this one (``_on_plant``)
+        shell.announce(keys.service_instance(prefix, SERVICE, self.opt.node, self.instance))
+        shell.subscribe(
+            keys.service_instance(prefix, SERVICE, keys.ANY, keys.ANY),
+            self._on_plant,
+            64,
+            liveliness=True,
+            history=True,
+        )
         try:
             check_not_served(self.session, prefix, set(self.loops))
+            self._claim_ok = True
         except ConfigError:
+            self._claimed.set()
+            shell.withdraw()
             shell.undeclare()
             shell.join(2.0)
             raise
+        self._claimed.set()
         # the declarations below cost time in proportion to those made before (Zenoh's
         # routing tables): the one-off start statuses go first, while there are few
         for lid, lp in self.loops.items():
@@ -781,6 +807,46 @@ class PlantService:
                 "stopped: %d commands applied, %d refused",
                 self.accepted,
                 sum(self.rejected_by_reason.values()),
+            )
+        if self.yielded is not None:
+            raise ConfigError(self.yielded)
+
+    def _on_plant(self, sample: zenoh.Sample) -> None:
+        """Another plant process's run appeared: if it serves one of this process's loops,
+        the later started of the two stops (exit 2, naming the other), and the other says so
+        in its log. Why not both: each loop stays served; a tie on the start time goes by
+        the instance ids, which both compare the same way."""
+        prefix = self.opt.prefix
+        parsed = keys.parse_service_instance(prefix, SERVICE, str(sample.key_expr))
+        if parsed is None or sample.kind != zenoh.SampleKind.PUT or parsed[1] == self.instance:
+            return
+        if not self._claimed.wait(2.0 * CLAIM_TIMEOUT) or not self._claim_ok:
+            return  # refused at the start, in the check's words
+        node, instance = parsed
+        key = keys.service_status(prefix, SERVICE, node)
+        answers = wire.query_all(self.session, key, ServiceStatus, CLAIM_TIMEOUT)
+        other = next((st for st in answers if st.instance == instance), None)
+        both = sorted(set(other.loops) & set(self.loops)) if other is not None else []
+        if other is None or not both:
+            return
+        theirs = (other.started if other.started is not None else 0.0, instance)
+        if theirs < (self.started, self.instance):
+            self.yielded = (
+                f"loop(s) {_some(both)} also served by plant process {node!r} (instance "
+                f"{instance}), started {self.started - theirs[0]:.3g} s before this one: this "
+                "process stops (each loop must be served by one process: split the plant "
+                "file with --loops or --shard K/N)"
+            )
+            log.error("%s", self.yielded)
+            if self._stop is not None:
+                self._stop.set()
+        else:
+            log.warning(
+                "plant process %r (instance %s), started after this one, also serves loop(s) "
+                "%s: it stops",
+                node,
+                instance,
+                _some(both),
             )
 
 

@@ -10,8 +10,11 @@ Two processes serving the same loop under one prefix would both apply its comman
 publish its samples. A plant process therefore asks, before it takes any command, every
 plant process under its prefix which loops it serves (their ``ServiceStatus``, its own
 included, for its queryable is declared first) and refuses to start if another serves one of
-its loops: one line naming them, exit 2. Two processes started at the same moment both see
-each other and both refuse.
+its loops: one line naming them, exit 2. Two processes started at the same moment may both
+see each other and both refuse, or miss each other (neither's claim yet reached the other:
+3 tries in 10 over a router, 9–125 ms apart); each also watches the other plant processes'
+instance tokens for as long as it serves (``PlantService._on_plant``), and of two found
+serving one loop the later started stops (exit 2, naming the other).
 """
 
 from __future__ import annotations
