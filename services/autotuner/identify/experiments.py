@@ -425,6 +425,10 @@ class Setup:
     # as a lag's do, is judged on where those steps lead (``StepTestConfig.early_approach``);
     # None: recorded before, the straight line alone until twelve samples since the move
     step_early_approach: bool | None = None
+    # True: a step test's trend toward the engineer's limits is the fitted one, without the
+    # baseline's drift where that opposes it, over the horizon and the samples to the next
+    # check (``StepTestConfig.drift_guard``); None: recorded before
+    step_drift_guard: bool | None = None
     # True: the transmitter's resolution (``rest_window.RESOLUTION`` of its range) floors what
     # counts as a response to the output (a relay or step test whose PV moves within it
     # aborts there) and as a drift before a test (a noise-free PV's creep within it is rest);
@@ -549,6 +553,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "step_trend_error",
         "step_coast",
         "step_early_approach",
+        "step_drift_guard",
         "resolution",
     ),
 }

@@ -123,6 +123,10 @@ class StepTestConfig:
     # coasts its dead time and lag); False: a run recorded before, twice the time the PV
     # took to start moving alone
     coast: bool = True  # (a run's set-up: ``Setup.step_coast``)
+    # the trend toward the engineer's limits (``pv_limits``) is the fitted one, without the
+    # baseline's drift where that opposes it, over the horizon and the samples to the next
+    # check (``_heading_out``); False: a run recorded before, the allowance's lenient reading
+    drift_guard: bool = True  # (a run's set-up: ``Setup.step_drift_guard``)
     # a PV that began to move fewer than twelve samples ago (too few for ``_approach_left``'s
     # thirds) and whose sample-to-sample steps shrink as a lag's do goes as far as they lead
     # (``_geometric_left``); False: a run recorded before, the straight line alone
@@ -217,6 +221,9 @@ class StepTest:
     _baseline_samples: int = 0
     _pv_before: float = math.nan
     _noise: float = 0.0
+    # PV units/s: the baseline's drift at the step, the part of its straight line clear of
+    # 2 standard errors (0: none, or within them)
+    _drift: float = 0.0
     _t_moved: float | None = None  # s from the step until the PV first cleared its noise
     _op: float = math.nan  # the output it wants held now
 
@@ -703,6 +710,10 @@ class StepTest:
             return self.op_start
         self._pv_before = float(base.mean())
         self._noise = noise_level(base)
+        if self.config.drift_guard:
+            tb = np.asarray(self.t[-n:], dtype=float)
+            slope, _, err = line_fit(tb - tb[-1], base)
+            self._drift = math.copysign(max(abs(slope) - 2.0 * err, 0.0), slope)
         self.phase = "step"
         self.events.append(
             Event(
@@ -917,9 +928,24 @@ class StepTest:
         # a 5 % step of e^{−3s}/(10s + 1) read 1.24 %/s over 20 samples, extended it 29.6 s
         # to 91 and aborted "would leave the allowance" a response that ends at 55 (helper
         # trial); the PV's own crossing still stops it (``level``)
+        fitted = slope
         if self.config.trend_error:
             slope = math.copysign(max(abs(slope) - 2.0 * err, 0.0), slope)
         reach = float(level + slope * horizon)
+        # the engineer's limits are held as limits: the fitted trend (not 2 standard errors
+        # less), without a drift of the baseline that opposes it (still settling from an
+        # earlier change, rest passed on a short window: it fades, and the step's own answer
+        # is steeper), over the horizon and the samples to the next check (the stop comes
+        # that late). Back-to-back steps of e^{−4s}/(30s + 1), σ 0.05, limits ±1.5, each
+        # begun with the PV 0.45 up on its way down to rest: read at 2 standard errors less
+        # and checked every 8 samples, two went past the limit at 51.5, to 51.52 and 51.54
+        # (helper trial); the allowance keeps the lenient reading (its false alarms cost a
+        # test, not a limit)
+        hard_slope, hard_horizon = slope, horizon
+        if self.config.drift_guard:
+            hard_slope = fitted - self._drift if self._drift * fitted < 0 else fitted
+            hard_horizon = horizon + samples_to_check(len(self.pv)) * self.sample_time
+        hard = float(level + hard_slope * hard_horizon)
         # the approach judged on the samples since the PV started moving: a window that also
         # holds the flat dead time before it reads a lag's onset as speeding up (the straight
         # line took e^{−10s}/(2s+1)'s 5 % step, at 53.2 and slowing, past 75: helper trial F)
@@ -936,6 +962,8 @@ class StepTest:
             # slowing down as a lag's approach does: it goes no further than its end (a
             # straight line over 2 L took e^{−10s}/(2s+1)'s 5 % step past 75 %: it ends at 55)
             reach = float(level + left)
+        if left is not None and abs(left) < abs(hard - level):
+            hard = float(level + left)
         lo, hi = self.ends
         margin = 4.0 * self._noise
         u = f" {self.pv_units}" if self.pv_units else ""
@@ -949,24 +977,28 @@ class StepTest:
                     f"{level:.4g}{u}, moving {slope:.3g}{u}/s): stopped before the measurement "
                     "clips; use a smaller step"
                 )
-        trend = f"within {horizon:.3g} s (now {level:.4g}{u}, moving {slope:.3g}{u}/s)"
         p_lo, p_hi = self.pv_limits
         a_lo, a_hi = self.allowance
-        for (b_lo, b_hi), what, advice in (
+        for (b_lo, b_hi), to, (rate, within), what, advice in (
             (
                 (p_lo, p_hi),
+                hard,
+                (hard_slope, hard_horizon),
                 f"its limits [{p_lo:g}, {p_hi:g}]{u}",
                 ": stopped before it does, as it keeps moving for about its dead time once the "
                 "output is restored; use a smaller step",
             ),
             (
                 (a_lo, a_hi),
+                reach,
+                (slope, horizon),
                 f"the test's allowance, {a_lo:.4g}–{a_hi:.4g}{u} ("
                 f"{100 * self.config.max_move:.3g} % of its range either way from its rest),",
                 "; use a smaller step or a larger allowance",
             ),
         ):
-            if max(level, reach) >= b_hi or min(level, reach) <= b_lo:
+            if max(level, to) >= b_hi or min(level, to) <= b_lo:
+                trend = f"within {within:.3g} s (now {level:.4g}{u}, moving {rate:.3g}{u}/s)"
                 return f"the PV would leave {what} {trend}{advice}"
         return None
 
@@ -1371,6 +1403,7 @@ def build(settings: Settings, setup: Setup) -> StepTest:
         steady_floor=bool(setup.step_steady_floor),
         trend_error=bool(setup.step_trend_error),
         coast=bool(setup.step_coast),
+        drift_guard=bool(setup.step_drift_guard),
         resolution=setup.resolution_floor(),
         **timeout,
     )
