@@ -387,6 +387,12 @@ def test_the_left_line_prints_the_mean_at_rest_it_judged_by():
     left = {**left, "pv_rest": None, "returned": False, "waited": 0.0}
     line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
     assert "(the PV is not back where it was, not waited for: target 50 ± 0.8)" in line
+    # not waited for, its last sample within the band: not known (one sample says nothing
+    # of where it heads: a relay cancelled mid-swing was "back" at 50.17, on its way to
+    # 50.74, helper trial)
+    left = {**left, "pv": 50.17, "returned": None}
+    line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)
+    assert "(the PV is not known to be back where it was, not waited for: target 50" in line
     # seen by a query after the plant was lost: where it is against where it was
     left = {**left, "pv_target": None, "pv_before": 50.0, "pv": 51.25}
     line = next(x for x in format_result(hx1_result(left=left)).splitlines() if "left:" in x)

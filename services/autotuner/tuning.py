@@ -1086,7 +1086,10 @@ class TuningRun:
         pv = c.last_sample.pv if c.last_sample is not None else st.pv
         lo, hi = self.info.pv_range
         band = self._rest_band()
-        returned = abs(pv - target) <= band
+        # back only where found at rest there: one sample within the band says nothing of
+        # where the PV is going (a relay cancelled mid-swing was "back where it was" at 50.17
+        # for 49.99 ± 0.2, on its way to 50.74: helper trial); None: not known
+        returned: bool | None = None if abs(pv - target) <= band else False
         rest_pv: float | None = None  # the mean at rest the judgement used (when waited)
         # PV units per s over the last window watched, where the PV was not found at rest
         # (toward the target: on its way back; else not: a level an aborted test left high
@@ -1130,9 +1133,17 @@ class TuningRun:
             except AutotuneError as err:  # the wait cut short: said beside the figures
                 cut = one_line(err)
             rest_pv = check.rest_pv if check.at_rest else None
-            returned = abs((pv if rest_pv is None else rest_pv) - target) <= band
             if rest_pv is None:  # which way it went over the last window watched, if any
                 drift = _trend(seen_t, seen_pv, check.samples)
+            if rest_pv is not None:
+                returned = abs(rest_pv - target) <= band
+            elif abs(pv - target) > band:
+                returned = False
+            elif drift is not None:  # within the band: back unless clearly heading out
+                rate, error = drift
+                returned = not (abs(rate) > 3.0 * error and rate * (pv - target) > 0)
+            else:
+                returned = None  # one sample within the band: not known
             if not returned and rest_pv is not None and st.mode == "manual" and model is not None:
                 back = self._give_back(st, target, rest_pv, model, horizon)
                 if back is not None:
@@ -1150,7 +1161,7 @@ class TuningRun:
             "pv_rest": rest_pv,
             "pv_target": target,
             "band": band,
-            "returned": bool(returned),
+            "returned": returned,
             "waited": waited,
             "cut": cut,
             "drift": drift[0] if drift is not None else None,

@@ -1349,6 +1349,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
                 if lf.get("waited")
                 # cancelled, or --no-wait: a level in manual never comes back by itself
                 else "not back where it was, not waited for"
+                if lf.get("returned") is False
+                else "not known to be back where it was, not waited for"
             )
             within = f" ± {lf['band']:.2g}" if lf.get("band") is not None else ""
             back = f"the PV is {where}: target {lf['pv_target']:.4g}{within}"
