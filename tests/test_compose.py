@@ -60,3 +60,25 @@ def test_every_container_uses_the_secure_configs_autotune_up_writes(compose, tmp
         check = compose["services"][name]["healthcheck"]["test"]
         assert f"/secure/{deployment.config('viewer').name}" in check, name
     assert set(roles.values()) | {"viewer"} <= set(ROLES)
+
+
+def test_each_container_mounts_only_its_own_secrets(compose, tmp_path) -> None:
+    """A service's container holds its own role's config and the viewer's (its
+    healthcheck's), never another role's password: with the whole secure directory in every
+    container a compromised plant could log in as the tuner, the only role allowed to
+    command loops (helper review)."""
+    deployment = SecureDeployment(tmp_path, "tcp/router:7447")
+    own = {
+        "router": {deployment.router.name, "users.txt"},
+        "plant_sim": {deployment.config("plant").name, deployment.config("viewer").name},
+        "autotuner": {deployment.config("tuner").name, deployment.config("viewer").name},
+        "logger": {deployment.config("logger").name, deployment.config("viewer").name},
+    }
+    for name, files in own.items():
+        mounted = [v for v in compose["services"][name]["volumes"] if isinstance(v, str)]
+        assert all(v.endswith(":ro") for v in mounted), (name, mounted)
+        targets = {v.split(":")[1] for v in mounted}
+        assert targets == {f"/secure/{f}" for f in files}, (name, targets)
+        for v in mounted:  # each from its file in .autotune/secure, not the directory
+            source, target, _ = v.split(":")
+            assert source == f"./.autotune/secure/{Path(target).name}", v
