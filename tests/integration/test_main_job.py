@@ -271,6 +271,32 @@ def test_health_says_down_when_nothing_runs():
         "nobody",
     )
     assert run.returncode == 1 and run.stdout.startswith("plant: DOWN (nobody/")
+    # a client whose router is not there: down too, exit 1 (it exited 2, which Docker's
+    # healthcheck reserves, and said nothing on stdout: helper review)
+    run = cli(
+        "health",
+        "plant",
+        "--timeout",
+        "0.5",
+        "-m",
+        "client",
+        "-e",
+        f"tcp/127.0.0.1:{port}",
+        "--no-multicast-scouting",
+    )
+    assert run.returncode == 1, run.stderr
+    assert run.stdout.startswith("plant: DOWN (cannot reach the bus: "), run.stdout
+
+
+def test_health_finds_a_plant_under_its_own_node(start_plant):
+    """Plant processes sharding a plant file run under their own --node: `health plant`
+    without --node finds any of them and names it (it said DOWN with both up)."""
+    plant = start_plant(None, "--node", "r1", loops=("hx1",))
+    run = cli("health", "plant", "--timeout", "5", *plant.cli_args())
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert run.stdout.strip() == f"plant: up ({plant.prefix}/plant_sim/*/alive; node r1)"
+    named = cli("health", "plant", "--node", "r2", "--timeout", "0.5", *plant.cli_args())
+    assert named.returncode == 1 and named.stdout.startswith("plant: DOWN"), named.stdout
 
 
 def test_compose_file_is_valid_against_the_compose_spec(tmp_path):
