@@ -442,10 +442,6 @@ class Setup:
     # chatter is judged against the hysteresis the noise needs where the given one is
     # smaller (``RelayConfig.noise_chatter``); None: recorded before
     relay_noise: bool | None = None
-    # True: a relay cycle's PV is smoothed before its amplitude is read only where its noise
-    # is clear of the transmitter's resolution and of the rounding (``RelayConfig
-    # .smooth_floor``); None: recorded before, wherever the noise read above 0
-    relay_smooth_floor: bool | None = None
     # True: a ramp trial closes early, and its fit counts, only on an oscillation that swings
     # out of the noise (``RampConfig.seen_fits``); None: recorded before
     ramp_seen_fits: bool | None = None
@@ -528,7 +524,6 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "relay_offset",
         "relay_pattern",
         "relay_noise",
-        "relay_smooth_floor",
         "pv_clip",
         "pv_allowance",
         "resolution",

@@ -102,13 +102,6 @@ class RelayConfig:
     # before its peak-to-peak is read, once it has this many samples
     smooth_min_samples: int = 9
     smooth_divisor: int = 20
-    # ... and only where that noise is one: above ``resolution`` and a rounding's 1e-9 of the
-    # cycle. A noise-free loop's rest reads σ ~ 1e-15 (rounding), and a lag-dominated loop's
-    # triangular cycle smoothed over a twentieth of itself lost a twentieth of its peak: the
-    # describing-function K_u read 5 % high (−14.4 % for the classic relay's −18.6 % at L/T =
-    # 0.05: helper audit), and a run that falls back on it takes it. False: a run recorded
-    # before, smoothed wherever σ > 0
-    smooth_floor: bool = True  # (a run's set-up: ``Setup.relay_smooth_floor``)
     # a cycle within these ratios of the one before (amplitude and period) is steady (noise
     # can split a cycle): only then may the bias move
     steady_ratios: tuple[float, float] = (0.8, 1.25)
@@ -1038,10 +1031,7 @@ class RelayTest:
         t, y, u = np.asarray(self.t), np.asarray(self.pv), np.asarray([*self.op, self._out()])
         sel = (t >= t0) & (t <= t1)
         ys = y[sel]
-        floor = 0.0
-        if cfg.smooth_floor and ys.size:
-            floor = max(cfg.resolution, 1e-9 * 0.5 * float(np.ptp(ys)))
-        if self._noise > floor and ys.size >= cfg.smooth_min_samples:
+        if self._noise > 0 and ys.size >= cfg.smooth_min_samples:
             w = max(3, ys.size // cfg.smooth_divisor) | 1
             ys = np.convolve(ys, np.ones(w) / w, mode="valid")
         amplitude = 0.5 * float(ys.max() - ys.min())
@@ -1471,7 +1461,6 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         resolution=setup.resolution_floor(),
         pattern_cycles=RelayConfig.pattern_cycles if setup.relay_pattern else None,
         noise_chatter=bool(setup.relay_noise),
-        smooth_floor=bool(setup.relay_smooth_floor),
         early_crossing=RelayConfig.early_crossing if setup.relay_noise else None,
         **budget,
     )
