@@ -76,7 +76,9 @@ def test_a_step_slower_than_the_lease_leaves_the_loop_leased(start_plant, clock)
         # realtime run on a loaded machine fitted none, judged the rules and proposed)
         assert steps[0] == "_finished"
         design = ["judge_all", "predicted_setpoint_steps"] if r.robustness else ["judge_all"]
-        assert sorted(steps[1:]) == design, (r.robustness, r.warnings)
+        # (then the verification's ringing fits, their slow-mode starts side by side)
+        assert sorted(steps[1 : 1 + len(design)]) == design, (r.robustness, r.warnings)
+        assert set(steps[1 + len(design) :]) <= {"_slow_start"}, steps
         after = c.sync()
     assert after.leased_by is None  # released at the end, not taken back by the watchdog
     assert after.reason != "watchdog"
