@@ -344,3 +344,19 @@ def test_a_model_that_misses_its_record_recommends_from_k_u_and_p_u_alone(rms, m
     forced = select(ident, "amigo-pid", sample_time=pu / 100)
     ms = forced.assessments["amigo-pid"].robustness.ms
     assert (forced.refusal is not None) == (ms > 1.5)
+
+
+def test_the_l_over_t_warning_names_whose_dead_time_it_used():
+    """A step test's L/T is the curve's T over the design's L; "the design's L" was said of
+    the curve's own (39.24 s beside a model's 40.02 s: helper review). Said only where the
+    design's L is not the curve's (a dead time the record did not resolve)."""
+    from types import SimpleNamespace
+
+    from services.autotuner.design.selection import _ratio_source
+
+    curve = SimpleNamespace(dead_time=39.24)
+    same = SimpleNamespace(is_integrating=False, time_constant=14.8, dead_time=39.24)
+    bound = SimpleNamespace(is_integrating=False, time_constant=14.8, dead_time=40.1)
+    assert _ratio_source(SimpleNamespace(step=curve, step_model=same)) == "the step curve's"
+    said = _ratio_source(SimpleNamespace(step=curve, step_model=bound))
+    assert said == "the step curve's T, the design's L"

@@ -120,7 +120,11 @@ def _ratio_source(ident: Identification) -> str:
     """Whose L/T ``l_over_t`` gives: the step's reaction curve (its dead time the design's),
     else the model's first-order equivalent."""
     sm = ident.step_model
-    if ident.step is not None and sm is not None and not sm.is_integrating and sm.time_constant:
+    # the design's L only where it is not the curve's own (a dead time the record did not
+    # resolve): "the design's L" was said of the curve's 39.24 s, beside a model whose L was
+    # 40.02 s (helper review)
+    designed = sm is not None and sm.dead_time != getattr(ident.step, "dead_time", None)
+    if ident.step is not None and designed and not sm.is_integrating and sm.time_constant:
         return "the step curve's T, the design's L"
     if ident.step is not None:
         return "the step curve's"
