@@ -489,3 +489,14 @@ def test_minus_zero_is_zero():
 
     for parse in (finite, derivative_time):
         assert math.copysign(1.0, parse("-0")) == 1.0 and f"{parse('-0.0'):g}" == "0"
+
+
+def test_a_refusal_names_the_commands_kind_once():
+    """The plant's reason on a faulted loop, after the kind: "mode: mode refused: …" said the
+    kind twice (helper review)."""
+    said = "mode: mode refused: the loop is faulted and held in manual (model: step() raised)"
+    client = ScriptedClient(status(), fail_at=0, error=CommandRefused(f"loop hx1: {said}"))
+    out = execute(client, plan(Asked(mode="auto"), status(), "degC"))
+    text = set_loop.format_outcome(out, "degC")
+    assert "REFUSED by the plant: mode refused: the loop is faulted and held in manual" in text
+    assert "mode: mode refused" not in text

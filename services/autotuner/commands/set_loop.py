@@ -441,6 +441,11 @@ def format_outcome(out: Outcome, pv_units: str) -> str:
     rows = [(w.what, w.change, "applied") for w in out.applied]
     if out.refused is not None:
         w, reason = out.refused
+        # the plant's reason names the command's kind once ("mode refused: the loop is
+        # faulted …"); its "kind: " before it said it twice (helper review)
+        kind, sep, rest = reason.partition(": ")
+        if sep and rest.startswith(f"{kind} refused"):
+            reason = rest
         rows.append((w.what, w.change, f"REFUSED by the plant: {reason}"))
     if out.unconfirmed is not None:
         rows.append((out.unconfirmed.what, out.unconfirmed.change, "sent, not confirmed"))
