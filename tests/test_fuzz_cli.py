@@ -154,6 +154,11 @@ REFUSED = [
     (["tune", "hx1", "--rule", "zn-ol-pi"], ["--rule: zn-ol-pi needs a step test"]),
     (["step", "hx1", "--size", "1e9"], ["--size", "at most"]),
     (["step", "hx1", "--size", "-101"], ["--size"]),
+    # 0 itself is refused: "0–100" said it was allowed (helper review)
+    (
+        ["step", "hx1", "--max-move", "0"],
+        ["--max-move 0.0: must be a % of the range, > 0 and ≤ 100"],
+    ),
     (["step", "hx1", "--baseline", "-1"], ["--baseline"]),
     (["step", "hx1", "--timeout", "0"], ["--timeout"]),
     (["step", "hx1", "--timeout", "-5"], ["--timeout"]),

@@ -123,7 +123,7 @@ def config_from_args(args: argparse.Namespace) -> StepTestConfig:
     if args.pv_limits and not args.pv_limits[0] < args.pv_limits[1]:
         raise ConfigError(f"--pv-limits {args.pv_limits}: LO must be below HI")
     if not 0 < args.max_move <= 100:  # also refuses NaN
-        raise ConfigError(f"--max-move {args.max_move}: must be a % of the range, 0–100")
+        raise ConfigError(f"--max-move {args.max_move}: must be a % of the range, > 0 and ≤ 100")
     return StepTestConfig(
         size=args.size,
         baseline=args.baseline,
