@@ -154,6 +154,8 @@ REFUSED = [
     (["tune", "hx1", "--rule", "zn-ol-pi"], ["--rule: zn-ol-pi needs a step test"]),
     (["step", "hx1", "--size", "1e9"], ["--size", "at most"]),
     (["step", "hx1", "--size", "-101"], ["--size"]),
+    # a path is no run id ("no run of that id": helper review)
+    (["apply", "../x"], ["RUN_ID '../x': not a run id"]),
     # 0 itself is refused: "0–100" said it was allowed (helper review)
     (
         ["step", "hx1", "--max-move", "0"],

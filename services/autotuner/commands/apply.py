@@ -19,6 +19,7 @@ was sent.
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 from typing import Any
 
@@ -63,8 +64,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_common_arguments(parser)
 
 
+# what a run id is (``shared.messages.RunId``)
+RUN_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+def check_run_id(run_id: str) -> None:
+    """ConfigError naming RUN_ID when it cannot be a run's id at all."""
+    if not RUN_ID.match(run_id):
+        raise ConfigError(
+            f"RUN_ID {run_id!r}: not a run id (1-64 letters, digits, '_' or '-'; `autotune "
+            "runs` lists them)"
+        )
+
+
 def recorded_run(runs: Path, run_id: str) -> dict[str, Any]:
-    """The run's ``tune`` record in the change history; ConfigError when there is none."""
+    """The run's ``tune`` record in the change history; ConfigError when there is none, or
+    when ``run_id`` cannot be a run's id at all (``../x`` was "no run of that id": helper
+    review)."""
+    check_run_id(run_id)
     found = [
         r
         for r in read_history(runs / HISTORY_FILE)
@@ -217,6 +234,7 @@ def same_loop(recorded: dict[str, Any] | None, info: LoopInfo) -> str | None:
 def run(args: argparse.Namespace) -> int:
     check_ids(args.prefix)
     check_tuner_node(args.node)
+    check_run_id(args.run_id)
     runs = Path(args.runs)
     if not runs.is_dir():
         raise ConfigError(f"--runs {runs}: not a directory (the logger's runs directory)")
