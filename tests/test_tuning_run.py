@@ -667,3 +667,14 @@ def test_a_run_cancelled_mid_swing_does_not_call_its_pv_back():
     r = run(client, RunHooks(progress=progress, cancelled=cancel), method="relay")
     assert (r.status, r.reason, r.restored) == ("aborted", "cancelled", True)
     assert r.left["pv_rest"] is None and r.left["returned"] is not True, r.left
+
+
+def test_an_ok_run_is_back_where_it_was_as_its_verification_saw():
+    """Gains that passed their verification were left on once it saw the loop back at rest
+    on its setpoint: the run says so without a wait of its own (the demo's "the PV is back
+    where it was")."""
+    client = LocalLoopClient(third_order_loop("auto", setpoint=50.0))
+    client.advance(2000)  # at rest on its setpoint
+    r = run(client, method="relay")
+    assert r.status == "ok", r.reason
+    assert r.left["returned"] is True, r.left

@@ -590,12 +590,18 @@ class TuningRun:
             elif not result.get("restored"):
                 result["reason"] = f"{result.get('reason')}; {_unknown_state(c)}"
             return self._result(result, t0, wall0, left)
+        # the verification saw the loop back at rest on its setpoint (``back_at_rest``) before
+        # the gains it passed were left on: its last sample within the band says as much
+        rested = result.get("status") in APPLIED_STATUSES and bool(
+            (result.get("acceptance") or {}).get("passed")
+        )
         left = self._leave(
             before,
             self._pv_rest,
             wait=wait_back and not cancelled,
             scale=scale,
             model=ident.model if ident is not None else None,
+            rested=rested,
         )
         if result.get("status") in APPLIED_STATUSES and left is not None:
             self._check_kept(result, before, left)
@@ -1074,9 +1080,11 @@ class TuningRun:
         wait: bool,
         scale: float | None = None,
         model: ProcessFit | None = None,
+        rested: bool = False,
     ) -> dict | None:
         """What the run left: the loop's mode, setpoint, output and gains, and whether the PV
-        is back at rest where it was (waited for, bounded, when the loop was restored)."""
+        is back at rest where it was (waited for, bounded, when the loop was restored;
+        ``rested``: the run saw it at rest there already, its verification's return)."""
         c = self.client
         try:
             st = c.sync()
@@ -1089,7 +1097,7 @@ class TuningRun:
         # back only where found at rest there: one sample within the band says nothing of
         # where the PV is going (a relay cancelled mid-swing was "back where it was" at 50.17
         # for 49.99 ± 0.2, on its way to 50.74: helper trial); None: not known
-        returned: bool | None = None if abs(pv - target) <= band else False
+        returned: bool | None = (rested or None) if abs(pv - target) <= band else False
         rest_pv: float | None = None  # the mean at rest the judgement used (when waited)
         # PV units per s over the last window watched, where the PV was not found at rest
         # (toward the target: on its way back; else not: a level an aborted test left high
