@@ -939,6 +939,17 @@ class TuningRun:
                 "compute workers slow, starved or stopped): the loop ran on at a held output "
                 "meanwhile, watched only against its PV limits",
             ]
+        kept = kept_pace(
+            self.info.clock, self.info.speed, result["sim_duration"], result["wall_time"]
+        )
+        if kept is not None:
+            result["warnings"] = [
+                *result.get("warnings", []),
+                f"the plant kept {100 * kept:.0f} % of the realtime clock's ×{self.info.speed:g} "
+                f"({result['sim_duration']:.4g} s of sim time in {result['wall_time']:.4g} s of "
+                "wall time): its models step slower than their periods at that speed, so the "
+                "run took longer than asked; a lower --speed keeps pace",
+            ]
         stalled = stall_watch().stalled(wall0)
         if self.info.clock == "realtime" and stalled > OVERSLEPT:  # lockstep: the plant waited
             result["warnings"] = [
@@ -2689,6 +2700,24 @@ def process_ringing(after: Verification) -> bool:
     check failed, nor where it did not see the mode."""
     check = recorded_check(after)
     return check is not None and check.mode is not None and not check.failed
+
+
+# a realtime run's plant kept under this share of its clock's speed: said (over a run of at
+# least PACE_WALL s of wall time, so that start-up's fixed costs do not count)
+PACE_KEPT = 0.9
+PACE_WALL = 5.0
+
+
+def kept_pace(clock: str, speed: float, sim: float, wall: float) -> float | None:
+    """The share of its clock's ``speed`` a realtime plant kept over a run (``sim`` s of sim
+    time in ``wall`` s of wall time), where it is under ``PACE_KEPT``; None otherwise, and on
+    the lockstep clock. Why: a model slower than its period (20 ms a step at ×20, 1 ms
+    allowed) made a plant run at ×10, and neither the plant nor the result said so (helper
+    trial)."""
+    if clock != "realtime" or not (speed > 0 and wall >= PACE_WALL and sim >= 0):
+        return None
+    kept = sim / (speed * wall)
+    return kept if kept < PACE_KEPT else None
 
 
 def settings_note(before: PidGains, applied: PidGains, weighted: bool = False) -> str | None:
