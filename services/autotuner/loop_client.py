@@ -400,6 +400,11 @@ class LoopClient:
             self.session, keys.status(self.prefix, self.loop), LoopStatus, timeout
         )
 
+    def query_info(self, timeout: float) -> LoopInfo | None:
+        """The loop's info by a query (None: no answer within ``timeout`` s): its plant's
+        ``instance`` tells a plant started anew from the one the run began on."""
+        return wire.query_one(self.session, keys.info(self.prefix, self.loop), LoopInfo, timeout)
+
     def _query_info(self) -> LoopInfo:
         info = wire.query_one(
             self.session, keys.info(self.prefix, self.loop), LoopInfo, self.timeout

@@ -553,6 +553,7 @@ class TuningRun:
             # when our run token vanishes or our lease lapses; say what it shows
             left = self._seen_after_loss(before)
             held = left is not None and left.pop("held")
+            restarted = left is not None and left.pop("restarted")
             if left is not None and left.pop("as_before"):
                 result["restored"] = True
                 if PLANT_RESTORED not in str(result.get("reason")):
@@ -569,6 +570,11 @@ class TuningRun:
                     "this run's last writes, read by the plant after the run lost it, or "
                     "another client changed it"
                 )
+                if restarted:
+                    who = (
+                        "the plant was started anew meanwhile (another instance of it: the "
+                        "loop is as its plant file sets it, not as it was)"
+                    )
                 if held:  # the release (with its restore) not read yet
                     who = (
                         "the plant still shows it held by this run, and restores it to its "
@@ -879,6 +885,16 @@ class TuningRun:
         # manual stays where an interrupted test left it (1.50 → 1.63 m, "the plant restored
         # the loop", nothing said of the level: helper trial E)
         rest = self._pv_rest if before.mode == "manual" else before.sp
+        # a plant started anew meanwhile (another instance: its loop as its plant file sets
+        # it), not this run's writes or another client's (helper trial: a plant killed and
+        # restarted mid-tune was blamed on them)
+        query_info = getattr(self.client, "query_info", None)
+        info = query_info(LOSS_QUERY_TIMEOUT) if query_info is not None else None
+        restarted = (
+            info is not None
+            and None not in (info.instance, self.info.instance)
+            and info.instance != self.info.instance
+        )
         return {
             "mode": st.mode,
             "sp": st.sp,
@@ -892,6 +908,7 @@ class TuningRun:
             "waited": 0.0,
             "as_before": same and st.leased_by is None,
             "held": st.leased_by == self.client.source,  # this run's lease, not yet let go
+            "restarted": restarted,
         }
 
     def _result(self, result: dict, t0: float, wall0: float, left: dict | None) -> TuneResult:

@@ -102,6 +102,10 @@ class LocalLoopClient:
         """The loop's status, read without a command (as a query over the bus would)."""
         return self.sim.status(NODE, "lockstep", "query")
 
+    def query_info(self, timeout: float) -> LoopInfo:
+        """The loop's info (as a query over the bus would): the same plant, always."""
+        return self.info
+
     def send(self, cmd: Command) -> None:
         self._apply(cmd)
 
