@@ -116,7 +116,8 @@ def test_heading_out_of_the_pv_limits_stops_before_them_with_the_output_back():
     reach the limit, so the PV never passes it."""
     test = run_step(5.0, pv_limits=(0.0, 35.0), pv_range=(0.0, 100.0))
     assert test.phase == "aborted" and test.result is None
-    horizon = 2 * (L + TS) + 4 * TS
+    # and the 8 samples to the next check: the engineer's limits are held as limits
+    horizon = 2 * (L + TS) + 4 * TS + 8 * TS
     assert f"the PV would leave its limits [0, 35] within {horizon:g} s" in test.reason
     assert test.demand.op == OP0 and test.events[-1][1] == "aborted"
     assert max(test.pv) < 35.0

@@ -942,8 +942,9 @@ class StepTest:
         # (helper trial); the allowance keeps the lenient reading (its false alarms cost a
         # test, not a limit)
         hard_slope, hard_horizon = slope, horizon
-        # (limits that are the transmitter's range, none asked, are its ends: read as before)
-        asked = self.pv_range is None or tuple(self.pv_limits) != tuple(self.pv_range)
+        # (limits that are the transmitter's range, or stand for it, are its ends: read as
+        # before)
+        asked = self.pv_range is not None and tuple(self.pv_limits) != tuple(self.pv_range)
         if self.config.drift_guard and asked:
             hard_slope = fitted - self._drift if self._drift * fitted < 0 else fitted
             hard_horizon = horizon + samples_to_check(len(self.pv)) * self.sample_time
