@@ -442,6 +442,10 @@ class Setup:
     # chatter is judged against the hysteresis the noise needs where the given one is
     # smaller (``RelayConfig.noise_chatter``); None: recorded before
     relay_noise: bool | None = None
+    # True: a noise-free relay cycle (σ within the resolution and the rounding) is smoothed
+    # over 3 samples, not a twentieth of it (``RelayConfig.smooth_floor``); None: recorded
+    # before, a twentieth wherever σ > 0
+    relay_smooth_floor: bool | None = None
     # True: a ramp trial closes early, and its fit counts, only on an oscillation that swings
     # out of the noise (``RampConfig.seen_fits``); None: recorded before
     ramp_seen_fits: bool | None = None
@@ -524,6 +528,7 @@ _LIVE_FLAGS: dict[str, tuple[str, ...]] = {
         "relay_offset",
         "relay_pattern",
         "relay_noise",
+        "relay_smooth_floor",
         "pv_clip",
         "pv_allowance",
         "resolution",

@@ -102,6 +102,14 @@ class RelayConfig:
     # before its peak-to-peak is read, once it has this many samples
     smooth_min_samples: int = 9
     smooth_divisor: int = 20
+    # ... but a noise-free cycle's (σ within ``resolution`` and a rounding's 1e-9 of it) over
+    # 3 samples only: the sampling's jitter in its peaks, which a coarsely sampled cycle
+    # needs averaged ((s+1)⁻³ at 20 samples a period read K_u +8.6 % raw, +2.3 % so), and
+    # not a twentieth of a finely sampled one, whose triangular peak that clipped: the
+    # describing-function K_u read 5 % high (−14.4 % for the classic relay's −18.6 % at L/T
+    # = 0.05: helper audit), and a run that falls back on it takes it. False: a run recorded
+    # before, a twentieth wherever σ > 0
+    smooth_floor: bool = True  # (a run's set-up: ``Setup.relay_smooth_floor``)
     # a cycle within these ratios of the one before (amplitude and period) is steady (noise
     # can split a cycle): only then may the bias move
     steady_ratios: tuple[float, float] = (0.8, 1.25)
@@ -1033,6 +1041,8 @@ class RelayTest:
         ys = y[sel]
         if self._noise > 0 and ys.size >= cfg.smooth_min_samples:
             w = max(3, ys.size // cfg.smooth_divisor) | 1
+            if cfg.smooth_floor and self._noise <= max(cfg.resolution, 0.5e-9 * np.ptp(ys)):
+                w = 3
             ys = np.convolve(ys, np.ones(w) / w, mode="valid")
         amplitude = 0.5 * float(ys.max() - ys.min())
         high = u[sel] > self.bias
@@ -1461,6 +1471,7 @@ def build(settings: Settings, setup: Setup) -> RelayTest:
         resolution=setup.resolution_floor(),
         pattern_cycles=RelayConfig.pattern_cycles if setup.relay_pattern else None,
         noise_chatter=bool(setup.relay_noise),
+        smooth_floor=bool(setup.relay_smooth_floor),
         early_crossing=RelayConfig.early_crossing if setup.relay_noise else None,
         **budget,
     )
