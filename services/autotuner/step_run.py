@@ -149,6 +149,13 @@ def run_step_test(
         except ValueError as err:
             raise StepTestAborted(f"loop {client.loop}: {err}") from None
 
+    if before.fault is not None:
+        # a faulted loop is held in manual and refuses the output: refused before the lease,
+        # as a tune is (it took the lease, then failed "output refused … loop restored":
+        # helper review)
+        raise StepTestAborted(
+            f"loop {client.loop}: not started: the loop is faulted ({before.fault})"
+        )
     test = make(before.op)  # refused before the lease where the settings cannot work
     hold = before.op  # the output held for the test (a loop in auto: its mean, below)
     restored = False
