@@ -592,3 +592,25 @@ def test_the_model_line_says_the_rules_design_dead_time():
     )
     # not known at what sample time (a result without it): nothing said
     assert "L + T/2" not in format_result(hx1_result())
+
+
+def test_a_run_that_sent_nothing_does_not_judge_where_the_pv_is():
+    """Refused at its start (nothing sent to the loop): where the PV is, the last run's test
+    still moving it, is none of its doing; it said "not back where it was: target 51.02"
+    (helper review)."""
+    left = {
+        "mode": "manual",
+        "sp": 50.0,
+        "op": 50.0,
+        "gains": {},
+        "pv": 50.6,
+        "pv_rest": None,
+        "pv_target": 51.02,
+        "band": 0.2,
+        "returned": False,
+        "waited": 0.0,
+    }
+    r = hx1_result(left=left, status="aborted", applied=False, untouched=True, restored=True)
+    line = next(x for x in format_result(r).splitlines() if "left:" in x)
+    assert line.endswith("PV 50.6 degC (as the run found it: nothing was sent to it)"), line
+    assert "not back" not in format_result(r)

@@ -580,7 +580,8 @@ class Interrupted(KeyboardInterrupt):
             # wrote to followed "nothing was sent to the loop" (helper trial)
             back = "untouched (nothing was sent to it)"
         lf = r.left or {}
-        if r.restored and lf.get("pv_target") is not None and lf.get("returned") is False:
+        restored_off = lf.get("pv_target") is not None and lf.get("returned") is False
+        if r.restored and not r.untouched and restored_off:
             # restored, but its PV not back (a level in manual stays where the test left it:
             # helper trial, lvl2's ramp cancelled, 1.525 m for 1.5, said only "restored")
             band = f" ± {lf['band']:.2g}" if lf.get("band") is not None else ""
@@ -1324,7 +1325,11 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
     lines.append(f"  {state}; {r.sim_duration:.0f} s of sim time in {r.wall_time:.2f} s")
     if r.left:
         lf = r.left
-        if lf.get("pv_target") is None:  # seen by a query after the plant was lost
+        if r.untouched:  # nothing was sent: where the PV is was none of the run's doing
+            # (a run refused at its start said "not back where it was" of the PV the last
+            # run's test had left moving: helper review)
+            back = "as the run found it: nothing was sent to it"
+        elif lf.get("pv_target") is None:  # seen by a query after the plant was lost
             back = "as its plant shows it once back in reach"
             was, band = lf.get("pv_before"), lf.get("band")
             if was is not None and band is not None and abs(lf["pv"] - was) > band:
