@@ -640,6 +640,21 @@ def test_a_watch_of_a_loop_in_manual_says_nothing_was_assessed():
     text = format_monitor(LoopMonitor(loop="x", node="watch", **watcher.report().to_dict()))
     assert "Not assessed: the loop was not in auto" in text, text
     assert "not oscillating" not in text
+    # nor counted oscillations: "0 detections within 50 T_u" of a watch that assessed
+    # nothing (helper review)
+    assert "oscillation detector  – (not in auto)" in text, text
+
+
+def test_a_short_watch_says_how_long_its_detector_watched():
+    """A watch of 3 T_u in auto: its detections are not "within 50 T_u" (helper review)."""
+    from services.autotuner.commands.watch import format_monitor
+
+    loop = plant()
+    auto(loop, PidGains(kc=0.5, ti=PU))
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 3)
+    text = format_monitor(LoopMonitor(loop="x", node="watch", **watcher.report().to_dict()))
+    assert "detections in the 3 T_u watched (counted over 50)" in text, text
 
 
 def test_an_output_the_noise_works_hard_is_flagged_noisy():

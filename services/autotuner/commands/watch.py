@@ -233,6 +233,9 @@ def run(args: argparse.Namespace) -> int:
     assessment = watcher.report()
     if stopped:
         assessment.notes.append(stopped)
+    if (fault := client.last_status.fault) is not None:
+        # held in manual with its PV held: "not in auto" alone hid why (helper review)
+        assessment.notes.append(f"the loop is FAULTED ({fault}): held in manual, its PV held")
     if (note := gains_note((gains.kc, gains.ti, gains.td), baseline)) is not None:
         assessment.notes.append(note)
     msg = LoopMonitor(loop=args.loop, node="watch", pv_units=info.pv_units, **assessment.to_dict())
@@ -250,9 +253,20 @@ def format_monitor(m: LoopMonitor) -> str:
     """The figures, the comparison with the tune and the flags, as a person reads them."""
     u = f" {m.pv_units}" if m.pv_units else ""
     f = m.figures
+    watched = (m.t - m.t_start) / m.period if m.period > 0 else 0.0
+    # the detector counts over 50 T_u: a shorter watch says how long it had (it said "0
+    # detections within 50 T_u" of a 1–2 T_u watch, and of one that assessed nothing:
+    # helper review)
+    within = (
+        f"within {SUPERVISION_PERIODS:g} T_u"
+        if watched >= SUPERVISION_PERIODS
+        else f"in the {watched:.2g} T_u watched (counted over {SUPERVISION_PERIODS:g})"
+    )
     osc = (
-        f"{m.detections} detections within {SUPERVISION_PERIODS:g} T_u (limit "
-        f"{m.detection_limit}), IAE limit {m.iae_limit:.3g}{u}·s"
+        f"{m.detections} detections {within} (limit {m.detection_limit}), IAE limit "
+        f"{m.iae_limit:.3g}{u}·s"
+        if m.auto_fraction > 0
+        else "– (not in auto)"
     )
     if m.oscillating:
         osc += f": OSCILLATING, period {_num(m.oscillation_period, ' s')}"
