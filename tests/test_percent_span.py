@@ -614,3 +614,23 @@ def test_a_run_that_sent_nothing_does_not_judge_where_the_pv_is():
     line = next(x for x in format_result(r).splitlines() if "left:" in x)
     assert line.endswith("PV 50.6 degC (as the run found it: nothing was sent to it)"), line
     assert "not back" not in format_result(r)
+
+
+def test_a_lag_far_slower_than_the_rest_of_its_model_is_called_an_integrator():
+    """A ramp of 0.05·e^{−2s}/(s(10s + 1)) printed "model SOPDT: K = 1.364e+07 T = 2.72e+08,
+    10.02 s" and never said integrating (helper review): K/T = 1.364e7/2.72e8 = 0.0501 per s
+    per %, the plant's 0.05."""
+    int1 = {
+        "model": "sopdt",
+        "model_gain": 1.364e7,
+        "model_lag_1": 2.72e8,
+        "model_lag_2": 10.02,
+        "model_delay": 2.0,
+    }
+    lines = format_result(hx1_result(experiment=int1)).splitlines()
+    i = next(i for i, x in enumerate(lines) if "model SOPDT" in x)
+    said = lines[i + 1].strip()
+    assert said.startswith("(its T = 2.72e+08 s is an integrator over any time that matters"), said
+    assert f"K/T = {1.364e7 / 2.72e8:.4g} per s per %, behind 10.02 s, dead time 2 s)" in said
+    # hx1's own SOPDT (lags 48.73 and 10.68 s, L 5 s): no such line
+    assert "integrator" not in format_result(hx1_result())

@@ -1202,6 +1202,8 @@ def format_result(r: TuneResult, units: str = "engineering") -> str:
                 else ""
             )
         )
+        if (slow := _integrating_lag(model)) is not None:
+            lines.append(slow)
         ts = (r.identified_on or {}).get("sample_time")
         if r.gains and isinstance(ts, int | float) and ts > 0:
             # the model rules are designed with the hold's half sample added (``selection``):
@@ -1500,6 +1502,32 @@ def _on_the_way(left: dict, pv_units: str, level: bool) -> str:
     how = "moving away from it" if sure and drift * off > 0 else "not moving back"
     stays = ": a level held at a constant output stays where it is" if level else ""
     return f"not back where it was, and {how} ({rate} over the last window watched){stays}"
+
+
+# a model's slowest lag this many times its other lags and dead time is an integrator over
+# any time a loop works on
+INTEGRATING_LAG = 1000.0
+
+
+def _integrating_lag(model: dict) -> str | None:
+    """What a fitted lag far slower than the rest of its model is: an integrator, K/T per
+    second. Why: a ramp of 0.05·e^{−2s}/(s(10s + 1)) printed "model SOPDT: K = 1.364e+07
+    T = 2.72e+08, 10.02 s" and an L/T of 2.58e-08, and never called it integrating (helper
+    review); the rules took it as it is, and its gains were verified."""
+    lags = sorted(
+        (float(v) for k, v in model.items() if k.startswith("model_lag") and v), reverse=True
+    )
+    gain, delay = model.get("model_gain"), model.get("model_delay") or 0.0
+    if not lags or not gain or model.get("model") == "ipdt":
+        return None
+    rest = sum(lags[1:]) + float(delay)
+    if not (rest > 0 and lags[0] > INTEGRATING_LAG * rest):
+        return None
+    behind = f", behind {', '.join(f'{t:.4g}' for t in lags[1:])} s" if lags[1:] else ""
+    return (
+        f"  (its T = {lags[0]:.4g} s is an integrator over any time that matters: K/T = "
+        f"{gain / lags[0]:.4g} per s per %{behind}, dead time {float(delay):.4g} s)"
+    )
 
 
 def _integrating(r: TuneResult) -> bool:
