@@ -580,10 +580,10 @@ class LoopClient:
             gone = self._gone_at if self._gone_at is not None else time.monotonic()
             paused = stalled_before(self._stalls, self._born, gone)
             why = (
-                f"this tuner was cut off from it: its own process did not run for "
+                f"this process was cut off from it: it did not run itself for "
                 f"{paused:.0f} s (paused or starved)"
                 if paused > OVERSLEPT
-                else "the plant stopped, or this tuner was cut off from it"
+                else "the plant stopped, or this process was cut off from it"
             )
             raise PlantLost(
                 f"loop {self.loop!r}: lost the plant (its liveliness token "

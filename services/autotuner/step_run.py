@@ -254,8 +254,8 @@ def run_step_test(
             f"loop restored ({before.mode}, {before.op:g} %)"
             if restored
             else f"the loop was NOT confirmed restored ({before.mode}, {before.op:g} % before "
-            "the test): the plant puts it back itself once this test's lease lapses (check it "
-            "with autotune loops)"
+            "the test): the plant, if it runs, puts it back itself once this test's lease "
+            "lapses (check it with autotune loops)"
         )
         raise StepTestAborted(f"{failed}; {left}")
     if taken is not None and info.clock == "lockstep":  # no lease: the loop cannot be stepped
