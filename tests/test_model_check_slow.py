@@ -81,6 +81,17 @@ class NestedReset(Lag):
         return super().step(op)
 
 
+class BlocksFifth(Lag):
+    """Fast, but its 5th step() blocks (up to 3 s, so a check that misses it ends)."""
+
+    def step(self, op):
+        if self.n == 4:
+            end = time.monotonic() + 3.0
+            while time.monotonic() < end:
+                time.sleep(0.01)
+        return super().step(op)
+
+
 @pytest.fixture
 def fake_clock(monkeypatch):
     CLOCK.t = 0.0
@@ -172,6 +183,19 @@ def test_a_model_that_slows_down_is_stopped_at_its_bound(tmp_path, capsys):
         "tests.test_model_check_slow:SlowsDown has taken 0.3 s of wall time in "
     ) in err, err
     assert "its bound (--model-time 0.3), and the check is not done" in err, err
+
+
+def test_a_call_that_blocks_at_the_bound_is_said_as_one(tmp_path, capsys):
+    """Four quick calls, then one that blocks past --model-time 0.3 (within its per-call
+    bound): said as the call it is, not averaged over them ("5 calls (1e+03 ms a call)":
+    helper review)."""
+    code, _, err = run_cli(
+        capsys, "model", "check", plant(tmp_path, "BlocksFifth"), "--model-time", "0.3"
+    )
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    # (its reset() and four quick step()s, then the fifth)
+    assert "has taken 0.3 s of wall time in 6 calls of this check (5 of them took " in err, err
+    assert "then one ran 0.3 s and had not returned), its bound (--model-time 0.3)" in err, err
 
 
 def test_a_nested_call_keeps_the_outer_calls_bound(tmp_path, capsys):
