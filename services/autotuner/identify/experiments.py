@@ -425,9 +425,9 @@ class Setup:
     # as a lag's do, is judged on where those steps lead (``StepTestConfig.early_approach``);
     # None: recorded before, the straight line alone until twelve samples since the move
     step_early_approach: bool | None = None
-    # True: a step test's trend toward the engineer's limits is the fitted one, without the
-    # baseline's drift where that opposes it, over the horizon and the samples to the next
-    # check (``StepTestConfig.drift_guard``); None: recorded before
+    # True: a step test's trend toward the engineer's limits is extended over the samples to
+    # the next check too, and is the fitted one without the baseline's drift where that drift
+    # opposes it (``StepTestConfig.drift_guard``); None: recorded before
     step_drift_guard: bool | None = None
     # True: the transmitter's resolution (``rest_window.RESOLUTION`` of its range) floors what
     # counts as a response to the output (a relay or step test whose PV moves within it
