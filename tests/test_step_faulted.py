@@ -31,3 +31,13 @@ def test_a_faulted_loop_is_not_stepped_nor_leased():
     with pytest.raises(StepTestAborted, match=r"not started: the loop is faulted \(model: "):
         run_step_test(client, StepTestConfig(size=5.0))
     assert not any(isinstance(c, LeaseCommand) for c in client.sent)
+
+
+def test_limits_the_pv_is_already_outside_are_refused_before_the_lease():
+    """`autotune step lvl1 --pv-limits 45 55` of a level at 1.5 m took the loop and aborted
+    "left its limits" a second in (user trial): refused before the lease, as a tune is."""
+    sim = build_plant({"loops": {"x": SPEC}}, "t")["x"]
+    client = Recording(sim)
+    with pytest.raises(StepTestAborted, match=r"the PV 50 % is already outside them"):
+        run_step_test(client, StepTestConfig(size=5.0, pv_limits=(45.0 + 10, 55.0 + 10)))
+    assert not any(isinstance(c, LeaseCommand) for c in client.sent)

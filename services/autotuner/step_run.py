@@ -156,6 +156,16 @@ def run_step_test(
         raise StepTestAborted(
             f"loop {client.loop}: not started: the loop is faulted ({before.fault})"
         )
+    lo, hi = pv_limits
+    if config.pv_limits is not None and not lo <= before.pv <= hi:
+        # limits the PV is already outside (another loop's, or in other units): refused
+        # before the lease, as a tune refuses them (`step lvl1 --pv-limits 45 55` of a level
+        # at 1.5 m took the loop and aborted "left its limits" a second in: user trial)
+        raise StepTestAborted(
+            f"loop {client.loop}: not started: --pv-limits [{lo:g}, {hi:g}]: the PV "
+            f"{before.pv:.4g}{' ' + info.pv_units if info.pv_units else ''} is already outside "
+            "them"
+        )
     test = make(before.op)  # refused before the lease where the settings cannot work
     hold = before.op  # the output held for the test (a loop in auto: its mean, below)
     restored = False

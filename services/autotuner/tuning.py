@@ -1125,7 +1125,8 @@ class TuningRun:
         # back only where found at rest there: one sample within the band says nothing of
         # where the PV is going (a relay cancelled mid-swing was "back where it was" at 50.17
         # for 49.99 ± 0.2, on its way to 50.74: helper trial); None: not known
-        returned: bool | None = (rested or None) if abs(pv - target) <= band else False
+        # (seen at rest there by the run itself: back, whatever its last noisy sample says)
+        returned: bool | None = True if rested else (None if abs(pv - target) <= band else False)
         rest_pv: float | None = None  # the mean at rest the judgement used (when waited)
         # PV units per s over the last window watched, where the PV was not found at rest
         # (toward the target: on its way back; else not: a level an aborted test left high
