@@ -7,6 +7,7 @@ from the plant: K = 2, L = 20 s, T = 1 s."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -62,3 +63,35 @@ def test_a_lag_approach_leads_to_its_end_twice_over():
 )
 def test_only_a_clear_lag_approach_is_judged_on_where_it_leads(y):
     assert _geometric_left(y, noise=0.01) is None
+
+
+def test_the_tail_does_not_judge_the_engineers_limits():
+    """A fast lag beside a slow one, e^{−20s}(31s + 2)/((s + 1)(30s + 1)) at 0.5 s: its steps
+    shrink at first as a lone lag's would (0.6 a sample), and its tail missed the slow mode's
+    ramp; toward limits at 58.5 the straight line stopped it at 55.07, the tail at 57.78, and
+    the PV went on to 58.85 (review, 4 seeds of 8). The tail judges the allowance only."""
+    spec = {
+        "model": "transfer_function",
+        "num": [31.0, 2.0],
+        "den": [30.0, 31.0, 1.0],
+        "delay": 20.0,
+        "sample_time": 0.5,
+        "noise_std": 0.01,
+        "pv_range": [0.0, 100.0],
+    }
+    sim = build_plant({"seed": 0, "loops": {"dd": spec}}, "t")["dd"]
+    req = TuneRequest(loop="dd", method="step", pv_limits=(40.0, 58.5))
+    r = TuningRun(LocalLoopClient(sim), req, "t").run()
+    assert r.status == "aborted" and "would leave its limits [40, 58.5]" in r.reason
+    assert r.pv_outside is None, r.pv_outside
+
+
+def test_a_run_recorded_before_rebuilds_without_the_tail():
+    """The set-up's flag, unset in a run recorded before, rebuilds the test without it."""
+    from services.autotuner.identify.experiments import Settings, Setup
+    from services.autotuner.identify.step_test import build
+
+    setup = Setup(sample_time=0.5, op_lo=0.0, op_hi=100.0, pv_lo=0.0, pv_hi=100.0, op_start=50.0)
+    assert build(Settings(), setup).config.early_approach is False
+    live = dataclasses.replace(setup, step_early_approach=True)
+    assert build(Settings(), live).config.early_approach is True
