@@ -25,12 +25,11 @@ TOKENS = {
     "tuner": keys.tuner_alive,
     "logger": keys.logger_alive,
 }
-DEFAULT_NODES = {"plant": "plant", "tuner": "tuner", "logger": "logger"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("service", choices=sorted(TOKENS))
-    parser.add_argument("--node", help="the service's node id (default: its default)")
+    parser.add_argument("--node", help="the service's node id (default: any node of the service)")
     parser.add_argument("--timeout", type=float, default=3.0)
     add_common_arguments(parser)
 
@@ -47,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     except ConfigError as err:
         if "Unable to connect" not in str(err):
             raise  # bad input (an endpoint, a config): exit 2
-        print(f"{args.service}: DOWN (cannot reach the bus: {err})")
+        print(f"{args.service}: DOWN (no session on the bus: {err})")
         return 1
     with session:
         up = wait_for_token(session, key, args.timeout)

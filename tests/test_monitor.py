@@ -655,6 +655,11 @@ def test_a_short_watch_says_how_long_its_detector_watched():
     run(loop, watcher, 3)
     text = format_monitor(LoopMonitor(loop="x", node="watch", **watcher.report().to_dict()))
     assert "detections in the 3 T_u watched (counted over 50)" in text, text
+    # a full watch is one: its t − t_start spans one sample fewer (review)
+    watcher = Watcher(settings(loop))
+    run(loop, watcher, 50)
+    text = format_monitor(LoopMonitor(loop="x", node="watch", **watcher.report().to_dict()))
+    assert "detections within 50 T_u (limit" in text, text
 
 
 def test_an_output_the_noise_works_hard_is_flagged_noisy():

@@ -665,3 +665,31 @@ def test_an_ok_run_is_back_where_it_was_as_its_verification_saw():
     r = run(client, method="relay")
     assert r.status == "ok", r.reason
     assert r.left["returned"] is True, r.left
+
+
+class _TakenBack(LocalLoopClient):
+    """As the plant's watchdog (or its lease's PV limits) would: the loop taken back to its
+    state before the test as the run's release is read, then moved on (review)."""
+
+    def _apply(self, cmd):
+        if isinstance(cmd, ReleaseCommand) and self._held_from is not None:
+            self.sim.restore(self._held_from)
+            self.lease, self._held_from = None, None
+            self.sim.apply(ModeCommand(loop=self.loop, mode="manual"))
+            for _ in range(200):
+                self.last_sample = self.sim.advance()
+            return
+        super()._apply(cmd)
+
+
+def test_a_run_whose_loop_was_taken_back_is_not_back_as_its_verification_saw():
+    """Verified, then taken back (to manual, its PV still near the setpoint) before the run
+    let go: not "back where it was" on the verification's word, which was of another loop
+    (it said so of a PV at 79.96 for 50 ± 0.1: review); its last sample alone, not waited
+    for, says nothing."""
+    spec = {"model": "fopdt", "gain": 1.0, "time_constant": 3.0, "delay": 0.5}
+    cfg = {**spec, "sample_time": 0.1, "noise_std": 0.01, "pid": {"kc": 0.5, "ti": 5.0}}
+    sim = build_plant({"seed": 0, "loops": {"x": cfg}}, "t")["x"]
+    r = run(_TakenBack(sim), method="relay")
+    assert r.status == "aborted", r.reason
+    assert r.left["mode"] == "manual" and r.left["returned"] is None, r.left

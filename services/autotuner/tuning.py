@@ -597,7 +597,8 @@ class TuningRun:
                 result["reason"] = f"{result.get('reason')}; {_unknown_state(c)}"
             return self._result(result, t0, wall0, left)
         # the verification saw the loop back at rest on its setpoint (``back_at_rest``) before
-        # the gains it passed were left on: its last sample within the band says as much
+        # the gains it passed were left on: its last sample near it (within the band and 4σ
+        # of noise more) says as much
         rested = result.get("status") in APPLIED_STATUSES and bool(
             (result.get("acceptance") or {}).get("passed")
         )
@@ -611,6 +612,11 @@ class TuningRun:
         )
         if result.get("status") in APPLIED_STATUSES and left is not None:
             self._check_kept(result, before, left)
+            if result.get("status") not in APPLIED_STATUSES and rested:
+                # the loop was not left as the verification saw it (taken back, changed):
+                # its last sample alone, as for any run not waited for (review)
+                near = abs(left["pv"] - left["pv_target"]) <= left["band"]
+                left["returned"] = None if near else False
         if result.get("status") in APPLIED_STATUSES and unreleased:
             # the gains went on and were confirmed, but not the release: a plant paused
             # meanwhile may take the loop back when its lease lapses, undoing them
@@ -959,7 +965,10 @@ class TuningRun:
         kept = kept_pace(
             self.info.clock, self.info.speed, result["sim_duration"], result["wall_time"]
         )
-        if kept is not None:
+        # (not where the run lost its plant, or did not run itself: the wall time it spent
+        # so is none of the plant's models' doing: review)
+        stalled_run = stall_watch().stalled(wall0) > OVERSLEPT
+        if kept is not None and not getattr(self.client, "gone", False) and not stalled_run:
             result["warnings"] = [
                 *result.get("warnings", []),
                 f"the plant kept {100 * kept:.0f} % of the realtime clock's ×{self.info.speed:g} "
@@ -1125,8 +1134,10 @@ class TuningRun:
         # back only where found at rest there: one sample within the band says nothing of
         # where the PV is going (a relay cancelled mid-swing was "back where it was" at 50.17
         # for 49.99 ± 0.2, on its way to 50.74: helper trial); None: not known
-        # (seen at rest there by the run itself: back, whatever its last noisy sample says)
-        returned: bool | None = True if rested else (None if abs(pv - target) <= band else False)
+        # (seen at rest there by the run itself: back, its last sample within the band and
+        # 4σ of the noise more; a flow loop's last sample 5σ off read "not back")
+        near = abs(pv - target) <= band + (4.0 * max(self.info.noise_std, 0.0) if rested else 0.0)
+        returned: bool | None = (True if rested else None) if near else False
         rest_pv: float | None = None  # the mean at rest the judgement used (when waited)
         # PV units per s over the last window watched, where the PV was not found at rest
         # (toward the target: on its way back; else not: a level an aborted test left high

@@ -686,11 +686,10 @@ class PlantService:
                 # nothing said so (a 20 ms step at ×20 kept ×10: helper trial)
                 said = time.monotonic()
                 log.warning(
-                    "the realtime clock is %.3g s of wall time behind (loops of T = %g s at "
-                    "×%g): their steps take longer than their periods allow, so sim time runs "
-                    "slower than asked (%d sample(s) late so far)",
+                    "the realtime clock is %.3g s of wall time behind at ×%g: the loops' "
+                    "steps take longer than their periods allow (or this process did not run), "
+                    "so sim time runs slower than asked (%d sample(s) late so far)",
                     -wait,
-                    groups[i].sample_time,
                     self.opt.speed,
                     self.overruns,
                 )
@@ -764,7 +763,6 @@ class PlantService:
         # and watched for as long as it serves: a process whose claim this one's check did
         # not yet see (two started within milliseconds: both served a loop, 3 tries in 10)
         # is found when its instance token reaches this one (``_on_plant``)
-        shell.announce(keys.service_instance(prefix, SERVICE, self.opt.node, self.instance))
         shell.subscribe(
             keys.service_instance(prefix, SERVICE, keys.ANY, keys.ANY),
             self._on_plant,
@@ -775,6 +773,9 @@ class PlantService:
         try:
             check_not_served(self.session, prefix, set(self.loops))
             self._claim_ok = True
+            # announced once the check passed: a process it refuses never claimed (the others
+            # logged that one "also serves" their loops and "stops": review)
+            shell.announce(keys.service_instance(prefix, SERVICE, self.opt.node, self.instance))
         except ConfigError:
             self._claimed.set()
             shell.withdraw()

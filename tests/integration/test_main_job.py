@@ -285,7 +285,7 @@ def test_health_says_down_when_nothing_runs():
         "--no-multicast-scouting",
     )
     assert run.returncode == 1, run.stderr
-    assert run.stdout.startswith("plant: DOWN (cannot reach the bus: "), run.stdout
+    assert run.stdout.startswith("plant: DOWN (no session on the bus: "), run.stdout
 
 
 def test_health_finds_a_plant_under_its_own_node(start_plant):

@@ -253,13 +253,15 @@ def format_monitor(m: LoopMonitor) -> str:
     """The figures, the comparison with the tune and the flags, as a person reads them."""
     u = f" {m.pv_units}" if m.pv_units else ""
     f = m.figures
-    watched = (m.t - m.t_start) / m.period if m.period > 0 else 0.0
+    # (t − t_start spans n − 1 sample periods: a default watch of 50 T_u counts as one)
+    full = (m.t - m.t_start) * m.samples / (m.samples - 1) if m.samples > 1 else 0.0
+    watched = full / m.period if m.period > 0 else 0.0
     # the detector counts over 50 T_u: a shorter watch says how long it had (it said "0
     # detections within 50 T_u" of a 1–2 T_u watch, and of one that assessed nothing:
     # helper review)
     within = (
         f"within {SUPERVISION_PERIODS:g} T_u"
-        if watched >= SUPERVISION_PERIODS
+        if watched >= SUPERVISION_PERIODS * (1.0 - 1e-9)
         else f"in the {watched:.2g} T_u watched (counted over {SUPERVISION_PERIODS:g})"
     )
     osc = (

@@ -49,7 +49,8 @@ from shared.control.transfer import DelayedTF
 # 2,000 (≥ 60): hx1's steps then ran at 0.655 s, not its 0.25 s, and the table's "OS %" read
 # 66.1 for ZN PID's 63.4 on the loop as sampled (helper audit: 83.0 for 79.0, 104.8 for
 # 100.7, 90.8 for 86.0 on other loops), over the 25 % a calm rule is held to. At the loop's
-# own T the fifteen rules' steps on hx1 take 0.14 s against 0.05 s
+# own T the fifteen rules' steps on hx1 (5,240 samples) take 0.14 s against 0.05 s; at the
+# cap, 0.5-0.7 s (review), in the tuner's workers
 MAX_SAMPLES = 20_000
 BLOWN = 1e6  # a response past this many steps has left any linear loop's range: unstable
 UNSETTLED = 1e-3  # a response whose last fifth moves more than this (× the step) is unsettled
