@@ -29,7 +29,7 @@ sample_time = 0.1
 INSTANCE = "0123456789ab"
 
 
-def _claim(session, prefix: str, started: float):
+def _claim(session, prefix: str, started: float | None):
     """A plant process of node 'other' that serves loop x and started at ``started``."""
     status = ServiceStatus(
         node="other",
@@ -51,10 +51,11 @@ def _claim(session, prefix: str, started: float):
     return queryable, token
 
 
-def test_a_plant_that_started_later_stops_naming_the_other(start_plant):
+@pytest.mark.parametrize("started", [0.0, None])  # None: a plant that does not say
+def test_a_plant_that_started_later_stops_naming_the_other(start_plant, started):
     plant = start_plant(PLANT, loops=("x",))
     with open_session(plant.client_settings()) as s:
-        held = _claim(s, plant.prefix, started=0.0)  # long before the plant
+        held = _claim(s, plant.prefix, started=started)  # long before the plant, or unsaid
         assert plant.proc.wait(timeout=30) == 2, plant.stderr()
         del held
     err = plant.stderr()
