@@ -53,3 +53,8 @@ def test_a_loop_with_the_design_settings_is_told_nothing():
 def test_only_what_changed_and_matters_is_said(before, applied, weighted, said):
     note = settings_note(before, applied, weighted)
     assert note is None if said is None else said in note
+
+
+def test_gains_applied_unverified_are_not_said_verified():
+    note = settings_note(PidGains(kc=1, n=3), PidGains(kc=2, td=1), verified=False)
+    assert "designed and predicted with N 10" in note and "verified" not in note

@@ -1474,7 +1474,7 @@ class TuningRun:
         sp0 = b.sp if b.mode == "auto" else self._pv_rest
         if not req.verify:
             self._set_auto(new, sp0)
-            kept = settings_note(b.gains, new)
+            kept = settings_note(b.gains, new, verified=False)
             return {"applied": True, "notes": [kept] if kept else []}
         if (why := p_only_problem(new, ident, self.req.rule)) is not None:
             raise TuneRefused(why)  # before anything is switched: the loop as it was
@@ -2740,23 +2740,25 @@ PACE_WALL = 5.0
 def kept_pace(clock: str, speed: float, sim: float, wall: float) -> float | None:
     """The share of its clock's ``speed`` a realtime plant kept over a run (``sim`` s of sim
     time in ``wall`` s of wall time), where it is under ``PACE_KEPT``; None otherwise, and on
-    the lockstep clock. Why: a model slower than its period (20 ms a step at ×20, 1 ms
-    allowed) made a plant run at ×10, and neither the plant nor the result said so (helper
-    trial)."""
+    the lockstep clock. Why: a model slower than its period (a user's model sleeping 20 ms a
+    step, at ×20) made a plant run at ×10, and neither the plant nor the result said so
+    (helper trial)."""
     if clock != "realtime" or not (speed > 0 and wall >= PACE_WALL and sim >= 0):
         return None
     kept = sim / (speed * wall)
     return kept if kept < PACE_KEPT else None
 
 
-def settings_note(before: PidGains, applied: PidGains, weighted: bool = False) -> str | None:
+def settings_note(
+    before: PidGains, applied: PidGains, weighted: bool = False, verified: bool = True
+) -> str | None:
     """What the applied gains changed of the loop's own settings beyond Kc, Ti and Td: its
     derivative filter N (where they have a derivative) and its setpoint weight β (unless the
     verification ``weighted`` the step: its own note says why); None: the same. Why: the
     design, its robustness figures and its predicted steps are for N = 10 and β = 1, so
     those are applied; a loop set up with N 3 and β 0.5 was left at N 10 and β 1 and nothing
     said so (helper audit), and ``autotune set`` keeps N: ``autotune revert`` gives back the
-    loop's own."""
+    loop's own. ``verified``: False for gains applied without a verification (--no-verify)."""
     changed = []
     if applied.td > 0 and applied.n != before.n:
         changed.append(f"derivative filter N {before.n:g} → {applied.n:g}")
@@ -2765,8 +2767,9 @@ def settings_note(before: PidGains, applied: PidGains, weighted: bool = False) -
     if not changed:
         return None
     return (
-        f"the loop's {' and '.join(changed)}: the gains were designed, predicted and verified "
-        f"with N {applied.n:g} and β {applied.beta:g}, and are applied so (`autotune revert` "
+        f"the loop's {' and '.join(changed)}: the gains were "
+        + ("designed, predicted and verified" if verified else "designed and predicted")
+        + f" with N {applied.n:g} and β {applied.beta:g}, and are applied so (`autotune revert` "
         "gives back the loop's own settings with its old gains)"
     )
 
