@@ -69,6 +69,8 @@ from shared.session import settings_from_args
 log = logging.getLogger("plant_sim")
 
 SERVICE = "plant_sim"
+# s between the questions to a plant process that did not answer what it serves
+CLAIM_RETRY = 2.0
 # s of wall time the realtime clock may fall behind before it says so, and then at most
 # once in BEHIND_EVERY s
 BEHIND = 1.0
@@ -177,6 +179,7 @@ class PlantService:
         # a process the check refuses says it once, in the check's words
         self._claimed = threading.Event()
         self._claim_ok = False
+        self._gone_instances: set[str] = set()  # other plant runs whose token went
         self.publishers = Publishers(session)
         # realtime: the loops stepped by sample time, linear ones as arrays; a loop is read or
         # changed only checked out of them (``_fresh``), and taken back by ``_settle``
@@ -838,17 +841,40 @@ class PlantService:
         the instance ids, which both compare the same way."""
         prefix = self.opt.prefix
         parsed = keys.parse_service_instance(prefix, SERVICE, str(sample.key_expr))
-        if parsed is None or sample.kind != zenoh.SampleKind.PUT or parsed[1] == self.instance:
+        if parsed is None or parsed[1] == self.instance:
+            return
+        if sample.kind != zenoh.SampleKind.PUT:
+            self._gone_instances.add(parsed[1])
             return
         if not self._claimed.wait(2.0 * CLAIM_TIMEOUT) or not self._claim_ok:
             return  # refused at the start, in the check's words
-        node, instance = parsed
-        key = keys.service_status(prefix, SERVICE, node)
+        if not self._judge_claim(*parsed):
+            # no answer (a process paused, or starved): asked again while its token lives,
+            # so that one paused through this one's start is judged once it runs (both had
+            # served its loops when it resumed: review)
+            threading.Thread(
+                target=self._ask_again, args=parsed, name="plant-claim", daemon=True
+            ).start()
+
+    def _ask_again(self, node: str, instance: str) -> None:
+        """``_judge_claim`` every ``CLAIM_RETRY`` s until the process answers, its token goes
+        or this one stops."""
+        stop = self._stop
+        while stop is not None and not stop.wait(CLAIM_RETRY):
+            if instance in self._gone_instances or self._judge_claim(node, instance):
+                return
+
+    def _judge_claim(self, node: str, instance: str) -> bool:
+        """Ask plant process ``node``'s run ``instance`` what it serves and act on it (the
+        later started of two on one loop stops); False where it did not answer."""
+        key = keys.service_status(self.opt.prefix, SERVICE, node)
         answers = wire.query_all(self.session, key, ServiceStatus, CLAIM_TIMEOUT)
         other = next((st for st in answers if st.instance == instance), None)
-        both = sorted(set(other.loops) & set(self.loops)) if other is not None else []
-        if other is None or not both:
-            return
+        if other is None:
+            return False
+        both = sorted(set(other.loops) & set(self.loops))
+        if not both:
+            return True
         theirs = (other.started if other.started is not None else 0.0, instance)
         if theirs < (self.started, self.instance):
             self.yielded = (
@@ -868,6 +894,7 @@ class PlantService:
                 instance,
                 _some(both),
             )
+        return True
 
 
 def _some(ids: list[str], limit: int = 20) -> str:

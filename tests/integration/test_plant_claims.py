@@ -8,6 +8,7 @@ or after the plant's, once the plant's own start check is over (its loop's token
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
@@ -74,3 +75,40 @@ def test_a_plant_that_started_first_goes_on_and_says_the_other_stops(start_plant
     err = plant.stderr()
     assert "plant process 'other' (instance 0123456789ab), started after this one, also " in err
     assert plant.proc.poll() is None, err  # still serving
+
+
+def test_a_plant_that_did_not_answer_is_asked_again_once_it_runs(start_plant):
+    """A process paused through this one's start (its token alive, its queryable silent) is
+    asked again while its token lives, and judged once it answers: both had served the loop
+    when it resumed (review)."""
+    plant = start_plant(PLANT, loops=("x",))
+    asked, answer = threading.Event(), threading.Event()
+    status = ServiceStatus(
+        node="other",
+        clock="lockstep",
+        speed=1.0,
+        loops={"x": 0.0},
+        accepted=0,
+        rejected=0,
+        rejected_by_reason={},
+        overruns=0,
+        instance=INSTANCE,
+        started=0.0,
+    )
+    key = keys.service_status(plant.prefix, "plant_sim", "other")
+
+    def on_query(q):
+        asked.set()
+        if answer.is_set():  # paused until then: asked, silent
+            wire.reply(q, key, status)
+
+    with open_session(plant.client_settings()) as s:
+        queryable = s.declare_queryable(key, on_query)
+        token = s.liveliness().declare_token(
+            keys.service_instance(plant.prefix, "plant_sim", "other", INSTANCE)
+        )
+        assert asked.wait(30), plant.stderr()  # asked once, no answer
+        answer.set()  # resumed
+        assert plant.proc.wait(timeout=30) == 2, plant.stderr()
+        del queryable, token
+    assert "also served by plant process 'other'" in plant.stderr()
