@@ -30,8 +30,15 @@ sample_time = 0.1
 INSTANCE = "0123456789ab"
 
 
-def _claim(session, prefix: str, started: float | None):
-    """A plant process of node 'other' that serves loop x and started at ``started``."""
+def _claim(
+    session,
+    prefix: str,
+    started: float | None,
+    asked: threading.Event | None = None,
+    answer: threading.Event | None = None,
+):
+    """A plant process of node 'other' that serves loop x and started at ``started``;
+    ``asked`` set at each query, answered only once ``answer`` is set (None: at once)."""
     status = ServiceStatus(
         node="other",
         clock="lockstep",
@@ -45,7 +52,14 @@ def _claim(session, prefix: str, started: float | None):
         started=started,
     )
     key = keys.service_status(prefix, "plant_sim", "other")
-    queryable = session.declare_queryable(key, lambda q: wire.reply(q, key, status))
+
+    def on_query(q):
+        if asked is not None:
+            asked.set()
+        if answer is None or answer.is_set():  # else paused: asked, silent
+            wire.reply(q, key, status)
+
+    queryable = session.declare_queryable(key, on_query)
     token = session.liveliness().declare_token(
         keys.service_instance(prefix, "plant_sim", "other", INSTANCE)
     )
@@ -83,32 +97,10 @@ def test_a_plant_that_did_not_answer_is_asked_again_once_it_runs(start_plant):
     when it resumed (review)."""
     plant = start_plant(PLANT, loops=("x",))
     asked, answer = threading.Event(), threading.Event()
-    status = ServiceStatus(
-        node="other",
-        clock="lockstep",
-        speed=1.0,
-        loops={"x": 0.0},
-        accepted=0,
-        rejected=0,
-        rejected_by_reason={},
-        overruns=0,
-        instance=INSTANCE,
-        started=0.0,
-    )
-    key = keys.service_status(plant.prefix, "plant_sim", "other")
-
-    def on_query(q):
-        asked.set()
-        if answer.is_set():  # paused until then: asked, silent
-            wire.reply(q, key, status)
-
     with open_session(plant.client_settings()) as s:
-        queryable = s.declare_queryable(key, on_query)
-        token = s.liveliness().declare_token(
-            keys.service_instance(plant.prefix, "plant_sim", "other", INSTANCE)
-        )
+        held = _claim(s, plant.prefix, 0.0, asked, answer)
         assert asked.wait(30), plant.stderr()  # asked once, no answer
         answer.set()  # resumed
         assert plant.proc.wait(timeout=30) == 2, plant.stderr()
-        del queryable, token
+        del held
     assert "also served by plant process 'other'" in plant.stderr()
